@@ -1,0 +1,63 @@
+//! The run trace: one row per plant sample, in SI units.
+//!
+//! Column meaning (issue 2): `u_d, u_q` in row k are the voltages the plant applied on
+//! `[t_k, t_{k+1})`; speeds are mechanical rad/s, angles electrical rad.
+
+use serde::{Deserialize, Serialize};
+
+/// One row of `trace.csv`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct TraceRow {
+    /// Sample index k.
+    pub k: u64,
+    /// Ideal sample instant t_k = k * Ts, s.
+    pub t: f64,
+    /// Speed reference (after the speed loop's input, before the prefilter), mechanical rad/s.
+    pub omega_ref: f64,
+    /// True rotor speed, mechanical rad/s.
+    pub omega_m: f64,
+    /// Estimated rotor speed (observer), mechanical rad/s.
+    pub omega_hat: f64,
+    /// True electrical angle, rad, wrapped to [0, 2π).
+    pub theta_e: f64,
+    /// Estimated electrical angle, rad, wrapped to [0, 2π).
+    pub theta_hat: f64,
+    /// d-axis current reference used by the current loop at k, A.
+    pub i_d_ref: f64,
+    /// q-axis current reference used by the current loop at k, A.
+    pub i_q_ref: f64,
+    /// True d-axis current, A.
+    pub i_d: f64,
+    /// True q-axis current, A.
+    pub i_q: f64,
+    /// d-axis voltage applied on [t_k, t_{k+1}), V.
+    pub u_d: f64,
+    /// q-axis voltage applied on [t_k, t_{k+1}), V.
+    pub u_q: f64,
+    /// Load torque applied on [t_k, t_{k+1}), N·m.
+    pub t_load: f64,
+    /// 1 if the plant held a stale command or went to its safe state at k (deadline miss), else 0.
+    pub miss: u8,
+}
+
+/// Writes rows to a CSV file with a header line.
+pub fn write_csv(path: &std::path::Path, rows: &[TraceRow]) -> anyhow::Result<()> {
+    let mut w = csv::Writer::from_path(path)
+        .map_err(|e| anyhow::anyhow!("cannot create {}: {e}", path.display()))?;
+    for r in rows {
+        w.serialize(r)?;
+    }
+    w.flush()?;
+    Ok(())
+}
+
+/// Reads a trace written by [`write_csv`].
+pub fn read_csv(path: &std::path::Path) -> anyhow::Result<Vec<TraceRow>> {
+    let mut r = csv::Reader::from_path(path)
+        .map_err(|e| anyhow::anyhow!("cannot read {}: {e}", path.display()))?;
+    let mut rows = Vec::new();
+    for rec in r.deserialize() {
+        rows.push(rec.map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?);
+    }
+    Ok(rows)
+}
