@@ -1,5 +1,19 @@
 //! drivelab shared library: message types, PMSM model, transforms, control laws,
 //! observers, timing/RT setup, bus helpers and configuration types.
+//!
+//! Control maths are pure step functions (`fn step(&mut self, input) -> output`), unit-tested
+//! without a bus; the services in `services/` only set up, loop and hand messages over.
 
+pub mod bus;
+pub mod config;
+pub mod control;
+pub mod doctor;
+pub mod drive;
+pub mod messages;
+pub mod metrics;
+pub mod motor;
+pub mod observer;
 pub mod plot;
+pub mod rt;
 pub mod trace;
+pub mod transforms;

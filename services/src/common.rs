@@ -1,0 +1,193 @@
+//! What every service does the same way: arguments, signals, RT setup, the start handshake
+//! with the launcher, and the statistics file written at exit.
+
+use anyhow::{anyhow, Context, Result};
+use clap::{Parser, ValueEnum};
+use drivelab::config::Scenario;
+use drivelab::rt::{setup_rt, RtPolicy, RtReport, RtRequest};
+use serde::Serialize;
+use std::io::Write;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+/// How the plant paces the samples.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BusClock {
+    /// Plant sleeps to absolute deadlines; a late command is a deadline miss.
+    Realtime,
+    /// Plant waits for each command; no wall clock; reproducible bit for bit.
+    Lockstep,
+}
+
+/// Arguments shared by the four service binaries (normally given by `drivelab run`).
+#[derive(Debug, Parser)]
+pub struct ServiceArgs {
+    /// Resolved scenario file (TOML), as written by `drivelab run` into the run folder.
+    #[arg(long)]
+    pub scenario: PathBuf,
+    /// Bus id: isolates this drive's shared memory (1-24 characters of A-Z, a-z, 0-9, _).
+    #[arg(long)]
+    pub bus: String,
+    /// Pacing of the cycle.
+    #[arg(long, value_enum, default_value_t = BusClock::Realtime)]
+    pub clock: BusClock,
+    /// Fail instead of warning when a core, SCHED_FIFO priority or mlock is refused.
+    #[arg(long)]
+    pub rt_strict: bool,
+    /// Skip pinning, SCHED_FIFO and mlock entirely.
+    #[arg(long)]
+    pub no_rt: bool,
+    /// Folder for this service's statistics file (`<service>.stats.json`).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Plant only: in lockstep, do not run more than half a recorder buffer ahead of the
+    /// recorder (so that it never loses a sample).
+    #[arg(long)]
+    pub recorder: bool,
+}
+
+static STOP: AtomicBool = AtomicBool::new(false);
+
+extern "C" fn on_signal(_sig: libc::c_int) {
+    STOP.store(true, Ordering::SeqCst);
+}
+
+/// Installs SIGINT/SIGTERM handlers that set the stop flag (iceoryx2's own handling is off).
+pub fn install_signal_handlers() -> Result<()> {
+    for sig in [libc::SIGINT, libc::SIGTERM] {
+        // SAFETY: `sigaction` is given a zero-initialised struct whose handler is an
+        // `extern "C"` function that only stores to an atomic, which is async-signal-safe.
+        let rc = unsafe {
+            let mut sa: libc::sigaction = std::mem::zeroed();
+            sa.sa_sigaction = on_signal as *const () as libc::sighandler_t;
+            libc::sigemptyset(&mut sa.sa_mask);
+            libc::sigaction(sig, &sa, std::ptr::null_mut())
+        };
+        if rc != 0 {
+            return Err(anyhow!(
+                "cannot install handler for signal {sig}: {}",
+                std::io::Error::last_os_error()
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// True once SIGINT or SIGTERM arrived.
+pub fn stop_requested() -> bool {
+    STOP.load(Ordering::Relaxed)
+}
+
+/// Loads the (already validated) scenario a service was given.
+pub fn load_scenario(args: &ServiceArgs) -> Result<Scenario> {
+    let text = std::fs::read_to_string(&args.scenario)
+        .with_context(|| format!("cannot read scenario {}", args.scenario.display()))?;
+    Scenario::from_toml(&text, &args.scenario.display().to_string()).map_err(|e| anyhow!(e))
+}
+
+/// Applies the scenario's placement for `service` and prints the one-line report to stderr.
+/// Also sends `RT <json>` on stdout for the launcher.
+pub fn apply_placement(service: &str, sc: &Scenario, args: &ServiceArgs) -> Result<RtReport> {
+    let p = sc
+        .placement
+        .get(service)
+        .ok_or_else(|| anyhow!("unknown service '{service}'"))?;
+    let req = if args.no_rt {
+        RtRequest {
+            core: None,
+            fifo_priority: None,
+            lock_memory: false,
+            prefault_stack_bytes: 0,
+        }
+    } else {
+        RtRequest {
+            core: p.core,
+            fifo_priority: p.priority,
+            lock_memory: true,
+            prefault_stack_bytes: 256 * 1024,
+        }
+    };
+    let policy = if args.rt_strict {
+        RtPolicy::Strict
+    } else {
+        RtPolicy::Warn
+    };
+    let report = setup_rt(&req, policy).map_err(|e| anyhow!("{service}: {e}"))?;
+    eprintln!("{}", report.one_line(service));
+    protocol_line(&format!("RT {}", serde_json::to_string(&report)?))?;
+    Ok(report)
+}
+
+/// Writes one protocol line to stdout (to the launcher) and flushes it.
+pub fn protocol_line(line: &str) -> Result<()> {
+    let mut out = std::io::stdout().lock();
+    writeln!(out, "{line}")?;
+    out.flush()?;
+    Ok(())
+}
+
+/// Tells the launcher this service's ports exist.
+pub fn ready() -> Result<()> {
+    protocol_line("READY")
+}
+
+/// Counters every service keeps (no allocation in the loop: plain integers).
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct Counters {
+    /// Samples processed.
+    pub samples: u64,
+    /// Inputs that were not there (or not the expected index) when needed.
+    pub stale_inputs: u64,
+    /// Inputs rejected because they held NaN/∞ or an index that went backwards.
+    pub rejected_inputs: u64,
+    /// Plant only: samples that used a held or safe command (deadline misses).
+    pub deadline_misses: u64,
+    /// Plant only: longest run of consecutive misses.
+    pub longest_miss_run: u64,
+    /// Plant only: commands that arrived after their deadline and were discarded.
+    pub late_commands: u64,
+}
+
+/// Statistics file of one service.
+#[derive(Debug, Serialize)]
+pub struct ServiceStats<'a> {
+    /// Service name.
+    pub service: &'a str,
+    /// Process id.
+    pub pid: u32,
+    /// RT setup report.
+    pub rt: &'a RtReport,
+    /// Counters.
+    pub counters: Counters,
+}
+
+/// Writes `<out>/<service>.stats.json` if an output folder was given.
+pub fn write_stats(args: &ServiceArgs, stats: &ServiceStats) -> Result<()> {
+    if let Some(dir) = &args.out {
+        let p = dir.join(format!("{}.stats.json", stats.service));
+        std::fs::write(&p, serde_json::to_vec_pretty(stats)?)
+            .with_context(|| format!("write {}", p.display()))?;
+    }
+    Ok(())
+}
+
+/// Runs a service's `main`: prints a one-line error and exits non-zero on failure.
+pub fn service_main(
+    name: &str,
+    f: impl FnOnce(ServiceArgs) -> Result<()>,
+) -> std::process::ExitCode {
+    let args = ServiceArgs::parse();
+    if let Err(e) = install_signal_handlers().and_then(|_| f(args)) {
+        eprintln!("{name}: error: {e:#}");
+        return std::process::ExitCode::from(1);
+    }
+    std::process::ExitCode::SUCCESS
+}
+
+/// Poll period of waits that must also notice a stop request, ms.
+pub const WAIT_SLICE: std::time::Duration = std::time::Duration::from_millis(50);
+
+/// In lockstep, how long a service waits for its input before it gives up (the upstream
+/// process is considered gone).
+pub const LOCKSTEP_WATCHDOG: std::time::Duration = std::time::Duration::from_secs(10);

@@ -1,0 +1,8 @@
+//! The drive's processes. Each binary in `src/bin/` is a thin `main` that calls one of the
+//! service loops here; the control maths live in `drivelab-shared`.
+
+pub mod common;
+pub mod current_loop;
+pub mod observer;
+pub mod plant;
+pub mod speed_loop;

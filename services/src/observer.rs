@@ -1,0 +1,67 @@
+//! The observer process: measurement k → estimate k.
+
+use crate::common::*;
+use anyhow::{anyhow, Result};
+use drivelab::bus::{self, DriveTopics};
+use drivelab::drive::ObserverStep;
+use drivelab::messages::{Estimate, Finite};
+use drivelab::rt::now_ns;
+use std::time::Instant;
+
+/// Runs the observer service.
+pub fn run(args: ServiceArgs) -> Result<()> {
+    let sc = load_scenario(&args)?;
+    let node = bus::node(&args.bus, "observer")?;
+    let topics = DriveTopics::open(&node)?;
+    let meas_rx = topics.meas.receiver(64)?;
+    let est_tx = topics.est.sender()?;
+    let report = apply_placement("observer", &sc, &args)?;
+    let mut obs = ObserverStep::new(&sc);
+    let mut c = Counters::default();
+    let mut last_k: Option<u64> = None;
+    let mut last_input = Instant::now();
+    ready()?;
+    // ---- real-time loop ----
+    'outer: while !stop_requested() {
+        meas_rx.wait(WAIT_SLICE)?;
+        while let Some(m) = meas_rx.try_recv()? {
+            last_input = Instant::now();
+            if m.hdr.is_end() {
+                est_tx.send(Estimate {
+                    hdr: m.hdr,
+                    ..Default::default()
+                })?;
+                break 'outer;
+            }
+            if !m.is_finite() || last_k.is_some_and(|l| m.hdr.k <= l) {
+                c.rejected_inputs += 1;
+                continue;
+            }
+            if let Some(l) = last_k {
+                c.stale_inputs += m.hdr.k - l - 1;
+            }
+            last_k = Some(m.hdr.k);
+            let mut est = obs.step(&m);
+            est.hdr.t_pub_ns = now_ns();
+            est_tx.send(est)?;
+            c.samples += 1;
+        }
+        if args.clock == BusClock::Lockstep
+            && last_k.is_some()
+            && last_input.elapsed() > LOCKSTEP_WATCHDOG
+        {
+            return Err(anyhow!(
+                "no measurement from plant for {LOCKSTEP_WATCHDOG:?}"
+            ));
+        }
+    }
+    write_stats(
+        &args,
+        &ServiceStats {
+            service: "observer",
+            pid: std::process::id(),
+            rt: &report,
+            counters: c,
+        },
+    )
+}

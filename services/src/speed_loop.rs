@@ -1,0 +1,68 @@
+//! The speed-loop process: every N-th estimate → current reference.
+
+use crate::common::*;
+use anyhow::{anyhow, Result};
+use drivelab::bus::{self, DriveTopics};
+use drivelab::drive::SpeedLoopStep;
+use drivelab::messages::{CurrentRef, Finite};
+use drivelab::rt::now_ns;
+use std::time::Instant;
+
+/// Runs the speed-loop service.
+pub fn run(args: ServiceArgs) -> Result<()> {
+    let sc = load_scenario(&args)?;
+    let node = bus::node(&args.bus, "speed-loop")?;
+    let topics = DriveTopics::open(&node)?;
+    let est_rx = topics.est.receiver(64)?;
+    let iref_tx = topics.iref.sender()?;
+    let report = apply_placement("speed-loop", &sc, &args)?;
+    let mut ctrl = SpeedLoopStep::new(&sc);
+    let mut c = Counters::default();
+    let mut last_k: Option<u64> = None;
+    let mut last_input = Instant::now();
+    ready()?;
+    // ---- real-time loop ----
+    'outer: while !stop_requested() {
+        est_rx.wait(WAIT_SLICE)?;
+        while let Some(e) = est_rx.try_recv()? {
+            last_input = Instant::now();
+            if e.hdr.is_end() {
+                iref_tx.send(CurrentRef {
+                    hdr: e.hdr,
+                    ..Default::default()
+                })?;
+                break 'outer;
+            }
+            if !e.is_finite() || last_k.is_some_and(|l| e.hdr.k <= l) {
+                c.rejected_inputs += 1;
+                continue;
+            }
+            if let Some(l) = last_k {
+                c.stale_inputs += e.hdr.k - l - 1;
+            }
+            last_k = Some(e.hdr.k);
+            if let Some(mut r) = ctrl.step(&e) {
+                r.hdr.t_pub_ns = now_ns();
+                iref_tx.send(r)?;
+                c.samples += 1;
+            }
+        }
+        if args.clock == BusClock::Lockstep
+            && last_k.is_some()
+            && last_input.elapsed() > LOCKSTEP_WATCHDOG
+        {
+            return Err(anyhow!(
+                "no estimate from observer for {LOCKSTEP_WATCHDOG:?}"
+            ));
+        }
+    }
+    write_stats(
+        &args,
+        &ServiceStats {
+            service: "speed-loop",
+            pid: std::process::id(),
+            rt: &report,
+            counters: c,
+        },
+    )
+}

@@ -1,0 +1,269 @@
+//! iceoryx2 helpers: an isolated bus per run (its own file prefix and root path), the
+//! four topics, and their wake-up events.
+//!
+//! Files of bus `ID` live in `/dev/shm/iox2_dl<ID>_*` and `/tmp/iceoryx2/dl<ID>/`; [`cleanup`]
+//! removes both, so that tests can run side by side and leave nothing behind.
+
+use anyhow::{anyhow, Context, Result};
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+use std::time::Duration;
+
+/// Topics of the drive.
+pub const TOPIC_MEAS: &str = "drivelab/meas";
+/// Estimates.
+pub const TOPIC_EST: &str = "drivelab/est";
+/// Current references.
+pub const TOPIC_IREF: &str = "drivelab/iref";
+/// Voltage commands.
+pub const TOPIC_CMD: &str = "drivelab/cmd";
+/// Recorder progress (lockstep flow control).
+pub const TOPIC_REC: &str = "drivelab/recorder";
+
+/// Largest subscriber buffer (the recorder's), samples.
+pub const MAX_BUFFER: usize = 16_384;
+/// Samples kept for late joiners (publisher history).
+pub const HISTORY: usize = 1024;
+
+/// Validates a bus id: 1–24 characters of [A-Za-z0-9_].
+pub fn check_bus_id(id: &str) -> Result<()> {
+    if id.is_empty() || id.len() > 24 || !id.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+    {
+        return Err(anyhow!(
+            "bus id '{id}' must be 1-24 characters of A-Z, a-z, 0-9 or _"
+        ));
+    }
+    Ok(())
+}
+
+/// File prefix of bus `id` in /dev/shm.
+pub fn shm_prefix(id: &str) -> String {
+    format!("iox2_dl{id}_")
+}
+
+/// Root path of bus `id`.
+pub fn root_path(id: &str) -> String {
+    format!("/tmp/iceoryx2/dl{id}/")
+}
+
+/// iceoryx2 configuration of bus `id`.
+pub fn config(id: &str) -> Result<Config> {
+    check_bus_id(id)?;
+    let mut cfg = Config::default();
+    cfg.global.prefix =
+        FileName::new(shm_prefix(id).as_bytes()).map_err(|e| anyhow!("bus prefix: {e:?}"))?;
+    cfg.global.set_root_path(
+        &Path::new(root_path(id).as_bytes()).map_err(|e| anyhow!("bus root path: {e:?}"))?,
+    );
+    Ok(cfg)
+}
+
+/// A node on bus `id`. Signals are handled by the caller (see `services`).
+pub fn node(id: &str, name: &str) -> Result<Node<ipc::Service>> {
+    let cfg = config(id)?;
+    NodeBuilder::new()
+        .config(&cfg)
+        .name(&NodeName::new(name).map_err(|e| anyhow!("node name: {e:?}"))?)
+        .signal_handling_mode(SignalHandlingMode::Disabled)
+        .create::<ipc::Service>()
+        .map_err(|e| anyhow!("cannot create iceoryx2 node '{name}' on bus {id}: {e:?}"))
+}
+
+fn service_name(topic: &str) -> Result<ServiceName> {
+    ServiceName::new(topic).map_err(|e| anyhow!("service name {topic}: {e:?}"))
+}
+
+/// A typed topic: publish-subscribe plus a wake-up event of the same name.
+pub struct Topic<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> {
+    /// The publish-subscribe service.
+    pub pubsub:
+        iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, T, ()>,
+    /// The event service.
+    pub event: iceoryx2::service::port_factory::event::PortFactory<ipc::Service>,
+}
+
+impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
+    /// Opens or creates the topic.
+    pub fn open(node: &Node<ipc::Service>, topic: &str) -> Result<Self> {
+        let name = service_name(topic)?;
+        let pubsub = node
+            .service_builder(&name)
+            .publish_subscribe::<T>()
+            .max_publishers(2)
+            .max_subscribers(8)
+            .max_nodes(12)
+            .subscriber_max_buffer_size(MAX_BUFFER)
+            .history_size(HISTORY)
+            .enable_safe_overflow(true)
+            .open_or_create()
+            .map_err(|e| anyhow!("cannot open topic {topic}: {e:?}"))?;
+        let event = node
+            .service_builder(&name)
+            .event()
+            .max_notifiers(4)
+            .max_listeners(8)
+            .max_nodes(12)
+            .open_or_create()
+            .map_err(|e| anyhow!("cannot open event {topic}: {e:?}"))?;
+        Ok(Self { pubsub, event })
+    }
+
+    /// A sender (publisher + notifier).
+    pub fn sender(&self) -> Result<Sender<T>> {
+        Ok(Sender {
+            publisher: self
+                .pubsub
+                .publisher_builder()
+                .max_loaned_samples(2)
+                .create()
+                .map_err(|e| anyhow!("publisher: {e:?}"))?,
+            notifier: self
+                .event
+                .notifier_builder()
+                .create()
+                .map_err(|e| anyhow!("notifier: {e:?}"))?,
+        })
+    }
+
+    /// A receiver with a buffer of `buffer` samples (subscriber + listener).
+    pub fn receiver(&self, buffer: usize) -> Result<Receiver<T>> {
+        Ok(Receiver {
+            subscriber: self
+                .pubsub
+                .subscriber_builder()
+                .buffer_size(buffer.min(MAX_BUFFER))
+                .create()
+                .map_err(|e| anyhow!("subscriber: {e:?}"))?,
+            listener: self
+                .event
+                .listener_builder()
+                .create()
+                .map_err(|e| anyhow!("listener: {e:?}"))?,
+        })
+    }
+}
+
+/// Publishes a message and wakes the listeners.
+pub struct Sender<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> {
+    publisher: Publisher<ipc::Service, T, ()>,
+    notifier: Notifier<ipc::Service>,
+}
+
+impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Sender<T> {
+    /// Copies `msg` into a loaned sample, sends it and notifies. No allocation.
+    pub fn send(&self, msg: T) -> Result<()> {
+        let s = self
+            .publisher
+            .loan_uninit()
+            .map_err(|e| anyhow!("loan: {e:?}"))?;
+        s.write_payload(msg)
+            .send()
+            .map_err(|e| anyhow!("send: {e:?}"))?;
+        self.notifier
+            .notify()
+            .map_err(|e| anyhow!("notify: {e:?}"))?;
+        Ok(())
+    }
+}
+
+/// Receives messages and waits for their events.
+pub struct Receiver<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> {
+    subscriber: Subscriber<ipc::Service, T, ()>,
+    listener: Listener<ipc::Service>,
+}
+
+impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Receiver<T> {
+    /// Next buffered message, oldest first.
+    pub fn try_recv(&self) -> Result<Option<T>> {
+        match self.subscriber.receive() {
+            Ok(Some(s)) => Ok(Some(*s)),
+            Ok(None) => Ok(None),
+            Err(e) => Err(anyhow!("receive: {e:?}")),
+        }
+    }
+
+    /// Blocks until an event arrives or `timeout` passes; consumes pending events.
+    pub fn wait(&self, timeout: Duration) -> Result<()> {
+        self.listener
+            .timed_wait(|_| {}, timeout)
+            .map(|_| ())
+            .map_err(|e| anyhow!("wait: {e:?}"))
+    }
+
+    /// Consumes pending events without blocking.
+    pub fn drain_events(&self) -> Result<()> {
+        self.listener
+            .try_wait(|_| {})
+            .map(|_| ())
+            .map_err(|e| anyhow!("wait: {e:?}"))
+    }
+}
+
+/// The drive's topics, opened once per process.
+pub struct DriveTopics {
+    /// Measurements.
+    pub meas: Topic<crate::messages::Measurement>,
+    /// Estimates.
+    pub est: Topic<crate::messages::Estimate>,
+    /// Current references.
+    pub iref: Topic<crate::messages::CurrentRef>,
+    /// Voltage commands.
+    pub cmd: Topic<crate::messages::VoltageCommand>,
+    /// Recorder progress: highest k below which every sample has been stored.
+    pub rec: Topic<u64>,
+}
+
+impl DriveTopics {
+    /// Opens (or creates) all topics.
+    pub fn open(node: &Node<ipc::Service>) -> Result<Self> {
+        Ok(Self {
+            meas: Topic::open(node, TOPIC_MEAS).context("measurement topic")?,
+            est: Topic::open(node, TOPIC_EST).context("estimate topic")?,
+            iref: Topic::open(node, TOPIC_IREF).context("current-reference topic")?,
+            cmd: Topic::open(node, TOPIC_CMD).context("command topic")?,
+            rec: Topic::open(node, TOPIC_REC).context("recorder topic")?,
+        })
+    }
+}
+
+/// Removes every file of bus `id` (shared memory and the root folder). Returns how many
+/// shared-memory files were removed. Call only when no process of the bus runs.
+pub fn cleanup(id: &str) -> Result<usize> {
+    check_bus_id(id)?;
+    let prefix = shm_prefix(id);
+    let mut n = 0;
+    if let Ok(rd) = std::fs::read_dir("/dev/shm") {
+        for e in rd.flatten() {
+            if e.file_name().to_string_lossy().starts_with(&prefix) {
+                std::fs::remove_file(e.path())
+                    .with_context(|| format!("remove {}", e.path().display()))?;
+                n += 1;
+            }
+        }
+    }
+    let root = root_path(id);
+    if std::path::Path::new(&root).exists() {
+        std::fs::remove_dir_all(&root).with_context(|| format!("remove {root}"))?;
+    }
+    Ok(n)
+}
+
+/// Files of bus `id` that still exist (for tests and the final check of a run).
+pub fn leftovers(id: &str) -> Vec<String> {
+    let prefix = shm_prefix(id);
+    let mut v: Vec<String> = std::fs::read_dir("/dev/shm")
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with(&prefix))
+        .map(|n| format!("/dev/shm/{n}"))
+        .collect();
+    if std::path::Path::new(&root_path(id)).exists() {
+        v.push(root_path(id));
+    }
+    v
+}

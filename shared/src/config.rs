@@ -1,0 +1,745 @@
+//! Scenario files (TOML): motor, rates, controllers, references, load, placement.
+//!
+//! Every field has a unit in its name and a validation rule in [`Scenario::validate`]; unknown
+//! keys are rejected so that a typo never silently falls back to a default.
+
+use crate::motor::MotorParams;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// A complete scenario.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scenario {
+    /// Short name, e.g. `kyslan-pi`.
+    pub name: String,
+    /// One-line purpose.
+    #[serde(default)]
+    pub purpose: String,
+    /// Paper figure it reproduces, if any.
+    #[serde(default)]
+    pub reproduces: String,
+    /// Run length, s.
+    pub duration_s: f64,
+    /// Motor: a preset name plus optional overrides.
+    pub motor: MotorSpec,
+    /// Inverter model.
+    #[serde(default)]
+    pub inverter: InverterSpec,
+    /// Mechanics model.
+    #[serde(default)]
+    pub mechanics: MechanicsSpec,
+    /// Sample rates.
+    #[serde(default)]
+    pub rates: Rates,
+    /// Sensor models.
+    #[serde(default)]
+    pub sensors: Sensors,
+    /// Observer settings.
+    #[serde(default)]
+    pub observer: ObserverSpec,
+    /// Current-loop settings.
+    #[serde(default)]
+    pub current_loop: CurrentLoopSpec,
+    /// Speed-loop settings.
+    #[serde(default)]
+    pub speed_loop: SpeedLoopSpec,
+    /// Reference profiles.
+    #[serde(default)]
+    pub reference: References,
+    /// Load-torque profile.
+    #[serde(default)]
+    pub load: Load,
+    /// Core and priority per service.
+    #[serde(default)]
+    pub placement: Placement,
+}
+
+/// Motor selection.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MotorSpec {
+    /// Preset name (see [`MotorParams::PRESETS`]).
+    pub preset: Option<String>,
+    /// Overrides (SI units, names as in [`MotorParams`]).
+    pub r_ohm: Option<f64>,
+    /// d-axis inductance override, H.
+    pub l_d_h: Option<f64>,
+    /// q-axis inductance override, H.
+    pub l_q_h: Option<f64>,
+    /// Pole pairs override.
+    pub pole_pairs: Option<u32>,
+    /// PM flux override, Wb.
+    pub psi_pm_wb: Option<f64>,
+    /// Inertia override, kg·m².
+    pub j_kgm2: Option<f64>,
+    /// Viscous friction override, N·m·s/rad.
+    pub b_nms: Option<f64>,
+    /// Current limit override, A.
+    pub i_max_a: Option<f64>,
+    /// Rated speed override, rad/s.
+    pub omega_rated_rad_s: Option<f64>,
+    /// Rated torque override, N·m.
+    pub t_rated_nm: Option<f64>,
+}
+
+impl MotorSpec {
+    /// Resolves the preset and overrides into parameters.
+    pub fn resolve(&self) -> Result<MotorParams, String> {
+        let base = match &self.preset {
+            Some(n) => MotorParams::preset(n).ok_or_else(|| {
+                format!(
+                    "motor.preset: unknown motor '{n}' (known: {})",
+                    MotorParams::PRESETS.join(", ")
+                )
+            })?,
+            None => {
+                let need = |v: Option<f64>, n: &str| {
+                    v.ok_or_else(|| format!("motor.{n} is required when motor.preset is not given"))
+                };
+                MotorParams {
+                    r_ohm: need(self.r_ohm, "r_ohm")?,
+                    l_d_h: need(self.l_d_h, "l_d_h")?,
+                    l_q_h: need(self.l_q_h, "l_q_h")?,
+                    pole_pairs: self
+                        .pole_pairs
+                        .ok_or("motor.pole_pairs is required when motor.preset is not given")?,
+                    psi_pm_wb: need(self.psi_pm_wb, "psi_pm_wb")?,
+                    j_kgm2: need(self.j_kgm2, "j_kgm2")?,
+                    b_nms: self.b_nms.unwrap_or(0.0),
+                    i_max_a: need(self.i_max_a, "i_max_a")?,
+                    omega_rated_rad_s: need(self.omega_rated_rad_s, "omega_rated_rad_s")?,
+                    t_rated_nm: need(self.t_rated_nm, "t_rated_nm")?,
+                }
+            }
+        };
+        let m = MotorParams {
+            r_ohm: self.r_ohm.unwrap_or(base.r_ohm),
+            l_d_h: self.l_d_h.unwrap_or(base.l_d_h),
+            l_q_h: self.l_q_h.unwrap_or(base.l_q_h),
+            pole_pairs: self.pole_pairs.unwrap_or(base.pole_pairs),
+            psi_pm_wb: self.psi_pm_wb.unwrap_or(base.psi_pm_wb),
+            j_kgm2: self.j_kgm2.unwrap_or(base.j_kgm2),
+            b_nms: self.b_nms.unwrap_or(base.b_nms),
+            i_max_a: self.i_max_a.unwrap_or(base.i_max_a),
+            omega_rated_rad_s: self.omega_rated_rad_s.unwrap_or(base.omega_rated_rad_s),
+            t_rated_nm: self.t_rated_nm.unwrap_or(base.t_rated_nm),
+        };
+        m.validate()?;
+        Ok(m)
+    }
+}
+
+/// What the inverter does once a stale command has been held for `hold_samples`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SafeState {
+    /// All lower (or upper) switches on: zero voltage vector, active short circuit.
+    ZeroVector,
+}
+
+/// Inverter model.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct InverterSpec {
+    /// DC-bus voltage, V. The voltage vector is limited to V_dc/√3 (linear SVPWM range).
+    pub v_dc_v: f64,
+    /// Samples a missing command is held before the safe state.
+    pub hold_samples: u32,
+    /// Safe state after the hold time.
+    pub safe_state: SafeState,
+}
+
+impl Default for InverterSpec {
+    fn default() -> Self {
+        // 325 V: a rectified 230 V mains; the Kyslan paper gives no DC-bus voltage.
+        Self {
+            v_dc_v: 325.0,
+            hold_samples: 3,
+            safe_state: SafeState::ZeroVector,
+        }
+    }
+}
+
+/// Mechanics model.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MechanicsSpec {
+    /// If set, a dynamometer holds this speed (mechanical rad/s) and eq. (3) is not integrated.
+    pub prescribed_speed_rad_s: Option<f64>,
+}
+
+/// Sample rates.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Rates {
+    /// Plant/current-loop sample rate, Hz (5–20 kHz for real-time runs).
+    pub sample_hz: f64,
+    /// The speed loop runs every `speed_divider`-th sample.
+    pub speed_divider: u32,
+    /// RK4 sub-steps per sample in the plant.
+    pub plant_substeps: u32,
+}
+
+impl Default for Rates {
+    fn default() -> Self {
+        Self {
+            sample_hz: 10_000.0,
+            speed_divider: 10,
+            plant_substeps: 4,
+        }
+    }
+}
+
+impl Rates {
+    /// Sample time T_s, s.
+    pub fn ts(&self) -> f64 {
+        1.0 / self.sample_hz
+    }
+}
+
+/// Sensor models (ideal by default).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Sensors {
+    /// Encoder counts per mechanical revolution; 0 = ideal (no quantisation).
+    pub encoder_counts_per_rev: u32,
+    /// Standard deviation of additive Gaussian noise on each phase current, A.
+    pub current_noise_a: f64,
+    /// Seed of the noise generator (runs are reproducible).
+    pub seed: u64,
+}
+
+/// Observer settings.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ObserverSpec {
+    /// Group delay of the 2nd-order Bessel speed filter (Low eq. 10), s.
+    pub speed_filter_tau_s: f64,
+}
+
+impl Default for ObserverSpec {
+    fn default() -> Self {
+        Self {
+            speed_filter_tau_s: 1e-4,
+        }
+    }
+}
+
+/// Current-loop controller selection.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CurrentController {
+    /// d/q PI with decoupling and back-EMF feed-forward.
+    Pi,
+}
+
+/// Current-loop settings.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CurrentLoopSpec {
+    /// Controller.
+    pub controller: CurrentController,
+    /// Closed-loop time constant τ_c of the PI design, s.
+    pub tau_c_s: f64,
+    /// Decoupling and back-EMF feed-forward.
+    pub decoupling: bool,
+}
+
+impl Default for CurrentLoopSpec {
+    fn default() -> Self {
+        Self {
+            controller: CurrentController::Pi,
+            tau_c_s: 2.5e-4,
+            decoupling: true,
+        }
+    }
+}
+
+/// Speed-loop controller selection.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SpeedController {
+    /// PI by the symmetrical optimum with prefilter.
+    Pi,
+}
+
+/// Speed-loop settings.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SpeedLoopSpec {
+    /// Controller.
+    pub controller: SpeedController,
+    /// Design target: time to first reach the set-point after a step, s.
+    pub rise_time_s: f64,
+    /// Limit on i_q*, A; defaults to the motor's i_max_a.
+    pub i_q_max_a: Option<f64>,
+}
+
+impl Default for SpeedLoopSpec {
+    fn default() -> Self {
+        Self {
+            controller: SpeedController::Pi,
+            rise_time_s: 8e-3,
+            i_q_max_a: None,
+        }
+    }
+}
+
+/// A step of a piecewise-constant profile.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Step {
+    /// From this time on, s.
+    pub t_s: f64,
+    /// The value (unit given by the profile).
+    pub value: f64,
+}
+
+/// Reference profiles (piecewise constant; value 0 before the first step).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct References {
+    /// Speed reference steps, mechanical rad/s.
+    #[serde(default)]
+    pub speed_rad_s: Vec<Step>,
+    /// d-axis current reference steps, A.
+    #[serde(default)]
+    pub i_d_a: Vec<Step>,
+}
+
+/// Load-torque profile.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Load {
+    /// Load torque steps, N·m.
+    #[serde(default)]
+    pub torque_nm: Vec<Step>,
+}
+
+/// Value of a piecewise-constant profile at time t (0 before the first step). No allocation.
+pub fn profile_at(steps: &[Step], t: f64) -> f64 {
+    let mut v = 0.0;
+    for s in steps {
+        if t + 1e-12 >= s.t_s {
+            v = s.value;
+        } else {
+            break;
+        }
+    }
+    v
+}
+
+/// Placement of one service.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServicePlacement {
+    /// CPU core; None = not pinned.
+    pub core: Option<usize>,
+    /// SCHED_FIFO priority 1..=99; None = SCHED_OTHER.
+    pub priority: Option<u8>,
+}
+
+/// Placement of the four services.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Placement {
+    /// Plant (timing master).
+    pub plant: ServicePlacement,
+    /// Observer.
+    pub observer: ServicePlacement,
+    /// Current loop.
+    pub current_loop: ServicePlacement,
+    /// Speed loop.
+    pub speed_loop: ServicePlacement,
+}
+
+impl Default for Placement {
+    /// All four services on core 1, priorities in chain order; core 0 keeps the OS, the
+    /// supervisor and the recorder. See the README's measurements for why.
+    fn default() -> Self {
+        let on1 = |p| ServicePlacement {
+            core: Some(1),
+            priority: Some(p),
+        };
+        Self {
+            plant: on1(80),
+            observer: on1(79),
+            current_loop: on1(78),
+            speed_loop: on1(77),
+        }
+    }
+}
+
+impl Placement {
+    /// Placement for a service by name.
+    pub fn get(&self, service: &str) -> Option<ServicePlacement> {
+        match service {
+            "plant" => Some(self.plant),
+            "observer" => Some(self.observer),
+            "current-loop" => Some(self.current_loop),
+            "speed-loop" => Some(self.speed_loop),
+            _ => None,
+        }
+    }
+}
+
+/// The four service names, in chain order.
+pub const SERVICES: [&str; 4] = ["plant", "observer", "current-loop", "speed-loop"];
+
+fn check(cond: bool, msg: impl FnOnce() -> String) -> Result<(), String> {
+    if cond {
+        Ok(())
+    } else {
+        Err(msg())
+    }
+}
+
+fn check_steps(name: &str, steps: &[Step], dur: f64, abs_max: f64) -> Result<(), String> {
+    let mut last = f64::NEG_INFINITY;
+    for (i, s) in steps.iter().enumerate() {
+        check(s.t_s.is_finite() && s.t_s >= 0.0 && s.t_s <= dur, || {
+            format!(
+                "{name}[{i}].t_s = {} must be within [0, duration_s = {dur}]",
+                s.t_s
+            )
+        })?;
+        check(s.t_s > last, || {
+            format!(
+                "{name}[{i}].t_s = {} must be later than the step before",
+                s.t_s
+            )
+        })?;
+        check(s.value.is_finite() && s.value.abs() <= abs_max, || {
+            format!(
+                "{name}[{i}].value = {} must be finite and within ±{abs_max}",
+                s.value
+            )
+        })?;
+        last = s.t_s;
+    }
+    Ok(())
+}
+
+impl Scenario {
+    /// Parses and validates a scenario from TOML text; `origin` names the source in errors.
+    pub fn from_toml(text: &str, origin: &str) -> Result<Self, String> {
+        let s: Scenario = toml::from_str(text).map_err(|e| {
+            let msg = e.message().trim().to_string();
+            match e.span() {
+                Some(span) => {
+                    let line = text[..span.start.min(text.len())].lines().count().max(1);
+                    format!("{origin}:{line}: {msg}")
+                }
+                None => format!("{origin}: {msg}"),
+            }
+        })?;
+        s.validate().map_err(|e| format!("{origin}: {e}"))?;
+        Ok(s)
+    }
+
+    /// Loads a scenario by name (from the scenarios folder) or by file path.
+    pub fn load(name_or_path: &str) -> Result<(Self, PathBuf), String> {
+        let path = resolve_scenario_path(name_or_path)?;
+        let text = std::fs::read_to_string(&path)
+            .map_err(|e| format!("cannot read scenario {}: {e}", path.display()))?;
+        Ok((Self::from_toml(&text, &path.display().to_string())?, path))
+    }
+
+    /// Resolved motor parameters.
+    pub fn motor_params(&self) -> MotorParams {
+        self.motor.resolve().expect("validated scenario")
+    }
+
+    /// Number of samples in the run.
+    pub fn samples(&self) -> u64 {
+        (self.duration_s * self.rates.sample_hz).round() as u64
+    }
+
+    /// Voltage-vector limit V_dc/√3, V.
+    pub fn u_max(&self) -> f64 {
+        self.inverter.v_dc_v / 3f64.sqrt()
+    }
+
+    /// i_q* limit, A.
+    pub fn i_q_max(&self) -> f64 {
+        self.speed_loop
+            .i_q_max_a
+            .unwrap_or_else(|| self.motor_params().i_max_a)
+    }
+
+    /// Checks ranges; the error names the field and the rule.
+    pub fn validate(&self) -> Result<(), String> {
+        check(!self.name.is_empty() && self.name.len() <= 64, || {
+            "name must be 1..=64 characters".into()
+        })?;
+        check(
+            self.duration_s.is_finite() && self.duration_s > 0.0 && self.duration_s <= 3600.0,
+            || format!("duration_s = {} must be in (0, 3600]", self.duration_s),
+        )?;
+        let m = self.motor.resolve()?;
+        let r = &self.rates;
+        check(
+            r.sample_hz.is_finite() && (100.0..=100_000.0).contains(&r.sample_hz),
+            || {
+                format!(
+                    "rates.sample_hz = {} must be in [100, 100000] Hz",
+                    r.sample_hz
+                )
+            },
+        )?;
+        check((1..=1000).contains(&r.speed_divider), || {
+            format!(
+                "rates.speed_divider = {} must be in 1..=1000",
+                r.speed_divider
+            )
+        })?;
+        check((1..=1000).contains(&r.plant_substeps), || {
+            format!(
+                "rates.plant_substeps = {} must be in 1..=1000",
+                r.plant_substeps
+            )
+        })?;
+        check(self.samples() >= 1 && self.samples() <= 200_000_000, || {
+            format!(
+                "duration_s × rates.sample_hz = {} samples must be in 1..=2e8",
+                self.samples()
+            )
+        })?;
+        let inv = &self.inverter;
+        check(
+            inv.v_dc_v.is_finite() && inv.v_dc_v > 0.0 && inv.v_dc_v <= 2000.0,
+            || format!("inverter.v_dc_v = {} must be in (0, 2000] V", inv.v_dc_v),
+        )?;
+        check(inv.hold_samples <= 100_000, || {
+            format!(
+                "inverter.hold_samples = {} must be <= 100000",
+                inv.hold_samples
+            )
+        })?;
+        if let Some(w) = self.mechanics.prescribed_speed_rad_s {
+            check(
+                w.is_finite() && w.abs() <= 10.0 * m.omega_rated_rad_s,
+                || {
+                    format!("mechanics.prescribed_speed_rad_s = {w} must be finite and within ±10× rated speed")
+                },
+            )?;
+        }
+        let s = &self.sensors;
+        check(
+            s.current_noise_a.is_finite()
+                && s.current_noise_a >= 0.0
+                && s.current_noise_a <= m.i_max_a,
+            || {
+                format!(
+                    "sensors.current_noise_a = {} must be in [0, motor.i_max_a]",
+                    s.current_noise_a
+                )
+            },
+        )?;
+        let ts = r.ts();
+        let o = &self.observer;
+        check(
+            o.speed_filter_tau_s.is_finite()
+                && o.speed_filter_tau_s >= ts
+                && o.speed_filter_tau_s <= 1.0,
+            || {
+                format!(
+                    "observer.speed_filter_tau_s = {} must be in [T_s = {ts}, 1] s",
+                    o.speed_filter_tau_s
+                )
+            },
+        )?;
+        let c = &self.current_loop;
+        check(
+            c.tau_c_s.is_finite() && c.tau_c_s >= 2.0 * ts && c.tau_c_s <= 1.0,
+            || {
+                format!(
+                    "current_loop.tau_c_s = {} must be in [2·T_s = {}, 1] s",
+                    c.tau_c_s,
+                    2.0 * ts
+                )
+            },
+        )?;
+        let sl = &self.speed_loop;
+        check(
+            sl.rise_time_s.is_finite() && sl.rise_time_s > 0.0 && sl.rise_time_s <= 10.0,
+            || {
+                format!(
+                    "speed_loop.rise_time_s = {} must be in (0, 10] s",
+                    sl.rise_time_s
+                )
+            },
+        )?;
+        if let Some(i) = sl.i_q_max_a {
+            check(i.is_finite() && i > 0.0 && i <= 10.0 * m.i_max_a, || {
+                format!("speed_loop.i_q_max_a = {i} must be in (0, 10 × motor.i_max_a]")
+            })?;
+        }
+        check_steps(
+            "reference.speed_rad_s",
+            &self.reference.speed_rad_s,
+            self.duration_s,
+            10.0 * m.omega_rated_rad_s,
+        )?;
+        check_steps(
+            "reference.i_d_a",
+            &self.reference.i_d_a,
+            self.duration_s,
+            10.0 * m.i_max_a,
+        )?;
+        check_steps(
+            "load.torque_nm",
+            &self.load.torque_nm,
+            self.duration_s,
+            100.0 * m.t_rated_nm,
+        )?;
+        let cpus = std::thread::available_parallelism()
+            .map(|n| n.get())
+            .unwrap_or(1);
+        for svc in SERVICES {
+            let p = self.placement.get(svc).expect("known service");
+            if let Some(core) = p.core {
+                check(core < 1024, || {
+                    format!(
+                        "placement.{}.core = {core} is not a CPU number",
+                        svc.replace('-', "_")
+                    )
+                })?;
+                let _ = cpus; // a core beyond this machine is reported by the RT setup, not here
+            }
+            if let Some(pr) = p.priority {
+                check((1..=99).contains(&pr), || {
+                    format!(
+                        "placement.{}.priority = {pr} must be in 1..=99",
+                        svc.replace('-', "_")
+                    )
+                })?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The folder with the shipped scenarios: `$DRIVELAB_SCENARIOS`, else `scenarios/` next to
+/// the workspace (found from the executable's location or the current directory).
+pub fn scenarios_dir() -> PathBuf {
+    if let Ok(d) = std::env::var("DRIVELAB_SCENARIOS") {
+        return PathBuf::from(d);
+    }
+    let mut candidates = Vec::new();
+    if let Ok(exe) = std::env::current_exe() {
+        for a in exe.ancestors().skip(1) {
+            candidates.push(a.join("scenarios"));
+        }
+    }
+    candidates.push(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../scenarios"));
+    if let Ok(cwd) = std::env::current_dir() {
+        candidates.push(cwd.join("scenarios"));
+    }
+    candidates
+        .into_iter()
+        .find(|p| p.is_dir())
+        .unwrap_or_else(|| PathBuf::from("scenarios"))
+}
+
+/// Names of the shipped scenarios (file stems), sorted.
+pub fn list_scenarios() -> Vec<(String, PathBuf)> {
+    let mut v: Vec<(String, PathBuf)> = std::fs::read_dir(scenarios_dir())
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|e| e == "toml"))
+        .filter_map(|p| Some((p.file_stem()?.to_string_lossy().into_owned(), p)))
+        .collect();
+    v.sort();
+    v
+}
+
+fn resolve_scenario_path(name_or_path: &str) -> Result<PathBuf, String> {
+    let p = Path::new(name_or_path);
+    if name_or_path.ends_with(".toml") || name_or_path.contains('/') {
+        return if p.is_file() {
+            Ok(p.to_path_buf())
+        } else {
+            Err(format!("scenario file {name_or_path} does not exist"))
+        };
+    }
+    let f = scenarios_dir().join(format!("{name_or_path}.toml"));
+    if f.is_file() {
+        Ok(f)
+    } else {
+        let known: Vec<String> = list_scenarios().into_iter().map(|(n, _)| n).collect();
+        Err(format!(
+            "unknown scenario '{name_or_path}' (known: {})",
+            known.join(", ")
+        ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MIN: &str = r#"
+name = "t"
+duration_s = 0.01
+[motor]
+preset = "kyslan2015"
+"#;
+
+    #[test]
+    fn minimal_scenario_gets_defaults() {
+        let s = Scenario::from_toml(MIN, "t.toml").unwrap();
+        assert_eq!(s.rates.sample_hz, 10_000.0);
+        assert_eq!(s.samples(), 100);
+        assert_eq!(s.motor_params(), MotorParams::kyslan2015());
+    }
+
+    #[test]
+    fn unknown_key_is_named_with_its_line() {
+        let e = Scenario::from_toml(&format!("{MIN}\n[rates]\nsample_hzz = 5\n"), "bad.toml")
+            .unwrap_err();
+        assert!(e.starts_with("bad.toml:"), "{e}");
+        assert!(e.contains("sample_hzz"), "{e}");
+    }
+
+    #[test]
+    fn out_of_range_values_are_named() {
+        let e =
+            Scenario::from_toml(&format!("{MIN}\n[rates]\nsample_hz = -5.0\n"), "x").unwrap_err();
+        assert!(e.contains("rates.sample_hz"), "{e}");
+        let e = Scenario::from_toml(&MIN.replace("kyslan2015", "nope"), "x").unwrap_err();
+        assert!(e.contains("unknown motor 'nope'"), "{e}");
+        let e = Scenario::from_toml(
+            &format!("{MIN}\n[placement.plant]\ncore = 1\npriority = 120\n"),
+            "x",
+        );
+        assert!(e.is_err());
+        let e = Scenario::from_toml(
+            &format!("{MIN}\n[load]\ntorque_nm = [{{t_s = 5.0, value = 1.0}}]\n"),
+            "x",
+        )
+        .unwrap_err();
+        assert!(e.contains("load.torque_nm[0].t_s"), "{e}");
+    }
+
+    #[test]
+    fn profiles_are_piecewise_constant() {
+        let st = [
+            Step {
+                t_s: 0.0,
+                value: 70.0,
+            },
+            Step {
+                t_s: 0.02,
+                value: 10.0,
+            },
+        ];
+        assert_eq!(profile_at(&st, 0.0), 70.0);
+        assert_eq!(profile_at(&st, 0.019_999), 70.0);
+        assert_eq!(profile_at(&st, 0.02), 10.0);
+        assert_eq!(profile_at(&[], 1.0), 0.0);
+    }
+}

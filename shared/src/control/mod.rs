@@ -1,0 +1,6 @@
+//! Control laws as pure step functions.
+
+pub mod current;
+pub mod filter;
+pub mod pi;
+pub mod speed;

@@ -1,0 +1,1319 @@
+//! `drivelab doctor`: how ready this machine is for real-time work.
+//!
+//! Every check only **reads** (files under `/sys` and `/proc`, `uname`, `getrlimit`,
+//! `statvfs`). The one active probe, "can this process use `SCHED_FIFO`", runs in a
+//! short-lived thread of its own that switches to `SCHED_FIFO` priority 1 and straight back
+//! to `SCHED_OTHER`, then exits; nothing persists. Advice strings describe what an operator
+//! could do to improve timing; they are text only and are never executed.
+//!
+//! All file reads go through [`read_trimmed`] and a root directory (`/` for the real
+//! machine, see [`run_checks_in`]), so a missing or unreadable file gives
+//! [`Status::Unknown`], never a panic, and the checks can be tested on a fake tree.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::io;
+use std::path::{Path, PathBuf};
+
+use serde::Serialize;
+
+use crate::rt;
+
+/// One line of the doctor report.
+#[derive(Debug, Clone, Serialize)]
+pub struct Check {
+    /// Short name, e.g. `"rt throttling"`.
+    pub name: String,
+    /// What was found.
+    pub value: String,
+    /// How good that is for real-time work.
+    pub status: Status,
+    /// What would improve timing (never executed by drivelab).
+    pub advice: Option<String>,
+}
+
+/// Verdict of one [`Check`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub enum Status {
+    /// Fine for real-time work.
+    Ok,
+    /// Works, but timing will suffer (jitter, throttling, ...).
+    Warn,
+    /// Real-time operation is not possible or badly degraded.
+    Bad,
+    /// Could not be determined (file missing or unreadable).
+    Unknown,
+}
+
+impl Status {
+    /// Label used in the text table.
+    pub fn label(self) -> &'static str {
+        match self {
+            Status::Ok => "OK",
+            Status::Warn => "WARN",
+            Status::Bad => "BAD",
+            Status::Unknown => "UNKNOWN",
+        }
+    }
+}
+
+impl Check {
+    fn new(name: &str, value: impl Into<String>, status: Status, advice: Option<String>) -> Self {
+        Check {
+            name: name.to_string(),
+            value: value.into(),
+            status,
+            advice,
+        }
+    }
+}
+
+/// Runs every check against the real machine.
+pub fn run_checks() -> Vec<Check> {
+    run_checks_in(Path::new("/"))
+}
+
+/// Runs every check with all file paths taken relative to `root` (`/` for the real
+/// machine; a fake tree in tests). Probes that are not files (`uname`, rlimits, the
+/// `SCHED_FIFO` probe, the process's euid) always look at the live system.
+pub fn run_checks_in(root: &Path) -> Vec<Check> {
+    let fs = Fs { root };
+    let uts = uname();
+    let online = online_cpu_list(&fs);
+    let caps = Caps::read(&fs);
+    vec![
+        kernel_check(uts.as_ref()),
+        preemption_check(&fs, uts.as_ref().map(|u| u.version.as_str())),
+        rt_throttling_check(&fs),
+        online_cpus_check(&online),
+        isolated_cpus_check(&fs, &online),
+        governor_check(&fs),
+        smt_check(&fs),
+        irqbalance_check(&fs),
+        sched_fifo_check(&caps),
+        mlock_check(&caps),
+        timer_slack_check(&fs),
+        clocksource_check(&fs),
+        dev_shm_check(&fs),
+    ]
+}
+
+/// Renders the checks as an aligned table, one line per check, each check's advice on
+/// indented lines below it, and a one-line summary.
+pub fn render_text(checks: &[Check]) -> String {
+    let name_w = checks
+        .iter()
+        .map(|c| c.name.chars().count())
+        .chain(std::iter::once("CHECK".len()))
+        .max()
+        .unwrap_or(5);
+    let status_w = "UNKNOWN".len();
+    let indent = " ".repeat(name_w + 2 + status_w + 2);
+    let mut out = String::new();
+    let _ = writeln!(out, "{:<name_w$}  {:<status_w$}  VALUE", "CHECK", "STATUS");
+    for c in checks {
+        let value = one_line(&c.value);
+        let _ = writeln!(
+            out,
+            "{:<name_w$}  {:<status_w$}  {}",
+            c.name,
+            c.status.label(),
+            value
+        );
+        if let Some(a) = &c.advice {
+            let _ = writeln!(out, "{indent}-> {}", one_line(a));
+        }
+    }
+    let count = |s: Status| checks.iter().filter(|c| c.status == s).count();
+    let _ = writeln!(
+        out,
+        "{} ok, {} warn, {} bad, {} unknown (advice is informational; doctor changes nothing)",
+        count(Status::Ok),
+        count(Status::Warn),
+        count(Status::Bad),
+        count(Status::Unknown)
+    );
+    out
+}
+
+fn one_line(s: &str) -> String {
+    s.split_whitespace().collect::<Vec<_>>().join(" ")
+}
+
+// ---------------------------------------------------------------------------------------
+// file access
+
+/// Reads `path` as text, trimmed; `None` if it is missing, unreadable or not UTF-8.
+pub fn read_trimmed(path: &Path) -> Option<String> {
+    std::fs::read_to_string(path)
+        .ok()
+        .map(|s| s.trim().to_string())
+}
+
+/// A check that depends on one file: `Unknown` naming the path if it cannot be read,
+/// otherwise whatever `interpret` makes of the trimmed content.
+pub fn file_check(
+    name: &str,
+    path: &Path,
+    interpret: impl FnOnce(&str) -> (Status, String, Option<String>),
+) -> Check {
+    match read_trimmed(path) {
+        Some(text) => {
+            let (status, value, advice) = interpret(&text);
+            Check::new(name, value, status, advice)
+        }
+        None => Check::new(
+            name,
+            format!("unknown ({} not readable)", path.display()),
+            Status::Unknown,
+            None,
+        ),
+    }
+}
+
+/// Absolute paths resolved under a root directory.
+struct Fs<'a> {
+    root: &'a Path,
+}
+
+impl Fs<'_> {
+    fn path(&self, abs: &str) -> PathBuf {
+        self.root.join(abs.trim_start_matches('/'))
+    }
+
+    fn read(&self, abs: &str) -> Option<String> {
+        read_trimmed(&self.path(abs))
+    }
+
+    /// Names of the entries of directory `abs`, sorted; `None` if it cannot be listed.
+    fn list(&self, abs: &str) -> Option<Vec<String>> {
+        let rd = std::fs::read_dir(self.path(abs)).ok()?;
+        let mut v: Vec<String> = rd
+            .filter_map(|e| e.ok())
+            .filter_map(|e| e.file_name().into_string().ok())
+            .collect();
+        v.sort();
+        Some(v)
+    }
+
+    /// CPU numbers that have a `/sys/devices/system/cpu/cpuN` directory.
+    fn cpu_dirs(&self) -> Option<Vec<usize>> {
+        let mut cpus: Vec<usize> = self
+            .list("/sys/devices/system/cpu")?
+            .iter()
+            .filter_map(|n| n.strip_prefix("cpu"))
+            .filter_map(|n| n.parse().ok())
+            .collect();
+        cpus.sort_unstable();
+        Some(cpus)
+    }
+
+    fn cmdline_param(&self, key: &str) -> Option<String> {
+        let cmdline = self.read("/proc/cmdline")?;
+        cmdline_param(&cmdline, key)
+    }
+}
+
+/// Value of `key=value` on a kernel command line (last occurrence wins, like the kernel).
+fn cmdline_param(cmdline: &str, key: &str) -> Option<String> {
+    cmdline
+        .split_whitespace()
+        .take_while(|t| *t != "--")
+        .filter_map(|t| t.split_once('='))
+        .filter(|(k, _)| *k == key)
+        .map(|(_, v)| v.to_string())
+        .last()
+}
+
+/// Parses a kernel CPU list like `"0-3,8,10-11"`; `None` on syntax errors. Empty → empty.
+pub(crate) fn parse_cpu_list(s: &str) -> Option<Vec<usize>> {
+    let mut out = Vec::new();
+    for part in s.trim().split(',').filter(|p| !p.is_empty()) {
+        // Skip isolcpus flags ("nohz", "domain", "managed_irq") and "a-b:n/stride" groups.
+        let part = part.trim();
+        if part.starts_with(|c: char| c.is_ascii_alphabetic()) {
+            continue;
+        }
+        let part = part.split(':').next().unwrap_or(part);
+        if let Some((a, b)) = part.split_once('-') {
+            let (a, b): (usize, usize) = (a.trim().parse().ok()?, b.trim().parse().ok()?);
+            if b < a || b - a > 65_536 {
+                return None;
+            }
+            out.extend(a..=b);
+        } else {
+            out.push(part.trim().parse().ok()?);
+        }
+    }
+    out.sort_unstable();
+    out.dedup();
+    Some(out)
+}
+
+/// Formats CPUs compactly: `[0,1,2,3,8]` → `"0-3,8"`.
+pub(crate) fn fmt_cpu_list(cpus: &[usize]) -> String {
+    let mut v = cpus.to_vec();
+    v.sort_unstable();
+    v.dedup();
+    let mut parts = Vec::new();
+    let mut i = 0;
+    while i < v.len() {
+        let start = v[i];
+        let mut end = start;
+        while i + 1 < v.len() && v[i + 1] == end + 1 {
+            i += 1;
+            end = v[i];
+        }
+        parts.push(if end == start {
+            start.to_string()
+        } else {
+            format!("{start}-{end}")
+        });
+        i += 1;
+    }
+    parts.join(",")
+}
+
+// ---------------------------------------------------------------------------------------
+// live probes
+
+struct Uname {
+    release: String,
+    version: String,
+}
+
+fn uname() -> Option<Uname> {
+    // SAFETY: utsname is plain C char arrays; all-zero is a valid value for the out-param.
+    let mut u: libc::utsname = unsafe { std::mem::zeroed() };
+    // SAFETY: `u` is a valid, writable utsname; uname only fills it in.
+    if unsafe { libc::uname(&mut u) } != 0 {
+        return None;
+    }
+    // Fields are NUL-terminated C strings; stop at the NUL (or the array's end).
+    let field = |f: &[libc::c_char]| {
+        let bytes: Vec<u8> = f
+            .iter()
+            .take_while(|&&c| c != 0)
+            .map(|&c| c as u8)
+            .collect();
+        String::from_utf8_lossy(&bytes).into_owned()
+    };
+    Some(Uname {
+        release: field(&u.release),
+        version: field(&u.version),
+    })
+}
+
+fn euid() -> u32 {
+    // SAFETY: geteuid has no preconditions and cannot fail.
+    unsafe { libc::geteuid() }
+}
+
+/// Effective capabilities of this process (from `/proc/self/status`).
+struct Caps {
+    euid: u32,
+    eff: Option<u64>,
+}
+
+const CAP_IPC_LOCK: u32 = 14;
+const CAP_SYS_NICE: u32 = 23;
+
+impl Caps {
+    fn read(fs: &Fs) -> Self {
+        let eff = fs.read("/proc/self/status").and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("CapEff:"))
+                .and_then(|v| u64::from_str_radix(v.trim(), 16).ok())
+        });
+        Caps { euid: euid(), eff }
+    }
+
+    /// `Some(has)` if the capability set is known; otherwise a guess from euid 0.
+    fn has(&self, cap: u32) -> Option<bool> {
+        match self.eff {
+            Some(e) => Some(e & (1u64 << cap) != 0),
+            None if self.euid == 0 => None,
+            None => Some(false),
+        }
+    }
+
+    fn describe(&self, cap: u32, cap_name: &str) -> String {
+        match self.has(cap) {
+            Some(true) => cap_name.to_string(),
+            Some(false) => format!("no {cap_name}"),
+            None => format!("{cap_name} unknown"),
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// checks
+
+fn kernel_check(uts: Option<&Uname>) -> Check {
+    match uts {
+        Some(u) => Check::new(
+            "kernel",
+            format!("{} {}", u.release, u.version),
+            Status::Ok,
+            None,
+        ),
+        None => Check::new("kernel", "unknown (uname failed)", Status::Unknown, None),
+    }
+}
+
+const RT_KERNEL_ADVICE: &str =
+    "use a PREEMPT_RT kernel (CONFIG_PREEMPT_RT=y, e.g. the distribution's \
+     -rt kernel package); on a PREEMPT_DYNAMIC kernel at least boot with preempt=full";
+
+/// Preemption model from `/sys/kernel/realtime`, `/sys/kernel/debug/sched/preempt`,
+/// `preempt=` on the command line and the `PREEMPT*` words of `uname -v`.
+fn preemption_check(fs: &Fs, uname_version: Option<&str>) -> Check {
+    let realtime = fs.read("/sys/kernel/realtime");
+    let debug_mode = fs
+        .read("/sys/kernel/debug/sched/preempt")
+        .and_then(|s| current_preempt_mode(&s));
+    let cmdline_mode = fs.cmdline_param("preempt");
+    preemption_verdict(
+        realtime.as_deref(),
+        debug_mode.as_deref(),
+        cmdline_mode.as_deref(),
+        uname_version,
+    )
+}
+
+/// The mode in parentheses in `/sys/kernel/debug/sched/preempt`, e.g. `"full"` from
+/// `"none voluntary (full) lazy"`.
+fn current_preempt_mode(s: &str) -> Option<String> {
+    s.split_whitespace()
+        .find(|w| w.starts_with('(') && w.ends_with(')'))
+        .map(|w| w.trim_matches(|c| c == '(' || c == ')').to_string())
+}
+
+fn preemption_verdict(
+    realtime: Option<&str>,
+    debug_mode: Option<&str>,
+    cmdline_mode: Option<&str>,
+    uname_version: Option<&str>,
+) -> Check {
+    const NAME: &str = "preemption";
+    let words: Vec<&str> = uname_version
+        .map(|v| v.split_whitespace().collect())
+        .unwrap_or_default();
+    let has = |w: &str| words.contains(&w);
+
+    if realtime == Some("1") || has("PREEMPT_RT") {
+        return Check::new(NAME, "PREEMPT_RT", Status::Ok, None);
+    }
+    let advice = Some(RT_KERNEL_ADVICE.to_string());
+    let dynamic = has("PREEMPT_DYNAMIC");
+    let mode_verdict = |mode: &str, source: &str| {
+        let status = match mode {
+            "full" | "lazy" => Status::Warn,
+            "none" | "voluntary" => Status::Bad,
+            _ => Status::Unknown,
+        };
+        let prefix = if dynamic { "PREEMPT_DYNAMIC, " } else { "" };
+        Check::new(
+            NAME,
+            format!("{prefix}mode {mode} ({source}); not PREEMPT_RT"),
+            status,
+            advice.clone(),
+        )
+    };
+    if let Some(mode) = debug_mode {
+        return mode_verdict(mode, "debugfs sched/preempt");
+    }
+    if dynamic {
+        if let Some(mode) = cmdline_mode {
+            return mode_verdict(mode, "preempt= on /proc/cmdline");
+        }
+        return Check::new(
+            NAME,
+            "PREEMPT_DYNAMIC, current mode unknown (debugfs sched/preempt not readable, \
+             no preempt= on the command line); not PREEMPT_RT",
+            Status::Warn,
+            advice,
+        );
+    }
+    if has("PREEMPT") {
+        return Check::new(
+            NAME,
+            "PREEMPT (full preemption); not PREEMPT_RT",
+            Status::Warn,
+            advice,
+        );
+    }
+    if uname_version.is_some() {
+        return Check::new(
+            NAME,
+            "no PREEMPT in uname -v: voluntary or no kernel preemption",
+            Status::Bad,
+            advice,
+        );
+    }
+    Check::new(
+        NAME,
+        "unknown (uname and /sys/kernel/realtime unavailable)",
+        Status::Unknown,
+        None,
+    )
+}
+
+fn rt_throttling_check(fs: &Fs) -> Check {
+    const NAME: &str = "rt throttling";
+    let runtime = fs
+        .read("/proc/sys/kernel/sched_rt_runtime_us")
+        .and_then(|s| s.parse::<i64>().ok());
+    let period = fs
+        .read("/proc/sys/kernel/sched_rt_period_us")
+        .and_then(|s| s.parse::<i64>().ok());
+    rt_throttling_verdict(runtime, period, NAME)
+}
+
+fn rt_throttling_verdict(runtime: Option<i64>, period: Option<i64>, name: &str) -> Check {
+    match (runtime, period) {
+        (Some(-1), _) => Check::new(
+            name,
+            "disabled (sched_rt_runtime_us = -1): SCHED_FIFO tasks are never throttled \
+             (a runaway FIFO loop can monopolise its CPU)",
+            Status::Ok,
+            None,
+        ),
+        (Some(rt), Some(p)) if p > 0 && rt >= p => Check::new(
+            name,
+            format!("{rt}/{p} us: RT tasks may use the whole period (not throttled)"),
+            Status::Ok,
+            None,
+        ),
+        (Some(rt), Some(p)) if p > 0 && rt >= 0 => {
+            let idle_ms = (p - rt) as f64 / 1000.0;
+            let period_ms = p as f64 / 1000.0;
+            let pct = 100.0 * rt as f64 / p as f64;
+            Check::new(
+                name,
+                format!(
+                    "{rt}/{p} us: real-time tasks get at most {pct:.1}% of each CPU; a SCHED_FIFO \
+                     task that spins without sleeping is stopped ~{idle_ms:.0} ms in every \
+                     {period_ms:.0} ms"
+                ),
+                Status::Warn,
+                Some(format!(
+                    "loops that sleep every period (clock_nanosleep) are not affected; for a \
+                     busy-polling FIFO loop disable throttling with \
+                     sysctl kernel.sched_rt_runtime_us=-1 (then keep a watchdog: a runaway \
+                     FIFO task would freeze its CPU), or raise it towards {p}"
+                )),
+            )
+        }
+        (Some(rt), Some(p)) => Check::new(
+            name,
+            format!("unexpected values {rt}/{p} us"),
+            Status::Unknown,
+            None,
+        ),
+        _ => Check::new(
+            name,
+            "unknown (/proc/sys/kernel/sched_rt_runtime_us or sched_rt_period_us not readable)",
+            Status::Unknown,
+            None,
+        ),
+    }
+}
+
+/// Online CPUs from `/sys/devices/system/cpu/online`, else `0..online_cpus()`.
+fn online_cpu_list(fs: &Fs) -> Vec<usize> {
+    fs.read("/sys/devices/system/cpu/online")
+        .and_then(|s| parse_cpu_list(&s))
+        .filter(|v| !v.is_empty())
+        .unwrap_or_else(|| (0..rt::online_cpus()).collect())
+}
+
+fn online_cpus_check(online: &[usize]) -> Check {
+    let n = online.len();
+    let value = format!("{n} online ({})", fmt_cpu_list(online));
+    if n >= 2 {
+        Check::new("online cpus", value, Status::Ok, None)
+    } else {
+        Check::new(
+            "online cpus",
+            value,
+            Status::Warn,
+            Some(
+                "all services and the OS share one CPU; give the machine/VM at least 2 CPUs \
+                 (one for housekeeping, the rest for pinned real-time loops)"
+                    .into(),
+            ),
+        )
+    }
+}
+
+fn isolated_cpus_check(fs: &Fs, online: &[usize]) -> Check {
+    const NAME: &str = "isolated cpus";
+    let isolated_file = fs.read("/sys/devices/system/cpu/isolated");
+    let nohz_file = fs.read("/sys/devices/system/cpu/nohz_full");
+    let cmdline = fs.read("/proc/cmdline");
+    if isolated_file.is_none() && cmdline.is_none() {
+        return Check::new(
+            NAME,
+            "unknown (/sys/devices/system/cpu/isolated and /proc/cmdline not readable)",
+            Status::Unknown,
+            None,
+        );
+    }
+    let param = |k: &str| cmdline.as_deref().and_then(|c| cmdline_param(c, k));
+    let isolated = isolated_file
+        .as_deref()
+        .and_then(parse_cpu_list)
+        .or_else(|| param("isolcpus").as_deref().and_then(parse_cpu_list))
+        .unwrap_or_default();
+    let nohz = nohz_file
+        .as_deref()
+        .filter(|s| !s.is_empty() && *s != "(null)")
+        .map(str::to_string)
+        .or_else(|| param("nohz_full"));
+    let rcu = param("rcu_nocbs");
+    let show = |o: &Option<String>| o.clone().unwrap_or_else(|| "-".into());
+    let value = format!(
+        "isolated: {}; nohz_full: {}; rcu_nocbs: {}",
+        if isolated.is_empty() {
+            "none".to_string()
+        } else {
+            fmt_cpu_list(&isolated)
+        },
+        show(&nohz),
+        show(&rcu)
+    );
+    // Suggest everything but the first online CPU (kept for housekeeping).
+    let suggest = if online.len() >= 2 {
+        fmt_cpu_list(&online[1..])
+    } else {
+        String::new()
+    };
+    if !isolated.is_empty() {
+        let advice = if nohz.is_none() || rcu.is_none() {
+            let l = fmt_cpu_list(&isolated);
+            Some(format!(
+                "also boot with nohz_full={l} rcu_nocbs={l} so the tick and RCU callbacks \
+                 leave the isolated CPUs"
+            ))
+        } else {
+            None
+        };
+        return Check::new(NAME, value, Status::Ok, advice);
+    }
+    let advice = if suggest.is_empty() {
+        "only one CPU: isolation is impossible; add CPUs".to_string()
+    } else {
+        format!(
+            "boot with isolcpus={suggest} nohz_full={suggest} rcu_nocbs={suggest} \
+             (irqaffinity=0) and pin the drive loops to those CPUs"
+        )
+    };
+    Check::new(NAME, value, Status::Warn, Some(advice))
+}
+
+const GOVERNOR_ADVICE: &str = "set governor to performance: cpupower frequency-set -g performance \
+     (or write performance to /sys/devices/system/cpu/cpu*/cpufreq/scaling_governor)";
+
+fn governor_check(fs: &Fs) -> Check {
+    const NAME: &str = "governor";
+    let Some(cpus) = fs.cpu_dirs() else {
+        return Check::new(
+            NAME,
+            "unknown (/sys/devices/system/cpu not readable)",
+            Status::Unknown,
+            None,
+        );
+    };
+    let mut by_gov: BTreeMap<String, Vec<usize>> = BTreeMap::new();
+    let mut missing = Vec::new();
+    for c in &cpus {
+        match fs.read(&format!(
+            "/sys/devices/system/cpu/cpu{c}/cpufreq/scaling_governor"
+        )) {
+            Some(g) if !g.is_empty() => by_gov.entry(g).or_default().push(*c),
+            _ => missing.push(*c),
+        }
+    }
+    if by_gov.is_empty() {
+        return Check::new(NAME, "no cpufreq (VM?)", Status::Unknown, None);
+    }
+    let mut parts: Vec<String> = by_gov
+        .iter()
+        .map(|(g, cs)| format!("{g}: cpu {}", fmt_cpu_list(cs)))
+        .collect();
+    if !missing.is_empty() {
+        parts.push(format!("no cpufreq: cpu {}", fmt_cpu_list(&missing)));
+    }
+    let value = parts.join("; ");
+    if by_gov.keys().all(|g| g == "performance") {
+        Check::new(NAME, value, Status::Ok, None)
+    } else {
+        Check::new(NAME, value, Status::Warn, Some(GOVERNOR_ADVICE.into()))
+    }
+}
+
+fn smt_check(fs: &Fs) -> Check {
+    const NAME: &str = "smt";
+    let control = fs.read("/sys/devices/system/cpu/smt/control");
+    let active = fs.read("/sys/devices/system/cpu/smt/active");
+    let mut groups: Vec<Vec<usize>> = Vec::new();
+    for c in fs.cpu_dirs().unwrap_or_default() {
+        if let Some(g) = fs
+            .read(&format!(
+                "/sys/devices/system/cpu/cpu{c}/topology/thread_siblings_list"
+            ))
+            .and_then(|s| parse_cpu_list(&s))
+        {
+            if g.len() > 1 && !groups.contains(&g) {
+                groups.push(g);
+            }
+        }
+    }
+    if control.is_none() && active.is_none() && groups.is_empty() {
+        return Check::new(
+            NAME,
+            "unknown (/sys/devices/system/cpu/smt not readable)",
+            Status::Unknown,
+            None,
+        );
+    }
+    let mut value = format!(
+        "control {}, active {}",
+        control.as_deref().unwrap_or("-"),
+        active.as_deref().unwrap_or("-")
+    );
+    if groups.is_empty() {
+        value.push_str("; no sibling threads");
+    } else {
+        let g: Vec<String> = groups.iter().map(|g| fmt_cpu_list(g)).collect();
+        value.push_str(&format!("; siblings {}", g.join(" ")));
+    }
+    if active.as_deref() == Some("1") || !groups.is_empty() {
+        Check::new(
+            NAME,
+            value,
+            Status::Warn,
+            Some(
+                "hyperthread siblings share a core's execution units: keep the sibling of each \
+                 real-time CPU idle (isolate both threads of the core) or boot with nosmt"
+                    .into(),
+            ),
+        )
+    } else {
+        Check::new(NAME, value, Status::Ok, None)
+    }
+}
+
+fn irqbalance_check(fs: &Fs) -> Check {
+    const NAME: &str = "irqbalance";
+    let Some(entries) = fs.list("/proc") else {
+        return Check::new(NAME, "unknown (/proc not readable)", Status::Unknown, None);
+    };
+    let pids: Vec<&String> = entries
+        .iter()
+        .filter(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()))
+        .collect();
+    if pids.is_empty() {
+        return Check::new(
+            NAME,
+            "unknown (no processes in /proc)",
+            Status::Unknown,
+            None,
+        );
+    }
+    let running: Vec<&str> = pids
+        .iter()
+        .filter(|pid| fs.read(&format!("/proc/{pid}/comm")).as_deref() == Some("irqbalance"))
+        .map(|p| p.as_str())
+        .collect();
+    if running.is_empty() {
+        Check::new(NAME, "not running", Status::Ok, None)
+    } else {
+        Check::new(
+            NAME,
+            format!("running (pid {})", running.join(", ")),
+            Status::Warn,
+            Some(
+                "irqbalance may move device interrupts onto the real-time CPUs: stop it \
+                 (systemctl stop irqbalance) or ban those CPUs (IRQBALANCE_BANNED_CPULIST), \
+                 and boot with irqaffinity=0"
+                    .into(),
+            ),
+        )
+    }
+}
+
+/// Tries `SCHED_FIFO` priority 1 in a throw-away thread, switching straight back to
+/// `SCHED_OTHER`. `Ok(())` if allowed, else the error.
+fn probe_sched_fifo() -> io::Result<()> {
+    std::thread::Builder::new()
+        .name("doctor-fifo-probe".into())
+        .spawn(|| -> io::Result<()> {
+            rt::set_scheduler(libc::SCHED_FIFO, 1)?;
+            // Back to normal at once; the thread ends right after anyway.
+            let _ = rt::set_scheduler(libc::SCHED_OTHER, 0);
+            Ok(())
+        })
+        .map_err(|e| io::Error::other(format!("cannot spawn probe thread: {e}")))?
+        .join()
+        .unwrap_or_else(|_| Err(io::Error::other("probe thread panicked")))
+}
+
+fn sched_fifo_check(caps: &Caps) -> Check {
+    const NAME: &str = "sched_fifo privilege";
+    let (soft, hard) = rt::get_rlimit(libc::RLIMIT_RTPRIO);
+    let who = format!(
+        "euid {}, {}, RLIMIT_RTPRIO {}/{}",
+        caps.euid,
+        caps.describe(CAP_SYS_NICE, "CAP_SYS_NICE"),
+        rt::fmt_rlimit_count(soft),
+        rt::fmt_rlimit_count(hard)
+    );
+    match probe_sched_fifo() {
+        Ok(()) => {
+            let privileged = caps.euid == 0 || caps.has(CAP_SYS_NICE) == Some(true);
+            if !privileged && soft != libc::RLIM_INFINITY && soft < 99 {
+                Check::new(
+                    NAME,
+                    format!("allowed up to priority {soft} ({who})"),
+                    Status::Ok,
+                    None,
+                )
+            } else {
+                Check::new(NAME, format!("allowed ({who})"), Status::Ok, None)
+            }
+        }
+        Err(e) => {
+            let root_hint = if caps.euid == 0 {
+                "; as root this usually means a container without CAP_SYS_NICE or a cgroup \
+                 with cpu.rt_runtime_us = 0"
+            } else {
+                ""
+            };
+            Check::new(
+                NAME,
+                format!("refused: {} ({who})", rt::os_error_text(&e)),
+                Status::Bad,
+                Some(format!(
+                    "run as root, or grant CAP_SYS_NICE (setcap cap_sys_nice+ep <binary>, or \
+                     AmbientCapabilities=CAP_SYS_NICE in a systemd unit), or raise \
+                     RLIMIT_RTPRIO (LimitRTPRIO=99, or '@realtime - rtprio 99' in \
+                     /etc/security/limits.conf){root_hint}"
+                )),
+            )
+        }
+    }
+}
+
+fn mlock_check(caps: &Caps) -> Check {
+    const NAME: &str = "mlock";
+    let (soft, hard) = rt::get_rlimit(libc::RLIMIT_MEMLOCK);
+    let limit = format!(
+        "RLIMIT_MEMLOCK {}/{}",
+        rt::fmt_rlimit_bytes(soft),
+        rt::fmt_rlimit_bytes(hard)
+    );
+    let cap = caps.has(CAP_IPC_LOCK);
+    if cap == Some(true) || (cap.is_none() && caps.euid == 0) {
+        let who = if caps.euid == 0 {
+            "root"
+        } else {
+            "CAP_IPC_LOCK"
+        };
+        return Check::new(
+            NAME,
+            format!("unlimited ({who}; {limit})"),
+            Status::Ok,
+            None,
+        );
+    }
+    if soft == libc::RLIM_INFINITY {
+        return Check::new(NAME, format!("unlimited ({limit})"), Status::Ok, None);
+    }
+    Check::new(
+        NAME,
+        format!(
+            "{limit} (euid {}, no CAP_IPC_LOCK): mlockall(MCL_CURRENT|MCL_FUTURE) fails once the \
+             process maps more than that",
+            caps.euid
+        ),
+        Status::Warn,
+        Some(
+            "raise the limit (ulimit -l unlimited, LimitMEMLOCK=infinity in a systemd unit, \
+             '@realtime - memlock unlimited' in /etc/security/limits.conf) or grant CAP_IPC_LOCK"
+                .into(),
+        ),
+    )
+}
+
+fn timer_slack_check(fs: &Fs) -> Check {
+    file_check(
+        "timer slack",
+        &fs.path("/proc/self/timerslack_ns"),
+        |s| match s.parse::<u64>() {
+            Ok(ns) if ns <= 1_000 => (Status::Ok, format!("{ns} ns"), None),
+            Ok(ns) => (
+                Status::Warn,
+                format!(
+                    "{ns} ns: SCHED_OTHER sleeps may wake up to {:.0} us late (SCHED_FIFO \
+                     ignores slack)",
+                    ns as f64 / 1000.0
+                ),
+                Some(
+                    "run the loops at SCHED_FIFO, or lower the slack with \
+                     prctl(PR_SET_TIMERSLACK, 1) in the service"
+                        .into(),
+                ),
+            ),
+            Err(_) => (Status::Unknown, format!("unparsable: {s}"), None),
+        },
+    )
+}
+
+fn clocksource_check(fs: &Fs) -> Check {
+    file_check(
+        "clocksource",
+        &fs.path("/sys/devices/system/clocksource/clocksource0/current_clocksource"),
+        |s| match s {
+            "tsc" | "kvm-clock" | "arch_sys_counter" | "hyperv_clocksource_tsc_page" => {
+                (Status::Ok, s.to_string(), None)
+            }
+            "hpet" | "acpi_pm" | "jiffies" | "refined-jiffies" | "xen" => (
+                Status::Warn,
+                format!("{s}: slow clock reads (clock_gettime may enter the kernel)"),
+                Some(
+                    "find out why the TSC is not used (dmesg | grep -i tsc); a stable TSC gives \
+                     fast, precise clock_gettime"
+                        .into(),
+                ),
+            ),
+            other => (Status::Ok, other.to_string(), None),
+        },
+    )
+}
+
+fn dev_shm_check(fs: &Fs) -> Check {
+    const NAME: &str = "/dev/shm";
+    let path = fs.path("/dev/shm");
+    match statvfs(&path) {
+        Ok((size, free)) => {
+            let value = format!("size {}, free {}", fmt_bytes(size), fmt_bytes(free));
+            const MIB: u64 = 1024 * 1024;
+            if free < 64 * MIB {
+                Check::new(
+                    NAME,
+                    value,
+                    Status::Bad,
+                    Some(
+                        "iceoryx2 keeps its buses in /dev/shm: remove stale segments or remount \
+                         it larger (mount -o remount,size=1G /dev/shm)"
+                            .into(),
+                    ),
+                )
+            } else if free < 256 * MIB {
+                Check::new(
+                    NAME,
+                    value,
+                    Status::Warn,
+                    Some(
+                        "little free shared memory for iceoryx2: remount /dev/shm larger \
+                         (mount -o remount,size=1G /dev/shm)"
+                            .into(),
+                    ),
+                )
+            } else {
+                Check::new(NAME, value, Status::Ok, None)
+            }
+        }
+        Err(e) => Check::new(
+            NAME,
+            format!("not usable: {}", rt::os_error_text(&e)),
+            Status::Bad,
+            Some("iceoryx2 needs a tmpfs mounted on /dev/shm".into()),
+        ),
+    }
+}
+
+/// (total, available) bytes of the filesystem holding `path`.
+fn statvfs(path: &Path) -> io::Result<(u64, u64)> {
+    use std::os::unix::ffi::OsStrExt;
+    let c = std::ffi::CString::new(path.as_os_str().as_bytes())
+        .map_err(|_| io::Error::from_raw_os_error(libc::EINVAL))?;
+    // SAFETY: statvfs is plain integers; all-zero is a valid value for the out-param.
+    let mut st: libc::statvfs = unsafe { std::mem::zeroed() };
+    // SAFETY: `c` is a NUL-terminated path that outlives the call; `st` is valid and
+    // writable.
+    if unsafe { libc::statvfs(c.as_ptr(), &mut st) } != 0 {
+        return Err(io::Error::last_os_error());
+    }
+    let frsize = if st.f_frsize > 0 {
+        st.f_frsize
+    } else {
+        st.f_bsize
+    } as u64;
+    Ok((
+        (st.f_blocks as u64).saturating_mul(frsize),
+        (st.f_bavail as u64).saturating_mul(frsize),
+    ))
+}
+
+fn fmt_bytes(b: u64) -> String {
+    const UNITS: [&str; 5] = ["B", "KiB", "MiB", "GiB", "TiB"];
+    let mut v = b as f64;
+    let mut u = 0;
+    while v >= 1024.0 && u + 1 < UNITS.len() {
+        v /= 1024.0;
+        u += 1;
+    }
+    if u == 0 {
+        format!("{b} B")
+    } else {
+        format!("{v:.1} {}", UNITS[u])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    const REQUIRED: [&str; 7] = [
+        "preemption",
+        "rt throttling",
+        "governor",
+        "isolated cpus",
+        "sched_fifo privilege",
+        "mlock",
+        "/dev/shm",
+    ];
+
+    /// A fresh empty directory under the system temp dir, removed on drop.
+    struct FakeRoot(PathBuf);
+
+    impl FakeRoot {
+        fn new() -> Self {
+            static N: AtomicUsize = AtomicUsize::new(0);
+            let p = std::env::temp_dir().join(format!(
+                "drivelab-doctor-test-{}-{}",
+                std::process::id(),
+                N.fetch_add(1, Ordering::Relaxed)
+            ));
+            std::fs::create_dir_all(&p).unwrap();
+            FakeRoot(p)
+        }
+
+        fn write(&self, abs: &str, content: &str) {
+            let p = self.0.join(abs.trim_start_matches('/'));
+            std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+            std::fs::write(p, content).unwrap();
+        }
+
+        fn fs(&self) -> Fs<'_> {
+            Fs { root: &self.0 }
+        }
+    }
+
+    impl Drop for FakeRoot {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+
+    fn find<'a>(checks: &'a [Check], name: &str) -> &'a Check {
+        checks
+            .iter()
+            .find(|c| c.name == name)
+            .unwrap_or_else(|| panic!("no check named {name:?}"))
+    }
+
+    #[test]
+    fn run_checks_has_the_named_checks() {
+        let checks = run_checks();
+        for name in REQUIRED {
+            find(&checks, name);
+        }
+        for c in &checks {
+            assert!(!c.value.is_empty(), "{} has an empty value", c.name);
+        }
+        // sched_fifo probe ran and left this thread alone.
+        assert_eq!(rt::current_policy_raw(), libc::SCHED_OTHER);
+    }
+
+    #[test]
+    fn render_text_contains_every_check() {
+        let checks = run_checks();
+        let text = render_text(&checks);
+        for c in &checks {
+            assert!(text.contains(&c.name), "{} missing from\n{text}", c.name);
+        }
+        // Header + one line per check + advice lines + summary.
+        let advice = checks.iter().filter(|c| c.advice.is_some()).count();
+        assert_eq!(
+            text.lines().count(),
+            1 + checks.len() + advice + 1,
+            "{text}"
+        );
+        // Rows are aligned: the status column starts at the same offset everywhere.
+        let w = checks.iter().map(|c| c.name.len()).max().unwrap().max(5);
+        for (line, c) in text
+            .lines()
+            .skip(1)
+            .filter(|l| !l.starts_with(' '))
+            .zip(&checks)
+        {
+            assert!(line[w + 2..].starts_with(c.status.label()), "{line}");
+        }
+        serde_json::to_string(&checks).unwrap();
+    }
+
+    #[test]
+    fn render_text_advice_below_row() {
+        let checks = vec![
+            Check::new("a", "x", Status::Ok, None),
+            Check::new("longer name", "y\nz", Status::Warn, Some("do this".into())),
+        ];
+        let text = render_text(&checks);
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[0], "CHECK        STATUS   VALUE");
+        assert_eq!(lines[1], "a            OK       x");
+        assert_eq!(lines[2], "longer name  WARN     y z");
+        assert_eq!(lines[3], "                      -> do this");
+        assert!(lines[4].starts_with("1 ok, 1 warn, 0 bad, 0 unknown"));
+    }
+
+    #[test]
+    fn missing_file_is_unknown() {
+        assert_eq!(read_trimmed(Path::new("/nonexistent/drivelab/file")), None);
+        let c = file_check("x", Path::new("/nonexistent/drivelab/file"), |_| {
+            unreachable!("must not interpret a missing file")
+        });
+        assert_eq!(c.status, Status::Unknown);
+        assert!(c.value.contains("/nonexistent/drivelab/file"));
+    }
+
+    #[test]
+    fn empty_root_gives_unknown_not_panics() {
+        let root = FakeRoot::new();
+        let checks = run_checks_in(&root.0);
+        for name in REQUIRED {
+            find(&checks, name);
+        }
+        for name in [
+            "rt throttling",
+            "governor",
+            "isolated cpus",
+            "smt",
+            "irqbalance",
+            "timer slack",
+            "clocksource",
+        ] {
+            assert_eq!(find(&checks, name).status, Status::Unknown, "{name}");
+        }
+        // No /dev/shm under the fake root.
+        assert_eq!(find(&checks, "/dev/shm").status, Status::Bad);
+        render_text(&checks);
+    }
+
+    #[test]
+    fn rt_throttling_values() {
+        let root = FakeRoot::new();
+        root.write("/proc/sys/kernel/sched_rt_runtime_us", "950000\n");
+        root.write("/proc/sys/kernel/sched_rt_period_us", "1000000\n");
+        let c = rt_throttling_check(&root.fs());
+        assert_eq!(c.status, Status::Warn);
+        assert!(c.value.contains("~50 ms in every 1000 ms"), "{}", c.value);
+        assert!(c.advice.unwrap().contains("sched_rt_runtime_us=-1"));
+
+        root.write("/proc/sys/kernel/sched_rt_runtime_us", "-1\n");
+        let c = rt_throttling_check(&root.fs());
+        assert_eq!(c.status, Status::Ok);
+        assert!(c.value.contains("disabled"));
+
+        assert_eq!(
+            rt_throttling_verdict(Some(1_000_000), Some(1_000_000), "t").status,
+            Status::Ok
+        );
+        assert_eq!(
+            rt_throttling_verdict(None, None, "t").status,
+            Status::Unknown
+        );
+    }
+
+    #[test]
+    fn governor_values() {
+        let root = FakeRoot::new();
+        root.write("/sys/devices/system/cpu/cpu0/uevent", "");
+        root.write("/sys/devices/system/cpu/cpu1/uevent", "");
+        let c = governor_check(&root.fs());
+        assert_eq!(c.status, Status::Unknown);
+        assert_eq!(c.value, "no cpufreq (VM?)");
+
+        root.write(
+            "/sys/devices/system/cpu/cpu0/cpufreq/scaling_governor",
+            "performance\n",
+        );
+        root.write(
+            "/sys/devices/system/cpu/cpu1/cpufreq/scaling_governor",
+            "performance\n",
+        );
+        let c = governor_check(&root.fs());
+        assert_eq!(c.status, Status::Ok);
+        assert_eq!(c.value, "performance: cpu 0-1");
+
+        root.write(
+            "/sys/devices/system/cpu/cpu1/cpufreq/scaling_governor",
+            "powersave\n",
+        );
+        let c = governor_check(&root.fs());
+        assert_eq!(c.status, Status::Warn);
+        assert!(c.value.contains("powersave: cpu 1"));
+        assert!(c.advice.unwrap().contains("performance"));
+    }
+
+    #[test]
+    fn isolated_values() {
+        let root = FakeRoot::new();
+        root.write("/sys/devices/system/cpu/isolated", "\n");
+        root.write("/proc/cmdline", "quiet splash\n");
+        let c = isolated_cpus_check(&root.fs(), &[0, 1, 2, 3]);
+        assert_eq!(c.status, Status::Warn);
+        assert!(c.value.starts_with("isolated: none"));
+        let a = c.advice.unwrap();
+        assert!(
+            a.contains("isolcpus=1-3 nohz_full=1-3 rcu_nocbs=1-3"),
+            "{a}"
+        );
+        let c = isolated_cpus_check(&root.fs(), &[0, 1]);
+        assert!(c
+            .advice
+            .unwrap()
+            .contains("boot with isolcpus=1 nohz_full=1 rcu_nocbs=1"));
+
+        root.write("/sys/devices/system/cpu/isolated", "1\n");
+        root.write(
+            "/proc/cmdline",
+            "quiet isolcpus=1 nohz_full=1 rcu_nocbs=1\n",
+        );
+        let c = isolated_cpus_check(&root.fs(), &[0, 1]);
+        assert_eq!(c.status, Status::Ok);
+        assert_eq!(c.value, "isolated: 1; nohz_full: 1; rcu_nocbs: 1");
+        assert!(c.advice.is_none());
+    }
+
+    #[test]
+    fn preemption_values() {
+        let v = |rt, dbg, cmd, un| preemption_verdict(rt, dbg, cmd, un);
+        assert_eq!(v(Some("1"), None, None, None).status, Status::Ok);
+        assert_eq!(
+            v(None, None, None, Some("#1 SMP PREEMPT_RT Mon")).status,
+            Status::Ok
+        );
+        let c = v(None, None, None, Some("#1 SMP PREEMPT_DYNAMIC @0"));
+        assert_eq!(c.status, Status::Warn);
+        assert!(c.value.contains("PREEMPT_DYNAMIC"));
+        assert!(c.advice.unwrap().contains("PREEMPT_RT"));
+        let c = v(None, Some("full"), None, Some("#1 SMP PREEMPT_DYNAMIC"));
+        assert_eq!(c.status, Status::Warn);
+        assert!(c.value.contains("mode full"));
+        let c = v(None, None, Some("none"), Some("#1 SMP PREEMPT_DYNAMIC"));
+        assert_eq!(c.status, Status::Bad);
+        assert_eq!(
+            v(None, None, None, Some("#1 SMP PREEMPT")).status,
+            Status::Warn
+        );
+        assert_eq!(v(None, None, None, Some("#1 SMP Tue")).status, Status::Bad);
+        assert_eq!(v(None, None, None, None).status, Status::Unknown);
+        assert_eq!(
+            current_preempt_mode("none voluntary (full) lazy").as_deref(),
+            Some("full")
+        );
+
+        let root = FakeRoot::new();
+        root.write("/sys/kernel/realtime", "1\n");
+        assert_eq!(preemption_check(&root.fs(), None).status, Status::Ok);
+    }
+
+    #[test]
+    fn irqbalance_values() {
+        let root = FakeRoot::new();
+        root.write("/proc/1/comm", "init\n");
+        assert_eq!(irqbalance_check(&root.fs()).status, Status::Ok);
+        root.write("/proc/42/comm", "irqbalance\n");
+        let c = irqbalance_check(&root.fs());
+        assert_eq!(c.status, Status::Warn);
+        assert!(c.value.contains("42"));
+    }
+
+    #[test]
+    fn smt_values() {
+        let root = FakeRoot::new();
+        root.write("/sys/devices/system/cpu/smt/control", "notsupported\n");
+        root.write("/sys/devices/system/cpu/smt/active", "0\n");
+        root.write(
+            "/sys/devices/system/cpu/cpu0/topology/thread_siblings_list",
+            "0\n",
+        );
+        assert_eq!(smt_check(&root.fs()).status, Status::Ok);
+        root.write("/sys/devices/system/cpu/smt/control", "on\n");
+        root.write("/sys/devices/system/cpu/smt/active", "1\n");
+        root.write(
+            "/sys/devices/system/cpu/cpu0/topology/thread_siblings_list",
+            "0,2\n",
+        );
+        root.write(
+            "/sys/devices/system/cpu/cpu2/topology/thread_siblings_list",
+            "0,2\n",
+        );
+        let c = smt_check(&root.fs());
+        assert_eq!(c.status, Status::Warn);
+        assert!(c.value.contains("siblings 0,2"), "{}", c.value);
+    }
+
+    #[test]
+    fn timer_slack_values() {
+        let root = FakeRoot::new();
+        root.write("/proc/self/timerslack_ns", "50000\n");
+        let c = timer_slack_check(&root.fs());
+        assert_eq!(c.status, Status::Warn);
+        assert!(c.value.contains("50 us"));
+        root.write("/proc/self/timerslack_ns", "1\n");
+        assert_eq!(timer_slack_check(&root.fs()).status, Status::Ok);
+    }
+
+    #[test]
+    fn cpu_lists() {
+        assert_eq!(
+            parse_cpu_list("0-3,8,10-11"),
+            Some(vec![0, 1, 2, 3, 8, 10, 11])
+        );
+        assert_eq!(parse_cpu_list(""), Some(vec![]));
+        assert_eq!(parse_cpu_list("x"), Some(vec![]));
+        assert_eq!(parse_cpu_list("1-"), None);
+        assert_eq!(parse_cpu_list("nohz,domain,1-2"), Some(vec![1, 2]));
+        assert_eq!(fmt_cpu_list(&[0, 1, 2, 3, 8, 10, 11]), "0-3,8,10-11");
+        assert_eq!(fmt_cpu_list(&[]), "");
+        assert_eq!(
+            cmdline_param("a isolcpus=2 b nohz_full=2-3 -- isolcpus=9", "isolcpus").as_deref(),
+            Some("2")
+        );
+        assert_eq!(fmt_bytes(512), "512 B");
+        assert_eq!(fmt_bytes(3 * 1024 * 1024), "3.0 MiB");
+    }
+
+    /// `cargo test -p drivelab-shared --lib doctor::tests::print_report -- --ignored --nocapture`
+    #[test]
+    #[ignore = "prints the live report"]
+    fn print_report() {
+        print!("{}", render_text(&run_checks()));
+    }
+
+    #[test]
+    fn dev_shm_live() {
+        let c = dev_shm_check(&Fs {
+            root: Path::new("/"),
+        });
+        // /dev/shm exists on any normal Linux box; just make sure the value is sane.
+        assert!(c.value.starts_with("size ") || c.value.starts_with("not usable"));
+    }
+}

@@ -1,0 +1,178 @@
+//! Messages exchanged on the bus. Every message is defined once, here: iceoryx2 identifies a
+//! payload type by its name, size and alignment.
+//!
+//! Timestamps are CLOCK_MONOTONIC nanoseconds, comparable across processes. In lockstep
+//! runs `t_sample_ns` is 0 (there is no wall-clock schedule).
+
+use iceoryx2::prelude::ZeroCopySend;
+
+/// Header flag: the plant has produced its last sample; consumers forward it and exit.
+pub const FLAG_END: u32 = 1;
+/// Header flag (measurement): the plant used a stale command this sample (deadline miss).
+pub const FLAG_STALE_CMD: u32 = 2;
+/// Header flag (measurement): the inverter is in its safe state.
+pub const FLAG_SAFE_STATE: u32 = 4;
+/// Header flag: the producer used a stale input this sample.
+pub const FLAG_STALE_INPUT: u32 = 8;
+
+/// Common header.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+pub struct Header {
+    /// Sample index k.
+    pub k: u64,
+    /// Ideal sample instant t_k (plant's schedule), ns; 0 in lockstep.
+    pub t_sample_ns: u64,
+    /// When the producer published the message, ns.
+    pub t_pub_ns: u64,
+    /// `FLAG_*` bits.
+    pub flags: u32,
+    /// Padding (keeps the layout explicit).
+    pub reserved: u32,
+}
+
+impl Header {
+    /// True when the END flag is set.
+    pub fn is_end(&self) -> bool {
+        self.flags & FLAG_END != 0
+    }
+}
+
+/// Plant → everyone: sensor values at t_k and, for the trace, the true state.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+pub struct Measurement {
+    /// Header.
+    pub hdr: Header,
+    /// Measured phase currents (a, b, c), A (with sensor noise if configured).
+    pub i_abc: [f64; 3],
+    /// Encoder mechanical angle, rad in [0, 2π) (quantised if configured).
+    pub theta_m_enc: f64,
+    /// αβ voltage applied by the inverter on [t_k, t_{k+1}), V.
+    pub u_ab_applied: [f64; 2],
+    /// True d/q current at t_k, A (trace only; controllers must not use it).
+    pub i_dq_true: [f64; 2],
+    /// True mechanical speed at t_k, rad/s (trace only).
+    pub omega_m_true: f64,
+    /// True electrical angle at t_k, rad (trace only).
+    pub theta_e_true: f64,
+    /// d/q voltage applied on [t_k, t_{k+1}) in the true rotor frame, V (trace only).
+    pub u_dq_applied: [f64; 2],
+    /// Load torque on [t_k, t_{k+1}), N·m.
+    pub t_load: f64,
+}
+
+/// Observer → current and speed loop: position/speed estimate for sample k.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+pub struct Estimate {
+    /// Header.
+    pub hdr: Header,
+    /// Estimated electrical angle, rad in [0, 2π).
+    pub theta_e: f64,
+    /// Estimated mechanical speed, rad/s.
+    pub omega_m: f64,
+}
+
+/// Speed loop → current loop: current references computed at sample k (used from k+1 on).
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+pub struct CurrentRef {
+    /// Header.
+    pub hdr: Header,
+    /// Speed reference the speed loop tracked, mechanical rad/s.
+    pub omega_ref: f64,
+    /// d-axis current reference, A.
+    pub i_d_ref: f64,
+    /// q-axis current reference, A.
+    pub i_q_ref: f64,
+}
+
+/// Current loop → plant: voltage command k (applied from t_{k+1} on) and, for the trace, the
+/// references and estimates it used.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+pub struct VoltageCommand {
+    /// Header.
+    pub hdr: Header,
+    /// Commanded αβ voltage, V (what a real inverter receives).
+    pub u_ab: [f64; 2],
+    /// Commanded d/q voltage in the estimated frame, V.
+    pub u_dq: [f64; 2],
+    /// Current references used at k, A.
+    pub i_dq_ref: [f64; 2],
+    /// Speed reference carried by the current reference used at k, rad/s.
+    pub omega_ref: f64,
+    /// Estimate used at k: speed (rad/s) and electrical angle (rad).
+    pub omega_hat: f64,
+    /// Estimated electrical angle used at k, rad.
+    pub theta_hat: f64,
+}
+
+/// Every payload must be finite; a NaN or infinity from a peer is rejected, never used.
+pub trait Finite {
+    /// True when every floating-point field is finite.
+    fn is_finite(&self) -> bool;
+}
+
+fn all_finite(v: &[f64]) -> bool {
+    v.iter().all(|x| x.is_finite())
+}
+
+impl Finite for Measurement {
+    fn is_finite(&self) -> bool {
+        all_finite(&self.i_abc)
+            && all_finite(&self.u_ab_applied)
+            && all_finite(&self.i_dq_true)
+            && all_finite(&self.u_dq_applied)
+            && all_finite(&[
+                self.theta_m_enc,
+                self.omega_m_true,
+                self.theta_e_true,
+                self.t_load,
+            ])
+    }
+}
+
+impl Finite for Estimate {
+    fn is_finite(&self) -> bool {
+        all_finite(&[self.theta_e, self.omega_m])
+    }
+}
+
+impl Finite for CurrentRef {
+    fn is_finite(&self) -> bool {
+        all_finite(&[self.omega_ref, self.i_d_ref, self.i_q_ref])
+    }
+}
+
+impl Finite for VoltageCommand {
+    fn is_finite(&self) -> bool {
+        all_finite(&self.u_ab)
+            && all_finite(&self.u_dq)
+            && all_finite(&self.i_dq_ref)
+            && all_finite(&[self.omega_ref, self.omega_hat, self.theta_hat])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nan_is_detected() {
+        let mut m = Measurement::default();
+        assert!(m.is_finite());
+        m.i_abc[1] = f64::NAN;
+        assert!(!m.is_finite());
+        let mut c = VoltageCommand::default();
+        c.u_ab[0] = f64::INFINITY;
+        assert!(!c.is_finite());
+    }
+
+    #[test]
+    fn layouts_are_fixed_size() {
+        assert_eq!(std::mem::size_of::<Header>(), 32);
+        assert_eq!(std::mem::size_of::<Measurement>() % 8, 0);
+    }
+}

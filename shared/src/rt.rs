@@ -1,0 +1,805 @@
+//! Real-time setup done once before a service's loop, and the monotonic clock helpers the
+//! loops use.
+//!
+//! [`setup_rt`] applies an [`RtRequest`] (core pinning, `SCHED_FIFO` priority, `mlockall`,
+//! stack prefault) to the calling thread/process and returns an [`RtReport`] of what the
+//! kernel actually granted, read back after the fact. Like copper-rs' thread pool, a refusal
+//! is either a warning in the report ([`RtPolicy::Warn`], the default for development
+//! machines) or an error that stops the service ([`RtPolicy::Strict`], for a real rig where
+//! running without real-time guarantees would be worse than not running).
+//!
+//! Scope of each part:
+//! * core pinning and the scheduling policy apply to the **calling thread** (Linux
+//!   `sched_setaffinity(0, ..)` / `sched_setscheduler(0, ..)` act on the caller's thread id);
+//!   threads spawned afterwards inherit them;
+//! * `mlockall` applies to the whole **process**;
+//! * the stack prefault touches the calling thread's stack.
+//!
+//! In [`RtPolicy::Strict`] the request is validated (priority range, core index, stack
+//! headroom) before anything is changed, so an invalid request changes nothing. A refusal
+//! from the kernel later in the sequence returns `Err` immediately; the parts applied before
+//! it stay applied (the service is expected to exit).
+
+use std::io;
+
+use anyhow::bail;
+use serde::{Deserialize, Serialize};
+
+/// What to do when part of an [`RtRequest`] cannot be granted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum RtPolicy {
+    /// Record the refusal as a warning in the [`RtReport`], skip that part, carry on.
+    Warn,
+    /// Return an error naming what was refused and why.
+    Strict,
+}
+
+/// Real-time settings a service asks for.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RtRequest {
+    /// Pin the calling thread to this CPU (index as in `/sys/devices/system/cpu/cpuN`).
+    /// `None` leaves the affinity mask unchanged.
+    pub core: Option<usize>,
+    /// `SCHED_FIFO` priority, 1..=99. `None` = `SCHED_OTHER` (a thread currently running
+    /// under a real-time policy is moved back to `SCHED_OTHER`).
+    pub fifo_priority: Option<u8>,
+    /// Lock all current and future pages of the process in RAM (`mlockall`).
+    pub lock_memory: bool,
+    /// Touch this many bytes of the calling thread's stack so the pages are resident
+    /// (and, with `lock_memory`, locked) before the loop starts. 0 = skip.
+    pub prefault_stack_bytes: usize,
+}
+
+/// What [`setup_rt`] obtained, read back from the kernel where possible.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RtReport {
+    /// The CPU the calling thread is pinned to (its affinity mask holds exactly this CPU),
+    /// `None` when the thread may run on several CPUs.
+    pub cpu: Option<usize>,
+    /// Scheduling policy read back with `sched_getscheduler`: `"SCHED_FIFO"`,
+    /// `"SCHED_OTHER"`, ...
+    pub policy: String,
+    /// Static priority read back with `sched_getparam` (0 for non-real-time policies).
+    pub priority: i32,
+    /// `mlockall` succeeded (or the process already has locked memory).
+    pub memory_locked: bool,
+    /// One entry per refused/skipped part (only under [`RtPolicy::Warn`]).
+    pub warnings: Vec<String>,
+}
+
+impl RtReport {
+    /// One line for a service's start-up log, e.g.
+    /// `"plant: cpu 1, SCHED_FIFO 80, memory locked"` or
+    /// `"plant: cpu unpinned, SCHED_OTHER, memory not locked; WARNING: ..."`.
+    pub fn one_line(&self, service: &str) -> String {
+        let cpu = match self.cpu {
+            Some(c) => format!("cpu {c}"),
+            None => "cpu unpinned".to_string(),
+        };
+        let sched = if self.policy == "SCHED_FIFO" || self.policy == "SCHED_RR" {
+            format!("{} {}", self.policy, self.priority)
+        } else {
+            self.policy.clone()
+        };
+        let mem = if self.memory_locked {
+            "memory locked"
+        } else {
+            "memory not locked"
+        };
+        let mut line = format!("{service}: {cpu}, {sched}, {mem}");
+        for w in &self.warnings {
+            line.push_str("; WARNING: ");
+            line.push_str(w);
+        }
+        line
+    }
+}
+
+/// Collects refusals according to the policy.
+struct Refusals {
+    policy: RtPolicy,
+    warnings: Vec<String>,
+}
+
+impl Refusals {
+    /// Under `Warn` records `msg` and returns `Ok`; under `Strict` returns `Err(msg)`.
+    fn refuse(&mut self, msg: String) -> anyhow::Result<()> {
+        match self.policy {
+            RtPolicy::Warn => {
+                self.warnings.push(msg);
+                Ok(())
+            }
+            RtPolicy::Strict => bail!(msg),
+        }
+    }
+}
+
+/// Applies `req` to the calling thread/process and reports what was granted.
+///
+/// Order: validate, `mlockall`, stack prefault, CPU affinity, scheduling policy (the policy
+/// goes last so the set-up work itself does not run at real-time priority).
+///
+/// Each refusal (invalid priority or core, `EPERM`, `EINVAL`, `ENOMEM`, too little stack)
+/// becomes a warning in the report under [`RtPolicy::Warn`] (that part is skipped), and an
+/// `Err` with a one-line message naming what was refused and why under
+/// [`RtPolicy::Strict`].
+pub fn setup_rt(req: &RtRequest, policy: RtPolicy) -> anyhow::Result<RtReport> {
+    let mut r = Refusals {
+        policy,
+        warnings: Vec::new(),
+    };
+
+    // ---- validation (nothing changed yet) ----
+    let n_cpus = online_cpus();
+    let mut core = req.core;
+    if let Some(c) = core {
+        if c >= n_cpus || c >= libc::CPU_SETSIZE as usize {
+            core = None;
+            r.refuse(format!(
+                "pinning to cpu {c} refused: invalid core ({n_cpus} CPUs online, valid 0..={})",
+                n_cpus.saturating_sub(1)
+            ))?;
+        }
+    }
+    let mut fifo = req.fifo_priority;
+    if let Some(p) = fifo {
+        if !(1..=99).contains(&p) {
+            fifo = None;
+            r.refuse(format!(
+                "SCHED_FIFO priority {p} refused: out of range (valid 1..=99)"
+            ))?;
+        }
+    }
+    let mut prefault = req.prefault_stack_bytes;
+    if prefault > 0 {
+        if let Some(headroom) = stack_headroom() {
+            // Keep a margin for this function's own frames and whatever runs after, and
+            // count each recursion level's frame overhead on top of its buffer.
+            let chunks = headroom.saturating_sub(PREFAULT_MARGIN) / (PREFAULT_CHUNK + 1024);
+            let usable = chunks * PREFAULT_CHUNK;
+            if prefault > usable {
+                r.refuse(format!(
+                    "stack prefault of {prefault} bytes refused: only {usable} bytes of stack \
+                     headroom left in this thread (prefaulting {usable} instead)"
+                ))?;
+                prefault = usable;
+            }
+        }
+    }
+
+    // ---- memory locking (process-wide) ----
+    let mut memory_locked = false;
+    if req.lock_memory {
+        // SAFETY: mlockall takes only flag bits and touches no memory of ours; it cannot
+        // violate Rust invariants, it only changes how the kernel pages this process.
+        let rc = unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) };
+        if rc == 0 {
+            memory_locked = true;
+        } else {
+            let e = io::Error::last_os_error();
+            let why = match e.raw_os_error() {
+                Some(libc::ENOMEM) | Some(libc::EPERM) => format!(
+                    " (needs root or CAP_IPC_LOCK, or RLIMIT_MEMLOCK above the process size; \
+                     RLIMIT_MEMLOCK is {})",
+                    fmt_rlimit_bytes(get_rlimit(libc::RLIMIT_MEMLOCK).0)
+                ),
+                _ => String::new(),
+            };
+            r.refuse(format!(
+                "mlockall(MCL_CURRENT|MCL_FUTURE) refused: {}{why}",
+                os_error_text(&e)
+            ))?;
+        }
+    }
+    if !memory_locked {
+        // Already locked by an earlier call (e.g. another thread's setup).
+        memory_locked = locked_memory_kib().is_some_and(|kib| kib > 0);
+    }
+
+    // ---- stack prefault (calling thread) ----
+    if prefault > 0 {
+        prefault_stack(prefault);
+    }
+
+    // ---- CPU affinity (calling thread) ----
+    if let Some(c) = core {
+        if let Err(e) = set_affinity_single(c) {
+            r.refuse(format!(
+                "pinning to cpu {c} refused: {}{}",
+                os_error_text(&e),
+                if e.raw_os_error() == Some(libc::EINVAL) {
+                    " (cpu offline or outside this process's cpuset)"
+                } else {
+                    ""
+                }
+            ))?;
+        }
+    }
+
+    // ---- scheduling policy (calling thread) ----
+    match fifo {
+        Some(p) => {
+            if let Err(e) = set_scheduler(libc::SCHED_FIFO, i32::from(p)) {
+                r.refuse(fifo_refusal_message(p, &e))?;
+            }
+        }
+        None => {
+            // None = SCHED_OTHER: undo a real-time policy inherited or set earlier.
+            let current = current_policy_raw();
+            if current == libc::SCHED_FIFO || current == libc::SCHED_RR {
+                if let Err(e) = set_scheduler(libc::SCHED_OTHER, 0) {
+                    r.refuse(format!(
+                        "return to SCHED_OTHER refused: {}",
+                        os_error_text(&e)
+                    ))?;
+                }
+            }
+        }
+    }
+
+    // ---- read back ----
+    let (policy_name, priority) = current_sched();
+    Ok(RtReport {
+        cpu: pinned_cpu(),
+        policy: policy_name,
+        priority,
+        memory_locked,
+        warnings: r.warnings,
+    })
+}
+
+/// The one-line message for a refused `SCHED_FIFO` request.
+fn fifo_refusal_message(p: u8, e: &io::Error) -> String {
+    let mut msg = format!("SCHED_FIFO priority {p} refused: {}", os_error_text(e));
+    if e.raw_os_error() == Some(libc::EPERM) {
+        let (soft, _) = get_rlimit(libc::RLIMIT_RTPRIO);
+        msg.push_str(&format!(
+            " (needs root or CAP_SYS_NICE / RLIMIT_RTPRIO; RLIMIT_RTPRIO is {}",
+            fmt_rlimit_count(soft)
+        ));
+        // SAFETY: geteuid has no preconditions and cannot fail.
+        if unsafe { libc::geteuid() } == 0 {
+            msg.push_str(
+                "; running as root, so probably a container without CAP_SYS_NICE \
+                 or a cgroup with no real-time budget (cpu.rt_runtime_us = 0)",
+            );
+        }
+        msg.push(')');
+    }
+    msg
+}
+
+/// Bytes kept free below the prefaulted region of the stack.
+const PREFAULT_MARGIN: usize = 128 * 1024;
+
+/// Bytes touched per recursion level of [`prefault_chunk`].
+const PREFAULT_CHUNK: usize = 16 * 1024;
+
+/// Touches `bytes` bytes of the calling thread's stack, below the current frame.
+fn prefault_stack(bytes: usize) {
+    prefault_chunk(bytes.div_ceil(PREFAULT_CHUNK));
+}
+
+/// One frame of [`PREFAULT_CHUNK`] bytes, written page by page, then recursion for the
+/// remaining `chunks - 1`. Not inlined and the buffer is observed after the recursive call
+/// (no tail call), so each level really occupies its own stack frame.
+#[inline(never)]
+fn prefault_chunk(chunks: usize) {
+    if chunks == 0 {
+        return;
+    }
+    let mut buf = [0u8; PREFAULT_CHUNK];
+    let p = buf.as_mut_ptr();
+    let mut i = 0;
+    while i < PREFAULT_CHUNK {
+        // SAFETY: `p.add(i)` with i < PREFAULT_CHUNK stays inside `buf`, a live local array we
+        // exclusively borrow; a volatile write of a u8 to it is always valid.
+        unsafe { std::ptr::write_volatile(p.add(i), 1) };
+        i += 512;
+    }
+    prefault_chunk(chunks - 1);
+    std::hint::black_box(&mut buf);
+}
+
+/// Bytes between the current stack pointer (approximately: the address of a local) and
+/// the lowest usable address of the calling thread's stack, if the C library can tell.
+fn stack_headroom() -> Option<usize> {
+    let marker = 0u8;
+    let here = std::hint::black_box(&marker) as *const u8 as usize;
+    // SAFETY: an all-zero pthread_attr_t is a valid bit pattern for the out-parameter;
+    // pthread_getattr_np initialises it before we read it.
+    let mut attr: libc::pthread_attr_t = unsafe { std::mem::zeroed() };
+    // SAFETY: pthread_self() is the calling (live) thread and `attr` is a valid, writable
+    // pthread_attr_t; on success it must be destroyed, which we do below.
+    let rc = unsafe { libc::pthread_getattr_np(libc::pthread_self(), &mut attr) };
+    if rc != 0 {
+        return None;
+    }
+    let mut addr: *mut libc::c_void = std::ptr::null_mut();
+    let mut size: libc::size_t = 0;
+    // SAFETY: `attr` was initialised by pthread_getattr_np above; `addr` and `size` are valid
+    // out-pointers.
+    let rc2 = unsafe { libc::pthread_attr_getstack(&attr, &mut addr, &mut size) };
+    // SAFETY: `attr` was initialised by a successful pthread_getattr_np and is destroyed once.
+    unsafe { libc::pthread_attr_destroy(&mut attr) };
+    if rc2 != 0 || addr.is_null() {
+        return None;
+    }
+    let low = addr as usize;
+    // The guard page(s) are included in the reported range on some libcs; they are
+    // covered by PREFAULT_MARGIN.
+    if here > low && here - low <= size {
+        Some(here - low)
+    } else {
+        None
+    }
+}
+
+/// Pins the calling thread to exactly `cpu`.
+fn set_affinity_single(cpu: usize) -> io::Result<()> {
+    // SAFETY: cpu_set_t is a plain bit array; all-zero is a valid (empty) set.
+    let mut set: libc::cpu_set_t = unsafe { std::mem::zeroed() };
+    // SAFETY: the caller checked `cpu < CPU_SETSIZE`, so CPU_SET's index into the bit array
+    // is in range; `set` is a valid, exclusively borrowed cpu_set_t.
+    unsafe { libc::CPU_SET(cpu, &mut set) };
+    // SAFETY: pid 0 = the calling thread; `set` is a valid cpu_set_t of the size passed.
+    let rc = unsafe { libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set) };
+    if rc == 0 {
+        Ok(())
+    } else {
+        Err(io::Error::last_os_error())
+    }
+}
+
+/// The single CPU the calling thread's affinity mask allows, if exactly one.
+fn pinned_cpu() -> Option<usize> {
+    // SAFETY: cpu_set_t is a plain bit array; all-zero is a valid (empty) set.
+    let mut set: libc::cpu_set_t = unsafe { std::mem::zeroed() };
+    // SAFETY: pid 0 = the calling thread; `set` is a valid, writable cpu_set_t of the size
+    // passed.
+    let rc =
+        unsafe { libc::sched_getaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &mut set) };
+    if rc != 0 {
+        return None;
+    }
+    // SAFETY: `set` is a valid cpu_set_t filled in by sched_getaffinity.
+    if unsafe { libc::CPU_COUNT(&set) } != 1 {
+        return None;
+    }
+    // SAFETY: every `c` is below CPU_SETSIZE, so CPU_ISSET reads inside `set`'s bit array.
+    (0..libc::CPU_SETSIZE as usize).find(|&c| unsafe { libc::CPU_ISSET(c, &set) })
+}
+
+/// `sched_setscheduler(0, policy, prio)` for the calling thread.
+pub(crate) fn set_scheduler(policy: libc::c_int, priority: i32) -> io::Result<()> {
+    let param = libc::sched_param {
+        sched_priority: priority,
+    };
+    // SAFETY: pid 0 = the calling thread; `param` is a valid sched_param that outlives the
+    // call. Changing the policy has no memory-safety implications.
+    let rc = unsafe { libc::sched_setscheduler(0, policy, &param) };
+    if rc == 0 {
+        Ok(())
+    } else {
+        Err(io::Error::last_os_error())
+    }
+}
+
+/// Raw policy of the calling thread (without `SCHED_RESET_ON_FORK`), or -1 on error.
+pub(crate) fn current_policy_raw() -> libc::c_int {
+    // SAFETY: pid 0 = the calling thread; no pointers involved.
+    let p = unsafe { libc::sched_getscheduler(0) };
+    if p < 0 {
+        p
+    } else {
+        p & !libc::SCHED_RESET_ON_FORK
+    }
+}
+
+/// (policy name, priority) of the calling thread, read back from the kernel.
+fn current_sched() -> (String, i32) {
+    let name = policy_name(current_policy_raw());
+    let mut param = libc::sched_param { sched_priority: 0 };
+    // SAFETY: pid 0 = the calling thread; `param` is a valid, writable sched_param.
+    let rc = unsafe { libc::sched_getparam(0, &mut param) };
+    let prio = if rc == 0 { param.sched_priority } else { 0 };
+    (name, prio)
+}
+
+/// Name of a Linux scheduling policy number.
+pub(crate) fn policy_name(p: libc::c_int) -> String {
+    match p {
+        libc::SCHED_OTHER => "SCHED_OTHER".into(),
+        libc::SCHED_FIFO => "SCHED_FIFO".into(),
+        libc::SCHED_RR => "SCHED_RR".into(),
+        libc::SCHED_BATCH => "SCHED_BATCH".into(),
+        libc::SCHED_IDLE => "SCHED_IDLE".into(),
+        6 => "SCHED_DEADLINE".into(),
+        p if p < 0 => "unknown".into(),
+        p => format!("policy {p}"),
+    }
+}
+
+/// `strerror`-style text without std's " (os error N)" suffix.
+pub(crate) fn os_error_text(e: &io::Error) -> String {
+    let s = e.to_string();
+    match s.rfind(" (os error ") {
+        Some(i) => s[..i].to_string(),
+        None => s,
+    }
+}
+
+/// The C type of `getrlimit`'s resource argument (an enum in glibc, `int` elsewhere).
+#[cfg(target_env = "gnu")]
+pub(crate) type RlimitResource = libc::__rlimit_resource_t;
+/// The C type of `getrlimit`'s resource argument (an enum in glibc, `int` elsewhere).
+#[cfg(not(target_env = "gnu"))]
+pub(crate) type RlimitResource = libc::c_int;
+
+/// (soft, hard) limit of `resource`; `RLIM_INFINITY` for unlimited, (0, 0) on error.
+pub(crate) fn get_rlimit(resource: RlimitResource) -> (libc::rlim_t, libc::rlim_t) {
+    let mut lim = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: `lim` is a valid, writable rlimit; getrlimit only writes into it.
+    let rc = unsafe { libc::getrlimit(resource, &mut lim) };
+    if rc == 0 {
+        (lim.rlim_cur, lim.rlim_max)
+    } else {
+        (0, 0)
+    }
+}
+
+/// A byte limit for humans: "unlimited", "8 MiB", "65536 bytes".
+pub(crate) fn fmt_rlimit_bytes(v: libc::rlim_t) -> String {
+    if v == libc::RLIM_INFINITY {
+        "unlimited".into()
+    } else if v >= 1024 * 1024 && v.is_multiple_of(1024 * 1024) {
+        format!("{} MiB", v / (1024 * 1024))
+    } else if v >= 1024 && v.is_multiple_of(1024) {
+        format!("{} KiB", v / 1024)
+    } else {
+        format!("{v} bytes")
+    }
+}
+
+/// A count limit for humans: "unlimited" or the number.
+pub(crate) fn fmt_rlimit_count(v: libc::rlim_t) -> String {
+    if v == libc::RLIM_INFINITY {
+        "unlimited".into()
+    } else {
+        v.to_string()
+    }
+}
+
+/// `VmLck` of this process from `/proc/self/status`, KiB.
+fn locked_memory_kib() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmLck:"))
+        .and_then(|rest| rest.split_whitespace().next())
+        .and_then(|v| v.parse().ok())
+}
+
+/// `CLOCK_MONOTONIC` now, nanoseconds.
+pub fn now_ns() -> u64 {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: `ts` is a valid, writable timespec; CLOCK_MONOTONIC always exists on Linux,
+    // so the call cannot fail.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    (ts.tv_sec as u64) * 1_000_000_000 + ts.tv_nsec as u64
+}
+
+/// Sleeps until the absolute `CLOCK_MONOTONIC` deadline `deadline_ns` (ns), with
+/// `clock_nanosleep(TIMER_ABSTIME)`; restarts after signals (`EINTR`) — with an absolute
+/// deadline a restart never accumulates drift. Returns at once if the deadline has passed.
+pub fn sleep_until_ns(deadline_ns: u64) {
+    let ts = libc::timespec {
+        tv_sec: (deadline_ns / 1_000_000_000) as libc::time_t,
+        tv_nsec: (deadline_ns % 1_000_000_000) as libc::c_long,
+    };
+    loop {
+        // SAFETY: `ts` is a valid timespec; the remaining-time pointer may be null (and is
+        // unused with TIMER_ABSTIME).
+        let rc = unsafe {
+            libc::clock_nanosleep(
+                libc::CLOCK_MONOTONIC,
+                libc::TIMER_ABSTIME,
+                &ts,
+                std::ptr::null_mut(),
+            )
+        };
+        // clock_nanosleep returns the error number directly (it does not set errno).
+        if rc != libc::EINTR {
+            return;
+        }
+    }
+}
+
+/// Number of online CPUs (`sysconf(_SC_NPROCESSORS_ONLN)`, at least 1).
+pub fn online_cpus() -> usize {
+    // SAFETY: sysconf takes a constant name and has no memory effects.
+    let n = unsafe { libc::sysconf(libc::_SC_NPROCESSORS_ONLN) };
+    if n >= 1 {
+        n as usize
+    } else {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn req() -> RtRequest {
+        RtRequest {
+            core: None,
+            fifo_priority: None,
+            lock_memory: false,
+            prefault_stack_bytes: 0,
+        }
+    }
+
+    /// Runs `f` in a fresh thread so affinity/policy changes never leak into the test
+    /// harness threads.
+    fn in_thread<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> T {
+        std::thread::spawn(f).join().expect("test thread panicked")
+    }
+
+    #[test]
+    fn one_line_granted() {
+        let r = RtReport {
+            cpu: Some(1),
+            policy: "SCHED_FIFO".into(),
+            priority: 80,
+            memory_locked: true,
+            warnings: vec![],
+        };
+        assert_eq!(
+            r.one_line("plant"),
+            "plant: cpu 1, SCHED_FIFO 80, memory locked"
+        );
+    }
+
+    #[test]
+    fn one_line_with_warnings() {
+        let r = RtReport {
+            cpu: None,
+            policy: "SCHED_OTHER".into(),
+            priority: 0,
+            memory_locked: false,
+            warnings: vec!["a refused: x".into(), "b refused: y".into()],
+        };
+        assert_eq!(
+            r.one_line("ctrl"),
+            "ctrl: cpu unpinned, SCHED_OTHER, memory not locked; WARNING: a refused: x; \
+             WARNING: b refused: y"
+        );
+    }
+
+    #[test]
+    fn report_serde_roundtrip() {
+        let r = RtReport {
+            cpu: Some(0),
+            policy: "SCHED_FIFO".into(),
+            priority: 10,
+            memory_locked: false,
+            warnings: vec!["w".into()],
+        };
+        let s = serde_json::to_string(&r).unwrap();
+        let back: RtReport = serde_json::from_str(&s).unwrap();
+        assert_eq!(back.one_line("x"), r.one_line("x"));
+        let p: RtPolicy = serde_json::from_str("\"Strict\"").unwrap();
+        assert_eq!(p, RtPolicy::Strict);
+    }
+
+    #[test]
+    fn invalid_core_warns_or_errs() {
+        let (warn, strict) = in_thread(|| {
+            let mut q = req();
+            q.core = Some(10_000);
+            (setup_rt(&q, RtPolicy::Warn), setup_rt(&q, RtPolicy::Strict))
+        });
+        let rep = warn.expect("Warn must not fail");
+        assert_eq!(rep.warnings.len(), 1, "{:?}", rep.warnings);
+        assert!(rep.warnings[0].contains("cpu 10000"), "{}", rep.warnings[0]);
+        assert!(rep.one_line("t").contains("WARNING: pinning to cpu 10000"));
+        let err = strict.expect_err("Strict must fail").to_string();
+        assert!(
+            err.contains("cpu 10000") && err.contains("invalid core"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn invalid_priority_warns_or_errs() {
+        for p in [0u8, 100, 255] {
+            let (warn, strict) = in_thread(move || {
+                let mut q = req();
+                q.fifo_priority = Some(p);
+                (setup_rt(&q, RtPolicy::Warn), setup_rt(&q, RtPolicy::Strict))
+            });
+            let rep = warn.expect("Warn must not fail");
+            assert_eq!(rep.warnings.len(), 1);
+            assert!(rep.warnings[0].contains(&format!("priority {p}")));
+            // The invalid priority was skipped: still SCHED_OTHER.
+            assert_eq!(rep.policy, "SCHED_OTHER");
+            let err = strict.expect_err("Strict must fail").to_string();
+            assert!(err.contains("out of range"), "{err}");
+        }
+    }
+
+    #[test]
+    fn strict_validation_changes_nothing() {
+        // Valid core 0 + invalid priority: Strict must fail before pinning.
+        let (before, after, res) = in_thread(|| {
+            let before = pinned_cpu();
+            let mut q = req();
+            q.core = Some(0);
+            q.fifo_priority = Some(0);
+            let res = setup_rt(&q, RtPolicy::Strict);
+            (before, pinned_cpu(), res.is_err())
+        });
+        assert!(res);
+        assert_eq!(before, after);
+    }
+
+    #[test]
+    fn empty_request_is_clean() {
+        let rep = in_thread(|| setup_rt(&req(), RtPolicy::Strict)).unwrap();
+        assert!(rep.warnings.is_empty());
+        assert_eq!(rep.policy, "SCHED_OTHER");
+        assert_eq!(rep.priority, 0);
+    }
+
+    #[test]
+    fn pin_valid_core() {
+        let n = online_cpus();
+        let core = n - 1;
+        let rep = in_thread(move || {
+            let mut q = req();
+            q.core = Some(core);
+            setup_rt(&q, RtPolicy::Warn).unwrap()
+        });
+        // Granted (cpu reported) or refused with a warning (restricted cpuset).
+        if rep.warnings.is_empty() {
+            assert_eq!(rep.cpu, Some(core));
+            assert!(rep.one_line("t").starts_with(&format!("t: cpu {core}, ")));
+        } else {
+            assert!(rep.warnings[0].contains("refused"));
+        }
+    }
+
+    #[test]
+    fn fifo_granted_or_refused_then_restored() {
+        // Works both as root (granted) and unprivileged (EPERM -> warning / Err).
+        let (warn, strict, restored) = in_thread(|| {
+            let mut q = req();
+            q.fifo_priority = Some(10);
+            let warn = setup_rt(&q, RtPolicy::Warn).unwrap();
+            let strict = setup_rt(&q, RtPolicy::Strict).map_err(|e| e.to_string());
+            // Back to SCHED_OTHER before the thread ends.
+            let restored = setup_rt(&req(), RtPolicy::Strict).unwrap();
+            (warn, strict, restored)
+        });
+        if warn.warnings.is_empty() {
+            assert_eq!(warn.policy, "SCHED_FIFO");
+            assert_eq!(warn.priority, 10);
+            assert!(warn.one_line("p").contains("SCHED_FIFO 10"));
+            assert!(strict.is_ok());
+        } else {
+            assert_eq!(warn.policy, "SCHED_OTHER");
+            let w = &warn.warnings[0];
+            assert!(w.starts_with("SCHED_FIFO priority 10 refused: "), "{w}");
+            let e = strict.expect_err("Strict must fail when Warn warned");
+            assert!(e.starts_with("SCHED_FIFO priority 10 refused: "), "{e}");
+            assert!(!e.contains('\n'));
+        }
+        assert_eq!(restored.policy, "SCHED_OTHER");
+        assert_eq!(restored.priority, 0);
+    }
+
+    #[test]
+    fn eperm_message_names_the_fix() {
+        let msg = fifo_refusal_message(80, &io::Error::from_raw_os_error(libc::EPERM));
+        assert!(
+            msg.starts_with(
+                "SCHED_FIFO priority 80 refused: Operation not permitted (needs root or \
+                 CAP_SYS_NICE / RLIMIT_RTPRIO"
+            ),
+            "{msg}"
+        );
+        assert!(msg.ends_with(')'));
+    }
+
+    #[test]
+    fn prefault_stack_small_and_oversized() {
+        let rep = in_thread(|| {
+            let mut q = req();
+            q.prefault_stack_bytes = 256 * 1024;
+            setup_rt(&q, RtPolicy::Strict)
+        })
+        .expect("256 KiB fits in a default 2 MiB thread stack");
+        assert!(rep.warnings.is_empty());
+
+        // Far more than the thread's stack: clamped with a warning, no crash.
+        let (warn, strict) = std::thread::Builder::new()
+            .stack_size(512 * 1024)
+            .spawn(|| {
+                let mut q = req();
+                q.prefault_stack_bytes = 64 * 1024 * 1024;
+                (setup_rt(&q, RtPolicy::Warn), setup_rt(&q, RtPolicy::Strict))
+            })
+            .unwrap()
+            .join()
+            .unwrap();
+        let warn = warn.unwrap();
+        assert_eq!(warn.warnings.len(), 1);
+        assert!(warn.warnings[0].starts_with("stack prefault of 67108864 bytes refused"));
+        assert!(strict.is_err());
+    }
+
+    #[test]
+    fn lock_memory_granted_or_warned() {
+        let rep = in_thread(|| {
+            let mut q = req();
+            q.lock_memory = true;
+            setup_rt(&q, RtPolicy::Warn).unwrap()
+        });
+        if rep.warnings.is_empty() {
+            assert!(rep.memory_locked);
+            assert!(rep.one_line("m").ends_with("memory locked"));
+        } else {
+            assert!(rep.warnings[0].starts_with("mlockall(MCL_CURRENT|MCL_FUTURE) refused: "));
+        }
+        // Do not leave the test process locked.
+        // SAFETY: munlockall takes no arguments and only changes paging of this process.
+        unsafe { libc::munlockall() };
+    }
+
+    #[test]
+    fn now_ns_is_monotonic() {
+        let mut prev = now_ns();
+        assert!(prev > 0);
+        for _ in 0..10_000 {
+            let t = now_ns();
+            assert!(t >= prev);
+            prev = t;
+        }
+    }
+
+    #[test]
+    fn sleep_until_past_deadline_returns_immediately() {
+        let t0 = now_ns();
+        sleep_until_ns(0);
+        sleep_until_ns(t0.saturating_sub(1_000_000_000));
+        sleep_until_ns(t0);
+        let dt = now_ns() - t0;
+        assert!(dt < 50_000_000, "past deadlines took {dt} ns");
+    }
+
+    #[test]
+    fn sleep_until_future_deadline_waits() {
+        let t0 = now_ns();
+        let deadline = t0 + 2_000_000;
+        sleep_until_ns(deadline);
+        assert!(now_ns() >= deadline);
+    }
+
+    #[test]
+    fn online_cpus_at_least_one() {
+        assert!(online_cpus() >= 1);
+    }
+
+    #[test]
+    fn policy_names() {
+        assert_eq!(policy_name(libc::SCHED_FIFO), "SCHED_FIFO");
+        assert_eq!(policy_name(libc::SCHED_OTHER), "SCHED_OTHER");
+        assert_eq!(policy_name(-1), "unknown");
+    }
+}
