@@ -5,6 +5,7 @@ use anyhow::{anyhow, Context, Result};
 use clap::{Parser, ValueEnum};
 use drivelab::config::Scenario;
 use drivelab::rt::{setup_rt, RtPolicy, RtReport, RtRequest};
+use drivelab::timing::LatencyHist;
 use serde::Serialize;
 use std::io::Write;
 use std::path::PathBuf;
@@ -160,15 +161,89 @@ pub struct ServiceStats<'a> {
     pub rt: &'a RtReport,
     /// Counters.
     pub counters: Counters,
+    /// Tail summary of each histogram, µs, keyed `<service>.<metric>` (and `cycle`).
+    pub latency_us: std::collections::BTreeMap<String, drivelab::timing::Percentiles>,
 }
 
-/// Writes `<out>/<service>.stats.json` if an output folder was given.
-pub fn write_stats(args: &ServiceArgs, stats: &ServiceStats) -> Result<()> {
-    if let Some(dir) = &args.out {
-        let p = dir.join(format!("{}.stats.json", stats.service));
-        std::fs::write(&p, serde_json::to_vec_pretty(stats)?)
-            .with_context(|| format!("write {}", p.display()))?;
+/// Per-service histograms, preallocated before the loop.
+#[derive(Debug)]
+pub struct ServiceHists {
+    /// Wake-up: for the plant, release lateness (wake − deadline); for the others, the bus
+    /// hop (wake − the input's publish time).
+    pub wake: LatencyHist,
+    /// Execution time of the step (input taken → output published).
+    pub exec: LatencyHist,
+    /// Age of the input when used, from its sample instant t_k (realtime only).
+    pub input_age: LatencyHist,
+}
+
+impl ServiceHists {
+    /// Creates the three histograms.
+    pub fn new(plant: bool) -> Self {
+        Self {
+            wake: LatencyHist::new(if plant { "lateness" } else { "wake" }),
+            exec: LatencyHist::new("exec"),
+            input_age: LatencyHist::new("input_age"),
+        }
     }
+
+    /// Records the wake-up and input age of an input published at `t_pub` for sample
+    /// instant `t_sample` (0 in lockstep: no age). Returns the time taken (the exec start).
+    #[inline]
+    pub fn input(&mut self, t_pub: u64, t_sample: u64) -> u64 {
+        let t_in = drivelab::rt::now_ns();
+        self.wake.record_ns(t_in as i64 - t_pub as i64);
+        if t_sample != 0 {
+            self.input_age.record_ns(t_in as i64 - t_sample as i64);
+        }
+        t_in
+    }
+
+    /// Records the execution time since `t_in`.
+    #[inline]
+    pub fn done(&mut self, t_in: u64) {
+        self.exec
+            .record_ns(drivelab::rt::now_ns() as i64 - t_in as i64);
+    }
+}
+
+/// Writes `<out>/<service>.stats.json` and one `<key>.hdr` per non-empty histogram (plus
+/// `extra`, e.g. the plant's `cycle`) if an output folder was given.
+pub fn write_stats(
+    args: &ServiceArgs,
+    service: &str,
+    rt: &RtReport,
+    counters: Counters,
+    hists: &ServiceHists,
+    extra: &[&LatencyHist],
+) -> Result<()> {
+    let Some(dir) = &args.out else { return Ok(()) };
+    let mut latency_us = std::collections::BTreeMap::new();
+    for h in [&hists.wake, &hists.exec, &hists.input_age]
+        .into_iter()
+        .chain(extra.iter().copied())
+    {
+        if h.is_empty() {
+            continue;
+        }
+        let key = if h.name == "cycle" {
+            "cycle".to_string()
+        } else {
+            format!("{service}.{}", h.name)
+        };
+        h.write_v2(&dir.join(format!("{key}.hdr")))?;
+        latency_us.insert(key, h.percentiles());
+    }
+    let stats = ServiceStats {
+        service,
+        pid: std::process::id(),
+        rt,
+        counters,
+        latency_us,
+    };
+    let p = dir.join(format!("{service}.stats.json"));
+    std::fs::write(&p, serde_json::to_vec_pretty(&stats)?)
+        .with_context(|| format!("write {}", p.display()))?;
     Ok(())
 }
 

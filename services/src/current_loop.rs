@@ -26,6 +26,12 @@ impl Inbox {
         c: &mut Counters,
     ) -> Result<()> {
         while let Some(m) = meas.try_recv()? {
+            if m.hdr.is_warmup() {
+                continue;
+            }
+            if m.hdr.is_warmup() {
+                continue;
+            }
             if m.is_finite() || m.hdr.is_end() {
                 self.meas[(m.hdr.k % MEAS_RING as u64) as usize] = Some(m);
             } else {
@@ -33,6 +39,12 @@ impl Inbox {
             }
         }
         while let Some(r) = iref.try_recv()? {
+            if r.hdr.is_warmup() {
+                continue;
+            }
+            if r.hdr.is_warmup() {
+                continue;
+            }
             if r.is_finite() && !r.hdr.is_end() {
                 self.iref[((r.hdr.k / self.divider) % IREF_RING as u64) as usize] = Some(r);
             } else if !r.hdr.is_end() {
@@ -56,9 +68,14 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let sc = load_scenario(&args)?;
     let node = bus::node(&args.bus, "current-loop")?;
     let topics = DriveTopics::open(&node)?;
-    let meas_rx = topics.meas.receiver(64)?;
+    let meas_rx = topics.meas.polled_receiver(64)?;
     let est_rx = topics.est.receiver(64)?;
-    let iref_rx = topics.iref.receiver(16)?;
+    // Only lockstep waits for a current reference; real time polls it.
+    let iref_rx = if args.clock == BusClock::Lockstep {
+        topics.iref.receiver(16)?
+    } else {
+        topics.iref.polled_receiver(16)?
+    };
     let cmd_tx = topics.cmd.sender()?;
     let report = apply_placement("current-loop", &sc, &args)?;
     let mut ctrl = CurrentLoopStep::new(&sc);
@@ -72,25 +89,30 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let mut last_k: Option<u64> = None;
     let mut active_ref = CurrentRef::default();
     let mut last_input = Instant::now();
+    let mut h = ServiceHists::new(false);
     ready()?;
-    // ---- real-time loop ----
+    // ---- real-time loop: no allocation, no locks, no logging ----
     'outer: while !stop_requested() {
         est_rx.wait(WAIT_SLICE)?;
         while let Some(e) = est_rx.try_recv()? {
             last_input = Instant::now();
             inbox.drain(&meas_rx, &iref_rx, &mut c)?;
-            if e.hdr.is_end() {
+            if e.hdr.is_warmup() || e.hdr.is_end() {
                 cmd_tx.send(VoltageCommand {
                     hdr: e.hdr,
                     ..Default::default()
                 })?;
-                break 'outer;
+                if e.hdr.is_end() {
+                    break 'outer;
+                }
+                continue;
             }
             if !e.is_finite() || last_k.is_some_and(|l| e.hdr.k <= l) {
                 c.rejected_inputs += 1;
                 continue;
             }
             let k = e.hdr.k;
+            let t_in = h.input(e.hdr.t_pub_ns, e.hdr.t_sample_ns);
             if let Some(l) = last_k {
                 c.stale_inputs += k - l - 1;
             }
@@ -127,6 +149,7 @@ pub fn run(args: ServiceArgs) -> Result<()> {
             let mut cmd = ctrl.step(&meas, &e, &active_ref);
             cmd.hdr.t_pub_ns = now_ns();
             cmd_tx.send(cmd)?;
+            h.done(t_in);
             c.samples += 1;
         }
         if lockstep && last_k.is_some() && last_input.elapsed() > LOCKSTEP_WATCHDOG {
@@ -135,13 +158,6 @@ pub fn run(args: ServiceArgs) -> Result<()> {
             ));
         }
     }
-    write_stats(
-        &args,
-        &ServiceStats {
-            service: "current-loop",
-            pid: std::process::id(),
-            rt: &report,
-            counters: c,
-        },
-    )
+    // ---- end of the real-time loop ----
+    write_stats(&args, "current-loop", &report, c, &h, &[])
 }

@@ -3,6 +3,8 @@
 
 pub mod common;
 pub mod current_loop;
+pub mod launcher;
 pub mod observer;
 pub mod plant;
+pub mod replay;
 pub mod speed_loop;

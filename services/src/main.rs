@@ -1,1 +1,238 @@
-fn main() {}
+//! `drivelab`: the launcher and supervisor CLI.
+
+use clap::{Parser, Subcommand};
+use drivelab_services::launcher::{self, Clock, RunOptions};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// drivelab: a four-process real-time PMSM drive on iceoryx2 shared memory.
+///
+/// Exit codes: 0 success, 1 error (bad input, a service failed, interrupted), 2 usage error.
+#[derive(Debug, Parser)]
+#[command(name = "drivelab", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Debug, Subcommand)]
+enum Cmd {
+    /// Run a scenario: start plant, observer, current-loop and speed-loop, record every
+    /// sample, stop them and write trace.csv, summary.json and plots into the run folder.
+    ///
+    /// Examples:
+    ///   drivelab run                                  # kyslan-pi, realtime, 10 kHz
+    ///   drivelab run --clock lockstep --out runs/ls   # reproducible, as fast as possible
+    ///   drivelab run --scenario my.toml --duration 2
+    #[command(verbatim_doc_comment)]
+    Run {
+        /// Scenario name (see `drivelab scenarios`) or path to a TOML file.
+        #[arg(long, default_value = "kyslan-pi")]
+        scenario: String,
+        /// Pacing: realtime (wall clock, deadlines), lockstep (wait for each command) or
+        /// inprocess (one thread, no bus).
+        #[arg(long, value_enum, default_value_t = Clock::Realtime)]
+        clock: Clock,
+        /// Override the scenario's duration, seconds.
+        #[arg(long, value_name = "SECONDS")]
+        duration: Option<f64>,
+        /// Run folder (default: runs/<scenario>-<clock>-<unix time>).
+        #[arg(long, value_name = "DIR")]
+        out: Option<PathBuf>,
+        /// Bus id isolating this drive's shared memory (default: the launcher's pid).
+        #[arg(long)]
+        bus: Option<String>,
+        /// Fail when a core, SCHED_FIFO priority or mlock is refused (default: warn and run).
+        #[arg(long)]
+        rt_strict: bool,
+        /// Do not pin, raise priority or lock memory.
+        #[arg(long)]
+        no_rt: bool,
+        /// Do not draw PNG/SVG plots.
+        #[arg(long)]
+        no_plots: bool,
+        /// Print the summary as JSON on stdout instead of the human summary.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Run the plant model alone, open loop, from rest, on recorded voltages.
+    ///
+    /// IN.csv has columns t,u_d,u_q,t_load (s, V, V, N·m), each row held from its t on.
+    /// OUT.csv gets t,u_d,u_q,t_load,i_d,i_q,omega_m,theta_e at the input rows' times.
+    ///
+    /// Example:
+    ///   drivelab plant --replay volts.csv --out states.csv --motor kyslan2015
+    #[command(verbatim_doc_comment)]
+    Plant {
+        /// Input CSV (t,u_d,u_q,t_load).
+        #[arg(long, value_name = "IN.csv")]
+        replay: PathBuf,
+        /// Output CSV.
+        #[arg(long, value_name = "OUT.csv")]
+        out: PathBuf,
+        /// Motor preset (kyslan2015, kyslan2015-sal618, low1998, miyajima) or TOML file.
+        #[arg(long, default_value = "kyslan2015")]
+        motor: String,
+        /// Largest RK4 step, seconds.
+        #[arg(long, default_value_t = 1e-5, value_name = "SECONDS")]
+        max_step: f64,
+    },
+    /// List the shipped scenarios with their purpose and the paper figure they reproduce.
+    ///
+    /// Example:
+    ///   drivelab scenarios
+    #[command(verbatim_doc_comment)]
+    Scenarios,
+    /// Print the controller design of a scenario (current PI, speed PI by the symmetrical
+    /// optimum) so it can be checked by hand.
+    ///
+    /// Example:
+    ///   drivelab design --scenario kyslan-pi
+    #[command(verbatim_doc_comment)]
+    Design {
+        /// Scenario name or file.
+        #[arg(long, default_value = "kyslan-pi")]
+        scenario: String,
+    },
+    /// Report how ready this machine is for real-time work. Reads only; changes nothing.
+    ///
+    /// Example:
+    ///   drivelab doctor
+    #[command(verbatim_doc_comment)]
+    Doctor {
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match real_main(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("drivelab: error: {e:#}");
+            ExitCode::from(1)
+        }
+    }
+}
+
+fn fmt_opt(v: &serde_json::Value, unit: &str) -> String {
+    v.as_f64()
+        .map(|x| format!("{x:.3} {unit}"))
+        .unwrap_or_else(|| "n/a".into())
+}
+
+fn real_main(cli: Cli) -> anyhow::Result<()> {
+    match cli.cmd {
+        Cmd::Run {
+            scenario,
+            clock,
+            duration,
+            out,
+            bus,
+            rt_strict,
+            no_rt,
+            no_plots,
+            json,
+        } => {
+            let o = RunOptions {
+                scenario,
+                clock,
+                duration_s: duration,
+                out,
+                bus,
+                rt_strict,
+                no_rt,
+                no_plots,
+                verbose: !json,
+            };
+            let r = launcher::run(&o)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&r.summary)?);
+            } else {
+                let s = &r.summary;
+                let m = &s["metrics"];
+                println!("run folder: {}", r.out.display());
+                println!(
+                    "{} samples ({} expected), deadline misses {}, wall {:.2} s ({:.1}× real time)",
+                    s["samples"],
+                    s["samples_expected"],
+                    s["deadline_misses"],
+                    s["wall_time_s"].as_f64().unwrap_or(0.0),
+                    s["simulated_s_per_wall_s"].as_f64().unwrap_or(0.0)
+                );
+                println!(
+                    "rise {}, overshoot {}, load dip {}, load recovery {}, steady-state error {}",
+                    fmt_opt(&m["rise_time_ms"], "ms"),
+                    fmt_opt(&m["overshoot_pct"], "%"),
+                    fmt_opt(&m["load_dip_rad_s"], "rad/s"),
+                    fmt_opt(&m["load_recovery_ms"], "ms"),
+                    fmt_opt(&m["steady_state_error"], "rad/s")
+                );
+                if let Some(g) = s["missing_samples"].as_array().filter(|g| !g.is_empty()) {
+                    println!("missing samples: {}", serde_json::to_string(g)?);
+                }
+            }
+            Ok(())
+        }
+        Cmd::Plant {
+            replay,
+            out,
+            motor,
+            max_step,
+        } => {
+            if !(max_step.is_finite() && max_step > 0.0) {
+                anyhow::bail!("--max-step must be a positive number of seconds, got {max_step}");
+            }
+            let m = drivelab_services::replay::resolve_motor(&motor)?;
+            let n = drivelab_services::replay::replay(&replay, &out, &m, max_step)?;
+            eprintln!("wrote {n} rows to {}", out.display());
+            Ok(())
+        }
+        Cmd::Scenarios => {
+            let list = drivelab::config::list_scenarios();
+            if list.is_empty() {
+                anyhow::bail!(
+                    "no scenarios found in {}",
+                    drivelab::config::scenarios_dir().display()
+                );
+            }
+            println!("{:<24} {:<40} purpose", "name", "reproduces");
+            for (name, path) in list {
+                let text = std::fs::read_to_string(&path)?;
+                match drivelab::config::Scenario::from_toml(&text, &path.display().to_string()) {
+                    Ok(s) => println!("{:<24} {:<40} {}", name, s.reproduces, s.purpose),
+                    Err(e) => println!("{name:<24} INVALID: {e}"),
+                }
+            }
+            Ok(())
+        }
+        Cmd::Design { scenario } => {
+            let sc = launcher::load_scenario(&scenario, None)?;
+            let m = sc.motor_params();
+            let d = drivelab::drive::DriveDesign::from_scenario(&sc);
+            println!("scenario {}: motor R = {} Ω, Ld = {} mH, Lq = {} mH, p = {}, ψ = {} Wb, J = {:e} kg·m², k_t = {:.4} N·m/A",
+                sc.name, m.r_ohm, m.l_d_h * 1e3, m.l_q_h * 1e3, m.pole_pairs, m.psi_pm_wb, m.j_kgm2, m.k_t());
+            println!("current PI (pole-zero cancellation, τ_c = {} ms): d: Kp = L_d/τ_c = {:.4} V/A, Ki = R/τ_c = {:.1} V/(A·s); q: Kp = L_q/τ_c = {:.4} V/A, Ki = {:.1} V/(A·s)",
+                d.current.tau_c_s * 1e3, d.current.k_p_d, d.current.k_i_d, d.current.k_p_q, d.current.k_i_q);
+            let s = &d.speed;
+            println!("speed PI (symmetrical optimum, every {} samples = {} Hz): T_sigma = {:.4} ms, a = {:.4}, T_eq = {:.4} ms", sc.rates.speed_divider, sc.rates.sample_hz / f64::from(sc.rates.speed_divider), s.t_sigma_s * 1e3, s.a, s.t_eq_s * 1e3);
+            println!("  Kp = J/(a·k_t·T_eq) = {:.6} A·s/rad, Ti = a²·T_eq = {:.4} ms, prefilter 1/(1 + Ti s)", s.k_p, s.t_i_s * 1e3);
+            println!("  design model (sampled cascade): rise time {:.2} ms (target {:.2} ms), overshoot {:.1} %", s.predicted_rise_time_s * 1e3, sc.speed_loop.rise_time_s * 1e3, s.predicted_overshoot_pct);
+            if let Some(w) = &s.warning {
+                println!("  WARNING: {w}");
+            }
+            Ok(())
+        }
+        Cmd::Doctor { json } => {
+            let checks = drivelab::doctor::run_checks();
+            if json {
+                println!("{}", serde_json::to_string_pretty(&checks)?);
+            } else {
+                print!("{}", drivelab::doctor::render_text(&checks));
+            }
+            Ok(())
+        }
+    }
+}

@@ -18,20 +18,24 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let report = apply_placement("observer", &sc, &args)?;
     let mut obs = ObserverStep::new(&sc);
     let mut c = Counters::default();
+    let mut h = ServiceHists::new(false);
     let mut last_k: Option<u64> = None;
     let mut last_input = Instant::now();
     ready()?;
-    // ---- real-time loop ----
+    // ---- real-time loop: no allocation, no locks, no logging ----
     'outer: while !stop_requested() {
         meas_rx.wait(WAIT_SLICE)?;
         while let Some(m) = meas_rx.try_recv()? {
             last_input = Instant::now();
-            if m.hdr.is_end() {
+            if m.hdr.is_warmup() || m.hdr.is_end() {
                 est_tx.send(Estimate {
                     hdr: m.hdr,
                     ..Default::default()
                 })?;
-                break 'outer;
+                if m.hdr.is_end() {
+                    break 'outer;
+                }
+                continue;
             }
             if !m.is_finite() || last_k.is_some_and(|l| m.hdr.k <= l) {
                 c.rejected_inputs += 1;
@@ -41,9 +45,11 @@ pub fn run(args: ServiceArgs) -> Result<()> {
                 c.stale_inputs += m.hdr.k - l - 1;
             }
             last_k = Some(m.hdr.k);
+            let t_in = h.input(m.hdr.t_pub_ns, m.hdr.t_sample_ns);
             let mut est = obs.step(&m);
             est.hdr.t_pub_ns = now_ns();
             est_tx.send(est)?;
+            h.done(t_in);
             c.samples += 1;
         }
         if args.clock == BusClock::Lockstep
@@ -55,13 +61,6 @@ pub fn run(args: ServiceArgs) -> Result<()> {
             ));
         }
     }
-    write_stats(
-        &args,
-        &ServiceStats {
-            service: "observer",
-            pid: std::process::id(),
-            rt: &report,
-            counters: c,
-        },
-    )
+    // ---- end of the real-time loop ----
+    write_stats(&args, "observer", &report, c, &h, &[])
 }

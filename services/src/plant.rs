@@ -5,29 +5,74 @@ use crate::common::*;
 use anyhow::{anyhow, bail, Result};
 use drivelab::bus::{self, DriveTopics, Receiver, MAX_BUFFER};
 use drivelab::drive::Plant;
-use drivelab::messages::{Finite, Header, Measurement, VoltageCommand, FLAG_END};
+use drivelab::messages::{Finite, Header, Measurement, VoltageCommand, FLAG_END, FLAG_WARMUP};
 use drivelab::rt::{now_ns, sleep_until_ns};
+use drivelab::timing::CycleMonitor;
 use std::io::BufRead;
 use std::time::Instant;
 
 /// Takes every buffered command; returns command `want` if it is there. Older commands are
-/// late (counted), malformed ones rejected (counted).
+/// late (counted, and their latency still recorded), malformed ones rejected (counted).
 fn take_command(
     rx: &Receiver<VoltageCommand>,
     want: u64,
     c: &mut Counters,
+    mon: &mut CycleMonitor,
 ) -> Result<Option<VoltageCommand>> {
     let mut found = None;
     while let Some(cmd) = rx.try_recv()? {
+        if cmd.hdr.is_warmup() {
+            continue;
+        }
         if !cmd.is_finite() || cmd.hdr.k > want {
             c.rejected_inputs += 1;
         } else if cmd.hdr.k == want {
             found = Some(cmd);
         } else {
             c.late_commands += 1;
+            if cmd.hdr.t_sample_ns != 0 {
+                mon.late_command(cmd.hdr.t_sample_ns, cmd.hdr.t_pub_ns);
+            }
         }
     }
     Ok(found)
+}
+
+/// Warm-up messages sent through the chain before sample 0.
+pub const WARMUP_MESSAGES: u64 = 50;
+
+/// Sends [`WARMUP_MESSAGES`] flagged measurements through the chain and waits for each
+/// flagged command, so that lazy port connections and first-touch page faults happen before
+/// the clock starts. Controllers forward them without stepping; the recorder ignores them.
+fn warm_up(meas_tx: &bus::Sender<Measurement>, cmd_rx: &Receiver<VoltageCommand>) -> Result<()> {
+    for i in 0..WARMUP_MESSAGES {
+        let hdr = Header {
+            k: i,
+            flags: FLAG_WARMUP,
+            t_pub_ns: now_ns(),
+            ..Default::default()
+        };
+        meas_tx.send(Measurement {
+            hdr,
+            ..Default::default()
+        })?;
+        let started = Instant::now();
+        'wait: loop {
+            while let Some(c) = cmd_rx.try_recv()? {
+                if c.hdr.is_warmup() && c.hdr.k == i {
+                    break 'wait;
+                }
+            }
+            if stop_requested() {
+                return Ok(());
+            }
+            cmd_rx.wait(WAIT_SLICE)?;
+            if started.elapsed() > LOCKSTEP_WATCHDOG {
+                bail!("warm-up message {i} did not come back through the chain within {LOCKSTEP_WATCHDOG:?}");
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Runs the plant service.
@@ -36,8 +81,13 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let node = bus::node(&args.bus, "plant")?;
     let topics = DriveTopics::open(&node)?;
     let meas_tx = topics.meas.sender()?;
-    let cmd_rx = topics.cmd.receiver(16)?;
+    // Real time polls the command at the deadline; lockstep waits for it.
     let lockstep = args.clock == BusClock::Lockstep;
+    let cmd_rx = if lockstep {
+        topics.cmd.receiver(16)?
+    } else {
+        topics.cmd.polled_receiver(16)?
+    };
     let rec_rx = if lockstep && args.recorder {
         Some(topics.rec.receiver(16)?)
     } else {
@@ -46,6 +96,11 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let report = apply_placement("plant", &sc, &args)?;
     let mut plant = Plant::new(&sc);
     let mut c = Counters::default();
+    let mut h = ServiceHists::new(true);
+    let n = sc.samples();
+    let ts_ns = (1e9 / sc.rates.sample_hz).round() as u64;
+    let mut mon = CycleMonitor::new(ts_ns);
+    let spin_ns = (sc.timing.plant_spin_us * 1e3).round() as u64;
     ready()?;
     // Wait for the launcher's GO (everyone is subscribed by then).
     let mut line = String::new();
@@ -56,12 +111,9 @@ pub fn run(args: ServiceArgs) -> Result<()> {
             line.trim()
         );
     }
-
-    let n = sc.samples();
-    let ts_ns = (1e9 / sc.rates.sample_hz).round() as u64;
+    warm_up(&meas_tx, &cmd_rx)?;
     let t0 = now_ns() + 2_000_000;
     let mut recorder_done: u64 = 0;
-    let mut miss_run: u64 = 0;
     // ---- real-time loop: no allocation, no locks, no logging ----
     for k in 0..=n {
         let deadline = t0 + k * ts_ns;
@@ -70,24 +122,32 @@ pub fn run(args: ServiceArgs) -> Result<()> {
             if k > 0 {
                 let started = Instant::now();
                 loop {
-                    cmd = take_command(&cmd_rx, k - 1, &mut c)?;
+                    cmd = take_command(&cmd_rx, k - 1, &mut c, &mut mon)?;
                     if cmd.is_some() || stop_requested() {
                         break;
                     }
                     cmd_rx.wait(WAIT_SLICE)?;
                     if started.elapsed() > LOCKSTEP_WATCHDOG {
                         return Err(anyhow!(
-                            "no command {} from current-loop for {:?}",
-                            k - 1,
-                            LOCKSTEP_WATCHDOG
+                            "no command {} from current-loop for {LOCKSTEP_WATCHDOG:?}",
+                            k - 1
                         ));
                     }
                 }
             }
         } else {
-            sleep_until_ns(deadline);
+            if spin_ns > 0 {
+                sleep_until_ns(deadline - spin_ns);
+                while now_ns() < deadline {
+                    std::hint::spin_loop();
+                }
+            } else {
+                sleep_until_ns(deadline);
+            }
+            h.wake.record_ns(now_ns() as i64 - deadline as i64);
             if k > 0 {
-                cmd = take_command(&cmd_rx, k - 1, &mut c)?;
+                cmd = take_command(&cmd_rx, k - 1, &mut c, &mut mon)?;
+                mon.at_deadline(deadline - ts_ns, cmd.map(|c| c.hdr.t_pub_ns));
             }
         }
         if stop_requested() || k == n {
@@ -103,18 +163,16 @@ pub fn run(args: ServiceArgs) -> Result<()> {
             })?;
             break;
         }
+        let t_in = now_ns();
         if k > 0 && cmd.is_none() {
-            c.deadline_misses += 1;
-            miss_run += 1;
-            c.longest_miss_run = c.longest_miss_run.max(miss_run);
-        } else {
-            miss_run = 0;
+            c.stale_inputs += 1;
         }
         let mut meas = plant.sample(k, cmd.as_ref());
         meas.hdr.t_sample_ns = if lockstep { 0 } else { deadline };
         meas.hdr.t_pub_ns = now_ns();
         meas_tx.send(meas)?;
         plant.advance();
+        h.done(t_in);
         c.samples += 1;
         if let Some(rx) = &rec_rx {
             // Flow control (lockstep only): never run more than half a buffer ahead.
@@ -136,13 +194,7 @@ pub fn run(args: ServiceArgs) -> Result<()> {
         }
     }
     // ---- end of the real-time loop ----
-    write_stats(
-        &args,
-        &ServiceStats {
-            service: "plant",
-            pid: std::process::id(),
-            rt: &report,
-            counters: c,
-        },
-    )
+    c.deadline_misses = mon.misses.misses;
+    c.longest_miss_run = mon.misses.longest_run;
+    write_stats(&args, "plant", &report, c, &h, &[&mon.cycle])
 }

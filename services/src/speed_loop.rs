@@ -18,20 +18,24 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let report = apply_placement("speed-loop", &sc, &args)?;
     let mut ctrl = SpeedLoopStep::new(&sc);
     let mut c = Counters::default();
+    let mut h = ServiceHists::new(false);
     let mut last_k: Option<u64> = None;
     let mut last_input = Instant::now();
     ready()?;
-    // ---- real-time loop ----
+    // ---- real-time loop: no allocation, no locks, no logging ----
     'outer: while !stop_requested() {
         est_rx.wait(WAIT_SLICE)?;
         while let Some(e) = est_rx.try_recv()? {
             last_input = Instant::now();
-            if e.hdr.is_end() {
+            if e.hdr.is_warmup() || e.hdr.is_end() {
                 iref_tx.send(CurrentRef {
                     hdr: e.hdr,
                     ..Default::default()
                 })?;
-                break 'outer;
+                if e.hdr.is_end() {
+                    break 'outer;
+                }
+                continue;
             }
             if !e.is_finite() || last_k.is_some_and(|l| e.hdr.k <= l) {
                 c.rejected_inputs += 1;
@@ -41,11 +45,16 @@ pub fn run(args: ServiceArgs) -> Result<()> {
                 c.stale_inputs += e.hdr.k - l - 1;
             }
             last_k = Some(e.hdr.k);
+            if !ctrl.runs_at(e.hdr.k) {
+                continue;
+            }
+            let t_in = h.input(e.hdr.t_pub_ns, e.hdr.t_sample_ns);
             if let Some(mut r) = ctrl.step(&e) {
                 r.hdr.t_pub_ns = now_ns();
                 iref_tx.send(r)?;
                 c.samples += 1;
             }
+            h.done(t_in);
         }
         if args.clock == BusClock::Lockstep
             && last_k.is_some()
@@ -56,13 +65,6 @@ pub fn run(args: ServiceArgs) -> Result<()> {
             ));
         }
     }
-    write_stats(
-        &args,
-        &ServiceStats {
-            service: "speed-loop",
-            pid: std::process::id(),
-            rt: &report,
-            counters: c,
-        },
-    )
+    // ---- end of the real-time loop ----
+    write_stats(&args, "speed-loop", &report, c, &h, &[])
 }

@@ -23,6 +23,9 @@ pub const TOPIC_CMD: &str = "drivelab/cmd";
 /// Recorder progress (lockstep flow control).
 pub const TOPIC_REC: &str = "drivelab/recorder";
 
+/// Longest sleep of a polled receiver's [`Receiver::wait`].
+pub const POLL_SLEEP: Duration = Duration::from_micros(200);
+
 /// Largest subscriber buffer (the recorder's), samples.
 pub const MAX_BUFFER: usize = 16_384;
 /// Samples kept for late joiners (publisher history).
@@ -128,21 +131,35 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
         })
     }
 
-    /// A receiver with a buffer of `buffer` samples (subscriber + listener).
+    /// A receiver with a buffer of `buffer` samples that can wait for the topic's event
+    /// (subscriber + listener). Every listener costs the sender one wake-up syscall per
+    /// message, so inputs that are only polled should use [`Topic::polled_receiver`].
     pub fn receiver(&self, buffer: usize) -> Result<Receiver<T>> {
+        let listener = self
+            .event
+            .listener_builder()
+            .create()
+            .map_err(|e| anyhow!("listener: {e:?}"))?;
         Ok(Receiver {
-            subscriber: self
-                .pubsub
-                .subscriber_builder()
-                .buffer_size(buffer.min(MAX_BUFFER))
-                .create()
-                .map_err(|e| anyhow!("subscriber: {e:?}"))?,
-            listener: self
-                .event
-                .listener_builder()
-                .create()
-                .map_err(|e| anyhow!("listener: {e:?}"))?,
+            subscriber: self.subscriber(buffer)?,
+            listener: Some(listener),
         })
+    }
+
+    /// A receiver that is only polled (no listener: the sender does not wake it).
+    pub fn polled_receiver(&self, buffer: usize) -> Result<Receiver<T>> {
+        Ok(Receiver {
+            subscriber: self.subscriber(buffer)?,
+            listener: None,
+        })
+    }
+
+    fn subscriber(&self, buffer: usize) -> Result<Subscriber<ipc::Service, T, ()>> {
+        self.pubsub
+            .subscriber_builder()
+            .buffer_size(buffer.min(MAX_BUFFER))
+            .create()
+            .map_err(|e| anyhow!("subscriber: {e:?}"))
     }
 }
 
@@ -172,7 +189,7 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Sender<T> {
 /// Receives messages and waits for their events.
 pub struct Receiver<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> {
     subscriber: Subscriber<ipc::Service, T, ()>,
-    listener: Listener<ipc::Service>,
+    listener: Option<Listener<ipc::Service>>,
 }
 
 impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Receiver<T> {
@@ -185,20 +202,20 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Receiver<T> {
         }
     }
 
-    /// Blocks until an event arrives or `timeout` passes; consumes pending events.
+    /// Blocks until an event arrives or `timeout` passes; consumes pending events. A signal
+    /// interrupting the wait is not an error (the caller checks its stop flag). A polled
+    /// receiver has no event to wait for: it sleeps at most [`POLL_SLEEP`] and returns, so
+    /// callers loop and re-check (as they must for any wait).
     pub fn wait(&self, timeout: Duration) -> Result<()> {
-        self.listener
-            .timed_wait(|_| {}, timeout)
-            .map(|_| ())
-            .map_err(|e| anyhow!("wait: {e:?}"))
-    }
-
-    /// Consumes pending events without blocking.
-    pub fn drain_events(&self) -> Result<()> {
-        self.listener
-            .try_wait(|_| {})
-            .map(|_| ())
-            .map_err(|e| anyhow!("wait: {e:?}"))
+        let Some(listener) = &self.listener else {
+            std::thread::sleep(timeout.min(POLL_SLEEP));
+            return Ok(());
+        };
+        match listener.timed_wait(|_| {}, timeout) {
+            Ok(_) => Ok(()),
+            Err(iceoryx2::port::listener::ListenerWaitError::InterruptSignal) => Ok(()),
+            Err(e) => Err(anyhow!("wait: {e:?}")),
+        }
     }
 }
 

@@ -53,6 +53,24 @@ pub struct Scenario {
     /// Core and priority per service.
     #[serde(default)]
     pub placement: Placement,
+    /// How the plant waits for its deadlines.
+    #[serde(default)]
+    pub timing: Timing,
+}
+
+/// How the plant (timing master) waits for each sample instant in real time.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Timing {
+    /// Sleep with clock_nanosleep until this long before the deadline, then spin on the clock
+    /// to the deadline, µs (0 = sleep all the way). Spinning trades CPU for wake-up jitter.
+    pub plant_spin_us: f64,
+}
+
+impl Default for Timing {
+    fn default() -> Self {
+        Self { plant_spin_us: 0.0 }
+    }
 }
 
 /// Motor selection.
@@ -593,6 +611,16 @@ impl Scenario {
             &self.load.torque_nm,
             self.duration_s,
             100.0 * m.t_rated_nm,
+        )?;
+        let spin = self.timing.plant_spin_us;
+        check(
+            spin.is_finite() && spin >= 0.0 && spin < 0.9e6 / r.sample_hz,
+            || {
+                format!(
+                    "timing.plant_spin_us = {spin} must be in [0, 0.9·T_s = {:.1}) µs",
+                    0.9e6 / r.sample_hz
+                )
+            },
         )?;
         let cpus = std::thread::available_parallelism()
             .map(|n| n.get())

@@ -15,5 +15,6 @@ pub mod motor;
 pub mod observer;
 pub mod plot;
 pub mod rt;
+pub mod timing;
 pub mod trace;
 pub mod transforms;

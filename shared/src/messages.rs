@@ -14,6 +14,9 @@ pub const FLAG_STALE_CMD: u32 = 2;
 pub const FLAG_SAFE_STATE: u32 = 4;
 /// Header flag: the producer used a stale input this sample.
 pub const FLAG_STALE_INPUT: u32 = 8;
+/// Header flag: a warm-up message before sample 0. It travels the whole chain (so that every
+/// port has connected and every page is touched) but no step function sees it.
+pub const FLAG_WARMUP: u32 = 16;
 
 /// Common header.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
@@ -35,6 +38,11 @@ impl Header {
     /// True when the END flag is set.
     pub fn is_end(&self) -> bool {
         self.flags & FLAG_END != 0
+    }
+
+    /// True when the WARMUP flag is set.
+    pub fn is_warmup(&self) -> bool {
+        self.flags & FLAG_WARMUP != 0
     }
 }
 

@@ -1,7 +1,7 @@
 //! Plotting of run traces and latency distributions (PNG + SVG via `plotters`).
 //!
-//! Every figure is first described backend-independently (a [`Figure`] made of stacked
-//! [`Panel`]s, each holding line series, dashed horizontal reference lines and shaded
+//! Every figure is first described backend-independently (a figure made of stacked
+//! panels, each holding line series, dashed horizontal reference lines and shaded
 //! time windows) and then rendered by one generic drawing routine on both a
 //! `BitMapBackend` (PNG) and an `SVGBackend` (SVG).
 //!
@@ -934,7 +934,12 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, panel: &Panel) 
 
     let mut chart = ChartBuilder::on(area)
         .margin(12)
-        .margin_right(24)
+        // Room for the last x tick label (long percent labels on nines axes).
+        .margin_right(if panel.x_kind == AxisKind::Nines {
+            64
+        } else {
+            28
+        })
         .x_label_area_size(52)
         .y_label_area_size(84)
         .build_cartesian_2d(x_axis.clone(), y_axis.clone())
@@ -949,7 +954,7 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, panel: &Panel) 
         .x_label_formatter(&x_fmt)
         .y_label_formatter(&y_fmt)
         .x_labels(12)
-        .y_labels(8)
+        .y_labels(10)
         .label_style((FONT, TICK_FONT_PX))
         .axis_desc_style((FONT, AXIS_DESC_FONT_PX))
         .bold_line_style(BLACK.mix(0.18))
@@ -1003,6 +1008,7 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, panel: &Panel) 
             .configure_series_labels()
             .position(legend_pos)
             .margin(10)
+            .legend_area_size(40)
             .label_font((FONT, LEGEND_FONT_PX))
             .background_style(WHITE.mix(0.85))
             .border_style(BLACK.mix(0.4))
@@ -1020,27 +1026,32 @@ fn draw_line<DB: DrawingBackend>(
     line: Line,
     label: Option<&str>,
 ) -> Result<()> {
-    const LEGEND_LEN: i32 = 28;
-    let anno = match line {
-        Line::Solid(w) => {
-            let style = color.stroke_width(w);
+    // Must stay below the legend area size set in `draw_panel`.
+    const LEGEND_LEN: i32 = 30;
+    let style = match line {
+        Line::Solid(w) | Line::Dashed(w) => color.stroke_width(w),
+    };
+    match line {
+        Line::Solid(_) => {
             let anno = chart
                 .draw_series(LineSeries::new(points, style))
                 .plot_err("drawing a series")?;
-            anno.legend(move |(x, y)| PathElement::new(vec![(x, y), (x + LEGEND_LEN, y)], style))
+            if let Some(label) = label {
+                anno.label(label).legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + LEGEND_LEN, y)], style)
+                });
+            }
         }
-        Line::Dashed(w) => {
-            let style = color.stroke_width(w);
+        Line::Dashed(_) => {
             let anno = chart
                 .draw_series(DashedLineSeries::new(points, 8, 5, style))
                 .plot_err("drawing a dashed series")?;
-            anno.legend(move |(x, y)| {
-                DashedPathElement::new(vec![(x, y), (x + LEGEND_LEN, y)], 7, 4, style)
-            })
+            if let Some(label) = label {
+                anno.label(label).legend(move |(x, y)| {
+                    DashedPathElement::new(vec![(x, y), (x + LEGEND_LEN, y)], 7, 4, style)
+                });
+            }
         }
-    };
-    if let Some(label) = label {
-        anno.label(label);
     }
     Ok(())
 }
@@ -1117,10 +1128,6 @@ mod tests {
                 other => panic!("unexpected output extension {other:?}"),
             }
         }
-    }
-
-    pub(super) fn synthetic_trace_pub(n: usize) -> Vec<TraceRow> {
-        synthetic_trace(n)
     }
 
     fn synthetic_trace(n: usize) -> Vec<TraceRow> {
@@ -1377,66 +1384,5 @@ mod tests {
         assert_eq!(lin.map(&lin.lo, (0, 100)), 0);
         assert_eq!(lin.map(&lin.hi, (0, 100)), 100);
         assert_eq!(lin.map(&f64::NAN, (0, 100)), 0);
-    }
-}
-
-#[cfg(test)]
-mod preview_tmp {
-    use super::*;
-    #[test]
-    fn preview_tmp() {
-        let dir = std::path::PathBuf::from("/tmp/plot_preview");
-        let rows = super::tests::synthetic_trace_pub(2000);
-        let opts = TraceFigureOptions {
-            window_s: None,
-            current_limit_a: Some(8.0),
-            voltage_limit_v: Some(24.0),
-            shaded_windows: vec![(0.02, 0.025, "encoder fault".to_string())],
-            title: "step_100".to_string(),
-        };
-        plot_trace(&rows, &dir, &opts).unwrap();
-        let mk = |scale: f64| -> Vec<(f64, f64)> {
-            (0..400)
-                .map(|i| {
-                    let p = 100.0 * (1.0 - 10f64.powf(-(i as f64) / 70.0));
-                    (p, scale * (5.0 + 2.0 * (i as f64 / 70.0).powi(3)))
-                })
-                .collect()
-        };
-        let series = vec![
-            ("controller".to_string(), mk(1.0)),
-            ("plant".to_string(), mk(1.5)),
-        ];
-        plot_percentiles(
-            &series,
-            "loop latency",
-            Some((100.0, "Ts = 100 µs".to_string())),
-            false,
-            &dir.join("lat_lin"),
-        )
-        .unwrap();
-        plot_percentiles(
-            &series,
-            "loop latency",
-            Some((100.0, "Ts = 100 µs".to_string())),
-            true,
-            &dir.join("lat_log"),
-        )
-        .unwrap();
-        let a: Vec<(f64, f64)> = (0..100_000)
-            .map(|i| (i as f64 * 1e-3, (i as f64).sqrt()))
-            .collect();
-        plot_lines(
-            &[
-                ("run A".into(), a),
-                ("constant".into(), vec![(0.0, 3.0), (50.0, 3.0)]),
-            ],
-            "comparison",
-            "t [ms]",
-            "ω [rad/s]",
-            &[(200.0, "limit".into())],
-            &dir.join("lines"),
-        )
-        .unwrap();
     }
 }

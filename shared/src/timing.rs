@@ -1,0 +1,299 @@
+//! Preallocated latency histograms (HdrHistogram) and deadline-miss counting.
+//!
+//! Recording never allocates: the histogram is created once with fixed bounds and values
+//! beyond them are clamped (and counted as such by the max).
+
+use hdrhistogram::Histogram;
+use serde::Serialize;
+
+/// Highest value a histogram stores without clamping: 10 s in ns.
+pub const MAX_NS: u64 = 10_000_000_000;
+
+/// A named latency histogram in nanoseconds.
+#[derive(Debug, Clone)]
+pub struct LatencyHist {
+    /// Name, e.g. `cycle` or `plant.lateness`.
+    pub name: &'static str,
+    h: Histogram<u64>,
+    /// Values above [`MAX_NS`] (clamped).
+    pub clamped: u64,
+}
+
+/// Percentiles of one histogram in µs (`summary.json` → `latency_us.<name>`).
+#[derive(Debug, Clone, Copy, Serialize, PartialEq)]
+pub struct Percentiles {
+    /// Median, µs.
+    pub p50: f64,
+    /// 99th percentile, µs.
+    pub p99: f64,
+    /// 99.9th percentile, µs.
+    pub p999: f64,
+    /// Maximum, µs.
+    pub max: f64,
+    /// Number of values.
+    pub count: u64,
+}
+
+impl LatencyHist {
+    /// Creates a histogram covering 1 ns .. 10 s at 3 significant digits.
+    pub fn new(name: &'static str) -> Self {
+        Self {
+            name,
+            h: Histogram::new_with_bounds(1, MAX_NS, 3).expect("static bounds are valid"),
+            clamped: 0,
+        }
+    }
+
+    /// Records one value in ns (negative deltas record as 0). No allocation.
+    #[inline]
+    pub fn record_ns(&mut self, v: i64) {
+        let v = v.max(0) as u64;
+        if v > MAX_NS {
+            self.clamped += 1;
+        }
+        self.h.saturating_record(v.clamp(1, MAX_NS));
+    }
+
+    /// Number of values.
+    pub fn len(&self) -> u64 {
+        self.h.len()
+    }
+
+    /// True when empty.
+    pub fn is_empty(&self) -> bool {
+        self.h.is_empty()
+    }
+
+    /// Value at quantile q (0..=1), ns.
+    pub fn quantile_ns(&self, q: f64) -> u64 {
+        self.h.value_at_quantile(q)
+    }
+
+    /// The usual tail summary in µs.
+    pub fn percentiles(&self) -> Percentiles {
+        let us = |v: u64| v as f64 / 1e3;
+        Percentiles {
+            p50: us(self.h.value_at_quantile(0.5)),
+            p99: us(self.h.value_at_quantile(0.99)),
+            p999: us(self.h.value_at_quantile(0.999)),
+            max: us(self.h.max()),
+            count: self.h.len(),
+        }
+    }
+
+    /// Percentile curve (percentile, value µs) for plots, HdrHistogram-style.
+    pub fn curve(&self) -> Vec<(f64, f64)> {
+        let mut v = Vec::new();
+        if self.h.is_empty() {
+            return v;
+        }
+        for it in self.h.iter_quantiles(2) {
+            let q = it.quantile_iterated_to();
+            if q < 1.0 {
+                v.push((q * 100.0, it.value_iterated_to() as f64 / 1e3));
+            }
+        }
+        v
+    }
+
+    /// The `.hgrm` percentile-distribution text (HistogramLogProcessor format, values in µs).
+    pub fn hgrm(&self) -> String {
+        let mut s = String::from("       Value     Percentile TotalCount 1/(1-Percentile)\n\n");
+        if self.h.is_empty() {
+            return s;
+        }
+        for it in self.h.iter_quantiles(5) {
+            let q = it.quantile_iterated_to();
+            let inv = if q < 1.0 {
+                format!("{:.2}", 1.0 / (1.0 - q))
+            } else {
+                "inf".into()
+            };
+            s.push_str(&format!(
+                "{:12.3} {:14.12} {:10} {:>14}\n",
+                it.value_iterated_to() as f64 / 1e3,
+                q,
+                it.count_since_last_iteration(),
+                inv
+            ));
+        }
+        let p = self.percentiles();
+        s.push_str(&format!(
+            "#[Mean    = {:12.3}, StdDeviation   = {:12.3}]\n#[Max     = {:12.3}, Total count    = {:12}]\n",
+            self.h.mean() / 1e3,
+            self.h.stdev() / 1e3,
+            p.max,
+            p.count
+        ));
+        s
+    }
+
+    /// Writes the histogram in the HdrHistogram V2 binary format (for merging by another
+    /// process).
+    pub fn write_v2(&self, path: &std::path::Path) -> anyhow::Result<()> {
+        use hdrhistogram::serialization::{Serializer, V2Serializer};
+        let mut buf = Vec::new();
+        V2Serializer::new()
+            .serialize(&self.h, &mut buf)
+            .map_err(|e| anyhow::anyhow!("serialise {}: {e:?}", self.name))?;
+        std::fs::write(path, buf).map_err(|e| anyhow::anyhow!("write {}: {e}", path.display()))
+    }
+
+    /// Reads a histogram written by [`LatencyHist::write_v2`].
+    pub fn read_v2(name: &'static str, path: &std::path::Path) -> anyhow::Result<Self> {
+        use hdrhistogram::serialization::Deserializer;
+        let bytes =
+            std::fs::read(path).map_err(|e| anyhow::anyhow!("read {}: {e}", path.display()))?;
+        let h: Histogram<u64> = Deserializer::new()
+            .deserialize(&mut &bytes[..])
+            .map_err(|e| {
+                anyhow::anyhow!("{}: not an HdrHistogram V2 file: {e:?}", path.display())
+            })?;
+        Ok(Self {
+            name,
+            h,
+            clamped: 0,
+        })
+    }
+}
+
+/// Deadline-miss bookkeeping: total and longest run of consecutive misses.
+#[derive(Debug, Clone, Copy, Default, Serialize, PartialEq, Eq)]
+pub struct MissCounter {
+    /// Samples that missed.
+    pub misses: u64,
+    /// Longest run of consecutive misses.
+    pub longest_run: u64,
+    run: u64,
+}
+
+impl MissCounter {
+    /// Records whether this sample missed.
+    #[inline]
+    pub fn record(&mut self, missed: bool) {
+        if missed {
+            self.misses += 1;
+            self.run += 1;
+            self.longest_run = self.longest_run.max(self.run);
+        } else {
+            self.run = 0;
+        }
+    }
+}
+
+/// Cycle bookkeeping of the plant against a clock (real or synthetic): for each sample the
+/// command's availability time is compared with t_k + Ts.
+#[derive(Debug, Clone)]
+pub struct CycleMonitor {
+    /// Cycle latency t(command k available) − t_k.
+    pub cycle: LatencyHist,
+    /// Misses: command k not there at t_{k+1}.
+    pub misses: MissCounter,
+    ts_ns: u64,
+}
+
+impl CycleMonitor {
+    /// A monitor for sample time `ts_ns`.
+    pub fn new(ts_ns: u64) -> Self {
+        Self {
+            cycle: LatencyHist::new("cycle"),
+            misses: MissCounter::default(),
+            ts_ns,
+        }
+    }
+
+    /// At t_{k+1}: `cmd_available_ns` is when command k was published (None if it has not
+    /// arrived). Records its latency from t_k and whether the deadline was missed.
+    #[inline]
+    pub fn at_deadline(&mut self, t_k_ns: u64, cmd_available_ns: Option<u64>) {
+        match cmd_available_ns {
+            Some(t) => {
+                let lat = t as i64 - t_k_ns as i64;
+                self.cycle.record_ns(lat);
+                self.misses.record(lat > self.ts_ns as i64);
+            }
+            None => self.misses.record(true),
+        }
+    }
+
+    /// A command that arrived after its deadline: its latency still goes in the histogram.
+    #[inline]
+    pub fn late_command(&mut self, t_k_ns: u64, published_ns: u64) {
+        self.cycle.record_ns(published_ns as i64 - t_k_ns as i64);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn percentiles_of_a_known_distribution() {
+        let mut h = LatencyHist::new("x");
+        for v in 1..=1000i64 {
+            h.record_ns(v * 1000); // 1..1000 µs
+        }
+        let p = h.percentiles();
+        assert!((p.p50 - 500.0).abs() < 1.0, "{p:?}");
+        assert!((p.p99 - 990.0).abs() < 1.0, "{p:?}");
+        assert!((p.max - 1000.0).abs() < 1.0);
+        assert_eq!(p.count, 1000);
+    }
+
+    #[test]
+    fn out_of_range_is_clamped_not_lost() {
+        let mut h = LatencyHist::new("x");
+        h.record_ns(-5);
+        h.record_ns(i64::MAX);
+        assert_eq!(h.len(), 2);
+        assert_eq!(h.clamped, 1);
+    }
+
+    #[test]
+    fn recording_does_not_allocate_capacity() {
+        // The histogram's counts array is sized at creation; recording across the whole range
+        // must not need to grow it (auto-resize is off).
+        let mut h = LatencyHist::new("x");
+        for e in 0..34 {
+            h.record_ns(1i64 << e);
+        }
+        assert_eq!(h.len(), 34);
+    }
+
+    #[test]
+    fn synthetic_clock_counts_misses_and_runs() {
+        // Ts = 100 µs; commands arrive 30 µs after t_k, except a slow step (250 µs) at k = 5
+        // and two missing commands at k = 7, 8.
+        let ts = 100_000u64;
+        let mut m = CycleMonitor::new(ts);
+        for k in 0..10u64 {
+            let t_k = k * ts;
+            let avail = match k {
+                5 => Some(t_k + 250_000),
+                7 | 8 => None,
+                _ => Some(t_k + 30_000),
+            };
+            m.at_deadline(t_k, avail);
+        }
+        assert_eq!(m.misses.misses, 3);
+        assert_eq!(m.misses.longest_run, 2);
+        assert_eq!(m.cycle.len(), 8);
+        assert!((m.cycle.percentiles().max - 250.0).abs() < 0.5);
+    }
+
+    #[test]
+    fn hgrm_and_v2_round_trip() {
+        let mut h = LatencyHist::new("x");
+        for v in [10_000i64, 20_000, 30_000, 1_000_000] {
+            h.record_ns(v);
+        }
+        let p = std::env::temp_dir().join(format!("drivelab-hist-{}.hdr", std::process::id()));
+        h.write_v2(&p).unwrap();
+        let g = LatencyHist::read_v2("x", &p).unwrap();
+        std::fs::remove_file(&p).unwrap();
+        assert_eq!(g.percentiles(), h.percentiles());
+        let text = h.hgrm();
+        assert!(text.contains("Percentile") && text.contains("Total count"));
+        assert!(!h.curve().is_empty());
+    }
+}
