@@ -360,7 +360,7 @@ pub struct ServicePlacement {
 
 /// Placement of the four services.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(deny_unknown_fields, default)]
 pub struct Placement {
     /// Plant (timing master).
     pub plant: ServicePlacement,
