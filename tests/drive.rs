@@ -192,25 +192,59 @@ fn lockstep_inprocess_and_clean_realtime_traces_are_bit_identical() {
     // to three attempts are made to get a clean run on this shared VM.
     let dir = scratch("det-2k");
     let sc2k = dir.join("kyslan-pi-2k.toml");
-    let base = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../scenarios/kyslan-pi.toml")).unwrap();
-    std::fs::write(&sc2k, base.replace("sample_hz = 10000.0", "sample_hz = 2000.0").replace("speed_divider = 10", "speed_divider = 2").replace("speed_filter_tau_s = 1.0e-4", "speed_filter_tau_s = 1.0e-3").replace("tau_c_s = 2.5e-4", "tau_c_s = 1.0e-3").replace("name = \"kyslan-pi\"", "name = \"kyslan-pi-2k\"")).unwrap();
+    let base = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../scenarios/kyslan-pi.toml"
+    ))
+    .unwrap();
+    std::fs::write(
+        &sc2k,
+        base.replace("sample_hz = 10000.0", "sample_hz = 2000.0")
+            .replace("speed_divider = 10", "speed_divider = 2")
+            .replace("speed_filter_tau_s = 1.0e-4", "speed_filter_tau_s = 1.0e-3")
+            .replace("tau_c_s = 2.5e-4", "tau_c_s = 1.0e-3")
+            .replace("name = \"kyslan-pi\"", "name = \"kyslan-pi-2k\""),
+    )
+    .unwrap();
     let sc = sc2k.to_str().unwrap();
     let (ls, _) = run_ok("det-2k-ls", &["--clock", "lockstep", "--scenario", sc]);
     let a = read(&ls.join("trace.csv"));
     let la: Vec<&[u8]> = a.split(|c| *c == b'\n').collect();
     let mut clean = false;
     for attempt in 0..3 {
-        let (rt, s) = run_ok(&format!("det-2k-rt{attempt}"), &["--clock", "realtime", "--scenario", sc]);
+        let (rt, s) = run_ok(
+            &format!("det-2k-rt{attempt}"),
+            &["--clock", "realtime", "--scenario", sc],
+        );
         let b = read(&rt.join("trace.csv"));
         let lb: Vec<&[u8]> = b.split(|c| *c == b'\n').collect();
         assert_eq!(la.len(), lb.len());
-        let stale: u64 = s["counters"].as_object().unwrap().values().map(|c| c["stale_inputs"].as_u64().unwrap()).sum();
-        let first_stale = lb.iter().skip(1).position(|l| l.ends_with(b",1")).map(|i| i + 1);
-        let upto = if stale == 0 { la.len() } else { first_stale.unwrap_or(0) };
+        let stale: u64 = s["counters"]
+            .as_object()
+            .unwrap()
+            .values()
+            .map(|c| c["stale_inputs"].as_u64().unwrap())
+            .sum();
+        let first_stale = lb
+            .iter()
+            .skip(1)
+            .position(|l| l.ends_with(b",1"))
+            .map(|i| i + 1);
+        let upto = if stale == 0 {
+            la.len()
+        } else {
+            first_stale.unwrap_or(0)
+        };
         for i in 0..upto {
-            assert_eq!(la[i], lb[i], "realtime differs from lockstep at line {i} before any stale input");
+            assert_eq!(
+                la[i], lb[i],
+                "realtime differs from lockstep at line {i} before any stale input"
+            );
         }
-        eprintln!("realtime attempt {attempt}: identical for {upto} of {} lines (stale inputs {stale})", la.len());
+        eprintln!(
+            "realtime attempt {attempt}: identical for {upto} of {} lines (stale inputs {stale})",
+            la.len()
+        );
         if stale == 0 {
             clean = true;
             break;

@@ -2,7 +2,9 @@
 //! service loops here; the control maths live in `drivelab-shared`.
 
 pub mod common;
+pub mod compare;
 pub mod current_loop;
+pub mod design;
 pub mod launcher;
 pub mod observer;
 pub mod plant;

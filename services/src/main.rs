@@ -94,6 +94,13 @@ enum Cmd {
         #[arg(long, default_value = "kyslan-pi")]
         scenario: String,
     },
+    /// Plot several runs on one set of axes (speed, i_q, i_d) and print their metrics side
+    /// by side, like Kyslan et al. Fig. 3 and 4.
+    ///
+    /// Example:
+    ///   drivelab compare runs/kyslan-pi runs/kyslan-nl --out runs/compare
+    #[command(verbatim_doc_comment)]
+    Compare(drivelab_services::compare::CompareArgs),
     /// Report how ready this machine is for real-time work. Reads only; changes nothing.
     ///
     /// Example:
@@ -210,21 +217,10 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
         }
         Cmd::Design { scenario } => {
             let sc = launcher::load_scenario(&scenario, None)?;
-            let m = sc.motor_params();
-            let d = drivelab::drive::DriveDesign::from_scenario(&sc);
-            println!("scenario {}: motor R = {} Ω, Ld = {} mH, Lq = {} mH, p = {}, ψ = {} Wb, J = {:e} kg·m², k_t = {:.4} N·m/A",
-                sc.name, m.r_ohm, m.l_d_h * 1e3, m.l_q_h * 1e3, m.pole_pairs, m.psi_pm_wb, m.j_kgm2, m.k_t());
-            println!("current PI (pole-zero cancellation, τ_c = {} ms): d: Kp = L_d/τ_c = {:.4} V/A, Ki = R/τ_c = {:.1} V/(A·s); q: Kp = L_q/τ_c = {:.4} V/A, Ki = {:.1} V/(A·s)",
-                d.current.tau_c_s * 1e3, d.current.k_p_d, d.current.k_i_d, d.current.k_p_q, d.current.k_i_q);
-            let s = &d.speed;
-            println!("speed PI (symmetrical optimum, every {} samples = {} Hz): T_sigma = {:.4} ms, a = {:.4}, T_eq = {:.4} ms", sc.rates.speed_divider, sc.rates.sample_hz / f64::from(sc.rates.speed_divider), s.t_sigma_s * 1e3, s.a, s.t_eq_s * 1e3);
-            println!("  Kp = J/(a·k_t·T_eq) = {:.6} A·s/rad, Ti = a²·T_eq = {:.4} ms, prefilter 1/(1 + Ti s)", s.k_p, s.t_i_s * 1e3);
-            println!("  design model (sampled cascade): rise time {:.2} ms (target {:.2} ms), overshoot {:.1} %", s.predicted_rise_time_s * 1e3, sc.speed_loop.rise_time_s * 1e3, s.predicted_overshoot_pct);
-            if let Some(w) = &s.warning {
-                println!("  WARNING: {w}");
-            }
+            print!("{}", drivelab_services::design::render(&sc));
             Ok(())
         }
+        Cmd::Compare(args) => drivelab_services::compare::run(&args),
         Cmd::Doctor { json } => {
             let checks = drivelab::doctor::run_checks();
             if json {
