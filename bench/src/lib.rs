@@ -1,1 +1,251 @@
-pub fn placeholder() {}
+//! drivelab latency/jitter benchmarks: the measurement back-ends of `drivelab bench`.
+//!
+//! * [`run_floor`]: a bare periodic `clock_nanosleep(TIMER_ABSTIME)` loop — what the timer
+//!   alone costs on this machine (wake-up lateness);
+//! * [`run_inprocess`]: the whole control chain ([`InProcessDrive::cycle`]) in one thread on the
+//!   same kind of timer;
+//! * [`run_uds_chain`]: the four roles as four processes exchanging the bus messages over Unix
+//!   domain sockets, with the same per-sample order and semantics as the iceoryx2 services
+//!   (see [`uds`]).
+//!
+//! Every real-time loop preallocates its histograms and never allocates, locks or logs.
+
+use anyhow::{anyhow, bail, Result};
+use drivelab::config::Scenario;
+use drivelab::drive::InProcessDrive;
+use drivelab::rt::{now_ns, setup_rt, sleep_until_ns, RtPolicy, RtReport, RtRequest};
+use drivelab::timing::{CycleMonitor, LatencyHist, MissCounter};
+
+pub mod uds;
+pub mod wire;
+
+pub use uds::{run_uds_chain, run_uds_node, UdsNodeArgs};
+
+/// Result of one measured variant.
+#[derive(Debug, Clone)]
+pub struct VariantResult {
+    /// Cycle latency from the ideal sample instant t_k to the moment command k is available to
+    /// the plant (for `floor`: the timer's wake-up lateness, i.e. wake − t_k).
+    pub cycle: LatencyHist,
+    /// Plant wake-up lateness (actual wake − scheduled) — for floor same as cycle.
+    pub lateness: LatencyHist,
+    /// Samples run.
+    pub samples: u64,
+    /// Deadline misses (command k not available by t_{k+1}; for the floor: wake-ups later than
+    /// Ts) and longest run.
+    pub misses: MissCounter,
+}
+
+/// Placement of one node: core and SCHED_FIFO priority (None = unpinned / SCHED_OTHER).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct NodeSpec {
+    /// CPU core to pin to.
+    pub core: Option<usize>,
+    /// SCHED_FIFO priority 1..=99.
+    pub priority: Option<u8>,
+}
+
+/// What to measure for a chain variant.
+#[derive(Debug, Clone)]
+pub struct ChainSpec {
+    /// The scenario (the caller sets `rates.sample_hz`). Its placement is ignored: the four
+    /// [`NodeSpec`]s below decide.
+    pub scenario: Scenario,
+    /// Seconds of measurement: round(seconds × sample_hz) samples.
+    pub seconds: f64,
+    /// Plant (timing master).
+    pub plant: NodeSpec,
+    /// Observer.
+    pub observer: NodeSpec,
+    /// Current loop.
+    pub current_loop: NodeSpec,
+    /// Speed loop.
+    pub speed_loop: NodeSpec,
+}
+
+/// Stack bytes touched before a loop starts.
+const PREFAULT_STACK: usize = 256 * 1024;
+
+/// Applies a node's placement to the calling thread (warn on refusal) and prints the one-line
+/// report to stderr. `lock_memory` is process-wide (`mlockall`): only node processes ask.
+pub(crate) fn apply_rt(name: &str, node: &NodeSpec, lock_memory: bool) -> Result<RtReport> {
+    let req = RtRequest {
+        core: node.core,
+        fifo_priority: node.priority,
+        lock_memory,
+        prefault_stack_bytes: PREFAULT_STACK,
+    };
+    let rep = setup_rt(&req, RtPolicy::Warn).map_err(|e| anyhow!("{name}: {e}"))?;
+    eprintln!("{}", rep.one_line(name));
+    Ok(rep)
+}
+
+/// Sleeps to the absolute deadline; with `spin_ns` > 0 sleeps to `spin_ns` before it and spins
+/// the rest (the scenario's `timing.plant_spin_us`, as the iceoryx2 plant does).
+#[inline]
+pub(crate) fn wait_deadline(deadline: u64, spin_ns: u64) {
+    if spin_ns > 0 {
+        sleep_until_ns(deadline.saturating_sub(spin_ns));
+        while now_ns() < deadline {
+            std::hint::spin_loop();
+        }
+    } else {
+        sleep_until_ns(deadline);
+    }
+}
+
+/// Sample count and sample time (ns) for `seconds` at `hz`.
+pub(crate) fn schedule(hz: f64, seconds: f64) -> Result<(u64, u64)> {
+    if !(hz.is_finite() && hz > 0.0 && hz <= 1e6) {
+        bail!("sample rate {hz} Hz must be in (0, 1e6]");
+    }
+    if !(seconds.is_finite() && seconds > 0.0 && seconds <= 86_400.0) {
+        bail!("seconds = {seconds} must be in (0, 86400]");
+    }
+    let n = (seconds * hz).round() as u64;
+    let ts_ns = (1e9 / hz).round() as u64;
+    Ok((n, ts_ns))
+}
+
+/// Runs `f` in a fresh, named thread (its placement dies with it) and returns its result.
+fn in_fresh_thread<T: Send + 'static>(
+    name: &str,
+    f: impl FnOnce() -> Result<T> + Send + 'static,
+) -> Result<T> {
+    std::thread::Builder::new()
+        .name(name.into())
+        .spawn(f)
+        .map_err(|e| anyhow!("cannot start the {name} thread: {e}"))?
+        .join()
+        .map_err(|_| anyhow!("the {name} thread panicked"))?
+}
+
+/// The floor: a bare periodic clock_nanosleep(TIMER_ABSTIME) loop at `hz` for `seconds`, on
+/// `node`'s core and SCHED_FIFO priority, in a fresh thread of this process (restore nothing:
+/// the thread ends). Records lateness.
+pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult> {
+    let (n, ts_ns) = schedule(hz, seconds)?;
+    let node = *node;
+    in_fresh_thread("bench-floor", move || {
+        apply_rt("floor", &node, false)?;
+        let mut late = LatencyHist::new("lateness");
+        let mut misses = MissCounter::default();
+        let t0 = now_ns() + 2_000_000;
+        // ---- real-time loop: no allocation, no locks, no logging ----
+        for k in 0..n {
+            let deadline = t0 + k * ts_ns;
+            sleep_until_ns(deadline);
+            let l = now_ns() as i64 - deadline as i64;
+            late.record_ns(l);
+            misses.record(l > ts_ns as i64);
+        }
+        // ---- end of the real-time loop ----
+        let mut cycle = late.clone();
+        cycle.name = "cycle";
+        Ok(VariantResult {
+            cycle,
+            lateness: late,
+            samples: n,
+            misses,
+        })
+    })
+}
+
+/// In-process: the full control chain ([`InProcessDrive::cycle`]) in one thread on the same
+/// timer, on the plant's core and priority; cycle latency = time the command of sample k is
+/// ready − t_k (a miss when that is later than t_{k+1}).
+pub fn run_inprocess(spec: &ChainSpec) -> Result<VariantResult> {
+    let (n, ts_ns) = schedule(spec.scenario.rates.sample_hz, spec.seconds)?;
+    let sc = spec.scenario.clone();
+    let node = spec.plant;
+    in_fresh_thread("bench-inprocess", move || {
+        let mut drive = InProcessDrive::new(&sc);
+        // Warm-up on a throw-away copy: code and data pages are touched before the clock starts.
+        let mut warm = drive.clone();
+        for k in 0..50 {
+            std::hint::black_box(warm.cycle(k));
+        }
+        drop(warm);
+        let spin_ns = (sc.timing.plant_spin_us * 1e3).round() as u64;
+        apply_rt("inprocess", &node, false)?;
+        let mut mon = CycleMonitor::new(ts_ns);
+        let mut late = LatencyHist::new("lateness");
+        let t0 = now_ns() + 2_000_000;
+        // ---- real-time loop: no allocation, no locks, no logging ----
+        for k in 0..n {
+            let deadline = t0 + k * ts_ns;
+            wait_deadline(deadline, spin_ns);
+            late.record_ns(now_ns() as i64 - deadline as i64);
+            std::hint::black_box(drive.cycle(k));
+            mon.at_deadline(deadline, Some(now_ns()));
+        }
+        // ---- end of the real-time loop ----
+        Ok(VariantResult {
+            cycle: mon.cycle,
+            lateness: late,
+            samples: n,
+            misses: mon.misses,
+        })
+    })
+}
+
+#[cfg(test)]
+pub(crate) mod testutil {
+    use drivelab::config::Scenario;
+
+    /// The shipped kyslan-pi scenario at `hz`.
+    pub fn kyslan(hz: f64) -> Scenario {
+        let text = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../scenarios/kyslan-pi.toml"
+        ))
+        .unwrap();
+        let mut sc = Scenario::from_toml(&text, "kyslan-pi.toml").unwrap();
+        sc.rates.sample_hz = hz;
+        sc.rates.speed_divider = ((hz / 1000.0).round() as u32).max(1);
+        sc.observer.speed_filter_tau_s = sc.observer.speed_filter_tau_s.max(1.0 / hz);
+        sc.current_loop.tau_c_s = sc.current_loop.tau_c_s.max(2.0 / hz);
+        sc.validate().unwrap();
+        sc
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn floor_runs_the_expected_samples() {
+        let r = run_floor(2000.0, 0.05, &NodeSpec::default()).unwrap();
+        assert_eq!(r.samples, 100);
+        assert_eq!(r.lateness.len(), 100);
+        assert_eq!(r.cycle.len(), 100);
+        assert_eq!(r.cycle.name, "cycle");
+        assert_eq!(r.lateness.name, "lateness");
+        assert!(r.misses.misses <= r.samples);
+    }
+
+    #[test]
+    fn inprocess_records_one_cycle_per_sample() {
+        let spec = ChainSpec {
+            scenario: testutil::kyslan(2000.0),
+            seconds: 0.05,
+            plant: NodeSpec::default(),
+            observer: NodeSpec::default(),
+            current_loop: NodeSpec::default(),
+            speed_loop: NodeSpec::default(),
+        };
+        let r = run_inprocess(&spec).unwrap();
+        assert_eq!(r.samples, 100);
+        assert_eq!(r.cycle.len(), r.samples);
+        assert_eq!(r.lateness.len(), r.samples);
+        assert!(r.misses.misses <= r.samples);
+    }
+
+    #[test]
+    fn bad_rates_and_durations_are_refused() {
+        assert!(run_floor(0.0, 1.0, &NodeSpec::default()).is_err());
+        assert!(run_floor(1000.0, f64::NAN, &NodeSpec::default()).is_err());
+        assert!(run_floor(1000.0, -1.0, &NodeSpec::default()).is_err());
+    }
+}

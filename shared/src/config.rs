@@ -373,19 +373,13 @@ pub struct Placement {
 }
 
 impl Default for Placement {
-    /// All four services on core 1, priorities in chain order; core 0 keeps the OS, the
-    /// supervisor and the recorder. See the README's measurements for why.
+    /// All four services on core 1 (a wake-up on another core costs 12-15 µs here, on the
+    /// same core 2-6 µs), priorities rising along the chain so that each notify hands the CPU
+    /// straight to the next stage (plant 70 < observer 72 < speed loop 74 < current loop 76);
+    /// core 0 keeps the OS, the supervisor and the recorder. See the README's measurements.
     fn default() -> Self {
-        let on1 = |p| ServicePlacement {
-            core: Some(1),
-            priority: Some(p),
-        };
-        Self {
-            plant: on1(80),
-            observer: on1(79),
-            current_loop: on1(78),
-            speed_loop: on1(77),
-        }
+        let on1 = |p| ServicePlacement { core: Some(1), priority: Some(p) };
+        Self { plant: on1(70), observer: on1(72), current_loop: on1(76), speed_loop: on1(74) }
     }
 }
 

@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# Installs what drivelab needs beyond the Rust toolchain, only if it is missing:
+# fontconfig headers and a TrueType font (plotters draws its labels with them).
+# Idempotent; changes no kernel setting.
+set -euo pipefail
+need=()
+command -v pkg-config >/dev/null 2>&1 || need+=(pkg-config)
+if ! pkg-config --exists fontconfig 2>/dev/null && [ ! -f /usr/include/fontconfig/fontconfig.h ]; then
+  need+=(libfontconfig1-dev)
+fi
+if ! ls /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf >/dev/null 2>&1 && ! fc-list 2>/dev/null | grep -q .; then
+  need+=(fonts-dejavu-core)
+fi
+if ! command -v cargo >/dev/null 2>&1; then
+  echo "setup: cargo is not installed; install the Rust toolchain (rustup) first" >&2
+  exit 1
+fi
+if [ ${#need[@]} -gt 0 ]; then
+  echo "setup: installing ${need[*]}" >&2
+  if [ "$(id -u)" -eq 0 ]; then SUDO=""; else SUDO="sudo"; fi
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need[@]}" >/dev/null
+fi
