@@ -122,13 +122,14 @@ struct Recorder {
 
 fn run_recorder(
     bus_id: String,
+    wake: drivelab::bus::WakeKind,
     n: u64,
     stop: Arc<AtomicBool>,
     ready: mpsc::Sender<Result<()>>,
 ) -> Result<Recorder> {
     let setup = (|| -> Result<_> {
         let node = bus::node(&bus_id, "recorder")?;
-        let topics = DriveTopics::open(&node)?;
+        let topics = DriveTopics::open_with(&node, wake, &bus_id)?;
         // Polled: a listener would cost the real-time senders a wake-up syscall per sample.
         let meas_rx = topics.meas.polled_receiver(MAX_BUFFER)?;
         let cmd_rx = topics.cmd.polled_receiver(MAX_BUFFER)?;
@@ -339,10 +340,10 @@ fn run_bus(
     let stop = Arc::new(AtomicBool::new(false));
     let (ready_tx, ready_rx) = mpsc::channel();
     let rec = {
-        let (b, s) = (bus_id.clone(), stop.clone());
+        let (b, s, w) = (bus_id.clone(), stop.clone(), sc.timing.wake);
         std::thread::Builder::new()
             .name("recorder".into())
-            .spawn(move || run_recorder(b, n, s, ready_tx))?
+            .spawn(move || run_recorder(b, w, n, s, ready_tx))?
     };
     let result = (|| -> Result<(Vec<ChildProc>, Option<String>)> {
         ready_rx

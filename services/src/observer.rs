@@ -12,7 +12,7 @@ use std::time::Instant;
 pub fn run(args: ServiceArgs) -> Result<()> {
     let sc = load_scenario(&args)?;
     let node = bus::node(&args.bus, "observer")?;
-    let topics = DriveTopics::open(&node)?;
+    let topics = DriveTopics::open_with(&node, sc.timing.wake, &args.bus)?;
     let meas_rx = topics.meas.receiver(64)?;
     let est_tx = topics.est.sender()?;
     let report = apply_placement("observer", &sc, &args)?;

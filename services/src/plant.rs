@@ -79,7 +79,7 @@ fn warm_up(meas_tx: &bus::Sender<Measurement>, cmd_rx: &Receiver<VoltageCommand>
 pub fn run(args: ServiceArgs) -> Result<()> {
     let sc = load_scenario(&args)?;
     let node = bus::node(&args.bus, "plant")?;
-    let topics = DriveTopics::open(&node)?;
+    let topics = DriveTopics::open_with(&node, sc.timing.wake, &args.bus)?;
     let meas_tx = topics.meas.sender()?;
     // Real time polls the command at the deadline; lockstep waits for it.
     let lockstep = args.clock == BusClock::Lockstep;

@@ -10,6 +10,8 @@ use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
+use crate::futex::WakeSegment;
+use std::sync::Arc;
 use std::time::Duration;
 
 /// Topics of the drive.
@@ -79,18 +81,39 @@ fn service_name(topic: &str) -> Result<ServiceName> {
     ServiceName::new(topic).map_err(|e| anyhow!("service name {topic}: {e:?}"))
 }
 
-/// A typed topic: publish-subscribe plus a wake-up event of the same name.
+/// How a sender wakes its receivers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum WakeKind {
+    /// iceoryx2 event service (notifier/listener, a Unix datagram socket underneath).
+    #[default]
+    Iceoryx2,
+    /// A futex word per topic in a shared segment of the bus (see [`crate::futex`]).
+    Futex,
+}
+
+/// The wake-up side of a topic.
+enum Wake {
+    Event(iceoryx2::service::port_factory::event::PortFactory<ipc::Service>),
+    Futex(Arc<WakeSegment>, usize),
+}
+
+/// A typed topic: publish-subscribe plus a wake-up channel.
 pub struct Topic<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> {
     /// The publish-subscribe service.
-    pub pubsub:
-        iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, T, ()>,
-    /// The event service.
-    pub event: iceoryx2::service::port_factory::event::PortFactory<ipc::Service>,
+    pub pubsub: iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, T, ()>,
+    wake: Wake,
 }
 
 impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
-    /// Opens or creates the topic.
+    /// Opens or creates the topic with an iceoryx2 event for wake-ups.
     pub fn open(node: &Node<ipc::Service>, topic: &str) -> Result<Self> {
+        Self::open_with(node, topic, None)
+    }
+
+    /// Opens or creates the topic; wake-ups through `futex` word `i` if given, else an
+    /// iceoryx2 event of the same name.
+    pub fn open_with(node: &Node<ipc::Service>, topic: &str, futex: Option<(Arc<WakeSegment>, usize)>) -> Result<Self> {
         let name = service_name(topic)?;
         let pubsub = node
             .service_builder(&name)
@@ -103,55 +126,47 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
             .enable_safe_overflow(true)
             .open_or_create()
             .map_err(|e| anyhow!("cannot open topic {topic}: {e:?}"))?;
-        let event = node
-            .service_builder(&name)
-            .event()
-            .max_notifiers(4)
-            .max_listeners(8)
-            .max_nodes(12)
-            .open_or_create()
-            .map_err(|e| anyhow!("cannot open event {topic}: {e:?}"))?;
-        Ok(Self { pubsub, event })
+        let wake = match futex {
+            Some((seg, i)) => Wake::Futex(seg, i),
+            None => Wake::Event(
+                node.service_builder(&name)
+                    .event()
+                    .max_notifiers(4)
+                    .max_listeners(8)
+                    .max_nodes(12)
+                    .open_or_create()
+                    .map_err(|e| anyhow!("cannot open event {topic}: {e:?}"))?,
+            ),
+        };
+        Ok(Self { pubsub, wake })
     }
 
-    /// A sender (publisher + notifier).
+    /// A sender (publisher + wake-up).
     pub fn sender(&self) -> Result<Sender<T>> {
+        let notify = match &self.wake {
+            Wake::Event(ev) => Notify::Event(ev.notifier_builder().create().map_err(|e| anyhow!("notifier: {e:?}"))?),
+            Wake::Futex(seg, i) => Notify::Futex(seg.clone(), *i),
+        };
         Ok(Sender {
-            publisher: self
-                .pubsub
-                .publisher_builder()
-                .max_loaned_samples(2)
-                .create()
-                .map_err(|e| anyhow!("publisher: {e:?}"))?,
-            notifier: self
-                .event
-                .notifier_builder()
-                .create()
-                .map_err(|e| anyhow!("notifier: {e:?}"))?,
+            publisher: self.pubsub.publisher_builder().max_loaned_samples(2).create().map_err(|e| anyhow!("publisher: {e:?}"))?,
+            notify,
         })
     }
 
-    /// A receiver with a buffer of `buffer` samples that can wait for the topic's event
-    /// (subscriber + listener). Every listener costs the sender one wake-up syscall per
-    /// message, so inputs that are only polled should use [`Topic::polled_receiver`].
+    /// A receiver with a buffer of `buffer` samples that can wait for the topic's wake-up.
+    /// An iceoryx2 listener costs the sender one syscall per message, so inputs that are
+    /// only polled should use [`Topic::polled_receiver`].
     pub fn receiver(&self, buffer: usize) -> Result<Receiver<T>> {
-        let listener = self
-            .event
-            .listener_builder()
-            .create()
-            .map_err(|e| anyhow!("listener: {e:?}"))?;
-        Ok(Receiver {
-            subscriber: self.subscriber(buffer)?,
-            listener: Some(listener),
-        })
+        let waiter = match &self.wake {
+            Wake::Event(ev) => Waiter::Event(ev.listener_builder().create().map_err(|e| anyhow!("listener: {e:?}"))?),
+            Wake::Futex(seg, i) => Waiter::Futex(seg.clone(), *i, std::cell::Cell::new(seg.seq(*i))),
+        };
+        Ok(Receiver { subscriber: self.subscriber(buffer)?, waiter })
     }
 
-    /// A receiver that is only polled (no listener: the sender does not wake it).
+    /// A receiver that is only polled (the sender does not wake it).
     pub fn polled_receiver(&self, buffer: usize) -> Result<Receiver<T>> {
-        Ok(Receiver {
-            subscriber: self.subscriber(buffer)?,
-            listener: None,
-        })
+        Ok(Receiver { subscriber: self.subscriber(buffer)?, waiter: Waiter::Polled })
     }
 
     fn subscriber(&self, buffer: usize) -> Result<Subscriber<ipc::Service, T, ()>> {
@@ -163,33 +178,42 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
     }
 }
 
-/// Publishes a message and wakes the listeners.
+enum Notify {
+    Event(Notifier<ipc::Service>),
+    Futex(Arc<WakeSegment>, usize),
+}
+
+/// Publishes a message and wakes the receivers.
 pub struct Sender<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> {
     publisher: Publisher<ipc::Service, T, ()>,
-    notifier: Notifier<ipc::Service>,
+    notify: Notify,
 }
 
 impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Sender<T> {
-    /// Copies `msg` into a loaned sample, sends it and notifies. No allocation.
+    /// Copies `msg` into a loaned sample, sends it and wakes the receivers. No allocation.
     pub fn send(&self, msg: T) -> Result<()> {
-        let s = self
-            .publisher
-            .loan_uninit()
-            .map_err(|e| anyhow!("loan: {e:?}"))?;
-        s.write_payload(msg)
-            .send()
-            .map_err(|e| anyhow!("send: {e:?}"))?;
-        self.notifier
-            .notify()
-            .map_err(|e| anyhow!("notify: {e:?}"))?;
+        let s = self.publisher.loan_uninit().map_err(|e| anyhow!("loan: {e:?}"))?;
+        s.write_payload(msg).send().map_err(|e| anyhow!("send: {e:?}"))?;
+        match &self.notify {
+            Notify::Event(n) => {
+                n.notify().map_err(|e| anyhow!("notify: {e:?}"))?;
+            }
+            Notify::Futex(seg, i) => seg.notify(*i),
+        }
         Ok(())
     }
 }
 
-/// Receives messages and waits for their events.
+enum Waiter {
+    Polled,
+    Event(Listener<ipc::Service>),
+    Futex(Arc<WakeSegment>, usize, std::cell::Cell<u32>),
+}
+
+/// Receives messages and waits for their wake-ups.
 pub struct Receiver<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> {
     subscriber: Subscriber<ipc::Service, T, ()>,
-    listener: Option<Listener<ipc::Service>>,
+    waiter: Waiter,
 }
 
 impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Receiver<T> {
@@ -202,19 +226,28 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Receiver<T> {
         }
     }
 
-    /// Blocks until an event arrives or `timeout` passes; consumes pending events. A signal
-    /// interrupting the wait is not an error (the caller checks its stop flag). A polled
-    /// receiver has no event to wait for: it sleeps at most [`POLL_SLEEP`] and returns, so
-    /// callers loop and re-check (as they must for any wait).
+    /// Blocks until a wake-up arrives or `timeout` passes. Callers loop: wait, then drain
+    /// with [`Receiver::try_recv`]. A signal interrupting the wait is not an error (the caller
+    /// checks its stop flag). A polled receiver sleeps at most [`POLL_SLEEP`].
     pub fn wait(&self, timeout: Duration) -> Result<()> {
-        let Some(listener) = &self.listener else {
-            std::thread::sleep(timeout.min(POLL_SLEEP));
-            return Ok(());
-        };
-        match listener.timed_wait(|_| {}, timeout) {
-            Ok(_) => Ok(()),
-            Err(iceoryx2::port::listener::ListenerWaitError::InterruptSignal) => Ok(()),
-            Err(e) => Err(anyhow!("wait: {e:?}")),
+        match &self.waiter {
+            Waiter::Polled => {
+                std::thread::sleep(timeout.min(POLL_SLEEP));
+                Ok(())
+            }
+            Waiter::Event(listener) => match listener.timed_wait(|_| {}, timeout) {
+                Ok(_) => Ok(()),
+                Err(iceoryx2::port::listener::ListenerWaitError::InterruptSignal) => Ok(()),
+                Err(e) => Err(anyhow!("wait: {e:?}")),
+            },
+            Waiter::Futex(seg, i, seen) => {
+                // A message published before the bump of the word is visible once the bump
+                // is seen, so nothing is lost between draining and sleeping.
+                let now = seg.seq(*i);
+                let now = if now == seen.get() { seg.wait(*i, now, timeout) } else { now };
+                seen.set(now);
+                Ok(())
+            }
         }
     }
 }
@@ -231,17 +264,29 @@ pub struct DriveTopics {
     pub cmd: Topic<crate::messages::VoltageCommand>,
     /// Recorder progress: highest k below which every sample has been stored.
     pub rec: Topic<u64>,
+    _seg: Option<Arc<WakeSegment>>,
 }
 
 impl DriveTopics {
-    /// Opens (or creates) all topics.
+    /// Opens (or creates) all topics with iceoryx2 events for wake-ups.
     pub fn open(node: &Node<ipc::Service>) -> Result<Self> {
+        Self::open_with(node, WakeKind::Iceoryx2, "")
+    }
+
+    /// Opens (or creates) all topics of bus `bus_id` with the given wake-up mechanism.
+    pub fn open_with(node: &Node<ipc::Service>, wake: WakeKind, bus_id: &str) -> Result<Self> {
+        let seg = match wake {
+            WakeKind::Iceoryx2 => None,
+            WakeKind::Futex => Some(Arc::new(WakeSegment::open(bus_id)?)),
+        };
+        let w = |i: usize| seg.as_ref().map(|s| (s.clone(), i));
         Ok(Self {
-            meas: Topic::open(node, TOPIC_MEAS).context("measurement topic")?,
-            est: Topic::open(node, TOPIC_EST).context("estimate topic")?,
-            iref: Topic::open(node, TOPIC_IREF).context("current-reference topic")?,
-            cmd: Topic::open(node, TOPIC_CMD).context("command topic")?,
-            rec: Topic::open(node, TOPIC_REC).context("recorder topic")?,
+            meas: Topic::open_with(node, TOPIC_MEAS, w(0)).context("measurement topic")?,
+            est: Topic::open_with(node, TOPIC_EST, w(1)).context("estimate topic")?,
+            iref: Topic::open_with(node, TOPIC_IREF, w(2)).context("current-reference topic")?,
+            cmd: Topic::open_with(node, TOPIC_CMD, w(3)).context("command topic")?,
+            rec: Topic::open_with(node, TOPIC_REC, w(4)).context("recorder topic")?,
+            _seg: seg.clone(),
         })
     }
 }

@@ -9,6 +9,7 @@ pub mod config;
 pub mod control;
 pub mod doctor;
 pub mod drive;
+pub mod futex;
 pub mod messages;
 pub mod metrics;
 pub mod motor;
