@@ -223,6 +223,7 @@ pub(crate) struct PlantOutcome {
     pub result: VariantResult,
     pub counters: Counters,
     /// Trace rows k = 0.. up to the first miss or stale-input command (only with keep_trace).
+    #[cfg_attr(not(test), allow(dead_code))]
     pub trace: Vec<TraceRow>,
     /// The plant's RT report line.
     pub rt: String,
@@ -1154,7 +1155,7 @@ mod tests {
         assert_eq!(p.result.samples, 100);
         // One wake-up per sample plus the one that takes the last command.
         assert_eq!(p.result.lateness.len(), 101);
-        assert!(p.result.cycle.len() > 0);
+        assert!(!p.result.cycle.is_empty());
         assert_eq!(p.counters.samples, 100);
         // Determinism across transports: every row up to the first miss (all of them when
         // nothing missed) is bit-identical to the in-process chain's.
@@ -1215,6 +1216,9 @@ mod tests {
         }
     }
 
+    /// Serialises the tests that spawn processes (they check for leftover children).
+    static PROCESS_TESTS: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
     fn children_of_this_process() -> Vec<u32> {
         let me = std::process::id().to_string();
         let mut v = Vec::new();
@@ -1248,14 +1252,9 @@ mod tests {
         v
     }
 
-    /// The whole process chain, with this test binary standing in for `drivelab` through a
-    /// small shell script that maps `bench-node uds ARGS` onto [`node_trampoline`].
-    /// (Both process tests in one function: they check for leftovers of this process.)
-    #[test]
-    fn process_chain_end_to_end_and_failure_paths() {
-        let work = std::env::temp_dir().join(format!("drivelab-bench-e2e-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&work);
-        std::fs::create_dir_all(&work).unwrap();
+    /// A shell script standing in for `drivelab`: it maps `bench-node uds ARGS` onto
+    /// [`node_trampoline`] in this test binary.
+    fn fake_drivelab(work: &Path) -> PathBuf {
         let me = std::env::current_exe().unwrap();
         let script = work.join("fake-drivelab");
         std::fs::write(
@@ -1270,6 +1269,18 @@ mod tests {
         .unwrap();
         use std::os::unix::fs::PermissionsExt;
         std::fs::set_permissions(&script, std::fs::Permissions::from_mode(0o755)).unwrap();
+        script
+    }
+
+    /// The whole process chain through [`fake_drivelab`].
+    /// (Both process tests in one function: they check for leftovers of this process.)
+    #[test]
+    fn process_chain_end_to_end_and_failure_paths() {
+        let _serial = PROCESS_TESTS.lock().unwrap_or_else(|e| e.into_inner());
+        let work = std::env::temp_dir().join(format!("drivelab-bench-e2e-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&work);
+        std::fs::create_dir_all(&work).unwrap();
+        let script = fake_drivelab(&work);
         let spec = ChainSpec {
             scenario: kyslan(2000.0),
             seconds: 0.05,
@@ -1290,7 +1301,7 @@ mod tests {
         );
         assert_eq!(r.samples, 100);
         assert_eq!(r.lateness.len(), 101);
-        assert!(r.cycle.len() > 0);
+        assert!(!r.cycle.is_empty());
         assert!(children_of_this_process().is_empty());
         assert!(
             leftover_sock_dirs().is_empty(),
@@ -1314,6 +1325,134 @@ mod tests {
             .to_string();
         assert!(e.contains("cannot start"), "{e}");
         assert!(leftover_sock_dirs().is_empty());
+        std::fs::remove_dir_all(&work).unwrap();
+    }
+
+    /// SIGTERM stops every node at once: a downstream node just exits, the plant sends the end
+    /// marker and writes its (partial) results.
+    #[test]
+    fn nodes_stop_on_sigterm() {
+        let _serial = PROCESS_TESTS.lock().unwrap_or_else(|e| e.into_inner());
+        let work = std::env::temp_dir().join(format!("drivelab-bench-term-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&work);
+        std::fs::create_dir_all(&work).unwrap();
+        let script = fake_drivelab(&work);
+        let sock = SockDir::create("drivelab-udsterm").unwrap();
+        let scen = work.join("sc.toml");
+        std::fs::write(&scen, toml::to_string(&kyslan(2000.0)).unwrap()).unwrap();
+        let out = work.join("plant.json");
+        let spawn = |role: &str| {
+            let mut c = Command::new(&script);
+            c.args(["bench-node", "uds", "--role", role, "--dir"])
+                .arg(&sock.path)
+                .args(["--scenario"])
+                .arg(&scen)
+                .args(["--seconds", "60"])
+                .stdout(Stdio::null());
+            if role == "plant" {
+                c.arg("--out").arg(&out);
+            }
+            c.spawn().unwrap()
+        };
+        let mut kids: Vec<(&str, Child)> = ["observer", "current-loop", "speed-loop", "plant"]
+            .into_iter()
+            .map(|r| (r, spawn(r)))
+            .collect();
+        let term_and_wait = |c: &mut Child| {
+            // SAFETY: kill(2) on our own unreaped child.
+            unsafe { libc::kill(c.id() as libc::pid_t, libc::SIGTERM) };
+            let t = Instant::now();
+            loop {
+                if let Some(s) = c.try_wait().unwrap() {
+                    return (s, t.elapsed());
+                }
+                assert!(
+                    t.elapsed() < Duration::from_secs(3),
+                    "no exit after SIGTERM"
+                );
+                std::thread::sleep(Duration::from_millis(5));
+            }
+        };
+        // Let the chain run (warm-up done once the plant has measured something).
+        std::thread::sleep(Duration::from_millis(600));
+        for (_, c) in &mut kids {
+            assert!(c.try_wait().unwrap().is_none(), "a node ended early");
+        }
+        // A downstream node first, then the plant, then the rest.
+        for i in [0usize, 3, 1, 2] {
+            let (role, c) = &mut kids[i];
+            let (s, dt) = term_and_wait(c);
+            assert!(s.success(), "{role}: {s}");
+            eprintln!("{role} stopped {dt:?} after SIGTERM");
+            if i == 0 {
+                // Let the plant run without its observer for a while.
+                std::thread::sleep(Duration::from_millis(50));
+            }
+        }
+        let r = read_plant_file(&out).unwrap();
+        assert!(r.samples > 0 && r.samples < 120_000, "{}", r.samples);
+        // The observer was gone for a while: the plant saw misses.
+        assert!(r.misses.misses > 0);
+        drop(sock);
+        std::fs::remove_dir_all(&work).unwrap();
+    }
+
+    /// Manual measurement (no assertions): `DRIVELAB_BENCH_SECONDS=2 cargo test -p
+    /// drivelab-bench --release manual_measurement -- --ignored --nocapture`. Needs root
+    /// for SCHED_FIFO; one-core placement on the last CPU, priorities as `drivelab bench`.
+    #[test]
+    #[ignore]
+    fn manual_measurement() {
+        let seconds: f64 = std::env::var("DRIVELAB_BENCH_SECONDS")
+            .ok()
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(2.0);
+        let hz: f64 = std::env::var("DRIVELAB_BENCH_HZ")
+            .ok()
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(10_000.0);
+        let core = drivelab::rt::online_cpus() - 1;
+        let at = |p| NodeSpec {
+            core: Some(core),
+            priority: Some(p),
+        };
+        let work = std::env::temp_dir().join(format!("drivelab-bench-man-{}", std::process::id()));
+        std::fs::create_dir_all(&work).unwrap();
+        let spec = ChainSpec {
+            scenario: kyslan(hz),
+            seconds,
+            plant: at(70),
+            observer: at(72),
+            current_loop: at(76),
+            speed_loop: at(74),
+        };
+        let show = |name: &str, r: &VariantResult| {
+            let c = r.cycle.percentiles();
+            let l = r.lateness.percentiles();
+            eprintln!(
+                "{name:>9}: {} samples, cycle p50 {:.1} p99 {:.1} p99.9 {:.1} max {:.0} µs; \
+                 lateness p50 {:.1} p99 {:.1} µs; misses {} (longest run {})",
+                r.samples,
+                c.p50,
+                c.p99,
+                c.p999,
+                c.max,
+                l.p50,
+                l.p99,
+                r.misses.misses,
+                r.misses.longest_run
+            );
+        };
+        show(
+            "floor",
+            &crate::run_floor(hz, seconds, &spec.plant).unwrap(),
+        );
+        show("inprocess", &crate::run_inprocess(&spec).unwrap());
+        let script = fake_drivelab(&work);
+        show(
+            "uds",
+            &run_uds_chain(&spec, &script, &work.join("uds")).unwrap(),
+        );
         std::fs::remove_dir_all(&work).unwrap();
     }
 }

@@ -148,6 +148,8 @@ pub struct Counters {
     pub longest_miss_run: u64,
     /// Plant only: commands that arrived after their deadline and were discarded.
     pub late_commands: u64,
+    /// Plant only: wall time from sample 0 to the end marker, ns.
+    pub loop_wall_ns: u64,
 }
 
 /// Statistics file of one service.

@@ -589,6 +589,11 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     });
     if let Some(c) = info.get("counters") {
         summary["counters"] = c.clone();
+        if let Some(ns) = c["plant"]["loop_wall_ns"].as_u64().filter(|&n| n > 0) {
+            summary["loop_simulated_s_per_wall_s"] = json!(sc.duration_s / (ns as f64 * 1e-9));
+        }
+    } else {
+        summary["loop_simulated_s_per_wall_s"] = summary["simulated_s_per_wall_s"].clone();
     }
     if let Some(b) = info.get("bus") {
         summary["bus"] = b.clone();

@@ -1,6 +1,7 @@
 //! The drive's processes. Each binary in `src/bin/` is a thin `main` that calls one of the
 //! service loops here; the control maths live in `drivelab-shared`.
 
+pub mod bench;
 pub mod common;
 pub mod compare;
 pub mod current_loop;

@@ -101,6 +101,22 @@ enum Cmd {
     ///   drivelab compare runs/kyslan-pi runs/kyslan-nl --out runs/compare
     #[command(verbatim_doc_comment)]
     Compare(drivelab_services::compare::CompareArgs),
+    /// Measure the sample-time budget: a bare timer (the floor), the chain in one thread,
+    /// the four processes over Unix sockets and over iceoryx2, at 5, 10 and 20 kHz and
+    /// three placements; writes bench.json, bench.md, .hgrm files and percentile plots,
+    /// with a verdict per configuration.
+    ///
+    /// Examples:
+    ///   drivelab bench --quick                       # smoke run, ~10 s
+    ///   drivelab bench --seconds 30 --rates 10000    # 30 s per variant at 10 kHz
+    #[command(verbatim_doc_comment)]
+    Bench(drivelab_services::bench::BenchArgs),
+    /// Internal: one node of the Unix-socket chain (started by `drivelab bench`).
+    #[command(hide = true)]
+    BenchNode {
+        #[command(subcommand)]
+        kind: BenchNodeKind,
+    },
     /// Report how ready this machine is for real-time work. Reads only; changes nothing.
     ///
     /// Example:
@@ -110,6 +126,34 @@ enum Cmd {
         /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum BenchNodeKind {
+    /// A node of the Unix-domain-socket chain.
+    Uds {
+        /// plant, observer, current-loop or speed-loop.
+        #[arg(long)]
+        role: String,
+        /// Socket folder.
+        #[arg(long)]
+        dir: PathBuf,
+        /// Scenario file.
+        #[arg(long)]
+        scenario: PathBuf,
+        /// Seconds to run.
+        #[arg(long)]
+        seconds: f64,
+        /// CPU core.
+        #[arg(long)]
+        core: Option<usize>,
+        /// SCHED_FIFO priority.
+        #[arg(long)]
+        priority: Option<u8>,
+        /// Result file (plant).
+        #[arg(long)]
+        out: Option<PathBuf>,
     },
 }
 
@@ -221,6 +265,10 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             Ok(())
         }
         Cmd::Compare(args) => drivelab_services::compare::run(&args),
+        Cmd::Bench(args) => drivelab_services::bench::run(&args),
+        Cmd::BenchNode { kind: BenchNodeKind::Uds { role, dir, scenario, seconds, core, priority, out } } => {
+            drivelab_bench::run_uds_node(&drivelab_bench::UdsNodeArgs { role, dir, scenario, seconds, core, priority, out })
+        }
         Cmd::Doctor { json } => {
             let checks = drivelab::doctor::run_checks();
             if json {

@@ -113,6 +113,7 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     }
     warm_up(&meas_tx, &cmd_rx)?;
     let t0 = now_ns() + 2_000_000;
+    let mut loop_start = 0u64;
     let mut recorder_done: u64 = 0;
     // ---- real-time loop: no allocation, no locks, no logging ----
     for k in 0..=n {
@@ -149,6 +150,9 @@ pub fn run(args: ServiceArgs) -> Result<()> {
                 cmd = take_command(&cmd_rx, k - 1, &mut c, &mut mon)?;
                 mon.at_deadline(deadline - ts_ns, cmd.map(|c| c.hdr.t_pub_ns));
             }
+        }
+        if k == 0 {
+            loop_start = now_ns();
         }
         if stop_requested() || k == n {
             let hdr = Header {
@@ -194,6 +198,7 @@ pub fn run(args: ServiceArgs) -> Result<()> {
         }
     }
     // ---- end of the real-time loop ----
+    c.loop_wall_ns = now_ns().saturating_sub(loop_start);
     c.deadline_misses = mon.misses.misses;
     c.longest_miss_run = mon.misses.longest_run;
     write_stats(&args, "plant", &report, c, &h, &[&mon.cycle])

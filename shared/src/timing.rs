@@ -297,3 +297,34 @@ mod tests {
         assert!(!h.curve().is_empty());
     }
 }
+
+#[cfg(test)]
+mod slow_step_tests {
+    use super::*;
+    use crate::rt::{now_ns, sleep_until_ns};
+
+    /// A periodic loop on the real clock whose step deliberately takes 1.5 T_s every 5th
+    /// sample: each such sample must be counted as a miss (the command is ready after
+    /// t_{k+1}); the other samples are not asserted (the machine may be busy).
+    #[test]
+    fn a_deliberately_slow_step_is_counted_as_a_miss() {
+        let ts = 2_000_000u64; // 2 ms, generous for a shared test machine
+        let mut mon = CycleMonitor::new(ts);
+        let t0 = now_ns() + ts;
+        let mut slow_seen = 0;
+        for k in 0..20u64 {
+            let t_k = t0 + k * ts;
+            sleep_until_ns(t_k);
+            if k % 5 == 0 {
+                while now_ns() < t_k + ts * 3 / 2 {
+                    std::hint::spin_loop();
+                }
+                slow_seen += 1;
+            }
+            mon.at_deadline(t_k, Some(now_ns()));
+        }
+        assert!(mon.misses.misses >= slow_seen, "{} misses for {slow_seen} slow steps", mon.misses.misses);
+        assert_eq!(mon.cycle.len(), 20);
+        assert!(mon.cycle.percentiles().max >= 1.5 * ts as f64 / 1e3);
+    }
+}

@@ -1,0 +1,51 @@
+//! `drivelab bench --quick` end to end. It checks the report's structure and verdict logic,
+//! never a latency figure (those belong to the bench's own output).
+
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+#[test]
+fn bench_quick_runs_end_to_end_and_writes_its_report() {
+    let out = std::env::temp_dir().join(format!("drivelab-bench-test-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let mut child = Command::new(env!("CARGO_BIN_EXE_drivelab"))
+        .args(["bench", "--quick", "--json", "--out", out.to_str().unwrap()])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t = Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        assert!(t.elapsed() < Duration::from_secs(300), "watchdog: bench --quick hangs");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let o = child.wait_with_output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).expect("bench --json prints JSON");
+    let rows = report["rows"].as_array().unwrap();
+    let variants: Vec<&str> = rows.iter().map(|r| r["variant"].as_str().unwrap()).collect();
+    assert_eq!(variants, ["floor", "inprocess", "uds", "iceoryx2"]);
+    for r in rows {
+        assert!(r["samples"].as_u64().unwrap() > 0, "{r}");
+        for q in ["p50", "p99", "p999", "max"] {
+            assert!(r["cycle_us"][q].as_f64().is_some(), "{r}");
+        }
+        // The verdict follows its definition: cycle p99.9 < Ts and misses/M ≤ 2 × floor + 10.
+        if r["variant"] != "floor" {
+            let floor_pm = rows[0]["misses_per_million"].as_f64().unwrap();
+            let expect = r["cycle_us"]["p999"].as_f64().unwrap() < 100.0
+                && r["misses_per_million"].as_f64().unwrap() <= 2.0 * floor_pm + 10.0;
+            assert_eq!(r["holds_budget"].as_bool(), Some(expect), "{r}");
+            assert!(r["p99_ratio_to_floor"].as_f64().is_some());
+        }
+    }
+    assert!(rows[3]["p99_ratio_to_uds"].as_f64().is_some());
+    assert!(report["speed"]["lockstep_simulated_s_per_wall_s"].as_f64().unwrap() > 0.0);
+    assert!(report["speed"]["inprocess_simulated_s_per_wall_s"].as_f64().unwrap() > 0.0);
+    for f in ["bench.json", "bench.md", "percentiles-10000hz.png", "percentiles-10000hz.svg", "floor-core1-10000hz.hgrm", "iceoryx2-one-core-10000hz.hgrm"] {
+        assert!(out.join(f).is_file(), "{f} missing");
+    }
+    let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
+    assert!(md.contains("| 10 kHz | iceoryx2 | one-core |"), "{md}");
+    let _ = std::fs::remove_dir_all(&out);
+}
