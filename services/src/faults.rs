@@ -1,0 +1,201 @@
+//! Fault injection: parsing of `--fault` specs, the seeded random plan, and signals.
+
+use anyhow::{anyhow, bail, Result};
+use drivelab::config::SERVICES;
+use serde::Serialize;
+
+/// One injected fault.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Fault {
+    /// `kill` (SIGKILL) or `stop` (SIGSTOP, then SIGCONT after `duration_s`).
+    pub kind: FaultKind,
+    /// Target service.
+    pub service: &'static str,
+    /// When, seconds after sample 0.
+    pub at_s: f64,
+    /// For `stop`: how long the process stays stopped, s.
+    pub duration_s: f64,
+}
+
+/// Kinds of fault.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FaultKind {
+    /// SIGKILL.
+    Kill,
+    /// SIGSTOP then SIGCONT.
+    Stop,
+}
+
+fn service(name: &str) -> Result<&'static str> {
+    SERVICES
+        .iter()
+        .copied()
+        .find(|s| *s == name)
+        .ok_or_else(|| anyhow!("unknown service '{name}' (known: {})", SERVICES.join(", ")))
+}
+
+fn seconds(v: &str, what: &str, spec: &str) -> Result<f64> {
+    let x: f64 = v.trim_end_matches('s').parse().map_err(|_| anyhow!("fault '{spec}': {what} '{v}' is not a number of seconds"))?;
+    if !(x.is_finite() && x >= 0.0) {
+        bail!("fault '{spec}': {what} must be a finite number of seconds >= 0");
+    }
+    Ok(x)
+}
+
+/// Parses one `--fault` value: `kill:SERVICE@SECONDS`, `stop:SERVICE@SECONDS:DURATION` or
+/// `random:N` (expanded later with the run's seed and duration).
+pub fn parse(spec: &str) -> Result<FaultSpec> {
+    let (kind, rest) = spec
+        .split_once(':')
+        .ok_or_else(|| anyhow!("fault '{spec}': expected kill:SERVICE@SECONDS, stop:SERVICE@SECONDS:DURATION or random:N"))?;
+    match kind {
+        "random" => {
+            let n: u32 = rest.parse().map_err(|_| anyhow!("fault '{spec}': N must be a whole number"))?;
+            if n == 0 || n > 10_000 {
+                bail!("fault '{spec}': N must be in 1..=10000");
+            }
+            Ok(FaultSpec::Random(n))
+        }
+        "kill" | "stop" => {
+            let (svc, when) = rest
+                .split_once('@')
+                .ok_or_else(|| anyhow!("fault '{spec}': expected {kind}:SERVICE@SECONDS{}", if kind == "stop" { ":DURATION" } else { "" }))?;
+            let service = service(svc)?;
+            if kind == "kill" {
+                Ok(FaultSpec::One(Fault { kind: FaultKind::Kill, service, at_s: seconds(when, "time", spec)?, duration_s: 0.0 }))
+            } else {
+                let (at, dur) = when.split_once(':').ok_or_else(|| anyhow!("fault '{spec}': expected stop:SERVICE@SECONDS:DURATION"))?;
+                Ok(FaultSpec::One(Fault {
+                    kind: FaultKind::Stop,
+                    service,
+                    at_s: seconds(at, "time", spec)?,
+                    duration_s: seconds(dur, "duration", spec)?,
+                }))
+            }
+        }
+        other => bail!("fault '{spec}': unknown fault kind '{other}' (kill, stop, random)"),
+    }
+}
+
+/// A parsed `--fault`.
+#[derive(Debug, Clone, PartialEq)]
+pub enum FaultSpec {
+    /// A single fault.
+    One(Fault),
+    /// N kills of random services at random instants.
+    Random(u32),
+}
+
+/// Expands the specs into a time-ordered plan. Random kills are spread over
+/// [10 %, 90 %] of the run with a seeded generator, at least `min_gap_s` apart so that each
+/// fault's recovery can be measured.
+pub fn plan(specs: &[FaultSpec], duration_s: f64, seed: u64, min_gap_s: f64) -> Result<Vec<Fault>> {
+    use rand::{RngExt, SeedableRng};
+    let mut out = Vec::new();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    for s in specs {
+        match s {
+            FaultSpec::One(f) => {
+                if f.at_s >= duration_s {
+                    bail!("fault {}:{}@{} is at or after the end of the run ({duration_s} s)", kind_name(f.kind), f.service, f.at_s);
+                }
+                out.push(f.clone());
+            }
+            FaultSpec::Random(n) => {
+                let span = 0.8 * duration_s;
+                let slot = span / f64::from(*n);
+                if slot < min_gap_s {
+                    bail!(
+                        "random:{n} needs at least {:.2} s of run ({min_gap_s} s per fault); the run is {duration_s} s (use --duration)",
+                        f64::from(*n) * min_gap_s / 0.8
+                    );
+                }
+                for i in 0..*n {
+                    // One fault per slot, at a random instant in the slot's first half.
+                    let at = 0.1 * duration_s + slot * (f64::from(i) + 0.5 * rng.random::<f64>());
+                    let service = SERVICES[rng.random_range(0..SERVICES.len())];
+                    out.push(Fault { kind: FaultKind::Kill, service, at_s: at, duration_s: 0.0 });
+                }
+            }
+        }
+    }
+    out.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
+    Ok(out)
+}
+
+/// `kill` or `stop`.
+pub fn kind_name(k: FaultKind) -> &'static str {
+    match k {
+        FaultKind::Kill => "kill",
+        FaultKind::Stop => "stop",
+    }
+}
+
+/// Sends `sig` to `pid`.
+pub fn signal(pid: u32, sig: libc::c_int) -> Result<()> {
+    // SAFETY: kill(2) with a pid and a signal number; no memory is involved.
+    let rc = unsafe { libc::kill(pid as libc::pid_t, sig) };
+    if rc != 0 {
+        bail!("cannot signal pid {pid}: {}", std::io::Error::last_os_error());
+    }
+    Ok(())
+}
+
+/// Processes of a running drive: (service, pid), found by their `--bus ID` argument.
+pub fn find_services(bus: &str) -> Vec<(&'static str, u32)> {
+    let mut v = Vec::new();
+    for e in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
+        let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else { continue };
+        let Ok(cmd) = std::fs::read(e.path().join("cmdline")) else { continue };
+        let args: Vec<String> = cmd.split(|b| *b == 0).map(|s| String::from_utf8_lossy(s).into_owned()).collect();
+        if !args.windows(2).any(|w| w[0] == "--bus" && w[1] == bus) {
+            continue;
+        }
+        let exe = args.first().map(|a| a.rsplit('/').next().unwrap_or(a).to_string()).unwrap_or_default();
+        if let Some(s) = SERVICES.iter().copied().find(|s| *s == exe) {
+            v.push((s, pid));
+        }
+    }
+    v
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_the_three_forms() {
+        assert_eq!(
+            parse("kill:plant@0.5").unwrap(),
+            FaultSpec::One(Fault { kind: FaultKind::Kill, service: "plant", at_s: 0.5, duration_s: 0.0 })
+        );
+        assert_eq!(
+            parse("stop:current-loop@1:0.02").unwrap(),
+            FaultSpec::One(Fault { kind: FaultKind::Stop, service: "current-loop", at_s: 1.0, duration_s: 0.02 })
+        );
+        assert_eq!(parse("random:100").unwrap(), FaultSpec::Random(100));
+    }
+
+    #[test]
+    fn bad_specs_are_clear_errors() {
+        assert!(parse("kill:pump@1").unwrap_err().to_string().contains("unknown service 'pump'"));
+        assert!(parse("kill:plant").unwrap_err().to_string().contains("kill:SERVICE@SECONDS"));
+        assert!(parse("stop:plant@1").unwrap_err().to_string().contains("stop:SERVICE@SECONDS:DURATION"));
+        assert!(parse("kill:plant@x").unwrap_err().to_string().contains("not a number"));
+        assert!(parse("explode:plant@1").unwrap_err().to_string().contains("unknown fault kind"));
+        assert!(parse("random:0").is_err());
+    }
+
+    #[test]
+    fn random_plan_is_seeded_sorted_and_spaced() {
+        let a = plan(&[FaultSpec::Random(10)], 20.0, 7, 1.0).unwrap();
+        let b = plan(&[FaultSpec::Random(10)], 20.0, 7, 1.0).unwrap();
+        assert_eq!(a, b);
+        assert_eq!(a.len(), 10);
+        for w in a.windows(2) {
+            assert!(w[1].at_s - w[0].at_s >= 0.79, "{w:?}");
+        }
+        assert!(plan(&[FaultSpec::Random(10)], 2.0, 7, 1.0).unwrap_err().to_string().contains("--duration"));
+    }
+}
