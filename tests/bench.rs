@@ -16,14 +16,21 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         .unwrap();
     let t = Instant::now();
     while child.try_wait().unwrap().is_none() {
-        assert!(t.elapsed() < Duration::from_secs(300), "watchdog: bench --quick hangs");
+        assert!(
+            t.elapsed() < Duration::from_secs(300),
+            "watchdog: bench --quick hangs"
+        );
         std::thread::sleep(Duration::from_millis(50));
     }
     let o = child.wait_with_output().unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let report: serde_json::Value = serde_json::from_slice(&o.stdout).expect("bench --json prints JSON");
+    let report: serde_json::Value =
+        serde_json::from_slice(&o.stdout).expect("bench --json prints JSON");
     let rows = report["rows"].as_array().unwrap();
-    let variants: Vec<&str> = rows.iter().map(|r| r["variant"].as_str().unwrap()).collect();
+    let variants: Vec<&str> = rows
+        .iter()
+        .map(|r| r["variant"].as_str().unwrap())
+        .collect();
     assert_eq!(variants, ["floor", "inprocess", "uds", "iceoryx2"]);
     for r in rows {
         assert!(r["samples"].as_u64().unwrap() > 0, "{r}");
@@ -40,9 +47,26 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         }
     }
     assert!(rows[3]["p99_ratio_to_uds"].as_f64().is_some());
-    assert!(report["speed"]["lockstep_simulated_s_per_wall_s"].as_f64().unwrap() > 0.0);
-    assert!(report["speed"]["inprocess_simulated_s_per_wall_s"].as_f64().unwrap() > 0.0);
-    for f in ["bench.json", "bench.md", "percentiles-10000hz.png", "percentiles-10000hz.svg", "floor-core1-10000hz.hgrm", "iceoryx2-one-core-10000hz.hgrm"] {
+    assert!(
+        report["speed"]["lockstep_simulated_s_per_wall_s"]
+            .as_f64()
+            .unwrap()
+            > 0.0
+    );
+    assert!(
+        report["speed"]["inprocess_simulated_s_per_wall_s"]
+            .as_f64()
+            .unwrap()
+            > 0.0
+    );
+    for f in [
+        "bench.json",
+        "bench.md",
+        "percentiles-10000hz.png",
+        "percentiles-10000hz.svg",
+        "floor-core1-10000hz.hgrm",
+        "iceoryx2-one-core-10000hz.hgrm",
+    ] {
         assert!(out.join(f).is_file(), "{f} missing");
     }
     let md = std::fs::read_to_string(out.join("bench.md")).unwrap();

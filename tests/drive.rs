@@ -292,6 +292,11 @@ fn malformed_scenario_fails_with_a_clear_message_and_leaves_nothing() {
         assert!(lines[0].starts_with("drivelab: error: "), "{file}: {err}");
         assert!(err.contains(needle), "{file}: '{needle}' not in {err}");
         assert!(!err.contains("panicked"), "{file}: {err}");
+        assert!(
+            !out.exists(),
+            "{file}: a failed run left its folder {}",
+            out.display()
+        );
         assert_clean(&bus);
     }
     let o = drivelab(

@@ -37,7 +37,10 @@ pub struct BenchArgs {
 
 /// A named placement of the four services on this 2-core machine.
 pub fn placement(name: &str) -> Result<Placement> {
-    let at = |core: usize, priority: u8| ServicePlacement { core: Some(core), priority: Some(priority) };
+    let at = |core: usize, priority: u8| ServicePlacement {
+        core: Some(core),
+        priority: Some(priority),
+    };
     // Priorities rise along the chain (see config::Placement::default).
     let (p, o, c, s) = match name {
         "one-core" => (1, 1, 1, 1),
@@ -45,13 +48,25 @@ pub fn placement(name: &str) -> Result<Placement> {
         "two-plus-two" => (0, 0, 1, 1),
         // Every hop crosses cores.
         "alternating" => (0, 1, 0, 1),
-        other => return Err(anyhow!("unknown placement '{other}' (known: one-core, two-plus-two, alternating)")),
+        other => {
+            return Err(anyhow!(
+                "unknown placement '{other}' (known: one-core, two-plus-two, alternating)"
+            ))
+        }
     };
-    Ok(Placement { plant: at(p, 70), observer: at(o, 72), current_loop: at(c, 76), speed_loop: at(s, 74) })
+    Ok(Placement {
+        plant: at(p, 70),
+        observer: at(o, 72),
+        current_loop: at(c, 76),
+        speed_loop: at(s, 74),
+    })
 }
 
 fn node(p: ServicePlacement) -> NodeSpec {
-    NodeSpec { core: p.core, priority: p.priority }
+    NodeSpec {
+        core: p.core,
+        priority: p.priority,
+    }
 }
 
 /// One row of the report.
@@ -106,7 +121,8 @@ fn scenario_at(base: &Scenario, hz: f64, seconds: f64, pl: Placement) -> Result<
     sc.current_loop.tau_c_s = sc.current_loop.tau_c_s.max(2.0 * ts);
     sc.duration_s = seconds;
     sc.placement = pl;
-    sc.validate().map_err(|e| anyhow!("bench scenario at {hz} Hz: {e}"))?;
+    sc.validate()
+        .map_err(|e| anyhow!("bench scenario at {hz} Hz: {e}"))?;
     Ok(sc)
 }
 
@@ -130,7 +146,11 @@ fn row(variant: &str, placement: &str, hz: f64, m: &VariantResult, hgrm: &Path) 
         p99_ratio_to_floor: None,
         p99_minus_floor_us: None,
         p99_ratio_to_uds: None,
-        hgrm: hgrm.file_name().unwrap_or_default().to_string_lossy().into_owned(),
+        hgrm: hgrm
+            .file_name()
+            .unwrap_or_default()
+            .to_string_lossy()
+            .into_owned(),
     }
 }
 
@@ -157,7 +177,12 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str) -> Result<VariantResult> {
     let mut misses = drivelab::timing::MissCounter::default();
     misses.misses = plant["deadline_misses"].as_u64().unwrap_or(0);
     misses.longest_run = plant["longest_miss_run"].as_u64().unwrap_or(0);
-    Ok(VariantResult { cycle, lateness, samples: r.summary["samples"].as_u64().unwrap_or(0), misses })
+    Ok(VariantResult {
+        cycle,
+        lateness,
+        samples: r.summary["samples"].as_u64().unwrap_or(0),
+        misses,
+    })
 }
 
 /// Runs the whole bench and writes bench.json, bench.md, .hgrm files and percentile plots.
@@ -166,18 +191,29 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     if !(seconds.is_finite() && seconds > 0.0 && seconds <= 3600.0) {
         return Err(anyhow!("--seconds must be in (0, 3600], got {seconds}"));
     }
-    let rates: Vec<f64> = if a.quick { vec![10_000.0] } else { a.rates.clone() };
+    let rates: Vec<f64> = if a.quick {
+        vec![10_000.0]
+    } else {
+        a.rates.clone()
+    };
     for &r in &rates {
         if !(r.is_finite() && (100.0..=100_000.0).contains(&r)) {
             return Err(anyhow!("--rates: {r} Hz must be in [100, 100000]"));
         }
     }
-    let placements: Vec<String> = if a.quick { vec!["one-core".into()] } else { a.placements.clone() };
+    let placements: Vec<String> = if a.quick {
+        vec!["one-core".into()]
+    } else {
+        a.placements.clone()
+    };
     for p in &placements {
         placement(p)?;
     }
     let out = a.out.clone().unwrap_or_else(|| {
-        let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
+        let secs = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_secs())
+            .unwrap_or(0);
         PathBuf::from("runs").join(format!("bench-{secs}"))
     });
     std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
@@ -188,8 +224,10 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     let total = rates.len() * (2 + 2 * placements.len()) + 2;
     let bar = indicatif::ProgressBar::new(total as u64);
     bar.set_style(
-        indicatif::ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} {msg}")
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        indicatif::ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} {msg}",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
     let mut rows: Vec<Row> = Vec::new();
     let mut curves_by_rate: Vec<(f64, Vec<drivelab::plot::PercentileSeries>)> = Vec::new();
@@ -215,7 +253,13 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         for (name, m) in [("floor", floor), ("inprocess", inproc)] {
             let h = out.join(format!("{}.hgrm", tag(name, "core1")));
             std::fs::write(&h, m.cycle.hgrm())?;
-            measured.push((row(name, "-", hz, &m, &h), Measured { result: m, curve_label: format!("{name}") }));
+            measured.push((
+                row(name, "-", hz, &m, &h),
+                Measured {
+                    result: m,
+                    curve_label: format!("{name}"),
+                },
+            ));
         }
         for p in &placements {
             let pl = placement(p)?;
@@ -240,27 +284,43 @@ pub fn run(a: &BenchArgs) -> Result<()> {
             for (name, m) in [("uds", uds), ("iceoryx2", iox)] {
                 let h = out.join(format!("{}.hgrm", tag(name, p)));
                 std::fs::write(&h, m.cycle.hgrm())?;
-                measured.push((row(name, p, hz, &m, &h), Measured { result: m, curve_label: format!("{name} {p}") }));
+                measured.push((
+                    row(name, p, hz, &m, &h),
+                    Measured {
+                        result: m,
+                        curve_label: format!("{name} {p}"),
+                    },
+                ));
             }
         }
         // Verdicts and ratios against the floor and the Unix-socket chain of the same run.
         let floor_row = measured[0].0.clone();
         let floor_late_pm = floor_row.misses_per_million;
         let ts_us = 1e6 / hz;
-        let uds_p99: Vec<(String, f64)> =
-            measured.iter().filter(|(r, _)| r.variant == "uds").map(|(r, _)| (r.placement.clone(), r.cycle_us.p99)).collect();
+        let uds_p99: Vec<(String, f64)> = measured
+            .iter()
+            .filter(|(r, _)| r.variant == "uds")
+            .map(|(r, _)| (r.placement.clone(), r.cycle_us.p99))
+            .collect();
         for (r, _) in measured.iter_mut() {
             if r.variant == "floor" {
                 continue;
             }
-            r.holds_budget = Some(r.cycle_us.p999 < ts_us && r.misses_per_million <= 2.0 * floor_late_pm + 10.0);
+            r.holds_budget =
+                Some(r.cycle_us.p999 < ts_us && r.misses_per_million <= 2.0 * floor_late_pm + 10.0);
             r.p99_ratio_to_floor = Some(r.cycle_us.p99 / floor_row.cycle_us.p99.max(1e-3));
             r.p99_minus_floor_us = Some(r.cycle_us.p99 - floor_row.cycle_us.p99);
             if r.variant == "iceoryx2" {
-                r.p99_ratio_to_uds = uds_p99.iter().find(|(p, _)| *p == r.placement).map(|(_, u)| r.cycle_us.p99 / u.max(1e-3));
+                r.p99_ratio_to_uds = uds_p99
+                    .iter()
+                    .find(|(p, _)| *p == r.placement)
+                    .map(|(_, u)| r.cycle_us.p99 / u.max(1e-3));
             }
         }
-        let curves = measured.iter().map(|(_, m)| (m.curve_label.clone(), m.result.cycle.curve())).collect();
+        let curves = measured
+            .iter()
+            .map(|(_, m)| (m.curve_label.clone(), m.result.cycle.curve()))
+            .collect();
         curves_by_rate.push((hz, curves));
         rows.extend(measured.into_iter().map(|(r, _)| r));
     }
@@ -320,7 +380,10 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         let ts_us = 1e6 / hz;
         drivelab::plot::plot_percentiles(
             curves,
-            &format!("cycle latency at {} kHz (floor: timer wake-up lateness)", hz / 1000.0),
+            &format!(
+                "cycle latency at {} kHz (floor: timer wake-up lateness)",
+                hz / 1000.0
+            ),
             Some((ts_us, format!("T_s = {ts_us:.0} µs"))),
             true,
             &out.join(format!("percentiles-{}hz", *hz as u64)),
@@ -336,7 +399,8 @@ pub fn run(a: &BenchArgs) -> Result<()> {
 }
 
 fn fmt_opt(v: Option<f64>, prec: usize) -> String {
-    v.map(|x| format!("{x:.prec$}")).unwrap_or_else(|| "-".into())
+    v.map(|x| format!("{x:.prec$}"))
+        .unwrap_or_else(|| "-".into())
 }
 
 /// The Markdown table of the report.

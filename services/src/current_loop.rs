@@ -67,7 +67,7 @@ impl Inbox {
 pub fn run(args: ServiceArgs) -> Result<()> {
     let sc = load_scenario(&args)?;
     let node = bus::node(&args.bus, "current-loop")?;
-    let topics = DriveTopics::open(&node)?;
+    let topics = DriveTopics::open_with(&node, sc.timing.wake, &args.bus)?;
     let meas_rx = topics.meas.polled_receiver(64)?;
     let est_rx = topics.est.receiver(64)?;
     // Only lockstep waits for a current reference; real time polls it.
@@ -159,5 +159,11 @@ pub fn run(args: ServiceArgs) -> Result<()> {
         }
     }
     // ---- end of the real-time loop ----
+    let (near, clamped) = ctrl.singularity_counts();
+    if near > 0 {
+        eprintln!(
+            "current-loop: warning: for {near} samples the measured i_d approached the uncontrollable i_d of Kyslan eq. (15); a1 + a2*i_d was clamped in {clamped} of them"
+        );
+    }
     write_stats(&args, "current-loop", &report, c, &h, &[])
 }

@@ -1,6 +1,9 @@
 //! `drivelab design`: the controller design of a scenario, printed so it can be checked by hand.
+//! Both controllers are designed for the scenario's motor and rise-time target: the PI cascade
+//! (symmetrical optimum) and Kyslan's nonlinear controller (pole placement).
 
 use drivelab::config::Scenario;
+use drivelab::control::nonlinear::KyslanModel;
 use drivelab::drive::DriveDesign;
 use std::fmt::Write;
 
@@ -46,5 +49,76 @@ pub fn render(sc: &Scenario) -> String {
     if let Some(w) = &s.warning {
         let _ = writeln!(o, "  WARNING: {w}");
     }
+    render_nonlinear(&mut o, sc, &d);
+    let _ = writeln!(o, "this scenario runs the {} controller", d.controller);
     o
+}
+
+fn render_nonlinear(o: &mut String, sc: &Scenario, d: &DriveDesign) {
+    let m = sc.motor_params();
+    let k = KyslanModel::new(&m);
+    let n = &d.nonlinear;
+    let g = &n.gains;
+    let (z, wi, w0) = (n.zeta, n.omega_i_rad_s, n.omega_0_rad_s);
+    let _ = writeln!(
+        o,
+        "nonlinear (Kyslan et al. 2015, two-step linearisation, x = [ω, i_q, i_d]):"
+    );
+    let _ = writeln!(
+        o,
+        "  model (5)-(8): a1 = 3pψ/(2J) = {:.2}, a2 = 3p(Ld-Lq)/(2J) = {:.2}, a3 = R/Lq = {:.1}, a4 = pLd/Lq = {:.4}, a5 = pψ/Lq = {:.1}, a6 = R/Ld = {:.2}, a7 = pLq/Ld = {:.4}, b21 = 1/Lq = {:.1}, b32 = 1/Ld = {:.3}, e = 1/J = {:.1}",
+        k.a1, k.a2, k.a3, k.a4, k.a5, k.a6, k.a7, k.b21, k.b32, k.e
+    );
+    match n.i_d_singular_a {
+        Some(i) => {
+            let _ = writeln!(
+                o,
+                "  eq. (15): uncontrollable at i_d = -ψ/(Ld-Lq) = {i:.3} A; warning below a1 + a2·i_d = {:.0} % of a1 (i_d = {:.3} A)",
+                100.0 * drivelab::control::nonlinear::NEAR_SINGULAR,
+                (drivelab::control::nonlinear::NEAR_SINGULAR - 1.0) * k.a1 / k.a2
+            );
+        }
+        None => {
+            let _ = writeln!(o, "  eq. (15): Ld = Lq, controllable everywhere");
+        }
+    }
+    for w in &d.warnings {
+        let _ = writeln!(o, "  WARNING: {w}");
+    }
+    let _ = writeln!(
+        o,
+        "  inner loops (27) i = 2, 3, damping ζ = {z}, ω_i = 1/(2·τ_c) = {wi:.1} rad/s: r2 = r3 = 2ζω_i = {:.2} 1/s, K2 = K3 = ω_i² = {:.6e} 1/s²",
+        g.r2, g.k2
+    );
+    let _ = writeln!(
+        o,
+        "  speed subsystem (27) i = 1, (31): poles (s² + 2ζω_0 s + ω_0²)(s² + 2ζω_i s + ω_i²), ω_0 = {w0:.3} rad/s (solved for the rise time)"
+    );
+    let _ = writeln!(
+        o,
+        "    K1 = ω_0² = {:.6e} 1/s², r11 = 2ζω_0(ω_0+ω_i)/ω_i = {:.4} 1/s, r12 = (ω_0/ω_i)² = {:.6}, d12 = 2ζω_0/ω_i² = {:.6e} s",
+        g.k1, g.r11, g.r12, g.d12
+    );
+    let _ = writeln!(
+        o,
+        "    settled gain g = 1 + r12 + d12·r2 = {:.6} (bus i_q* = (v1 - r11·ω)/(g·(a1 + a2·i_d*)))",
+        n.g_ss
+    );
+    let _ = writeln!(
+        o,
+        "  design model (drive's discrete law, sampled, 1-sample delay, speed law every {} samples): rise time {:.2} ms (target {:.2} ms), overshoot {:.1} %",
+        sc.rates.speed_divider,
+        n.predicted_rise_time_s * 1e3,
+        sc.speed_loop.rise_time_s * 1e3,
+        n.predicted_overshoot_pct
+    );
+    let _ = writeln!(
+        o,
+        "  same gains on the continuous dummy system (26)-(27): rise time {:.2} ms, overshoot {:.1} %",
+        n.continuous_rise_time_s * 1e3,
+        n.continuous_overshoot_pct
+    );
+    if let Some(w) = &n.warning {
+        let _ = writeln!(o, "  WARNING: {w}");
+    }
 }

@@ -548,6 +548,9 @@ fn assemble(sc: &Scenario, rec: &Recorder, _plant_ok: bool) -> (Vec<TraceRow>, V
 /// Runs a scenario end to end and writes the run folder.
 pub fn run(o: &RunOptions) -> Result<RunResult> {
     install_stop_handler();
+    if let Some(b) = &o.bus {
+        bus::check_bus_id(b)?;
+    }
     let sc = load_scenario(&o.scenario, o.duration_s)?;
     let out = o.out.clone().unwrap_or_else(|| default_out(&sc, o.clock));
     std::fs::create_dir_all(&out)

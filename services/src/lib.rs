@@ -6,6 +6,7 @@ pub mod common;
 pub mod compare;
 pub mod current_loop;
 pub mod design;
+pub mod faults;
 pub mod launcher;
 pub mod observer;
 pub mod plant;

@@ -266,9 +266,26 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
         }
         Cmd::Compare(args) => drivelab_services::compare::run(&args),
         Cmd::Bench(args) => drivelab_services::bench::run(&args),
-        Cmd::BenchNode { kind: BenchNodeKind::Uds { role, dir, scenario, seconds, core, priority, out } } => {
-            drivelab_bench::run_uds_node(&drivelab_bench::UdsNodeArgs { role, dir, scenario, seconds, core, priority, out })
-        }
+        Cmd::BenchNode {
+            kind:
+                BenchNodeKind::Uds {
+                    role,
+                    dir,
+                    scenario,
+                    seconds,
+                    core,
+                    priority,
+                    out,
+                },
+        } => drivelab_bench::run_uds_node(&drivelab_bench::UdsNodeArgs {
+            role,
+            dir,
+            scenario,
+            seconds,
+            core,
+            priority,
+            out,
+        }),
         Cmd::Doctor { json } => {
             let checks = drivelab::doctor::run_checks();
             if json {

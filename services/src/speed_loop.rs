@@ -3,7 +3,7 @@
 use crate::common::*;
 use anyhow::{anyhow, Result};
 use drivelab::bus::{self, DriveTopics};
-use drivelab::drive::SpeedLoopStep;
+use drivelab::drive::{DriveDesign, SpeedLoopStep};
 use drivelab::messages::{CurrentRef, Finite};
 use drivelab::rt::now_ns;
 use std::time::Instant;
@@ -12,11 +12,14 @@ use std::time::Instant;
 pub fn run(args: ServiceArgs) -> Result<()> {
     let sc = load_scenario(&args)?;
     let node = bus::node(&args.bus, "speed-loop")?;
-    let topics = DriveTopics::open(&node)?;
+    let topics = DriveTopics::open_with(&node, sc.timing.wake, &args.bus)?;
     let est_rx = topics.est.receiver(64)?;
     let iref_tx = topics.iref.sender()?;
     let report = apply_placement("speed-loop", &sc, &args)?;
     let mut ctrl = SpeedLoopStep::new(&sc);
+    for w in DriveDesign::from_scenario(&sc).warnings {
+        eprintln!("speed-loop: warning: {w}");
+    }
     let mut c = Counters::default();
     let mut h = ServiceHists::new(false);
     let mut last_k: Option<u64> = None;
@@ -66,5 +69,11 @@ pub fn run(args: ServiceArgs) -> Result<()> {
         }
     }
     // ---- end of the real-time loop ----
+    if ctrl.near_singular_samples > 0 {
+        eprintln!(
+            "speed-loop: warning: {} speed samples had an i_d set-point near the uncontrollable i_d of Kyslan eq. (15)",
+            ctrl.near_singular_samples
+        );
+    }
     write_stats(&args, "speed-loop", &report, c, &h, &[])
 }

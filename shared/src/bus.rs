@@ -4,13 +4,13 @@
 //! Files of bus `ID` live in `/dev/shm/iox2_dl<ID>_*` and `/tmp/iceoryx2/dl<ID>/`; [`cleanup`]
 //! removes both, so that tests can run side by side and leave nothing behind.
 
+use crate::futex::WakeSegment;
 use anyhow::{anyhow, Context, Result};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
-use crate::futex::WakeSegment;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -101,7 +101,8 @@ enum Wake {
 /// A typed topic: publish-subscribe plus a wake-up channel.
 pub struct Topic<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> {
     /// The publish-subscribe service.
-    pub pubsub: iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, T, ()>,
+    pub pubsub:
+        iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, T, ()>,
     wake: Wake,
 }
 
@@ -113,7 +114,11 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
 
     /// Opens or creates the topic; wake-ups through `futex` word `i` if given, else an
     /// iceoryx2 event of the same name.
-    pub fn open_with(node: &Node<ipc::Service>, topic: &str, futex: Option<(Arc<WakeSegment>, usize)>) -> Result<Self> {
+    pub fn open_with(
+        node: &Node<ipc::Service>,
+        topic: &str,
+        futex: Option<(Arc<WakeSegment>, usize)>,
+    ) -> Result<Self> {
         let name = service_name(topic)?;
         let pubsub = node
             .service_builder(&name)
@@ -144,11 +149,20 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
     /// A sender (publisher + wake-up).
     pub fn sender(&self) -> Result<Sender<T>> {
         let notify = match &self.wake {
-            Wake::Event(ev) => Notify::Event(ev.notifier_builder().create().map_err(|e| anyhow!("notifier: {e:?}"))?),
+            Wake::Event(ev) => Notify::Event(
+                ev.notifier_builder()
+                    .create()
+                    .map_err(|e| anyhow!("notifier: {e:?}"))?,
+            ),
             Wake::Futex(seg, i) => Notify::Futex(seg.clone(), *i),
         };
         Ok(Sender {
-            publisher: self.pubsub.publisher_builder().max_loaned_samples(2).create().map_err(|e| anyhow!("publisher: {e:?}"))?,
+            publisher: self
+                .pubsub
+                .publisher_builder()
+                .max_loaned_samples(2)
+                .create()
+                .map_err(|e| anyhow!("publisher: {e:?}"))?,
             notify,
         })
     }
@@ -158,15 +172,27 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
     /// only polled should use [`Topic::polled_receiver`].
     pub fn receiver(&self, buffer: usize) -> Result<Receiver<T>> {
         let waiter = match &self.wake {
-            Wake::Event(ev) => Waiter::Event(ev.listener_builder().create().map_err(|e| anyhow!("listener: {e:?}"))?),
-            Wake::Futex(seg, i) => Waiter::Futex(seg.clone(), *i, std::cell::Cell::new(seg.seq(*i))),
+            Wake::Event(ev) => Waiter::Event(
+                ev.listener_builder()
+                    .create()
+                    .map_err(|e| anyhow!("listener: {e:?}"))?,
+            ),
+            Wake::Futex(seg, i) => {
+                Waiter::Futex(seg.clone(), *i, std::cell::Cell::new(seg.seq(*i)))
+            }
         };
-        Ok(Receiver { subscriber: self.subscriber(buffer)?, waiter })
+        Ok(Receiver {
+            subscriber: self.subscriber(buffer)?,
+            waiter,
+        })
     }
 
     /// A receiver that is only polled (the sender does not wake it).
     pub fn polled_receiver(&self, buffer: usize) -> Result<Receiver<T>> {
-        Ok(Receiver { subscriber: self.subscriber(buffer)?, waiter: Waiter::Polled })
+        Ok(Receiver {
+            subscriber: self.subscriber(buffer)?,
+            waiter: Waiter::Polled,
+        })
     }
 
     fn subscriber(&self, buffer: usize) -> Result<Subscriber<ipc::Service, T, ()>> {
@@ -192,8 +218,13 @@ pub struct Sender<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> {
 impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Sender<T> {
     /// Copies `msg` into a loaned sample, sends it and wakes the receivers. No allocation.
     pub fn send(&self, msg: T) -> Result<()> {
-        let s = self.publisher.loan_uninit().map_err(|e| anyhow!("loan: {e:?}"))?;
-        s.write_payload(msg).send().map_err(|e| anyhow!("send: {e:?}"))?;
+        let s = self
+            .publisher
+            .loan_uninit()
+            .map_err(|e| anyhow!("loan: {e:?}"))?;
+        s.write_payload(msg)
+            .send()
+            .map_err(|e| anyhow!("send: {e:?}"))?;
         match &self.notify {
             Notify::Event(n) => {
                 n.notify().map_err(|e| anyhow!("notify: {e:?}"))?;
@@ -244,7 +275,11 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Receiver<T> {
                 // A message published before the bump of the word is visible once the bump
                 // is seen, so nothing is lost between draining and sleeping.
                 let now = seg.seq(*i);
-                let now = if now == seen.get() { seg.wait(*i, now, timeout) } else { now };
+                let now = if now == seen.get() {
+                    seg.wait(*i, now, timeout)
+                } else {
+                    now
+                };
                 seen.set(now);
                 Ok(())
             }

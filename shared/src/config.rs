@@ -65,11 +65,18 @@ pub struct Timing {
     /// Sleep with clock_nanosleep until this long before the deadline, then spin on the clock
     /// to the deadline, µs (0 = sleep all the way). Spinning trades CPU for wake-up jitter.
     pub plant_spin_us: f64,
+    /// Wake-up mechanism between the services: "futex" (default: a futex word per topic in a
+    /// shared segment of the bus, ~3 µs per hop here) or "iceoryx2" (the event service, a
+    /// Unix datagram socket underneath, ~6-8 µs per hop here).
+    pub wake: crate::bus::WakeKind,
 }
 
 impl Default for Timing {
     fn default() -> Self {
-        Self { plant_spin_us: 0.0 }
+        Self {
+            plant_spin_us: 0.0,
+            wake: crate::bus::WakeKind::Futex,
+        }
     }
 }
 
@@ -250,6 +257,9 @@ impl Default for ObserverSpec {
 pub enum CurrentController {
     /// d/q PI with decoupling and back-EMF feed-forward.
     Pi,
+    /// Kyslan et al. 2015: eqs (28)–(29) with the compensation (9)–(10); needs
+    /// `speed_loop.controller = "nonlinear"`.
+    Nonlinear,
 }
 
 /// Current-loop settings.
@@ -280,6 +290,9 @@ impl Default for CurrentLoopSpec {
 pub enum SpeedController {
     /// PI by the symmetrical optimum with prefilter.
     Pi,
+    /// Kyslan et al. 2015: the outer law of eqs (27), (30)–(31); needs
+    /// `current_loop.controller = "nonlinear"`.
+    Nonlinear,
 }
 
 /// Speed-loop settings.
@@ -378,8 +391,16 @@ impl Default for Placement {
     /// straight to the next stage (plant 70 < observer 72 < speed loop 74 < current loop 76);
     /// core 0 keeps the OS, the supervisor and the recorder. See the README's measurements.
     fn default() -> Self {
-        let on1 = |p| ServicePlacement { core: Some(1), priority: Some(p) };
-        Self { plant: on1(70), observer: on1(72), current_loop: on1(76), speed_loop: on1(74) }
+        let on1 = |p| ServicePlacement {
+            core: Some(1),
+            priority: Some(p),
+        };
+        Self {
+            plant: on1(70),
+            observer: on1(72),
+            current_loop: on1(76),
+            speed_loop: on1(74),
+        }
     }
 }
 
@@ -471,6 +492,11 @@ impl Scenario {
     /// Voltage-vector limit V_dc/√3, V.
     pub fn u_max(&self) -> f64 {
         self.inverter.v_dc_v / 3f64.sqrt()
+    }
+
+    /// True when the scenario selects Kyslan's nonlinear controller (both loops).
+    pub fn nonlinear(&self) -> bool {
+        self.speed_loop.controller == SpeedController::Nonlinear
     }
 
     /// i_q* limit, A.
@@ -574,6 +600,15 @@ impl Scenario {
             },
         )?;
         let sl = &self.speed_loop;
+        let nl_speed = sl.controller == SpeedController::Nonlinear;
+        let nl_current = c.controller == CurrentController::Nonlinear;
+        check(nl_speed == nl_current, || {
+            format!(
+                "speed_loop.controller = {:?} and current_loop.controller = {:?} must both be \"pi\" or both \"nonlinear\" (the nonlinear law is split across the two loops)",
+                sl.controller, c.controller
+            )
+            .to_lowercase()
+        })?;
         check(
             sl.rise_time_s.is_finite() && sl.rise_time_s > 0.0 && sl.rise_time_s <= 10.0,
             || {

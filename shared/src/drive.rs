@@ -12,6 +12,9 @@
 
 use crate::config::{profile_at, SafeState, Scenario, Step};
 use crate::control::current::{CurrentInput, CurrentPiDesign, PiCurrentController, VoltageDq};
+use crate::control::nonlinear::{
+    self, design_nonlinear, KyslanModel, NlCurrentLaw, NlDesign, NlLoopModel, NlSpec, NlSpeedLaw,
+};
 use crate::control::speed::{
     design_symmetrical_optimum, sum_of_small_time_constants, SoDesign, SoSpec, SpeedLoopModel,
     SpeedPi,
@@ -26,13 +29,32 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use serde::Serialize;
 
-/// Controller designs derived from a scenario (never hand-tuned per scenario).
+/// Controller designs derived from a scenario (never hand-tuned per scenario). Both the PI
+/// cascade and the nonlinear controller are designed for every scenario (so that they can be
+/// compared); `controller` says which one runs.
 #[derive(Debug, Clone, Serialize)]
 pub struct DriveDesign {
+    /// "pi" or "nonlinear".
+    pub controller: &'static str,
     /// Current PI design.
     pub current: CurrentPiDesign,
     /// Speed PI design.
     pub speed: SoDesign,
+    /// Kyslan et al. 2015 nonlinear controller design.
+    pub nonlinear: NlDesign,
+    /// Set-points of this scenario that approach the singularity of Kyslan eq. (15).
+    pub warnings: Vec<String>,
+}
+
+/// Natural frequency ω_i of the nonlinear controller's inner (torque and field) loops, rad/s.
+///
+/// The paper gives no inner-loop dynamics. Both controllers take their current-loop speed
+/// from the scenario's `current_loop.tau_c_s` (the PI loops close as 1/(τ_c s + 1)):
+/// ω_i = 1/(2τ_c). At damping 0.6 the inner open loop (r s + K)/s² crosses over at ≈ 1.4·ω_i
+/// = 0.7/τ_c, below the PI loops' 1/τ_c, because it starts with less phase margin (59°
+/// against 90°) and the same 1.5-sample computation and PWM delay must be paid from it.
+pub fn nonlinear_inner_frequency(sc: &Scenario) -> f64 {
+    0.5 / sc.current_loop.tau_c_s
 }
 
 impl DriveDesign {
@@ -61,8 +83,60 @@ impl DriveDesign {
             },
             &model,
         );
-        Self { current, speed }
+        let nonlinear = design_nonlinear(
+            &m,
+            &NlSpec {
+                rise_time_s: sc.speed_loop.rise_time_s,
+                omega_i_rad_s: nonlinear_inner_frequency(sc),
+                zeta: nonlinear::DAMPING,
+            },
+            &NlLoopModel {
+                ts,
+                n: sc.rates.speed_divider,
+                tau_f_s: sc.observer.speed_filter_tau_s,
+            },
+        );
+        let warnings = if sc.nonlinear() {
+            set_point_warnings(sc)
+        } else {
+            Vec::new()
+        };
+        Self {
+            controller: if sc.nonlinear() { "nonlinear" } else { "pi" },
+            current,
+            speed,
+            nonlinear,
+            warnings,
+        }
     }
+}
+
+/// Kyslan eq. (15): the i_d set-points of `sc` at which a1 + a2·i_d falls below
+/// [`nonlinear::NEAR_SINGULAR`]·a1 (the nonlinear law divides by it), one line each.
+pub fn set_point_warnings(sc: &Scenario) -> Vec<String> {
+    let km = KyslanModel::new(&sc.motor_params());
+    let Some(sing) = km.singular_i_d() else {
+        return Vec::new();
+    };
+    sc.reference
+        .i_d_a
+        .iter()
+        .filter(|s| km.factor(s.value).near_singular)
+        .map(|s| {
+            format!(
+                "i_d* = {} A at t = {} s approaches the uncontrollable i_d = -psi/(Ld - Lq) = {:.3} A of Kyslan eq. (15): torque per ampere of i_q is {:.0} % of the PM value{}",
+                s.value,
+                s.t_s,
+                sing,
+                100.0 * km.factor_raw(s.value) / km.a1,
+                if km.factor(s.value).clamped {
+                    "; the law clamps a1 + a2*i_d and loses its linearisation"
+                } else {
+                    ""
+                }
+            )
+        })
+        .collect()
 }
 
 /// Plant: PMSM model, inverter (DC-bus limit, hold and safe state) and sensors.
@@ -240,14 +314,23 @@ impl ObserverStep {
     }
 }
 
+/// The speed law a scenario selects.
+#[derive(Debug, Clone)]
+enum SpeedLaw {
+    Pi(SpeedPi),
+    Nonlinear(NlSpeedLaw),
+}
+
 /// Speed-loop service step.
 #[derive(Debug, Clone)]
 pub struct SpeedLoopStep {
-    ctrl: SpeedPi,
+    law: SpeedLaw,
     divider: u64,
     ts: f64,
     speed_ref: Vec<Step>,
     i_d_ref: Vec<Step>,
+    /// Speed samples whose i_d set-point approached Kyslan eq. (15) (nonlinear only).
+    pub near_singular_samples: u64,
 }
 
 impl SpeedLoopStep {
@@ -255,18 +338,30 @@ impl SpeedLoopStep {
     pub fn new(sc: &Scenario) -> Self {
         let d = DriveDesign::from_scenario(sc);
         let n = sc.rates.speed_divider;
+        let tw = f64::from(n) * sc.rates.ts();
+        let law = if sc.nonlinear() {
+            SpeedLaw::Nonlinear(NlSpeedLaw::new(
+                &sc.motor_params(),
+                &d.nonlinear.gains,
+                tw,
+                sc.i_q_max(),
+            ))
+        } else {
+            SpeedLaw::Pi(SpeedPi::new(&d.speed, tw, sc.i_q_max()))
+        };
         Self {
-            ctrl: SpeedPi::new(&d.speed, f64::from(n) * sc.rates.ts(), sc.i_q_max()),
+            law,
             divider: u64::from(n),
             ts: sc.rates.ts(),
             speed_ref: sc.reference.speed_rad_s.clone(),
             i_d_ref: sc.reference.i_d_a.clone(),
+            near_singular_samples: 0,
         }
     }
 
     /// True when the speed loop runs at sample k.
     pub fn runs_at(&self, k: u64) -> bool {
-        k % self.divider == 0
+        k.is_multiple_of(self.divider)
     }
 
     /// Estimate k → current reference k when k mod N = 0, else None.
@@ -277,7 +372,17 @@ impl SpeedLoopStep {
         }
         let t = k as f64 * self.ts;
         let omega_ref = profile_at(&self.speed_ref, t);
-        let i_q_ref = self.ctrl.step(omega_ref, est.omega_m);
+        let i_d_ref = profile_at(&self.i_d_ref, t);
+        let i_q_ref = match &mut self.law {
+            SpeedLaw::Pi(c) => c.step(omega_ref, est.omega_m),
+            SpeedLaw::Nonlinear(c) => {
+                let o = c.step(omega_ref, est.omega_m, i_d_ref);
+                if o.near_singular {
+                    self.near_singular_samples += 1;
+                }
+                o.i_q_ref
+            }
+        };
         Some(CurrentRef {
             hdr: Header {
                 k,
@@ -285,16 +390,23 @@ impl SpeedLoopStep {
                 ..Default::default()
             },
             omega_ref,
-            i_d_ref: profile_at(&self.i_d_ref, t),
+            i_d_ref,
             i_q_ref,
         })
     }
 }
 
+/// The current law a scenario selects.
+#[derive(Debug, Clone)]
+enum CurrentLaw {
+    Pi(PiCurrentController),
+    Nonlinear(NlCurrentLaw),
+}
+
 /// Current-loop service step.
 #[derive(Debug, Clone)]
 pub struct CurrentLoopStep {
-    ctrl: PiCurrentController,
+    law: CurrentLaw,
     pole_pairs: f64,
     ts: f64,
     divider: u64,
@@ -305,14 +417,24 @@ impl CurrentLoopStep {
     pub fn new(sc: &Scenario) -> Self {
         let m = sc.motor_params();
         let d = DriveDesign::from_scenario(sc);
-        Self {
-            ctrl: PiCurrentController::new(
+        let law = if sc.nonlinear() {
+            CurrentLaw::Nonlinear(NlCurrentLaw::new(
+                &m,
+                &d.nonlinear.gains,
+                sc.rates.ts(),
+                sc.u_max(),
+            ))
+        } else {
+            CurrentLaw::Pi(PiCurrentController::new(
                 &m,
                 &d.current,
                 sc.rates.ts(),
                 sc.u_max(),
                 sc.current_loop.decoupling,
-            ),
+            ))
+        };
+        Self {
+            law,
             pole_pairs: m.p(),
             ts: sc.rates.ts(),
             divider: u64::from(sc.rates.speed_divider),
@@ -325,6 +447,15 @@ impl CurrentLoopStep {
         (k > 0).then(|| (k - 1) / self.divider * self.divider)
     }
 
+    /// Nonlinear law only: samples where the measured i_d approached Kyslan eq. (15), and
+    /// samples where a1 + a2·i_d had to be clamped. (0, 0) for the PI cascade.
+    pub fn singularity_counts(&self) -> (u64, u64) {
+        match &self.law {
+            CurrentLaw::Pi(_) => (0, 0),
+            CurrentLaw::Nonlinear(c) => (c.near_singular_samples, c.clamped_samples),
+        }
+    }
+
     /// Measurement k + estimate k + current reference → command k.
     pub fn step(
         &mut self,
@@ -335,13 +466,28 @@ impl CurrentLoopStep {
         let i_ab = clarke(meas.i_abc[0], meas.i_abc[1], meas.i_abc[2]);
         let i = park(i_ab, est.theta_e);
         let omega_e = self.pole_pairs * est.omega_m;
-        let u: VoltageDq = self.ctrl.step(&CurrentInput {
+        let input = CurrentInput {
             i_d_ref: iref.i_d_ref,
             i_q_ref: iref.i_q_ref,
             i_d: i.d,
             i_q: i.q,
             omega_e,
-        });
+        };
+        // u and the q reference actually tracked (w2 of Kyslan eq. 30 for the nonlinear law).
+        let (u, i_q_ref) = match &mut self.law {
+            CurrentLaw::Pi(c) => (c.step(&input), iref.i_q_ref),
+            CurrentLaw::Nonlinear(c) => {
+                let o = c.step(&input);
+                (
+                    VoltageDq {
+                        u_d: o.u_d,
+                        u_q: o.u_q,
+                        saturated: o.saturated,
+                    },
+                    o.w2,
+                )
+            }
+        };
         // The command acts on [t_{k+1}, t_{k+2}); the plant rotates it with the mid-sample
         // angle, so compensate 1.5 samples of rotation.
         let u_ab = inverse_park(
@@ -356,7 +502,7 @@ impl CurrentLoopStep {
             },
             u_ab: [u_ab.alpha, u_ab.beta],
             u_dq: [u.u_d, u.u_q],
-            i_dq_ref: [iref.i_d_ref, iref.i_q_ref],
+            i_dq_ref: [iref.i_d_ref, i_q_ref],
             omega_ref: iref.omega_ref,
             omega_hat: est.omega_m,
             theta_hat: wrap_2pi(est.theta_e),
@@ -446,12 +592,12 @@ mod tests {
     use crate::config::Scenario;
 
     fn kyslan() -> Scenario {
-        let text = std::fs::read_to_string(concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/../scenarios/kyslan-pi.toml"
-        ))
-        .unwrap();
-        Scenario::from_toml(&text, "kyslan-pi.toml").unwrap()
+        scenario("kyslan-pi")
+    }
+
+    fn scenario(name: &str) -> Scenario {
+        let path = format!("{}/../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
+        Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
     }
 
     #[test]
@@ -462,5 +608,51 @@ mod tests {
         eprintln!("{m:?} design {:?}", DriveDesign::from_scenario(&sc));
         let r = m.rise_time_ms.unwrap();
         assert!((r - 8.0).abs() <= 0.8, "rise {r} ms");
+    }
+
+    #[test]
+    fn kyslan_nl_inprocess_meets_the_rise_time_and_tracks_i_d() {
+        for name in ["kyslan-nl", "kyslan-nl-sal618"] {
+            let sc = scenario(name);
+            let d = DriveDesign::from_scenario(&sc);
+            assert_eq!(d.controller, "nonlinear");
+            assert!(d.warnings.is_empty(), "{:?}", d.warnings);
+            let rows = run_inprocess(&sc);
+            let m = crate::metrics::speed_metrics(&sc, &rows);
+            let r = m.rise_time_ms.unwrap();
+            assert!((r - 8.0).abs() <= 0.8, "{name}: rise {r} ms");
+            assert!(m.id_tracking_error_a.unwrap() < 0.01, "{name}: {m:?}");
+            assert!(m.steady_state_error.unwrap().abs() < 0.2, "{name}: {m:?}");
+            // The trace's i_q_ref is w2 of eq. (30)-(31): i_q settles on it.
+            let last = rows.last().unwrap();
+            assert!((last.i_q - last.i_q_ref).abs() < 0.01, "{last:?}");
+        }
+    }
+
+    #[test]
+    fn mismatched_controllers_are_rejected() {
+        let text = std::fs::read_to_string(format!(
+            "{}/../scenarios/kyslan-nl.toml",
+            env!("CARGO_MANIFEST_DIR")
+        ))
+        .unwrap()
+        .replacen("controller = \"nonlinear\"", "controller = \"pi\"", 1);
+        let e = Scenario::from_toml(&text, "x.toml").unwrap_err();
+        assert!(e.contains("must both be"), "{e}");
+    }
+
+    #[test]
+    fn near_singular_i_d_set_point_is_warned() {
+        let mut sc = scenario("kyslan-nl-sal618");
+        assert!(set_point_warnings(&sc).is_empty());
+        // Singular at −ψ/(L_d − L_q) = −5.01 A; −3 A leaves 40 % of the PM torque per ampere.
+        sc.reference.i_d_a[0].value = -3.0;
+        let w = set_point_warnings(&sc);
+        assert_eq!(w.len(), 1);
+        assert!(
+            w[0].contains("eq. (15)") && w[0].contains("-5.012"),
+            "{w:?}"
+        );
+        assert_eq!(DriveDesign::from_scenario(&sc).warnings, w);
     }
 }

@@ -43,7 +43,11 @@ impl WakeSegment {
         unsafe {
             let fd = libc::shm_open(name.as_ptr(), libc::O_CREAT | libc::O_RDWR, 0o600);
             if fd < 0 {
-                return Err(anyhow!("shm_open {:?}: {}", name, std::io::Error::last_os_error()));
+                return Err(anyhow!(
+                    "shm_open {:?}: {}",
+                    name,
+                    std::io::Error::last_os_error()
+                ));
             }
             if libc::ftruncate(fd, SEG_BYTES as libc::off_t) != 0 {
                 let e = std::io::Error::last_os_error();
@@ -60,7 +64,10 @@ impl WakeSegment {
             );
             libc::close(fd);
             if p == libc::MAP_FAILED {
-                return Err(anyhow!("mmap wake segment: {}", std::io::Error::last_os_error()));
+                return Err(anyhow!(
+                    "mmap wake segment: {}",
+                    std::io::Error::last_os_error()
+                ));
             }
             Ok(Self { base: p.cast() })
         }
@@ -81,7 +88,15 @@ impl WakeSegment {
         if w.sleepers.load(Ordering::SeqCst) > 0 {
             // SAFETY: FUTEX_WAKE on a valid, aligned u32 in a shared mapping.
             unsafe {
-                libc::syscall(libc::SYS_futex, w.seq.as_ptr(), libc::FUTEX_WAKE, i32::MAX, 0, 0, 0);
+                libc::syscall(
+                    libc::SYS_futex,
+                    w.seq.as_ptr(),
+                    libc::FUTEX_WAKE,
+                    i32::MAX,
+                    0,
+                    0,
+                    0,
+                );
             }
         }
     }
@@ -106,7 +121,15 @@ impl WakeSegment {
             // SAFETY: FUTEX_WAIT (shared) on a valid aligned u32 with a relative timeout on
             // the stack; EAGAIN/ETIMEDOUT/EINTR are all handled by re-reading the word.
             unsafe {
-                libc::syscall(libc::SYS_futex, w.seq.as_ptr(), libc::FUTEX_WAIT, seen, &ts as *const libc::timespec, 0, 0);
+                libc::syscall(
+                    libc::SYS_futex,
+                    w.seq.as_ptr(),
+                    libc::FUTEX_WAIT,
+                    seen,
+                    &ts as *const libc::timespec,
+                    0,
+                    0,
+                );
             }
         }
         w.sleepers.fetch_sub(1, Ordering::SeqCst);

@@ -17,7 +17,14 @@ pub struct SpeedMetrics {
     pub load_dip_rad_s: Option<f64>,
     /// Time from the first load step until ω_m stays within ±2 % of the reference, ms.
     pub load_recovery_ms: Option<f64>,
+    /// RMS of (i_d* − i_d) from 5 ms after the first i_d reference step to the end of the
+    /// run, A (i_d* from the scenario's profile). It covers the settled field current and
+    /// whatever the later events (the load step) do to it: the torque/flux decoupling.
+    pub id_tracking_error_a: Option<f64>,
 }
+
+/// Start of the i_d tracking-error window after the first i_d reference step, s.
+pub const ID_ERROR_DELAY_S: f64 = 5e-3;
 
 fn first_step_time(steps: &[crate::config::Step], after: f64) -> Option<f64> {
     steps.iter().map(|s| s.t_s).find(|&t| t > after)
@@ -97,6 +104,21 @@ pub fn speed_metrics(sc: &Scenario, rows: &[TraceRow]) -> SpeedMetrics {
             Some(_) => None, // never recovered within the run
         };
     }
+    let ids = &sc.reference.i_d_a;
+    if let Some(step) = ids
+        .iter()
+        .find(|s| s.value != profile_at(ids, s.t_s - 1e-9) || (s.t_s == 0.0 && s.value != 0.0))
+    {
+        let t0 = step.t_s + ID_ERROR_DELAY_S;
+        let (sum, n) = rows
+            .iter()
+            .filter(|r| r.t >= t0 - 1e-12)
+            .map(|r| profile_at(ids, r.t) - r.i_d)
+            .fold((0.0, 0usize), |(s, n), e| (s + e * e, n + 1));
+        if n > 0 {
+            out.id_tracking_error_a = Some((sum / n as f64).sqrt());
+        }
+    }
     out
 }
 
@@ -113,6 +135,7 @@ duration_s = 0.1
 preset = "kyslan2015"
 [reference]
 speed_rad_s = [{ t_s = 0.0, value = 100.0 }]
+i_d_a = [{ t_s = 0.02, value = -1.0 }]
 [load]
 torque_nm = [{ t_s = 0.05, value = 0.1 }]
 "#,
@@ -137,10 +160,19 @@ torque_nm = [{ t_s = 0.05, value = 0.1 }]
                 } else {
                     100.0
                 };
+                // i_d: 0 before 20 ms, then −1 with an error of 0.1 A from 40 ms on.
+                let i_d = if t < 0.02 {
+                    0.0
+                } else if t < 0.04 {
+                    -1.0
+                } else {
+                    -0.9
+                };
                 TraceRow {
                     k,
                     t,
                     omega_m: w,
+                    i_d,
                     ..Default::default()
                 }
             })
@@ -152,5 +184,16 @@ torque_nm = [{ t_s = 0.05, value = 0.1 }]
         assert!((m.load_dip_rad_s.unwrap() - 5.0).abs() < 1e-9);
         assert!((m.load_recovery_ms.unwrap() - 10.0).abs() < 0.11);
         assert!(m.steady_state_error.unwrap().abs() < 1e-9);
+        // Window 25 ms..99.9 ms: 150 samples at 0, 600 at 0.1 A → RMS 0.1·√(600/750).
+        let e = m.id_tracking_error_a.unwrap();
+        assert!((e - 0.1 * (600.0f64 / 750.0).sqrt()).abs() < 1e-9, "{e}");
+    }
+
+    #[test]
+    fn no_i_d_step_no_i_d_error() {
+        let mut s = sc();
+        s.reference.i_d_a.clear();
+        let rows = [TraceRow::default()];
+        assert_eq!(speed_metrics(&s, &rows).id_tracking_error_a, None);
     }
 }

@@ -323,7 +323,11 @@ mod slow_step_tests {
             }
             mon.at_deadline(t_k, Some(now_ns()));
         }
-        assert!(mon.misses.misses >= slow_seen, "{} misses for {slow_seen} slow steps", mon.misses.misses);
+        assert!(
+            mon.misses.misses >= slow_seen,
+            "{} misses for {slow_seen} slow steps",
+            mon.misses.misses
+        );
         assert_eq!(mon.cycle.len(), 20);
         assert!(mon.cycle.percentiles().max >= 1.5 * ts as f64 / 1e3);
     }

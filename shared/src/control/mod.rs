@@ -2,5 +2,6 @@
 
 pub mod current;
 pub mod filter;
+pub mod nonlinear;
 pub mod pi;
 pub mod speed;

@@ -1,0 +1,1076 @@
+//! Two-step linearising speed control of a salient-pole PMSM, Kyslan et al. 2015 (§3–§5).
+//!
+//! Step 1, direct compensation (eqs 9–10): the two speed–current products of eqs (1)–(2)
+//! are cancelled by feed-forward voltages. Step 2, input–output linearisation (eqs 12–26):
+//! the coordinates x_R = T(x) of eq. (20) turn the compensated model (11) into the linear
+//! "dummy" system (26), controlled by integral state-space controllers (27) placed by pole
+//! placement. Eqs (28)–(31) are that controller written back in motor quantities.
+//!
+//! # Notation
+//!
+//! State x = [x1, x2, x3] = [ω (mechanical rad/s), i_q, i_d], input u = [u1, u2] = [u_q, u_d],
+//! disturbance z = T_L, as in eq. (6). From eqs (1)–(4) (amplitude-invariant dq, hence 3/2):
+//!
+//! | constant | value | | constant | value |
+//! |---|---|---|---|---|
+//! | a1 | 3pψ/(2J) | | a5 | pψ/L_q |
+//! | a2 | 3p(L_d − L_q)/(2J) | | a6 | R/L_d |
+//! | a3 | R/L_q | | a7 | pL_q/L_d |
+//! | a4 | pL_d/L_q | | b21, b32, e | 1/L_q, 1/L_d, 1/J |
+//!
+//! # Readings of ambiguous or misprinted equations
+//!
+//! 1. Eq. (8): E is printed with two rows; it is E = [−e, 0, 0]ᵀ (the load acts on ω only).
+//! 2. Eqs (21)–(22) drop the load: with it, ẋ_R1 = x_R2 − e·T_L. The load is therefore a
+//!    disturbance at the input of the first integrator of (26), rejected by the integral
+//!    action of v1 (27); it is not compensated.
+//! 3. Eq. (25): the second row prints `r_2 x_R3`. We read **r3·x_R3**: eq. (26) has −r3 in
+//!    the x_R3 row and eq. (29) has r3·x3, and only r3 makes the field subsystem's pole a
+//!    free parameter.
+//! 4. Eq. (28): v2 there is the virtual input v_R2 of (25)–(26) written back in current
+//!    units, **v2 = v_R2/(a1 + a2 x3)** (the same substitution as w2 = w_R2/(a1 + a2 x3) of
+//!    eq. 30); v3 = v_R3 because x_R3 = x3. Expanding M⁻¹ of eq. (24) in (25) gives (28)
+//!    exactly under this reading (unit test `law_28_29_is_law_25_written_back`).
+//! 5. Eq. (27), i = 2, is integrated in the transformed coordinates, as printed:
+//!    v_R2 = K2∫(w_R2 − x_R2)dt. Integrating v2 = K2∫(w2 − x2)dt in motor units instead
+//!    gives d/dt[(a1 + a2 x3)·v2] = K2(w_R2 − x_R2) + a2·ẋ3·v2: whenever i_d moves, the
+//!    torque loop's integrator is kicked, i.e. the torque/flux decoupling is lost during an
+//!    i_d step. v2 of (28) is then v_R2/(a1 + a2 x3) (reading 4).
+//! 6. Eq. (31): the speed reference w1 does not appear; it **enters only through the
+//!    integrator v1 = K1∫(w1 − x1)dt** of eq. (27) (i = 1). The speed controller is "I + state
+//!    feedback": w_R2 = v1 − r11·x_R1 − r12·x_R2 − d12·v_R2, whose division by (a1 + a2 x3)
+//!    (eq. 30) is eq. (31). The closed loop from w1 to ω has no zero, so no reference
+//!    prefilter is needed (the PI cascade needs one). d12 multiplies v_R2 (the state of the
+//!    inner integrator), r12 multiplies x_R2: eq. (31)'s `a1(r12 x2 + d12 v2) + a2(d12 v2 x3 +
+//!    r12 x2 x3)` is (a1 + a2 x3)(r12 x2 + d12 v2) = r12 x_R2 + d12 v_R2.
+//! 7. Eq. (19)'s k2 = b32(a1 + a2 x3) yields t2 = x3 only up to a constant factor; we take
+//!    eq. (20) as printed: x_R3 = x3.
+//! 8. Damping 0.6 (§6) is given to every pole pair: the field loop s² + r3 s + K3, the
+//!    inner torque loop s² + r2 s + K2 and the two pairs of the speed subsystem's
+//!    closed loop (see [`design_nonlinear`]).
+//! 9. Friction (b_nms) is not in the paper's model; the law ignores it and the integral
+//!    action of v1 rejects it like a load.
+//! 10. ω in eqs (1)–(3) is the mechanical speed (it appears as p·ω in the voltage equations),
+//!     so x1 and the speed set-point of 70 rad/s are mechanical.
+//! 11. §6 loads the motor "in t = 0.02 s", the instant of the i_d step; we follow DESIGN.md:
+//!     i_d* = −1.6 A at 20 ms, nominal load at 40 ms.
+//!
+//! # Design ([`design_nonlinear`])
+//!
+//! Every pole pair gets damping 0.6. The field loop and the inner torque loop (the dummy
+//! system's r2, K2 and r3, K3) get the natural frequency ω_i (chosen by the drive from the
+//! current-loop time constant, see `drive::nonlinear_inner_frequency`). The speed subsystem
+//! (four states: x_R1, x_R2, v_R2, v1) is placed at (s² + 2ζω_0 s + ω_0²)(s² + 2ζω_i s + ω_i²),
+//! which gives the closed forms K1 = ω_0², r11 = 2ζω_0(ω_0 + ω_i)/ω_i, r12 = (ω_0/ω_i)²,
+//! d12 = 2ζω_0/ω_i². ω_0 is solved by bisection so that the *sampled* design model
+//! [`NlLoopModel`] (the drive's own discrete law and timing) first reaches the set-point at
+//! the target, as the PI design is solved on its sampled cascade. The paper's continuous
+//! dummy system with the same gains is reported beside it: the computation delay, the 1 kHz
+//! speed law and the speed filter cost the sampled loop damping (≈ 28 % overshoot instead of
+//! the ≈ 10 % of the continuous design for the Kyslan motor at 10 kHz).
+//!
+//! # Split across the processes (Fig. 2)
+//!
+//! The speed-loop process ([`NlSpeedLaw`], every N samples) runs the outer law: the integrator
+//! v1, the speed feedback r11·x1, and eq. (30) at the flux-current set-point w3. It sends
+//! the result as the q-current reference of `CurrentRef`, scaled to the q current it settles
+//! to (so that the current limit i_q_max means the same as for the PI cascade):
+//! `i_q_ref = (v1 − r11 x1)/(g·(a1 + a2 w3))`, with g = 1 + r12 + d12·r2 the steady-state gain
+//! from (v1 − r11 x1) to x_R2 of the closed inner loop.
+//!
+//! The current-loop process ([`NlCurrentLaw`], every sample) recovers (v1 − r11 x1) =
+//! i_q_ref·g·(a1 + a2 w3) exactly, adds the inner-state terms of eq. (31), −r12·x_R2 −
+//! d12·v_R2, which feed back states of the current loop and must run at its rate, integrates
+//! v_R2 and v3 (27), and computes u_q, u_d from (28)–(29) and (9)–(10). The trace's
+//! i_q_ref is w2 of eq. (30), the reference the q integrator actually tracks.
+//!
+//! # Controllability (eq. 15)
+//!
+//! Everything divides by a1 + a2 x3, zero at i_d = −ψ/(L_d − L_q). [`KyslanModel::factor`]
+//! flags a value below [`NEAR_SINGULAR`]·a1 (the torque per ampere of i_q has fallen to half
+//! its PM value) and clamps it at [`GUARD`]·a1 > 0, so the law never divides by zero.
+
+use crate::control::current::CurrentInput;
+use crate::motor::{Mechanics, MotorInput, MotorParams, MotorState, Rk4};
+use crate::observer::EncoderObserver;
+use serde::{Deserialize, Serialize};
+
+/// Damping of every pole pair (Kyslan §6: "damping coefficient d = 0.6").
+pub const DAMPING: f64 = 0.6;
+/// a1 + a2·x3 below this fraction of a1 counts as approaching the singularity of eq. (15).
+pub const NEAR_SINGULAR: f64 = 0.5;
+/// a1 + a2·x3 is never used below this fraction of a1 (no division by zero).
+pub const GUARD: f64 = 0.1;
+
+/// The constants of the state-space model (5)–(8).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct KyslanModel {
+    /// 3pψ/(2J), rad/(s²·A).
+    pub a1: f64,
+    /// 3p(L_d − L_q)/(2J), rad/(s²·A²).
+    pub a2: f64,
+    /// R/L_q, 1/s.
+    pub a3: f64,
+    /// p·L_d/L_q.
+    pub a4: f64,
+    /// p·ψ/L_q, A/rad.
+    pub a5: f64,
+    /// R/L_d, 1/s.
+    pub a6: f64,
+    /// p·L_q/L_d.
+    pub a7: f64,
+    /// 1/L_q, 1/H.
+    pub b21: f64,
+    /// 1/L_d, 1/H.
+    pub b32: f64,
+    /// 1/J, 1/(kg·m²).
+    pub e: f64,
+}
+
+/// a1 + a2·x3 after the controllability guard.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Factor {
+    /// The value used (≥ GUARD·a1).
+    pub value: f64,
+    /// Below NEAR_SINGULAR·a1.
+    pub near_singular: bool,
+    /// Below GUARD·a1 and clamped.
+    pub clamped: bool,
+}
+
+type V3 = [f64; 3];
+
+impl KyslanModel {
+    /// The constants of a motor.
+    pub fn new(m: &MotorParams) -> Self {
+        let p = m.p();
+        Self {
+            a1: 1.5 * p * m.psi_pm_wb / m.j_kgm2,
+            a2: 1.5 * p * (m.l_d_h - m.l_q_h) / m.j_kgm2,
+            a3: m.r_ohm / m.l_q_h,
+            a4: p * m.l_d_h / m.l_q_h,
+            a5: p * m.psi_pm_wb / m.l_q_h,
+            a6: m.r_ohm / m.l_d_h,
+            a7: p * m.l_q_h / m.l_d_h,
+            b21: 1.0 / m.l_q_h,
+            b32: 1.0 / m.l_d_h,
+            e: 1.0 / m.j_kgm2,
+        }
+    }
+
+    /// A(x), eq. (7).
+    pub fn a(&self, x: V3) -> V3 {
+        [
+            self.a1 * x[1] + self.a2 * x[1] * x[2],
+            -self.a3 * x[1] - self.a4 * x[0] * x[2] - self.a5 * x[0],
+            -self.a6 * x[2] + self.a7 * x[0] * x[1],
+        ]
+    }
+
+    /// ẋ = A(x) + B u + E T_L, eq. (5); u = [u_q, u_d].
+    pub fn f(&self, x: V3, u: [f64; 2], t_load: f64) -> V3 {
+        let a = self.a(x);
+        [
+            a[0] - self.e * t_load,
+            a[1] + self.b21 * u[0],
+            a[2] + self.b32 * u[1],
+        ]
+    }
+
+    /// The direct compensation [u_com1, u_com2] of eq. (10).
+    pub fn compensation(&self, x: V3) -> [f64; 2] {
+        [
+            self.a4 * x[0] * x[2] / self.b21,
+            -self.a7 * x[0] * x[1] / self.b32,
+        ]
+    }
+
+    /// Drift of the compensated model (11).
+    pub fn a_compensated(&self, x: V3) -> V3 {
+        [
+            self.a1 * x[1] + self.a2 * x[1] * x[2],
+            -self.a3 * x[1] - self.a5 * x[0],
+            -self.a6 * x[2],
+        ]
+    }
+
+    /// a1 + a2·x3: the factor of eq. (15) (zero ⇔ Q_R singular), unguarded.
+    pub fn factor_raw(&self, x3: f64) -> f64 {
+        self.a1 + self.a2 * x3
+    }
+
+    /// a1 + a2·x3 with the controllability guard.
+    pub fn factor(&self, x3: f64) -> Factor {
+        let raw = self.factor_raw(x3);
+        let min = GUARD * self.a1;
+        Factor {
+            value: if raw < min { min } else { raw },
+            near_singular: raw < NEAR_SINGULAR * self.a1,
+            clamped: raw < min,
+        }
+    }
+
+    /// The i_d of eq. (15) where the controllability matrix is singular, −ψ/(L_d − L_q), A;
+    /// None for a non-salient motor.
+    pub fn singular_i_d(&self) -> Option<f64> {
+        (self.a2 != 0.0).then(|| -self.a1 / self.a2)
+    }
+
+    /// Controllability matrix Q_R of eq. (14): columns b1, N·b1, b2.
+    pub fn controllability(&self, x: V3) -> [V3; 3] {
+        let k = self.factor_raw(x[2]);
+        [
+            [0.0, self.b21 * k, 0.0],
+            [self.b21, -self.a3 * self.b21, 0.0],
+            [0.0, 0.0, self.b32],
+        ]
+    }
+
+    /// x_R = T(x), eq. (20).
+    pub fn transform(&self, x: V3) -> V3 {
+        [x[0], self.factor_raw(x[2]) * x[1], x[2]]
+    }
+
+    /// A_R(x) = [x_R2, f_R2, f_R3], eq. (22).
+    pub fn a_r(&self, x: V3) -> V3 {
+        let k = self.factor_raw(x[2]);
+        [
+            k * x[1],
+            k * (-self.a3 * x[1] - self.a5 * x[0]) - self.a2 * self.a6 * x[1] * x[2],
+            -self.a6 * x[2],
+        ]
+    }
+
+    /// B_R(x), eq. (23) (rows x_R1..x_R3, columns u10, u20).
+    pub fn b_r(&self, x: V3) -> [[f64; 2]; 3] {
+        let m = self.m(x);
+        [[0.0, 0.0], m[0], m[1]]
+    }
+
+    /// M(x) of eq. (24), B_R = I_R·M.
+    pub fn m(&self, x: V3) -> [[f64; 2]; 2] {
+        [
+            [self.b21 * self.factor_raw(x[2]), self.a2 * x[1] * self.b32],
+            [0.0, self.b32],
+        ]
+    }
+
+    /// Control law (25) (with reading 3: r3 on x_R3): [u10, u20] = M⁻¹ [−f_R2 + v_R2 −
+    /// r2 x_R2, −f_R3 + v_R3 − r3 x_R3]. Unguarded (for the tests of the derivation).
+    pub fn law_25(&self, x: V3, v_r2: f64, v_r3: f64, r2: f64, r3: f64) -> [f64; 2] {
+        let ar = self.a_r(x);
+        let xr = self.transform(x);
+        let y2 = -ar[1] + v_r2 - r2 * xr[1];
+        let y3 = -ar[2] + v_r3 - r3 * xr[2];
+        let m = self.m(x);
+        // Upper-triangular 2×2 solve.
+        let u20 = y3 / m[1][1];
+        let u10 = (y2 - m[0][1] * u20) / m[0][0];
+        [u10, u20]
+    }
+
+    /// Control law (28)–(29) in motor quantities: [u10, u20] from v2, v3. `k` is a1 + a2 x3
+    /// (pass the guarded value).
+    pub fn law_28_29(&self, x: V3, v2: f64, v3: f64, r2: f64, r3: f64, k: f64) -> [f64; 2] {
+        let u10 = (v2 - r2 * x[1]
+            + self.a3 * x[1]
+            + self.a5 * x[0]
+            + self.a2 * x[1] * (r3 * x[2] - v3) / k)
+            / self.b21;
+        let u20 = (v3 - r3 * x[2] + self.a6 * x[2]) / self.b32;
+        [u10, u20]
+    }
+}
+
+/// Gains of the integral state-space controllers (27) and of eqs (28)–(31).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct NlGains {
+    /// Eq. (25)/(26): pole of the x_R2 row, 1/s.
+    pub r2: f64,
+    /// Eq. (27) i = 2: integral gain of the torque loop, 1/s².
+    pub k2: f64,
+    /// Eq. (25)/(26): pole of the x_R3 row, 1/s.
+    pub r3: f64,
+    /// Eq. (27) i = 3: integral gain of the field loop, 1/s².
+    pub k3: f64,
+    /// Eq. (27) i = 1: integral gain of the speed loop, 1/s².
+    pub k1: f64,
+    /// Eq. (31): speed feedback, 1/s.
+    pub r11: f64,
+    /// Eq. (31): x_R2 feedback (dimensionless).
+    pub r12: f64,
+    /// Eq. (31): v_R2 feedback, s.
+    pub d12: f64,
+}
+
+impl NlGains {
+    /// Steady-state gain g = 1 + r12 + d12·r2 from (v1 − r11 x1) to x_R2 of the closed
+    /// inner loop (26)–(27): at rest v_R2 = r2 x_R2 and w_R2 = x_R2.
+    pub fn g_ss(&self) -> f64 {
+        1.0 + self.r12 + self.d12 * self.r2
+    }
+}
+
+/// Pole placement of the speed subsystem of the dummy system (26)–(27), (31).
+///
+/// States [x_R1, x_R2, v_R2, v1]: ẋ_R1 = x_R2, ẋ_R2 = −r2 x_R2 + v_R2,
+/// v̇_R2 = K2(w_R2 − x_R2), v̇1 = K1(w1 − x_R1), w_R2 = v1 − r11 x_R1 − r12 x_R2 − d12 v_R2.
+/// Characteristic polynomial:
+/// s⁴ + (r2 + K2 d12) s³ + (r2 K2 d12 + K2 (1 + r12)) s² + K2 r11 s + K2 K1.
+/// Given r2, K2 (the inner loop) and the wanted c3..c0, returns (K1, r11, r12, d12).
+pub fn place_speed_poles(r2: f64, k2: f64, c: [f64; 4]) -> (f64, f64, f64, f64) {
+    let [c3, c2, c1, c0] = c;
+    let d12 = (c3 - r2) / k2;
+    let r12 = (c2 - r2 * k2 * d12) / k2 - 1.0;
+    let r11 = c1 / k2;
+    let k1 = c0 / k2;
+    (k1, r11, r12, d12)
+}
+
+/// Gains for inner natural frequency `w_i` and speed natural frequency `w_0`, damping ζ:
+/// inner loops s² + 2ζω_i s + ω_i², speed subsystem (s² + 2ζω_0 s + ω_0²)(s² + 2ζω_i s + ω_i²).
+pub fn gains_for(w_i: f64, w_0: f64, zeta: f64) -> NlGains {
+    let r2 = 2.0 * zeta * w_i;
+    let k2 = w_i * w_i;
+    let (p1, q1) = (2.0 * zeta * w_0, w_0 * w_0);
+    let (p2, q2) = (2.0 * zeta * w_i, w_i * w_i);
+    let c = [p1 + p2, q1 + q2 + p1 * p2, p1 * q2 + p2 * q1, q1 * q2];
+    let (k1, r11, r12, d12) = place_speed_poles(r2, k2, c);
+    NlGains {
+        r2,
+        k2,
+        r3: r2,
+        k3: k2,
+        k1,
+        r11,
+        r12,
+        d12,
+    }
+}
+
+/// The speed-loop half of the law (see the module doc): v1, r11·x1 and eq. (30) at the
+/// flux-current set-point. Runs every N samples.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NlSpeedLaw {
+    model: KyslanModel,
+    k1: f64,
+    r11: f64,
+    g_ss: f64,
+    tw: f64,
+    i_q_max: f64,
+    /// Integrator v1 of eq. (27), i = 1, rad/s².
+    pub v1: f64,
+}
+
+/// Output of one speed-law step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NlSpeedOut {
+    /// q-current reference (the q current the demand settles to), A.
+    pub i_q_ref: f64,
+    /// The current limit was active.
+    pub saturated: bool,
+    /// The flux-current set-point approaches eq. (15).
+    pub near_singular: bool,
+}
+
+impl NlSpeedLaw {
+    /// Builds the law for speed-loop sample time `tw` and limit `i_q_max` on the settled i_q.
+    pub fn new(m: &MotorParams, g: &NlGains, tw: f64, i_q_max: f64) -> Self {
+        Self {
+            model: KyslanModel::new(m),
+            k1: g.k1,
+            r11: g.r11,
+            g_ss: g.g_ss(),
+            tw,
+            i_q_max,
+            v1: 0.0,
+        }
+    }
+
+    /// Speed reference w1, speed x1 (mechanical rad/s) and i_d set-point w3 (A) → i_q*.
+    pub fn step(&mut self, w1: f64, x1: f64, w3: f64) -> NlSpeedOut {
+        let k = self.model.factor(w3);
+        let i = (self.v1 - self.r11 * x1) / (self.g_ss * k.value);
+        let i_q_ref = i.clamp(-self.i_q_max, self.i_q_max);
+        let e = w1 - x1;
+        // Anti-windup: no integration further into the limit (k.value > 0, g > 0).
+        let winding = (i > self.i_q_max && e > 0.0) || (i < -self.i_q_max && e < 0.0);
+        if !winding {
+            self.v1 += self.k1 * self.tw * e;
+        }
+        NlSpeedOut {
+            i_q_ref,
+            saturated: i_q_ref != i,
+            near_singular: k.near_singular,
+        }
+    }
+}
+
+/// The current-loop half of the law: the inner-state terms of eq. (31), the integrators
+/// v_R2, v3 of eq. (27), eqs (28)–(29) and the compensation (9)–(10). Runs every sample.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NlCurrentLaw {
+    model: KyslanModel,
+    g: NlGains,
+    pole_pairs: f64,
+    ts: f64,
+    u_max: f64,
+    /// Integrator v_R2 of eq. (27), i = 2, rad/s³.
+    pub v_r2: f64,
+    /// Integrator v3 (= v_R3) of eq. (27), i = 3, A/s.
+    pub v3: f64,
+    /// Samples with a1 + a2·i_d below NEAR_SINGULAR·a1.
+    pub near_singular_samples: u64,
+    /// Samples where a1 + a2·i_d was clamped at GUARD·a1.
+    pub clamped_samples: u64,
+}
+
+/// Output of one current-law step.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct NlCurrentOut {
+    /// d-axis voltage, V.
+    pub u_d: f64,
+    /// q-axis voltage, V.
+    pub u_q: f64,
+    /// w2 of eq. (30)–(31): the reference the q integrator tracks, A.
+    pub w2: f64,
+    /// The voltage vector was limited (integrators frozen).
+    pub saturated: bool,
+}
+
+impl NlCurrentLaw {
+    /// Builds the law for sample time `ts` and voltage-vector limit `u_max`.
+    pub fn new(m: &MotorParams, g: &NlGains, ts: f64, u_max: f64) -> Self {
+        Self {
+            model: KyslanModel::new(m),
+            g: *g,
+            pole_pairs: m.p(),
+            ts,
+            u_max,
+            v_r2: 0.0,
+            v3: 0.0,
+            near_singular_samples: 0,
+            clamped_samples: 0,
+        }
+    }
+
+    /// One step. `x.i_q_ref` is the speed law's output, `x.i_d_ref` = w3.
+    pub fn step(&mut self, x: &CurrentInput) -> NlCurrentOut {
+        let md = &self.model;
+        let g = &self.g;
+        let s: V3 = [x.omega_e / self.pole_pairs, x.i_q, x.i_d];
+        let k = md.factor(s[2]);
+        if k.near_singular {
+            self.near_singular_samples += 1;
+        }
+        if k.clamped {
+            self.clamped_samples += 1;
+        }
+        // (v1 − r11 x1) as sent by the speed loop, then eq. (31) × (a1 + a2 x3).
+        let demand = x.i_q_ref * g.g_ss() * md.factor(x.i_d_ref).value;
+        let x_r2 = k.value * s[1];
+        let w_r2 = demand - g.r12 * x_r2 - g.d12 * self.v_r2;
+        let w3 = x.i_d_ref;
+        // Eq. (28)–(29) with v2 = v_R2/(a1 + a2 x3) (reading 4), then (9)–(10).
+        let u0 = md.law_28_29(s, self.v_r2 / k.value, self.v3, g.r2, g.r3, k.value);
+        let com = md.compensation(s);
+        let (mut u_q, mut u_d) = (u0[0] + com[0], u0[1] + com[1]);
+        // Voltage-vector limit, d axis first (as the PI path), integrators frozen if active.
+        let mut saturated = false;
+        if u_d.abs() > self.u_max {
+            u_d = u_d.clamp(-self.u_max, self.u_max);
+            saturated = true;
+        }
+        let u_q_max = (self.u_max * self.u_max - u_d * u_d).max(0.0).sqrt();
+        if u_q.abs() > u_q_max {
+            u_q = u_q.clamp(-u_q_max, u_q_max);
+            saturated = true;
+        }
+        if !saturated {
+            self.v_r2 += g.k2 * self.ts * (w_r2 - x_r2);
+            self.v3 += g.k3 * self.ts * (w3 - s[2]);
+        }
+        NlCurrentOut {
+            u_d,
+            u_q,
+            w2: w_r2 / k.value,
+            saturated,
+        }
+    }
+}
+
+/// The sampled loop the nonlinear speed design is computed on: the drive's own discrete
+/// law ([`NlSpeedLaw`], [`NlCurrentLaw`]) on the motor at i_d = 0 with ideal load-free
+/// mechanics and no limits, with the drive's timing: encoder speed by backward difference
+/// and the Bessel filter, speed law every N samples used from the next sample on, voltage
+/// applied one sample after it was computed, zero-order hold.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct NlLoopModel {
+    /// Current-loop sample time T_s, s.
+    pub ts: f64,
+    /// Speed-loop divider N.
+    pub n: u32,
+    /// Speed-filter group delay τ_f, s.
+    pub tau_f_s: f64,
+}
+
+impl NlLoopModel {
+    /// Response to a small speed step (linear range): (time to first reach, overshoot %).
+    pub fn step_response(&self, m: &MotorParams, g: &NlGains, t_end: f64) -> (f64, f64) {
+        let n = u64::from(self.n.max(1));
+        let tw = self.ts * n as f64;
+        let mut sp = NlSpeedLaw::new(m, g, tw, f64::INFINITY);
+        let mut cl = NlCurrentLaw::new(m, g, self.ts, f64::INFINITY);
+        let mut obs = EncoderObserver::new(m.pole_pairs, self.ts, self.tau_f_s);
+        let rk = Rk4 { substeps: 4 };
+        let step = 1.0;
+        let mut x = MotorState::default();
+        let mut i_q_ref = 0.0;
+        let mut u_prev = [0.0; 2];
+        let (mut rise, mut peak) = (f64::NAN, 0.0f64);
+        let steps = (t_end / self.ts).ceil() as u64;
+        for k in 0..steps {
+            let est = obs.step(x.theta_m);
+            let omega_e = m.p() * est.omega_m;
+            let out = cl.step(&CurrentInput {
+                i_d_ref: 0.0,
+                i_q_ref,
+                i_d: x.i_d,
+                i_q: x.i_q,
+                omega_e,
+            });
+            if k % n == 0 {
+                i_q_ref = sp.step(step, est.omega_m, 0.0).i_q_ref;
+            }
+            x = rk.advance(
+                m,
+                Mechanics::Inertia,
+                &x,
+                &MotorInput {
+                    u_d: u_prev[0],
+                    u_q: u_prev[1],
+                    t_load: 0.0,
+                },
+                self.ts,
+            );
+            u_prev = [out.u_d, out.u_q];
+            let t = (k + 1) as f64 * self.ts;
+            if rise.is_nan() && x.omega_m >= step {
+                rise = t;
+            }
+            peak = peak.max(x.omega_m);
+        }
+        (rise, (peak / step - 1.0).max(0.0) * 100.0)
+    }
+}
+
+/// Inputs of the nonlinear design.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct NlSpec {
+    /// Target time to first reach the speed set-point, s.
+    pub rise_time_s: f64,
+    /// Natural frequency of the inner (torque and field) loops ω_i, rad/s.
+    pub omega_i_rad_s: f64,
+    /// Damping of every pole pair.
+    pub zeta: f64,
+}
+
+/// Result of the nonlinear design.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct NlDesign {
+    /// Damping of every pole pair.
+    pub zeta: f64,
+    /// Inner-loop natural frequency ω_i, rad/s.
+    pub omega_i_rad_s: f64,
+    /// Natural frequency ω_0 of the speed pair, rad/s (solved for the rise time).
+    pub omega_0_rad_s: f64,
+    /// The gains.
+    pub gains: NlGains,
+    /// Steady-state gain g = 1 + r12 + d12·r2 (scales i_q* on the bus).
+    pub g_ss: f64,
+    /// Rise time of the sampled design model, s.
+    pub predicted_rise_time_s: f64,
+    /// Overshoot of the sampled design model, %.
+    pub predicted_overshoot_pct: f64,
+    /// Rise time of the continuous dummy system (26)–(27), s (the paper's design model).
+    pub continuous_rise_time_s: f64,
+    /// Overshoot of the continuous dummy system, %.
+    pub continuous_overshoot_pct: f64,
+    /// i_d of eq. (15), A (None: non-salient).
+    pub i_d_singular_a: Option<f64>,
+    /// Set when the rise-time target could not be met; says why.
+    pub warning: Option<String>,
+}
+
+/// Unit-step response of the continuous dummy system (26)–(27), (31): the all-pole closed
+/// loop K2·K1/P(s) of [`place_speed_poles`]. Returns (time to first reach 1, overshoot %).
+pub fn continuous_step_response(g: &NlGains, t_end: f64) -> (f64, f64) {
+    let f = |s: [f64; 4]| -> [f64; 4] {
+        let [x1, x2, v2, v1] = s;
+        let w_r2 = v1 - g.r11 * x1 - g.r12 * x2 - g.d12 * v2;
+        [x2, -g.r2 * x2 + v2, g.k2 * (w_r2 - x2), g.k1 * (1.0 - x1)]
+    };
+    let fastest = g.r2.max(g.k2.sqrt()).max(1.0 / t_end);
+    let h = 0.02 / fastest;
+    let (mut s, mut t) = ([0.0; 4], 0.0);
+    let (mut rise, mut peak) = (f64::NAN, 0.0f64);
+    let add = |a: [f64; 4], b: [f64; 4], c: f64| {
+        [
+            a[0] + c * b[0],
+            a[1] + c * b[1],
+            a[2] + c * b[2],
+            a[3] + c * b[3],
+        ]
+    };
+    while t < t_end {
+        let k1 = f(s);
+        let k2 = f(add(s, k1, 0.5 * h));
+        let k3 = f(add(s, k2, 0.5 * h));
+        let k4 = f(add(s, k3, h));
+        for j in 0..4 {
+            s[j] += h / 6.0 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j]);
+        }
+        t += h;
+        if rise.is_nan() && s[0] >= 1.0 {
+            rise = t;
+        }
+        peak = peak.max(s[0]);
+    }
+    (rise, (peak - 1.0).max(0.0) * 100.0)
+}
+
+/// Designs the nonlinear controller: inner loops at (ω_i, ζ), the speed subsystem's
+/// closed loop (s² + 2ζω_0 s + ω_0²)(s² + 2ζω_i s + ω_i²), and ω_0 solved by bisection so that
+/// the sampled design model [`NlLoopModel`] first reaches the set-point at the target.
+pub fn design_nonlinear(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel) -> NlDesign {
+    let target = spec.rise_time_s;
+    let t_end = 10.0 * target;
+    let rise = |w0: f64| {
+        model
+            .step_response(m, &gains_for(spec.omega_i_rad_s, w0, spec.zeta), t_end)
+            .0
+    };
+    // A second-order pair alone reaches the set-point at (π − acos ζ)/(ω√(1 − ζ²)).
+    let w_nominal =
+        (std::f64::consts::PI - spec.zeta.acos()) / (1.0 - spec.zeta * spec.zeta).sqrt() / target;
+    let (mut lo, mut hi) = (0.2 * w_nominal, spec.omega_i_rad_s);
+    let mut warning = None;
+    let r_hi = rise(hi);
+    // NaN (never reaches) counts as too slow.
+    if r_hi.is_nan() || r_hi > target {
+        warning = Some(format!(
+            "speed rise time {:.2} ms is not reachable with inner loops at ω_i = {:.0} rad/s (ω_0 = ω_i gives {:.2} ms)",
+            target * 1e3,
+            spec.omega_i_rad_s,
+            r_hi * 1e3
+        ));
+        lo = hi;
+    } else {
+        for _ in 0..50 {
+            let mid = 0.5 * (lo + hi);
+            // NaN (never reaches) counts as too slow.
+            if rise(mid) <= target {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
+        }
+    }
+    let w0 = hi.max(lo);
+    let g = gains_for(spec.omega_i_rad_s, w0, spec.zeta);
+    let (r, os) = model.step_response(m, &g, t_end);
+    let (rc, osc) = continuous_step_response(&g, t_end);
+    NlDesign {
+        zeta: spec.zeta,
+        omega_i_rad_s: spec.omega_i_rad_s,
+        omega_0_rad_s: w0,
+        gains: g,
+        g_ss: g.g_ss(),
+        predicted_rise_time_s: r,
+        predicted_overshoot_pct: os,
+        continuous_rise_time_s: rc,
+        continuous_overshoot_pct: osc,
+        i_d_singular_a: KyslanModel::new(m).singular_i_d(),
+        warning,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Matrix4;
+
+    /// Operating points (ω, i_q, i_d) spread over the motor's range, both signs.
+    const POINTS: [V3; 5] = [
+        [70.0, 0.8, -1.6],
+        [-150.0, -1.2, 0.4],
+        [300.0, 1.5, -0.3],
+        [5.0, 0.0, 0.0],
+        [120.0, -0.7, -1.1],
+    ];
+    const INPUTS: [[f64; 2]; 3] = [[30.0, -12.0], [-80.0, 45.0], [0.0, 0.0]];
+
+    fn motors() -> [MotorParams; 2] {
+        [MotorParams::kyslan2015(), MotorParams::kyslan2015_sal618()]
+    }
+
+    /// Central-difference Jacobian ∂f/∂x (rows: outputs).
+    fn jacobian(f: impl Fn(V3) -> V3, x: V3) -> [V3; 3] {
+        let mut j = [[0.0; 3]; 3];
+        for c in 0..3 {
+            let h = 1e-6 * x[c].abs().max(1.0);
+            let (mut xp, mut xm) = (x, x);
+            xp[c] += h;
+            xm[c] -= h;
+            let (fp, fm) = (f(xp), f(xm));
+            for r in 0..3 {
+                j[r][c] = (fp[r] - fm[r]) / (2.0 * h);
+            }
+        }
+        j
+    }
+
+    fn mul(j: &[V3; 3], v: V3) -> V3 {
+        [0, 1, 2].map(|r| j[r][0] * v[0] + j[r][1] * v[1] + j[r][2] * v[2])
+    }
+
+    fn close(a: V3, b: V3, what: &str) {
+        for i in 0..3 {
+            let scale = a[i].abs().max(b[i].abs()).max(1.0);
+            assert!(
+                (a[i] - b[i]).abs() <= 1e-6 * scale,
+                "{what}: component {i}: {a:?} vs {b:?}"
+            );
+        }
+    }
+
+    fn compensated_rhs(md: &KyslanModel, x: V3, u0: [f64; 2]) -> V3 {
+        let a = md.a_compensated(x);
+        [a[0], a[1] + md.b21 * u0[0], a[2] + md.b32 * u0[1]]
+    }
+
+    #[test]
+    fn constants_reproduce_equations_1_to_4() {
+        for m in motors() {
+            let md = KyslanModel::new(&m);
+            for x in POINTS {
+                for u in INPUTS {
+                    let s = MotorState {
+                        omega_m: x[0],
+                        i_q: x[1],
+                        i_d: x[2],
+                        theta_m: 0.0,
+                    };
+                    let d = crate::motor::derivative(
+                        &m,
+                        Mechanics::Inertia,
+                        &s,
+                        &MotorInput {
+                            u_d: u[1],
+                            u_q: u[0],
+                            t_load: 0.2,
+                        },
+                    );
+                    close(
+                        md.f(x, u, 0.2),
+                        [d.omega_m, d.i_q, d.i_d],
+                        "eq. (5) vs motor model",
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn compensation_9_10_turns_model_5_into_11() {
+        for m in motors() {
+            let md = KyslanModel::new(&m);
+            for x in POINTS {
+                for u0 in INPUTS {
+                    let c = md.compensation(x);
+                    let full = md.f(x, [u0[0] + c[0], u0[1] + c[1]], 0.3);
+                    let mut simplified = compensated_rhs(&md, x, u0);
+                    simplified[0] -= md.e * 0.3;
+                    close(full, simplified, "eq. (11)");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn controllability_matrix_14_from_numerical_jacobian() {
+        for m in motors() {
+            let md = KyslanModel::new(&m);
+            for x in POINTS {
+                // Eq. (13): N b = ∂A/∂x · b, for the compensated drift of (11).
+                let ja = jacobian(|x| md.a_compensated(x), x);
+                let b1 = [0.0, md.b21, 0.0];
+                let b2 = [0.0, 0.0, md.b32];
+                let nb1 = mul(&ja, b1);
+                let q = md.controllability(x);
+                for r in 0..3 {
+                    close(
+                        [q[r][0], q[r][1], q[r][2]],
+                        [b1[r], nb1[r], b2[r]],
+                        "eq. (14)",
+                    );
+                }
+                // Eq. (17)-(20): the second row of T is N t1 = ∂t1/∂x · A(x).
+                let jt = jacobian(|x| md.transform(x), x);
+                let nt1: f64 = (0..3).map(|c| jt[0][c] * md.a_compensated(x)[c]).sum();
+                assert!((nt1 - md.transform(x)[1]).abs() < 1e-6 * nt1.abs().max(1.0));
+            }
+            // Eq. (15): singular exactly at i_d = −ψ/(L_d − L_q).
+            let sing = md.singular_i_d().unwrap();
+            assert!((sing + m.psi_pm_wb / (m.l_d_h - m.l_q_h)).abs() < 1e-12);
+            let det3 = |q: [V3; 3]| {
+                q[0][0] * (q[1][1] * q[2][2] - q[1][2] * q[2][1])
+                    - q[0][1] * (q[1][0] * q[2][2] - q[1][2] * q[2][0])
+                    + q[0][2] * (q[1][0] * q[2][1] - q[1][1] * q[2][0])
+            };
+            let scale = md.b21 * md.b21 * md.b32 * md.a1;
+            assert!(det3(md.controllability([50.0, 1.0, sing])).abs() < 1e-9 * scale);
+            assert!(det3(md.controllability([50.0, 1.0, -1.6])).abs() > 0.5 * scale);
+        }
+        assert_eq!(
+            KyslanModel::new(&MotorParams::low1998()).singular_i_d(),
+            None
+        );
+    }
+
+    #[test]
+    fn transformed_system_20_to_23_matches_numerical_jacobian() {
+        for m in motors() {
+            let md = KyslanModel::new(&m);
+            for x in POINTS {
+                let jt = jacobian(|x| md.transform(x), x);
+                for u0 in INPUTS {
+                    // Eq. (21): ẋ_R = ∂T/∂x · (A(x) + B u), against eqs (22)-(23).
+                    let lhs = mul(&jt, compensated_rhs(&md, x, u0));
+                    let ar = md.a_r(x);
+                    let br = md.b_r(x);
+                    let rhs = [0, 1, 2].map(|r| ar[r] + br[r][0] * u0[0] + br[r][1] * u0[1]);
+                    close(lhs, rhs, "eqs (21)-(23)");
+                }
+                // Eq. (24): B_R = I_R·M.
+                let (br, mm) = (md.b_r(x), md.m(x));
+                assert_eq!(br, [[0.0, 0.0], mm[0], mm[1]]);
+                // First row of (22) is x_R2: the chain of integrators.
+                assert!((md.a_r(x)[0] - md.transform(x)[1]).abs() < 1e-12);
+            }
+        }
+    }
+
+    #[test]
+    fn law_25_makes_the_transformed_system_linear_26() {
+        let (r2, r3, v_r2, v_r3) = (2400.0, 2000.0, 3.0e5, -1500.0);
+        for m in motors() {
+            let md = KyslanModel::new(&m);
+            for x in POINTS {
+                let u0 = md.law_25(x, v_r2, v_r3, r2, r3);
+                let jt = jacobian(|x| md.transform(x), x);
+                let xr_dot = mul(&jt, compensated_rhs(&md, x, u0));
+                let xr = md.transform(x);
+                close(
+                    xr_dot,
+                    [xr[1], -r2 * xr[1] + v_r2, -r3 * xr[2] + v_r3],
+                    "eq. (26)",
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn law_28_29_is_law_25_written_back() {
+        let (r2, r3) = (2400.0, 2000.0);
+        for m in motors() {
+            let md = KyslanModel::new(&m);
+            for x in POINTS {
+                for (v_r2, v3) in [(3.0e5, -1500.0), (-2.0e4, 800.0)] {
+                    let k = md.factor_raw(x[2]);
+                    let a = md.law_25(x, v_r2, v3, r2, r3);
+                    let b = md.law_28_29(x, v_r2 / k, v3, r2, r3, k);
+                    close([a[0], a[1], 0.0], [b[0], b[1], 0.0], "eq. (28)-(29)");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn whole_two_step_linearisation_on_model_5_with_load() {
+        // Compensation (9)-(10) + law (28)-(29) on the full model (5): ẋ_R is (26) plus the
+        // load on the first integrator (reading 2).
+        let (r2, r3, v_r2, v3, tl) = (2400.0, 2000.0, 1.0e5, 700.0, 0.5);
+        for m in motors() {
+            let md = KyslanModel::new(&m);
+            for x in POINTS {
+                let k = md.factor_raw(x[2]);
+                let u0 = md.law_28_29(x, v_r2 / k, v3, r2, r3, k);
+                let c = md.compensation(x);
+                let xdot = md.f(x, [u0[0] + c[0], u0[1] + c[1]], tl);
+                let jt = jacobian(|x| md.transform(x), x);
+                let xr = md.transform(x);
+                close(
+                    mul(&jt, xdot),
+                    [xr[1] - md.e * tl, -r2 * xr[1] + v_r2, -r3 * xr[2] + v3],
+                    "two-step linearisation",
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn pole_placement_puts_the_speed_subsystem_poles_where_asked() {
+        let (zeta, w0, wi) = (DAMPING, 300.0, 2000.0);
+        let g = gains_for(wi, w0, zeta);
+        // Closed loop of the dummy system, states [x_R1, x_R2, v_R2, v1].
+        let a = Matrix4::new(
+            0.0,
+            1.0,
+            0.0,
+            0.0, //
+            0.0,
+            -g.r2,
+            1.0,
+            0.0, //
+            -g.k2 * g.r11,
+            -g.k2 * (1.0 + g.r12),
+            -g.k2 * g.d12,
+            g.k2, //
+            -g.k1,
+            0.0,
+            0.0,
+            0.0,
+        );
+        let mut got: Vec<(f64, f64)> = a
+            .complex_eigenvalues()
+            .iter()
+            .map(|c| (c.re, c.im.abs()))
+            .collect();
+        got.sort_by(|p, q| p.0.total_cmp(&q.0).then(p.1.total_cmp(&q.1)));
+        let pair = |w: f64| (-zeta * w, w * (1.0 - zeta * zeta).sqrt());
+        let mut want = vec![pair(wi), pair(wi), pair(w0), pair(w0)];
+        want.sort_by(|p, q| p.0.total_cmp(&q.0).then(p.1.total_cmp(&q.1)));
+        for (g, w) in got.iter().zip(&want) {
+            assert!(
+                (g.0 - w.0).abs() < 1e-6 * wi && (g.1 - w.1).abs() < 1e-6 * wi,
+                "{got:?} vs {want:?}"
+            );
+        }
+        // Closed forms printed by `drivelab design`.
+        assert!((g.k1 - w0 * w0).abs() < 1e-9 * w0 * w0);
+        assert!((g.r11 - 2.0 * zeta * w0 * (w0 + wi) / wi).abs() < 1e-9 * g.r11);
+        assert!((g.r12 - (w0 / wi).powi(2)).abs() < 1e-12);
+        assert!((g.d12 - 2.0 * zeta * w0 / (wi * wi)).abs() < 1e-15);
+        assert_eq!(
+            (g.r2, g.k2, g.r3, g.k3),
+            (2.0 * zeta * wi, wi * wi, 2.0 * zeta * wi, wi * wi)
+        );
+        // Steady state of the closed loop: x_R1 = 1 for w1 = 1, and x_R2 = demand / g.
+        let g_ss = g.g_ss();
+        assert!((g_ss - (1.0 + g.r12 + g.d12 * g.r2)).abs() < 1e-15);
+    }
+
+    #[test]
+    fn sampled_design_model_tends_to_the_continuous_dummy_system() {
+        // With fast sampling, no speed-loop divider and a negligible filter, the drive's
+        // discrete law on the motor behaves like the dummy system (26)-(27).
+        let m = MotorParams::kyslan2015();
+        let g = gains_for(2000.0, 300.0, DAMPING);
+        let fine = NlLoopModel {
+            ts: 2e-6,
+            n: 1,
+            tau_f_s: 2e-6,
+        };
+        let (r_s, os_s) = fine.step_response(&m, &g, 0.04);
+        let (r_c, os_c) = continuous_step_response(&g, 0.04);
+        assert!((r_s - r_c).abs() < 0.02 * r_c, "{r_s} vs {r_c}");
+        assert!((os_s - os_c).abs() < 1.0, "{os_s} vs {os_c}");
+    }
+
+    #[test]
+    fn design_meets_the_rise_time_target_on_the_sampled_model() {
+        let model = NlLoopModel {
+            ts: 1e-4,
+            n: 10,
+            tau_f_s: 1e-4,
+        };
+        for m in motors() {
+            let d = design_nonlinear(
+                &m,
+                &NlSpec {
+                    rise_time_s: 8e-3,
+                    omega_i_rad_s: 2000.0,
+                    zeta: DAMPING,
+                },
+                &model,
+            );
+            assert!(d.warning.is_none(), "{d:?}");
+            assert!(
+                (d.predicted_rise_time_s - 8e-3).abs() <= model.ts + 1e-12,
+                "{d:?}"
+            );
+            assert!(d.omega_0_rad_s < d.omega_i_rad_s);
+        }
+        // A target the inner loops cannot support is reported, not silently missed.
+        let d = design_nonlinear(
+            &MotorParams::kyslan2015(),
+            &NlSpec {
+                rise_time_s: 0.5e-3,
+                omega_i_rad_s: 2000.0,
+                zeta: DAMPING,
+            },
+            &model,
+        );
+        assert!(d.warning.unwrap().contains("not reachable"));
+    }
+
+    #[test]
+    fn the_law_never_divides_by_zero_near_equation_15() {
+        let m = MotorParams::kyslan2015_sal618();
+        let md = KyslanModel::new(&m);
+        let sing = md.singular_i_d().unwrap();
+        let g = gains_for(2000.0, 300.0, DAMPING);
+        for i_d in [0.6 * sing, sing, 1.5 * sing] {
+            let f = md.factor(i_d);
+            assert!(f.near_singular);
+            assert!(f.value >= GUARD * md.a1);
+            let mut sp = NlSpeedLaw::new(&m, &g, 1e-3, 1.6);
+            let o = sp.step(70.0, 10.0, i_d);
+            assert!(o.i_q_ref.is_finite() && o.near_singular);
+            let mut cl = NlCurrentLaw::new(&m, &g, 1e-4, 180.0);
+            for _ in 0..10 {
+                let u = cl.step(&CurrentInput {
+                    i_d_ref: i_d,
+                    i_q_ref: o.i_q_ref,
+                    i_d,
+                    i_q: 0.5,
+                    omega_e: 250.0,
+                });
+                assert!(u.u_d.is_finite() && u.u_q.is_finite() && u.w2.is_finite());
+                assert!(u.u_d.hypot(u.u_q) <= 180.0 + 1e-9);
+            }
+            assert_eq!(cl.near_singular_samples, 10);
+            assert_eq!(cl.clamped_samples, if i_d == 0.6 * sing { 0 } else { 10 });
+        }
+        assert!(!md.factor(-1.6).near_singular);
+    }
+
+    #[test]
+    fn speed_law_limits_the_settled_current_without_windup() {
+        let m = MotorParams::kyslan2015();
+        let g = gains_for(2000.0, 300.0, DAMPING);
+        let mut sp = NlSpeedLaw::new(&m, &g, 1e-3, 1.6);
+        let step = g.k1 * 1e-3 * 100.0; // one integration step for a 100 rad/s error
+        for _ in 0..1000 {
+            let o = sp.step(100.0, 0.0, -1.6);
+            assert!(o.i_q_ref <= 1.6);
+        }
+        // No wind-up: the integrator stopped within one step of the limit.
+        let limit_v1 = 1.6 * g.g_ss() * KyslanModel::new(&m).factor_raw(-1.6);
+        assert!(sp.v1 <= limit_v1 + step, "{} vs {limit_v1}", sp.v1);
+        // Reversing the error leaves the limit within two speed samples.
+        sp.step(-100.0, 0.0, -1.6);
+        assert!(sp.step(-100.0, 0.0, -1.6).i_q_ref < 1.6);
+    }
+}
