@@ -169,6 +169,9 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str) -> Result<VariantResult> {
         no_rt: false,
         no_plots: true,
         verbose: false,
+        faults: Vec::new(),
+        restart: launcher::Restart::Never,
+        fault_seed: 0,
     };
     let r = launcher::run(&o)?;
     let cycle = LatencyHist::read_v2("cycle", &out.join("cycle.hdr"))?;
@@ -338,6 +341,9 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         no_rt: false,
         no_plots: true,
         verbose: false,
+        faults: Vec::new(),
+        restart: launcher::Restart::Never,
+        fault_seed: 0,
     })?;
     bar.inc(1);
     bar.set_message("in-process speed");

@@ -46,6 +46,13 @@ pub struct ServiceArgs {
     /// recorder (so that it never loses a sample).
     #[arg(long)]
     pub recorder: bool,
+    /// Restarted by the supervisor: skip the start handshake and take over bumplessly from
+    /// the running drive.
+    #[arg(long)]
+    pub rejoin: bool,
+    /// Plant only, with --rejoin: JSON file with the last measurement the recorder saw.
+    #[arg(long, value_name = "FILE")]
+    pub rejoin_from: Option<PathBuf>,
 }
 
 static STOP: AtomicBool = AtomicBool::new(false);
@@ -268,3 +275,41 @@ pub const WAIT_SLICE: std::time::Duration = std::time::Duration::from_millis(50)
 /// In lockstep, how long a service waits for its input before it gives up (the upstream
 /// process is considered gone).
 pub const LOCKSTEP_WATCHDOG: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// The last measurement as JSON (the supervisor hands it to a restarted plant).
+pub fn measurement_to_json(m: &drivelab::messages::Measurement) -> serde_json::Value {
+    serde_json::json!({
+        "k": m.hdr.k, "t_sample_ns": m.hdr.t_sample_ns,
+        "i_abc": m.i_abc, "theta_m_enc": m.theta_m_enc, "u_ab_applied": m.u_ab_applied,
+        "i_dq_true": m.i_dq_true, "omega_m_true": m.omega_m_true, "theta_e_true": m.theta_e_true,
+        "u_dq_applied": m.u_dq_applied, "t_load": m.t_load,
+    })
+}
+
+/// Reads a measurement written by [`measurement_to_json`].
+pub fn measurement_from_json(v: &serde_json::Value) -> Result<drivelab::messages::Measurement> {
+    let f = |key: &str| v[key].as_f64().ok_or_else(|| anyhow!("rejoin file: '{key}' missing"));
+    let a2 = |key: &str| -> Result<[f64; 2]> {
+        let a = v[key].as_array().ok_or_else(|| anyhow!("rejoin file: '{key}' missing"))?;
+        Ok([a.first().and_then(|x| x.as_f64()).unwrap_or(0.0), a.get(1).and_then(|x| x.as_f64()).unwrap_or(0.0)])
+    };
+    let i3 = v["i_abc"].as_array().ok_or_else(|| anyhow!("rejoin file: 'i_abc' missing"))?;
+    let mut m = drivelab::messages::Measurement::default();
+    m.hdr.k = v["k"].as_u64().ok_or_else(|| anyhow!("rejoin file: 'k' missing"))?;
+    m.hdr.t_sample_ns = v["t_sample_ns"].as_u64().unwrap_or(0);
+    for (i, x) in i3.iter().take(3).enumerate() {
+        m.i_abc[i] = x.as_f64().unwrap_or(0.0);
+    }
+    m.theta_m_enc = f("theta_m_enc")?;
+    m.u_ab_applied = a2("u_ab_applied")?;
+    m.i_dq_true = a2("i_dq_true")?;
+    m.omega_m_true = f("omega_m_true")?;
+    m.theta_e_true = f("theta_e_true")?;
+    m.u_dq_applied = a2("u_dq_applied")?;
+    m.t_load = f("t_load")?;
+    use drivelab::messages::Finite;
+    if !m.is_finite() {
+        return Err(anyhow!("rejoin file: non-finite values"));
+    }
+    Ok(m)
+}

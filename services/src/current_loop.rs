@@ -1,12 +1,18 @@
 //! The current-loop process: measurement k + estimate k + current reference → command k.
+//!
+//! Freshness (real time): without an estimate for 2 samples the loop falls back to the
+//! encoder angle of the newest measurement (and the last speed estimate); without a fresh
+//! current reference for 2 speed periods it ramps i_q* to zero. Commands made that way carry
+//! `FLAG_STALE_INPUT`. After a restart (`--rejoin`) it takes over bumplessly from the voltage
+//! the plant is applying.
 
 use crate::common::*;
 use anyhow::{anyhow, Result};
 use drivelab::bus::{self, DriveTopics, Receiver};
 use drivelab::drive::CurrentLoopStep;
-use drivelab::messages::{CurrentRef, Finite, Measurement, VoltageCommand};
+use drivelab::messages::{CurrentRef, Estimate, Finite, Header, Measurement, VoltageCommand, FLAG_STALE_INPUT};
 use drivelab::rt::now_ns;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 const MEAS_RING: usize = 64;
 const IREF_RING: usize = 4;
@@ -16,38 +22,33 @@ struct Inbox {
     meas: [Option<Measurement>; MEAS_RING],
     iref: [Option<CurrentRef>; IREF_RING],
     divider: u64,
+    newest_meas: Option<u64>,
+    newest_iref: Option<CurrentRef>,
 }
 
 impl Inbox {
-    fn drain(
-        &mut self,
-        meas: &Receiver<Measurement>,
-        iref: &Receiver<CurrentRef>,
-        c: &mut Counters,
-    ) -> Result<()> {
+    fn drain(&mut self, meas: &Receiver<Measurement>, iref: &Receiver<CurrentRef>, c: &mut Counters) -> Result<()> {
         while let Some(m) = meas.try_recv()? {
-            if m.hdr.is_warmup() {
+            if m.hdr.is_warmup() || m.hdr.is_end() {
                 continue;
             }
-            if m.hdr.is_warmup() {
-                continue;
-            }
-            if m.is_finite() || m.hdr.is_end() {
+            if m.is_finite() {
                 self.meas[(m.hdr.k % MEAS_RING as u64) as usize] = Some(m);
+                self.newest_meas = Some(self.newest_meas.map_or(m.hdr.k, |n| n.max(m.hdr.k)));
             } else {
                 c.rejected_inputs += 1;
             }
         }
         while let Some(r) = iref.try_recv()? {
-            if r.hdr.is_warmup() {
+            if r.hdr.is_warmup() || r.hdr.is_end() {
                 continue;
             }
-            if r.hdr.is_warmup() {
-                continue;
-            }
-            if r.is_finite() && !r.hdr.is_end() {
+            if r.is_finite() {
                 self.iref[((r.hdr.k / self.divider) % IREF_RING as u64) as usize] = Some(r);
-            } else if !r.hdr.is_end() {
+                if self.newest_iref.is_none_or(|n| r.hdr.k >= n.hdr.k) {
+                    self.newest_iref = Some(r);
+                }
+            } else {
                 c.rejected_inputs += 1;
             }
         }
@@ -70,38 +71,55 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let topics = DriveTopics::open_with(&node, sc.timing.wake, &args.bus)?;
     let meas_rx = topics.meas.polled_receiver(64)?;
     let est_rx = topics.est.receiver(64)?;
+    let lockstep = args.clock == BusClock::Lockstep;
     // Only lockstep waits for a current reference; real time polls it.
-    let iref_rx = if args.clock == BusClock::Lockstep {
-        topics.iref.receiver(16)?
-    } else {
-        topics.iref.polled_receiver(16)?
-    };
+    let iref_rx = if lockstep { topics.iref.receiver(16)? } else { topics.iref.polled_receiver(16)? };
     let cmd_tx = topics.cmd.sender()?;
+    // In fallback (no estimates) the loop is paced by the measurements. With futex wake-ups
+    // this costs the plant nothing until someone sleeps on it; with iceoryx2 events it would
+    // cost a notify per sample, so there the fallback polls instead.
+    let meas_wake = if sc.timing.wake == drivelab::bus::WakeKind::Futex && !lockstep {
+        Some(topics.meas.receiver(1)?)
+    } else {
+        None
+    };
     let report = apply_placement("current-loop", &sc, &args)?;
     let mut ctrl = CurrentLoopStep::new(&sc);
-    let lockstep = args.clock == BusClock::Lockstep;
-    let mut inbox = Inbox {
-        meas: [None; MEAS_RING],
-        iref: [None; IREF_RING],
-        divider: u64::from(sc.rates.speed_divider),
-    };
+    let m = sc.motor_params();
+    let ts = sc.rates.ts();
+    let divider = u64::from(sc.rates.speed_divider);
+    let mut inbox = Inbox { meas: [None; MEAS_RING], iref: [None; IREF_RING], divider, newest_meas: None, newest_iref: None };
     let mut c = Counters::default();
     let mut last_k: Option<u64> = None;
     let mut active_ref = CurrentRef::default();
+    let mut last_est = Estimate::default();
+    let mut stale_ref_samples: u64 = 0;
+    // Ramp of i_q* to zero when the speed loop is lost: the full current limit in 20 ms.
+    let iq_ramp_per_sample = sc.i_q_max() * ts / 0.02;
     let mut last_input = Instant::now();
     let mut h = ServiceHists::new(false);
+    let mut rejoining = args.rejoin;
+    // Real time: wake at the latest after 2 samples without an estimate, then every half
+    // sample while in fallback.
+    let est_timeout = Duration::from_secs_f64(2.0 * ts);
+    let fallback_poll = Duration::from_secs_f64(0.5 * ts);
+    let mut in_fallback = false;
     ready()?;
     // ---- real-time loop: no allocation, no locks, no logging ----
     'outer: while !stop_requested() {
-        est_rx.wait(WAIT_SLICE)?;
-        while let Some(e) = est_rx.try_recv()? {
+        match (&meas_wake, in_fallback, lockstep) {
+            (_, _, true) => est_rx.wait(WAIT_SLICE)?,
+            (Some(w), true, false) => w.wait(est_timeout)?,
+            (None, true, false) => est_rx.wait(fallback_poll)?,
+            (_, false, false) => est_rx.wait(est_timeout)?,
+        }
+        let mut got_est = false;
+        while let Some(mut e) = est_rx.try_recv()? {
+            got_est = true;
             last_input = Instant::now();
             inbox.drain(&meas_rx, &iref_rx, &mut c)?;
             if e.hdr.is_warmup() || e.hdr.is_end() {
-                cmd_tx.send(VoltageCommand {
-                    hdr: e.hdr,
-                    ..Default::default()
-                })?;
+                cmd_tx.send(VoltageCommand { hdr: e.hdr, ..Default::default() })?;
                 if e.hdr.is_end() {
                     break 'outer;
                 }
@@ -111,27 +129,44 @@ pub fn run(args: ServiceArgs) -> Result<()> {
                 c.rejected_inputs += 1;
                 continue;
             }
+            if rejoining {
+                // Skip history: only the newest estimate of the batch is used.
+                if let Some(newer) = peek_newest(&est_rx, &mut c)? {
+                    e = newer;
+                }
+            }
             let k = e.hdr.k;
             let t_in = h.input(e.hdr.t_pub_ns, e.hdr.t_sample_ns);
             if let Some(l) = last_k {
                 c.stale_inputs += k - l - 1;
             }
             last_k = Some(k);
+            in_fallback = false;
+            last_est = e;
             let Some(meas) = inbox.meas(k) else {
                 // The observer saw measurement k, so it was published; we lost it.
                 c.stale_inputs += 1;
                 continue;
             };
+            let mut flags = 0;
             if let Some(j) = ctrl.expected_ref_index(k) {
                 let started = Instant::now();
                 loop {
                     if let Some(r) = inbox.iref(j) {
                         active_ref = r;
+                        stale_ref_samples = 0;
                         break;
                     }
                     if !lockstep {
-                        // Real time: use the last reference we have, and count it.
+                        // Real time: hold the last reference; after 2 speed periods without a
+                        // fresh one, ramp i_q* to zero.
                         c.stale_inputs += 1;
+                        stale_ref_samples += 1;
+                        if stale_ref_samples > 2 * divider {
+                            flags |= FLAG_STALE_INPUT;
+                            let q = active_ref.i_q_ref;
+                            active_ref.i_q_ref = q - q.signum() * iq_ramp_per_sample.min(q.abs());
+                        }
                         break;
                     }
                     iref_rx.wait(WAIT_SLICE)?;
@@ -140,23 +175,54 @@ pub fn run(args: ServiceArgs) -> Result<()> {
                         break 'outer;
                     }
                     if started.elapsed() > LOCKSTEP_WATCHDOG {
-                        return Err(anyhow!(
-                            "no current reference {j} from speed-loop for {LOCKSTEP_WATCHDOG:?}"
-                        ));
+                        return Err(anyhow!("no current reference {j} from speed-loop for {LOCKSTEP_WATCHDOG:?}"));
                     }
                 }
             }
+            if rejoining {
+                if let Some(r) = inbox.newest_iref {
+                    active_ref = r;
+                }
+                ctrl.preset(&meas, &e, &active_ref);
+                rejoining = false;
+            }
             let mut cmd = ctrl.step(&meas, &e, &active_ref);
+            cmd.hdr.flags |= flags;
             cmd.hdr.t_pub_ns = now_ns();
             cmd_tx.send(cmd)?;
             h.done(t_in);
             c.samples += 1;
         }
-        if lockstep && last_k.is_some() && last_input.elapsed() > LOCKSTEP_WATCHDOG {
-            return Err(anyhow!(
-                "no estimate from observer for {LOCKSTEP_WATCHDOG:?}"
-            ));
+        if lockstep {
+            if last_k.is_some() && last_input.elapsed() > LOCKSTEP_WATCHDOG {
+                return Err(anyhow!("no estimate from observer for {LOCKSTEP_WATCHDOG:?}"));
+            }
+            continue;
         }
+        if got_est || rejoining {
+            continue;
+        }
+        // Real time, no estimate: if the plant has moved on, fall back to the encoder angle.
+        inbox.drain(&meas_rx, &iref_rx, &mut c)?;
+        let Some(kn) = inbox.newest_meas.filter(|&kn| last_k.is_none_or(|l| kn > l)) else { continue };
+        let Some(meas) = inbox.meas(kn) else { continue };
+        in_fallback = true;
+        c.stale_inputs += 1;
+        let t_in = now_ns();
+        let e = Estimate {
+            hdr: Header { k: kn, t_sample_ns: meas.hdr.t_sample_ns, flags: FLAG_STALE_INPUT, ..Default::default() },
+            theta_e: drivelab::motor::wrap_2pi(m.p() * meas.theta_m_enc),
+            omega_m: last_est.omega_m,
+        };
+        if let Some(r) = inbox.newest_iref {
+            active_ref = r;
+        }
+        let mut cmd = ctrl.step(&meas, &e, &active_ref);
+        cmd.hdr.flags |= FLAG_STALE_INPUT;
+        cmd.hdr.t_pub_ns = now_ns();
+        cmd_tx.send(cmd)?;
+        h.done(t_in);
+        last_k = Some(kn);
     }
     // ---- end of the real-time loop ----
     let (near, clamped) = ctrl.singularity_counts();
@@ -166,4 +232,20 @@ pub fn run(args: ServiceArgs) -> Result<()> {
         );
     }
     write_stats(&args, "current-loop", &report, c, &h, &[])
+}
+
+/// Drains the receiver and returns the newest valid estimate, if any.
+fn peek_newest(rx: &Receiver<Estimate>, c: &mut Counters) -> Result<Option<Estimate>> {
+    let mut newest = None;
+    while let Some(e) = rx.try_recv()? {
+        if e.hdr.is_warmup() || e.hdr.is_end() {
+            continue;
+        }
+        if e.is_finite() {
+            newest = Some(e);
+        } else {
+            c.rejected_inputs += 1;
+        }
+    }
+    Ok(newest)
 }

@@ -199,3 +199,27 @@ mod tests {
         assert!(plan(&[FaultSpec::Random(10)], 2.0, 7, 1.0).unwrap_err().to_string().contains("--duration"));
     }
 }
+
+/// Publishes `count` malformed estimates onto a running drive's estimate topic: `nan` puts
+/// NaN in the speed, `backwards` uses sample index 0 (behind the drive). For tests of the
+/// consumers' input checks.
+pub fn inject_bad_estimates(bus: &str, kind: &str, count: u32) -> Result<()> {
+    use drivelab::messages::{Estimate, Header};
+    drivelab::bus::check_bus_id(bus)?;
+    if find_services(bus).is_empty() {
+        bail!("no drive is running on bus {bus}");
+    }
+    let node = drivelab::bus::node(bus, "injector")?;
+    let topics = drivelab::bus::DriveTopics::open_with(&node, drivelab::bus::WakeKind::Futex, bus)?;
+    let tx = topics.est.sender()?;
+    for i in 0..count {
+        let e = match kind {
+            "nan" => Estimate { hdr: Header { k: u64::MAX / 2 + u64::from(i), ..Default::default() }, theta_e: 0.0, omega_m: f64::NAN },
+            "backwards" => Estimate { hdr: Header { k: 0, ..Default::default() }, theta_e: 0.0, omega_m: 0.0 },
+            other => bail!("unknown bad-input kind '{other}' (nan, backwards)"),
+        };
+        tx.send(e)?;
+        std::thread::sleep(std::time::Duration::from_millis(2));
+    }
+    Ok(())
+}

@@ -53,6 +53,39 @@ pub struct RunOptions {
     pub no_plots: bool,
     /// Print progress lines.
     pub verbose: bool,
+    /// Faults to inject (realtime only).
+    pub faults: Vec<crate::faults::FaultSpec>,
+    /// Restart policy of the supervisor.
+    pub restart: Restart,
+    /// Seed of `random:N` fault plans.
+    pub fault_seed: u64,
+}
+
+/// What the supervisor does when a service dies.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Restart {
+    /// Leave it dead; the rest of the drive goes on in its degraded mode.
+    Never,
+    /// Restart it (with --rejoin) after a back-off of 10 ms, doubling per restart of the same
+    /// service up to 1 s.
+    #[default]
+    OnFailure,
+}
+
+/// One supervisor event.
+#[derive(Debug, Clone, Serialize)]
+pub struct SupEvent {
+    /// Wall time since the start signal, s.
+    pub t_wall_s: f64,
+    /// Newest sample the recorder had seen (k + 1), i.e. the drive's progress.
+    pub k: u64,
+    /// inject, resume, exited, reaped, restarted, ready.
+    pub event: String,
+    /// Service.
+    pub service: String,
+    /// Details.
+    pub detail: String,
 }
 
 /// What a run produced.
@@ -120,11 +153,21 @@ struct Recorder {
     rejected: u64,
 }
 
+/// What the recorder shares with the supervisor while the drive runs.
+#[derive(Default)]
+struct Progress {
+    /// Newest measurement index seen + 1 (0 = none yet).
+    next_k: std::sync::atomic::AtomicU64,
+    /// The newest measurement (for a restarted plant to resume from).
+    last: std::sync::Mutex<Option<Measurement>>,
+}
+
 fn run_recorder(
     bus_id: String,
     wake: drivelab::bus::WakeKind,
     n: u64,
     stop: Arc<AtomicBool>,
+    progress: Arc<Progress>,
     ready: mpsc::Sender<Result<()>>,
 ) -> Result<Recorder> {
     let setup = (|| -> Result<_> {
@@ -168,6 +211,12 @@ fn run_recorder(
                 meas_end = true;
             } else if m.hdr.k < n {
                 r.meas[m.hdr.k as usize] = Some(m);
+                if m.hdr.k + 1 > progress.next_k.load(Ordering::Relaxed) {
+                    progress.next_k.store(m.hdr.k + 1, Ordering::Relaxed);
+                    if let Ok(mut l) = progress.last.lock() {
+                        *l = Some(m);
+                    }
+                }
             } else {
                 r.rejected += 1;
             }
@@ -249,6 +298,7 @@ fn spawn_service(
     clock: BusClock,
     o: &RunOptions,
     out: &Path,
+    rejoin_from: Option<&Path>,
 ) -> Result<ChildProc> {
     let mut cmd = Command::new(service_binary(name)?);
     cmd.arg("--scenario").arg(sc_path).arg("--bus").arg(bus_id);
@@ -265,6 +315,12 @@ fn spawn_service(
     }
     if name == "plant" {
         cmd.arg("--recorder");
+    }
+    if let Some(f) = rejoin_from {
+        cmd.arg("--rejoin");
+        if name == "plant" {
+            cmd.arg("--rejoin-from").arg(f);
+        }
     }
     cmd.stdin(Stdio::piped())
         .stdout(Stdio::piped())
@@ -338,20 +394,28 @@ fn run_bus(
     bus::cleanup(&bus_id)?;
     let n = sc.samples();
     let stop = Arc::new(AtomicBool::new(false));
+    let progress = Arc::new(Progress::default());
     let (ready_tx, ready_rx) = mpsc::channel();
     let rec = {
-        let (b, s, w) = (bus_id.clone(), stop.clone(), sc.timing.wake);
+        let (b, s, w, pr) = (bus_id.clone(), stop.clone(), sc.timing.wake, progress.clone());
         std::thread::Builder::new()
             .name("recorder".into())
-            .spawn(move || run_recorder(b, w, n, s, ready_tx))?
+            .spawn(move || run_recorder(b, w, n, s, pr, ready_tx))?
     };
+    let fs = sc.rates.sample_hz;
+    let plan = crate::faults::plan(&o.faults, sc.duration_s, o.fault_seed, 0.3)?;
+    if !plan.is_empty() && clock != BusClock::Realtime {
+        bail!("fault injection needs --clock realtime");
+    }
+    let _ = fs;
+    let mut events: Vec<SupEvent> = Vec::new();
     let result = (|| -> Result<(Vec<ChildProc>, Option<String>)> {
         ready_rx
             .recv()
             .map_err(|_| anyhow!("recorder thread died"))??;
         let mut children = Vec::new();
         for name in SERVICES {
-            match spawn_service(name, sc_path, &bus_id, clock, o, out) {
+            match spawn_service(name, sc_path, &bus_id, clock, o, out, None) {
                 Ok(c) => children.push(c),
                 Err(e) => return Ok((children, Some(format!("{e:#}")))),
             }
@@ -407,41 +471,14 @@ fn run_bus(
                 n, sc.rates.sample_hz
             );
         }
-        // Wait for the services to finish.
+        // Supervise until the services finish.
         let started = Instant::now();
         let limit = match clock {
             BusClock::Realtime => Duration::from_secs_f64(sc.duration_s * 1.5 + 20.0),
             BusClock::Lockstep => Duration::from_secs_f64(sc.duration_s * 2000.0 + 120.0),
         };
-        loop {
-            if STOP.load(Ordering::SeqCst) {
-                return Ok((
-                    children,
-                    Some("interrupted (SIGINT/SIGTERM): drive stopped".into()),
-                ));
-            }
-            let mut all_done = true;
-            for c in children.iter_mut() {
-                match c.child.try_wait()? {
-                    Some(st) if !st.success() => {
-                        let name = c.name;
-                        return Ok((children, Some(format!("{name} failed ({st})"))));
-                    }
-                    Some(_) => {}
-                    None => all_done = false,
-                }
-            }
-            if all_done {
-                return Ok((children, None));
-            }
-            if started.elapsed() > limit {
-                return Ok((
-                    children,
-                    Some(format!("the drive did not finish within {limit:?}")),
-                ));
-            }
-            std::thread::sleep(Duration::from_millis(5));
-        }
+        let failure = supervise(&mut children, &plan, &mut events, &progress, sc, sc_path, &bus_id, clock, o, out, started, limit)?;
+        Ok((children, failure))
     })();
     let (mut children, failure) = match result {
         Ok(v) => v,
@@ -479,8 +516,7 @@ fn run_bus(
         }
     }
     let (rows, gaps) = assemble(sc, &rec, counters.contains_key("plant"));
-    let mut info =
-        json!({ "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected });
+    let mut info = json!({ "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "events": events, "plan": plan });
     if let Some(p) = counters.get("plant") {
         info["deadline_misses"] = p["deadline_misses"].clone();
         info["longest_miss_run"] = p["longest_miss_run"].clone();
@@ -516,7 +552,7 @@ fn assemble(sc: &Scenario, rec: &Recorder, _plant_ok: bool) -> (Vec<TraceRow>, V
             (Some(m), None) => {
                 let nan = f64::NAN;
                 let c = VoltageCommand {
-                    hdr: m.hdr,
+                    hdr: drivelab::messages::Header { k: m.hdr.k, flags: drivelab::messages::FLAG_MISSING, ..Default::default() },
                     u_ab: [nan; 2],
                     u_dq: [nan; 2],
                     i_dq_ref: [nan; 2],
@@ -571,6 +607,38 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         Clock::Realtime => run_bus(&sc, &sc_path, o, &out, BusClock::Realtime)?,
     };
     let wall_s = wall.elapsed().as_secs_f64();
+    let events: Vec<SupEvent> = info
+        .get("events")
+        .and_then(|e| serde_json::from_value::<Vec<serde_json::Value>>(e.clone()).ok())
+        .unwrap_or_default()
+        .into_iter()
+        .filter_map(|v| {
+            Some(SupEvent {
+                t_wall_s: v["t_wall_s"].as_f64()?,
+                k: v["k"].as_u64()?,
+                event: v["event"].as_str()?.into(),
+                service: v["service"].as_str()?.into(),
+                detail: v["detail"].as_str()?.into(),
+            })
+        })
+        .collect();
+    let (faults, windows) = fault_reports(&sc, &rows, &events);
+    // Name the cause of every gap that a plant fault explains.
+    let mut gaps = gaps;
+    for g in gaps.iter_mut() {
+        let fs = sc.rates.sample_hz;
+        // The fault whose window (injection → recovery) holds the gap.
+        let in_window = |f: &&FaultReport| {
+            let end = f.injected_k + ((f.speed_recovered_ms.or(f.republished_ms).unwrap_or(200.0)) * 1e-3 * fs) as u64;
+            f.injected_k <= g.from && g.from <= end
+        };
+        if let Some(f) = faults.iter().rev().find(in_window) {
+            g.cause = match (g.part, f.service.as_str()) {
+                ("measurement", "plant") => format!("plant {} at sample {} (fault); the model is not simulated while the plant is down", f.fault, f.injected_k),
+                (part, svc) => format!("no {part} recorded during fault '{} {svc}' injected at sample {}", f.fault, f.injected_k),
+            };
+        }
+    }
     drivelab::trace::write_csv(&out.join("trace.csv"), &rows)?;
     let metrics = speed_metrics(&sc, &rows);
     let design = DriveDesign::from_scenario(&sc);
@@ -586,6 +654,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         "processes": processes,
         "metrics": metrics,
         "missing_samples": gaps,
+        "faults": faults,
+        "supervisor_events": events,
         "design": design,
         "wall_time_s": wall_s,
         "simulated_s_per_wall_s": sc.duration_s / wall_s.max(1e-9),
@@ -623,6 +693,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             current_limit_a: Some(sc.i_q_max()),
             voltage_limit_v: Some(sc.u_max()),
             title: format!("{} ({:?})", sc.name, o.clock).to_lowercase(),
+            shaded_windows: windows.clone(),
             ..Default::default()
         };
         let files = drivelab::plot::plot_trace(&rows, &out, &opts)?;
@@ -680,4 +751,272 @@ pub fn counters(summary: &serde_json::Value) -> BTreeMap<String, serde_json::Val
         .as_object()
         .map(|m| m.clone().into_iter().collect())
         .unwrap_or_default()
+}
+
+/// The supervisor: injects the planned faults when the drive reaches their sample, notices
+/// dead services (waitpid, then iceoryx2's node liveness, whose stale resources it removes),
+/// restarts them per policy with `--rejoin`, and records every event. Returns a failure
+/// message when the run cannot go on.
+#[allow(clippy::too_many_arguments)]
+fn supervise(
+    children: &mut [ChildProc],
+    plan: &[crate::faults::Fault],
+    events: &mut Vec<SupEvent>,
+    progress: &Progress,
+    sc: &Scenario,
+    sc_path: &Path,
+    bus_id: &str,
+    clock: BusClock,
+    o: &RunOptions,
+    out: &Path,
+    started: Instant,
+    limit: Duration,
+) -> Result<Option<String>> {
+    use crate::faults::{signal, FaultKind};
+    let fs = sc.rates.sample_hz;
+    let mut next_fault = 0;
+    let mut pending_cont: Vec<(Instant, usize)> = Vec::new();
+    let mut pending_restart: Vec<(Instant, usize)> = Vec::new();
+    let mut restarts = vec![0u32; children.len()];
+    // Back-off grows with restarts in quick succession and resets after 2 s of good health.
+    let mut backoff_level = vec![0u32; children.len()];
+    let mut last_restart: Vec<Option<Instant>> = vec![None; children.len()];
+    let mut dead = vec![false; children.len()];
+    let mut done = vec![false; children.len()];
+    let mut awaiting_ready = vec![false; children.len()];
+    let ev = |events: &mut Vec<SupEvent>, event: &str, service: &str, detail: String| {
+        events.push(SupEvent {
+            t_wall_s: started.elapsed().as_secs_f64(),
+            k: progress.next_k.load(Ordering::Relaxed),
+            event: event.into(),
+            service: service.into(),
+            detail,
+        });
+    };
+    const MAX_RESTARTS: u32 = 1000;
+    loop {
+        if STOP.load(Ordering::SeqCst) {
+            return Ok(Some("interrupted (SIGINT/SIGTERM): drive stopped".into()));
+        }
+        if started.elapsed() > limit {
+            return Ok(Some(format!("the drive did not finish within {limit:?}")));
+        }
+        let now = Instant::now();
+        let k_now = progress.next_k.load(Ordering::Relaxed);
+        // Faults due at this point of the run (in samples, so lockstep and realtime agree).
+        while next_fault < plan.len() && k_now as f64 >= plan[next_fault].at_s * fs {
+            let f = &plan[next_fault];
+            next_fault += 1;
+            let Some(i) = children.iter().position(|c| c.name == f.service) else { continue };
+            if dead[i] || done[i] {
+                ev(events, "inject-skipped", f.service, "service not running".into());
+                continue;
+            }
+            let sig = match f.kind {
+                FaultKind::Kill => libc::SIGKILL,
+                FaultKind::Stop => libc::SIGSTOP,
+            };
+            signal(children[i].child.id(), sig)?;
+            ev(events, "inject", f.service, format!("{}{}", crate::faults::kind_name(f.kind), if f.kind == FaultKind::Stop { format!(" for {} s", f.duration_s) } else { String::new() }));
+            if f.kind == FaultKind::Stop {
+                pending_cont.push((now + Duration::from_secs_f64(f.duration_s), i));
+            }
+        }
+        pending_cont.retain(|&(t, i)| {
+            if now >= t {
+                let _ = signal(children[i].child.id(), libc::SIGCONT);
+                ev(events, "resume", children[i].name, "SIGCONT".into());
+                false
+            } else {
+                true
+            }
+        });
+        // Liveness: our own children first (waitpid), then iceoryx2's view of the bus.
+        let mut any_dead = false;
+        for i in 0..children.len() {
+            if dead[i] || done[i] {
+                continue;
+            }
+            if awaiting_ready[i] {
+                while let Ok(l) = children[i].lines.try_recv() {
+                    if l == "READY" {
+                        awaiting_ready[i] = false;
+                        ev(events, "ready", children[i].name, format!("pid {}", children[i].child.id()));
+                    } else if let Some(j) = l.strip_prefix("RT ") {
+                        children[i].rt = serde_json::from_str(j).ok();
+                    }
+                }
+            }
+            match children[i].child.try_wait()? {
+                None => {}
+                Some(st) if st.success() => done[i] = true,
+                Some(st) => {
+                    dead[i] = true;
+                    any_dead = true;
+                    ev(events, "exited", children[i].name, format!("{st}"));
+                    let injected = events.iter().any(|e| e.event == "inject" && e.service == children[i].name);
+                    if o.restart == Restart::Never || restarts[i] >= MAX_RESTARTS {
+                        if !injected {
+                            return Ok(Some(format!("{} failed ({st})", children[i].name)));
+                        }
+                        if children[i].name == "plant" {
+                            // Without a plant there is no drive: stop the rest.
+                            return Ok(None);
+                        }
+                    } else {
+                        if last_restart[i].is_some_and(|t| now.duration_since(t) > Duration::from_secs(2)) {
+                            backoff_level[i] = 0;
+                        }
+                        let backoff = Duration::from_millis(10u64.saturating_mul(1 << backoff_level[i].min(7)).min(1000));
+                        backoff_level[i] += 1;
+                        pending_restart.push((now + backoff, i));
+                    }
+                }
+            }
+        }
+        if any_dead {
+            let reaped = bus::reap_dead_nodes(bus_id)?;
+            ev(events, "reaped", "-", format!("dead iceoryx2 nodes cleaned: {}", reaped.join(", ")));
+        }
+        let mut still = Vec::new();
+        for (t, i) in pending_restart.drain(..) {
+            if now < t {
+                still.push((t, i));
+                continue;
+            }
+            let name = children[i].name;
+            let rejoin_file = out.join(format!("rejoin-{name}.json"));
+            if name == "plant" {
+                let last = progress.last.lock().ok().and_then(|l| *l);
+                let Some(last) = last else {
+                    return Ok(Some("plant died before its first sample; cannot resume".into()));
+                };
+                std::fs::write(&rejoin_file, serde_json::to_vec(&crate::common::measurement_to_json(&last))?)?;
+            }
+            let c = spawn_service(name, sc_path, bus_id, clock, o, out, Some(&rejoin_file))?;
+            children[i] = c;
+            restarts[i] += 1;
+            last_restart[i] = Some(now);
+            dead[i] = false;
+            awaiting_ready[i] = true;
+            ev(events, "restarted", name, format!("restart #{}, pid {}", restarts[i], children[i].child.id()));
+        }
+        pending_restart = still;
+        let plant_done = children.iter().zip(&done).any(|(c, d)| c.name == "plant" && *d);
+        if done.iter().zip(&dead).all(|(d, x)| *d || *x) && pending_restart.is_empty() {
+            return Ok(None);
+        }
+        if plant_done && pending_restart.is_empty() {
+            // The plant has finished; anyone not done within 2 s is stopped by the caller.
+            let t = Instant::now();
+            while t.elapsed() < Duration::from_secs(2) {
+                if children.iter_mut().zip(&done).all(|(c, d)| *d || matches!(c.child.try_wait(), Ok(Some(_)))) {
+                    break;
+                }
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            return Ok(None);
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    }
+}
+
+/// One entry of `summary.json` → `faults`. Times are in ms from the injection.
+#[derive(Debug, Clone, Serialize)]
+pub struct FaultReport {
+    /// kill or stop (with its duration).
+    pub fault: String,
+    /// Target service.
+    pub service: String,
+    /// Injection: sample index and simulated time, s.
+    pub injected_k: u64,
+    /// Injection time, s (sample time).
+    pub injected_t_s: f64,
+    /// First sample at which a consumer saw a stale input (data path), ms after injection.
+    pub detected_data_path_ms: Option<f64>,
+    /// Which consumer saw it first: "plant" (stale command) or "current-loop" (fallback).
+    pub detected_by: Option<String>,
+    /// The supervisor saw the process dead (waitpid), ms of wall time after injection.
+    pub detected_supervisor_ms: Option<f64>,
+    /// The plant's inverter reached its safe state, ms after injection.
+    pub safe_state_ms: Option<f64>,
+    /// Peak current magnitude |i_dq| from injection to recovery, A.
+    pub peak_current_a: f64,
+    /// The restarted (or resumed) service published a fresh output again, ms after injection.
+    pub republished_ms: Option<f64>,
+    /// Speed back within ±2 % of its reference (and staying there 10 ms), ms after injection.
+    pub speed_recovered_ms: Option<f64>,
+}
+
+/// Builds the fault reports from the supervisor's events and the trace, and the windows to
+/// shade on the plots.
+pub fn fault_reports(sc: &Scenario, rows: &[TraceRow], events: &[SupEvent]) -> (Vec<FaultReport>, Vec<(f64, f64, String)>) {
+    use drivelab::messages::{FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT};
+    let fs = sc.rates.sample_hz;
+    let ms = |dk: u64| dk as f64 / fs * 1e3;
+    let by_k: BTreeMap<u64, &TraceRow> = rows.iter().map(|r| (r.k, r)).collect();
+    let mut out = Vec::new();
+    let mut windows = Vec::new();
+    let injects: Vec<&SupEvent> = events.iter().filter(|e| e.event == "inject").collect();
+    for (n, inj) in injects.iter().enumerate() {
+        let k0 = inj.k;
+        let k_end_window = injects.get(n + 1).map(|e| e.k).unwrap_or(u64::MAX);
+        let after = || by_k.range(k0..k_end_window).map(|(_, r)| *r);
+        // Data-path detection: the first stale flag, or the first sample the plant did not produce.
+        let mut det = None;
+        let mut expect = k0;
+        for r in after() {
+            if r.k != expect {
+                det = Some((expect, "recorder (plant produced no sample)".to_string()));
+                break;
+            }
+            if r.plant_flags & FLAG_STALE_CMD != 0 {
+                det = Some((r.k, "plant".into()));
+                break;
+            }
+            if r.ctrl_flags & FLAG_STALE_INPUT != 0 {
+                det = Some((r.k, "current-loop".into()));
+                break;
+            }
+            expect += 1;
+        }
+        let safe = after().find(|r| r.plant_flags & FLAG_SAFE_STATE != 0).map(|r| ms(r.k - k0));
+        let sup = events
+            .iter()
+            .find(|e| e.event == "exited" && e.service == inj.service && e.t_wall_s >= inj.t_wall_s)
+            .map(|e| (e.t_wall_s - inj.t_wall_s) * 1e3);
+        // Fresh again: the first sample after the detection with no stale flag at all.
+        let k_det = det.as_ref().map(|d| d.0).unwrap_or(k0);
+        let fresh = after()
+            .filter(|r| r.k > k_det)
+            .find(|r| r.plant_flags & (FLAG_STALE_CMD | FLAG_SAFE_STATE) == 0 && r.ctrl_flags == 0)
+            .map(|r| r.k);
+        let hold = (0.01 * fs).ceil() as usize;
+        let within = |r: &TraceRow| {
+            let w = drivelab::config::profile_at(&sc.reference.speed_rad_s, r.t);
+            (r.omega_m - w).abs() <= 0.02 * w.abs().max(1e-9)
+        };
+        let tail: Vec<&TraceRow> = after().filter(|r| fresh.is_some_and(|f| r.k >= f)).collect();
+        let rec = (0..tail.len()).find(|&i| tail[i..].iter().take(hold).all(|r| within(r)) && tail.len() - i >= hold).map(|i| tail[i].k);
+        let k_rec = rec.or(fresh).unwrap_or(k_end_window.min(k0 + (0.2 * fs) as u64));
+        let peak = after()
+            .filter(|r| r.k <= k_rec)
+            .map(|r| (r.i_d * r.i_d + r.i_q * r.i_q).sqrt())
+            .fold(0.0, f64::max);
+        windows.push((k0 as f64 / fs, k_rec as f64 / fs, format!("{} {}", inj.detail, inj.service)));
+        out.push(FaultReport {
+            fault: inj.detail.clone(),
+            service: inj.service.clone(),
+            injected_k: k0,
+            injected_t_s: k0 as f64 / fs,
+            detected_data_path_ms: det.as_ref().map(|d| ms(d.0 - k0)),
+            detected_by: det.map(|d| d.1),
+            detected_supervisor_ms: sup,
+            safe_state_ms: safe,
+            peak_current_a: peak,
+            republished_ms: fresh.map(|f| ms(f - k0)),
+            speed_recovered_ms: rec.map(|r| ms(r - k0)),
+        });
+    }
+    (out, windows)
 }

@@ -54,6 +54,36 @@ enum Cmd {
         /// Print the summary as JSON on stdout instead of the human summary.
         #[arg(long)]
         json: bool,
+        /// Inject a fault (repeatable, realtime only): kill:SERVICE@SECONDS (SIGKILL),
+        /// stop:SERVICE@SECONDS:DURATION (SIGSTOP, then SIGCONT), random:N (N kills of random
+        /// services at random instants, seeded by --fault-seed). SECONDS are simulated time.
+        #[arg(long = "fault", value_name = "SPEC")]
+        faults: Vec<String>,
+        /// What the supervisor does when a service dies.
+        #[arg(long, value_enum, default_value_t = launcher::Restart::OnFailure)]
+        restart: launcher::Restart,
+        /// Seed of random:N fault plans.
+        #[arg(long, default_value_t = 1)]
+        fault_seed: u64,
+    },
+    /// Inject a fault into a drive that is already running (found by its bus id).
+    ///
+    /// Examples:
+    ///   drivelab fault kill current-loop --bus 4242
+    ///   drivelab fault stop observer --bus 4242 --duration 0.05
+    #[command(verbatim_doc_comment)]
+    Fault {
+        /// kill (SIGKILL) or stop (SIGSTOP, then SIGCONT after --duration).
+        #[arg(value_parser = ["kill", "stop"])]
+        kind: String,
+        /// plant, observer, current-loop or speed-loop.
+        service: String,
+        /// Bus id of the running drive (printed by `drivelab run`, also in summary.json).
+        #[arg(long)]
+        bus: String,
+        /// For stop: seconds before SIGCONT.
+        #[arg(long, default_value_t = 0.05, value_name = "SECONDS")]
+        duration: f64,
     },
     /// Run the plant model alone, open loop, from rest, on recorded voltages.
     ///
@@ -111,6 +141,19 @@ enum Cmd {
     ///   drivelab bench --seconds 30 --rates 10000    # 30 s per variant at 10 kHz
     #[command(verbatim_doc_comment)]
     Bench(drivelab_services::bench::BenchArgs),
+    /// Internal (tests): publish malformed estimates onto a running drive's bus.
+    #[command(hide = true)]
+    BusInject {
+        /// Bus id of the running drive.
+        #[arg(long)]
+        bus: String,
+        /// nan or backwards.
+        #[arg(long)]
+        kind: String,
+        /// How many messages.
+        #[arg(long, default_value_t = 10)]
+        count: u32,
+    },
     /// Internal: one node of the Unix-socket chain (started by `drivelab bench`).
     #[command(hide = true)]
     BenchNode {
@@ -186,7 +229,14 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             no_rt,
             no_plots,
             json,
+            faults,
+            restart,
+            fault_seed,
         } => {
+            let faults = faults
+                .iter()
+                .map(|f| drivelab_services::faults::parse(f))
+                .collect::<anyhow::Result<Vec<_>>>()?;
             let o = RunOptions {
                 scenario,
                 clock,
@@ -197,6 +247,9 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 no_rt,
                 no_plots,
                 verbose: !json,
+                faults,
+                restart,
+                fault_seed,
             };
             let r = launcher::run(&o)?;
             if json {
@@ -222,7 +275,11 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                     fmt_opt(&m["steady_state_error"], "rad/s")
                 );
                 if let Some(g) = s["missing_samples"].as_array().filter(|g| !g.is_empty()) {
-                    println!("missing samples: {}", serde_json::to_string(g)?);
+                    let n: u64 = g.iter().map(|x| x["to"].as_u64().unwrap_or(0) + 1 - x["from"].as_u64().unwrap_or(0)).sum();
+                    println!("missing: {n} sample parts in {} ranges, each with its cause in summary.json → missing_samples", g.len());
+                }
+                if let Some(f) = s["faults"].as_array().filter(|f| !f.is_empty()) {
+                    println!("faults: {} injected; report in summary.json → faults", f.len());
                 }
             }
             Ok(())
@@ -264,6 +321,26 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             print!("{}", drivelab_services::design::render(&sc));
             Ok(())
         }
+        Cmd::Fault { kind, service, bus, duration } => {
+            drivelab::bus::check_bus_id(&bus)?;
+            let spec = drivelab_services::faults::parse(&format!("{kind}:{service}@0{}", if kind == "stop" { format!(":{duration}") } else { String::new() }))?;
+            let drivelab_services::faults::FaultSpec::One(f) = spec else { unreachable!("kill/stop parse to one fault") };
+            let procs = drivelab_services::faults::find_services(&bus);
+            let Some(&(_, pid)) = procs.iter().find(|(s, _)| *s == f.service) else {
+                anyhow::bail!("no running {} on bus {bus} (running: {})", f.service, if procs.is_empty() { "none".to_string() } else { procs.iter().map(|(s, p)| format!("{s} {p}")).collect::<Vec<_>>().join(", ") });
+            };
+            if kind == "kill" {
+                drivelab_services::faults::signal(pid, libc::SIGKILL)?;
+                eprintln!("killed {} (pid {pid})", f.service);
+            } else {
+                drivelab_services::faults::signal(pid, libc::SIGSTOP)?;
+                std::thread::sleep(std::time::Duration::from_secs_f64(duration));
+                drivelab_services::faults::signal(pid, libc::SIGCONT)?;
+                eprintln!("stopped {} (pid {pid}) for {duration} s", f.service);
+            }
+            Ok(())
+        }
+        Cmd::BusInject { bus, kind, count } => drivelab_services::faults::inject_bad_estimates(&bus, &kind, count),
         Cmd::Compare(args) => drivelab_services::compare::run(&args),
         Cmd::Bench(args) => drivelab_services::bench::run(&args),
         Cmd::BenchNode {

@@ -4,8 +4,9 @@ use crate::common::*;
 use anyhow::{anyhow, Result};
 use drivelab::bus::{self, DriveTopics};
 use drivelab::drive::ObserverStep;
-use drivelab::messages::{Estimate, Finite};
+use drivelab::messages::{Estimate, Finite, Measurement};
 use drivelab::rt::now_ns;
+use std::f64::consts::{PI, TAU};
 use std::time::Instant;
 
 /// Runs the observer service.
@@ -21,17 +22,44 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let mut h = ServiceHists::new(false);
     let mut last_k: Option<u64> = None;
     let mut last_input = Instant::now();
+    let ts = sc.rates.ts();
+    // After a restart: skip the publisher's history, seed the angle from the newest
+    // measurement, take the speed from the backward difference to the next one, go on.
+    let mut rejoining = args.rejoin;
+    let mut seed: Option<Measurement> = None;
     ready()?;
     // ---- real-time loop: no allocation, no locks, no logging ----
     'outer: while !stop_requested() {
         meas_rx.wait(WAIT_SLICE)?;
+        if rejoining {
+            let mut newest = None;
+            while let Some(m) = meas_rx.try_recv()? {
+                if m.hdr.is_end() {
+                    est_tx.send(Estimate { hdr: m.hdr, ..Default::default() })?;
+                    break 'outer;
+                }
+                if !m.hdr.is_warmup() && m.is_finite() {
+                    newest = Some(m);
+                }
+            }
+            let Some(m) = newest else { continue };
+            match seed {
+                Some(s) if m.hdr.k == s.hdr.k + 1 => {
+                    let d = (m.theta_m_enc - s.theta_m_enc + PI).rem_euclid(TAU) - PI;
+                    obs.preset(s.theta_m_enc, d / ts);
+                    rejoining = false;
+                    // m is processed below as the first estimate after the restart.
+                    process(&mut obs, &m, &est_tx, &mut h, &mut c)?;
+                    last_k = Some(m.hdr.k);
+                }
+                _ => seed = Some(m),
+            }
+            continue;
+        }
         while let Some(m) = meas_rx.try_recv()? {
             last_input = Instant::now();
             if m.hdr.is_warmup() || m.hdr.is_end() {
-                est_tx.send(Estimate {
-                    hdr: m.hdr,
-                    ..Default::default()
-                })?;
+                est_tx.send(Estimate { hdr: m.hdr, ..Default::default() })?;
                 if m.hdr.is_end() {
                     break 'outer;
                 }
@@ -45,22 +73,29 @@ pub fn run(args: ServiceArgs) -> Result<()> {
                 c.stale_inputs += m.hdr.k - l - 1;
             }
             last_k = Some(m.hdr.k);
-            let t_in = h.input(m.hdr.t_pub_ns, m.hdr.t_sample_ns);
-            let mut est = obs.step(&m);
-            est.hdr.t_pub_ns = now_ns();
-            est_tx.send(est)?;
-            h.done(t_in);
-            c.samples += 1;
+            process(&mut obs, &m, &est_tx, &mut h, &mut c)?;
         }
-        if args.clock == BusClock::Lockstep
-            && last_k.is_some()
-            && last_input.elapsed() > LOCKSTEP_WATCHDOG
-        {
-            return Err(anyhow!(
-                "no measurement from plant for {LOCKSTEP_WATCHDOG:?}"
-            ));
+        if args.clock == BusClock::Lockstep && last_k.is_some() && last_input.elapsed() > LOCKSTEP_WATCHDOG {
+            return Err(anyhow!("no measurement from plant for {LOCKSTEP_WATCHDOG:?}"));
         }
     }
     // ---- end of the real-time loop ----
     write_stats(&args, "observer", &report, c, &h, &[])
+}
+
+#[inline]
+fn process(
+    obs: &mut ObserverStep,
+    m: &Measurement,
+    est_tx: &bus::Sender<Estimate>,
+    h: &mut ServiceHists,
+    c: &mut Counters,
+) -> Result<()> {
+    let t_in = h.input(m.hdr.t_pub_ns, m.hdr.t_sample_ns);
+    let mut est = obs.step(m);
+    est.hdr.t_pub_ns = now_ns();
+    est_tx.send(est)?;
+    h.done(t_in);
+    c.samples += 1;
+    Ok(())
 }

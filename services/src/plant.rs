@@ -2,7 +2,7 @@
 //! measurement k and integrates to t_{k+1} (DESIGN.md "The cycle").
 
 use crate::common::*;
-use anyhow::{anyhow, bail, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use drivelab::bus::{self, DriveTopics, Receiver, MAX_BUFFER};
 use drivelab::drive::Plant;
 use drivelab::messages::{Finite, Header, Measurement, VoltageCommand, FLAG_END, FLAG_WARMUP};
@@ -102,21 +102,33 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let mut mon = CycleMonitor::new(ts_ns);
     let spin_ns = (sc.timing.plant_spin_us * 1e3).round() as u64;
     ready()?;
-    // Wait for the launcher's GO (everyone is subscribed by then).
-    let mut line = String::new();
-    std::io::stdin().lock().read_line(&mut line)?;
-    if line.trim() != "GO" {
-        bail!(
-            "launcher did not say GO (got {:?}); not starting",
-            line.trim()
-        );
-    }
-    warm_up(&meas_tx, &cmd_rx)?;
-    let t0 = now_ns() + 2_000_000;
-    let mut loop_start = 0u64;
+    let (t0, k_start) = if args.rejoin {
+        // Restarted by the supervisor: resume from the last measurement the recorder saw,
+        // on the original schedule; the samples of the downtime are not produced.
+        let path = args.rejoin_from.as_ref().ok_or_else(|| anyhow!("--rejoin needs --rejoin-from FILE"))?;
+        let text = std::fs::read_to_string(path).with_context(|| format!("read {}", path.display()))?;
+        let last = measurement_from_json(&serde_json::from_str(&text)?)?;
+        plant.restore(&last);
+        if lockstep || last.hdr.t_sample_ns == 0 {
+            bail!("a plant can only rejoin a real-time drive");
+        }
+        let t0 = last.hdr.t_sample_ns - last.hdr.k * ts_ns;
+        let k = (now_ns() + 2_000_000 - t0) / ts_ns + 1;
+        (t0, k.max(last.hdr.k + 1))
+    } else {
+        // Wait for the launcher's GO (everyone is subscribed by then).
+        let mut line = String::new();
+        std::io::stdin().lock().read_line(&mut line)?;
+        if line.trim() != "GO" {
+            bail!("launcher did not say GO (got {:?}); not starting", line.trim());
+        }
+        warm_up(&meas_tx, &cmd_rx)?;
+        (now_ns() + 2_000_000, 0)
+    };
     let mut recorder_done: u64 = 0;
+    let mut loop_start = 0u64;
     // ---- real-time loop: no allocation, no locks, no logging ----
-    for k in 0..=n {
+    for k in k_start..=n {
         let deadline = t0 + k * ts_ns;
         let mut cmd = None;
         if lockstep {
@@ -146,12 +158,12 @@ pub fn run(args: ServiceArgs) -> Result<()> {
                 sleep_until_ns(deadline);
             }
             h.wake.record_ns(now_ns() as i64 - deadline as i64);
-            if k > 0 {
+            if k > k_start || (k > 0 && !args.rejoin) {
                 cmd = take_command(&cmd_rx, k - 1, &mut c, &mut mon)?;
                 mon.at_deadline(deadline - ts_ns, cmd.map(|c| c.hdr.t_pub_ns));
             }
         }
-        if k == 0 {
+        if k == k_start {
             loop_start = now_ns();
         }
         if stop_requested() || k == n {

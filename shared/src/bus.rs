@@ -364,3 +364,21 @@ pub fn leftovers(id: &str) -> Vec<String> {
     }
     v
 }
+
+/// Supervisor helper: lists the nodes of bus `id` through iceoryx2's node liveness, removes
+/// the stale resources of every dead one, and returns the dead nodes' names.
+pub fn reap_dead_nodes(id: &str) -> Result<Vec<String>> {
+    use iceoryx2::node::NodeView;
+    let cfg = config(id)?;
+    let mut dead = Vec::new();
+    Node::<ipc::Service>::list(&cfg, |state| {
+        if let NodeState::Dead(view) = state {
+            let name = view.details().as_ref().map(|d| d.name().to_string()).unwrap_or_else(|| "?".into());
+            let _ = view.try_remove_stale_resources();
+            dead.push(name);
+        }
+        CallbackProgression::Continue
+    })
+    .map_err(|e| anyhow!("cannot list the nodes of bus {id}: {e:?}"))?;
+    Ok(dead)
+}

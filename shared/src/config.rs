@@ -192,6 +192,9 @@ impl Default for InverterSpec {
 pub struct MechanicsSpec {
     /// If set, a dynamometer holds this speed (mechanical rad/s) and eq. (3) is not integrated.
     pub prescribed_speed_rad_s: Option<f64>,
+    /// Speed of the free rotor at t = 0 (mechanical rad/s, default 0): the drive catches a
+    /// spinning motor (flying start), e.g. for a back-EMF observer, blind at standstill.
+    pub initial_speed_rad_s: Option<f64>,
 }
 
 /// Sample rates.
@@ -241,12 +244,27 @@ pub struct Sensors {
 pub struct ObserverSpec {
     /// Group delay of the 2nd-order Bessel speed filter (Low eq. 10), s.
     pub speed_filter_tau_s: f64,
+    /// Position source: "encoder" (default), "sensorless" (the minimal-order αβ observer of
+    /// Low eqs 11-17 closes the drive) or "monitor" (encoder for control, the observer runs
+    /// beside it and is the trace's theta_hat). See `observer_sensorless`.
+    pub mode: crate::observer_sensorless::ObserverMode,
+    /// Time constant τ_o of the sensorless observer's pole λ = e^{-T_s/τ_o}, s.
+    pub pole_tau_s: f64,
+    /// Sensorless observer model: "truncated" (Low eq. 13, default) or "exact".
+    pub discretisation: crate::observer_sensorless::Discretisation,
+    /// Initial estimate of the sensorless observer, degrees electrical (the rotor starts at
+    /// θ_e = 0, so this is the initial angle error).
+    pub initial_angle_error_deg: f64,
 }
 
 impl Default for ObserverSpec {
     fn default() -> Self {
         Self {
             speed_filter_tau_s: 1e-4,
+            mode: crate::observer_sensorless::ObserverMode::Encoder,
+            pole_tau_s: 1e-3,
+            discretisation: crate::observer_sensorless::Discretisation::Truncated,
+            initial_angle_error_deg: 0.0,
         }
     }
 }
@@ -260,6 +278,9 @@ pub enum CurrentController {
     /// Kyslan et al. 2015: eqs (28)–(29) with the compensation (9)–(10); needs
     /// `speed_loop.controller = "nonlinear"`.
     Nonlinear,
+    /// Low et al. 1998: RST per axis by pole placement (3rd-order ITAE for i_q, 2nd-order
+    /// for i_d, `itae_omega_rad_s`), see `control::rst`.
+    Rst,
 }
 
 /// Current-loop settings.
@@ -272,6 +293,8 @@ pub struct CurrentLoopSpec {
     pub tau_c_s: f64,
     /// Decoupling and back-EMF feed-forward.
     pub decoupling: bool,
+    /// RST only: ITAE natural frequency ω_n of the current loops, rad/s (default 0.3/T_s).
+    pub itae_omega_rad_s: Option<f64>,
 }
 
 impl Default for CurrentLoopSpec {
@@ -280,6 +303,7 @@ impl Default for CurrentLoopSpec {
             controller: CurrentController::Pi,
             tau_c_s: 2.5e-4,
             decoupling: true,
+            itae_omega_rad_s: None,
         }
     }
 }
@@ -293,6 +317,9 @@ pub enum SpeedController {
     /// Kyslan et al. 2015: the outer law of eqs (27), (30)–(31); needs
     /// `current_loop.controller = "nonlinear"`.
     Nonlinear,
+    /// Low et al. 1998: RST by pole placement, 3rd-order ITAE including the speed filter
+    /// (`itae_omega_rad_s`), see `control::rst`.
+    Rst,
 }
 
 /// Speed-loop settings.
@@ -305,6 +332,9 @@ pub struct SpeedLoopSpec {
     pub rise_time_s: f64,
     /// Limit on i_q*, A; defaults to the motor's i_max_a.
     pub i_q_max_a: Option<f64>,
+    /// RST only: ITAE natural frequency ω_n of the speed loop, rad/s (default: a tenth of
+    /// the current loops', at most 0.2/T_w).
+    pub itae_omega_rad_s: Option<f64>,
 }
 
 impl Default for SpeedLoopSpec {
@@ -313,6 +343,7 @@ impl Default for SpeedLoopSpec {
             controller: SpeedController::Pi,
             rise_time_s: 8e-3,
             i_q_max_a: None,
+            itae_omega_rad_s: None,
         }
     }
 }
@@ -563,6 +594,16 @@ impl Scenario {
                 },
             )?;
         }
+        if let Some(w) = self.mechanics.initial_speed_rad_s {
+            check(
+                w.is_finite()
+                    && w.abs() <= 10.0 * m.omega_rated_rad_s
+                    && self.mechanics.prescribed_speed_rad_s.is_none(),
+                || {
+                    format!("mechanics.initial_speed_rad_s = {w} must be finite, within ±10× rated speed, and not set together with prescribed_speed_rad_s")
+                },
+            )?;
+        }
         let s = &self.sensors;
         check(
             s.current_noise_a.is_finite()
@@ -588,6 +629,8 @@ impl Scenario {
                 )
             },
         )?;
+        crate::observer_sensorless::validate(self)?;
+        crate::control::rst::validate(self)?;
         let c = &self.current_loop;
         check(
             c.tau_c_s.is_finite() && c.tau_c_s >= 2.0 * ts && c.tau_c_s <= 1.0,

@@ -10,6 +10,8 @@
 //! The in-process runner, the lockstep bus and the real-time bus all call these same functions
 //! in this order, so their traces are bit-identical when no deadline is missed.
 
+mod rejoin;
+
 use crate::config::{profile_at, SafeState, Scenario, Step};
 use crate::control::current::{CurrentInput, CurrentPiDesign, PiCurrentController, VoltageDq};
 use crate::control::nonlinear::{
@@ -22,6 +24,7 @@ use crate::control::speed::{
 use crate::messages::*;
 use crate::motor::{wrap_2pi, Mechanics, MotorInput, MotorParams, MotorState, Rk4};
 use crate::observer::EncoderObserver;
+use crate::observer_sensorless::{ObserverMode, SensorlessObserver};
 use crate::trace::TraceRow;
 use crate::transforms::{clarke, inverse_clarke, inverse_park, park, AlphaBeta, Dq};
 use rand::SeedableRng;
@@ -34,7 +37,7 @@ use serde::Serialize;
 /// compared); `controller` says which one runs.
 #[derive(Debug, Clone, Serialize)]
 pub struct DriveDesign {
-    /// "pi" or "nonlinear".
+    /// "pi", "nonlinear" or "rst" (either loop selects the Low et al. RST).
     pub controller: &'static str,
     /// Current PI design.
     pub current: CurrentPiDesign,
@@ -44,6 +47,12 @@ pub struct DriveDesign {
     pub nonlinear: NlDesign,
     /// Set-points of this scenario that approach the singularity of Kyslan eq. (15).
     pub warnings: Vec<String>,
+    /// Low et al. 1998 RST designs (i_d, i_q, speed), when a loop selects "rst".
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rst: Option<crate::control::rst::RstDriveDesign>,
+    /// The sensorless observer's settings, when `observer.mode` is not "encoder".
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub observer: Option<crate::observer_sensorless::ObserverDesign>,
 }
 
 /// Natural frequency ω_i of the nonlinear controller's inner (torque and field) loops, rad/s.
@@ -101,12 +110,22 @@ impl DriveDesign {
         } else {
             Vec::new()
         };
+        let rst = crate::control::rst::uses_rst(sc)
+            .then(|| crate::control::rst::RstDriveDesign::from_scenario(sc).expect("validated"));
         Self {
-            controller: if sc.nonlinear() { "nonlinear" } else { "pi" },
+            controller: if rst.is_some() {
+                "rst"
+            } else if sc.nonlinear() {
+                "nonlinear"
+            } else {
+                "pi"
+            },
             current,
             speed,
             nonlinear,
             warnings,
+            rst,
+            observer: crate::observer_sensorless::ObserverDesign::from_scenario(sc),
         }
     }
 }
@@ -170,7 +189,11 @@ impl Plant {
             None => Mechanics::Inertia,
         };
         let x = MotorState {
-            omega_m: sc.mechanics.prescribed_speed_rad_s.unwrap_or(0.0),
+            omega_m: sc
+                .mechanics
+                .prescribed_speed_rad_s
+                .or(sc.mechanics.initial_speed_rad_s)
+                .unwrap_or(0.0),
             ..Default::default()
         };
         let noise = (sc.sensors.current_noise_a > 0.0).then(|| {
@@ -284,24 +307,51 @@ impl Plant {
     }
 }
 
-/// Observer service step (encoder mode).
+/// Observer service step: the encoder path, and per `observer.mode` the sensorless αβ
+/// observer of Low et al. (`observer_sensorless`): "sensorless" sends its angle and speed,
+/// "monitor" its angle with the encoder speed (the current loop then takes the angle for
+/// control from the encoder itself, see [`CurrentLoopStep::step`]).
 #[derive(Debug, Clone)]
 pub struct ObserverStep {
     enc: EncoderObserver,
+    sensorless: Option<SensorlessObserver>,
+    mode: ObserverMode,
 }
 
 impl ObserverStep {
     /// Builds the observer.
     pub fn new(sc: &Scenario) -> Self {
         let m = sc.motor_params();
+        let mut enc =
+            EncoderObserver::new(m.pole_pairs, sc.rates.ts(), sc.observer.speed_filter_tau_s);
+        if let Some(w) = running_start_speed(sc) {
+            // The encoder speed is settled: the angle one sample before t_0 and the speed.
+            enc.preset(wrap_2pi(-w * sc.rates.ts()), w);
+        }
+        let mut sensorless = crate::observer_sensorless::from_scenario(sc);
+        if let (Some(o), Some(w)) = (sensorless.as_mut(), running_start_speed(sc)) {
+            // Monitor mode: the observer starts at the encoder's settled speed, with the
+            // configured angle error.
+            o.preset(sc.observer.initial_angle_error_deg.to_radians(), w);
+        }
         Self {
-            enc: EncoderObserver::new(m.pole_pairs, sc.rates.ts(), sc.observer.speed_filter_tau_s),
+            enc,
+            sensorless,
+            mode: sc.observer.mode,
         }
     }
 
     /// Measurement k → estimate k.
     pub fn step(&mut self, meas: &Measurement) -> Estimate {
-        let e = self.enc.step(meas.theta_m_enc);
+        let mut e = self.enc.step(meas.theta_m_enc);
+        if let Some(o) = self.sensorless.as_mut() {
+            let i = clarke(meas.i_abc[0], meas.i_abc[1], meas.i_abc[2]);
+            let s = o.step(i.alpha, i.beta, meas.u_ab_applied);
+            e.theta_e = s.theta_e;
+            if self.mode == ObserverMode::Sensorless {
+                e.omega_m = s.omega_m;
+            }
+        }
         Estimate {
             hdr: Header {
                 k: meas.hdr.k,
@@ -314,11 +364,26 @@ impl ObserverStep {
     }
 }
 
+/// Speed of a rotor already turning at t_0 (`mechanics.prescribed_speed_rad_s` or
+/// `initial_speed_rad_s`) when the drive has a position sensor (observer mode "encoder" or
+/// "monitor"): the drive is then enabled in steady state, its encoder speed settled and its
+/// speed law preset to that speed with i_q* = 0, so that a dynamometer test starts without a
+/// start-up transient. A sensorless drive knows nothing at t_0 and starts cold.
+pub fn running_start_speed(sc: &Scenario) -> Option<f64> {
+    if sc.observer.mode == ObserverMode::Sensorless {
+        return None;
+    }
+    sc.mechanics
+        .prescribed_speed_rad_s
+        .or(sc.mechanics.initial_speed_rad_s)
+}
+
 /// The speed law a scenario selects.
 #[derive(Debug, Clone)]
 enum SpeedLaw {
     Pi(SpeedPi),
     Nonlinear(NlSpeedLaw),
+    Rst(crate::control::rst::RstSpeed),
 }
 
 /// Speed-loop service step.
@@ -339,7 +404,10 @@ impl SpeedLoopStep {
         let d = DriveDesign::from_scenario(sc);
         let n = sc.rates.speed_divider;
         let tw = f64::from(n) * sc.rates.ts();
-        let law = if sc.nonlinear() {
+        let law = if sc.speed_loop.controller == crate::config::SpeedController::Rst {
+            let r = d.rst.as_ref().expect("designed when a loop selects rst");
+            SpeedLaw::Rst(crate::control::rst::RstSpeed::new(&r.speed, sc.i_q_max()))
+        } else if sc.nonlinear() {
             SpeedLaw::Nonlinear(NlSpeedLaw::new(
                 &sc.motor_params(),
                 &d.nonlinear.gains,
@@ -349,6 +417,14 @@ impl SpeedLoopStep {
         } else {
             SpeedLaw::Pi(SpeedPi::new(&d.speed, tw, sc.i_q_max()))
         };
+        let mut law = law;
+        if let Some(w) = running_start_speed(sc) {
+            match &mut law {
+                SpeedLaw::Pi(c) => c.preset(w, 0.0),
+                SpeedLaw::Rst(c) => c.preset(w, 0.0),
+                SpeedLaw::Nonlinear(_) => {}
+            }
+        }
         Self {
             law,
             divider: u64::from(n),
@@ -375,6 +451,7 @@ impl SpeedLoopStep {
         let i_d_ref = profile_at(&self.i_d_ref, t);
         let i_q_ref = match &mut self.law {
             SpeedLaw::Pi(c) => c.step(omega_ref, est.omega_m),
+            SpeedLaw::Rst(c) => c.step(omega_ref, est.omega_m),
             SpeedLaw::Nonlinear(c) => {
                 let o = c.step(omega_ref, est.omega_m, i_d_ref);
                 if o.near_singular {
@@ -401,6 +478,7 @@ impl SpeedLoopStep {
 enum CurrentLaw {
     Pi(PiCurrentController),
     Nonlinear(NlCurrentLaw),
+    Rst(crate::control::rst::RstCurrentController),
 }
 
 /// Current-loop service step.
@@ -410,6 +488,9 @@ pub struct CurrentLoopStep {
     pole_pairs: f64,
     ts: f64,
     divider: u64,
+    /// `observer.mode = "monitor"`: control on the encoder angle of the measurement, the
+    /// estimate's angle (the sensorless observer's) only goes to the trace.
+    monitor: bool,
 }
 
 impl CurrentLoopStep {
@@ -417,7 +498,14 @@ impl CurrentLoopStep {
     pub fn new(sc: &Scenario) -> Self {
         let m = sc.motor_params();
         let d = DriveDesign::from_scenario(sc);
-        let law = if sc.nonlinear() {
+        let law = if sc.current_loop.controller == crate::config::CurrentController::Rst {
+            CurrentLaw::Rst(crate::control::rst::RstCurrentController::new(
+                &m,
+                d.rst.as_ref().expect("designed when a loop selects rst"),
+                sc.u_max(),
+                sc.current_loop.decoupling,
+            ))
+        } else if sc.nonlinear() {
             CurrentLaw::Nonlinear(NlCurrentLaw::new(
                 &m,
                 &d.nonlinear.gains,
@@ -438,6 +526,7 @@ impl CurrentLoopStep {
             pole_pairs: m.p(),
             ts: sc.rates.ts(),
             divider: u64::from(sc.rates.speed_divider),
+            monitor: sc.observer.mode == ObserverMode::Monitor,
         }
     }
 
@@ -451,7 +540,7 @@ impl CurrentLoopStep {
     /// samples where a1 + a2·i_d had to be clamped. (0, 0) for the PI cascade.
     pub fn singularity_counts(&self) -> (u64, u64) {
         match &self.law {
-            CurrentLaw::Pi(_) => (0, 0),
+            CurrentLaw::Pi(_) | CurrentLaw::Rst(_) => (0, 0),
             CurrentLaw::Nonlinear(c) => (c.near_singular_samples, c.clamped_samples),
         }
     }
@@ -464,7 +553,12 @@ impl CurrentLoopStep {
         iref: &CurrentRef,
     ) -> VoltageCommand {
         let i_ab = clarke(meas.i_abc[0], meas.i_abc[1], meas.i_abc[2]);
-        let i = park(i_ab, est.theta_e);
+        let theta = if self.monitor {
+            wrap_2pi(self.pole_pairs * meas.theta_m_enc)
+        } else {
+            est.theta_e
+        };
+        let i = park(i_ab, theta);
         let omega_e = self.pole_pairs * est.omega_m;
         let input = CurrentInput {
             i_d_ref: iref.i_d_ref,
@@ -476,6 +570,7 @@ impl CurrentLoopStep {
         // u and the q reference actually tracked (w2 of Kyslan eq. 30 for the nonlinear law).
         let (u, i_q_ref) = match &mut self.law {
             CurrentLaw::Pi(c) => (c.step(&input), iref.i_q_ref),
+            CurrentLaw::Rst(c) => (c.step(&input), iref.i_q_ref),
             CurrentLaw::Nonlinear(c) => {
                 let o = c.step(&input);
                 (
@@ -490,10 +585,7 @@ impl CurrentLoopStep {
         };
         // The command acts on [t_{k+1}, t_{k+2}); the plant rotates it with the mid-sample
         // angle, so compensate 1.5 samples of rotation.
-        let u_ab = inverse_park(
-            Dq { d: u.u_d, q: u.u_q },
-            est.theta_e + 1.5 * omega_e * self.ts,
-        );
+        let u_ab = inverse_park(Dq { d: u.u_d, q: u.u_q }, theta + 1.5 * omega_e * self.ts);
         VoltageCommand {
             hdr: Header {
                 k: meas.hdr.k,
@@ -527,6 +619,8 @@ pub fn trace_row(ts: f64, meas: &Measurement, cmd: &VoltageCommand) -> TraceRow 
         u_d: meas.u_dq_applied[0],
         u_q: meas.u_dq_applied[1],
         t_load: meas.t_load,
+        plant_flags: meas.hdr.flags,
+        ctrl_flags: cmd.hdr.flags,
         miss: u8::from(meas.hdr.flags & (FLAG_STALE_CMD | FLAG_SAFE_STATE) != 0),
     }
 }

@@ -14,6 +14,7 @@ pub mod messages;
 pub mod metrics;
 pub mod motor;
 pub mod observer;
+pub mod observer_sensorless;
 pub mod plot;
 pub mod rt;
 pub mod timing;

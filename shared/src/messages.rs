@@ -14,6 +14,8 @@ pub const FLAG_STALE_CMD: u32 = 2;
 pub const FLAG_SAFE_STATE: u32 = 4;
 /// Header flag: the producer used a stale input this sample.
 pub const FLAG_STALE_INPUT: u32 = 8;
+/// Trace only: no command was recorded for this sample (the current loop produced none).
+pub const FLAG_MISSING: u32 = 32;
 /// Header flag: a warm-up message before sample 0. It travels the whole chain (so that every
 /// port has connected and every page is touched) but no step function sees it.
 pub const FLAG_WARMUP: u32 = 16;

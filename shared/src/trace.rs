@@ -36,6 +36,10 @@ pub struct TraceRow {
     pub u_q: f64,
     /// Load torque applied on [t_k, t_{k+1}), N·m.
     pub t_load: f64,
+    /// Plant's header flags of sample k (`messages::FLAG_*`: 2 stale command held, 4 safe state).
+    pub plant_flags: u32,
+    /// Current loop's header flags of command k (8 = it used a stale or fallback input).
+    pub ctrl_flags: u32,
     /// 1 if the plant held a stale command or went to its safe state at k (deadline miss), else 0.
     pub miss: u8,
 }

@@ -1,0 +1,263 @@
+//! Coefficient diagram method (CDM, Manabe 1998) for the polar-coordinate current loops of
+//! Miyajima, Fujimoto and Fujitsuna (eqs 26–37): the PI gains of C_21 (i_q through the
+//! voltage amplitude V_a) and C_12 (i_d through the voltage phase δ) at an operating point
+//! (V_ao, δ_o).
+//!
+//! With the low-speed approximation (18) the loops see the plants
+//! ΔP_l21(s) = cos δ_o/(L s + R) and ΔP_l12(s) = −V_ao cos δ_o/(L s + R) (eqs 22, 21). A PI
+//! C(s) = (K_P s + K_I)/s on b/(L s + R) closes to L s² + (R + b K_P) s + b K_I, so matching
+//! s² + a_1 s + a_0 gives K_P = (a_1 L − R)/b and K_I = a_0 L/b: eqs (28)–(31). The CDM
+//! standard form of a second-order polynomial has the stability index γ_1 = a_1²/a_0 and the
+//! equivalent time constant τ = a_1/a_0 (eqs 32–35), hence a_1 = γ_1/τ and a_0 = γ_1/τ².
+//!
+//! Eq. (37) is read as printed: τ_12 = 10·T_u while |V_ao cos δ_o| ≥ 0.01·V_amax, else
+//! τ_12 = 0.1·V_amax/|V_ao cos δ_o|·T_u (continuous at the switch, dimensionless ratio times
+//! T_u). It slows the d loop where its plant gain V_ao cos δ_o vanishes. Before the gains are
+//! computed V_ao and δ_o are limited as the paper says: 0.001·V_amax ≤ |V_ao| ≤ V_amax (the
+//! sign of V_ao is kept; V_ao = 0 counts as positive) and |δ_o| ≤ 0.9·π/2.
+//!
+//! Near V_ao = 0 the d-loop gains stay bounded. On the second line of (37), with
+//! g = V_ao cos δ_o: a_1 = 25·|g|/(V_amax T_u), so
+//! K_P12 = −sgn(g)·(25·L/(V_amax T_u) − R/|g|) and K_I12 = −sgn(g)·250·L·|g|/(V_amax T_u)²:
+//! the proportional gain is bounded by the limits on V_ao and δ_o (|g| ≥ 0.001·V_amax·
+//! cos(0.45π)) and the integral gain vanishes with g — the "small gain d-axis current
+//! controller when V_a ≃ 0" of section IV-C. (τ_12 can reach 0.1/(0.001·cos 0.45π)·T_u
+//! ≈ 640·T_u, where a_1 L − R < 0: the placed poles are slower than the winding's own R/L.)
+
+use serde::Serialize;
+
+/// CDM stability index γ_1 of both loops (eqs 32, 34; DESIGN.md: γ_1 = 2.5).
+pub const GAMMA1: f64 = 2.5;
+/// τ_21 = 10·T_u (eq. 36), and τ_12 away from V_ao cos δ_o ≈ 0 (eq. 37).
+pub const TAU_SAMPLES: f64 = 10.0;
+/// Lower limit of |V_ao| as a fraction of V_amax (section IV-B).
+pub const V_AO_MIN_FRAC: f64 = 0.001;
+/// Limit of |δ_o|, rad (0.9·π/2, section IV-B).
+pub const DELTA_O_MAX: f64 = 0.9 * std::f64::consts::FRAC_PI_2;
+/// Eq. (37): τ_12 switches when |V_ao cos δ_o| falls below this fraction of V_amax.
+pub const TAU12_SWITCH_FRAC: f64 = 0.01;
+/// Eq. (37): numerator of the slowed τ_12, as a fraction of V_amax.
+pub const TAU12_SLOW_FRAC: f64 = 0.1;
+
+/// Coefficients (a_1, a_0) of the CDM standard form s² + a_1 s + a_0 with stability index
+/// `gamma1` and equivalent time constant `tau_s` (eqs 32–35).
+pub fn cdm_second_order(gamma1: f64, tau_s: f64) -> (f64, f64) {
+    (gamma1 / tau_s, gamma1 / (tau_s * tau_s))
+}
+
+/// The operating point after the paper's limits: 0.001·V_amax ≤ |V_ao| ≤ V_amax (sign kept)
+/// and |δ_o| ≤ 0.9·π/2. Non-finite inputs fall back to (+0.001·V_amax, 0).
+pub fn limit_operating_point(v_ao: f64, delta_o: f64, v_amax: f64) -> (f64, f64) {
+    let v_min = V_AO_MIN_FRAC * v_amax;
+    let v = if v_ao.is_finite() {
+        let s = if v_ao < 0.0 { -1.0 } else { 1.0 };
+        s * v_ao.abs().clamp(v_min, v_amax)
+    } else {
+        v_min
+    };
+    let d = if delta_o.is_finite() {
+        delta_o.clamp(-DELTA_O_MAX, DELTA_O_MAX)
+    } else {
+        0.0
+    };
+    (v, d)
+}
+
+/// Eq. (37): τ_12 for a (limited) operating point, s.
+pub fn tau12(v_ao: f64, delta_o: f64, tu_s: f64, v_amax: f64) -> f64 {
+    let g = (v_ao * delta_o.cos()).abs();
+    if g >= TAU12_SWITCH_FRAC * v_amax {
+        TAU_SAMPLES * tu_s
+    } else {
+        TAU12_SLOW_FRAC * v_amax / g * tu_s
+    }
+}
+
+/// PI gains (K_P, K_I) placing b/(L s + R) in closed loop at s² + a_1 s + a_0.
+pub fn pi_gains(r_ohm: f64, l_h: f64, a1: f64, a0: f64, b: f64) -> (f64, f64) {
+    ((a1 * l_h - r_ohm) / b, a0 * l_h / b)
+}
+
+/// Gains of C_21 (eqs 28–29) at the (limited) phase δ_o: (K_P21 in V/A, K_I21 in V/(A·s)).
+pub fn gains_21(r_ohm: f64, l_h: f64, a1: f64, a0: f64, delta_o: f64) -> (f64, f64) {
+    pi_gains(r_ohm, l_h, a1, a0, delta_o.cos())
+}
+
+/// Gains of C_12 (eqs 30–31) at the (limited) point (V_ao, δ_o): (K_P12 in rad/A,
+/// K_I12 in rad/(A·s)).
+pub fn gains_12(r_ohm: f64, l_h: f64, a1: f64, a0: f64, v_ao: f64, delta_o: f64) -> (f64, f64) {
+    pi_gains(r_ohm, l_h, a1, a0, -v_ao * delta_o.cos())
+}
+
+/// The whole CDM design at one operating point, for printing and checking by hand.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct CdmDesign {
+    /// R, Ω.
+    pub r_ohm: f64,
+    /// L (= L_d = L_q), H.
+    pub l_h: f64,
+    /// Control period T_u, s.
+    pub tu_s: f64,
+    /// Voltage limit V_amax, V.
+    pub v_amax_v: f64,
+    /// V_ao as asked, V.
+    pub v_ao_in_v: f64,
+    /// δ_o as asked, rad.
+    pub delta_o_in_rad: f64,
+    /// V_ao after the limit 0.001·V_amax ≤ |V_ao| ≤ V_amax, V.
+    pub v_ao_v: f64,
+    /// δ_o after the limit |δ_o| ≤ 0.9·π/2, rad.
+    pub delta_o_rad: f64,
+    /// γ_1 of both loops.
+    pub gamma1: f64,
+    /// τ_21 = 10·T_u (eq. 36), s.
+    pub tau21_s: f64,
+    /// a_1 of (26), 1/s.
+    pub a1_21: f64,
+    /// a_0 of (26), 1/s².
+    pub a0_21: f64,
+    /// K_P21 (eq. 28), V/A.
+    pub k_p21: f64,
+    /// K_I21 (eq. 29), V/(A·s).
+    pub k_i21: f64,
+    /// |V_ao cos δ_o| (the switch of eq. 37), V.
+    pub v_cos_v: f64,
+    /// True when τ_12 came from the second line of eq. (37).
+    pub tau12_slowed: bool,
+    /// True when τ_12 was given instead of computed from eq. (37).
+    pub tau12_given: bool,
+    /// τ_12, s.
+    pub tau12_s: f64,
+    /// a_1 of (27), 1/s.
+    pub a1_12: f64,
+    /// a_0 of (27), 1/s².
+    pub a0_12: f64,
+    /// K_P12 (eq. 30), rad/A.
+    pub k_p12: f64,
+    /// K_I12 (eq. 31), rad/(A·s).
+    pub k_i12: f64,
+}
+
+impl CdmDesign {
+    /// Designs C_21 and C_12 for winding `r_ohm`, `l_h`, control period `tu_s` and voltage
+    /// limit `v_amax_v` at the operating point (`v_ao_v`, `delta_o_rad`), limited first.
+    /// `tau12_s` overrides eq. (37).
+    pub fn new(
+        r_ohm: f64,
+        l_h: f64,
+        tu_s: f64,
+        v_amax_v: f64,
+        v_ao_v: f64,
+        delta_o_rad: f64,
+        tau12_s: Option<f64>,
+    ) -> Self {
+        let (v, d) = limit_operating_point(v_ao_v, delta_o_rad, v_amax_v);
+        let tau21 = TAU_SAMPLES * tu_s;
+        let (a1_21, a0_21) = cdm_second_order(GAMMA1, tau21);
+        let (k_p21, k_i21) = gains_21(r_ohm, l_h, a1_21, a0_21, d);
+        let v_cos = (v * d.cos()).abs();
+        let t12 = tau12_s.unwrap_or_else(|| tau12(v, d, tu_s, v_amax_v));
+        let (a1_12, a0_12) = cdm_second_order(GAMMA1, t12);
+        let (k_p12, k_i12) = gains_12(r_ohm, l_h, a1_12, a0_12, v, d);
+        Self {
+            r_ohm,
+            l_h,
+            tu_s,
+            v_amax_v,
+            v_ao_in_v: v_ao_v,
+            delta_o_in_rad: delta_o_rad,
+            v_ao_v: v,
+            delta_o_rad: d,
+            gamma1: GAMMA1,
+            tau21_s: tau21,
+            a1_21,
+            a0_21,
+            k_p21,
+            k_i21,
+            v_cos_v: v_cos,
+            tau12_slowed: tau12_s.is_none() && v_cos < TAU12_SWITCH_FRAC * v_amax_v,
+            tau12_given: tau12_s.is_some(),
+            tau12_s: t12,
+            a1_12,
+            a0_12,
+            k_p12,
+            k_i12,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const R: f64 = 2.5;
+    const L: f64 = 30e-3;
+    const TU: f64 = 100e-6;
+    const VMAX: f64 = 470.0 / 1.732_050_807_568_877_2;
+
+    #[test]
+    fn standard_form_has_the_asked_index_and_time_constant() {
+        let (a1, a0) = cdm_second_order(2.5, 1e-3);
+        assert!((a1 * a1 / a0 - 2.5).abs() < 1e-12);
+        assert!((a1 / a0 - 1e-3).abs() < 1e-15);
+        assert_eq!((a1, a0), (2500.0, 2.5e6));
+    }
+
+    /// Eqs (28)–(31) at a few operating points, written out by hand.
+    #[test]
+    fn gains_match_eqs_28_to_31() {
+        for (v_ao, d_deg) in [(5.0, 0.0), (30.0, 20.0), (-12.0, -35.0), (200.0, 60.0)] {
+            let d: f64 = f64::to_radians(d_deg);
+            let g = CdmDesign::new(R, L, TU, VMAX, v_ao, d, None);
+            // τ21 = 1 ms: a1 = 2.5/τ = 2500 1/s, a0 = 2.5/τ² = 2.5e6 1/s².
+            let c = d.cos();
+            assert!((g.k_p21 - (2500.0 * L - R) / c).abs() < 1e-9);
+            assert!((g.k_i21 - 2.5e6 * L / c).abs() < 1e-6);
+            // All these points have |V_ao cos δ_o| ≥ 0.01·V_amax = 2.71 V: τ12 = 1 ms too.
+            assert!(!g.tau12_slowed);
+            assert!((g.k_p12 - (2500.0 * L - R) / (-v_ao * c)).abs() < 1e-9);
+            assert!((g.k_i12 - 2.5e6 * L / (-v_ao * c)).abs() < 1e-6);
+        }
+        // Close to V_ao = 0: eq. (37)'s second line, τ12 = 0.1·V_amax/|V_ao cos δo|·T_u.
+        let g = CdmDesign::new(R, L, TU, VMAX, 1.0, 0.0, None);
+        assert!(g.tau12_slowed);
+        let t12 = 0.1 * VMAX / 1.0 * TU;
+        assert!((g.tau12_s - t12).abs() < 1e-15);
+        let (a1, a0) = (2.5 / t12, 2.5 / (t12 * t12));
+        assert!((g.k_p12 - (a1 * L - R) / -1.0).abs() < 1e-9);
+        assert!((g.k_i12 - a0 * L / -1.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn tau12_is_continuous_at_the_switch() {
+        let v = TAU12_SWITCH_FRAC * VMAX;
+        let a = tau12(v * (1.0 + 1e-9), 0.0, TU, VMAX);
+        let b = tau12(v * (1.0 - 1e-9), 0.0, TU, VMAX);
+        assert!((a - b).abs() < 1e-8 * a, "{a} {b}");
+    }
+
+    #[test]
+    fn limits_keep_the_gains_bounded_near_zero_amplitude() {
+        for v in [0.0, 1e-12, -1e-12, f64::NAN] {
+            for d in [0.0, 1.5, -1.5, 3.0] {
+                let g = CdmDesign::new(R, L, TU, VMAX, v, d, None);
+                assert!(g.v_ao_v.abs() >= V_AO_MIN_FRAC * VMAX * (1.0 - 1e-12));
+                assert!(g.delta_o_rad.abs() <= DELTA_O_MAX);
+                for k in [g.k_p21, g.k_i21, g.k_p12, g.k_i12] {
+                    assert!(k.is_finite(), "{g:?}");
+                }
+                // Bounded d controller: |K_P12| ≤ 25·L/(V_amax T_u) + R/|g|_min, K_I12 ∝ |g|.
+                let g_min = V_AO_MIN_FRAC * VMAX * DELTA_O_MAX.cos();
+                let bound = 25.0 * L / (VMAX * TU) + R / g_min;
+                assert!(g.k_p12.abs() <= bound * 1.0001, "{g:?}");
+                let vc = (g.v_ao_v * g.delta_o_rad.cos()).abs();
+                let ki = 250.0 * L * vc / (VMAX * TU).powi(2);
+                assert!((g.k_i12.abs() - ki).abs() <= 1e-9 * ki, "{g:?}");
+            }
+        }
+        let (v, d) = limit_operating_point(-1e-9, 0.0, VMAX);
+        assert!(v < 0.0 && d == 0.0);
+        let (v, _) = limit_operating_point(1e6, 0.0, VMAX);
+        assert_eq!(v, VMAX);
+    }
+}

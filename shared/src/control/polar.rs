@@ -1,0 +1,991 @@
+//! Current control of a surface PMSM with the control inputs in polar coordinates,
+//! Miyajima, Fujimoto and Fujitsuna ("Current Control Method with Control Inputs in Polar
+//! Coordinates for SPMSM Based on Linearized Model").
+//!
+//! The input is u = (V_a, δ), the voltage amplitude and phase: v_d = −V_a sin δ,
+//! v_q = V_a cos δ (eq. 1). Three current laws are selectable ([`PolarMode`]):
+//!
+//! * `polar` (section IV): C_21 drives i_q through V_a, C_12 drives i_d through δ, both PI,
+//!   on top of the decoupling inputs V_ad, δ_d (eqs 14–16); gains by the coefficient diagram
+//!   method (eqs 26–37, [`super::cdm`]) rescheduled every sample from the equilibrium of
+//!   eqs (38)–(39).
+//! * `voltage-phase` (section III, the conventional method): V_a held at V_amax, i_q
+//!   controlled through δ by a PID placed on the linearised model (2).
+//! * `polar-fw` (section III, the proposed method): the same phase controller plus the
+//!   voltage-amplitude controller C_v of eq. (11), a PID driving i_d to i_d* (= 0) through
+//!   V_a. In flux weakening V_a sits at V_amax and C_v's integrator is frozen; when the
+//!   operating point leaves flux weakening C_v lowers V_a and stops flux strengthening
+//!   (i_d > 0), without a mode switch.
+//!
+//! # Model (eqs 1–2)
+//!
+//! [`SpmsmModel`]: L = L_d = L_q, K_e = ψ_PM (Wb; the back-EMF is ω_e·K_e with ω_e the
+//! electrical speed). Eq. (2) prints ΔA = [∂f/∂x]ᵀ, ΔB = [∂f/∂u]ᵀ; the matrices printed are the
+//! Jacobians with rows = components of f (the ᵀ is the gradient-as-column convention), and
+//! [`SpmsmModel::linearise`] returns them; a unit test checks them against central differences.
+//!
+//! # Readings of ambiguous or misprinted equations
+//!
+//! 1. **Eqs (14)–(15), decoupling.** (14), V_ad = ω_e·√(L²i_q² + (L i_d + K_e)²), is
+//!    dimensionally consistent and used as printed (signed with ω_e, measured currents).
+//!    (15) prints tan δ_d = ω_e L i_q/(ω_e L i_d + K_e), which adds a flux K_e to a voltage
+//!    ω_e L i_d. Multiplying K_e by ω_e restores the units but cancels ω_e altogether:
+//!    δ_d = atan(L i_q/(L i_d + K_e)), about 21° at 2 A even at standstill, where V_ad = 0 and
+//!    δ_d would only rotate C_21's output off the q axis. We read δ_d as **the phase of the
+//!    steady-state voltage of (1) at the measured currents**:
+//!    tan δ_d = (ω_e L i_q − R i_d)/(ω_e (L i_d + K_e) + R i_q). All terms are volts, it
+//!    tends to the printed form as R → 0 or at speed, and δ_d → 0 at standstill with
+//!    i_d = 0, as the printed formula gives at ω_e = 0. The resistive drop is kept out of V_ad
+//!    (eq. 14 as printed): C_21 is designed on 1/(L s + R), so its integrator carries R·i_q.
+//! 2. **Signed amplitude.** δ is limited to ±δ_max = ±π/2 (Fig. 7(d)) and V_a to ±V_amax
+//!    (Fig. 7(c) draws ±M_max): the half plane v_q < 0 is reached with V_a < 0, not with
+//!    |δ| > π/2. δ_d is folded into (−π/2, π/2] accordingly.
+//! 3. **Eqs (38)–(39).** (38) prints δ_o[k] = δ_fb[k−1] + δ_a[k]; δ_a is read as δ_d, the
+//!    decoupling phase of sample k. δ_fb[k−1] is what the previous (limited) output held
+//!    beyond its decoupling part. V_ao[k] = V_a[k] (39) is the amplitude just computed by
+//!    C_21 ("after the q-axis current controller calculation"). Both are limited as the
+//!    paper says before any gain is computed: 0.001·V_amax ≤ |V_ao| ≤ V_amax (sign kept),
+//!    |δ_o| ≤ 0.9·π/2 ([`super::cdm::limit_operating_point`]).
+//! 4. **Eq. (37)** as printed: see [`super::cdm`].
+//! 5. **Anti-windup.** An integrator is frozen while its output is limited and its increment
+//!    would drive the output further into the limit (the gains of C_12 are negative for
+//!    V_ao > 0, so the direction is taken from the increment K_I·e, not from e).
+//! 6. **Section III.** Our copy of the paper has lost the text of section III-A/B (eqs 3–10).
+//!    What the remaining text fixes: the phase controller is designed on the linearised
+//!    model (2); C_v is a PID placed on ΔP_11(s) (eq. 11, i_d from V_a) with all poles
+//!    assigned; C_v's states are not renewed while V_a is saturated; the equilibrium V_ao is
+//!    V_a[k−1] and δ_o comes from eq. (9); the real parts of the phase loop's poles are at
+//!    −600 rad/s, of the amplitude loop's at −300 rad/s, and at high speed the poles lie on
+//!    the circle centred at the origin through the plant poles −R/L ± jω_e (eq. 12). Our
+//!    reconstruction:
+//!    * eq. (9), [`SpmsmModel::fw_phase`]: the phase at which (1) settles with i_q = i_q* under
+//!      the amplitude V_ao: V_ao·Z·cos(δ_o − φ) = Z²·i_q* + ω_e K_e R, Z = √(R² + ω_e²L²),
+//!      φ = atan2(ω_e L, R); of the two roots the one with δ_o ≤ φ, where ∂i_q/∂δ > 0 (the
+//!      phase controller's operating range); clamped to φ when i_q* is out of reach;
+//!    * the phase controller C_δ is a PID (K_D s² + K_P s + K_I)/s on ΔP_22(s) = Δi_q/Δδ of the
+//!      full model (2) at (V_ao, δ_o) — three closed-loop poles, all placed, as for C_v;
+//!    * both act around the equilibrium, u = u_o + Δu: δ = δ_o + C_δ(i_q* − i_q) and
+//!      V_a = V_a* + C_v(i_d* − i_d), V_a* = |v| of the equilibrium of (1) at (i_d*, i_q*); the
+//!      integrators only carry the model error, and in flux weakening V_a* > V_amax holds V_a
+//!      at its limit. The derivative acts on the measured current (same poles, no kick on a
+//!      reference step);
+//!    * poles ([`fw_poles`]): real part σ; the complex pair on the circle |s| = ρ = |p_1|
+//!      when ρ > |σ|, the third pole at σ; a triple pole at σ when ρ ≤ |σ| (then all poles
+//!      are already faster than the plant's). σ_δ = −0.06/T_u (the paper's −600 rad/s at
+//!      T_u = 100 µs), σ_v = σ_δ/2;
+//!    * conventional method: the same C_δ with V_a ≡ V_amax and no amplitude controller.
+//! 7. **Negative speed.** The flux-weakening laws run in the mirrored frame
+//!    (ω_e, i_q, V_a, δ) → (−ω_e, −i_q, −V_a, −δ), under which (1) is invariant, so the same
+//!    branch of (9) applies in both directions.
+
+use super::cdm;
+use super::current::{CurrentInput, VoltageDq};
+use crate::motor::MotorParams;
+use serde::Serialize;
+use std::f64::consts::FRAC_PI_2;
+
+/// Output limit of the voltage phase, ±δ_max = ±π/2 (Fig. 7(d)).
+pub const DELTA_MAX: f64 = FRAC_PI_2;
+/// Real part of the phase loop's poles times T_u (σ_δ = −0.06/T_u = −600 rad/s at 100 µs).
+pub const SIGMA_DELTA_TU: f64 = -0.06;
+/// Ratio of the amplitude loop's real part to the phase loop's (−300/−600, section III-C).
+pub const SIGMA_V_RATIO: f64 = 0.5;
+
+/// Which of the paper's current laws runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PolarMode {
+    /// Section IV: C_21 (i_q via V_a) and C_12 (i_d via δ), CDM gains, decoupling (14)–(15).
+    Polar,
+    /// Section III, conventional: V_a = V_amax, i_q via δ only.
+    VoltagePhase,
+    /// Section III, proposed: the phase controller plus the amplitude controller C_v (eq. 11).
+    PolarFw,
+}
+
+impl PolarMode {
+    /// Name used in scenario files and printouts.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Polar => "polar",
+            Self::VoltagePhase => "voltage-phase",
+            Self::PolarFw => "polar-fw",
+        }
+    }
+}
+
+/// Surface PMSM of eq. (1): L = L_d = L_q, back-EMF constant K_e = ψ_PM.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct SpmsmModel {
+    /// R, Ω.
+    pub r_ohm: f64,
+    /// L, H.
+    pub l_h: f64,
+    /// K_e, Wb (V·s per electrical rad).
+    pub k_e_wb: f64,
+}
+
+/// Numerator and denominator of (b1 s + b0)/(s² + a1 s + a0).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct SecondOrder {
+    /// s coefficient of the numerator.
+    pub b1: f64,
+    /// Constant of the numerator.
+    pub b0: f64,
+    /// s coefficient of the denominator.
+    pub a1: f64,
+    /// Constant of the denominator.
+    pub a0: f64,
+}
+
+/// A PID with a filtered derivative, C(s) = (q2 s² + q1 s + q0)/(s·(s + f)): in parallel
+/// form q2 + K_I/s + B/(s + f) with K_I = q0/f and B = q1 − q2·f − q0/f.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct PidGains {
+    /// q2 (high-frequency gain).
+    pub q2: f64,
+    /// q1, per second.
+    pub q1: f64,
+    /// q0, per second².
+    pub q0: f64,
+    /// Pole of the derivative filter f > 0, rad/s.
+    pub f: f64,
+}
+
+impl PidGains {
+    /// Integral gain K_I = q0/f of the parallel form, per second.
+    pub fn k_i(&self) -> f64 {
+        self.q0 / self.f
+    }
+
+    /// Gain B of the filtered branch B/(s + f) of the parallel form, per second.
+    pub fn b(&self) -> f64 {
+        self.q1 - self.q2 * self.f - self.q0 / self.f
+    }
+
+    /// Proportional gain C(s)·s/(...) at low frequency: q1/f − q0/f² (K_P of the ideal
+    /// PID the filtered one approximates below f).
+    pub fn k_p(&self) -> f64 {
+        self.q1 / self.f - self.q0 / (self.f * self.f)
+    }
+}
+
+/// (V_a, δ) → (v_d, v_q) (eq. 1).
+pub fn polar_to_dq(v_a: f64, delta: f64) -> (f64, f64) {
+    let (s, c) = delta.sin_cos();
+    (-v_a * s, v_a * c)
+}
+
+/// (v_d, v_q) → (V_a, δ) with |δ| ≤ π/2 and V_a signed (reading 2), so that
+/// [`polar_to_dq`] inverts it. (0, 0) → (0, 0).
+pub fn dq_to_polar(v_d: f64, v_q: f64) -> (f64, f64) {
+    let a = (-v_d).atan2(v_q);
+    let d = fold_half_plane(a);
+    let mag = v_d.hypot(v_q);
+    (if d == a { mag } else { -mag }, d)
+}
+
+/// Folds an angle in (−π, π] into (−π/2, π/2] (the direction of a signed amplitude).
+fn fold_half_plane(a: f64) -> f64 {
+    if a > FRAC_PI_2 {
+        a - std::f64::consts::PI
+    } else if a <= -FRAC_PI_2 {
+        a + std::f64::consts::PI
+    } else {
+        a
+    }
+}
+
+impl SpmsmModel {
+    /// The model of a surface motor (L = mean of L_d and L_q; the scenario checks they agree).
+    pub fn from_motor(m: &MotorParams) -> Self {
+        Self {
+            r_ohm: m.r_ohm,
+            l_h: 0.5 * (m.l_d_h + m.l_q_h),
+            k_e_wb: m.psi_pm_wb,
+        }
+    }
+
+    /// Eq. (1): f(x, u) = dx/dt for x = [i_d, i_q], u = [V_a, δ] at electrical speed ω_e.
+    pub fn f(&self, x: [f64; 2], u: [f64; 2], omega_e: f64) -> [f64; 2] {
+        let (v_d, v_q) = polar_to_dq(u[0], u[1]);
+        let a = self.r_ohm / self.l_h;
+        [
+            -a * x[0] + omega_e * x[1] + v_d / self.l_h,
+            -omega_e * x[0] - a * x[1] + (v_q - omega_e * self.k_e_wb) / self.l_h,
+        ]
+    }
+
+    /// Eq. (2): the Jacobians (ΔA, ΔB) of (1) at input u_o (row i = component i of f).
+    pub fn linearise(&self, u_o: [f64; 2], omega_e: f64) -> ([[f64; 2]; 2], [[f64; 2]; 2]) {
+        let a = self.r_ohm / self.l_h;
+        let l = self.l_h;
+        let (s, c) = u_o[1].sin_cos();
+        (
+            [[-a, omega_e], [-omega_e, -a]],
+            [[-s / l, -u_o[0] * c / l], [c / l, -u_o[0] * s / l]],
+        )
+    }
+
+    /// Steady-state voltage (v_d, v_q) that holds the currents (i_d, i_q) at ω_e (f = 0).
+    pub fn steady_voltage(&self, i_d: f64, i_q: f64, omega_e: f64) -> (f64, f64) {
+        (
+            self.r_ohm * i_d - omega_e * self.l_h * i_q,
+            self.r_ohm * i_q + omega_e * (self.l_h * i_d + self.k_e_wb),
+        )
+    }
+
+    /// Decoupling inputs (V_ad, δ_d), eqs (14)–(15) in the reading of the module docs.
+    pub fn decoupling(&self, i_d: f64, i_q: f64, omega_e: f64) -> (f64, f64) {
+        let l = self.l_h;
+        let v_ad = omega_e * (l * i_q).hypot(l * i_d + self.k_e_wb);
+        let num = omega_e * l * i_q - self.r_ohm * i_d;
+        let den = omega_e * (l * i_d + self.k_e_wb) + self.r_ohm * i_q;
+        (v_ad, fold_half_plane(num.atan2(den)))
+    }
+
+    /// Eq. (9) (reconstructed, module docs reading 6): the equilibrium phase at amplitude
+    /// `v_ao` ≥ 0 with i_q = `i_q` at ω_e ≥ 0, the root δ_o ≤ φ; φ when out of reach.
+    pub fn fw_phase(&self, v_ao: f64, i_q: f64, omega_e: f64) -> f64 {
+        let (r, l) = (self.r_ohm, self.l_h);
+        let z = r.hypot(omega_e * l);
+        let phi = self.max_torque_phase(omega_e);
+        let c = (z * z * i_q + omega_e * self.k_e_wb * r) / (v_ao * z);
+        let c = if c.is_nan() { 1.0 } else { c.clamp(-1.0, 1.0) };
+        phi - c.acos()
+    }
+
+    /// ΔP_11(s) = Δi_d/ΔV_a of the full model (2) at (V_ao, δ_o, ω_e).
+    pub fn plant_11(&self, delta_o: f64, omega_e: f64) -> SecondOrder {
+        let a = self.r_ohm / self.l_h;
+        let (s, c) = delta_o.sin_cos();
+        SecondOrder {
+            b1: -s / self.l_h,
+            b0: (omega_e * c - a * s) / self.l_h,
+            a1: 2.0 * a,
+            a0: a * a + omega_e * omega_e,
+        }
+    }
+
+    /// Low-frequency gain Δi_d/ΔV_a while the phase loop holds i_q:
+    /// (P_11(0)² + P_21(0)²)/P_11(0), with P_21(s) = Δi_q/ΔV_a (and P_12/P_22 = −P_21/P_11).
+    pub fn amplitude_gain(&self, delta_o: f64, omega_e: f64) -> f64 {
+        let a = self.r_ohm / self.l_h;
+        let (s, c) = delta_o.sin_cos();
+        let den = self.l_h * (a * a + omega_e * omega_e);
+        let p11 = (omega_e * c - a * s) / den;
+        let p21 = (omega_e * s + a * c) / den;
+        (p11 * p11 + p21 * p21) / p11
+    }
+
+    /// ΔP_22(s) = Δi_q/Δδ of the full model (2) at (V_ao, δ_o, ω_e).
+    pub fn plant_22(&self, v_ao: f64, delta_o: f64, omega_e: f64) -> SecondOrder {
+        let p = self.plant_11(delta_o, omega_e);
+        SecondOrder {
+            b1: v_ao * p.b1,
+            b0: v_ao * p.b0,
+            ..p
+        }
+    }
+
+    /// φ = atan2(ω_e L, R): the phase of the largest i_q at a given amplitude (the steady
+    /// state of (1) gives i_q ∝ cos(δ − φ) + const).
+    pub fn max_torque_phase(&self, omega_e: f64) -> f64 {
+        (omega_e * self.l_h).atan2(self.r_ohm)
+    }
+
+    /// |p_1| = √((R/L)² + ω_e²): radius of the circle through the plant poles (eq. 12).
+    pub fn pole_radius(&self, omega_e: f64) -> f64 {
+        (self.r_ohm / self.l_h).hypot(omega_e)
+    }
+}
+
+/// Coefficients (d3, d2, d1, d0) of s⁴ + d3 s³ + d2 s² + d1 s + d0 for the
+/// flux-weakening loops (module docs reading 6): real part `sigma` < 0 for all four poles,
+/// a pair on the circle of radius r = max(`rho`, |σ|) and a double pole at σ:
+/// (s² + 2|σ| s + r²)(s + |σ|)².
+pub fn fw_poles(sigma: f64, rho: f64) -> [f64; 4] {
+    // (s² + 2 s_ s + r²)² with s_ = |σ|, r = max(ρ, |σ|): both pairs on the circle.
+    let s_ = sigma.abs();
+    let r2 = rho.max(s_).powi(2);
+    let (c1, c0) = (2.0 * s_, r2);
+    [2.0 * c1, c1 * c1 + 2.0 * c0, 2.0 * c1 * c0, c0 * c0]
+}
+
+/// The real part `sigma` (< 0), limited to half the right-half-plane zero b0/|b1| of `p`
+/// when it has one: a loop cannot be made much faster than its non-minimum-phase zero.
+pub fn limit_by_zero(sigma: f64, p: &SecondOrder) -> f64 {
+    let z = -p.b0 / p.b1;
+    if z.is_finite() && z > 0.0 {
+        -sigma.abs().min(0.5 * z)
+    } else {
+        sigma
+    }
+}
+
+/// The filtered PID that places the closed loop of plant `p` at s⁴ + d3 s³ + d2 s² + d1 s + d0:
+/// s(s + f)(s² + a1 s + a0) + (b1 s + b0)(q2 s² + q1 s + q0) is linear in (f, q2, q1, q0).
+/// None when the plant's numerator and denominator share a root (no unique solution), or
+/// the solution has f ≤ 0 (an unstable or integrating filter) or is not finite.
+pub fn place_pid(p: &SecondOrder, d: [f64; 4]) -> Option<PidGains> {
+    let [d3, d2, d1, d0] = d;
+    let (b1, b0, a1, a0) = (p.b1, p.b0, p.a1, p.a0);
+    if b0.abs() < 1e-12 * (a0.abs() + b1.abs() * a1.abs()).max(1e-300) {
+        return None;
+    }
+    let q0 = d0 / b0;
+    // Unknowns (f, q2, q1):  f + b1 q2 = d3 − a1;  a1 f + b0 q2 + b1 q1 = d2 − a0;
+    // a0 f + b0 q1 = d1 − b1 q0.
+    let m = [[1.0, b1, 0.0], [a1, b0, b1], [a0, 0.0, b0]];
+    let rhs = [d3 - a1, d2 - a0, d1 - b1 * q0];
+    let det3 = |m: &[[f64; 3]; 3]| {
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    };
+    let det = det3(&m);
+    // det is the resultant of N and D (up to sign): zero when they share a root.
+    let scale = b0.abs() * b0.abs().max(b1.abs() * a1.abs().max(a0.abs().sqrt()));
+    if !(det.is_finite() && det.abs() > 1e-9 * scale) {
+        return None;
+    }
+    let mut k = [0.0; 3];
+    for (j, kj) in k.iter_mut().enumerate() {
+        let mut mj = m;
+        for (row, r) in mj.iter_mut().zip(rhs) {
+            row[j] = r;
+        }
+        *kj = det3(&mj) / det;
+    }
+    let g = PidGains {
+        f: k[0],
+        q2: k[1],
+        q1: k[2],
+        q0,
+    };
+    let ok = g.f > 1e-9 && [g.f, g.q2, g.q1, g.q0].iter().all(|v| v.is_finite());
+    ok.then_some(g)
+}
+
+/// The filtered PID [`PidGains`] in parallel form with a feed-forward, output limits and
+/// conditional integration. Gains are passed in every step (gain scheduling); both states
+/// are in output units, so a gain change does not move them.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct ScheduledPid {
+    /// Integrator state (output units).
+    pub x_i: f64,
+    /// State of the filtered branch B/(s + f) (output units).
+    pub z: f64,
+}
+
+impl ScheduledPid {
+    /// One step: ff + q2·e + x_I + z limited to [lo, hi]. The filter is discretised exactly
+    /// for e held over the sample; the integrator by forward Euler and frozen while the
+    /// output is limited and its increment points further into the limit.
+    #[allow(clippy::too_many_arguments)]
+    pub fn step(
+        &mut self,
+        g: &PidGains,
+        e: f64,
+        ff: f64,
+        lo: f64,
+        hi: f64,
+        ts: f64,
+    ) -> (f64, bool) {
+        let v = ff + g.q2 * e + self.x_i + self.z;
+        let out = v.clamp(lo, hi);
+        let phi = (-g.f * ts).exp();
+        let z = phi * self.z + g.b() * (1.0 - phi) / g.f * e;
+        if z.is_finite() {
+            self.z = z;
+        }
+        let inc = g.k_i() * ts * e;
+        let winding = (v > hi && inc > 0.0) || (v < lo && inc < 0.0);
+        if !winding && inc.is_finite() {
+            // The integrator alone never leaves the output range either.
+            self.x_i = (self.x_i + inc).clamp(lo, hi);
+        }
+        (out, out != v)
+    }
+}
+
+/// A PI in parallel form with scheduled gains and conditional integration (the C_21 and
+/// C_12 of eqs 24–25).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct ScheduledPi {
+    /// Integrator state (output units).
+    pub x_i: f64,
+}
+
+impl ScheduledPi {
+    /// One step: ff + K_P e + x_I limited to [lo, hi]; returns the output and whether it
+    /// was limited.
+    #[allow(clippy::too_many_arguments)]
+    pub fn step(
+        &mut self,
+        k_p: f64,
+        k_i: f64,
+        e: f64,
+        ff: f64,
+        lo: f64,
+        hi: f64,
+        ts: f64,
+    ) -> (f64, bool) {
+        let v = ff + k_p * e + self.x_i;
+        let out = v.clamp(lo, hi);
+        let inc = k_i * ts * e;
+        let winding = (v > hi && inc > 0.0) || (v < lo && inc < 0.0);
+        if !winding && inc.is_finite() {
+            self.x_i += inc;
+        }
+        (out, out != v)
+    }
+}
+
+/// Settings of the polar current laws, all derived from the motor, T_u and V_amax.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct PolarSpec {
+    /// Which law.
+    pub mode: PolarMode,
+    /// Plant model.
+    pub model: SpmsmModel,
+    /// Control period T_u, s.
+    pub tu_s: f64,
+    /// Voltage limit V_amax, V (V_dc/√3).
+    pub v_amax_v: f64,
+}
+
+/// What a scenario's polar design looks like (`summary.json` → `design.polar`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct PolarDesign {
+    /// The law and its inputs.
+    pub spec: PolarSpec,
+    /// CDM γ_1 (eqs 32, 34).
+    pub gamma1: f64,
+    /// τ_21 = 10·T_u, s.
+    pub tau21_s: f64,
+    /// a_1 of (26), 1/s.
+    pub a1_21: f64,
+    /// a_0 of (26), 1/s².
+    pub a0_21: f64,
+    /// K_P21 at δ_o = 0 (eq. 28), V/A.
+    pub k_p21_at_0: f64,
+    /// K_I21 at δ_o = 0 (eq. 29), V/(A·s).
+    pub k_i21_at_0: f64,
+    /// Lower limit of |V_ao|, V.
+    pub v_ao_min_v: f64,
+    /// Limit of |δ_o|, rad.
+    pub delta_o_max_rad: f64,
+    /// Output limit of |δ|, rad.
+    pub delta_max_rad: f64,
+    /// Real part of the phase loop's poles (section III), rad/s.
+    pub sigma_delta_rad_s: f64,
+    /// Real part of the amplitude loop's poles (section III), rad/s.
+    pub sigma_v_rad_s: f64,
+}
+
+impl PolarDesign {
+    /// The design summary for `spec`.
+    pub fn new(spec: &PolarSpec) -> Self {
+        let tau21 = cdm::TAU_SAMPLES * spec.tu_s;
+        let (a1, a0) = cdm::cdm_second_order(cdm::GAMMA1, tau21);
+        let (kp, ki) = cdm::gains_21(spec.model.r_ohm, spec.model.l_h, a1, a0, 0.0);
+        let sd = SIGMA_DELTA_TU / spec.tu_s;
+        Self {
+            spec: *spec,
+            gamma1: cdm::GAMMA1,
+            tau21_s: tau21,
+            a1_21: a1,
+            a0_21: a0,
+            k_p21_at_0: kp,
+            k_i21_at_0: ki,
+            v_ao_min_v: cdm::V_AO_MIN_FRAC * spec.v_amax_v,
+            delta_o_max_rad: cdm::DELTA_O_MAX,
+            delta_max_rad: DELTA_MAX,
+            sigma_delta_rad_s: sd,
+            sigma_v_rad_s: SIGMA_V_RATIO * sd,
+        }
+    }
+}
+
+/// The polar current controller (all three modes). No allocation in [`Self::step`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PolarCurrentController {
+    spec: PolarSpec,
+    a1_21: f64,
+    a0_21: f64,
+    sigma_delta: f64,
+    sigma_v: f64,
+    // Section IV.
+    c21: ScheduledPi,
+    c12: ScheduledPi,
+    delta_fb_prev: f64,
+    // Section III.
+    c_delta: ScheduledPid,
+    c_v: ScheduledPi,
+    g_delta: PidGains,
+    k_v: f64,
+    v_a_prev: Option<f64>,
+    started: bool,
+    /// Last output (V_a, δ) in the motor's frame.
+    pub last: (f64, f64),
+    /// Samples where V_a was limited to ±V_amax.
+    pub v_a_limited_samples: u64,
+    /// Samples where δ was limited to ±δ_max.
+    pub delta_limited_samples: u64,
+    /// Samples where |V_ao| sat at its lower limit 0.001·V_amax (near the uncontrollable
+    /// point V_a ≈ 0 of eq. 13).
+    pub near_zero_amplitude_samples: u64,
+    /// Samples where a flux-weakening PID could not be placed and kept its last gains.
+    pub kept_gains_samples: u64,
+}
+
+impl PolarCurrentController {
+    /// A controller for `spec`, at rest.
+    pub fn new(spec: &PolarSpec) -> Self {
+        let d = PolarDesign::new(spec);
+        Self {
+            spec: *spec,
+            a1_21: d.a1_21,
+            a0_21: d.a0_21,
+            sigma_delta: d.sigma_delta_rad_s,
+            sigma_v: d.sigma_v_rad_s,
+            c21: ScheduledPi::default(),
+            c12: ScheduledPi::default(),
+            delta_fb_prev: 0.0,
+            c_delta: ScheduledPid::default(),
+            c_v: ScheduledPi::default(),
+            g_delta: PidGains::default(),
+            k_v: 0.0,
+            v_a_prev: None,
+            started: false,
+            last: (0.0, 0.0),
+            v_a_limited_samples: 0,
+            delta_limited_samples: 0,
+            near_zero_amplitude_samples: 0,
+            kept_gains_samples: 0,
+        }
+    }
+
+    /// The settings.
+    pub fn spec(&self) -> &PolarSpec {
+        &self.spec
+    }
+
+    /// One control step: references, measured currents and ω_e → (v_d, v_q).
+    pub fn step(&mut self, x: &CurrentInput) -> VoltageDq {
+        let (v_a, delta, limited) = match self.spec.mode {
+            PolarMode::Polar => self.step_polar(x),
+            PolarMode::VoltagePhase | PolarMode::PolarFw => self.step_fw(x),
+        };
+        self.last = (v_a, delta);
+        let (u_d, u_q) = polar_to_dq(v_a, delta);
+        VoltageDq {
+            u_d,
+            u_q,
+            saturated: limited,
+        }
+    }
+
+    /// Section IV: eqs (14)–(16), (24)–(39).
+    fn step_polar(&mut self, x: &CurrentInput) -> (f64, f64, bool) {
+        let sp = self.spec;
+        let (r, l, vmax, ts) = (sp.model.r_ohm, sp.model.l_h, sp.v_amax_v, sp.tu_s);
+        let (v_ad, delta_d) = sp.model.decoupling(x.i_d, x.i_q, x.omega_e);
+        // (38): δ_o[k] = δ_fb[k−1] + δ_d[k], limited.
+        let (_, d_o) = cdm::limit_operating_point(vmax, self.delta_fb_prev + delta_d, vmax);
+        let (kp21, ki21) = cdm::gains_21(r, l, self.a1_21, self.a0_21, d_o);
+        let (v_a, v_lim) = self
+            .c21
+            .step(kp21, ki21, x.i_q_ref - x.i_q, v_ad, -vmax, vmax, ts);
+        // (39): V_ao[k] = V_a[k], limited; (37) and (30)–(31).
+        let (v_o, d_o) = cdm::limit_operating_point(v_a, d_o, vmax);
+        if v_o.abs() <= cdm::V_AO_MIN_FRAC * vmax {
+            self.near_zero_amplitude_samples += 1;
+        }
+        let t12 = cdm::tau12(v_o, d_o, ts, vmax);
+        let (a1, a0) = cdm::cdm_second_order(cdm::GAMMA1, t12);
+        let (kp12, ki12) = cdm::gains_12(r, l, a1, a0, v_o, d_o);
+        let (delta, d_lim) = self.c12.step(
+            kp12,
+            ki12,
+            x.i_d_ref - x.i_d,
+            delta_d,
+            -DELTA_MAX,
+            DELTA_MAX,
+            ts,
+        );
+        self.delta_fb_prev = delta - delta_d;
+        self.v_a_limited_samples += u64::from(v_lim);
+        self.delta_limited_samples += u64::from(d_lim);
+        (v_a, delta, v_lim || d_lim)
+    }
+
+    /// Section III: the phase controller, with V_a = V_amax (conventional) or from the
+    /// amplitude controller C_v (proposed).
+    fn step_fw(&mut self, x: &CurrentInput) -> (f64, f64, bool) {
+        let sp = self.spec;
+        let (vmax, ts, md) = (sp.v_amax_v, sp.tu_s, &sp.model);
+        // Mirror to ω_e ≥ 0 (reading 7).
+        let s = if x.omega_e < 0.0 { -1.0 } else { 1.0 };
+        let w = s * x.omega_e;
+        let (i_q, i_q_ref) = (s * x.i_q, s * x.i_q_ref);
+        let rho = md.pole_radius(w);
+        if !self.started {
+            // Bumpless start at the equilibrium of the first references (reading 6: the
+            // integrators carry the operating point).
+            self.started = true;
+            let (a, b) = md.steady_voltage(x.i_d_ref, i_q_ref, w);
+            let v0 = match sp.mode {
+                PolarMode::PolarFw => a.hypot(b).min(vmax),
+                _ => vmax,
+            };
+            let (v_o, _) = cdm::limit_operating_point(v0, 0.0, vmax);
+            self.c_v.x_i = v0;
+            self.c_delta.x_i = md
+                .fw_phase(v_o, i_q_ref, w)
+                .clamp(-DELTA_MAX, md.max_torque_phase(w).min(DELTA_MAX));
+            self.v_a_prev = Some(v0);
+        }
+        let mut v_lim = false;
+        let v_a = match sp.mode {
+            PolarMode::PolarFw => {
+                // C_v designed at V_ao = V_a[k−1] and δ_o from (9) (module docs, reading 6).
+                let prev = self.v_a_prev.unwrap_or(vmax);
+                let (v_o, _) = cdm::limit_operating_point(prev, 0.0, vmax);
+                let d_o = md
+                    .fw_phase(v_o, i_q_ref, w)
+                    .clamp(-cdm::DELTA_O_MAX, cdm::DELTA_O_MAX);
+                let sig_v =
+                    SIGMA_V_RATIO * limit_by_zero(self.sigma_delta, &md.plant_22(v_o, d_o, w));
+                let g = md.amplitude_gain(d_o, w);
+                if g.is_finite() && g.abs() > 1e-9 {
+                    self.k_v = sig_v.abs() / g;
+                } else {
+                    self.kept_gains_samples += 1;
+                }
+                let (v, lim) =
+                    self.c_v
+                        .step(0.0, self.k_v, x.i_d_ref - x.i_d, 0.0, 0.0, vmax, ts);
+                v_lim = lim;
+                v
+            }
+            _ => vmax,
+        };
+        self.v_a_prev = Some(v_a);
+        let (v_o, _) = cdm::limit_operating_point(v_a, 0.0, vmax);
+        if v_o <= cdm::V_AO_MIN_FRAC * vmax {
+            self.near_zero_amplitude_samples += 1;
+        }
+        // C_δ designed at V_ao = V_a[k] and δ_o from (9).
+        let d_o = md
+            .fw_phase(v_o, i_q_ref, w)
+            .clamp(-cdm::DELTA_O_MAX, cdm::DELTA_O_MAX);
+        let sig_d = limit_by_zero(self.sigma_delta, &md.plant_22(v_o, d_o, w));
+        match place_pid(&md.plant_22(v_o, d_o, w), fw_poles(sig_d, rho)) {
+            Some(g) => self.g_delta = g,
+            None => self.kept_gains_samples += 1,
+        }
+        // Beyond φ = atan2(ω_e L, R) more phase gives less i_q: the phase loop would change
+        // sign. Limit δ to the range where ∂i_q/∂δ > 0 (and to ±δ_max).
+        let d_hi = md.max_torque_phase(w).min(DELTA_MAX);
+        let (delta, d_lim) = self.c_delta.step(
+            &self.g_delta,
+            i_q_ref - i_q,
+            0.0,
+            -DELTA_MAX,
+            d_hi,
+            ts,
+        );
+        self.v_a_limited_samples += u64::from(v_lim || sp.mode == PolarMode::VoltagePhase);
+        self.delta_limited_samples += u64::from(d_lim);
+        (s * v_a, s * delta, v_lim || d_lim)
+    }
+
+    /// Bumpless take-over: presets the integrators so that the next output at zero error is
+    /// the voltage `u` (e.g. the one the plant is applying), at operating point `x`.
+    pub fn preset(&mut self, u: VoltageDq, x: &CurrentInput) {
+        let (v_a, delta) = dq_to_polar(u.u_d, u.u_q);
+        let md = self.spec.model;
+        match self.spec.mode {
+            PolarMode::Polar => {
+                let (v_ad, delta_d) = md.decoupling(x.i_d, x.i_q, x.omega_e);
+                self.c21.x_i = v_a - v_ad;
+                self.c12.x_i = delta - delta_d;
+                self.delta_fb_prev = delta - delta_d;
+            }
+            PolarMode::VoltagePhase | PolarMode::PolarFw => {
+                let s = if x.omega_e < 0.0 { -1.0 } else { 1.0 };
+                self.c_delta = ScheduledPid {
+                    x_i: s * delta,
+                    z: 0.0,
+                };
+                self.c_v = ScheduledPi { x_i: s * v_a };
+                self.v_a_prev = Some(s * v_a);
+                self.started = true;
+            }
+        }
+        self.last = (v_a, delta);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::motor::{Mechanics, MotorInput, MotorState, Rk4};
+
+    fn motor() -> MotorParams {
+        MotorParams::low1998()
+    }
+
+    fn spec(mode: PolarMode, v_dc: f64) -> PolarSpec {
+        PolarSpec {
+            mode,
+            model: SpmsmModel::from_motor(&motor()),
+            tu_s: 1e-4,
+            v_amax_v: v_dc / 3f64.sqrt(),
+        }
+    }
+
+    /// Eq. (2) against central differences of eq. (1) at several equilibria and non-equilibria.
+    #[test]
+    fn linearisation_matches_a_numerical_jacobian() {
+        let md = SpmsmModel::from_motor(&motor());
+        for (x, u, w) in [
+            ([0.0, 2.0], [5.0, 0.0], 0.0),
+            ([-0.4, 2.0], [57.7, 0.6], 335.1),
+            ([0.3, -1.0], [-20.0, -0.3], -167.5),
+            ([1.0, 1.0], [100.0, 1.3], 50.0),
+        ] {
+            let (a, b) = md.linearise(u, w);
+            for j in 0..2 {
+                let h = 1e-6;
+                let (mut xp, mut xm) = (x, x);
+                xp[j] += h;
+                xm[j] -= h;
+                let (fp, fm) = (md.f(xp, u, w), md.f(xm, u, w));
+                let (mut up, mut um) = (u, u);
+                let hu = 1e-6 * u[j].abs().max(1.0);
+                up[j] += hu;
+                um[j] -= hu;
+                let (gp, gm) = (md.f(x, up, w), md.f(x, um, w));
+                for i in 0..2 {
+                    let na = (fp[i] - fm[i]) / (2.0 * h);
+                    let nb = (gp[i] - gm[i]) / (2.0 * hu);
+                    assert!(
+                        (na - a[i][j]).abs() <= 1e-6 * a[i][j].abs().max(1.0),
+                        "A[{i}][{j}]"
+                    );
+                    assert!(
+                        (nb - b[i][j]).abs() <= 1e-5 * b[i][j].abs().max(1.0),
+                        "B[{i}][{j}] {nb} vs {}",
+                        b[i][j]
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn polar_and_dq_round_trip_with_a_signed_amplitude() {
+        for (vd, vq) in [
+            (3.0, 4.0),
+            (-3.0, 4.0),
+            (3.0, -4.0),
+            (-3.0, -4.0),
+            (0.0, 0.0),
+            (-2.0, 0.0),
+            (2.0, 0.0),
+        ] {
+            let (v, d) = dq_to_polar(vd, vq);
+            assert!(d.abs() <= FRAC_PI_2 + 1e-15, "{d}");
+            let (a, b) = polar_to_dq(v, d);
+            assert!(
+                (a - vd).abs() < 1e-12 && (b - vq).abs() < 1e-12,
+                "({vd},{vq}) -> ({v},{d}) -> ({a},{b})"
+            );
+        }
+    }
+
+    #[test]
+    fn decoupling_is_the_steady_state_voltage_direction() {
+        let md = SpmsmModel::from_motor(&motor());
+        // Standstill: no decoupling amplitude, phase 0 with i_d = 0 (as printed eq. 15 at ω = 0).
+        let (v, d) = md.decoupling(0.0, 2.0, 0.0);
+        assert_eq!((v, d), (0.0, 0.0));
+        // At speed: V_ad of eq. (14) as printed, δ_d the phase of the full steady-state vector.
+        let w = 167.55;
+        let (v, d) = md.decoupling(0.0, 2.0, w);
+        let want = w * ((0.03f64 * 2.0).powi(2) + md.k_e_wb.powi(2)).sqrt();
+        assert!((v - want).abs() < 1e-9);
+        let (vd, vq) = md.steady_voltage(0.0, 2.0, w);
+        assert!((d - (-vd).atan2(vq)).abs() < 1e-12);
+        // Negative speed: V_ad < 0, the phase stays in (−π/2, π/2].
+        let (v, d) = md.decoupling(0.0, 2.0, -w);
+        assert!(v < 0.0 && d.abs() < FRAC_PI_2);
+    }
+
+    #[test]
+    fn fw_phase_is_the_equilibrium_of_eq_1() {
+        let md = SpmsmModel::from_motor(&motor());
+        let w = 4.0 * 800.0 * std::f64::consts::PI / 30.0;
+        for (v, iq) in [(57.735, 0.0), (57.735, 2.0), (80.0, 1.0), (270.0, 3.0)] {
+            let d = md.fw_phase(v, iq, w);
+            // Solve f = 0 for i_d at this (V, δ): both rows must hold with i_q = iq.
+            let (vd, _) = polar_to_dq(v, d);
+            let i_d = (vd + w * md.l_h * iq) / md.r_ohm;
+            let f = md.f([i_d, iq], [v, d], w);
+            assert!(f[0].abs() < 1e-9 && f[1].abs() < 1e-6, "{v} {iq}: {f:?}");
+            // The branch where more phase gives more i_q.
+            let g = md.plant_22(v, d, w);
+            assert!(g.b0 / g.a0 > 0.0, "{v} {iq}");
+        }
+        // Out of reach: clamped at φ, finite.
+        let d = md.fw_phase(10.0, 5.0, w);
+        assert!((d - (w * md.l_h).atan2(md.r_ohm)).abs() < 1e-12);
+        assert!(md.fw_phase(0.0, 0.0, 0.0).is_finite());
+    }
+
+    #[test]
+    fn pid_places_the_four_poles() {
+        let md = SpmsmModel::from_motor(&motor());
+        let w = 335.1;
+        for (p, sigma) in [
+            (md.plant_22(57.7, 0.6, w), -600.0),
+            (md.plant_11(0.2, w), -300.0),
+            (md.plant_22(270.0, 0.9, 167.5), -600.0),
+        ] {
+            let d = fw_poles(sigma, md.pole_radius(w));
+            let g = place_pid(&p, d).unwrap();
+            // s(s + f)(s² + a1 s + a0) + (b1 s + b0)(q2 s² + q1 s + q0)
+            let got = [
+                p.a1 + g.f + p.b1 * g.q2,
+                p.a0 + g.f * p.a1 + p.b1 * g.q1 + p.b0 * g.q2,
+                g.f * p.a0 + p.b1 * g.q0 + p.b0 * g.q1,
+                p.b0 * g.q0,
+            ];
+            for i in 0..4 {
+                assert!(
+                    (got[i] - d[i]).abs() < 1e-9 * d[i].abs(),
+                    "{i}: {got:?} vs {d:?}"
+                );
+            }
+            // Parallel form q2 + K_I/s + B/(s + f) is the same transfer function.
+            let s0 = 700.0;
+            let c1 = (g.q2 * s0 * s0 + g.q1 * s0 + g.q0) / (s0 * (s0 + g.f));
+            let c2 = g.q2 + g.k_i() / s0 + g.b() / (s0 + g.f);
+            assert!((c1 - c2).abs() < 1e-12 * c1.abs().max(1.0));
+        }
+        // Poles on the circle through the plant poles when it is larger than |σ|:
+        // (s² + 600 s + 345²)(s + 300)².
+        let d = fw_poles(-300.0, 345.0);
+        let r2 = 345.0f64 * 345.0;
+        assert_eq!(
+            d,
+            [
+                1200.0,
+                5.0 * 300.0 * 300.0 + r2,
+                600.0 * (300.0 * 300.0 + r2),
+                300.0 * 300.0 * r2
+            ]
+        );
+        // A quadruple pole at σ when the circle is smaller.
+        assert_eq!(
+            fw_poles(-600.0, 345.0),
+            [2400.0, 6.0 * 3.6e5, 4.0 * 2.16e8, 1.296e11]
+        );
+        // Numerator and denominator sharing a root: none.
+        let p = SecondOrder {
+            b1: 1.0,
+            b0: 2.0,
+            a1: 3.0,
+            a0: 2.0,
+        }; // (s + 2)/((s + 1)(s + 2))
+        assert!(place_pid(&p, d).is_none());
+    }
+
+    /// The drive's timing: command k applied on [t_{k+1}, t_{k+2}).
+    fn simulate(
+        c: &mut PolarCurrentController,
+        w_m: f64,
+        n: usize,
+        iq_ref: impl Fn(usize) -> f64,
+        noise: f64,
+    ) -> Vec<(f64, f64, f64, f64)> {
+        let m = motor();
+        let rk = Rk4 { substeps: 4 };
+        let mech = Mechanics::PrescribedSpeed(w_m);
+        let mut x = MotorState {
+            omega_m: w_m,
+            ..Default::default()
+        };
+        let mut u_prev = (0.0, 0.0);
+        let mut out = Vec::with_capacity(n);
+        // Deterministic pseudo-noise (LCG), uniform in ±noise·√3 (σ = noise).
+        let mut seed: u64 = 12345;
+        let mut rnd = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 2.0 * 3f64.sqrt() * noise
+        };
+        for k in 0..n {
+            let inp = CurrentInput {
+                i_d_ref: 0.0,
+                i_q_ref: iq_ref(k),
+                i_d: x.i_d + rnd(),
+                i_q: x.i_q + rnd(),
+                omega_e: m.p() * w_m,
+            };
+            let u = c.step(&inp);
+            x = rk.advance(
+                &m,
+                mech,
+                &x,
+                &MotorInput {
+                    u_d: u_prev.0,
+                    u_q: u_prev.1,
+                    t_load: 0.0,
+                },
+                1e-4,
+            );
+            u_prev = (u.u_d, u.u_q);
+            out.push((x.i_d, x.i_q, c.last.0, c.last.1));
+        }
+        out
+    }
+
+    #[test]
+    fn polar_law_reaches_the_step_without_steady_state_error() {
+        for rpm in [0.0, 400.0] {
+            let mut c = PolarCurrentController::new(&spec(PolarMode::Polar, 470.0));
+            let r = simulate(
+                &mut c,
+                rpm * std::f64::consts::PI / 30.0,
+                300,
+                |k| if k >= 10 { 2.0 } else { 0.0 },
+                0.0,
+            );
+            let (i_d, i_q, _, _) = *r.last().unwrap();
+            assert!(
+                (i_q - 2.0).abs() < 1e-3 && i_d.abs() < 1e-3,
+                "{rpm} rpm: {i_d} {i_q}"
+            );
+        }
+    }
+
+    #[test]
+    fn near_zero_amplitude_the_phase_stays_bounded() {
+        // Standstill, zero references, noisy currents: V_a ≈ 0, where (13) loses rank.
+        let mut c = PolarCurrentController::new(&spec(PolarMode::Polar, 470.0));
+        let r = simulate(&mut c, 0.0, 20_000, |_| 0.0, 0.01);
+        assert!(c.near_zero_amplitude_samples > 0);
+        for &(i_d, i_q, v, d) in &r {
+            assert!(i_d.is_finite() && i_q.is_finite() && v.is_finite() && d.is_finite());
+            assert!(d.abs() <= DELTA_MAX && v.abs() <= 271.4);
+            assert!(i_d.abs() < 0.1 && i_q.abs() < 0.1, "{i_d} {i_q}");
+        }
+        // No runaway: the phase integrator holds no more than the limit.
+        assert!(c.c12.x_i.abs() <= 2.0 * DELTA_MAX, "{}", c.c12.x_i);
+    }
+}

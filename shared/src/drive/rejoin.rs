@@ -1,0 +1,72 @@
+//! Re-joining a running drive after a restart (issue 4): each step function is initialised
+//! from the plant's current state before it takes over, so that its first output continues
+//! what the drive was doing (no torque bump).
+
+use super::{CurrentLaw, CurrentLoopStep, ObserverStep, Plant, SpeedLaw, SpeedLoopStep};
+use crate::control::current::{CurrentInput, VoltageDq};
+use crate::messages::{CurrentRef, Estimate, Measurement};
+use crate::transforms::{clarke, park, AlphaBeta};
+
+impl Plant {
+    /// A restarted plant resumes from its last published measurement: currents, speed and
+    /// angle, and the voltage the inverter was applying. The motor's state during the
+    /// plant's own downtime is not simulated (the trace lists those samples as missing).
+    pub fn restore(&mut self, last: &Measurement) {
+        self.x.i_d = last.i_dq_true[0];
+        self.x.i_q = last.i_dq_true[1];
+        self.x.omega_m = last.omega_m_true;
+        self.x.theta_m = crate::motor::wrap_2pi(last.theta_e_true / self.m.p());
+        // θ_e = p·θ_m only fixes θ_m up to 2π/p; the encoder reading picks the branch.
+        let step = std::f64::consts::TAU / self.m.p();
+        let branch = ((last.theta_m_enc - self.x.theta_m) / step).round();
+        self.x.theta_m = crate::motor::wrap_2pi(self.x.theta_m + branch * step);
+        self.last_u_ab = last.u_ab_applied;
+    }
+}
+
+impl ObserverStep {
+    /// Starts the estimator at angle `theta_m` (encoder, rad) and speed `omega_m` (rad/s),
+    /// e.g. from the backward difference of the first two measurements after a restart.
+    pub fn preset(&mut self, theta_m: f64, omega_m: f64) {
+        self.enc.preset(theta_m, omega_m);
+    }
+}
+
+impl SpeedLoopStep {
+    /// Takes over at speed `omega_m` with output `i_q_ref` (the last reference the drive
+    /// used). Returns false when the selected law has no bumpless start (it then starts cold).
+    pub fn preset(&mut self, omega_m: f64, i_q_ref: f64) -> bool {
+        match &mut self.law {
+            SpeedLaw::Pi(c) => {
+                c.preset(omega_m, i_q_ref);
+                true
+            }
+            #[allow(unreachable_patterns)]
+            _ => false,
+        }
+    }
+}
+
+impl CurrentLoopStep {
+    /// Takes over from the voltage the plant is applying (`meas.u_ab_applied`), at the
+    /// estimated angle and speed and with reference `iref`. Returns false when the selected
+    /// law has no bumpless start.
+    pub fn preset(&mut self, meas: &Measurement, est: &Estimate, iref: &CurrentRef) -> bool {
+        let i = park(clarke(meas.i_abc[0], meas.i_abc[1], meas.i_abc[2]), est.theta_e);
+        let omega_e = self.pole_pairs * est.omega_m;
+        // The applied vector was rotated with 1.5 samples of advance by the previous owner.
+        let u = park(
+            AlphaBeta { alpha: meas.u_ab_applied[0], beta: meas.u_ab_applied[1] },
+            est.theta_e + 1.5 * omega_e * self.ts,
+        );
+        let input = CurrentInput { i_d_ref: iref.i_d_ref, i_q_ref: iref.i_q_ref, i_d: i.d, i_q: i.q, omega_e };
+        match &mut self.law {
+            CurrentLaw::Pi(c) => {
+                c.preset(VoltageDq { u_d: u.d, u_q: u.q, saturated: false }, &input);
+                true
+            }
+            #[allow(unreachable_patterns)]
+            _ => false,
+        }
+    }
+}
