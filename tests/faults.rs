@@ -21,7 +21,11 @@ fn scratch(name: &str) -> PathBuf {
 }
 
 fn bus_id(name: &str) -> String {
-    format!("f{}{}", std::process::id(), name).chars().filter(|c| c.is_ascii_alphanumeric()).take(24).collect()
+    format!("f{}{}", std::process::id(), name)
+        .chars()
+        .filter(|c| c.is_ascii_alphanumeric())
+        .take(24)
+        .collect()
 }
 
 fn wait(mut child: std::process::Child, watchdog: Duration, what: &str) -> Output {
@@ -37,17 +41,33 @@ fn wait(mut child: std::process::Child, watchdog: Duration, what: &str) -> Outpu
 }
 
 fn drivelab(args: &[&str]) -> Output {
-    let child = Command::new(DRIVELAB).args(args).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
-    wait(child, Duration::from_secs(120), &format!("drivelab {args:?}"))
+    let child = Command::new(DRIVELAB)
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    wait(
+        child,
+        Duration::from_secs(120),
+        &format!("drivelab {args:?}"),
+    )
 }
 
 fn processes_on_bus(bus: &str) -> Vec<String> {
     let mut v = Vec::new();
     for e in std::fs::read_dir("/proc").unwrap().flatten() {
         if let Ok(cmd) = std::fs::read(e.path().join("cmdline")) {
-            let args: Vec<String> = cmd.split(|b| *b == 0).map(|s| String::from_utf8_lossy(s).into_owned()).collect();
+            let args: Vec<String> = cmd
+                .split(|b| *b == 0)
+                .map(|s| String::from_utf8_lossy(s).into_owned())
+                .collect();
             if args.windows(2).any(|w| w[0] == "--bus" && w[1] == bus) {
-                v.push(format!("{} {}", e.file_name().to_string_lossy(), args.join(" ")));
+                v.push(format!(
+                    "{} {}",
+                    e.file_name().to_string_lossy(),
+                    args.join(" ")
+                ));
             }
         }
     }
@@ -59,7 +79,11 @@ fn assert_clean(bus: &str) {
     while !processes_on_bus(bus).is_empty() && t.elapsed() < Duration::from_secs(5) {
         std::thread::sleep(Duration::from_millis(20));
     }
-    assert!(processes_on_bus(bus).is_empty(), "processes left: {:?}", processes_on_bus(bus));
+    assert!(
+        processes_on_bus(bus).is_empty(),
+        "processes left: {:?}",
+        processes_on_bus(bus)
+    );
     let files = drivelab::bus::leftovers(bus);
     assert!(files.is_empty(), "bus files left: {files:?}");
 }
@@ -83,12 +107,22 @@ fn assert_trace_continuity(out: &std::path::Path, s: &serde_json::Value) {
     }
     let gaps = s["missing_samples"].as_array().unwrap();
     let listed = |k: u64, part: &str| {
-        gaps.iter().any(|g| g["part"] == part && g["from"].as_u64().unwrap() <= k && k <= g["to"].as_u64().unwrap() && !g["cause"].as_str().unwrap().is_empty())
+        gaps.iter().any(|g| {
+            g["part"] == part
+                && g["from"].as_u64().unwrap() <= k
+                && k <= g["to"].as_u64().unwrap()
+                && !g["cause"].as_str().unwrap().is_empty()
+        })
     };
     for k in 0..s["samples_expected"].as_u64().unwrap() {
         match present.get(&k) {
-            None => assert!(listed(k, "measurement"), "sample {k} missing from the trace and not listed"),
-            Some(flags) if flags & 32 != 0 => assert!(listed(k, "command"), "command {k} missing and not listed"),
+            None => assert!(
+                listed(k, "measurement"),
+                "sample {k} missing from the trace and not listed"
+            ),
+            Some(flags) if flags & 32 != 0 => {
+                assert!(listed(k, "command"), "command {k} missing and not listed")
+            }
             Some(_) => {}
         }
     }
@@ -98,8 +132,23 @@ fn run_with_fault(name: &str, fault: &str, duration: &str) -> (PathBuf, serde_js
     let dir = scratch(name);
     let bus = bus_id(name);
     let out = dir.join("run");
-    let o = drivelab(&["run", "--bus", &bus, "--duration", duration, "--fault", fault, "--out", out.to_str().unwrap(), "--no-plots"]);
-    assert!(o.status.success(), "{fault}: {}", String::from_utf8_lossy(&o.stderr));
+    let o = drivelab(&[
+        "run",
+        "--bus",
+        &bus,
+        "--duration",
+        duration,
+        "--fault",
+        fault,
+        "--out",
+        out.to_str().unwrap(),
+        "--no-plots",
+    ]);
+    assert!(
+        o.status.success(),
+        "{fault}: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     assert_clean(&bus);
     let s = summary(&out);
     assert_trace_continuity(&out, &s);
@@ -123,12 +172,23 @@ fn sigkill_of_each_service_is_detected_made_safe_restarted_and_recovered() {
             .as_array()
             .unwrap()
             .iter()
-            .map(|e| (e["event"].as_str().unwrap().to_string(), e["service"].as_str().unwrap().to_string()))
+            .map(|e| {
+                (
+                    e["event"].as_str().unwrap().to_string(),
+                    e["service"].as_str().unwrap().to_string(),
+                )
+            })
             .collect();
         for ev in ["inject", "exited", "restarted", "ready"] {
-            assert!(events.contains(&(ev.to_string(), svc.to_string())), "{svc}: no {ev} event in {events:?}");
+            assert!(
+                events.contains(&(ev.to_string(), svc.to_string())),
+                "{svc}: no {ev} event in {events:?}"
+            );
         }
-        assert!(events.iter().any(|(e, _)| e == "reaped"), "{svc}: dead node resources were not reaped");
+        assert!(
+            events.iter().any(|(e, _)| e == "reaped"),
+            "{svc}: dead node resources were not reaped"
+        );
         assert!(f["peak_current_a"].as_f64().unwrap().is_finite());
         // Without the current loop the plant must reach its safe state (hold 3 samples).
         if svc == "current-loop" {
@@ -145,9 +205,15 @@ fn sigstop_of_the_current_loop_beyond_the_hold_time_reaches_the_safe_state() {
     let f = &s["faults"][0];
     assert_eq!(f["fault"], "stop for 0.02 s");
     let safe = f["safe_state_ms"].as_f64().expect("safe state reached");
-    assert!(safe <= 1.0, "safe state after {safe} ms (hold 3 samples + detection)");
+    assert!(
+        safe <= 1.0,
+        "safe state after {safe} ms (hold 3 samples + detection)"
+    );
     assert!(f["republished_ms"].as_f64().is_some(), "{f}");
-    assert!(f["detected_supervisor_ms"].is_null(), "a stopped process is not dead: {f}");
+    assert!(
+        f["detected_supervisor_ms"].is_null(),
+        "a stopped process is not dead: {f}"
+    );
 }
 
 #[test]
@@ -157,20 +223,38 @@ fn killing_every_child_stops_the_drive_and_cleans_up() {
     let bus = bus_id("killall");
     let out = dir.join("run");
     let child = Command::new(DRIVELAB)
-        .args(["run", "--bus", &bus, "--duration", "30", "--restart", "never", "--out", out.to_str().unwrap(), "--no-plots"])
+        .args([
+            "run",
+            "--bus",
+            &bus,
+            "--duration",
+            "30",
+            "--restart",
+            "never",
+            "--out",
+            out.to_str().unwrap(),
+            "--no-plots",
+        ])
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
     let t = Instant::now();
     while processes_on_bus(&bus).len() < 5 {
-        assert!(t.elapsed() < Duration::from_secs(60), "services did not start");
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "services did not start"
+        );
         std::thread::sleep(Duration::from_millis(20));
     }
     std::thread::sleep(Duration::from_millis(200));
     let services: Vec<String> = processes_on_bus(&bus)
         .into_iter()
-        .filter(|l| ["plant", "observer", "current-loop", "speed-loop"].iter().any(|s| l.split(' ').nth(1).unwrap().ends_with(&format!("/{s}"))))
+        .filter(|l| {
+            ["plant", "observer", "current-loop", "speed-loop"]
+                .iter()
+                .any(|s| l.split(' ').nth(1).unwrap().ends_with(&format!("/{s}")))
+        })
         .collect();
     assert_eq!(services.len(), 4, "{services:?}");
     for line in services {
@@ -178,7 +262,11 @@ fn killing_every_child_stops_the_drive_and_cleans_up() {
         // SAFETY: SIGKILL to a process of this test's own drive.
         unsafe { libc::kill(pid, libc::SIGKILL) };
     }
-    let o = wait(child, Duration::from_secs(60), "drivelab after its children were killed");
+    let o = wait(
+        child,
+        Duration::from_secs(60),
+        "drivelab after its children were killed",
+    );
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(err.contains("failed"), "{err}");
@@ -201,7 +289,16 @@ fn fault_cli_errors_are_clear() {
         assert!(err.contains(needle), "{spec}: {err}");
         assert_eq!(err.lines().count(), 1, "{spec}: {err}");
     }
-    let o = drivelab(&["run", "--bus", &bus, "--clock", "lockstep", "--fault", "kill:plant@0.01", "--no-plots"]);
+    let o = drivelab(&[
+        "run",
+        "--bus",
+        &bus,
+        "--clock",
+        "lockstep",
+        "--fault",
+        "kill:plant@0.01",
+        "--no-plots",
+    ]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("needs --clock realtime"));
     let o = drivelab(&["fault", "kill", "observer", "--bus", &bus]);
     assert_eq!(o.status.code(), Some(1));
@@ -218,20 +315,36 @@ fn nan_and_reversed_indices_are_rejected_counted_and_never_used() {
     let bus = bus_id("badin");
     let out = dir.join("run");
     let child = Command::new(DRIVELAB)
-        .args(["run", "--bus", &bus, "--duration", "1.5", "--out", out.to_str().unwrap(), "--no-plots"])
+        .args([
+            "run",
+            "--bus",
+            &bus,
+            "--duration",
+            "1.5",
+            "--out",
+            out.to_str().unwrap(),
+            "--no-plots",
+        ])
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
     let t = Instant::now();
     while processes_on_bus(&bus).len() < 5 {
-        assert!(t.elapsed() < Duration::from_secs(60), "services did not start");
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "services did not start"
+        );
         std::thread::sleep(Duration::from_millis(20));
     }
     std::thread::sleep(Duration::from_millis(300));
     for kind in ["nan", "backwards"] {
         let o = drivelab(&["bus-inject", "--bus", &bus, "--kind", kind, "--count", "10"]);
-        assert!(o.status.success(), "{kind}: {}", String::from_utf8_lossy(&o.stderr));
+        assert!(
+            o.status.success(),
+            "{kind}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
     }
     let o = wait(child, Duration::from_secs(60), "drivelab");
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
@@ -247,7 +360,10 @@ fn nan_and_reversed_indices_are_rejected_counted_and_never_used() {
     for l in text.lines().skip(1) {
         let flags: u32 = l.split(',').rev().nth(1).unwrap().parse().unwrap();
         if flags & 32 == 0 {
-            assert!(!l.contains("NaN") && !l.contains("inf"), "non-finite value in the trace: {l}");
+            assert!(
+                !l.contains("NaN") && !l.contains("inf"),
+                "non-finite value in the trace: {l}"
+            );
         }
     }
     assert_trace_continuity(&out, &s);

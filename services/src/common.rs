@@ -155,6 +155,8 @@ pub struct Counters {
     pub longest_miss_run: u64,
     /// Plant only: commands that arrived after their deadline and were discarded.
     pub late_commands: u64,
+    /// Inputs deliberately skipped to catch up after falling behind (real time only).
+    pub skipped: u64,
     /// Plant only: wall time from sample 0 to the end marker, ns.
     pub loop_wall_ns: u64,
 }
@@ -288,14 +290,27 @@ pub fn measurement_to_json(m: &drivelab::messages::Measurement) -> serde_json::V
 
 /// Reads a measurement written by [`measurement_to_json`].
 pub fn measurement_from_json(v: &serde_json::Value) -> Result<drivelab::messages::Measurement> {
-    let f = |key: &str| v[key].as_f64().ok_or_else(|| anyhow!("rejoin file: '{key}' missing"));
-    let a2 = |key: &str| -> Result<[f64; 2]> {
-        let a = v[key].as_array().ok_or_else(|| anyhow!("rejoin file: '{key}' missing"))?;
-        Ok([a.first().and_then(|x| x.as_f64()).unwrap_or(0.0), a.get(1).and_then(|x| x.as_f64()).unwrap_or(0.0)])
+    let f = |key: &str| {
+        v[key]
+            .as_f64()
+            .ok_or_else(|| anyhow!("rejoin file: '{key}' missing"))
     };
-    let i3 = v["i_abc"].as_array().ok_or_else(|| anyhow!("rejoin file: 'i_abc' missing"))?;
+    let a2 = |key: &str| -> Result<[f64; 2]> {
+        let a = v[key]
+            .as_array()
+            .ok_or_else(|| anyhow!("rejoin file: '{key}' missing"))?;
+        Ok([
+            a.first().and_then(|x| x.as_f64()).unwrap_or(0.0),
+            a.get(1).and_then(|x| x.as_f64()).unwrap_or(0.0),
+        ])
+    };
+    let i3 = v["i_abc"]
+        .as_array()
+        .ok_or_else(|| anyhow!("rejoin file: 'i_abc' missing"))?;
     let mut m = drivelab::messages::Measurement::default();
-    m.hdr.k = v["k"].as_u64().ok_or_else(|| anyhow!("rejoin file: 'k' missing"))?;
+    m.hdr.k = v["k"]
+        .as_u64()
+        .ok_or_else(|| anyhow!("rejoin file: 'k' missing"))?;
     m.hdr.t_sample_ns = v["t_sample_ns"].as_u64().unwrap_or(0);
     for (i, x) in i3.iter().take(3).enumerate() {
         m.i_abc[i] = x.as_f64().unwrap_or(0.0);

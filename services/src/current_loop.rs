@@ -10,7 +10,9 @@ use crate::common::*;
 use anyhow::{anyhow, Result};
 use drivelab::bus::{self, DriveTopics, Receiver};
 use drivelab::drive::CurrentLoopStep;
-use drivelab::messages::{CurrentRef, Estimate, Finite, Header, Measurement, VoltageCommand, FLAG_STALE_INPUT};
+use drivelab::messages::{
+    CurrentRef, Estimate, Finite, Header, Measurement, VoltageCommand, FLAG_STALE_INPUT,
+};
 use drivelab::rt::now_ns;
 use std::time::{Duration, Instant};
 
@@ -27,7 +29,12 @@ struct Inbox {
 }
 
 impl Inbox {
-    fn drain(&mut self, meas: &Receiver<Measurement>, iref: &Receiver<CurrentRef>, c: &mut Counters) -> Result<()> {
+    fn drain(
+        &mut self,
+        meas: &Receiver<Measurement>,
+        iref: &Receiver<CurrentRef>,
+        c: &mut Counters,
+    ) -> Result<()> {
         while let Some(m) = meas.try_recv()? {
             if m.hdr.is_warmup() || m.hdr.is_end() {
                 continue;
@@ -73,7 +80,11 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let est_rx = topics.est.receiver(64)?;
     let lockstep = args.clock == BusClock::Lockstep;
     // Only lockstep waits for a current reference; real time polls it.
-    let iref_rx = if lockstep { topics.iref.receiver(16)? } else { topics.iref.polled_receiver(16)? };
+    let iref_rx = if lockstep {
+        topics.iref.receiver(16)?
+    } else {
+        topics.iref.polled_receiver(16)?
+    };
     let cmd_tx = topics.cmd.sender()?;
     // In fallback (no estimates) the loop is paced by the measurements. With futex wake-ups
     // this costs the plant nothing until someone sleeps on it; with iceoryx2 events it would
@@ -88,7 +99,13 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let m = sc.motor_params();
     let ts = sc.rates.ts();
     let divider = u64::from(sc.rates.speed_divider);
-    let mut inbox = Inbox { meas: [None; MEAS_RING], iref: [None; IREF_RING], divider, newest_meas: None, newest_iref: None };
+    let mut inbox = Inbox {
+        meas: [None; MEAS_RING],
+        iref: [None; IREF_RING],
+        divider,
+        newest_meas: None,
+        newest_iref: None,
+    };
     let mut c = Counters::default();
     let mut last_k: Option<u64> = None;
     let mut active_ref = CurrentRef::default();
@@ -119,7 +136,10 @@ pub fn run(args: ServiceArgs) -> Result<()> {
             last_input = Instant::now();
             inbox.drain(&meas_rx, &iref_rx, &mut c)?;
             if e.hdr.is_warmup() || e.hdr.is_end() {
-                cmd_tx.send(VoltageCommand { hdr: e.hdr, ..Default::default() })?;
+                cmd_tx.send(VoltageCommand {
+                    hdr: e.hdr,
+                    ..Default::default()
+                })?;
                 if e.hdr.is_end() {
                     break 'outer;
                 }
@@ -129,10 +149,13 @@ pub fn run(args: ServiceArgs) -> Result<()> {
                 c.rejected_inputs += 1;
                 continue;
             }
-            if rejoining {
-                // Skip history: only the newest estimate of the batch is used.
+            if rejoining || (!lockstep && !est_rx.is_empty()?) {
+                // After a restart, or when behind in real time: only the newest estimate of
+                // the batch is used (older ones are counted as skipped).
                 if let Some(newer) = peek_newest(&est_rx, &mut c)? {
+                    c.skipped += 1;
                     e = newer;
+                    inbox.drain(&meas_rx, &iref_rx, &mut c)?;
                 }
             }
             let k = e.hdr.k;
@@ -175,7 +198,9 @@ pub fn run(args: ServiceArgs) -> Result<()> {
                         break 'outer;
                     }
                     if started.elapsed() > LOCKSTEP_WATCHDOG {
-                        return Err(anyhow!("no current reference {j} from speed-loop for {LOCKSTEP_WATCHDOG:?}"));
+                        return Err(anyhow!(
+                            "no current reference {j} from speed-loop for {LOCKSTEP_WATCHDOG:?}"
+                        ));
                     }
                 }
             }
@@ -195,7 +220,9 @@ pub fn run(args: ServiceArgs) -> Result<()> {
         }
         if lockstep {
             if last_k.is_some() && last_input.elapsed() > LOCKSTEP_WATCHDOG {
-                return Err(anyhow!("no estimate from observer for {LOCKSTEP_WATCHDOG:?}"));
+                return Err(anyhow!(
+                    "no estimate from observer for {LOCKSTEP_WATCHDOG:?}"
+                ));
             }
             continue;
         }
@@ -204,13 +231,23 @@ pub fn run(args: ServiceArgs) -> Result<()> {
         }
         // Real time, no estimate: if the plant has moved on, fall back to the encoder angle.
         inbox.drain(&meas_rx, &iref_rx, &mut c)?;
-        let Some(kn) = inbox.newest_meas.filter(|&kn| last_k.is_none_or(|l| kn > l)) else { continue };
+        let Some(kn) = inbox
+            .newest_meas
+            .filter(|&kn| last_k.is_none_or(|l| kn > l))
+        else {
+            continue;
+        };
         let Some(meas) = inbox.meas(kn) else { continue };
         in_fallback = true;
         c.stale_inputs += 1;
         let t_in = now_ns();
         let e = Estimate {
-            hdr: Header { k: kn, t_sample_ns: meas.hdr.t_sample_ns, flags: FLAG_STALE_INPUT, ..Default::default() },
+            hdr: Header {
+                k: kn,
+                t_sample_ns: meas.hdr.t_sample_ns,
+                flags: FLAG_STALE_INPUT,
+                ..Default::default()
+            },
             theta_e: drivelab::motor::wrap_2pi(m.p() * meas.theta_m_enc),
             omega_m: last_est.omega_m,
         };

@@ -116,13 +116,21 @@ enum Cmd {
     /// Print the controller design of a scenario (current PI, speed PI by the symmetrical
     /// optimum) so it can be checked by hand.
     ///
-    /// Example:
+    /// Examples:
     ///   drivelab design --scenario kyslan-pi
+    ///   drivelab design --scenario kyslan-nl --motor kyslan2015-sal618 --rise-time-ms 8
     #[command(verbatim_doc_comment)]
     Design {
-        /// Scenario name or file.
+        /// Scenario name or file (rates, filters and current-loop settings come from it).
         #[arg(long, default_value = "kyslan-pi")]
         scenario: String,
+        /// Use this motor instead of the scenario's: a preset (kyslan2015, kyslan2015-sal618,
+        /// low1998, miyajima) or a TOML file with a [motor] table.
+        #[arg(long)]
+        motor: Option<String>,
+        /// Target speed rise time (0 to 100 %, time to first reach the set-point), ms.
+        #[arg(long, value_name = "MS")]
+        rise_time_ms: Option<f64>,
     },
     /// Plot several runs on one set of axes (speed, i_q, i_d) and print their metrics side
     /// by side, like Kyslan et al. Fig. 3 and 4.
@@ -160,6 +168,15 @@ enum Cmd {
         #[command(subcommand)]
         kind: BenchNodeKind,
     },
+    /// Print and plot the relative truncation error ζ of the observer's model I + A·T_s
+    /// against speed (Low et al. 1998 eq. 14, Fig. 3) for given sample times, with the
+    /// steady-state angle error it causes (truncated against exact discretisation).
+    ///
+    /// Examples:
+    ///   drivelab observer-error --ts 0.2ms
+    ///   drivelab observer-error --ts 0.1ms,0.2ms,0.5ms --motor low1998 --max-rpm 3000
+    #[command(verbatim_doc_comment)]
+    ObserverError(drivelab_services::observer_error::ObserverErrorArgs),
     /// Report how ready this machine is for real-time work. Reads only; changes nothing.
     ///
     /// Example:
@@ -275,11 +292,19 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                     fmt_opt(&m["steady_state_error"], "rad/s")
                 );
                 if let Some(g) = s["missing_samples"].as_array().filter(|g| !g.is_empty()) {
-                    let n: u64 = g.iter().map(|x| x["to"].as_u64().unwrap_or(0) + 1 - x["from"].as_u64().unwrap_or(0)).sum();
+                    let n: u64 = g
+                        .iter()
+                        .map(|x| {
+                            x["to"].as_u64().unwrap_or(0) + 1 - x["from"].as_u64().unwrap_or(0)
+                        })
+                        .sum();
                     println!("missing: {n} sample parts in {} ranges, each with its cause in summary.json → missing_samples", g.len());
                 }
                 if let Some(f) = s["faults"].as_array().filter(|f| !f.is_empty()) {
-                    println!("faults: {} injected; report in summary.json → faults", f.len());
+                    println!(
+                        "faults: {} injected; report in summary.json → faults",
+                        f.len()
+                    );
                 }
             }
             Ok(())
@@ -316,18 +341,68 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             }
             Ok(())
         }
-        Cmd::Design { scenario } => {
-            let sc = launcher::load_scenario(&scenario, None)?;
+        Cmd::Design {
+            scenario,
+            motor,
+            rise_time_ms,
+        } => {
+            let mut sc = launcher::load_scenario(&scenario, None)?;
+            if let Some(m) = motor {
+                let p = drivelab_services::replay::resolve_motor(&m)?;
+                sc.motor = drivelab::config::MotorSpec {
+                    preset: None,
+                    r_ohm: Some(p.r_ohm),
+                    l_d_h: Some(p.l_d_h),
+                    l_q_h: Some(p.l_q_h),
+                    pole_pairs: Some(p.pole_pairs),
+                    psi_pm_wb: Some(p.psi_pm_wb),
+                    j_kgm2: Some(p.j_kgm2),
+                    b_nms: Some(p.b_nms),
+                    i_max_a: Some(p.i_max_a),
+                    omega_rated_rad_s: Some(p.omega_rated_rad_s),
+                    t_rated_nm: Some(p.t_rated_nm),
+                };
+            }
+            if let Some(r) = rise_time_ms {
+                sc.speed_loop.rise_time_s = r * 1e-3;
+            }
+            sc.validate().map_err(|e| anyhow::anyhow!(e))?;
             print!("{}", drivelab_services::design::render(&sc));
             Ok(())
         }
-        Cmd::Fault { kind, service, bus, duration } => {
+        Cmd::Fault {
+            kind,
+            service,
+            bus,
+            duration,
+        } => {
             drivelab::bus::check_bus_id(&bus)?;
-            let spec = drivelab_services::faults::parse(&format!("{kind}:{service}@0{}", if kind == "stop" { format!(":{duration}") } else { String::new() }))?;
-            let drivelab_services::faults::FaultSpec::One(f) = spec else { unreachable!("kill/stop parse to one fault") };
+            let spec = drivelab_services::faults::parse(&format!(
+                "{kind}:{service}@0{}",
+                if kind == "stop" {
+                    format!(":{duration}")
+                } else {
+                    String::new()
+                }
+            ))?;
+            let drivelab_services::faults::FaultSpec::One(f) = spec else {
+                unreachable!("kill/stop parse to one fault")
+            };
             let procs = drivelab_services::faults::find_services(&bus);
             let Some(&(_, pid)) = procs.iter().find(|(s, _)| *s == f.service) else {
-                anyhow::bail!("no running {} on bus {bus} (running: {})", f.service, if procs.is_empty() { "none".to_string() } else { procs.iter().map(|(s, p)| format!("{s} {p}")).collect::<Vec<_>>().join(", ") });
+                anyhow::bail!(
+                    "no running {} on bus {bus} (running: {})",
+                    f.service,
+                    if procs.is_empty() {
+                        "none".to_string()
+                    } else {
+                        procs
+                            .iter()
+                            .map(|(s, p)| format!("{s} {p}"))
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    }
+                );
             };
             if kind == "kill" {
                 drivelab_services::faults::signal(pid, libc::SIGKILL)?;
@@ -340,7 +415,9 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             }
             Ok(())
         }
-        Cmd::BusInject { bus, kind, count } => drivelab_services::faults::inject_bad_estimates(&bus, &kind, count),
+        Cmd::BusInject { bus, kind, count } => {
+            drivelab_services::faults::inject_bad_estimates(&bus, &kind, count)
+        }
         Cmd::Compare(args) => drivelab_services::compare::run(&args),
         Cmd::Bench(args) => drivelab_services::bench::run(&args),
         Cmd::BenchNode {
@@ -363,6 +440,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             priority,
             out,
         }),
+        Cmd::ObserverError(args) => drivelab_services::observer_error::run(&args),
         Cmd::Doctor { json } => {
             let checks = drivelab::doctor::run_checks();
             if json {

@@ -23,6 +23,7 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let mut last_k: Option<u64> = None;
     let mut last_input = Instant::now();
     let ts = sc.rates.ts();
+    let realtime = args.clock == BusClock::Realtime;
     // After a restart: skip the publisher's history, seed the angle from the newest
     // measurement, take the speed from the backward difference to the next one, go on.
     let mut rejoining = args.rejoin;
@@ -35,7 +36,10 @@ pub fn run(args: ServiceArgs) -> Result<()> {
             let mut newest = None;
             while let Some(m) = meas_rx.try_recv()? {
                 if m.hdr.is_end() {
-                    est_tx.send(Estimate { hdr: m.hdr, ..Default::default() })?;
+                    est_tx.send(Estimate {
+                        hdr: m.hdr,
+                        ..Default::default()
+                    })?;
                     break 'outer;
                 }
                 if !m.hdr.is_warmup() && m.is_finite() {
@@ -59,7 +63,10 @@ pub fn run(args: ServiceArgs) -> Result<()> {
         while let Some(m) = meas_rx.try_recv()? {
             last_input = Instant::now();
             if m.hdr.is_warmup() || m.hdr.is_end() {
-                est_tx.send(Estimate { hdr: m.hdr, ..Default::default() })?;
+                est_tx.send(Estimate {
+                    hdr: m.hdr,
+                    ..Default::default()
+                })?;
                 if m.hdr.is_end() {
                     break 'outer;
                 }
@@ -73,10 +80,23 @@ pub fn run(args: ServiceArgs) -> Result<()> {
                 c.stale_inputs += m.hdr.k - l - 1;
             }
             last_k = Some(m.hdr.k);
+            if realtime && !meas_rx.is_empty()? {
+                // Behind (a newer measurement is waiting): update the estimator's state but
+                // publish only the newest, so that a late observer catches up instead of
+                // feeding the chain old estimates.
+                obs.step(&m);
+                c.skipped += 1;
+                continue;
+            }
             process(&mut obs, &m, &est_tx, &mut h, &mut c)?;
         }
-        if args.clock == BusClock::Lockstep && last_k.is_some() && last_input.elapsed() > LOCKSTEP_WATCHDOG {
-            return Err(anyhow!("no measurement from plant for {LOCKSTEP_WATCHDOG:?}"));
+        if args.clock == BusClock::Lockstep
+            && last_k.is_some()
+            && last_input.elapsed() > LOCKSTEP_WATCHDOG
+        {
+            return Err(anyhow!(
+                "no measurement from plant for {LOCKSTEP_WATCHDOG:?}"
+            ));
         }
     }
     // ---- end of the real-time loop ----

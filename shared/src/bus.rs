@@ -248,6 +248,14 @@ pub struct Receiver<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> {
 }
 
 impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Receiver<T> {
+    /// True when no message is buffered.
+    pub fn is_empty(&self) -> Result<bool> {
+        self.subscriber
+            .has_samples()
+            .map(|h| !h)
+            .map_err(|e| anyhow!("has_samples: {e:?}"))
+    }
+
     /// Next buffered message, oldest first.
     pub fn try_recv(&self) -> Result<Option<T>> {
         match self.subscriber.receive() {
@@ -373,7 +381,11 @@ pub fn reap_dead_nodes(id: &str) -> Result<Vec<String>> {
     let mut dead = Vec::new();
     Node::<ipc::Service>::list(&cfg, |state| {
         if let NodeState::Dead(view) = state {
-            let name = view.details().as_ref().map(|d| d.name().to_string()).unwrap_or_else(|| "?".into());
+            let name = view
+                .details()
+                .as_ref()
+                .map(|d| d.name().to_string())
+                .unwrap_or_else(|| "?".into());
             let _ = view.try_remove_stale_resources();
             dead.push(name);
         }
