@@ -424,3 +424,24 @@ fn plant_replay_matches_the_closed_form_locked_rotor_response() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("t,u_d,u_q,t_load"), "{err}");
 }
+
+#[test]
+fn plot_redraws_valid_png_and_svg_for_a_recorded_run() {
+    let _serial = serial();
+    let (out, _) = run_ok("plot", &["--clock", "inprocess"]);
+    let zoom = out.join("zoom");
+    let o = drivelab(&["plot", out.to_str().unwrap(), "--window", "0.03:0.07", "--out", zoom.to_str().unwrap()], Duration::from_secs(120));
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for f in ["speed", "currents", "voltages"] {
+        let png = read(&zoom.join(format!("{f}.png")));
+        assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n", "{f}.png is not a PNG");
+        let svg = String::from_utf8(read(&zoom.join(format!("{f}.svg")))).unwrap();
+        assert!(svg.contains("<svg") && svg.contains("t [ms]"), "{f}.svg");
+    }
+    let o = drivelab(&["plot", out.to_str().unwrap(), "--window", "0.07:0.03"], Duration::from_secs(60));
+    assert_eq!(o.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("START must be before END"));
+    let o = drivelab(&["plot", "/nonexistent-run"], Duration::from_secs(60));
+    assert_eq!(o.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("no trace.csv"));
+}

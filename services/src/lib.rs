@@ -2,6 +2,7 @@
 //! service loops here; the control maths live in `drivelab-shared`.
 
 pub mod bench;
+pub mod cdm_design;
 pub mod common;
 pub mod compare;
 pub mod current_loop;
@@ -9,6 +10,8 @@ pub mod design;
 pub mod faults;
 pub mod launcher;
 pub mod observer;
+pub mod observer_error;
 pub mod plant;
+pub mod plotcmd;
 pub mod replay;
 pub mod speed_loop;

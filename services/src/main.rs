@@ -177,6 +177,24 @@ enum Cmd {
     ///   drivelab observer-error --ts 0.1ms,0.2ms,0.5ms --motor low1998 --max-rpm 3000
     #[command(verbatim_doc_comment)]
     ObserverError(drivelab_services::observer_error::ObserverErrorArgs),
+    /// Print the coefficient-diagram design of the polar current loops of Miyajima et al.
+    /// (C_21: i_q through V_a, C_12: i_d through δ; eqs 26-37) at one operating point
+    /// (V_ao, δ_o, and τ_12 from eq. 37 unless given), to check eqs (28)-(31) by hand.
+    ///
+    /// Examples:
+    ///   drivelab cdm-design --v-ao-v 5 --delta-o-deg 0              # miyajima, T_u = 100 µs, V_dc = 470 V
+    ///   drivelab cdm-design --tu-us 100 --v-amax-v 271.4 --v-ao-v 30 --delta-o-deg 20
+    ///   drivelab cdm-design --v-ao-v 1 --delta-o-deg 0 --json       # τ_12 slowed by eq. (37)
+    #[command(verbatim_doc_comment)]
+    CdmDesign(drivelab_services::cdm_design::CdmArgs),
+    /// Redraw every figure of a run as PNG and SVG (traces with references and limits,
+    /// latency percentiles, fault windows), optionally for a time window.
+    ///
+    /// Examples:
+    ///   drivelab plot runs/default
+    ///   drivelab plot runs/default --window 0.035:0.07 --out runs/zoom
+    #[command(verbatim_doc_comment)]
+    Plot(drivelab_services::plotcmd::PlotArgs),
     /// Report how ready this machine is for real-time work. Reads only; changes nothing.
     ///
     /// Example:
@@ -418,6 +436,12 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
         Cmd::BusInject { bus, kind, count } => {
             drivelab_services::faults::inject_bad_estimates(&bus, &kind, count)
         }
+        Cmd::Plot(args) => {
+            for f in drivelab_services::plotcmd::run(&args)? {
+                println!("{}", f.display());
+            }
+            Ok(())
+        }
         Cmd::Compare(args) => drivelab_services::compare::run(&args),
         Cmd::Bench(args) => drivelab_services::bench::run(&args),
         Cmd::BenchNode {
@@ -441,6 +465,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             out,
         }),
         Cmd::ObserverError(args) => drivelab_services::observer_error::run(&args),
+        Cmd::CdmDesign(args) => drivelab_services::cdm_design::run(&args),
         Cmd::Doctor { json } => {
             let checks = drivelab::doctor::run_checks();
             if json {

@@ -1,0 +1,91 @@
+//! `drivelab plot RUNDIR`: redraws every figure of a run (traces with references and limits,
+//! latency percentiles, fault windows), optionally for a time window.
+
+use anyhow::{anyhow, bail, Context, Result};
+use std::path::PathBuf;
+
+/// Arguments of `drivelab plot`.
+#[derive(Debug, clap::Args)]
+pub struct PlotArgs {
+    /// Run folder (with trace.csv and summary.json).
+    pub run: PathBuf,
+    /// Only this time window, in seconds: START:END (e.g. 0.02:0.06).
+    #[arg(long, value_name = "START:END")]
+    pub window: Option<String>,
+    /// Output folder (default: the run folder).
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+}
+
+fn parse_window(w: &str) -> Result<(f64, f64)> {
+    let (a, b) = w.split_once(':').ok_or_else(|| anyhow!("--window '{w}': expected START:END in seconds"))?;
+    let a: f64 = a.trim().parse().map_err(|_| anyhow!("--window '{w}': START is not a number of seconds"))?;
+    let b: f64 = b.trim().parse().map_err(|_| anyhow!("--window '{w}': END is not a number of seconds"))?;
+    if !(a.is_finite() && b.is_finite() && a < b) {
+        bail!("--window '{w}': START must be before END");
+    }
+    Ok((a, b))
+}
+
+/// Redraws the figures; returns the files written.
+pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
+    let trace = a.run.join("trace.csv");
+    if !trace.is_file() {
+        bail!("{} has no trace.csv (not a run folder)", a.run.display());
+    }
+    let rows = drivelab::trace::read_csv(&trace)?;
+    let summary: serde_json::Value = std::fs::read(a.run.join("summary.json"))
+        .ok()
+        .and_then(|b| serde_json::from_slice(&b).ok())
+        .unwrap_or_default();
+    let scenario = std::fs::read_to_string(a.run.join("scenario.toml"))
+        .ok()
+        .and_then(|t| drivelab::config::Scenario::from_toml(&t, "scenario.toml").ok());
+    let out = a.out.clone().unwrap_or_else(|| a.run.clone());
+    std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
+    let windows = summary["faults"]
+        .as_array()
+        .map(|f| {
+            f.iter()
+                .filter_map(|x| {
+                    let t0 = x["injected_t_s"].as_f64()?;
+                    let dur = x["speed_recovered_ms"].as_f64().or(x["republished_ms"].as_f64()).unwrap_or(200.0) * 1e-3;
+                    Some((t0, t0 + dur, format!("{} {}", x["fault"].as_str()?, x["service"].as_str()?)))
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    let opts = drivelab::plot::TraceFigureOptions {
+        window_s: a.window.as_deref().map(parse_window).transpose()?,
+        current_limit_a: scenario.as_ref().map(|s| s.i_q_max()),
+        voltage_limit_v: scenario.as_ref().map(|s| s.u_max()),
+        shaded_windows: windows,
+        title: format!("{} ({})", summary["scenario"].as_str().unwrap_or("run"), summary["clock"].as_str().unwrap_or("?")),
+    };
+    let mut files = drivelab::plot::plot_trace(&rows, &out, &opts)?;
+    let mut curves = Vec::new();
+    let mut hdrs: Vec<PathBuf> = std::fs::read_dir(&a.run)?
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|e| e == "hdr"))
+        .collect();
+    hdrs.sort();
+    for f in hdrs {
+        let key = f.file_stem().unwrap_or_default().to_string_lossy().into_owned();
+        if key == "cycle" || key.ends_with(".wake") || key.ends_with(".lateness") {
+            curves.push((key, drivelab::timing::LatencyHist::read_v2("h", &f)?.curve()));
+        }
+    }
+    if !curves.is_empty() {
+        let rate = summary["rate_hz"].as_f64().unwrap_or(10_000.0);
+        let ts_us = 1e6 / rate;
+        files.extend(drivelab::plot::plot_percentiles(
+            &curves,
+            "latency percentiles",
+            Some((ts_us, format!("T_s = {ts_us:.0} µs"))),
+            true,
+            &out.join("latency"),
+        )?);
+    }
+    Ok(files)
+}
