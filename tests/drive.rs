@@ -430,7 +430,17 @@ fn plot_redraws_valid_png_and_svg_for_a_recorded_run() {
     let _serial = serial();
     let (out, _) = run_ok("plot", &["--clock", "inprocess"]);
     let zoom = out.join("zoom");
-    let o = drivelab(&["plot", out.to_str().unwrap(), "--window", "0.03:0.07", "--out", zoom.to_str().unwrap()], Duration::from_secs(120));
+    let o = drivelab(
+        &[
+            "plot",
+            out.to_str().unwrap(),
+            "--window",
+            "0.03:0.07",
+            "--out",
+            zoom.to_str().unwrap(),
+        ],
+        Duration::from_secs(120),
+    );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     for f in ["speed", "currents", "voltages"] {
         let png = read(&zoom.join(format!("{f}.png")));
@@ -438,7 +448,10 @@ fn plot_redraws_valid_png_and_svg_for_a_recorded_run() {
         let svg = String::from_utf8(read(&zoom.join(format!("{f}.svg")))).unwrap();
         assert!(svg.contains("<svg") && svg.contains("t [ms]"), "{f}.svg");
     }
-    let o = drivelab(&["plot", out.to_str().unwrap(), "--window", "0.07:0.03"], Duration::from_secs(60));
+    let o = drivelab(
+        &["plot", out.to_str().unwrap(), "--window", "0.07:0.03"],
+        Duration::from_secs(60),
+    );
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("START must be before END"));
     let o = drivelab(&["plot", "/nonexistent-run"], Duration::from_secs(60));

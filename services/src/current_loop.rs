@@ -1,7 +1,8 @@
 //! The current-loop process: measurement k + estimate k + current reference → command k.
 //!
 //! Freshness (real time): without an estimate for 2 samples the loop falls back to the
-//! encoder angle of the newest measurement (and the last speed estimate); without a fresh
+//! encoder angle of the newest measurement (and the last speed estimate), or, sensorless,
+//! commands zero voltage; without a fresh
 //! current reference for 2 speed periods it ramps i_q* to zero. Commands made that way carry
 //! `FLAG_STALE_INPUT`. After a restart (`--rejoin`) it takes over bumplessly from the voltage
 //! the plant is applying.
@@ -121,6 +122,7 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let est_timeout = Duration::from_secs_f64(2.0 * ts);
     let fallback_poll = Duration::from_secs_f64(0.5 * ts);
     let mut in_fallback = false;
+    let sensorless = sc.observer.mode == drivelab::observer_sensorless::ObserverMode::Sensorless;
     ready()?;
     // ---- real-time loop: no allocation, no locks, no logging ----
     'outer: while !stop_requested() {
@@ -254,7 +256,19 @@ pub fn run(args: ServiceArgs) -> Result<()> {
         if let Some(r) = inbox.newest_iref {
             active_ref = r;
         }
-        let mut cmd = ctrl.step(&meas, &e, &active_ref);
+        let mut cmd = if sensorless {
+            // No position sensor to fall back on: command zero voltage.
+            VoltageCommand {
+                hdr: e.hdr,
+                i_dq_ref: [active_ref.i_d_ref, active_ref.i_q_ref],
+                omega_ref: active_ref.omega_ref,
+                omega_hat: last_est.omega_m,
+                theta_hat: last_est.theta_e,
+                ..Default::default()
+            }
+        } else {
+            ctrl.step(&meas, &e, &active_ref)
+        };
         cmd.hdr.flags |= FLAG_STALE_INPUT;
         cmd.hdr.t_pub_ns = now_ns();
         cmd_tx.send(cmd)?;

@@ -50,6 +50,19 @@ pub fn render(sc: &Scenario) -> String {
         let _ = writeln!(o, "  WARNING: {w}");
     }
     render_nonlinear(&mut o, sc, &d);
+    if let Some(r) = &d.rst {
+        o.push_str(&r.render());
+    }
+    if let Some(ob) = &d.observer {
+        o.push_str(&drivelab::observer_sensorless::render_design(
+            ob,
+            &m,
+            sc.rates.ts(),
+        ));
+    }
+    if let Some(p) = &d.polar {
+        o.push_str(&crate::cdm_design::render_polar_design(p));
+    }
     let _ = writeln!(o, "this scenario runs the {} controller", d.controller);
     o
 }

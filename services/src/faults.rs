@@ -36,7 +36,10 @@ fn service(name: &str) -> Result<&'static str> {
 }
 
 fn seconds(v: &str, what: &str, spec: &str) -> Result<f64> {
-    let x: f64 = v.trim_end_matches('s').parse().map_err(|_| anyhow!("fault '{spec}': {what} '{v}' is not a number of seconds"))?;
+    let x: f64 = v
+        .trim_end_matches('s')
+        .parse()
+        .map_err(|_| anyhow!("fault '{spec}': {what} '{v}' is not a number of seconds"))?;
     if !(x.is_finite() && x >= 0.0) {
         bail!("fault '{spec}': {what} must be a finite number of seconds >= 0");
     }
@@ -51,21 +54,33 @@ pub fn parse(spec: &str) -> Result<FaultSpec> {
         .ok_or_else(|| anyhow!("fault '{spec}': expected kill:SERVICE@SECONDS, stop:SERVICE@SECONDS:DURATION or random:N"))?;
     match kind {
         "random" => {
-            let n: u32 = rest.parse().map_err(|_| anyhow!("fault '{spec}': N must be a whole number"))?;
+            let n: u32 = rest
+                .parse()
+                .map_err(|_| anyhow!("fault '{spec}': N must be a whole number"))?;
             if n == 0 || n > 10_000 {
                 bail!("fault '{spec}': N must be in 1..=10000");
             }
             Ok(FaultSpec::Random(n))
         }
         "kill" | "stop" => {
-            let (svc, when) = rest
-                .split_once('@')
-                .ok_or_else(|| anyhow!("fault '{spec}': expected {kind}:SERVICE@SECONDS{}", if kind == "stop" { ":DURATION" } else { "" }))?;
+            let (svc, when) = rest.split_once('@').ok_or_else(|| {
+                anyhow!(
+                    "fault '{spec}': expected {kind}:SERVICE@SECONDS{}",
+                    if kind == "stop" { ":DURATION" } else { "" }
+                )
+            })?;
             let service = service(svc)?;
             if kind == "kill" {
-                Ok(FaultSpec::One(Fault { kind: FaultKind::Kill, service, at_s: seconds(when, "time", spec)?, duration_s: 0.0 }))
+                Ok(FaultSpec::One(Fault {
+                    kind: FaultKind::Kill,
+                    service,
+                    at_s: seconds(when, "time", spec)?,
+                    duration_s: 0.0,
+                }))
             } else {
-                let (at, dur) = when.split_once(':').ok_or_else(|| anyhow!("fault '{spec}': expected stop:SERVICE@SECONDS:DURATION"))?;
+                let (at, dur) = when.split_once(':').ok_or_else(|| {
+                    anyhow!("fault '{spec}': expected stop:SERVICE@SECONDS:DURATION")
+                })?;
                 Ok(FaultSpec::One(Fault {
                     kind: FaultKind::Stop,
                     service,
@@ -98,7 +113,12 @@ pub fn plan(specs: &[FaultSpec], duration_s: f64, seed: u64, min_gap_s: f64) -> 
         match s {
             FaultSpec::One(f) => {
                 if f.at_s >= duration_s {
-                    bail!("fault {}:{}@{} is at or after the end of the run ({duration_s} s)", kind_name(f.kind), f.service, f.at_s);
+                    bail!(
+                        "fault {}:{}@{} is at or after the end of the run ({duration_s} s)",
+                        kind_name(f.kind),
+                        f.service,
+                        f.at_s
+                    );
                 }
                 out.push(f.clone());
             }
@@ -115,7 +135,12 @@ pub fn plan(specs: &[FaultSpec], duration_s: f64, seed: u64, min_gap_s: f64) -> 
                     // One fault per slot, at a random instant in the slot's first half.
                     let at = 0.1 * duration_s + slot * (f64::from(i) + 0.5 * rng.random::<f64>());
                     let service = SERVICES[rng.random_range(0..SERVICES.len())];
-                    out.push(Fault { kind: FaultKind::Kill, service, at_s: at, duration_s: 0.0 });
+                    out.push(Fault {
+                        kind: FaultKind::Kill,
+                        service,
+                        at_s: at,
+                        duration_s: 0.0,
+                    });
                 }
             }
         }
@@ -137,7 +162,10 @@ pub fn signal(pid: u32, sig: libc::c_int) -> Result<()> {
     // SAFETY: kill(2) with a pid and a signal number; no memory is involved.
     let rc = unsafe { libc::kill(pid as libc::pid_t, sig) };
     if rc != 0 {
-        bail!("cannot signal pid {pid}: {}", std::io::Error::last_os_error());
+        bail!(
+            "cannot signal pid {pid}: {}",
+            std::io::Error::last_os_error()
+        );
     }
     Ok(())
 }
@@ -146,13 +174,23 @@ pub fn signal(pid: u32, sig: libc::c_int) -> Result<()> {
 pub fn find_services(bus: &str) -> Vec<(&'static str, u32)> {
     let mut v = Vec::new();
     for e in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
-        let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else { continue };
-        let Ok(cmd) = std::fs::read(e.path().join("cmdline")) else { continue };
-        let args: Vec<String> = cmd.split(|b| *b == 0).map(|s| String::from_utf8_lossy(s).into_owned()).collect();
+        let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else {
+            continue;
+        };
+        let Ok(cmd) = std::fs::read(e.path().join("cmdline")) else {
+            continue;
+        };
+        let args: Vec<String> = cmd
+            .split(|b| *b == 0)
+            .map(|s| String::from_utf8_lossy(s).into_owned())
+            .collect();
         if !args.windows(2).any(|w| w[0] == "--bus" && w[1] == bus) {
             continue;
         }
-        let exe = args.first().map(|a| a.rsplit('/').next().unwrap_or(a).to_string()).unwrap_or_default();
+        let exe = args
+            .first()
+            .map(|a| a.rsplit('/').next().unwrap_or(a).to_string())
+            .unwrap_or_default();
         if let Some(s) = SERVICES.iter().copied().find(|s| *s == exe) {
             v.push((s, pid));
         }
@@ -168,22 +206,47 @@ mod tests {
     fn parses_the_three_forms() {
         assert_eq!(
             parse("kill:plant@0.5").unwrap(),
-            FaultSpec::One(Fault { kind: FaultKind::Kill, service: "plant", at_s: 0.5, duration_s: 0.0 })
+            FaultSpec::One(Fault {
+                kind: FaultKind::Kill,
+                service: "plant",
+                at_s: 0.5,
+                duration_s: 0.0
+            })
         );
         assert_eq!(
             parse("stop:current-loop@1:0.02").unwrap(),
-            FaultSpec::One(Fault { kind: FaultKind::Stop, service: "current-loop", at_s: 1.0, duration_s: 0.02 })
+            FaultSpec::One(Fault {
+                kind: FaultKind::Stop,
+                service: "current-loop",
+                at_s: 1.0,
+                duration_s: 0.02
+            })
         );
         assert_eq!(parse("random:100").unwrap(), FaultSpec::Random(100));
     }
 
     #[test]
     fn bad_specs_are_clear_errors() {
-        assert!(parse("kill:pump@1").unwrap_err().to_string().contains("unknown service 'pump'"));
-        assert!(parse("kill:plant").unwrap_err().to_string().contains("kill:SERVICE@SECONDS"));
-        assert!(parse("stop:plant@1").unwrap_err().to_string().contains("stop:SERVICE@SECONDS:DURATION"));
-        assert!(parse("kill:plant@x").unwrap_err().to_string().contains("not a number"));
-        assert!(parse("explode:plant@1").unwrap_err().to_string().contains("unknown fault kind"));
+        assert!(parse("kill:pump@1")
+            .unwrap_err()
+            .to_string()
+            .contains("unknown service 'pump'"));
+        assert!(parse("kill:plant")
+            .unwrap_err()
+            .to_string()
+            .contains("kill:SERVICE@SECONDS"));
+        assert!(parse("stop:plant@1")
+            .unwrap_err()
+            .to_string()
+            .contains("stop:SERVICE@SECONDS:DURATION"));
+        assert!(parse("kill:plant@x")
+            .unwrap_err()
+            .to_string()
+            .contains("not a number"));
+        assert!(parse("explode:plant@1")
+            .unwrap_err()
+            .to_string()
+            .contains("unknown fault kind"));
         assert!(parse("random:0").is_err());
     }
 
@@ -196,7 +259,10 @@ mod tests {
         for w in a.windows(2) {
             assert!(w[1].at_s - w[0].at_s >= 0.79, "{w:?}");
         }
-        assert!(plan(&[FaultSpec::Random(10)], 2.0, 7, 1.0).unwrap_err().to_string().contains("--duration"));
+        assert!(plan(&[FaultSpec::Random(10)], 2.0, 7, 1.0)
+            .unwrap_err()
+            .to_string()
+            .contains("--duration"));
     }
 }
 
@@ -214,8 +280,22 @@ pub fn inject_bad_estimates(bus: &str, kind: &str, count: u32) -> Result<()> {
     let tx = topics.est.sender()?;
     for i in 0..count {
         let e = match kind {
-            "nan" => Estimate { hdr: Header { k: u64::MAX / 2 + u64::from(i), ..Default::default() }, theta_e: 0.0, omega_m: f64::NAN },
-            "backwards" => Estimate { hdr: Header { k: 0, ..Default::default() }, theta_e: 0.0, omega_m: 0.0 },
+            "nan" => Estimate {
+                hdr: Header {
+                    k: u64::MAX / 2 + u64::from(i),
+                    ..Default::default()
+                },
+                theta_e: 0.0,
+                omega_m: f64::NAN,
+            },
+            "backwards" => Estimate {
+                hdr: Header {
+                    k: 0,
+                    ..Default::default()
+                },
+                theta_e: 0.0,
+                omega_m: 0.0,
+            },
             other => bail!("unknown bad-input kind '{other}' (nan, backwards)"),
         };
         tx.send(e)?;

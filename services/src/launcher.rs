@@ -397,7 +397,12 @@ fn run_bus(
     let progress = Arc::new(Progress::default());
     let (ready_tx, ready_rx) = mpsc::channel();
     let rec = {
-        let (b, s, w, pr) = (bus_id.clone(), stop.clone(), sc.timing.wake, progress.clone());
+        let (b, s, w, pr) = (
+            bus_id.clone(),
+            stop.clone(),
+            sc.timing.wake,
+            progress.clone(),
+        );
         std::thread::Builder::new()
             .name("recorder".into())
             .spawn(move || run_recorder(b, w, n, s, pr, ready_tx))?
@@ -477,7 +482,20 @@ fn run_bus(
             BusClock::Realtime => Duration::from_secs_f64(sc.duration_s * 1.5 + 20.0),
             BusClock::Lockstep => Duration::from_secs_f64(sc.duration_s * 2000.0 + 120.0),
         };
-        let failure = supervise(&mut children, &plan, &mut events, &progress, sc, sc_path, &bus_id, clock, o, out, started, limit)?;
+        let failure = supervise(
+            &mut children,
+            &plan,
+            &mut events,
+            &progress,
+            sc,
+            sc_path,
+            &bus_id,
+            clock,
+            o,
+            out,
+            started,
+            limit,
+        )?;
         Ok((children, failure))
     })();
     let (mut children, failure) = match result {
@@ -552,7 +570,11 @@ fn assemble(sc: &Scenario, rec: &Recorder, _plant_ok: bool) -> (Vec<TraceRow>, V
             (Some(m), None) => {
                 let nan = f64::NAN;
                 let c = VoltageCommand {
-                    hdr: drivelab::messages::Header { k: m.hdr.k, flags: drivelab::messages::FLAG_MISSING, ..Default::default() },
+                    hdr: drivelab::messages::Header {
+                        k: m.hdr.k,
+                        flags: drivelab::messages::FLAG_MISSING,
+                        ..Default::default()
+                    },
                     u_ab: [nan; 2],
                     u_dq: [nan; 2],
                     i_dq_ref: [nan; 2],
@@ -629,7 +651,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         let fs = sc.rates.sample_hz;
         // The fault whose window (injection → recovery) holds the gap.
         let in_window = |f: &&FaultReport| {
-            let end = f.injected_k + ((f.speed_recovered_ms.or(f.republished_ms).unwrap_or(200.0)) * 1e-3 * fs) as u64;
+            let end = f.injected_k
+                + ((f.speed_recovered_ms.or(f.republished_ms).unwrap_or(200.0)) * 1e-3 * fs) as u64;
             f.injected_k <= g.from && g.from <= end
         };
         if let Some(f) = faults.iter().rev().find(in_window) {
@@ -696,7 +719,15 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             shaded_windows: windows.clone(),
             ..Default::default()
         };
-        let files = drivelab::plot::plot_trace(&rows, &out, &opts)?;
+        let mut files = drivelab::plot::plot_trace(&rows, &out, &opts)?;
+        if drivelab::control::polar::mode_of(&sc).is_some() || !sc.reference.i_q_a.is_empty() {
+            files.extend(drivelab::plot_polar::plot_polar_panels(
+                &sc,
+                &rows,
+                &out,
+                &opts.title,
+            )?);
+        }
         summary["plots"] = json!(files
             .iter()
             .map(|f| f
@@ -807,9 +838,16 @@ fn supervise(
         while next_fault < plan.len() && k_now as f64 >= plan[next_fault].at_s * fs {
             let f = &plan[next_fault];
             next_fault += 1;
-            let Some(i) = children.iter().position(|c| c.name == f.service) else { continue };
+            let Some(i) = children.iter().position(|c| c.name == f.service) else {
+                continue;
+            };
             if dead[i] || done[i] {
-                ev(events, "inject-skipped", f.service, "service not running".into());
+                ev(
+                    events,
+                    "inject-skipped",
+                    f.service,
+                    "service not running".into(),
+                );
                 continue;
             }
             let sig = match f.kind {
@@ -817,7 +855,20 @@ fn supervise(
                 FaultKind::Stop => libc::SIGSTOP,
             };
             signal(children[i].child.id(), sig)?;
-            ev(events, "inject", f.service, format!("{}{}", crate::faults::kind_name(f.kind), if f.kind == FaultKind::Stop { format!(" for {} s", f.duration_s) } else { String::new() }));
+            ev(
+                events,
+                "inject",
+                f.service,
+                format!(
+                    "{}{}",
+                    crate::faults::kind_name(f.kind),
+                    if f.kind == FaultKind::Stop {
+                        format!(" for {} s", f.duration_s)
+                    } else {
+                        String::new()
+                    }
+                ),
+            );
             if f.kind == FaultKind::Stop {
                 pending_cont.push((now + Duration::from_secs_f64(f.duration_s), i));
             }
@@ -841,7 +892,12 @@ fn supervise(
                 while let Ok(l) = children[i].lines.try_recv() {
                     if l == "READY" {
                         awaiting_ready[i] = false;
-                        ev(events, "ready", children[i].name, format!("pid {}", children[i].child.id()));
+                        ev(
+                            events,
+                            "ready",
+                            children[i].name,
+                            format!("pid {}", children[i].child.id()),
+                        );
                     } else if let Some(j) = l.strip_prefix("RT ") {
                         children[i].rt = serde_json::from_str(j).ok();
                     }
@@ -854,7 +910,9 @@ fn supervise(
                     dead[i] = true;
                     any_dead = true;
                     ev(events, "exited", children[i].name, format!("{st}"));
-                    let injected = events.iter().any(|e| e.event == "inject" && e.service == children[i].name);
+                    let injected = events
+                        .iter()
+                        .any(|e| e.event == "inject" && e.service == children[i].name);
                     if o.restart == Restart::Never || restarts[i] >= MAX_RESTARTS {
                         if !injected {
                             return Ok(Some(format!("{} failed ({st})", children[i].name)));
@@ -864,10 +922,14 @@ fn supervise(
                             return Ok(None);
                         }
                     } else {
-                        if last_restart[i].is_some_and(|t| now.duration_since(t) > Duration::from_secs(2)) {
+                        if last_restart[i]
+                            .is_some_and(|t| now.duration_since(t) > Duration::from_secs(2))
+                        {
                             backoff_level[i] = 0;
                         }
-                        let backoff = Duration::from_millis(10u64.saturating_mul(1 << backoff_level[i].min(7)).min(1000));
+                        let backoff = Duration::from_millis(
+                            10u64.saturating_mul(1 << backoff_level[i].min(7)).min(1000),
+                        );
                         backoff_level[i] += 1;
                         pending_restart.push((now + backoff, i));
                     }
@@ -876,7 +938,12 @@ fn supervise(
         }
         if any_dead {
             let reaped = bus::reap_dead_nodes(bus_id)?;
-            ev(events, "reaped", "-", format!("dead iceoryx2 nodes cleaned: {}", reaped.join(", ")));
+            ev(
+                events,
+                "reaped",
+                "-",
+                format!("dead iceoryx2 nodes cleaned: {}", reaped.join(", ")),
+            );
         }
         let mut still = Vec::new();
         for (t, i) in pending_restart.drain(..) {
@@ -889,9 +956,14 @@ fn supervise(
             if name == "plant" {
                 let last = progress.last.lock().ok().and_then(|l| *l);
                 let Some(last) = last else {
-                    return Ok(Some("plant died before its first sample; cannot resume".into()));
+                    return Ok(Some(
+                        "plant died before its first sample; cannot resume".into(),
+                    ));
                 };
-                std::fs::write(&rejoin_file, serde_json::to_vec(&crate::common::measurement_to_json(&last))?)?;
+                std::fs::write(
+                    &rejoin_file,
+                    serde_json::to_vec(&crate::common::measurement_to_json(&last))?,
+                )?;
             }
             let c = spawn_service(name, sc_path, bus_id, clock, o, out, Some(&rejoin_file))?;
             children[i] = c;
@@ -899,10 +971,18 @@ fn supervise(
             last_restart[i] = Some(now);
             dead[i] = false;
             awaiting_ready[i] = true;
-            ev(events, "restarted", name, format!("restart #{}, pid {}", restarts[i], children[i].child.id()));
+            ev(
+                events,
+                "restarted",
+                name,
+                format!("restart #{}, pid {}", restarts[i], children[i].child.id()),
+            );
         }
         pending_restart = still;
-        let plant_done = children.iter().zip(&done).any(|(c, d)| c.name == "plant" && *d);
+        let plant_done = children
+            .iter()
+            .zip(&done)
+            .any(|(c, d)| c.name == "plant" && *d);
         if done.iter().zip(&dead).all(|(d, x)| *d || *x) && pending_restart.is_empty() {
             return Ok(None);
         }
@@ -910,7 +990,11 @@ fn supervise(
             // The plant has finished; anyone not done within 2 s is stopped by the caller.
             let t = Instant::now();
             while t.elapsed() < Duration::from_secs(2) {
-                if children.iter_mut().zip(&done).all(|(c, d)| *d || matches!(c.child.try_wait(), Ok(Some(_)))) {
+                if children
+                    .iter_mut()
+                    .zip(&done)
+                    .all(|(c, d)| *d || matches!(c.child.try_wait(), Ok(Some(_))))
+                {
                     break;
                 }
                 std::thread::sleep(Duration::from_millis(5));
@@ -950,7 +1034,11 @@ pub struct FaultReport {
 
 /// Builds the fault reports from the supervisor's events and the trace, and the windows to
 /// shade on the plots.
-pub fn fault_reports(sc: &Scenario, rows: &[TraceRow], events: &[SupEvent]) -> (Vec<FaultReport>, Vec<(f64, f64, String)>) {
+pub fn fault_reports(
+    sc: &Scenario,
+    rows: &[TraceRow],
+    events: &[SupEvent],
+) -> (Vec<FaultReport>, Vec<(f64, f64, String)>) {
     use drivelab::messages::{FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT};
     let fs = sc.rates.sample_hz;
     let ms = |dk: u64| dk as f64 / fs * 1e3;
@@ -980,7 +1068,9 @@ pub fn fault_reports(sc: &Scenario, rows: &[TraceRow], events: &[SupEvent]) -> (
             }
             expect += 1;
         }
-        let safe = after().find(|r| r.plant_flags & FLAG_SAFE_STATE != 0).map(|r| ms(r.k - k0));
+        let safe = after()
+            .find(|r| r.plant_flags & FLAG_SAFE_STATE != 0)
+            .map(|r| ms(r.k - k0));
         let sup = events
             .iter()
             .find(|e| e.event == "exited" && e.service == inj.service && e.t_wall_s >= inj.t_wall_s)
@@ -996,14 +1086,24 @@ pub fn fault_reports(sc: &Scenario, rows: &[TraceRow], events: &[SupEvent]) -> (
             let w = drivelab::config::profile_at(&sc.reference.speed_rad_s, r.t);
             (r.omega_m - w).abs() <= 0.02 * w.abs().max(1e-9)
         };
-        let tail: Vec<&TraceRow> = after().filter(|r| fresh.is_some_and(|f| r.k >= f)).collect();
-        let rec = (0..tail.len()).find(|&i| tail[i..].iter().take(hold).all(|r| within(r)) && tail.len() - i >= hold).map(|i| tail[i].k);
-        let k_rec = rec.or(fresh).unwrap_or(k_end_window.min(k0 + (0.2 * fs) as u64));
+        let tail: Vec<&TraceRow> = after()
+            .filter(|r| fresh.is_some_and(|f| r.k >= f))
+            .collect();
+        let rec = (0..tail.len())
+            .find(|&i| tail[i..].iter().take(hold).all(|r| within(r)) && tail.len() - i >= hold)
+            .map(|i| tail[i].k);
+        let k_rec = rec
+            .or(fresh)
+            .unwrap_or(k_end_window.min(k0 + (0.2 * fs) as u64));
         let peak = after()
             .filter(|r| r.k <= k_rec)
             .map(|r| (r.i_d * r.i_d + r.i_q * r.i_q).sqrt())
             .fold(0.0, f64::max);
-        windows.push((k0 as f64 / fs, k_rec as f64 / fs, format!("{} {}", inj.detail, inj.service)));
+        windows.push((
+            k0 as f64 / fs,
+            k_rec as f64 / fs,
+            format!("{} {}", inj.detail, inj.service),
+        ));
         out.push(FaultReport {
             fault: inj.detail.clone(),
             service: inj.service.clone(),

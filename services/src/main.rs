@@ -309,6 +309,14 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                     fmt_opt(&m["load_recovery_ms"], "ms"),
                     fmt_opt(&m["steady_state_error"], "rad/s")
                 );
+                if m["iq_rise_time_us"].as_f64().is_some() || m["id_max_a"].as_f64().is_some() {
+                    println!(
+                        "i_q rise (10-90 %) {}, i_q overshoot {}, max settled i_d {}",
+                        fmt_opt(&m["iq_rise_time_us"], "µs"),
+                        fmt_opt(&m["iq_overshoot_pct"], "%"),
+                        fmt_opt(&m["id_max_a"], "A")
+                    );
+                }
                 if let Some(g) = s["missing_samples"].as_array().filter(|g| !g.is_empty()) {
                     let n: u64 = g
                         .iter()

@@ -105,8 +105,12 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let (t0, k_start) = if args.rejoin {
         // Restarted by the supervisor: resume from the last measurement the recorder saw,
         // on the original schedule; the samples of the downtime are not produced.
-        let path = args.rejoin_from.as_ref().ok_or_else(|| anyhow!("--rejoin needs --rejoin-from FILE"))?;
-        let text = std::fs::read_to_string(path).with_context(|| format!("read {}", path.display()))?;
+        let path = args
+            .rejoin_from
+            .as_ref()
+            .ok_or_else(|| anyhow!("--rejoin needs --rejoin-from FILE"))?;
+        let text =
+            std::fs::read_to_string(path).with_context(|| format!("read {}", path.display()))?;
         let last = measurement_from_json(&serde_json::from_str(&text)?)?;
         plant.restore(&last);
         if lockstep || last.hdr.t_sample_ns == 0 {
@@ -120,7 +124,10 @@ pub fn run(args: ServiceArgs) -> Result<()> {
         let mut line = String::new();
         std::io::stdin().lock().read_line(&mut line)?;
         if line.trim() != "GO" {
-            bail!("launcher did not say GO (got {:?}); not starting", line.trim());
+            bail!(
+                "launcher did not say GO (got {:?}); not starting",
+                line.trim()
+            );
         }
         warm_up(&meas_tx, &cmd_rx)?;
         (now_ns() + 2_000_000, 0)

@@ -18,9 +18,17 @@ pub struct PlotArgs {
 }
 
 fn parse_window(w: &str) -> Result<(f64, f64)> {
-    let (a, b) = w.split_once(':').ok_or_else(|| anyhow!("--window '{w}': expected START:END in seconds"))?;
-    let a: f64 = a.trim().parse().map_err(|_| anyhow!("--window '{w}': START is not a number of seconds"))?;
-    let b: f64 = b.trim().parse().map_err(|_| anyhow!("--window '{w}': END is not a number of seconds"))?;
+    let (a, b) = w
+        .split_once(':')
+        .ok_or_else(|| anyhow!("--window '{w}': expected START:END in seconds"))?;
+    let a: f64 = a
+        .trim()
+        .parse()
+        .map_err(|_| anyhow!("--window '{w}': START is not a number of seconds"))?;
+    let b: f64 = b
+        .trim()
+        .parse()
+        .map_err(|_| anyhow!("--window '{w}': END is not a number of seconds"))?;
     if !(a.is_finite() && b.is_finite() && a < b) {
         bail!("--window '{w}': START must be before END");
     }
@@ -49,8 +57,16 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
             f.iter()
                 .filter_map(|x| {
                     let t0 = x["injected_t_s"].as_f64()?;
-                    let dur = x["speed_recovered_ms"].as_f64().or(x["republished_ms"].as_f64()).unwrap_or(200.0) * 1e-3;
-                    Some((t0, t0 + dur, format!("{} {}", x["fault"].as_str()?, x["service"].as_str()?)))
+                    let dur = x["speed_recovered_ms"]
+                        .as_f64()
+                        .or(x["republished_ms"].as_f64())
+                        .unwrap_or(200.0)
+                        * 1e-3;
+                    Some((
+                        t0,
+                        t0 + dur,
+                        format!("{} {}", x["fault"].as_str()?, x["service"].as_str()?),
+                    ))
                 })
                 .collect()
         })
@@ -60,7 +76,11 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
         current_limit_a: scenario.as_ref().map(|s| s.i_q_max()),
         voltage_limit_v: scenario.as_ref().map(|s| s.u_max()),
         shaded_windows: windows,
-        title: format!("{} ({})", summary["scenario"].as_str().unwrap_or("run"), summary["clock"].as_str().unwrap_or("?")),
+        title: format!(
+            "{} ({})",
+            summary["scenario"].as_str().unwrap_or("run"),
+            summary["clock"].as_str().unwrap_or("?")
+        ),
     };
     let mut files = drivelab::plot::plot_trace(&rows, &out, &opts)?;
     let mut curves = Vec::new();
@@ -71,9 +91,16 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
         .collect();
     hdrs.sort();
     for f in hdrs {
-        let key = f.file_stem().unwrap_or_default().to_string_lossy().into_owned();
+        let key = f
+            .file_stem()
+            .unwrap_or_default()
+            .to_string_lossy()
+            .into_owned();
         if key == "cycle" || key.ends_with(".wake") || key.ends_with(".lateness") {
-            curves.push((key, drivelab::timing::LatencyHist::read_v2("h", &f)?.curve()));
+            curves.push((
+                key,
+                drivelab::timing::LatencyHist::read_v2("h", &f)?.curve(),
+            ));
         }
     }
     if !curves.is_empty() {

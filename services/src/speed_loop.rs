@@ -22,10 +22,17 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let meas_rx = topics.meas.polled_receiver(64)?;
     // After a restart: the commands' history carries the last reference the current loop
     // used (its own output's history died with the old process), for a bumpless take-over.
-    let own_rx = if args.rejoin { Some(topics.cmd.polled_receiver(16)?) } else { None };
+    let own_rx = if args.rejoin {
+        Some(topics.cmd.polled_receiver(16)?)
+    } else {
+        None
+    };
     let iref_tx = topics.iref.sender()?;
     let report = apply_placement("speed-loop", &sc, &args)?;
     let mut ctrl = SpeedLoopStep::new(&sc);
+    for w in drivelab::drive::DriveDesign::from_scenario(&sc).warnings {
+        eprintln!("speed-loop: warning: {w}");
+    }
     let mut c = Counters::default();
     let mut h = ServiceHists::new(false);
     let mut last_k: Option<u64> = None;
@@ -44,7 +51,10 @@ pub fn run(args: ServiceArgs) -> Result<()> {
             got = true;
             last_input = Instant::now();
             if e.hdr.is_warmup() || e.hdr.is_end() {
-                iref_tx.send(CurrentRef { hdr: e.hdr, ..Default::default() })?;
+                iref_tx.send(CurrentRef {
+                    hdr: e.hdr,
+                    ..Default::default()
+                })?;
                 if e.hdr.is_end() {
                     break 'outer;
                 }
@@ -86,7 +96,9 @@ pub fn run(args: ServiceArgs) -> Result<()> {
         }
         if lockstep {
             if last_k.is_some() && last_input.elapsed() > LOCKSTEP_WATCHDOG {
-                return Err(anyhow!("no estimate from observer for {LOCKSTEP_WATCHDOG:?}"));
+                return Err(anyhow!(
+                    "no estimate from observer for {LOCKSTEP_WATCHDOG:?}"
+                ));
             }
             continue;
         }
@@ -101,7 +113,9 @@ pub fn run(args: ServiceArgs) -> Result<()> {
                 newest_meas = Some(m.hdr.k);
             }
         }
-        let (Some(km), Some(prev)) = (newest_meas, last_out) else { continue };
+        let (Some(km), Some(prev)) = (newest_meas, last_out) else {
+            continue;
+        };
         let j = km / n * n;
         if j > prev.hdr.k {
             let mut r = prev;

@@ -281,6 +281,15 @@ pub enum CurrentController {
     /// Low et al. 1998: RST per axis by pole placement (3rd-order ITAE for i_q, 2nd-order
     /// for i_d, `itae_omega_rad_s`), see `control::rst`.
     Rst,
+    /// Miyajima et al. section IV: polar inputs (V_a, δ), C_21 (i_q via V_a) and C_12 (i_d
+    /// via δ) with CDM gains rescheduled every sample, see `control::polar`. SPMSM only.
+    Polar,
+    /// Miyajima et al. section III, conventional: V_a held at V_amax, i_q via the voltage
+    /// phase only (flux weakening). SPMSM only.
+    VoltagePhase,
+    /// Miyajima et al. section III, proposed: the phase controller plus the voltage-amplitude
+    /// controller that stops flux strengthening (i_d > 0) without a mode switch. SPMSM only.
+    PolarFw,
 }
 
 /// Current-loop settings.
@@ -320,6 +329,9 @@ pub enum SpeedController {
     /// Low et al. 1998: RST by pole placement, 3rd-order ITAE including the speed filter
     /// (`itae_omega_rad_s`), see `control::rst`.
     Rst,
+    /// No speed control: forwards i_d* and i_q* from `reference.i_d_a` and
+    /// `reference.i_q_a` (current-loop studies at a prescribed speed).
+    CurrentReference,
 }
 
 /// Speed-loop settings.
@@ -368,6 +380,10 @@ pub struct References {
     /// d-axis current reference steps, A.
     #[serde(default)]
     pub i_d_a: Vec<Step>,
+    /// q-axis current reference steps, A (only with `speed_loop.controller =
+    /// "current-reference"`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub i_q_a: Vec<Step>,
 }
 
 /// Load-torque profile.
@@ -631,6 +647,7 @@ impl Scenario {
         )?;
         crate::observer_sensorless::validate(self)?;
         crate::control::rst::validate(self)?;
+        crate::control::polar::validate(self)?;
         let c = &self.current_loop;
         check(
             c.tau_c_s.is_finite() && c.tau_c_s >= 2.0 * ts && c.tau_c_s <= 1.0,
@@ -675,6 +692,12 @@ impl Scenario {
         check_steps(
             "reference.i_d_a",
             &self.reference.i_d_a,
+            self.duration_s,
+            10.0 * m.i_max_a,
+        )?;
+        check_steps(
+            "reference.i_q_a",
+            &self.reference.i_q_a,
             self.duration_s,
             10.0 * m.i_max_a,
         )?;

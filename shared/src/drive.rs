@@ -53,6 +53,9 @@ pub struct DriveDesign {
     /// The sensorless observer's settings, when `observer.mode` is not "encoder".
     #[serde(skip_serializing_if = "Option::is_none")]
     pub observer: Option<crate::observer_sensorless::ObserverDesign>,
+    /// Miyajima et al. polar current law (CDM / flux-weakening design), when selected.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub polar: Option<crate::control::polar::PolarDesign>,
 }
 
 /// Natural frequency ω_i of the nonlinear controller's inner (torque and field) loops, rad/s.
@@ -113,7 +116,9 @@ impl DriveDesign {
         let rst = crate::control::rst::uses_rst(sc)
             .then(|| crate::control::rst::RstDriveDesign::from_scenario(sc).expect("validated"));
         Self {
-            controller: if rst.is_some() {
+            controller: if let Some(m) = crate::control::polar::mode_of(sc) {
+                m.name()
+            } else if rst.is_some() {
                 "rst"
             } else if sc.nonlinear() {
                 "nonlinear"
@@ -126,6 +131,8 @@ impl DriveDesign {
             warnings,
             rst,
             observer: crate::observer_sensorless::ObserverDesign::from_scenario(sc),
+            polar: crate::control::polar::spec_from_scenario(sc)
+                .map(|p| crate::control::polar::PolarDesign::new(&p)),
         }
     }
 }
@@ -328,15 +335,11 @@ impl ObserverStep {
             // The encoder speed is settled: the angle one sample before t_0 and the speed.
             enc.preset(wrap_2pi(-w * sc.rates.ts()), w);
         }
-        let mut sensorless = crate::observer_sensorless::from_scenario(sc);
-        if let (Some(o), Some(w)) = (sensorless.as_mut(), running_start_speed(sc)) {
-            // Monitor mode: the observer starts at the encoder's settled speed, with the
-            // configured angle error.
-            o.preset(sc.observer.initial_angle_error_deg.to_radians(), w);
-        }
         Self {
             enc,
-            sensorless,
+            // The sensorless observer always starts cold: θ̂ = the configured initial error,
+            // ω̂ = 0.
+            sensorless: crate::observer_sensorless::from_scenario(sc),
             mode: sc.observer.mode,
         }
     }
@@ -383,7 +386,9 @@ pub fn running_start_speed(sc: &Scenario) -> Option<f64> {
 enum SpeedLaw {
     Pi(SpeedPi),
     Nonlinear(NlSpeedLaw),
-    Rst(crate::control::rst::RstSpeed),
+    Rst(Box<crate::control::rst::RstSpeed>),
+    /// No speed control: i_q* from `reference.i_q_a`.
+    CurrentReference,
 }
 
 /// Speed-loop service step.
@@ -394,6 +399,7 @@ pub struct SpeedLoopStep {
     ts: f64,
     speed_ref: Vec<Step>,
     i_d_ref: Vec<Step>,
+    i_q_ref: Vec<Step>,
     /// Speed samples whose i_d set-point approached Kyslan eq. (15) (nonlinear only).
     pub near_singular_samples: u64,
 }
@@ -404,9 +410,14 @@ impl SpeedLoopStep {
         let d = DriveDesign::from_scenario(sc);
         let n = sc.rates.speed_divider;
         let tw = f64::from(n) * sc.rates.ts();
-        let law = if sc.speed_loop.controller == crate::config::SpeedController::Rst {
+        let law = if sc.speed_loop.controller == crate::config::SpeedController::CurrentReference {
+            SpeedLaw::CurrentReference
+        } else if sc.speed_loop.controller == crate::config::SpeedController::Rst {
             let r = d.rst.as_ref().expect("designed when a loop selects rst");
-            SpeedLaw::Rst(crate::control::rst::RstSpeed::new(&r.speed, sc.i_q_max()))
+            SpeedLaw::Rst(Box::new(crate::control::rst::RstSpeed::new(
+                &r.speed,
+                sc.i_q_max(),
+            )))
         } else if sc.nonlinear() {
             SpeedLaw::Nonlinear(NlSpeedLaw::new(
                 &sc.motor_params(),
@@ -422,7 +433,7 @@ impl SpeedLoopStep {
             match &mut law {
                 SpeedLaw::Pi(c) => c.preset(w, 0.0),
                 SpeedLaw::Rst(c) => c.preset(w, 0.0),
-                SpeedLaw::Nonlinear(_) => {}
+                SpeedLaw::Nonlinear(_) | SpeedLaw::CurrentReference => {}
             }
         }
         Self {
@@ -431,6 +442,7 @@ impl SpeedLoopStep {
             ts: sc.rates.ts(),
             speed_ref: sc.reference.speed_rad_s.clone(),
             i_d_ref: sc.reference.i_d_a.clone(),
+            i_q_ref: sc.reference.i_q_a.clone(),
             near_singular_samples: 0,
         }
     }
@@ -452,6 +464,7 @@ impl SpeedLoopStep {
         let i_q_ref = match &mut self.law {
             SpeedLaw::Pi(c) => c.step(omega_ref, est.omega_m),
             SpeedLaw::Rst(c) => c.step(omega_ref, est.omega_m),
+            SpeedLaw::CurrentReference => profile_at(&self.i_q_ref, t),
             SpeedLaw::Nonlinear(c) => {
                 let o = c.step(omega_ref, est.omega_m, i_d_ref);
                 if o.near_singular {
@@ -478,7 +491,8 @@ impl SpeedLoopStep {
 enum CurrentLaw {
     Pi(PiCurrentController),
     Nonlinear(NlCurrentLaw),
-    Rst(crate::control::rst::RstCurrentController),
+    Rst(Box<crate::control::rst::RstCurrentController>),
+    Polar(crate::control::polar::PolarCurrentController),
 }
 
 /// Current-loop service step.
@@ -498,13 +512,16 @@ impl CurrentLoopStep {
     pub fn new(sc: &Scenario) -> Self {
         let m = sc.motor_params();
         let d = DriveDesign::from_scenario(sc);
-        let law = if sc.current_loop.controller == crate::config::CurrentController::Rst {
-            CurrentLaw::Rst(crate::control::rst::RstCurrentController::new(
+        let law = if let Some(c) = crate::control::polar::PolarCurrentController::from_scenario(sc)
+        {
+            CurrentLaw::Polar(c)
+        } else if sc.current_loop.controller == crate::config::CurrentController::Rst {
+            CurrentLaw::Rst(Box::new(crate::control::rst::RstCurrentController::new(
                 &m,
                 d.rst.as_ref().expect("designed when a loop selects rst"),
                 sc.u_max(),
                 sc.current_loop.decoupling,
-            ))
+            )))
         } else if sc.nonlinear() {
             CurrentLaw::Nonlinear(NlCurrentLaw::new(
                 &m,
@@ -540,8 +557,21 @@ impl CurrentLoopStep {
     /// samples where a1 + a2·i_d had to be clamped. (0, 0) for the PI cascade.
     pub fn singularity_counts(&self) -> (u64, u64) {
         match &self.law {
-            CurrentLaw::Pi(_) | CurrentLaw::Rst(_) => (0, 0),
+            CurrentLaw::Pi(_) | CurrentLaw::Rst(_) | CurrentLaw::Polar(_) => (0, 0),
             CurrentLaw::Nonlinear(c) => (c.near_singular_samples, c.clamped_samples),
+        }
+    }
+
+    /// Miyajima polar laws only: samples where V_a was limited, where δ was limited, and where
+    /// |V_ao| sat at its lower limit 0.001·V_amax (near the uncontrollable point V_a ≈ 0).
+    pub fn polar_counts(&self) -> Option<(u64, u64, u64)> {
+        match &self.law {
+            CurrentLaw::Polar(c) => Some((
+                c.v_a_limited_samples,
+                c.delta_limited_samples,
+                c.near_zero_amplitude_samples,
+            )),
+            _ => None,
         }
     }
 
@@ -571,6 +601,7 @@ impl CurrentLoopStep {
         let (u, i_q_ref) = match &mut self.law {
             CurrentLaw::Pi(c) => (c.step(&input), iref.i_q_ref),
             CurrentLaw::Rst(c) => (c.step(&input), iref.i_q_ref),
+            CurrentLaw::Polar(c) => (c.step(&input), iref.i_q_ref),
             CurrentLaw::Nonlinear(c) => {
                 let o = c.step(&input);
                 (

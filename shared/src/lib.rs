@@ -16,6 +16,7 @@ pub mod motor;
 pub mod observer;
 pub mod observer_sensorless;
 pub mod plot;
+pub mod plot_polar;
 pub mod rt;
 pub mod timing;
 pub mod trace;

@@ -21,6 +21,30 @@ pub struct SpeedMetrics {
     /// run, A (i_d* from the scenario's profile). It covers the settled field current and
     /// whatever the later events (the load step) do to it: the torque/flux decoupling.
     pub id_tracking_error_a: Option<f64>,
+    /// Sensorless observer (`observer.mode` "sensorless" or "monitor") only: mean angle error
+    /// θ̂_e − θ_e over the last 10 % of the run, degrees electrical.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub angle_error_ss_deg: Option<f64>,
+    /// Sensorless observer only: time from t = 0 until the angle error stays within ±1° of
+    /// `angle_error_ss_deg` for 20 ms (or to the end of the run), ms.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub observer_convergence_ms: Option<f64>,
+    /// Current-reference scenarios (`reference.i_q_a`) only: 10–90 % rise time of i_q after
+    /// the first i_q* step, µs.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub iq_rise_time_us: Option<f64>,
+    /// Current-reference scenarios only: peak of i_q beyond i_q* after the first i_q* step,
+    /// relative to the step, % (until the next current-reference event).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub iq_overshoot_pct: Option<f64>,
+    /// Current-reference scenarios only: mean (i_q* − i_q) over the last 10 % of the run, A.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub iq_steady_state_error_a: Option<f64>,
+    /// Current-reference scenarios only: largest i_d once each response has settled, i.e.
+    /// over the last quarter of every interval between current-reference events (the
+    /// interval before the first one included), A. Flux strengthening shows as i_d > 0.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub id_max_a: Option<f64>,
 }
 
 /// Start of the i_d tracking-error window after the first i_d reference step, s.
@@ -80,7 +104,9 @@ pub fn speed_metrics(sc: &Scenario, rows: &[TraceRow]) -> SpeedMetrics {
         .filter(|r| r.t >= tail_start)
         .map(|r| profile_at(refs, r.t) - r.omega_m)
         .collect();
-    if !tail.is_empty() {
+    // No speed reference (a current-reference study at a prescribed speed): no speed error.
+    let speed_study = !refs.is_empty() || sc.reference.i_q_a.is_empty();
+    if !tail.is_empty() && speed_study {
         out.steady_state_error = Some(tail.iter().sum::<f64>() / tail.len() as f64);
     }
     if let Some(tl) = loads.iter().find(|s| s.value != 0.0) {
@@ -119,7 +145,91 @@ pub fn speed_metrics(sc: &Scenario, rows: &[TraceRow]) -> SpeedMetrics {
             out.id_tracking_error_a = Some((sum / n as f64).sqrt());
         }
     }
+    if let Some((ss, conv)) = crate::observer_sensorless::angle_metrics(sc, rows) {
+        out.angle_error_ss_deg = Some(ss);
+        out.observer_convergence_ms = conv;
+    }
+    current_step_metrics(sc, rows, &mut out);
     out
+}
+
+/// The i_q step metrics of a current-reference scenario (`reference.i_q_a` non-empty).
+fn current_step_metrics(sc: &Scenario, rows: &[TraceRow], out: &mut SpeedMetrics) {
+    let iqs = &sc.reference.i_q_a;
+    if iqs.is_empty() || rows.is_empty() {
+        return;
+    }
+    let end = rows.last().map(|r| r.t).unwrap_or(0.0);
+    // Current-reference events: every step of i_q* or i_d* after t = 0.
+    let mut events: Vec<f64> = iqs
+        .iter()
+        .chain(&sc.reference.i_d_a)
+        .map(|s| s.t_s)
+        .filter(|&t| t > 0.0)
+        .collect();
+    events.sort_by(f64::total_cmp);
+    events.dedup();
+    if let Some(step) = iqs
+        .iter()
+        .find(|s| s.value != profile_at(iqs, s.t_s - 1e-9) || (s.t_s == 0.0 && s.value != 0.0))
+    {
+        let t0 = step.t_s;
+        let before = if t0 > 0.0 {
+            profile_at(iqs, t0 - 1e-9)
+        } else {
+            0.0
+        };
+        let size = step.value - before;
+        let dir = size.signum();
+        let next = events
+            .iter()
+            .copied()
+            .find(|&t| t > t0 + 1e-12)
+            .unwrap_or(end + 1.0);
+        let window: Vec<&TraceRow> = rows
+            .iter()
+            .filter(|r| r.t >= t0 - 1e-12 && r.t < next)
+            .collect();
+        let crossing = |frac: f64| {
+            window
+                .iter()
+                .find(|r| (r.i_q - before) * dir >= frac * size.abs())
+                .map(|r| r.t)
+        };
+        if let (Some(t10), Some(t90)) = (crossing(0.1), crossing(0.9)) {
+            out.iq_rise_time_us = Some((t90 - t10) * 1e6);
+        }
+        let peak = window
+            .iter()
+            .map(|r| (r.i_q - step.value) * dir)
+            .fold(f64::NEG_INFINITY, f64::max);
+        if peak.is_finite() && size != 0.0 {
+            out.iq_overshoot_pct = Some(peak.max(0.0) / size.abs() * 100.0);
+        }
+    }
+    let tail: Vec<f64> = rows
+        .iter()
+        .filter(|r| r.t >= 0.9 * end)
+        .map(|r| profile_at(iqs, r.t) - r.i_q)
+        .collect();
+    if !tail.is_empty() {
+        out.iq_steady_state_error_a = Some(tail.iter().sum::<f64>() / tail.len() as f64);
+    }
+    let mut bounds = vec![0.0];
+    bounds.extend(events.iter().copied().filter(|&t| t < end));
+    bounds.push(end + 1e-9);
+    let id_max = bounds
+        .windows(2)
+        .flat_map(|w| {
+            let from = w[1] - 0.25 * (w[1] - w[0]);
+            rows.iter()
+                .filter(move |r| r.t >= from - 1e-12 && r.t < w[1])
+                .map(|r| r.i_d)
+        })
+        .fold(f64::NEG_INFINITY, f64::max);
+    if id_max.is_finite() {
+        out.id_max_a = Some(id_max);
+    }
 }
 
 #[cfg(test)]

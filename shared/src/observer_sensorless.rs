@@ -25,10 +25,12 @@
 //! The difference: the truncated model takes the back-EMF at the start of the interval, the
 //! current really integrates it over the interval, during which it turns by ω_e T_s. The
 //! observer therefore lines its estimate up with the EMF at about the middle of the interval:
-//! θ̂ leads θ by about ω_e T_s/2 in steady state (2.3° at 1200 rpm, T_s = 0.2 ms, τ_o = 1 ms;
-//! [`predicted_angle_error`] gives the exact figure). The exact model removes this bias; what
-//! is left is the inverter's hold in the rotor frame (u_dq constant over the sample, hence
-//! u_αβ turning), which no αβ model with a held u_αβ describes (≈ 0.02° at 1200 rpm). The
+//! θ̂ leads θ by somewhat less than ω_e T_s/2 in steady state (2.23° at 1200 rpm and no load,
+//! T_s = 0.2 ms, τ_o = 1 ms, where ω_e T_s/2 = 2.9°; [`predicted_angle_error`] gives the figure
+//! for any operating point, and the drive settles to it within 0.001°). The exact model
+//! removes this bias; what is left is the inverter's hold in the rotor frame (u_dq constant
+//! over the sample, hence u_αβ turning), which no αβ model with a held u_αβ describes
+//! (−0.008° at 1200 rpm). The
 //! relative truncation error ζ of eq. (14) ([`truncation_error`]) is the design figure of the
 //! paper's Fig. 3 (`drivelab observer-error`).
 //!
@@ -54,9 +56,26 @@
 //!
 //! # Speed estimate
 //!
-//! ω̂_m is the backward difference of θ̂_e/p through the Bessel filter of eq. (10) (group
-//! delay `observer.speed_filter_tau_s`), exactly as the encoder path does with the encoder
-//! angle. It sets the observer's model at the next sample and goes to the speed loop.
+//! ω̂_m closes the loop twice: it sets the observer's model and gains at the next sample, and
+//! it is the speed loop's input. It is the backward difference of an angle, divided by p·T_s,
+//! through the Bessel filter of eq. (10) (group delay `observer.speed_filter_tau_s`), as the
+//! paper does with position data — but of the angle of the *measured back-EMF increment*
+//! ν_m(k) = Y(k) − A11·Y(k−1) − B1·U(k−1) (the measured part of the innovation, = A12·X_B(k−1)
+//! by the model; A11 and B1 do not depend on ω), not of θ̂_e. Differencing θ̂_e feeds the
+//! observer's own convergence back into its gains: correcting a 90° error within a few τ_o
+//! reads as a speed error of about −(π/2)/(p·τ_o) ≈ −400 rad/s, the rescheduled model then
+//! turns the estimate the wrong way and the estimate never settles (seen in the drive: 50 ms
+//! of oscillation and divergence from a 90° start). The back-EMF vector turns at ω_e
+//! whatever the estimate does, so that loop is cut. Below [`EMF_GATE_FRACTION`] of the
+//! back-EMF at the scheduling floor its direction is noise and the estimate's own rotation
+//! (backward difference of θ̂_e) is used instead.
+//!
+//! # Limits
+//!
+//! At standstill the back-EMF vanishes and the position is unobservable: a sensorless start
+//! from rest needs the initial angle (the scenarios start aligned at θ_e = 0, as after a
+//! d-axis alignment pulse); a wrong initial angle at rest is not recovered. From speed (a
+//! flying start, `mechanics.initial_speed_rad_s`) any initial error converges in a few τ_o.
 //!
 //! # Timing
 //!
@@ -99,6 +118,10 @@ pub enum Discretisation {
 
 /// The observer's gains use a speed of at least this fraction of the rated speed.
 pub const OMEGA_MIN_FRACTION: f64 = 0.05;
+
+/// The direction of the measured back-EMF increment is trusted for the speed estimate when
+/// its magnitude exceeds this fraction of its value at [`OMEGA_MIN_FRACTION`]·ω_rated.
+pub const EMF_GATE_FRACTION: f64 = 0.25;
 
 /// The continuous A(ω_m) of eq. (11), state [i_α, i_β, sin θ_e, cos θ_e].
 pub fn continuous_a(m: &MotorParams, omega_m: f64) -> Matrix4<f64> {
@@ -270,6 +293,10 @@ pub struct SensorlessObserver {
     theta_prev: f64,
     omega_hat: f64,
     filter: Bessel2,
+    /// The measured back-EMF increment of the previous sample (speed estimate).
+    emf_prev: Complex<f64>,
+    /// Below this |EMF increment| its direction is not trusted (see [`EMF_GATE_FRACTION`]).
+    emf_gate: f64,
 }
 
 impl SensorlessObserver {
@@ -288,6 +315,14 @@ impl SensorlessObserver {
             theta_prev: wrap_2pi(s.initial_angle_rad),
             omega_hat: 0.0,
             filter: Bessel2::design(s.speed_filter_tau_s, s.ts),
+            emf_prev: Complex::new(0.0, 0.0),
+            emf_gate: EMF_GATE_FRACTION
+                * m.p()
+                * m.psi_pm_wb
+                * OMEGA_MIN_FRACTION
+                * m.omega_rated_rad_s
+                * s.ts
+                / m.l_d_h,
         }
     }
 
@@ -307,6 +342,7 @@ impl SensorlessObserver {
     /// ω̂_m(k).
     pub fn step(&mut self, i_alpha: f64, i_beta: f64, u_ab_applied: [f64; 2]) -> PosSpeed {
         let y = Complex::new(i_alpha, i_beta);
+        let mut emf = Complex::new(0.0, 0.0);
         if self.started {
             let model = DiscreteModel::new(
                 &self.m,
@@ -315,7 +351,10 @@ impl SensorlessObserver {
                 self.s.discretisation,
             );
             let g = model.gain(self.lambda);
-            let nu = y - self.y_prev * model.a11 - self.u_prev * model.b1 - model.a12 * self.w;
+            // The measured part of the innovation: the current change the R-L model does not
+            // explain, A12·X_B(k−1) by the model (A11 and B1 do not depend on ω).
+            emf = y - self.y_prev * model.a11 - self.u_prev * model.b1;
+            let nu = emf - model.a12 * self.w;
             self.w = model.a22 * self.w + g * nu;
         }
         self.started = true;
@@ -323,9 +362,16 @@ impl SensorlessObserver {
         self.u_prev = Complex::new(u_ab_applied[0], u_ab_applied[1]);
         // Eq. (17).
         let theta = wrap_2pi(self.w.im.atan2(self.w.re));
-        let raw = ((theta - self.theta_prev + PI).rem_euclid(TAU) - PI)
-            / (self.m.p() * self.s.ts);
+        let dtheta = if emf.norm() > self.emf_gate && self.emf_prev.norm() > self.emf_gate {
+            // Rotation of the measured back-EMF vector over one sample.
+            (emf * self.emf_prev.conj()).arg()
+        } else {
+            // Too little back-EMF to trust its direction: the estimate's own rotation.
+            (theta - self.theta_prev + PI).rem_euclid(TAU) - PI
+        };
+        let raw = dtheta / (self.m.p() * self.s.ts);
         self.theta_prev = theta;
+        self.emf_prev = emf;
         self.omega_hat = self.filter.step(raw);
         PosSpeed {
             theta_e: theta,
@@ -347,6 +393,7 @@ impl SensorlessObserver {
         self.omega_hat = omega_m;
         self.filter.preset(omega_m);
         self.started = false;
+        self.emf_prev = Complex::new(0.0, 0.0);
     }
 }
 
@@ -387,6 +434,99 @@ impl ObserverDesign {
             }
         })
     }
+}
+
+/// A plain-text printout of the observer of a scenario: pole, gains of eq. (16) at 1200 rpm
+/// and rated speed, ζ and the predicted steady-state angle error.
+pub fn render_design(d: &ObserverDesign, m: &MotorParams, ts: f64) -> String {
+    use std::fmt::Write;
+    let mut o = String::new();
+    let _ = writeln!(
+        o,
+        "minimal-order αβ observer (Low et al. 1998 eqs 11-17), mode {:?}, {:?} model: τ_o = {} ms, D = λI with λ = e^(-T_s/τ_o) = {:.5}, gains scheduled at |ω̂| ≥ {:.1} rad/s",
+        d.mode, d.discretisation, d.pole_tau_s * 1e3, d.lambda, d.omega_min_rad_s
+    );
+    for (label, w) in [
+        ("1200 rpm", 1200.0 * PI / 30.0),
+        ("rated speed", m.omega_rated_rad_s),
+    ] {
+        let model = DiscreteModel::new(m, ts, w, d.discretisation);
+        let mx = observer_matrices(&model, d.lambda);
+        let f = |a: &M2| {
+            format!(
+                "[[{:.4}, {:.4}], [{:.4}, {:.4}]]",
+                a[0][0], a[0][1], a[1][0], a[1][1]
+            )
+        };
+        let _ = writeln!(
+            o,
+            "  at {label} ({w:.1} rad/s): V2 = G = {}, E = {}, G_u = {}; ζ = {:.3} %, predicted steady-state θ̂ − θ at no load {:.3}° ({:.3}° with the other discretisation)",
+            f(&mx.v2),
+            f(&mx.e),
+            f(&mx.g_u),
+            100.0 * truncation_error(m, ts, w),
+            predicted_angle_error(m, ts, w, 0.0, 0.0, d.pole_tau_s, d.discretisation).to_degrees(),
+            predicted_angle_error(
+                m,
+                ts,
+                w,
+                0.0,
+                0.0,
+                d.pole_tau_s,
+                match d.discretisation {
+                    Discretisation::Truncated => Discretisation::Exact,
+                    Discretisation::Exact => Discretisation::Truncated,
+                }
+            )
+            .to_degrees()
+        );
+    }
+    o
+}
+
+/// Angle error θ̂_e − θ_e of a trace row, degrees in [−180, 180).
+pub fn angle_error_deg(r: &crate::trace::TraceRow) -> f64 {
+    ((r.theta_hat - r.theta_e + PI).rem_euclid(TAU) - PI).to_degrees()
+}
+
+/// Band around the steady-state angle error that counts as converged, degrees.
+pub const CONVERGED_BAND_DEG: f64 = 1.0;
+/// How long the error must stay in the band, s.
+pub const CONVERGED_HOLD_S: f64 = 0.02;
+
+/// Observer metrics of a trace (None in encoder mode): (steady-state angle error in degrees,
+/// the mean over the last 10 % of the run; convergence time in ms, from t = 0 until the error
+/// stays within ±[`CONVERGED_BAND_DEG`] of the steady state for [`CONVERGED_HOLD_S`] or to
+/// the end of the run).
+pub fn angle_metrics(
+    sc: &crate::config::Scenario,
+    rows: &[crate::trace::TraceRow],
+) -> Option<(f64, Option<f64>)> {
+    if sc.observer.mode == ObserverMode::Encoder || rows.is_empty() {
+        return None;
+    }
+    let end = rows.last().map(|r| r.t).unwrap_or(0.0);
+    let tail: Vec<f64> = rows
+        .iter()
+        .filter(|r| r.t >= 0.9 * end)
+        .map(angle_error_deg)
+        .collect();
+    let ss = tail.iter().sum::<f64>() / tail.len() as f64;
+    let inside = |r: &crate::trace::TraceRow| (angle_error_deg(r) - ss).abs() <= CONVERGED_BAND_DEG;
+    let mut conv = None;
+    let mut start: Option<usize> = None;
+    for (i, r) in rows.iter().enumerate() {
+        if inside(r) {
+            let s = *start.get_or_insert(i);
+            if r.t - rows[s].t >= CONVERGED_HOLD_S - 1e-12 || i + 1 == rows.len() {
+                conv = Some(rows[s].t * 1e3);
+                break;
+            }
+        } else {
+            start = None;
+        }
+    }
+    Some((ss, conv))
 }
 
 /// Checks the `[observer]` fields of this module; the error names the field and the rule.
@@ -586,6 +726,57 @@ mod tests {
         errs
     }
 
+    fn scenario(name: &str, edits: &[(&str, &str)]) -> crate::config::Scenario {
+        let path = format!("{}/../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
+        let mut text = std::fs::read_to_string(&path).unwrap();
+        for (a, b) in edits {
+            assert!(text.contains(a), "{name}.toml has no '{a}'");
+            text = text.replace(a, b);
+        }
+        crate::config::Scenario::from_toml(&text, &path).unwrap()
+    }
+
+    #[test]
+    fn sensorless_flying_start_converges_from_any_angle() {
+        // The sensorless drive catches the motor turning at 300 rpm with the estimate 0°, 90°
+        // or 180° off, then runs the low-rst profile: the back-EMF based speed estimate does
+        // not depend on the angle estimate, so the observer converges in a few τ_o.
+        for err in ["0.0", "90.0", "180.0"] {
+            let sc = scenario(
+                "low-rst-sensorless",
+                &[
+                    (
+                        "initial_angle_error_deg = 0.0",
+                        &format!("initial_angle_error_deg = {err}"),
+                    ),
+                    (
+                        "[rates]",
+                        "[mechanics]\ninitial_speed_rad_s = 31.415926535897931\n\n[rates]",
+                    ),
+                ],
+            );
+            let rows = crate::drive::run_inprocess(&sc);
+            let conv = rows
+                .iter()
+                .position(|r| r.t > 0.003 && angle_error_deg(r).abs() < 5.0)
+                .map(|i| rows[i].t)
+                .unwrap();
+            let worst_after = rows
+                .iter()
+                .filter(|r| r.t >= 0.05)
+                .map(|r| angle_error_deg(r).abs())
+                .fold(0.0, f64::max);
+            let w_end = rows.iter().rev().find(|r| r.t <= 1.2).unwrap().omega_m;
+            eprintln!(
+                "initial error {err}°: within 5° after {:.1} ms, worst |error| after 50 ms {worst_after:.2}°, ω(1.2 s) = {w_end:.2} rad/s",
+                conv * 1e3
+            );
+            assert!(conv < 0.015, "{err}: {conv}");
+            assert!(worst_after < 5.0, "{err}: {worst_after}");
+            assert!((w_end - 125.66).abs() < 0.5, "{err}: {w_end}");
+        }
+    }
+
     #[test]
     fn converges_from_90_degrees_to_the_predicted_truncation_bias() {
         let m = MotorParams::low1998();
@@ -595,12 +786,23 @@ mod tests {
             let pred =
                 predicted_angle_error(&m, TS, rpm(1200.0), 0.0, 1.0, 1e-3, disc).to_degrees();
             let conv = e.iter().rposition(|x| (x - ss).abs() > 1.0).unwrap() as f64 * TS;
-            eprintln!("{disc:?}: steady state {ss:.4}°, predicted {pred:.4}°, within 1° after {:.2} ms", conv * 1e3);
+            eprintln!(
+                "{disc:?}: steady state {ss:.4}°, predicted {pred:.4}°, within 1° after {:.2} ms",
+                conv * 1e3
+            );
             assert!((ss - pred).abs() < 0.01, "{disc:?}: {ss} vs {pred}");
             assert!(conv < 0.05, "{disc:?}: converged after {conv} s");
         }
-        let t = predicted_angle_error(&m, TS, rpm(1200.0), 0.0, 1.0, 1e-3, Discretisation::Truncated)
-            .to_degrees();
+        let t = predicted_angle_error(
+            &m,
+            TS,
+            rpm(1200.0),
+            0.0,
+            1.0,
+            1e-3,
+            Discretisation::Truncated,
+        )
+        .to_degrees();
         let x = predicted_angle_error(&m, TS, rpm(1200.0), 0.0, 1.0, 1e-3, Discretisation::Exact)
             .to_degrees();
         // The truncated model leads by about half a sample of rotation; the exact one does not.

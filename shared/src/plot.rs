@@ -1157,6 +1157,7 @@ mod tests {
                     u_q: 10.0 * omega_m / 100.0 + 1.0,
                     t_load: if t > 0.03 { 0.2 } else { 0.0 },
                     miss: u8::from(k == n / 2),
+                    ..Default::default()
                 }
             })
             .collect()

@@ -10,12 +10,12 @@
 //!   method (eqs 26–37, [`super::cdm`]) rescheduled every sample from the equilibrium of
 //!   eqs (38)–(39).
 //! * `voltage-phase` (section III, the conventional method): V_a held at V_amax, i_q
-//!   controlled through δ by a PID placed on the linearised model (2).
+//!   controlled through δ by a (filtered) PID placed on the linearised model (2).
 //! * `polar-fw` (section III, the proposed method): the same phase controller plus the
-//!   voltage-amplitude controller C_v of eq. (11), a PID driving i_d to i_d* (= 0) through
-//!   V_a. In flux weakening V_a sits at V_amax and C_v's integrator is frozen; when the
-//!   operating point leaves flux weakening C_v lowers V_a and stops flux strengthening
-//!   (i_d > 0), without a mode switch.
+//!   voltage-amplitude controller C_v of eq. (11) driving i_d to i_d* (= 0) through V_a
+//!   (an integral controller here, reading 6). In flux weakening V_a sits at V_amax and
+//!   C_v's integrator is frozen; when the operating point leaves flux weakening C_v lowers
+//!   V_a and stops flux strengthening (i_d > 0), without a mode switch.
 //!
 //! # Model (eqs 1–2)
 //!
@@ -39,7 +39,7 @@
 //!    (eq. 14 as printed): C_21 is designed on 1/(L s + R), so its integrator carries R·i_q.
 //! 2. **Signed amplitude.** δ is limited to ±δ_max = ±π/2 (Fig. 7(d)) and V_a to ±V_amax
 //!    (Fig. 7(c) draws ±M_max): the half plane v_q < 0 is reached with V_a < 0, not with
-//!    |δ| > π/2. δ_d is folded into (−π/2, π/2] accordingly.
+//!    |δ| > π/2. δ_d is folded into [−π/2, π/2] accordingly.
 //! 3. **Eqs (38)–(39).** (38) prints δ_o[k] = δ_fb[k−1] + δ_a[k]; δ_a is read as δ_d, the
 //!    decoupling phase of sample k. δ_fb[k−1] is what the previous (limited) output held
 //!    beyond its decoupling part. V_ao[k] = V_a[k] (39) is the amplitude just computed by
@@ -49,7 +49,9 @@
 //! 4. **Eq. (37)** as printed: see [`super::cdm`].
 //! 5. **Anti-windup.** An integrator is frozen while its output is limited and its increment
 //!    would drive the output further into the limit (the gains of C_12 are negative for
-//!    V_ao > 0, so the direction is taken from the increment K_I·e, not from e).
+//!    V_ao > 0, so the direction is taken from the increment K_I·e, not from e); the
+//!    integrator is also kept within the output range (minus the decoupling feed-forward),
+//!    so that the proportional term cannot hide a wound-up integrator.
 //! 6. **Section III.** Our copy of the paper has lost the text of section III-A/B (eqs 3–10).
 //!    What the remaining text fixes: the phase controller is designed on the linearised
 //!    model (2); C_v is a PID placed on ΔP_11(s) (eq. 11, i_d from V_a) with all poles
@@ -57,22 +59,42 @@
 //!    V_a[k−1] and δ_o comes from eq. (9); the real parts of the phase loop's poles are at
 //!    −600 rad/s, of the amplitude loop's at −300 rad/s, and at high speed the poles lie on
 //!    the circle centred at the origin through the plant poles −R/L ± jω_e (eq. 12). Our
-//!    reconstruction:
+//!    reconstruction, and where our motor forced us off the paper's numbers:
 //!    * eq. (9), [`SpmsmModel::fw_phase`]: the phase at which (1) settles with i_q = i_q* under
 //!      the amplitude V_ao: V_ao·Z·cos(δ_o − φ) = Z²·i_q* + ω_e K_e R, Z = √(R² + ω_e²L²),
 //!      φ = atan2(ω_e L, R); of the two roots the one with δ_o ≤ φ, where ∂i_q/∂δ > 0 (the
-//!      phase controller's operating range); clamped to φ when i_q* is out of reach;
-//!    * the phase controller C_δ is a PID (K_D s² + K_P s + K_I)/s on ΔP_22(s) = Δi_q/Δδ of the
-//!      full model (2) at (V_ao, δ_o) — three closed-loop poles, all placed, as for C_v;
-//!    * both act around the equilibrium, u = u_o + Δu: δ = δ_o + C_δ(i_q* − i_q) and
-//!      V_a = V_a* + C_v(i_d* − i_d), V_a* = |v| of the equilibrium of (1) at (i_d*, i_q*); the
-//!      integrators only carry the model error, and in flux weakening V_a* > V_amax holds V_a
-//!      at its limit. The derivative acts on the measured current (same poles, no kick on a
-//!      reference step);
-//!    * poles ([`fw_poles`]): real part σ; the complex pair on the circle |s| = ρ = |p_1|
-//!      when ρ > |σ|, the third pole at σ; a triple pole at σ when ρ ≤ |σ| (then all poles
-//!      are already faster than the plant's). σ_δ = −0.06/T_u (the paper's −600 rad/s at
-//!      T_u = 100 µs), σ_v = σ_δ/2;
+//!      phase controller's operating range); clamped to φ when i_q* is out of reach. It is
+//!      the design point of both controllers, not a feed-forward: the controllers'
+//!      integrators carry the operating point (bumpless start at the equilibrium of the
+//!      first references);
+//!    * the phase controller C_δ is a PID on ΔP_22(s) = Δi_q/Δδ of the full model (2) at
+//!      (V_ao, δ_o). An ideal D term is not realisable at T_u with the drive's 1.5-sample
+//!      delay (it oscillated at the Nyquist frequency in our first simulation), so the
+//!      derivative has a first-order filter whose pole f is a design unknown:
+//!      C(s) = (q2 s² + q1 s + q0)/(s(s + f)); all four closed-loop poles are placed
+//!      ([`place_pid`], linear in (f, q2, q1, q0));
+//!    * poles ([`fw_poles`]): two pairs on the circle centred at the origin of radius
+//!      r = max(|p_1|, |σ|) with real part σ; σ_δ = −0.06/T_u (the paper's −600 rad/s at
+//!      T_u = 100 µs). Our motor's L = 30 mH puts |p_1| = 345 rad/s at 800 rpm, inside
+//!      600 rad/s, so the circle cannot be met and the four poles coincide at σ. In flux
+//!      weakening ΔP_22 has a right-half-plane zero at z = ω_e cot δ_o − R/L (raising δ first
+//!      lowers v_q), ≈ 750 rad/s at 2 A and ≈ 390 rad/s at 3 A here; |σ| is limited to z/2
+//!      ([`limit_by_zero`]) — at −600 rad/s the loop swung through the zero dynamics and
+//!      δ ran into its limit;
+//!    * δ is limited to φ = atan2(ω_e L, R) (≈ 76° at 800 rpm, not π/2 as in section IV):
+//!      beyond φ more phase gives less i_q and the phase loop would change sign;
+//!    * the amplitude controller C_v: the paper places all poles of a PID on ΔP_11 alone
+//!      (eq. 11). ΔP_11 and ΔP_22 share the plant's lightly damped poles −R/L ± jω_e (here
+//!      damping 0.24), and two independently placed loops both moved them: in simulation the
+//!      two loops fought (i_d swinging by ±4 A after a step of i_q*). We keep the paper's
+//!      priority to the q loop and its ratio of real parts (−300/−600) but reduce C_v to an
+//!      integral controller designed on the low-frequency gain it really sees once the phase
+//!      loop holds i_q: g = ∂i_d/∂V_a|_{i_q} = (P_11(0)² + P_21(0)²)/P_11(0)
+//!      ([`SpmsmModel::amplitude_gain`]), K_I = |σ_v|/g, σ_v = σ_δ/2 (σ_δ after the zero
+//!      limit). V_a is limited to [0, V_amax] and the integrator frozen while V_a is at a limit
+//!      and the error pushes further (the paper's anti-windup). In flux weakening i_d < 0
+//!      pushes V_a up, so V_a stays at V_amax with its integrator frozen; once the operating
+//!      point leaves flux weakening, i_d > 0 pulls V_a down: no mode switch;
 //!    * conventional method: the same C_δ with V_a ≡ V_amax and no amplitude controller.
 //! 7. **Negative speed.** The flux-weakening laws run in the mirrored frame
 //!    (ω_e, i_q, V_a, δ) → (−ω_e, −i_q, −V_a, −δ), under which (1) is invariant, so the same
@@ -80,6 +102,7 @@
 
 use super::cdm;
 use super::current::{CurrentInput, VoltageDq};
+use crate::config::{CurrentController, Scenario, SpeedController};
 use crate::motor::MotorParams;
 use serde::Serialize;
 use std::f64::consts::FRAC_PI_2;
@@ -185,11 +208,11 @@ pub fn dq_to_polar(v_d: f64, v_q: f64) -> (f64, f64) {
     (if d == a { mag } else { -mag }, d)
 }
 
-/// Folds an angle in (−π, π] into (−π/2, π/2] (the direction of a signed amplitude).
+/// Folds an angle in (−π, π] into [−π/2, π/2] (the direction of a signed amplitude).
 fn fold_half_plane(a: f64) -> f64 {
     if a > FRAC_PI_2 {
         a - std::f64::consts::PI
-    } else if a <= -FRAC_PI_2 {
+    } else if a < -FRAC_PI_2 {
         a + std::f64::consts::PI
     } else {
         a
@@ -300,12 +323,11 @@ impl SpmsmModel {
     }
 }
 
-/// Coefficients (d3, d2, d1, d0) of s⁴ + d3 s³ + d2 s² + d1 s + d0 for the
-/// flux-weakening loops (module docs reading 6): real part `sigma` < 0 for all four poles,
-/// a pair on the circle of radius r = max(`rho`, |σ|) and a double pole at σ:
-/// (s² + 2|σ| s + r²)(s + |σ|)².
+/// Coefficients (d3, d2, d1, d0) of s⁴ + d3 s³ + d2 s² + d1 s + d0 for the phase loop
+/// (module docs reading 6): two pairs with real part `sigma` < 0 on the circle centred at
+/// the origin of radius r = max(`rho`, |σ|): (s² + 2|σ| s + r²)². When ρ ≤ |σ| the four
+/// poles coincide at σ.
 pub fn fw_poles(sigma: f64, rho: f64) -> [f64; 4] {
-    // (s² + 2 s_ s + r²)² with s_ = |σ|, r = max(ρ, |σ|): both pairs on the circle.
     let s_ = sigma.abs();
     let r2 = rho.max(s_).powi(2);
     let (c1, c0) = (2.0 * s_, r2);
@@ -410,7 +432,8 @@ impl ScheduledPid {
 }
 
 /// A PI in parallel form with scheduled gains and conditional integration (the C_21 and
-/// C_12 of eqs 24–25).
+/// C_12 of eqs 24–25): the integrator is frozen while the output is limited and the
+/// increment points further into the limit, and is kept within [lo − ff, hi − ff].
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct ScheduledPi {
     /// Integrator state (output units).
@@ -436,7 +459,8 @@ impl ScheduledPi {
         let inc = k_i * ts * e;
         let winding = (v > hi && inc > 0.0) || (v < lo && inc < 0.0);
         if !winding && inc.is_finite() {
-            self.x_i += inc;
+            // The integrator alone never drives the output beyond its range either.
+            self.x_i = (self.x_i + inc).clamp(lo - ff, hi - ff);
         }
         (out, out != v)
     }
@@ -508,6 +532,51 @@ impl PolarDesign {
     }
 }
 
+/// The polar law a scenario selects, if any.
+pub fn mode_of(sc: &Scenario) -> Option<PolarMode> {
+    match sc.current_loop.controller {
+        CurrentController::Polar => Some(PolarMode::Polar),
+        CurrentController::VoltagePhase => Some(PolarMode::VoltagePhase),
+        CurrentController::PolarFw => Some(PolarMode::PolarFw),
+        _ => None,
+    }
+}
+
+/// The polar law's settings for a scenario (T_u = T_s, V_amax = V_dc/√3), if it selects one.
+pub fn spec_from_scenario(sc: &Scenario) -> Option<PolarSpec> {
+    mode_of(sc).map(|mode| PolarSpec {
+        mode,
+        model: SpmsmModel::from_motor(&sc.motor_params()),
+        tu_s: sc.rates.ts(),
+        v_amax_v: sc.u_max(),
+    })
+}
+
+/// Scenario rules of the polar laws and of the current-reference profile; the error names
+/// the field and the rule.
+pub fn validate(sc: &Scenario) -> Result<(), String> {
+    if !sc.reference.i_q_a.is_empty()
+        && sc.speed_loop.controller != SpeedController::CurrentReference
+    {
+        return Err(
+            "reference.i_q_a is set but speed_loop.controller is not \"current-reference\" (a speed controller computes i_q*)"
+                .into(),
+        );
+    }
+    if let Some(mode) = mode_of(sc) {
+        let m = sc.motor.resolve()?;
+        if (m.l_d_h - m.l_q_h).abs() > 0.01 * m.l_d_h.max(m.l_q_h) {
+            return Err(format!(
+                "current_loop.controller = \"{}\" is the surface-PMSM law of Miyajima et al.: it needs L_d = L_q (within 1 %), got L_d = {} H, L_q = {} H",
+                mode.name(),
+                m.l_d_h,
+                m.l_q_h
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// The polar current controller (all three modes). No allocation in [`Self::step`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PolarCurrentController {
@@ -515,7 +584,6 @@ pub struct PolarCurrentController {
     a1_21: f64,
     a0_21: f64,
     sigma_delta: f64,
-    sigma_v: f64,
     // Section IV.
     c21: ScheduledPi,
     c12: ScheduledPi,
@@ -549,7 +617,6 @@ impl PolarCurrentController {
             a1_21: d.a1_21,
             a0_21: d.a0_21,
             sigma_delta: d.sigma_delta_rad_s,
-            sigma_v: d.sigma_v_rad_s,
             c21: ScheduledPi::default(),
             c12: ScheduledPi::default(),
             delta_fb_prev: 0.0,
@@ -565,6 +632,11 @@ impl PolarCurrentController {
             near_zero_amplitude_samples: 0,
             kept_gains_samples: 0,
         }
+    }
+
+    /// The controller a scenario selects, if it selects a polar law.
+    pub fn from_scenario(sc: &Scenario) -> Option<Self> {
+        spec_from_scenario(sc).map(|sp| Self::new(&sp))
     }
 
     /// The settings.
@@ -664,9 +736,9 @@ impl PolarCurrentController {
                 } else {
                     self.kept_gains_samples += 1;
                 }
-                let (v, lim) =
-                    self.c_v
-                        .step(0.0, self.k_v, x.i_d_ref - x.i_d, 0.0, 0.0, vmax, ts);
+                let (v, lim) = self
+                    .c_v
+                    .step(0.0, self.k_v, x.i_d_ref - x.i_d, 0.0, 0.0, vmax, ts);
                 v_lim = lim;
                 v
             }
@@ -689,14 +761,9 @@ impl PolarCurrentController {
         // Beyond φ = atan2(ω_e L, R) more phase gives less i_q: the phase loop would change
         // sign. Limit δ to the range where ∂i_q/∂δ > 0 (and to ±δ_max).
         let d_hi = md.max_torque_phase(w).min(DELTA_MAX);
-        let (delta, d_lim) = self.c_delta.step(
-            &self.g_delta,
-            i_q_ref - i_q,
-            0.0,
-            -DELTA_MAX,
-            d_hi,
-            ts,
-        );
+        let (delta, d_lim) =
+            self.c_delta
+                .step(&self.g_delta, i_q_ref - i_q, 0.0, -DELTA_MAX, d_hi, ts);
         self.v_a_limited_samples += u64::from(v_lim || sp.mode == PolarMode::VoltagePhase);
         self.delta_limited_samples += u64::from(d_lim);
         (s * v_a, s * delta, v_lim || d_lim)
@@ -876,24 +943,17 @@ mod tests {
             let c2 = g.q2 + g.k_i() / s0 + g.b() / (s0 + g.f);
             assert!((c1 - c2).abs() < 1e-12 * c1.abs().max(1.0));
         }
-        // Poles on the circle through the plant poles when it is larger than |σ|:
-        // (s² + 600 s + 345²)(s + 300)².
+        // Two pairs on the circle through the plant poles when it is larger than |σ|:
+        // (s² + 600 s + 345²)².
         let d = fw_poles(-300.0, 345.0);
-        let r2 = 345.0f64 * 345.0;
-        assert_eq!(
-            d,
-            [
-                1200.0,
-                5.0 * 300.0 * 300.0 + r2,
-                600.0 * (300.0 * 300.0 + r2),
-                300.0 * 300.0 * r2
-            ]
-        );
-        // A quadruple pole at σ when the circle is smaller.
-        assert_eq!(
-            fw_poles(-600.0, 345.0),
-            [2400.0, 6.0 * 3.6e5, 4.0 * 2.16e8, 1.296e11]
-        );
+        let (c1, c0) = (600.0f64, 345.0f64 * 345.0);
+        assert_eq!(d, [2.0 * c1, c1 * c1 + 2.0 * c0, 2.0 * c1 * c0, c0 * c0]);
+        // Four poles at σ when the circle is smaller: (s + 600)⁴.
+        let q = fw_poles(-600.0, 345.0);
+        let want = [2400.0, 6.0 * 3.6e5, 4.0 * 2.16e8, 1.296e11];
+        for i in 0..4 {
+            assert!((q[i] - want[i]).abs() < 1e-9 * want[i], "{q:?}");
+        }
         // Numerator and denominator sharing a root: none.
         let p = SecondOrder {
             b1: 1.0,
@@ -987,5 +1047,49 @@ mod tests {
         }
         // No runaway: the phase integrator holds no more than the limit.
         assert!(c.c12.x_i.abs() <= 2.0 * DELTA_MAX, "{}", c.c12.x_i);
+    }
+}
+
+#[cfg(test)]
+mod scenario_tests {
+    use crate::config::Scenario;
+    use crate::drive::run_inprocess;
+    use crate::metrics::speed_metrics;
+
+    fn scenario(name: &str) -> Scenario {
+        let path = format!("{}/../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
+        Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
+    }
+
+    /// The four shipped scenarios in process: the claims of Figs 2-3 and 7-8, and the panels.
+    #[test]
+    fn miyajima_scenarios_in_process() {
+        let out =
+            std::env::temp_dir().join(format!("drivelab-polar-panels-{}", std::process::id()));
+        let mut id_max = Vec::new();
+        for name in [
+            "miyajima-polar-0rpm",
+            "miyajima-polar-400rpm",
+            "miyajima-fw-800rpm-conventional",
+            "miyajima-fw-800rpm-polar",
+        ] {
+            let sc = scenario(name);
+            let rows = run_inprocess(&sc);
+            let m = speed_metrics(&sc, &rows);
+            eprintln!("{name}: {m:?}");
+            assert!(rows.iter().all(|r| r.u_d.is_finite() && r.u_q.is_finite()));
+            assert!(
+                m.iq_steady_state_error_a.unwrap().abs() < 2e-3,
+                "{name}: {m:?}"
+            );
+            id_max.push(m.id_max_a.unwrap());
+            let files =
+                crate::plot_polar::plot_polar_panels(&sc, &rows, &out.join(name), name).unwrap();
+            assert!(std::fs::metadata(&files[0]).unwrap().len() > 10_000);
+        }
+        // Fig. 2: the conventional method flux-strengthens; Fig. 3: the proposed does not.
+        assert!(id_max[2] > 0.3, "{id_max:?}");
+        assert!(id_max[3] < 0.02, "{id_max:?}");
+        eprintln!("panels in {}", out.display());
     }
 }

@@ -41,6 +41,10 @@ impl SpeedLoopStep {
                 c.preset(omega_m, i_q_ref);
                 true
             }
+            SpeedLaw::Rst(c) => {
+                c.preset(omega_m, i_q_ref);
+                true
+            }
             #[allow(unreachable_patterns)]
             _ => false,
         }
@@ -52,17 +56,36 @@ impl CurrentLoopStep {
     /// estimated angle and speed and with reference `iref`. Returns false when the selected
     /// law has no bumpless start.
     pub fn preset(&mut self, meas: &Measurement, est: &Estimate, iref: &CurrentRef) -> bool {
-        let i = park(clarke(meas.i_abc[0], meas.i_abc[1], meas.i_abc[2]), est.theta_e);
+        let i = park(
+            clarke(meas.i_abc[0], meas.i_abc[1], meas.i_abc[2]),
+            est.theta_e,
+        );
         let omega_e = self.pole_pairs * est.omega_m;
         // The applied vector was rotated with 1.5 samples of advance by the previous owner.
         let u = park(
-            AlphaBeta { alpha: meas.u_ab_applied[0], beta: meas.u_ab_applied[1] },
+            AlphaBeta {
+                alpha: meas.u_ab_applied[0],
+                beta: meas.u_ab_applied[1],
+            },
             est.theta_e + 1.5 * omega_e * self.ts,
         );
-        let input = CurrentInput { i_d_ref: iref.i_d_ref, i_q_ref: iref.i_q_ref, i_d: i.d, i_q: i.q, omega_e };
+        let input = CurrentInput {
+            i_d_ref: iref.i_d_ref,
+            i_q_ref: iref.i_q_ref,
+            i_d: i.d,
+            i_q: i.q,
+            omega_e,
+        };
         match &mut self.law {
             CurrentLaw::Pi(c) => {
-                c.preset(VoltageDq { u_d: u.d, u_q: u.q, saturated: false }, &input);
+                c.preset(
+                    VoltageDq {
+                        u_d: u.d,
+                        u_q: u.q,
+                        saturated: false,
+                    },
+                    &input,
+                );
                 true
             }
             #[allow(unreachable_patterns)]

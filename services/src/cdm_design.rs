@@ -1,0 +1,214 @@
+//! `drivelab cdm-design`: the coefficient-diagram design of the polar current loops of
+//! Miyajima et al. (eqs 26–37) at one operating point, printed so that eqs (28)–(31) can be
+//! checked by hand.
+
+use anyhow::{bail, Result};
+use drivelab::control::cdm::{self, CdmDesign};
+use std::fmt::Write;
+
+/// Arguments of `drivelab cdm-design`.
+#[derive(Debug, clap::Args)]
+pub struct CdmArgs {
+    /// Motor preset (miyajima = low1998, kyslan2015, ...) or a TOML file with a [motor]
+    /// table. The law is for surface motors: L = (L_d + L_q)/2.
+    #[arg(long, default_value = "miyajima")]
+    pub motor: String,
+    /// Control period T_u, µs.
+    #[arg(long = "tu-us", value_name = "MICROSECONDS", default_value_t = 100.0)]
+    pub tu_us: f64,
+    /// Voltage limit V_amax, V (default: V_dc/√3 of --v-dc-v).
+    #[arg(long = "v-amax-v", value_name = "VOLTS")]
+    pub v_amax_v: Option<f64>,
+    /// DC bus voltage, V; sets V_amax = V_dc/√3 when --v-amax-v is not given.
+    #[arg(long = "v-dc-v", value_name = "VOLTS", default_value_t = 470.0)]
+    pub v_dc_v: f64,
+    /// Operating point: voltage amplitude V_ao, V (signed).
+    #[arg(long = "v-ao-v", value_name = "VOLTS", allow_hyphen_values = true)]
+    pub v_ao_v: f64,
+    /// Operating point: voltage phase δ_o, degrees.
+    #[arg(
+        long = "delta-o-deg",
+        value_name = "DEGREES",
+        default_value_t = 0.0,
+        allow_hyphen_values = true
+    )]
+    pub delta_o_deg: f64,
+    /// Use this τ_12 instead of eq. (37), µs.
+    #[arg(long = "tau12-us", value_name = "MICROSECONDS")]
+    pub tau12_us: Option<f64>,
+    /// Print the design as JSON (SI units) instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Runs the command.
+pub fn run(a: &CdmArgs) -> Result<()> {
+    let m = crate::replay::resolve_motor(&a.motor)?;
+    let finite_pos = |v: f64| v.is_finite() && v > 0.0;
+    if !finite_pos(a.tu_us) {
+        bail!(
+            "--tu-us must be a positive number of microseconds, got {}",
+            a.tu_us
+        );
+    }
+    let v_amax = match a.v_amax_v {
+        Some(v) => v,
+        None => a.v_dc_v / 3f64.sqrt(),
+    };
+    if !finite_pos(v_amax) {
+        bail!("V_amax must be a positive number of volts, got {v_amax} (--v-amax-v or --v-dc-v)");
+    }
+    if !a.v_ao_v.is_finite() || !a.delta_o_deg.is_finite() {
+        bail!("--v-ao-v and --delta-o-deg must be finite numbers");
+    }
+    if let Some(t) = a.tau12_us {
+        if !finite_pos(t) {
+            bail!("--tau12-us must be a positive number of microseconds, got {t}");
+        }
+    }
+    let l = 0.5 * (m.l_d_h + m.l_q_h);
+    let d = CdmDesign::new(
+        m.r_ohm,
+        l,
+        a.tu_us * 1e-6,
+        v_amax,
+        a.v_ao_v,
+        a.delta_o_deg.to_radians(),
+        a.tau12_us.map(|t| t * 1e-6),
+    );
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&d)?);
+    } else {
+        print!("{}", render(&a.motor, &d));
+    }
+    Ok(())
+}
+
+/// The text printout of a design.
+pub fn render(motor: &str, d: &CdmDesign) -> String {
+    let mut o = String::new();
+    let us = |s: f64| s * 1e6;
+    let _ = writeln!(
+        o,
+        "CDM design of the polar current loops (Miyajima et al. eqs 26-37), motor {motor}: R = {} Ω, L = {} mH, T_u = {:.3} µs, V_amax = {:.4} V",
+        d.r_ohm,
+        d.l_h * 1e3,
+        us(d.tu_s),
+        d.v_amax_v
+    );
+    let _ = writeln!(
+        o,
+        "operating point asked: V_ao = {} V, δ_o = {:.6}°; after the limits {:.4} V ≤ |V_ao| ≤ {:.4} V and |δ_o| ≤ 0.9·90° = 81°: V_ao = {} V, δ_o = {:.6}°, cos δ_o = {:.6}",
+        d.v_ao_in_v,
+        d.delta_o_in_rad.to_degrees(),
+        cdm::V_AO_MIN_FRAC * d.v_amax_v,
+        d.v_amax_v,
+        d.v_ao_v,
+        d.delta_o_rad.to_degrees(),
+        d.delta_o_rad.cos()
+    );
+    let _ = writeln!(
+        o,
+        "C_21 (i_q through V_a, eq. 24): γ_1 = {}, τ_21 = 10·T_u = {:.3} µs (eq. 36): a_1 = γ_1/τ_21 = {} 1/s, a_0 = γ_1/τ_21² = {} 1/s²",
+        d.gamma1,
+        us(d.tau21_s),
+        d.a1_21,
+        d.a0_21
+    );
+    let _ = writeln!(
+        o,
+        "  K_P21 = (a_1·L − R)/cos δ_o = {} V/A   (eq. 28)",
+        d.k_p21
+    );
+    let _ = writeln!(
+        o,
+        "  K_I21 = a_0·L/cos δ_o = {} V/(A·s)   (eq. 29)",
+        d.k_i21
+    );
+    let rule = if d.tau12_given {
+        "given with --tau12-us".to_string()
+    } else if d.tau12_slowed {
+        format!(
+            "< 0.01·V_amax = {:.4} V: τ_12 = 0.1·V_amax/|V_ao cos δ_o|·T_u (eq. 37)",
+            cdm::TAU12_SWITCH_FRAC * d.v_amax_v
+        )
+    } else {
+        format!(
+            "≥ 0.01·V_amax = {:.4} V: τ_12 = 10·T_u (eq. 37)",
+            cdm::TAU12_SWITCH_FRAC * d.v_amax_v
+        )
+    };
+    let _ = writeln!(
+        o,
+        "C_12 (i_d through δ, eq. 25): |V_ao cos δ_o| = {:.6} V {rule}, so τ_12 = {} µs, a_1 = γ_1/τ_12 = {} 1/s, a_0 = γ_1/τ_12² = {} 1/s²",
+        d.v_cos_v,
+        us(d.tau12_s),
+        d.a1_12,
+        d.a0_12
+    );
+    let _ = writeln!(
+        o,
+        "  K_P12 = (a_1·L − R)/(−V_ao·cos δ_o) = {} rad/A   (eq. 30)",
+        d.k_p12
+    );
+    let _ = writeln!(
+        o,
+        "  K_I12 = a_0·L/(−V_ao·cos δ_o) = {} rad/(A·s)   (eq. 31)",
+        d.k_i12
+    );
+    o
+}
+
+/// The polar law of a scenario (`drivelab design`): the CDM loops at δ_o = 0, the limits, and
+/// for the flux-weakening laws the pole rule of the phase and amplitude controllers.
+pub fn render_polar_design(p: &drivelab::control::polar::PolarDesign) -> String {
+    use drivelab::control::polar::PolarMode;
+    let mut o = String::new();
+    let sp = &p.spec;
+    let _ = writeln!(
+        o,
+        "polar current law \"{}\" (Miyajima et al.): R = {} Ω, L = {} mH, K_e = {} Wb, T_u = {:.3} µs, V_amax = V_dc/√3 = {:.4} V",
+        sp.mode.name(),
+        sp.model.r_ohm,
+        sp.model.l_h * 1e3,
+        sp.model.k_e_wb,
+        sp.tu_s * 1e6,
+        sp.v_amax_v
+    );
+    match sp.mode {
+        PolarMode::Polar => {
+            let _ = writeln!(
+                o,
+                "  C_21, C_12: CDM γ_1 = {}, τ_21 = 10·T_u = {:.3} µs (a_1 = {} 1/s, a_0 = {} 1/s²), τ_12 per eq. (37), gains rescheduled every sample from eqs (38)-(39); at δ_o = 0: K_P21 = {} V/A, K_I21 = {} V/(A·s) (drivelab cdm-design prints any operating point)",
+                p.gamma1,
+                p.tau21_s * 1e6,
+                p.a1_21,
+                p.a0_21,
+                p.k_p21_at_0,
+                p.k_i21_at_0
+            );
+            let _ = writeln!(
+                o,
+                "  limits: {:.4} V ≤ |V_ao| ≤ V_amax, |δ_o| ≤ {:.4} rad; outputs |V_a| ≤ V_amax, |δ| ≤ {:.4} rad; integrators frozen while an output is limited",
+                p.v_ao_min_v, p.delta_o_max_rad, p.delta_max_rad
+            );
+        }
+        PolarMode::VoltagePhase | PolarMode::PolarFw => {
+            let _ = writeln!(
+                o,
+                "  phase controller: filtered PID on ΔP_22 = Δi_q/Δδ of eq. (2) at (V_ao, δ_o of eq. 9), four poles with real part σ_δ = {} rad/s (limited to half the right-half-plane zero), pairs on the circle through the plant poles; δ ≤ atan2(ω_e L, R)",
+                p.sigma_delta_rad_s
+            );
+            if sp.mode == PolarMode::PolarFw {
+                let _ = writeln!(
+                    o,
+                    "  amplitude controller: integral, pole at σ_v = σ_δ/2 = {} rad/s on the gain ∂i_d/∂V_a with i_q held; 0 ≤ V_a ≤ V_amax, integrator frozen while V_a is limited",
+                    p.sigma_v_rad_s
+                );
+            } else {
+                let _ = writeln!(o, "  V_a = V_amax (no amplitude controller)");
+            }
+        }
+    }
+    o
+}
