@@ -154,7 +154,14 @@ pub fn run(args: ServiceArgs) -> Result<()> {
             if rejoining || (!lockstep && !est_rx.is_empty()?) {
                 // After a restart, or when behind in real time: only the newest estimate of
                 // the batch is used (older ones are counted as skipped).
-                if let Some(newer) = peek_newest(&est_rx, &mut c)? {
+                if let Some(newer) = peek_newest(&est_rx, e.hdr.k, &mut c)? {
+                    if newer.hdr.is_end() {
+                        cmd_tx.send(VoltageCommand {
+                            hdr: newer.hdr,
+                            ..Default::default()
+                        })?;
+                        break 'outer;
+                    }
                     c.skipped += 1;
                     e = newer;
                     inbox.drain(&meas_rx, &iref_rx, &mut c)?;
@@ -285,14 +292,19 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     write_stats(&args, "current-loop", &report, c, &h, &[])
 }
 
-/// Drains the receiver and returns the newest valid estimate, if any.
-fn peek_newest(rx: &Receiver<Estimate>, c: &mut Counters) -> Result<Option<Estimate>> {
-    let mut newest = None;
+/// Drains the receiver and returns the newest valid estimate after sample `after`, if any;
+/// malformed ones and ones whose index does not advance are rejected and counted.
+fn peek_newest(rx: &Receiver<Estimate>, after: u64, c: &mut Counters) -> Result<Option<Estimate>> {
+    let mut newest: Option<Estimate> = None;
     while let Some(e) = rx.try_recv()? {
-        if e.hdr.is_warmup() || e.hdr.is_end() {
+        if e.hdr.is_end() {
+            // The end of the run wins: the caller forwards it.
+            return Ok(Some(e));
+        }
+        if e.hdr.is_warmup() {
             continue;
         }
-        if e.is_finite() {
+        if e.is_finite() && e.hdr.k > newest.map_or(after, |n| n.hdr.k) {
             newest = Some(e);
         } else {
             c.rejected_inputs += 1;

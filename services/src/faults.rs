@@ -278,6 +278,11 @@ pub fn inject_bad_estimates(bus: &str, kind: &str, count: u32) -> Result<()> {
     let node = drivelab::bus::node(bus, "injector")?;
     let topics = drivelab::bus::DriveTopics::open_with(&node, drivelab::bus::WakeKind::Futex, bus)?;
     let tx = topics.est.sender()?;
+    // Connect before the first message, and give the subscribers time to see the new
+    // publisher, so that no bad message is lost to a lazy connection.
+    tx.connect()?;
+    std::thread::sleep(std::time::Duration::from_millis(100));
+    tx.connect()?;
     for i in 0..count {
         let e = match kind {
             "nan" => Estimate {

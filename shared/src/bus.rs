@@ -216,6 +216,14 @@ pub struct Sender<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> {
 }
 
 impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Sender<T> {
+    /// Connects to the subscribers that exist now (otherwise done lazily on the first send).
+    pub fn connect(&self) -> Result<()> {
+        use iceoryx2::port::update_connections::UpdateConnections;
+        self.publisher
+            .update_connections()
+            .map_err(|e| anyhow!("update connections: {e:?}"))
+    }
+
     /// Copies `msg` into a loaned sample, sends it and wakes the receivers. No allocation.
     pub fn send(&self, msg: T) -> Result<()> {
         let s = self
