@@ -130,7 +130,7 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     // ---- end of the real-time loop ----
     if ctrl.near_singular_samples > 0 {
         eprintln!(
-            "speed-loop: warning: for {} speed samples a1 + a2*i_d* fell below half its i_d = 0 value (Kyslan eq. 15)",
+            "speed-loop: warning: {} speed samples had an i_d set-point near the uncontrollable i_d of Kyslan eq. (15)",
             ctrl.near_singular_samples
         );
     }

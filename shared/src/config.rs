@@ -161,6 +161,11 @@ impl MotorSpec {
 pub enum SafeState {
     /// All lower (or upper) switches on: zero voltage vector, active short circuit.
     ZeroVector,
+    /// All switches off (coast): current flows only through the free-wheeling diodes. Model:
+    /// the terminal voltage is whatever extinguishes the current within one sample, limited
+    /// to the DC link's V_dc/√3 (above that the diodes conduct into the link and the current
+    /// decays more slowly).
+    PulseBlock,
 }
 
 /// Inverter model.

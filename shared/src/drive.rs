@@ -11,6 +11,8 @@
 //! in this order, so their traces are bit-identical when no deadline is missed.
 
 mod rejoin;
+#[cfg(test)]
+mod safe_state_tests;
 
 use crate::config::{profile_at, SafeState, Scenario, Step};
 use crate::control::current::{CurrentInput, CurrentPiDesign, PiCurrentController, VoltageDq};
@@ -234,6 +236,7 @@ impl Plant {
     /// returns measurement k. For k = 0 pass `None`; it is not a miss.
     pub fn sample(&mut self, k: u64, cmd: Option<&VoltageCommand>) -> Measurement {
         let mut flags = 0;
+        let mut pulse_blocked = false;
         match cmd {
             Some(c) => {
                 self.last_u_ab = c.u_ab;
@@ -247,6 +250,7 @@ impl Plant {
                     flags |= FLAG_SAFE_STATE;
                     match self.safe_state {
                         SafeState::ZeroVector => self.last_u_ab = [0.0; 2],
+                        SafeState::PulseBlock => pulse_blocked = true,
                     }
                 }
             }
@@ -267,6 +271,23 @@ impl Plant {
         // Zero-order hold in the rotor frame: the αβ vector is rotated with the mid-sample angle.
         let omega_e = self.m.p() * self.x.omega_m;
         self.u_dq_applied = park(u, theta_e + 0.5 * omega_e * self.ts);
+        if pulse_blocked {
+            // Coasting: the diode bridge lets the current decay. The voltage that drives the
+            // dq currents to zero within one sample (forward Euler of eqs 1-2), clamped to
+            // the DC link.
+            let (m, x, ts) = (&self.m, &self.x, self.ts);
+            let mut ud = m.r_ohm * x.i_d - omega_e * m.l_q_h * x.i_q - m.l_d_h * x.i_d / ts;
+            let mut uq =
+                m.r_ohm * x.i_q + omega_e * (m.l_d_h * x.i_d + m.psi_pm_wb) - m.l_q_h * x.i_q / ts;
+            let mag = (ud * ud + uq * uq).sqrt();
+            if mag > self.u_max {
+                ud *= self.u_max / mag;
+                uq *= self.u_max / mag;
+            }
+            self.u_dq_applied = Dq { d: ud, q: uq };
+            self.last_u_ab = [0.0; 2];
+            u = inverse_park(self.u_dq_applied, theta_e + 0.5 * omega_e * self.ts);
+        }
         let i_ab = inverse_park(
             Dq {
                 d: self.x.i_d,
