@@ -3,141 +3,9 @@
 //! own bus id and run folder and checks that no process and no bus file is left.
 
 use serde_json::Value;
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
-use std::time::{Duration, Instant};
 
-const DRIVELAB: &str = env!("CARGO_BIN_EXE_drivelab");
-const SCENARIOS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../scenarios");
-
-/// One drive at a time: all pin to the same core.
-static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
-fn serial() -> std::sync::MutexGuard<'static, ()> {
-    SERIAL.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-fn scratch(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("drivelab-kyslan-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn bus_id(name: &str) -> String {
-    format!("k{}{}", std::process::id(), name)
-        .chars()
-        .filter(|c| c.is_ascii_alphanumeric())
-        .take(24)
-        .collect()
-}
-
-/// Runs drivelab with a watchdog; kills it (and fails) if it hangs.
-fn drivelab(args: &[&str]) -> Output {
-    let mut child = Command::new(DRIVELAB)
-        .args(args)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("start drivelab");
-    let t = Instant::now();
-    while child.try_wait().unwrap().is_none() {
-        if t.elapsed() > Duration::from_secs(300) {
-            let _ = child.kill();
-            panic!("watchdog: drivelab {args:?} still running after 300 s");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    child.wait_with_output().unwrap()
-}
-
-/// Processes whose command line names this bus.
-fn processes_on_bus(bus: &str) -> Vec<String> {
-    let mut v = Vec::new();
-    for e in std::fs::read_dir("/proc").unwrap().flatten() {
-        if let Ok(cmd) = std::fs::read(e.path().join("cmdline")) {
-            let args: Vec<String> = cmd
-                .split(|b| *b == 0)
-                .map(|s| String::from_utf8_lossy(s).into_owned())
-                .collect();
-            if args.windows(2).any(|w| w[0] == "--bus" && w[1] == bus) {
-                v.push(args.join(" "));
-            }
-        }
-    }
-    v
-}
-
-fn assert_clean(bus: &str) {
-    let procs = processes_on_bus(bus);
-    assert!(procs.is_empty(), "processes left: {procs:?}");
-    let files = drivelab::bus::leftovers(bus);
-    assert!(files.is_empty(), "bus files left: {files:?}");
-}
-
-/// A finished run: folder, summary.json and stderr.
-struct Run {
-    dir: PathBuf,
-    summary: Value,
-    stderr: String,
-}
-
-impl Run {
-    fn metric(&self, key: &str) -> f64 {
-        self.summary["metrics"][key]
-            .as_f64()
-            .unwrap_or_else(|| panic!("{key} missing: {}", self.summary["metrics"]))
-    }
-
-    fn trace(&self) -> Vec<drivelab::trace::TraceRow> {
-        drivelab::trace::read_csv(&self.dir.join("trace.csv")).unwrap()
-    }
-}
-
-/// Runs `scenario` (a name or a file) with `clock` into a fresh folder named `tag`.
-fn run(tag: &str, scenario: &str, clock: &str) -> Run {
-    let dir = scratch(tag).join("run");
-    let bus = bus_id(tag);
-    let args = [
-        "run",
-        "--scenario",
-        scenario,
-        "--clock",
-        clock,
-        "--bus",
-        &bus,
-        "--out",
-        dir.to_str().unwrap(),
-        "--no-plots",
-    ];
-    let o = drivelab(&args);
-    let stderr = String::from_utf8_lossy(&o.stderr).into_owned();
-    assert!(o.status.success(), "drivelab {args:?} failed: {stderr}");
-    assert_clean(&bus);
-    let summary =
-        serde_json::from_slice(&std::fs::read(dir.join("summary.json")).unwrap()).unwrap();
-    Run {
-        dir,
-        summary,
-        stderr,
-    }
-}
-
-/// A variant of a shipped scenario, written to the scratch folder of `tag`.
-fn variant(tag: &str, base: &str, edits: &[(&str, &str)]) -> PathBuf {
-    let mut text = std::fs::read_to_string(format!("{SCENARIOS}/{base}.toml")).unwrap();
-    for (from, to) in edits {
-        assert!(text.contains(from), "{base}.toml has no '{from}'");
-        text = text.replace(from, to);
-    }
-    let p = scratch(&format!("{tag}-sc")).join(format!("{tag}.toml"));
-    std::fs::write(&p, text).unwrap();
-    p
-}
-
-fn read(p: &Path) -> Vec<u8> {
-    std::fs::read(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
-}
+mod common;
+use common::*;
 
 const FOUR: [&str; 4] = [
     "kyslan-pi",
@@ -332,18 +200,6 @@ fn compare_draws_the_runs_on_one_set_of_axes_and_tabulates_the_metrics() {
         err.starts_with("drivelab: error: ") && err.contains("no trace.csv"),
         "{err}"
     );
-}
-
-/// The number after `label` in `text` (up to the next space or comma).
-fn number_after(text: &str, label: &str) -> f64 {
-    let i = text
-        .find(label)
-        .unwrap_or_else(|| panic!("'{label}' not in\n{text}"));
-    let rest = &text[i + label.len()..];
-    let end = rest.find([' ', ',', '\n']).unwrap_or(rest.len());
-    rest[..end]
-        .parse()
-        .unwrap_or_else(|e| panic!("'{}' after '{label}': {e}", &rest[..end]))
 }
 
 #[test]

@@ -81,6 +81,8 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let node = bus::node(&args.bus, "plant")?;
     let topics = DriveTopics::open_with(&node, sc.timing.wake, &args.bus)?;
     let meas_tx = topics.meas.sender()?;
+    // Wakes the controllers when a command is missing, so that they check their inputs.
+    let est_poke = topics.est.poker()?;
     // Real time polls the command at the deadline; lockstep waits for it.
     let lockstep = args.clock == BusClock::Lockstep;
     let cmd_rx = if lockstep {
@@ -189,6 +191,9 @@ pub fn run(args: ServiceArgs) -> Result<()> {
         let t_in = now_ns();
         if k > 0 && cmd.is_none() {
             c.stale_inputs += 1;
+            if !lockstep {
+                est_poke.poke()?;
+            }
         }
         let mut meas = plant.sample(k, cmd.as_ref());
         meas.hdr.t_sample_ns = if lockstep { 0 } else { deadline };

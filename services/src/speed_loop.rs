@@ -11,7 +11,7 @@ use drivelab::bus::{self, DriveTopics};
 use drivelab::drive::SpeedLoopStep;
 use drivelab::messages::{CurrentRef, Finite, FLAG_STALE_INPUT};
 use drivelab::rt::now_ns;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 /// Runs the speed-loop service.
 pub fn run(args: ServiceArgs) -> Result<()> {
@@ -39,13 +39,13 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let mut last_input = Instant::now();
     let lockstep = args.clock == BusClock::Lockstep;
     let n = u64::from(sc.rates.speed_divider);
-    let est_timeout = Duration::from_secs_f64(1.5 * n as f64 * sc.rates.ts());
     let mut last_out: Option<CurrentRef> = None;
     let mut rejoining = args.rejoin;
     ready()?;
     // ---- real-time loop: no allocation, no locks, no logging ----
     'outer: while !stop_requested() {
-        est_rx.wait(if lockstep { WAIT_SLICE } else { est_timeout })?;
+        // No timer: the plant pokes the estimate topic when a command is missing.
+        est_rx.wait(WAIT_SLICE)?;
         let mut got = false;
         while let Some(e) = est_rx.try_recv()? {
             got = true;

@@ -167,6 +167,20 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
         })
     }
 
+    /// A wake-up without a message: consumers of this topic wake and check their inputs'
+    /// freshness (the plant pokes the estimate topic when a command is missing, so that a
+    /// controller whose producer died notices without a timer of its own).
+    pub fn poker(&self) -> Result<Poker> {
+        Ok(Poker(match &self.wake {
+            Wake::Event(ev) => Notify::Event(
+                ev.notifier_builder()
+                    .create()
+                    .map_err(|e| anyhow!("notifier: {e:?}"))?,
+            ),
+            Wake::Futex(seg, i) => Notify::Futex(seg.clone(), *i),
+        }))
+    }
+
     /// A receiver with a buffer of `buffer` samples that can wait for the topic's wake-up.
     /// An iceoryx2 listener costs the sender one syscall per message, so inputs that are
     /// only polled should use [`Topic::polled_receiver`].
@@ -201,6 +215,22 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
             .buffer_size(buffer.min(MAX_BUFFER))
             .create()
             .map_err(|e| anyhow!("subscriber: {e:?}"))
+    }
+}
+
+/// Wakes a topic's receivers without sending (see [`Topic::poker`]).
+pub struct Poker(Notify);
+
+impl Poker {
+    /// Wakes the receivers.
+    pub fn poke(&self) -> Result<()> {
+        match &self.0 {
+            Notify::Event(n) => {
+                n.notify().map_err(|e| anyhow!("notify: {e:?}"))?;
+            }
+            Notify::Futex(seg, i) => seg.notify(*i),
+        }
+        Ok(())
     }
 }
 
