@@ -31,7 +31,10 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         .iter()
         .map(|r| r["variant"].as_str().unwrap())
         .collect();
-    assert_eq!(variants, ["floor", "inprocess", "uds", "iceoryx2"]);
+    assert_eq!(
+        variants,
+        ["floor", "inprocess", "uds", "iceoryx2", "iceoryx2+spin"]
+    );
     for r in rows {
         assert!(r["samples"].as_u64().unwrap() > 0, "{r}");
         for q in ["p50", "p99", "p999", "max"] {
@@ -47,6 +50,7 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         }
     }
     assert!(rows[3]["p99_ratio_to_uds"].as_f64().is_some());
+    assert!(rows[4]["p99_ratio_to_uds"].as_f64().is_some());
     assert!(
         report["speed"]["lockstep_simulated_s_per_wall_s"]
             .as_f64()

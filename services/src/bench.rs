@@ -30,6 +30,10 @@ pub struct BenchArgs {
     /// Output folder (default runs/bench-<unix time>).
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
+    /// Also measure the one-core iceoryx2 chain with the plant sleeping to this many µs
+    /// before each deadline and spinning the rest (0 = skip that variant).
+    #[arg(long, default_value_t = 30.0, value_name = "MICROSECONDS")]
+    pub spin_us: f64,
     /// Print bench.json on stdout instead of the Markdown table.
     #[arg(long)]
     pub json: bool,
@@ -284,7 +288,21 @@ pub fn run(a: &BenchArgs) -> Result<()> {
             let bus = format!("b{}{}", std::process::id(), rows.len() + measured.len());
             let iox = run_iceoryx2(&sc, &out.join(tag("iceoryx2", p)), &bus)?;
             bar.inc(1);
-            for (name, m) in [("uds", uds), ("iceoryx2", iox)] {
+            let mut variants = vec![("uds", uds), ("iceoryx2", iox)];
+            if a.spin_us > 0.0 && p == "one-core" {
+                // The same chain with the plant sleeping to spin_us before each deadline and
+                // spinning the rest (DESIGN.md: sleep-then-short-spin).
+                let mut spin = sc.clone();
+                spin.timing.plant_spin_us = a.spin_us;
+                spin.validate().map_err(|e| anyhow!("--spin-us: {e}"))?;
+                bar.set_message(format!("{} Hz iceoryx2 + spin, {p}", hz));
+                let bus = format!("b{}{}s", std::process::id(), rows.len() + measured.len());
+                variants.push((
+                    "iceoryx2+spin",
+                    run_iceoryx2(&spin, &out.join(tag("iceoryx2-spin", p)), &bus)?,
+                ));
+            }
+            for (name, m) in variants {
                 let h = out.join(format!("{}.hgrm", tag(name, p)));
                 std::fs::write(&h, m.cycle.hgrm())?;
                 measured.push((
@@ -313,7 +331,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
                 Some(r.cycle_us.p999 < ts_us && r.misses_per_million <= 2.0 * floor_late_pm + 10.0);
             r.p99_ratio_to_floor = Some(r.cycle_us.p99 / floor_row.cycle_us.p99.max(1e-3));
             r.p99_minus_floor_us = Some(r.cycle_us.p99 - floor_row.cycle_us.p99);
-            if r.variant == "iceoryx2" {
+            if r.variant.starts_with("iceoryx2") {
                 r.p99_ratio_to_uds = uds_p99
                     .iter()
                     .find(|(p, _)| *p == r.placement)
