@@ -482,7 +482,20 @@ fn run_bus(
             BusClock::Realtime => Duration::from_secs_f64(sc.duration_s * 1.5 + 20.0),
             BusClock::Lockstep => Duration::from_secs_f64(sc.duration_s * 2000.0 + 120.0),
         };
+        // Progress on a terminal only (indicatif draws nothing when stderr is not a tty).
+        let bar = if o.verbose {
+            indicatif::ProgressBar::new(n)
+        } else {
+            indicatif::ProgressBar::hidden()
+        };
+        bar.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} samples {msg}",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
         let failure = supervise(
+            &bar,
             &mut children,
             &plan,
             &mut events,
@@ -496,6 +509,7 @@ fn run_bus(
             started,
             limit,
         )?;
+        bar.finish_and_clear();
         Ok((children, failure))
     })();
     let (mut children, failure) = match result {
@@ -790,6 +804,7 @@ pub fn counters(summary: &serde_json::Value) -> BTreeMap<String, serde_json::Val
 /// message when the run cannot go on.
 #[allow(clippy::too_many_arguments)]
 fn supervise(
+    bar: &indicatif::ProgressBar,
     children: &mut [ChildProc],
     plan: &[crate::faults::Fault],
     events: &mut Vec<SupEvent>,
@@ -834,6 +849,7 @@ fn supervise(
         }
         let now = Instant::now();
         let k_now = progress.next_k.load(Ordering::Relaxed);
+        bar.set_position(k_now);
         // Faults due at this point of the run (in samples, so lockstep and realtime agree).
         while next_fault < plan.len() && k_now as f64 >= plan[next_fault].at_s * fs {
             let f = &plan[next_fault];
