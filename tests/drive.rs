@@ -2,34 +2,12 @@
 //! folder, so they can run in parallel; each checks that no process and no bus file is left.
 //! Timeouts here are watchdogs against hangs, never performance assertions.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-const DRIVELAB: &str = env!("CARGO_BIN_EXE_drivelab");
-
-/// The drive tests run one at a time: they pin to the same core, and a real-time run next to
-/// another drive would only measure the interference.
-static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
-fn serial() -> std::sync::MutexGuard<'static, ()> {
-    SERIAL.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-fn scratch(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("drivelab-test-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn bus_id(name: &str) -> String {
-    format!("t{}{}", std::process::id(), name)
-        .chars()
-        .filter(|c| c.is_ascii_alphanumeric())
-        .take(24)
-        .collect()
-}
+mod common;
+use common::*;
 
 /// Runs drivelab with a watchdog; kills it (and fails) if it hangs.
 fn drivelab(args: &[&str], watchdog: Duration) -> Output {
@@ -56,34 +34,6 @@ fn drivelab(args: &[&str], watchdog: Duration) -> Output {
     }
 }
 
-/// Processes whose command line names this bus.
-fn processes_on_bus(bus: &str) -> Vec<String> {
-    let mut v = Vec::new();
-    for e in std::fs::read_dir("/proc").unwrap().flatten() {
-        if let Ok(cmd) = std::fs::read(e.path().join("cmdline")) {
-            let args: Vec<String> = cmd
-                .split(|b| *b == 0)
-                .map(|s| String::from_utf8_lossy(s).into_owned())
-                .collect();
-            if args.windows(2).any(|w| w[0] == "--bus" && w[1] == bus) {
-                v.push(format!(
-                    "{} {}",
-                    e.file_name().to_string_lossy(),
-                    args.join(" ")
-                ));
-            }
-        }
-    }
-    v
-}
-
-fn assert_clean(bus: &str) {
-    let procs = processes_on_bus(bus);
-    assert!(procs.is_empty(), "processes left: {procs:?}");
-    let files = drivelab::bus::leftovers(bus);
-    assert!(files.is_empty(), "bus files left: {files:?}");
-}
-
 fn run_ok(name: &str, extra: &[&str]) -> (PathBuf, serde_json::Value) {
     let dir = scratch(name);
     let bus = bus_id(name);
@@ -107,10 +57,6 @@ fn run_ok(name: &str, extra: &[&str]) -> (PathBuf, serde_json::Value) {
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
     (out, summary)
-}
-
-fn read(p: &Path) -> Vec<u8> {
-    std::fs::read(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
 }
 
 #[test]

@@ -5,27 +5,12 @@ use std::path::PathBuf;
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-const DRIVELAB: &str = env!("CARGO_BIN_EXE_drivelab");
+mod common;
+use common::*;
 
-static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
-fn serial() -> std::sync::MutexGuard<'static, ()> {
-    SERIAL.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-fn scratch(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("drivelab-faults-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn bus_id(name: &str) -> String {
-    format!("f{}{}", std::process::id(), name)
-        .chars()
-        .filter(|c| c.is_ascii_alphanumeric())
-        .take(24)
-        .collect()
+/// Processes signalled from outside the launcher get a moment to exit.
+fn assert_clean(bus: &str) {
+    assert_clean_within(bus, Duration::from_secs(5));
 }
 
 fn wait(mut child: std::process::Child, watchdog: Duration, what: &str) -> Output {
@@ -38,54 +23,6 @@ fn wait(mut child: std::process::Child, watchdog: Duration, what: &str) -> Outpu
         std::thread::sleep(Duration::from_millis(20));
     }
     child.wait_with_output().unwrap()
-}
-
-fn drivelab(args: &[&str]) -> Output {
-    let child = Command::new(DRIVELAB)
-        .args(args)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    wait(
-        child,
-        Duration::from_secs(120),
-        &format!("drivelab {args:?}"),
-    )
-}
-
-fn processes_on_bus(bus: &str) -> Vec<String> {
-    let mut v = Vec::new();
-    for e in std::fs::read_dir("/proc").unwrap().flatten() {
-        if let Ok(cmd) = std::fs::read(e.path().join("cmdline")) {
-            let args: Vec<String> = cmd
-                .split(|b| *b == 0)
-                .map(|s| String::from_utf8_lossy(s).into_owned())
-                .collect();
-            if args.windows(2).any(|w| w[0] == "--bus" && w[1] == bus) {
-                v.push(format!(
-                    "{} {}",
-                    e.file_name().to_string_lossy(),
-                    args.join(" ")
-                ));
-            }
-        }
-    }
-    v
-}
-
-fn assert_clean(bus: &str) {
-    let t = Instant::now();
-    while !processes_on_bus(bus).is_empty() && t.elapsed() < Duration::from_secs(5) {
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    assert!(
-        processes_on_bus(bus).is_empty(),
-        "processes left: {:?}",
-        processes_on_bus(bus)
-    );
-    let files = drivelab::bus::leftovers(bus);
-    assert!(files.is_empty(), "bus files left: {files:?}");
 }
 
 fn summary(out: &std::path::Path) -> serde_json::Value {

@@ -97,24 +97,6 @@ pub struct RunResult {
     pub summary: serde_json::Value,
 }
 
-static STOP: AtomicBool = AtomicBool::new(false);
-
-extern "C" fn on_signal(_s: libc::c_int) {
-    STOP.store(true, Ordering::SeqCst);
-}
-
-fn install_stop_handler() {
-    for sig in [libc::SIGINT, libc::SIGTERM] {
-        // SAFETY: installs an async-signal-safe handler (one atomic store) with an empty mask.
-        unsafe {
-            let mut sa: libc::sigaction = std::mem::zeroed();
-            sa.sa_sigaction = on_signal as *const () as libc::sighandler_t;
-            libc::sigemptyset(&mut sa.sa_mask);
-            libc::sigaction(sig, &sa, std::ptr::null_mut());
-        }
-    }
-}
-
 /// Loads the scenario and applies the duration override, with a one-line error.
 pub fn load_scenario(name: &str, duration_s: Option<f64>) -> Result<Scenario> {
     let (mut sc, _) = Scenario::load(name).map_err(|e| anyhow!(e))?;
@@ -429,7 +411,7 @@ fn run_bus(
         let t = Instant::now();
         for c in children.iter_mut() {
             loop {
-                if STOP.load(Ordering::SeqCst) {
+                if crate::common::stop_requested() {
                     return Ok((children, Some("interrupted during start-up".into())));
                 }
                 match c.lines.recv_timeout(Duration::from_millis(50)) {
@@ -619,7 +601,8 @@ fn assemble(sc: &Scenario, rec: &Recorder, _plant_ok: bool) -> (Vec<TraceRow>, V
 
 /// Runs a scenario end to end and writes the run folder.
 pub fn run(o: &RunOptions) -> Result<RunResult> {
-    install_stop_handler();
+    // The launcher stops on SIGINT/SIGTERM the same way the services do.
+    crate::common::install_signal_handlers()?;
     if let Some(b) = &o.bus {
         bus::check_bus_id(b)?;
     }
@@ -841,7 +824,7 @@ fn supervise(
     };
     const MAX_RESTARTS: u32 = 1000;
     loop {
-        if STOP.load(Ordering::SeqCst) {
+        if crate::common::stop_requested() {
             return Ok(Some("interrupted (SIGINT/SIGTERM): drive stopped".into()));
         }
         if started.elapsed() > limit {

@@ -59,7 +59,7 @@ pub fn drivelab(args: &[&str]) -> Output {
     child.wait_with_output().unwrap()
 }
 
-/// Processes whose command line names this bus.
+/// Processes whose command line names this bus, as "PID ARGS".
 pub fn processes_on_bus(bus: &str) -> Vec<String> {
     let mut v = Vec::new();
     for e in std::fs::read_dir("/proc").unwrap().flatten() {
@@ -69,7 +69,11 @@ pub fn processes_on_bus(bus: &str) -> Vec<String> {
                 .map(|s| String::from_utf8_lossy(s).into_owned())
                 .collect();
             if args.windows(2).any(|w| w[0] == "--bus" && w[1] == bus) {
-                v.push(args.join(" "));
+                v.push(format!(
+                    "{} {}",
+                    e.file_name().to_string_lossy(),
+                    args.join(" ")
+                ));
             }
         }
     }
@@ -82,6 +86,16 @@ pub fn assert_clean(bus: &str) {
     assert!(procs.is_empty(), "processes left: {procs:?}");
     let files = drivelab::bus::leftovers(bus);
     assert!(files.is_empty(), "bus files left: {files:?}");
+}
+
+/// Like [`assert_clean`], but gives the processes up to `grace` to exit first (after a
+/// signal was sent to them from outside the launcher).
+pub fn assert_clean_within(bus: &str, grace: Duration) {
+    let t = Instant::now();
+    while !processes_on_bus(bus).is_empty() && t.elapsed() < grace {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert_clean(bus);
 }
 
 /// A finished run: folder, summary.json and stderr.
