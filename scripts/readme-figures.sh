@@ -14,3 +14,18 @@ cp runs/readme-bench/bench.md docs/bench-10khz.md
 ./target/release/drivelab run --scenario kyslan-pi --duration 1 --fault kill:current-loop@0.3 --out runs/readme-fault
 cp runs/readme-fault/speed.png docs/img/fault-speed.png
 cp runs/readme-fault/currents.png docs/img/fault-currents.png
+# The monitor's screen (as text) during a drive with a killed current loop, pasted into the
+# README between the MONITOR markers.
+./target/release/drivelab run --bus readmemon --duration 8 --fault kill:current-loop@3 \
+  --no-plots --out runs/readme-monitor >/dev/null 2>&1 &
+sleep 6
+./target/release/drivelab monitor --bus readmemon --print --print-size 118x40 > docs/img/monitor.txt
+wait
+python3 - <<'PY'
+import re
+text = open("docs/img/monitor.txt").read().rstrip("\n")
+readme = open("README.md").read()
+readme = re.sub(r"(<!-- MONITOR -->\n```\n).*?(\n```\n<!-- /MONITOR -->)",
+                lambda m: m.group(1) + text + m.group(2), readme, flags=re.S)
+open("README.md", "w").write(readme)
+PY

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Installs what drivelab needs beyond the Rust toolchain, only if it is missing:
-# fontconfig headers and a TrueType font (plotters draws its labels with them).
+# fontconfig headers and a TrueType font (plotters draws its labels with them), and tmux
+# (the monitor's terminal test runs it).
 # Idempotent; changes no kernel setting.
 set -euo pipefail
 need=()
@@ -11,6 +12,8 @@ fi
 if ! ls /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf >/dev/null 2>&1 && ! fc-list 2>/dev/null | grep -q .; then
   need+=(fonts-dejavu-core)
 fi
+# tmux drives the terminal-UI test of `drivelab monitor`.
+command -v tmux >/dev/null 2>&1 || need+=(tmux)
 if ! command -v cargo >/dev/null 2>&1; then
   echo "setup: cargo is not installed; install the Rust toolchain (rustup) first" >&2
   exit 1

@@ -13,18 +13,6 @@ fn assert_clean(bus: &str) {
     assert_clean_within(bus, Duration::from_secs(5));
 }
 
-fn wait(mut child: std::process::Child, watchdog: Duration, what: &str) -> Output {
-    let t = Instant::now();
-    while child.try_wait().unwrap().is_none() {
-        if t.elapsed() > watchdog {
-            let _ = child.kill();
-            panic!("watchdog: {what} still running after {watchdog:?}");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    child.wait_with_output().unwrap()
-}
-
 fn summary(out: &std::path::Path) -> serde_json::Value {
     serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap()
 }

@@ -159,6 +159,11 @@ pub struct Counters {
     pub skipped: u64,
     /// Plant only: wall time from sample 0 to the end marker, ns.
     pub loop_wall_ns: u64,
+    /// Controllers only: outputs published after the end of their sample period
+    /// (t_k + T_s; real time only), and the longest run of them.
+    pub late_outputs: u64,
+    /// Controllers only: longest run of consecutive late outputs.
+    pub longest_late_run: u64,
 }
 
 /// Statistics file of one service.
@@ -186,15 +191,20 @@ pub struct ServiceHists {
     pub exec: LatencyHist,
     /// Age of the input when used, from its sample instant t_k (realtime only).
     pub input_age: LatencyHist,
+    /// Controllers: outputs published after t_k + T_s (deadline misses of this stage).
+    pub late: drivelab::timing::MissCounter,
+    ts_ns: u64,
 }
 
 impl ServiceHists {
-    /// Creates the three histograms.
-    pub fn new(plant: bool) -> Self {
+    /// Creates the three histograms for a drive sampled every `ts_ns`.
+    pub fn new(plant: bool, ts_ns: u64) -> Self {
         Self {
             wake: LatencyHist::new(if plant { "lateness" } else { "wake" }),
             exec: LatencyHist::new("exec"),
             input_age: LatencyHist::new("input_age"),
+            late: drivelab::timing::MissCounter::default(),
+            ts_ns,
         }
     }
 
@@ -210,11 +220,93 @@ impl ServiceHists {
         t_in
     }
 
-    /// Records the execution time since `t_in`.
+    /// Records the execution time since `t_in` of the step for sample instant `t_sample`
+    /// (0 in lockstep) and whether its output came after t_sample + T_s (a late output).
     #[inline]
-    pub fn done(&mut self, t_in: u64) {
-        self.exec
-            .record_ns(drivelab::rt::now_ns() as i64 - t_in as i64);
+    pub fn done(&mut self, t_in: u64, t_sample: u64) {
+        let now = drivelab::rt::now_ns();
+        self.exec.record_ns(now as i64 - t_in as i64);
+        self.late
+            .record(t_sample != 0 && now > t_sample + self.ts_ns);
+    }
+}
+
+/// Live status for the supervisor (and through it `drivelab monitor`), published ten times
+/// per simulated second on [`drivelab::telemetry::TOPIC_STATUS`]. The supervisor subscribes
+/// before the services start and the publisher connects here, before the loop, so the loop
+/// only ever copies a message into a loaned sample.
+pub struct StatusPublisher {
+    _topic: drivelab::telemetry::Plain<drivelab::telemetry::ServiceStatus>,
+    tx: drivelab::telemetry::PlainSender<drivelab::telemetry::ServiceStatus>,
+    st: drivelab::telemetry::ServiceStatus,
+    every: u64,
+    next_k: u64,
+}
+
+impl StatusPublisher {
+    /// Opens the status topic for `service` of scenario `sc`.
+    pub fn new(
+        node: &iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
+        service: &str,
+        sc: &Scenario,
+    ) -> Result<Self> {
+        use drivelab::telemetry::*;
+        let topic = open_plain::<ServiceStatus>(node, TOPIC_STATUS, 16, 0)?;
+        let tx = PlainSender::new(&topic)?;
+        let idx = drivelab::config::SERVICES
+            .iter()
+            .position(|s| *s == service)
+            .ok_or_else(|| anyhow!("unknown service '{service}'"))?;
+        let st = ServiceStatus {
+            service: idx as u32,
+            pid: std::process::id(),
+            ..Default::default()
+        };
+        Ok(Self {
+            _topic: topic,
+            tx,
+            st,
+            every: ((sc.rates.sample_hz / 10.0).round() as u64).max(1),
+            next_k: 0,
+        })
+    }
+
+    /// Publishes a status if sample `k` has reached the next tenth of a simulated second.
+    /// `cycle` is the plant's cycle monitor (deadline misses and cycle latency). No
+    /// allocation: a copy into a loaned sample.
+    #[inline]
+    pub fn tick(
+        &mut self,
+        k: u64,
+        c: &Counters,
+        h: &ServiceHists,
+        cycle: Option<&drivelab::timing::CycleMonitor>,
+    ) -> Result<()> {
+        if k < self.next_k {
+            return Ok(());
+        }
+        self.next_k = (k / self.every + 1) * self.every;
+        let st = &mut self.st;
+        st.hdr.k = k;
+        st.hdr.t_pub_ns = drivelab::rt::now_ns();
+        st.samples = c.samples;
+        st.stale_inputs = c.stale_inputs;
+        st.rejected_inputs = c.rejected_inputs;
+        st.skipped = c.skipped;
+        st.wake = h.wake.compact;
+        st.exec = h.exec.compact;
+        match cycle {
+            Some(m) => {
+                st.misses = m.misses.misses;
+                st.longest_miss_run = m.misses.longest_run;
+                st.cycle = m.cycle.compact;
+            }
+            None => {
+                st.misses = h.late.misses;
+                st.longest_miss_run = h.late.longest_run;
+            }
+        }
+        self.tx.send(st)
     }
 }
 
@@ -229,6 +321,11 @@ pub fn write_stats(
     extra: &[&LatencyHist],
 ) -> Result<()> {
     let Some(dir) = &args.out else { return Ok(()) };
+    let mut counters = counters;
+    if service != "plant" {
+        counters.late_outputs = hists.late.misses;
+        counters.longest_late_run = hists.late.longest_run;
+    }
     let mut latency_us = std::collections::BTreeMap::new();
     for h in [&hists.wake, &hists.exec, &hists.input_age]
         .into_iter()

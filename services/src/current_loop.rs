@@ -87,6 +87,8 @@ pub fn run(args: ServiceArgs) -> Result<()> {
         topics.iref.polled_receiver(16)?
     };
     let cmd_tx = topics.cmd.sender()?;
+    // Opened before the RT set-up: mapping its segments is not real-time work.
+    let mut status = StatusPublisher::new(&node, "current-loop", &sc)?;
     let report = apply_placement("current-loop", &sc, &args)?;
     let mut ctrl = CurrentLoopStep::new(&sc);
     let m = sc.motor_params();
@@ -107,7 +109,7 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     // Ramp of i_q* to zero when the speed loop is lost: the full current limit in 20 ms.
     let iq_ramp_per_sample = sc.i_q_max() * ts / 0.02;
     let mut last_input = Instant::now();
-    let mut h = ServiceHists::new(false);
+    let mut h = ServiceHists::new(false, (1e9 / sc.rates.sample_hz).round() as u64);
     let mut rejoining = args.rejoin;
     // Real time, in fallback: wake every half sample.
     let fallback_poll = Duration::from_secs_f64(0.5 * ts);
@@ -116,6 +118,9 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     ready()?;
     // ---- real-time loop: no allocation, no locks, no logging ----
     'outer: while !stop_requested() {
+        if let Some(k) = last_k {
+            status.tick(k, &c, &h, None)?;
+        }
         // No timer in the normal path (arming one costs ~15 µs on a VM): the plant pokes the
         // estimate topic when a command is missing. In fallback, poll every half sample (an
         // estimate that comes back still wakes the loop at once).
@@ -216,7 +221,7 @@ pub fn run(args: ServiceArgs) -> Result<()> {
             cmd.hdr.flags |= flags;
             cmd.hdr.t_pub_ns = now_ns();
             cmd_tx.send(cmd)?;
-            h.done(t_in);
+            h.done(t_in, e.hdr.t_sample_ns);
             c.samples += 1;
         }
         if lockstep {
@@ -274,7 +279,7 @@ pub fn run(args: ServiceArgs) -> Result<()> {
         cmd.hdr.flags |= FLAG_STALE_INPUT;
         cmd.hdr.t_pub_ns = now_ns();
         cmd_tx.send(cmd)?;
-        h.done(t_in);
+        h.done(t_in, e.hdr.t_sample_ns);
         last_k = Some(kn);
     }
     // ---- end of the real-time loop ----

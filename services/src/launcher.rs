@@ -142,6 +142,8 @@ struct Progress {
     next_k: std::sync::atomic::AtomicU64,
     /// The newest measurement (for a restarted plant to resume from).
     last: std::sync::Mutex<Option<Measurement>>,
+    /// Decimated trace for `drivelab monitor`.
+    tail: crate::hub::TraceTail,
 }
 
 fn run_recorder(
@@ -179,6 +181,7 @@ fn run_recorder(
     let (mut meas_end, mut cmd_end) = (false, false);
     let (mut next_meas, mut next_cmd) = (0u64, 0u64);
     let mut last_progress = 0u64;
+    let mut last_cmd = VoltageCommand::default();
     loop {
         let mut got = false;
         while let Some(m) = meas_rx.try_recv()? {
@@ -193,6 +196,15 @@ fn run_recorder(
                 meas_end = true;
             } else if m.hdr.k < n {
                 r.meas[m.hdr.k as usize] = Some(m);
+                progress.tail.offer(drivelab::telemetry::TracePoint {
+                    k: m.hdr.k,
+                    omega: m.omega_m_true,
+                    omega_ref: last_cmd.omega_ref,
+                    i_d: m.i_dq_true[0],
+                    i_q: m.i_dq_true[1],
+                    i_d_ref: last_cmd.i_dq_ref[0],
+                    i_q_ref: last_cmd.i_dq_ref[1],
+                });
                 if m.hdr.k + 1 > progress.next_k.load(Ordering::Relaxed) {
                     progress.next_k.store(m.hdr.k + 1, Ordering::Relaxed);
                     if let Ok(mut l) = progress.last.lock() {
@@ -215,6 +227,7 @@ fn run_recorder(
                 cmd_end = true;
             } else if c.hdr.k < n {
                 r.cmd[c.hdr.k as usize] = Some(c);
+                last_cmd = c;
             } else {
                 r.rejected += 1;
             }
@@ -376,7 +389,10 @@ fn run_bus(
     bus::cleanup(&bus_id)?;
     let n = sc.samples();
     let stop = Arc::new(AtomicBool::new(false));
-    let progress = Arc::new(Progress::default());
+    let progress = Arc::new(Progress {
+        tail: crate::hub::TraceTail::new(sc.rates.sample_hz),
+        ..Default::default()
+    });
     let (ready_tx, ready_rx) = mpsc::channel();
     let rec = {
         let (b, s, w, pr) = (
@@ -400,6 +416,8 @@ fn run_bus(
         ready_rx
             .recv()
             .map_err(|_| anyhow!("recorder thread died"))??;
+        // The telemetry hub subscribes to the services' statuses before they start.
+        let mut hub = crate::hub::Hub::new(&bus_id, sc, clock == BusClock::Lockstep)?;
         let mut children = Vec::new();
         for name in SERVICES {
             match spawn_service(name, sc_path, &bus_id, clock, o, out, None) {
@@ -477,6 +495,7 @@ fn run_bus(
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
         );
         let failure = supervise(
+            &mut hub,
             &bar,
             &mut children,
             &plan,
@@ -492,6 +511,12 @@ fn run_bus(
             limit,
         )?;
         bar.finish_and_clear();
+        // Let attached monitors see the end and detach before the bus goes away.
+        hub.finish(
+            progress.next_k.load(Ordering::Relaxed),
+            &progress.tail,
+            Duration::from_secs(1),
+        )?;
         Ok((children, failure))
     })();
     let (mut children, failure) = match result {
@@ -787,6 +812,7 @@ pub fn counters(summary: &serde_json::Value) -> BTreeMap<String, serde_json::Val
 /// message when the run cannot go on.
 #[allow(clippy::too_many_arguments)]
 fn supervise(
+    hub: &mut crate::hub::Hub,
     bar: &indicatif::ProgressBar,
     children: &mut [ChildProc],
     plan: &[crate::faults::Fault],
@@ -870,6 +896,51 @@ fn supervise(
             );
             if f.kind == FaultKind::Stop {
                 pending_cont.push((now + Duration::from_secs_f64(f.duration_s), i));
+            }
+        }
+        // Faults asked for by a monitor, injected now.
+        for r in hub.poll(events, k_now, &progress.tail)? {
+            let (name, kind, stop) = match crate::hub::describe(&r) {
+                Ok(v) => v,
+                Err(e) => {
+                    ev(events, "inject-refused", "-", format!("{e:#}"));
+                    continue;
+                }
+            };
+            let Some(i) = children.iter().position(|c| c.name == name) else {
+                continue;
+            };
+            if clock != BusClock::Realtime {
+                ev(
+                    events,
+                    "inject-refused",
+                    name,
+                    "faults need --clock realtime".into(),
+                );
+            } else if dead[i] || done[i] || pending_cont.iter().any(|&(_, j)| j == i) {
+                ev(events, "inject-skipped", name, "service not running".into());
+            } else if let Some(d) = stop {
+                signal(children[i].child.id(), libc::SIGSTOP)?;
+                ev(
+                    events,
+                    "inject",
+                    name,
+                    format!(
+                        "stop for {} s (from monitor pid {})",
+                        d.as_secs_f64(),
+                        r.pid
+                    ),
+                );
+                pending_cont.push((now + d, i));
+            } else {
+                let _ = kind;
+                signal(children[i].child.id(), libc::SIGKILL)?;
+                ev(
+                    events,
+                    "inject",
+                    name,
+                    format!("kill (from monitor pid {})", r.pid),
+                );
             }
         }
         pending_cont.retain(|&(t, i)| {
@@ -978,6 +1049,25 @@ fn supervise(
             );
         }
         pending_restart = still;
+        for i in 0..children.len() {
+            use drivelab::telemetry::ProcState;
+            let state = if done[i] {
+                ProcState::Finished
+            } else if dead[i] {
+                if pending_restart.iter().any(|&(_, j)| j == i) {
+                    ProcState::Restarting
+                } else {
+                    ProcState::Dead
+                }
+            } else if awaiting_ready[i] {
+                ProcState::Restarting
+            } else if pending_cont.iter().any(|&(_, j)| j == i) {
+                ProcState::Frozen
+            } else {
+                ProcState::Alive
+            };
+            hub.set_process(i, state, children[i].child.id(), restarts[i]);
+        }
         let plant_done = children
             .iter()
             .zip(&done)

@@ -85,6 +85,35 @@ enum Cmd {
         #[arg(long, default_value_t = 0.05, value_name = "SECONDS")]
         duration: f64,
     },
+    /// Watch a running drive live in the terminal: per-service state, rate, wake-up
+    /// lateness, execution time and deadline misses; speed against its reference and i_d,
+    /// i_q; the supervisor's event log. k / s kill or freeze the selected service after a
+    /// confirmation (real-time drives only); q, Esc or Ctrl-C leave. The monitor reads the
+    /// supervisor's telemetry, never the real-time processes' topics, so it does not
+    /// disturb the drive.
+    ///
+    /// Examples:
+    ///   drivelab run --bus 4242 --duration 60 &
+    ///   drivelab monitor --bus 4242
+    ///   drivelab monitor --bus 4242 --print        # one text frame on stdout, no terminal
+    #[command(verbatim_doc_comment)]
+    Monitor {
+        /// Bus id of the running drive (`drivelab run --bus ID`; also in summary.json).
+        #[arg(long)]
+        bus: String,
+        /// Screen refresh period, ms.
+        #[arg(long, default_value_t = 100, value_name = "MS")]
+        refresh_ms: u64,
+        /// Freeze time of the `s` (stop) fault, ms (1..60000).
+        #[arg(long, default_value_t = 200, value_name = "MS")]
+        stop_ms: u32,
+        /// Print one frame as text on stdout and exit (for logs and scripts).
+        #[arg(long)]
+        print: bool,
+        /// Size of the --print frame, COLUMNSxROWS.
+        #[arg(long, default_value = "140x40", value_name = "COLSxROWS")]
+        print_size: String,
+    },
     /// Run the plant model alone, open loop, from rest, on recorded voltages.
     ///
     /// IN.csv has columns t,u_d,u_q,t_load (s, V, V, N·m), each row held from its t on.
@@ -394,6 +423,38 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             }
             sc.validate().map_err(|e| anyhow::anyhow!(e))?;
             print!("{}", drivelab_services::design::render(&sc));
+            Ok(())
+        }
+        Cmd::Monitor {
+            bus,
+            refresh_ms,
+            stop_ms,
+            print,
+            print_size,
+        } => {
+            let size = if print {
+                let (w, h) = print_size
+                    .split_once('x')
+                    .and_then(|(w, h)| Some((w.parse::<u16>().ok()?, h.parse::<u16>().ok()?)))
+                    .filter(|&(w, h)| (40..=1000).contains(&w) && (20..=1000).contains(&h))
+                    .ok_or_else(|| {
+                        anyhow::anyhow!(
+                            "--print-size '{print_size}' must be COLSxROWS with 40-1000 columns and 20-1000 rows"
+                        )
+                    })?;
+                Some((w, h))
+            } else {
+                None
+            };
+            if !(10..=10_000).contains(&refresh_ms) {
+                anyhow::bail!("--refresh-ms {refresh_ms} is out of range (10..10000 ms)");
+            }
+            drivelab_services::monitor::run(&drivelab_services::monitor::MonitorOptions {
+                bus,
+                refresh: std::time::Duration::from_millis(refresh_ms),
+                stop_ms,
+                print: size,
+            })?;
             Ok(())
         }
         Cmd::Fault {

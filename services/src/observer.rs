@@ -16,10 +16,12 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let topics = DriveTopics::open_with(&node, sc.timing.wake, &args.bus)?;
     let meas_rx = topics.meas.receiver(64)?;
     let est_tx = topics.est.sender()?;
+    // Opened before the RT set-up: mapping its segments is not real-time work.
+    let mut status = StatusPublisher::new(&node, "observer", &sc)?;
     let report = apply_placement("observer", &sc, &args)?;
     let mut obs = ObserverStep::new(&sc);
     let mut c = Counters::default();
-    let mut h = ServiceHists::new(false);
+    let mut h = ServiceHists::new(false, (1e9 / sc.rates.sample_hz).round() as u64);
     let mut last_k: Option<u64> = None;
     let mut last_input = Instant::now();
     let ts = sc.rates.ts();
@@ -31,6 +33,9 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     ready()?;
     // ---- real-time loop: no allocation, no locks, no logging ----
     'outer: while !stop_requested() {
+        if let Some(k) = last_k {
+            status.tick(k, &c, &h, None)?;
+        }
         meas_rx.wait(WAIT_SLICE)?;
         if rejoining {
             let mut newest = None;
@@ -115,7 +120,7 @@ fn process(
     let mut est = obs.step(m);
     est.hdr.t_pub_ns = now_ns();
     est_tx.send(est)?;
-    h.done(t_in);
+    h.done(t_in, m.hdr.t_sample_ns);
     c.samples += 1;
     Ok(())
 }

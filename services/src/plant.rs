@@ -95,12 +95,14 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     } else {
         None
     };
+    // Opened before the RT set-up: mapping its segments is not real-time work.
+    let mut status = StatusPublisher::new(&node, "plant", &sc)?;
     let report = apply_placement("plant", &sc, &args)?;
     let mut plant = Plant::new(&sc);
     let mut c = Counters::default();
-    let mut h = ServiceHists::new(true);
     let n = sc.samples();
     let ts_ns = (1e9 / sc.rates.sample_hz).round() as u64;
+    let mut h = ServiceHists::new(true, ts_ns);
     let mut mon = CycleMonitor::new(ts_ns);
     let spin_ns = (sc.timing.plant_spin_us * 1e3).round() as u64;
     ready()?;
@@ -200,8 +202,9 @@ pub fn run(args: ServiceArgs) -> Result<()> {
         meas.hdr.t_pub_ns = now_ns();
         meas_tx.send(meas)?;
         plant.advance();
-        h.done(t_in);
+        h.done(t_in, 0);
         c.samples += 1;
+        status.tick(k, &c, &h, Some(&mon))?;
         if let Some(rx) = &rec_rx {
             // Flow control (lockstep only): never run more than half a buffer ahead.
             let started = Instant::now();

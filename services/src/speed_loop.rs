@@ -28,13 +28,15 @@ pub fn run(args: ServiceArgs) -> Result<()> {
         None
     };
     let iref_tx = topics.iref.sender()?;
+    // Opened before the RT set-up: mapping its segments is not real-time work.
+    let mut status = StatusPublisher::new(&node, "speed-loop", &sc)?;
     let report = apply_placement("speed-loop", &sc, &args)?;
     let mut ctrl = SpeedLoopStep::new(&sc);
     for w in drivelab::drive::DriveDesign::from_scenario(&sc).warnings {
         eprintln!("speed-loop: warning: {w}");
     }
     let mut c = Counters::default();
-    let mut h = ServiceHists::new(false);
+    let mut h = ServiceHists::new(false, (1e9 / sc.rates.sample_hz).round() as u64);
     let mut last_k: Option<u64> = None;
     let mut last_input = Instant::now();
     let lockstep = args.clock == BusClock::Lockstep;
@@ -44,6 +46,9 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     ready()?;
     // ---- real-time loop: no allocation, no locks, no logging ----
     'outer: while !stop_requested() {
+        if let Some(k) = last_k {
+            status.tick(k, &c, &h, None)?;
+        }
         // No timer: the plant pokes the estimate topic when a command is missing.
         est_rx.wait(WAIT_SLICE)?;
         let mut got = false;
@@ -92,7 +97,7 @@ pub fn run(args: ServiceArgs) -> Result<()> {
                 last_out = Some(r);
                 c.samples += 1;
             }
-            h.done(t_in);
+            h.done(t_in, e.hdr.t_sample_ns);
         }
         if lockstep {
             if last_k.is_some() && last_input.elapsed() > LOCKSTEP_WATCHDOG {

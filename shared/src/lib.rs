@@ -18,6 +18,7 @@ pub mod observer_sensorless;
 pub mod plot;
 pub mod plot_polar;
 pub mod rt;
+pub mod telemetry;
 pub mod timing;
 pub mod trace;
 pub mod transforms;

@@ -17,6 +17,8 @@ pub struct LatencyHist {
     h: Histogram<u64>,
     /// Values above [`MAX_NS`] (clamped).
     pub clamped: u64,
+    /// The same values in a fixed-size histogram for live telemetry (`drivelab monitor`).
+    pub compact: crate::telemetry::CompactHist,
 }
 
 /// Percentiles of one histogram in µs (`summary.json` → `latency_us.<name>`).
@@ -41,12 +43,14 @@ impl LatencyHist {
             name,
             h: Histogram::new_with_bounds(1, MAX_NS, 3).expect("static bounds are valid"),
             clamped: 0,
+            compact: crate::telemetry::CompactHist::default(),
         }
     }
 
     /// Records one value in ns (negative deltas record as 0). No allocation.
     #[inline]
     pub fn record_ns(&mut self, v: i64) {
+        self.compact.record_ns(v);
         let v = v.max(0) as u64;
         if v > MAX_NS {
             self.clamped += 1;
@@ -149,10 +153,12 @@ impl LatencyHist {
             .map_err(|e| {
                 anyhow::anyhow!("{}: not an HdrHistogram V2 file: {e:?}", path.display())
             })?;
+        // The compact twin is live telemetry only; a histogram read back has none.
         Ok(Self {
             name,
             h,
             clamped: 0,
+            compact: crate::telemetry::CompactHist::default(),
         })
     }
 }

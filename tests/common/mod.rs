@@ -59,6 +59,19 @@ pub fn drivelab(args: &[&str]) -> Output {
     child.wait_with_output().unwrap()
 }
 
+/// Waits for a spawned child with a watchdog against hangs; kills it (and fails) on expiry.
+pub fn wait(mut child: std::process::Child, watchdog: Duration, what: &str) -> Output {
+    let t = Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if t.elapsed() > watchdog {
+            let _ = child.kill();
+            panic!("watchdog: {what} still running after {watchdog:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.wait_with_output().unwrap()
+}
+
 /// Processes whose command line names this bus, as "PID ARGS".
 pub fn processes_on_bus(bus: &str) -> Vec<String> {
     let mut v = Vec::new();

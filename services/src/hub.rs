@@ -1,0 +1,221 @@
+//! The supervisor's side of live telemetry (see `drivelab::telemetry`): it collects the
+//! services' statuses, adds its own view of the processes and a decimated trace, and
+//! publishes them for `drivelab monitor`; it takes the monitors' fault requests.
+//!
+//! Everything here runs on the launcher's supervisor thread, never in a real-time process.
+//! The status subscriber exists before the services start, so their publishers connect
+//! outside their loops; monitors connect only to this hub's publishers.
+
+use anyhow::{anyhow, Result};
+use drivelab::config::{Scenario, SERVICES};
+use drivelab::messages::FLAG_END;
+use drivelab::telemetry::*;
+use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::PortFactory;
+use std::collections::VecDeque;
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+/// How often the view is published (wall time).
+pub const VIEW_PERIOD: Duration = Duration::from_millis(100);
+/// Events kept for a monitor that attaches late.
+pub const EVENT_HISTORY: usize = 64;
+
+/// The decimated trace the recorder fills for the hub.
+#[derive(Debug, Default)]
+pub struct TraceTail {
+    /// Samples between points.
+    pub decimation: u64,
+    /// Newest [`VIEW_POINTS`] points, oldest first.
+    pub points: Mutex<VecDeque<TracePoint>>,
+}
+
+impl TraceTail {
+    /// A tail with one point per 10 ms of simulated time.
+    pub fn new(sample_hz: f64) -> Self {
+        Self {
+            decimation: ((sample_hz * 0.01).round() as u64).max(1),
+            points: Mutex::new(VecDeque::with_capacity(VIEW_POINTS)),
+        }
+    }
+
+    /// Adds a point if `p.k` is on the decimation grid.
+    pub fn offer(&self, p: TracePoint) {
+        if p.k % self.decimation != 0 {
+            return;
+        }
+        if let Ok(mut q) = self.points.lock() {
+            if q.len() == VIEW_POINTS {
+                q.pop_front();
+            }
+            q.push_back(p);
+        }
+    }
+}
+
+/// The hub's ports and state.
+pub struct Hub {
+    _node: Node<ipc::Service>,
+    _status_topic: Plain<ServiceStatus>,
+    view_topic: Plain<DriveView>,
+    _events_topic: Plain<EventEntry>,
+    _req_topic: Plain<FaultRequest>,
+    status_rx: PlainReceiver<ServiceStatus>,
+    view_tx: PlainSender<DriveView>,
+    events_tx: PlainSender<EventEntry>,
+    req_rx: PlainReceiver<FaultRequest>,
+    view: Box<DriveView>,
+    prev: [Option<(u64, u64)>; 4],
+    last_view: Option<Instant>,
+    events_sent: usize,
+}
+
+impl Hub {
+    /// Creates the hub's node and topics on bus `bus_id`; call before spawning the services.
+    pub fn new(bus_id: &str, sc: &Scenario, lockstep: bool) -> Result<Self> {
+        let node = drivelab::bus::node(bus_id, "supervisor")?;
+        let status_topic = open_plain::<ServiceStatus>(&node, TOPIC_STATUS, 16, 0)?;
+        let view_topic = open_plain::<DriveView>(&node, TOPIC_VIEW, 4, 1)?;
+        let events_topic =
+            open_plain::<EventEntry>(&node, TOPIC_EVENTS, EVENT_HISTORY, EVENT_HISTORY)?;
+        let req_topic = open_plain::<FaultRequest>(&node, TOPIC_FAULT_REQ, 16, 0)?;
+        // Four services, ten statuses per simulated second each; lockstep runs ~10x faster
+        // than real time and the hub polls every millisecond: 256 is ample.
+        let status_rx = PlainReceiver::new(&status_topic, 16)?;
+        let view_tx = PlainSender::new(&view_topic)?;
+        let events_tx = PlainSender::new(&events_topic)?;
+        let req_rx = PlainReceiver::new(&req_topic, 16)?;
+        let mut view = Box::<DriveView>::default();
+        view.sample_hz = sc.rates.sample_hz;
+        view.n_samples = sc.samples();
+        view.lockstep = u32::from(lockstep);
+        view.rt_cores = SERVICES
+            .iter()
+            .filter_map(|s| sc.placement.get(s).and_then(|p| p.core))
+            .filter(|&c| c < 64)
+            .fold(0u64, |m, c| m | (1 << c));
+        put_str(&mut view.scenario, &sc.name);
+        Ok(Self {
+            _node: node,
+            _status_topic: status_topic,
+            view_topic,
+            _events_topic: events_topic,
+            _req_topic: req_topic,
+            status_rx,
+            view_tx,
+            events_tx,
+            req_rx,
+            view,
+            prev: [None; 4],
+            last_view: None,
+            events_sent: 0,
+        })
+    }
+
+    /// Sets what the supervisor knows of service `i`.
+    pub fn set_process(&mut self, i: usize, state: ProcState, pid: u32, restarts: u32) {
+        let s = &mut self.view.services[i];
+        s.state = state as u32;
+        s.pid = pid;
+        s.restarts = restarts;
+    }
+
+    /// Drains statuses and fault requests, publishes new events, and the view when due.
+    /// `events` is the supervisor's whole log; `k_now` the drive's progress. Returns the
+    /// fault requests that arrived.
+    pub fn poll(
+        &mut self,
+        events: &[crate::launcher::SupEvent],
+        k_now: u64,
+        tail: &TraceTail,
+    ) -> Result<Vec<FaultRequest>> {
+        while let Some(st) = self.status_rx.try_recv()? {
+            let i = st.service as usize;
+            if i >= SERVICES.len() {
+                continue;
+            }
+            let s = &mut self.view.services[i];
+            // A restarted service starts its counters again: rate from its own statuses.
+            if let Some((samples, t)) = self.prev[i].filter(|_| s.status.pid == st.pid) {
+                let dt = st.hdr.t_pub_ns.saturating_sub(t) as f64 * 1e-9;
+                if dt > 0.0 && st.samples >= samples {
+                    s.rate_hz = (st.samples - samples) as f64 / dt;
+                }
+            } else {
+                s.rate_hz = 0.0;
+            }
+            self.prev[i] = Some((st.samples, st.hdr.t_pub_ns));
+            s.status = st;
+            s.has_status = 1;
+        }
+        while self.events_sent < events.len() {
+            let e = &events[self.events_sent];
+            let text = format!("{} {}: {}", e.event, e.service, e.detail);
+            self.events_tx.send(&EventEntry::new(
+                e.t_wall_s,
+                e.k,
+                self.events_sent as u64,
+                &text,
+            ))?;
+            self.events_sent += 1;
+        }
+        let mut reqs = Vec::new();
+        while let Some(r) = self.req_rx.try_recv()? {
+            reqs.push(r);
+        }
+        if self.last_view.is_none_or(|t| t.elapsed() >= VIEW_PERIOD) {
+            self.last_view = Some(Instant::now());
+            // A monitor that attached late gets the event history now, not at the next event.
+            self.events_tx.connect()?;
+            self.publish(k_now, tail, 0)?;
+        }
+        Ok(reqs)
+    }
+
+    fn publish(&mut self, k_now: u64, tail: &TraceTail, flags: u32) -> Result<()> {
+        let v = &mut self.view;
+        v.hdr.k = k_now;
+        v.hdr.flags = flags;
+        v.hdr.t_pub_ns = drivelab::rt::now_ns();
+        v.decimation = tail.decimation;
+        if let Ok(q) = tail.points.lock() {
+            v.n_points = q.len() as u32;
+            for (slot, p) in v.points.iter_mut().zip(q.iter()) {
+                *slot = *p;
+            }
+        }
+        self.view_tx.send(v)
+    }
+
+    /// Publishes the final view (END flag) and waits up to `wait` for the monitors to let go
+    /// of the bus, so that its files can be removed.
+    pub fn finish(&mut self, k_now: u64, tail: &TraceTail, wait: Duration) -> Result<()> {
+        self.publish(k_now, tail, FLAG_END)?;
+        let t = Instant::now();
+        while self.view_topic.dynamic_config().number_of_subscribers() > 0 && t.elapsed() < wait {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        Ok(())
+    }
+}
+
+/// A monitor's fault request as (service name, signal description), validated.
+pub fn describe(r: &FaultRequest) -> Result<(&'static str, u32, Option<Duration>)> {
+    let name = SERVICES
+        .get(r.service as usize)
+        .copied()
+        .ok_or_else(|| anyhow!("fault request for unknown service #{}", r.service))?;
+    match r.kind {
+        FAULT_KILL => Ok((name, FAULT_KILL, None)),
+        FAULT_STOP if (1..=60_000).contains(&r.stop_ms) => Ok((
+            name,
+            FAULT_STOP,
+            Some(Duration::from_millis(u64::from(r.stop_ms))),
+        )),
+        FAULT_STOP => Err(anyhow!(
+            "stop fault of {} ms is out of range (1..60000 ms)",
+            r.stop_ms
+        )),
+        k => Err(anyhow!("unknown fault kind {k}")),
+    }
+}

@@ -1,0 +1,624 @@
+//! `drivelab monitor`: a live terminal view of a running drive (ratatui).
+//!
+//! It attaches to the supervisor's telemetry (see `drivelab::telemetry`), never to the
+//! real-time processes' topics, so attaching, watching and detaching cost the drive nothing.
+//! It shows per service the process state, rate, wake-up lateness and execution time
+//! (p99 and max since the service started), deadline misses and stale or rejected inputs; the
+//! last 2.5 s of speed against its reference and of i_d and i_q; and the supervisor's event
+//! log. `k` and `s` ask the supervisor to kill or freeze the selected service, after a
+//! confirmation.
+
+use anyhow::{anyhow, bail, Context, Result};
+use drivelab::config::SERVICES;
+use drivelab::telemetry::*;
+use iceoryx2::prelude::*;
+use ratatui::crossterm::event::{self, Event, KeyCode, KeyEventKind, KeyModifiers};
+use ratatui::layout::{Constraint, Layout, Rect};
+use ratatui::style::{Color, Modifier, Style};
+use ratatui::symbols::Marker;
+use ratatui::text::{Line, Span};
+use ratatui::widgets::{Axis, Block, Cell, Chart, Dataset, GraphType, Paragraph, Row, Table};
+use ratatui::Frame;
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+/// Options of `drivelab monitor`.
+#[derive(Debug, Clone)]
+pub struct MonitorOptions {
+    /// Bus id of the drive.
+    pub bus: String,
+    /// Screen refresh period.
+    pub refresh: Duration,
+    /// Freeze time of a stop fault, ms.
+    pub stop_ms: u32,
+    /// Print one frame as text (width, height) instead of running the terminal UI.
+    pub print: Option<(u16, u16)>,
+}
+
+/// The monitor's ports on the bus.
+struct Attached {
+    view_rx: PlainReceiver<DriveView>,
+    events_rx: PlainReceiver<EventEntry>,
+    req_tx: PlainSender<FaultRequest>,
+    _topics: (Plain<DriveView>, Plain<EventEntry>, Plain<FaultRequest>),
+    _node: Node<ipc::Service>,
+}
+
+fn attach(bus: &str) -> Result<Attached> {
+    drivelab::bus::check_bus_id(bus)?;
+    // iceoryx2 must not write to the screen the UI owns.
+    iceoryx2::prelude::set_log_level(LogLevel::Fatal);
+    let cfg = drivelab::bus::config(bus)?;
+    let name = ServiceName::new(TOPIC_VIEW).map_err(|e| anyhow!("{e:?}"))?;
+    let exists =
+        ipc::Service::does_exist(&name, &cfg, MessagingPattern::PublishSubscribe).unwrap_or(false);
+    if !exists {
+        bail!("no drive on bus '{bus}': start one with `drivelab run --bus {bus}`");
+    }
+    let node = drivelab::bus::node(bus, "monitor")?;
+    let open = |node: Node<ipc::Service>| -> Result<Attached> {
+        let view = open_existing::<DriveView>(&node, TOPIC_VIEW)?;
+        let events = open_existing::<EventEntry>(&node, TOPIC_EVENTS)?;
+        let req = open_existing::<FaultRequest>(&node, TOPIC_FAULT_REQ)?;
+        Ok(Attached {
+            view_rx: PlainReceiver::new(&view, 4)?,
+            events_rx: PlainReceiver::new(&events, 64)?,
+            req_tx: PlainSender::new(&req)?,
+            _topics: (view, events, req),
+            _node: node,
+        })
+    };
+    open(node)
+        .with_context(|| format!("cannot attach to the drive on bus '{bus}' (did it just end?)"))
+}
+
+/// What the screen shows.
+struct Ui {
+    bus: String,
+    view: Option<Box<DriveView>>,
+    events: VecDeque<EventEntry>,
+    selected: usize,
+    confirm: Option<u32>,
+    message: String,
+    ended: bool,
+    stop_ms: u32,
+}
+
+const LOG_KEEP: usize = 200;
+
+impl Ui {
+    fn new(o: &MonitorOptions) -> Self {
+        Self {
+            bus: o.bus.clone(),
+            view: None,
+            events: VecDeque::new(),
+            selected: 0,
+            confirm: None,
+            message: String::new(),
+            ended: false,
+            stop_ms: o.stop_ms,
+        }
+    }
+
+    /// Takes everything new from the bus. Returns true when the drive has ended.
+    fn pull(&mut self, a: &Attached) -> Result<bool> {
+        while let Some(e) = a.events_rx.try_recv()? {
+            if self.events.back().is_none_or(|b| e.seq > b.seq) {
+                if self.events.len() == LOG_KEEP {
+                    self.events.pop_front();
+                }
+                self.events.push_back(e);
+            }
+        }
+        let mut end = false;
+        while let Some(v) = a.view_rx.try_recv()? {
+            end |= v.hdr.is_end();
+            if self.view.is_none() {
+                self.message = keep_off(v.rt_cores);
+            }
+            self.view = Some(Box::new(v));
+        }
+        Ok(end)
+    }
+
+    /// Handles one key; returns false to quit.
+    fn key(&mut self, code: KeyCode, mods: KeyModifiers, a: Option<&Attached>) -> Result<bool> {
+        if code == KeyCode::Char('c') && mods.contains(KeyModifiers::CONTROL) {
+            return Ok(false);
+        }
+        if let Some(kind) = self.confirm.take() {
+            if code == KeyCode::Char('y') {
+                self.message = self.request(kind, a)?;
+            } else {
+                self.message = "cancelled".into();
+            }
+            return Ok(true);
+        }
+        match code {
+            KeyCode::Char('q') | KeyCode::Esc => return Ok(false),
+            KeyCode::Right | KeyCode::Down | KeyCode::Tab => {
+                self.selected = (self.selected + 1) % SERVICES.len()
+            }
+            KeyCode::Left | KeyCode::Up | KeyCode::BackTab => {
+                self.selected = (self.selected + SERVICES.len() - 1) % SERVICES.len()
+            }
+            KeyCode::Char(c @ '1'..='4') => self.selected = c as usize - '1' as usize,
+            KeyCode::Char('k') => self.ask(FAULT_KILL),
+            KeyCode::Char('s') => self.ask(FAULT_STOP),
+            _ => {}
+        }
+        Ok(true)
+    }
+
+    fn ask(&mut self, kind: u32) {
+        if self.ended {
+            self.message = "the drive has ended; no fault to inject".into();
+        } else if self.view.as_ref().is_some_and(|v| v.lockstep != 0) {
+            self.message = "faults need a real-time drive (this one runs in lockstep)".into();
+        } else {
+            self.confirm = Some(kind);
+        }
+    }
+
+    fn fault_text(&self, kind: u32) -> String {
+        let svc = SERVICES[self.selected];
+        if kind == FAULT_KILL {
+            format!("kill {svc} (SIGKILL)")
+        } else {
+            format!(
+                "freeze {svc} for {} ms (SIGSTOP, then SIGCONT)",
+                self.stop_ms
+            )
+        }
+    }
+
+    fn request(&self, kind: u32, a: Option<&Attached>) -> Result<String> {
+        let Some(a) = a else {
+            return Ok("not attached".into());
+        };
+        a.req_tx.send(&FaultRequest {
+            kind,
+            service: self.selected as u32,
+            stop_ms: self.stop_ms,
+            pid: std::process::id(),
+        })?;
+        Ok(format!("asked the supervisor to {}", self.fault_text(kind)))
+    }
+
+    fn draw(&self, f: &mut Frame) {
+        let [head, table, cycle, charts, log, foot] = Layout::vertical([
+            Constraint::Length(1),
+            Constraint::Length(7),
+            Constraint::Length(1),
+            Constraint::Min(8),
+            Constraint::Length(8),
+            Constraint::Length(1),
+        ])
+        .areas(f.area());
+        f.render_widget(Paragraph::new(self.header()), head);
+        self.draw_table(f, table);
+        f.render_widget(Paragraph::new(self.cycle_line()), cycle);
+        let [left, right] =
+            Layout::horizontal([Constraint::Percentage(50), Constraint::Percentage(50)])
+                .areas(charts);
+        self.draw_speed(f, left);
+        self.draw_currents(f, right);
+        self.draw_log(f, log);
+        f.render_widget(Paragraph::new(self.footer()), foot);
+    }
+
+    fn header(&self) -> Line<'static> {
+        let Some(v) = &self.view else {
+            return Line::from(format!(
+                "drivelab monitor · bus {} · waiting for the drive's first view…",
+                self.bus
+            ));
+        };
+        let k = v.hdr.k;
+        let pct = if v.n_samples > 0 {
+            100.0 * k as f64 / v.n_samples as f64
+        } else {
+            0.0
+        };
+        Line::from(vec![
+            Span::styled(
+                "drivelab monitor",
+                Style::new().add_modifier(Modifier::BOLD),
+            ),
+            Span::raw(format!(
+                " · bus {} · {} · {} {:.0} Hz · sample {}/{} ({:.0} %) · t {:.3} s{}",
+                self.bus,
+                get_str(&v.scenario),
+                if v.lockstep != 0 {
+                    "lockstep"
+                } else {
+                    "realtime"
+                },
+                v.sample_hz,
+                k,
+                v.n_samples,
+                pct,
+                k as f64 / v.sample_hz.max(1.0),
+                if self.ended { " · ENDED" } else { "" }
+            )),
+        ])
+    }
+
+    fn draw_table(&self, f: &mut Frame, area: Rect) {
+        let us = |ns: u64| format!("{:.1}", ns as f64 * 1e-3);
+        let rows = SERVICES.iter().enumerate().map(|(i, name)| {
+            let mark = if i == self.selected { "▶ " } else { "  " };
+            let Some(v) = &self.view else {
+                return Row::new(vec![Cell::from(format!("{mark}{name}"))]);
+            };
+            let s = &v.services[i];
+            let st = ProcState::from_u32(s.state);
+            let color = match st {
+                ProcState::Alive => Color::Green,
+                ProcState::Finished => Color::Blue,
+                ProcState::Frozen | ProcState::Restarting | ProcState::Starting => Color::Yellow,
+                ProcState::Dead => Color::Red,
+            };
+            let x = &s.status;
+            let mut cells = vec![
+                Cell::from(format!("{mark}{name}")),
+                Cell::from(st.name()).style(Style::new().fg(color)),
+                Cell::from(s.pid.to_string()),
+                Cell::from(s.restarts.to_string()),
+            ];
+            if s.has_status != 0 {
+                cells.extend([
+                    Cell::from(format!("{:.2}", s.rate_hz * 1e-3)),
+                    Cell::from(us(x.wake.quantile_ns(0.99))),
+                    Cell::from(us(x.wake.max_ns)),
+                    Cell::from(us(x.exec.quantile_ns(0.99))),
+                    Cell::from(us(x.exec.max_ns)),
+                    Cell::from(format!("{} ({})", x.misses, x.longest_miss_run)),
+                    Cell::from(x.stale_inputs.to_string()),
+                    Cell::from(x.rejected_inputs.to_string()),
+                ]);
+            } else {
+                cells.push(Cell::from("no status yet"));
+            }
+            let row = Row::new(cells);
+            if i == self.selected {
+                row.style(Style::new().add_modifier(Modifier::REVERSED))
+            } else {
+                row
+            }
+        });
+        let header = Row::new([
+            "service",
+            "state",
+            "pid",
+            "restarts",
+            "kHz",
+            "wake p99",
+            "wake max",
+            "exec p99",
+            "exec max",
+            "misses (run)",
+            "stale",
+            "rejected",
+        ])
+        .style(Style::new().add_modifier(Modifier::BOLD));
+        let widths = [
+            Constraint::Length(14),
+            Constraint::Length(10),
+            Constraint::Length(7),
+            Constraint::Length(8),
+            Constraint::Length(6),
+            Constraint::Length(8),
+            Constraint::Length(8),
+            Constraint::Length(8),
+            Constraint::Length(8),
+            Constraint::Length(12),
+            Constraint::Length(6),
+            Constraint::Length(8),
+        ];
+        f.render_widget(
+            Table::new(rows, widths)
+                .header(header)
+                .block(Block::bordered().title(
+                    " services · µs, since start · wake: plant = timer lateness, others = bus hop ",
+                )),
+            area,
+        );
+    }
+
+    fn cycle_line(&self) -> Line<'static> {
+        let Some(v) = &self.view else {
+            return Line::default();
+        };
+        let p = &v.services[0].status;
+        if v.lockstep != 0 {
+            return Line::from(" cycle latency: not measured in lockstep (no wall-clock schedule)");
+        }
+        Line::from(format!(
+            " cycle t_k → command k at the plant: p99 {:.1} µs, max {:.1} µs · deadline misses {}/{} samples, longest run {}",
+            p.cycle.quantile_ns(0.99) as f64 * 1e-3,
+            p.cycle.max_ns as f64 * 1e-3,
+            p.misses,
+            p.samples,
+            p.longest_miss_run
+        ))
+    }
+
+    fn series(&self, pick: impl Fn(&TracePoint) -> f64) -> Vec<(f64, f64)> {
+        let Some(v) = &self.view else {
+            return Vec::new();
+        };
+        v.points[..v.n_points as usize]
+            .iter()
+            .map(|p| (p.k as f64 / v.sample_hz.max(1.0), pick(p)))
+            .collect()
+    }
+
+    fn chart(
+        &self,
+        f: &mut Frame,
+        area: Rect,
+        title: String,
+        unit: &str,
+        sets: Vec<(&str, Color, Vec<(f64, f64)>)>,
+    ) {
+        let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+        for (_, _, d) in &sets {
+            for &(x, y) in d {
+                x0 = x0.min(x);
+                x1 = x1.max(x);
+                y0 = y0.min(y);
+                y1 = y1.max(y);
+            }
+        }
+        if x0 > x1 {
+            (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
+        }
+        // A flat trace keeps a visible band (5 % of its level) instead of magnifying noise.
+        let pad = ((y1 - y0) * 0.1)
+            .max(0.05 * y0.abs().max(y1.abs()))
+            .max(1e-3);
+        let (y0, y1) = (y0 - pad, y1 + pad);
+        let datasets = sets
+            .iter()
+            .map(|(name, color, d)| {
+                Dataset::default()
+                    .name(name.to_string())
+                    .marker(Marker::Braille)
+                    .graph_type(GraphType::Line)
+                    .style(Style::new().fg(*color))
+                    .data(d)
+            })
+            .collect::<Vec<_>>();
+        let chart = Chart::new(datasets)
+            .block(Block::bordered().title(title))
+            .legend_position(Some(ratatui::widgets::LegendPosition::BottomRight))
+            .x_axis(
+                Axis::default()
+                    .title("t s")
+                    .bounds([x0, x1.max(x0 + 1e-6)])
+                    .labels([format!("{x0:.2}"), format!("{x1:.2}")]),
+            )
+            .y_axis(
+                Axis::default()
+                    .title(unit.to_string())
+                    .bounds([y0, y1])
+                    .labels([format!("{y0:.1}"), format!("{y1:.1}")]),
+            );
+        f.render_widget(chart, area);
+    }
+
+    fn last_point(&self) -> Option<TracePoint> {
+        self.view
+            .as_ref()
+            .and_then(|v| v.points[..v.n_points as usize].last().copied())
+    }
+
+    fn draw_speed(&self, f: &mut Frame, area: Rect) {
+        let title = match self.last_point() {
+            Some(p) => format!(
+                " speed ω {:.2} rad/s, reference ω* {:.2} rad/s ",
+                p.omega, p.omega_ref
+            ),
+            None => " speed ω and reference ω* ".into(),
+        };
+        let sets = vec![
+            ("ω*", Color::Yellow, self.series(|p| p.omega_ref)),
+            ("ω", Color::Cyan, self.series(|p| p.omega)),
+        ];
+        self.chart(f, area, title, "rad/s", sets);
+    }
+
+    fn draw_currents(&self, f: &mut Frame, area: Rect) {
+        let title = match self.last_point() {
+            Some(p) => format!(
+                " currents i_d {:.3} A (i_d* {:.3}), i_q {:.3} A (i_q* {:.3}) ",
+                p.i_d, p.i_d_ref, p.i_q, p.i_q_ref
+            ),
+            None => " currents i_d and i_q ".into(),
+        };
+        let sets = vec![
+            ("i_q*", Color::Yellow, self.series(|p| p.i_q_ref)),
+            ("i_d*", Color::LightRed, self.series(|p| p.i_d_ref)),
+            ("i_q", Color::Cyan, self.series(|p| p.i_q)),
+            ("i_d", Color::Magenta, self.series(|p| p.i_d)),
+        ];
+        self.chart(f, area, title, "A", sets);
+    }
+
+    fn draw_log(&self, f: &mut Frame, area: Rect) {
+        let fs = self.view.as_ref().map_or(1.0, |v| v.sample_hz.max(1.0));
+        let shown = area.height.saturating_sub(2) as usize;
+        let lines: Vec<Line> = if self.events.is_empty() {
+            vec![Line::from(
+                "no events: every service running since the start",
+            )]
+        } else {
+            self.events
+                .iter()
+                .rev()
+                .take(shown)
+                .rev()
+                .map(|e| {
+                    let red = e.text().starts_with("inject") || e.text().starts_with("exited");
+                    Line::styled(
+                        format!(
+                            "wall {:8.3} s  sample {:>8} (t {:.4} s)  {}",
+                            e.t_wall_s,
+                            e.k,
+                            e.k as f64 / fs,
+                            e.text()
+                        ),
+                        if red {
+                            Style::new().fg(Color::Red)
+                        } else {
+                            Style::new()
+                        },
+                    )
+                })
+                .collect()
+        };
+        f.render_widget(
+            Paragraph::new(lines).block(Block::bordered().title(format!(
+                " supervisor events ({} so far) ",
+                self.events.back().map_or(0, |e| e.seq + 1)
+            ))),
+            area,
+        );
+    }
+
+    fn footer(&self) -> Line<'static> {
+        if let Some(kind) = self.confirm {
+            return Line::styled(
+                format!(
+                    " {}? press y to confirm, any other key to cancel",
+                    self.fault_text(kind)
+                ),
+                Style::new().fg(Color::Black).bg(Color::Yellow),
+            );
+        }
+        let keys = format!(
+            " q quit · ←/→ or 1-4 select ({}) · k kill · s freeze {} ms",
+            SERVICES[self.selected], self.stop_ms
+        );
+        if self.message.is_empty() {
+            Line::from(keys)
+        } else {
+            Line::from(format!("{keys} · {}", self.message))
+        }
+    }
+}
+
+/// Moves this process off the drive's real-time cores (when another core is left) and
+/// lowers its priority, so that drawing the screen competes with nothing the drive needs.
+/// Returns a note for the footer.
+fn keep_off(rt_cores: u64) -> String {
+    let n = drivelab::rt::online_cpus().min(64);
+    let free: Vec<usize> = (0..n).filter(|c| rt_cores & (1 << c) == 0).collect();
+    // SAFETY: setpriority on our own process (who = 0) only changes our nice value.
+    unsafe {
+        libc::setpriority(libc::PRIO_PROCESS, 0, 10);
+    }
+    if free.is_empty() {
+        return "every core runs the drive: the monitor shares them at nice 10".into();
+    }
+    // SAFETY: `set` is a zeroed cpu_set_t filled with CPU_SET for indices below 64 (within
+    // its 1024 bits); sched_setaffinity(0, ...) applies to the calling thread.
+    let rc = unsafe {
+        let mut set: libc::cpu_set_t = std::mem::zeroed();
+        for &c in &free {
+            libc::CPU_SET(c, &mut set);
+        }
+        libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set)
+    };
+    if rc == 0 {
+        format!("monitor on CPU {free:?}, nice 10")
+    } else {
+        "could not move the monitor off the drive's cores".into()
+    }
+}
+
+/// Runs `drivelab monitor`.
+pub fn run(o: &MonitorOptions) -> Result<()> {
+    if o.stop_ms == 0 || o.stop_ms > 60_000 {
+        bail!("--stop-ms {} is out of range (1..60000 ms)", o.stop_ms);
+    }
+    let attached = attach(&o.bus)?;
+    let mut ui = Ui::new(o);
+    if let Some((w, h)) = o.print {
+        return print_once(&mut ui, attached, w, h);
+    }
+    // SAFETY: isatty only reads the file descriptor's state.
+    if unsafe { libc::isatty(1) } != 1 {
+        bail!("monitor needs a terminal on stdout; use --print for a one-shot text view");
+    }
+    let mut terminal = ratatui::try_init().context("cannot set up the terminal")?;
+    let result = ui_loop(&mut terminal, &mut ui, attached, o.refresh);
+    ratatui::restore();
+    result
+}
+
+fn ui_loop(
+    terminal: &mut ratatui::DefaultTerminal,
+    ui: &mut Ui,
+    attached: Attached,
+    refresh: Duration,
+) -> Result<()> {
+    let mut attached = Some(attached);
+    loop {
+        if let Some(a) = &attached {
+            if ui.pull(a)? {
+                // Let go of the bus at once so the launcher can remove its files.
+                ui.ended = true;
+                ui.message = "the drive has ended: press q to leave".into();
+                attached = None;
+            }
+        }
+        terminal.draw(|f| ui.draw(f))?;
+        let until = Instant::now() + refresh;
+        while let Some(left) = until.checked_duration_since(Instant::now()) {
+            if crate::common::stop_requested() {
+                return Ok(());
+            }
+            if !event::poll(left.min(Duration::from_millis(50)))? {
+                continue;
+            }
+            if let Event::Key(k) = event::read()? {
+                if k.kind == KeyEventKind::Press
+                    && !ui.key(k.code, k.modifiers, attached.as_ref())?
+                {
+                    return Ok(());
+                }
+                break;
+            }
+        }
+    }
+}
+
+fn print_once(ui: &mut Ui, a: Attached, w: u16, h: u16) -> Result<()> {
+    use ratatui::backend::TestBackend;
+    let t = Instant::now();
+    while ui.view.is_none() && t.elapsed() < Duration::from_secs(5) {
+        ui.ended |= ui.pull(&a)?;
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    ui.ended |= ui.pull(&a)?;
+    drop(a);
+    if ui.view.is_none() {
+        bail!("the drive on bus '{}' published no view within 5 s", ui.bus);
+    }
+    let mut term = ratatui::Terminal::new(TestBackend::new(w, h))?;
+    term.draw(|f| ui.draw(f))?;
+    let buf = term.backend().buffer();
+    let mut out = String::new();
+    for y in 0..buf.area.height {
+        let mut line = String::new();
+        for x in 0..buf.area.width {
+            line.push_str(buf[(x, y)].symbol());
+        }
+        out.push_str(line.trim_end());
+        out.push('\n');
+    }
+    print!("{out}");
+    Ok(())
+}
