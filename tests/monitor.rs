@@ -243,7 +243,8 @@ fn a_fault_from_the_monitor_is_confirmed_injected_logged_and_reported() {
         "drive failed: {}",
         String::from_utf8_lossy(&o.stderr)
     );
-    tmux.keys("q");
+    // Ctrl-C leaves too (the terminal is in raw mode: it arrives as a key).
+    tmux.keys("C-c");
     assert_eq!(tmux.wait_exit(Duration::from_secs(10)), 0);
     let summary: serde_json::Value =
         serde_json::from_slice(&read(&out.join("summary.json"))).unwrap();
