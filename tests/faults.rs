@@ -2,7 +2,7 @@
 //! id and run folder and checks that nothing is left behind. Times are watchdogs only.
 
 use std::path::PathBuf;
-use std::process::{Command, Output, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 mod common;

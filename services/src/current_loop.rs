@@ -89,7 +89,11 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let cmd_tx = topics.cmd.sender()?;
     // Opened before the RT set-up: mapping its segments is not real-time work.
     let mut status = StatusPublisher::new(&node, "current-loop", &sc)?;
-    let report = apply_placement("current-loop", &sc, &args)?;
+    // Connect now (a restarted current loop joins running peers), not at real-time priority.
+    meas_rx.connect()?;
+    est_rx.connect()?;
+    iref_rx.connect()?;
+    cmd_tx.connect()?;
     let mut ctrl = CurrentLoopStep::new(&sc);
     let m = sc.motor_params();
     let ts = sc.rates.ts();
@@ -115,6 +119,8 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let fallback_poll = Duration::from_secs_f64(0.5 * ts);
     let mut in_fallback = false;
     let sensorless = sc.observer.mode == drivelab::observer_sensorless::ObserverMode::Sensorless;
+    // Last: everything above (controller design, histograms) is set-up work, not real-time.
+    let report = apply_placement("current-loop", &sc, &args)?;
     ready()?;
     // ---- real-time loop: no allocation, no locks, no logging ----
     'outer: while !stop_requested() {

@@ -18,7 +18,9 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let est_tx = topics.est.sender()?;
     // Opened before the RT set-up: mapping its segments is not real-time work.
     let mut status = StatusPublisher::new(&node, "observer", &sc)?;
-    let report = apply_placement("observer", &sc, &args)?;
+    // Connect now (a restarted observer joins running peers), not at real-time priority.
+    meas_rx.connect()?;
+    est_tx.connect()?;
     let mut obs = ObserverStep::new(&sc);
     let mut c = Counters::default();
     let mut h = ServiceHists::new(false, (1e9 / sc.rates.sample_hz).round() as u64);
@@ -30,6 +32,8 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     // measurement, take the speed from the backward difference to the next one, go on.
     let mut rejoining = args.rejoin;
     let mut seed: Option<Measurement> = None;
+    // Last: everything above (controller design, histograms) is set-up work, not real-time.
+    let report = apply_placement("observer", &sc, &args)?;
     ready()?;
     // ---- real-time loop: no allocation, no locks, no logging ----
     'outer: while !stop_requested() {

@@ -97,7 +97,9 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     };
     // Opened before the RT set-up: mapping its segments is not real-time work.
     let mut status = StatusPublisher::new(&node, "plant", &sc)?;
-    let report = apply_placement("plant", &sc, &args)?;
+    // Connect now (a restarted plant joins running peers), not at real-time priority.
+    meas_tx.connect()?;
+    cmd_rx.connect()?;
     let mut plant = Plant::new(&sc);
     let mut c = Counters::default();
     let n = sc.samples();
@@ -105,6 +107,8 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let mut h = ServiceHists::new(true, ts_ns);
     let mut mon = CycleMonitor::new(ts_ns);
     let spin_ns = (sc.timing.plant_spin_us * 1e3).round() as u64;
+    // Last: everything above (controller design, histograms) is set-up work, not real-time.
+    let report = apply_placement("plant", &sc, &args)?;
     ready()?;
     let (t0, k_start) = if args.rejoin {
         // Restarted by the supervisor: resume from the last measurement the recorder saw,

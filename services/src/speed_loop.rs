@@ -30,7 +30,10 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let iref_tx = topics.iref.sender()?;
     // Opened before the RT set-up: mapping its segments is not real-time work.
     let mut status = StatusPublisher::new(&node, "speed-loop", &sc)?;
-    let report = apply_placement("speed-loop", &sc, &args)?;
+    // Connect now (a restarted speed loop joins running peers), not at real-time priority.
+    est_rx.connect()?;
+    meas_rx.connect()?;
+    iref_tx.connect()?;
     let mut ctrl = SpeedLoopStep::new(&sc);
     for w in drivelab::drive::DriveDesign::from_scenario(&sc).warnings {
         eprintln!("speed-loop: warning: {w}");
@@ -43,6 +46,8 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let n = u64::from(sc.rates.speed_divider);
     let mut last_out: Option<CurrentRef> = None;
     let mut rejoining = args.rejoin;
+    // Last: everything above (controller design, histograms) is set-up work, not real-time.
+    let report = apply_placement("speed-loop", &sc, &args)?;
     ready()?;
     // ---- real-time loop: no allocation, no locks, no logging ----
     'outer: while !stop_requested() {

@@ -29,9 +29,9 @@ pub const TOPIC_REC: &str = "drivelab/recorder";
 pub const POLL_SLEEP: Duration = Duration::from_micros(200);
 
 /// Largest subscriber buffer (the recorder's), samples.
-pub const MAX_BUFFER: usize = 16_384;
+pub const MAX_BUFFER: usize = 4096;
 /// Samples kept for late joiners (publisher history).
-pub const HISTORY: usize = 1024;
+pub const HISTORY: usize = 256;
 
 /// Validates a bus id: 1–24 characters of [A-Za-z0-9_].
 pub fn check_bus_id(id: &str) -> Result<()> {
@@ -124,7 +124,7 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
             .service_builder(&name)
             .publish_subscribe::<T>()
             .max_publishers(2)
-            .max_subscribers(8)
+            .max_subscribers(6)
             .max_nodes(12)
             .subscriber_max_buffer_size(MAX_BUFFER)
             .history_size(HISTORY)
@@ -286,6 +286,16 @@ pub struct Receiver<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> {
 }
 
 impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Receiver<T> {
+    /// Connects to the publishers that exist now (otherwise done lazily on the first
+    /// receive): a restarted service calls it before its real-time set-up, so that mapping
+    /// the running peers' segments is not done at real-time priority.
+    pub fn connect(&self) -> Result<()> {
+        use iceoryx2::port::update_connections::UpdateConnections;
+        self.subscriber
+            .update_connections()
+            .map_err(|e| anyhow!("update connections: {e:?}"))
+    }
+
     /// True when no message is buffered.
     pub fn is_empty(&self) -> Result<bool> {
         self.subscriber

@@ -186,9 +186,7 @@ pub fn setup_rt(req: &RtRequest, policy: RtPolicy) -> anyhow::Result<RtReport> {
             // up to 17 ms at every restart. Kernels before 4.4 refuse the flag: keep the
             // first call's behaviour then.
             // SAFETY: as above, only flag bits.
-            let _ = unsafe {
-                libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE | MCL_ONFAULT)
-            };
+            let _ = unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE | MCL_ONFAULT) };
         } else {
             let e = io::Error::last_os_error();
             let why = match e.raw_os_error() {
