@@ -31,7 +31,8 @@ pub struct BenchArgs {
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
     /// Also measure the one-core iceoryx2 chain with the plant sleeping to this many µs
-    /// before each deadline and spinning the rest (0 = skip that variant).
+    /// before each deadline and spinning the rest, capped at T_s/4 (12.5 µs at 20 kHz) so
+    /// that the spin leaves the chain its time on the core (0 = skip that variant).
     #[arg(long, default_value_t = 30.0, value_name = "MICROSECONDS")]
     pub spin_us: f64,
     /// Print bench.json on stdout instead of the Markdown table.
@@ -293,7 +294,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
                 // The same chain with the plant sleeping to spin_us before each deadline and
                 // spinning the rest (DESIGN.md: sleep-then-short-spin).
                 let mut spin = sc.clone();
-                spin.timing.plant_spin_us = a.spin_us;
+                spin.timing.plant_spin_us = spin_us(a.spin_us, hz);
                 spin.validate().map_err(|e| anyhow!("--spin-us: {e}"))?;
                 bar.set_message(format!("{} Hz iceoryx2 + spin, {p}", hz));
                 let bus = format!("b{}{}s", std::process::id(), rows.len() + measured.len());
@@ -398,7 +399,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         "speed": speed,
     });
     std::fs::write(out.join("bench.json"), serde_json::to_vec_pretty(&report)?)?;
-    let md = markdown(&rows, &speed, seconds);
+    let md = markdown(&rows, &speed, seconds, a.spin_us);
     std::fs::write(out.join("bench.md"), &md)?;
     for (hz, curves) in &curves_by_rate {
         let ts_us = 1e6 / hz;
@@ -427,8 +428,14 @@ fn fmt_opt(v: Option<f64>, prec: usize) -> String {
         .unwrap_or_else(|| "-".into())
 }
 
+/// The plant's spin before each deadline in the `iceoryx2+spin` variant at `hz`: the
+/// requested µs, capped at T_s/4.
+pub fn spin_us(requested_us: f64, hz: f64) -> f64 {
+    requested_us.min(0.25e6 / hz)
+}
+
 /// The Markdown table of the report.
-pub fn markdown(rows: &[Row], speed: &serde_json::Value, seconds: f64) -> String {
+pub fn markdown(rows: &[Row], speed: &serde_json::Value, seconds: f64, spin_arg: f64) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "Cycle latency from t_k to command k available at the plant, µs ({seconds} s per variant; floor = bare timer wake-up lateness).\n");
     let _ = writeln!(s, "| rate | variant | placement | p50 | p99 | p99.9 | max | misses/M | longest run | p99 − floor | p99 / floor | p99 / uds | budget |");
@@ -455,6 +462,24 @@ pub fn markdown(rows: &[Row], speed: &serde_json::Value, seconds: f64) -> String
             fmt_opt(r.p99_ratio_to_floor, 2),
             fmt_opt(r.p99_ratio_to_uds, 2),
             verdict
+        );
+    }
+    if rows.iter().any(|r| r.variant == "iceoryx2+spin") {
+        let spins: Vec<String> = rows
+            .iter()
+            .filter(|r| r.variant == "iceoryx2+spin")
+            .map(|r| {
+                format!(
+                    "{} µs at {} kHz",
+                    spin_us(spin_arg, r.rate_hz),
+                    r.rate_hz / 1000.0
+                )
+            })
+            .collect();
+        let _ = writeln!(
+            s,
+            "\niceoryx2+spin: the plant sleeps to {} before each deadline and spins the rest (--spin-us, capped at T_s/4).",
+            spins.join(", ")
         );
     }
     let _ = writeln!(

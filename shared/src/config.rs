@@ -714,11 +714,11 @@ impl Scenario {
         )?;
         let spin = self.timing.plant_spin_us;
         check(
-            spin.is_finite() && spin >= 0.0 && spin < 0.9e6 / r.sample_hz,
+            spin.is_finite() && spin >= 0.0 && spin < 0.5e6 / r.sample_hz,
             || {
                 format!(
-                    "timing.plant_spin_us = {spin} must be in [0, 0.9·T_s = {:.1}) µs",
-                    0.9e6 / r.sample_hz
+                    "timing.plant_spin_us = {spin} must be in [0, T_s/2 = {:.1}) µs (the plant spins on the chain's core; the chain needs the rest of the period)",
+                    0.5e6 / r.sample_hz
                 )
             },
         )?;
