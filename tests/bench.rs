@@ -77,3 +77,55 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     assert!(md.contains("| 10 kHz | iceoryx2 | one-core |"), "{md}");
     let _ = std::fs::remove_dir_all(&out);
 }
+
+#[test]
+fn bench_rounds_interleave_the_variants_and_merge_their_samples() {
+    let out = std::env::temp_dir().join(format!("drivelab-bench-rounds-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let mut child = Command::new(env!("CARGO_BIN_EXE_drivelab"))
+        .args([
+            "bench",
+            "--quick",
+            "--rounds",
+            "2",
+            "--spin-us",
+            "0",
+            "--json",
+        ])
+        .args(["--out", out.to_str().unwrap()])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t = Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        assert!(
+            t.elapsed() < Duration::from_secs(300),
+            "watchdog: bench --rounds hangs"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let o = child.wait_with_output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(report["rounds"], 2);
+    let rows = report["rows"].as_array().unwrap();
+    // 0.2 s at 10 kHz in two slices of 0.1 s: both slices count.
+    let floor = rows[0]["samples"].as_u64().unwrap();
+    assert!((1990..=2010).contains(&floor), "floor samples {floor}");
+    // Each chain ran once per round, in its own folder.
+    for v in ["iceoryx2-one-core-10000hz", "uds-one-core-10000hz"] {
+        for r in ["round1", "round2"] {
+            assert!(out.join(v).join(r).is_dir(), "{v}/{r} missing");
+        }
+    }
+    let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
+    assert!(md.contains("in 2 interleaved round(s)"), "{md}");
+    let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
+        .args(["bench", "--rounds", "0"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--rounds must be in 1..=100"));
+    let _ = std::fs::remove_dir_all(&out);
+}

@@ -36,6 +36,19 @@ pub struct VariantResult {
     pub misses: MissCounter,
 }
 
+impl VariantResult {
+    /// Adds another measurement of the same variant (a later round): histograms and counts
+    /// add, the longest miss run is the longest of either (runs do not span rounds).
+    pub fn merge(&mut self, other: &VariantResult) -> anyhow::Result<()> {
+        self.cycle.add(&other.cycle)?;
+        self.lateness.add(&other.lateness)?;
+        self.samples += other.samples;
+        self.misses.misses += other.misses.misses;
+        self.misses.longest_run = self.misses.longest_run.max(other.misses.longest_run);
+        Ok(())
+    }
+}
+
 /// Placement of one node: core and SCHED_FIFO priority (None = unpinned / SCHED_OTHER).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct NodeSpec {

@@ -35,6 +35,11 @@ pub struct BenchArgs {
     /// that the spin leaves the chain its time on the core (0 = skip that variant).
     #[arg(long, default_value_t = 30.0, value_name = "MICROSECONDS")]
     pub spin_us: f64,
+    /// Split each variant's measurement into this many interleaved rounds (every variant
+    /// runs once per round), so that slow changes of the machine reach all variants alike
+    /// (default 5; with --quick 1).
+    #[arg(long, value_name = "N")]
+    pub rounds: Option<usize>,
     /// Print bench.json on stdout instead of the Markdown table.
     #[arg(long)]
     pub json: bool,
@@ -229,7 +234,12 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     let exe = std::env::current_exe()?;
     let (base, _) = Scenario::load("kyslan-pi").map_err(|e| anyhow!(e))?;
 
-    let total = rates.len() * (2 + 2 * placements.len()) + 2;
+    let rounds = a.rounds.unwrap_or(if a.quick { 1 } else { 5 });
+    if !(1..=100).contains(&rounds) {
+        return Err(anyhow!("--rounds must be in 1..=100, got {rounds}"));
+    }
+    let spin_jobs = usize::from(a.spin_us > 0.0 && placements.iter().any(|p| p == "one-core"));
+    let total = rates.len() * (2 + 2 * placements.len() + spin_jobs) * rounds + 2;
     let bar = indicatif::ProgressBar::new(total as u64);
     bar.set_style(
         indicatif::ProgressStyle::with_template(
@@ -242,78 +252,105 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     for &hz in &rates {
         let mut measured: Vec<(Row, Measured)> = Vec::new();
         let one = placement("one-core")?;
-        let sc1 = scenario_at(&base, hz, seconds, one)?;
         let tag = |v: &str, p: &str| format!("{v}-{p}-{}hz", hz as u64);
-        // The floor and the in-process chain run on the plant's core at its priority.
-        bar.set_message(format!("{} Hz floor", hz));
-        let floor = drivelab_bench::run_floor(hz, seconds, &node(one.plant))?;
-        bar.inc(1);
-        bar.set_message(format!("{} Hz in-process", hz));
-        let inproc = drivelab_bench::run_inprocess(&ChainSpec {
-            scenario: sc1.clone(),
-            seconds,
-            plant: node(one.plant),
-            observer: node(one.observer),
-            current_loop: node(one.current_loop),
-            speed_loop: node(one.speed_loop),
-        })?;
-        bar.inc(1);
-        for (name, m) in [("floor", floor), ("inprocess", inproc)] {
-            let h = out.join(format!("{}.hgrm", tag(name, "core1")));
+        // Every variant of this rate, measured in `rounds` interleaved slices so that the
+        // machine's slow changes (a VM's noisy minutes) reach all of them alike.
+        let mut jobs: Vec<(&str, String)> = vec![("floor", "-".into()), ("inprocess", "-".into())];
+        for p in &placements {
+            jobs.push(("uds", p.clone()));
+            jobs.push(("iceoryx2", p.clone()));
+            if a.spin_us > 0.0 && p == "one-core" {
+                jobs.push(("iceoryx2+spin", p.clone()));
+            }
+        }
+        let slice = seconds / rounds as f64;
+        let mut acc: Vec<Option<VariantResult>> = jobs.iter().map(|_| None).collect();
+        for round in 0..rounds {
+            for (i, (name, p)) in jobs.iter().enumerate() {
+                let round_tag = if rounds > 1 {
+                    format!(", round {}/{rounds}", round + 1)
+                } else {
+                    String::new()
+                };
+                bar.set_message(format!("{hz} Hz {name} {p}{round_tag}"));
+                let dir = |v: &str| {
+                    let d = out.join(tag(v, p));
+                    if rounds > 1 {
+                        d.join(format!("round{}", round + 1))
+                    } else {
+                        d
+                    }
+                };
+                let m = match *name {
+                    // The floor and the in-process chain run on the plant's core at its priority.
+                    "floor" => drivelab_bench::run_floor(hz, slice, &node(one.plant))?,
+                    "inprocess" => drivelab_bench::run_inprocess(&ChainSpec {
+                        scenario: scenario_at(&base, hz, slice, one)?,
+                        seconds: slice,
+                        plant: node(one.plant),
+                        observer: node(one.observer),
+                        current_loop: node(one.current_loop),
+                        speed_loop: node(one.speed_loop),
+                    })?,
+                    "uds" => {
+                        let pl = placement(p)?;
+                        let work = dir("uds");
+                        std::fs::create_dir_all(&work)?;
+                        drivelab_bench::run_uds_chain(
+                            &ChainSpec {
+                                scenario: scenario_at(&base, hz, slice, pl)?,
+                                seconds: slice,
+                                plant: node(pl.plant),
+                                observer: node(pl.observer),
+                                current_loop: node(pl.current_loop),
+                                speed_loop: node(pl.speed_loop),
+                            },
+                            &exe,
+                            &work,
+                        )?
+                    }
+                    "iceoryx2" => {
+                        let sc = scenario_at(&base, hz, slice, placement(p)?)?;
+                        let bus = format!("b{}r{}j{i}", std::process::id(), round);
+                        run_iceoryx2(&sc, &dir("iceoryx2"), &bus)?
+                    }
+                    _ => {
+                        // The same chain with the plant sleeping to spin_us before each
+                        // deadline and spinning the rest (DESIGN.md: sleep-then-short-spin).
+                        let mut sc = scenario_at(&base, hz, slice, placement(p)?)?;
+                        sc.timing.plant_spin_us = spin_us(a.spin_us, hz);
+                        sc.validate().map_err(|e| anyhow!("--spin-us: {e}"))?;
+                        let bus = format!("b{}r{}j{i}s", std::process::id(), round);
+                        run_iceoryx2(&sc, &dir("iceoryx2-spin"), &bus)?
+                    }
+                };
+                match &mut acc[i] {
+                    Some(total) => total.merge(&m)?,
+                    slot => *slot = Some(m),
+                }
+                bar.inc(1);
+            }
+        }
+        for ((name, p), m) in jobs.iter().zip(acc) {
+            let m = m.ok_or_else(|| anyhow!("{name} {p}: no measurement"))?;
+            let file_tag = if *name == "floor" || *name == "inprocess" {
+                tag(name, "core1")
+            } else {
+                tag(name, p)
+            };
+            let h = out.join(format!("{file_tag}.hgrm"));
             std::fs::write(&h, m.cycle.hgrm())?;
             measured.push((
-                row(name, "-", hz, &m, &h),
+                row(name, p, hz, &m, &h),
                 Measured {
                     result: m,
-                    curve_label: format!("{name}"),
+                    curve_label: if p == "-" {
+                        name.to_string()
+                    } else {
+                        format!("{name} {p}")
+                    },
                 },
             ));
-        }
-        for p in &placements {
-            let pl = placement(p)?;
-            let sc = scenario_at(&base, hz, seconds, pl)?;
-            let spec = ChainSpec {
-                scenario: sc.clone(),
-                seconds,
-                plant: node(pl.plant),
-                observer: node(pl.observer),
-                current_loop: node(pl.current_loop),
-                speed_loop: node(pl.speed_loop),
-            };
-            bar.set_message(format!("{} Hz unix sockets, {p}", hz));
-            let work = out.join(tag("uds", p));
-            std::fs::create_dir_all(&work)?;
-            let uds = drivelab_bench::run_uds_chain(&spec, &exe, &work)?;
-            bar.inc(1);
-            bar.set_message(format!("{} Hz iceoryx2, {p}", hz));
-            let bus = format!("b{}{}", std::process::id(), rows.len() + measured.len());
-            let iox = run_iceoryx2(&sc, &out.join(tag("iceoryx2", p)), &bus)?;
-            bar.inc(1);
-            let mut variants = vec![("uds", uds), ("iceoryx2", iox)];
-            if a.spin_us > 0.0 && p == "one-core" {
-                // The same chain with the plant sleeping to spin_us before each deadline and
-                // spinning the rest (DESIGN.md: sleep-then-short-spin).
-                let mut spin = sc.clone();
-                spin.timing.plant_spin_us = spin_us(a.spin_us, hz);
-                spin.validate().map_err(|e| anyhow!("--spin-us: {e}"))?;
-                bar.set_message(format!("{} Hz iceoryx2 + spin, {p}", hz));
-                let bus = format!("b{}{}s", std::process::id(), rows.len() + measured.len());
-                variants.push((
-                    "iceoryx2+spin",
-                    run_iceoryx2(&spin, &out.join(tag("iceoryx2-spin", p)), &bus)?,
-                ));
-            }
-            for (name, m) in variants {
-                let h = out.join(format!("{}.hgrm", tag(name, p)));
-                std::fs::write(&h, m.cycle.hgrm())?;
-                measured.push((
-                    row(name, p, hz, &m, &h),
-                    Measured {
-                        result: m,
-                        curve_label: format!("{name} {p}"),
-                    },
-                ));
-            }
         }
         // Verdicts and ratios against the floor and the Unix-socket chain of the same run.
         let floor_row = measured[0].0.clone();
@@ -393,13 +430,14 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     let doctor = drivelab::doctor::run_checks();
     let report = serde_json::json!({
         "seconds_per_variant": seconds,
+        "rounds": rounds,
         "quick": a.quick,
         "machine": { "cpus": drivelab::rt::online_cpus(), "doctor": doctor },
         "rows": rows,
         "speed": speed,
     });
     std::fs::write(out.join("bench.json"), serde_json::to_vec_pretty(&report)?)?;
-    let md = markdown(&rows, &speed, seconds, a.spin_us);
+    let md = markdown(&rows, &speed, seconds, rounds, a.spin_us);
     std::fs::write(out.join("bench.md"), &md)?;
     for (hz, curves) in &curves_by_rate {
         let ts_us = 1e6 / hz;
@@ -435,9 +473,15 @@ pub fn spin_us(requested_us: f64, hz: f64) -> f64 {
 }
 
 /// The Markdown table of the report.
-pub fn markdown(rows: &[Row], speed: &serde_json::Value, seconds: f64, spin_arg: f64) -> String {
+pub fn markdown(
+    rows: &[Row],
+    speed: &serde_json::Value,
+    seconds: f64,
+    rounds: usize,
+    spin_arg: f64,
+) -> String {
     let mut s = String::new();
-    let _ = writeln!(s, "Cycle latency from t_k to command k available at the plant, µs ({seconds} s per variant; floor = bare timer wake-up lateness).\n");
+    let _ = writeln!(s, "Cycle latency from t_k to command k available at the plant, µs ({seconds} s per variant in {rounds} interleaved round(s); floor = bare timer wake-up lateness).\n");
     let _ = writeln!(s, "| rate | variant | placement | p50 | p99 | p99.9 | max | misses/M | longest run | p99 − floor | p99 / floor | p99 / uds | budget |");
     let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for r in rows {

@@ -91,6 +91,15 @@ impl CompactHist {
         self.counts[b] = self.counts[b].saturating_add(1);
     }
 
+    /// Adds `other`'s values to these.
+    pub fn add(&mut self, other: &CompactHist) {
+        self.count += other.count;
+        self.max_ns = self.max_ns.max(other.max_ns);
+        for (a, b) in self.counts.iter_mut().zip(other.counts.iter()) {
+            *a = a.saturating_add(*b);
+        }
+    }
+
     /// Upper bound of quantile `q` (0..1), ns: the upper edge of the bucket holding it,
     /// never above the maximum. 0 when empty.
     pub fn quantile_ns(&self, q: f64) -> u64 {

@@ -73,6 +73,16 @@ impl LatencyHist {
         self.h.value_at_quantile(q)
     }
 
+    /// Adds `other`'s values to these (e.g. the rounds of a bench variant).
+    pub fn add(&mut self, other: &LatencyHist) -> anyhow::Result<()> {
+        self.h
+            .add(&other.h)
+            .map_err(|e| anyhow::anyhow!("merge histogram {}: {e:?}", self.name))?;
+        self.clamped += other.clamped;
+        self.compact.add(&other.compact);
+        Ok(())
+    }
+
     /// The usual tail summary in µs.
     pub fn percentiles(&self) -> Percentiles {
         let us = |v: u64| v as f64 / 1e3;
@@ -336,5 +346,21 @@ mod slow_step_tests {
         );
         assert_eq!(mon.cycle.len(), 20);
         assert!(mon.cycle.percentiles().max >= 1.5 * ts as f64 / 1e3);
+    }
+
+    #[test]
+    fn histograms_add_up() {
+        let mut a = LatencyHist::new("a");
+        let mut b = LatencyHist::new("b");
+        for v in [1_000, 2_000, 3_000] {
+            a.record_ns(v);
+        }
+        b.record_ns(400_000);
+        a.add(&b).unwrap();
+        assert_eq!(a.len(), 4);
+        let max = a.percentiles().max;
+        assert!((399.0..=401.0).contains(&max), "max {max} µs"); // 3 significant digits
+        assert_eq!(a.compact.count, 4);
+        assert_eq!(a.compact.max_ns, 400_000);
     }
 }
