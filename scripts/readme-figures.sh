@@ -8,9 +8,10 @@ cargo build --release --workspace --bins
 mkdir -p docs/img
 ./target/release/drivelab run --out runs/readme-default
 for f in speed currents voltages latency; do cp "runs/readme-default/$f.png" "docs/img/$f.png"; done
-./target/release/drivelab bench --rates 10000 --seconds 10 --out runs/readme-bench
+./target/release/drivelab bench --rates 10000,20000 --placements one-core --seconds 20 --rounds 10 --out runs/readme-bench
 cp runs/readme-bench/percentiles-10000hz.png docs/img/bench-10khz.png
-cp runs/readme-bench/bench.md docs/bench-10khz.md
+cp runs/readme-bench/percentiles-20000hz.png docs/img/bench-20khz.png
+cp runs/readme-bench/bench.md docs/bench-interleaved.md
 ./target/release/drivelab run --scenario kyslan-pi --duration 1 --fault kill:current-loop@0.3 --out runs/readme-fault
 cp runs/readme-fault/speed.png docs/img/fault-speed.png
 cp runs/readme-fault/currents.png docs/img/fault-currents.png
