@@ -4,12 +4,12 @@
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-#[test]
-fn bench_quick_runs_end_to_end_and_writes_its_report() {
-    let out = std::env::temp_dir().join(format!("drivelab-bench-test-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+/// Runs `drivelab bench ARGS --out OUT` with a watchdog against hangs.
+fn bench(args: &[&str], out: &std::path::Path) -> std::process::Output {
     let mut child = Command::new(env!("CARGO_BIN_EXE_drivelab"))
-        .args(["bench", "--quick", "--json", "--out", out.to_str().unwrap()])
+        .arg("bench")
+        .args(args)
+        .args(["--out", out.to_str().unwrap()])
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()
@@ -18,12 +18,20 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     while child.try_wait().unwrap().is_none() {
         assert!(
             t.elapsed() < Duration::from_secs(300),
-            "watchdog: bench --quick hangs"
+            "watchdog: bench {args:?} hangs"
         );
         std::thread::sleep(Duration::from_millis(50));
     }
     let o = child.wait_with_output().unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    o
+}
+
+#[test]
+fn bench_quick_runs_end_to_end_and_writes_its_report() {
+    let out = std::env::temp_dir().join(format!("drivelab-bench-test-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let o = bench(&["--quick", "--json"], &out);
     let report: serde_json::Value =
         serde_json::from_slice(&o.stdout).expect("bench --json prints JSON");
     let rows = report["rows"].as_array().unwrap();
@@ -82,31 +90,10 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
 fn bench_rounds_interleave_the_variants_and_merge_their_samples() {
     let out = std::env::temp_dir().join(format!("drivelab-bench-rounds-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
-    let mut child = Command::new(env!("CARGO_BIN_EXE_drivelab"))
-        .args([
-            "bench",
-            "--quick",
-            "--rounds",
-            "2",
-            "--spin-us",
-            "0",
-            "--json",
-        ])
-        .args(["--out", out.to_str().unwrap()])
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let t = Instant::now();
-    while child.try_wait().unwrap().is_none() {
-        assert!(
-            t.elapsed() < Duration::from_secs(300),
-            "watchdog: bench --rounds hangs"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    let o = child.wait_with_output().unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = bench(
+        &["--quick", "--rounds", "2", "--spin-us", "0", "--json"],
+        &out,
+    );
     let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(report["rounds"], 2);
     let rows = report["rows"].as_array().unwrap();
