@@ -36,6 +36,7 @@ fn help_texts() {
         "run",
         "bench",
         "fault",
+        "clean",
         "monitor",
         "plot",
         "plant",
@@ -53,7 +54,7 @@ fn help_texts() {
 #[test]
 fn every_help_has_an_example_and_units() {
     for cmd in [
-        "run", "bench", "fault", "monitor", "plot", "plant", "design", "compare", "doctor",
+        "run", "bench", "fault", "clean", "monitor", "plot", "plant", "design", "compare", "doctor",
     ] {
         let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
             .args([cmd, "--help"])

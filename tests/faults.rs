@@ -293,3 +293,62 @@ fn nan_and_reversed_indices_are_rejected_counted_and_never_used() {
     }
     assert_trace_continuity(&out, &s);
 }
+
+#[test]
+fn clean_removes_the_files_of_a_sigkilled_drive_and_refuses_a_live_one() {
+    let _serial = serial();
+    let dir = scratch("clean");
+    let bus = bus_id("clean");
+    let out = dir.join("run");
+    let mut child = Command::new(DRIVELAB)
+        .args(["run", "--bus", &bus, "--duration", "30", "--no-plots"])
+        .args(["--out", out.to_str().unwrap()])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let t = Instant::now();
+    while processes_on_bus(&bus).len() < 5 {
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "services did not start"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    // While the drive runs, clean refuses and names who uses the bus.
+    let o = drivelab(&["clean", "--bus", &bus]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains(&format!("bus {bus} is still in use by pid")),
+        "{err}"
+    );
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+    // SIGKILL the launcher first (nobody cleans up), then its services.
+    // SAFETY: SIGKILL to this test's own launcher.
+    unsafe { libc::kill(child.id() as i32, libc::SIGKILL) };
+    let _ = child.wait();
+    for line in processes_on_bus(&bus) {
+        let pid: i32 = line.split(' ').next().unwrap().parse().unwrap();
+        // SAFETY: SIGKILL to a process of this test's own drive.
+        unsafe { libc::kill(pid, libc::SIGKILL) };
+    }
+    let t = Instant::now();
+    while !processes_on_bus(&bus).is_empty() {
+        assert!(
+            t.elapsed() < Duration::from_secs(10),
+            "services still alive"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert!(
+        !drivelab::bus::leftovers(&bus).is_empty(),
+        "a SIGKILLed drive should have left its files"
+    );
+    let o = drivelab(&["clean", "--bus", &bus]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("removed"));
+    assert_clean(&bus);
+    let o = drivelab(&["clean", "--bus", &bus]);
+    assert!(String::from_utf8_lossy(&o.stdout).contains("nothing to remove"));
+}

@@ -170,6 +170,30 @@ pub fn signal(pid: u32, sig: libc::c_int) -> Result<()> {
     Ok(())
 }
 
+/// Every process whose command line has `--bus ID` (launcher, services, monitors), as
+/// (pid, program name); this process excluded.
+pub fn bus_users(bus: &str) -> Vec<(u32, String)> {
+    let me = std::process::id();
+    let mut v = Vec::new();
+    for e in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
+        let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else {
+            continue;
+        };
+        let Ok(cmd) = std::fs::read(e.path().join("cmdline")) else {
+            continue;
+        };
+        let args: Vec<String> = cmd
+            .split(|b| *b == 0)
+            .map(|s| String::from_utf8_lossy(s).into_owned())
+            .collect();
+        if pid != me && args.windows(2).any(|w| w[0] == "--bus" && w[1] == bus) {
+            let prog = args.iter().take(2).cloned().collect::<Vec<_>>().join(" ");
+            v.push((pid, prog));
+        }
+    }
+    v
+}
+
 /// Processes of a running drive: (service, pid), found by their `--bus ID` argument.
 pub fn find_services(bus: &str) -> Vec<(&'static str, u32)> {
     let mut v = Vec::new();

@@ -41,7 +41,7 @@ impl TraceTail {
 
     /// Adds a point if `p.k` is on the decimation grid.
     pub fn offer(&self, p: TracePoint) {
-        if p.k % self.decimation != 0 {
+        if !p.k.is_multiple_of(self.decimation) {
             return;
         }
         if let Ok(mut q) = self.points.lock() {

@@ -114,6 +114,17 @@ enum Cmd {
         #[arg(long, default_value = "140x40", value_name = "COLSxROWS")]
         print_size: String,
     },
+    /// Remove the shared-memory files of a bus whose drive is gone (e.g. after the
+    /// launcher itself was SIGKILLed). Refuses while any process still uses the bus.
+    ///
+    /// Example:
+    ///   drivelab clean --bus 4242
+    #[command(verbatim_doc_comment)]
+    Clean {
+        /// Bus id of the dead drive.
+        #[arg(long)]
+        bus: String,
+    },
     /// Run the plant model alone, open loop, from rest, on recorded voltages.
     ///
     /// IN.csv has columns t,u_d,u_q,t_load (s, V, V, N·m), each row held from its t on.
@@ -455,6 +466,28 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 stop_ms,
                 print: size,
             })?;
+            Ok(())
+        }
+        Cmd::Clean { bus } => {
+            drivelab::bus::check_bus_id(&bus)?;
+            let users = drivelab_services::faults::bus_users(&bus);
+            if let Some((pid, what)) = users.first() {
+                anyhow::bail!(
+                    "bus {bus} is still in use by pid {pid} ({what}){}; stop the drive first",
+                    if users.len() > 1 {
+                        format!(" and {} more", users.len() - 1)
+                    } else {
+                        String::new()
+                    }
+                );
+            }
+            let files = drivelab::bus::leftovers(&bus);
+            drivelab::bus::cleanup(&bus)?;
+            if files.is_empty() {
+                println!("bus {bus}: nothing to remove");
+            } else {
+                println!("bus {bus}: removed {} files and folders", files.len());
+            }
             Ok(())
         }
         Cmd::Fault {

@@ -382,15 +382,28 @@ impl DriveTopics {
     }
 }
 
+/// True when /dev/shm file `name` belongs to bus `id`: the bus prefix followed by the futex
+/// segment (`wake`) or an iceoryx2 name (40 hex digits, then `_` or `.`). Bus ids may contain
+/// `_`, so the prefix alone would also match bus `<id>_x`.
+pub fn owned_by(name: &str, id: &str) -> bool {
+    let Some(rest) = name.strip_prefix(&shm_prefix(id)) else {
+        return false;
+    };
+    if rest == "wake" {
+        return true;
+    }
+    let b = rest.as_bytes();
+    b.len() > 40 && b[..40].iter().all(|c| c.is_ascii_hexdigit()) && matches!(b[40], b'_' | b'.')
+}
+
 /// Removes every file of bus `id` (shared memory and the root folder). Returns how many
 /// shared-memory files were removed. Call only when no process of the bus runs.
 pub fn cleanup(id: &str) -> Result<usize> {
     check_bus_id(id)?;
-    let prefix = shm_prefix(id);
     let mut n = 0;
     if let Ok(rd) = std::fs::read_dir("/dev/shm") {
         for e in rd.flatten() {
-            if e.file_name().to_string_lossy().starts_with(&prefix) {
+            if owned_by(&e.file_name().to_string_lossy(), id) {
                 std::fs::remove_file(e.path())
                     .with_context(|| format!("remove {}", e.path().display()))?;
                 n += 1;
@@ -406,13 +419,12 @@ pub fn cleanup(id: &str) -> Result<usize> {
 
 /// Files of bus `id` that still exist (for tests and the final check of a run).
 pub fn leftovers(id: &str) -> Vec<String> {
-    let prefix = shm_prefix(id);
     let mut v: Vec<String> = std::fs::read_dir("/dev/shm")
         .into_iter()
         .flatten()
         .flatten()
         .map(|e| e.file_name().to_string_lossy().into_owned())
-        .filter(|n| n.starts_with(&prefix))
+        .filter(|n| owned_by(n, id))
         .map(|n| format!("/dev/shm/{n}"))
         .collect();
     if std::path::Path::new(&root_path(id)).exists() {
@@ -441,4 +453,25 @@ pub fn reap_dead_nodes(id: &str) -> Result<Vec<String>> {
     })
     .map_err(|e| anyhow!("cannot list the nodes of bus {id}: {e:?}"))?;
     Ok(dead)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bus_files_are_told_apart_by_id() {
+        let hash = "b9fc73e5c1f646968758453273c6c65cb372831b";
+        assert!(owned_by("iox2_dlab_wake", "ab"));
+        assert!(owned_by(
+            &format!("iox2_dlab_{hash}_7922874017454358376"),
+            "ab"
+        ));
+        assert!(owned_by(&format!("iox2_dlab_{hash}.data"), "ab"));
+        // Bus "ab_c" shares the prefix "iox2_dlab_" but not the names.
+        assert!(!owned_by("iox2_dlab_c_wake", "ab"));
+        assert!(!owned_by(&format!("iox2_dlab_c_{hash}_1"), "ab"));
+        assert!(owned_by(&format!("iox2_dlab_c_{hash}_1"), "ab_c"));
+        assert!(!owned_by("something_else", "ab"));
+    }
 }
