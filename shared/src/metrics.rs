@@ -111,7 +111,13 @@ pub fn speed_metrics(sc: &Scenario, rows: &[TraceRow]) -> SpeedMetrics {
     }
     if let Some(tl) = loads.iter().find(|s| s.value != 0.0) {
         let t0 = tl.t_s;
-        let after: Vec<&TraceRow> = rows.iter().filter(|r| r.t >= t0).collect();
+        // The load response ends at the next event (a speed step or another load change):
+        // what follows is the response to that event, not to this load step.
+        let t_end = [first_step_time(refs, t0), first_step_time(loads, t0)]
+            .into_iter()
+            .flatten()
+            .fold(f64::INFINITY, f64::min);
+        let after: Vec<&TraceRow> = rows.iter().filter(|r| r.t >= t0 && r.t < t_end).collect();
         let dip = after
             .iter()
             .map(|r| profile_at(refs, r.t) - r.omega_m)
@@ -306,4 +312,38 @@ torque_nm = [{ t_s = 0.05, value = 0.1 }]
         let rows = [TraceRow::default()];
         assert_eq!(speed_metrics(&s, &rows).id_tracking_error_a, None);
     }
+
+    #[test]
+    fn load_metrics_end_at_the_next_speed_step() {
+        // Load at 50 ms (dip 5 rad/s for 10 ms), then a speed step 100 → 200 at 80 ms that the
+        // motor follows slowly: that error is the step's, not the load's.
+        let mut sc = sc();
+        sc.reference.speed_rad_s.push(crate::config::Step {
+            t_s: 0.08,
+            value: 200.0,
+        });
+        let rows: Vec<TraceRow> = (0..1000)
+            .map(|k| {
+                let t = k as f64 * 1e-4;
+                let w = if (0.05..0.06).contains(&t) {
+                    95.0
+                } else if t >= 0.08 {
+                    100.0 + 1000.0 * (t - 0.08)
+                } else {
+                    100.0
+                };
+                TraceRow {
+                    k,
+                    t,
+                    omega_m: w,
+                    ..Default::default()
+                }
+            })
+            .collect();
+        let m = speed_metrics(&sc, &rows);
+        assert!((m.load_dip_rad_s.unwrap() - 5.0).abs() < 1e-9, "{m:?}");
+        let rec = m.load_recovery_ms.unwrap();
+        assert!((rec - 10.0).abs() < 0.11, "recovery {rec} ms");
+    }
+
 }
