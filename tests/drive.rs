@@ -262,30 +262,8 @@ fn sigterm_stops_the_whole_drive_and_cleans_up() {
     let dir = scratch("sigterm");
     let bus = bus_id("sigterm");
     let out = dir.join("run");
-    let mut child = Command::new(DRIVELAB)
-        .args([
-            "run",
-            "--bus",
-            &bus,
-            "--duration",
-            "30",
-            "--out",
-            out.to_str().unwrap(),
-            "--no-plots",
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    // Wait until the four services are up.
-    let t = Instant::now();
-    while processes_on_bus(&bus).len() < 4 {
-        assert!(
-            t.elapsed() < Duration::from_secs(60),
-            "services did not start"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    let mut child = start_drive(&bus, &out, &["--duration", "30"]);
+    wait_for_services(&bus);
     std::thread::sleep(Duration::from_millis(300));
     // SAFETY: signalling a child process we spawned.
     unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };

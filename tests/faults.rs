@@ -2,7 +2,6 @@
 //! id and run folder and checks that nothing is left behind. Times are watchdogs only.
 
 use std::path::PathBuf;
-use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 mod common;
@@ -147,31 +146,8 @@ fn killing_every_child_stops_the_drive_and_cleans_up() {
     let dir = scratch("killall");
     let bus = bus_id("killall");
     let out = dir.join("run");
-    let child = Command::new(DRIVELAB)
-        .args([
-            "run",
-            "--bus",
-            &bus,
-            "--duration",
-            "30",
-            "--restart",
-            "never",
-            "--out",
-            out.to_str().unwrap(),
-            "--no-plots",
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let t = Instant::now();
-    while processes_on_bus(&bus).len() < 5 {
-        assert!(
-            t.elapsed() < Duration::from_secs(60),
-            "services did not start"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    let child = start_drive(&bus, &out, &["--duration", "30", "--restart", "never"]);
+    wait_for_services(&bus);
     std::thread::sleep(Duration::from_millis(200));
     let services: Vec<String> = processes_on_bus(&bus)
         .into_iter()
@@ -239,29 +215,8 @@ fn nan_and_reversed_indices_are_rejected_counted_and_never_used() {
     let dir = scratch("badin");
     let bus = bus_id("badin");
     let out = dir.join("run");
-    let child = Command::new(DRIVELAB)
-        .args([
-            "run",
-            "--bus",
-            &bus,
-            "--duration",
-            "1.5",
-            "--out",
-            out.to_str().unwrap(),
-            "--no-plots",
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let t = Instant::now();
-    while processes_on_bus(&bus).len() < 5 {
-        assert!(
-            t.elapsed() < Duration::from_secs(60),
-            "services did not start"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    let child = start_drive(&bus, &out, &["--duration", "1.5"]);
+    wait_for_services(&bus);
     std::thread::sleep(Duration::from_millis(300));
     for kind in ["nan", "backwards"] {
         let o = drivelab(&["bus-inject", "--bus", &bus, "--kind", kind, "--count", "10"]);
@@ -300,21 +255,8 @@ fn clean_removes_the_files_of_a_sigkilled_drive_and_refuses_a_live_one() {
     let dir = scratch("clean");
     let bus = bus_id("clean");
     let out = dir.join("run");
-    let mut child = Command::new(DRIVELAB)
-        .args(["run", "--bus", &bus, "--duration", "30", "--no-plots"])
-        .args(["--out", out.to_str().unwrap()])
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let t = Instant::now();
-    while processes_on_bus(&bus).len() < 5 {
-        assert!(
-            t.elapsed() < Duration::from_secs(60),
-            "services did not start"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    let mut child = start_drive(&bus, &out, &["--duration", "30"]);
+    wait_for_services(&bus);
     // While the drive runs, clean refuses and names who uses the bus.
     let o = drivelab(&["clean", "--bus", &bus]);
     assert_eq!(o.status.code(), Some(1));

@@ -3,8 +3,7 @@
 //! terminal as it found it. Each test has its own bus and tmux server and checks that nothing
 //! is left behind. Times are watchdogs only.
 
-use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 mod common;
@@ -92,23 +91,6 @@ impl Drop for Tmux {
             .stderr(Stdio::null())
             .status();
     }
-}
-
-fn start_drive(bus: &str, out: &Path, extra: &[&str]) -> Child {
-    Command::new(DRIVELAB)
-        .args([
-            "run",
-            "--bus",
-            bus,
-            "--out",
-            out.to_str().unwrap(),
-            "--no-plots",
-        ])
-        .args(extra)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("start drivelab run")
 }
 
 /// Waits until `drivelab monitor --print` can attach (the supervisor publishes its view).

@@ -238,8 +238,17 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     if !(1..=100).contains(&rounds) {
         return Err(anyhow!("--rounds must be in 1..=100, got {rounds}"));
     }
-    let spin_jobs = usize::from(a.spin_us > 0.0 && placements.iter().any(|p| p == "one-core"));
-    let total = rates.len() * (2 + 2 * placements.len() + spin_jobs) * rounds + 2;
+    // The variants of every rate, each measured in `rounds` interleaved slices so that the
+    // machine's slow changes (a VM's noisy minutes) reach all of them alike.
+    let mut jobs: Vec<(&str, String)> = vec![("floor", "-".into()), ("inprocess", "-".into())];
+    for p in &placements {
+        jobs.push(("uds", p.clone()));
+        jobs.push(("iceoryx2", p.clone()));
+        if a.spin_us > 0.0 && p == "one-core" {
+            jobs.push(("iceoryx2+spin", p.clone()));
+        }
+    }
+    let total = rates.len() * jobs.len() * rounds + 2;
     let bar = indicatif::ProgressBar::new(total as u64);
     bar.set_style(
         indicatif::ProgressStyle::with_template(
@@ -253,16 +262,6 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         let mut measured: Vec<(Row, Measured)> = Vec::new();
         let one = placement("one-core")?;
         let tag = |v: &str, p: &str| format!("{v}-{p}-{}hz", hz as u64);
-        // Every variant of this rate, measured in `rounds` interleaved slices so that the
-        // machine's slow changes (a VM's noisy minutes) reach all of them alike.
-        let mut jobs: Vec<(&str, String)> = vec![("floor", "-".into()), ("inprocess", "-".into())];
-        for p in &placements {
-            jobs.push(("uds", p.clone()));
-            jobs.push(("iceoryx2", p.clone()));
-            if a.spin_us > 0.0 && p == "one-core" {
-                jobs.push(("iceoryx2+spin", p.clone()));
-            }
-        }
         let slice = seconds / rounds as f64;
         let mut acc: Vec<Option<VariantResult>> = jobs.iter().map(|_| None).collect();
         for round in 0..rounds {

@@ -113,7 +113,7 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     // Ramp of i_q* to zero when the speed loop is lost: the full current limit in 20 ms.
     let iq_ramp_per_sample = sc.i_q_max() * ts / 0.02;
     let mut last_input = Instant::now();
-    let mut h = ServiceHists::new(false, (1e9 / sc.rates.sample_hz).round() as u64);
+    let mut h = ServiceHists::new(false, sc.rates.ts_ns());
     let mut rejoining = args.rejoin;
     // Real time, in fallback: wake every half sample.
     let fallback_poll = Duration::from_secs_f64(0.5 * ts);

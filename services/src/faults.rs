@@ -170,9 +170,8 @@ pub fn signal(pid: u32, sig: libc::c_int) -> Result<()> {
     Ok(())
 }
 
-/// Every process whose command line has `--bus ID` (launcher, services, monitors), as
-/// (pid, program name); this process excluded.
-pub fn bus_users(bus: &str) -> Vec<(u32, String)> {
+/// Processes (other than this one) whose command line has `--bus ID`, as (pid, argv).
+fn processes_with_bus(bus: &str) -> Vec<(u32, Vec<String>)> {
     let me = std::process::id();
     let mut v = Vec::new();
     for e in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
@@ -187,39 +186,34 @@ pub fn bus_users(bus: &str) -> Vec<(u32, String)> {
             .map(|s| String::from_utf8_lossy(s).into_owned())
             .collect();
         if pid != me && args.windows(2).any(|w| w[0] == "--bus" && w[1] == bus) {
-            let prog = args.iter().take(2).cloned().collect::<Vec<_>>().join(" ");
-            v.push((pid, prog));
+            v.push((pid, args));
         }
     }
     v
 }
 
+/// Every process using bus `bus` (launcher, services, monitors), as (pid, program and first
+/// argument); this process excluded.
+pub fn bus_users(bus: &str) -> Vec<(u32, String)> {
+    processes_with_bus(bus)
+        .into_iter()
+        .map(|(pid, args)| (pid, args[..args.len().min(2)].join(" ")))
+        .collect()
+}
+
 /// Processes of a running drive: (service, pid), found by their `--bus ID` argument.
 pub fn find_services(bus: &str) -> Vec<(&'static str, u32)> {
-    let mut v = Vec::new();
-    for e in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
-        let Ok(pid) = e.file_name().to_string_lossy().parse::<u32>() else {
-            continue;
-        };
-        let Ok(cmd) = std::fs::read(e.path().join("cmdline")) else {
-            continue;
-        };
-        let args: Vec<String> = cmd
-            .split(|b| *b == 0)
-            .map(|s| String::from_utf8_lossy(s).into_owned())
-            .collect();
-        if !args.windows(2).any(|w| w[0] == "--bus" && w[1] == bus) {
-            continue;
-        }
-        let exe = args
-            .first()
-            .map(|a| a.rsplit('/').next().unwrap_or(a).to_string())
-            .unwrap_or_default();
-        if let Some(s) = SERVICES.iter().copied().find(|s| *s == exe) {
-            v.push((s, pid));
-        }
-    }
-    v
+    processes_with_bus(bus)
+        .into_iter()
+        .filter_map(|(pid, args)| {
+            let exe = args.first()?.rsplit('/').next()?.to_string();
+            SERVICES
+                .iter()
+                .copied()
+                .find(|s| *s == exe)
+                .map(|s| (s, pid))
+        })
+        .collect()
 }
 
 #[cfg(test)]

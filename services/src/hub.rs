@@ -6,7 +6,7 @@
 //! The status subscriber exists before the services start, so their publishers connect
 //! outside their loops; monitors connect only to this hub's publishers.
 
-use anyhow::{anyhow, Result};
+use anyhow::{anyhow, bail, Result};
 use drivelab::config::{Scenario, SERVICES};
 use drivelab::messages::FLAG_END;
 use drivelab::telemetry::*;
@@ -199,23 +199,28 @@ impl Hub {
     }
 }
 
-/// A monitor's fault request as (service name, signal description), validated.
-pub fn describe(r: &FaultRequest) -> Result<(&'static str, u32, Option<Duration>)> {
-    let name = SERVICES
+/// A monitor's fault request as a fault due at `at_s` (simulated time), validated.
+pub fn to_fault(r: &FaultRequest, at_s: f64) -> Result<crate::faults::Fault> {
+    use crate::faults::{Fault, FaultKind};
+    let service = SERVICES
         .get(r.service as usize)
         .copied()
         .ok_or_else(|| anyhow!("fault request for unknown service #{}", r.service))?;
-    match r.kind {
-        FAULT_KILL => Ok((name, FAULT_KILL, None)),
-        FAULT_STOP if (1..=60_000).contains(&r.stop_ms) => Ok((
-            name,
-            FAULT_STOP,
-            Some(Duration::from_millis(u64::from(r.stop_ms))),
-        )),
-        FAULT_STOP => Err(anyhow!(
+    let (kind, duration_s) = match r.kind {
+        FAULT_KILL => (FaultKind::Kill, 0.0),
+        FAULT_STOP if (1..=60_000).contains(&r.stop_ms) => {
+            (FaultKind::Stop, f64::from(r.stop_ms) / 1000.0)
+        }
+        FAULT_STOP => bail!(
             "stop fault of {} ms is out of range (1..60000 ms)",
             r.stop_ms
-        )),
-        k => Err(anyhow!("unknown fault kind {k}")),
-    }
+        ),
+        k => bail!("unknown fault kind {k}"),
+    };
+    Ok(Fault {
+        kind,
+        service,
+        at_s,
+        duration_s,
+    })
 }

@@ -859,14 +859,34 @@ fn supervise(
         let now = Instant::now();
         let k_now = progress.next_k.load(Ordering::Relaxed);
         bar.set_position(k_now);
-        // Faults due at this point of the run (in samples, so lockstep and realtime agree).
+        // Faults due at this point of the run (in samples, so lockstep and realtime agree),
+        // then those a monitor asked for, each with a note on where it came from.
+        let mut due: Vec<(crate::faults::Fault, String)> = Vec::new();
         while next_fault < plan.len() && k_now as f64 >= plan[next_fault].at_s * fs {
-            let f = &plan[next_fault];
+            due.push((plan[next_fault].clone(), String::new()));
             next_fault += 1;
+        }
+        for r in hub.poll(events, k_now, &progress.tail)? {
+            match crate::hub::to_fault(&r, k_now as f64 / fs) {
+                Ok(f) => due.push((f, format!(" (from monitor pid {})", r.pid))),
+                Err(e) => ev(events, "inject-refused", "-", format!("{e:#}")),
+            }
+        }
+        for (f, origin) in due {
             let Some(i) = children.iter().position(|c| c.name == f.service) else {
                 continue;
             };
-            if dead[i] || done[i] {
+            if clock != BusClock::Realtime {
+                // Only a monitor's request can get here: a plan is refused before the start.
+                ev(
+                    events,
+                    "inject-refused",
+                    f.service,
+                    "faults need --clock realtime".into(),
+                );
+                continue;
+            }
+            if dead[i] || done[i] || pending_cont.iter().any(|&(_, j)| j == i) {
                 ev(
                     events,
                     "inject-skipped",
@@ -885,7 +905,7 @@ fn supervise(
                 "inject",
                 f.service,
                 format!(
-                    "{}{}",
+                    "{}{}{origin}",
                     crate::faults::kind_name(f.kind),
                     if f.kind == FaultKind::Stop {
                         format!(" for {} s", f.duration_s)
@@ -896,51 +916,6 @@ fn supervise(
             );
             if f.kind == FaultKind::Stop {
                 pending_cont.push((now + Duration::from_secs_f64(f.duration_s), i));
-            }
-        }
-        // Faults asked for by a monitor, injected now.
-        for r in hub.poll(events, k_now, &progress.tail)? {
-            let (name, kind, stop) = match crate::hub::describe(&r) {
-                Ok(v) => v,
-                Err(e) => {
-                    ev(events, "inject-refused", "-", format!("{e:#}"));
-                    continue;
-                }
-            };
-            let Some(i) = children.iter().position(|c| c.name == name) else {
-                continue;
-            };
-            if clock != BusClock::Realtime {
-                ev(
-                    events,
-                    "inject-refused",
-                    name,
-                    "faults need --clock realtime".into(),
-                );
-            } else if dead[i] || done[i] || pending_cont.iter().any(|&(_, j)| j == i) {
-                ev(events, "inject-skipped", name, "service not running".into());
-            } else if let Some(d) = stop {
-                signal(children[i].child.id(), libc::SIGSTOP)?;
-                ev(
-                    events,
-                    "inject",
-                    name,
-                    format!(
-                        "stop for {} s (from monitor pid {})",
-                        d.as_secs_f64(),
-                        r.pid
-                    ),
-                );
-                pending_cont.push((now + d, i));
-            } else {
-                let _ = kind;
-                signal(children[i].child.id(), libc::SIGKILL)?;
-                ev(
-                    events,
-                    "inject",
-                    name,
-                    format!("kill (from monitor pid {})", r.pid),
-                );
             }
         }
         pending_cont.retain(|&(t, i)| {

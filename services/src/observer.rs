@@ -23,7 +23,7 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     est_tx.connect()?;
     let mut obs = ObserverStep::new(&sc);
     let mut c = Counters::default();
-    let mut h = ServiceHists::new(false, (1e9 / sc.rates.sample_hz).round() as u64);
+    let mut h = ServiceHists::new(false, sc.rates.ts_ns());
     let mut last_k: Option<u64> = None;
     let mut last_input = Instant::now();
     let ts = sc.rates.ts();

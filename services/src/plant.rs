@@ -103,7 +103,7 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     let mut plant = Plant::new(&sc);
     let mut c = Counters::default();
     let n = sc.samples();
-    let ts_ns = (1e9 / sc.rates.sample_hz).round() as u64;
+    let ts_ns = sc.rates.ts_ns();
     let mut h = ServiceHists::new(true, ts_ns);
     let mut mon = CycleMonitor::new(ts_ns);
     let spin_ns = (sc.timing.plant_spin_us * 1e3).round() as u64;

@@ -229,6 +229,11 @@ impl Rates {
     pub fn ts(&self) -> f64 {
         1.0 / self.sample_hz
     }
+
+    /// Sample time T_s, ns (rounded).
+    pub fn ts_ns(&self) -> u64 {
+        (1e9 / self.sample_hz).round() as u64
+    }
 }
 
 /// Sensor models (ideal by default).

@@ -345,5 +345,4 @@ torque_nm = [{ t_s = 0.05, value = 0.1 }]
         let rec = m.load_recovery_ms.unwrap();
         assert!((rec - 10.0).abs() < 0.11, "recovery {rec} ms");
     }
-
 }

@@ -72,6 +72,36 @@ pub fn wait(mut child: std::process::Child, watchdog: Duration, what: &str) -> O
     child.wait_with_output().unwrap()
 }
 
+/// Starts `drivelab run --bus BUS --out OUT --no-plots EXTRA` (stdout and stderr piped).
+pub fn start_drive(bus: &str, out: &Path, extra: &[&str]) -> std::process::Child {
+    Command::new(DRIVELAB)
+        .args([
+            "run",
+            "--bus",
+            bus,
+            "--out",
+            out.to_str().unwrap(),
+            "--no-plots",
+        ])
+        .args(extra)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start drivelab run")
+}
+
+/// Waits until the launcher and its four services are running on `bus` (watchdog 60 s).
+pub fn wait_for_services(bus: &str) {
+    let t = Instant::now();
+    while processes_on_bus(bus).len() < 5 {
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "services did not start"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
 /// Processes whose command line names this bus, as "PID ARGS".
 pub fn processes_on_bus(bus: &str) -> Vec<String> {
     let mut v = Vec::new();
