@@ -475,12 +475,18 @@ impl SpeedLoopStep {
 
     /// Estimate k → current reference k when k mod N = 0, else None.
     pub fn step(&mut self, est: &Estimate) -> Option<CurrentRef> {
+        self.step_with(est, None)
+    }
+
+    /// As [`SpeedLoopStep::step`], with the speed reference `omega_ref` (rad/s) of an outer
+    /// loop instead of the scenario's profile when given.
+    pub fn step_with(&mut self, est: &Estimate, omega_ref: Option<f64>) -> Option<CurrentRef> {
         let k = est.hdr.k;
         if !self.runs_at(k) {
             return None;
         }
         let t = k as f64 * self.ts;
-        let omega_ref = profile_at(&self.speed_ref, t);
+        let omega_ref = omega_ref.unwrap_or_else(|| profile_at(&self.speed_ref, t));
         let i_d_ref = profile_at(&self.i_d_ref, t);
         let i_q_ref = match &mut self.law {
             SpeedLaw::Pi(c) => c.step(omega_ref, est.omega_m),

@@ -119,6 +119,20 @@ pub struct VoltageCommand {
     pub theta_hat: f64,
 }
 
+/// Outer loop → speed loop: the speed reference computed at sample k (used from k+1 on), e.g.
+/// by a position loop. When a topology has a producer of it, the speed loop follows it instead
+/// of the scenario's speed profile.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+pub struct SpeedRef {
+    /// Header.
+    pub hdr: Header,
+    /// Speed reference, mechanical rad/s.
+    pub omega_ref: f64,
+    /// Position reference the outer loop tracked, mechanical rad (unwrapped; 0 if none).
+    pub theta_m_ref: f64,
+}
+
 /// Every payload must be finite; a NaN or infinity from a peer is rejected, never used.
 pub trait Finite {
     /// True when every floating-point field is finite.
@@ -153,6 +167,12 @@ impl Finite for Estimate {
 impl Finite for CurrentRef {
     fn is_finite(&self) -> bool {
         all_finite(&[self.omega_ref, self.i_d_ref, self.i_q_ref])
+    }
+}
+
+impl Finite for SpeedRef {
+    fn is_finite(&self) -> bool {
+        all_finite(&[self.omega_ref, self.theta_m_ref])
     }
 }
 

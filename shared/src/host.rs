@@ -1,0 +1,1017 @@
+//! The generic stage host: runs the stages of one process in chain order over a
+//! [`Transport`] (the iceoryx2 bus, or nothing at all in process), in real time or lockstep.
+//!
+//! What the host does for every stage, so that stages stay pure (docs/architecture.md,
+//! "Stages and topologies"):
+//! - pacing: the source stage (no trigger) runs on the clock: absolute deadlines in real
+//!   time, "as soon as its delayed inputs are there" in lockstep;
+//! - inputs: every message is checked (finite, index advancing) and kept per topic by index,
+//!   so that a stage gets the value its sample expects (same sample, or the newest one of the
+//!   producer's rate before k for a delayed input) and sees whether it is fresh;
+//! - freshness: in real time a stale input is marked and the stage's own fallback applies;
+//!   a trigger that stops coming is replaced by the clock (the source's samples) once it is
+//!   `max_age` samples old; lockstep always waits (with a watchdog);
+//! - catch-up: a stage that fell behind in real time skips to the newest trigger (a stage
+//!   that needs every sample steps the older ones without publishing them);
+//! - warm-up and end markers travel through every stage's outputs without a step;
+//! - rejoin: after a restart each stage takes over from the newest inputs;
+//! - counters and histograms per stage, preallocated.
+//!
+//! The loops make no allocation, take no lock, do no logging.
+
+use crate::messages::{Header, FLAG_END, FLAG_STALE_INPUT, FLAG_WARMUP};
+use crate::rt::{now_ns, sleep_until_ns};
+use crate::stage::*;
+use crate::timing::{CycleMonitor, LatencyHist, MissCounter};
+use anyhow::{anyhow, bail, Result};
+use serde::Serialize;
+use std::time::{Duration, Instant};
+
+/// Poll period of waits that must also notice a stop request.
+pub const WAIT_SLICE: Duration = Duration::from_millis(50);
+
+/// In lockstep, how long a stage waits for an input before it gives up (the producing
+/// process is considered gone).
+pub const LOCKSTEP_WATCHDOG: Duration = Duration::from_secs(10);
+
+/// Warm-up messages the source sends through the chain before sample 0.
+pub const WARMUP_MESSAGES: u64 = 50;
+
+/// Messages kept per topic, by index (a delayed input looks back at most one producer
+/// period; catch-up looks at most this far).
+const RING: usize = 64;
+
+/// How a host moves messages between processes. In process, nothing crosses: the
+/// transport only receives the outputs (for a recorder).
+pub trait Transport {
+    /// Publishes `msg` (and wakes whoever waits on its topic).
+    fn send(&mut self, msg: &Msg) -> Result<()>;
+    /// The next message of `topic` from another process, if any.
+    fn try_recv(&mut self, topic: TopicId) -> Result<Option<Msg>>;
+    /// True when a message of `topic` is waiting.
+    fn pending(&mut self, topic: TopicId) -> Result<bool>;
+    /// Blocks until a message of `topic` may be there, or `timeout`.
+    fn wait(&mut self, topic: TopicId, timeout: Duration) -> Result<()>;
+    /// Wakes the receivers of `topic` without a message (they check their inputs' age).
+    fn poke(&mut self, _topic: TopicId) -> Result<()> {
+        Ok(())
+    }
+    /// The recorder's progress (every sample below it is stored), for lockstep flow
+    /// control; None when there is no recorder.
+    fn recorder_progress(&mut self) -> Result<Option<u64>> {
+        Ok(None)
+    }
+    /// Blocks until the recorder may have progressed, or `timeout`.
+    fn wait_recorder(&mut self, _timeout: Duration) -> Result<()> {
+        Ok(())
+    }
+    /// Live status of stage `i` at sample k (ten times per simulated second).
+    fn status(
+        &mut self,
+        _i: usize,
+        _k: u64,
+        _c: &Counters,
+        _h: &StageHists,
+        _cycle: Option<&CycleMonitor>,
+    ) -> Result<()> {
+        Ok(())
+    }
+}
+
+/// A transport with no other process: outputs are kept for the caller.
+#[derive(Debug, Default)]
+pub struct Local {
+    /// Every output, in order.
+    pub sent: Vec<Msg>,
+}
+
+impl Transport for Local {
+    fn send(&mut self, msg: &Msg) -> Result<()> {
+        self.sent.push(*msg);
+        Ok(())
+    }
+    fn try_recv(&mut self, _topic: TopicId) -> Result<Option<Msg>> {
+        Ok(None)
+    }
+    fn pending(&mut self, _topic: TopicId) -> Result<bool> {
+        Ok(false)
+    }
+    fn wait(&mut self, _topic: TopicId, _timeout: Duration) -> Result<()> {
+        Ok(())
+    }
+}
+
+/// Counters every stage keeps (plain integers: no allocation in the loop).
+#[derive(Debug, Clone, Copy, Default, Serialize, PartialEq, Eq)]
+pub struct Counters {
+    /// Samples stepped.
+    pub samples: u64,
+    /// Inputs that were not there (or not the expected index) when needed.
+    pub stale_inputs: u64,
+    /// Inputs rejected because they held NaN/∞ or an index that went backwards.
+    pub rejected_inputs: u64,
+    /// Source only: samples that used a held or safe command (deadline misses).
+    pub deadline_misses: u64,
+    /// Source only: longest run of consecutive misses.
+    pub longest_miss_run: u64,
+    /// Source only: delayed inputs that arrived after their deadline and were discarded.
+    pub late_commands: u64,
+    /// Inputs deliberately skipped to catch up after falling behind (real time only).
+    pub skipped: u64,
+    /// Source only: wall time from its first sample to the end marker, ns.
+    pub loop_wall_ns: u64,
+    /// Others: outputs published after the end of their sample period (t_k + T_s; real
+    /// time only).
+    pub late_outputs: u64,
+    /// Others: longest run of consecutive late outputs.
+    pub longest_late_run: u64,
+    /// Samples stepped in a fallback (a stale trigger replaced by the clock).
+    pub fallback_steps: u64,
+}
+
+/// Per-stage histograms, preallocated before the loop.
+#[derive(Debug)]
+pub struct StageHists {
+    /// Wake-up: for the source, release lateness (wake − deadline); for the others, the
+    /// hop from the trigger's publication to the stage running.
+    pub wake: LatencyHist,
+    /// Execution time of the step (input taken → output published).
+    pub exec: LatencyHist,
+    /// Age of the trigger when used, from its sample instant t_k (real time only).
+    pub input_age: LatencyHist,
+    /// Outputs published after t_k + T_s.
+    pub late: MissCounter,
+    ts_ns: u64,
+}
+
+impl StageHists {
+    /// Histograms for a drive sampled every `ts_ns`.
+    pub fn new(source: bool, ts_ns: u64) -> Self {
+        Self {
+            wake: LatencyHist::new(if source { "lateness" } else { "wake" }),
+            exec: LatencyHist::new("exec"),
+            input_age: LatencyHist::new("input_age"),
+            late: MissCounter::default(),
+            ts_ns,
+        }
+    }
+
+    #[inline]
+    fn input(&mut self, t_in: u64, t_pub: u64, t_sample: u64) {
+        if t_pub != 0 {
+            self.wake.record_ns(t_in as i64 - t_pub as i64);
+        }
+        if t_sample != 0 {
+            self.input_age.record_ns(t_in as i64 - t_sample as i64);
+        }
+    }
+
+    #[inline]
+    fn done(&mut self, t_in: u64, t_sample: u64) {
+        let now = now_ns();
+        self.exec.record_ns(now as i64 - t_in as i64);
+        self.late
+            .record(t_sample != 0 && now > t_sample + self.ts_ns);
+    }
+}
+
+/// Where a stage's input comes from in this topology.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Origin {
+    /// Produced by a stage of this process.
+    Local,
+    /// Produced by a stage of another process.
+    External,
+    /// No stage of the topology produces it: the input is never there.
+    Absent,
+}
+
+/// A stage's input bound to the topology.
+#[derive(Debug, Clone, Copy)]
+pub struct Bound {
+    /// The declaration.
+    pub spec: InputSpec,
+    /// The producer's rate divider.
+    pub producer_divider: u64,
+    /// Where it comes from.
+    pub origin: Origin,
+}
+
+/// A stage in a host, with its bindings and bookkeeping.
+pub struct Hosted {
+    /// The stage.
+    pub stage: Box<dyn Stage>,
+    /// Its inputs, bound.
+    pub inputs: Vec<Bound>,
+    /// Its counters.
+    pub counters: Counters,
+    /// Its histograms.
+    pub hists: StageHists,
+    last_k: Option<u64>,
+    /// Index of the newest trigger received (for gaps, order and staleness).
+    last_seen: Option<u64>,
+    in_fallback: bool,
+    rejoining: bool,
+    divider: u64,
+}
+
+impl Hosted {
+    fn trigger(&self) -> Option<Bound> {
+        self.inputs
+            .iter()
+            .copied()
+            .find(|b| b.spec.role == Role::Trigger)
+    }
+}
+
+/// How the host paces.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Pacing {
+    /// Absolute deadlines; late inputs are stale.
+    Realtime,
+    /// Every input is waited for; no wall clock.
+    Lockstep,
+}
+
+/// Settings of a host.
+#[derive(Debug, Clone)]
+pub struct HostConfig {
+    /// Pacing.
+    pub pacing: Pacing,
+    /// Samples of the run (the source stops at n).
+    pub samples: u64,
+    /// Sample time, ns.
+    pub ts_ns: u64,
+    /// Source only, real time: sleep to this long before each deadline, then spin, ns.
+    pub spin_ns: u64,
+    /// Restarted: take over a running drive.
+    pub rejoin: bool,
+    /// Source only, rejoining: its own last output as the recorder saw it.
+    pub rejoin_from: Option<Msg>,
+    /// Source only: send warm-up messages through the chain before sample 0.
+    pub warm_up: bool,
+    /// Topics that stages of other processes wait on (the source pokes them when its delayed
+    /// input is missing, so that they check their inputs without a timer).
+    pub poke: Vec<TopicId>,
+    /// The topic that tells where the drive is (the source's output), for fallbacks.
+    pub clock_topic: TopicId,
+}
+
+/// Per-topic store of the newest messages by index.
+struct Store {
+    ring: [[Option<Msg>; RING]; N_TOPICS],
+    divider: [u64; N_TOPICS],
+    newest: [Option<Msg>; N_TOPICS],
+}
+
+impl Store {
+    fn new(divider: [u64; N_TOPICS]) -> Self {
+        Self {
+            ring: [[None; RING]; N_TOPICS],
+            divider,
+            newest: [None; N_TOPICS],
+        }
+    }
+
+    fn slot_of(&self, t: TopicId, k: u64) -> usize {
+        ((k / self.divider[t.index()].max(1)) % RING as u64) as usize
+    }
+
+    fn put(&mut self, msg: Msg) {
+        let t = msg.topic();
+        let k = msg.hdr().k;
+        let s = self.slot_of(t, k);
+        self.ring[t.index()][s] = Some(msg);
+        if self.newest[t.index()].is_none_or(|n| k >= n.hdr().k) {
+            self.newest[t.index()] = Some(msg);
+        }
+    }
+
+    fn get(&self, t: TopicId, k: u64) -> Option<Msg> {
+        self.ring[t.index()][self.slot_of(t, k)].filter(|m| m.hdr().k == k)
+    }
+
+    fn newest_k(&self, t: TopicId) -> Option<u64> {
+        self.newest[t.index()].map(|m| m.hdr().k)
+    }
+}
+
+/// The host of one process.
+pub struct Host<T: Transport> {
+    /// The stages, in chain order.
+    pub stages: Vec<Hosted>,
+    /// The transport.
+    pub transport: T,
+    cfg: HostConfig,
+    store: Store,
+    /// Source only: cycle latency and deadline misses.
+    pub cycle: CycleMonitor,
+    stop: fn() -> bool,
+}
+
+fn never() -> bool {
+    false
+}
+
+impl<T: Transport> Host<T> {
+    /// A host for `stages` (chain order) whose inputs are bound per `origins`: for every
+    /// topic, the producer's divider and whether it is produced here, elsewhere or nowhere.
+    pub fn new(
+        stages: Vec<Box<dyn Stage>>,
+        producers: &[(TopicId, u64, bool)],
+        transport: T,
+        cfg: HostConfig,
+    ) -> Self {
+        let mut divider = [1u64; N_TOPICS];
+        for (t, d, _) in producers {
+            divider[t.index()] = *d;
+        }
+        let hosted = stages
+            .into_iter()
+            .enumerate()
+            .map(|(i, stage)| {
+                let inputs = stage
+                    .inputs()
+                    .iter()
+                    .map(|spec| {
+                        let p = producers.iter().find(|(t, _, _)| *t == spec.topic);
+                        Bound {
+                            spec: *spec,
+                            producer_divider: p.map_or(1, |p| p.1),
+                            origin: match p {
+                                None => Origin::Absent,
+                                Some((_, _, true)) => Origin::Local,
+                                Some((_, _, false)) => Origin::External,
+                            },
+                        }
+                    })
+                    .collect();
+                let divider = stage.divider().max(1);
+                let source = i == 0 && trigger_of(stage.as_ref()).is_none();
+                Hosted {
+                    stage,
+                    inputs,
+                    counters: Counters::default(),
+                    hists: StageHists::new(source, cfg.ts_ns),
+                    last_k: None,
+                    last_seen: None,
+                    in_fallback: false,
+                    rejoining: cfg.rejoin,
+                    divider,
+                }
+            })
+            .collect();
+        Self {
+            stages: hosted,
+            transport,
+            store: Store::new(divider),
+            cycle: CycleMonitor::new(cfg.ts_ns),
+            cfg,
+            stop: never,
+        }
+    }
+
+    /// Sets the function that says a stop was requested (SIGINT/SIGTERM).
+    pub fn stop_when(&mut self, f: fn() -> bool) {
+        self.stop = f;
+    }
+
+    fn stopping(&self) -> bool {
+        (self.stop)()
+    }
+
+    /// True when the first stage is the source (no trigger).
+    pub fn is_source(&self) -> bool {
+        self.stages.first().is_some_and(|h| h.trigger().is_none())
+    }
+
+    /// Runs until the end marker, a stop request or an error.
+    pub fn run(&mut self) -> Result<()> {
+        if self.is_source() {
+            self.run_source()
+        } else {
+            self.run_triggered()
+        }
+    }
+
+    // ---------------------------------------------------------------- inputs
+
+    /// Takes every waiting message of the external inputs (except `skip`, the trigger being
+    /// consumed) into the store. Malformed ones are rejected and counted against `stage`.
+    fn drain_external(&mut self, skip: Option<TopicId>, expect_k: Option<u64>) -> Result<()> {
+        for si in 0..self.stages.len() {
+            for bi in 0..self.stages[si].inputs.len() {
+                let b = self.stages[si].inputs[bi];
+                if b.origin != Origin::External
+                    || Some(b.spec.topic) == skip
+                    || (b.spec.role == Role::Rejoin && !self.stages[si].rejoining)
+                {
+                    continue;
+                }
+                // Each topic is drained once (the first stage that reads it owns the count).
+                if self.stages[..si]
+                    .iter()
+                    .any(|h| h.inputs.iter().any(|x| x.spec.topic == b.spec.topic))
+                    || self.stages[si].inputs[..bi]
+                        .iter()
+                        .any(|x| x.spec.topic == b.spec.topic)
+                {
+                    continue;
+                }
+                while let Some(m) = self.transport.try_recv(b.spec.topic)? {
+                    let h = m.hdr();
+                    if h.is_warmup() || h.is_end() {
+                        continue;
+                    }
+                    if !m.is_finite() {
+                        self.stages[si].counters.rejected_inputs += 1;
+                        continue;
+                    }
+                    // Source: a delayed input older than the one this sample expects came
+                    // after its deadline.
+                    if let Some(want) =
+                        expect_k.and_then(|k| expected_index(k, b.spec.delay, b.producer_divider))
+                    {
+                        if b.spec.delay > 0 && h.k < want {
+                            self.stages[si].counters.late_commands += 1;
+                            if h.t_sample_ns != 0 {
+                                self.cycle.late_command(h.t_sample_ns, h.t_pub_ns);
+                            }
+                            continue;
+                        }
+                        if h.k > want {
+                            self.stages[si].counters.rejected_inputs += 1;
+                            continue;
+                        }
+                    }
+                    self.store.put(m);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The inbox of stage `si` at sample k. Returns None when a required input is missing.
+    fn inbox(&self, si: usize, k: u64) -> (Inbox, bool) {
+        let mut ib = Inbox::default();
+        let mut complete = true;
+        for b in &self.stages[si].inputs {
+            let t = b.spec.topic;
+            if b.origin == Origin::Absent {
+                continue;
+            }
+            let slot = &mut ib.slots[t.index()];
+            slot.msg = self.store.newest[t.index()];
+            if b.spec.role == Role::Rejoin {
+                slot.fresh = slot.msg.is_some();
+                continue;
+            }
+            match expected_index(k, b.spec.delay, b.producer_divider) {
+                None => {
+                    // Nothing expected yet (k < delay): fresh, with no value.
+                    slot.msg = None;
+                    slot.fresh = true;
+                }
+                Some(want) => match self.store.get(t, want) {
+                    Some(m) => {
+                        slot.msg = Some(m);
+                        slot.fresh = true;
+                    }
+                    None => {
+                        slot.fresh = false;
+                        slot.age = match self.store.newest_k(t) {
+                            Some(nk) if nk < want => (want - nk) / b.producer_divider.max(1),
+                            _ => want / b.producer_divider.max(1) + 1,
+                        };
+                        if b.spec.on_stale == OnStale::Required {
+                            complete = false;
+                        }
+                    }
+                },
+            }
+        }
+        (ib, complete)
+    }
+
+    /// Lockstep: waits until every external input stage `si` expects at k is there.
+    fn wait_inputs(&mut self, si: usize, k: u64) -> Result<bool> {
+        let started = Instant::now();
+        loop {
+            self.drain_external(None, None)?;
+            let missing = self.stages[si].inputs.iter().copied().find(|b| {
+                b.origin == Origin::External
+                    && b.spec.role == Role::Latest
+                    && expected_index(k, b.spec.delay, b.producer_divider)
+                        .is_some_and(|w| self.store.get(b.spec.topic, w).is_none())
+            });
+            let Some(b) = missing else { return Ok(true) };
+            if self.stopping() {
+                return Ok(false);
+            }
+            self.transport.wait(b.spec.topic, WAIT_SLICE)?;
+            if started.elapsed() > LOCKSTEP_WATCHDOG {
+                bail!(
+                    "{}: no {} for sample {k} for {LOCKSTEP_WATCHDOG:?}",
+                    self.stages[si].stage.name(),
+                    b.spec.topic.name()
+                );
+            }
+        }
+    }
+
+    // ---------------------------------------------------------------- steps
+
+    /// Steps stage `si` at k with `ib` and publishes its outputs. `t_in` is when its input
+    /// was taken; `fallback` marks every output as made from a stale input.
+    fn step_publish(
+        &mut self,
+        si: usize,
+        k: u64,
+        ib: &Inbox,
+        t_in: u64,
+        fallback: bool,
+    ) -> Result<()> {
+        let mut out = Outbox::default();
+        let h = &mut self.stages[si];
+        h.stage.step(k, ib, &mut out);
+        let t_sample = if self.cfg.pacing == Pacing::Realtime {
+            ib.slots
+                .iter()
+                .filter_map(|s| s.msg)
+                .map(|m| m.hdr().t_sample_ns)
+                .find(|&t| t != 0)
+                .unwrap_or(0)
+        } else {
+            0
+        };
+        let mut any = false;
+        for mut m in out.drain() {
+            any = true;
+            let hd = m.hdr_mut();
+            if fallback {
+                hd.flags |= FLAG_STALE_INPUT;
+            }
+            hd.t_pub_ns = now_ns();
+            self.store.put(m);
+            self.transport.send(&m)?;
+        }
+        let h = &mut self.stages[si];
+        if any {
+            h.counters.samples += 1;
+            if fallback {
+                h.counters.fallback_steps += 1;
+            }
+            h.hists.done(t_in, t_sample);
+        }
+        h.last_k = Some(k);
+        Ok(())
+    }
+
+    /// Runs stages `from..` of the chain at sample k (the trigger of stage `from` is in the
+    /// store). Stages whose rate does not hit k are skipped.
+    fn run_chain(&mut self, from: usize, k: u64, t_in: u64) -> Result<bool> {
+        for si in from..self.stages.len() {
+            if !k.is_multiple_of(self.stages[si].divider) {
+                continue;
+            }
+            if self.stages[si].last_k.is_some_and(|l| k <= l) {
+                continue;
+            }
+            // A trigger from another process than the one that ran this chain: wait for it;
+            // in real time, a stage with a fallback runs without it after one sample.
+            let mut fallback = false;
+            if si > from {
+                if let Some(tb) = self.stages[si].trigger() {
+                    if tb.origin == Origin::External
+                        && self.store.get(tb.spec.topic, k).is_none()
+                        && !self.wait_trigger_k(si, tb.spec.topic, k)?
+                    {
+                        if self.stopping() || tb.spec.on_stale != OnStale::Fallback {
+                            continue;
+                        }
+                        fallback = true;
+                    }
+                }
+            }
+            if self.cfg.pacing == Pacing::Lockstep && !self.wait_inputs(si, k)? {
+                return Ok(false);
+            }
+            let (mut ib, complete) = self.inbox(si, k);
+            self.stages[si].counters.stale_inputs += self.count_stale(si, &ib);
+            if !complete {
+                continue;
+            }
+            if self.stages[si].rejoining {
+                if self.stages[si].stage.rejoin(k, &ib) == Rejoin::NeedMore {
+                    self.stages[si].last_k = Some(k);
+                    continue;
+                }
+                self.stages[si].rejoining = false;
+                // Re-read: rejoin may have consumed nothing, but keep the same inputs.
+                ib = self.inbox(si, k).0;
+            }
+            self.stages[si].in_fallback = fallback;
+            self.step_publish(si, k, &ib, t_in, fallback)?;
+        }
+        Ok(true)
+    }
+
+    /// Inputs of stage `si` that `ib` marks stale (rejoin-only and absent ones do not count).
+    fn count_stale(&self, si: usize, ib: &Inbox) -> u64 {
+        self.stages[si]
+            .inputs
+            .iter()
+            .filter(|b| {
+                b.spec.role != Role::Rejoin
+                    && b.origin != Origin::Absent
+                    && !ib.slot(b.spec.topic).fresh
+            })
+            .count() as u64
+    }
+
+    /// Waits (real time: briefly; lockstep: with the watchdog) for the trigger of stage `si`
+    /// with index k from another process.
+    fn wait_trigger_k(&mut self, si: usize, topic: TopicId, k: u64) -> Result<bool> {
+        let started = Instant::now();
+        loop {
+            while let Some(m) = self.transport.try_recv(topic)? {
+                if m.hdr().is_warmup() || m.hdr().is_end() {
+                    continue;
+                }
+                if m.is_finite() {
+                    self.store.put(m);
+                } else {
+                    self.stages[si].counters.rejected_inputs += 1;
+                }
+            }
+            if self.store.get(topic, k).is_some() {
+                return Ok(true);
+            }
+            if self.stopping() {
+                return Ok(false);
+            }
+            let limit = match self.cfg.pacing {
+                Pacing::Lockstep => LOCKSTEP_WATCHDOG,
+                Pacing::Realtime => Duration::from_nanos(self.cfg.ts_ns),
+            };
+            if started.elapsed() > limit {
+                if self.cfg.pacing == Pacing::Lockstep {
+                    bail!(
+                        "{}: no {} for sample {k} for {LOCKSTEP_WATCHDOG:?}",
+                        self.stages[si].stage.name(),
+                        topic.name()
+                    );
+                }
+                self.stages[si].counters.stale_inputs += 1;
+                return Ok(false);
+            }
+            self.transport
+                .wait(topic, Duration::from_nanos(self.cfg.ts_ns / 4))?;
+        }
+    }
+
+    /// Sends a marker with header `hdr` on every output of stages `from..`.
+    fn forward_marker(&mut self, from: usize, hdr: Header) -> Result<()> {
+        for si in from..self.stages.len() {
+            for &t in self.stages[si].stage.outputs() {
+                self.transport.send(&Msg::marker(t, hdr))?;
+            }
+        }
+        Ok(())
+    }
+
+    fn status(&mut self) -> Result<()> {
+        for i in 0..self.stages.len() {
+            let Some(k) = self.stages[i].last_k else {
+                continue;
+            };
+            let cyc = (i == 0 && self.is_source()).then_some(&self.cycle);
+            let h = &self.stages[i];
+            self.transport.status(i, k, &h.counters, &h.hists, cyc)?;
+        }
+        Ok(())
+    }
+
+    // ---------------------------------------------------------------- the source
+
+    fn warm_up(&mut self) -> Result<()> {
+        let waits: Vec<TopicId> = self.stages[0]
+            .inputs
+            .iter()
+            .filter(|b| b.origin == Origin::External && b.spec.role == Role::Latest)
+            .map(|b| b.spec.topic)
+            .collect();
+        for i in 0..WARMUP_MESSAGES {
+            let hdr = Header {
+                k: i,
+                flags: FLAG_WARMUP,
+                t_pub_ns: now_ns(),
+                ..Default::default()
+            };
+            self.forward_marker(0, hdr)?;
+            for &t in &waits {
+                let started = Instant::now();
+                'wait: loop {
+                    while let Some(m) = self.transport.try_recv(t)? {
+                        if m.hdr().is_warmup() && m.hdr().k == i {
+                            break 'wait;
+                        }
+                    }
+                    if self.stopping() {
+                        return Ok(());
+                    }
+                    self.transport.wait(t, WAIT_SLICE)?;
+                    if started.elapsed() > LOCKSTEP_WATCHDOG {
+                        bail!("warm-up message {i} did not come back through the chain on {} within {LOCKSTEP_WATCHDOG:?}", t.name());
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn run_source(&mut self) -> Result<()> {
+        let ts_ns = self.cfg.ts_ns;
+        let n = self.cfg.samples;
+        let realtime = self.cfg.pacing == Pacing::Realtime;
+        let (t0, k_start) = if self.cfg.rejoin {
+            let last = self.cfg.rejoin_from.ok_or_else(|| {
+                anyhow!("a restarted source needs its last output to rejoin from")
+            })?;
+            if !realtime || last.hdr().t_sample_ns == 0 {
+                bail!("a plant can only rejoin a real-time drive");
+            }
+            let mut ib = Inbox::default();
+            ib.put(last);
+            self.stages[0].stage.rejoin(last.hdr().k, &ib);
+            self.stages[0].rejoining = false;
+            let lk = last.hdr().k;
+            let t0 = last.hdr().t_sample_ns - lk * ts_ns;
+            let k = (now_ns() + 2_000_000 - t0) / ts_ns + 1;
+            (t0, k.max(lk + 1))
+        } else {
+            if self.cfg.warm_up {
+                self.warm_up()?;
+            }
+            (now_ns() + 2_000_000, 0)
+        };
+        let mut recorder_done = 0u64;
+        let mut loop_start = 0u64;
+        // The first delayed input of the source is the command whose availability makes the
+        // cycle (t_k → command k available).
+        let cmd_topic = self.stages[0]
+            .inputs
+            .iter()
+            .find(|b| b.spec.delay > 0 && b.spec.role == Role::Latest)
+            .map(|b| (b.spec.topic, b.origin));
+        // ---- real-time loop: no allocation, no locks, no logging ----
+        for k in k_start..=n {
+            let deadline = t0 + k * ts_ns;
+            if realtime {
+                if self.cfg.spin_ns > 0 {
+                    sleep_until_ns(deadline - self.cfg.spin_ns);
+                    while now_ns() < deadline {
+                        std::hint::spin_loop();
+                    }
+                } else {
+                    sleep_until_ns(deadline);
+                }
+                self.stages[0]
+                    .hists
+                    .wake
+                    .record_ns(now_ns() as i64 - deadline as i64);
+                self.drain_external(None, Some(k))?;
+            } else if k > 0 && !self.wait_inputs(0, k)? {
+                break;
+            }
+            if realtime && (k > k_start || (k > 0 && !self.cfg.rejoin)) {
+                if let Some((t, _)) = cmd_topic {
+                    let avail = self.store.get(t, k - 1).map(|m| m.hdr().t_pub_ns);
+                    self.cycle.at_deadline(deadline - ts_ns, avail);
+                }
+            }
+            if k == k_start {
+                loop_start = now_ns();
+            }
+            if self.stopping() || k == n {
+                let hdr = Header {
+                    k,
+                    flags: FLAG_END,
+                    t_pub_ns: now_ns(),
+                    ..Default::default()
+                };
+                self.forward_marker(0, hdr)?;
+                break;
+            }
+            let t_in = now_ns();
+            let (ib, _) = self.inbox(0, k);
+            let stale = self.count_stale(0, &ib);
+            if stale > 0 {
+                self.stages[0].counters.stale_inputs += stale;
+                if realtime {
+                    for i in 0..self.cfg.poke.len() {
+                        let t = self.cfg.poke[i];
+                        self.transport.poke(t)?;
+                    }
+                }
+            }
+            let mut out = Outbox::default();
+            self.stages[0].stage.step(k, &ib, &mut out);
+            for mut m in out.drain() {
+                let hd = m.hdr_mut();
+                hd.t_sample_ns = if realtime { deadline } else { 0 };
+                hd.t_pub_ns = now_ns();
+                self.store.put(m);
+                self.transport.send(&m)?;
+            }
+            self.stages[0].hists.done(t_in, 0);
+            self.stages[0].counters.samples += 1;
+            self.stages[0].last_k = Some(k);
+            // The rest of this process's chain, in order, on the source's outputs.
+            if self.stages.len() > 1 && !self.run_chain(1, k, now_ns())? {
+                break;
+            }
+            for h in self.stages.iter_mut() {
+                h.stage.after_publish();
+            }
+            self.status()?;
+            if !realtime {
+                // Flow control: never run more than half a recorder buffer ahead.
+                let started = Instant::now();
+                loop {
+                    match self.transport.recorder_progress()? {
+                        None => break,
+                        Some(done) => recorder_done = recorder_done.max(done),
+                    }
+                    if k < recorder_done + (crate::bus::MAX_BUFFER / 2) as u64 || self.stopping() {
+                        break;
+                    }
+                    self.transport.wait_recorder(WAIT_SLICE)?;
+                    if started.elapsed() > LOCKSTEP_WATCHDOG {
+                        bail!("recorder stopped reading at sample {recorder_done}");
+                    }
+                }
+            }
+        }
+        // ---- end of the real-time loop ----
+        let c = &mut self.stages[0].counters;
+        c.loop_wall_ns = now_ns().saturating_sub(loop_start);
+        c.deadline_misses = self.cycle.misses.misses;
+        c.longest_miss_run = self.cycle.misses.longest_run;
+        Ok(())
+    }
+
+    // ---------------------------------------------------------------- triggered processes
+
+    fn run_triggered(&mut self) -> Result<()> {
+        let trig = self.stages[0].trigger().expect("not the source");
+        let topic = trig.spec.topic;
+        let realtime = self.cfg.pacing == Pacing::Realtime;
+        let fallback_poll = Duration::from_nanos(self.cfg.ts_ns / 2);
+        let mut last_input = Instant::now();
+        let every_sample = self.stages[0].stage.steps_every_sample();
+        // ---- real-time loop: no allocation, no locks, no logging ----
+        'outer: while !self.stopping() {
+            self.status()?;
+            let in_fallback = self.stages.iter().any(|h| h.in_fallback);
+            self.transport.wait(
+                topic,
+                if in_fallback && realtime {
+                    fallback_poll
+                } else {
+                    WAIT_SLICE
+                },
+            )?;
+            self.drain_external(Some(topic), None)?;
+            let mut got = false;
+            while let Some(m) = self.transport.try_recv(topic)? {
+                got = true;
+                last_input = Instant::now();
+                let hdr = *m.hdr();
+                if hdr.is_warmup() || hdr.is_end() {
+                    self.forward_marker(0, hdr)?;
+                    if hdr.is_end() {
+                        break 'outer;
+                    }
+                    continue;
+                }
+                let h0 = &mut self.stages[0];
+                if !m.is_finite() || h0.last_seen.is_some_and(|l| hdr.k <= l) {
+                    h0.counters.rejected_inputs += 1;
+                    continue;
+                }
+                if let Some(l) = h0.last_seen {
+                    h0.counters.stale_inputs += hdr.k - l - 1;
+                }
+                h0.last_seen = Some(hdr.k);
+                self.store.put(m);
+                let behind = realtime && self.transport.pending(topic)?;
+                if behind || (self.stages[0].rejoining && !every_sample) {
+                    // Behind (a newer trigger is waiting), or rejoining: only the newest is
+                    // published. A stage that needs every sample steps this one silently.
+                    if every_sample && !self.stages[0].rejoining {
+                        let (ib, complete) = self.inbox(0, hdr.k);
+                        if complete {
+                            let mut out = Outbox::default();
+                            self.stages[0].stage.step(hdr.k, &ib, &mut out);
+                        }
+                    }
+                    if behind {
+                        self.stages[0].counters.skipped += 1;
+                        self.stages[0].last_k = Some(hdr.k);
+                        continue;
+                    }
+                }
+                let t_in = now_ns();
+                self.stages[0]
+                    .hists
+                    .input(t_in, hdr.t_pub_ns, hdr.t_sample_ns);
+                if !self.run_chain(0, hdr.k, t_in)? {
+                    break 'outer;
+                }
+            }
+            if !realtime {
+                if self.stages[0].last_k.is_some() && last_input.elapsed() > LOCKSTEP_WATCHDOG {
+                    bail!(
+                        "{}: no {} for {LOCKSTEP_WATCHDOG:?}",
+                        self.stages[0].stage.name(),
+                        topic.name()
+                    );
+                }
+                continue;
+            }
+            if got {
+                continue;
+            }
+            self.fallbacks()?;
+        }
+        // ---- end of the real-time loop ----
+        Ok(())
+    }
+
+    /// Real time, woken without a trigger: every stage whose trigger is from another process
+    /// and has fallen `max_age` samples behind the drive (the newest sample of the clock
+    /// topic) runs on the clock instead, with its trigger marked stale.
+    fn fallbacks(&mut self) -> Result<()> {
+        let clock = self.cfg.clock_topic;
+        self.drain_external(None, None)?;
+        while let Some(m) = self.transport.try_recv(clock)? {
+            if !m.hdr().is_warmup() && !m.hdr().is_end() && m.is_finite() {
+                self.store.put(m);
+            }
+        }
+        let Some(kn) = self.store.newest_k(clock) else {
+            return Ok(());
+        };
+        for si in 0..self.stages.len() {
+            let Some(tb) = self.stages[si].trigger() else {
+                continue;
+            };
+            if tb.origin != Origin::External || tb.spec.on_stale != OnStale::Fallback {
+                continue;
+            }
+            let Some(last) = self.stages[si].last_seen.or(self.stages[si].last_k) else {
+                continue;
+            };
+            let lag = if self.stages[si].in_fallback {
+                1
+            } else {
+                tb.spec.max_age
+            };
+            if kn < last + lag {
+                continue;
+            }
+            let d = self.stages[si].divider;
+            let j = kn / d * d;
+            if self.stages[si].last_k.is_some_and(|l| j <= l) || self.stages[si].rejoining {
+                continue;
+            }
+            let (mut ib, complete) = self.inbox(si, j);
+            ib.set_stale(
+                tb.spec.topic,
+                j - self.store.newest_k(tb.spec.topic).unwrap_or(0).min(j),
+            );
+            if !complete {
+                continue;
+            }
+            self.stages[si].in_fallback = true;
+            self.stages[si].counters.stale_inputs += 1;
+            let t_in = now_ns();
+            self.step_publish(si, j, &ib, t_in, true)?;
+        }
+        Ok(())
+    }
+
+    /// Names and values of each stage's diagnostics (after the run).
+    pub fn diagnostics(&self) -> Vec<(&'static str, Vec<(&'static str, u64)>)> {
+        self.stages
+            .iter()
+            .map(|h| {
+                let names = h.stage.diagnostic_names();
+                let mut vals = vec![0u64; names.len()];
+                h.stage.diagnostics(&mut vals);
+                (h.stage.name(), names.iter().copied().zip(vals).collect())
+            })
+            .collect()
+    }
+}

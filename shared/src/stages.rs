@@ -1,0 +1,717 @@
+//! The drive's four stages (plant, observer, current loop, speed loop) on the stage API,
+//! with their freshness policies. Each wraps the step function of [`crate::drive`]; the
+//! policies live here, not in the host, and are tested here with synthetic inboxes.
+//! See docs/architecture.md, "The cycle" and "Fault model".
+
+use crate::config::Scenario;
+use crate::drive::{CurrentLoopStep, DriveDesign, ObserverStep, Plant, SpeedLoopStep};
+use crate::messages::*;
+use crate::motor::wrap_2pi;
+use crate::observer_sensorless::ObserverMode;
+use crate::stage::*;
+use std::f64::consts::{PI, TAU};
+
+/// Names of the built-in stages, in chain order.
+pub const BUILTIN: [&str; 4] = ["plant", "observer", "current-loop", "speed-loop"];
+
+/// Builds built-in stage `name` for scenario `sc`.
+pub fn builtin(name: &str, sc: &Scenario) -> Option<Box<dyn Stage>> {
+    Some(match name {
+        "plant" => Box::new(PlantStage::new(sc)),
+        "observer" => Box::new(ObserverStage::new(sc)),
+        "current-loop" => Box::new(CurrentLoopStage::new(sc)),
+        "speed-loop" => Box::new(SpeedLoopStage::new(sc)),
+        _ => return None,
+    })
+}
+
+// ------------------------------------------------------------------------------ plant
+
+/// The plant: timing master. At k it applies command k−1 (held for `inverter.hold_samples`
+/// when missing, then the safe state), publishes measurement k and, after publishing,
+/// integrates to t_{k+1}.
+pub struct PlantStage {
+    /// The model.
+    pub plant: Plant,
+}
+
+const PLANT_IN: &[InputSpec] = &[InputSpec::latest(TopicId::Cmd, 1, 0, OnStale::Fallback)];
+
+impl PlantStage {
+    /// The plant of `sc`.
+    pub fn new(sc: &Scenario) -> Self {
+        Self {
+            plant: Plant::new(sc),
+        }
+    }
+}
+
+impl Stage for PlantStage {
+    fn name(&self) -> &'static str {
+        "plant"
+    }
+    fn inputs(&self) -> &'static [InputSpec] {
+        PLANT_IN
+    }
+    fn outputs(&self) -> &'static [TopicId] {
+        &[TopicId::Meas]
+    }
+    fn step(&mut self, k: u64, inputs: &Inbox, out: &mut Outbox) {
+        // A missing command (None) is held, then replaced by the safe state (Plant::sample).
+        out.push(Msg::Meas(self.plant.sample(k, inputs.cmd())));
+    }
+    fn after_publish(&mut self) {
+        self.plant.advance();
+    }
+    fn rejoin(&mut self, _k: u64, inputs: &Inbox) -> Rejoin {
+        // A restarted plant resumes from its last measurement as the recorder saw it.
+        if let Some(m) = inputs.newest_meas() {
+            self.plant.restore(m);
+        }
+        Rejoin::Done
+    }
+}
+
+// ------------------------------------------------------------------------------ observer
+
+/// The observer: measurement k → estimate k. Its filter needs every sample, so when behind it
+/// steps the older measurements without publishing them.
+pub struct ObserverStage {
+    obs: ObserverStep,
+    ts: f64,
+    seed: Option<Measurement>,
+}
+
+const OBSERVER_IN: &[InputSpec] = &[InputSpec::trigger(TopicId::Meas, 1, OnStale::Required)];
+
+impl ObserverStage {
+    /// The observer of `sc`.
+    pub fn new(sc: &Scenario) -> Self {
+        Self {
+            obs: ObserverStep::new(sc),
+            ts: sc.rates.ts(),
+            seed: None,
+        }
+    }
+}
+
+impl Stage for ObserverStage {
+    fn name(&self) -> &'static str {
+        "observer"
+    }
+    fn inputs(&self) -> &'static [InputSpec] {
+        OBSERVER_IN
+    }
+    fn outputs(&self) -> &'static [TopicId] {
+        &[TopicId::Est]
+    }
+    fn steps_every_sample(&self) -> bool {
+        true
+    }
+    fn step(&mut self, _k: u64, inputs: &Inbox, out: &mut Outbox) {
+        if let Some(m) = inputs.meas() {
+            out.push(Msg::Est(self.obs.step(m)));
+        }
+    }
+    fn rejoin(&mut self, _k: u64, inputs: &Inbox) -> Rejoin {
+        // After a restart: the angle from the newest measurement, the speed from the backward
+        // difference to the next one.
+        let Some(m) = inputs.meas() else {
+            return Rejoin::NeedMore;
+        };
+        match self.seed {
+            Some(s) if m.hdr.k == s.hdr.k + 1 => {
+                let d = (m.theta_m_enc - s.theta_m_enc + PI).rem_euclid(TAU) - PI;
+                self.obs.preset(s.theta_m_enc, d / self.ts);
+                Rejoin::Done
+            }
+            _ => {
+                self.seed = Some(*m);
+                Rejoin::NeedMore
+            }
+        }
+    }
+}
+
+// ------------------------------------------------------------------------------ current loop
+
+/// The current loop: measurement k + estimate k + the current reference of the last speed
+/// sample before k → command k. Policies (real time):
+/// - no estimate for 2 samples: the encoder angle of the measurement and the last speed
+///   estimate; sensorless, zero voltage;
+/// - no fresh current reference for 2 speed periods: i_q* ramps to zero (full scale in
+///   20 ms);
+/// - rejoin: its integrators are preset to the voltage the plant is applying.
+pub struct CurrentLoopStage {
+    ctrl: CurrentLoopStep,
+    pole_pairs: f64,
+    sensorless: bool,
+    divider: u64,
+    iq_ramp_per_sample: f64,
+    active_ref: CurrentRef,
+    last_est: Estimate,
+    stale_ref_samples: u64,
+    /// Samples run on the encoder fallback.
+    pub fallback_samples: u64,
+    /// Samples with the i_q* ramp active.
+    pub ramp_samples: u64,
+}
+
+/// Estimate stale after this many samples (one is the observer's normal lag).
+pub const EST_MAX_AGE: u64 = 2;
+
+const CURRENT_IN: &[InputSpec] = &[
+    InputSpec::trigger(TopicId::Est, EST_MAX_AGE, OnStale::Fallback),
+    InputSpec::latest(TopicId::Meas, 0, 0, OnStale::Required),
+    InputSpec::latest(TopicId::Iref, 1, 0, OnStale::Fallback),
+];
+
+impl CurrentLoopStage {
+    /// The current loop of `sc`.
+    pub fn new(sc: &Scenario) -> Self {
+        let ts = sc.rates.ts();
+        Self {
+            ctrl: CurrentLoopStep::new(sc),
+            pole_pairs: sc.motor_params().p(),
+            sensorless: sc.observer.mode == ObserverMode::Sensorless,
+            divider: u64::from(sc.rates.speed_divider),
+            iq_ramp_per_sample: sc.i_q_max() * ts / 0.02,
+            active_ref: CurrentRef::default(),
+            last_est: Estimate::default(),
+            stale_ref_samples: 0,
+            fallback_samples: 0,
+            ramp_samples: 0,
+        }
+    }
+}
+
+impl Stage for CurrentLoopStage {
+    fn name(&self) -> &'static str {
+        "current-loop"
+    }
+    fn inputs(&self) -> &'static [InputSpec] {
+        CURRENT_IN
+    }
+    fn outputs(&self) -> &'static [TopicId] {
+        &[TopicId::Cmd]
+    }
+    fn step(&mut self, _k: u64, inputs: &Inbox, out: &mut Outbox) {
+        let Some(meas) = inputs.meas() else { return };
+        let mut flags = 0;
+        let cmd = match inputs.est() {
+            Some(e) => {
+                match (inputs.slot(TopicId::Iref).fresh, inputs.iref()) {
+                    (true, Some(r)) => {
+                        self.active_ref = *r;
+                        self.stale_ref_samples = 0;
+                    }
+                    // Nothing expected yet (before the first speed sample): zero references.
+                    (true, None) => {}
+                    (false, _) => {
+                        // Hold the last reference; after 2 speed periods without a fresh
+                        // one, ramp i_q* to zero.
+                        self.stale_ref_samples += 1;
+                        if self.stale_ref_samples > 2 * self.divider {
+                            flags |= FLAG_STALE_INPUT;
+                            self.ramp_samples += 1;
+                            let q = self.active_ref.i_q_ref;
+                            self.active_ref.i_q_ref =
+                                q - q.signum() * self.iq_ramp_per_sample.min(q.abs());
+                        }
+                    }
+                }
+                self.last_est = *e;
+                self.ctrl.step(meas, e, &self.active_ref)
+            }
+            None => {
+                // No estimate: the encoder angle of this measurement, the last speed estimate
+                // and the newest reference.
+                self.fallback_samples += 1;
+                flags |= FLAG_STALE_INPUT;
+                if let Some(r) = inputs.newest_iref() {
+                    self.active_ref = *r;
+                }
+                let e = Estimate {
+                    hdr: Header {
+                        k: meas.hdr.k,
+                        t_sample_ns: meas.hdr.t_sample_ns,
+                        flags: FLAG_STALE_INPUT,
+                        ..Default::default()
+                    },
+                    theta_e: wrap_2pi(self.pole_pairs * meas.theta_m_enc),
+                    omega_m: self.last_est.omega_m,
+                };
+                if self.sensorless {
+                    // No position sensor to fall back on: command zero voltage.
+                    VoltageCommand {
+                        hdr: e.hdr,
+                        i_dq_ref: [self.active_ref.i_d_ref, self.active_ref.i_q_ref],
+                        omega_ref: self.active_ref.omega_ref,
+                        omega_hat: self.last_est.omega_m,
+                        theta_hat: self.last_est.theta_e,
+                        ..Default::default()
+                    }
+                } else {
+                    self.ctrl.step(meas, &e, &self.active_ref)
+                }
+            }
+        };
+        let mut cmd = cmd;
+        cmd.hdr.flags |= flags;
+        out.push(Msg::Cmd(cmd));
+    }
+    fn rejoin(&mut self, _k: u64, inputs: &Inbox) -> Rejoin {
+        let (Some(meas), Some(e)) = (inputs.meas(), inputs.est()) else {
+            return Rejoin::NeedMore;
+        };
+        if let Some(r) = inputs.newest_iref() {
+            self.active_ref = *r;
+        }
+        self.ctrl.preset(meas, e, &self.active_ref);
+        Rejoin::Done
+    }
+    fn diagnostic_names(&self) -> Diagnostics {
+        &[
+            "encoder_fallback_samples",
+            "iq_ramp_samples",
+            "kyslan_eq15_near_singular_samples",
+            "kyslan_eq15_clamped_samples",
+        ]
+    }
+    fn diagnostics(&self, v: &mut [u64]) {
+        let (near, clamped) = self.ctrl.singularity_counts();
+        for (d, s) in v
+            .iter_mut()
+            .zip([self.fallback_samples, self.ramp_samples, near, clamped])
+        {
+            *d = s;
+        }
+    }
+    fn exit_warnings(&self) -> Vec<String> {
+        let (near, clamped) = self.ctrl.singularity_counts();
+        if near == 0 {
+            return Vec::new();
+        }
+        vec![format!(
+            "for {near} samples the measured i_d approached the uncontrollable i_d of Kyslan eq. (15); a1 + a2*i_d was clamped in {clamped} of them"
+        )]
+    }
+}
+
+// ------------------------------------------------------------------------------ speed loop
+
+/// The speed loop: every N-th estimate → current reference. Policies (real time): without
+/// estimates it holds its output (integrator frozen), re-published at each speed sample the
+/// drive reaches; after a restart it takes over from the last reference the current loop
+/// used (the command topic's history) at the present speed estimate. A speed reference
+/// from an outer stage (topic `wref`) replaces the scenario's speed profile.
+pub struct SpeedLoopStage {
+    ctrl: SpeedLoopStep,
+    divider: u64,
+    last_out: Option<CurrentRef>,
+    design_warnings: Vec<String>,
+    /// Speed samples whose output was held (no estimate).
+    pub held_samples: u64,
+}
+
+const SPEED_IN: &[InputSpec] = &[
+    InputSpec::trigger(TopicId::Est, 1, OnStale::Fallback),
+    InputSpec::latest(TopicId::Wref, 1, 0, OnStale::Fallback),
+    InputSpec::rejoin(TopicId::Cmd),
+];
+
+impl SpeedLoopStage {
+    /// The speed loop of `sc`.
+    pub fn new(sc: &Scenario) -> Self {
+        Self {
+            ctrl: SpeedLoopStep::new(sc),
+            divider: u64::from(sc.rates.speed_divider),
+            last_out: None,
+            design_warnings: DriveDesign::from_scenario(sc).warnings,
+            held_samples: 0,
+        }
+    }
+}
+
+impl Stage for SpeedLoopStage {
+    fn name(&self) -> &'static str {
+        "speed-loop"
+    }
+    fn inputs(&self) -> &'static [InputSpec] {
+        SPEED_IN
+    }
+    fn outputs(&self) -> &'static [TopicId] {
+        &[TopicId::Iref]
+    }
+    fn divider(&self) -> u64 {
+        self.divider
+    }
+    fn step(&mut self, k: u64, inputs: &Inbox, out: &mut Outbox) {
+        match inputs.est() {
+            Some(e) => {
+                let w = inputs.newest_wref().map(|w| w.omega_ref);
+                if let Some(r) = self.ctrl.step_with(e, w) {
+                    self.last_out = Some(r);
+                    out.push(Msg::Iref(r));
+                }
+            }
+            None => {
+                // Hold the output, integrator frozen.
+                if let Some(prev) = self.last_out {
+                    let mut r = prev;
+                    r.hdr.k = k;
+                    r.hdr.flags |= FLAG_STALE_INPUT;
+                    self.held_samples += 1;
+                    self.last_out = Some(r);
+                    out.push(Msg::Iref(r));
+                }
+            }
+        }
+    }
+    fn rejoin(&mut self, _k: u64, inputs: &Inbox) -> Rejoin {
+        if let (Some(e), Some(c)) = (inputs.est(), inputs.newest_cmd()) {
+            self.ctrl.preset(e.omega_m, c.i_dq_ref[1]);
+        }
+        Rejoin::Done
+    }
+    fn diagnostic_names(&self) -> Diagnostics {
+        &["held_samples", "kyslan_eq15_near_singular_samples"]
+    }
+    fn diagnostics(&self, v: &mut [u64]) {
+        for (d, s) in v
+            .iter_mut()
+            .zip([self.held_samples, self.ctrl.near_singular_samples])
+        {
+            *d = s;
+        }
+    }
+    fn warnings(&self) -> Vec<String> {
+        self.design_warnings.clone()
+    }
+    fn exit_warnings(&self) -> Vec<String> {
+        if self.ctrl.near_singular_samples == 0 {
+            return Vec::new();
+        }
+        vec![format!(
+            "{} speed samples had an i_d set-point near the uncontrollable i_d of Kyslan eq. (15)",
+            self.ctrl.near_singular_samples
+        )]
+    }
+}
+
+/// Runs every built-in stage of `sc` in one thread on the same host as the bus (the
+/// `inprocess` clock) and returns the trace.
+pub fn run_inprocess(sc: &Scenario) -> Vec<crate::trace::TraceRow> {
+    let stages: Vec<Box<dyn Stage>> = BUILTIN
+        .iter()
+        .map(|n| builtin(n, sc).expect("built-in stage"))
+        .collect();
+    run_stages_inprocess(sc, stages).expect("in-process chain")
+}
+
+/// Runs `stages` (chain order, the source first) in one thread and returns the trace.
+pub fn run_stages_inprocess(
+    sc: &Scenario,
+    stages: Vec<Box<dyn Stage>>,
+) -> anyhow::Result<Vec<crate::trace::TraceRow>> {
+    use crate::host::{Host, HostConfig, Local, Pacing};
+    let producers: Vec<(TopicId, u64, bool)> = stages
+        .iter()
+        .flat_map(|s| {
+            s.outputs()
+                .iter()
+                .map(|t| (*t, s.divider(), true))
+                .collect::<Vec<_>>()
+        })
+        .collect();
+    let n = sc.samples();
+    let mut host = Host::new(
+        stages,
+        &producers,
+        Local {
+            sent: Vec::with_capacity(2 * n as usize + 16),
+        },
+        HostConfig {
+            pacing: Pacing::Lockstep,
+            samples: n,
+            ts_ns: sc.rates.ts_ns(),
+            spin_ns: 0,
+            rejoin: false,
+            rejoin_from: None,
+            warm_up: false,
+            poke: Vec::new(),
+            clock_topic: TopicId::Meas,
+        },
+    );
+    host.run()?;
+    let ts = sc.rates.ts();
+    let mut meas: Vec<Option<Measurement>> = vec![None; n as usize];
+    let mut rows = Vec::with_capacity(n as usize);
+    for m in &host.transport.sent {
+        match m {
+            Msg::Meas(x) if !x.hdr.is_end() && x.hdr.k < n => meas[x.hdr.k as usize] = Some(*x),
+            Msg::Cmd(c) if !c.hdr.is_end() && c.hdr.k < n => {
+                if let Some(x) = meas[c.hdr.k as usize] {
+                    rows.push(crate::drive::trace_row(ts, &x, c));
+                }
+            }
+            _ => {}
+        }
+    }
+    Ok(rows)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::drive::InProcessDrive;
+
+    fn scenario(name: &str) -> Scenario {
+        let path = format!("{}/../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
+        Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
+    }
+
+    fn short(name: &str, seconds: f64) -> Scenario {
+        let mut sc = scenario(name);
+        sc.duration_s = seconds;
+        sc
+    }
+
+    /// The step functions called directly, in the cycle's order, with no host in between.
+    fn direct(sc: &Scenario) -> Vec<crate::trace::TraceRow> {
+        let mut d = InProcessDrive::new(sc);
+        (0..sc.samples()).map(|k| d.cycle(k)).collect()
+    }
+
+    #[test]
+    fn the_host_gives_the_same_trace_as_direct_calls() {
+        for (name, secs) in [
+            ("kyslan-pi", 0.06),
+            ("low-rst-sensorless", 0.3),
+            ("miyajima-polar-400rpm", 0.02),
+        ] {
+            let sc = short(name, secs);
+            let a = direct(&sc);
+            let b = run_inprocess(&sc);
+            assert_eq!(a.len(), b.len(), "{name}");
+            for (x, y) in a.iter().zip(&b) {
+                // Bit for bit: compare the CSV rows' bits, NaN included.
+                assert_eq!(format!("{x:?}"), format!("{y:?}"), "{name} at k = {}", x.k);
+            }
+        }
+    }
+
+    fn meas(k: u64, theta_m_enc: f64) -> Measurement {
+        Measurement {
+            hdr: Header {
+                k,
+                ..Default::default()
+            },
+            theta_m_enc,
+            ..Default::default()
+        }
+    }
+
+    fn est(k: u64, omega_m: f64) -> Estimate {
+        Estimate {
+            hdr: Header {
+                k,
+                ..Default::default()
+            },
+            theta_e: 0.3,
+            omega_m,
+        }
+    }
+
+    fn iref(k: u64, i_q_ref: f64) -> CurrentRef {
+        CurrentRef {
+            hdr: Header {
+                k,
+                ..Default::default()
+            },
+            omega_ref: 50.0,
+            i_d_ref: 0.0,
+            i_q_ref,
+        }
+    }
+
+    fn cmd_of(out: &Outbox) -> VoltageCommand {
+        match out.get(TopicId::Cmd) {
+            Some(Msg::Cmd(c)) => *c,
+            other => panic!("no command: {other:?}"),
+        }
+    }
+
+    #[test]
+    fn current_loop_without_estimate_controls_on_the_encoder_angle() {
+        let sc = scenario("kyslan-pi");
+        let mut s = CurrentLoopStage::new(&sc);
+        let mut ib = Inbox::default();
+        ib.put(Msg::Meas(meas(10, 0.1)));
+        ib.put(Msg::Est(est(10, 42.0)));
+        ib.put(Msg::Iref(iref(0, 1.0)));
+        let mut out = Outbox::default();
+        s.step(10, &ib, &mut out);
+        assert_eq!(cmd_of(&out).hdr.flags & FLAG_STALE_INPUT, 0);
+        assert_eq!(cmd_of(&out).omega_hat, 42.0);
+        // Sample 11: the estimate is stale. The command uses θ_e = p·θ_m,enc and the last ω̂.
+        let mut ib = Inbox::default();
+        ib.put(Msg::Meas(meas(11, 0.2)));
+        ib.put(Msg::Est(est(10, 42.0)));
+        ib.set_stale(TopicId::Est, 1);
+        ib.put(Msg::Iref(iref(0, 1.0)));
+        let mut out = Outbox::default();
+        s.step(11, &ib, &mut out);
+        let c = cmd_of(&out);
+        assert_ne!(c.hdr.flags & FLAG_STALE_INPUT, 0);
+        assert_eq!(c.omega_hat, 42.0);
+        let p = sc.motor_params().p();
+        assert!((c.theta_hat - wrap_2pi(p * 0.2)).abs() < 1e-12, "{c:?}");
+        assert_eq!(s.fallback_samples, 1);
+    }
+
+    #[test]
+    fn sensorless_current_loop_without_estimate_commands_zero_voltage() {
+        let sc = scenario("low-rst-sensorless");
+        let mut s = CurrentLoopStage::new(&sc);
+        let mut ib = Inbox::default();
+        ib.put(Msg::Meas(meas(5, 0.2)));
+        ib.set_stale(TopicId::Est, 3);
+        let mut out = Outbox::default();
+        s.step(5, &ib, &mut out);
+        let c = cmd_of(&out);
+        assert_eq!(c.u_ab, [0.0, 0.0]);
+        assert_ne!(c.hdr.flags & FLAG_STALE_INPUT, 0);
+    }
+
+    #[test]
+    fn current_loop_ramps_i_q_ref_to_zero_after_two_speed_periods() {
+        let sc = scenario("kyslan-pi");
+        let n = u64::from(sc.rates.speed_divider);
+        let ramp = sc.i_q_max() * sc.rates.ts() / 0.02;
+        let mut s = CurrentLoopStage::new(&sc);
+        let step = |s: &mut CurrentLoopStage, k: u64, fresh: bool| {
+            let mut ib = Inbox::default();
+            ib.put(Msg::Meas(meas(k, 0.0)));
+            ib.put(Msg::Est(est(k, 0.0)));
+            ib.put(Msg::Iref(iref(0, 1.0)));
+            if !fresh {
+                ib.set_stale(TopicId::Iref, 1);
+            }
+            let mut out = Outbox::default();
+            s.step(k, &ib, &mut out);
+            cmd_of(&out)
+        };
+        assert_eq!(step(&mut s, 1, true).i_dq_ref[1], 1.0);
+        // Held for 2 speed periods, unflagged.
+        for k in 2..2 + 2 * n {
+            let c = step(&mut s, k, false);
+            assert_eq!(c.i_dq_ref[1], 1.0, "k = {k}");
+            assert_eq!(c.hdr.flags & FLAG_STALE_INPUT, 0);
+        }
+        // Then a ramp of i_max·T_s/20 ms per sample, flagged.
+        let c = step(&mut s, 2 + 2 * n, false);
+        assert!((c.i_dq_ref[1] - (1.0 - ramp)).abs() < 1e-12, "{c:?}");
+        assert_ne!(c.hdr.flags & FLAG_STALE_INPUT, 0);
+        let c = step(&mut s, 3 + 2 * n, false);
+        assert!((c.i_dq_ref[1] - (1.0 - 2.0 * ramp)).abs() < 1e-12, "{c:?}");
+        // A fresh reference ends it.
+        assert_eq!(step(&mut s, 4 + 2 * n, true).i_dq_ref[1], 1.0);
+    }
+
+    #[test]
+    fn speed_loop_without_estimate_holds_its_output_flagged() {
+        let sc = scenario("kyslan-pi");
+        let n = u64::from(sc.rates.speed_divider);
+        let mut s = SpeedLoopStage::new(&sc);
+        let mut ib = Inbox::default();
+        ib.put(Msg::Est(est(0, 0.0)));
+        let mut out = Outbox::default();
+        s.step(0, &ib, &mut out);
+        let Some(Msg::Iref(first)) = out.get(TopicId::Iref).copied() else {
+            panic!("no output")
+        };
+        let mut ib = Inbox::default();
+        ib.put(Msg::Est(est(0, 0.0)));
+        ib.set_stale(TopicId::Est, 1);
+        let mut out = Outbox::default();
+        s.step(n, &ib, &mut out);
+        let Some(Msg::Iref(held)) = out.get(TopicId::Iref).copied() else {
+            panic!("no held output")
+        };
+        assert_eq!(held.hdr.k, n);
+        assert_ne!(held.hdr.flags & FLAG_STALE_INPUT, 0);
+        assert_eq!(
+            (held.i_q_ref, held.omega_ref),
+            (first.i_q_ref, first.omega_ref)
+        );
+        assert_eq!(s.held_samples, 1);
+    }
+
+    #[test]
+    fn speed_loop_follows_an_outer_speed_reference() {
+        let sc = scenario("kyslan-pi");
+        let mut s = SpeedLoopStage::new(&sc);
+        let mut ib = Inbox::default();
+        ib.put(Msg::Est(est(0, 0.0)));
+        ib.put(Msg::Wref(SpeedRef {
+            omega_ref: 12.5,
+            ..Default::default()
+        }));
+        let mut out = Outbox::default();
+        s.step(0, &ib, &mut out);
+        let Some(Msg::Iref(r)) = out.get(TopicId::Iref).copied() else {
+            panic!("no output")
+        };
+        assert_eq!(r.omega_ref, 12.5);
+    }
+
+    #[test]
+    fn plant_holds_a_missing_command_then_goes_to_the_safe_state() {
+        let sc = scenario("kyslan-pi");
+        let hold = u64::from(sc.inverter.hold_samples);
+        let mut s = PlantStage::new(&sc);
+        let mut ib = Inbox::default();
+        let mut out = Outbox::default();
+        s.step(0, &ib, &mut out);
+        ib.put(Msg::Cmd(VoltageCommand {
+            u_ab: [5.0, 0.0],
+            ..Default::default()
+        }));
+        ib.set_stale(TopicId::Cmd, 1);
+        for k in 1..=hold + 1 {
+            let mut out = Outbox::default();
+            s.step(k, &ib, &mut out);
+            let Some(Msg::Meas(m)) = out.get(TopicId::Meas).copied() else {
+                panic!()
+            };
+            assert_ne!(m.hdr.flags & FLAG_STALE_CMD, 0, "k = {k}");
+            let safe = m.hdr.flags & FLAG_SAFE_STATE != 0;
+            assert_eq!(safe, k > hold, "k = {k}");
+            s.after_publish();
+        }
+    }
+
+    #[test]
+    fn observer_rejoins_from_two_consecutive_measurements() {
+        let sc = scenario("kyslan-pi");
+        let mut s = ObserverStage::new(&sc);
+        let mut ib = Inbox::default();
+        ib.put(Msg::Meas(meas(100, 1.0)));
+        assert_eq!(s.rejoin(100, &ib), Rejoin::NeedMore);
+        // Not consecutive: a new seed.
+        ib.put(Msg::Meas(meas(102, 1.0)));
+        assert_eq!(s.rejoin(102, &ib), Rejoin::NeedMore);
+        let dtheta = 0.001;
+        ib.put(Msg::Meas(meas(103, 1.0 + dtheta)));
+        assert_eq!(s.rejoin(103, &ib), Rejoin::Done);
+        let mut out = Outbox::default();
+        ib.put(Msg::Meas(meas(104, 1.0 + 2.0 * dtheta)));
+        s.step(104, &ib, &mut out);
+        let Some(Msg::Est(e)) = out.get(TopicId::Est).copied() else {
+            panic!()
+        };
+        let w = dtheta / sc.rates.ts();
+        assert!((e.omega_m - w).abs() < 0.05 * w, "ω̂ {} vs {w}", e.omega_m);
+    }
+}
