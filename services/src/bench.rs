@@ -182,6 +182,7 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str) -> Result<VariantResult> {
         faults: Vec::new(),
         restart: launcher::Restart::Never,
         fault_seed: 0,
+        topology: None,
     };
     let r = launcher::run(&o)?;
     let cycle = LatencyHist::read_v2("cycle", &out.join("cycle.hdr"))?;
@@ -399,6 +400,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         faults: Vec::new(),
         restart: launcher::Restart::Never,
         fault_seed: 0,
+        topology: None,
     })?;
     bar.inc(1);
     bar.set_message("in-process speed");

@@ -9,8 +9,8 @@ use serde::Serialize;
 pub struct Fault {
     /// `kill` (SIGKILL) or `stop` (SIGSTOP, then SIGCONT after `duration_s`).
     pub kind: FaultKind,
-    /// Target service.
-    pub service: &'static str,
+    /// Target stage (the process that hosts it is signalled).
+    pub service: String,
     /// When, seconds after sample 0.
     pub at_s: f64,
     /// For `stop`: how long the process stays stopped, s.
@@ -27,12 +27,17 @@ pub enum FaultKind {
     Stop,
 }
 
-fn service(name: &str) -> Result<&'static str> {
-    SERVICES
-        .iter()
-        .copied()
-        .find(|s| *s == name)
-        .ok_or_else(|| anyhow!("unknown service '{name}' (known: {})", SERVICES.join(", ")))
+/// A stage name as a fault target: checked for its form here, against the run's topology
+/// by [`plan`].
+fn service(name: &str) -> Result<String> {
+    if name.is_empty()
+        || !name
+            .chars()
+            .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-')
+    {
+        bail!("unknown stage '{name}' (built-in: {})", SERVICES.join(", "));
+    }
+    Ok(name.to_string())
 }
 
 fn seconds(v: &str, what: &str, spec: &str) -> Result<f64> {
@@ -102,16 +107,31 @@ pub enum FaultSpec {
     Random(u32),
 }
 
-/// Expands the specs into a time-ordered plan. Random kills are spread over
-/// [10 %, 90 %] of the run with a seeded generator, at least `min_gap_s` apart so that each
-/// fault's recovery can be measured.
-pub fn plan(specs: &[FaultSpec], duration_s: f64, seed: u64, min_gap_s: f64) -> Result<Vec<Fault>> {
+/// Expands the specs into a time-ordered plan against the run's `stages`. Random kills of
+/// one of `stages` are spread over [10 %, 90 %] of the run with a seeded generator, at least
+/// `min_gap_s` apart so that each fault's recovery can be measured.
+pub fn plan(
+    specs: &[FaultSpec],
+    duration_s: f64,
+    seed: u64,
+    min_gap_s: f64,
+    stages: &[String],
+) -> Result<Vec<Fault>> {
     use rand::{RngExt, SeedableRng};
     let mut out = Vec::new();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     for s in specs {
         match s {
             FaultSpec::One(f) => {
+                if !stages.contains(&f.service) {
+                    bail!(
+                        "fault {}:{}: unknown stage '{}' (this drive's stages: {})",
+                        kind_name(f.kind),
+                        f.service,
+                        f.service,
+                        stages.join(", ")
+                    );
+                }
                 if f.at_s >= duration_s {
                     bail!(
                         "fault {}:{}@{} is at or after the end of the run ({duration_s} s)",
@@ -134,7 +154,7 @@ pub fn plan(specs: &[FaultSpec], duration_s: f64, seed: u64, min_gap_s: f64) -> 
                 for i in 0..*n {
                     // One fault per slot, at a random instant in the slot's first half.
                     let at = 0.1 * duration_s + slot * (f64::from(i) + 0.5 * rng.random::<f64>());
-                    let service = SERVICES[rng.random_range(0..SERVICES.len())];
+                    let service = stages[rng.random_range(0..stages.len())].clone();
                     out.push(Fault {
                         kind: FaultKind::Kill,
                         service,
@@ -201,18 +221,25 @@ pub fn bus_users(bus: &str) -> Vec<(u32, String)> {
         .collect()
 }
 
-/// Processes of a running drive: (service, pid), found by their `--bus ID` argument.
-pub fn find_services(bus: &str) -> Vec<(&'static str, u32)> {
+/// Stage hosts of a running drive: (stage, process, pid) for every stage each hosts, found
+/// by their `--bus ID`, `--process NAME` and `--hosts STAGES` arguments.
+pub fn find_services(bus: &str) -> Vec<(String, String, u32)> {
+    let arg = |args: &[String], name: &str| -> Option<String> {
+        args.windows(2).find(|w| w[0] == name).map(|w| w[1].clone())
+    };
     processes_with_bus(bus)
         .into_iter()
         .filter_map(|(pid, args)| {
-            let exe = args.first()?.rsplit('/').next()?.to_string();
-            SERVICES
-                .iter()
-                .copied()
-                .find(|s| *s == exe)
-                .map(|s| (s, pid))
+            let process = arg(&args, "--process")?;
+            let hosts = arg(&args, "--hosts")?;
+            Some(
+                hosts
+                    .split(',')
+                    .map(|s| (s.to_string(), process.clone(), pid))
+                    .collect::<Vec<_>>(),
+            )
         })
+        .flatten()
         .collect()
 }
 
@@ -226,7 +253,7 @@ mod tests {
             parse("kill:plant@0.5").unwrap(),
             FaultSpec::One(Fault {
                 kind: FaultKind::Kill,
-                service: "plant",
+                service: "plant".into(),
                 at_s: 0.5,
                 duration_s: 0.0
             })
@@ -235,7 +262,7 @@ mod tests {
             parse("stop:current-loop@1:0.02").unwrap(),
             FaultSpec::One(Fault {
                 kind: FaultKind::Stop,
-                service: "current-loop",
+                service: "current-loop".into(),
                 at_s: 1.0,
                 duration_s: 0.02
             })
@@ -245,10 +272,13 @@ mod tests {
 
     #[test]
     fn bad_specs_are_clear_errors() {
-        assert!(parse("kill:pump@1")
+        assert!(parse("kill:Pump@1")
             .unwrap_err()
             .to_string()
-            .contains("unknown service 'pump'"));
+            .contains("unknown stage 'Pump'"));
+        let stages: Vec<String> = SERVICES.iter().map(|s| s.to_string()).collect();
+        let e = plan(&[parse("kill:pump@1").unwrap()], 2.0, 1, 0.3, &stages).unwrap_err();
+        assert!(e.to_string().contains("unknown stage 'pump'"), "{e}");
         assert!(parse("kill:plant")
             .unwrap_err()
             .to_string()
@@ -270,14 +300,15 @@ mod tests {
 
     #[test]
     fn random_plan_is_seeded_sorted_and_spaced() {
-        let a = plan(&[FaultSpec::Random(10)], 20.0, 7, 1.0).unwrap();
-        let b = plan(&[FaultSpec::Random(10)], 20.0, 7, 1.0).unwrap();
+        let stages: Vec<String> = SERVICES.iter().map(|s| s.to_string()).collect();
+        let a = plan(&[FaultSpec::Random(10)], 20.0, 7, 1.0, &stages).unwrap();
+        let b = plan(&[FaultSpec::Random(10)], 20.0, 7, 1.0, &stages).unwrap();
         assert_eq!(a, b);
         assert_eq!(a.len(), 10);
         for w in a.windows(2) {
             assert!(w[1].at_s - w[0].at_s >= 0.79, "{w:?}");
         }
-        assert!(plan(&[FaultSpec::Random(10)], 2.0, 7, 1.0)
+        assert!(plan(&[FaultSpec::Random(10)], 2.0, 7, 1.0, &stages)
             .unwrap_err()
             .to_string()
             .contains("--duration"));

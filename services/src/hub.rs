@@ -219,7 +219,7 @@ pub fn to_fault(r: &FaultRequest, at_s: f64) -> Result<crate::faults::Fault> {
     };
     Ok(Fault {
         kind,
-        service,
+        service: service.to_string(),
         at_s,
         duration_s,
     })

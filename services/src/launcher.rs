@@ -8,6 +8,8 @@ use drivelab::config::{Scenario, SERVICES};
 use drivelab::drive::{trace_row, DriveDesign};
 use drivelab::messages::{Measurement, VoltageCommand};
 use drivelab::metrics::speed_metrics;
+use drivelab::service::TopologyPlan;
+use drivelab::topology::{ProcessSpec, StageInfo};
 use drivelab::trace::TraceRow;
 use serde::Serialize;
 use serde_json::json;
@@ -59,6 +61,8 @@ pub struct RunOptions {
     pub restart: Restart,
     /// Seed of `random:N` fault plans.
     pub fault_seed: u64,
+    /// Topology override: a shipped name or a file with `[[process]]` tables.
+    pub topology: Option<String>,
 }
 
 /// What the supervisor does when a service dies.
@@ -82,8 +86,11 @@ pub struct SupEvent {
     pub k: u64,
     /// inject, resume, exited, reaped, restarted, ready.
     pub event: String,
-    /// Service.
+    /// Stage (inject, resume) or process (exited, restarted, ready); "-" for the bus.
     pub service: String,
+    /// The process concerned.
+    #[serde(default)]
+    pub process: String,
     /// Details.
     pub detail: String,
 }
@@ -264,11 +271,32 @@ fn run_recorder(
 }
 
 struct ChildProc {
-    name: &'static str,
+    /// Process name in the topology.
+    name: String,
+    /// Stages it hosts.
+    stages: Vec<String>,
+    /// It hosts the source (the plant).
+    source: bool,
+    spec: ProcessSpec,
+    exe: PathBuf,
     child: Child,
     stdin: Option<ChildStdin>,
     lines: mpsc::Receiver<String>,
     rt: Option<serde_json::Value>,
+}
+
+/// The executable of process `p`: its `exec` (relative to the scenario's folder) or the
+/// built-in host next to this executable.
+fn process_binary(p: &ProcessSpec, base: &Path) -> Result<PathBuf> {
+    match drivelab::topology::exec_path(p, base) {
+        Some(e) if e.is_file() => Ok(e),
+        Some(e) => bail!(
+            "process '{}': executable {} not found (build it first: cargo build --release --workspace)",
+            p.name,
+            e.display()
+        ),
+        None => service_binary("drivelab-host"),
+    }
 }
 
 fn service_binary(name: &str) -> Result<PathBuf> {
@@ -286,43 +314,55 @@ fn service_binary(name: &str) -> Result<PathBuf> {
     Ok(p)
 }
 
-fn spawn_service(
-    name: &'static str,
-    sc_path: &Path,
-    bus_id: &str,
+struct Spawn<'a> {
+    sc_path: &'a Path,
+    topo_path: &'a Path,
+    bus_id: &'a str,
     clock: BusClock,
-    o: &RunOptions,
-    out: &Path,
+    o: &'a RunOptions,
+    out: &'a Path,
+}
+
+fn spawn_service(
+    p: &ProcessSpec,
+    exe: &Path,
+    source: bool,
+    sp: &Spawn,
     rejoin_from: Option<&Path>,
 ) -> Result<ChildProc> {
-    let mut cmd = Command::new(service_binary(name)?);
-    cmd.arg("--scenario").arg(sc_path).arg("--bus").arg(bus_id);
-    cmd.arg("--clock").arg(match clock {
+    let mut cmd = Command::new(exe);
+    cmd.arg("--scenario").arg(sp.sc_path);
+    cmd.arg("--topology").arg(sp.topo_path);
+    cmd.arg("--process").arg(&p.name);
+    cmd.arg("--hosts").arg(p.stages.join(","));
+    cmd.arg("--bus").arg(sp.bus_id);
+    cmd.arg("--clock").arg(match sp.clock {
         BusClock::Realtime => "realtime",
         BusClock::Lockstep => "lockstep",
     });
-    cmd.arg("--out").arg(out);
-    if o.rt_strict {
+    cmd.arg("--out").arg(sp.out);
+    if sp.o.rt_strict {
         cmd.arg("--rt-strict");
     }
-    if o.no_rt {
+    if sp.o.no_rt {
         cmd.arg("--no-rt");
     }
-    if name == "plant" {
+    if source {
         cmd.arg("--recorder");
     }
     if let Some(f) = rejoin_from {
         cmd.arg("--rejoin");
-        if name == "plant" {
+        if source {
             cmd.arg("--rejoin-from").arg(f);
         }
     }
     cmd.stdin(Stdio::piped())
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit());
+    let name = p.name.clone();
     let mut child = cmd
         .spawn()
-        .with_context(|| format!("cannot start {name}"))?;
+        .with_context(|| format!("cannot start process {name} ({})", exe.display()))?;
     let stdout = child.stdout.take().expect("piped");
     let stdin = child.stdin.take();
     let (tx, rx) = mpsc::channel();
@@ -335,6 +375,10 @@ fn spawn_service(
     });
     Ok(ChildProc {
         name,
+        stages: p.stages.clone(),
+        source,
+        spec: p.clone(),
+        exe: exe.to_path_buf(),
         child,
         stdin,
         lines: rx,
@@ -371,6 +415,7 @@ fn terminate(children: &mut [ChildProc]) {
 fn run_bus(
     sc: &Scenario,
     sc_path: &Path,
+    plan_topo: &TopologyPlan,
     o: &RunOptions,
     out: &Path,
     clock: BusClock,
@@ -406,7 +451,17 @@ fn run_bus(
             .spawn(move || run_recorder(b, w, n, s, pr, ready_tx))?
     };
     let fs = sc.rates.sample_hz;
-    let plan = crate::faults::plan(&o.faults, sc.duration_s, o.fault_seed, 0.3)?;
+    let stage_names: Vec<String> = plan_topo.stages.iter().map(|s| s.name.clone()).collect();
+    let plan = crate::faults::plan(&o.faults, sc.duration_s, o.fault_seed, 0.3, &stage_names)?;
+    let topo_path = out.join("topology.json");
+    let sp = Spawn {
+        sc_path,
+        topo_path: &topo_path,
+        bus_id: &bus_id,
+        clock,
+        o,
+        out,
+    };
     if !plan.is_empty() && clock != BusClock::Realtime {
         bail!("fault injection needs --clock realtime");
     }
@@ -419,8 +474,11 @@ fn run_bus(
         // The telemetry hub subscribes to the services' statuses before they start.
         let mut hub = crate::hub::Hub::new(&bus_id, sc, clock == BusClock::Lockstep)?;
         let mut children = Vec::new();
-        for name in SERVICES {
-            match spawn_service(name, sc_path, &bus_id, clock, o, out, None) {
+        for (i, p) in plan_topo.processes.iter().enumerate() {
+            // `exec` paths were made absolute when the topology was resolved.
+            let spawned = process_binary(p, Path::new("/"))
+                .and_then(|exe| spawn_service(p, &exe, i == 0, &sp, None));
+            match spawned {
                 Ok(c) => children.push(c),
                 Err(e) => return Ok((children, Some(format!("{e:#}")))),
             }
@@ -441,14 +499,14 @@ fn run_bus(
                     }
                     Err(mpsc::RecvTimeoutError::Timeout) => {
                         if let Ok(Some(st)) = c.child.try_wait() {
-                            let name = c.name;
+                            let name = c.name.clone();
                             return Ok((
                                 children,
                                 Some(format!("{name} exited during start-up ({st})")),
                             ));
                         }
                         if t.elapsed() > Duration::from_secs(20) {
-                            let name = c.name;
+                            let name = c.name.clone();
                             return Ok((
                                 children,
                                 Some(format!("{name} did not become ready within 20 s")),
@@ -457,7 +515,7 @@ fn run_bus(
                     }
                     Err(mpsc::RecvTimeoutError::Disconnected) => {
                         let st = c.child.wait().ok();
-                        let name = c.name;
+                        let name = c.name.clone();
                         return Ok((
                             children,
                             Some(format!("{name} exited during start-up ({st:?})")),
@@ -502,11 +560,7 @@ fn run_bus(
             &mut events,
             &progress,
             sc,
-            sc_path,
-            &bus_id,
-            clock,
-            o,
-            out,
+            &sp,
             started,
             limit,
         )?;
@@ -542,16 +596,19 @@ fn run_bus(
     for c in &children {
         let rt = c.rt.clone().unwrap_or(serde_json::Value::Null);
         processes.insert(
-            c.name.into(),
-            json!({ "pid": c.child.id(), "cpu": rt.get("cpu"), "policy": rt.get("policy"), "priority": rt.get("priority"), "memory_locked": rt.get("memory_locked") }),
+            c.name.clone(),
+            json!({ "stages": c.stages, "executable": c.exe, "pid": c.child.id(), "cpu": rt.get("cpu"), "policy": rt.get("policy"), "priority": rt.get("priority"), "memory_locked": rt.get("memory_locked") }),
         );
-        let stats_path = out.join(format!("{}.stats.json", c.name));
-        if let Ok(text) = std::fs::read_to_string(&stats_path) {
-            let v: serde_json::Value = serde_json::from_str(&text).unwrap_or_default();
-            counters.insert(
-                c.name.into(),
-                v.get("counters").cloned().unwrap_or_default(),
-            );
+        for st in &c.stages {
+            let stats_path = out.join(format!("{st}.stats.json"));
+            if let Ok(text) = std::fs::read_to_string(&stats_path) {
+                let v: serde_json::Value = serde_json::from_str(&text).unwrap_or_default();
+                let mut cv = v.get("counters").cloned().unwrap_or_default();
+                if let Some(d) = v.get("diagnostics") {
+                    cv["diagnostics"] = d.clone();
+                }
+                counters.insert(st.clone(), cv);
+            }
         }
     }
     let (rows, gaps) = assemble(sc, &rec, counters.contains_key("plant"));
@@ -561,6 +618,92 @@ fn run_bus(
         info["longest_miss_run"] = p["longest_miss_run"].clone();
     }
     Ok((rows, gaps, serde_json::Value::Object(processes), info))
+}
+
+/// Applies `--topology`, resolves the scenario's topology against the stages' declarations
+/// (a user's executable is asked with `--describe`) and makes `exec` paths absolute.
+pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Result<TopologyPlan> {
+    if let Some(t) = &o.topology {
+        let (file, path) = drivelab::topology::load(t).map_err(|e| anyhow!("--topology: {e}"))?;
+        let base = path.parent().unwrap_or(Path::new(".")).to_path_buf();
+        sc.process = file.process;
+        for p in sc.process.iter_mut() {
+            if let Some(e) = drivelab::topology::exec_path(p, &base) {
+                p.exec = Some(e.display().to_string());
+            }
+        }
+        sc.placement = drivelab::config::Placement::default();
+        sc.validate().map_err(|e| anyhow!("--topology {t}: {e}"))?;
+    }
+    let base = sc_src.parent().unwrap_or(Path::new(".")).to_path_buf();
+    let mut procs = sc.topology();
+    for p in procs.iter_mut() {
+        if let Some(e) = drivelab::topology::exec_path(p, &base) {
+            p.exec = Some(e.display().to_string());
+        }
+    }
+    let mut described: BTreeMap<String, Vec<StageInfo>> = BTreeMap::new();
+    let scc = sc.clone();
+    let sc_text = toml::to_string(&scc)?;
+    let resolved = drivelab::topology::resolve(&procs, &mut |p, stage| {
+        if let Some(i) = drivelab::topology::builtin_info(&scc, stage) {
+            if p.exec.is_none() || drivelab::stages::BUILTIN.contains(&stage) {
+                return Ok(i);
+            }
+        }
+        let exe = p
+            .exec
+            .clone()
+            .ok_or_else(|| format!("unknown stage '{stage}'"))?;
+        if !described.contains_key(&exe) {
+            described.insert(
+                exe.clone(),
+                describe(&exe, &sc_text).map_err(|e| format!("process '{}': {e:#}", p.name))?,
+            );
+        }
+        described[&exe]
+            .iter()
+            .find(|i| i.name == stage)
+            .cloned()
+            .ok_or_else(|| {
+                format!(
+                    "process '{}': its executable {exe} hosts no stage '{stage}'",
+                    p.name
+                )
+            })
+    })
+    .map_err(|e| anyhow!(e))?;
+    sc.process = resolved.processes.iter().map(|(p, _)| p.clone()).collect();
+    sc.placement = drivelab::config::Placement::default();
+    Ok(TopologyPlan::from_resolved(&resolved))
+}
+
+/// Asks a user's stage executable which stages it hosts.
+fn describe(exe: &str, sc_text: &str) -> Result<Vec<StageInfo>> {
+    if !Path::new(exe).is_file() {
+        bail!("executable {exe} not found (build it first: cargo build --release --workspace)");
+    }
+    let dir = std::env::temp_dir().join(format!("drivelab-describe-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+    let f = dir.join("scenario.toml");
+    std::fs::write(&f, sc_text)?;
+    let out = Command::new(exe)
+        .arg("--describe")
+        .arg("--scenario")
+        .arg(&f)
+        .stdin(Stdio::null())
+        .output()
+        .with_context(|| format!("cannot run {exe} --describe"));
+    let _ = std::fs::remove_dir_all(&dir);
+    let out = out?;
+    if !out.status.success() {
+        bail!(
+            "{exe} --describe failed: {}",
+            String::from_utf8_lossy(&out.stderr).trim()
+        );
+    }
+    serde_json::from_slice(&out.stdout)
+        .with_context(|| format!("{exe} --describe: not a stage list"))
 }
 
 /// Joins measurements and commands into trace rows. A sample whose command is missing keeps
@@ -631,7 +774,12 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     if let Some(b) = &o.bus {
         bus::check_bus_id(b)?;
     }
-    let sc = load_scenario(&o.scenario, o.duration_s)?;
+    let (mut sc, sc_src) = Scenario::load(&o.scenario).map_err(|e| anyhow!(e))?;
+    if let Some(d) = o.duration_s {
+        sc.duration_s = d;
+        sc.validate().map_err(|e| anyhow!("--duration {d}: {e}"))?;
+    }
+    let topo = resolve_topology(&mut sc, &sc_src, o)?;
     let out = o.out.clone().unwrap_or_else(|| default_out(&sc, o.clock));
     std::fs::create_dir_all(&out)
         .with_context(|| format!("cannot create run folder {}", out.display()))?;
@@ -639,16 +787,26 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     let sc_path = out.join("scenario.toml");
     std::fs::write(&sc_path, toml::to_string(&sc)?)
         .with_context(|| format!("write {}", sc_path.display()))?;
+    std::fs::write(out.join("topology.json"), serde_json::to_vec_pretty(&topo)?)?;
     let wall = Instant::now();
     let (rows, gaps, processes, info) = match o.clock {
-        Clock::Inprocess => (
-            drivelab::drive::run_inprocess(&sc),
-            Vec::new(),
-            json!({}),
-            json!({ "deadline_misses": 0 }),
-        ),
-        Clock::Lockstep => run_bus(&sc, &sc_path, o, &out, BusClock::Lockstep)?,
-        Clock::Realtime => run_bus(&sc, &sc_path, o, &out, BusClock::Realtime)?,
+        Clock::Inprocess => {
+            if let Some(p) = topo.processes.iter().find(|p| p.exec.is_some()) {
+                bail!(
+                    "--clock inprocess runs the built-in stages only; process '{}' hosts user stages ({}): use --clock lockstep",
+                    p.name,
+                    p.stages.join(", ")
+                );
+            }
+            (
+                drivelab::stages::run_inprocess(&sc),
+                Vec::new(),
+                json!({}),
+                json!({ "deadline_misses": 0 }),
+            )
+        }
+        Clock::Lockstep => run_bus(&sc, &sc_path, &topo, o, &out, BusClock::Lockstep)?,
+        Clock::Realtime => run_bus(&sc, &sc_path, &topo, o, &out, BusClock::Realtime)?,
     };
     let wall_s = wall.elapsed().as_secs_f64();
     let events: Vec<SupEvent> = info
@@ -662,6 +820,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
                 k: v["k"].as_u64()?,
                 event: v["event"].as_str()?.into(),
                 service: v["service"].as_str()?.into(),
+                process: v["process"].as_str().unwrap_or_default().into(),
                 detail: v["detail"].as_str()?.into(),
             })
         })
@@ -819,14 +978,11 @@ fn supervise(
     events: &mut Vec<SupEvent>,
     progress: &Progress,
     sc: &Scenario,
-    sc_path: &Path,
-    bus_id: &str,
-    clock: BusClock,
-    o: &RunOptions,
-    out: &Path,
+    sp: &Spawn,
     started: Instant,
     limit: Duration,
 ) -> Result<Option<String>> {
+    let (bus_id, clock, o, out) = (sp.bus_id, sp.clock, sp.o, sp.out);
     use crate::faults::{signal, FaultKind};
     let fs = sc.rates.sample_hz;
     let mut next_fault = 0;
@@ -839,15 +995,17 @@ fn supervise(
     let mut dead = vec![false; children.len()];
     let mut done = vec![false; children.len()];
     let mut awaiting_ready = vec![false; children.len()];
-    let ev = |events: &mut Vec<SupEvent>, event: &str, service: &str, detail: String| {
-        events.push(SupEvent {
-            t_wall_s: started.elapsed().as_secs_f64(),
-            k: progress.next_k.load(Ordering::Relaxed),
-            event: event.into(),
-            service: service.into(),
-            detail,
-        });
-    };
+    let ev =
+        |events: &mut Vec<SupEvent>, event: &str, service: &str, process: &str, detail: String| {
+            events.push(SupEvent {
+                t_wall_s: started.elapsed().as_secs_f64(),
+                k: progress.next_k.load(Ordering::Relaxed),
+                event: event.into(),
+                service: service.into(),
+                process: process.into(),
+                detail,
+            });
+        };
     const MAX_RESTARTS: u32 = 1000;
     loop {
         if crate::common::stop_requested() {
@@ -869,19 +1027,22 @@ fn supervise(
         for r in hub.poll(events, k_now, &progress.tail)? {
             match crate::hub::to_fault(&r, k_now as f64 / fs) {
                 Ok(f) => due.push((f, format!(" (from monitor pid {})", r.pid))),
-                Err(e) => ev(events, "inject-refused", "-", format!("{e:#}")),
+                Err(e) => ev(events, "inject-refused", "-", "-", format!("{e:#}")),
             }
         }
         for (f, origin) in due {
-            let Some(i) = children.iter().position(|c| c.name == f.service) else {
+            // A stage's fault hits the whole process that hosts it.
+            let Some(i) = children.iter().position(|c| c.stages.contains(&f.service)) else {
                 continue;
             };
+            let pname = children[i].name.clone();
             if clock != BusClock::Realtime {
                 // Only a monitor's request can get here: a plan is refused before the start.
                 ev(
                     events,
                     "inject-refused",
-                    f.service,
+                    &f.service,
+                    &pname,
                     "faults need --clock realtime".into(),
                 );
                 continue;
@@ -890,8 +1051,9 @@ fn supervise(
                 ev(
                     events,
                     "inject-skipped",
-                    f.service,
-                    "service not running".into(),
+                    &f.service,
+                    &pname,
+                    "its process is not running".into(),
                 );
                 continue;
             }
@@ -903,7 +1065,8 @@ fn supervise(
             ev(
                 events,
                 "inject",
-                f.service,
+                &f.service,
+                &pname,
                 format!(
                     "{}{}{origin}",
                     crate::faults::kind_name(f.kind),
@@ -921,7 +1084,8 @@ fn supervise(
         pending_cont.retain(|&(t, i)| {
             if now >= t {
                 let _ = signal(children[i].child.id(), libc::SIGCONT);
-                ev(events, "resume", children[i].name, "SIGCONT".into());
+                let n = children[i].name.clone();
+                ev(events, "resume", &n, &n, "SIGCONT".into());
                 false
             } else {
                 true
@@ -937,10 +1101,12 @@ fn supervise(
                 while let Ok(l) = children[i].lines.try_recv() {
                     if l == "READY" {
                         awaiting_ready[i] = false;
+                        let n = children[i].name.clone();
                         ev(
                             events,
                             "ready",
-                            children[i].name,
+                            &n,
+                            &n,
                             format!("pid {}", children[i].child.id()),
                         );
                     } else if let Some(j) = l.strip_prefix("RT ") {
@@ -954,15 +1120,14 @@ fn supervise(
                 Some(st) => {
                     dead[i] = true;
                     any_dead = true;
-                    ev(events, "exited", children[i].name, format!("{st}"));
-                    let injected = events
-                        .iter()
-                        .any(|e| e.event == "inject" && e.service == children[i].name);
+                    let n = children[i].name.clone();
+                    ev(events, "exited", &n, &n, format!("{st}"));
+                    let injected = events.iter().any(|e| e.event == "inject" && e.process == n);
                     if o.restart == Restart::Never || restarts[i] >= MAX_RESTARTS {
                         if !injected {
-                            return Ok(Some(format!("{} failed ({st})", children[i].name)));
+                            return Ok(Some(format!("process {n} failed ({st})")));
                         }
-                        if children[i].name == "plant" {
+                        if children[i].source {
                             // Without a plant there is no drive: stop the rest.
                             return Ok(None);
                         }
@@ -987,6 +1152,7 @@ fn supervise(
                 events,
                 "reaped",
                 "-",
+                "-",
                 format!("dead iceoryx2 nodes cleaned: {}", reaped.join(", ")),
             );
         }
@@ -996,9 +1162,9 @@ fn supervise(
                 still.push((t, i));
                 continue;
             }
-            let name = children[i].name;
+            let name = children[i].name.clone();
             let rejoin_file = out.join(format!("rejoin-{name}.json"));
-            if name == "plant" {
+            if children[i].source {
                 let last = progress.last.lock().ok().and_then(|l| *l);
                 let Some(last) = last else {
                     return Ok(Some(
@@ -1010,7 +1176,12 @@ fn supervise(
                     serde_json::to_vec(&crate::common::measurement_to_json(&last))?,
                 )?;
             }
-            let c = spawn_service(name, sc_path, bus_id, clock, o, out, Some(&rejoin_file))?;
+            let (spec, exe, source) = (
+                children[i].spec.clone(),
+                children[i].exe.clone(),
+                children[i].source,
+            );
+            let c = spawn_service(&spec, &exe, source, sp, Some(&rejoin_file))?;
             children[i] = c;
             restarts[i] += 1;
             last_restart[i] = Some(now);
@@ -1019,7 +1190,8 @@ fn supervise(
             ev(
                 events,
                 "restarted",
-                name,
+                &name,
+                &name,
                 format!("restart #{}, pid {}", restarts[i], children[i].child.id()),
             );
         }
@@ -1041,12 +1213,13 @@ fn supervise(
             } else {
                 ProcState::Alive
             };
-            hub.set_process(i, state, children[i].child.id(), restarts[i]);
+            for st in &children[i].stages {
+                if let Some(j) = SERVICES.iter().position(|s| s == st) {
+                    hub.set_process(j, state, children[i].child.id(), restarts[i]);
+                }
+            }
         }
-        let plant_done = children
-            .iter()
-            .zip(&done)
-            .any(|(c, d)| c.name == "plant" && *d);
+        let plant_done = children.iter().zip(&done).any(|(c, d)| c.source && *d);
         if done.iter().zip(&dead).all(|(d, x)| *d || *x) && pending_restart.is_empty() {
             return Ok(None);
         }
@@ -1074,8 +1247,10 @@ fn supervise(
 pub struct FaultReport {
     /// kill or stop (with its duration).
     pub fault: String,
-    /// Target service.
+    /// Target stage.
     pub service: String,
+    /// The process that was signalled (it hosts the stage, perhaps with others).
+    pub process: String,
     /// Injection: sample index and simulated time, s.
     pub injected_k: u64,
     /// Injection time, s (sample time).
@@ -1137,7 +1312,7 @@ pub fn fault_reports(
             .map(|r| ms(r.k - k0));
         let sup = events
             .iter()
-            .find(|e| e.event == "exited" && e.service == inj.service && e.t_wall_s >= inj.t_wall_s)
+            .find(|e| e.event == "exited" && e.process == inj.process && e.t_wall_s >= inj.t_wall_s)
             .map(|e| (e.t_wall_s - inj.t_wall_s) * 1e3);
         // Fresh again: the first sample after the detection with no stale flag at all.
         let k_det = det.as_ref().map(|d| d.0).unwrap_or(k0);
@@ -1171,6 +1346,7 @@ pub fn fault_reports(
         out.push(FaultReport {
             fault: inj.detail.clone(),
             service: inj.service.clone(),
+            process: inj.process.clone(),
             injected_k: k0,
             injected_t_s: k0 as f64 / fs,
             detected_data_path_ms: det.as_ref().map(|d| ms(d.0 - k0)),

@@ -1,19 +1,15 @@
-//! The drive's processes. Each binary in `src/bin/` is a thin `main` that calls one of the
-//! service loops here; the control maths live in `drivelab-shared`.
+//! The drive's processes. `drivelab-host` (in `src/bin/`) is the generic stage host of
+//! `drivelab::service`; the control maths live in `drivelab-shared`.
 
 pub mod bench;
 pub mod cdm_design;
 pub mod common;
 pub mod compare;
-pub mod current_loop;
 pub mod design;
 pub mod faults;
 pub mod hub;
 pub mod launcher;
 pub mod monitor;
-pub mod observer;
 pub mod observer_error;
-pub mod plant;
 pub mod plotcmd;
 pub mod replay;
-pub mod speed_loop;

@@ -65,6 +65,11 @@ enum Cmd {
         /// Seed of random:N fault plans.
         #[arg(long, default_value_t = 1)]
         fault_seed: u64,
+        /// Topology: which stages share a process, on which core, at which priority. A
+        /// shipped one (four-process, two-process, one-process) or a TOML file with
+        /// [[process]] tables; replaces the scenario's own.
+        #[arg(long, value_name = "NAME|FILE")]
+        topology: Option<String>,
     },
     /// Inject a fault into a drive that is already running (found by its bus id).
     ///
@@ -307,6 +312,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             faults,
             restart,
             fault_seed,
+            topology,
         } => {
             let faults = faults
                 .iter()
@@ -325,6 +331,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 faults,
                 restart,
                 fault_seed,
+                topology,
             };
             let r = launcher::run(&o)?;
             if json {
@@ -509,29 +516,34 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 unreachable!("kill/stop parse to one fault")
             };
             let procs = drivelab_services::faults::find_services(&bus);
-            let Some(&(_, pid)) = procs.iter().find(|(s, _)| *s == f.service) else {
+            let Some((_, pname, pid)) = procs.iter().find(|(s, _, _)| *s == f.service).cloned()
+            else {
                 anyhow::bail!(
-                    "no running {} on bus {bus} (running: {})",
+                    "no running stage {} on bus {bus} (running: {})",
                     f.service,
                     if procs.is_empty() {
                         "none".to_string()
                     } else {
                         procs
                             .iter()
-                            .map(|(s, p)| format!("{s} {p}"))
+                            .map(|(s, p, pid)| format!("{s} in {p} {pid}"))
                             .collect::<Vec<_>>()
                             .join(", ")
                     }
                 );
             };
+            // A stage's fault hits the whole process that hosts it.
             if kind == "kill" {
                 drivelab_services::faults::signal(pid, libc::SIGKILL)?;
-                eprintln!("killed {} (pid {pid})", f.service);
+                eprintln!("killed {} (process {pname}, pid {pid})", f.service);
             } else {
                 drivelab_services::faults::signal(pid, libc::SIGSTOP)?;
                 std::thread::sleep(std::time::Duration::from_secs_f64(duration));
                 drivelab_services::faults::signal(pid, libc::SIGCONT)?;
-                eprintln!("stopped {} (pid {pid}) for {duration} s", f.service);
+                eprintln!(
+                    "stopped {} (process {pname}, pid {pid}) for {duration} s",
+                    f.service
+                );
             }
             Ok(())
         }

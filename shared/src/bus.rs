@@ -22,6 +22,8 @@ pub const TOPIC_EST: &str = "drivelab/est";
 pub const TOPIC_IREF: &str = "drivelab/iref";
 /// Voltage commands.
 pub const TOPIC_CMD: &str = "drivelab/cmd";
+/// Speed references of an outer loop (e.g. a position loop).
+pub const TOPIC_WREF: &str = "drivelab/wref";
 /// Recorder progress (lockstep flow control).
 pub const TOPIC_REC: &str = "drivelab/recorder";
 
@@ -355,6 +357,8 @@ pub struct DriveTopics {
     pub cmd: Topic<crate::messages::VoltageCommand>,
     /// Recorder progress: highest k below which every sample has been stored.
     pub rec: Topic<u64>,
+    /// Speed references of an outer loop.
+    pub wref: Topic<crate::messages::SpeedRef>,
     _seg: Option<Arc<WakeSegment>>,
 }
 
@@ -377,6 +381,7 @@ impl DriveTopics {
             iref: Topic::open_with(node, TOPIC_IREF, w(2)).context("current-reference topic")?,
             cmd: Topic::open_with(node, TOPIC_CMD, w(3)).context("command topic")?,
             rec: Topic::open_with(node, TOPIC_REC, w(4)).context("recorder topic")?,
+            wref: Topic::open_with(node, TOPIC_WREF, w(5)).context("speed-reference topic")?,
             _seg: seg.clone(),
         })
     }

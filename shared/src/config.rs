@@ -5,6 +5,7 @@
 
 use crate::motor::MotorParams;
 use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 /// A complete scenario.
@@ -56,6 +57,14 @@ pub struct Scenario {
     /// How the plant waits for its deadlines.
     #[serde(default)]
     pub timing: Timing,
+    /// Parameters of user-written stages, one table per stage name (`[stages.NAME]`); a
+    /// stage's `rate_hz` sets its rate (it must divide the sample rate).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub stages: BTreeMap<String, toml::Table>,
+    /// The topology: which stages each process hosts, its core and priority. Empty: the
+    /// four-process layout with `[placement]`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub process: Vec<crate::topology::ProcessSpec>,
 }
 
 /// How the plant (timing master) waits for each sample instant in real time.
@@ -541,6 +550,44 @@ impl Scenario {
         self.motor.resolve().expect("validated scenario")
     }
 
+    /// The topology: the `[[process]]` tables, or one process per built-in stage placed by
+    /// `[placement]`.
+    pub fn topology(&self) -> Vec<crate::topology::ProcessSpec> {
+        if !self.process.is_empty() {
+            return self.process.clone();
+        }
+        SERVICES
+            .iter()
+            .map(|s| {
+                let p = self.placement.get(s).expect("known service");
+                crate::topology::ProcessSpec {
+                    name: s.to_string(),
+                    stages: vec![s.to_string()],
+                    cpu: p.core,
+                    priority: p.priority,
+                    exec: None,
+                }
+            })
+            .collect()
+    }
+
+    /// The rate divider of user stage `name` (`[stages.NAME] rate_hz`), if set.
+    pub fn stage_divider(&self, name: &str) -> Option<u64> {
+        let hz = self
+            .stages
+            .get(name)?
+            .get("rate_hz")?
+            .as_float()
+            .or_else(|| {
+                self.stages
+                    .get(name)?
+                    .get("rate_hz")?
+                    .as_integer()
+                    .map(|i| i as f64)
+            })?;
+        Some((self.rates.sample_hz / hz).round() as u64)
+    }
+
     /// Number of samples in the run.
     pub fn samples(&self) -> u64 {
         (self.duration_s * self.rates.sample_hz).round() as u64
@@ -655,6 +702,30 @@ impl Scenario {
                 )
             },
         )?;
+        if !self.process.is_empty() {
+            check(self.placement == Placement::default(), || {
+                "give the placement either in [placement] or in [[process]] tables, not both"
+                    .to_string()
+            })?;
+            crate::topology::check_specs(&self.process)?;
+        }
+        for (name, t) in &self.stages {
+            if let Some(v) = t.get("rate_hz") {
+                let hz = v.as_float().or_else(|| v.as_integer().map(|i| i as f64));
+                let ok = hz.is_some_and(|hz| {
+                    hz.is_finite()
+                        && hz > 0.0
+                        && hz <= r.sample_hz
+                        && ((r.sample_hz / hz) - (r.sample_hz / hz).round()).abs() < 1e-9
+                });
+                check(ok, || {
+                    format!(
+                        "stages.{name}.rate_hz = {v} must divide the sample rate {} Hz",
+                        r.sample_hz
+                    )
+                })?;
+            }
+        }
         crate::observer_sensorless::validate(self)?;
         crate::control::rst::validate(self)?;
         crate::control::polar::validate(self)?;

@@ -148,7 +148,8 @@ impl Msg {
 }
 
 /// How a stage receives an input.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum Role {
     /// The input whose arrival runs the stage (one per stage; the source stage has none: the
     /// clock runs it).
@@ -161,7 +162,8 @@ pub enum Role {
 }
 
 /// What a stale input means.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum OnStale {
     /// The stage still runs; [`Stage::step`] sees the input as stale and applies its own
     /// fallback (hold, safe state, another sensor). For a trigger: the host runs the stage
@@ -172,7 +174,7 @@ pub enum OnStale {
 }
 
 /// One declared input of a stage.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct InputSpec {
     /// The topic.
     pub topic: TopicId,

@@ -1,0 +1,815 @@
+//! A stage host process on the iceoryx2 bus: arguments, signals, the bus transport, RT
+//! set-up, the start handshake with the launcher, live status and the statistics files.
+//!
+//! `drivelab-host` is [`host_main`] with the built-in stages; a user's stage crate is the
+//! same `main` with its own stages added (see `examples/position-loop`).
+
+use crate::bus::{self, DriveTopics, Poker, Receiver, Sender};
+use crate::config::Scenario;
+use crate::host::{Counters, Host, HostConfig, Pacing, StageHists, Transport};
+use crate::messages::*;
+use crate::rt::{setup_rt, RtPolicy, RtReport, RtRequest};
+use crate::stage::{Msg, Role, Stage, TopicId, N_TOPICS};
+use crate::telemetry::{open_plain, Plain, PlainSender, ServiceStatus, TOPIC_STATUS};
+use crate::timing::{CycleMonitor, LatencyHist};
+use crate::topology::{ProcessSpec, Producer, StageInfo};
+use anyhow::{anyhow, bail, Context, Result};
+use clap::{Parser, ValueEnum};
+use serde::{Deserialize, Serialize};
+use std::io::{BufRead, Write};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+/// How the source paces the samples.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BusClock {
+    /// The source sleeps to absolute deadlines; a late command is a deadline miss.
+    Realtime,
+    /// The source waits for each command; no wall clock; reproducible bit for bit.
+    Lockstep,
+}
+
+/// Arguments of a stage host (normally given by `drivelab run`).
+#[derive(Debug, Parser)]
+#[command(about = "drivelab stage host: runs the stages of one process of a drive's topology")]
+pub struct HostArgs {
+    /// Resolved scenario file (TOML), as written by `drivelab run` into the run folder.
+    #[arg(long)]
+    pub scenario: PathBuf,
+    /// Resolved topology (JSON), as written by `drivelab run` into the run folder.
+    #[arg(long, required_unless_present = "describe")]
+    pub topology: Option<PathBuf>,
+    /// Name of the process of the topology that this host runs.
+    #[arg(long, required_unless_present = "describe")]
+    pub process: Option<String>,
+    /// The stages this process hosts, comma-separated (as the topology says; lets tools such
+    /// as `drivelab fault` find a stage's process from its command line).
+    #[arg(long, value_name = "STAGES")]
+    pub hosts: Option<String>,
+    /// Bus id: isolates this drive's shared memory (1-24 characters of A-Z, a-z, 0-9, _).
+    #[arg(long, required_unless_present = "describe")]
+    pub bus: Option<String>,
+    /// Pacing of the cycle.
+    #[arg(long, value_enum, default_value_t = BusClock::Realtime)]
+    pub clock: BusClock,
+    /// Fail instead of warning when a core, SCHED_FIFO priority or mlock is refused.
+    #[arg(long)]
+    pub rt_strict: bool,
+    /// Skip pinning, SCHED_FIFO and mlock entirely.
+    #[arg(long)]
+    pub no_rt: bool,
+    /// Folder for the statistics files (`<stage>.stats.json`, histograms).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Source only: in lockstep, do not run more than half a recorder buffer ahead of the
+    /// recorder (so that it never loses a sample).
+    #[arg(long)]
+    pub recorder: bool,
+    /// Restarted by the supervisor: skip the start handshake and take over from the running
+    /// drive.
+    #[arg(long)]
+    pub rejoin: bool,
+    /// Source only, with --rejoin: JSON file with the last measurement the recorder saw.
+    #[arg(long, value_name = "FILE")]
+    pub rejoin_from: Option<PathBuf>,
+    /// Print the declarations of the stages this executable can host (JSON) and exit.
+    #[arg(long)]
+    pub describe: bool,
+}
+
+/// A resolved topology as the launcher hands it to the hosts.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct TopologyPlan {
+    /// Processes with their stages in chain order.
+    pub processes: Vec<ProcessSpec>,
+    /// Every produced topic.
+    pub producers: Vec<Producer>,
+    /// Every stage's declaration, in process and chain order.
+    pub stages: Vec<StageInfo>,
+}
+
+impl TopologyPlan {
+    /// From a resolved topology.
+    pub fn from_resolved(r: &crate::topology::Resolved) -> Self {
+        Self {
+            processes: r.processes.iter().map(|(p, _)| p.clone()).collect(),
+            producers: r.producers.clone(),
+            stages: r
+                .processes
+                .iter()
+                .flat_map(|(_, s)| s.iter().cloned())
+                .collect(),
+        }
+    }
+}
+
+/// Builds a user stage from the scenario.
+pub type StageFactory = fn(&Scenario) -> Result<Box<dyn Stage>>;
+
+static STOP: AtomicBool = AtomicBool::new(false);
+
+extern "C" fn on_signal(_sig: libc::c_int) {
+    STOP.store(true, Ordering::SeqCst);
+}
+
+/// Installs SIGINT/SIGTERM handlers that set the stop flag (iceoryx2's own handling is off).
+pub fn install_signal_handlers() -> Result<()> {
+    for sig in [libc::SIGINT, libc::SIGTERM] {
+        // SAFETY: `sigaction` is given a zero-initialised struct whose handler is an
+        // `extern "C"` function that only stores to an atomic, which is async-signal-safe.
+        let rc = unsafe {
+            let mut sa: libc::sigaction = std::mem::zeroed();
+            sa.sa_sigaction = on_signal as *const () as libc::sighandler_t;
+            libc::sigemptyset(&mut sa.sa_mask);
+            libc::sigaction(sig, &sa, std::ptr::null_mut())
+        };
+        if rc != 0 {
+            return Err(anyhow!(
+                "cannot install handler for signal {sig}: {}",
+                std::io::Error::last_os_error()
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// True once SIGINT or SIGTERM arrived.
+pub fn stop_requested() -> bool {
+    STOP.load(Ordering::Relaxed)
+}
+
+/// Writes one protocol line to stdout (to the launcher) and flushes it.
+pub fn protocol_line(line: &str) -> Result<()> {
+    let mut out = std::io::stdout().lock();
+    writeln!(out, "{line}")?;
+    out.flush()?;
+    Ok(())
+}
+
+/// Builds stage `name`: a built-in one or one of `user`.
+pub fn make_stage(
+    name: &str,
+    sc: &Scenario,
+    user: &[(&str, StageFactory)],
+) -> Result<Box<dyn Stage>> {
+    if let Some((_, f)) = user.iter().find(|(n, _)| *n == name) {
+        return f(sc).with_context(|| format!("stage '{name}'"));
+    }
+    crate::stages::builtin(name, sc).ok_or_else(|| {
+        let mut known: Vec<&str> = crate::stages::BUILTIN.to_vec();
+        known.extend(user.iter().map(|(n, _)| *n));
+        anyhow!(
+            "this executable hosts no stage '{name}' (it hosts: {})",
+            known.join(", ")
+        )
+    })
+}
+
+/// The `main` of a stage host: the built-in stages plus `user`. Prints a one-line error and
+/// exits 1 on failure.
+pub fn host_main(user: &[(&'static str, StageFactory)]) -> std::process::ExitCode {
+    let args = HostArgs::parse();
+    let name = args.process.clone().unwrap_or_else(|| "host".into());
+    if let Err(e) = install_signal_handlers().and_then(|_| run_host(args, user)) {
+        eprintln!("{name}: error: {e:#}");
+        return std::process::ExitCode::from(1);
+    }
+    std::process::ExitCode::SUCCESS
+}
+
+fn load_scenario(path: &std::path::Path) -> Result<Scenario> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read scenario {}", path.display()))?;
+    Scenario::from_toml(&text, &path.display().to_string()).map_err(|e| anyhow!(e))
+}
+
+fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()> {
+    let sc = load_scenario(&args.scenario)?;
+    if args.describe {
+        let mut infos = Vec::new();
+        for (n, _) in user {
+            let s = make_stage(n, &sc, user)?;
+            infos.push(StageInfo {
+                name: s.name().to_string(),
+                inputs: s.inputs().to_vec(),
+                outputs: s.outputs().to_vec(),
+                divider: s.divider(),
+            });
+        }
+        protocol_line(&serde_json::to_string(&infos)?)?;
+        return Ok(());
+    }
+    let topo_path = args.topology.as_ref().expect("required by clap");
+    let plan: TopologyPlan = serde_json::from_str(
+        &std::fs::read_to_string(topo_path)
+            .with_context(|| format!("cannot read topology {}", topo_path.display()))?,
+    )
+    .with_context(|| format!("topology {}", topo_path.display()))?;
+    let pname = args.process.clone().expect("required by clap");
+    let bus_id = args.bus.clone().expect("required by clap");
+    let pi = plan
+        .processes
+        .iter()
+        .position(|p| p.name == pname)
+        .ok_or_else(|| anyhow!("the topology has no process '{pname}'"))?;
+    let proc = plan.processes[pi].clone();
+    if let Some(h) = &args.hosts {
+        if *h != proc.stages.join(",") {
+            bail!(
+                "--hosts {h} differs from the topology's stages of process '{pname}': {}",
+                proc.stages.join(",")
+            );
+        }
+    }
+    let stages: Vec<Box<dyn Stage>> = proc
+        .stages
+        .iter()
+        .map(|s| make_stage(s, &sc, user))
+        .collect::<Result<_>>()?;
+    for s in &stages {
+        for w in s.warnings() {
+            eprintln!("{}: warning: {w}", s.name());
+        }
+    }
+    let bindings: Vec<(TopicId, u64, bool)> = plan
+        .producers
+        .iter()
+        .map(|p| (p.topic, p.divider, p.process == pi))
+        .collect();
+    let source = pi == 0;
+    let lockstep = args.clock == BusClock::Lockstep;
+    let node = bus::node(&bus_id, &pname)?;
+    let topics = DriveTopics::open_with(&node, sc.timing.wake, &bus_id)?;
+    // Which topics this process receives, sends, waits on and pokes.
+    let mut waited = [false; N_TOPICS];
+    let mut polled = [false; N_TOPICS];
+    let mut sent = [false; N_TOPICS];
+    let external = |t: TopicId| bindings.iter().any(|(x, _, local)| *x == t && !*local);
+    for s in &stages {
+        for &t in s.outputs() {
+            sent[t.index()] = true;
+        }
+        for i in s.inputs() {
+            if !external(i.topic) {
+                continue;
+            }
+            match i.role {
+                Role::Trigger => waited[i.topic.index()] = true,
+                Role::Latest if lockstep => waited[i.topic.index()] = true,
+                Role::Latest => polled[i.topic.index()] = true,
+                Role::Rejoin if args.rejoin => polled[i.topic.index()] = true,
+                Role::Rejoin => {}
+            }
+        }
+    }
+    // Not the source, in real time: the source's output tells where the drive is.
+    if !source && !lockstep {
+        polled[TopicId::Meas.index()] = true;
+    }
+    // The source pokes the triggers of the other processes when its delayed input is
+    // missing, so that they check their inputs' age without a timer of their own.
+    let mut poke = Vec::new();
+    if source {
+        for (i, p) in plan.processes.iter().enumerate().skip(1) {
+            let _ = p;
+            for st in plan
+                .stages
+                .iter()
+                .filter(|s| plan.processes[i].stages.contains(&s.name))
+            {
+                for inp in &st.inputs {
+                    if inp.role == Role::Trigger
+                        && !sent[inp.topic.index()]
+                        && !poke.contains(&inp.topic)
+                    {
+                        poke.push(inp.topic);
+                    }
+                }
+            }
+        }
+    }
+    let mut tr = BusTransport::open(
+        &topics,
+        &waited,
+        &polled,
+        &sent,
+        &poke,
+        lockstep && source && args.recorder,
+    )?;
+    tr.status = stages
+        .iter()
+        .map(|s| StatusPublisher::new(&node, s.name(), &sc))
+        .collect::<Result<_>>()?;
+    // Connect now (a restarted process joins running peers), not at real-time priority.
+    tr.connect()?;
+    let rejoin_from = if args.rejoin && source {
+        let path = args
+            .rejoin_from
+            .as_ref()
+            .ok_or_else(|| anyhow!("--rejoin of the source needs --rejoin-from FILE"))?;
+        let text =
+            std::fs::read_to_string(path).with_context(|| format!("read {}", path.display()))?;
+        Some(Msg::Meas(measurement_from_json(&serde_json::from_str(
+            &text,
+        )?)?))
+    } else {
+        None
+    };
+    let mut host = Host::new(
+        stages,
+        &bindings,
+        tr,
+        HostConfig {
+            pacing: if lockstep {
+                Pacing::Lockstep
+            } else {
+                Pacing::Realtime
+            },
+            samples: sc.samples(),
+            ts_ns: sc.rates.ts_ns(),
+            spin_ns: (sc.timing.plant_spin_us * 1e3).round() as u64,
+            rejoin: args.rejoin,
+            rejoin_from,
+            warm_up: true,
+            poke,
+            clock_topic: TopicId::Meas,
+        },
+    );
+    host.stop_when(stop_requested);
+    // Last: everything above (designs, histograms, ports) is set-up work, not real-time.
+    let report = apply_placement(&pname, &proc, &args)?;
+    protocol_line("READY")?;
+    if source && !args.rejoin {
+        // Wait for the launcher's GO (everyone is subscribed by then).
+        let mut line = String::new();
+        std::io::stdin().lock().read_line(&mut line)?;
+        if line.trim() != "GO" {
+            bail!(
+                "launcher did not say GO (got {:?}); not starting",
+                line.trim()
+            );
+        }
+    }
+    host.run()?;
+    for h in &host.stages {
+        for w in h.stage.exit_warnings() {
+            eprintln!("{}: warning: {w}", h.stage.name());
+        }
+    }
+    write_stats(&args, &pname, &report, &host)
+}
+
+/// Applies the process's placement and prints the one-line report to stderr; also sends
+/// `RT <json>` on stdout for the launcher.
+fn apply_placement(process: &str, p: &ProcessSpec, args: &HostArgs) -> Result<RtReport> {
+    let req = if args.no_rt {
+        RtRequest {
+            core: None,
+            fifo_priority: None,
+            lock_memory: false,
+            prefault_stack_bytes: 0,
+        }
+    } else {
+        RtRequest {
+            core: p.cpu,
+            fifo_priority: p.priority,
+            lock_memory: true,
+            prefault_stack_bytes: 256 * 1024,
+        }
+    };
+    let policy = if args.rt_strict {
+        RtPolicy::Strict
+    } else {
+        RtPolicy::Warn
+    };
+    let report = setup_rt(&req, policy).map_err(|e| anyhow!("{process}: {e}"))?;
+    eprintln!("{}", report.one_line(process));
+    protocol_line(&format!("RT {}", serde_json::to_string(&report)?))?;
+    Ok(report)
+}
+
+// ------------------------------------------------------------------ the bus transport
+
+enum Rx {
+    Meas(Receiver<Measurement>),
+    Est(Receiver<Estimate>),
+    Iref(Receiver<CurrentRef>),
+    Cmd(Receiver<VoltageCommand>),
+    Wref(Receiver<SpeedRef>),
+}
+
+enum Tx {
+    Meas(Sender<Measurement>),
+    Est(Sender<Estimate>),
+    Iref(Sender<CurrentRef>),
+    Cmd(Sender<VoltageCommand>),
+    Wref(Sender<SpeedRef>),
+}
+
+/// The iceoryx2 bus as a [`Transport`]: one receiver per input topic (waitable for
+/// triggers, and in lockstep for every input; only polled otherwise, so that senders pay no
+/// wake-up for it), one sender per output topic.
+pub struct BusTransport {
+    rx: [Option<Rx>; N_TOPICS],
+    tx: [Option<Tx>; N_TOPICS],
+    pokers: Vec<(TopicId, Poker)>,
+    rec: Option<Receiver<u64>>,
+    status: Vec<StatusPublisher>,
+}
+
+impl BusTransport {
+    fn open(
+        topics: &DriveTopics,
+        waited: &[bool; N_TOPICS],
+        polled: &[bool; N_TOPICS],
+        sent: &[bool; N_TOPICS],
+        poke: &[TopicId],
+        recorder: bool,
+    ) -> Result<Self> {
+        const BUF: usize = 64;
+        let mut rx: [Option<Rx>; N_TOPICS] = Default::default();
+        let mut tx: [Option<Tx>; N_TOPICS] = Default::default();
+        for t in TopicId::ALL {
+            let i = t.index();
+            if waited[i] || polled[i] {
+                let w = waited[i];
+                rx[i] = Some(match t {
+                    TopicId::Meas => Rx::Meas(if w {
+                        topics.meas.receiver(BUF)?
+                    } else {
+                        topics.meas.polled_receiver(BUF)?
+                    }),
+                    TopicId::Est => Rx::Est(if w {
+                        topics.est.receiver(BUF)?
+                    } else {
+                        topics.est.polled_receiver(BUF)?
+                    }),
+                    TopicId::Iref => Rx::Iref(if w {
+                        topics.iref.receiver(16)?
+                    } else {
+                        topics.iref.polled_receiver(16)?
+                    }),
+                    TopicId::Cmd => Rx::Cmd(if w {
+                        topics.cmd.receiver(16)?
+                    } else {
+                        topics.cmd.polled_receiver(16)?
+                    }),
+                    TopicId::Wref => Rx::Wref(if w {
+                        topics.wref.receiver(16)?
+                    } else {
+                        topics.wref.polled_receiver(16)?
+                    }),
+                });
+            }
+            if sent[i] {
+                tx[i] = Some(match t {
+                    TopicId::Meas => Tx::Meas(topics.meas.sender()?),
+                    TopicId::Est => Tx::Est(topics.est.sender()?),
+                    TopicId::Iref => Tx::Iref(topics.iref.sender()?),
+                    TopicId::Cmd => Tx::Cmd(topics.cmd.sender()?),
+                    TopicId::Wref => Tx::Wref(topics.wref.sender()?),
+                });
+            }
+        }
+        let mut pokers = Vec::new();
+        for &t in poke {
+            pokers.push((
+                t,
+                match t {
+                    TopicId::Meas => topics.meas.poker()?,
+                    TopicId::Est => topics.est.poker()?,
+                    TopicId::Iref => topics.iref.poker()?,
+                    TopicId::Cmd => topics.cmd.poker()?,
+                    TopicId::Wref => topics.wref.poker()?,
+                },
+            ));
+        }
+        let rec = if recorder {
+            Some(topics.rec.receiver(16)?)
+        } else {
+            None
+        };
+        Ok(Self {
+            rx,
+            tx,
+            pokers,
+            rec,
+            status: Vec::new(),
+        })
+    }
+
+    fn connect(&self) -> Result<()> {
+        for r in self.rx.iter().flatten() {
+            match r {
+                Rx::Meas(r) => r.connect()?,
+                Rx::Est(r) => r.connect()?,
+                Rx::Iref(r) => r.connect()?,
+                Rx::Cmd(r) => r.connect()?,
+                Rx::Wref(r) => r.connect()?,
+            }
+        }
+        for t in self.tx.iter().flatten() {
+            match t {
+                Tx::Meas(t) => t.connect()?,
+                Tx::Est(t) => t.connect()?,
+                Tx::Iref(t) => t.connect()?,
+                Tx::Cmd(t) => t.connect()?,
+                Tx::Wref(t) => t.connect()?,
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Transport for BusTransport {
+    #[inline]
+    fn send(&mut self, msg: &Msg) -> Result<()> {
+        match (&self.tx[msg.topic().index()], msg) {
+            (Some(Tx::Meas(t)), Msg::Meas(m)) => t.send(*m),
+            (Some(Tx::Est(t)), Msg::Est(m)) => t.send(*m),
+            (Some(Tx::Iref(t)), Msg::Iref(m)) => t.send(*m),
+            (Some(Tx::Cmd(t)), Msg::Cmd(m)) => t.send(*m),
+            (Some(Tx::Wref(t)), Msg::Wref(m)) => t.send(*m),
+            _ => Ok(()),
+        }
+    }
+
+    #[inline]
+    fn try_recv(&mut self, topic: TopicId) -> Result<Option<Msg>> {
+        Ok(match &self.rx[topic.index()] {
+            Some(Rx::Meas(r)) => r.try_recv()?.map(Msg::Meas),
+            Some(Rx::Est(r)) => r.try_recv()?.map(Msg::Est),
+            Some(Rx::Iref(r)) => r.try_recv()?.map(Msg::Iref),
+            Some(Rx::Cmd(r)) => r.try_recv()?.map(Msg::Cmd),
+            Some(Rx::Wref(r)) => r.try_recv()?.map(Msg::Wref),
+            None => None,
+        })
+    }
+
+    #[inline]
+    fn pending(&mut self, topic: TopicId) -> Result<bool> {
+        Ok(match &self.rx[topic.index()] {
+            Some(Rx::Meas(r)) => !r.is_empty()?,
+            Some(Rx::Est(r)) => !r.is_empty()?,
+            Some(Rx::Iref(r)) => !r.is_empty()?,
+            Some(Rx::Cmd(r)) => !r.is_empty()?,
+            Some(Rx::Wref(r)) => !r.is_empty()?,
+            None => false,
+        })
+    }
+
+    #[inline]
+    fn wait(&mut self, topic: TopicId, timeout: Duration) -> Result<()> {
+        match &self.rx[topic.index()] {
+            Some(Rx::Meas(r)) => r.wait(timeout),
+            Some(Rx::Est(r)) => r.wait(timeout),
+            Some(Rx::Iref(r)) => r.wait(timeout),
+            Some(Rx::Cmd(r)) => r.wait(timeout),
+            Some(Rx::Wref(r)) => r.wait(timeout),
+            None => {
+                std::thread::sleep(timeout.min(bus::POLL_SLEEP));
+                Ok(())
+            }
+        }
+    }
+
+    fn poke(&mut self, topic: TopicId) -> Result<()> {
+        for (t, p) in &self.pokers {
+            if *t == topic {
+                p.poke()?;
+            }
+        }
+        Ok(())
+    }
+
+    fn recorder_progress(&mut self) -> Result<Option<u64>> {
+        let Some(rx) = &self.rec else { return Ok(None) };
+        let mut newest = 0;
+        while let Some(d) = rx.try_recv()? {
+            newest = newest.max(d);
+        }
+        Ok(Some(newest))
+    }
+
+    fn wait_recorder(&mut self, timeout: Duration) -> Result<()> {
+        match &self.rec {
+            Some(rx) => rx.wait(timeout),
+            None => Ok(()),
+        }
+    }
+
+    #[inline]
+    fn status(
+        &mut self,
+        i: usize,
+        k: u64,
+        c: &Counters,
+        h: &StageHists,
+        cycle: Option<&CycleMonitor>,
+    ) -> Result<()> {
+        match self.status.get_mut(i) {
+            Some(s) => s.tick(k, c, h, cycle),
+            None => Ok(()),
+        }
+    }
+}
+
+// ------------------------------------------------------------------ status and statistics
+
+/// Live status for the supervisor (and through it `drivelab monitor`), published ten times
+/// per simulated second. The supervisor subscribes before the hosts start and the publisher
+/// connects before the loop, so the loop only copies a message into a loaned sample.
+pub struct StatusPublisher {
+    _topic: Plain<ServiceStatus>,
+    tx: PlainSender<ServiceStatus>,
+    st: ServiceStatus,
+    every: u64,
+    next_k: u64,
+}
+
+impl StatusPublisher {
+    /// Opens the status topic for stage `stage` of scenario `sc`.
+    pub fn new(
+        node: &iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
+        stage: &str,
+        sc: &Scenario,
+    ) -> Result<Self> {
+        let topic = open_plain::<ServiceStatus>(node, TOPIC_STATUS, 16, 0)?;
+        let tx = PlainSender::new(&topic)?;
+        // Stages outside the built-in four have no row in the status view (yet): u32::MAX.
+        let idx = crate::config::SERVICES
+            .iter()
+            .position(|s| *s == stage)
+            .map_or(u32::MAX, |i| i as u32);
+        let st = ServiceStatus {
+            service: idx,
+            pid: std::process::id(),
+            ..Default::default()
+        };
+        Ok(Self {
+            _topic: topic,
+            tx,
+            st,
+            every: ((sc.rates.sample_hz / 10.0).round() as u64).max(1),
+            next_k: 0,
+        })
+    }
+
+    /// Publishes a status if sample `k` has reached the next tenth of a simulated second.
+    #[inline]
+    pub fn tick(
+        &mut self,
+        k: u64,
+        c: &Counters,
+        h: &StageHists,
+        cycle: Option<&CycleMonitor>,
+    ) -> Result<()> {
+        if k < self.next_k || self.st.service == u32::MAX {
+            return Ok(());
+        }
+        self.next_k = (k / self.every + 1) * self.every;
+        let st = &mut self.st;
+        st.hdr.k = k;
+        st.hdr.t_pub_ns = crate::rt::now_ns();
+        st.samples = c.samples;
+        st.stale_inputs = c.stale_inputs;
+        st.rejected_inputs = c.rejected_inputs;
+        st.skipped = c.skipped;
+        st.wake = h.wake.compact;
+        st.exec = h.exec.compact;
+        match cycle {
+            Some(m) => {
+                st.misses = m.misses.misses;
+                st.longest_miss_run = m.misses.longest_run;
+                st.cycle = m.cycle.compact;
+            }
+            None => {
+                st.misses = h.late.misses;
+                st.longest_miss_run = h.late.longest_run;
+            }
+        }
+        self.tx.send(st)
+    }
+}
+
+/// Statistics file of one stage.
+#[derive(Debug, Serialize)]
+pub struct StageStats<'a> {
+    /// Stage name.
+    pub service: &'a str,
+    /// The process that hosted it.
+    pub process: &'a str,
+    /// Process id.
+    pub pid: u32,
+    /// RT setup report of the process.
+    pub rt: &'a RtReport,
+    /// Counters.
+    pub counters: Counters,
+    /// The stage's own diagnostics.
+    pub diagnostics: std::collections::BTreeMap<&'static str, u64>,
+    /// Tail summary of each histogram, µs, keyed `<stage>.<metric>` (and `cycle`).
+    pub latency_us: std::collections::BTreeMap<String, crate::timing::Percentiles>,
+}
+
+/// Writes `<out>/<stage>.stats.json` and one `<key>.hdr` per non-empty histogram for every
+/// stage of the host.
+fn write_stats<T: Transport>(
+    args: &HostArgs,
+    process: &str,
+    rt: &RtReport,
+    host: &Host<T>,
+) -> Result<()> {
+    let Some(dir) = &args.out else { return Ok(()) };
+    let diags = host.diagnostics();
+    for (i, h) in host.stages.iter().enumerate() {
+        let name = h.stage.name();
+        let source = i == 0 && host.is_source();
+        let mut counters = h.counters;
+        if !source {
+            counters.late_outputs = h.hists.late.misses;
+            counters.longest_late_run = h.hists.late.longest_run;
+        }
+        let mut latency_us = std::collections::BTreeMap::new();
+        let cycle: Option<&LatencyHist> = source.then_some(&host.cycle.cycle);
+        for hist in [&h.hists.wake, &h.hists.exec, &h.hists.input_age]
+            .into_iter()
+            .chain(cycle)
+        {
+            if hist.is_empty() {
+                continue;
+            }
+            let key = if hist.name == "cycle" {
+                "cycle".to_string()
+            } else {
+                format!("{name}.{}", hist.name)
+            };
+            hist.write_v2(&dir.join(format!("{key}.hdr")))?;
+            latency_us.insert(key, hist.percentiles());
+        }
+        let stats = StageStats {
+            service: name,
+            process,
+            pid: std::process::id(),
+            rt,
+            counters,
+            diagnostics: diags[i].1.iter().copied().collect(),
+            latency_us,
+        };
+        let p = dir.join(format!("{name}.stats.json"));
+        std::fs::write(&p, serde_json::to_vec_pretty(&stats)?)
+            .with_context(|| format!("write {}", p.display()))?;
+    }
+    Ok(())
+}
+
+/// The last measurement as JSON (the supervisor hands it to a restarted source).
+pub fn measurement_to_json(m: &Measurement) -> serde_json::Value {
+    serde_json::json!({
+        "k": m.hdr.k, "t_sample_ns": m.hdr.t_sample_ns,
+        "i_abc": m.i_abc, "theta_m_enc": m.theta_m_enc, "u_ab_applied": m.u_ab_applied,
+        "i_dq_true": m.i_dq_true, "omega_m_true": m.omega_m_true, "theta_e_true": m.theta_e_true,
+        "u_dq_applied": m.u_dq_applied, "t_load": m.t_load,
+    })
+}
+
+/// Reads a measurement written by [`measurement_to_json`].
+pub fn measurement_from_json(v: &serde_json::Value) -> Result<Measurement> {
+    let f = |key: &str| {
+        v[key]
+            .as_f64()
+            .ok_or_else(|| anyhow!("rejoin file: '{key}' missing"))
+    };
+    let a2 = |key: &str| -> Result<[f64; 2]> {
+        let a = v[key]
+            .as_array()
+            .ok_or_else(|| anyhow!("rejoin file: '{key}' missing"))?;
+        Ok([
+            a.first().and_then(|x| x.as_f64()).unwrap_or(0.0),
+            a.get(1).and_then(|x| x.as_f64()).unwrap_or(0.0),
+        ])
+    };
+    let i3 = v["i_abc"]
+        .as_array()
+        .ok_or_else(|| anyhow!("rejoin file: 'i_abc' missing"))?;
+    let mut m = Measurement::default();
+    m.hdr.k = v["k"]
+        .as_u64()
+        .ok_or_else(|| anyhow!("rejoin file: 'k' missing"))?;
+    m.hdr.t_sample_ns = v["t_sample_ns"].as_u64().unwrap_or(0);
+    for (i, x) in i3.iter().take(3).enumerate() {
+        m.i_abc[i] = x.as_f64().unwrap_or(0.0);
+    }
+    m.theta_m_enc = f("theta_m_enc")?;
+    m.u_ab_applied = a2("u_ab_applied")?;
+    m.i_dq_true = a2("i_dq_true")?;
+    m.omega_m_true = f("omega_m_true")?;
+    m.theta_e_true = f("theta_e_true")?;
+    m.u_dq_applied = a2("u_dq_applied")?;
+    m.t_load = f("t_load")?;
+    if !m.is_finite() {
+        return Err(anyhow!("rejoin file: non-finite values"));
+    }
+    Ok(m)
+}

@@ -1,0 +1,568 @@
+//! Topologies: which stages share a process, on which core, at which priority. Part of the
+//! scenario (`[[process]]` tables) or given with `drivelab run --topology NAME|FILE`.
+//! See docs/architecture.md, "Stages and topologies".
+//!
+//! [`resolve`] checks a topology against the stages' declarations and orders each process's
+//! stages along the data graph; every error is one line that names the problem.
+
+use crate::stage::{InputSpec, Role, TopicId};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// One process of a topology.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ProcessSpec {
+    /// Process name (unique; 1-32 characters of a-z, 0-9, -).
+    pub name: String,
+    /// Stages it hosts. Their order is taken from the data graph.
+    pub stages: Vec<String>,
+    /// CPU core; None = not pinned.
+    #[serde(default)]
+    pub cpu: Option<usize>,
+    /// SCHED_FIFO priority 1..=99; None = SCHED_OTHER.
+    #[serde(default)]
+    pub priority: Option<u8>,
+    /// Executable that hosts the stages (a user's stage crate), absolute or relative to the
+    /// scenario file; default: the built-in host `drivelab-host`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub exec: Option<String>,
+}
+
+/// A topology file: `[[process]]` tables.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TopologyFile {
+    /// One-line purpose.
+    #[serde(default)]
+    pub purpose: String,
+    /// The processes.
+    pub process: Vec<ProcessSpec>,
+}
+
+/// What a stage declares, as the topology checks it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StageInfo {
+    /// Stage name.
+    pub name: String,
+    /// Declared inputs.
+    pub inputs: Vec<InputSpec>,
+    /// Published topics.
+    pub outputs: Vec<TopicId>,
+    /// Rate divider.
+    pub divider: u64,
+}
+
+/// The producer of a topic in a resolved topology.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Producer {
+    /// The topic.
+    pub topic: TopicId,
+    /// Producing stage.
+    pub stage: String,
+    /// Index of its process.
+    pub process: usize,
+    /// Its rate divider.
+    pub divider: u64,
+}
+
+/// A checked topology.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Resolved {
+    /// Processes, each with its stages in chain order; the source's process first.
+    pub processes: Vec<(ProcessSpec, Vec<StageInfo>)>,
+    /// Every produced topic.
+    pub producers: Vec<Producer>,
+}
+
+impl Resolved {
+    /// Index of the process that hosts `stage`.
+    pub fn process_of(&self, stage: &str) -> Option<usize> {
+        self.processes
+            .iter()
+            .position(|(p, _)| p.stages.iter().any(|s| s == stage))
+    }
+
+    /// `(topic, producer divider, produced in process i)` for the host of process `i`.
+    pub fn bindings(&self, i: usize) -> Vec<(TopicId, u64, bool)> {
+        self.producers
+            .iter()
+            .map(|p| (p.topic, p.divider, p.process == i))
+            .collect()
+    }
+
+    /// Every stage name, in process order then chain order.
+    pub fn stage_names(&self) -> Vec<String> {
+        self.processes
+            .iter()
+            .flat_map(|(_, s)| s.iter().map(|x| x.name.clone()))
+            .collect()
+    }
+}
+
+/// The shipped topologies: `scenarios/topologies/NAME.toml`.
+pub fn topologies_dir() -> PathBuf {
+    crate::config::scenarios_dir().join("topologies")
+}
+
+/// Names of the shipped topologies, sorted.
+pub fn list_topologies() -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(topologies_dir())
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|e| e == "toml"))
+        .filter_map(|p| Some(p.file_stem()?.to_string_lossy().into_owned()))
+        .collect();
+    v.sort();
+    v
+}
+
+/// Loads a topology by shipped name or file path.
+pub fn load(name_or_path: &str) -> Result<(TopologyFile, PathBuf), String> {
+    let path = if name_or_path.ends_with(".toml") || name_or_path.contains('/') {
+        PathBuf::from(name_or_path)
+    } else {
+        let f = topologies_dir().join(format!("{name_or_path}.toml"));
+        if !f.is_file() {
+            return Err(format!(
+                "unknown topology '{name_or_path}' (known: {})",
+                list_topologies().join(", ")
+            ));
+        }
+        f
+    };
+    let text = std::fs::read_to_string(&path)
+        .map_err(|e| format!("cannot read topology {}: {e}", path.display()))?;
+    let t: TopologyFile =
+        toml::from_str(&text).map_err(|e| format!("{}: {}", path.display(), e.message().trim()))?;
+    Ok((t, path))
+}
+
+/// Checks the parts of a topology that need no stage declarations.
+pub fn check_specs(procs: &[ProcessSpec]) -> Result<(), String> {
+    if procs.is_empty() {
+        return Err("the topology has no [[process]]".into());
+    }
+    let mut names = BTreeMap::new();
+    let mut hosted: BTreeMap<&str, &str> = BTreeMap::new();
+    for p in procs {
+        if p.name.is_empty()
+            || p.name.len() > 32
+            || !p
+                .name
+                .chars()
+                .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-')
+        {
+            return Err(format!(
+                "process name '{}' must be 1-32 characters of a-z, 0-9 or -",
+                p.name
+            ));
+        }
+        if names.insert(p.name.as_str(), ()).is_some() {
+            return Err(format!("process '{}' is defined twice", p.name));
+        }
+        if p.stages.is_empty() {
+            return Err(format!("process '{}' hosts no stage", p.name));
+        }
+        if let Some(pr) = p.priority {
+            if !(1..=99).contains(&pr) {
+                return Err(format!(
+                    "process '{}': priority = {pr} must be in 1..=99",
+                    p.name
+                ));
+            }
+        }
+        if let Some(c) = p.cpu {
+            if c >= 1024 {
+                return Err(format!(
+                    "process '{}': cpu = {c} is not a CPU number",
+                    p.name
+                ));
+            }
+        }
+        for s in &p.stages {
+            if let Some(other) = hosted.insert(s.as_str(), p.name.as_str()) {
+                return Err(if other == p.name {
+                    format!("stage '{s}' is listed twice in process '{}'", p.name)
+                } else {
+                    format!(
+                        "stage '{s}' is hosted twice: by process '{other}' and by process '{}'",
+                        p.name
+                    )
+                });
+            }
+            if p.exec.is_none() && !crate::stages::BUILTIN.contains(&s.as_str()) {
+                return Err(format!(
+                    "unknown stage '{s}' in process '{}' (built-in: {}; a user's stage needs the process's `exec`)",
+                    p.name,
+                    crate::stages::BUILTIN.join(", ")
+                ));
+            }
+        }
+    }
+    for b in crate::stages::BUILTIN {
+        if !hosted.contains_key(b) {
+            return Err(format!("stage '{b}' is not hosted by any process"));
+        }
+    }
+    Ok(())
+}
+
+/// Checks a topology against the stages' declarations (`info(process, stage)`) and orders
+/// each process's stages along the data graph.
+pub fn resolve(
+    procs: &[ProcessSpec],
+    info: &mut dyn FnMut(&ProcessSpec, &str) -> Result<StageInfo, String>,
+) -> Result<Resolved, String> {
+    check_specs(procs)?;
+    let mut processes: Vec<(ProcessSpec, Vec<StageInfo>)> = Vec::new();
+    for p in procs {
+        let mut v = Vec::new();
+        for s in &p.stages {
+            let i = info(p, s)?;
+            if i.name != *s {
+                return Err(format!(
+                    "process '{}': its executable hosts no stage '{s}'",
+                    p.name
+                ));
+            }
+            v.push(i);
+        }
+        processes.push((p.clone(), v));
+    }
+    // One producer per topic.
+    let mut producers: Vec<Producer> = Vec::new();
+    for (pi, (_, stages)) in processes.iter().enumerate() {
+        for st in stages {
+            for &t in &st.outputs {
+                if let Some(other) = producers.iter().find(|p| p.topic == t) {
+                    return Err(format!(
+                        "two publishers on topic '{}': stages '{}' and '{}'",
+                        t.name(),
+                        other.stage,
+                        st.name
+                    ));
+                }
+                producers.push(Producer {
+                    topic: t,
+                    stage: st.name.clone(),
+                    process: pi,
+                    divider: st.divider.max(1),
+                });
+            }
+        }
+    }
+    // Exactly one source (a stage without trigger).
+    let sources: Vec<String> = processes
+        .iter()
+        .flat_map(|(_, s)| s.iter())
+        .filter(|s| !s.inputs.iter().any(|i| i.role == Role::Trigger))
+        .map(|s| s.name.clone())
+        .collect();
+    if sources.len() != 1 {
+        return Err(format!(
+            "a topology needs exactly one source stage (a stage without trigger), found {}: {}",
+            sources.len(),
+            sources.join(", ")
+        ));
+    }
+    // A stage is triggered by a topic that someone produces.
+    for (_, stages) in &processes {
+        for st in stages {
+            for i in &st.inputs {
+                if i.role == Role::Trigger && !producers.iter().any(|p| p.topic == i.topic) {
+                    return Err(format!(
+                        "stage '{}' is triggered by topic '{}', which no stage publishes",
+                        st.name,
+                        i.topic.name()
+                    ));
+                }
+                if i.delay > 1 {
+                    return Err(format!(
+                        "stage '{}': input '{}' has delay {} (0 or 1 sample)",
+                        st.name,
+                        i.topic.name(),
+                        i.delay
+                    ));
+                }
+            }
+        }
+    }
+    // The same-sample graph (delay 0 edges) must have no loop: order all stages.
+    let all: Vec<&StageInfo> = processes.iter().flat_map(|(_, s)| s.iter()).collect();
+    let deps = |s: &StageInfo| -> Vec<String> {
+        s.inputs
+            .iter()
+            .filter(|i| i.delay == 0 && i.role != Role::Rejoin)
+            .filter_map(|i| producers.iter().find(|p| p.topic == i.topic))
+            .map(|p| p.stage.clone())
+            .collect()
+    };
+    let mut order: Vec<String> = Vec::new();
+    let mut state: BTreeMap<String, u8> = BTreeMap::new();
+    fn visit(
+        name: &str,
+        all: &[&StageInfo],
+        deps: &dyn Fn(&StageInfo) -> Vec<String>,
+        state: &mut BTreeMap<String, u8>,
+        order: &mut Vec<String>,
+        path: &mut Vec<String>,
+    ) -> Result<(), String> {
+        match state.get(name) {
+            Some(2) => return Ok(()),
+            Some(1) => {
+                let start = path.iter().position(|p| p == name).unwrap_or(0);
+                let mut cyc = path[start..].to_vec();
+                cyc.push(name.to_string());
+                return Err(format!(
+                    "a loop in the data graph without a one-sample delay: {}",
+                    cyc.join(" -> ")
+                ));
+            }
+            _ => {}
+        }
+        state.insert(name.to_string(), 1);
+        path.push(name.to_string());
+        let s = all.iter().find(|s| s.name == name).expect("known stage");
+        for d in deps(s) {
+            visit(&d, all, deps, state, order, path)?;
+        }
+        path.pop();
+        state.insert(name.to_string(), 2);
+        order.push(name.to_string());
+        Ok(())
+    }
+    for s in &all {
+        let mut path = Vec::new();
+        visit(&s.name, &all, &deps, &mut state, &mut order, &mut path)?;
+    }
+    let rank = |n: &str| order.iter().position(|o| o == n).unwrap_or(usize::MAX);
+    for (p, stages) in processes.iter_mut() {
+        stages.sort_by_key(|s| rank(&s.name));
+        p.stages = stages.iter().map(|s| s.name.clone()).collect();
+        // The source runs on the clock: it must come first in its process.
+        if stages.iter().skip(1).any(|s| sources.contains(&s.name)) {
+            return Err(format!(
+                "process '{}': the source stage '{}' must not follow other stages",
+                p.name, sources[0]
+            ));
+        }
+    }
+    // The source's process first, then the others in the order given.
+    let src = processes
+        .iter()
+        .position(|(_, s)| s.iter().any(|x| x.name == sources[0]))
+        .expect("source hosted");
+    let sp = processes.remove(src);
+    processes.insert(0, sp);
+    for p in producers.iter_mut() {
+        p.process = processes
+            .iter()
+            .position(|(_, s)| s.iter().any(|x| x.name == p.stage))
+            .expect("hosted");
+    }
+    Ok(Resolved {
+        processes,
+        producers,
+    })
+}
+
+/// The built-in stages' declarations for scenario `sc` (the launcher asks a user's
+/// executable for its own with `--describe`).
+pub fn builtin_info(sc: &crate::config::Scenario, name: &str) -> Option<StageInfo> {
+    let s = crate::stages::builtin(name, sc)?;
+    Some(StageInfo {
+        name: s.name().to_string(),
+        inputs: s.inputs().to_vec(),
+        outputs: s.outputs().to_vec(),
+        divider: s.divider(),
+    })
+}
+
+/// The path of a process's executable, relative paths taken from `base` (the scenario's
+/// folder).
+pub fn exec_path(p: &ProcessSpec, base: &Path) -> Option<PathBuf> {
+    p.exec.as_ref().map(|e| {
+        let e = Path::new(e);
+        if e.is_absolute() {
+            e.to_path_buf()
+        } else {
+            base.join(e)
+        }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::Scenario;
+
+    fn sc() -> Scenario {
+        let path = format!("{}/../scenarios/kyslan-pi.toml", env!("CARGO_MANIFEST_DIR"));
+        Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
+    }
+
+    fn procs(spec: &[(&str, &[&str])]) -> Vec<ProcessSpec> {
+        spec.iter()
+            .map(|(n, s)| ProcessSpec {
+                name: n.to_string(),
+                stages: s.iter().map(|x| x.to_string()).collect(),
+                cpu: Some(1),
+                priority: Some(70),
+                exec: None,
+            })
+            .collect()
+    }
+
+    fn resolve_builtin(p: &[ProcessSpec]) -> Result<Resolved, String> {
+        let sc = sc();
+        resolve(p, &mut |_, s| {
+            builtin_info(&sc, s).ok_or_else(|| format!("unknown stage '{s}'"))
+        })
+    }
+
+    #[test]
+    fn shipped_topologies_resolve_with_the_stages_in_chain_order() {
+        for name in ["four-process", "two-process", "one-process"] {
+            let (t, _) = load(name).unwrap();
+            let r = resolve_builtin(&t.process).unwrap();
+            assert_eq!(r.processes[0].1[0].name, "plant", "{name}");
+            let all = r.stage_names();
+            let pos = |s: &str| all.iter().position(|x| x == s).unwrap();
+            assert!(pos("plant") < pos("observer"), "{name}: {all:?}");
+            assert!(pos("observer") < pos("current-loop"), "{name}: {all:?}");
+            assert!(pos("observer") < pos("speed-loop"), "{name}: {all:?}");
+        }
+        let (one, _) = load("one-process").unwrap();
+        assert_eq!(resolve_builtin(&one.process).unwrap().processes.len(), 1);
+    }
+
+    #[test]
+    fn order_in_a_process_follows_the_data_graph() {
+        let r = resolve_builtin(&procs(&[
+            ("p", &["plant"]),
+            ("c", &["speed-loop", "current-loop", "observer"]),
+        ]))
+        .unwrap();
+        assert_eq!(r.processes[1].0.stages[0], "observer");
+    }
+
+    #[test]
+    fn bad_topologies_fail_with_one_line_naming_the_problem() {
+        let cases: Vec<(Vec<ProcessSpec>, &str)> = vec![
+            (
+                procs(&[
+                    ("a", &["plant", "observer"]),
+                    ("b", &["observer", "current-loop", "speed-loop"]),
+                ]),
+                "stage 'observer' is hosted twice",
+            ),
+            (
+                procs(&[("a", &["plant", "observer", "current-loop"])]),
+                "stage 'speed-loop' is not hosted",
+            ),
+            (
+                procs(&[(
+                    "a",
+                    &[
+                        "plant",
+                        "observer",
+                        "current-loop",
+                        "speed-loop",
+                        "torque-loop",
+                    ],
+                )]),
+                "unknown stage 'torque-loop'",
+            ),
+            (
+                procs(&[
+                    ("a", &["plant", "observer"]),
+                    ("a", &["current-loop", "speed-loop"]),
+                ]),
+                "process 'a' is defined twice",
+            ),
+            (
+                procs(&[("A b", &["plant", "observer", "current-loop", "speed-loop"])]),
+                "process name 'A b'",
+            ),
+            (
+                procs(&[
+                    ("a", &["plant", "observer", "current-loop", "speed-loop"]),
+                    ("b", &[]),
+                ]),
+                "process 'b' hosts no stage",
+            ),
+        ];
+        for (p, want) in cases {
+            let e = resolve_builtin(&p).unwrap_err();
+            assert!(e.contains(want), "{e} (want {want})");
+            assert!(!e.contains('\n'), "{e}");
+        }
+    }
+
+    fn info(name: &str, inputs: Vec<InputSpec>, outputs: Vec<TopicId>) -> StageInfo {
+        StageInfo {
+            name: name.into(),
+            inputs,
+            outputs,
+            divider: 1,
+        }
+    }
+
+    #[test]
+    fn two_publishers_and_undelayed_loops_are_rejected() {
+        use crate::stage::OnStale;
+        let sc = sc();
+        let p = |extra: &'static str| {
+            let mut v = procs(&[("a", &["plant", "observer", "current-loop", "speed-loop"])]);
+            v.push(ProcessSpec {
+                name: "x".into(),
+                stages: vec![extra.into()],
+                cpu: None,
+                priority: None,
+                exec: Some("/bin/true".into()),
+            });
+            v
+        };
+        // A second publisher of the estimate.
+        let e = resolve(&p("twin"), &mut |_, s| {
+            Ok(builtin_info(&sc, s).unwrap_or_else(|| {
+                info(
+                    s,
+                    vec![InputSpec::trigger(TopicId::Meas, 1, OnStale::Required)],
+                    vec![TopicId::Est],
+                )
+            }))
+        })
+        .unwrap_err();
+        assert!(e.contains("two publishers on topic 'est'"), "{e}");
+        // An outer loop that reads the speed loop's output in the same sample and feeds it
+        // back without delay: speed-loop -> outer -> speed-loop.
+        let e = resolve(&p("outer"), &mut |_, s| {
+            let mut i = builtin_info(&sc, s).unwrap_or_else(|| {
+                info(
+                    s,
+                    vec![InputSpec::trigger(TopicId::Iref, 1, OnStale::Required)],
+                    vec![TopicId::Wref],
+                )
+            });
+            if s == "speed-loop" {
+                for x in i.inputs.iter_mut() {
+                    if x.topic == TopicId::Wref {
+                        x.delay = 0;
+                    }
+                }
+            }
+            Ok(i)
+        })
+        .unwrap_err();
+        assert!(
+            e.contains("a loop in the data graph without a one-sample delay"),
+            "{e}"
+        );
+        assert!(e.contains("speed-loop") && e.contains("outer"), "{e}");
+    }
+}
