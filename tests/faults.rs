@@ -149,12 +149,13 @@ fn killing_every_child_stops_the_drive_and_cleans_up() {
     let child = start_drive(&bus, &out, &["--duration", "30", "--restart", "never"]);
     wait_for_services(&bus);
     std::thread::sleep(Duration::from_millis(200));
+    // The stage hosts of the default (four-process) topology.
     let services: Vec<String> = processes_on_bus(&bus)
         .into_iter()
         .filter(|l| {
             ["plant", "observer", "current-loop", "speed-loop"]
                 .iter()
-                .any(|s| l.split(' ').nth(1).unwrap().ends_with(&format!("/{s}")))
+                .any(|s| l.contains(&format!(" --process {s} ")))
         })
         .collect();
     assert_eq!(services.len(), 4, "{services:?}");
@@ -179,7 +180,7 @@ fn fault_cli_errors_are_clear() {
     let _serial = serial();
     let bus = bus_id("clierr");
     for (spec, needle) in [
-        ("kill:pump@0.1", "unknown service 'pump'"),
+        ("kill:pump@0.1", "unknown stage 'pump'"),
         ("kill:plant", "kill:SERVICE@SECONDS"),
         ("stop:observer@0.1", "stop:SERVICE@SECONDS:DURATION"),
         ("random:abc", "whole number"),
@@ -203,9 +204,9 @@ fn fault_cli_errors_are_clear() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("needs --clock realtime"));
     let o = drivelab(&["fault", "kill", "observer", "--bus", &bus]);
     assert_eq!(o.status.code(), Some(1));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("no running observer"));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("no running stage observer"));
     let o = drivelab(&["fault", "kill", "pump", "--bus", &bus]);
-    assert!(String::from_utf8_lossy(&o.stderr).contains("unknown service 'pump'"));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("no running stage pump"));
     assert_clean(&bus);
 }
 

@@ -422,10 +422,11 @@ mod tests {
         assert_eq!(rx.recv::<VoltageCommand>(false), Recv::Malformed);
         tx.send_raw(&[0u8; 3]).unwrap();
         assert_eq!(rx.recv::<Estimate>(false), Recv::Malformed);
-        // A blocking receive returns after the slice when nothing comes.
+        // A blocking receive returns (empty) when nothing comes, instead of blocking for
+        // ever; the bound is a watchdog, not a timing claim.
         let t = Instant::now();
         assert_eq!(rx.recv::<Estimate>(true), Recv::Empty);
-        assert!(t.elapsed() >= RECV_SLICE / 2);
+        assert!(t.elapsed() < 100 * RECV_SLICE);
         // A full queue drops (never blocks); a closed receiver is reported as gone.
         let mut full = false;
         for _ in 0..10_000 {

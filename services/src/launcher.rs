@@ -26,11 +26,11 @@ use std::time::{Duration, Instant};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Clock {
-    /// Four processes; the plant sleeps to absolute deadlines.
+    /// The topology's processes; the plant sleeps to absolute deadlines.
     Realtime,
-    /// Four processes; the plant waits for each command; as fast as possible.
+    /// The topology's processes; the plant waits for each command; as fast as possible.
     Lockstep,
-    /// The same step functions in one thread, no bus.
+    /// The same stages on the same host in one thread, no bus.
     Inprocess,
 }
 

@@ -5,7 +5,7 @@ use drivelab_services::launcher::{self, Clock, RunOptions};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-/// drivelab: a four-process real-time PMSM drive on iceoryx2 shared memory.
+/// drivelab: a real-time PMSM drive of stages in processes on iceoryx2 shared memory.
 ///
 /// Exit codes: 0 success, 1 error (bad input, a service failed, interrupted), 2 usage error.
 #[derive(Debug, Parser)]
@@ -17,13 +17,15 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Cmd {
-    /// Run a scenario: start plant, observer, current-loop and speed-loop, record every
-    /// sample, stop them and write trace.csv, summary.json and plots into the run folder.
+    /// Run a scenario: start the processes of its topology (plant, observer, current-loop and
+    /// speed-loop stages, and any user stages), record every sample, stop them and write
+    /// trace.csv, summary.json and plots into the run folder.
     ///
     /// Examples:
     ///   drivelab run                                  # kyslan-pi, realtime, 10 kHz
     ///   drivelab run --clock lockstep --out runs/ls   # reproducible, as fast as possible
     ///   drivelab run --scenario my.toml --duration 2
+    ///   drivelab run --topology two-process           # plant | observer + current + speed loop
     #[command(verbatim_doc_comment)]
     Run {
         /// Scenario name (see `drivelab scenarios`) or path to a TOML file.
@@ -54,12 +56,13 @@ enum Cmd {
         /// Print the summary as JSON on stdout instead of the human summary.
         #[arg(long)]
         json: bool,
-        /// Inject a fault (repeatable, realtime only): kill:SERVICE@SECONDS (SIGKILL),
-        /// stop:SERVICE@SECONDS:DURATION (SIGSTOP, then SIGCONT), random:N (N kills of random
-        /// services at random instants, seeded by --fault-seed). SECONDS are simulated time.
+        /// Inject a fault (repeatable, realtime only): kill:STAGE@SECONDS (SIGKILL),
+        /// stop:STAGE@SECONDS:DURATION (SIGSTOP, then SIGCONT), random:N (N kills of random
+        /// stages at random instants, seeded by --fault-seed). SECONDS are simulated time. The
+        /// signal goes to the process that hosts the stage, and so to all its stages.
         #[arg(long = "fault", value_name = "SPEC")]
         faults: Vec<String>,
-        /// What the supervisor does when a service dies.
+        /// What the supervisor does when a process dies.
         #[arg(long, value_enum, default_value_t = launcher::Restart::OnFailure)]
         restart: launcher::Restart,
         /// Seed of random:N fault plans.
@@ -81,7 +84,8 @@ enum Cmd {
         /// kill (SIGKILL) or stop (SIGSTOP, then SIGCONT after --duration).
         #[arg(value_parser = ["kill", "stop"])]
         kind: String,
-        /// plant, observer, current-loop or speed-loop.
+        /// The stage (plant, observer, current-loop, speed-loop or a user stage); its whole
+        /// process is signalled.
         service: String,
         /// Bus id of the running drive (printed by `drivelab run`, also in summary.json).
         #[arg(long)]

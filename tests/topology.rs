@@ -1,0 +1,246 @@
+//! Topologies: every shipped partition of the stages into processes gives the in-process
+//! trace bit for bit in lockstep; bad topologies fail with one line and leave nothing; a
+//! fault on a stage takes down the process that hosts it, with all its stages, and the
+//! supervisor restarts that process. Timeouts are watchdogs only.
+
+use std::time::Duration;
+
+mod common;
+use common::*;
+
+const TOPOLOGIES: [&str; 3] = ["four-process", "two-process", "one-process"];
+
+fn run_ok(tag: &str, args: &[&str]) -> (std::path::PathBuf, serde_json::Value) {
+    let dir = scratch(tag);
+    let bus = bus_id(tag);
+    let out = dir.join("run");
+    let mut a = vec![
+        "run",
+        "--bus",
+        &bus,
+        "--out",
+        out.to_str().unwrap(),
+        "--no-plots",
+    ];
+    a.extend_from_slice(args);
+    let o = drivelab(&a);
+    assert!(
+        o.status.success(),
+        "drivelab {a:?} failed: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert_clean(&bus);
+    let s = serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    (out, s)
+}
+
+#[test]
+fn every_shipped_topology_gives_the_inprocess_trace_in_lockstep() {
+    let _serial = serial();
+    for (scenario, seconds) in [
+        ("kyslan-pi", "0.06"),
+        ("low-rst-sensorless", "1.3"),
+        ("miyajima-polar-400rpm", "0.02"),
+    ] {
+        let (ip, _) = run_ok(
+            &format!("ip{}", &scenario[..3]),
+            &[
+                "--scenario",
+                scenario,
+                "--duration",
+                seconds,
+                "--clock",
+                "inprocess",
+            ],
+        );
+        let want = read(&ip.join("trace.csv"));
+        assert!(want.len() > 1000, "{scenario}: trace too short");
+        for t in TOPOLOGIES {
+            let tag = format!("{}{}", &scenario[..3], &t[..3]);
+            let (ls, s) = run_ok(
+                &tag,
+                &[
+                    "--scenario",
+                    scenario,
+                    "--duration",
+                    seconds,
+                    "--clock",
+                    "lockstep",
+                    "--topology",
+                    t,
+                ],
+            );
+            assert!(
+                read(&ls.join("trace.csv")) == want,
+                "{scenario} with topology {t}: the lockstep trace differs from inprocess"
+            );
+            // summary.json → processes is keyed by process, each with its stages; together
+            // they host every stage once.
+            let procs = s["processes"].as_object().unwrap();
+            let mut stages: Vec<String> = procs
+                .values()
+                .flat_map(|p| p["stages"].as_array().unwrap().iter())
+                .map(|v| v.as_str().unwrap().to_string())
+                .collect();
+            stages.sort();
+            assert_eq!(
+                stages,
+                ["current-loop", "observer", "plant", "speed-loop"],
+                "{t}: {procs:?}"
+            );
+            let expected = match t {
+                "four-process" => 4,
+                "two-process" => 2,
+                _ => 1,
+            };
+            assert_eq!(procs.len(), expected, "{t}: {procs:?}");
+        }
+    }
+}
+
+#[test]
+fn bad_topologies_fail_with_one_line_naming_the_problem_and_leave_nothing() {
+    let _serial = serial();
+    let dir = scratch("badtopo");
+    let bus = bus_id("badtopo");
+    let p = |name: &str, stages: &str| {
+        format!("[[process]]\nname = \"{name}\"\nstages = [{stages}]\ncpu = 1\npriority = 70\n")
+    };
+    let cases = [
+        (
+            "twice.toml",
+            p("a", "\"plant\", \"observer\"")
+                + &p("b", "\"observer\", \"current-loop\", \"speed-loop\""),
+            "stage 'observer' is hosted twice",
+        ),
+        (
+            "missing.toml",
+            p("a", "\"plant\", \"observer\", \"current-loop\""),
+            "stage 'speed-loop' is not hosted by any process",
+        ),
+        (
+            "unknown.toml",
+            p(
+                "a",
+                "\"plant\", \"observer\", \"current-loop\", \"speed-loop\", \"torque-loop\"",
+            ),
+            "unknown stage 'torque-loop'",
+        ),
+        (
+            "prio.toml",
+            p(
+                "a",
+                "\"plant\", \"observer\", \"current-loop\", \"speed-loop\"",
+            )
+            .replace("70", "120"),
+            "priority = 120 must be in 1..=99",
+        ),
+        (
+            "exec.toml",
+            p(
+                "a",
+                "\"plant\", \"observer\", \"current-loop\", \"speed-loop\"",
+            ) + &p("b", "\"position-loop\"")
+                + "exec = \"no-such-binary\"\n",
+            "no-such-binary not found",
+        ),
+    ];
+    for (file, text, needle) in cases {
+        let f = dir.join(file);
+        std::fs::write(&f, text).unwrap();
+        let out = dir.join(format!("out-{file}"));
+        let o = drivelab(&[
+            "run",
+            "--clock",
+            "lockstep",
+            "--bus",
+            &bus,
+            "--out",
+            out.to_str().unwrap(),
+            "--topology",
+            f.to_str().unwrap(),
+        ]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{file}: {err}");
+        assert_eq!(
+            err.lines().count(),
+            1,
+            "{file}: expected one line, got {err}"
+        );
+        assert!(err.contains(needle), "{file}: '{needle}' not in {err}");
+        assert!(!out.exists(), "{file}: a failed run left its folder");
+        assert_clean(&bus);
+    }
+    let o = drivelab(&["run", "--bus", &bus, "--topology", "three-process"]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains(
+            "unknown topology 'three-process' (known: four-process, one-process, two-process)"
+        ),
+        "{err}"
+    );
+    // A scenario that places its services in [placement] and in [[process]] tables.
+    let both = dir.join("both.toml");
+    std::fs::write(
+        &both,
+        "name = \"x\"\nduration_s = 0.01\n[motor]\npreset = \"kyslan2015\"\n[placement.plant]\ncore = 0\npriority = 50\n"
+            .to_string()
+            + &p("a", "\"plant\", \"observer\", \"current-loop\", \"speed-loop\""),
+    )
+    .unwrap();
+    let o = drivelab(&["run", "--bus", &bus, "--scenario", both.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("either in [placement] or in [[process]]"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert_clean(&bus);
+}
+
+#[test]
+fn a_fault_on_a_stage_takes_down_its_whole_process_which_is_restarted() {
+    let _serial = serial();
+    let (out, s) = run_ok(
+        "procfault",
+        &[
+            "--duration",
+            "1.2",
+            "--topology",
+            "two-process",
+            "--fault",
+            "kill:speed-loop@0.4",
+        ],
+    );
+    let f = &s["faults"][0];
+    assert_eq!(f["service"], "speed-loop");
+    assert_eq!(f["process"], "controller", "{f}");
+    let ev: Vec<(String, String)> = s["supervisor_events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| {
+            (
+                e["event"].as_str().unwrap().to_string(),
+                e["process"].as_str().unwrap().to_string(),
+            )
+        })
+        .collect();
+    for want in ["exited", "restarted", "ready"] {
+        assert!(
+            ev.contains(&(want.to_string(), "controller".to_string())),
+            "no '{want}' of process controller in {ev:?}"
+        );
+    }
+    // The observer and the current loop went down with it: the plant saw its commands stop
+    // (it had to hold or go safe), which killing the speed loop alone never causes.
+    assert_eq!(f["detected_by"], "plant", "{f}");
+    assert!(f["republished_ms"].is_number(), "{f}");
+    // After the restart every stage of the process ran again: the current loop produced
+    // commands to the end of the run.
+    let trace = std::fs::read_to_string(out.join("trace.csv")).unwrap();
+    let last = trace.lines().last().unwrap();
+    assert!(!last.contains("NaN"), "no command at the end: {last}");
+    let _ = Duration::ZERO;
+}
