@@ -4,8 +4,9 @@
 //! that no process and no bus file is left.
 
 use drivelab::control::rst::{poly_add, poly_mul, roots};
-use drivelab::observer_sensorless::{angle_error_deg, predicted_angle_error, Discretisation};
+use drivelab::observer_sensorless::{predicted_angle_error, Discretisation};
 use drivelab::trace::TraceRow;
+use drivelab::wiring::observer_sensorless::angle_error_deg;
 use serde_json::Value;
 
 mod common;

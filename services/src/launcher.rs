@@ -742,7 +742,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             ..Default::default()
         };
         let mut files = drivelab::plot::plot_trace(&rows, &out, &opts)?;
-        if drivelab::control::polar::mode_of(&sc).is_some() || !sc.reference.i_q_a.is_empty() {
+        if drivelab::wiring::polar::mode_of(&sc).is_some() || !sc.reference.i_q_a.is_empty() {
             files.extend(drivelab::plot_polar::plot_polar_panels(
                 &sc,
                 &rows,

@@ -655,9 +655,9 @@ impl Scenario {
                 )
             },
         )?;
-        crate::observer_sensorless::validate(self)?;
-        crate::control::rst::validate(self)?;
-        crate::control::polar::validate(self)?;
+        crate::wiring::observer_sensorless::validate(self)?;
+        crate::wiring::rst::validate(self)?;
+        crate::wiring::polar::validate(self)?;
         let c = &self.current_loop;
         check(
             c.tau_c_s.is_finite() && c.tau_c_s >= 2.0 * ts && c.tau_c_s <= 1.0,

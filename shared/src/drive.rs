@@ -115,10 +115,10 @@ impl DriveDesign {
         } else {
             Vec::new()
         };
-        let rst = crate::control::rst::uses_rst(sc)
-            .then(|| crate::control::rst::RstDriveDesign::from_scenario(sc).expect("validated"));
+        let rst = crate::wiring::rst::uses_rst(sc)
+            .then(|| crate::wiring::rst::design_from_scenario(sc).expect("validated"));
         Self {
-            controller: if let Some(m) = crate::control::polar::mode_of(sc) {
+            controller: if let Some(m) = crate::wiring::polar::mode_of(sc) {
                 m.name()
             } else if rst.is_some() {
                 "rst"
@@ -132,8 +132,8 @@ impl DriveDesign {
             nonlinear,
             warnings,
             rst,
-            observer: crate::observer_sensorless::ObserverDesign::from_scenario(sc),
-            polar: crate::control::polar::spec_from_scenario(sc)
+            observer: crate::wiring::observer_sensorless::design_from_scenario(sc),
+            polar: crate::wiring::polar::spec_from_scenario(sc)
                 .map(|p| crate::control::polar::PolarDesign::new(&p)),
         }
     }
@@ -360,7 +360,7 @@ impl ObserverStep {
             enc,
             // The sensorless observer always starts cold: θ̂ = the configured initial error,
             // ω̂ = 0.
-            sensorless: crate::observer_sensorless::from_scenario(sc),
+            sensorless: crate::wiring::observer_sensorless::from_scenario(sc),
             mode: sc.observer.mode,
         }
     }
@@ -533,8 +533,7 @@ impl CurrentLoopStep {
     pub fn new(sc: &Scenario) -> Self {
         let m = sc.motor_params();
         let d = DriveDesign::from_scenario(sc);
-        let law = if let Some(c) = crate::control::polar::PolarCurrentController::from_scenario(sc)
-        {
+        let law = if let Some(c) = crate::wiring::polar::controller_from_scenario(sc) {
             CurrentLaw::Polar(c)
         } else if sc.current_loop.controller == crate::config::CurrentController::Rst {
             CurrentLaw::Rst(Box::new(crate::control::rst::RstCurrentController::new(
@@ -737,42 +736,9 @@ mod tests {
     use super::*;
     use crate::config::Scenario;
 
-    fn kyslan() -> Scenario {
-        scenario("kyslan-pi")
-    }
-
     fn scenario(name: &str) -> Scenario {
         let path = format!("{}/../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
         Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
-    }
-
-    #[test]
-    fn kyslan_pi_inprocess_metrics() {
-        let sc = kyslan();
-        let rows = run_inprocess(&sc);
-        let m = crate::metrics::speed_metrics(&sc, &rows);
-        eprintln!("{m:?} design {:?}", DriveDesign::from_scenario(&sc));
-        let r = m.rise_time_ms.unwrap();
-        assert!((r - 8.0).abs() <= 0.8, "rise {r} ms");
-    }
-
-    #[test]
-    fn kyslan_nl_inprocess_meets_the_rise_time_and_tracks_i_d() {
-        for name in ["kyslan-nl", "kyslan-nl-sal618"] {
-            let sc = scenario(name);
-            let d = DriveDesign::from_scenario(&sc);
-            assert_eq!(d.controller, "nonlinear");
-            assert!(d.warnings.is_empty(), "{:?}", d.warnings);
-            let rows = run_inprocess(&sc);
-            let m = crate::metrics::speed_metrics(&sc, &rows);
-            let r = m.rise_time_ms.unwrap();
-            assert!((r - 8.0).abs() <= 0.8, "{name}: rise {r} ms");
-            assert!(m.id_tracking_error_a.unwrap() < 0.01, "{name}: {m:?}");
-            assert!(m.steady_state_error.unwrap().abs() < 0.2, "{name}: {m:?}");
-            // The trace's i_q_ref is w2 of eq. (30)-(31): i_q settles on it.
-            let last = rows.last().unwrap();
-            assert!((last.i_q - last.i_q_ref).abs() < 0.01, "{last:?}");
-        }
     }
 
     #[test]

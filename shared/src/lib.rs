@@ -22,3 +22,7 @@ pub mod telemetry;
 pub mod timing;
 pub mod trace;
 pub mod transforms;
+pub mod wiring;
+
+#[cfg(test)]
+mod scenario_tests;

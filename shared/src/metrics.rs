@@ -151,7 +151,7 @@ pub fn speed_metrics(sc: &Scenario, rows: &[TraceRow]) -> SpeedMetrics {
             out.id_tracking_error_a = Some((sum / n as f64).sqrt());
         }
     }
-    if let Some((ss, conv)) = crate::observer_sensorless::angle_metrics(sc, rows) {
+    if let Some((ss, conv)) = crate::wiring::observer_sensorless::angle_metrics(sc, rows) {
         out.angle_error_ss_deg = Some(ss);
         out.observer_convergence_ms = conv;
     }

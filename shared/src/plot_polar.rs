@@ -10,8 +10,9 @@
 #![forbid(unsafe_code)]
 
 use crate::config::Scenario;
-use crate::control::polar::{dq_to_polar, mode_of, PolarMode, SpmsmModel, DELTA_MAX};
+use crate::control::polar::{dq_to_polar, PolarMode, SpmsmModel, DELTA_MAX};
 use crate::trace::TraceRow;
+use crate::wiring::polar::mode_of;
 use anyhow::{bail, Context, Result};
 use plotters::coord::Shift;
 use plotters::element::DashedPathElement;
