@@ -3,9 +3,9 @@
 
 use anyhow::{anyhow, Context, Result};
 use clap::{Parser, ValueEnum};
-use drivelab::config::Scenario;
-use drivelab::rt::{setup_rt, RtPolicy, RtReport, RtRequest};
-use drivelab::timing::LatencyHist;
+use drivelab_runtime::config::Scenario;
+use drivelab_runtime::rt::{setup_rt, RtPolicy, RtReport, RtRequest};
+use drivelab_runtime::timing::LatencyHist;
 use serde::Serialize;
 use std::io::Write;
 use std::path::PathBuf;
@@ -178,7 +178,7 @@ pub struct ServiceStats<'a> {
     /// Counters.
     pub counters: Counters,
     /// Tail summary of each histogram, µs, keyed `<service>.<metric>` (and `cycle`).
-    pub latency_us: std::collections::BTreeMap<String, drivelab::timing::Percentiles>,
+    pub latency_us: std::collections::BTreeMap<String, drivelab_runtime::timing::Percentiles>,
 }
 
 /// Per-service histograms, preallocated before the loop.
@@ -192,7 +192,7 @@ pub struct ServiceHists {
     /// Age of the input when used, from its sample instant t_k (realtime only).
     pub input_age: LatencyHist,
     /// Controllers: outputs published after t_k + T_s (deadline misses of this stage).
-    pub late: drivelab::timing::MissCounter,
+    pub late: drivelab_runtime::timing::MissCounter,
     ts_ns: u64,
 }
 
@@ -203,7 +203,7 @@ impl ServiceHists {
             wake: LatencyHist::new(if plant { "lateness" } else { "wake" }),
             exec: LatencyHist::new("exec"),
             input_age: LatencyHist::new("input_age"),
-            late: drivelab::timing::MissCounter::default(),
+            late: drivelab_runtime::timing::MissCounter::default(),
             ts_ns,
         }
     }
@@ -212,7 +212,7 @@ impl ServiceHists {
     /// instant `t_sample` (0 in lockstep: no age). Returns the time taken (the exec start).
     #[inline]
     pub fn input(&mut self, t_pub: u64, t_sample: u64) -> u64 {
-        let t_in = drivelab::rt::now_ns();
+        let t_in = drivelab_runtime::rt::now_ns();
         self.wake.record_ns(t_in as i64 - t_pub as i64);
         if t_sample != 0 {
             self.input_age.record_ns(t_in as i64 - t_sample as i64);
@@ -224,7 +224,7 @@ impl ServiceHists {
     /// (0 in lockstep) and whether its output came after t_sample + T_s (a late output).
     #[inline]
     pub fn done(&mut self, t_in: u64, t_sample: u64) {
-        let now = drivelab::rt::now_ns();
+        let now = drivelab_runtime::rt::now_ns();
         self.exec.record_ns(now as i64 - t_in as i64);
         self.late
             .record(t_sample != 0 && now > t_sample + self.ts_ns);
@@ -232,13 +232,13 @@ impl ServiceHists {
 }
 
 /// Live status for the supervisor (and through it `drivelab monitor`), published ten times
-/// per simulated second on [`drivelab::telemetry::TOPIC_STATUS`]. The supervisor subscribes
+/// per simulated second on [`drivelab_runtime::telemetry::TOPIC_STATUS`]. The supervisor subscribes
 /// before the services start and the publisher connects here, before the loop, so the loop
 /// only ever copies a message into a loaned sample.
 pub struct StatusPublisher {
-    _topic: drivelab::telemetry::Plain<drivelab::telemetry::ServiceStatus>,
-    tx: drivelab::telemetry::PlainSender<drivelab::telemetry::ServiceStatus>,
-    st: drivelab::telemetry::ServiceStatus,
+    _topic: drivelab_runtime::telemetry::Plain<drivelab_runtime::telemetry::ServiceStatus>,
+    tx: drivelab_runtime::telemetry::PlainSender<drivelab_runtime::telemetry::ServiceStatus>,
+    st: drivelab_runtime::telemetry::ServiceStatus,
     every: u64,
     next_k: u64,
 }
@@ -250,10 +250,10 @@ impl StatusPublisher {
         service: &str,
         sc: &Scenario,
     ) -> Result<Self> {
-        use drivelab::telemetry::*;
+        use drivelab_runtime::telemetry::*;
         let topic = open_plain::<ServiceStatus>(node, TOPIC_STATUS, 16, 0)?;
         let tx = PlainSender::new(&topic)?;
-        let idx = drivelab::config::SERVICES
+        let idx = drivelab_runtime::config::SERVICES
             .iter()
             .position(|s| *s == service)
             .ok_or_else(|| anyhow!("unknown service '{service}'"))?;
@@ -280,7 +280,7 @@ impl StatusPublisher {
         k: u64,
         c: &Counters,
         h: &ServiceHists,
-        cycle: Option<&drivelab::timing::CycleMonitor>,
+        cycle: Option<&drivelab_runtime::timing::CycleMonitor>,
     ) -> Result<()> {
         if k < self.next_k {
             return Ok(());
@@ -288,7 +288,7 @@ impl StatusPublisher {
         self.next_k = (k / self.every + 1) * self.every;
         let st = &mut self.st;
         st.hdr.k = k;
-        st.hdr.t_pub_ns = drivelab::rt::now_ns();
+        st.hdr.t_pub_ns = drivelab_runtime::rt::now_ns();
         st.samples = c.samples;
         st.stale_inputs = c.stale_inputs;
         st.rejected_inputs = c.rejected_inputs;
@@ -376,7 +376,7 @@ pub const WAIT_SLICE: std::time::Duration = std::time::Duration::from_millis(50)
 pub const LOCKSTEP_WATCHDOG: std::time::Duration = std::time::Duration::from_secs(10);
 
 /// The last measurement as JSON (the supervisor hands it to a restarted plant).
-pub fn measurement_to_json(m: &drivelab::messages::Measurement) -> serde_json::Value {
+pub fn measurement_to_json(m: &drivelab_runtime::messages::Measurement) -> serde_json::Value {
     serde_json::json!({
         "k": m.hdr.k, "t_sample_ns": m.hdr.t_sample_ns,
         "i_abc": m.i_abc, "theta_m_enc": m.theta_m_enc, "u_ab_applied": m.u_ab_applied,
@@ -386,7 +386,9 @@ pub fn measurement_to_json(m: &drivelab::messages::Measurement) -> serde_json::V
 }
 
 /// Reads a measurement written by [`measurement_to_json`].
-pub fn measurement_from_json(v: &serde_json::Value) -> Result<drivelab::messages::Measurement> {
+pub fn measurement_from_json(
+    v: &serde_json::Value,
+) -> Result<drivelab_runtime::messages::Measurement> {
     let f = |key: &str| {
         v[key]
             .as_f64()
@@ -404,7 +406,7 @@ pub fn measurement_from_json(v: &serde_json::Value) -> Result<drivelab::messages
     let i3 = v["i_abc"]
         .as_array()
         .ok_or_else(|| anyhow!("rejoin file: 'i_abc' missing"))?;
-    let mut m = drivelab::messages::Measurement::default();
+    let mut m = drivelab_runtime::messages::Measurement::default();
     m.hdr.k = v["k"]
         .as_u64()
         .ok_or_else(|| anyhow!("rejoin file: 'k' missing"))?;
@@ -419,7 +421,7 @@ pub fn measurement_from_json(v: &serde_json::Value) -> Result<drivelab::messages
     m.theta_e_true = f("theta_e_true")?;
     m.u_dq_applied = a2("u_dq_applied")?;
     m.t_load = f("t_load")?;
-    use drivelab::messages::Finite;
+    use drivelab_runtime::messages::Finite;
     if !m.is_finite() {
         return Err(anyhow!("rejoin file: non-finite values"));
     }

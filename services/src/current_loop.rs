@@ -9,12 +9,12 @@
 
 use crate::common::*;
 use anyhow::{anyhow, Result};
-use drivelab::bus::{self, DriveTopics, Receiver};
-use drivelab::drive::CurrentLoopStep;
-use drivelab::messages::{
+use drivelab_runtime::bus::{self, DriveTopics, Receiver};
+use drivelab_runtime::drive::CurrentLoopStep;
+use drivelab_runtime::messages::{
     CurrentRef, Estimate, Finite, Header, Measurement, VoltageCommand, FLAG_STALE_INPUT,
 };
-use drivelab::rt::now_ns;
+use drivelab_runtime::rt::now_ns;
 use std::time::{Duration, Instant};
 
 const MEAS_RING: usize = 64;
@@ -118,7 +118,8 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     // Real time, in fallback: wake every half sample.
     let fallback_poll = Duration::from_secs_f64(0.5 * ts);
     let mut in_fallback = false;
-    let sensorless = sc.observer.mode == drivelab::observer_sensorless::ObserverMode::Sensorless;
+    let sensorless =
+        sc.observer.mode == drivelab_control::observer_sensorless::ObserverMode::Sensorless;
     // Last: everything above (controller design, histograms) is set-up work, not real-time.
     let report = apply_placement("current-loop", &sc, &args)?;
     ready()?;
@@ -263,7 +264,7 @@ pub fn run(args: ServiceArgs) -> Result<()> {
                 flags: FLAG_STALE_INPUT,
                 ..Default::default()
             },
-            theta_e: drivelab::motor::wrap_2pi(m.p() * meas.theta_m_enc),
+            theta_e: drivelab_control::motor::wrap_2pi(m.p() * meas.theta_m_enc),
             omega_m: last_est.omega_m,
         };
         if let Some(r) = inbox.newest_iref {

@@ -1,7 +1,7 @@
 //! Fault injection: parsing of `--fault` specs, the seeded random plan, and signals.
 
 use anyhow::{anyhow, bail, Result};
-use drivelab::config::SERVICES;
+use drivelab_runtime::config::SERVICES;
 use serde::Serialize;
 
 /// One injected fault.
@@ -288,13 +288,17 @@ mod tests {
 /// NaN in the speed, `backwards` uses sample index 0 (behind the drive). For tests of the
 /// consumers' input checks.
 pub fn inject_bad_estimates(bus: &str, kind: &str, count: u32) -> Result<()> {
-    use drivelab::messages::{Estimate, Header};
-    drivelab::bus::check_bus_id(bus)?;
+    use drivelab_runtime::messages::{Estimate, Header};
+    drivelab_runtime::bus::check_bus_id(bus)?;
     if find_services(bus).is_empty() {
         bail!("no drive is running on bus {bus}");
     }
-    let node = drivelab::bus::node(bus, "injector")?;
-    let topics = drivelab::bus::DriveTopics::open_with(&node, drivelab::bus::WakeKind::Futex, bus)?;
+    let node = drivelab_runtime::bus::node(bus, "injector")?;
+    let topics = drivelab_runtime::bus::DriveTopics::open_with(
+        &node,
+        drivelab_runtime::bus::WakeKind::Futex,
+        bus,
+    )?;
     let tx = topics.est.sender()?;
     // Connect before the first message, and give the subscribers time to see the new
     // publisher, so that no bad message is lost to a lazy connection.

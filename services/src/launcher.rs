@@ -3,12 +3,12 @@
 
 use crate::common::BusClock;
 use anyhow::{anyhow, bail, Context, Result};
-use drivelab::bus::{self, DriveTopics, MAX_BUFFER};
-use drivelab::config::{Scenario, SERVICES};
-use drivelab::drive::{trace_row, DriveDesign};
-use drivelab::messages::{Measurement, VoltageCommand};
-use drivelab::metrics::speed_metrics;
-use drivelab::trace::TraceRow;
+use drivelab_runtime::bus::{self, DriveTopics, MAX_BUFFER};
+use drivelab_runtime::config::{Scenario, SERVICES};
+use drivelab_runtime::drive::{trace_row, DriveDesign};
+use drivelab_runtime::messages::{Measurement, VoltageCommand};
+use drivelab_runtime::trace::TraceRow;
+use drivelab_tools::metrics::speed_metrics;
 use serde::Serialize;
 use serde_json::json;
 use std::collections::BTreeMap;
@@ -148,7 +148,7 @@ struct Progress {
 
 fn run_recorder(
     bus_id: String,
-    wake: drivelab::bus::WakeKind,
+    wake: drivelab_runtime::bus::WakeKind,
     n: u64,
     stop: Arc<AtomicBool>,
     progress: Arc<Progress>,
@@ -196,15 +196,17 @@ fn run_recorder(
                 meas_end = true;
             } else if m.hdr.k < n {
                 r.meas[m.hdr.k as usize] = Some(m);
-                progress.tail.offer(drivelab::telemetry::TracePoint {
-                    k: m.hdr.k,
-                    omega: m.omega_m_true,
-                    omega_ref: last_cmd.omega_ref,
-                    i_d: m.i_dq_true[0],
-                    i_q: m.i_dq_true[1],
-                    i_d_ref: last_cmd.i_dq_ref[0],
-                    i_q_ref: last_cmd.i_dq_ref[1],
-                });
+                progress
+                    .tail
+                    .offer(drivelab_runtime::telemetry::TracePoint {
+                        k: m.hdr.k,
+                        omega: m.omega_m_true,
+                        omega_ref: last_cmd.omega_ref,
+                        i_d: m.i_dq_true[0],
+                        i_q: m.i_dq_true[1],
+                        i_d_ref: last_cmd.i_dq_ref[0],
+                        i_q_ref: last_cmd.i_dq_ref[1],
+                    });
                 if m.hdr.k + 1 > progress.next_k.load(Ordering::Relaxed) {
                     progress.next_k.store(m.hdr.k + 1, Ordering::Relaxed);
                     if let Ok(mut l) = progress.last.lock() {
@@ -591,9 +593,9 @@ fn assemble(sc: &Scenario, rec: &Recorder, _plant_ok: bool) -> (Vec<TraceRow>, V
             (Some(m), None) => {
                 let nan = f64::NAN;
                 let c = VoltageCommand {
-                    hdr: drivelab::messages::Header {
+                    hdr: drivelab_runtime::messages::Header {
                         k: m.hdr.k,
-                        flags: drivelab::messages::FLAG_MISSING,
+                        flags: drivelab_runtime::messages::FLAG_MISSING,
                         ..Default::default()
                     },
                     u_ab: [nan; 2],
@@ -642,7 +644,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     let wall = Instant::now();
     let (rows, gaps, processes, info) = match o.clock {
         Clock::Inprocess => (
-            drivelab::drive::run_inprocess(&sc),
+            drivelab_runtime::drive::run_inprocess(&sc),
             Vec::new(),
             json!({}),
             json!({ "deadline_misses": 0 }),
@@ -684,7 +686,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             };
         }
     }
-    drivelab::trace::write_csv(&out.join("trace.csv"), &rows)?;
+    drivelab_runtime::trace::write_csv(&out.join("trace.csv"), &rows)?;
     let metrics = speed_metrics(&sc, &rows);
     let design = DriveDesign::from_scenario(&sc);
     let mut summary = json!({
@@ -725,7 +727,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             1e6 / sc.rates.sample_hz,
             format!("T_s = {:.0} µs", 1e6 / sc.rates.sample_hz),
         ));
-        drivelab::plot::plot_percentiles(
+        drivelab_tools::plot::plot_percentiles(
             &curves,
             &format!("{}: latency percentiles", sc.name),
             budget,
@@ -734,16 +736,17 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         )?;
     }
     if !o.no_plots && !rows.is_empty() {
-        let opts = drivelab::plot::TraceFigureOptions {
+        let opts = drivelab_tools::plot::TraceFigureOptions {
             current_limit_a: Some(sc.i_q_max()),
             voltage_limit_v: Some(sc.u_max()),
             title: format!("{} ({:?})", sc.name, o.clock).to_lowercase(),
             shaded_windows: windows.clone(),
             ..Default::default()
         };
-        let mut files = drivelab::plot::plot_trace(&rows, &out, &opts)?;
-        if drivelab::wiring::polar::mode_of(&sc).is_some() || !sc.reference.i_q_a.is_empty() {
-            files.extend(drivelab::plot_polar::plot_polar_panels(
+        let mut files = drivelab_tools::plot::plot_trace(&rows, &out, &opts)?;
+        if drivelab_runtime::wiring::polar::mode_of(&sc).is_some() || !sc.reference.i_q_a.is_empty()
+        {
+            files.extend(drivelab_tools::plot_polar::plot_polar_panels(
                 &sc,
                 &rows,
                 &out,
@@ -771,8 +774,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
 fn collect_histograms(
     out: &Path,
 ) -> Result<(
-    BTreeMap<String, drivelab::timing::Percentiles>,
-    Vec<drivelab::plot::PercentileSeries>,
+    BTreeMap<String, drivelab_runtime::timing::Percentiles>,
+    Vec<drivelab_tools::plot::PercentileSeries>,
 )> {
     let mut lat = BTreeMap::new();
     let mut curves = Vec::new();
@@ -788,7 +791,7 @@ fn collect_histograms(
             .unwrap_or_default()
             .to_string_lossy()
             .into_owned();
-        let h = drivelab::timing::LatencyHist::read_v2("hist", &f)?;
+        let h = drivelab_runtime::timing::LatencyHist::read_v2("hist", &f)?;
         std::fs::write(f.with_extension("hgrm"), h.hgrm())?;
         lat.insert(key.clone(), h.percentiles());
         if key == "cycle" || key.ends_with(".wake") || key.ends_with(".lateness") {
@@ -1025,7 +1028,7 @@ fn supervise(
         }
         pending_restart = still;
         for i in 0..children.len() {
-            use drivelab::telemetry::ProcState;
+            use drivelab_runtime::telemetry::ProcState;
             let state = if done[i] {
                 ProcState::Finished
             } else if dead[i] {
@@ -1103,7 +1106,7 @@ pub fn fault_reports(
     rows: &[TraceRow],
     events: &[SupEvent],
 ) -> (Vec<FaultReport>, Vec<(f64, f64, String)>) {
-    use drivelab::messages::{FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT};
+    use drivelab_runtime::messages::{FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT};
     let fs = sc.rates.sample_hz;
     let ms = |dk: u64| dk as f64 / fs * 1e3;
     let by_k: BTreeMap<u64, &TraceRow> = rows.iter().map(|r| (r.k, r)).collect();
@@ -1147,7 +1150,7 @@ pub fn fault_reports(
             .map(|r| r.k);
         let hold = (0.01 * fs).ceil() as usize;
         let within = |r: &TraceRow| {
-            let w = drivelab::config::profile_at(&sc.reference.speed_rad_s, r.t);
+            let w = drivelab_runtime::config::profile_at(&sc.reference.speed_rad_s, r.t);
             (r.omega_m - w).abs() <= 0.02 * w.abs().max(1e-9)
         };
         let tail: Vec<&TraceRow> = after()

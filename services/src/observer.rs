@@ -2,10 +2,10 @@
 
 use crate::common::*;
 use anyhow::{anyhow, Result};
-use drivelab::bus::{self, DriveTopics};
-use drivelab::drive::ObserverStep;
-use drivelab::messages::{Estimate, Finite, Measurement};
-use drivelab::rt::now_ns;
+use drivelab_runtime::bus::{self, DriveTopics};
+use drivelab_runtime::drive::ObserverStep;
+use drivelab_runtime::messages::{Estimate, Finite, Measurement};
+use drivelab_runtime::rt::now_ns;
 use std::f64::consts::{PI, TAU};
 use std::time::Instant;
 

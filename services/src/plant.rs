@@ -3,11 +3,13 @@
 
 use crate::common::*;
 use anyhow::{anyhow, bail, Context, Result};
-use drivelab::bus::{self, DriveTopics, Receiver, MAX_BUFFER};
-use drivelab::drive::Plant;
-use drivelab::messages::{Finite, Header, Measurement, VoltageCommand, FLAG_END, FLAG_WARMUP};
-use drivelab::rt::{now_ns, sleep_until_ns};
-use drivelab::timing::CycleMonitor;
+use drivelab_runtime::bus::{self, DriveTopics, Receiver, MAX_BUFFER};
+use drivelab_runtime::drive::Plant;
+use drivelab_runtime::messages::{
+    Finite, Header, Measurement, VoltageCommand, FLAG_END, FLAG_WARMUP,
+};
+use drivelab_runtime::rt::{now_ns, sleep_until_ns};
+use drivelab_runtime::timing::CycleMonitor;
 use std::io::BufRead;
 use std::time::Instant;
 

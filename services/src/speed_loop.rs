@@ -7,10 +7,10 @@
 
 use crate::common::*;
 use anyhow::{anyhow, Result};
-use drivelab::bus::{self, DriveTopics};
-use drivelab::drive::SpeedLoopStep;
-use drivelab::messages::{CurrentRef, Finite, FLAG_STALE_INPUT};
-use drivelab::rt::now_ns;
+use drivelab_runtime::bus::{self, DriveTopics};
+use drivelab_runtime::drive::SpeedLoopStep;
+use drivelab_runtime::messages::{CurrentRef, Finite, FLAG_STALE_INPUT};
+use drivelab_runtime::rt::now_ns;
 use std::time::Instant;
 
 /// Runs the speed-loop service.
@@ -35,7 +35,7 @@ pub fn run(args: ServiceArgs) -> Result<()> {
     meas_rx.connect()?;
     iref_tx.connect()?;
     let mut ctrl = SpeedLoopStep::new(&sc);
-    for w in drivelab::drive::DriveDesign::from_scenario(&sc).warnings {
+    for w in drivelab_runtime::drive::DriveDesign::from_scenario(&sc).warnings {
         eprintln!("speed-loop: warning: {w}");
     }
     let mut c = Counters::default();

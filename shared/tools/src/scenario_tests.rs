@@ -1,16 +1,16 @@
 //! In-process runs of shipped scenarios checked with the metrics and the figures of this
 //! crate (they need the runtime's runner and this crate's tools, so they live here).
 
-use crate::config::Scenario;
-use crate::drive::{run_inprocess, DriveDesign};
 use crate::metrics::speed_metrics;
+use drivelab_runtime::config::Scenario;
+use drivelab_runtime::drive::{run_inprocess, DriveDesign};
 
 fn kyslan() -> Scenario {
     scenario("kyslan-pi")
 }
 
 fn scenario(name: &str) -> Scenario {
-    let path = format!("{}/../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
+    let path = format!("{}/../../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
     Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
 }
 

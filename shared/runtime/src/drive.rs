@@ -15,20 +15,22 @@ mod rejoin;
 mod safe_state_tests;
 
 use crate::config::{profile_at, SafeState, Scenario, Step};
-use crate::control::current::{CurrentInput, CurrentPiDesign, PiCurrentController, VoltageDq};
-use crate::control::nonlinear::{
+use crate::messages::*;
+use crate::trace::TraceRow;
+use drivelab_control::control::current::{
+    CurrentInput, CurrentPiDesign, PiCurrentController, VoltageDq,
+};
+use drivelab_control::control::nonlinear::{
     self, design_nonlinear, KyslanModel, NlCurrentLaw, NlDesign, NlLoopModel, NlSpec, NlSpeedLaw,
 };
-use crate::control::speed::{
+use drivelab_control::control::speed::{
     design_symmetrical_optimum, sum_of_small_time_constants, SoDesign, SoSpec, SpeedLoopModel,
     SpeedPi,
 };
-use crate::messages::*;
-use crate::motor::{wrap_2pi, Mechanics, MotorInput, MotorParams, MotorState, Rk4};
-use crate::observer::EncoderObserver;
-use crate::observer_sensorless::{ObserverMode, SensorlessObserver};
-use crate::trace::TraceRow;
-use crate::transforms::{clarke, inverse_clarke, inverse_park, park, AlphaBeta, Dq};
+use drivelab_control::motor::{wrap_2pi, Mechanics, MotorInput, MotorParams, MotorState, Rk4};
+use drivelab_control::observer::EncoderObserver;
+use drivelab_control::observer_sensorless::{ObserverMode, SensorlessObserver};
+use drivelab_control::transforms::{clarke, inverse_clarke, inverse_park, park, AlphaBeta, Dq};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
@@ -51,13 +53,13 @@ pub struct DriveDesign {
     pub warnings: Vec<String>,
     /// Low et al. 1998 RST designs (i_d, i_q, speed), when a loop selects "rst".
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub rst: Option<crate::control::rst::RstDriveDesign>,
+    pub rst: Option<drivelab_control::control::rst::RstDriveDesign>,
     /// The sensorless observer's settings, when `observer.mode` is not "encoder".
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub observer: Option<crate::observer_sensorless::ObserverDesign>,
+    pub observer: Option<drivelab_control::observer_sensorless::ObserverDesign>,
     /// Miyajima et al. polar current law (CDM / flux-weakening design), when selected.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub polar: Option<crate::control::polar::PolarDesign>,
+    pub polar: Option<drivelab_control::control::polar::PolarDesign>,
 }
 
 /// Natural frequency ω_i of the nonlinear controller's inner (torque and field) loops, rad/s.
@@ -134,7 +136,7 @@ impl DriveDesign {
             rst,
             observer: crate::wiring::observer_sensorless::design_from_scenario(sc),
             polar: crate::wiring::polar::spec_from_scenario(sc)
-                .map(|p| crate::control::polar::PolarDesign::new(&p)),
+                .map(|p| drivelab_control::control::polar::PolarDesign::new(&p)),
         }
     }
 }
@@ -407,7 +409,7 @@ pub fn running_start_speed(sc: &Scenario) -> Option<f64> {
 enum SpeedLaw {
     Pi(SpeedPi),
     Nonlinear(NlSpeedLaw),
-    Rst(Box<crate::control::rst::RstSpeed>),
+    Rst(Box<drivelab_control::control::rst::RstSpeed>),
     /// No speed control: i_q* from `reference.i_q_a`.
     CurrentReference,
 }
@@ -435,7 +437,7 @@ impl SpeedLoopStep {
             SpeedLaw::CurrentReference
         } else if sc.speed_loop.controller == crate::config::SpeedController::Rst {
             let r = d.rst.as_ref().expect("designed when a loop selects rst");
-            SpeedLaw::Rst(Box::new(crate::control::rst::RstSpeed::new(
+            SpeedLaw::Rst(Box::new(drivelab_control::control::rst::RstSpeed::new(
                 &r.speed,
                 sc.i_q_max(),
             )))
@@ -512,8 +514,8 @@ impl SpeedLoopStep {
 enum CurrentLaw {
     Pi(PiCurrentController),
     Nonlinear(NlCurrentLaw),
-    Rst(Box<crate::control::rst::RstCurrentController>),
-    Polar(crate::control::polar::PolarCurrentController),
+    Rst(Box<drivelab_control::control::rst::RstCurrentController>),
+    Polar(drivelab_control::control::polar::PolarCurrentController),
 }
 
 /// Current-loop service step.
@@ -536,12 +538,14 @@ impl CurrentLoopStep {
         let law = if let Some(c) = crate::wiring::polar::controller_from_scenario(sc) {
             CurrentLaw::Polar(c)
         } else if sc.current_loop.controller == crate::config::CurrentController::Rst {
-            CurrentLaw::Rst(Box::new(crate::control::rst::RstCurrentController::new(
-                &m,
-                d.rst.as_ref().expect("designed when a loop selects rst"),
-                sc.u_max(),
-                sc.current_loop.decoupling,
-            )))
+            CurrentLaw::Rst(Box::new(
+                drivelab_control::control::rst::RstCurrentController::new(
+                    &m,
+                    d.rst.as_ref().expect("designed when a loop selects rst"),
+                    sc.u_max(),
+                    sc.current_loop.decoupling,
+                ),
+            ))
         } else if sc.nonlinear() {
             CurrentLaw::Nonlinear(NlCurrentLaw::new(
                 &m,
@@ -737,14 +741,14 @@ mod tests {
     use crate::config::Scenario;
 
     fn scenario(name: &str) -> Scenario {
-        let path = format!("{}/../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
+        let path = format!("{}/../../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
         Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
     }
 
     #[test]
     fn mismatched_controllers_are_rejected() {
         let text = std::fs::read_to_string(format!(
-            "{}/../scenarios/kyslan-nl.toml",
+            "{}/../../scenarios/kyslan-nl.toml",
             env!("CARGO_MANIFEST_DIR")
         ))
         .unwrap()

@@ -10,11 +10,13 @@
 
 use crate::config::Scenario;
 
-/// Wiring of the RST laws ([`crate::control::rst`]).
+/// Wiring of the RST laws ([`drivelab_control::control::rst`]).
 pub mod rst {
     use super::Scenario;
     use crate::config::{CurrentController, SpeedController};
-    use crate::control::rst::{default_current_omega, default_speed_omega, RstDriveDesign};
+    use drivelab_control::control::rst::{
+        default_current_omega, default_speed_omega, RstDriveDesign,
+    };
 
     /// True when the current or the speed loop of `sc` selects "rst".
     pub fn uses_rst(sc: &Scenario) -> bool {
@@ -91,11 +93,13 @@ pub mod rst {
     }
 }
 
-/// Wiring of the polar current laws ([`crate::control::polar`]).
+/// Wiring of the polar current laws ([`drivelab_control::control::polar`]).
 pub mod polar {
     use super::Scenario;
     use crate::config::{CurrentController, SpeedController};
-    use crate::control::polar::{PolarCurrentController, PolarMode, PolarSpec, SpmsmModel};
+    use drivelab_control::control::polar::{
+        PolarCurrentController, PolarMode, PolarSpec, SpmsmModel,
+    };
 
     /// The polar law a scenario selects, if any.
     pub fn mode_of(sc: &Scenario) -> Option<PolarMode> {
@@ -148,15 +152,15 @@ pub mod polar {
     }
 }
 
-/// Wiring of the minimal-order αβ observer ([`crate::observer_sensorless`]), and its metrics
-/// on a trace.
+/// Wiring of the minimal-order αβ observer ([`drivelab_control::observer_sensorless`]), and
+/// its metrics on a trace.
 pub mod observer_sensorless {
     use super::Scenario;
-    use crate::observer_sensorless::{
+    use crate::trace::TraceRow;
+    use drivelab_control::observer_sensorless::{
         truncation_error, ObserverDesign, ObserverMode, SensorlessObserver, SensorlessSettings,
         OMEGA_MIN_FRACTION,
     };
-    use crate::trace::TraceRow;
     use std::f64::consts::{PI, TAU};
 
     /// The observer design of a scenario (None in encoder mode).
@@ -272,7 +276,7 @@ mod tests {
     use super::Scenario;
 
     fn scenario(name: &str, edits: &[(&str, &str)]) -> Scenario {
-        let path = format!("{}/../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
+        let path = format!("{}/../../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
         let mut text = std::fs::read_to_string(&path).unwrap();
         for (a, b) in edits {
             assert!(text.contains(a), "{name}.toml has no '{a}'");
@@ -329,7 +333,10 @@ mod tests {
     /// 5 % of the step.
     #[test]
     fn speed_loop_in_the_drive_follows_the_design_model() {
-        let path = format!("{}/../scenarios/low-rst.toml", env!("CARGO_MANIFEST_DIR"));
+        let path = format!(
+            "{}/../../scenarios/low-rst.toml",
+            env!("CARGO_MANIFEST_DIR")
+        );
         let text = std::fs::read_to_string(&path)
             .unwrap()
             // 300 → 330 rpm without load: i_q* stays far from its limit.

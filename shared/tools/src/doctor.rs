@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
-use crate::rt;
+use drivelab_runtime::rt;
 
 /// One line of the doctor report.
 #[derive(Debug, Clone, Serialize)]

@@ -1,0 +1,17 @@
+//! drivelab runtime: message types, timing/RT setup, bus helpers, telemetry, configuration
+//! types, the four services' step functions and the wiring from a scenario to the control
+//! laws of `drivelab_control`.
+//!
+//! Control maths are pure step functions (`fn step(&mut self, input) -> output`), unit-tested
+//! without a bus; the services in `services/` only set up, loop and hand messages over.
+
+pub mod bus;
+pub mod config;
+pub mod drive;
+pub mod futex;
+pub mod messages;
+pub mod rt;
+pub mod telemetry;
+pub mod timing;
+pub mod trace;
+pub mod wiring;
