@@ -315,7 +315,8 @@ pub fn run(a: &BenchArgs) -> Result<()> {
                     }
                     _ => {
                         // The same chain with the plant sleeping to spin_us before each
-                        // deadline and spinning the rest (DESIGN.md: sleep-then-short-spin).
+                        // deadline and spinning the rest (docs/architecture.md,
+                        // "Real-time rules": sleep-then-short-spin).
                         let mut sc = scenario_at(&base, hz, slice, placement(p)?)?;
                         sc.timing.plant_spin_us = spin_us(a.spin_us, hz);
                         sc.validate().map_err(|e| anyhow!("--spin-us: {e}"))?;

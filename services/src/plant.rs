@@ -1,5 +1,5 @@
 //! The plant process: timing master. Per sample k it takes command k−1, publishes
-//! measurement k and integrates to t_{k+1} (DESIGN.md "The cycle").
+//! measurement k and integrates to t_{k+1} (docs/architecture.md, "The cycle").
 
 use crate::common::*;
 use anyhow::{anyhow, bail, Context, Result};

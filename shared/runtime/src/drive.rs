@@ -1,6 +1,6 @@
 //! The four services' step functions and the in-process runner.
 //!
-//! Per sample k (DESIGN.md "The cycle"):
+//! Per sample k (docs/architecture.md, "The cycle"):
 //! 1. plant: take command k−1 (or hold / safe state), publish measurement k, integrate to t_{k+1};
 //! 2. observer: measurement k → estimate k;
 //! 3. current loop: measurement k + estimate k + the current reference computed at the last

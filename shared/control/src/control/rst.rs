@@ -37,11 +37,12 @@
 //! | i_q | (J s + D)/(L J s² + (L D + J r) s + k_e k_t + D r) (eq. 3) | T_s | b1(z − z0)/(z·A_q) | ITAE 3rd order |
 //! | ω | k_t/(J s + D) (eq. 9), speed filter of eq. (10) | T_w = N·T_s | b_w N_f/(z (z − a_w) D_f) | ITAE 3rd order |
 //!
-//! The one-sample computation delay of the drive (command k acts from t_{k+1}, DESIGN.md
-//! "The cycle") is part of each current model: the paper's polynomials are placed for the
-//! plant the controller really drives. For the speed loop the closed current loop is one
-//! speed-loop sample of delay (the ITAE current loop settles within ~T_w), and the Bessel
-//! filter (eq. 10) is discretised at T_w with the scenario's group delay τ_f.
+//! The one-sample computation delay of the drive (command k acts from t_{k+1};
+//! docs/architecture.md, "The cycle") is part of each current model: the paper's
+//! polynomials are placed for the plant the controller really drives. For the speed loop
+//! the closed current loop is one speed-loop sample of delay (the ITAE current loop settles
+//! within ~T_w), and the Bessel filter (eq. 10) is discretised at T_w with the scenario's
+//! group delay τ_f.
 //!
 //! # Runtime
 //!
