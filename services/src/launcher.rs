@@ -1119,8 +1119,7 @@ pub fn fault_reports(
         let after = || by_k.range(k0..k_end_window).map(|(_, r)| *r);
         // Data-path detection: the first stale flag, or the first sample the plant did not produce.
         let mut det = None;
-        let mut expect = k0;
-        for r in after() {
+        for (expect, r) in (k0..).zip(after()) {
             if r.k != expect {
                 det = Some((expect, "recorder (plant produced no sample)".to_string()));
                 break;
@@ -1133,7 +1132,6 @@ pub fn fault_reports(
                 det = Some((r.k, "current-loop".into()));
                 break;
             }
-            expect += 1;
         }
         let safe = after()
             .find(|r| r.plant_flags & FLAG_SAFE_STATE != 0)

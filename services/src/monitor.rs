@@ -72,6 +72,9 @@ fn attach(bus: &str) -> Result<Attached> {
         .with_context(|| format!("cannot attach to the drive on bus '{bus}' (did it just end?)"))
 }
 
+/// One line of a chart: label, colour, (t, value) points.
+type Series<'a> = (&'a str, Color, Vec<(f64, f64)>);
+
 /// What the screen shows.
 struct Ui {
     bus: String,
@@ -354,14 +357,7 @@ impl Ui {
             .collect()
     }
 
-    fn chart(
-        &self,
-        f: &mut Frame,
-        area: Rect,
-        title: String,
-        unit: &str,
-        sets: Vec<(&str, Color, Vec<(f64, f64)>)>,
-    ) {
+    fn chart(&self, f: &mut Frame, area: Rect, title: String, unit: &str, sets: Vec<Series<'_>>) {
         let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
         for (_, _, d) in &sets {
             for &(x, y) in d {

@@ -428,7 +428,7 @@ mod tests {
 
     #[test]
     fn wrap_stays_in_range() {
-        for a in [-1e-18, -7.0, 0.0, 6.283185307179586, 100.0] {
+        for a in [-1e-18, -7.0, 0.0, std::f64::consts::TAU, 100.0] {
             let w = wrap_2pi(a);
             assert!((0.0..std::f64::consts::TAU).contains(&w), "{a} -> {w}");
         }

@@ -350,7 +350,7 @@ mod tests {
         let rows = crate::drive::run_inprocess(&sc);
         let n = sc.rates.speed_divider as usize;
         let k0 = (0.2 * sc.rates.sample_hz).round() as usize;
-        let (w0, dw) = (rows[k0].omega_hat, 34.557519189487724 - 31.415926535897931);
+        let (w0, dw) = (rows[k0].omega_hat, 34.55751918948773 - 31.41592653589793);
         let want = d.speed.step_response(100);
         let mut worst: f64 = 0.0;
         for (j, wj) in want.iter().enumerate() {
