@@ -1,5 +1,5 @@
 //! The drive's processes. Each binary in `src/bin/` is a thin `main` that calls one of the
-//! service loops here; the control maths live in `drivelab-shared`.
+//! service loops here; the control maths live in `drivelab-control`.
 
 pub mod bench;
 pub mod cdm_design;
