@@ -285,7 +285,7 @@ fn clean_removes_the_files_of_a_sigkilled_drive_and_refuses_a_live_one() {
         std::thread::sleep(Duration::from_millis(20));
     }
     assert!(
-        !drivelab::bus::leftovers(&bus).is_empty(),
+        !drivelab_runtime::bus::leftovers(&bus).is_empty(),
         "a SIGKILLed drive should have left its files"
     );
     let o = drivelab(&["clean", "--bus", &bus]);

@@ -66,8 +66,8 @@ fn nonlinear_i_d_step_response_does_not_change_when_the_load_steps() {
             "lockstep",
         )
         .trace();
-        let window = |r: &&drivelab::trace::TraceRow| r.t >= 0.02 && r.t < 0.04;
-        let max_diff = |f: fn(&drivelab::trace::TraceRow) -> f64| {
+        let window = |r: &&drivelab_runtime::trace::TraceRow| r.t >= 0.02 && r.t < 0.04;
+        let max_diff = |f: fn(&drivelab_runtime::trace::TraceRow) -> f64| {
             a.iter()
                 .zip(&b)
                 .filter(|(x, _)| window(x))

@@ -3,9 +3,10 @@
 //! drive, and the ζ report of eq. (14). Each run uses its own bus id and run folder and checks
 //! that no process and no bus file is left.
 
-use drivelab::control::rst::{poly_add, poly_mul, roots};
-use drivelab::observer_sensorless::{angle_error_deg, predicted_angle_error, Discretisation};
-use drivelab::trace::TraceRow;
+use drivelab_control::control::rst::{poly_add, poly_mul, roots};
+use drivelab_control::observer_sensorless::{predicted_angle_error, Discretisation};
+use drivelab_runtime::trace::TraceRow;
+use drivelab_runtime::wiring::observer_sensorless::angle_error_deg;
 use serde_json::Value;
 
 mod common;
@@ -218,7 +219,7 @@ fn steady_state(r: &Run, disc: Discretisation) -> (f64, f64) {
     let end = rows.last().unwrap().t;
     let tail: Vec<&TraceRow> = rows.iter().filter(|x| x.t >= 0.9 * end).collect();
     let ss = mean(tail.iter().map(|x| angle_error_deg(x)));
-    let m = drivelab::motor::MotorParams::low1998();
+    let m = drivelab_control::motor::MotorParams::low1998();
     let pred = predicted_angle_error(
         &m,
         2e-4,

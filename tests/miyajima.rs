@@ -7,13 +7,14 @@
 mod common;
 use common::*;
 
-fn load(p: &str) -> drivelab::config::Scenario {
+fn load(p: &str) -> drivelab_runtime::config::Scenario {
     let path = if p.ends_with(".toml") {
         p.to_string()
     } else {
         format!("{SCENARIOS}/{p}.toml")
     };
-    drivelab::config::Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
+    drivelab_runtime::config::Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path)
+        .unwrap()
 }
 
 fn close(a: f64, b: f64) -> bool {
@@ -111,7 +112,7 @@ fn polar_control_at_0_rpm_reaches_2_a_without_steady_state_error() {
     // Noise-free simulation: V_a = 0 before the step (uncontrollable point), yet the phase
     // stays put (section IV-C: "the controller output (the voltage phase) is stable").
     for x in &rows {
-        let (_, d) = drivelab::plot_polar::modulation_and_phase(x, 470.0);
+        let (_, d) = drivelab_tools::plot_polar::modulation_and_phase(x, 470.0);
         assert!(d.abs() < 1e-9, "δ = {d} at t = {}", x.t);
     }
     let (rise, over) = (r.metric("iq_rise_time_us"), r.metric("iq_overshoot_pct"));
@@ -152,7 +153,7 @@ fn flux_weakening_proposed_keeps_i_d_nonpositive_and_conventional_does_not() {
     assert!(idp <= 0.03, "proposed: settled max i_d {idp} A");
     let sc = load("miyajima-fw-800rpm-polar");
     let v_dc = sc.inverter.v_dc_v;
-    let m_max = drivelab::plot_polar::m_max();
+    let m_max = drivelab_tools::plot_polar::m_max();
     for (name, r) in [("conventional", &conv), ("proposed", &prop)] {
         let rows = r.trace();
         // Deep in flux weakening at 3 A: i_d well below 0 and the voltage at its limit.
@@ -160,7 +161,7 @@ fn flux_weakening_proposed_keeps_i_d_nonpositive_and_conventional_does_not() {
         let id = fw.iter().map(|x| x.i_d).sum::<f64>() / fw.len() as f64;
         assert!(id < -0.8, "{name}: i_d {id} A at 3 A");
         for x in &fw {
-            let (m, _) = drivelab::plot_polar::modulation_and_phase(x, v_dc);
+            let (m, _) = drivelab_tools::plot_polar::modulation_and_phase(x, v_dc);
             assert!((m - m_max).abs() < 1e-6, "{name}: M = {m} at t = {}", x.t);
         }
         assert!(rows.iter().all(|x| x.i_d.is_finite() && x.i_q.is_finite()));
@@ -172,7 +173,7 @@ fn flux_weakening_proposed_keeps_i_d_nonpositive_and_conventional_does_not() {
     let m_before = |r: &Run| {
         let rows = r.trace();
         let x = rows.iter().find(|x| x.t >= 0.029).unwrap();
-        drivelab::plot_polar::modulation_and_phase(x, v_dc).0
+        drivelab_tools::plot_polar::modulation_and_phase(x, v_dc).0
     };
     assert!(m_before(&prop) < 0.97 * m_max && (m_before(&conv) - m_max).abs() < 1e-6);
 }
@@ -211,7 +212,7 @@ fn near_the_uncontrollable_point_v_a_0_the_controller_stays_bounded() {
             "non-finite at t = {}",
             x.t
         );
-        let (m, d) = drivelab::plot_polar::modulation_and_phase(x, v_dc);
+        let (m, d) = drivelab_tools::plot_polar::modulation_and_phase(x, v_dc);
         assert!(d.abs() <= std::f64::consts::FRAC_PI_2 + 1e-12, "δ = {d}");
         assert!(m.abs() < 0.15, "M = {m} at t = {}", x.t);
         assert!(x.i_d.abs() < 0.15 && x.i_q.abs() < 0.15, "{x:?}");
@@ -227,7 +228,7 @@ fn near_the_uncontrollable_point_v_a_0_the_controller_stays_bounded() {
     let late: Vec<f64> = rows
         .iter()
         .filter(|x| x.t >= 0.1)
-        .map(|x| drivelab::plot_polar::modulation_and_phase(x, v_dc).1)
+        .map(|x| drivelab_tools::plot_polar::modulation_and_phase(x, v_dc).1)
         .collect();
     let mean = late.iter().sum::<f64>() / late.len() as f64;
     assert!(mean.abs() < 0.3, "mean δ over the last 100 ms {mean} rad");
@@ -240,9 +241,13 @@ fn polar_panels_are_drawn_with_their_limits() {
     let r = run("panels", "miyajima-fw-800rpm-polar", "inprocess");
     let sc = load("miyajima-fw-800rpm-polar");
     let out = scratch("panels-out");
-    let files =
-        drivelab::plot_polar::plot_polar_panels(&sc, &r.trace(), &out, "miyajima-fw-800rpm-polar")
-            .unwrap();
+    let files = drivelab_tools::plot_polar::plot_polar_panels(
+        &sc,
+        &r.trace(),
+        &out,
+        "miyajima-fw-800rpm-polar",
+    )
+    .unwrap();
     assert_eq!(files.len(), 2);
     for f in &files {
         assert!(read(f).len() > 10_000, "{}", f.display());

@@ -11,10 +11,10 @@
 //! Every real-time loop preallocates its histograms and never allocates, locks or logs.
 
 use anyhow::{anyhow, bail, Result};
-use drivelab::config::Scenario;
-use drivelab::drive::InProcessDrive;
-use drivelab::rt::{now_ns, setup_rt, sleep_until_ns, RtPolicy, RtReport, RtRequest};
-use drivelab::timing::{CycleMonitor, LatencyHist, MissCounter};
+use drivelab_runtime::config::Scenario;
+use drivelab_runtime::drive::InProcessDrive;
+use drivelab_runtime::rt::{now_ns, setup_rt, sleep_until_ns, RtPolicy, RtReport, RtRequest};
+use drivelab_runtime::timing::{CycleMonitor, LatencyHist, MissCounter};
 
 pub mod uds;
 pub mod wire;
@@ -204,7 +204,7 @@ pub fn run_inprocess(spec: &ChainSpec) -> Result<VariantResult> {
 
 #[cfg(test)]
 pub(crate) mod testutil {
-    use drivelab::config::Scenario;
+    use drivelab_runtime::config::Scenario;
 
     /// The shipped kyslan-pi scenario at `hz`.
     pub fn kyslan(hz: f64) -> Scenario {

@@ -1,5 +1,5 @@
 //! The Unix-socket chain: plant, observer, current loop and speed loop as four processes that
-//! exchange the bus messages ([`drivelab::messages`], sent as their bytes) over Unix domain
+//! exchange the bus messages ([`drivelab_runtime::messages`], sent as their bytes) over Unix domain
 //! datagram sockets in a private directory. It mirrors the iceoryx2 services in
 //! `services/src/{plant,observer,current_loop,speed_loop}.rs`:
 //!
@@ -37,15 +37,15 @@ use crate::wire::{Recv, Rx, Sent, Tx, Wire};
 use crate::{apply_rt, schedule, wait_deadline, NodeSpec};
 use crate::{ChainSpec, VariantResult};
 use anyhow::{anyhow, bail, Context, Result};
-use drivelab::config::Scenario;
-use drivelab::drive::{trace_row, CurrentLoopStep, ObserverStep, Plant, SpeedLoopStep};
-use drivelab::messages::{
+use drivelab_runtime::config::Scenario;
+use drivelab_runtime::drive::{trace_row, CurrentLoopStep, ObserverStep, Plant, SpeedLoopStep};
+use drivelab_runtime::messages::{
     CurrentRef, Estimate, Finite, Header, Measurement, VoltageCommand, FLAG_END, FLAG_STALE_INPUT,
     FLAG_WARMUP,
 };
-use drivelab::rt::now_ns;
-use drivelab::timing::{CycleMonitor, LatencyHist, MissCounter};
-use drivelab::trace::TraceRow;
+use drivelab_runtime::rt::now_ns;
+use drivelab_runtime::timing::{CycleMonitor, LatencyHist, MissCounter};
+use drivelab_runtime::trace::TraceRow;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
@@ -1121,7 +1121,7 @@ pub(crate) fn run_chain_threads(
 mod tests {
     use super::*;
     use crate::testutil::kyslan;
-    use drivelab::drive::InProcessDrive;
+    use drivelab_runtime::drive::InProcessDrive;
 
     #[test]
     fn unknown_role_is_a_one_line_error() {
@@ -1411,7 +1411,7 @@ mod tests {
             .ok()
             .and_then(|s| s.parse().ok())
             .unwrap_or(10_000.0);
-        let core = drivelab::rt::online_cpus() - 1;
+        let core = drivelab_runtime::rt::online_cpus() - 1;
         let at = |p| NodeSpec {
             core: Some(core),
             priority: Some(p),

@@ -5,7 +5,7 @@
 //! drops the message and is counted, like iceoryx2's safe overflow on control data. Blocking
 //! receives wake at least every [`RECV_SLICE`] so that a stop request is noticed.
 
-use drivelab::messages::{CurrentRef, Estimate, Header, Measurement, VoltageCommand};
+use drivelab_runtime::messages::{CurrentRef, Estimate, Header, Measurement, VoltageCommand};
 use std::io;
 use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
 use std::os::unix::ffi::OsStrExt;
@@ -344,7 +344,7 @@ impl Tx {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use drivelab::messages::{FLAG_END, FLAG_WARMUP};
+    use drivelab_runtime::messages::{FLAG_END, FLAG_WARMUP};
 
     fn dir(tag: &str) -> PathBuf {
         let d = std::env::temp_dir().join(format!("dlb-w-{tag}-{}", std::process::id()));

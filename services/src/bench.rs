@@ -4,9 +4,9 @@
 
 use crate::launcher::{self, Clock, RunOptions};
 use anyhow::{anyhow, Context, Result};
-use drivelab::config::{Placement, Scenario, ServicePlacement};
-use drivelab::timing::{LatencyHist, Percentiles};
 use drivelab_bench::{ChainSpec, NodeSpec, VariantResult};
+use drivelab_runtime::config::{Placement, Scenario, ServicePlacement};
+use drivelab_runtime::timing::{LatencyHist, Percentiles};
 use serde::Serialize;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -188,7 +188,7 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str) -> Result<VariantResult> {
     let cycle = LatencyHist::read_v2("cycle", &out.join("cycle.hdr"))?;
     let lateness = LatencyHist::read_v2("lateness", &out.join("plant.lateness.hdr"))?;
     let plant = &r.summary["counters"]["plant"];
-    let mut misses = drivelab::timing::MissCounter::default();
+    let mut misses = drivelab_runtime::timing::MissCounter::default();
     misses.misses = plant["deadline_misses"].as_u64().unwrap_or(0);
     misses.longest_run = plant["longest_miss_run"].as_u64().unwrap_or(0);
     Ok(VariantResult {
@@ -258,7 +258,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
     let mut rows: Vec<Row> = Vec::new();
-    let mut curves_by_rate: Vec<(f64, Vec<drivelab::plot::PercentileSeries>)> = Vec::new();
+    let mut curves_by_rate: Vec<(f64, Vec<drivelab_tools::plot::PercentileSeries>)> = Vec::new();
     for &hz in &rates {
         let mut measured: Vec<(Row, Measured)> = Vec::new();
         let one = placement("one-core")?;
@@ -316,7 +316,8 @@ pub fn run(a: &BenchArgs) -> Result<()> {
                     }
                     _ => {
                         // The same chain with the plant sleeping to spin_us before each
-                        // deadline and spinning the rest (DESIGN.md: sleep-then-short-spin).
+                        // deadline and spinning the rest (docs/architecture.md,
+                        // "Real-time rules": sleep-then-short-spin).
                         let mut sc = scenario_at(&base, hz, slice, placement(p)?)?;
                         sc.timing.plant_spin_us = spin_us(a.spin_us, hz);
                         sc.validate().map_err(|e| anyhow!("--spin-us: {e}"))?;
@@ -407,7 +408,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     let mut ip_sc = base.clone();
     ip_sc.duration_s = if a.quick { 1.0 } else { 20.0 };
     // Time the cycles only (the controller design at construction is set-up, not simulation).
-    let mut drive = drivelab::drive::InProcessDrive::new(&ip_sc);
+    let mut drive = drivelab_runtime::drive::InProcessDrive::new(&ip_sc);
     let n = ip_sc.samples();
     let mut rows_ip = Vec::with_capacity(n as usize);
     let t = Instant::now();
@@ -428,12 +429,12 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         "inprocess_simulated_s_per_wall_s": ip_speed,
         "inprocess_simulated_s": ip_sc.duration_s,
     });
-    let doctor = drivelab::doctor::run_checks();
+    let doctor = drivelab_tools::doctor::run_checks();
     let report = serde_json::json!({
         "seconds_per_variant": seconds,
         "rounds": rounds,
         "quick": a.quick,
-        "machine": { "cpus": drivelab::rt::online_cpus(), "doctor": doctor },
+        "machine": { "cpus": drivelab_runtime::rt::online_cpus(), "doctor": doctor },
         "rows": rows,
         "speed": speed,
     });
@@ -442,7 +443,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     std::fs::write(out.join("bench.md"), &md)?;
     for (hz, curves) in &curves_by_rate {
         let ts_us = 1e6 / hz;
-        drivelab::plot::plot_percentiles(
+        drivelab_tools::plot::plot_percentiles(
             curves,
             &format!(
                 "cycle latency at {} kHz (floor: timer wake-up lateness)",

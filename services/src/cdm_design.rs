@@ -3,7 +3,7 @@
 //! checked by hand.
 
 use anyhow::{bail, Result};
-use drivelab::control::cdm::{self, CdmDesign};
+use drivelab_control::control::cdm::{self, CdmDesign};
 use std::fmt::Write;
 
 /// Arguments of `drivelab cdm-design`.
@@ -161,8 +161,8 @@ pub fn render(motor: &str, d: &CdmDesign) -> String {
 
 /// The polar law of a scenario (`drivelab design`): the CDM loops at δ_o = 0, the limits, and
 /// for the flux-weakening laws the pole rule of the phase and amplitude controllers.
-pub fn render_polar_design(p: &drivelab::control::polar::PolarDesign) -> String {
-    use drivelab::control::polar::PolarMode;
+pub fn render_polar_design(p: &drivelab_control::control::polar::PolarDesign) -> String {
+    use drivelab_control::control::polar::PolarMode;
     let mut o = String::new();
     let sp = &p.spec;
     let _ = writeln!(

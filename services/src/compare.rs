@@ -5,9 +5,9 @@
 //! function as `summary.json`'s, so runs recorded before a metric existed compare too.
 
 use anyhow::{anyhow, bail, Context, Result};
-use drivelab::config::Scenario;
-use drivelab::metrics::{speed_metrics, SpeedMetrics};
-use drivelab::trace::TraceRow;
+use drivelab_runtime::config::Scenario;
+use drivelab_runtime::trace::TraceRow;
+use drivelab_tools::metrics::{speed_metrics, SpeedMetrics};
 use serde_json::json;
 use std::fmt::Write;
 use std::path::{Path, PathBuf};
@@ -58,7 +58,7 @@ pub fn load_run(dir: &Path) -> Result<LoadedRun> {
     })?;
     let scenario =
         Scenario::from_toml(&text, &sc_path.display().to_string()).map_err(|e| anyhow!(e))?;
-    let rows = drivelab::trace::read_csv(&trace)?;
+    let rows = drivelab_runtime::trace::read_csv(&trace)?;
     if rows.is_empty() {
         bail!("{}: trace.csv has no samples", dir.display());
     }
@@ -155,7 +155,7 @@ pub fn plot(runs: &[LoadedRun], out: &Path) -> Result<Vec<PathBuf>> {
         .map(|r| r.label.as_str())
         .collect::<Vec<_>>()
         .join(" vs ");
-    files.extend(drivelab::plot::plot_lines(
+    files.extend(drivelab_tools::plot::plot_lines(
         &series(|x| x.omega_m),
         &format!("speed: {names}"),
         "t (ms)",
@@ -166,7 +166,7 @@ pub fn plot(runs: &[LoadedRun], out: &Path) -> Result<Vec<PathBuf>> {
             .collect::<Vec<_>>(),
         &out.join("compare_speed"),
     )?);
-    files.extend(drivelab::plot::plot_lines(
+    files.extend(drivelab_tools::plot::plot_lines(
         &series(|x| x.i_q),
         &format!("q current: {names}"),
         "t (ms)",
@@ -177,7 +177,7 @@ pub fn plot(runs: &[LoadedRun], out: &Path) -> Result<Vec<PathBuf>> {
             .collect::<Vec<_>>(),
         &out.join("compare_iq"),
     )?);
-    files.extend(drivelab::plot::plot_lines(
+    files.extend(drivelab_tools::plot::plot_lines(
         &series(|x| x.i_d),
         &format!("d current: {names}"),
         "t (ms)",

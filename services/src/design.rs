@@ -2,9 +2,9 @@
 //! Both controllers are designed for the scenario's motor and rise-time target: the PI cascade
 //! (symmetrical optimum) and Kyslan's nonlinear controller (pole placement).
 
-use drivelab::config::Scenario;
-use drivelab::control::nonlinear::KyslanModel;
-use drivelab::drive::DriveDesign;
+use drivelab_control::control::nonlinear::KyslanModel;
+use drivelab_runtime::config::Scenario;
+use drivelab_runtime::drive::DriveDesign;
 use std::fmt::Write;
 
 /// Renders the design printout of `sc`.
@@ -54,7 +54,7 @@ pub fn render(sc: &Scenario) -> String {
         o.push_str(&r.render());
     }
     if let Some(ob) = &d.observer {
-        o.push_str(&drivelab::observer_sensorless::render_design(
+        o.push_str(&drivelab_control::observer_sensorless::render_design(
             ob,
             &m,
             sc.rates.ts(),
@@ -87,8 +87,8 @@ fn render_nonlinear(o: &mut String, sc: &Scenario, d: &DriveDesign) {
             let _ = writeln!(
                 o,
                 "  eq. (15): uncontrollable at i_d = -ψ/(Ld-Lq) = {i:.3} A; warning below a1 + a2·i_d = {:.0} % of a1 (i_d = {:.3} A)",
-                100.0 * drivelab::control::nonlinear::NEAR_SINGULAR,
-                (drivelab::control::nonlinear::NEAR_SINGULAR - 1.0) * k.a1 / k.a2
+                100.0 * drivelab_control::control::nonlinear::NEAR_SINGULAR,
+                (drivelab_control::control::nonlinear::NEAR_SINGULAR - 1.0) * k.a1 / k.a2
             );
         }
         None => {

@@ -1,7 +1,7 @@
 //! Fault injection: parsing of `--fault` specs, the seeded random plan, and signals.
 
 use anyhow::{anyhow, bail, Result};
-use drivelab::config::SERVICES;
+use drivelab_runtime::config::SERVICES;
 use serde::Serialize;
 
 /// One injected fault.
@@ -243,6 +243,53 @@ pub fn find_services(bus: &str) -> Vec<(String, String, u32)> {
         .collect()
 }
 
+/// Publishes `count` malformed estimates onto a running drive's estimate topic: `nan` puts
+/// NaN in the speed, `backwards` uses sample index 0 (behind the drive). For tests of the
+/// consumers' input checks.
+pub fn inject_bad_estimates(bus: &str, kind: &str, count: u32) -> Result<()> {
+    use drivelab_runtime::messages::{Estimate, Header};
+    drivelab_runtime::bus::check_bus_id(bus)?;
+    if find_services(bus).is_empty() {
+        bail!("no drive is running on bus {bus}");
+    }
+    let node = drivelab_runtime::bus::node(bus, "injector")?;
+    let topics = drivelab_runtime::bus::DriveTopics::open_with(
+        &node,
+        drivelab_runtime::bus::WakeKind::Futex,
+        bus,
+    )?;
+    let tx = topics.est.sender()?;
+    // Connect before the first message, and give the subscribers time to see the new
+    // publisher, so that no bad message is lost to a lazy connection.
+    tx.connect()?;
+    std::thread::sleep(std::time::Duration::from_millis(100));
+    tx.connect()?;
+    for i in 0..count {
+        let e = match kind {
+            "nan" => Estimate {
+                hdr: Header {
+                    k: u64::MAX / 2 + u64::from(i),
+                    ..Default::default()
+                },
+                theta_e: 0.0,
+                omega_m: f64::NAN,
+            },
+            "backwards" => Estimate {
+                hdr: Header {
+                    k: 0,
+                    ..Default::default()
+                },
+                theta_e: 0.0,
+                omega_m: 0.0,
+            },
+            other => bail!("unknown bad-input kind '{other}' (nan, backwards)"),
+        };
+        tx.send(e)?;
+        std::thread::sleep(std::time::Duration::from_millis(2));
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -313,47 +360,4 @@ mod tests {
             .to_string()
             .contains("--duration"));
     }
-}
-
-/// Publishes `count` malformed estimates onto a running drive's estimate topic: `nan` puts
-/// NaN in the speed, `backwards` uses sample index 0 (behind the drive). For tests of the
-/// consumers' input checks.
-pub fn inject_bad_estimates(bus: &str, kind: &str, count: u32) -> Result<()> {
-    use drivelab::messages::{Estimate, Header};
-    drivelab::bus::check_bus_id(bus)?;
-    if find_services(bus).is_empty() {
-        bail!("no drive is running on bus {bus}");
-    }
-    let node = drivelab::bus::node(bus, "injector")?;
-    let topics = drivelab::bus::DriveTopics::open_with(&node, drivelab::bus::WakeKind::Futex, bus)?;
-    let tx = topics.est.sender()?;
-    // Connect before the first message, and give the subscribers time to see the new
-    // publisher, so that no bad message is lost to a lazy connection.
-    tx.connect()?;
-    std::thread::sleep(std::time::Duration::from_millis(100));
-    tx.connect()?;
-    for i in 0..count {
-        let e = match kind {
-            "nan" => Estimate {
-                hdr: Header {
-                    k: u64::MAX / 2 + u64::from(i),
-                    ..Default::default()
-                },
-                theta_e: 0.0,
-                omega_m: f64::NAN,
-            },
-            "backwards" => Estimate {
-                hdr: Header {
-                    k: 0,
-                    ..Default::default()
-                },
-                theta_e: 0.0,
-                omega_m: 0.0,
-            },
-            other => bail!("unknown bad-input kind '{other}' (nan, backwards)"),
-        };
-        tx.send(e)?;
-        std::thread::sleep(std::time::Duration::from_millis(2));
-    }
-    Ok(())
 }

@@ -1,4 +1,4 @@
-//! The supervisor's side of live telemetry (see `drivelab::telemetry`): it collects the
+//! The supervisor's side of live telemetry (see `drivelab_runtime::telemetry`): it collects the
 //! services' statuses, adds its own view of the processes and a decimated trace, and
 //! publishes them for `drivelab monitor`; it takes the monitors' fault requests.
 //!
@@ -7,9 +7,9 @@
 //! outside their loops; monitors connect only to this hub's publishers.
 
 use anyhow::{anyhow, bail, Result};
-use drivelab::config::{Scenario, SERVICES};
-use drivelab::messages::FLAG_END;
-use drivelab::telemetry::*;
+use drivelab_runtime::config::{Scenario, SERVICES};
+use drivelab_runtime::messages::FLAG_END;
+use drivelab_runtime::telemetry::*;
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::PortFactory;
 use std::collections::VecDeque;
@@ -73,7 +73,7 @@ pub struct Hub {
 impl Hub {
     /// Creates the hub's node and topics on bus `bus_id`; call before spawning the services.
     pub fn new(bus_id: &str, sc: &Scenario, lockstep: bool) -> Result<Self> {
-        let node = drivelab::bus::node(bus_id, "supervisor")?;
+        let node = drivelab_runtime::bus::node(bus_id, "supervisor")?;
         let status_topic = open_plain::<ServiceStatus>(&node, TOPIC_STATUS, 16, 0)?;
         let view_topic = open_plain::<DriveView>(&node, TOPIC_VIEW, 4, 1)?;
         let events_topic =
@@ -176,7 +176,7 @@ impl Hub {
         let v = &mut self.view;
         v.hdr.k = k_now;
         v.hdr.flags = flags;
-        v.hdr.t_pub_ns = drivelab::rt::now_ns();
+        v.hdr.t_pub_ns = drivelab_runtime::rt::now_ns();
         v.decimation = tail.decimation;
         if let Ok(q) = tail.points.lock() {
             v.n_points = q.len() as u32;

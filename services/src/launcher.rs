@@ -3,14 +3,14 @@
 
 use crate::common::BusClock;
 use anyhow::{anyhow, bail, Context, Result};
-use drivelab::bus::{self, DriveTopics, MAX_BUFFER};
-use drivelab::config::{Scenario, SERVICES};
-use drivelab::drive::{trace_row, DriveDesign};
-use drivelab::messages::{Measurement, VoltageCommand};
-use drivelab::metrics::speed_metrics;
-use drivelab::service::TopologyPlan;
-use drivelab::topology::{ProcessSpec, StageInfo};
-use drivelab::trace::TraceRow;
+use drivelab_runtime::bus::{self, DriveTopics, MAX_BUFFER};
+use drivelab_runtime::config::{Scenario, SERVICES};
+use drivelab_runtime::drive::{trace_row, DriveDesign};
+use drivelab_runtime::messages::{Measurement, VoltageCommand};
+use drivelab_runtime::service::TopologyPlan;
+use drivelab_runtime::topology::{ProcessSpec, StageInfo};
+use drivelab_runtime::trace::TraceRow;
+use drivelab_tools::metrics::speed_metrics;
 use serde::Serialize;
 use serde_json::json;
 use std::collections::BTreeMap;
@@ -155,7 +155,7 @@ struct Progress {
 
 fn run_recorder(
     bus_id: String,
-    wake: drivelab::bus::WakeKind,
+    wake: drivelab_runtime::bus::WakeKind,
     n: u64,
     stop: Arc<AtomicBool>,
     progress: Arc<Progress>,
@@ -203,15 +203,17 @@ fn run_recorder(
                 meas_end = true;
             } else if m.hdr.k < n {
                 r.meas[m.hdr.k as usize] = Some(m);
-                progress.tail.offer(drivelab::telemetry::TracePoint {
-                    k: m.hdr.k,
-                    omega: m.omega_m_true,
-                    omega_ref: last_cmd.omega_ref,
-                    i_d: m.i_dq_true[0],
-                    i_q: m.i_dq_true[1],
-                    i_d_ref: last_cmd.i_dq_ref[0],
-                    i_q_ref: last_cmd.i_dq_ref[1],
-                });
+                progress
+                    .tail
+                    .offer(drivelab_runtime::telemetry::TracePoint {
+                        k: m.hdr.k,
+                        omega: m.omega_m_true,
+                        omega_ref: last_cmd.omega_ref,
+                        i_d: m.i_dq_true[0],
+                        i_q: m.i_dq_true[1],
+                        i_d_ref: last_cmd.i_dq_ref[0],
+                        i_q_ref: last_cmd.i_dq_ref[1],
+                    });
                 if m.hdr.k + 1 > progress.next_k.load(Ordering::Relaxed) {
                     progress.next_k.store(m.hdr.k + 1, Ordering::Relaxed);
                     if let Ok(mut l) = progress.last.lock() {
@@ -288,7 +290,7 @@ struct ChildProc {
 /// The executable of process `p`: its `exec` (relative to the scenario's folder) or the
 /// built-in host next to this executable.
 fn process_binary(p: &ProcessSpec, base: &Path) -> Result<PathBuf> {
-    match drivelab::topology::exec_path(p, base) {
+    match drivelab_runtime::topology::exec_path(p, base) {
         Some(e) if e.is_file() => Ok(e),
         Some(e) => bail!(
             "process '{}': executable {} not found (build it first: cargo build --release --workspace)",
@@ -624,30 +626,30 @@ fn run_bus(
 /// (a user's executable is asked with `--describe`) and makes `exec` paths absolute.
 pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Result<TopologyPlan> {
     if let Some(t) = &o.topology {
-        let (file, path) = drivelab::topology::load(t).map_err(|e| anyhow!("--topology: {e}"))?;
+        let (file, path) = drivelab_runtime::topology::load(t).map_err(|e| anyhow!("--topology: {e}"))?;
         let base = path.parent().unwrap_or(Path::new(".")).to_path_buf();
         sc.process = file.process;
         for p in sc.process.iter_mut() {
-            if let Some(e) = drivelab::topology::exec_path(p, &base) {
+            if let Some(e) = drivelab_runtime::topology::exec_path(p, &base) {
                 p.exec = Some(e.display().to_string());
             }
         }
-        sc.placement = drivelab::config::Placement::default();
+        sc.placement = drivelab_runtime::config::Placement::default();
         sc.validate().map_err(|e| anyhow!("--topology {t}: {e}"))?;
     }
     let base = sc_src.parent().unwrap_or(Path::new(".")).to_path_buf();
     let mut procs = sc.topology();
     for p in procs.iter_mut() {
-        if let Some(e) = drivelab::topology::exec_path(p, &base) {
+        if let Some(e) = drivelab_runtime::topology::exec_path(p, &base) {
             p.exec = Some(e.display().to_string());
         }
     }
     let mut described: BTreeMap<String, Vec<StageInfo>> = BTreeMap::new();
     let scc = sc.clone();
     let sc_text = toml::to_string(&scc)?;
-    let resolved = drivelab::topology::resolve(&procs, &mut |p, stage| {
-        if let Some(i) = drivelab::topology::builtin_info(&scc, stage) {
-            if p.exec.is_none() || drivelab::stages::BUILTIN.contains(&stage) {
+    let resolved = drivelab_runtime::topology::resolve(&procs, &mut |p, stage| {
+        if let Some(i) = drivelab_runtime::topology::builtin_info(&scc, stage) {
+            if p.exec.is_none() || drivelab_runtime::stages::BUILTIN.contains(&stage) {
                 return Ok(i);
             }
         }
@@ -674,7 +676,7 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
     })
     .map_err(|e| anyhow!(e))?;
     sc.process = resolved.processes.iter().map(|(p, _)| p.clone()).collect();
-    sc.placement = drivelab::config::Placement::default();
+    sc.placement = drivelab_runtime::config::Placement::default();
     Ok(TopologyPlan::from_resolved(&resolved))
 }
 
@@ -734,9 +736,9 @@ fn assemble(sc: &Scenario, rec: &Recorder, _plant_ok: bool) -> (Vec<TraceRow>, V
             (Some(m), None) => {
                 let nan = f64::NAN;
                 let c = VoltageCommand {
-                    hdr: drivelab::messages::Header {
+                    hdr: drivelab_runtime::messages::Header {
                         k: m.hdr.k,
-                        flags: drivelab::messages::FLAG_MISSING,
+                        flags: drivelab_runtime::messages::FLAG_MISSING,
                         ..Default::default()
                     },
                     u_ab: [nan; 2],
@@ -799,7 +801,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
                 );
             }
             (
-                drivelab::stages::run_inprocess(&sc),
+                drivelab_runtime::stages::run_inprocess(&sc),
                 Vec::new(),
                 json!({}),
                 json!({ "deadline_misses": 0 }),
@@ -843,7 +845,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             };
         }
     }
-    drivelab::trace::write_csv(&out.join("trace.csv"), &rows)?;
+    drivelab_runtime::trace::write_csv(&out.join("trace.csv"), &rows)?;
     let metrics = speed_metrics(&sc, &rows);
     let design = DriveDesign::from_scenario(&sc);
     let mut summary = json!({
@@ -884,7 +886,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             1e6 / sc.rates.sample_hz,
             format!("T_s = {:.0} µs", 1e6 / sc.rates.sample_hz),
         ));
-        drivelab::plot::plot_percentiles(
+        drivelab_tools::plot::plot_percentiles(
             &curves,
             &format!("{}: latency percentiles", sc.name),
             budget,
@@ -893,16 +895,17 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         )?;
     }
     if !o.no_plots && !rows.is_empty() {
-        let opts = drivelab::plot::TraceFigureOptions {
+        let opts = drivelab_tools::plot::TraceFigureOptions {
             current_limit_a: Some(sc.i_q_max()),
             voltage_limit_v: Some(sc.u_max()),
             title: format!("{} ({:?})", sc.name, o.clock).to_lowercase(),
             shaded_windows: windows.clone(),
             ..Default::default()
         };
-        let mut files = drivelab::plot::plot_trace(&rows, &out, &opts)?;
-        if drivelab::control::polar::mode_of(&sc).is_some() || !sc.reference.i_q_a.is_empty() {
-            files.extend(drivelab::plot_polar::plot_polar_panels(
+        let mut files = drivelab_tools::plot::plot_trace(&rows, &out, &opts)?;
+        if drivelab_runtime::wiring::polar::mode_of(&sc).is_some() || !sc.reference.i_q_a.is_empty()
+        {
+            files.extend(drivelab_tools::plot_polar::plot_polar_panels(
                 &sc,
                 &rows,
                 &out,
@@ -930,8 +933,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
 fn collect_histograms(
     out: &Path,
 ) -> Result<(
-    BTreeMap<String, drivelab::timing::Percentiles>,
-    Vec<drivelab::plot::PercentileSeries>,
+    BTreeMap<String, drivelab_runtime::timing::Percentiles>,
+    Vec<drivelab_tools::plot::PercentileSeries>,
 )> {
     let mut lat = BTreeMap::new();
     let mut curves = Vec::new();
@@ -947,7 +950,7 @@ fn collect_histograms(
             .unwrap_or_default()
             .to_string_lossy()
             .into_owned();
-        let h = drivelab::timing::LatencyHist::read_v2("hist", &f)?;
+        let h = drivelab_runtime::timing::LatencyHist::read_v2("hist", &f)?;
         std::fs::write(f.with_extension("hgrm"), h.hgrm())?;
         lat.insert(key.clone(), h.percentiles());
         if key == "cycle" || key.ends_with(".wake") || key.ends_with(".lateness") {
@@ -1197,7 +1200,7 @@ fn supervise(
         }
         pending_restart = still;
         for i in 0..children.len() {
-            use drivelab::telemetry::ProcState;
+            use drivelab_runtime::telemetry::ProcState;
             let state = if done[i] {
                 ProcState::Finished
             } else if dead[i] {
@@ -1278,7 +1281,7 @@ pub fn fault_reports(
     rows: &[TraceRow],
     events: &[SupEvent],
 ) -> (Vec<FaultReport>, Vec<(f64, f64, String)>) {
-    use drivelab::messages::{FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT};
+    use drivelab_runtime::messages::{FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT};
     let fs = sc.rates.sample_hz;
     let ms = |dk: u64| dk as f64 / fs * 1e3;
     let by_k: BTreeMap<u64, &TraceRow> = rows.iter().map(|r| (r.k, r)).collect();
@@ -1291,8 +1294,7 @@ pub fn fault_reports(
         let after = || by_k.range(k0..k_end_window).map(|(_, r)| *r);
         // Data-path detection: the first stale flag, or the first sample the plant did not produce.
         let mut det = None;
-        let mut expect = k0;
-        for r in after() {
+        for (expect, r) in (k0..).zip(after()) {
             if r.k != expect {
                 det = Some((expect, "recorder (plant produced no sample)".to_string()));
                 break;
@@ -1305,7 +1307,6 @@ pub fn fault_reports(
                 det = Some((r.k, "current-loop".into()));
                 break;
             }
-            expect += 1;
         }
         let safe = after()
             .find(|r| r.plant_flags & FLAG_SAFE_STATE != 0)
@@ -1322,7 +1323,7 @@ pub fn fault_reports(
             .map(|r| r.k);
         let hold = (0.01 * fs).ceil() as usize;
         let within = |r: &TraceRow| {
-            let w = drivelab::config::profile_at(&sc.reference.speed_rad_s, r.t);
+            let w = drivelab_runtime::config::profile_at(&sc.reference.speed_rad_s, r.t);
             (r.omega_m - w).abs() <= 0.02 * w.abs().max(1e-9)
         };
         let tail: Vec<&TraceRow> = after()

@@ -1,5 +1,5 @@
 //! The drive's processes. `drivelab-host` (in `src/bin/`) is the generic stage host of
-//! `drivelab::service`; the control maths live in `drivelab-shared`.
+//! `drivelab_runtime::service`; the control maths live in `drivelab-control`.
 
 pub mod bench;
 pub mod cdm_design;

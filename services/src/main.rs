@@ -401,17 +401,20 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             Ok(())
         }
         Cmd::Scenarios => {
-            let list = drivelab::config::list_scenarios();
+            let list = drivelab_runtime::config::list_scenarios();
             if list.is_empty() {
                 anyhow::bail!(
                     "no scenarios found in {}",
-                    drivelab::config::scenarios_dir().display()
+                    drivelab_runtime::config::scenarios_dir().display()
                 );
             }
             println!("{:<24} {:<40} purpose", "name", "reproduces");
             for (name, path) in list {
                 let text = std::fs::read_to_string(&path)?;
-                match drivelab::config::Scenario::from_toml(&text, &path.display().to_string()) {
+                match drivelab_runtime::config::Scenario::from_toml(
+                    &text,
+                    &path.display().to_string(),
+                ) {
                     Ok(s) => println!("{:<24} {:<40} {}", name, s.reproduces, s.purpose),
                     Err(e) => println!("{name:<24} INVALID: {e}"),
                 }
@@ -426,7 +429,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             let mut sc = launcher::load_scenario(&scenario, None)?;
             if let Some(m) = motor {
                 let p = drivelab_services::replay::resolve_motor(&m)?;
-                sc.motor = drivelab::config::MotorSpec {
+                sc.motor = drivelab_runtime::config::MotorSpec {
                     preset: None,
                     r_ohm: Some(p.r_ohm),
                     l_d_h: Some(p.l_d_h),
@@ -480,7 +483,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             Ok(())
         }
         Cmd::Clean { bus } => {
-            drivelab::bus::check_bus_id(&bus)?;
+            drivelab_runtime::bus::check_bus_id(&bus)?;
             let users = drivelab_services::faults::bus_users(&bus);
             if let Some((pid, what)) = users.first() {
                 anyhow::bail!(
@@ -492,8 +495,8 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                     }
                 );
             }
-            let files = drivelab::bus::leftovers(&bus);
-            drivelab::bus::cleanup(&bus)?;
+            let files = drivelab_runtime::bus::leftovers(&bus);
+            drivelab_runtime::bus::cleanup(&bus)?;
             if files.is_empty() {
                 println!("bus {bus}: nothing to remove");
             } else {
@@ -507,7 +510,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             bus,
             duration,
         } => {
-            drivelab::bus::check_bus_id(&bus)?;
+            drivelab_runtime::bus::check_bus_id(&bus)?;
             let spec = drivelab_services::faults::parse(&format!(
                 "{kind}:{service}@0{}",
                 if kind == "stop" {
@@ -585,11 +588,11 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
         Cmd::ObserverError(args) => drivelab_services::observer_error::run(&args),
         Cmd::CdmDesign(args) => drivelab_services::cdm_design::run(&args),
         Cmd::Doctor { json } => {
-            let checks = drivelab::doctor::run_checks();
+            let checks = drivelab_tools::doctor::run_checks();
             if json {
                 println!("{}", serde_json::to_string_pretty(&checks)?);
             } else {
-                print!("{}", drivelab::doctor::render_text(&checks));
+                print!("{}", drivelab_tools::doctor::render_text(&checks));
             }
             Ok(())
         }

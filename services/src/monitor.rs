@@ -1,6 +1,6 @@
 //! `drivelab monitor`: a live terminal view of a running drive (ratatui).
 //!
-//! It attaches to the supervisor's telemetry (see `drivelab::telemetry`), never to the
+//! It attaches to the supervisor's telemetry (see `drivelab_runtime::telemetry`), never to the
 //! real-time processes' topics, so attaching, watching and detaching cost the drive nothing.
 //! It shows per service the process state, rate, wake-up lateness and execution time
 //! (p99 and max since the service started), deadline misses and stale or rejected inputs; the
@@ -9,8 +9,8 @@
 //! confirmation.
 
 use anyhow::{anyhow, bail, Context, Result};
-use drivelab::config::SERVICES;
-use drivelab::telemetry::*;
+use drivelab_runtime::config::SERVICES;
+use drivelab_runtime::telemetry::*;
 use iceoryx2::prelude::*;
 use ratatui::crossterm::event::{self, Event, KeyCode, KeyEventKind, KeyModifiers};
 use ratatui::layout::{Constraint, Layout, Rect};
@@ -45,17 +45,17 @@ struct Attached {
 }
 
 fn attach(bus: &str) -> Result<Attached> {
-    drivelab::bus::check_bus_id(bus)?;
+    drivelab_runtime::bus::check_bus_id(bus)?;
     // iceoryx2 must not write to the screen the UI owns.
     iceoryx2::prelude::set_log_level(LogLevel::Fatal);
-    let cfg = drivelab::bus::config(bus)?;
+    let cfg = drivelab_runtime::bus::config(bus)?;
     let name = ServiceName::new(TOPIC_VIEW).map_err(|e| anyhow!("{e:?}"))?;
     let exists =
         ipc::Service::does_exist(&name, &cfg, MessagingPattern::PublishSubscribe).unwrap_or(false);
     if !exists {
         bail!("no drive on bus '{bus}': start one with `drivelab run --bus {bus}`");
     }
-    let node = drivelab::bus::node(bus, "monitor")?;
+    let node = drivelab_runtime::bus::node(bus, "monitor")?;
     let open = |node: Node<ipc::Service>| -> Result<Attached> {
         let view = open_existing::<DriveView>(&node, TOPIC_VIEW)?;
         let events = open_existing::<EventEntry>(&node, TOPIC_EVENTS)?;
@@ -71,6 +71,9 @@ fn attach(bus: &str) -> Result<Attached> {
     open(node)
         .with_context(|| format!("cannot attach to the drive on bus '{bus}' (did it just end?)"))
 }
+
+/// One line of a chart: label, colour, (t, value) points.
+type Series<'a> = (&'a str, Color, Vec<(f64, f64)>);
 
 /// What the screen shows.
 struct Ui {
@@ -354,14 +357,7 @@ impl Ui {
             .collect()
     }
 
-    fn chart(
-        &self,
-        f: &mut Frame,
-        area: Rect,
-        title: String,
-        unit: &str,
-        sets: Vec<(&str, Color, Vec<(f64, f64)>)>,
-    ) {
+    fn chart(&self, f: &mut Frame, area: Rect, title: String, unit: &str, sets: Vec<Series<'_>>) {
         let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
         for (_, _, d) in &sets {
             for &(x, y) in d {
@@ -513,7 +509,7 @@ impl Ui {
 /// lowers its priority, so that drawing the screen competes with nothing the drive needs.
 /// Returns a note for the footer.
 fn keep_off(rt_cores: u64) -> String {
-    let n = drivelab::rt::online_cpus().min(64);
+    let n = drivelab_runtime::rt::online_cpus().min(64);
     let free: Vec<usize> = (0..n).filter(|c| rt_cores & (1 << c) == 0).collect();
     // SAFETY: setpriority on our own process (who = 0) only changes our nice value.
     unsafe {

@@ -4,8 +4,10 @@
 //! of eq. (13), beside the exact discretisation.
 
 use anyhow::{anyhow, bail, Context, Result};
-use drivelab::motor::MotorParams;
-use drivelab::observer_sensorless::{predicted_angle_error, truncation_error, Discretisation};
+use drivelab_control::motor::MotorParams;
+use drivelab_control::observer_sensorless::{
+    predicted_angle_error, truncation_error, Discretisation,
+};
 use serde_json::json;
 use std::fmt::Write;
 use std::path::PathBuf;
@@ -189,7 +191,7 @@ pub fn run(a: &ObserverErrorArgs) -> Result<()> {
                 )
             })
             .collect();
-        files.extend(drivelab::plot::plot_lines(
+        files.extend(drivelab_tools::plot::plot_lines(
             &zeta_series,
             "relative truncation error ζ of I + A·T_s (Low et al. eq. 14, Fig. 3)",
             "speed [rpm]",
@@ -216,7 +218,7 @@ pub fn run(a: &ObserverErrorArgs) -> Result<()> {
                     .collect(),
             ));
         }
-        files.extend(drivelab::plot::plot_lines(
+        files.extend(drivelab_tools::plot::plot_lines(
             &err_series,
             &format!(
                 "observer steady-state angle error at no load, τ_o = {} ms",

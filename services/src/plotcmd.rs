@@ -41,14 +41,14 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
     if !trace.is_file() {
         bail!("{} has no trace.csv (not a run folder)", a.run.display());
     }
-    let rows = drivelab::trace::read_csv(&trace)?;
+    let rows = drivelab_runtime::trace::read_csv(&trace)?;
     let summary: serde_json::Value = std::fs::read(a.run.join("summary.json"))
         .ok()
         .and_then(|b| serde_json::from_slice(&b).ok())
         .unwrap_or_default();
     let scenario = std::fs::read_to_string(a.run.join("scenario.toml"))
         .ok()
-        .and_then(|t| drivelab::config::Scenario::from_toml(&t, "scenario.toml").ok());
+        .and_then(|t| drivelab_runtime::config::Scenario::from_toml(&t, "scenario.toml").ok());
     let out = a.out.clone().unwrap_or_else(|| a.run.clone());
     std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
     let windows = summary["faults"]
@@ -71,7 +71,7 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
                 .collect()
         })
         .unwrap_or_default();
-    let opts = drivelab::plot::TraceFigureOptions {
+    let opts = drivelab_tools::plot::TraceFigureOptions {
         window_s: a.window.as_deref().map(parse_window).transpose()?,
         current_limit_a: scenario.as_ref().map(|s| s.i_q_max()),
         voltage_limit_v: scenario.as_ref().map(|s| s.u_max()),
@@ -82,7 +82,7 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
             summary["clock"].as_str().unwrap_or("?")
         ),
     };
-    let mut files = drivelab::plot::plot_trace(&rows, &out, &opts)?;
+    let mut files = drivelab_tools::plot::plot_trace(&rows, &out, &opts)?;
     let mut curves = Vec::new();
     let mut hdrs: Vec<PathBuf> = std::fs::read_dir(&a.run)?
         .flatten()
@@ -99,14 +99,14 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
         if key == "cycle" || key.ends_with(".wake") || key.ends_with(".lateness") {
             curves.push((
                 key,
-                drivelab::timing::LatencyHist::read_v2("h", &f)?.curve(),
+                drivelab_runtime::timing::LatencyHist::read_v2("h", &f)?.curve(),
             ));
         }
     }
     if !curves.is_empty() {
         let rate = summary["rate_hz"].as_f64().unwrap_or(10_000.0);
         let ts_us = 1e6 / rate;
-        files.extend(drivelab::plot::plot_percentiles(
+        files.extend(drivelab_tools::plot::plot_percentiles(
             &curves,
             "latency percentiles",
             Some((ts_us, format!("T_s = {ts_us:.0} µs"))),

@@ -1,8 +1,8 @@
 //! `drivelab plant --replay`: the plant model alone, open loop, from rest.
 
 use anyhow::{anyhow, bail, Context, Result};
-use drivelab::config::MotorSpec;
-use drivelab::motor::{Mechanics, MotorInput, MotorParams, MotorState, Rk4};
+use drivelab_control::motor::{Mechanics, MotorInput, MotorParams, MotorState, Rk4};
+use drivelab_runtime::config::MotorSpec;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 

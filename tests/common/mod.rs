@@ -127,7 +127,7 @@ pub fn processes_on_bus(bus: &str) -> Vec<String> {
 pub fn assert_clean(bus: &str) {
     let procs = processes_on_bus(bus);
     assert!(procs.is_empty(), "processes left: {procs:?}");
-    let files = drivelab::bus::leftovers(bus);
+    let files = drivelab_runtime::bus::leftovers(bus);
     assert!(files.is_empty(), "bus files left: {files:?}");
 }
 
@@ -160,8 +160,8 @@ impl Run {
     }
 
     /// The trace.
-    pub fn trace(&self) -> Vec<drivelab::trace::TraceRow> {
-        drivelab::trace::read_csv(&self.dir.join("trace.csv")).unwrap()
+    pub fn trace(&self) -> Vec<drivelab_runtime::trace::TraceRow> {
+        drivelab_runtime::trace::read_csv(&self.dir.join("trace.csv")).unwrap()
     }
 }
 

@@ -2,5 +2,5 @@
 //! by `drivelab run`, one per `[[process]]`).
 
 fn main() -> std::process::ExitCode {
-    drivelab::service::host_main(&[])
+    drivelab_runtime::service::host_main(&[])
 }

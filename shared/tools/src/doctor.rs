@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
-use crate::rt;
+use drivelab_runtime::rt;
 
 /// One line of the doctor report.
 #[derive(Debug, Clone, Serialize)]
@@ -1301,7 +1301,7 @@ mod tests {
         assert_eq!(fmt_bytes(3 * 1024 * 1024), "3.0 MiB");
     }
 
-    /// `cargo test -p drivelab-shared --lib doctor::tests::print_report -- --ignored --nocapture`
+    /// `cargo test -p drivelab-tools --lib doctor::tests::print_report -- --ignored --nocapture`
     #[test]
     #[ignore = "prints the live report"]
     fn print_report() {

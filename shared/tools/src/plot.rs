@@ -19,7 +19,7 @@ use plotters::coord::Shift;
 use plotters::element::DashedPathElement;
 use plotters::prelude::*;
 
-use crate::trace::TraceRow;
+use drivelab_runtime::trace::TraceRow;
 
 /// Pixel size of every figure (PNG) and its SVG viewport.
 const FIGURE_SIZE: (u32, u32) = (1200, 700);

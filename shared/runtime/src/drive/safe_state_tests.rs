@@ -7,7 +7,7 @@ use crate::messages::{Header, VoltageCommand, FLAG_SAFE_STATE, FLAG_STALE_CMD};
 fn plant(safe: SafeState) -> (Plant, VoltageCommand) {
     let text = std::fs::read_to_string(concat!(
         env!("CARGO_MANIFEST_DIR"),
-        "/../scenarios/kyslan-pi.toml"
+        "/../../scenarios/kyslan-pi.toml"
     ))
     .unwrap();
     let mut sc = Scenario::from_toml(&text, "kyslan-pi.toml").unwrap();

@@ -151,11 +151,11 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
     /// A sender (publisher + wake-up).
     pub fn sender(&self) -> Result<Sender<T>> {
         let notify = match &self.wake {
-            Wake::Event(ev) => Notify::Event(
+            Wake::Event(ev) => Notify::Event(Box::new(
                 ev.notifier_builder()
                     .create()
                     .map_err(|e| anyhow!("notifier: {e:?}"))?,
-            ),
+            )),
             Wake::Futex(seg, i) => Notify::Futex(seg.clone(), *i),
         };
         Ok(Sender {
@@ -174,11 +174,11 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
     /// controller whose producer died notices without a timer of its own).
     pub fn poker(&self) -> Result<Poker> {
         Ok(Poker(match &self.wake {
-            Wake::Event(ev) => Notify::Event(
+            Wake::Event(ev) => Notify::Event(Box::new(
                 ev.notifier_builder()
                     .create()
                     .map_err(|e| anyhow!("notifier: {e:?}"))?,
-            ),
+            )),
             Wake::Futex(seg, i) => Notify::Futex(seg.clone(), *i),
         }))
     }
@@ -188,11 +188,11 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
     /// only polled should use [`Topic::polled_receiver`].
     pub fn receiver(&self, buffer: usize) -> Result<Receiver<T>> {
         let waiter = match &self.wake {
-            Wake::Event(ev) => Waiter::Event(
+            Wake::Event(ev) => Waiter::Event(Box::new(
                 ev.listener_builder()
                     .create()
                     .map_err(|e| anyhow!("listener: {e:?}"))?,
-            ),
+            )),
             Wake::Futex(seg, i) => {
                 Waiter::Futex(seg.clone(), *i, std::cell::Cell::new(seg.seq(*i)))
             }
@@ -236,8 +236,10 @@ impl Poker {
     }
 }
 
+// The iceoryx2 port is boxed (allocated once, at set-up): it is ~1.4 kB, the futex variant
+// 16 bytes.
 enum Notify {
-    Event(Notifier<ipc::Service>),
+    Event(Box<Notifier<ipc::Service>>),
     Futex(Arc<WakeSegment>, usize),
 }
 
@@ -275,9 +277,10 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Sender<T> {
     }
 }
 
+// Boxed iceoryx2 port, as in `Notify`.
 enum Waiter {
     Polled,
-    Event(Listener<ipc::Service>),
+    Event(Box<Listener<ipc::Service>>),
     Futex(Arc<WakeSegment>, usize, std::cell::Cell<u32>),
 }
 

@@ -1,6 +1,6 @@
 //! The four services' step functions and the in-process runner.
 //!
-//! Per sample k (DESIGN.md "The cycle"):
+//! Per sample k (docs/architecture.md, "The cycle"):
 //! 1. plant: take command k−1 (or hold / safe state), publish measurement k, integrate to t_{k+1};
 //! 2. observer: measurement k → estimate k;
 //! 3. current loop: measurement k + estimate k + the current reference computed at the last
@@ -15,20 +15,22 @@ mod rejoin;
 mod safe_state_tests;
 
 use crate::config::{profile_at, SafeState, Scenario, Step};
-use crate::control::current::{CurrentInput, CurrentPiDesign, PiCurrentController, VoltageDq};
-use crate::control::nonlinear::{
+use crate::messages::*;
+use crate::trace::TraceRow;
+use drivelab_control::control::current::{
+    CurrentInput, CurrentPiDesign, PiCurrentController, VoltageDq,
+};
+use drivelab_control::control::nonlinear::{
     self, design_nonlinear, KyslanModel, NlCurrentLaw, NlDesign, NlLoopModel, NlSpec, NlSpeedLaw,
 };
-use crate::control::speed::{
+use drivelab_control::control::speed::{
     design_symmetrical_optimum, sum_of_small_time_constants, SoDesign, SoSpec, SpeedLoopModel,
     SpeedPi,
 };
-use crate::messages::*;
-use crate::motor::{wrap_2pi, Mechanics, MotorInput, MotorParams, MotorState, Rk4};
-use crate::observer::EncoderObserver;
-use crate::observer_sensorless::{ObserverMode, SensorlessObserver};
-use crate::trace::TraceRow;
-use crate::transforms::{clarke, inverse_clarke, inverse_park, park, AlphaBeta, Dq};
+use drivelab_control::motor::{wrap_2pi, Mechanics, MotorInput, MotorParams, MotorState, Rk4};
+use drivelab_control::observer::EncoderObserver;
+use drivelab_control::observer_sensorless::{ObserverMode, SensorlessObserver};
+use drivelab_control::transforms::{clarke, inverse_clarke, inverse_park, park, AlphaBeta, Dq};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
@@ -51,13 +53,13 @@ pub struct DriveDesign {
     pub warnings: Vec<String>,
     /// Low et al. 1998 RST designs (i_d, i_q, speed), when a loop selects "rst".
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub rst: Option<crate::control::rst::RstDriveDesign>,
+    pub rst: Option<drivelab_control::control::rst::RstDriveDesign>,
     /// The sensorless observer's settings, when `observer.mode` is not "encoder".
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub observer: Option<crate::observer_sensorless::ObserverDesign>,
+    pub observer: Option<drivelab_control::observer_sensorless::ObserverDesign>,
     /// Miyajima et al. polar current law (CDM / flux-weakening design), when selected.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub polar: Option<crate::control::polar::PolarDesign>,
+    pub polar: Option<drivelab_control::control::polar::PolarDesign>,
 }
 
 /// Natural frequency ω_i of the nonlinear controller's inner (torque and field) loops, rad/s.
@@ -115,10 +117,10 @@ impl DriveDesign {
         } else {
             Vec::new()
         };
-        let rst = crate::control::rst::uses_rst(sc)
-            .then(|| crate::control::rst::RstDriveDesign::from_scenario(sc).expect("validated"));
+        let rst = crate::wiring::rst::uses_rst(sc)
+            .then(|| crate::wiring::rst::design_from_scenario(sc).expect("validated"));
         Self {
-            controller: if let Some(m) = crate::control::polar::mode_of(sc) {
+            controller: if let Some(m) = crate::wiring::polar::mode_of(sc) {
                 m.name()
             } else if rst.is_some() {
                 "rst"
@@ -132,9 +134,9 @@ impl DriveDesign {
             nonlinear,
             warnings,
             rst,
-            observer: crate::observer_sensorless::ObserverDesign::from_scenario(sc),
-            polar: crate::control::polar::spec_from_scenario(sc)
-                .map(|p| crate::control::polar::PolarDesign::new(&p)),
+            observer: crate::wiring::observer_sensorless::design_from_scenario(sc),
+            polar: crate::wiring::polar::spec_from_scenario(sc)
+                .map(|p| drivelab_control::control::polar::PolarDesign::new(&p)),
         }
     }
 }
@@ -360,7 +362,7 @@ impl ObserverStep {
             enc,
             // The sensorless observer always starts cold: θ̂ = the configured initial error,
             // ω̂ = 0.
-            sensorless: crate::observer_sensorless::from_scenario(sc),
+            sensorless: crate::wiring::observer_sensorless::from_scenario(sc),
             mode: sc.observer.mode,
         }
     }
@@ -407,7 +409,7 @@ pub fn running_start_speed(sc: &Scenario) -> Option<f64> {
 enum SpeedLaw {
     Pi(SpeedPi),
     Nonlinear(NlSpeedLaw),
-    Rst(Box<crate::control::rst::RstSpeed>),
+    Rst(Box<drivelab_control::control::rst::RstSpeed>),
     /// No speed control: i_q* from `reference.i_q_a`.
     CurrentReference,
 }
@@ -435,7 +437,7 @@ impl SpeedLoopStep {
             SpeedLaw::CurrentReference
         } else if sc.speed_loop.controller == crate::config::SpeedController::Rst {
             let r = d.rst.as_ref().expect("designed when a loop selects rst");
-            SpeedLaw::Rst(Box::new(crate::control::rst::RstSpeed::new(
+            SpeedLaw::Rst(Box::new(drivelab_control::control::rst::RstSpeed::new(
                 &r.speed,
                 sc.i_q_max(),
             )))
@@ -518,8 +520,8 @@ impl SpeedLoopStep {
 enum CurrentLaw {
     Pi(PiCurrentController),
     Nonlinear(NlCurrentLaw),
-    Rst(Box<crate::control::rst::RstCurrentController>),
-    Polar(crate::control::polar::PolarCurrentController),
+    Rst(Box<drivelab_control::control::rst::RstCurrentController>),
+    Polar(drivelab_control::control::polar::PolarCurrentController),
 }
 
 /// Current-loop service step.
@@ -539,16 +541,17 @@ impl CurrentLoopStep {
     pub fn new(sc: &Scenario) -> Self {
         let m = sc.motor_params();
         let d = DriveDesign::from_scenario(sc);
-        let law = if let Some(c) = crate::control::polar::PolarCurrentController::from_scenario(sc)
-        {
+        let law = if let Some(c) = crate::wiring::polar::controller_from_scenario(sc) {
             CurrentLaw::Polar(c)
         } else if sc.current_loop.controller == crate::config::CurrentController::Rst {
-            CurrentLaw::Rst(Box::new(crate::control::rst::RstCurrentController::new(
-                &m,
-                d.rst.as_ref().expect("designed when a loop selects rst"),
-                sc.u_max(),
-                sc.current_loop.decoupling,
-            )))
+            CurrentLaw::Rst(Box::new(
+                drivelab_control::control::rst::RstCurrentController::new(
+                    &m,
+                    d.rst.as_ref().expect("designed when a loop selects rst"),
+                    sc.u_max(),
+                    sc.current_loop.decoupling,
+                ),
+            ))
         } else if sc.nonlinear() {
             CurrentLaw::Nonlinear(NlCurrentLaw::new(
                 &m,
@@ -743,48 +746,15 @@ mod tests {
     use super::*;
     use crate::config::Scenario;
 
-    fn kyslan() -> Scenario {
-        scenario("kyslan-pi")
-    }
-
     fn scenario(name: &str) -> Scenario {
-        let path = format!("{}/../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
+        let path = format!("{}/../../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
         Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
-    }
-
-    #[test]
-    fn kyslan_pi_inprocess_metrics() {
-        let sc = kyslan();
-        let rows = run_inprocess(&sc);
-        let m = crate::metrics::speed_metrics(&sc, &rows);
-        eprintln!("{m:?} design {:?}", DriveDesign::from_scenario(&sc));
-        let r = m.rise_time_ms.unwrap();
-        assert!((r - 8.0).abs() <= 0.8, "rise {r} ms");
-    }
-
-    #[test]
-    fn kyslan_nl_inprocess_meets_the_rise_time_and_tracks_i_d() {
-        for name in ["kyslan-nl", "kyslan-nl-sal618"] {
-            let sc = scenario(name);
-            let d = DriveDesign::from_scenario(&sc);
-            assert_eq!(d.controller, "nonlinear");
-            assert!(d.warnings.is_empty(), "{:?}", d.warnings);
-            let rows = run_inprocess(&sc);
-            let m = crate::metrics::speed_metrics(&sc, &rows);
-            let r = m.rise_time_ms.unwrap();
-            assert!((r - 8.0).abs() <= 0.8, "{name}: rise {r} ms");
-            assert!(m.id_tracking_error_a.unwrap() < 0.01, "{name}: {m:?}");
-            assert!(m.steady_state_error.unwrap().abs() < 0.2, "{name}: {m:?}");
-            // The trace's i_q_ref is w2 of eq. (30)-(31): i_q settles on it.
-            let last = rows.last().unwrap();
-            assert!((last.i_q - last.i_q_ref).abs() < 0.01, "{last:?}");
-        }
     }
 
     #[test]
     fn mismatched_controllers_are_rejected() {
         let text = std::fs::read_to_string(format!(
-            "{}/../scenarios/kyslan-nl.toml",
+            "{}/../../scenarios/kyslan-nl.toml",
             env!("CARGO_MANIFEST_DIR")
         ))
         .unwrap()

@@ -383,7 +383,7 @@ fn pinned_cpu() -> Option<usize> {
 }
 
 /// `sched_setscheduler(0, policy, prio)` for the calling thread.
-pub(crate) fn set_scheduler(policy: libc::c_int, priority: i32) -> io::Result<()> {
+pub fn set_scheduler(policy: libc::c_int, priority: i32) -> io::Result<()> {
     let param = libc::sched_param {
         sched_priority: priority,
     };
@@ -398,7 +398,7 @@ pub(crate) fn set_scheduler(policy: libc::c_int, priority: i32) -> io::Result<()
 }
 
 /// Raw policy of the calling thread (without `SCHED_RESET_ON_FORK`), or -1 on error.
-pub(crate) fn current_policy_raw() -> libc::c_int {
+pub fn current_policy_raw() -> libc::c_int {
     // SAFETY: pid 0 = the calling thread; no pointers involved.
     let p = unsafe { libc::sched_getscheduler(0) };
     if p < 0 {
@@ -433,7 +433,7 @@ pub(crate) fn policy_name(p: libc::c_int) -> String {
 }
 
 /// `strerror`-style text without std's " (os error N)" suffix.
-pub(crate) fn os_error_text(e: &io::Error) -> String {
+pub fn os_error_text(e: &io::Error) -> String {
     let s = e.to_string();
     match s.rfind(" (os error ") {
         Some(i) => s[..i].to_string(),
@@ -443,13 +443,13 @@ pub(crate) fn os_error_text(e: &io::Error) -> String {
 
 /// The C type of `getrlimit`'s resource argument (an enum in glibc, `int` elsewhere).
 #[cfg(target_env = "gnu")]
-pub(crate) type RlimitResource = libc::__rlimit_resource_t;
+pub type RlimitResource = libc::__rlimit_resource_t;
 /// The C type of `getrlimit`'s resource argument (an enum in glibc, `int` elsewhere).
 #[cfg(not(target_env = "gnu"))]
-pub(crate) type RlimitResource = libc::c_int;
+pub type RlimitResource = libc::c_int;
 
 /// (soft, hard) limit of `resource`; `RLIM_INFINITY` for unlimited, (0, 0) on error.
-pub(crate) fn get_rlimit(resource: RlimitResource) -> (libc::rlim_t, libc::rlim_t) {
+pub fn get_rlimit(resource: RlimitResource) -> (libc::rlim_t, libc::rlim_t) {
     let mut lim = libc::rlimit {
         rlim_cur: 0,
         rlim_max: 0,
@@ -464,7 +464,7 @@ pub(crate) fn get_rlimit(resource: RlimitResource) -> (libc::rlim_t, libc::rlim_
 }
 
 /// A byte limit for humans: "unlimited", "8 MiB", "65536 bytes".
-pub(crate) fn fmt_rlimit_bytes(v: libc::rlim_t) -> String {
+pub fn fmt_rlimit_bytes(v: libc::rlim_t) -> String {
     if v == libc::RLIM_INFINITY {
         "unlimited".into()
     } else if v >= 1024 * 1024 && v.is_multiple_of(1024 * 1024) {
@@ -477,7 +477,7 @@ pub(crate) fn fmt_rlimit_bytes(v: libc::rlim_t) -> String {
 }
 
 /// A count limit for humans: "unlimited" or the number.
-pub(crate) fn fmt_rlimit_count(v: libc::rlim_t) -> String {
+pub fn fmt_rlimit_count(v: libc::rlim_t) -> String {
     if v == libc::RLIM_INFINITY {
         "unlimited".into()
     } else {

@@ -1,23 +1,16 @@
-//! drivelab shared library: message types, PMSM model, transforms, control laws,
-//! observers, timing/RT setup, bus helpers and configuration types.
+//! drivelab runtime: message types, timing/RT setup, bus helpers, telemetry, configuration
+//! types, the four services' step functions and the wiring from a scenario to the control
+//! laws of `drivelab_control`.
 //!
 //! Control maths are pure step functions (`fn step(&mut self, input) -> output`), unit-tested
 //! without a bus; the services in `services/` only set up, loop and hand messages over.
 
 pub mod bus;
 pub mod config;
-pub mod control;
-pub mod doctor;
 pub mod drive;
 pub mod futex;
 pub mod host;
 pub mod messages;
-pub mod metrics;
-pub mod motor;
-pub mod observer;
-pub mod observer_sensorless;
-pub mod plot;
-pub mod plot_polar;
 pub mod rt;
 pub mod service;
 pub mod stage;
@@ -26,4 +19,4 @@ pub mod telemetry;
 pub mod timing;
 pub mod topology;
 pub mod trace;
-pub mod transforms;
+pub mod wiring;

@@ -52,7 +52,8 @@
 //!    action of v1 rejects it like a load.
 //! 10. ω in eqs (1)–(3) is the mechanical speed (it appears as p·ω in the voltage equations),
 //!     so x1 and the speed set-point of 70 rad/s are mechanical.
-//! 11. §6 loads the motor "in t = 0.02 s", the instant of the i_d step; we follow DESIGN.md:
+//! 11. §6 loads the motor "in t = 0.02 s", the instant of the i_d step; we follow
+//!     docs/architecture.md, "Paper conventions":
 //!     i_d* = −1.6 A at 20 ms, nominal load at 40 ms.
 //!
 //! # Design ([`design_nonlinear`])

@@ -3,9 +3,9 @@
 //! what the drive was doing (no torque bump).
 
 use super::{CurrentLaw, CurrentLoopStep, ObserverStep, Plant, SpeedLaw, SpeedLoopStep};
-use crate::control::current::{CurrentInput, VoltageDq};
 use crate::messages::{CurrentRef, Estimate, Measurement};
-use crate::transforms::{clarke, park, AlphaBeta};
+use drivelab_control::control::current::{CurrentInput, VoltageDq};
+use drivelab_control::transforms::{clarke, park, AlphaBeta};
 
 impl Plant {
     /// A restarted plant resumes from its last published measurement: currents, speed and
@@ -15,11 +15,11 @@ impl Plant {
         self.x.i_d = last.i_dq_true[0];
         self.x.i_q = last.i_dq_true[1];
         self.x.omega_m = last.omega_m_true;
-        self.x.theta_m = crate::motor::wrap_2pi(last.theta_e_true / self.m.p());
+        self.x.theta_m = drivelab_control::motor::wrap_2pi(last.theta_e_true / self.m.p());
         // θ_e = p·θ_m only fixes θ_m up to 2π/p; the encoder reading picks the branch.
         let step = std::f64::consts::TAU / self.m.p();
         let branch = ((last.theta_m_enc - self.x.theta_m) / step).round();
-        self.x.theta_m = crate::motor::wrap_2pi(self.x.theta_m + branch * step);
+        self.x.theta_m = drivelab_control::motor::wrap_2pi(self.x.theta_m + branch * step);
         self.last_u_ab = last.u_ab_applied;
     }
 }

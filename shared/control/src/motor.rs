@@ -59,7 +59,8 @@ impl MotorParams {
         }
     }
 
-    /// Surface PMSM consistent with Low et al. 1998 (8 poles, 1.78 kW, 3.4 A): see DESIGN.md.
+    /// Surface PMSM consistent with Low et al. 1998 (8 poles, 1.78 kW, 3.4 A): see
+    /// docs/architecture.md, "Motor parameter sets".
     /// J and B are our choice (the paper gives neither): J = 2.0e-3 kg·m², B = 1.0e-3
     /// N·m·s/rad. J is that of a ~6 N·m servo motor of this size (≈ 1e-3 kg·m²) plus the
     /// coupled torque brake of the paper's test bench; with the 4.2 A of Fig. 4 against 2 N·m
@@ -427,7 +428,7 @@ mod tests {
 
     #[test]
     fn wrap_stays_in_range() {
-        for a in [-1e-18, -7.0, 0.0, 6.283185307179586, 100.0] {
+        for a in [-1e-18, -7.0, 0.0, std::f64::consts::TAU, 100.0] {
             let w = wrap_2pi(a);
             assert!((0.0..std::f64::consts::TAU).contains(&w), "{a} -> {w}");
         }

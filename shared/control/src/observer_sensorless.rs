@@ -416,26 +416,6 @@ pub struct ObserverDesign {
     pub zeta_at_rated_speed: f64,
 }
 
-impl ObserverDesign {
-    /// The observer of a scenario (None in encoder mode).
-    pub fn from_scenario(sc: &crate::config::Scenario) -> Option<Self> {
-        let o = &sc.observer;
-        (o.mode != ObserverMode::Encoder).then(|| {
-            let m = sc.motor_params();
-            let ts = sc.rates.ts();
-            Self {
-                mode: o.mode,
-                discretisation: o.discretisation,
-                pole_tau_s: o.pole_tau_s,
-                lambda: (-ts / o.pole_tau_s).exp(),
-                omega_min_rad_s: OMEGA_MIN_FRACTION * m.omega_rated_rad_s,
-                initial_angle_error_deg: o.initial_angle_error_deg,
-                zeta_at_rated_speed: truncation_error(&m, ts, m.omega_rated_rad_s),
-            }
-        })
-    }
-}
-
 /// A plain-text printout of the observer of a scenario: pole, gains of eq. (16) at 1200 rpm
 /// and rated speed, ζ and the predicted steady-state angle error.
 pub fn render_design(d: &ObserverDesign, m: &MotorParams, ts: f64) -> String {
@@ -482,97 +462,6 @@ pub fn render_design(d: &ObserverDesign, m: &MotorParams, ts: f64) -> String {
         );
     }
     o
-}
-
-/// Angle error θ̂_e − θ_e of a trace row, degrees in [−180, 180).
-pub fn angle_error_deg(r: &crate::trace::TraceRow) -> f64 {
-    ((r.theta_hat - r.theta_e + PI).rem_euclid(TAU) - PI).to_degrees()
-}
-
-/// Band around the steady-state angle error that counts as converged, degrees.
-pub const CONVERGED_BAND_DEG: f64 = 1.0;
-/// How long the error must stay in the band, s.
-pub const CONVERGED_HOLD_S: f64 = 0.02;
-
-/// Observer metrics of a trace (None in encoder mode): (steady-state angle error in degrees,
-/// the mean over the last 10 % of the run; convergence time in ms, from t = 0 until the error
-/// stays within ±[`CONVERGED_BAND_DEG`] of the steady state for [`CONVERGED_HOLD_S`] or to
-/// the end of the run).
-pub fn angle_metrics(
-    sc: &crate::config::Scenario,
-    rows: &[crate::trace::TraceRow],
-) -> Option<(f64, Option<f64>)> {
-    if sc.observer.mode == ObserverMode::Encoder || rows.is_empty() {
-        return None;
-    }
-    let end = rows.last().map(|r| r.t).unwrap_or(0.0);
-    let tail: Vec<f64> = rows
-        .iter()
-        .filter(|r| r.t >= 0.9 * end)
-        .map(angle_error_deg)
-        .collect();
-    let ss = tail.iter().sum::<f64>() / tail.len() as f64;
-    let inside = |r: &crate::trace::TraceRow| (angle_error_deg(r) - ss).abs() <= CONVERGED_BAND_DEG;
-    let mut conv = None;
-    let mut start: Option<usize> = None;
-    for (i, r) in rows.iter().enumerate() {
-        if inside(r) {
-            let s = *start.get_or_insert(i);
-            if r.t - rows[s].t >= CONVERGED_HOLD_S - 1e-12 || i + 1 == rows.len() {
-                conv = Some(rows[s].t * 1e3);
-                break;
-            }
-        } else {
-            start = None;
-        }
-    }
-    Some((ss, conv))
-}
-
-/// Checks the `[observer]` fields of this module; the error names the field and the rule.
-pub fn validate(sc: &crate::config::Scenario) -> Result<(), String> {
-    let o = &sc.observer;
-    let ts = sc.rates.ts();
-    if !(o.pole_tau_s.is_finite() && o.pole_tau_s >= ts && o.pole_tau_s <= 1.0) {
-        return Err(format!(
-            "observer.pole_tau_s = {} must be in [T_s = {ts}, 1] s",
-            o.pole_tau_s
-        ));
-    }
-    if !(o.initial_angle_error_deg.is_finite() && o.initial_angle_error_deg.abs() <= 360.0) {
-        return Err(format!(
-            "observer.initial_angle_error_deg = {} must be within ±360",
-            o.initial_angle_error_deg
-        ));
-    }
-    if o.mode != ObserverMode::Encoder {
-        let m = sc.motor.resolve()?;
-        if (m.l_d_h - m.l_q_h).abs() > 1e-6 * m.l_d_h.max(m.l_q_h) {
-            return Err(format!(
-                "observer.mode = {:?} needs a surface PMSM (L_d = L_q, Low eq. 11); this motor has L_d = {} H, L_q = {} H",
-                o.mode, m.l_d_h, m.l_q_h
-            )
-            .replace("Sensorless", "\"sensorless\"")
-            .replace("Monitor", "\"monitor\""));
-        }
-    }
-    Ok(())
-}
-
-/// The observer of a scenario (None in encoder mode).
-pub fn from_scenario(sc: &crate::config::Scenario) -> Option<SensorlessObserver> {
-    (sc.observer.mode != ObserverMode::Encoder).then(|| {
-        SensorlessObserver::new(
-            &sc.motor_params(),
-            SensorlessSettings {
-                ts: sc.rates.ts(),
-                pole_tau_s: sc.observer.pole_tau_s,
-                discretisation: sc.observer.discretisation,
-                speed_filter_tau_s: sc.observer.speed_filter_tau_s,
-                initial_angle_rad: sc.observer.initial_angle_error_deg.to_radians(),
-            },
-        )
-    })
 }
 
 #[cfg(test)]
@@ -724,57 +613,6 @@ mod tests {
             );
         }
         errs
-    }
-
-    fn scenario(name: &str, edits: &[(&str, &str)]) -> crate::config::Scenario {
-        let path = format!("{}/../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
-        let mut text = std::fs::read_to_string(&path).unwrap();
-        for (a, b) in edits {
-            assert!(text.contains(a), "{name}.toml has no '{a}'");
-            text = text.replace(a, b);
-        }
-        crate::config::Scenario::from_toml(&text, &path).unwrap()
-    }
-
-    #[test]
-    fn sensorless_flying_start_converges_from_any_angle() {
-        // The sensorless drive catches the motor turning at 300 rpm with the estimate 0°, 90°
-        // or 180° off, then runs the low-rst profile: the back-EMF based speed estimate does
-        // not depend on the angle estimate, so the observer converges in a few τ_o.
-        for err in ["0.0", "90.0", "180.0"] {
-            let sc = scenario(
-                "low-rst-sensorless",
-                &[
-                    (
-                        "initial_angle_error_deg = 0.0",
-                        &format!("initial_angle_error_deg = {err}"),
-                    ),
-                    (
-                        "[rates]",
-                        "[mechanics]\ninitial_speed_rad_s = 31.415926535897931\n\n[rates]",
-                    ),
-                ],
-            );
-            let rows = crate::drive::run_inprocess(&sc);
-            let conv = rows
-                .iter()
-                .position(|r| r.t > 0.003 && angle_error_deg(r).abs() < 5.0)
-                .map(|i| rows[i].t)
-                .unwrap();
-            let worst_after = rows
-                .iter()
-                .filter(|r| r.t >= 0.05)
-                .map(|r| angle_error_deg(r).abs())
-                .fold(0.0, f64::max);
-            let w_end = rows.iter().rev().find(|r| r.t <= 1.2).unwrap().omega_m;
-            eprintln!(
-                "initial error {err}°: within 5° after {:.1} ms, worst |error| after 50 ms {worst_after:.2}°, ω(1.2 s) = {w_end:.2} rad/s",
-                conv * 1e3
-            );
-            assert!(conv < 0.015, "{err}: {conv}");
-            assert!(worst_after < 5.0, "{err}: {worst_after}");
-            assert!((w_end - 125.66).abs() < 0.5, "{err}: {w_end}");
-        }
     }
 
     #[test]

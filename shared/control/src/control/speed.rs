@@ -173,10 +173,10 @@ pub fn design_symmetrical_optimum(
         for _ in 0..60 {
             let mid = 0.5 * (lo + hi);
             // NaN (never reaches) counts as too slow.
-            if !(f(mid) <= target) {
-                hi = mid;
-            } else {
+            if f(mid) <= target {
                 lo = mid;
+            } else {
+                hi = mid;
             }
         }
         lo

@@ -3,7 +3,7 @@
 //! Every field has a unit in its name and a validation rule in [`Scenario::validate`]; unknown
 //! keys are rejected so that a typo never silently falls back to a default.
 
-use crate::motor::MotorParams;
+use drivelab_control::motor::MotorParams;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -266,11 +266,11 @@ pub struct ObserverSpec {
     /// Position source: "encoder" (default), "sensorless" (the minimal-order αβ observer of
     /// Low eqs 11-17 closes the drive) or "monitor" (encoder for control, the observer runs
     /// beside it and is the trace's theta_hat). See `observer_sensorless`.
-    pub mode: crate::observer_sensorless::ObserverMode,
+    pub mode: drivelab_control::observer_sensorless::ObserverMode,
     /// Time constant τ_o of the sensorless observer's pole λ = e^{-T_s/τ_o}, s.
     pub pole_tau_s: f64,
     /// Sensorless observer model: "truncated" (Low eq. 13, default) or "exact".
-    pub discretisation: crate::observer_sensorless::Discretisation,
+    pub discretisation: drivelab_control::observer_sensorless::Discretisation,
     /// Initial estimate of the sensorless observer, degrees electrical (the rotor starts at
     /// θ_e = 0, so this is the initial angle error).
     pub initial_angle_error_deg: f64,
@@ -280,9 +280,9 @@ impl Default for ObserverSpec {
     fn default() -> Self {
         Self {
             speed_filter_tau_s: 1e-4,
-            mode: crate::observer_sensorless::ObserverMode::Encoder,
+            mode: drivelab_control::observer_sensorless::ObserverMode::Encoder,
             pole_tau_s: 1e-3,
-            discretisation: crate::observer_sensorless::Discretisation::Truncated,
+            discretisation: drivelab_control::observer_sensorless::Discretisation::Truncated,
             initial_angle_error_deg: 0.0,
         }
     }
@@ -726,9 +726,9 @@ impl Scenario {
                 })?;
             }
         }
-        crate::observer_sensorless::validate(self)?;
-        crate::control::rst::validate(self)?;
-        crate::control::polar::validate(self)?;
+        crate::wiring::observer_sensorless::validate(self)?;
+        crate::wiring::rst::validate(self)?;
+        crate::wiring::polar::validate(self)?;
         let c = &self.current_loop;
         check(
             c.tau_c_s.is_finite() && c.tau_c_s >= 2.0 * ts && c.tau_c_s <= 1.0,
@@ -837,7 +837,7 @@ pub fn scenarios_dir() -> PathBuf {
             candidates.push(a.join("scenarios"));
         }
     }
-    candidates.push(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../scenarios"));
+    candidates.push(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../scenarios"));
     if let Ok(cwd) = std::env::current_dir() {
         candidates.push(cwd.join("scenarios"));
     }

@@ -1,7 +1,7 @@
 //! Step-response metrics of a trace, measured against the scenario's reference profile.
 
-use crate::config::{profile_at, Scenario};
-use crate::trace::TraceRow;
+use drivelab_runtime::config::{profile_at, Scenario};
+use drivelab_runtime::trace::TraceRow;
 use serde::Serialize;
 
 /// Speed-loop metrics (`summary.json` → `metrics`).
@@ -50,7 +50,7 @@ pub struct SpeedMetrics {
 /// Start of the i_d tracking-error window after the first i_d reference step, s.
 pub const ID_ERROR_DELAY_S: f64 = 5e-3;
 
-fn first_step_time(steps: &[crate::config::Step], after: f64) -> Option<f64> {
+fn first_step_time(steps: &[drivelab_runtime::config::Step], after: f64) -> Option<f64> {
     steps.iter().map(|s| s.t_s).find(|&t| t > after)
 }
 
@@ -151,7 +151,8 @@ pub fn speed_metrics(sc: &Scenario, rows: &[TraceRow]) -> SpeedMetrics {
             out.id_tracking_error_a = Some((sum / n as f64).sqrt());
         }
     }
-    if let Some((ss, conv)) = crate::observer_sensorless::angle_metrics(sc, rows) {
+    if let Some((ss, conv)) = drivelab_runtime::wiring::observer_sensorless::angle_metrics(sc, rows)
+    {
         out.angle_error_ss_deg = Some(ss);
         out.observer_convergence_ms = conv;
     }
@@ -318,10 +319,12 @@ torque_nm = [{ t_s = 0.05, value = 0.1 }]
         // Load at 50 ms (dip 5 rad/s for 10 ms), then a speed step 100 → 200 at 80 ms that the
         // motor follows slowly: that error is the step's, not the load's.
         let mut sc = sc();
-        sc.reference.speed_rad_s.push(crate::config::Step {
-            t_s: 0.08,
-            value: 200.0,
-        });
+        sc.reference
+            .speed_rad_s
+            .push(drivelab_runtime::config::Step {
+                t_s: 0.08,
+                value: 200.0,
+            });
         let rows: Vec<TraceRow> = (0..1000)
             .map(|k| {
                 let t = k as f64 * 1e-4;

@@ -26,7 +26,8 @@
 
 use serde::Serialize;
 
-/// CDM stability index γ_1 of both loops (eqs 32, 34; DESIGN.md: γ_1 = 2.5).
+/// CDM stability index γ_1 of both loops (eqs 32, 34; γ_1 = 2.5 per docs/architecture.md,
+/// "Paper conventions").
 pub const GAMMA1: f64 = 2.5;
 /// τ_21 = 10·T_u (eq. 36), and τ_12 away from V_ao cos δ_o ≈ 0 (eq. 37).
 pub const TAU_SAMPLES: f64 = 10.0;

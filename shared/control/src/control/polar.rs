@@ -102,7 +102,6 @@
 
 use super::cdm;
 use super::current::{CurrentInput, VoltageDq};
-use crate::config::{CurrentController, Scenario, SpeedController};
 use crate::motor::MotorParams;
 use serde::Serialize;
 use std::f64::consts::FRAC_PI_2;
@@ -532,51 +531,6 @@ impl PolarDesign {
     }
 }
 
-/// The polar law a scenario selects, if any.
-pub fn mode_of(sc: &Scenario) -> Option<PolarMode> {
-    match sc.current_loop.controller {
-        CurrentController::Polar => Some(PolarMode::Polar),
-        CurrentController::VoltagePhase => Some(PolarMode::VoltagePhase),
-        CurrentController::PolarFw => Some(PolarMode::PolarFw),
-        _ => None,
-    }
-}
-
-/// The polar law's settings for a scenario (T_u = T_s, V_amax = V_dc/√3), if it selects one.
-pub fn spec_from_scenario(sc: &Scenario) -> Option<PolarSpec> {
-    mode_of(sc).map(|mode| PolarSpec {
-        mode,
-        model: SpmsmModel::from_motor(&sc.motor_params()),
-        tu_s: sc.rates.ts(),
-        v_amax_v: sc.u_max(),
-    })
-}
-
-/// Scenario rules of the polar laws and of the current-reference profile; the error names
-/// the field and the rule.
-pub fn validate(sc: &Scenario) -> Result<(), String> {
-    if !sc.reference.i_q_a.is_empty()
-        && sc.speed_loop.controller != SpeedController::CurrentReference
-    {
-        return Err(
-            "reference.i_q_a is set but speed_loop.controller is not \"current-reference\" (a speed controller computes i_q*)"
-                .into(),
-        );
-    }
-    if let Some(mode) = mode_of(sc) {
-        let m = sc.motor.resolve()?;
-        if (m.l_d_h - m.l_q_h).abs() > 0.01 * m.l_d_h.max(m.l_q_h) {
-            return Err(format!(
-                "current_loop.controller = \"{}\" is the surface-PMSM law of Miyajima et al.: it needs L_d = L_q (within 1 %), got L_d = {} H, L_q = {} H",
-                mode.name(),
-                m.l_d_h,
-                m.l_q_h
-            ));
-        }
-    }
-    Ok(())
-}
-
 /// The polar current controller (all three modes). No allocation in [`Self::step`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PolarCurrentController {
@@ -632,11 +586,6 @@ impl PolarCurrentController {
             near_zero_amplitude_samples: 0,
             kept_gains_samples: 0,
         }
-    }
-
-    /// The controller a scenario selects, if it selects a polar law.
-    pub fn from_scenario(sc: &Scenario) -> Option<Self> {
-        spec_from_scenario(sc).map(|sp| Self::new(&sp))
     }
 
     /// The settings.
@@ -1047,49 +996,5 @@ mod tests {
         }
         // No runaway: the phase integrator holds no more than the limit.
         assert!(c.c12.x_i.abs() <= 2.0 * DELTA_MAX, "{}", c.c12.x_i);
-    }
-}
-
-#[cfg(test)]
-mod scenario_tests {
-    use crate::config::Scenario;
-    use crate::drive::run_inprocess;
-    use crate::metrics::speed_metrics;
-
-    fn scenario(name: &str) -> Scenario {
-        let path = format!("{}/../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
-        Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
-    }
-
-    /// The four shipped scenarios in process: the claims of Figs 2-3 and 7-8, and the panels.
-    #[test]
-    fn miyajima_scenarios_in_process() {
-        let out =
-            std::env::temp_dir().join(format!("drivelab-polar-panels-{}", std::process::id()));
-        let mut id_max = Vec::new();
-        for name in [
-            "miyajima-polar-0rpm",
-            "miyajima-polar-400rpm",
-            "miyajima-fw-800rpm-conventional",
-            "miyajima-fw-800rpm-polar",
-        ] {
-            let sc = scenario(name);
-            let rows = run_inprocess(&sc);
-            let m = speed_metrics(&sc, &rows);
-            eprintln!("{name}: {m:?}");
-            assert!(rows.iter().all(|r| r.u_d.is_finite() && r.u_q.is_finite()));
-            assert!(
-                m.iq_steady_state_error_a.unwrap().abs() < 2e-3,
-                "{name}: {m:?}"
-            );
-            id_max.push(m.id_max_a.unwrap());
-            let files =
-                crate::plot_polar::plot_polar_panels(&sc, &rows, &out.join(name), name).unwrap();
-            assert!(std::fs::metadata(&files[0]).unwrap().len() > 10_000);
-        }
-        // Fig. 2: the conventional method flux-strengthens; Fig. 3: the proposed does not.
-        assert!(id_max[2] > 0.3, "{id_max:?}");
-        assert!(id_max[3] < 0.02, "{id_max:?}");
-        eprintln!("panels in {}", out.display());
     }
 }

@@ -6,8 +6,8 @@
 use crate::config::Scenario;
 use crate::drive::{CurrentLoopStep, DriveDesign, ObserverStep, Plant, SpeedLoopStep};
 use crate::messages::*;
-use crate::motor::wrap_2pi;
-use crate::observer_sensorless::ObserverMode;
+use drivelab_control::motor::wrap_2pi;
+use drivelab_control::observer_sensorless::ObserverMode;
 use crate::stage::*;
 use std::f64::consts::{PI, TAU};
 

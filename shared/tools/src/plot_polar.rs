@@ -4,15 +4,16 @@
 //!
 //! The modulation index and the phase come from the trace's applied voltages u_d, u_q (the
 //! inverter's output in the rotor frame) and the scenario's DC bus, in the signed polar form
-//! of [`crate::control::polar::dq_to_polar`] (|δ| ≤ π/2, V_a < 0 for v_q < 0):
+//! of [`drivelab_control::control::polar::dq_to_polar`] (|δ| ≤ π/2, V_a < 0 for v_q < 0):
 //! M = V_a/(V_dc/2), so the linear range of space-vector modulation, |u| ≤ V_dc/√3, is
 //! |M| ≤ M_max = 2/√3.
 #![forbid(unsafe_code)]
 
-use crate::config::Scenario;
-use crate::control::polar::{dq_to_polar, mode_of, PolarMode, SpmsmModel, DELTA_MAX};
-use crate::trace::TraceRow;
 use anyhow::{bail, Context, Result};
+use drivelab_control::control::polar::{dq_to_polar, PolarMode, SpmsmModel, DELTA_MAX};
+use drivelab_runtime::config::Scenario;
+use drivelab_runtime::trace::TraceRow;
+use drivelab_runtime::wiring::polar::mode_of;
 use plotters::coord::Shift;
 use plotters::element::DashedPathElement;
 use plotters::prelude::*;
