@@ -332,7 +332,7 @@ fn plant(ctx: &RoleCtx) -> Result<PlantOutcome> {
     let mut c = Counters::default();
     let mut trace: Vec<TraceRow> = Vec::with_capacity(if ctx.keep_trace { n as usize } else { 0 });
     let mut tracing = ctx.keep_trace;
-    let mut prev_meas = Measurement::default();
+    let mut prev_truth = drivelab_runtime::messages::PlantTruth::default();
     let spin_ns = (sc.timing.plant_spin_us * 1e3).round() as u64;
     let rt = ctx.ready()?;
     warm_up(ctx, &cmd_rx, &to_cl, &to_obs)?;
@@ -354,7 +354,7 @@ fn plant(ctx: &RoleCtx) -> Result<PlantOutcome> {
                     }
                     if tracing {
                         // Capacity n was reserved: no allocation.
-                        trace.push(trace_row(ts, &prev_meas, cm));
+                        trace.push(trace_row(ts, &prev_truth, cm));
                     }
                 }
                 None => {
@@ -382,8 +382,8 @@ fn plant(ctx: &RoleCtx) -> Result<PlantOutcome> {
         meas.hdr.t_pub_ns = now_ns();
         c.send(&to_cl, &meas)?;
         c.send(&to_obs, &meas)?;
+        prev_truth = *plant.truth();
         plant.advance();
-        prev_meas = meas;
         c.samples += 1;
     }
     // ---- end of the real-time loop ----

@@ -6,7 +6,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use drivelab_runtime::bus::{self, DriveTopics, MAX_BUFFER};
 use drivelab_runtime::config::{Scenario, SERVICES};
 use drivelab_runtime::drive::{trace_row, DriveDesign};
-use drivelab_runtime::messages::{Measurement, VoltageCommand};
+use drivelab_runtime::messages::{PlantTruth, VoltageCommand};
 use drivelab_runtime::service::TopologyPlan;
 use drivelab_runtime::topology::{ProcessSpec, StageInfo};
 use drivelab_runtime::trace::TraceRow;
@@ -137,8 +137,10 @@ pub struct Gap {
 
 /// Recorder: subscribes to measurements and commands with large buffers and keeps every one.
 struct Recorder {
-    meas: Vec<Option<Measurement>>,
+    meas: Vec<Option<PlantTruth>>,
     cmd: Vec<Option<VoltageCommand>>,
+    /// Position references of an outer loop, as (k, θ_m*), in arrival order.
+    wref: Vec<(u64, f64)>,
     rejected: u64,
 }
 
@@ -147,8 +149,8 @@ struct Recorder {
 struct Progress {
     /// Newest measurement index seen + 1 (0 = none yet).
     next_k: std::sync::atomic::AtomicU64,
-    /// The newest measurement (for a restarted plant to resume from).
-    last: std::sync::Mutex<Option<Measurement>>,
+    /// The plant's newest true state (for a restarted plant to resume from).
+    last: std::sync::Mutex<Option<PlantTruth>>,
     /// Decimated trace for `drivelab monitor`.
     tail: crate::hub::TraceTail,
 }
@@ -165,12 +167,14 @@ fn run_recorder(
         let node = bus::node(&bus_id, "recorder")?;
         let topics = DriveTopics::open_with(&node, wake, &bus_id)?;
         // Polled: a listener would cost the real-time senders a wake-up syscall per sample.
-        let meas_rx = topics.meas.polled_receiver(MAX_BUFFER)?;
+        // The trace is the plant's true state (its own topic), joined with the commands.
+        let meas_rx = topics.truth.polled_receiver(MAX_BUFFER)?;
         let cmd_rx = topics.cmd.polled_receiver(MAX_BUFFER)?;
+        let wref_rx = topics.wref.polled_receiver(MAX_BUFFER)?;
         let rec_tx = topics.rec.sender()?;
-        Ok((node, topics, meas_rx, cmd_rx, rec_tx))
+        Ok((node, topics, meas_rx, cmd_rx, wref_rx, rec_tx))
     })();
-    let (_node, _topics, meas_rx, cmd_rx, rec_tx) = match setup {
+    let (_node, _topics, meas_rx, cmd_rx, wref_rx, rec_tx) = match setup {
         Ok(v) => {
             let _ = ready.send(Ok(()));
             v
@@ -183,6 +187,7 @@ fn run_recorder(
     let mut r = Recorder {
         meas: vec![None; n as usize],
         cmd: vec![None; n as usize],
+        wref: Vec::new(),
         rejected: 0,
     };
     let (mut meas_end, mut cmd_end) = (false, false);
@@ -207,10 +212,10 @@ fn run_recorder(
                     .tail
                     .offer(drivelab_runtime::telemetry::TracePoint {
                         k: m.hdr.k,
-                        omega: m.omega_m_true,
+                        omega: m.omega_m,
                         omega_ref: last_cmd.omega_ref,
-                        i_d: m.i_dq_true[0],
-                        i_q: m.i_dq_true[1],
+                        i_d: m.i_dq[0],
+                        i_q: m.i_dq[1],
                         i_d_ref: last_cmd.i_dq_ref[0],
                         i_q_ref: last_cmd.i_dq_ref[1],
                     });
@@ -239,6 +244,11 @@ fn run_recorder(
                 last_cmd = c;
             } else {
                 r.rejected += 1;
+            }
+        }
+        while let Some(w) = wref_rx.try_recv()? {
+            if !w.hdr.is_warmup() && !w.hdr.is_end() && w.theta_m_ref.is_finite() {
+                r.wref.push((w.hdr.k, w.theta_m_ref));
             }
         }
         while next_meas < n && r.meas[next_meas as usize].is_some() {
@@ -418,6 +428,7 @@ fn run_bus(
     sc: &Scenario,
     sc_path: &Path,
     plan_topo: &TopologyPlan,
+    plan: &[crate::faults::Fault],
     o: &RunOptions,
     out: &Path,
     clock: BusClock,
@@ -452,9 +463,6 @@ fn run_bus(
             .name("recorder".into())
             .spawn(move || run_recorder(b, w, n, s, pr, ready_tx))?
     };
-    let fs = sc.rates.sample_hz;
-    let stage_names: Vec<String> = plan_topo.stages.iter().map(|s| s.name.clone()).collect();
-    let plan = crate::faults::plan(&o.faults, sc.duration_s, o.fault_seed, 0.3, &stage_names)?;
     let topo_path = out.join("topology.json");
     let sp = Spawn {
         sc_path,
@@ -464,10 +472,6 @@ fn run_bus(
         o,
         out,
     };
-    if !plan.is_empty() && clock != BusClock::Realtime {
-        bail!("fault injection needs --clock realtime");
-    }
-    let _ = fs;
     let mut events: Vec<SupEvent> = Vec::new();
     let result = (|| -> Result<(Vec<ChildProc>, Option<String>)> {
         ready_rx
@@ -626,7 +630,8 @@ fn run_bus(
 /// (a user's executable is asked with `--describe`) and makes `exec` paths absolute.
 pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Result<TopologyPlan> {
     if let Some(t) = &o.topology {
-        let (file, path) = drivelab_runtime::topology::load(t).map_err(|e| anyhow!("--topology: {e}"))?;
+        let (file, path) =
+            drivelab_runtime::topology::load(t).map_err(|e| anyhow!("--topology: {e}"))?;
         let base = path.parent().unwrap_or(Path::new(".")).to_path_buf();
         sc.process = file.process;
         for p in sc.process.iter_mut() {
@@ -729,10 +734,23 @@ fn assemble(sc: &Scenario, rec: &Recorder, _plant_ok: bool) -> (Vec<TraceRow>, V
             cause,
         });
     };
+    // The outer loop's position reference in use at k: the newest computed before k.
+    let mut wref = rec.wref.clone();
+    wref.sort_by_key(|w| w.0);
+    let mut wi = 0;
+    let mut theta_ref = None;
     for (k, m) in rec.meas.iter().enumerate() {
         let k = k as u64;
+        while wi < wref.len() && wref[wi].0 < k {
+            theta_ref = Some(wref[wi].1);
+            wi += 1;
+        }
         match (m, &rec.cmd[k as usize]) {
-            (Some(m), Some(c)) => rows.push(trace_row(ts, m, c)),
+            (Some(m), Some(c)) => {
+                let mut row = trace_row(ts, m, c);
+                row.theta_m_ref = theta_ref;
+                rows.push(row);
+            }
             (Some(m), None) => {
                 let nan = f64::NAN;
                 let c = VoltageCommand {
@@ -748,7 +766,9 @@ fn assemble(sc: &Scenario, rec: &Recorder, _plant_ok: bool) -> (Vec<TraceRow>, V
                     omega_hat: nan,
                     theta_hat: nan,
                 };
-                rows.push(trace_row(ts, m, &c));
+                let mut row = trace_row(ts, m, &c);
+                row.theta_m_ref = theta_ref;
+                rows.push(row);
                 push_gap(
                     k,
                     "command",
@@ -782,6 +802,12 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         sc.validate().map_err(|e| anyhow!("--duration {d}: {e}"))?;
     }
     let topo = resolve_topology(&mut sc, &sc_src, o)?;
+    // Faults are checked before anything is created: a bad plan leaves nothing behind.
+    let stage_names: Vec<String> = topo.stages.iter().map(|s| s.name.clone()).collect();
+    let plan = crate::faults::plan(&o.faults, sc.duration_s, o.fault_seed, 0.3, &stage_names)?;
+    if !plan.is_empty() && o.clock != Clock::Realtime {
+        bail!("fault injection needs --clock realtime");
+    }
     let out = o.out.clone().unwrap_or_else(|| default_out(&sc, o.clock));
     std::fs::create_dir_all(&out)
         .with_context(|| format!("cannot create run folder {}", out.display()))?;
@@ -807,8 +833,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
                 json!({ "deadline_misses": 0 }),
             )
         }
-        Clock::Lockstep => run_bus(&sc, &sc_path, &topo, o, &out, BusClock::Lockstep)?,
-        Clock::Realtime => run_bus(&sc, &sc_path, &topo, o, &out, BusClock::Realtime)?,
+        Clock::Lockstep => run_bus(&sc, &sc_path, &topo, &plan, o, &out, BusClock::Lockstep)?,
+        Clock::Realtime => run_bus(&sc, &sc_path, &topo, &plan, o, &out, BusClock::Realtime)?,
     };
     let wall_s = wall.elapsed().as_secs_f64();
     let events: Vec<SupEvent> = info
@@ -1176,7 +1202,7 @@ fn supervise(
                 };
                 std::fs::write(
                     &rejoin_file,
-                    serde_json::to_vec(&crate::common::measurement_to_json(&last))?,
+                    serde_json::to_vec(&crate::common::truth_to_json(&last))?,
                 )?;
             }
             let (spec, exe, source) = (

@@ -24,6 +24,8 @@ pub const TOPIC_IREF: &str = "drivelab/iref";
 pub const TOPIC_CMD: &str = "drivelab/cmd";
 /// Speed references of an outer loop (e.g. a position loop).
 pub const TOPIC_WREF: &str = "drivelab/wref";
+/// The plant's true state, for the recorder only.
+pub const TOPIC_TRUTH: &str = "drivelab/truth";
 /// Recorder progress (lockstep flow control).
 pub const TOPIC_REC: &str = "drivelab/recorder";
 
@@ -362,6 +364,8 @@ pub struct DriveTopics {
     pub rec: Topic<u64>,
     /// Speed references of an outer loop.
     pub wref: Topic<crate::messages::SpeedRef>,
+    /// The plant's true state (recorder only).
+    pub truth: Topic<crate::messages::PlantTruth>,
     _seg: Option<Arc<WakeSegment>>,
 }
 
@@ -385,6 +389,7 @@ impl DriveTopics {
             cmd: Topic::open_with(node, TOPIC_CMD, w(3)).context("command topic")?,
             rec: Topic::open_with(node, TOPIC_REC, w(4)).context("recorder topic")?,
             wref: Topic::open_with(node, TOPIC_WREF, w(5)).context("speed-reference topic")?,
+            truth: Topic::open_with(node, TOPIC_TRUTH, w(6)).context("plant-truth topic")?,
             _seg: seg.clone(),
         })
     }

@@ -189,6 +189,9 @@ pub struct Plant {
     pub stale_run: u32,
     u_dq_applied: Dq,
     t_load: f64,
+    /// Mechanical position counted from the start (the model's state wraps to [0, 2π)).
+    theta_m_unwrapped: f64,
+    truth: PlantTruth,
 }
 
 impl Plant {
@@ -231,6 +234,8 @@ impl Plant {
             stale_run: 0,
             u_dq_applied: Dq::default(),
             t_load: 0.0,
+            theta_m_unwrapped: 0.0,
+            truth: PlantTruth::default(),
         }
     }
 
@@ -309,21 +314,33 @@ impl Plant {
         } else {
             self.x.theta_m
         };
+        let hdr = Header {
+            k,
+            flags,
+            ..Default::default()
+        };
+        self.truth = PlantTruth {
+            hdr,
+            i_dq: [self.x.i_d, self.x.i_q],
+            omega_m: self.x.omega_m,
+            theta_e,
+            theta_m: self.theta_m_unwrapped,
+            u_dq_applied: [self.u_dq_applied.d, self.u_dq_applied.q],
+            u_ab_applied: [u.alpha, u.beta],
+            t_load: self.t_load,
+            theta_m_enc,
+        };
         Measurement {
-            hdr: Header {
-                k,
-                flags,
-                ..Default::default()
-            },
+            hdr,
             i_abc: [ia, ib, ic],
             theta_m_enc,
             u_ab_applied: [u.alpha, u.beta],
-            i_dq_true: [self.x.i_d, self.x.i_q],
-            omega_m_true: self.x.omega_m,
-            theta_e_true: theta_e,
-            u_dq_applied: [self.u_dq_applied.d, self.u_dq_applied.q],
-            t_load: self.t_load,
         }
+    }
+
+    /// The true state of the last [`Plant::sample`], for the trace.
+    pub fn truth(&self) -> &PlantTruth {
+        &self.truth
     }
 
     /// Integrates the model from t_k to t_{k+1} with the voltage chosen by [`Plant::sample`].
@@ -333,7 +350,12 @@ impl Plant {
             u_q: self.u_dq_applied.q,
             t_load: self.t_load,
         };
+        let before = self.x.theta_m;
         self.x = self.rk.advance(&self.m, self.mech, &self.x, &u, self.ts);
+        // The model wraps θ_m; a sample moves it by far less than π.
+        let d = (self.x.theta_m - before + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU)
+            - std::f64::consts::PI;
+        self.theta_m_unwrapped += d;
     }
 }
 
@@ -664,25 +686,27 @@ impl CurrentLoopStep {
 }
 
 /// One trace row from measurement k and command k.
-pub fn trace_row(ts: f64, meas: &Measurement, cmd: &VoltageCommand) -> TraceRow {
+pub fn trace_row(ts: f64, truth: &PlantTruth, cmd: &VoltageCommand) -> TraceRow {
     TraceRow {
-        k: meas.hdr.k,
-        t: meas.hdr.k as f64 * ts,
+        k: truth.hdr.k,
+        t: truth.hdr.k as f64 * ts,
         omega_ref: cmd.omega_ref,
-        omega_m: meas.omega_m_true,
+        omega_m: truth.omega_m,
         omega_hat: cmd.omega_hat,
-        theta_e: meas.theta_e_true,
+        theta_e: truth.theta_e,
         theta_hat: cmd.theta_hat,
         i_d_ref: cmd.i_dq_ref[0],
         i_q_ref: cmd.i_dq_ref[1],
-        i_d: meas.i_dq_true[0],
-        i_q: meas.i_dq_true[1],
-        u_d: meas.u_dq_applied[0],
-        u_q: meas.u_dq_applied[1],
-        t_load: meas.t_load,
-        plant_flags: meas.hdr.flags,
+        i_d: truth.i_dq[0],
+        i_q: truth.i_dq[1],
+        u_d: truth.u_dq_applied[0],
+        u_q: truth.u_dq_applied[1],
+        t_load: truth.t_load,
+        plant_flags: truth.hdr.flags,
         ctrl_flags: cmd.hdr.flags,
-        miss: u8::from(meas.hdr.flags & (FLAG_STALE_CMD | FLAG_SAFE_STATE) != 0),
+        miss: u8::from(truth.hdr.flags & (FLAG_STALE_CMD | FLAG_SAFE_STATE) != 0),
+        theta_m: truth.theta_m,
+        theta_m_ref: None,
     }
 }
 
@@ -724,9 +748,10 @@ impl InProcessDrive {
         if let Some(r) = self.speed.step(&est) {
             self.iref = r;
         }
+        let truth = *self.plant.truth();
         self.plant.advance();
         self.cmd = Some(cmd);
-        trace_row(self.ts, &meas, &cmd)
+        trace_row(self.ts, &truth, &cmd)
     }
 }
 

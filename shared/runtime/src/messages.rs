@@ -48,7 +48,8 @@ impl Header {
     }
 }
 
-/// Plant → everyone: sensor values at t_k and, for the trace, the true state.
+/// Plant → controllers: what the sensors and the inverter report at t_k (nothing a real
+/// controller could not know).
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
 #[repr(C)]
 pub struct Measurement {
@@ -60,16 +61,31 @@ pub struct Measurement {
     pub theta_m_enc: f64,
     /// αβ voltage applied by the inverter on [t_k, t_{k+1}), V.
     pub u_ab_applied: [f64; 2],
-    /// True d/q current at t_k, A (trace only; controllers must not use it).
-    pub i_dq_true: [f64; 2],
-    /// True mechanical speed at t_k, rad/s (trace only).
-    pub omega_m_true: f64,
-    /// True electrical angle at t_k, rad (trace only).
-    pub theta_e_true: f64,
-    /// d/q voltage applied on [t_k, t_{k+1}) in the true rotor frame, V (trace only).
+}
+
+/// Plant → recorder only: the true state at t_k, for the trace (and for a restarted plant
+/// to resume from). No stage reads it. Its header carries the measurement's flags.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+pub struct PlantTruth {
+    /// Header (flags as in the measurement of the same sample).
+    pub hdr: Header,
+    /// True d/q current at t_k, A.
+    pub i_dq: [f64; 2],
+    /// True mechanical speed at t_k, rad/s.
+    pub omega_m: f64,
+    /// True electrical angle at t_k, rad in [0, 2π).
+    pub theta_e: f64,
+    /// True mechanical position at t_k, unwrapped (counted from 0 at the start), rad.
+    pub theta_m: f64,
+    /// d/q voltage applied on [t_k, t_{k+1}) in the true rotor frame, V.
     pub u_dq_applied: [f64; 2],
+    /// αβ voltage applied on [t_k, t_{k+1}), V.
+    pub u_ab_applied: [f64; 2],
     /// Load torque on [t_k, t_{k+1}), N·m.
     pub t_load: f64,
+    /// Encoder reading at t_k, rad in [0, 2π).
+    pub theta_m_enc: f64,
 }
 
 /// Observer → current and speed loop: position/speed estimate for sample k.
@@ -145,15 +161,21 @@ fn all_finite(v: &[f64]) -> bool {
 
 impl Finite for Measurement {
     fn is_finite(&self) -> bool {
-        all_finite(&self.i_abc)
-            && all_finite(&self.u_ab_applied)
-            && all_finite(&self.i_dq_true)
+        all_finite(&self.i_abc) && all_finite(&self.u_ab_applied) && self.theta_m_enc.is_finite()
+    }
+}
+
+impl Finite for PlantTruth {
+    fn is_finite(&self) -> bool {
+        all_finite(&self.i_dq)
             && all_finite(&self.u_dq_applied)
+            && all_finite(&self.u_ab_applied)
             && all_finite(&[
-                self.theta_m_enc,
-                self.omega_m_true,
-                self.theta_e_true,
+                self.omega_m,
+                self.theta_e,
+                self.theta_m,
                 self.t_load,
+                self.theta_m_enc,
             ])
     }
 }

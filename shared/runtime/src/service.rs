@@ -311,9 +311,7 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
             .ok_or_else(|| anyhow!("--rejoin of the source needs --rejoin-from FILE"))?;
         let text =
             std::fs::read_to_string(path).with_context(|| format!("read {}", path.display()))?;
-        Some(Msg::Meas(measurement_from_json(&serde_json::from_str(
-            &text,
-        )?)?))
+        Some(Msg::Truth(truth_from_json(&serde_json::from_str(&text)?)?))
     } else {
         None
     };
@@ -398,6 +396,7 @@ enum Rx {
     Iref(Receiver<CurrentRef>),
     Cmd(Receiver<VoltageCommand>),
     Wref(Receiver<SpeedRef>),
+    Truth(Receiver<PlantTruth>),
 }
 
 enum Tx {
@@ -406,6 +405,7 @@ enum Tx {
     Iref(Sender<CurrentRef>),
     Cmd(Sender<VoltageCommand>),
     Wref(Sender<SpeedRef>),
+    Truth(Sender<PlantTruth>),
 }
 
 /// The iceoryx2 bus as a [`Transport`]: one receiver per input topic (waitable for
@@ -461,6 +461,11 @@ impl BusTransport {
                     } else {
                         topics.wref.polled_receiver(16)?
                     }),
+                    TopicId::Truth => Rx::Truth(if w {
+                        topics.truth.receiver(16)?
+                    } else {
+                        topics.truth.polled_receiver(16)?
+                    }),
                 });
             }
             if sent[i] {
@@ -470,6 +475,7 @@ impl BusTransport {
                     TopicId::Iref => Tx::Iref(topics.iref.sender()?),
                     TopicId::Cmd => Tx::Cmd(topics.cmd.sender()?),
                     TopicId::Wref => Tx::Wref(topics.wref.sender()?),
+                    TopicId::Truth => Tx::Truth(topics.truth.sender()?),
                 });
             }
         }
@@ -483,6 +489,7 @@ impl BusTransport {
                     TopicId::Iref => topics.iref.poker()?,
                     TopicId::Cmd => topics.cmd.poker()?,
                     TopicId::Wref => topics.wref.poker()?,
+                    TopicId::Truth => topics.truth.poker()?,
                 },
             ));
         }
@@ -508,6 +515,7 @@ impl BusTransport {
                 Rx::Iref(r) => r.connect()?,
                 Rx::Cmd(r) => r.connect()?,
                 Rx::Wref(r) => r.connect()?,
+                Rx::Truth(r) => r.connect()?,
             }
         }
         for t in self.tx.iter().flatten() {
@@ -517,6 +525,7 @@ impl BusTransport {
                 Tx::Iref(t) => t.connect()?,
                 Tx::Cmd(t) => t.connect()?,
                 Tx::Wref(t) => t.connect()?,
+                Tx::Truth(t) => t.connect()?,
             }
         }
         Ok(())
@@ -532,6 +541,7 @@ impl Transport for BusTransport {
             (Some(Tx::Iref(t)), Msg::Iref(m)) => t.send(*m),
             (Some(Tx::Cmd(t)), Msg::Cmd(m)) => t.send(*m),
             (Some(Tx::Wref(t)), Msg::Wref(m)) => t.send(*m),
+            (Some(Tx::Truth(t)), Msg::Truth(m)) => t.send(*m),
             _ => Ok(()),
         }
     }
@@ -544,6 +554,7 @@ impl Transport for BusTransport {
             Some(Rx::Iref(r)) => r.try_recv()?.map(Msg::Iref),
             Some(Rx::Cmd(r)) => r.try_recv()?.map(Msg::Cmd),
             Some(Rx::Wref(r)) => r.try_recv()?.map(Msg::Wref),
+            Some(Rx::Truth(r)) => r.try_recv()?.map(Msg::Truth),
             None => None,
         })
     }
@@ -556,6 +567,7 @@ impl Transport for BusTransport {
             Some(Rx::Iref(r)) => !r.is_empty()?,
             Some(Rx::Cmd(r)) => !r.is_empty()?,
             Some(Rx::Wref(r)) => !r.is_empty()?,
+            Some(Rx::Truth(r)) => !r.is_empty()?,
             None => false,
         })
     }
@@ -568,6 +580,7 @@ impl Transport for BusTransport {
             Some(Rx::Iref(r)) => r.wait(timeout),
             Some(Rx::Cmd(r)) => r.wait(timeout),
             Some(Rx::Wref(r)) => r.wait(timeout),
+            Some(Rx::Truth(r)) => r.wait(timeout),
             None => {
                 std::thread::sleep(timeout.min(bus::POLL_SLEEP));
                 Ok(())
@@ -764,50 +777,47 @@ fn write_stats<T: Transport>(
     Ok(())
 }
 
-/// The last measurement as JSON (the supervisor hands it to a restarted source).
-pub fn measurement_to_json(m: &Measurement) -> serde_json::Value {
+/// The plant's last true state as JSON (the supervisor hands it to a restarted source).
+pub fn truth_to_json(m: &PlantTruth) -> serde_json::Value {
     serde_json::json!({
         "k": m.hdr.k, "t_sample_ns": m.hdr.t_sample_ns,
-        "i_abc": m.i_abc, "theta_m_enc": m.theta_m_enc, "u_ab_applied": m.u_ab_applied,
-        "i_dq_true": m.i_dq_true, "omega_m_true": m.omega_m_true, "theta_e_true": m.theta_e_true,
-        "u_dq_applied": m.u_dq_applied, "t_load": m.t_load,
+        "i_dq": m.i_dq, "omega_m": m.omega_m, "theta_e": m.theta_e, "theta_m": m.theta_m,
+        "u_dq_applied": m.u_dq_applied, "u_ab_applied": m.u_ab_applied, "t_load": m.t_load,
+        "theta_m_enc": m.theta_m_enc,
     })
 }
 
-/// Reads a measurement written by [`measurement_to_json`].
-pub fn measurement_from_json(v: &serde_json::Value) -> Result<Measurement> {
+/// Reads a state written by [`truth_to_json`].
+pub fn truth_from_json(v: &serde_json::Value) -> Result<PlantTruth> {
     let f = |key: &str| {
         v[key]
             .as_f64()
-            .ok_or_else(|| anyhow!("rejoin file: '{key}' missing"))
+            .ok_or_else(|| anyhow!("rejoin file: '{key}' missing or not a number"))
     };
     let a2 = |key: &str| -> Result<[f64; 2]> {
-        let a = v[key]
+        match v[key]
             .as_array()
-            .ok_or_else(|| anyhow!("rejoin file: '{key}' missing"))?;
-        Ok([
-            a.first().and_then(|x| x.as_f64()).unwrap_or(0.0),
-            a.get(1).and_then(|x| x.as_f64()).unwrap_or(0.0),
-        ])
+            .map(|a| a.iter().map(|x| x.as_f64()).collect::<Vec<_>>())
+        {
+            Some(a) if a.len() == 2 && a.iter().all(Option::is_some) => {
+                Ok([a[0].unwrap_or_default(), a[1].unwrap_or_default()])
+            }
+            _ => Err(anyhow!("rejoin file: '{key}' must be two numbers")),
+        }
     };
-    let i3 = v["i_abc"]
-        .as_array()
-        .ok_or_else(|| anyhow!("rejoin file: 'i_abc' missing"))?;
-    let mut m = Measurement::default();
+    let mut m = PlantTruth::default();
     m.hdr.k = v["k"]
         .as_u64()
         .ok_or_else(|| anyhow!("rejoin file: 'k' missing"))?;
     m.hdr.t_sample_ns = v["t_sample_ns"].as_u64().unwrap_or(0);
-    for (i, x) in i3.iter().take(3).enumerate() {
-        m.i_abc[i] = x.as_f64().unwrap_or(0.0);
-    }
-    m.theta_m_enc = f("theta_m_enc")?;
-    m.u_ab_applied = a2("u_ab_applied")?;
-    m.i_dq_true = a2("i_dq_true")?;
-    m.omega_m_true = f("omega_m_true")?;
-    m.theta_e_true = f("theta_e_true")?;
+    m.i_dq = a2("i_dq")?;
+    m.omega_m = f("omega_m")?;
+    m.theta_e = f("theta_e")?;
+    m.theta_m = f("theta_m")?;
     m.u_dq_applied = a2("u_dq_applied")?;
+    m.u_ab_applied = a2("u_ab_applied")?;
     m.t_load = f("t_load")?;
+    m.theta_m_enc = f("theta_m_enc")?;
     if !m.is_finite() {
         return Err(anyhow!("rejoin file: non-finite values"));
     }

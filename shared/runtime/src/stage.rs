@@ -28,10 +28,12 @@ pub enum TopicId {
     Cmd,
     /// Outer loop → speed loop: [`SpeedRef`] computed at k (a position loop's ω*).
     Wref,
+    /// Plant → recorder: [`PlantTruth`] k (the true state, for the trace only).
+    Truth,
 }
 
 /// Number of topics.
-pub const N_TOPICS: usize = 5;
+pub const N_TOPICS: usize = 6;
 
 impl TopicId {
     /// Every topic, in index order.
@@ -41,6 +43,7 @@ impl TopicId {
         TopicId::Iref,
         TopicId::Cmd,
         TopicId::Wref,
+        TopicId::Truth,
     ];
 
     /// Index into per-topic arrays.
@@ -56,6 +59,7 @@ impl TopicId {
             TopicId::Iref => "iref",
             TopicId::Cmd => "cmd",
             TopicId::Wref => "wref",
+            TopicId::Truth => "truth",
         }
     }
 }
@@ -73,6 +77,8 @@ pub enum Msg {
     Cmd(VoltageCommand),
     /// On [`TopicId::Wref`].
     Wref(SpeedRef),
+    /// On [`TopicId::Truth`].
+    Truth(PlantTruth),
 }
 
 impl Msg {
@@ -84,6 +90,7 @@ impl Msg {
             Msg::Iref(_) => TopicId::Iref,
             Msg::Cmd(_) => TopicId::Cmd,
             Msg::Wref(_) => TopicId::Wref,
+            Msg::Truth(_) => TopicId::Truth,
         }
     }
 
@@ -95,6 +102,7 @@ impl Msg {
             Msg::Iref(m) => &m.hdr,
             Msg::Cmd(m) => &m.hdr,
             Msg::Wref(m) => &m.hdr,
+            Msg::Truth(m) => &m.hdr,
         }
     }
 
@@ -106,6 +114,7 @@ impl Msg {
             Msg::Iref(m) => &mut m.hdr,
             Msg::Cmd(m) => &mut m.hdr,
             Msg::Wref(m) => &mut m.hdr,
+            Msg::Truth(m) => &mut m.hdr,
         }
     }
 
@@ -117,6 +126,7 @@ impl Msg {
             Msg::Iref(m) => m.is_finite(),
             Msg::Cmd(m) => m.is_finite(),
             Msg::Wref(m) => m.is_finite(),
+            Msg::Truth(m) => m.is_finite(),
         }
     }
 
@@ -140,6 +150,10 @@ impl Msg {
                 ..Default::default()
             }),
             TopicId::Wref => Msg::Wref(SpeedRef {
+                hdr,
+                ..Default::default()
+            }),
+            TopicId::Truth => Msg::Truth(PlantTruth {
                 hdr,
                 ..Default::default()
             }),
@@ -269,6 +283,7 @@ impl Inbox {
     typed_access!(iref, newest_iref, Iref, CurrentRef);
     typed_access!(cmd, newest_cmd, Cmd, VoltageCommand);
     typed_access!(wref, newest_wref, Wref, SpeedRef);
+    typed_access!(truth, newest_truth, Truth, PlantTruth);
 
     /// The slot of `topic`.
     pub fn slot(&self, topic: TopicId) -> &Slot {

@@ -6,9 +6,9 @@
 use crate::config::Scenario;
 use crate::drive::{CurrentLoopStep, DriveDesign, ObserverStep, Plant, SpeedLoopStep};
 use crate::messages::*;
+use crate::stage::*;
 use drivelab_control::motor::wrap_2pi;
 use drivelab_control::observer_sensorless::ObserverMode;
-use crate::stage::*;
 use std::f64::consts::{PI, TAU};
 
 /// Names of the built-in stages, in chain order.
@@ -54,19 +54,20 @@ impl Stage for PlantStage {
         PLANT_IN
     }
     fn outputs(&self) -> &'static [TopicId] {
-        &[TopicId::Meas]
+        &[TopicId::Meas, TopicId::Truth]
     }
     fn step(&mut self, k: u64, inputs: &Inbox, out: &mut Outbox) {
         // A missing command (None) is held, then replaced by the safe state (Plant::sample).
         out.push(Msg::Meas(self.plant.sample(k, inputs.cmd())));
+        out.push(Msg::Truth(*self.plant.truth()));
     }
     fn after_publish(&mut self) {
         self.plant.advance();
     }
     fn rejoin(&mut self, _k: u64, inputs: &Inbox) -> Rejoin {
-        // A restarted plant resumes from its last measurement as the recorder saw it.
-        if let Some(m) = inputs.newest_meas() {
-            self.plant.restore(m);
+        // A restarted plant resumes from its last true state as the recorder saw it.
+        if let Some(t) = inputs.newest_truth() {
+            self.plant.restore(t);
         }
         Rejoin::Done
     }
@@ -445,14 +446,19 @@ pub fn run_stages_inprocess(
     );
     host.run()?;
     let ts = sc.rates.ts();
-    let mut meas: Vec<Option<Measurement>> = vec![None; n as usize];
+    let mut truth: Vec<Option<PlantTruth>> = vec![None; n as usize];
     let mut rows = Vec::with_capacity(n as usize);
+    let mut wref: Option<SpeedRef> = None;
     for m in &host.transport.sent {
         match m {
-            Msg::Meas(x) if !x.hdr.is_end() && x.hdr.k < n => meas[x.hdr.k as usize] = Some(*x),
+            Msg::Truth(x) if !x.hdr.is_end() && x.hdr.k < n => truth[x.hdr.k as usize] = Some(*x),
+            Msg::Wref(w) if !w.hdr.is_end() => wref = Some(*w),
             Msg::Cmd(c) if !c.hdr.is_end() && c.hdr.k < n => {
-                if let Some(x) = meas[c.hdr.k as usize] {
-                    rows.push(crate::drive::trace_row(ts, &x, c));
+                if let Some(x) = truth[c.hdr.k as usize] {
+                    let mut r = crate::drive::trace_row(ts, &x, c);
+                    // The outer reference in use at k: the newest computed before k.
+                    r.theta_m_ref = wref.filter(|w| w.hdr.k < c.hdr.k).map(|w| w.theta_m_ref);
+                    rows.push(r);
                 }
             }
             _ => {}
@@ -467,7 +473,7 @@ mod tests {
     use crate::drive::InProcessDrive;
 
     fn scenario(name: &str) -> Scenario {
-        let path = format!("{}/../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
+        let path = format!("{}/../../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
         Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
     }
 

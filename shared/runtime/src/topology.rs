@@ -401,7 +401,10 @@ mod tests {
     use crate::config::Scenario;
 
     fn sc() -> Scenario {
-        let path = format!("{}/../scenarios/kyslan-pi.toml", env!("CARGO_MANIFEST_DIR"));
+        let path = format!(
+            "{}/../../scenarios/kyslan-pi.toml",
+            env!("CARGO_MANIFEST_DIR")
+        );
         Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
     }
 

@@ -36,6 +36,13 @@ pub struct TraceRow {
     pub u_q: f64,
     /// Load torque applied on [t_k, t_{k+1}), N·m.
     pub t_load: f64,
+    /// True mechanical position at t_k, unwrapped (from 0 at the start), rad.
+    #[serde(default)]
+    pub theta_m: f64,
+    /// Position reference of an outer (position) loop in use at k, rad; empty when the
+    /// drive has none.
+    #[serde(default)]
+    pub theta_m_ref: Option<f64>,
     /// Plant's header flags of sample k (`messages::FLAG_*`: 2 stale command held, 4 safe state).
     pub plant_flags: u32,
     /// Current loop's header flags of command k (8 = it used a stale or fallback input).

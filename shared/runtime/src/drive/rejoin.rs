@@ -3,23 +3,21 @@
 //! what the drive was doing (no torque bump).
 
 use super::{CurrentLaw, CurrentLoopStep, ObserverStep, Plant, SpeedLaw, SpeedLoopStep};
-use crate::messages::{CurrentRef, Estimate, Measurement};
+use crate::messages::{CurrentRef, Estimate, Measurement, PlantTruth};
+
 use drivelab_control::control::current::{CurrentInput, VoltageDq};
 use drivelab_control::transforms::{clarke, park, AlphaBeta};
 
 impl Plant {
-    /// A restarted plant resumes from its last published measurement: currents, speed and
-    /// angle, and the voltage the inverter was applying. The motor's state during the
+    /// A restarted plant resumes from its last published true state: currents, speed,
+    /// position, and the voltage the inverter was applying. The motor's state during the
     /// plant's own downtime is not simulated (the trace lists those samples as missing).
-    pub fn restore(&mut self, last: &Measurement) {
-        self.x.i_d = last.i_dq_true[0];
-        self.x.i_q = last.i_dq_true[1];
-        self.x.omega_m = last.omega_m_true;
-        self.x.theta_m = drivelab_control::motor::wrap_2pi(last.theta_e_true / self.m.p());
-        // θ_e = p·θ_m only fixes θ_m up to 2π/p; the encoder reading picks the branch.
-        let step = std::f64::consts::TAU / self.m.p();
-        let branch = ((last.theta_m_enc - self.x.theta_m) / step).round();
-        self.x.theta_m = drivelab_control::motor::wrap_2pi(self.x.theta_m + branch * step);
+    pub fn restore(&mut self, last: &PlantTruth) {
+        self.x.i_d = last.i_dq[0];
+        self.x.i_q = last.i_dq[1];
+        self.x.omega_m = last.omega_m;
+        self.x.theta_m = drivelab_control::motor::wrap_2pi(last.theta_m);
+        self.theta_m_unwrapped = last.theta_m;
         self.last_u_ab = last.u_ab_applied;
     }
 }
