@@ -562,7 +562,7 @@ fn run_bus(
             &mut hub,
             &bar,
             &mut children,
-            &plan,
+            plan,
             &mut events,
             &progress,
             sc,
