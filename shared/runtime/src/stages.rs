@@ -313,7 +313,12 @@ pub struct SpeedLoopStage {
     design_warnings: Vec<String>,
     /// Speed samples whose output was held (no estimate).
     pub held_samples: u64,
+    /// Speed samples run with ω* = 0 because the outer speed reference was lost.
+    pub wref_lost_samples: u64,
 }
+
+/// Periods of the outer loop after which its lost speed reference is replaced by 0.
+pub const WREF_MAX_AGE: u64 = 2;
 
 const SPEED_IN: &[InputSpec] = &[
     InputSpec::trigger(TopicId::Est, 1, OnStale::Fallback),
@@ -330,6 +335,7 @@ impl SpeedLoopStage {
             last_out: None,
             design_warnings: DriveDesign::from_scenario(sc).warnings,
             held_samples: 0,
+            wref_lost_samples: 0,
         }
     }
 }
@@ -350,8 +356,21 @@ impl Stage for SpeedLoopStage {
     fn step(&mut self, k: u64, inputs: &Inbox, out: &mut Outbox) {
         match inputs.est() {
             Some(e) => {
-                let w = inputs.newest_wref().map(|w| w.omega_ref);
-                if let Some(r) = self.ctrl.step_with(e, w) {
+                // An outer loop's speed reference replaces the profile. If it stops coming
+                // for more than 2 of its periods, the drive is brought to standstill (ω* = 0,
+                // shaped by the speed loop's prefilter) rather than left running on the last
+                // value.
+                let slot = inputs.slot(TopicId::Wref);
+                let (w, stale) = match inputs.newest_wref() {
+                    None => (None, false),
+                    Some(_) if !slot.fresh && slot.age > WREF_MAX_AGE => (Some(0.0), true),
+                    Some(w) => (Some(w.omega_ref), false),
+                };
+                if let Some(mut r) = self.ctrl.step_with(e, w) {
+                    if stale {
+                        r.hdr.flags |= FLAG_STALE_INPUT;
+                        self.wref_lost_samples += 1;
+                    }
                     self.last_out = Some(r);
                     out.push(Msg::Iref(r));
                 }
@@ -376,13 +395,18 @@ impl Stage for SpeedLoopStage {
         Rejoin::Done
     }
     fn diagnostic_names(&self) -> Diagnostics {
-        &["held_samples", "kyslan_eq15_near_singular_samples"]
+        &[
+            "held_samples",
+            "wref_lost_samples",
+            "kyslan_eq15_near_singular_samples",
+        ]
     }
     fn diagnostics(&self, v: &mut [u64]) {
-        for (d, s) in v
-            .iter_mut()
-            .zip([self.held_samples, self.ctrl.near_singular_samples])
-        {
+        for (d, s) in v.iter_mut().zip([
+            self.held_samples,
+            self.wref_lost_samples,
+            self.ctrl.near_singular_samples,
+        ]) {
             *d = s;
         }
     }
@@ -670,6 +694,39 @@ mod tests {
             panic!("no output")
         };
         assert_eq!(r.omega_ref, 12.5);
+    }
+
+    #[test]
+    fn speed_loop_stops_the_drive_when_the_outer_reference_is_lost() {
+        let sc = scenario("kyslan-pi");
+        let mut s = SpeedLoopStage::new(&sc);
+        let w = SpeedRef {
+            omega_ref: 12.5,
+            ..Default::default()
+        };
+        let step = |s: &mut SpeedLoopStage, age: u64| {
+            let mut ib = Inbox::default();
+            ib.put(Msg::Est(est(0, 0.0)));
+            ib.put(Msg::Wref(w));
+            if age > 0 {
+                ib.set_stale(TopicId::Wref, age);
+            }
+            let mut out = Outbox::default();
+            s.step(0, &ib, &mut out);
+            match out.get(TopicId::Iref) {
+                Some(Msg::Iref(r)) => *r,
+                other => panic!("{other:?}"),
+            }
+        };
+        // Up to WREF_MAX_AGE periods late: the last value, unflagged.
+        let r = step(&mut s, WREF_MAX_AGE);
+        assert_eq!(r.omega_ref, 12.5);
+        assert_eq!(r.hdr.flags & FLAG_STALE_INPUT, 0);
+        // Beyond: ω* = 0, flagged and counted.
+        let r = step(&mut s, WREF_MAX_AGE + 1);
+        assert_eq!(r.omega_ref, 0.0);
+        assert_ne!(r.hdr.flags & FLAG_STALE_INPUT, 0);
+        assert_eq!(s.wref_lost_samples, 1);
     }
 
     #[test]
