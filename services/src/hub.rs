@@ -7,7 +7,7 @@
 //! outside their loops; monitors connect only to this hub's publishers.
 
 use anyhow::{anyhow, bail, Result};
-use drivelab_runtime::config::{Scenario, SERVICES};
+use drivelab_runtime::config::Scenario;
 use drivelab_runtime::messages::FLAG_END;
 use drivelab_runtime::telemetry::*;
 use iceoryx2::prelude::*;
@@ -65,14 +65,16 @@ pub struct Hub {
     events_tx: PlainSender<EventEntry>,
     req_rx: PlainReceiver<FaultRequest>,
     view: Box<DriveView>,
-    prev: [Option<(u64, u64)>; 4],
+    prev: [Option<(u64, u64)>; MAX_STAGES],
+    stages: Vec<String>,
     last_view: Option<Instant>,
     events_sent: usize,
 }
 
 impl Hub {
-    /// Creates the hub's node and topics on bus `bus_id`; call before spawning the services.
-    pub fn new(bus_id: &str, sc: &Scenario, lockstep: bool) -> Result<Self> {
+    /// Creates the hub's node and topics on bus `bus_id` for a drive of `stages` (the
+    /// topology's order); call before spawning the stage hosts.
+    pub fn new(bus_id: &str, sc: &Scenario, lockstep: bool, stages: &[String]) -> Result<Self> {
         let node = drivelab_runtime::bus::node(bus_id, "supervisor")?;
         let status_topic = open_plain::<ServiceStatus>(&node, TOPIC_STATUS, 16, 0)?;
         let view_topic = open_plain::<DriveView>(&node, TOPIC_VIEW, 4, 1)?;
@@ -89,11 +91,16 @@ impl Hub {
         view.sample_hz = sc.rates.sample_hz;
         view.n_samples = sc.samples();
         view.lockstep = u32::from(lockstep);
-        view.rt_cores = SERVICES
+        view.rt_cores = sc
+            .topology()
             .iter()
-            .filter_map(|s| sc.placement.get(s).and_then(|p| p.core))
+            .filter_map(|p| p.cpu)
             .filter(|&c| c < 64)
             .fold(0u64, |m, c| m | (1 << c));
+        view.n_stages = stages.len().min(MAX_STAGES) as u32;
+        for (slot, name) in view.stage_names.iter_mut().zip(stages) {
+            put_str(slot, name);
+        }
         put_str(&mut view.scenario, &sc.name);
         Ok(Self {
             _node: node,
@@ -106,18 +113,32 @@ impl Hub {
             events_tx,
             req_rx,
             view,
-            prev: [None; 4],
+            prev: [None; MAX_STAGES],
+            stages: stages.to_vec(),
             last_view: None,
             events_sent: 0,
         })
     }
 
-    /// Sets what the supervisor knows of service `i`.
-    pub fn set_process(&mut self, i: usize, state: ProcState, pid: u32, restarts: u32) {
+    /// Sets what the supervisor knows of the process that hosts `stage`.
+    pub fn set_process(&mut self, stage: &str, state: ProcState, pid: u32, restarts: u32) {
+        let Some(i) = self
+            .stages
+            .iter()
+            .position(|s| s == stage)
+            .filter(|&i| i < MAX_STAGES)
+        else {
+            return;
+        };
         let s = &mut self.view.services[i];
         s.state = state as u32;
         s.pid = pid;
         s.restarts = restarts;
+    }
+
+    /// The drive's stages, in the view's order.
+    pub fn stages(&self) -> &[String] {
+        &self.stages
     }
 
     /// Drains statuses and fault requests, publishes new events, and the view when due.
@@ -131,7 +152,7 @@ impl Hub {
     ) -> Result<Vec<FaultRequest>> {
         while let Some(st) = self.status_rx.try_recv()? {
             let i = st.service as usize;
-            if i >= SERVICES.len() {
+            if i >= self.view.stages() {
                 continue;
             }
             let s = &mut self.view.services[i];
@@ -199,13 +220,13 @@ impl Hub {
     }
 }
 
-/// A monitor's fault request as a fault due at `at_s` (simulated time), validated.
-pub fn to_fault(r: &FaultRequest, at_s: f64) -> Result<crate::faults::Fault> {
+/// A monitor's fault request as a fault due at `at_s` (simulated time) on one of `stages`,
+/// validated.
+pub fn to_fault(r: &FaultRequest, at_s: f64, stages: &[String]) -> Result<crate::faults::Fault> {
     use crate::faults::{Fault, FaultKind};
-    let service = SERVICES
+    let service = stages
         .get(r.service as usize)
-        .copied()
-        .ok_or_else(|| anyhow!("fault request for unknown service #{}", r.service))?;
+        .ok_or_else(|| anyhow!("fault request for unknown stage #{}", r.service))?;
     let (kind, duration_s) = match r.kind {
         FAULT_KILL => (FaultKind::Kill, 0.0),
         FAULT_STOP if (1..=60_000).contains(&r.stop_ms) => {

@@ -4,7 +4,7 @@
 use crate::common::BusClock;
 use anyhow::{anyhow, bail, Context, Result};
 use drivelab_runtime::bus::{self, DriveTopics, MAX_BUFFER};
-use drivelab_runtime::config::{Scenario, SERVICES};
+use drivelab_runtime::config::Scenario;
 use drivelab_runtime::drive::{trace_row, DriveDesign};
 use drivelab_runtime::messages::{PlantTruth, VoltageCommand};
 use drivelab_runtime::service::TopologyPlan;
@@ -478,7 +478,8 @@ fn run_bus(
             .recv()
             .map_err(|_| anyhow!("recorder thread died"))??;
         // The telemetry hub subscribes to the services' statuses before they start.
-        let mut hub = crate::hub::Hub::new(&bus_id, sc, clock == BusClock::Lockstep)?;
+        let stage_names: Vec<String> = plan_topo.stages.iter().map(|s| s.name.clone()).collect();
+        let mut hub = crate::hub::Hub::new(&bus_id, sc, clock == BusClock::Lockstep, &stage_names)?;
         let mut children = Vec::new();
         for (i, p) in plan_topo.processes.iter().enumerate() {
             // `exec` paths were made absolute when the topology was resolved.
@@ -632,7 +633,7 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
     if let Some(t) = &o.topology {
         let (file, path) =
             drivelab_runtime::topology::load(t).map_err(|e| anyhow!("--topology: {e}"))?;
-        let base = path.parent().unwrap_or(Path::new(".")).to_path_buf();
+        let base = std::path::absolute(path.parent().unwrap_or(Path::new(".")))?;
         sc.process = file.process;
         for p in sc.process.iter_mut() {
             if let Some(e) = drivelab_runtime::topology::exec_path(p, &base) {
@@ -642,7 +643,8 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
         sc.placement = drivelab_runtime::config::Placement::default();
         sc.validate().map_err(|e| anyhow!("--topology {t}: {e}"))?;
     }
-    let base = sc_src.parent().unwrap_or(Path::new(".")).to_path_buf();
+    // Absolute, so that the hosts find `exec` whatever their working folder.
+    let base = std::path::absolute(sc_src.parent().unwrap_or(Path::new(".")))?;
     let mut procs = sc.topology();
     for p in procs.iter_mut() {
         if let Some(e) = drivelab_runtime::topology::exec_path(p, &base) {
@@ -1054,7 +1056,7 @@ fn supervise(
             next_fault += 1;
         }
         for r in hub.poll(events, k_now, &progress.tail)? {
-            match crate::hub::to_fault(&r, k_now as f64 / fs) {
+            match crate::hub::to_fault(&r, k_now as f64 / fs, hub.stages()) {
                 Ok(f) => due.push((f, format!(" (from monitor pid {})", r.pid))),
                 Err(e) => ev(events, "inject-refused", "-", "-", format!("{e:#}")),
             }
@@ -1243,9 +1245,7 @@ fn supervise(
                 ProcState::Alive
             };
             for st in &children[i].stages {
-                if let Some(j) = SERVICES.iter().position(|s| s == st) {
-                    hub.set_process(j, state, children[i].child.id(), restarts[i]);
-                }
+                hub.set_process(st, state, children[i].child.id(), restarts[i]);
             }
         }
         let plant_done = children.iter().zip(&done).any(|(c, d)| c.source && *d);

@@ -103,6 +103,21 @@ impl Ui {
         }
     }
 
+    /// Stages shown: the drive's (from its view), the four built-in ones before it arrives.
+    fn n_stages(&self) -> usize {
+        self.view
+            .as_ref()
+            .map_or(SERVICES.len(), |v| v.stages().max(1))
+    }
+
+    /// Name of stage `i`.
+    fn stage_name(&self, i: usize) -> String {
+        match &self.view {
+            Some(v) => v.stage_name(i).to_string(),
+            None => SERVICES.get(i).unwrap_or(&"?").to_string(),
+        }
+    }
+
     /// Takes everything new from the bus. Returns true when the drive has ended.
     fn pull(&mut self, a: &Attached) -> Result<bool> {
         while let Some(e) = a.events_rx.try_recv()? {
@@ -140,12 +155,14 @@ impl Ui {
         match code {
             KeyCode::Char('q') | KeyCode::Esc => return Ok(false),
             KeyCode::Right | KeyCode::Down | KeyCode::Tab => {
-                self.selected = (self.selected + 1) % SERVICES.len()
+                self.selected = (self.selected + 1) % self.n_stages()
             }
             KeyCode::Left | KeyCode::Up | KeyCode::BackTab => {
-                self.selected = (self.selected + SERVICES.len() - 1) % SERVICES.len()
+                self.selected = (self.selected + self.n_stages() - 1) % self.n_stages()
             }
-            KeyCode::Char(c @ '1'..='4') => self.selected = c as usize - '1' as usize,
+            KeyCode::Char(c @ '1'..='8') if (c as usize - '1' as usize) < self.n_stages() => {
+                self.selected = c as usize - '1' as usize
+            }
             KeyCode::Char('k') => self.ask(FAULT_KILL),
             KeyCode::Char('s') => self.ask(FAULT_STOP),
             _ => {}
@@ -164,7 +181,7 @@ impl Ui {
     }
 
     fn fault_text(&self, kind: u32) -> String {
-        let svc = SERVICES[self.selected];
+        let svc = self.stage_name(self.selected);
         if kind == FAULT_KILL {
             format!("kill {svc} (SIGKILL)")
         } else {
@@ -249,7 +266,8 @@ impl Ui {
 
     fn draw_table(&self, f: &mut Frame, area: Rect) {
         let us = |ns: u64| format!("{:.1}", ns as f64 * 1e-3);
-        let rows = SERVICES.iter().enumerate().map(|(i, name)| {
+        let names: Vec<String> = (0..self.n_stages()).map(|i| self.stage_name(i)).collect();
+        let rows = names.iter().enumerate().map(|(i, name)| {
             let mark = if i == self.selected { "▶ " } else { "  " };
             let Some(v) = &self.view else {
                 return Row::new(vec![Cell::from(format!("{mark}{name}"))]);
@@ -494,8 +512,10 @@ impl Ui {
             );
         }
         let keys = format!(
-            " q quit · ←/→ or 1-4 select ({}) · k kill · s freeze {} ms",
-            SERVICES[self.selected], self.stop_ms
+            " q quit · ←/→ or 1-{} select ({}) · k kill · s freeze {} ms",
+            self.n_stages(),
+            self.stage_name(self.selected),
+            self.stop_ms
         );
         if self.message.is_empty() {
             Line::from(keys)

@@ -300,7 +300,10 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     )?;
     tr.status = stages
         .iter()
-        .map(|s| StatusPublisher::new(&node, s.name(), &sc))
+        .map(|s| {
+            let idx = plan.stages.iter().position(|x| x.name == s.name());
+            StatusPublisher::new(&node, idx, &sc)
+        })
         .collect::<Result<_>>()?;
     // Connect now (a restarted process joins running peers), not at real-time priority.
     tr.connect()?;
@@ -643,18 +646,17 @@ pub struct StatusPublisher {
 }
 
 impl StatusPublisher {
-    /// Opens the status topic for stage `stage` of scenario `sc`.
+    /// Opens the status topic for the stage at index `stage` of the topology (None: the
+    /// view has no row for it, nothing is published) of scenario `sc`.
     pub fn new(
         node: &iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
-        stage: &str,
+        stage: Option<usize>,
         sc: &Scenario,
     ) -> Result<Self> {
         let topic = open_plain::<ServiceStatus>(node, TOPIC_STATUS, 16, 0)?;
         let tx = PlainSender::new(&topic)?;
-        // Stages outside the built-in four have no row in the status view (yet): u32::MAX.
-        let idx = crate::config::SERVICES
-            .iter()
-            .position(|s| *s == stage)
+        let idx = stage
+            .filter(|&i| i < crate::telemetry::MAX_STAGES)
             .map_or(u32::MAX, |i| i as u32);
         let st = ServiceStatus {
             service: idx,

@@ -124,7 +124,7 @@ impl CompactHist {
 pub struct ServiceStatus {
     /// `k`: newest sample handled; `t_pub_ns`: when this status was published.
     pub hdr: Header,
-    /// Index into [`crate::config::SERVICES`].
+    /// Index of the stage in the drive's topology (the order of `topology.json`).
     pub service: u32,
     /// Process id.
     pub pid: u32,
@@ -235,6 +235,10 @@ pub struct TracePoint {
 pub const VIEW_POINTS: usize = 256;
 /// Length of the scenario name field.
 pub const NAME_LEN: usize = 48;
+/// Stages a [`DriveView`] can show.
+pub const MAX_STAGES: usize = 8;
+/// Length of a stage name field.
+pub const STAGE_NAME_LEN: usize = 32;
 
 /// Supervisor → monitors: everything a monitor draws.
 #[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
@@ -257,10 +261,26 @@ pub struct DriveView {
     pub rt_cores: u64,
     /// Scenario name, NUL-padded UTF-8.
     pub scenario: [u8; NAME_LEN],
-    /// Per service, in [`crate::config::SERVICES`] order.
-    pub services: [ServiceView; 4],
+    /// Valid entries of `stage_names` and `services`.
+    pub n_stages: u32,
+    /// Stage names in the topology's order (process, then chain), NUL-padded UTF-8.
+    pub stage_names: [[u8; STAGE_NAME_LEN]; MAX_STAGES],
+    /// Per stage, in `stage_names` order.
+    pub services: [ServiceView; MAX_STAGES],
     /// Decimated trace, oldest first.
     pub points: [TracePoint; VIEW_POINTS],
+}
+
+impl DriveView {
+    /// Name of stage `i`.
+    pub fn stage_name(&self, i: usize) -> &str {
+        self.stage_names.get(i).map_or("?", |n| get_str(n))
+    }
+
+    /// Number of stages shown.
+    pub fn stages(&self) -> usize {
+        (self.n_stages as usize).min(MAX_STAGES)
+    }
 }
 
 impl Default for DriveView {
@@ -274,7 +294,9 @@ impl Default for DriveView {
             decimation: 1,
             rt_cores: 0,
             scenario: [0; NAME_LEN],
-            services: [ServiceView::default(); 4],
+            n_stages: 0,
+            stage_names: [[0; STAGE_NAME_LEN]; MAX_STAGES],
+            services: [ServiceView::default(); MAX_STAGES],
             points: [TracePoint::default(); VIEW_POINTS],
         }
     }
@@ -343,7 +365,7 @@ pub const FAULT_STOP: u32 = 2;
 pub struct FaultRequest {
     /// [`FAULT_KILL`] or [`FAULT_STOP`].
     pub kind: u32,
-    /// Index into [`crate::config::SERVICES`].
+    /// Index of the stage in the drive's topology, as in [`DriveView::stage_names`].
     pub service: u32,
     /// Freeze time of a stop, ms.
     pub stop_ms: u32,
