@@ -1015,3 +1015,191 @@ impl<T: Transport> Host<T> {
             .collect()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    //! The host's own policies (catch-up, the clock fallback, end forwarding) on a scripted
+    //! transport: no bus, no clock.
+    use super::*;
+    use crate::config::Scenario;
+    use crate::messages::*;
+    use crate::stages::{CurrentLoopStage, ObserverStage};
+    use std::collections::VecDeque;
+
+    fn scenario() -> Scenario {
+        let path = format!(
+            "{}/../../scenarios/kyslan-pi.toml",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
+    }
+
+    /// Delivers queued messages per topic; on the n-th wait, runs a scripted action.
+    #[derive(Default)]
+    struct Script {
+        queues: [VecDeque<Msg>; N_TOPICS],
+        sent: Vec<Msg>,
+        waits: usize,
+        on_wait: Vec<(usize, Msg)>,
+    }
+
+    impl Transport for Script {
+        fn send(&mut self, msg: &Msg) -> Result<()> {
+            self.sent.push(*msg);
+            Ok(())
+        }
+        fn try_recv(&mut self, topic: TopicId) -> Result<Option<Msg>> {
+            Ok(self.queues[topic.index()].pop_front())
+        }
+        fn pending(&mut self, topic: TopicId) -> Result<bool> {
+            Ok(!self.queues[topic.index()].is_empty())
+        }
+        fn wait(&mut self, _topic: TopicId, _timeout: Duration) -> Result<()> {
+            self.waits += 1;
+            let n = self.waits;
+            for (w, m) in self.on_wait.iter().filter(|(w, _)| *w == n) {
+                let _ = w;
+                self.queues[m.topic().index()].push_back(*m);
+            }
+            Ok(())
+        }
+    }
+
+    fn meas(k: u64, theta: f64) -> Msg {
+        Msg::Meas(Measurement {
+            hdr: Header {
+                k,
+                t_sample_ns: 1_000_000 + k * 100_000,
+                ..Default::default()
+            },
+            theta_m_enc: theta,
+            ..Default::default()
+        })
+    }
+
+    fn end(topic: TopicId, k: u64) -> Msg {
+        Msg::marker(
+            topic,
+            Header {
+                k,
+                flags: FLAG_END,
+                ..Default::default()
+            },
+        )
+    }
+
+    fn config(sc: &Scenario) -> HostConfig {
+        HostConfig {
+            pacing: Pacing::Realtime,
+            samples: 100,
+            ts_ns: sc.rates.ts_ns(),
+            spin_ns: 0,
+            rejoin: false,
+            rejoin_from: None,
+            warm_up: false,
+            poke: Vec::new(),
+            clock_topic: TopicId::Meas,
+        }
+    }
+
+    #[test]
+    fn a_stage_that_fell_behind_publishes_only_the_newest_but_its_filter_sees_every_sample() {
+        let sc = scenario();
+        let mut tr = Script::default();
+        for k in 0..5 {
+            tr.queues[TopicId::Meas.index()].push_back(meas(k, 0.01 * k as f64));
+        }
+        // The end comes later (a pending END would also count as "a newer message waits").
+        tr.on_wait.push((2, end(TopicId::Meas, 5)));
+        let stages: Vec<Box<dyn Stage>> = vec![Box::new(ObserverStage::new(&sc))];
+        let producers = [(TopicId::Meas, 1, false), (TopicId::Est, 1, true)];
+        let mut host = Host::new(stages, &producers, tr, config(&sc));
+        host.run().unwrap();
+        let est: Vec<Estimate> = host
+            .transport
+            .sent
+            .iter()
+            .filter_map(|m| match m {
+                Msg::Est(e) if !e.hdr.is_end() => Some(*e),
+                _ => None,
+            })
+            .collect();
+        // Samples 0-4 were all waiting: 0-3 are skipped (counted), only the newest, 4, is
+        // published, and the END marker is forwarded.
+        assert_eq!(est.iter().map(|e| e.hdr.k).collect::<Vec<_>>(), vec![4]);
+        assert_eq!(host.stages[0].counters.skipped, 4);
+        assert!(host
+            .transport
+            .sent
+            .iter()
+            .any(|m| m.topic() == TopicId::Est && m.hdr().is_end()));
+        // The filter stepped through 0-3 silently: estimate 4 equals direct stepping.
+        let mut direct = crate::drive::ObserverStep::new(&sc);
+        let mut last = Estimate::default();
+        for k in 0..5 {
+            if let Msg::Meas(m) = meas(k, 0.01 * k as f64) {
+                last = direct.step(&m);
+            }
+        }
+        assert_eq!(est[0].omega_m, last.omega_m);
+        assert_eq!(est[0].theta_e, last.theta_e);
+    }
+
+    #[test]
+    fn a_trigger_that_stops_is_replaced_by_the_clock_after_max_age_samples() {
+        let sc = scenario();
+        let mut tr = Script::default();
+        let est = |k: u64| {
+            Msg::Est(Estimate {
+                hdr: Header {
+                    k,
+                    t_sample_ns: 1_000_000 + k * 100_000,
+                    ..Default::default()
+                },
+                theta_e: 0.1,
+                omega_m: 7.0,
+            })
+        };
+        // Estimates 0 and 1 come one wake-up apart, then the observer stops; the plant goes on
+        // to sample 5 (its measurements are there). The 4th wake-up brings the end.
+        tr.queues[TopicId::Est.index()].push_back(est(0));
+        tr.on_wait.push((2, est(1)));
+        for k in 0..6 {
+            tr.queues[TopicId::Meas.index()].push_back(meas(k, 0.2));
+        }
+        tr.on_wait.push((4, end(TopicId::Est, 6)));
+        let stages: Vec<Box<dyn Stage>> = vec![Box::new(CurrentLoopStage::new(&sc))];
+        let producers = [
+            (TopicId::Meas, 1, false),
+            (TopicId::Est, 1, false),
+            (TopicId::Iref, 10, false),
+            (TopicId::Cmd, 1, true),
+        ];
+        let mut host = Host::new(stages, &producers, tr, config(&sc));
+        host.run().unwrap();
+        let cmds: Vec<VoltageCommand> = host
+            .transport
+            .sent
+            .iter()
+            .filter_map(|m| match m {
+                Msg::Cmd(c) if !c.hdr.is_end() => Some(*c),
+                _ => None,
+            })
+            .collect();
+        // 0 and 1 from their estimates; then, woken (3rd) without one, the newest measurement
+        // is 5 ≥ 1 + EST_MAX_AGE: command 5 on the encoder angle, flagged.
+        let ks: Vec<u64> = cmds.iter().map(|c| c.hdr.k).collect();
+        assert_eq!(ks, vec![0, 1, 5], "{cmds:?}");
+        assert_eq!(cmds[1].hdr.flags & FLAG_STALE_INPUT, 0);
+        assert_ne!(cmds[2].hdr.flags & FLAG_STALE_INPUT, 0);
+        let p = sc.motor_params().p();
+        assert!((cmds[2].theta_hat - drivelab_control::motor::wrap_2pi(p * 0.2)).abs() < 1e-12);
+        assert_eq!(host.stages[0].counters.fallback_steps, 1);
+        // The END marker on the trigger is forwarded on the stage's output.
+        assert!(host
+            .transport
+            .sent
+            .last()
+            .is_some_and(|m| m.topic() == TopicId::Cmd && m.hdr().is_end()));
+    }
+}

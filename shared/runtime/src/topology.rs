@@ -506,6 +506,34 @@ mod tests {
         }
     }
 
+    #[test]
+    fn a_stage_rate_must_divide_the_sample_rate_and_placement_is_given_once() {
+        let base = "name = \"x\"\nduration_s = 0.01\n[motor]\npreset = \"kyslan2015\"\n";
+        let e = Scenario::from_toml(
+            &format!("{base}[stages.position-loop]\nrate_hz = 3000.0\n"),
+            "x.toml",
+        )
+        .unwrap_err();
+        assert!(
+            e.contains(
+                "stages.position-loop.rate_hz = 3000.0 must divide the sample rate 10000 Hz"
+            ),
+            "{e}"
+        );
+        let ok = Scenario::from_toml(
+            &format!("{base}[stages.position-loop]\nrate_hz = 2000\n"),
+            "x.toml",
+        )
+        .unwrap();
+        assert_eq!(ok.stage_divider("position-loop"), Some(5));
+        let e = Scenario::from_toml(
+            &format!("{base}[placement.plant]\ncore = 0\npriority = 50\n[[process]]\nname = \"a\"\nstages = [\"plant\", \"observer\", \"current-loop\", \"speed-loop\"]\n"),
+            "x.toml",
+        )
+        .unwrap_err();
+        assert!(e.contains("either in [placement] or in [[process]]"), "{e}");
+    }
+
     fn info(name: &str, inputs: Vec<InputSpec>, outputs: Vec<TopicId>) -> StageInfo {
         StageInfo {
             name: name.into(),
