@@ -20,7 +20,7 @@ cp runs/readme-fault/currents.png docs/img/fault-currents.png
 ./target/release/drivelab run --bus readmemon --duration 8 --fault kill:current-loop@3 \
   --no-plots --out runs/readme-monitor >/dev/null 2>&1 &
 sleep 6
-./target/release/drivelab monitor --bus readmemon --print --print-size 110x30 > docs/img/monitor.txt
+./target/release/drivelab monitor --bus readmemon --print --print-size 118x30 > docs/img/monitor.txt
 wait
 python3 - <<'PY'
 import re

@@ -2,7 +2,6 @@
 //! folder, so they can run in parallel; each checks that no process and no bus file is left.
 //! Timeouts here are watchdogs against hangs, never performance assertions.
 
-use std::path::PathBuf;
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
@@ -32,31 +31,6 @@ fn drivelab(args: &[&str], watchdog: Duration) -> Output {
         }
         std::thread::sleep(Duration::from_millis(20));
     }
-}
-
-fn run_ok(name: &str, extra: &[&str]) -> (PathBuf, serde_json::Value) {
-    let dir = scratch(name);
-    let bus = bus_id(name);
-    let out = dir.join("run");
-    let mut args = vec![
-        "run",
-        "--bus",
-        &bus,
-        "--out",
-        out.to_str().unwrap(),
-        "--no-plots",
-    ];
-    args.extend_from_slice(extra);
-    let o = drivelab(&args, Duration::from_secs(300));
-    assert!(
-        o.status.success(),
-        "drivelab {args:?} failed: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    assert_clean(&bus);
-    let summary: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
-    (out, summary)
 }
 
 #[test]

@@ -3,36 +3,10 @@
 //! fault on a stage takes down the process that hosts it, with all its stages, and the
 //! supervisor restarts that process. Timeouts are watchdogs only.
 
-use std::time::Duration;
-
 mod common;
 use common::*;
 
 const TOPOLOGIES: [&str; 3] = ["four-process", "two-process", "one-process"];
-
-fn run_ok(tag: &str, args: &[&str]) -> (std::path::PathBuf, serde_json::Value) {
-    let dir = scratch(tag);
-    let bus = bus_id(tag);
-    let out = dir.join("run");
-    let mut a = vec![
-        "run",
-        "--bus",
-        &bus,
-        "--out",
-        out.to_str().unwrap(),
-        "--no-plots",
-    ];
-    a.extend_from_slice(args);
-    let o = drivelab(&a);
-    assert!(
-        o.status.success(),
-        "drivelab {a:?} failed: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    assert_clean(&bus);
-    let s = serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
-    (out, s)
-}
 
 #[test]
 fn every_shipped_topology_gives_the_inprocess_trace_in_lockstep() {
@@ -242,5 +216,4 @@ fn a_fault_on_a_stage_takes_down_its_whole_process_which_is_restarted() {
     let trace = std::fs::read_to_string(out.join("trace.csv")).unwrap();
     let last = trace.lines().last().unwrap();
     assert!(!last.contains("NaN"), "no command at the end: {last}");
-    let _ = Duration::ZERO;
 }

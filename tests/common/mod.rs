@@ -59,6 +59,33 @@ pub fn drivelab(args: &[&str]) -> Output {
     child.wait_with_output().unwrap()
 }
 
+/// Runs `drivelab run --bus <own id> --out <scratch>/run --no-plots EXTRA`, asserts success
+/// and a clean bus, and returns the run folder and its summary.
+pub fn run_ok(name: &str, extra: &[&str]) -> (PathBuf, Value) {
+    let dir = scratch(name);
+    let bus = bus_id(name);
+    let out = dir.join("run");
+    let mut args = vec![
+        "run",
+        "--bus",
+        &bus,
+        "--out",
+        out.to_str().unwrap(),
+        "--no-plots",
+    ];
+    args.extend_from_slice(extra);
+    let o = drivelab(&args);
+    assert!(
+        o.status.success(),
+        "drivelab {args:?} failed: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert_clean(&bus);
+    let summary: Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    (out, summary)
+}
+
 /// Waits for a spawned child with a watchdog against hangs; kills it (and fails) on expiry.
 pub fn wait(mut child: std::process::Child, watchdog: Duration, what: &str) -> Output {
     let t = Instant::now();
