@@ -77,15 +77,18 @@ fn scenario_copy(dir: &Path) -> PathBuf {
 /// Runs the scenario in lockstep into `<scratch>/run`, checks exit 0 and that nothing is
 /// left behind; returns the run folder.
 fn run(name: &str) -> PathBuf {
+    run_with(name, &["--clock", "lockstep"])
+}
+
+/// As [`run`], with `extra` arguments.
+fn run_with(name: &str, extra: &[&str]) -> PathBuf {
     let exe = drivelab_exe();
     let dir = scratch(name);
     let sc = scenario_copy(&dir);
     let out = dir.join("run");
     let bus = bus_id(name);
-    let args = [
+    let mut args = vec![
         "run",
-        "--clock",
-        "lockstep",
         "--scenario",
         sc.to_str().unwrap(),
         "--bus",
@@ -94,8 +97,9 @@ fn run(name: &str) -> PathBuf {
         out.to_str().unwrap(),
         "--no-plots",
     ];
+    args.extend_from_slice(extra);
     let mut child = Command::new(&exe)
-        .args(args)
+        .args(&args)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
@@ -186,4 +190,57 @@ fn lockstep_runs_are_bit_identical() {
     let b = std::fs::read(run("twice-b").join("trace.csv")).unwrap();
     assert!(!a.is_empty());
     assert!(a == b, "the two lockstep traces differ");
+}
+
+/// The user stage is supervised like a built-in one: a kill names the stage, its process is
+/// restarted, and while it is down the speed loop brings the drive to standstill instead of
+/// following the last speed reference.
+#[test]
+fn a_killed_user_stage_is_restarted_and_the_speed_loop_stops_following_it() {
+    let _s = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let out = run_with(
+        "kill",
+        &[
+            "--clock",
+            "realtime",
+            "--duration",
+            "0.5",
+            "--fault",
+            "kill:position-loop@0.1",
+        ],
+    );
+    let s: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    let f = &s["faults"][0];
+    assert_eq!(f["service"], "position-loop", "{f}");
+    assert_eq!(f["process"], "position-loop", "{f}");
+    let events: Vec<String> = s["supervisor_events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| {
+            format!(
+                "{} {}",
+                e["event"].as_str().unwrap(),
+                e["process"].as_str().unwrap()
+            )
+        })
+        .collect();
+    for want in [
+        "exited position-loop",
+        "restarted position-loop",
+        "ready position-loop",
+    ] {
+        assert!(
+            events.iter().any(|e| e == want),
+            "no '{want}' in {events:?}"
+        );
+    }
+    // The restart alone waits a 10 ms back-off, far more than the 2 periods (2 ms) after
+    // which the speed loop replaces a lost reference by 0.
+    let lost = s["counters"]["speed-loop"]["diagnostics"]["wref_lost_samples"]
+        .as_u64()
+        .unwrap();
+    assert!(lost > 0, "{}", s["counters"]["speed-loop"]);
+    assert!(s["processes"]["position-loop"]["stages"] == serde_json::json!(["position-loop"]));
 }
