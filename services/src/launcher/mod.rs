@@ -1,26 +1,39 @@
-//! `drivelab run`: starts the four services on a private bus, records every sample, stops
-//! them cleanly, removes the bus files and writes the run folder.
+//! `drivelab run`: starts the topology's stage hosts on a private bus, records every sample,
+//! stops them cleanly, removes the bus files and writes the run folder.
+//!
+//! [`spawn`] starts and stops the stage hosts, [`recorder`] records the drive and assembles
+//! the trace, [`supervisor`] injects faults and keeps the processes alive per [`policy`];
+//! this module resolves the topology, runs the whole and writes the summary.
+
+mod policy;
+mod recorder;
+mod spawn;
+mod supervisor;
+
+pub use recorder::Gap;
+pub use supervisor::{fault_reports, EventKind, FaultReport, SupEvent};
 
 use crate::common::BusClock;
 use anyhow::{anyhow, bail, Context, Result};
-use drivelab_runtime::bus::{self, DriveTopics, MAX_BUFFER};
-use drivelab_runtime::config::{Scenario, SERVICES};
-use drivelab_runtime::drive::{trace_row, DriveDesign};
-use drivelab_runtime::messages::{PlantTruth, VoltageCommand};
+use drivelab_runtime::bus;
+use drivelab_runtime::config::Scenario;
+use drivelab_runtime::drive::DriveDesign;
 use drivelab_runtime::service::TopologyPlan;
-use drivelab_runtime::topology::{ProcessSpec, StageInfo};
+use drivelab_runtime::topology::StageInfo;
 use drivelab_runtime::trace::TraceRow;
 use drivelab_tools::metrics::speed_metrics;
+use recorder::{assemble, run_recorder, Progress};
 use serde::Serialize;
 use serde_json::json;
+use spawn::{process_binary, spawn_service, terminate, ChildProc, Spawn};
 use std::collections::BTreeMap;
-use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
-use std::process::{Child, ChildStdin, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+use supervisor::{supervise, Supervised};
 
 /// Which clock paces the run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
@@ -77,24 +90,6 @@ pub enum Restart {
     OnFailure,
 }
 
-/// One supervisor event.
-#[derive(Debug, Clone, Serialize)]
-pub struct SupEvent {
-    /// Wall time since the start signal, s.
-    pub t_wall_s: f64,
-    /// Newest sample the recorder had seen (k + 1), i.e. the drive's progress.
-    pub k: u64,
-    /// inject, resume, exited, reaped, restarted, ready.
-    pub event: String,
-    /// Stage (inject, resume) or process (exited, restarted, ready); "-" for the bus.
-    pub service: String,
-    /// The process concerned.
-    #[serde(default)]
-    pub process: String,
-    /// Details.
-    pub detail: String,
-}
-
 /// What a run produced.
 #[derive(Debug)]
 pub struct RunResult {
@@ -122,308 +117,22 @@ fn default_out(sc: &Scenario, clock: Clock) -> PathBuf {
     PathBuf::from("runs").join(format!("{}-{:?}-{}", sc.name, clock, secs).to_lowercase())
 }
 
-/// A contiguous range of samples missing from the trace and why.
-#[derive(Debug, Clone, Serialize, PartialEq)]
-pub struct Gap {
-    /// First missing k.
-    pub from: u64,
-    /// Last missing k.
-    pub to: u64,
-    /// Which part is missing ("measurement", "command").
-    pub part: &'static str,
-    /// Why.
-    pub cause: String,
+/// What a run on the bus produced.
+struct BusRun {
+    /// The trace.
+    rows: Vec<TraceRow>,
+    /// Samples missing from it.
+    gaps: Vec<Gap>,
+    /// `summary.json` → `processes`.
+    processes: serde_json::Value,
+    /// Bus id, counters, deadline misses, the fault plan.
+    info: serde_json::Value,
+    /// The supervisor's log.
+    events: Vec<SupEvent>,
 }
 
-/// Recorder: subscribes to measurements and commands with large buffers and keeps every one.
-struct Recorder {
-    meas: Vec<Option<PlantTruth>>,
-    cmd: Vec<Option<VoltageCommand>>,
-    /// Position references of an outer loop, as (k, θ_m*), in arrival order.
-    wref: Vec<(u64, f64)>,
-    rejected: u64,
-}
-
-/// What the recorder shares with the supervisor while the drive runs.
-#[derive(Default)]
-struct Progress {
-    /// Newest measurement index seen + 1 (0 = none yet).
-    next_k: std::sync::atomic::AtomicU64,
-    /// The plant's newest true state (for a restarted plant to resume from).
-    last: std::sync::Mutex<Option<PlantTruth>>,
-    /// Decimated trace for `drivelab monitor`.
-    tail: crate::hub::TraceTail,
-}
-
-fn run_recorder(
-    bus_id: String,
-    wake: drivelab_runtime::bus::WakeKind,
-    n: u64,
-    stop: Arc<AtomicBool>,
-    progress: Arc<Progress>,
-    ready: mpsc::Sender<Result<()>>,
-) -> Result<Recorder> {
-    let setup = (|| -> Result<_> {
-        let node = bus::node(&bus_id, "recorder")?;
-        let topics = DriveTopics::open_with(&node, wake, &bus_id)?;
-        // Polled: a listener would cost the real-time senders a wake-up syscall per sample.
-        // The trace is the plant's true state (its own topic), joined with the commands.
-        let meas_rx = topics.truth.polled_receiver(MAX_BUFFER)?;
-        let cmd_rx = topics.cmd.polled_receiver(MAX_BUFFER)?;
-        let wref_rx = topics.wref.polled_receiver(MAX_BUFFER)?;
-        let rec_tx = topics.rec.sender()?;
-        Ok((node, topics, meas_rx, cmd_rx, wref_rx, rec_tx))
-    })();
-    let (_node, _topics, meas_rx, cmd_rx, wref_rx, rec_tx) = match setup {
-        Ok(v) => {
-            let _ = ready.send(Ok(()));
-            v
-        }
-        Err(e) => {
-            let _ = ready.send(Err(anyhow!("{e:#}")));
-            return Err(e);
-        }
-    };
-    let mut r = Recorder {
-        meas: vec![None; n as usize],
-        cmd: vec![None; n as usize],
-        wref: Vec::new(),
-        rejected: 0,
-    };
-    let (mut meas_end, mut cmd_end) = (false, false);
-    let (mut next_meas, mut next_cmd) = (0u64, 0u64);
-    let mut last_progress = 0u64;
-    let mut last_cmd = VoltageCommand::default();
-    loop {
-        let mut got = false;
-        while let Some(m) = meas_rx.try_recv()? {
-            got = true;
-            if m.hdr.is_warmup() {
-                continue;
-            }
-            if m.hdr.is_warmup() {
-                continue;
-            }
-            if m.hdr.is_end() {
-                meas_end = true;
-            } else if m.hdr.k < n {
-                r.meas[m.hdr.k as usize] = Some(m);
-                progress
-                    .tail
-                    .offer(drivelab_runtime::telemetry::TracePoint {
-                        k: m.hdr.k,
-                        omega: m.omega_m,
-                        omega_ref: last_cmd.omega_ref,
-                        i_d: m.i_dq[0],
-                        i_q: m.i_dq[1],
-                        i_d_ref: last_cmd.i_dq_ref[0],
-                        i_q_ref: last_cmd.i_dq_ref[1],
-                    });
-                if m.hdr.k + 1 > progress.next_k.load(Ordering::Relaxed) {
-                    progress.next_k.store(m.hdr.k + 1, Ordering::Relaxed);
-                    if let Ok(mut l) = progress.last.lock() {
-                        *l = Some(m);
-                    }
-                }
-            } else {
-                r.rejected += 1;
-            }
-        }
-        while let Some(c) = cmd_rx.try_recv()? {
-            got = true;
-            if c.hdr.is_warmup() {
-                continue;
-            }
-            if c.hdr.is_warmup() {
-                continue;
-            }
-            if c.hdr.is_end() {
-                cmd_end = true;
-            } else if c.hdr.k < n {
-                r.cmd[c.hdr.k as usize] = Some(c);
-                last_cmd = c;
-            } else {
-                r.rejected += 1;
-            }
-        }
-        while let Some(w) = wref_rx.try_recv()? {
-            if !w.hdr.is_warmup() && !w.hdr.is_end() && w.theta_m_ref.is_finite() {
-                r.wref.push((w.hdr.k, w.theta_m_ref));
-            }
-        }
-        while next_meas < n && r.meas[next_meas as usize].is_some() {
-            next_meas += 1;
-        }
-        while next_cmd < n && r.cmd[next_cmd as usize].is_some() {
-            next_cmd += 1;
-        }
-        let progress = next_meas.min(next_cmd);
-        if progress >= last_progress + 256 || (progress > last_progress && !got) {
-            rec_tx.send(progress)?;
-            last_progress = progress;
-        }
-        if (meas_end && cmd_end) || stop.load(Ordering::SeqCst) {
-            // Take what is still buffered, then stop.
-            while let Some(m) = meas_rx.try_recv()? {
-                if !m.hdr.is_end() && !m.hdr.is_warmup() && m.hdr.k < n {
-                    r.meas[m.hdr.k as usize] = Some(m);
-                }
-            }
-            while let Some(c) = cmd_rx.try_recv()? {
-                if !c.hdr.is_end() && !c.hdr.is_warmup() && c.hdr.k < n {
-                    r.cmd[c.hdr.k as usize] = Some(c);
-                }
-            }
-            return Ok(r);
-        }
-        if !got {
-            meas_rx.wait(Duration::from_millis(1))?;
-        }
-    }
-}
-
-struct ChildProc {
-    /// Process name in the topology.
-    name: String,
-    /// Stages it hosts.
-    stages: Vec<String>,
-    /// It hosts the source (the plant).
-    source: bool,
-    spec: ProcessSpec,
-    exe: PathBuf,
-    child: Child,
-    stdin: Option<ChildStdin>,
-    lines: mpsc::Receiver<String>,
-    rt: Option<serde_json::Value>,
-}
-
-/// The executable of process `p`: its `exec` (relative to the scenario's folder) or the
-/// built-in host next to this executable.
-fn process_binary(p: &ProcessSpec, base: &Path) -> Result<PathBuf> {
-    match drivelab_runtime::topology::exec_path(p, base) {
-        Some(e) if e.is_file() => Ok(e),
-        Some(e) => bail!(
-            "process '{}': executable {} not found (build it first: cargo build --release --workspace)",
-            p.name,
-            e.display()
-        ),
-        None => service_binary("drivelab-host"),
-    }
-}
-
-fn service_binary(name: &str) -> Result<PathBuf> {
-    let exe = std::env::current_exe().context("cannot locate the drivelab executable")?;
-    let p = exe
-        .parent()
-        .ok_or_else(|| anyhow!("executable has no folder"))?
-        .join(name);
-    if !p.is_file() {
-        bail!(
-            "service binary {} not found next to drivelab (build the workspace first)",
-            p.display()
-        );
-    }
-    Ok(p)
-}
-
-struct Spawn<'a> {
-    sc_path: &'a Path,
-    topo_path: &'a Path,
-    bus_id: &'a str,
-    clock: BusClock,
-    o: &'a RunOptions,
-    out: &'a Path,
-}
-
-fn spawn_service(
-    p: &ProcessSpec,
-    exe: &Path,
-    source: bool,
-    sp: &Spawn,
-    rejoin_from: Option<&Path>,
-) -> Result<ChildProc> {
-    let mut cmd = Command::new(exe);
-    cmd.arg("--scenario").arg(sp.sc_path);
-    cmd.arg("--topology").arg(sp.topo_path);
-    cmd.arg("--process").arg(&p.name);
-    cmd.arg("--hosts").arg(p.stages.join(","));
-    cmd.arg("--bus").arg(sp.bus_id);
-    cmd.arg("--clock").arg(match sp.clock {
-        BusClock::Realtime => "realtime",
-        BusClock::Lockstep => "lockstep",
-    });
-    cmd.arg("--out").arg(sp.out);
-    if sp.o.rt_strict {
-        cmd.arg("--rt-strict");
-    }
-    if sp.o.no_rt {
-        cmd.arg("--no-rt");
-    }
-    if source {
-        cmd.arg("--recorder");
-    }
-    if let Some(f) = rejoin_from {
-        cmd.arg("--rejoin");
-        if source {
-            cmd.arg("--rejoin-from").arg(f);
-        }
-    }
-    cmd.stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit());
-    let name = p.name.clone();
-    let mut child = cmd
-        .spawn()
-        .with_context(|| format!("cannot start process {name} ({})", exe.display()))?;
-    let stdout = child.stdout.take().expect("piped");
-    let stdin = child.stdin.take();
-    let (tx, rx) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
-    Ok(ChildProc {
-        name,
-        stages: p.stages.clone(),
-        source,
-        spec: p.clone(),
-        exe: exe.to_path_buf(),
-        child,
-        stdin,
-        lines: rx,
-        rt: None,
-    })
-}
-
-fn terminate(children: &mut [ChildProc]) {
-    for c in children.iter_mut() {
-        if let Ok(None) = c.child.try_wait() {
-            // SAFETY: kill(2) on a pid we spawned and have not reaped; no memory is touched.
-            unsafe {
-                libc::kill(c.child.id() as libc::pid_t, libc::SIGTERM);
-            }
-        }
-    }
-    let t = Instant::now();
-    for c in children.iter_mut() {
-        loop {
-            match c.child.try_wait() {
-                Ok(Some(_)) | Err(_) => break,
-                Ok(None) if t.elapsed() > Duration::from_secs(3) => {
-                    let _ = c.child.kill();
-                    let _ = c.child.wait();
-                    break;
-                }
-                Ok(None) => std::thread::sleep(Duration::from_millis(5)),
-            }
-        }
-    }
-}
-
-/// Runs the four processes on a bus and returns the recorder's data and the process info.
+/// Runs the topology's processes on a bus and returns the recorder's data, the process info
+/// and the supervisor's events.
 fn run_bus(
     sc: &Scenario,
     sc_path: &Path,
@@ -432,12 +141,7 @@ fn run_bus(
     o: &RunOptions,
     out: &Path,
     clock: BusClock,
-) -> Result<(
-    Vec<TraceRow>,
-    Vec<Gap>,
-    serde_json::Value,
-    serde_json::Value,
-)> {
+) -> Result<BusRun> {
     let bus_id = o
         .bus
         .clone()
@@ -489,50 +193,9 @@ fn run_bus(
                 Err(e) => return Ok((children, Some(format!("{e:#}")))),
             }
         }
-        // Handshake: each service reports its RT setup and READY.
-        let t = Instant::now();
-        for c in children.iter_mut() {
-            loop {
-                if crate::common::stop_requested() {
-                    return Ok((children, Some("interrupted during start-up".into())));
-                }
-                match c.lines.recv_timeout(Duration::from_millis(50)) {
-                    Ok(l) if l == "READY" => break,
-                    Ok(l) => {
-                        if let Some(j) = l.strip_prefix("RT ") {
-                            c.rt = serde_json::from_str(j).ok();
-                        }
-                    }
-                    Err(mpsc::RecvTimeoutError::Timeout) => {
-                        if let Ok(Some(st)) = c.child.try_wait() {
-                            let name = c.name.clone();
-                            return Ok((
-                                children,
-                                Some(format!("{name} exited during start-up ({st})")),
-                            ));
-                        }
-                        if t.elapsed() > Duration::from_secs(20) {
-                            let name = c.name.clone();
-                            return Ok((
-                                children,
-                                Some(format!("{name} did not become ready within 20 s")),
-                            ));
-                        }
-                    }
-                    Err(mpsc::RecvTimeoutError::Disconnected) => {
-                        let st = c.child.wait().ok();
-                        let name = c.name.clone();
-                        return Ok((
-                            children,
-                            Some(format!("{name} exited during start-up ({st:?})")),
-                        ));
-                    }
-                }
-            }
-        }
-        if let Some(stdin) = children[0].stdin.as_mut() {
-            stdin.write_all(b"GO\n")?;
-            stdin.flush()?;
+        // Handshake: each service reports its RT setup and READY; then the source goes.
+        if let Some(failure) = spawn::handshake(&mut children)? {
+            return Ok((children, Some(failure)));
         }
         if o.verbose {
             eprintln!(
@@ -558,10 +221,11 @@ fn run_bus(
             )
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
         );
+        let mut supervised: Vec<_> = children.into_iter().map(Supervised::new).collect();
         let failure = supervise(
             &mut hub,
             &bar,
-            &mut children,
+            &mut supervised,
             plan,
             &mut events,
             &progress,
@@ -577,7 +241,7 @@ fn run_bus(
             &progress.tail,
             Duration::from_secs(1),
         )?;
-        Ok((children, failure))
+        Ok((supervised.into_iter().map(|c| c.proc).collect(), failure))
     })();
     let (mut children, failure) = match result {
         Ok(v) => v,
@@ -617,13 +281,19 @@ fn run_bus(
             }
         }
     }
-    let (rows, gaps) = assemble(sc, &rec, counters.contains_key("plant"));
-    let mut info = json!({ "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "events": events, "plan": plan });
+    let (rows, gaps) = assemble(sc.rates.ts(), &rec);
+    let mut info = json!({ "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "plan": plan });
     if let Some(p) = counters.get("plant") {
         info["deadline_misses"] = p["deadline_misses"].clone();
         info["longest_miss_run"] = p["longest_miss_run"].clone();
     }
-    Ok((rows, gaps, serde_json::Value::Object(processes), info))
+    Ok(BusRun {
+        rows,
+        gaps,
+        processes: serde_json::Value::Object(processes),
+        info,
+        events,
+    })
 }
 
 /// Applies `--topology`, resolves the scenario's topology against the stages' declarations
@@ -713,82 +383,6 @@ fn describe(exe: &str, sc_text: &str) -> Result<Vec<StageInfo>> {
         .with_context(|| format!("{exe} --describe: not a stage list"))
 }
 
-/// Joins measurements and commands into trace rows. A sample whose command is missing keeps
-/// its row with NaN in the command's columns; every missing part is listed as a gap.
-fn assemble(sc: &Scenario, rec: &Recorder, _plant_ok: bool) -> (Vec<TraceRow>, Vec<Gap>) {
-    let ts = sc.rates.ts();
-    let mut rows = Vec::with_capacity(rec.meas.len());
-    let mut gaps: Vec<Gap> = Vec::new();
-    let last_meas = rec.meas.iter().rposition(Option::is_some);
-    let mut push_gap = |k: u64, part: &'static str, cause: String| {
-        if let Some(g) = gaps.last_mut() {
-            if g.part == part && g.to + 1 == k && g.cause == cause {
-                g.to = k;
-                return;
-            }
-        }
-        gaps.push(Gap {
-            from: k,
-            to: k,
-            part,
-            cause,
-        });
-    };
-    // The outer loop's position reference in use at k: the newest computed before k.
-    let mut wref = rec.wref.clone();
-    wref.sort_by_key(|w| w.0);
-    let mut wi = 0;
-    let mut theta_ref = None;
-    for (k, m) in rec.meas.iter().enumerate() {
-        let k = k as u64;
-        while wi < wref.len() && wref[wi].0 < k {
-            theta_ref = Some(wref[wi].1);
-            wi += 1;
-        }
-        match (m, &rec.cmd[k as usize]) {
-            (Some(m), Some(c)) => {
-                let mut row = trace_row(ts, m, c);
-                row.theta_m_ref = theta_ref;
-                rows.push(row);
-            }
-            (Some(m), None) => {
-                let nan = f64::NAN;
-                let c = VoltageCommand {
-                    hdr: drivelab_runtime::messages::Header {
-                        k: m.hdr.k,
-                        flags: drivelab_runtime::messages::FLAG_MISSING,
-                        ..Default::default()
-                    },
-                    u_ab: [nan; 2],
-                    u_dq: [nan; 2],
-                    i_dq_ref: [nan; 2],
-                    omega_ref: nan,
-                    omega_hat: nan,
-                    theta_hat: nan,
-                };
-                let mut row = trace_row(ts, m, &c);
-                row.theta_m_ref = theta_ref;
-                rows.push(row);
-                push_gap(
-                    k,
-                    "command",
-                    "current-loop produced no command for this sample".into(),
-                );
-            }
-            (None, _) => {
-                let cause = match last_meas {
-                    Some(l) if k < l as u64 => {
-                        "measurement lost between plant and recorder (recorder buffer overflow)"
-                    }
-                    _ => "the plant stopped before this sample",
-                };
-                push_gap(k, "measurement", cause.into());
-            }
-        }
-    }
-    (rows, gaps)
-}
-
 /// Runs a scenario end to end and writes the run folder.
 pub fn run(o: &RunOptions) -> Result<RunResult> {
     // The launcher stops on SIGINT/SIGTERM the same way the services do.
@@ -817,7 +411,13 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         .with_context(|| format!("write {}", sc_path.display()))?;
     std::fs::write(out.join("topology.json"), serde_json::to_vec_pretty(&topo)?)?;
     let wall = Instant::now();
-    let (rows, gaps, processes, info) = match o.clock {
+    let BusRun {
+        rows,
+        gaps,
+        processes,
+        info,
+        events,
+    } = match o.clock {
         Clock::Inprocess => {
             if let Some(p) = topo.processes.iter().find(|p| p.exec.is_some()) {
                 bail!(
@@ -826,33 +426,18 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
                     p.stages.join(", ")
                 );
             }
-            (
-                drivelab_runtime::stages::run_inprocess(&sc),
-                Vec::new(),
-                json!({}),
-                json!({ "deadline_misses": 0 }),
-            )
+            BusRun {
+                rows: drivelab_runtime::stages::run_inprocess(&sc),
+                gaps: Vec::new(),
+                processes: json!({}),
+                info: json!({ "deadline_misses": 0 }),
+                events: Vec::new(),
+            }
         }
         Clock::Lockstep => run_bus(&sc, &sc_path, &topo, &plan, o, &out, BusClock::Lockstep)?,
         Clock::Realtime => run_bus(&sc, &sc_path, &topo, &plan, o, &out, BusClock::Realtime)?,
     };
     let wall_s = wall.elapsed().as_secs_f64();
-    let events: Vec<SupEvent> = info
-        .get("events")
-        .and_then(|e| serde_json::from_value::<Vec<serde_json::Value>>(e.clone()).ok())
-        .unwrap_or_default()
-        .into_iter()
-        .filter_map(|v| {
-            Some(SupEvent {
-                t_wall_s: v["t_wall_s"].as_f64()?,
-                k: v["k"].as_u64()?,
-                event: v["event"].as_str()?.into(),
-                service: v["service"].as_str()?.into(),
-                process: v["process"].as_str().unwrap_or_default().into(),
-                detail: v["detail"].as_str()?.into(),
-            })
-        })
-        .collect();
     let (faults, windows) = fault_reports(&sc, &rows, &events);
     // Name the cause of every gap that a plant fault explains.
     let mut gaps = gaps;
@@ -992,398 +577,4 @@ pub fn counters(summary: &serde_json::Value) -> BTreeMap<String, serde_json::Val
         .as_object()
         .map(|m| m.clone().into_iter().collect())
         .unwrap_or_default()
-}
-
-/// The supervisor: injects the planned faults when the drive reaches their sample, notices
-/// dead services (waitpid, then iceoryx2's node liveness, whose stale resources it removes),
-/// restarts them per policy with `--rejoin`, and records every event. Returns a failure
-/// message when the run cannot go on.
-#[allow(clippy::too_many_arguments)]
-fn supervise(
-    hub: &mut crate::hub::Hub,
-    bar: &indicatif::ProgressBar,
-    children: &mut [ChildProc],
-    plan: &[crate::faults::Fault],
-    events: &mut Vec<SupEvent>,
-    progress: &Progress,
-    sc: &Scenario,
-    sp: &Spawn,
-    started: Instant,
-    limit: Duration,
-) -> Result<Option<String>> {
-    let (bus_id, clock, o, out) = (sp.bus_id, sp.clock, sp.o, sp.out);
-    use crate::faults::{signal, FaultKind};
-    let fs = sc.rates.sample_hz;
-    let mut next_fault = 0;
-    let mut pending_cont: Vec<(Instant, usize)> = Vec::new();
-    let mut pending_restart: Vec<(Instant, usize)> = Vec::new();
-    let mut restarts = vec![0u32; children.len()];
-    // Back-off grows with restarts in quick succession and resets after 2 s of good health.
-    let mut backoff_level = vec![0u32; children.len()];
-    let mut last_restart: Vec<Option<Instant>> = vec![None; children.len()];
-    let mut dead = vec![false; children.len()];
-    let mut done = vec![false; children.len()];
-    let mut awaiting_ready = vec![false; children.len()];
-    let ev =
-        |events: &mut Vec<SupEvent>, event: &str, service: &str, process: &str, detail: String| {
-            events.push(SupEvent {
-                t_wall_s: started.elapsed().as_secs_f64(),
-                k: progress.next_k.load(Ordering::Relaxed),
-                event: event.into(),
-                service: service.into(),
-                process: process.into(),
-                detail,
-            });
-        };
-    const MAX_RESTARTS: u32 = 1000;
-    loop {
-        if crate::common::stop_requested() {
-            return Ok(Some("interrupted (SIGINT/SIGTERM): drive stopped".into()));
-        }
-        if started.elapsed() > limit {
-            return Ok(Some(format!("the drive did not finish within {limit:?}")));
-        }
-        let now = Instant::now();
-        let k_now = progress.next_k.load(Ordering::Relaxed);
-        bar.set_position(k_now);
-        // Faults due at this point of the run (in samples, so lockstep and realtime agree),
-        // then those a monitor asked for, each with a note on where it came from.
-        let mut due: Vec<(crate::faults::Fault, String)> = Vec::new();
-        while next_fault < plan.len() && k_now as f64 >= plan[next_fault].at_s * fs {
-            due.push((plan[next_fault].clone(), String::new()));
-            next_fault += 1;
-        }
-        for r in hub.poll(events, k_now, &progress.tail)? {
-            match crate::hub::to_fault(&r, k_now as f64 / fs) {
-                Ok(f) => due.push((f, format!(" (from monitor pid {})", r.pid))),
-                Err(e) => ev(events, "inject-refused", "-", "-", format!("{e:#}")),
-            }
-        }
-        for (f, origin) in due {
-            // A stage's fault hits the whole process that hosts it.
-            let Some(i) = children.iter().position(|c| c.stages.contains(&f.service)) else {
-                continue;
-            };
-            let pname = children[i].name.clone();
-            if clock != BusClock::Realtime {
-                // Only a monitor's request can get here: a plan is refused before the start.
-                ev(
-                    events,
-                    "inject-refused",
-                    &f.service,
-                    &pname,
-                    "faults need --clock realtime".into(),
-                );
-                continue;
-            }
-            if dead[i] || done[i] || pending_cont.iter().any(|&(_, j)| j == i) {
-                ev(
-                    events,
-                    "inject-skipped",
-                    &f.service,
-                    &pname,
-                    "its process is not running".into(),
-                );
-                continue;
-            }
-            let sig = match f.kind {
-                FaultKind::Kill => libc::SIGKILL,
-                FaultKind::Stop => libc::SIGSTOP,
-            };
-            signal(children[i].child.id(), sig)?;
-            ev(
-                events,
-                "inject",
-                &f.service,
-                &pname,
-                format!(
-                    "{}{}{origin}",
-                    crate::faults::kind_name(f.kind),
-                    if f.kind == FaultKind::Stop {
-                        format!(" for {} s", f.duration_s)
-                    } else {
-                        String::new()
-                    }
-                ),
-            );
-            if f.kind == FaultKind::Stop {
-                pending_cont.push((now + Duration::from_secs_f64(f.duration_s), i));
-            }
-        }
-        pending_cont.retain(|&(t, i)| {
-            if now >= t {
-                let _ = signal(children[i].child.id(), libc::SIGCONT);
-                let n = children[i].name.clone();
-                ev(events, "resume", &n, &n, "SIGCONT".into());
-                false
-            } else {
-                true
-            }
-        });
-        // Liveness: our own children first (waitpid), then iceoryx2's view of the bus.
-        let mut any_dead = false;
-        for i in 0..children.len() {
-            if dead[i] || done[i] {
-                continue;
-            }
-            if awaiting_ready[i] {
-                while let Ok(l) = children[i].lines.try_recv() {
-                    if l == "READY" {
-                        awaiting_ready[i] = false;
-                        let n = children[i].name.clone();
-                        ev(
-                            events,
-                            "ready",
-                            &n,
-                            &n,
-                            format!("pid {}", children[i].child.id()),
-                        );
-                    } else if let Some(j) = l.strip_prefix("RT ") {
-                        children[i].rt = serde_json::from_str(j).ok();
-                    }
-                }
-            }
-            match children[i].child.try_wait()? {
-                None => {}
-                Some(st) if st.success() => done[i] = true,
-                Some(st) => {
-                    dead[i] = true;
-                    any_dead = true;
-                    let n = children[i].name.clone();
-                    ev(events, "exited", &n, &n, format!("{st}"));
-                    let injected = events.iter().any(|e| e.event == "inject" && e.process == n);
-                    if o.restart == Restart::Never || restarts[i] >= MAX_RESTARTS {
-                        if !injected {
-                            return Ok(Some(format!("process {n} failed ({st})")));
-                        }
-                        if children[i].source {
-                            // Without a plant there is no drive: stop the rest.
-                            return Ok(None);
-                        }
-                    } else {
-                        if last_restart[i]
-                            .is_some_and(|t| now.duration_since(t) > Duration::from_secs(2))
-                        {
-                            backoff_level[i] = 0;
-                        }
-                        let backoff = Duration::from_millis(
-                            10u64.saturating_mul(1 << backoff_level[i].min(7)).min(1000),
-                        );
-                        backoff_level[i] += 1;
-                        pending_restart.push((now + backoff, i));
-                    }
-                }
-            }
-        }
-        if any_dead {
-            let reaped = bus::reap_dead_nodes(bus_id)?;
-            ev(
-                events,
-                "reaped",
-                "-",
-                "-",
-                format!("dead iceoryx2 nodes cleaned: {}", reaped.join(", ")),
-            );
-        }
-        let mut still = Vec::new();
-        for (t, i) in pending_restart.drain(..) {
-            if now < t {
-                still.push((t, i));
-                continue;
-            }
-            let name = children[i].name.clone();
-            let rejoin_file = out.join(format!("rejoin-{name}.json"));
-            if children[i].source {
-                let last = progress.last.lock().ok().and_then(|l| *l);
-                let Some(last) = last else {
-                    return Ok(Some(
-                        "plant died before its first sample; cannot resume".into(),
-                    ));
-                };
-                std::fs::write(
-                    &rejoin_file,
-                    serde_json::to_vec(&crate::common::truth_to_json(&last))?,
-                )?;
-            }
-            let (spec, exe, source) = (
-                children[i].spec.clone(),
-                children[i].exe.clone(),
-                children[i].source,
-            );
-            let c = spawn_service(&spec, &exe, source, sp, Some(&rejoin_file))?;
-            children[i] = c;
-            restarts[i] += 1;
-            last_restart[i] = Some(now);
-            dead[i] = false;
-            awaiting_ready[i] = true;
-            ev(
-                events,
-                "restarted",
-                &name,
-                &name,
-                format!("restart #{}, pid {}", restarts[i], children[i].child.id()),
-            );
-        }
-        pending_restart = still;
-        for i in 0..children.len() {
-            use drivelab_runtime::telemetry::ProcState;
-            let state = if done[i] {
-                ProcState::Finished
-            } else if dead[i] {
-                if pending_restart.iter().any(|&(_, j)| j == i) {
-                    ProcState::Restarting
-                } else {
-                    ProcState::Dead
-                }
-            } else if awaiting_ready[i] {
-                ProcState::Restarting
-            } else if pending_cont.iter().any(|&(_, j)| j == i) {
-                ProcState::Frozen
-            } else {
-                ProcState::Alive
-            };
-            for st in &children[i].stages {
-                if let Some(j) = SERVICES.iter().position(|s| s == st) {
-                    hub.set_process(j, state, children[i].child.id(), restarts[i]);
-                }
-            }
-        }
-        let plant_done = children.iter().zip(&done).any(|(c, d)| c.source && *d);
-        if done.iter().zip(&dead).all(|(d, x)| *d || *x) && pending_restart.is_empty() {
-            return Ok(None);
-        }
-        if plant_done && pending_restart.is_empty() {
-            // The plant has finished; anyone not done within 2 s is stopped by the caller.
-            let t = Instant::now();
-            while t.elapsed() < Duration::from_secs(2) {
-                if children
-                    .iter_mut()
-                    .zip(&done)
-                    .all(|(c, d)| *d || matches!(c.child.try_wait(), Ok(Some(_))))
-                {
-                    break;
-                }
-                std::thread::sleep(Duration::from_millis(5));
-            }
-            return Ok(None);
-        }
-        std::thread::sleep(Duration::from_millis(1));
-    }
-}
-
-/// One entry of `summary.json` → `faults`. Times are in ms from the injection.
-#[derive(Debug, Clone, Serialize)]
-pub struct FaultReport {
-    /// kill or stop (with its duration).
-    pub fault: String,
-    /// Target stage.
-    pub service: String,
-    /// The process that was signalled (it hosts the stage, perhaps with others).
-    pub process: String,
-    /// Injection: sample index and simulated time, s.
-    pub injected_k: u64,
-    /// Injection time, s (sample time).
-    pub injected_t_s: f64,
-    /// First sample at which a consumer saw a stale input (data path), ms after injection.
-    pub detected_data_path_ms: Option<f64>,
-    /// Which consumer saw it first: "plant" (stale command) or "current-loop" (fallback).
-    pub detected_by: Option<String>,
-    /// The supervisor saw the process dead (waitpid), ms of wall time after injection.
-    pub detected_supervisor_ms: Option<f64>,
-    /// The plant's inverter reached its safe state, ms after injection.
-    pub safe_state_ms: Option<f64>,
-    /// Peak current magnitude |i_dq| from injection to recovery, A.
-    pub peak_current_a: f64,
-    /// The restarted (or resumed) service published a fresh output again, ms after injection.
-    pub republished_ms: Option<f64>,
-    /// Speed back within ±2 % of its reference (and staying there 10 ms), ms after injection.
-    pub speed_recovered_ms: Option<f64>,
-}
-
-/// Builds the fault reports from the supervisor's events and the trace, and the windows to
-/// shade on the plots.
-pub fn fault_reports(
-    sc: &Scenario,
-    rows: &[TraceRow],
-    events: &[SupEvent],
-) -> (Vec<FaultReport>, Vec<(f64, f64, String)>) {
-    use drivelab_runtime::messages::{FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT};
-    let fs = sc.rates.sample_hz;
-    let ms = |dk: u64| dk as f64 / fs * 1e3;
-    let by_k: BTreeMap<u64, &TraceRow> = rows.iter().map(|r| (r.k, r)).collect();
-    let mut out = Vec::new();
-    let mut windows = Vec::new();
-    let injects: Vec<&SupEvent> = events.iter().filter(|e| e.event == "inject").collect();
-    for (n, inj) in injects.iter().enumerate() {
-        let k0 = inj.k;
-        let k_end_window = injects.get(n + 1).map(|e| e.k).unwrap_or(u64::MAX);
-        let after = || by_k.range(k0..k_end_window).map(|(_, r)| *r);
-        // Data-path detection: the first stale flag, or the first sample the plant did not produce.
-        let mut det = None;
-        for (expect, r) in (k0..).zip(after()) {
-            if r.k != expect {
-                det = Some((expect, "recorder (plant produced no sample)".to_string()));
-                break;
-            }
-            if r.plant_flags & FLAG_STALE_CMD != 0 {
-                det = Some((r.k, "plant".into()));
-                break;
-            }
-            if r.ctrl_flags & FLAG_STALE_INPUT != 0 {
-                det = Some((r.k, "current-loop".into()));
-                break;
-            }
-        }
-        let safe = after()
-            .find(|r| r.plant_flags & FLAG_SAFE_STATE != 0)
-            .map(|r| ms(r.k - k0));
-        let sup = events
-            .iter()
-            .find(|e| e.event == "exited" && e.process == inj.process && e.t_wall_s >= inj.t_wall_s)
-            .map(|e| (e.t_wall_s - inj.t_wall_s) * 1e3);
-        // Fresh again: the first sample after the detection with no stale flag at all.
-        let k_det = det.as_ref().map(|d| d.0).unwrap_or(k0);
-        let fresh = after()
-            .filter(|r| r.k > k_det)
-            .find(|r| r.plant_flags & (FLAG_STALE_CMD | FLAG_SAFE_STATE) == 0 && r.ctrl_flags == 0)
-            .map(|r| r.k);
-        let hold = (0.01 * fs).ceil() as usize;
-        let within = |r: &TraceRow| {
-            let w = drivelab_runtime::config::profile_at(&sc.reference.speed_rad_s, r.t);
-            (r.omega_m - w).abs() <= 0.02 * w.abs().max(1e-9)
-        };
-        let tail: Vec<&TraceRow> = after()
-            .filter(|r| fresh.is_some_and(|f| r.k >= f))
-            .collect();
-        let rec = (0..tail.len())
-            .find(|&i| tail[i..].iter().take(hold).all(|r| within(r)) && tail.len() - i >= hold)
-            .map(|i| tail[i].k);
-        let k_rec = rec
-            .or(fresh)
-            .unwrap_or(k_end_window.min(k0 + (0.2 * fs) as u64));
-        let peak = after()
-            .filter(|r| r.k <= k_rec)
-            .map(|r| (r.i_d * r.i_d + r.i_q * r.i_q).sqrt())
-            .fold(0.0, f64::max);
-        windows.push((
-            k0 as f64 / fs,
-            k_rec as f64 / fs,
-            format!("{} {}", inj.detail, inj.service),
-        ));
-        out.push(FaultReport {
-            fault: inj.detail.clone(),
-            service: inj.service.clone(),
-            process: inj.process.clone(),
-            injected_k: k0,
-            injected_t_s: k0 as f64 / fs,
-            detected_data_path_ms: det.as_ref().map(|d| ms(d.0 - k0)),
-            detected_by: det.map(|d| d.1),
-            detected_supervisor_ms: sup,
-            safe_state_ms: safe,
-            peak_current_a: peak,
-            republished_ms: fresh.map(|f| ms(f - k0)),
-            speed_recovered_ms: rec.map(|r| ms(r - k0)),
-        });
-    }
-    (out, windows)
 }
