@@ -171,7 +171,7 @@ impl Hub {
         }
         while self.events_sent < events.len() {
             let e = &events[self.events_sent];
-            let text = format!("{} {}: {}", e.event, e.service, e.detail);
+            let text = format!("{} {}: {}", e.name(), e.service, e.detail());
             self.events_tx.send(&EventEntry::new(
                 e.t_wall_s,
                 e.k,

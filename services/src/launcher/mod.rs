@@ -1,0 +1,582 @@
+//! `drivelab run`: starts the topology's stage hosts on a private bus, records every sample,
+//! stops them cleanly, removes the bus files and writes the run folder.
+//!
+//! [`spawn`] starts and stops the stage hosts, [`recorder`] records the drive and assembles
+//! the trace, [`supervisor`] injects faults and keeps the processes alive per [`policy`];
+//! this module resolves the topology, runs the whole and writes the summary.
+
+mod policy;
+mod recorder;
+mod spawn;
+mod supervisor;
+
+pub use recorder::Gap;
+pub use supervisor::{fault_reports, EventKind, FaultReport, SupEvent};
+
+use crate::common::BusClock;
+use anyhow::{anyhow, bail, Context, Result};
+use drivelab_runtime::bus;
+use drivelab_runtime::config::Scenario;
+use drivelab_runtime::drive::DriveDesign;
+use drivelab_runtime::service::TopologyPlan;
+use drivelab_runtime::topology::StageInfo;
+use drivelab_runtime::trace::TraceRow;
+use drivelab_tools::metrics::speed_metrics;
+use recorder::{assemble, run_recorder, Progress};
+use serde::Serialize;
+use serde_json::json;
+use spawn::{process_binary, spawn_service, terminate, ChildProc, Spawn};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use supervisor::{supervise, Supervised};
+
+/// Which clock paces the run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Clock {
+    /// The topology's processes; the plant sleeps to absolute deadlines.
+    Realtime,
+    /// The topology's processes; the plant waits for each command; as fast as possible.
+    Lockstep,
+    /// The same stages on the same host in one thread, no bus.
+    Inprocess,
+}
+
+/// Options of one run.
+#[derive(Debug, Clone)]
+pub struct RunOptions {
+    /// Scenario name or file.
+    pub scenario: String,
+    /// Clock.
+    pub clock: Clock,
+    /// Override of the scenario's duration, s.
+    pub duration_s: Option<f64>,
+    /// Output folder.
+    pub out: Option<PathBuf>,
+    /// Bus id (default: derived from the process id).
+    pub bus: Option<String>,
+    /// Strict RT setup.
+    pub rt_strict: bool,
+    /// No pinning / FIFO / mlock.
+    pub no_rt: bool,
+    /// Skip the PNG plots.
+    pub no_plots: bool,
+    /// Print progress lines.
+    pub verbose: bool,
+    /// Faults to inject (realtime only).
+    pub faults: Vec<crate::faults::FaultSpec>,
+    /// Restart policy of the supervisor.
+    pub restart: Restart,
+    /// Seed of `random:N` fault plans.
+    pub fault_seed: u64,
+    /// Topology override: a shipped name or a file with `[[process]]` tables.
+    pub topology: Option<String>,
+}
+
+/// What the supervisor does when a service dies.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Restart {
+    /// Leave it dead; the rest of the drive goes on in its degraded mode.
+    Never,
+    /// Restart it (with --rejoin) after a back-off of 10 ms, doubling per restart of the same
+    /// service up to 1 s.
+    #[default]
+    OnFailure,
+}
+
+/// What a run produced.
+#[derive(Debug)]
+pub struct RunResult {
+    /// The run folder.
+    pub out: PathBuf,
+    /// The summary as written to `summary.json`.
+    pub summary: serde_json::Value,
+}
+
+/// Loads the scenario and applies the duration override, with a one-line error.
+pub fn load_scenario(name: &str, duration_s: Option<f64>) -> Result<Scenario> {
+    let (mut sc, _) = Scenario::load(name).map_err(|e| anyhow!(e))?;
+    if let Some(d) = duration_s {
+        sc.duration_s = d;
+        sc.validate().map_err(|e| anyhow!("--duration {d}: {e}"))?;
+    }
+    Ok(sc)
+}
+
+fn default_out(sc: &Scenario, clock: Clock) -> PathBuf {
+    let secs = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0);
+    PathBuf::from("runs").join(format!("{}-{:?}-{}", sc.name, clock, secs).to_lowercase())
+}
+
+/// What a run on the bus produced.
+struct BusRun {
+    /// The trace.
+    rows: Vec<TraceRow>,
+    /// Samples missing from it.
+    gaps: Vec<Gap>,
+    /// `summary.json` → `processes`.
+    processes: serde_json::Value,
+    /// Bus id, counters, deadline misses, the fault plan.
+    info: serde_json::Value,
+    /// The supervisor's log.
+    events: Vec<SupEvent>,
+}
+
+/// Runs the topology's processes on a bus and returns the recorder's data, the process info
+/// and the supervisor's events.
+fn run_bus(
+    sc: &Scenario,
+    sc_path: &Path,
+    plan_topo: &TopologyPlan,
+    plan: &[crate::faults::Fault],
+    o: &RunOptions,
+    out: &Path,
+    clock: BusClock,
+) -> Result<BusRun> {
+    let bus_id = o
+        .bus
+        .clone()
+        .unwrap_or_else(|| format!("{}", std::process::id()));
+    bus::check_bus_id(&bus_id)?;
+    // Leftovers of an earlier crashed run with the same id would confuse this one.
+    bus::cleanup(&bus_id)?;
+    let n = sc.samples();
+    let stop = Arc::new(AtomicBool::new(false));
+    let progress = Arc::new(Progress {
+        tail: crate::hub::TraceTail::new(sc.rates.sample_hz),
+        ..Default::default()
+    });
+    let (ready_tx, ready_rx) = mpsc::channel();
+    let rec = {
+        let (b, s, w, pr) = (
+            bus_id.clone(),
+            stop.clone(),
+            sc.timing.wake,
+            progress.clone(),
+        );
+        std::thread::Builder::new()
+            .name("recorder".into())
+            .spawn(move || run_recorder(b, w, n, s, pr, ready_tx))?
+    };
+    let topo_path = out.join("topology.json");
+    let sp = Spawn {
+        sc_path,
+        topo_path: &topo_path,
+        bus_id: &bus_id,
+        clock,
+        o,
+        out,
+    };
+    let mut events: Vec<SupEvent> = Vec::new();
+    let result = (|| -> Result<(Vec<ChildProc>, Option<String>)> {
+        ready_rx
+            .recv()
+            .map_err(|_| anyhow!("recorder thread died"))??;
+        // The telemetry hub subscribes to the services' statuses before they start.
+        let stage_names: Vec<String> = plan_topo.stages.iter().map(|s| s.name.clone()).collect();
+        let mut hub = crate::hub::Hub::new(&bus_id, sc, clock == BusClock::Lockstep, &stage_names)?;
+        let mut children = Vec::new();
+        for (i, p) in plan_topo.processes.iter().enumerate() {
+            // `exec` paths were made absolute when the topology was resolved.
+            let spawned = process_binary(p, Path::new("/"))
+                .and_then(|exe| spawn_service(p, &exe, i == 0, &sp, None));
+            match spawned {
+                Ok(c) => children.push(c),
+                Err(e) => return Ok((children, Some(format!("{e:#}")))),
+            }
+        }
+        // Handshake: each service reports its RT setup and READY; then the source goes.
+        if let Some(failure) = spawn::handshake(&mut children)? {
+            return Ok((children, Some(failure)));
+        }
+        if o.verbose {
+            eprintln!(
+                "drivelab: {} samples at {} Hz, clock {clock:?}, bus {bus_id}",
+                n, sc.rates.sample_hz
+            );
+        }
+        // Supervise until the services finish.
+        let started = Instant::now();
+        let limit = match clock {
+            BusClock::Realtime => Duration::from_secs_f64(sc.duration_s * 1.5 + 20.0),
+            BusClock::Lockstep => Duration::from_secs_f64(sc.duration_s * 2000.0 + 120.0),
+        };
+        // Progress on a terminal only (indicatif draws nothing when stderr is not a tty).
+        let bar = if o.verbose {
+            indicatif::ProgressBar::new(n)
+        } else {
+            indicatif::ProgressBar::hidden()
+        };
+        bar.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} samples {msg}",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        let mut supervised: Vec<_> = children.into_iter().map(Supervised::new).collect();
+        let failure = supervise(
+            &mut hub,
+            &bar,
+            &mut supervised,
+            plan,
+            &mut events,
+            &progress,
+            sc,
+            &sp,
+            started,
+            limit,
+        )?;
+        bar.finish_and_clear();
+        // Let attached monitors see the end and detach before the bus goes away.
+        hub.finish(
+            progress.next_k.load(Ordering::Relaxed),
+            &progress.tail,
+            Duration::from_secs(1),
+        )?;
+        Ok((supervised.into_iter().map(|c| c.proc).collect(), failure))
+    })();
+    let (mut children, failure) = match result {
+        Ok(v) => v,
+        Err(e) => (Vec::new(), Some(format!("{e:#}"))),
+    };
+    terminate(&mut children);
+    stop.store(true, Ordering::SeqCst);
+    let rec = rec
+        .join()
+        .map_err(|_| anyhow!("recorder thread panicked"))?;
+    bus::cleanup(&bus_id)?;
+    if let Some(f) = failure {
+        bail!(f);
+    }
+    let rec = rec?;
+    let left = bus::leftovers(&bus_id);
+    if !left.is_empty() {
+        bail!("bus files left behind: {}", left.join(", "));
+    }
+    let mut processes = serde_json::Map::new();
+    let mut counters = serde_json::Map::new();
+    for c in &children {
+        let rt = c.rt.clone().unwrap_or(serde_json::Value::Null);
+        processes.insert(
+            c.name.clone(),
+            json!({ "stages": c.stages, "executable": c.exe, "pid": c.child.id(), "cpu": rt.get("cpu"), "policy": rt.get("policy"), "priority": rt.get("priority"), "memory_locked": rt.get("memory_locked") }),
+        );
+        for st in &c.stages {
+            let stats_path = out.join(format!("{st}.stats.json"));
+            if let Ok(text) = std::fs::read_to_string(&stats_path) {
+                let v: serde_json::Value = serde_json::from_str(&text).unwrap_or_default();
+                let mut cv = v.get("counters").cloned().unwrap_or_default();
+                if let Some(d) = v.get("diagnostics") {
+                    cv["diagnostics"] = d.clone();
+                }
+                counters.insert(st.clone(), cv);
+            }
+        }
+    }
+    let (rows, gaps) = assemble(sc.rates.ts(), &rec);
+    let mut info = json!({ "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "plan": plan });
+    if let Some(p) = counters.get("plant") {
+        info["deadline_misses"] = p["deadline_misses"].clone();
+        info["longest_miss_run"] = p["longest_miss_run"].clone();
+    }
+    Ok(BusRun {
+        rows,
+        gaps,
+        processes: serde_json::Value::Object(processes),
+        info,
+        events,
+    })
+}
+
+/// Applies `--topology`, resolves the scenario's topology against the stages' declarations
+/// (a user's executable is asked with `--describe`) and makes `exec` paths absolute.
+pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Result<TopologyPlan> {
+    if let Some(t) = &o.topology {
+        let (file, path) =
+            drivelab_runtime::topology::load(t).map_err(|e| anyhow!("--topology: {e}"))?;
+        let base = std::path::absolute(path.parent().unwrap_or(Path::new(".")))?;
+        sc.process = file.process;
+        for p in sc.process.iter_mut() {
+            if let Some(e) = drivelab_runtime::topology::exec_path(p, &base) {
+                p.exec = Some(e.display().to_string());
+            }
+        }
+        sc.placement = drivelab_runtime::config::Placement::default();
+        sc.validate().map_err(|e| anyhow!("--topology {t}: {e}"))?;
+    }
+    // Absolute, so that the hosts find `exec` whatever their working folder.
+    let base = std::path::absolute(sc_src.parent().unwrap_or(Path::new(".")))?;
+    let mut procs = sc.topology();
+    for p in procs.iter_mut() {
+        if let Some(e) = drivelab_runtime::topology::exec_path(p, &base) {
+            p.exec = Some(e.display().to_string());
+        }
+    }
+    let mut described: BTreeMap<String, Vec<StageInfo>> = BTreeMap::new();
+    let scc = sc.clone();
+    let sc_text = toml::to_string(&scc)?;
+    let resolved = drivelab_runtime::topology::resolve(&procs, &mut |p, stage| {
+        if let Some(i) = drivelab_runtime::topology::builtin_info(&scc, stage) {
+            if p.exec.is_none() || drivelab_runtime::stages::BUILTIN.contains(&stage) {
+                return Ok(i);
+            }
+        }
+        let exe = p
+            .exec
+            .clone()
+            .ok_or_else(|| format!("unknown stage '{stage}'"))?;
+        if !described.contains_key(&exe) {
+            described.insert(
+                exe.clone(),
+                describe(&exe, &sc_text).map_err(|e| format!("process '{}': {e:#}", p.name))?,
+            );
+        }
+        described[&exe]
+            .iter()
+            .find(|i| i.name == stage)
+            .cloned()
+            .ok_or_else(|| {
+                format!(
+                    "process '{}': its executable {exe} hosts no stage '{stage}'",
+                    p.name
+                )
+            })
+    })
+    .map_err(|e| anyhow!(e))?;
+    sc.process = resolved.processes.iter().map(|(p, _)| p.clone()).collect();
+    sc.placement = drivelab_runtime::config::Placement::default();
+    Ok(TopologyPlan::from_resolved(&resolved))
+}
+
+/// Asks a user's stage executable which stages it hosts.
+fn describe(exe: &str, sc_text: &str) -> Result<Vec<StageInfo>> {
+    if !Path::new(exe).is_file() {
+        bail!("executable {exe} not found (build it first: cargo build --release --workspace)");
+    }
+    let dir = std::env::temp_dir().join(format!("drivelab-describe-{}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+    let f = dir.join("scenario.toml");
+    std::fs::write(&f, sc_text)?;
+    let out = Command::new(exe)
+        .arg("--describe")
+        .arg("--scenario")
+        .arg(&f)
+        .stdin(Stdio::null())
+        .output()
+        .with_context(|| format!("cannot run {exe} --describe"));
+    let _ = std::fs::remove_dir_all(&dir);
+    let out = out?;
+    if !out.status.success() {
+        bail!(
+            "{exe} --describe failed: {}",
+            String::from_utf8_lossy(&out.stderr).trim()
+        );
+    }
+    serde_json::from_slice(&out.stdout)
+        .with_context(|| format!("{exe} --describe: not a stage list"))
+}
+
+/// Runs a scenario end to end and writes the run folder.
+pub fn run(o: &RunOptions) -> Result<RunResult> {
+    // The launcher stops on SIGINT/SIGTERM the same way the services do.
+    crate::common::install_signal_handlers()?;
+    if let Some(b) = &o.bus {
+        bus::check_bus_id(b)?;
+    }
+    let (mut sc, sc_src) = Scenario::load(&o.scenario).map_err(|e| anyhow!(e))?;
+    if let Some(d) = o.duration_s {
+        sc.duration_s = d;
+        sc.validate().map_err(|e| anyhow!("--duration {d}: {e}"))?;
+    }
+    let topo = resolve_topology(&mut sc, &sc_src, o)?;
+    // Faults are checked before anything is created: a bad plan leaves nothing behind.
+    let stage_names: Vec<String> = topo.stages.iter().map(|s| s.name.clone()).collect();
+    let plan = crate::faults::plan(&o.faults, sc.duration_s, o.fault_seed, 0.3, &stage_names)?;
+    if !plan.is_empty() && o.clock != Clock::Realtime {
+        bail!("fault injection needs --clock realtime");
+    }
+    let out = o.out.clone().unwrap_or_else(|| default_out(&sc, o.clock));
+    std::fs::create_dir_all(&out)
+        .with_context(|| format!("cannot create run folder {}", out.display()))?;
+    let out = out.canonicalize()?;
+    let sc_path = out.join("scenario.toml");
+    std::fs::write(&sc_path, toml::to_string(&sc)?)
+        .with_context(|| format!("write {}", sc_path.display()))?;
+    std::fs::write(out.join("topology.json"), serde_json::to_vec_pretty(&topo)?)?;
+    let wall = Instant::now();
+    let BusRun {
+        rows,
+        gaps,
+        processes,
+        info,
+        events,
+    } = match o.clock {
+        Clock::Inprocess => {
+            if let Some(p) = topo.processes.iter().find(|p| p.exec.is_some()) {
+                bail!(
+                    "--clock inprocess runs the built-in stages only; process '{}' hosts user stages ({}): use --clock lockstep",
+                    p.name,
+                    p.stages.join(", ")
+                );
+            }
+            BusRun {
+                rows: drivelab_runtime::stages::run_inprocess(&sc),
+                gaps: Vec::new(),
+                processes: json!({}),
+                info: json!({ "deadline_misses": 0 }),
+                events: Vec::new(),
+            }
+        }
+        Clock::Lockstep => run_bus(&sc, &sc_path, &topo, &plan, o, &out, BusClock::Lockstep)?,
+        Clock::Realtime => run_bus(&sc, &sc_path, &topo, &plan, o, &out, BusClock::Realtime)?,
+    };
+    let wall_s = wall.elapsed().as_secs_f64();
+    let (faults, windows) = fault_reports(&sc, &rows, &events);
+    // Name the cause of every gap that a plant fault explains.
+    let mut gaps = gaps;
+    for g in gaps.iter_mut() {
+        let fs = sc.rates.sample_hz;
+        // The fault whose window (injection → recovery) holds the gap.
+        let in_window = |f: &&FaultReport| {
+            let end = f.injected_k
+                + ((f.speed_recovered_ms.or(f.republished_ms).unwrap_or(200.0)) * 1e-3 * fs) as u64;
+            f.injected_k <= g.from && g.from <= end
+        };
+        if let Some(f) = faults.iter().rev().find(in_window) {
+            g.cause = match (g.part, f.service.as_str()) {
+                ("measurement", "plant") => format!("plant {} at sample {} (fault); the model is not simulated while the plant is down", f.fault, f.injected_k),
+                (part, svc) => format!("no {part} recorded during fault '{} {svc}' injected at sample {}", f.fault, f.injected_k),
+            };
+        }
+    }
+    drivelab_runtime::trace::write_csv(&out.join("trace.csv"), &rows)?;
+    let metrics = speed_metrics(&sc, &rows);
+    let design = DriveDesign::from_scenario(&sc);
+    let mut summary = json!({
+        "scenario": sc.name,
+        "clock": o.clock,
+        "rate_hz": sc.rates.sample_hz,
+        "speed_loop_hz": sc.rates.sample_hz / f64::from(sc.rates.speed_divider),
+        "samples": rows.len(),
+        "samples_expected": sc.samples(),
+        "deadline_misses": info.get("deadline_misses").cloned().unwrap_or(json!(0)),
+        "longest_miss_run": info.get("longest_miss_run").cloned().unwrap_or(json!(0)),
+        "processes": processes,
+        "metrics": metrics,
+        "missing_samples": gaps,
+        "faults": faults,
+        "supervisor_events": events,
+        "design": design,
+        "wall_time_s": wall_s,
+        "simulated_s_per_wall_s": sc.duration_s / wall_s.max(1e-9),
+    });
+    if let Some(c) = info.get("counters") {
+        summary["counters"] = c.clone();
+        if let Some(ns) = c["plant"]["loop_wall_ns"].as_u64().filter(|&n| n > 0) {
+            summary["loop_simulated_s_per_wall_s"] = json!(sc.duration_s / (ns as f64 * 1e-9));
+        }
+    } else {
+        summary["loop_simulated_s_per_wall_s"] = summary["simulated_s_per_wall_s"].clone();
+    }
+    if let Some(b) = info.get("bus") {
+        summary["bus"] = b.clone();
+    }
+    let (latency, curves) = collect_histograms(&out)?;
+    if !latency.is_empty() {
+        summary["latency_us"] = serde_json::to_value(&latency)?;
+    }
+    if !o.no_plots && !curves.is_empty() {
+        let budget = Some((
+            1e6 / sc.rates.sample_hz,
+            format!("T_s = {:.0} µs", 1e6 / sc.rates.sample_hz),
+        ));
+        drivelab_tools::plot::plot_percentiles(
+            &curves,
+            &format!("{}: latency percentiles", sc.name),
+            budget,
+            true,
+            &out.join("latency"),
+        )?;
+    }
+    if !o.no_plots && !rows.is_empty() {
+        let opts = drivelab_tools::plot::TraceFigureOptions {
+            current_limit_a: Some(sc.i_q_max()),
+            voltage_limit_v: Some(sc.u_max()),
+            title: format!("{} ({:?})", sc.name, o.clock).to_lowercase(),
+            shaded_windows: windows.clone(),
+            ..Default::default()
+        };
+        let mut files = drivelab_tools::plot::plot_trace(&rows, &out, &opts)?;
+        if drivelab_runtime::wiring::polar::mode_of(&sc).is_some() || !sc.reference.i_q_a.is_empty()
+        {
+            files.extend(drivelab_tools::plot_polar::plot_polar_panels(
+                &sc,
+                &rows,
+                &out,
+                &opts.title,
+            )?);
+        }
+        summary["plots"] = json!(files
+            .iter()
+            .map(|f| f
+                .file_name()
+                .unwrap_or_default()
+                .to_string_lossy()
+                .into_owned())
+            .collect::<Vec<_>>());
+    }
+    std::fs::write(
+        out.join("summary.json"),
+        serde_json::to_vec_pretty(&summary)?,
+    )?;
+    Ok(RunResult { out, summary })
+}
+
+/// Reads every `<key>.hdr` histogram the services wrote, writes `<key>.hgrm` beside it and
+/// returns the percentiles by key and the percentile curves for the plot.
+fn collect_histograms(
+    out: &Path,
+) -> Result<(
+    BTreeMap<String, drivelab_runtime::timing::Percentiles>,
+    Vec<drivelab_tools::plot::PercentileSeries>,
+)> {
+    let mut lat = BTreeMap::new();
+    let mut curves = Vec::new();
+    let mut files: Vec<PathBuf> = std::fs::read_dir(out)?
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|e| e == "hdr"))
+        .collect();
+    files.sort();
+    for f in files {
+        let key = f
+            .file_stem()
+            .unwrap_or_default()
+            .to_string_lossy()
+            .into_owned();
+        let h = drivelab_runtime::timing::LatencyHist::read_v2("hist", &f)?;
+        std::fs::write(f.with_extension("hgrm"), h.hgrm())?;
+        lat.insert(key.clone(), h.percentiles());
+        if key == "cycle" || key.ends_with(".wake") || key.ends_with(".lateness") {
+            curves.push((key, h.curve()));
+        }
+    }
+    Ok((lat, curves))
+}
+
+/// Per-service statistics keyed by service name (for tests and reports).
+pub fn counters(summary: &serde_json::Value) -> BTreeMap<String, serde_json::Value> {
+    summary["counters"]
+        .as_object()
+        .map(|m| m.clone().into_iter().collect())
+        .unwrap_or_default()
+}

@@ -1,0 +1,387 @@
+//! The recorder thread: subscribes to the plant's truth, the commands and the position
+//! references with large buffers, keeps every sample, shares its progress with the
+//! supervisor; and [`assemble`], which joins what it kept into trace rows and gaps.
+
+use anyhow::{anyhow, Result};
+use drivelab_runtime::bus::{self, DriveTopics, MAX_BUFFER};
+use drivelab_runtime::drive::trace_row;
+use drivelab_runtime::messages::{PlantTruth, VoltageCommand};
+use drivelab_runtime::trace::TraceRow;
+use serde::Serialize;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc;
+use std::sync::Arc;
+use std::time::Duration;
+
+/// A contiguous range of samples missing from the trace and why.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct Gap {
+    /// First missing k.
+    pub from: u64,
+    /// Last missing k.
+    pub to: u64,
+    /// Which part is missing ("measurement", "command").
+    pub part: &'static str,
+    /// Why.
+    pub cause: String,
+}
+
+/// Recorder: subscribes to measurements and commands with large buffers and keeps every one.
+pub(super) struct Recorder {
+    pub meas: Vec<Option<PlantTruth>>,
+    pub cmd: Vec<Option<VoltageCommand>>,
+    /// Position references of an outer loop, as (k, θ_m*), in arrival order.
+    pub wref: Vec<(u64, f64)>,
+    pub rejected: u64,
+}
+
+/// What the recorder shares with the supervisor while the drive runs.
+#[derive(Default)]
+pub(super) struct Progress {
+    /// Newest measurement index seen + 1 (0 = none yet).
+    pub next_k: std::sync::atomic::AtomicU64,
+    /// The plant's newest true state (for a restarted plant to resume from).
+    pub last: std::sync::Mutex<Option<PlantTruth>>,
+    /// Decimated trace for `drivelab monitor`.
+    pub tail: crate::hub::TraceTail,
+}
+
+/// The recorder thread's body: reports on `ready` whether its subscriptions are in place, then
+/// records samples `0..n` until both streams ended or `stop` is set.
+pub(super) fn run_recorder(
+    bus_id: String,
+    wake: drivelab_runtime::bus::WakeKind,
+    n: u64,
+    stop: Arc<AtomicBool>,
+    progress: Arc<Progress>,
+    ready: mpsc::Sender<Result<()>>,
+) -> Result<Recorder> {
+    let setup = (|| -> Result<_> {
+        let node = bus::node(&bus_id, "recorder")?;
+        let topics = DriveTopics::open_with(&node, wake, &bus_id)?;
+        // Polled: a listener would cost the real-time senders a wake-up syscall per sample.
+        // The trace is the plant's true state (its own topic), joined with the commands.
+        let meas_rx = topics.truth.polled_receiver(MAX_BUFFER)?;
+        let cmd_rx = topics.cmd.polled_receiver(MAX_BUFFER)?;
+        let wref_rx = topics.wref.polled_receiver(MAX_BUFFER)?;
+        let rec_tx = topics.rec.sender()?;
+        Ok((node, topics, meas_rx, cmd_rx, wref_rx, rec_tx))
+    })();
+    let (_node, _topics, meas_rx, cmd_rx, wref_rx, rec_tx) = match setup {
+        Ok(v) => {
+            let _ = ready.send(Ok(()));
+            v
+        }
+        Err(e) => {
+            let _ = ready.send(Err(anyhow!("{e:#}")));
+            return Err(e);
+        }
+    };
+    let mut r = Recorder {
+        meas: vec![None; n as usize],
+        cmd: vec![None; n as usize],
+        wref: Vec::new(),
+        rejected: 0,
+    };
+    let (mut meas_end, mut cmd_end) = (false, false);
+    let (mut next_meas, mut next_cmd) = (0u64, 0u64);
+    let mut last_progress = 0u64;
+    let mut last_cmd = VoltageCommand::default();
+    loop {
+        let mut got = false;
+        while let Some(m) = meas_rx.try_recv()? {
+            got = true;
+            if m.hdr.is_warmup() {
+                continue;
+            }
+            if m.hdr.is_end() {
+                meas_end = true;
+            } else if m.hdr.k < n {
+                r.meas[m.hdr.k as usize] = Some(m);
+                progress
+                    .tail
+                    .offer(drivelab_runtime::telemetry::TracePoint {
+                        k: m.hdr.k,
+                        omega: m.omega_m,
+                        omega_ref: last_cmd.omega_ref,
+                        i_d: m.i_dq[0],
+                        i_q: m.i_dq[1],
+                        i_d_ref: last_cmd.i_dq_ref[0],
+                        i_q_ref: last_cmd.i_dq_ref[1],
+                    });
+                if m.hdr.k + 1 > progress.next_k.load(Ordering::Relaxed) {
+                    progress.next_k.store(m.hdr.k + 1, Ordering::Relaxed);
+                    if let Ok(mut l) = progress.last.lock() {
+                        *l = Some(m);
+                    }
+                }
+            } else {
+                r.rejected += 1;
+            }
+        }
+        while let Some(c) = cmd_rx.try_recv()? {
+            got = true;
+            if c.hdr.is_warmup() {
+                continue;
+            }
+            if c.hdr.is_end() {
+                cmd_end = true;
+            } else if c.hdr.k < n {
+                r.cmd[c.hdr.k as usize] = Some(c);
+                last_cmd = c;
+            } else {
+                r.rejected += 1;
+            }
+        }
+        while let Some(w) = wref_rx.try_recv()? {
+            if !w.hdr.is_warmup() && !w.hdr.is_end() && w.theta_m_ref.is_finite() {
+                r.wref.push((w.hdr.k, w.theta_m_ref));
+            }
+        }
+        while next_meas < n && r.meas[next_meas as usize].is_some() {
+            next_meas += 1;
+        }
+        while next_cmd < n && r.cmd[next_cmd as usize].is_some() {
+            next_cmd += 1;
+        }
+        let progress = next_meas.min(next_cmd);
+        if progress >= last_progress + 256 || (progress > last_progress && !got) {
+            rec_tx.send(progress)?;
+            last_progress = progress;
+        }
+        if (meas_end && cmd_end) || stop.load(Ordering::SeqCst) {
+            // Take what is still buffered, then stop.
+            while let Some(m) = meas_rx.try_recv()? {
+                if !m.hdr.is_end() && !m.hdr.is_warmup() && m.hdr.k < n {
+                    r.meas[m.hdr.k as usize] = Some(m);
+                }
+            }
+            while let Some(c) = cmd_rx.try_recv()? {
+                if !c.hdr.is_end() && !c.hdr.is_warmup() && c.hdr.k < n {
+                    r.cmd[c.hdr.k as usize] = Some(c);
+                }
+            }
+            return Ok(r);
+        }
+        if !got {
+            meas_rx.wait(Duration::from_millis(1))?;
+        }
+    }
+}
+
+/// Joins measurements and commands into trace rows. A sample whose command is missing keeps
+/// its row with NaN in the command's columns; every missing part is listed as a gap.
+/// `ts` is the sample period, s.
+pub(super) fn assemble(ts: f64, rec: &Recorder) -> (Vec<TraceRow>, Vec<Gap>) {
+    let mut rows = Vec::with_capacity(rec.meas.len());
+    let mut gaps: Vec<Gap> = Vec::new();
+    let last_meas = rec.meas.iter().rposition(Option::is_some);
+    let mut push_gap = |k: u64, part: &'static str, cause: String| {
+        if let Some(g) = gaps.last_mut() {
+            if g.part == part && g.to + 1 == k && g.cause == cause {
+                g.to = k;
+                return;
+            }
+        }
+        gaps.push(Gap {
+            from: k,
+            to: k,
+            part,
+            cause,
+        });
+    };
+    // The outer loop's position reference in use at k: the newest computed before k.
+    let mut wref = rec.wref.clone();
+    wref.sort_by_key(|w| w.0);
+    let mut wi = 0;
+    let mut theta_ref = None;
+    for (k, m) in rec.meas.iter().enumerate() {
+        let k = k as u64;
+        while wi < wref.len() && wref[wi].0 < k {
+            theta_ref = Some(wref[wi].1);
+            wi += 1;
+        }
+        match (m, &rec.cmd[k as usize]) {
+            (Some(m), Some(c)) => {
+                let mut row = trace_row(ts, m, c);
+                row.theta_m_ref = theta_ref;
+                rows.push(row);
+            }
+            (Some(m), None) => {
+                let nan = f64::NAN;
+                let c = VoltageCommand {
+                    hdr: drivelab_runtime::messages::Header {
+                        k: m.hdr.k,
+                        flags: drivelab_runtime::messages::FLAG_MISSING,
+                        ..Default::default()
+                    },
+                    u_ab: [nan; 2],
+                    u_dq: [nan; 2],
+                    i_dq_ref: [nan; 2],
+                    omega_ref: nan,
+                    omega_hat: nan,
+                    theta_hat: nan,
+                };
+                let mut row = trace_row(ts, m, &c);
+                row.theta_m_ref = theta_ref;
+                rows.push(row);
+                push_gap(
+                    k,
+                    "command",
+                    "current-loop produced no command for this sample".into(),
+                );
+            }
+            (None, _) => {
+                let cause = match last_meas {
+                    Some(l) if k < l as u64 => {
+                        "measurement lost between plant and recorder (recorder buffer overflow)"
+                    }
+                    _ => "the plant stopped before this sample",
+                };
+                push_gap(k, "measurement", cause.into());
+            }
+        }
+    }
+    (rows, gaps)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use drivelab_runtime::messages::{Header, FLAG_MISSING};
+
+    const TS: f64 = 1e-4;
+    const LOST: &str = "measurement lost between plant and recorder (recorder buffer overflow)";
+    const STOPPED: &str = "the plant stopped before this sample";
+
+    /// A recording of `n` samples with a measurement where `meas` says so and a command
+    /// where `cmd` says so.
+    fn recording(meas: &[bool], cmd: &[bool]) -> Recorder {
+        let hdr = |k: usize| Header {
+            k: k as u64,
+            ..Default::default()
+        };
+        Recorder {
+            meas: (0..meas.len())
+                .map(|k| {
+                    meas[k].then(|| PlantTruth {
+                        hdr: hdr(k),
+                        omega_m: k as f64,
+                        ..Default::default()
+                    })
+                })
+                .collect(),
+            cmd: (0..cmd.len())
+                .map(|k| {
+                    cmd[k].then(|| VoltageCommand {
+                        hdr: hdr(k),
+                        omega_ref: 10.0,
+                        ..Default::default()
+                    })
+                })
+                .collect(),
+            wref: Vec::new(),
+            rejected: 0,
+        }
+    }
+
+    fn gap(from: u64, to: u64, part: &'static str, cause: &str) -> Gap {
+        Gap {
+            from,
+            to,
+            part,
+            cause: cause.into(),
+        }
+    }
+
+    #[test]
+    fn a_complete_recording_has_every_row_and_no_gap() {
+        let (rows, gaps) = assemble(TS, &recording(&[true; 3], &[true; 3]));
+        assert_eq!(rows.iter().map(|r| r.k).collect::<Vec<_>>(), [0, 1, 2]);
+        assert_eq!(rows[2].t, 2.0 * TS);
+        assert!(rows
+            .iter()
+            .all(|r| r.omega_ref == 10.0 && r.ctrl_flags == 0));
+        assert!(gaps.is_empty());
+    }
+
+    #[test]
+    fn a_missing_command_keeps_its_row_with_nan_and_one_gap() {
+        let (rows, gaps) = assemble(TS, &recording(&[true; 4], &[true, true, false, true]));
+        assert_eq!(rows.len(), 4);
+        let r = &rows[2];
+        assert_eq!((r.k, r.omega_m), (2, 2.0));
+        assert!(r.omega_ref.is_nan() && r.omega_hat.is_nan() && r.i_q_ref.is_nan());
+        assert_eq!(r.ctrl_flags, FLAG_MISSING);
+        assert_eq!(rows[3].omega_ref, 10.0);
+        assert_eq!(
+            gaps,
+            [gap(
+                2,
+                2,
+                "command",
+                "current-loop produced no command for this sample"
+            )]
+        );
+    }
+
+    #[test]
+    fn a_missing_measurement_is_a_gap_with_its_cause() {
+        // Lost in the middle (a later one arrived), then missing to the end (the plant stopped).
+        let (rows, gaps) = assemble(
+            TS,
+            &recording(&[true, false, true, false, false], &[true; 5]),
+        );
+        assert_eq!(rows.iter().map(|r| r.k).collect::<Vec<_>>(), [0, 2]);
+        assert_eq!(
+            gaps,
+            [
+                gap(1, 1, "measurement", LOST),
+                gap(3, 4, "measurement", STOPPED)
+            ]
+        );
+        // No measurement at all: the plant stopped before every sample.
+        let (rows, gaps) = assemble(TS, &recording(&[false; 3], &[true; 3]));
+        assert!(rows.is_empty());
+        assert_eq!(gaps, [gap(0, 2, "measurement", STOPPED)]);
+    }
+
+    #[test]
+    fn adjacent_gaps_merge_only_with_the_same_part_and_cause() {
+        let (_, gaps) = assemble(
+            TS,
+            &recording(
+                &[true, true, true, false, false, true, false, false],
+                &[true, false, false, true, true, false, true, true],
+            ),
+        );
+        assert_eq!(
+            gaps,
+            [
+                gap(
+                    1,
+                    2,
+                    "command",
+                    "current-loop produced no command for this sample"
+                ),
+                gap(3, 4, "measurement", LOST),
+                gap(
+                    5,
+                    5,
+                    "command",
+                    "current-loop produced no command for this sample"
+                ),
+                gap(6, 7, "measurement", STOPPED),
+            ]
+        );
+    }
+
+    #[test]
+    fn the_position_reference_is_the_newest_computed_before_the_sample() {
+        let mut rec = recording(&[true; 4], &[true; 4]);
+        rec.wref = vec![(2, 0.5), (0, 0.25)];
+        let (rows, _) = assemble(TS, &rec);
+        let refs: Vec<_> = rows.iter().map(|r| r.theta_m_ref).collect();
+        assert_eq!(refs, [None, Some(0.25), Some(0.25), Some(0.5)]);
+    }
+}

@@ -1,0 +1,236 @@
+//! Stage-host processes: finding their executables, spawning one per process of the
+//! topology, the READY/RT handshake on their stdout, and stopping them.
+
+use super::RunOptions;
+use crate::common::BusClock;
+use anyhow::{anyhow, bail, Context, Result};
+use drivelab_runtime::topology::ProcessSpec;
+use std::io::{BufRead, BufReader, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdin, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+/// One running stage host.
+pub(super) struct ChildProc {
+    /// Process name in the topology.
+    pub name: String,
+    /// Stages it hosts.
+    pub stages: Vec<String>,
+    /// It hosts the source (the plant).
+    pub source: bool,
+    spec: ProcessSpec,
+    pub exe: PathBuf,
+    pub child: Child,
+    stdin: Option<ChildStdin>,
+    lines: mpsc::Receiver<String>,
+    /// Its RT setup as it reported it (`RT {json}`).
+    pub rt: Option<serde_json::Value>,
+}
+
+/// The executable of process `p`: its `exec` (relative to `base`) or the built-in host next
+/// to this executable.
+pub(super) fn process_binary(p: &ProcessSpec, base: &Path) -> Result<PathBuf> {
+    match drivelab_runtime::topology::exec_path(p, base) {
+        Some(e) if e.is_file() => Ok(e),
+        Some(e) => bail!(
+            "process '{}': executable {} not found (build it first: cargo build --release --workspace)",
+            p.name,
+            e.display()
+        ),
+        None => service_binary("drivelab-host"),
+    }
+}
+
+fn service_binary(name: &str) -> Result<PathBuf> {
+    let exe = std::env::current_exe().context("cannot locate the drivelab executable")?;
+    let p = exe
+        .parent()
+        .ok_or_else(|| anyhow!("executable has no folder"))?
+        .join(name);
+    if !p.is_file() {
+        bail!(
+            "service binary {} not found next to drivelab (build the workspace first)",
+            p.display()
+        );
+    }
+    Ok(p)
+}
+
+/// What every stage host of one run is started with.
+pub(super) struct Spawn<'a> {
+    pub sc_path: &'a Path,
+    pub topo_path: &'a Path,
+    pub bus_id: &'a str,
+    pub clock: BusClock,
+    pub o: &'a RunOptions,
+    pub out: &'a Path,
+}
+
+/// Starts the stage host of process `p`; `source` when it hosts the plant; `rejoin_from`
+/// when it is a restart (the plant resumes from the true state in that file).
+pub(super) fn spawn_service(
+    p: &ProcessSpec,
+    exe: &Path,
+    source: bool,
+    sp: &Spawn,
+    rejoin_from: Option<&Path>,
+) -> Result<ChildProc> {
+    let mut cmd = Command::new(exe);
+    cmd.arg("--scenario").arg(sp.sc_path);
+    cmd.arg("--topology").arg(sp.topo_path);
+    cmd.arg("--process").arg(&p.name);
+    cmd.arg("--hosts").arg(p.stages.join(","));
+    cmd.arg("--bus").arg(sp.bus_id);
+    cmd.arg("--clock").arg(match sp.clock {
+        BusClock::Realtime => "realtime",
+        BusClock::Lockstep => "lockstep",
+    });
+    cmd.arg("--out").arg(sp.out);
+    if sp.o.rt_strict {
+        cmd.arg("--rt-strict");
+    }
+    if sp.o.no_rt {
+        cmd.arg("--no-rt");
+    }
+    if source {
+        cmd.arg("--recorder");
+    }
+    if let Some(f) = rejoin_from {
+        cmd.arg("--rejoin");
+        if source {
+            cmd.arg("--rejoin-from").arg(f);
+        }
+    }
+    cmd.stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit());
+    let name = p.name.clone();
+    let mut child = cmd
+        .spawn()
+        .with_context(|| format!("cannot start process {name} ({})", exe.display()))?;
+    let stdout = child.stdout.take().expect("piped");
+    let stdin = child.stdin.take();
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    Ok(ChildProc {
+        name,
+        stages: p.stages.clone(),
+        source,
+        spec: p.clone(),
+        exe: exe.to_path_buf(),
+        child,
+        stdin,
+        lines: rx,
+        rt: None,
+    })
+}
+
+impl ChildProc {
+    /// The same process started again with `--rejoin`.
+    pub fn respawn(&self, sp: &Spawn, rejoin_from: &Path) -> Result<ChildProc> {
+        spawn_service(&self.spec, &self.exe, self.source, sp, Some(rejoin_from))
+    }
+
+    /// Its pid.
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// Takes one line of its stdout: records an `RT` report; true for `READY`.
+    fn take_line(&mut self, l: &str) -> bool {
+        if l == "READY" {
+            return true;
+        }
+        if let Some(j) = l.strip_prefix("RT ") {
+            self.rt = serde_json::from_str(j).ok();
+        }
+        false
+    }
+
+    /// Reads what it has written so far without waiting; true once it said `READY`.
+    pub fn poll_ready(&mut self) -> bool {
+        let mut ready = false;
+        while let Ok(l) = self.lines.try_recv() {
+            ready |= self.take_line(&l);
+        }
+        ready
+    }
+
+    /// Tells the source to start the drive.
+    fn go(&mut self) -> Result<()> {
+        if let Some(stdin) = self.stdin.as_mut() {
+            stdin.write_all(b"GO\n")?;
+            stdin.flush()?;
+        }
+        Ok(())
+    }
+}
+
+/// Handshake: waits for each process to report its RT setup and READY (20 s in all), then
+/// tells the first (the source) to go. Returns why the start failed, if it did.
+pub(super) fn handshake(children: &mut [ChildProc]) -> Result<Option<String>> {
+    let t = Instant::now();
+    for c in children.iter_mut() {
+        loop {
+            if crate::common::stop_requested() {
+                return Ok(Some("interrupted during start-up".into()));
+            }
+            match c.lines.recv_timeout(Duration::from_millis(50)) {
+                Ok(l) => {
+                    if c.take_line(&l) {
+                        break;
+                    }
+                }
+                Err(mpsc::RecvTimeoutError::Timeout) => {
+                    if let Ok(Some(st)) = c.child.try_wait() {
+                        return Ok(Some(format!("{} exited during start-up ({st})", c.name)));
+                    }
+                    if t.elapsed() > Duration::from_secs(20) {
+                        return Ok(Some(format!("{} did not become ready within 20 s", c.name)));
+                    }
+                }
+                Err(mpsc::RecvTimeoutError::Disconnected) => {
+                    let st = c.child.wait().ok();
+                    return Ok(Some(format!("{} exited during start-up ({st:?})", c.name)));
+                }
+            }
+        }
+    }
+    if let Some(c) = children.first_mut() {
+        c.go()?;
+    }
+    Ok(None)
+}
+
+/// SIGTERM to every child still running, then SIGKILL to those not gone within 3 s.
+pub(super) fn terminate(children: &mut [ChildProc]) {
+    for c in children.iter_mut() {
+        if let Ok(None) = c.child.try_wait() {
+            // SAFETY: kill(2) on a pid we spawned and have not reaped; no memory is touched.
+            unsafe {
+                libc::kill(c.child.id() as libc::pid_t, libc::SIGTERM);
+            }
+        }
+    }
+    let t = Instant::now();
+    for c in children.iter_mut() {
+        loop {
+            match c.child.try_wait() {
+                Ok(Some(_)) | Err(_) => break,
+                Ok(None) if t.elapsed() > Duration::from_secs(3) => {
+                    let _ = c.child.kill();
+                    let _ = c.child.wait();
+                    break;
+                }
+                Ok(None) => std::thread::sleep(Duration::from_millis(5)),
+            }
+        }
+    }
+}

@@ -1,0 +1,800 @@
+//! The supervisor: injects faults, watches its children's liveness (waitpid, then
+//! iceoryx2's dead nodes), restarts them per [`super::policy`] and tells the hub each
+//! process's state; its typed event log; and the fault reports built from that log and the
+//! trace.
+
+use super::policy::{Decision, History, Policy};
+use super::recorder::Progress;
+use super::spawn::{ChildProc, Spawn};
+use crate::common::BusClock;
+use crate::faults::{signal, FaultKind};
+use anyhow::Result;
+use drivelab_runtime::bus;
+use drivelab_runtime::config::Scenario;
+use drivelab_runtime::telemetry::ProcState;
+use drivelab_runtime::trace::TraceRow;
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::process::ExitStatus;
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+/// What happened, with what it concerns.
+#[derive(Debug, Clone, PartialEq)]
+pub enum EventKind {
+    /// A fault was injected (the process was signalled).
+    Inject {
+        /// Kill or stop.
+        fault: FaultKind,
+        /// How long a stop lasts, s.
+        duration_s: f64,
+        /// The monitor that asked for it; none for a planned fault.
+        monitor_pid: Option<u32>,
+    },
+    /// A fault was not injected: the request was invalid or the clock does not allow it.
+    InjectRefused {
+        /// Why.
+        reason: String,
+    },
+    /// A fault was not injected: its process was not running (dead, frozen or finished).
+    InjectSkipped,
+    /// A stopped process was resumed (SIGCONT).
+    Resume,
+    /// A process exited with a failure.
+    Exited {
+        /// Its exit status.
+        status: ExitStatus,
+    },
+    /// The stale resources of dead iceoryx2 nodes were removed.
+    Reaped {
+        /// The nodes.
+        nodes: Vec<String>,
+    },
+    /// A process was started again.
+    Restarted {
+        /// Its restarts so far, this one included.
+        restart: u32,
+        /// The new pid.
+        pid: u32,
+    },
+    /// A restarted process is ready.
+    Ready {
+        /// Its pid.
+        pid: u32,
+    },
+}
+
+impl EventKind {
+    /// The name in `summary.json` and the monitor's log.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Self::Inject { .. } => "inject",
+            Self::InjectRefused { .. } => "inject-refused",
+            Self::InjectSkipped => "inject-skipped",
+            Self::Resume => "resume",
+            Self::Exited { .. } => "exited",
+            Self::Reaped { .. } => "reaped",
+            Self::Restarted { .. } => "restarted",
+            Self::Ready { .. } => "ready",
+        }
+    }
+
+    /// The details as text.
+    pub fn detail(&self) -> String {
+        match self {
+            Self::Inject {
+                fault,
+                duration_s,
+                monitor_pid,
+            } => {
+                let mut s = crate::faults::kind_name(*fault).to_string();
+                if *fault == FaultKind::Stop {
+                    s += &format!(" for {duration_s} s");
+                }
+                if let Some(pid) = monitor_pid {
+                    s += &format!(" (from monitor pid {pid})");
+                }
+                s
+            }
+            Self::InjectRefused { reason } => reason.clone(),
+            Self::InjectSkipped => "its process is not running".into(),
+            Self::Resume => "SIGCONT".into(),
+            Self::Exited { status } => format!("{status}"),
+            Self::Reaped { nodes } => {
+                format!("dead iceoryx2 nodes cleaned: {}", nodes.join(", "))
+            }
+            Self::Restarted { restart, pid } => format!("restart #{restart}, pid {pid}"),
+            Self::Ready { pid } => format!("pid {pid}"),
+        }
+    }
+}
+
+/// One supervisor event.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SupEvent {
+    /// Wall time since the start signal, s.
+    pub t_wall_s: f64,
+    /// Newest sample the recorder had seen (k + 1), i.e. the drive's progress.
+    pub k: u64,
+    /// What happened.
+    pub kind: EventKind,
+    /// Stage (inject, resume) or process (exited, restarted, ready); "-" for the bus.
+    pub service: String,
+    /// The process concerned; "-" for the bus.
+    pub process: String,
+}
+
+/// A [`SupEvent`] as written to `summary.json` → `supervisor_events`.
+#[derive(Debug, Serialize)]
+struct EventRecord<'a> {
+    t_wall_s: f64,
+    k: u64,
+    event: &'static str,
+    service: &'a str,
+    process: &'a str,
+    detail: String,
+}
+
+impl SupEvent {
+    /// The event's name (inject, inject-refused, inject-skipped, resume, exited, reaped,
+    /// restarted, ready).
+    pub fn name(&self) -> &'static str {
+        self.kind.name()
+    }
+
+    /// Its details as text.
+    pub fn detail(&self) -> String {
+        self.kind.detail()
+    }
+}
+
+impl Serialize for SupEvent {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        EventRecord {
+            t_wall_s: self.t_wall_s,
+            k: self.k,
+            event: self.name(),
+            service: &self.service,
+            process: &self.process,
+            detail: self.detail(),
+        }
+        .serialize(s)
+    }
+}
+
+/// Where a child process is in its life.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum State {
+    /// Running (and ready).
+    Running,
+    /// Restarted, not ready yet.
+    AwaitingReady,
+    /// Stopped by a fault until `until`; `awaiting_ready` when it was not ready yet.
+    Frozen {
+        until: Instant,
+        awaiting_ready: bool,
+    },
+    /// Dead, to be restarted at `at`.
+    RestartPending { at: Instant },
+    /// Dead for good.
+    Dead,
+    /// Exited normally.
+    Finished,
+}
+
+impl State {
+    /// Its process exists (and may be waited for).
+    fn alive(self) -> bool {
+        matches!(
+            self,
+            Self::Running | Self::AwaitingReady | Self::Frozen { .. }
+        )
+    }
+
+    /// It has not said READY yet.
+    fn awaiting_ready(self) -> bool {
+        matches!(
+            self,
+            Self::AwaitingReady
+                | Self::Frozen {
+                    awaiting_ready: true,
+                    ..
+                }
+        )
+    }
+
+    /// What the hub shows.
+    fn proc_state(self) -> ProcState {
+        match self {
+            Self::Finished => ProcState::Finished,
+            Self::Dead => ProcState::Dead,
+            Self::RestartPending { .. } | Self::AwaitingReady => ProcState::Restarting,
+            Self::Frozen {
+                awaiting_ready: true,
+                ..
+            } => ProcState::Restarting,
+            Self::Frozen { .. } => ProcState::Frozen,
+            Self::Running => ProcState::Alive,
+        }
+    }
+}
+
+/// One child process under supervision.
+pub(super) struct Supervised {
+    /// The process.
+    pub proc: ChildProc,
+    state: State,
+    history: History,
+    /// A fault was injected into it at some point.
+    injected: bool,
+}
+
+impl Supervised {
+    /// A child that has passed the start-up handshake.
+    pub fn new(proc: ChildProc) -> Self {
+        Self {
+            proc,
+            state: State::Running,
+            history: History::default(),
+            injected: false,
+        }
+    }
+}
+
+/// The supervisor: injects the planned faults when the drive reaches their sample, notices
+/// dead services (waitpid, then iceoryx2's node liveness, whose stale resources it removes),
+/// restarts them per policy with `--rejoin`, and records every event. Returns a failure
+/// message when the run cannot go on.
+pub(super) fn supervise(
+    hub: &mut crate::hub::Hub,
+    bar: &indicatif::ProgressBar,
+    children: &mut [Supervised],
+    plan: &[crate::faults::Fault],
+    events: &mut Vec<SupEvent>,
+    progress: &Progress,
+    sc: &Scenario,
+    sp: &Spawn,
+    started: Instant,
+    limit: Duration,
+) -> Result<Option<String>> {
+    let (bus_id, clock, out) = (sp.bus_id, sp.clock, sp.out);
+    let policy = Policy::new(sp.o.restart);
+    let fs = sc.rates.sample_hz;
+    let mut next_fault = 0;
+    let log = |events: &mut Vec<SupEvent>, kind: EventKind, service: &str, process: &str| {
+        events.push(SupEvent {
+            t_wall_s: started.elapsed().as_secs_f64(),
+            k: progress.next_k.load(Ordering::Relaxed),
+            kind,
+            service: service.into(),
+            process: process.into(),
+        });
+    };
+    loop {
+        if crate::common::stop_requested() {
+            return Ok(Some("interrupted (SIGINT/SIGTERM): drive stopped".into()));
+        }
+        if started.elapsed() > limit {
+            return Ok(Some(format!("the drive did not finish within {limit:?}")));
+        }
+        let now = Instant::now();
+        let k_now = progress.next_k.load(Ordering::Relaxed);
+        bar.set_position(k_now);
+        // Faults due at this point of the run (in samples, so lockstep and realtime agree),
+        // then those a monitor asked for, with the monitor's pid.
+        let mut due: Vec<(crate::faults::Fault, Option<u32>)> = Vec::new();
+        while next_fault < plan.len() && k_now as f64 >= plan[next_fault].at_s * fs {
+            due.push((plan[next_fault].clone(), None));
+            next_fault += 1;
+        }
+        for r in hub.poll(events, k_now, &progress.tail)? {
+            match crate::hub::to_fault(&r, k_now as f64 / fs, hub.stages()) {
+                Ok(f) => due.push((f, Some(r.pid))),
+                Err(e) => log(
+                    events,
+                    EventKind::InjectRefused {
+                        reason: format!("{e:#}"),
+                    },
+                    "-",
+                    "-",
+                ),
+            }
+        }
+        for (f, monitor_pid) in due {
+            // A stage's fault hits the whole process that hosts it.
+            let Some(c) = children
+                .iter_mut()
+                .find(|c| c.proc.stages.contains(&f.service))
+            else {
+                continue;
+            };
+            let refusal = if clock != BusClock::Realtime {
+                // Only a monitor's request can get here: a plan is refused before the start.
+                Some(EventKind::InjectRefused {
+                    reason: "faults need --clock realtime".into(),
+                })
+            } else if !matches!(c.state, State::Running | State::AwaitingReady) {
+                Some(EventKind::InjectSkipped)
+            } else {
+                None
+            };
+            if let Some(kind) = refusal {
+                log(events, kind, &f.service, &c.proc.name);
+                continue;
+            }
+            let sig = match f.kind {
+                FaultKind::Kill => libc::SIGKILL,
+                FaultKind::Stop => libc::SIGSTOP,
+            };
+            signal(c.proc.pid(), sig)?;
+            c.injected = true;
+            let kind = EventKind::Inject {
+                fault: f.kind,
+                duration_s: f.duration_s,
+                monitor_pid,
+            };
+            log(events, kind, &f.service, &c.proc.name);
+            if f.kind == FaultKind::Stop {
+                c.state = State::Frozen {
+                    until: now + Duration::from_secs_f64(f.duration_s),
+                    awaiting_ready: c.state.awaiting_ready(),
+                };
+            }
+        }
+        for c in children.iter_mut() {
+            if let State::Frozen {
+                until,
+                awaiting_ready,
+            } = c.state
+            {
+                if now >= until {
+                    let _ = signal(c.proc.pid(), libc::SIGCONT);
+                    log(events, EventKind::Resume, &c.proc.name, &c.proc.name);
+                    c.state = if awaiting_ready {
+                        State::AwaitingReady
+                    } else {
+                        State::Running
+                    };
+                }
+            }
+        }
+        // Liveness: our own children first (waitpid), then iceoryx2's view of the bus.
+        let mut any_dead = false;
+        for c in children.iter_mut() {
+            if !c.state.alive() {
+                continue;
+            }
+            if c.state.awaiting_ready() && c.proc.poll_ready() {
+                c.state = match c.state {
+                    State::Frozen { until, .. } => State::Frozen {
+                        until,
+                        awaiting_ready: false,
+                    },
+                    _ => State::Running,
+                };
+                let kind = EventKind::Ready { pid: c.proc.pid() };
+                log(events, kind, &c.proc.name, &c.proc.name);
+            }
+            match c.proc.child.try_wait()? {
+                None => {}
+                Some(st) if st.success() => c.state = State::Finished,
+                Some(st) => {
+                    any_dead = true;
+                    let n = c.proc.name.clone();
+                    log(events, EventKind::Exited { status: st }, &n, &n);
+                    match policy.on_failure(&mut c.history, c.injected, c.proc.source, now) {
+                        Decision::FailRun => return Ok(Some(format!("process {n} failed ({st})"))),
+                        Decision::StopDrive => return Ok(None),
+                        Decision::GiveUp => c.state = State::Dead,
+                        Decision::RestartAt(at) => c.state = State::RestartPending { at },
+                    }
+                }
+            }
+        }
+        if any_dead {
+            let nodes = bus::reap_dead_nodes(bus_id)?;
+            log(events, EventKind::Reaped { nodes }, "-", "-");
+        }
+        for c in children.iter_mut() {
+            if !matches!(c.state, State::RestartPending { at } if now >= at) {
+                continue;
+            }
+            let name = c.proc.name.clone();
+            let rejoin_file = out.join(format!("rejoin-{name}.json"));
+            if c.proc.source {
+                let last = progress.last.lock().ok().and_then(|l| *l);
+                let Some(last) = last else {
+                    return Ok(Some(
+                        "plant died before its first sample; cannot resume".into(),
+                    ));
+                };
+                std::fs::write(
+                    &rejoin_file,
+                    serde_json::to_vec(&crate::common::truth_to_json(&last))?,
+                )?;
+            }
+            c.proc = c.proc.respawn(sp, &rejoin_file)?;
+            c.history.restarted(now);
+            c.state = State::AwaitingReady;
+            let kind = EventKind::Restarted {
+                restart: c.history.restarts,
+                pid: c.proc.pid(),
+            };
+            log(events, kind, &name, &name);
+        }
+        for c in children.iter() {
+            let state = c.state.proc_state();
+            for st in &c.proc.stages {
+                hub.set_process(st, state, c.proc.pid(), c.history.restarts);
+            }
+        }
+        let restart_pending = children
+            .iter()
+            .any(|c| matches!(c.state, State::RestartPending { .. }));
+        if children
+            .iter()
+            .all(|c| matches!(c.state, State::Finished | State::Dead))
+        {
+            return Ok(None);
+        }
+        let plant_done = children
+            .iter()
+            .any(|c| c.proc.source && c.state == State::Finished);
+        if plant_done && !restart_pending {
+            // The plant has finished; anyone not done within 2 s is stopped by the caller.
+            let t = Instant::now();
+            while t.elapsed() < Duration::from_secs(2) {
+                if children.iter_mut().all(|c| {
+                    c.state == State::Finished || matches!(c.proc.child.try_wait(), Ok(Some(_)))
+                }) {
+                    break;
+                }
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            return Ok(None);
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    }
+}
+
+/// One entry of `summary.json` → `faults`. Times are in ms from the injection.
+#[derive(Debug, Clone, Serialize)]
+pub struct FaultReport {
+    /// kill or stop (with its duration).
+    pub fault: String,
+    /// Target stage.
+    pub service: String,
+    /// The process that was signalled (it hosts the stage, perhaps with others).
+    pub process: String,
+    /// Injection: sample index and simulated time, s.
+    pub injected_k: u64,
+    /// Injection time, s (sample time).
+    pub injected_t_s: f64,
+    /// First sample at which a consumer saw a stale input (data path), ms after injection.
+    pub detected_data_path_ms: Option<f64>,
+    /// Which consumer saw it first: "plant" (stale command) or "current-loop" (fallback).
+    pub detected_by: Option<String>,
+    /// The supervisor saw the process dead (waitpid), ms of wall time after injection.
+    pub detected_supervisor_ms: Option<f64>,
+    /// The plant's inverter reached its safe state, ms after injection.
+    pub safe_state_ms: Option<f64>,
+    /// Peak current magnitude |i_dq| from injection to recovery, A.
+    pub peak_current_a: f64,
+    /// The restarted (or resumed) service published a fresh output again, ms after injection.
+    pub republished_ms: Option<f64>,
+    /// Speed back within ±2 % of its reference (and staying there 10 ms), ms after injection.
+    pub speed_recovered_ms: Option<f64>,
+}
+
+/// Builds the fault reports from the supervisor's events and the trace, and the windows to
+/// shade on the plots.
+pub fn fault_reports(
+    sc: &Scenario,
+    rows: &[TraceRow],
+    events: &[SupEvent],
+) -> (Vec<FaultReport>, Vec<(f64, f64, String)>) {
+    use drivelab_runtime::messages::{FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT};
+    let fs = sc.rates.sample_hz;
+    let ms = |dk: u64| dk as f64 / fs * 1e3;
+    let by_k: BTreeMap<u64, &TraceRow> = rows.iter().map(|r| (r.k, r)).collect();
+    let mut out = Vec::new();
+    let mut windows = Vec::new();
+    let injects: Vec<&SupEvent> = events
+        .iter()
+        .filter(|e| matches!(e.kind, EventKind::Inject { .. }))
+        .collect();
+    for (n, inj) in injects.iter().enumerate() {
+        let k0 = inj.k;
+        let k_end_window = injects.get(n + 1).map(|e| e.k).unwrap_or(u64::MAX);
+        let after = || by_k.range(k0..k_end_window).map(|(_, r)| *r);
+        // Data-path detection: the first stale flag, or the first sample the plant did not produce.
+        let mut det = None;
+        for (expect, r) in (k0..).zip(after()) {
+            if r.k != expect {
+                det = Some((expect, "recorder (plant produced no sample)".to_string()));
+                break;
+            }
+            if r.plant_flags & FLAG_STALE_CMD != 0 {
+                det = Some((r.k, "plant".into()));
+                break;
+            }
+            if r.ctrl_flags & FLAG_STALE_INPUT != 0 {
+                det = Some((r.k, "current-loop".into()));
+                break;
+            }
+        }
+        let safe = after()
+            .find(|r| r.plant_flags & FLAG_SAFE_STATE != 0)
+            .map(|r| ms(r.k - k0));
+        let sup = events
+            .iter()
+            .find(|e| {
+                matches!(e.kind, EventKind::Exited { .. })
+                    && e.process == inj.process
+                    && e.t_wall_s >= inj.t_wall_s
+            })
+            .map(|e| (e.t_wall_s - inj.t_wall_s) * 1e3);
+        // Fresh again: the first sample after the detection with no stale flag at all.
+        let k_det = det.as_ref().map(|d| d.0).unwrap_or(k0);
+        let fresh = after()
+            .filter(|r| r.k > k_det)
+            .find(|r| r.plant_flags & (FLAG_STALE_CMD | FLAG_SAFE_STATE) == 0 && r.ctrl_flags == 0)
+            .map(|r| r.k);
+        let hold = (0.01 * fs).ceil() as usize;
+        let within = |r: &TraceRow| {
+            let w = drivelab_runtime::config::profile_at(&sc.reference.speed_rad_s, r.t);
+            (r.omega_m - w).abs() <= 0.02 * w.abs().max(1e-9)
+        };
+        let tail: Vec<&TraceRow> = after()
+            .filter(|r| fresh.is_some_and(|f| r.k >= f))
+            .collect();
+        let rec = (0..tail.len())
+            .find(|&i| tail[i..].iter().take(hold).all(|r| within(r)) && tail.len() - i >= hold)
+            .map(|i| tail[i].k);
+        let k_rec = rec
+            .or(fresh)
+            .unwrap_or(k_end_window.min(k0 + (0.2 * fs) as u64));
+        let peak = after()
+            .filter(|r| r.k <= k_rec)
+            .map(|r| (r.i_d * r.i_d + r.i_q * r.i_q).sqrt())
+            .fold(0.0, f64::max);
+        windows.push((
+            k0 as f64 / fs,
+            k_rec as f64 / fs,
+            format!("{} {}", inj.detail(), inj.service),
+        ));
+        out.push(FaultReport {
+            fault: inj.detail(),
+            service: inj.service.clone(),
+            process: inj.process.clone(),
+            injected_k: k0,
+            injected_t_s: k0 as f64 / fs,
+            detected_data_path_ms: det.as_ref().map(|d| ms(d.0 - k0)),
+            detected_by: det.map(|d| d.1),
+            detected_supervisor_ms: sup,
+            safe_state_ms: safe,
+            peak_current_a: peak,
+            republished_ms: fresh.map(|f| ms(f - k0)),
+            speed_recovered_ms: rec.map(|r| ms(r - k0)),
+        });
+    }
+    (out, windows)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use drivelab_runtime::config::Step;
+    use drivelab_runtime::messages::{FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT};
+    use std::os::unix::process::ExitStatusExt;
+
+    /// A scenario at 1 kHz (one sample per ms) with a constant speed reference of 100 rad/s.
+    fn scenario() -> Scenario {
+        let (mut sc, _) = Scenario::load("kyslan-pi").unwrap();
+        sc.rates.sample_hz = 1000.0;
+        sc.reference.speed_rad_s = vec![Step {
+            t_s: 0.0,
+            value: 100.0,
+        }];
+        sc
+    }
+
+    /// Rows `ks` on the reference with 1 A of q current.
+    fn rows(ks: impl Iterator<Item = u64>) -> Vec<TraceRow> {
+        ks.map(|k| TraceRow {
+            k,
+            t: k as f64 * 1e-3,
+            omega_ref: 100.0,
+            omega_m: 100.0,
+            i_q: 1.0,
+            ..Default::default()
+        })
+        .collect()
+    }
+
+    fn at(rows: &mut [TraceRow], ks: std::ops::RangeInclusive<u64>, f: impl Fn(&mut TraceRow)) {
+        rows.iter_mut().filter(|r| ks.contains(&r.k)).for_each(f);
+    }
+
+    fn ev(t_wall_s: f64, k: u64, kind: EventKind, service: &str, process: &str) -> SupEvent {
+        SupEvent {
+            t_wall_s,
+            k,
+            kind,
+            service: service.into(),
+            process: process.into(),
+        }
+    }
+
+    fn kill() -> EventKind {
+        EventKind::Inject {
+            fault: FaultKind::Kill,
+            duration_s: 0.0,
+            monitor_pid: None,
+        }
+    }
+
+    #[test]
+    fn a_kill_detected_by_the_plant_goes_safe_republishes_and_recovers() {
+        let sc = scenario();
+        let mut tr = rows(0..60);
+        at(&mut tr, 12..=13, |r| r.plant_flags = FLAG_STALE_CMD);
+        at(&mut tr, 14..=16, |r| {
+            r.plant_flags = FLAG_STALE_CMD | FLAG_SAFE_STATE
+        });
+        at(&mut tr, 15..=15, |r| r.i_d = 3.0);
+        at(&mut tr, 15..=15, |r| r.i_q = 4.0);
+        // Fresh from 17, but 10 % slow up to 24.
+        at(&mut tr, 17..=24, |r| r.omega_m = 90.0);
+        let cl = "current-loop";
+        let events = [
+            ev(1.0, 10, kill(), cl, cl),
+            ev(1.0, 10, EventKind::InjectSkipped, "plant", "plant"),
+            ev(
+                1.003,
+                13,
+                EventKind::Exited {
+                    status: ExitStatus::from_raw(9),
+                },
+                cl,
+                cl,
+            ),
+            ev(
+                1.02,
+                30,
+                EventKind::Restarted { restart: 1, pid: 7 },
+                cl,
+                cl,
+            ),
+            ev(1.05, 33, EventKind::Ready { pid: 7 }, cl, cl),
+        ];
+        let (reports, windows) = fault_reports(&sc, &tr, &events);
+        assert_eq!(reports.len(), 1);
+        let f = &reports[0];
+        assert_eq!(
+            (f.fault.as_str(), f.service.as_str(), f.process.as_str()),
+            ("kill", cl, cl)
+        );
+        assert_eq!((f.injected_k, f.injected_t_s), (10, 0.01));
+        assert_eq!(f.detected_data_path_ms, Some(2.0));
+        assert_eq!(f.detected_by.as_deref(), Some("plant"));
+        assert!(
+            (f.detected_supervisor_ms.unwrap() - 3.0).abs() < 1e-9,
+            "{f:?}"
+        );
+        assert_eq!(f.safe_state_ms, Some(4.0));
+        assert_eq!(f.republished_ms, Some(7.0));
+        // Within ±2 % from 25 and for the 10 samples after.
+        assert_eq!(f.speed_recovered_ms, Some(15.0));
+        assert_eq!(f.peak_current_a, 5.0);
+        assert_eq!(windows, [(0.01, 0.025, "kill current-loop".to_string())]);
+    }
+
+    #[test]
+    fn missing_samples_and_a_stale_input_are_detections_each_in_its_own_window() {
+        let sc = scenario();
+        // The plant is killed at 10 and produces nothing up to 14.
+        let mut tr = rows((0..10).chain(15..80));
+        // A monitor stops the observer at 40: the current loop falls back from 42 to 44.
+        at(&mut tr, 42..=44, |r| r.ctrl_flags = FLAG_STALE_INPUT);
+        let stop = EventKind::Inject {
+            fault: FaultKind::Stop,
+            duration_s: 0.02,
+            monitor_pid: Some(4242),
+        };
+        let exited = EventKind::Exited {
+            status: ExitStatus::from_raw(9),
+        };
+        let events = [
+            ev(1.0, 10, kill(), "plant", "plant"),
+            ev(1.001, 10, exited.clone(), "plant", "plant"),
+            ev(2.0, 40, stop, "observer", "observer"),
+            // An exit of another process says nothing of this fault.
+            ev(2.001, 41, exited, "plant", "plant"),
+            ev(2.02, 60, EventKind::Resume, "observer", "observer"),
+        ];
+        let (reports, windows) = fault_reports(&sc, &tr, &events);
+        assert_eq!(reports.len(), 2);
+        let (p, o) = (&reports[0], &reports[1]);
+        assert_eq!(p.detected_data_path_ms, Some(0.0));
+        assert_eq!(
+            p.detected_by.as_deref(),
+            Some("recorder (plant produced no sample)")
+        );
+        assert_eq!(p.safe_state_ms, None);
+        assert_eq!(p.republished_ms, Some(5.0));
+        assert_eq!(p.speed_recovered_ms, Some(5.0));
+        assert_eq!(o.fault, "stop for 0.02 s (from monitor pid 4242)");
+        assert_eq!((o.service.as_str(), o.injected_k), ("observer", 40));
+        assert_eq!(o.detected_data_path_ms, Some(2.0));
+        assert_eq!(o.detected_by.as_deref(), Some("current-loop"));
+        assert_eq!(o.detected_supervisor_ms, None);
+        assert_eq!(o.republished_ms, Some(5.0));
+        assert_eq!(windows[0], (0.01, 0.015, "kill plant".to_string()));
+        assert_eq!(
+            windows[1].2,
+            "stop for 0.02 s (from monitor pid 4242) observer"
+        );
+    }
+
+    #[test]
+    fn no_recovery_within_the_window_reports_none() {
+        let sc = scenario();
+        let mut tr = rows(0..300);
+        at(&mut tr, 5..=299, |r| r.plant_flags = FLAG_SAFE_STATE);
+        let (reports, windows) = fault_reports(&sc, &tr, &[ev(1.0, 5, kill(), "plant", "plant")]);
+        let f = &reports[0];
+        assert_eq!(f.detected_data_path_ms, None);
+        assert_eq!(f.safe_state_ms, Some(0.0));
+        assert_eq!((f.republished_ms, f.speed_recovered_ms), (None, None));
+        // The shaded window is 200 ms at the most.
+        assert_eq!(windows[0].1, 0.205);
+    }
+
+    #[test]
+    fn events_keep_their_json_shape() {
+        let all = [
+            (kill(), "inject", "kill"),
+            (
+                EventKind::InjectRefused {
+                    reason: "faults need --clock realtime".into(),
+                },
+                "inject-refused",
+                "faults need --clock realtime",
+            ),
+            (
+                EventKind::InjectSkipped,
+                "inject-skipped",
+                "its process is not running",
+            ),
+            (EventKind::Resume, "resume", "SIGCONT"),
+            (
+                EventKind::Exited {
+                    status: ExitStatus::from_raw(9),
+                },
+                "exited",
+                "signal: 9 (SIGKILL)",
+            ),
+            (
+                EventKind::Reaped {
+                    nodes: vec!["a".into(), "b".into()],
+                },
+                "reaped",
+                "dead iceoryx2 nodes cleaned: a, b",
+            ),
+            (
+                EventKind::Restarted { restart: 2, pid: 9 },
+                "restarted",
+                "restart #2, pid 9",
+            ),
+            (EventKind::Ready { pid: 9 }, "ready", "pid 9"),
+        ];
+        for (kind, name, detail) in all {
+            let v = serde_json::to_value(ev(0.5, 3, kind, "plant", "p")).unwrap();
+            assert_eq!(
+                v,
+                serde_json::json!({ "t_wall_s": 0.5, "k": 3, "event": name, "service": "plant", "process": "p", "detail": detail })
+            );
+        }
+    }
+}
