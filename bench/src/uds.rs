@@ -1,18 +1,9 @@
 //! The Unix-socket chain: plant, observer, current loop and speed loop as four processes that
-//! exchange the bus messages ([`drivelab_runtime::messages`], sent as their bytes) over Unix domain
-//! datagram sockets in a private directory. It mirrors the iceoryx2 services in
-//! `services/src/{plant,observer,current_loop,speed_loop}.rs`:
-//!
-//! * the plant is the timing master: it sleeps to t_k, takes command k−1 from its socket
-//!   without waiting (absent = a deadline miss, the plant holds the previous command), and
-//!   sends measurement k to the current loop and then to the observer;
-//! * the observer blocks on its measurement socket and sends estimate k to the current loop
-//!   and then to the speed loop;
-//! * the current loop blocks on its estimate socket, drains its measurement and reference
-//!   sockets, and uses the reference of the last speed sample before k
-//!   ([`CurrentLoopStep::expected_ref_index`]; absent = it keeps the last one and flags the
-//!   command [`FLAG_STALE_INPUT`]);
-//! * the speed loop blocks on its estimate socket and runs every N samples.
+//! exchange the bus messages ([`drivelab_runtime::messages`], sent as their bytes) over Unix
+//! domain datagram sockets in a private directory. Each process runs its built-in stage on
+//! the same generic host as the iceoryx2 drive (`drivelab_runtime::host::Host`, the
+//! four-process topology); only the transport differs ([`UdsTransport`]), so the two chains
+//! differ in nothing but how a message travels.
 //!
 //! Sockets (one per receiver and input, so a receiver can wait on exactly the input that wakes
 //! it, as with iceoryx2's notified vs polled subscribers):
@@ -27,24 +18,26 @@
 //! | `speed-loop.est` | speed loop | observer |
 //!
 //! Start-up: every node binds its sockets, then connects to its peers (retrying until they
-//! exist), sets up real time and prints `READY`. The plant then sends 50 warm-up messages
-//! ([`FLAG_WARMUP`]) through the whole chain, one at a time, before t_0 — so the clock starts
-//! only when every socket of the chain is bound and connected. At the end the plant sends an
-//! [`FLAG_END`] measurement that every node forwards before it exits. SIGTERM/SIGINT stop a
-//! node (the plant still sends the end marker and writes its results).
+//! exist), sets up real time and prints `READY`. The host of the plant then sends its warm-up
+//! messages through the whole chain before t_0, so the clock starts only when every socket
+//! of the chain is bound and connected; at the end it sends the end marker, which every host
+//! forwards before it exits. SIGTERM/SIGINT stop a node (the plant still sends the end marker
+//! and writes its results).
 
 use crate::wire::{Recv, Rx, Sent, Tx, Wire};
-use crate::{apply_rt, schedule, wait_deadline, NodeSpec};
+use crate::{apply_rt, schedule, NodeSpec};
 use crate::{ChainSpec, VariantResult};
 use anyhow::{anyhow, bail, Context, Result};
 use drivelab_runtime::config::Scenario;
-use drivelab_runtime::drive::{trace_row, CurrentLoopStep, ObserverStep, Plant, SpeedLoopStep};
+use drivelab_runtime::drive::trace_row;
+use drivelab_runtime::host::{Host, HostConfig, Pacing, Transport};
 use drivelab_runtime::messages::{
-    CurrentRef, Estimate, Finite, Header, Measurement, VoltageCommand, FLAG_END, FLAG_STALE_INPUT,
-    FLAG_WARMUP,
+    CurrentRef, Estimate, Measurement, PlantTruth, VoltageCommand, FLAG_SAFE_STATE, FLAG_STALE_CMD,
+    FLAG_STALE_INPUT,
 };
-use drivelab_runtime::rt::now_ns;
-use drivelab_runtime::timing::{CycleMonitor, LatencyHist, MissCounter};
+use drivelab_runtime::service::{install_signal_handlers, stop_flag};
+use drivelab_runtime::stage::{Msg, TopicId, N_TOPICS};
+use drivelab_runtime::timing::{LatencyHist, MissCounter};
 use drivelab_runtime::trace::TraceRow;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -64,10 +57,6 @@ const SL_EST: &str = "speed-loop.est";
 pub const WARMUP_MESSAGES: u64 = 50;
 /// How long a node waits for a peer's socket to appear.
 const CONNECT_TIMEOUT: Duration = Duration::from_secs(10);
-/// How long the plant waits for one warm-up message to come back.
-const WARMUP_TIMEOUT: Duration = Duration::from_secs(10);
-/// A downstream node with no input for this long gives up (its upstream is gone).
-const IDLE_LIMIT: Duration = Duration::from_secs(20);
 /// How long a control message (warm-up, end) may wait for room in a full queue.
 const CONTROL_TIMEOUT: Duration = Duration::from_secs(1);
 /// After the plant has exited, how long the other nodes get to finish before they are killed.
@@ -128,29 +117,6 @@ pub(crate) struct Counters {
     pub peer_gone: u64,
 }
 
-impl Counters {
-    /// Sends a data message without blocking; a full queue or a gone peer is counted.
-    #[inline]
-    fn send<T: Wire>(&mut self, tx: &Tx, m: &T) -> Result<()> {
-        match tx.send(m) {
-            Sent::Ok => Ok(()),
-            Sent::Full => {
-                self.dropped_sends += 1;
-                Ok(())
-            }
-            Sent::PeerGone => {
-                self.peer_gone += 1;
-                Ok(())
-            }
-            Sent::Err(e) => Err(anyhow!(
-                "send to {}: {}",
-                tx.peer,
-                std::io::Error::from_raw_os_error(e)
-            )),
-        }
-    }
-}
-
 /// Sends a control message (forwarded warm-up/end marker), waiting a little for room; a gone
 /// peer is not an error (it may have finished already).
 fn send_control<T: Wire>(tx: &Tx, m: &T) -> Result<()> {
@@ -182,7 +148,7 @@ pub(crate) struct RoleCtx<'a> {
     pub node: NodeSpec,
     /// `mlockall` (process-wide: only in node processes).
     pub lock_memory: bool,
-    pub stop: &'a AtomicBool,
+    pub stop: &'static AtomicBool,
     /// Print `READY` on stdout once bound and connected (node processes).
     pub announce: bool,
     /// Plant: keep the trace rows (tests: determinism across transports).
@@ -229,454 +195,258 @@ pub(crate) struct PlantOutcome {
     pub rt: String,
 }
 
-/// Runs one role to its end. The plant returns its measurements, the others None.
+/// Runs one role to its end on the same stage host as the iceoryx2 drive
+/// (`drivelab_runtime::host`), over [`UdsTransport`]. The plant returns its measurements,
+/// the others None.
 pub(crate) fn run_role(ctx: &RoleCtx) -> Result<Option<PlantOutcome>> {
-    match ctx.role {
-        Role::Plant => plant(ctx).map(Some),
-        Role::Observer => observer(ctx).map(|_| None),
-        Role::CurrentLoop => current_loop(ctx).map(|_| None),
-        Role::SpeedLoop => speed_loop(ctx).map(|_| None),
+    let name = ctx.role.name();
+    let stage = drivelab_runtime::stages::builtin(name, ctx.sc)
+        .ok_or_else(|| anyhow!("no built-in stage '{name}'"))?;
+    // Every stage in its own process, as in the four-process topology.
+    let producers: Vec<(TopicId, u64, bool)> = drivelab_runtime::stages::BUILTIN
+        .iter()
+        .filter_map(|n| drivelab_runtime::stages::builtin(n, ctx.sc))
+        .flat_map(|s| {
+            let local = s.name() == name;
+            let d = s.divider();
+            s.outputs()
+                .iter()
+                .map(move |t| (*t, d, local))
+                .collect::<Vec<_>>()
+        })
+        .collect();
+    let mut tr = UdsTransport::open(ctx)?;
+    let source = ctx.role == Role::Plant;
+    let n = (ctx.seconds * ctx.sc.rates.sample_hz).round() as u64;
+    if source && ctx.keep_trace {
+        tr.truths.reserve(n as usize + 1);
+        tr.cmds.reserve(n as usize + 1);
     }
-}
-
-/// Takes every queued command; returns command `want` if it is there. Older commands are late
-/// (counted, their latency still recorded), malformed or future ones rejected.
-#[inline]
-fn take_command(
-    rx: &Rx,
-    want: u64,
-    c: &mut Counters,
-    mon: &mut CycleMonitor,
-) -> Result<Option<VoltageCommand>> {
-    let mut found = None;
-    loop {
-        match rx.recv::<VoltageCommand>(false) {
-            Recv::Msg(cmd) => {
-                if cmd.hdr.is_warmup() {
-                    continue;
-                }
-                if !cmd.is_finite() || cmd.hdr.k > want {
-                    c.rejected_inputs += 1;
-                } else if cmd.hdr.k == want {
-                    found = Some(cmd);
-                } else {
-                    c.late_commands += 1;
-                    if cmd.hdr.t_sample_ns != 0 {
-                        mon.late_command(cmd.hdr.t_sample_ns, cmd.hdr.t_pub_ns);
-                    }
-                }
-            }
-            Recv::Empty => return Ok(found),
-            Recv::Malformed => c.rejected_inputs += 1,
-            Recv::Err(e) => return Err(recv_error(PLANT_CMD, e)),
-        }
-    }
-}
-
-/// Sends the warm-up messages through the chain, one at a time, each waiting for its flagged
-/// command to come back.
-fn warm_up(ctx: &RoleCtx, cmd_rx: &Rx, to_cl: &Tx, to_obs: &Tx) -> Result<()> {
-    for i in 0..WARMUP_MESSAGES {
-        let m = Measurement {
-            hdr: Header {
-                k: i,
-                flags: FLAG_WARMUP,
-                t_pub_ns: now_ns(),
-                ..Default::default()
-            },
-            ..Default::default()
-        };
-        for tx in [to_cl, to_obs] {
-            if let Sent::Err(e) = tx.send_patiently(&m, WARMUP_TIMEOUT) {
-                bail!(
-                    "warm-up: send to {}: {}",
-                    tx.peer,
-                    std::io::Error::from_raw_os_error(e)
-                );
-            }
-        }
-        let started = Instant::now();
-        loop {
-            match cmd_rx.recv::<VoltageCommand>(true) {
-                Recv::Msg(c) if c.hdr.is_warmup() && c.hdr.k == i => break,
-                Recv::Err(e) => return Err(recv_error(PLANT_CMD, e)),
-                _ => {}
-            }
-            if ctx.stopped() {
-                return Ok(());
-            }
-            if started.elapsed() > WARMUP_TIMEOUT {
-                bail!(
-                    "warm-up message {i} did not come back through the chain within \
-                     {WARMUP_TIMEOUT:?}"
-                );
-            }
-        }
-    }
-    Ok(())
-}
-
-/// The plant: timing master.
-fn plant(ctx: &RoleCtx) -> Result<PlantOutcome> {
-    let sc = ctx.sc;
-    let (n, ts_ns) = schedule(sc.rates.sample_hz, ctx.seconds)?;
-    let ts = sc.rates.ts();
-    let cmd_rx = ctx.bind(PLANT_CMD)?;
-    // The current loop first: it only polls its measurement socket, so the measurement must be
-    // there before the observer (which wakes it) gets its copy.
-    let to_cl = ctx.connect(CL_MEAS)?;
-    let to_obs = ctx.connect(OBS_MEAS)?;
-    let mut plant = Plant::new(sc);
-    let mut mon = CycleMonitor::new(ts_ns);
-    let mut lateness = LatencyHist::new("lateness");
-    let mut c = Counters::default();
-    let mut trace: Vec<TraceRow> = Vec::with_capacity(if ctx.keep_trace { n as usize } else { 0 });
-    let mut tracing = ctx.keep_trace;
-    let mut prev_truth = drivelab_runtime::messages::PlantTruth::default();
-    let spin_ns = (sc.timing.plant_spin_us * 1e3).round() as u64;
+    let mut host = Host::new(
+        vec![stage],
+        &producers,
+        tr,
+        HostConfig {
+            pacing: Pacing::Realtime,
+            samples: n,
+            ts_ns: ctx.sc.rates.ts_ns(),
+            spin_ns: (ctx.sc.timing.plant_spin_us * 1e3).round() as u64,
+            rejoin: false,
+            rejoin_from: None,
+            warm_up: true,
+            poke: Vec::new(),
+            clock_topic: TopicId::Meas,
+        },
+    );
+    let stop = ctx.stop;
+    host.stop_when(move || stop.load(Ordering::Relaxed));
     let rt = ctx.ready()?;
-    warm_up(ctx, &cmd_rx, &to_cl, &to_obs)?;
-    let t0 = now_ns() + 2_000_000;
-    // ---- real-time loop: no allocation, no locks, no logging ----
-    for k in 0..=n {
-        let deadline = t0 + k * ts_ns;
-        wait_deadline(deadline, spin_ns);
-        lateness.record_ns(now_ns() as i64 - deadline as i64);
-        let mut cmd = None;
-        if k > 0 {
-            cmd = take_command(&cmd_rx, k - 1, &mut c, &mut mon)?;
-            mon.at_deadline(deadline - ts_ns, cmd.map(|c| c.hdr.t_pub_ns));
-            match &cmd {
-                Some(cm) => {
-                    if cm.hdr.flags & FLAG_STALE_INPUT != 0 {
-                        c.stale_input_commands += 1;
-                        tracing = false;
-                    }
-                    if tracing {
-                        // Capacity n was reserved: no allocation.
-                        trace.push(trace_row(ts, &prev_truth, cm));
-                    }
-                }
-                None => {
-                    c.stale_inputs += 1;
-                    tracing = false;
-                }
-            }
-        }
-        if ctx.stopped() || k == n {
-            let end = Measurement {
-                hdr: Header {
-                    k,
-                    flags: FLAG_END,
-                    t_pub_ns: now_ns(),
-                    ..Default::default()
-                },
-                ..Default::default()
-            };
-            send_control(&to_cl, &end)?;
-            send_control(&to_obs, &end)?;
-            break;
-        }
-        let mut meas = plant.sample(k, cmd.as_ref());
-        meas.hdr.t_sample_ns = deadline;
-        meas.hdr.t_pub_ns = now_ns();
-        c.send(&to_cl, &meas)?;
-        c.send(&to_obs, &meas)?;
-        prev_truth = *plant.truth();
-        plant.advance();
-        c.samples += 1;
+    host.run().with_context(|| name)?;
+    let h = &host.stages[0];
+    let mut c = Counters {
+        samples: h.counters.samples,
+        stale_inputs: h.counters.stale_inputs,
+        rejected_inputs: h.counters.rejected_inputs,
+        late_commands: h.counters.late_commands,
+        stale_input_commands: host.transport.stale_input_commands,
+        dropped_sends: host.transport.dropped_sends,
+        peer_gone: host.transport.peer_gone,
+    };
+    eprintln!(
+        "{name}: {} samples, {} stale inputs, {} rejected, {} dropped sends, {} to a gone peer",
+        c.samples, c.stale_inputs, c.rejected_inputs, c.dropped_sends, c.peer_gone
+    );
+    if !source {
+        return Ok(None);
     }
-    // ---- end of the real-time loop ----
-    Ok(PlantOutcome {
+    c.samples = host.stages[0].counters.samples;
+    let trace = host.transport.trace(ctx.sc.rates.ts());
+    let cycle = host.cycle.clone();
+    Ok(Some(PlantOutcome {
         result: VariantResult {
-            cycle: mon.cycle,
-            lateness,
+            cycle: cycle.cycle,
+            lateness: std::mem::replace(
+                &mut host.stages[0].hists.wake,
+                LatencyHist::new("lateness"),
+            ),
             samples: c.samples,
-            misses: mon.misses,
+            misses: cycle.misses,
         },
         counters: c,
         trace,
         rt,
-    })
+    }))
 }
 
-/// Gives up when no input came for [`IDLE_LIMIT`].
-fn check_idle(ctx: &RoleCtx, last_input_ns: u64, what: &str) -> Result<()> {
-    if now_ns().saturating_sub(last_input_ns) > IDLE_LIMIT.as_nanos() as u64 {
-        bail!(
-            "{}: no {what} for {IDLE_LIMIT:?}; giving up",
-            ctx.role.name()
-        );
-    }
-    Ok(())
+/// The Unix datagram sockets as a [`Transport`]: one bound socket per (receiving role,
+/// input topic), one connected sender per (topic, receiver). A blocking wait keeps the
+/// message it received for the next `try_recv`.
+pub(crate) struct UdsTransport {
+    rx: [Option<(Rx, &'static str)>; N_TOPICS],
+    peeked: [Option<Msg>; N_TOPICS],
+    tx: [Vec<Tx>; N_TOPICS],
+    stale_input_commands: u64,
+    dropped_sends: u64,
+    peer_gone: u64,
+    keep_trace: bool,
+    truths: Vec<PlantTruth>,
+    cmds: Vec<VoltageCommand>,
 }
 
-fn summary(ctx: &RoleCtx, c: &Counters) {
-    eprintln!(
-        "{}: {} samples, {} stale inputs, {} rejected, {} dropped sends, {} to a gone peer",
-        ctx.role.name(),
-        c.samples,
-        c.stale_inputs,
-        c.rejected_inputs,
-        c.dropped_sends,
-        c.peer_gone
-    );
-}
-
-/// The observer: measurement k → estimate k.
-fn observer(ctx: &RoleCtx) -> Result<Counters> {
-    let meas_rx = ctx.bind(OBS_MEAS)?;
-    let to_cl = ctx.connect(CL_EST)?;
-    let to_sl = ctx.connect(SL_EST)?;
-    let mut obs = ObserverStep::new(ctx.sc);
-    let mut c = Counters::default();
-    let mut last_k: Option<u64> = None;
-    ctx.ready()?;
-    let mut last_input = now_ns();
-    // ---- real-time loop: no allocation, no locks, no logging ----
-    while !ctx.stopped() {
-        let m = match meas_rx.recv::<Measurement>(true) {
-            Recv::Msg(m) => m,
-            Recv::Empty => {
-                check_idle(ctx, last_input, "measurement from the plant")?;
-                continue;
-            }
-            Recv::Malformed => {
-                c.rejected_inputs += 1;
-                continue;
-            }
-            Recv::Err(e) => return Err(recv_error(OBS_MEAS, e)),
+impl UdsTransport {
+    /// Binds the role's input sockets, then connects to its peers' (retrying until they
+    /// exist).
+    fn open(ctx: &RoleCtx) -> Result<Self> {
+        let mut t = Self {
+            rx: Default::default(),
+            peeked: [None; N_TOPICS],
+            tx: Default::default(),
+            stale_input_commands: 0,
+            dropped_sends: 0,
+            peer_gone: 0,
+            keep_trace: ctx.keep_trace,
+            truths: Vec::new(),
+            cmds: Vec::new(),
         };
-        last_input = now_ns();
-        if m.hdr.is_warmup() || m.hdr.is_end() {
-            let e = Estimate {
-                hdr: m.hdr,
-                ..Default::default()
+        let inputs: &[(TopicId, &'static str)] = match ctx.role {
+            Role::Plant => &[(TopicId::Cmd, PLANT_CMD)],
+            Role::Observer => &[(TopicId::Meas, OBS_MEAS)],
+            Role::CurrentLoop => &[
+                (TopicId::Meas, CL_MEAS),
+                (TopicId::Est, CL_EST),
+                (TopicId::Iref, CL_IREF),
+            ],
+            Role::SpeedLoop => &[(TopicId::Est, SL_EST)],
+        };
+        for &(topic, sock) in inputs {
+            t.rx[topic.index()] = Some((ctx.bind(sock)?, sock));
+        }
+        let outputs: &[(TopicId, &'static str)] = match ctx.role {
+            Role::Plant => &[(TopicId::Meas, CL_MEAS), (TopicId::Meas, OBS_MEAS)],
+            Role::Observer => &[(TopicId::Est, CL_EST), (TopicId::Est, SL_EST)],
+            Role::CurrentLoop => &[(TopicId::Cmd, PLANT_CMD)],
+            Role::SpeedLoop => &[(TopicId::Iref, CL_IREF)],
+        };
+        for &(topic, sock) in outputs {
+            t.tx[topic.index()].push(ctx.connect(sock)?);
+        }
+        Ok(t)
+    }
+
+    fn recv_one(&mut self, topic: TopicId, block: bool) -> Result<Option<Msg>> {
+        let Some((rx, sock)) = &self.rx[topic.index()] else {
+            return Ok(None);
+        };
+        macro_rules! take {
+            ($ty:ty, $variant:ident) => {
+                match rx.recv::<$ty>(block) {
+                    Recv::Msg(m) => Some(Msg::$variant(m)),
+                    Recv::Empty => None,
+                    // A wrong-size datagram: skipped here (the host counts what it rejects).
+                    Recv::Malformed => None,
+                    Recv::Err(e) => return Err(recv_error(sock, e)),
+                }
             };
-            send_control(&to_cl, &e)?;
-            send_control(&to_sl, &e)?;
-            if m.hdr.is_end() {
+        }
+        let m = match topic {
+            TopicId::Meas => take!(Measurement, Meas),
+            TopicId::Est => take!(Estimate, Est),
+            TopicId::Iref => take!(CurrentRef, Iref),
+            TopicId::Cmd => take!(VoltageCommand, Cmd),
+            TopicId::Wref | TopicId::Truth => None,
+        };
+        if let Some(Msg::Cmd(c)) = &m {
+            if !c.hdr.is_warmup() && !c.hdr.is_end() {
+                if c.hdr.flags & FLAG_STALE_INPUT != 0 {
+                    self.stale_input_commands += 1;
+                }
+                if self.keep_trace && self.cmds.len() < self.cmds.capacity() {
+                    self.cmds.push(*c);
+                }
+            }
+        }
+        Ok(m)
+    }
+
+    /// The trace the plant saw: truth k joined with command k, up to the first sample whose
+    /// command was missing (the plant held or went safe) or made from a stale input.
+    fn trace(&self, ts: f64) -> Vec<TraceRow> {
+        let mut rows = Vec::new();
+        for (t, c) in self.truths.iter().zip(&self.cmds) {
+            if t.hdr.k != c.hdr.k
+                || t.hdr.flags & (FLAG_STALE_CMD | FLAG_SAFE_STATE) != 0
+                || c.hdr.flags & FLAG_STALE_INPUT != 0
+            {
                 break;
             }
-            continue;
+            rows.push(trace_row(ts, t, c));
         }
-        if !m.is_finite() || last_k.is_some_and(|l| m.hdr.k <= l) {
-            c.rejected_inputs += 1;
-            continue;
-        }
-        if let Some(l) = last_k {
-            c.stale_inputs += m.hdr.k - l - 1;
-        }
-        last_k = Some(m.hdr.k);
-        let mut est = obs.step(&m);
-        est.hdr.t_pub_ns = now_ns();
-        // The current loop (critical path) first.
-        c.send(&to_cl, &est)?;
-        c.send(&to_sl, &est)?;
-        c.samples += 1;
+        rows
     }
-    // ---- end of the real-time loop ----
-    summary(ctx, &c);
-    Ok(c)
 }
 
-const MEAS_RING: usize = 64;
-const IREF_RING: usize = 4;
-
-/// Inputs received but not yet used, indexed by sample (fixed-size rings, no allocation).
-struct Inbox {
-    meas: [Option<Measurement>; MEAS_RING],
-    iref: [Option<CurrentRef>; IREF_RING],
-    divider: u64,
-}
-
-impl Inbox {
-    #[inline]
-    fn drain(&mut self, meas: &Rx, iref: &Rx, c: &mut Counters) -> Result<()> {
-        loop {
-            match meas.recv::<Measurement>(false) {
-                Recv::Msg(m) => {
-                    if m.hdr.is_warmup() {
-                        continue;
-                    }
-                    if m.is_finite() || m.hdr.is_end() {
-                        self.meas[(m.hdr.k % MEAS_RING as u64) as usize] = Some(m);
-                    } else {
-                        c.rejected_inputs += 1;
-                    }
-                }
-                Recv::Empty => break,
-                Recv::Malformed => c.rejected_inputs += 1,
-                Recv::Err(e) => return Err(recv_error(CL_MEAS, e)),
+impl Transport for UdsTransport {
+    fn send(&mut self, msg: &Msg) -> Result<()> {
+        if let Msg::Truth(t) = msg {
+            if self.keep_trace
+                && !t.hdr.is_end()
+                && !t.hdr.is_warmup()
+                && self.truths.len() < self.truths.capacity()
+            {
+                self.truths.push(*t);
             }
+            return Ok(());
         }
-        loop {
-            match iref.recv::<CurrentRef>(false) {
-                Recv::Msg(r) => {
-                    if r.hdr.is_warmup() {
-                        continue;
-                    }
-                    if r.is_finite() && !r.hdr.is_end() {
-                        self.iref[((r.hdr.k / self.divider) % IREF_RING as u64) as usize] = Some(r);
-                    } else if !r.hdr.is_end() {
-                        c.rejected_inputs += 1;
-                    }
+        let marker = msg.hdr().is_warmup() || msg.hdr().is_end();
+        for tx in &self.tx[msg.topic().index()] {
+            let sent = match msg {
+                Msg::Meas(m) if marker => send_control(tx, m).map(|_| Sent::Ok)?,
+                Msg::Est(m) if marker => send_control(tx, m).map(|_| Sent::Ok)?,
+                Msg::Iref(m) if marker => send_control(tx, m).map(|_| Sent::Ok)?,
+                Msg::Cmd(m) if marker => send_control(tx, m).map(|_| Sent::Ok)?,
+                Msg::Meas(m) => tx.send(m),
+                Msg::Est(m) => tx.send(m),
+                Msg::Iref(m) => tx.send(m),
+                Msg::Cmd(m) => tx.send(m),
+                Msg::Wref(_) | Msg::Truth(_) => Sent::Ok,
+            };
+            match sent {
+                Sent::Ok => {}
+                Sent::Full => self.dropped_sends += 1,
+                Sent::PeerGone => self.peer_gone += 1,
+                Sent::Err(e) => {
+                    return Err(anyhow!(
+                        "send to {}: {}",
+                        tx.peer,
+                        std::io::Error::from_raw_os_error(e)
+                    ))
                 }
-                Recv::Empty => break,
-                Recv::Malformed => c.rejected_inputs += 1,
-                Recv::Err(e) => return Err(recv_error(CL_IREF, e)),
             }
         }
         Ok(())
     }
 
-    fn meas(&self, k: u64) -> Option<Measurement> {
-        self.meas[(k % MEAS_RING as u64) as usize].filter(|m| m.hdr.k == k)
+    fn try_recv(&mut self, topic: TopicId) -> Result<Option<Msg>> {
+        if let Some(m) = self.peeked[topic.index()].take() {
+            return Ok(Some(m));
+        }
+        self.recv_one(topic, false)
     }
 
-    fn iref(&self, j: u64) -> Option<CurrentRef> {
-        self.iref[((j / self.divider) % IREF_RING as u64) as usize].filter(|r| r.hdr.k == j)
+    fn pending(&mut self, topic: TopicId) -> Result<bool> {
+        if self.peeked[topic.index()].is_none() {
+            self.peeked[topic.index()] = self.recv_one(topic, false)?;
+        }
+        Ok(self.peeked[topic.index()].is_some())
     }
-}
 
-/// The current loop: measurement k + estimate k + current reference → command k.
-fn current_loop(ctx: &RoleCtx) -> Result<Counters> {
-    let meas_rx = ctx.bind(CL_MEAS)?;
-    let est_rx = ctx.bind(CL_EST)?;
-    let iref_rx = ctx.bind(CL_IREF)?;
-    let to_plant = ctx.connect(PLANT_CMD)?;
-    let mut ctrl = CurrentLoopStep::new(ctx.sc);
-    let mut inbox = Inbox {
-        meas: [None; MEAS_RING],
-        iref: [None; IREF_RING],
-        divider: u64::from(ctx.sc.rates.speed_divider),
-    };
-    let mut c = Counters::default();
-    let mut last_k: Option<u64> = None;
-    let mut active_ref = CurrentRef::default();
-    ctx.ready()?;
-    let mut last_input = now_ns();
-    // ---- real-time loop: no allocation, no locks, no logging ----
-    while !ctx.stopped() {
-        let e = match est_rx.recv::<Estimate>(true) {
-            Recv::Msg(e) => e,
-            Recv::Empty => {
-                check_idle(ctx, last_input, "estimate from the observer")?;
-                continue;
-            }
-            Recv::Malformed => {
-                c.rejected_inputs += 1;
-                continue;
-            }
-            Recv::Err(e) => return Err(recv_error(CL_EST, e)),
-        };
-        last_input = now_ns();
-        inbox.drain(&meas_rx, &iref_rx, &mut c)?;
-        if e.hdr.is_warmup() || e.hdr.is_end() {
-            send_control(
-                &to_plant,
-                &VoltageCommand {
-                    hdr: e.hdr,
-                    ..Default::default()
-                },
-            )?;
-            if e.hdr.is_end() {
-                break;
-            }
-            continue;
+    fn wait(&mut self, topic: TopicId, _timeout: Duration) -> Result<()> {
+        // A blocking receive returns at the latest after RECV_SLICE (or on a signal).
+        if self.peeked[topic.index()].is_none() {
+            self.peeked[topic.index()] = self.recv_one(topic, true)?;
         }
-        if !e.is_finite() || last_k.is_some_and(|l| e.hdr.k <= l) {
-            c.rejected_inputs += 1;
-            continue;
-        }
-        let k = e.hdr.k;
-        if let Some(l) = last_k {
-            c.stale_inputs += k - l - 1;
-        }
-        last_k = Some(k);
-        let Some(meas) = inbox.meas(k) else {
-            // The observer saw measurement k, so it was sent; we lost it.
-            c.stale_inputs += 1;
-            continue;
-        };
-        let mut stale_ref = false;
-        if let Some(j) = ctrl.expected_ref_index(k) {
-            match inbox.iref(j) {
-                Some(r) => active_ref = r,
-                None => {
-                    // Real time: use the last reference we have, and count it.
-                    c.stale_inputs += 1;
-                    stale_ref = true;
-                }
-            }
-        }
-        let mut cmd = ctrl.step(&meas, &e, &active_ref);
-        if stale_ref {
-            cmd.hdr.flags |= FLAG_STALE_INPUT;
-        }
-        cmd.hdr.t_pub_ns = now_ns();
-        c.send(&to_plant, &cmd)?;
-        c.samples += 1;
+        Ok(())
     }
-    // ---- end of the real-time loop ----
-    summary(ctx, &c);
-    Ok(c)
-}
-
-/// The speed loop: every N-th estimate → current reference.
-fn speed_loop(ctx: &RoleCtx) -> Result<Counters> {
-    let est_rx = ctx.bind(SL_EST)?;
-    let to_cl = ctx.connect(CL_IREF)?;
-    let mut ctrl = SpeedLoopStep::new(ctx.sc);
-    let mut c = Counters::default();
-    let mut last_k: Option<u64> = None;
-    ctx.ready()?;
-    let mut last_input = now_ns();
-    // ---- real-time loop: no allocation, no locks, no logging ----
-    while !ctx.stopped() {
-        let e = match est_rx.recv::<Estimate>(true) {
-            Recv::Msg(e) => e,
-            Recv::Empty => {
-                check_idle(ctx, last_input, "estimate from the observer")?;
-                continue;
-            }
-            Recv::Malformed => {
-                c.rejected_inputs += 1;
-                continue;
-            }
-            Recv::Err(e) => return Err(recv_error(SL_EST, e)),
-        };
-        last_input = now_ns();
-        if e.hdr.is_warmup() || e.hdr.is_end() {
-            send_control(
-                &to_cl,
-                &CurrentRef {
-                    hdr: e.hdr,
-                    ..Default::default()
-                },
-            )?;
-            if e.hdr.is_end() {
-                break;
-            }
-            continue;
-        }
-        if !e.is_finite() || last_k.is_some_and(|l| e.hdr.k <= l) {
-            c.rejected_inputs += 1;
-            continue;
-        }
-        if let Some(l) = last_k {
-            c.stale_inputs += e.hdr.k - l - 1;
-        }
-        last_k = Some(e.hdr.k);
-        if let Some(mut r) = ctrl.step(&e) {
-            r.hdr.t_pub_ns = now_ns();
-            c.send(&to_cl, &r)?;
-            c.samples += 1;
-        }
-    }
-    // ---- end of the real-time loop ----
-    summary(ctx, &c);
-    Ok(c)
 }
 
 // ------------------------------------------------------------------------------------------
@@ -703,34 +473,6 @@ pub struct UdsNodeArgs {
     pub out: Option<PathBuf>,
 }
 
-/// Set by SIGTERM/SIGINT in node processes.
-static STOP: AtomicBool = AtomicBool::new(false);
-
-extern "C" fn on_signal(_sig: libc::c_int) {
-    STOP.store(true, Ordering::SeqCst);
-}
-
-fn install_signal_handlers() -> Result<()> {
-    for sig in [libc::SIGINT, libc::SIGTERM] {
-        // SAFETY: `sa` is zero-initialised and then filled in; its handler is an `extern "C"`
-        // function that only stores to an atomic (async-signal-safe). No SA_RESTART: a blocked
-        // recv returns EINTR and the loop sees the stop flag at once.
-        let rc = unsafe {
-            let mut sa: libc::sigaction = std::mem::zeroed();
-            sa.sa_sigaction = on_signal as *const () as libc::sighandler_t;
-            libc::sigemptyset(&mut sa.sa_mask);
-            libc::sigaction(sig, &sa, std::ptr::null_mut())
-        };
-        if rc != 0 {
-            bail!(
-                "cannot install handler for signal {sig}: {}",
-                std::io::Error::last_os_error()
-            );
-        }
-    }
-    Ok(())
-}
-
 /// Asks the kernel to send SIGTERM when the parent (the bench runner) dies, so that a node is
 /// never left behind; stops at once if the parent is already gone.
 fn stop_with_parent() {
@@ -746,7 +488,7 @@ fn stop_with_parent() {
     };
     // SAFETY: getppid has no arguments and cannot fail.
     if unsafe { libc::getppid() } == 1 {
-        STOP.store(true, Ordering::SeqCst);
+        stop_flag().store(true, Ordering::SeqCst);
     }
 }
 
@@ -834,7 +576,7 @@ pub fn run_uds_node(args: &UdsNodeArgs) -> Result<()> {
             priority: args.priority,
         },
         lock_memory: true,
-        stop: &STOP,
+        stop: stop_flag(),
         announce: true,
         keep_trace: false,
     };
@@ -1073,7 +815,8 @@ pub(crate) fn run_chain_threads(
     keep_trace: bool,
 ) -> Result<PlantOutcome> {
     let sock = SockDir::create("drivelab-udst")?;
-    let stop = AtomicBool::new(false);
+    // The hosts' stop condition must outlive them: one flag per run, leaked (tests only).
+    let stop: &'static AtomicBool = Box::leak(Box::new(AtomicBool::new(false)));
     let ctx = |role| RoleCtx {
         role,
         dir: &sock.path,
@@ -1081,14 +824,13 @@ pub(crate) fn run_chain_threads(
         seconds,
         node: NodeSpec::default(),
         lock_memory: false,
-        stop: &stop,
+        stop,
         announce: false,
         keep_trace,
     };
     std::thread::scope(|s| {
         let run = |role| {
             let c = ctx(role);
-            let stop = &stop;
             s.spawn(move || {
                 let r = run_role(&c);
                 if r.is_err() {

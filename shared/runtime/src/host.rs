@@ -306,11 +306,7 @@ pub struct Host<T: Transport> {
     store: Store,
     /// Source only: cycle latency and deadline misses.
     pub cycle: CycleMonitor,
-    stop: fn() -> bool,
-}
-
-fn never() -> bool {
-    false
+    stop: Box<dyn Fn() -> bool + Send>,
 }
 
 impl<T: Transport> Host<T> {
@@ -367,13 +363,13 @@ impl<T: Transport> Host<T> {
             store: Store::new(divider),
             cycle: CycleMonitor::new(cfg.ts_ns),
             cfg,
-            stop: never,
+            stop: Box::new(|| false),
         }
     }
 
     /// Sets the function that says a stop was requested (SIGINT/SIGTERM).
-    pub fn stop_when(&mut self, f: fn() -> bool) {
-        self.stop = f;
+    pub fn stop_when(&mut self, f: impl Fn() -> bool + Send + 'static) {
+        self.stop = Box::new(f);
     }
 
     fn stopping(&self) -> bool {

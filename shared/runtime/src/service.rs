@@ -135,6 +135,12 @@ pub fn install_signal_handlers() -> Result<()> {
     Ok(())
 }
 
+/// The flag the handlers of [`install_signal_handlers`] set (no SA_RESTART: a blocked
+/// receive returns EINTR, so a loop sees it at once).
+pub fn stop_flag() -> &'static AtomicBool {
+    &STOP
+}
+
 /// True once SIGINT or SIGTERM arrived.
 pub fn stop_requested() -> bool {
     STOP.load(Ordering::Relaxed)
