@@ -116,3 +116,62 @@ fn bench_rounds_interleave_the_variants_and_merge_their_samples() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("--rounds must be in 1..=100"));
     let _ = std::fs::remove_dir_all(&out);
 }
+
+#[test]
+fn bench_compares_topologies_with_their_cpu_time() {
+    let out = std::env::temp_dir().join(format!("drivelab-bench-topo-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let o = bench(
+        &[
+            "--quick",
+            "--topologies",
+            "four-process,two-process,one-process",
+            "--rounds",
+            "2",
+            "--json",
+        ],
+        &out,
+    );
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let rows = report["rows"].as_array().unwrap();
+    let got: Vec<(String, String)> = rows
+        .iter()
+        .map(|r| {
+            (
+                r["variant"].as_str().unwrap().to_string(),
+                r["placement"].as_str().unwrap().to_string(),
+            )
+        })
+        .collect();
+    let want: Vec<(String, String)> = [
+        ("floor", "-"),
+        ("topology", "four-process"),
+        ("topology", "two-process"),
+        ("topology", "one-process"),
+    ]
+    .iter()
+    .map(|(a, b)| (a.to_string(), b.to_string()))
+    .collect();
+    assert_eq!(got, want);
+    for r in &rows[1..] {
+        // Both rounds of 0.1 s at 10 kHz count: 2000 samples (the plant's own count).
+        assert_eq!(r["samples"].as_u64(), Some(2000), "{r}");
+        assert!(r["cpu_s_per_s"].as_f64().is_some_and(|c| c > 0.0), "{r}");
+        assert!(r["p99_ratio_to_floor"].as_f64().is_some(), "{r}");
+    }
+    // Each topology ran once per round in its own folder, with its processes.
+    let s: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(out.join("topology-two-process-10000hz/round2/summary.json")).unwrap(),
+    )
+    .unwrap();
+    let mut procs: Vec<&String> = s["processes"].as_object().unwrap().keys().collect();
+    procs.sort();
+    assert_eq!(procs, ["controller", "plant"]);
+    let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
+        .args(["bench", "--topologies", "nine-process"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("unknown topology 'nine-process'"));
+    let _ = std::fs::remove_dir_all(&out);
+}

@@ -40,6 +40,12 @@ pub struct BenchArgs {
     /// (default 5; with --quick 1).
     #[arg(long, value_name = "N")]
     pub rounds: Option<usize>,
+    /// Compare topologies instead of placements (comma-separated shipped names or files):
+    /// the iceoryx2 chain in each topology, interleaved with the floor, e.g.
+    /// `--topologies four-process,two-process,one-process --rates 10000`. Reports each
+    /// topology's cycle latency, misses and the CPU time its processes used.
+    #[arg(long, value_delimiter = ',', value_name = "NAME|FILE,...")]
+    pub topologies: Vec<String>,
     /// Print bench.json on stdout instead of the Markdown table.
     #[arg(long)]
     pub json: bool,
@@ -110,6 +116,9 @@ pub struct Row {
     pub p99_ratio_to_uds: Option<f64>,
     /// Histogram file (.hgrm) of the cycle latency.
     pub hgrm: String,
+    /// CPU time (user + system) of the drive's processes per simulated second, s/s
+    /// (iceoryx2 variants).
+    pub cpu_s_per_s: Option<f64>,
 }
 
 fn per_million(n: u64, of: u64) -> f64 {
@@ -161,11 +170,18 @@ fn row(variant: &str, placement: &str, hz: f64, m: &VariantResult, hgrm: &Path) 
             .unwrap_or_default()
             .to_string_lossy()
             .into_owned(),
+        cpu_s_per_s: None,
     }
 }
 
-/// Runs the iceoryx2 chain through the real launcher and reads its histograms back.
-fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str) -> Result<VariantResult> {
+/// Runs the iceoryx2 chain through the real launcher (in `topology`, if given) and reads
+/// its histograms and its processes' CPU time back.
+fn run_iceoryx2(
+    sc: &Scenario,
+    out: &Path,
+    bus: &str,
+    topology: Option<&str>,
+) -> Result<(VariantResult, f64)> {
     std::fs::create_dir_all(out)?;
     let file = out.join("scenario.in.toml");
     std::fs::write(&file, toml::to_string(sc)?)?;
@@ -182,21 +198,36 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str) -> Result<VariantResult> {
         faults: Vec::new(),
         restart: launcher::Restart::Never,
         fault_seed: 0,
-        topology: None,
+        topology: topology.map(String::from),
     };
     let r = launcher::run(&o)?;
+    // CPU time: every stage's statistics carry its process's total; count each process once.
+    let mut cpu = std::collections::BTreeMap::new();
+    for e in std::fs::read_dir(out)?.flatten() {
+        let p = e.path();
+        if p.to_string_lossy().ends_with(".stats.json") {
+            let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&p)?)?;
+            if let (Some(pr), Some(c)) = (v["process"].as_str(), v["process_cpu_s"].as_f64()) {
+                cpu.insert(pr.to_string(), c);
+            }
+        }
+    }
+    let cpu_s: f64 = cpu.values().sum();
     let cycle = LatencyHist::read_v2("cycle", &out.join("cycle.hdr"))?;
     let lateness = LatencyHist::read_v2("lateness", &out.join("plant.lateness.hdr"))?;
     let plant = &r.summary["counters"]["plant"];
     let mut misses = drivelab_runtime::timing::MissCounter::default();
     misses.misses = plant["deadline_misses"].as_u64().unwrap_or(0);
     misses.longest_run = plant["longest_miss_run"].as_u64().unwrap_or(0);
-    Ok(VariantResult {
-        cycle,
-        lateness,
-        samples: r.summary["samples"].as_u64().unwrap_or(0),
-        misses,
-    })
+    Ok((
+        VariantResult {
+            cycle,
+            lateness,
+            samples: r.summary["samples"].as_u64().unwrap_or(0),
+            misses,
+        },
+        cpu_s,
+    ))
 }
 
 /// Runs the whole bench and writes bench.json, bench.md, .hgrm files and percentile plots.
@@ -241,12 +272,28 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     }
     // The variants of every rate, each measured in `rounds` interleaved slices so that the
     // machine's slow changes (a VM's noisy minutes) reach all of them alike.
-    let mut jobs: Vec<(&str, String)> = vec![("floor", "-".into()), ("inprocess", "-".into())];
-    for p in &placements {
-        jobs.push(("uds", p.clone()));
-        jobs.push(("iceoryx2", p.clone()));
-        if a.spin_us > 0.0 && p == "one-core" {
-            jobs.push(("iceoryx2+spin", p.clone()));
+    let mut jobs: Vec<(&str, String)> = vec![("floor", "-".into())];
+    let mut topo_paths: std::collections::BTreeMap<String, String> = Default::default();
+    if a.topologies.is_empty() {
+        jobs.push(("inprocess", "-".into()));
+        for p in &placements {
+            jobs.push(("uds", p.clone()));
+            jobs.push(("iceoryx2", p.clone()));
+            if a.spin_us > 0.0 && p == "one-core" {
+                jobs.push(("iceoryx2+spin", p.clone()));
+            }
+        }
+    } else {
+        for t in &a.topologies {
+            drivelab_runtime::topology::load(t).map_err(|e| anyhow!("--topologies: {e}"))?;
+            // Shown (and filed) by its name: a file's stem.
+            let name = Path::new(t.as_str())
+                .file_stem()
+                .map_or(t.clone(), |s| s.to_string_lossy().into_owned());
+            if topo_paths.insert(name.clone(), t.clone()).is_some() {
+                return Err(anyhow!("--topologies: '{name}' is listed twice"));
+            }
+            jobs.push(("topology", name));
         }
     }
     let total = rates.len() * jobs.len() * rounds + 2;
@@ -265,6 +312,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         let tag = |v: &str, p: &str| format!("{v}-{p}-{}hz", hz as u64);
         let slice = seconds / rounds as f64;
         let mut acc: Vec<Option<VariantResult>> = jobs.iter().map(|_| None).collect();
+        let mut cpu: Vec<f64> = vec![0.0; jobs.len()];
         for round in 0..rounds {
             for (i, (name, p)) in jobs.iter().enumerate() {
                 let round_tag = if rounds > 1 {
@@ -312,7 +360,17 @@ pub fn run(a: &BenchArgs) -> Result<()> {
                     "iceoryx2" => {
                         let sc = scenario_at(&base, hz, slice, placement(p)?)?;
                         let bus = format!("b{}r{}j{i}", std::process::id(), round);
-                        run_iceoryx2(&sc, &dir("iceoryx2"), &bus)?
+                        let (m, c) = run_iceoryx2(&sc, &dir("iceoryx2"), &bus, None)?;
+                        cpu[i] += c;
+                        m
+                    }
+                    "topology" => {
+                        let sc = scenario_at(&base, hz, slice, one)?;
+                        let bus = format!("b{}r{}j{i}t", std::process::id(), round);
+                        let t = topo_paths.get(p).map(String::as_str);
+                        let (m, c) = run_iceoryx2(&sc, &dir("topology"), &bus, t)?;
+                        cpu[i] += c;
+                        m
                     }
                     _ => {
                         // The same chain with the plant sleeping to spin_us before each
@@ -322,7 +380,9 @@ pub fn run(a: &BenchArgs) -> Result<()> {
                         sc.timing.plant_spin_us = spin_us(a.spin_us, hz);
                         sc.validate().map_err(|e| anyhow!("--spin-us: {e}"))?;
                         let bus = format!("b{}r{}j{i}s", std::process::id(), round);
-                        run_iceoryx2(&sc, &dir("iceoryx2-spin"), &bus)?
+                        let (m, c) = run_iceoryx2(&sc, &dir("iceoryx2-spin"), &bus, None)?;
+                        cpu[i] += c;
+                        m
                     }
                 };
                 match &mut acc[i] {
@@ -332,7 +392,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
                 bar.inc(1);
             }
         }
-        for ((name, p), m) in jobs.iter().zip(acc) {
+        for (((name, p), m), cpu_s) in jobs.iter().zip(acc).zip(cpu) {
             let m = m.ok_or_else(|| anyhow!("{name} {p}: no measurement"))?;
             let file_tag = if *name == "floor" || *name == "inprocess" {
                 tag(name, "core1")
@@ -341,8 +401,13 @@ pub fn run(a: &BenchArgs) -> Result<()> {
             };
             let h = out.join(format!("{file_tag}.hgrm"));
             std::fs::write(&h, m.cycle.hgrm())?;
+            let mut r = row(name, p, hz, &m, &h);
+            if cpu_s > 0.0 {
+                // Per simulated second: the rounds add up to `seconds` of drive.
+                r.cpu_s_per_s = Some(cpu_s / seconds);
+            }
             measured.push((
-                row(name, p, hz, &m, &h),
+                r,
                 Measured {
                     result: m,
                     curve_label: if p == "-" {
@@ -484,8 +549,11 @@ pub fn markdown(
 ) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "Cycle latency from t_k to command k available at the plant, µs ({seconds} s per variant in {rounds} interleaved round(s); floor = bare timer wake-up lateness).\n");
-    let _ = writeln!(s, "| rate | variant | placement | p50 | p99 | p99.9 | max | misses/M | longest run | p99 − floor | p99 / floor | p99 / uds | budget |");
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(s, "| rate | variant | placement | p50 | p99 | p99.9 | max | misses/M | longest run | p99 − floor | p99 / floor | p99 / uds | CPU s/s | budget |");
+    let _ = writeln!(
+        s,
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+    );
     for r in rows {
         let verdict = match r.holds_budget {
             Some(true) => "HOLDS",
@@ -494,7 +562,7 @@ pub fn markdown(
         };
         let _ = writeln!(
             s,
-            "| {} kHz | {} | {} | {:.1} | {:.1} | {:.1} | {:.0} | {:.0} | {} | {} | {} | {} | {} |",
+            "| {} kHz | {} | {} | {:.1} | {:.1} | {:.1} | {:.0} | {:.0} | {} | {} | {} | {} | {} | {} |",
             r.rate_hz / 1000.0,
             r.variant,
             r.placement,
@@ -507,6 +575,7 @@ pub fn markdown(
             fmt_opt(r.p99_minus_floor_us, 1),
             fmt_opt(r.p99_ratio_to_floor, 2),
             fmt_opt(r.p99_ratio_to_uds, 2),
+            fmt_opt(r.cpu_s_per_s, 3),
             verdict
         );
     }

@@ -726,6 +726,8 @@ pub struct StageStats<'a> {
     pub pid: u32,
     /// RT setup report of the process.
     pub rt: &'a RtReport,
+    /// CPU time (user + system) of the whole process at its end, s.
+    pub process_cpu_s: f64,
     /// Counters.
     pub counters: Counters,
     /// The stage's own diagnostics.
@@ -744,6 +746,7 @@ fn write_stats<T: Transport>(
 ) -> Result<()> {
     let Some(dir) = &args.out else { return Ok(()) };
     let diags = host.diagnostics();
+    let process_cpu_s = process_cpu_s();
     for (i, h) in host.stages.iter().enumerate() {
         let name = h.stage.name();
         let source = i == 0 && host.is_source();
@@ -774,6 +777,7 @@ fn write_stats<T: Transport>(
             process,
             pid: std::process::id(),
             rt,
+            process_cpu_s,
             counters,
             diagnostics: diags[i].1.iter().copied().collect(),
             latency_us,
@@ -783,6 +787,18 @@ fn write_stats<T: Transport>(
             .with_context(|| format!("write {}", p.display()))?;
     }
     Ok(())
+}
+
+/// CPU time (user + system) this process has used, s.
+fn process_cpu_s() -> f64 {
+    // SAFETY: getrusage writes into the zero-initialised struct we pass; RUSAGE_SELF is valid.
+    let ru = unsafe {
+        let mut ru: libc::rusage = std::mem::zeroed();
+        libc::getrusage(libc::RUSAGE_SELF, &mut ru);
+        ru
+    };
+    let tv = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    tv(ru.ru_utime) + tv(ru.ru_stime)
 }
 
 /// The plant's last true state as JSON (the supervisor hands it to a restarted source).
