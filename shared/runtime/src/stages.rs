@@ -755,6 +755,141 @@ mod tests {
         }
     }
 
+    /// Runs the four stages directly up to sample `k_end` (exclusive) and returns them with
+    /// the last messages, as a running drive would have them.
+    #[allow(clippy::type_complexity)]
+    fn run_to(
+        sc: &Scenario,
+        k_end: u64,
+    ) -> (
+        PlantStage,
+        CurrentLoopStage,
+        Vec<(Measurement, Estimate, CurrentRef, VoltageCommand)>,
+    ) {
+        let mut plant = PlantStage::new(sc);
+        let mut obs = ObserverStage::new(sc);
+        let mut cur = CurrentLoopStage::new(sc);
+        let mut spd = SpeedLoopStage::new(sc);
+        let (mut cmd, mut iref) = (None::<VoltageCommand>, CurrentRef::default());
+        let mut log = Vec::new();
+        for k in 0..k_end {
+            let mut ib = Inbox::default();
+            if let Some(c) = cmd {
+                ib.put(Msg::Cmd(c));
+            }
+            let mut out = Outbox::default();
+            plant.step(k, &ib, &mut out);
+            let Some(Msg::Meas(m)) = out.get(TopicId::Meas).copied() else {
+                panic!()
+            };
+            let mut ib = Inbox::default();
+            ib.put(Msg::Meas(m));
+            let mut out = Outbox::default();
+            obs.step(k, &ib, &mut out);
+            let Some(Msg::Est(e)) = out.get(TopicId::Est).copied() else {
+                panic!()
+            };
+            let mut ib = Inbox::default();
+            ib.put(Msg::Meas(m));
+            ib.put(Msg::Est(e));
+            if k > 0 {
+                ib.put(Msg::Iref(iref));
+            }
+            let mut out = Outbox::default();
+            cur.step(k, &ib, &mut out);
+            let c = cmd_of(&out);
+            let used = iref;
+            if k.is_multiple_of(spd.divider()) {
+                let mut ib = Inbox::default();
+                ib.put(Msg::Est(e));
+                let mut out = Outbox::default();
+                spd.step(k, &ib, &mut out);
+                if let Some(Msg::Iref(r)) = out.get(TopicId::Iref).copied() {
+                    iref = r;
+                }
+            }
+            plant.after_publish();
+            cmd = Some(c);
+            log.push((m, e, used, c));
+        }
+        (plant, cur, log)
+    }
+
+    #[test]
+    fn a_restarted_current_loop_takes_over_without_a_voltage_bump() {
+        let sc = scenario("kyslan-pi");
+        // 35 ms: on the 70 rad/s plateau with i_d* = -1.6 A, before the load at 40 ms.
+        let k = 350;
+        let (_, _, log) = run_to(&sc, k + 1);
+        let (m, e, r, running) = log[k as usize];
+        let prev = log[k as usize - 1].3;
+        let mut fresh = CurrentLoopStage::new(&sc);
+        let mut ib = Inbox::default();
+        ib.put(Msg::Meas(m));
+        ib.put(Msg::Est(e));
+        ib.put(Msg::Iref(r));
+        assert_eq!(fresh.rejoin(k, &ib), Rejoin::Done);
+        let mut out = Outbox::default();
+        fresh.step(k, &ib, &mut out);
+        let took_over = cmd_of(&out);
+        let norm = |u: [f64; 2]| u[0].hypot(u[1]);
+        let bump = norm([
+            took_over.u_dq[0] - running.u_dq[0],
+            took_over.u_dq[1] - running.u_dq[1],
+        ]);
+        // The preset reproduces the voltage being applied (command k-1); the running
+        // controller has moved on by one sample since. Bound: that one-sample change.
+        let step = norm([
+            running.u_dq[0] - prev.u_dq[0],
+            running.u_dq[1] - prev.u_dq[1],
+        ]);
+        eprintln!(
+            "bump {bump:.3e} V, one-sample change {step:.3e} V, |u| {:.2} V",
+            norm(running.u_dq)
+        );
+        assert!(
+            bump <= 2.0 * step + 1e-9 * norm(running.u_dq),
+            "bump {bump} V > 2 × {step} V"
+        );
+        // A cold start instead (no rejoin) bumps by far more.
+        let mut cold = CurrentLoopStage::new(&sc);
+        let mut out = Outbox::default();
+        cold.step(k, &ib, &mut out);
+        let c = cmd_of(&out);
+        let cold_bump = norm([c.u_dq[0] - running.u_dq[0], c.u_dq[1] - running.u_dq[1]]);
+        assert!(
+            cold_bump > 10.0 * bump.max(1e-6),
+            "cold {cold_bump} V vs rejoin {bump} V"
+        );
+    }
+
+    #[test]
+    fn a_restarted_speed_loop_takes_over_from_the_reference_in_use() {
+        let sc = scenario("kyslan-pi");
+        let k = 350;
+        let (_, _, log) = run_to(&sc, k + 1);
+        let (_, e, r, c) = log[k as usize];
+        let mut fresh = SpeedLoopStage::new(&sc);
+        let mut ib = Inbox::default();
+        ib.put(Msg::Est(e));
+        ib.put(Msg::Cmd(c));
+        assert_eq!(fresh.rejoin(k, &ib), Rejoin::Done);
+        let mut out = Outbox::default();
+        fresh.step(k, &ib, &mut out);
+        let Some(Msg::Iref(out_r)) = out.get(TopicId::Iref).copied() else {
+            panic!()
+        };
+        // On the plateau the running loop's i_q* hardly moves between speed samples: the
+        // taken-over output continues it (within 1 % of the current limit).
+        let lim = sc.i_q_max();
+        assert!(
+            (out_r.i_q_ref - r.i_q_ref).abs() < 0.01 * lim,
+            "took over at {} A, running {} A",
+            out_r.i_q_ref,
+            r.i_q_ref
+        );
+    }
+
     #[test]
     fn observer_rejoins_from_two_consecutive_measurements() {
         let sc = scenario("kyslan-pi");

@@ -59,13 +59,14 @@ impl CurrentLoopStep {
             est.theta_e,
         );
         let omega_e = self.pole_pairs * est.omega_m;
-        // The applied vector was rotated with 1.5 samples of advance by the previous owner.
+        // The applied vector is command k−1: the previous owner rotated it with its estimate
+        // k−1 plus 1.5 samples of advance, i.e. with about θ̂_k + 0.5·ω_e·T_s.
         let u = park(
             AlphaBeta {
                 alpha: meas.u_ab_applied[0],
                 beta: meas.u_ab_applied[1],
             },
-            est.theta_e + 1.5 * omega_e * self.ts,
+            est.theta_e + 0.5 * omega_e * self.ts,
         );
         let input = CurrentInput {
             i_d_ref: iref.i_d_ref,
