@@ -73,6 +73,49 @@ fn every_shipped_topology_gives_the_inprocess_trace_in_lockstep() {
 }
 
 #[test]
+fn iceoryx2_event_wake_ups_give_the_same_trace() {
+    let _serial = serial();
+    // The futex words are the default; the iceoryx2 event service is the other transport
+    // of wake-ups. Same trace bit for bit, in a split topology (hops on the bus).
+    let sc = variant(
+        "evwake",
+        "kyslan-pi",
+        &[(
+            "# 200 W at 3500 rpm",
+            "# 200 W at 3500 rpm\n\n[timing]\nwake = \"iceoryx2\"",
+        )],
+    );
+    let sc = sc.to_str().unwrap();
+    let (ip, _) = run_ok(
+        "evip",
+        &[
+            "--scenario",
+            sc,
+            "--duration",
+            "0.06",
+            "--clock",
+            "inprocess",
+        ],
+    );
+    let (ls, _) = run_ok(
+        "evls",
+        &[
+            "--scenario",
+            sc,
+            "--duration",
+            "0.06",
+            "--clock",
+            "lockstep",
+            "--topology",
+            "two-process",
+        ],
+    );
+    assert!(read(&ls.join("trace.csv")) == read(&ip.join("trace.csv")));
+    let used = std::fs::read_to_string(ls.join("scenario.toml")).unwrap();
+    assert!(used.contains("wake = \"iceoryx2\""), "{used}");
+}
+
+#[test]
 fn bad_topologies_fail_with_one_line_naming_the_problem_and_leave_nothing() {
     let _serial = serial();
     let dir = scratch("badtopo");
