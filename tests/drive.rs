@@ -356,3 +356,45 @@ fn plot_redraws_valid_png_and_svg_for_a_recorded_run() {
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("no trace.csv"));
 }
+
+#[test]
+fn a_realtime_drive_reports_its_cpu_latency_request() {
+    let _serial = serial();
+    // Default: a request of 0 µs while the drive runs, either held or refused with the reason.
+    let (_, s) = run_ok("pmqos", &["--duration", "0.05"]);
+    let t = &s["timing"];
+    assert_eq!(t["cpu_latency_us_requested"], 0, "{t}");
+    let held = t["cpu_latency_request_held"].as_u64();
+    let error = t["cpu_latency_request_error"].as_str();
+    assert!(
+        held == Some(0) && error.is_none()
+            || held.is_none() && error.is_some_and(|e| e.contains("/dev/cpu_dma_latency")),
+        "{t}"
+    );
+    // Turned off in the scenario: no request.
+    let sc = variant(
+        "pmqosoff",
+        "kyslan-pi",
+        &[(
+            "# 200 W at 3500 rpm",
+            "# 200 W at 3500 rpm\n\n[timing]\ncpu_latency_us = \"none\"",
+        )],
+    );
+    let (_, s) = run_ok(
+        "pmqosoff",
+        &["--duration", "0.05", "--scenario", sc.to_str().unwrap()],
+    );
+    assert!(
+        s["timing"]["cpu_latency_us_requested"].is_null(),
+        "{}",
+        s["timing"]
+    );
+    assert!(s["timing"]["cpu_latency_request_held"].is_null());
+    // Lockstep has no wall clock to protect: no request.
+    let (_, s) = run_ok("pmqosls", &["--duration", "0.05", "--clock", "lockstep"]);
+    assert!(
+        s["timing"]["cpu_latency_request_held"].is_null(),
+        "{}",
+        s["timing"]
+    );
+}

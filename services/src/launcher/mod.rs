@@ -297,6 +297,43 @@ fn run_bus(
     })
 }
 
+/// The CPU wake-up latency request of a real-time drive, or why there is none (a one-line
+/// warning; an error with `--rt-strict`).
+fn cpu_latency_request(
+    sc: &Scenario,
+    o: &RunOptions,
+) -> Result<(
+    Option<drivelab_runtime::rt::CpuLatencyRequest>,
+    Option<String>,
+)> {
+    use drivelab_runtime::config::CpuLatency;
+    use drivelab_runtime::rt::{CpuLatencyRequest, CPU_DMA_LATENCY};
+    let CpuLatency::Us(v) = sc.timing.cpu_latency_us else {
+        return Ok((None, None));
+    };
+    if o.clock != Clock::Realtime || o.no_rt {
+        return Ok((None, None));
+    }
+    match CpuLatencyRequest::hold(v) {
+        Ok(r) => {
+            if o.verbose {
+                eprintln!("drivelab: holding a CPU wake-up latency request of {v} µs ({CPU_DMA_LATENCY}) while the drive runs");
+            }
+            Ok((Some(r), None))
+        }
+        Err(e) => {
+            let why = format!(
+                "cannot hold a CPU wake-up latency request of {v} µs ({CPU_DMA_LATENCY}: {e})"
+            );
+            if o.rt_strict {
+                bail!("--rt-strict: {why}");
+            }
+            eprintln!("drivelab: warning: {why}; idle CPUs may wake late ([timing] cpu_latency_us = \"none\" silences this)");
+            Ok((None, Some(why)))
+        }
+    }
+}
+
 /// Applies `--topology`, resolves the scenario's topology against the stages' declarations
 /// (a user's executable is asked with `--describe`) and makes `exec` paths absolute.
 pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Result<TopologyPlan> {
@@ -412,6 +449,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     std::fs::write(&sc_path, toml::to_string(&sc)?)
         .with_context(|| format!("write {}", sc_path.display()))?;
     std::fs::write(out.join("topology.json"), serde_json::to_vec_pretty(&topo)?)?;
+    // A real-time drive holds the CPU wake-up latency request while it runs (released when
+    // this value drops, or by the kernel if the launcher dies).
+    let (latency_request, latency_error) = cpu_latency_request(&sc, o)?;
     let wall = Instant::now();
     let BusRun {
         rows,
@@ -461,7 +501,19 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     drivelab_runtime::trace::write_csv(&out.join("trace.csv"), &rows)?;
     let metrics = speed_metrics(&sc, &rows);
     let design = DriveDesign::from_scenario(&sc);
+    let timing = json!({
+        "cpu_latency_us_requested": match sc.timing.cpu_latency_us {
+            drivelab_runtime::config::CpuLatency::Us(v) if o.clock == Clock::Realtime && !o.no_rt => Some(v),
+            _ => None,
+        },
+        "cpu_latency_request_held": latency_request.as_ref().map(|r| r.value_us),
+        "cpu_latency_request_error": latency_error,
+        "plant_spin_us": sc.timing.plant_spin_us,
+        "wake": sc.timing.wake,
+    });
+    drop(latency_request);
     let mut summary = json!({
+        "timing": timing,
         "scenario": sc.name,
         "clock": o.clock,
         "rate_hz": sc.rates.sample_hz,

@@ -78,6 +78,10 @@ pub struct Timing {
     /// shared segment of the bus, ~3 µs per hop here) or "iceoryx2" (the event service, a
     /// Unix datagram socket underneath, ~6-8 µs per hop here).
     pub wake: crate::bus::WakeKind,
+    /// CPU wake-up latency request held while a real-time drive runs, µs (a PM QoS request
+    /// on /dev/cpu_dma_latency, as cyclictest makes; the kernel drops it when the launcher
+    /// exits), or "none". Default 0: idle CPUs do not enter deep idle states.
+    pub cpu_latency_us: CpuLatency,
 }
 
 impl Default for Timing {
@@ -85,6 +89,46 @@ impl Default for Timing {
         Self {
             plant_spin_us: 0.0,
             wake: crate::bus::WakeKind::Futex,
+            cpu_latency_us: CpuLatency::Us(0),
+        }
+    }
+}
+
+/// `[timing] cpu_latency_us`: a request in µs, or none.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CpuLatency {
+    /// Hold a request of this many µs.
+    Us(u32),
+    /// Make no request.
+    None,
+}
+
+impl Serialize for CpuLatency {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match self {
+            CpuLatency::Us(v) => s.serialize_u32(*v),
+            CpuLatency::None => s.serialize_str("none"),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for CpuLatency {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Raw {
+            N(i64),
+            S(String),
+        }
+        let bad = || {
+            serde::de::Error::custom(
+                "cpu_latency_us must be a whole number of µs in 0..=1000000 or \"none\"",
+            )
+        };
+        match Raw::deserialize(d).map_err(|_| bad())? {
+            Raw::N(n) if (0..=1_000_000).contains(&n) => Ok(CpuLatency::Us(n as u32)),
+            Raw::S(s) if s == "none" => Ok(CpuLatency::None),
+            _ => Err(bad()),
         }
     }
 }
@@ -892,6 +936,39 @@ duration_s = 0.01
 [motor]
 preset = "kyslan2015"
 "#;
+
+    #[test]
+    fn cpu_latency_request_is_microseconds_or_none() {
+        let with = |v: &str| {
+            Scenario::from_toml(&format!("{MIN}[timing]\ncpu_latency_us = {v}\n"), "t.toml")
+        };
+        assert_eq!(
+            Scenario::from_toml(MIN, "t.toml")
+                .unwrap()
+                .timing
+                .cpu_latency_us,
+            CpuLatency::Us(0)
+        );
+        assert_eq!(
+            with("20").unwrap().timing.cpu_latency_us,
+            CpuLatency::Us(20)
+        );
+        assert_eq!(
+            with("\"none\"").unwrap().timing.cpu_latency_us,
+            CpuLatency::None
+        );
+        for bad in ["-1", "\"off\"", "1.5", "2000000"] {
+            let e = with(bad).unwrap_err();
+            assert!(
+                e.contains("cpu_latency_us must be a whole number"),
+                "{bad}: {e}"
+            );
+        }
+        // It survives the run folder's TOML round trip.
+        let sc = with("\"none\"").unwrap();
+        let back = Scenario::from_toml(&toml::to_string(&sc).unwrap(), "x").unwrap();
+        assert_eq!(back.timing.cpu_latency_us, CpuLatency::None);
+    }
 
     #[test]
     fn minimal_scenario_gets_defaults() {

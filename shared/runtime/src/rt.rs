@@ -495,6 +495,36 @@ fn locked_memory_kib() -> Option<u64> {
         .and_then(|v| v.parse().ok())
 }
 
+/// The PM QoS CPU latency device.
+pub const CPU_DMA_LATENCY: &str = "/dev/cpu_dma_latency";
+
+/// A held PM QoS CPU wake-up latency request: while the file stays open the kernel keeps
+/// idle CPUs out of states whose exit latency exceeds the value. A per-process request, not a
+/// kernel setting: it is released when this value is dropped or the process dies.
+#[derive(Debug)]
+pub struct CpuLatencyRequest {
+    _file: std::fs::File,
+    /// The requested latency, µs.
+    pub value_us: u32,
+}
+
+impl CpuLatencyRequest {
+    /// Holds a request of `value_us` on [`CPU_DMA_LATENCY`].
+    pub fn hold(value_us: u32) -> std::io::Result<Self> {
+        Self::hold_at(std::path::Path::new(CPU_DMA_LATENCY), value_us)
+    }
+
+    /// Holds a request of `value_us` on the device (or, in tests, file) at `path`: opens it,
+    /// writes the value as a native-endian 32-bit integer and keeps it open.
+    pub fn hold_at(path: &std::path::Path, value_us: u32) -> std::io::Result<Self> {
+        use std::io::Write;
+        let mut f = std::fs::OpenOptions::new().write(true).open(path)?;
+        let v = i32::try_from(value_us).unwrap_or(i32::MAX);
+        f.write_all(&v.to_ne_bytes())?;
+        Ok(Self { _file: f, value_us })
+    }
+}
+
 /// `CLOCK_MONOTONIC` now, nanoseconds.
 pub fn now_ns() -> u64 {
     let mut ts = libc::timespec {
@@ -813,5 +843,38 @@ mod tests {
         assert_eq!(policy_name(libc::SCHED_FIFO), "SCHED_FIFO");
         assert_eq!(policy_name(libc::SCHED_OTHER), "SCHED_OTHER");
         assert_eq!(policy_name(-1), "unknown");
+    }
+}
+
+#[cfg(test)]
+mod latency_request_tests {
+    use super::*;
+
+    fn open_fds_to(path: &std::path::Path) -> usize {
+        std::fs::read_dir("/proc/self/fd")
+            .unwrap()
+            .flatten()
+            .filter(|e| std::fs::read_link(e.path()).is_ok_and(|t| t == path))
+            .count()
+    }
+
+    #[test]
+    fn the_request_is_written_held_and_released_on_drop() {
+        let path = std::env::temp_dir().join(format!("drivelab-pmqos-{}", std::process::id()));
+        std::fs::write(&path, b"").unwrap();
+        let r = CpuLatencyRequest::hold_at(&path, 0).unwrap();
+        assert_eq!(r.value_us, 0);
+        assert_eq!(std::fs::read(&path).unwrap(), 0i32.to_ne_bytes());
+        assert_eq!(open_fds_to(&path), 1, "held: the file stays open");
+        drop(r);
+        assert_eq!(open_fds_to(&path), 0, "released on drop");
+        let r = CpuLatencyRequest::hold_at(&path, 75).unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), 75i32.to_ne_bytes());
+        drop(r);
+        let _ = std::fs::remove_file(&path);
+        assert!(
+            CpuLatencyRequest::hold_at(&path, 0).is_err(),
+            "no device: an error"
+        );
     }
 }
