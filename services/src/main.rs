@@ -9,7 +9,7 @@ use std::process::ExitCode;
 ///
 /// Exit codes: 0 success, 1 error (bad input, a service failed, interrupted), 2 usage error.
 #[derive(Debug, Parser)]
-#[command(name = "drivelab", version, about, long_about = None)]
+#[command(name = "drivelab", version, long_about = None)]
 struct Cli {
     #[command(subcommand)]
     cmd: Cmd,
