@@ -58,6 +58,13 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         }
     }
     assert!(rows[3]["p99_ratio_to_uds"].as_f64().is_some());
+    // Every variant ran under the CPU wake-up latency request when this user may make one.
+    let can_request = std::fs::OpenOptions::new()
+        .write(true)
+        .open("/dev/cpu_dma_latency")
+        .is_ok();
+    let held = &report["cpu_latency_request_us"];
+    assert_eq!(held.as_u64(), can_request.then_some(0), "{held}");
     assert!(rows[4]["p99_ratio_to_uds"].as_f64().is_some());
     assert!(
         report["speed"]["lockstep_simulated_s_per_wall_s"]

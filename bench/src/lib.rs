@@ -140,7 +140,8 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
     let (n, ts_ns) = schedule(hz, seconds)?;
     let node = *node;
     in_fresh_thread("bench-floor", move || {
-        apply_rt("floor", &node, false)?;
+        // Like cyclictest: memory locked (process-wide, as the drive's hosts do).
+        apply_rt("floor", &node, true)?;
         let mut late = LatencyHist::new("lateness");
         let mut misses = MissCounter::default();
         let t0 = now_ns() + 2_000_000;

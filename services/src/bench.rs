@@ -46,6 +46,10 @@ pub struct BenchArgs {
     /// topology's cycle latency, misses and the CPU time its processes used.
     #[arg(long, value_delimiter = ',', value_name = "NAME|FILE,...")]
     pub topologies: Vec<String>,
+    /// Measure without a CPU wake-up latency request. By default the bench holds one of 0 µs
+    /// (as cyclictest does, and as a real-time drive does) for every variant.
+    #[arg(long)]
+    pub no_cpu_latency_request: bool,
     /// Print bench.json on stdout instead of the Markdown table.
     #[arg(long)]
     pub json: bool,
@@ -266,6 +270,22 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     let exe = std::env::current_exe()?;
     let (base, _) = Scenario::load("kyslan-pi").map_err(|e| anyhow!(e))?;
 
+    // Every variant runs under the same CPU wake-up latency request, the one a real-time drive
+    // holds (the floor thus measures like cyclictest).
+    let latency_request = if a.no_cpu_latency_request {
+        None
+    } else {
+        match drivelab_runtime::rt::CpuLatencyRequest::hold(0) {
+            Ok(r) => Some(r),
+            Err(e) => {
+                eprintln!(
+                    "drivelab: warning: bench without a CPU wake-up latency request ({}: {e})",
+                    drivelab_runtime::rt::CPU_DMA_LATENCY
+                );
+                None
+            }
+        }
+    };
     let rounds = a.rounds.unwrap_or(if a.quick { 1 } else { 5 });
     if !(1..=100).contains(&rounds) {
         return Err(anyhow!("--rounds must be in 1..=100, got {rounds}"));
@@ -499,6 +519,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         "seconds_per_variant": seconds,
         "rounds": rounds,
         "quick": a.quick,
+        "cpu_latency_request_us": latency_request.as_ref().map(|r| r.value_us),
         "machine": { "cpus": drivelab_runtime::rt::online_cpus(), "doctor": doctor },
         "rows": rows,
         "speed": speed,
