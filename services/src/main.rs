@@ -94,10 +94,10 @@ enum Cmd {
         #[arg(long, default_value_t = 0.05, value_name = "SECONDS")]
         duration: f64,
     },
-    /// Watch a running drive live in the terminal: per-service state, rate, wake-up
+    /// Watch a running drive live in the terminal: per-stage state, rate, wake-up
     /// lateness, execution time and deadline misses; speed against its reference and i_d,
-    /// i_q; the supervisor's event log. k / s kill or freeze the selected service after a
-    /// confirmation (real-time drives only); q, Esc or Ctrl-C leave. The monitor reads the
+    /// i_q; the supervisor's event log. k / s kill or freeze the process of the selected
+    /// stage after a confirmation (real-time drives only); q, Esc or Ctrl-C leave. The monitor reads the
     /// supervisor's telemetry, never the real-time processes' topics, so it does not
     /// disturb the drive.
     ///

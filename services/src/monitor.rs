@@ -5,7 +5,7 @@
 //! It shows per service the process state, rate, wake-up lateness and execution time
 //! (p99 and max since the service started), deadline misses and stale or rejected inputs; the
 //! last 2.5 s of speed against its reference and of i_d and i_q; and the supervisor's event
-//! log. `k` and `s` ask the supervisor to kill or freeze the selected service, after a
+//! log. `k` and `s` ask the supervisor to kill or freeze the selected stage's process, after a
 //! confirmation.
 
 use anyhow::{anyhow, bail, Context, Result};
@@ -309,7 +309,7 @@ impl Ui {
             }
         });
         let header = Row::new([
-            "service",
+            "stage",
             "state",
             "pid",
             "restarts",
@@ -341,7 +341,7 @@ impl Ui {
             Table::new(rows, widths)
                 .header(header)
                 .block(Block::bordered().title(
-                    " services · µs, since start · wake: plant = timer lateness, others = bus hop ",
+                    " stages · µs, since start · wake: plant = timer lateness, others = bus hop ",
                 )),
             area,
         );
