@@ -1,4 +1,4 @@
-//! Snapshot tests of the help texts and the scenario catalogue (issue 8): a change to what
+//! Snapshot tests of the help texts and the scenario catalogue: a change to what
 //! users read must be deliberate. `UPDATE_SNAPSHOTS=1 cargo test --test cli` rewrites them.
 
 use std::path::PathBuf;

@@ -1,4 +1,4 @@
-//! Fault injection with real processes and real signals (issue 4). Each test has its own bus
+//! Fault injection with real processes and real signals. Each test has its own bus
 //! id and run folder and checks that nothing is left behind. Times are watchdogs only.
 
 use std::path::PathBuf;

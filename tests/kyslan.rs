@@ -1,5 +1,5 @@
 //! Kyslan et al. 2015 reproduced with the real processes: the PI cascade against the
-//! two-step linearising controller, for saliency 2.18 and 6.18 (issue 5). Each run uses its
+//! two-step linearising controller, for saliency 2.18 and 6.18 (Figs 3-4). Each run uses its
 //! own bus id and run folder and checks that no process and no bus file is left.
 
 use serde_json::Value;

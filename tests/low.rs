@@ -1,4 +1,4 @@
-//! Low, Deng & Guo 1998 reproduced with the real processes (issue 6): RST current and speed
+//! Low, Deng & Guo 1998 reproduced with the real processes: RST current and speed
 //! loops designed by pole placement, the minimal-order αβ position observer, the sensorless
 //! drive, and the ζ report of eq. (14). Each run uses its own bus id and run folder and checks
 //! that no process and no bus file is left.

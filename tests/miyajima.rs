@@ -1,4 +1,4 @@
-//! Miyajima, Fujimoto & Fujitsuna reproduced with the real processes (issue 7): current
+//! Miyajima, Fujimoto & Fujitsuna reproduced with the real processes: current
 //! control with the inputs in polar coordinates (section IV, Figs 7-8), voltage-phase flux
 //! weakening with and without the amplitude controller (section III, Figs 2-3), and the CDM
 //! design printout (eqs 28-31). Each run uses its own bus id and run folder and checks that no

@@ -1,4 +1,4 @@
-//! `drivelab monitor` driven through tmux (issue 8): it attaches to a running drive, shows the
+//! `drivelab monitor` driven through tmux: it attaches to a running drive, shows the
 //! services, the traces and the event log, asks before it injects a fault, and leaves the
 //! terminal as it found it. Each test has its own bus and tmux server and checks that nothing
 //! is left behind. Times are watchdogs only.

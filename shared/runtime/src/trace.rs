@@ -1,6 +1,6 @@
 //! The run trace: one row per plant sample, in SI units.
 //!
-//! Column meaning (issue 2): `u_d, u_q` in row k are the voltages the plant applied on
+//! Column meaning (docs/architecture.md, "The cycle"): `u_d, u_q` in row k are the voltages the plant applied on
 //! `[t_k, t_{k+1})`; speeds are mechanical rad/s, angles electrical rad.
 
 use serde::{Deserialize, Serialize};

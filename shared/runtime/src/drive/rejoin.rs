@@ -1,4 +1,4 @@
-//! Re-joining a running drive after a restart (issue 4): each step function is initialised
+//! Re-joining a running drive after a restart: each step function is initialised
 //! from the plant's current state before it takes over, so that its first output continues
 //! what the drive was doing (no torque bump).
 

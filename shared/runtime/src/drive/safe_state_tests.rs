@@ -1,4 +1,4 @@
-//! The inverter's safe states when commands stop (issue 4).
+//! The inverter's safe states when commands stop.
 
 use super::Plant;
 use crate::config::{SafeState, Scenario};
