@@ -226,17 +226,7 @@ pub(crate) fn run_role(ctx: &RoleCtx) -> Result<Option<PlantOutcome>> {
         vec![stage],
         &producers,
         tr,
-        HostConfig {
-            pacing: Pacing::Realtime,
-            samples: n,
-            ts_ns: ctx.sc.rates.ts_ns(),
-            spin_ns: (ctx.sc.timing.plant_spin_us * 1e3).round() as u64,
-            rejoin: false,
-            rejoin_from: None,
-            warm_up: true,
-            poke: Vec::new(),
-            clock_topic: TopicId::Meas,
-        },
+        HostConfig::for_scenario(ctx.sc, Pacing::Realtime, n),
     );
     let stop = ctx.stop;
     host.stop_when(move || stop.load(Ordering::Relaxed));

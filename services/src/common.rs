@@ -2,5 +2,5 @@
 //! file of a restarted source. The host itself is `drivelab_runtime::service`.
 
 pub use drivelab_runtime::service::{
-    install_signal_handlers, stop_requested, truth_from_json, truth_to_json, BusClock,
+    install_signal_handlers, stop_requested, truth_to_json, BusClock,
 };

@@ -257,6 +257,24 @@ pub struct HostConfig {
     pub clock_topic: TopicId,
 }
 
+impl HostConfig {
+    /// The settings for `samples` samples of scenario `sc` at `pacing`: its sample time and
+    /// plant spin; no rejoin, warm-up on, no pokes, the measurement as the clock topic.
+    pub fn for_scenario(sc: &crate::config::Scenario, pacing: Pacing, samples: u64) -> Self {
+        Self {
+            pacing,
+            samples,
+            ts_ns: sc.rates.ts_ns(),
+            spin_ns: (sc.timing.plant_spin_us * 1e3).round() as u64,
+            rejoin: false,
+            rejoin_from: None,
+            warm_up: true,
+            poke: Vec::new(),
+            clock_topic: TopicId::Meas,
+        }
+    }
+}
+
 /// Per-topic store of the newest messages by index.
 struct Store {
     ring: [[Option<Msg>; RING]; N_TOPICS],
@@ -307,11 +325,15 @@ pub struct Host<T: Transport> {
     /// Source only: cycle latency and deadline misses.
     pub cycle: CycleMonitor,
     stop: Box<dyn Fn() -> bool + Send>,
+    /// The external inputs to drain, each topic once, with the stage that owns its counts
+    /// (the first one that reads it).
+    drains: Vec<(usize, Bound)>,
 }
 
 impl<T: Transport> Host<T> {
-    /// A host for `stages` (chain order) whose inputs are bound per `origins`: for every
-    /// topic, the producer's divider and whether it is produced here, elsewhere or nowhere.
+    /// A host for `stages` (chain order) whose inputs are bound per `producers`: for every
+    /// produced topic, the producer's divider and whether it is produced in this process (a
+    /// topic not listed is produced nowhere).
     pub fn new(
         stages: Vec<Box<dyn Stage>>,
         producers: &[(TopicId, u64, bool)],
@@ -356,7 +378,17 @@ impl<T: Transport> Host<T> {
                     divider,
                 }
             })
-            .collect();
+            .collect::<Vec<Hosted>>();
+        let mut drains: Vec<(usize, Bound)> = Vec::new();
+        for (si, h) in hosted.iter().enumerate() {
+            for b in &h.inputs {
+                if b.origin == Origin::External
+                    && !drains.iter().any(|(_, d)| d.spec.topic == b.spec.topic)
+                {
+                    drains.push((si, *b));
+                }
+            }
+        }
         Self {
             stages: hosted,
             transport,
@@ -364,6 +396,7 @@ impl<T: Transport> Host<T> {
             cycle: CycleMonitor::new(cfg.ts_ns),
             cfg,
             stop: Box::new(|| false),
+            drains,
         }
     }
 
@@ -395,59 +428,46 @@ impl<T: Transport> Host<T> {
     /// Takes every waiting message of the external inputs (except `skip`, the trigger being
     /// consumed) into the store. Malformed ones are rejected and counted against `stage`.
     fn drain_external(&mut self, skip: Option<TopicId>, expect_k: Option<u64>) -> Result<()> {
-        for si in 0..self.stages.len() {
-            for bi in 0..self.stages[si].inputs.len() {
-                let b = self.stages[si].inputs[bi];
-                if b.origin != Origin::External
-                    || Some(b.spec.topic) == skip
-                    || (b.spec.role == Role::Rejoin && !self.stages[si].rejoining)
-                {
+        for di in 0..self.drains.len() {
+            let (si, b) = self.drains[di];
+            if Some(b.spec.topic) == skip
+                || (b.spec.role == Role::Rejoin && !self.stages[si].rejoining)
+            {
+                continue;
+            }
+            while let Some(m) = self.transport.try_recv(b.spec.topic)? {
+                let h = m.hdr();
+                if h.is_warmup() || h.is_end() {
                     continue;
                 }
-                // Each topic is drained once (the first stage that reads it owns the count).
-                if self.stages[..si]
-                    .iter()
-                    .any(|h| h.inputs.iter().any(|x| x.spec.topic == b.spec.topic))
-                    || self.stages[si].inputs[..bi]
-                        .iter()
-                        .any(|x| x.spec.topic == b.spec.topic)
-                {
+                if !m.is_finite() {
+                    self.stages[si].counters.rejected_inputs += 1;
                     continue;
                 }
-                while let Some(m) = self.transport.try_recv(b.spec.topic)? {
-                    let h = m.hdr();
-                    if h.is_warmup() || h.is_end() {
+                // Source: a delayed input older than the one this sample expects came
+                // after its deadline.
+                if let Some(want) =
+                    expect_k.and_then(|k| expected_index(k, b.spec.delay, b.producer_divider))
+                {
+                    if b.spec.delay > 0 && h.k < want {
+                        self.stages[si].counters.late_commands += 1;
+                        if h.t_sample_ns != 0 {
+                            self.cycle.late_command(h.t_sample_ns, h.t_pub_ns);
+                        }
                         continue;
                     }
-                    if !m.is_finite() {
+                    if h.k > want {
                         self.stages[si].counters.rejected_inputs += 1;
                         continue;
                     }
-                    // Source: a delayed input older than the one this sample expects came
-                    // after its deadline.
-                    if let Some(want) =
-                        expect_k.and_then(|k| expected_index(k, b.spec.delay, b.producer_divider))
-                    {
-                        if b.spec.delay > 0 && h.k < want {
-                            self.stages[si].counters.late_commands += 1;
-                            if h.t_sample_ns != 0 {
-                                self.cycle.late_command(h.t_sample_ns, h.t_pub_ns);
-                            }
-                            continue;
-                        }
-                        if h.k > want {
-                            self.stages[si].counters.rejected_inputs += 1;
-                            continue;
-                        }
-                    }
-                    self.store.put(m);
                 }
+                self.store.put(m);
             }
         }
         Ok(())
     }
 
-    /// The inbox of stage `si` at sample k. Returns None when a required input is missing.
+    /// The inbox of stage `si` at sample k, and false when a required input is missing.
     fn inbox(&self, si: usize, k: u64) -> (Inbox, bool) {
         let mut ib = Inbox::default();
         let mut complete = true;
@@ -759,7 +779,7 @@ impl<T: Transport> Host<T> {
             .inputs
             .iter()
             .find(|b| b.spec.delay > 0 && b.spec.role == Role::Latest)
-            .map(|b| (b.spec.topic, b.origin));
+            .map(|b| b.spec.topic);
         // ---- real-time loop: no allocation, no locks, no logging ----
         for k in k_start..=n {
             let deadline = t0 + k * ts_ns;
@@ -781,7 +801,7 @@ impl<T: Transport> Host<T> {
                 break;
             }
             if realtime && (k > k_start || (k > 0 && !self.cfg.rejoin)) {
-                if let Some((t, _)) = cmd_topic {
+                if let Some(t) = cmd_topic {
                     let avail = self.store.get(t, k - 1).map(|m| m.hdr().t_pub_ns);
                     self.cycle.at_deadline(deadline - ts_ns, avail);
                 }
@@ -1086,15 +1106,9 @@ mod tests {
 
     fn config(sc: &Scenario) -> HostConfig {
         HostConfig {
-            pacing: Pacing::Realtime,
-            samples: 100,
-            ts_ns: sc.rates.ts_ns(),
             spin_ns: 0,
-            rejoin: false,
-            rejoin_from: None,
             warm_up: false,
-            poke: Vec::new(),
-            clock_topic: TopicId::Meas,
+            ..HostConfig::for_scenario(sc, Pacing::Realtime, 100)
         }
     }
 

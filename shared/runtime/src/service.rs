@@ -278,20 +278,18 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     // missing, so that they check their inputs' age without a timer of their own.
     let mut poke = Vec::new();
     if source {
-        for (i, p) in plan.processes.iter().enumerate().skip(1) {
-            let _ = p;
-            for st in plan
-                .stages
-                .iter()
-                .filter(|s| plan.processes[i].stages.contains(&s.name))
-            {
-                for inp in &st.inputs {
-                    if inp.role == Role::Trigger
-                        && !sent[inp.topic.index()]
-                        && !poke.contains(&inp.topic)
-                    {
-                        poke.push(inp.topic);
-                    }
+        // Every stage outside this (the source's) process.
+        for st in plan
+            .stages
+            .iter()
+            .filter(|s| !plan.processes[0].stages.contains(&s.name))
+        {
+            for inp in &st.inputs {
+                if inp.role == Role::Trigger
+                    && !sent[inp.topic.index()]
+                    && !poke.contains(&inp.topic)
+                {
+                    poke.push(inp.topic);
                 }
             }
         }
@@ -329,19 +327,18 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
         &bindings,
         tr,
         HostConfig {
-            pacing: if lockstep {
-                Pacing::Lockstep
-            } else {
-                Pacing::Realtime
-            },
-            samples: sc.samples(),
-            ts_ns: sc.rates.ts_ns(),
-            spin_ns: (sc.timing.plant_spin_us * 1e3).round() as u64,
             rejoin: args.rejoin,
             rejoin_from,
-            warm_up: true,
             poke,
-            clock_topic: TopicId::Meas,
+            ..HostConfig::for_scenario(
+                &sc,
+                if lockstep {
+                    Pacing::Lockstep
+                } else {
+                    Pacing::Realtime
+                },
+                sc.samples(),
+            )
         },
     );
     host.stop_when(stop_requested);

@@ -457,15 +457,8 @@ pub fn run_stages_inprocess(
             sent: Vec::with_capacity(2 * n as usize + 16),
         },
         HostConfig {
-            pacing: Pacing::Lockstep,
-            samples: n,
-            ts_ns: sc.rates.ts_ns(),
-            spin_ns: 0,
-            rejoin: false,
-            rejoin_from: None,
             warm_up: false,
-            poke: Vec::new(),
-            clock_topic: TopicId::Meas,
+            ..HostConfig::for_scenario(sc, Pacing::Lockstep, n)
         },
     );
     host.run()?;
