@@ -340,32 +340,19 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
     if let Some(t) = &o.topology {
         let (file, path) =
             drivelab_runtime::topology::load(t).map_err(|e| anyhow!("--topology: {e}"))?;
-        let base = std::path::absolute(path.parent().unwrap_or(Path::new(".")))?;
         sc.process = file.process;
-        for p in sc.process.iter_mut() {
-            if let Some(e) = drivelab_runtime::topology::exec_path(p, &base) {
-                p.exec = Some(e.display().to_string());
-            }
-        }
+        absolute_execs(&mut sc.process, &path)?;
         sc.placement = drivelab_runtime::config::Placement::default();
         sc.validate().map_err(|e| anyhow!("--topology {t}: {e}"))?;
     }
-    // Absolute, so that the hosts find `exec` whatever their working folder.
-    let base = std::path::absolute(sc_src.parent().unwrap_or(Path::new(".")))?;
     let mut procs = sc.topology();
-    for p in procs.iter_mut() {
-        if let Some(e) = drivelab_runtime::topology::exec_path(p, &base) {
-            p.exec = Some(e.display().to_string());
-        }
-    }
+    absolute_execs(&mut procs, sc_src)?;
     let mut described: BTreeMap<String, Vec<StageInfo>> = BTreeMap::new();
-    let scc = sc.clone();
-    let sc_text = toml::to_string(&scc)?;
+    let scr: &Scenario = sc;
+    let sc_text = toml::to_string(scr)?;
     let resolved = drivelab_runtime::topology::resolve(&procs, &mut |p, stage| {
-        if let Some(i) = drivelab_runtime::topology::builtin_info(&scc, stage) {
-            if p.exec.is_none() || drivelab_runtime::stages::BUILTIN.contains(&stage) {
-                return Ok(i);
-            }
+        if let Some(i) = drivelab_runtime::topology::builtin_info(scr, stage) {
+            return Ok(i);
         }
         let exe = p
             .exec
@@ -392,6 +379,22 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
     sc.process = resolved.processes.iter().map(|(p, _)| p.clone()).collect();
     sc.placement = drivelab_runtime::config::Placement::default();
     Ok(TopologyPlan::from_resolved(&resolved))
+}
+
+/// Makes every `exec` of `procs` absolute, relative paths taken from the folder of `file`
+/// (the scenario or topology file that names them), so that the hosts find them whatever
+/// their working folder.
+fn absolute_execs(
+    procs: &mut [drivelab_runtime::topology::ProcessSpec],
+    file: &Path,
+) -> Result<()> {
+    let base = std::path::absolute(file.parent().unwrap_or(Path::new(".")))?;
+    for p in procs.iter_mut() {
+        if let Some(e) = drivelab_runtime::topology::exec_path(p, &base) {
+            p.exec = Some(e.display().to_string());
+        }
+    }
+    Ok(())
 }
 
 /// Asks a user's stage executable which stages it hosts.
