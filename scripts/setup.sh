@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Installs what drivelab needs beyond the Rust toolchain, only if it is missing:
-# fontconfig headers and a TrueType font (plotters draws its labels with them), and tmux
-# (the monitor's terminal test runs it).
+# fontconfig headers and a TrueType font (plotters draws its labels with them), tmux
+# (the monitor's terminal test runs it) and rt-tests (cyclictest: `drivelab bench`
+# cross-checks its floor against it).
 # Idempotent; changes no kernel setting.
 set -euo pipefail
 need=()
@@ -14,6 +15,8 @@ if ! ls /usr/share/fonts/truetype/dejavu/DejaVuSans.ttf >/dev/null 2>&1 && ! fc-
 fi
 # tmux drives the terminal-UI test of `drivelab monitor`.
 command -v tmux >/dev/null 2>&1 || need+=(tmux)
+# cyclictest, the reference latency tool, measures beside the bench's floor.
+command -v cyclictest >/dev/null 2>&1 || need+=(rt-tests)
 if ! command -v cargo >/dev/null 2>&1; then
   echo "setup: cargo is not installed; install the Rust toolchain (rustup) first" >&2
   exit 1

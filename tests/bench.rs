@@ -27,6 +27,50 @@ fn bench(args: &[&str], out: &std::path::Path) -> std::process::Output {
     o
 }
 
+/// Whether `cmd` is an executable file on PATH (found independently of the bench).
+fn on_path(cmd: &str) -> bool {
+    use std::os::unix::fs::PermissionsExt;
+    std::env::var_os("PATH").is_some_and(|p| {
+        std::env::split_paths(&p).any(|d| {
+            std::fs::metadata(d.join(cmd))
+                .is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o111 != 0)
+        })
+    })
+}
+
+#[test]
+fn a_missing_cyclictest_is_skipped_with_one_line_that_says_why() {
+    let out = std::env::temp_dir().join(format!("drivelab-bench-noct-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let o = bench(
+        &[
+            "--quick",
+            "--json",
+            "--spin-us",
+            "0",
+            "--placements",
+            "one-core",
+            "--cyclictest",
+            "/nonexistent/cyclictest",
+        ],
+        &out,
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    let lines: Vec<&str> = err.lines().filter(|l| l.contains("cyclictest")).collect();
+    assert_eq!(
+        lines,
+        ["drivelab: bench: cyclictest cross-check skipped: /nonexistent/cyclictest is not an executable file"]
+    );
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(report["rows"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .all(|r| r["variant"] != "cyclictest"));
+    assert_eq!(report["floor_vs_cyclictest"], serde_json::json!([]));
+    let _ = std::fs::remove_dir_all(&out);
+}
+
 #[test]
 fn bench_quick_runs_end_to_end_and_writes_its_report() {
     let out = std::env::temp_dir().join(format!("drivelab-bench-test-{}", std::process::id()));
@@ -35,37 +79,126 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     let report: serde_json::Value =
         serde_json::from_slice(&o.stdout).expect("bench --json prints JSON");
     let rows = report["rows"].as_array().unwrap();
-    let variants: Vec<&str> = rows
+    let variants: Vec<(&str, bool)> = rows
         .iter()
-        .map(|r| r["variant"].as_str().unwrap())
+        .map(|r| {
+            (
+                r["variant"].as_str().unwrap(),
+                r["cpu_latency_request"].as_bool().unwrap(),
+            )
+        })
         .collect();
-    assert_eq!(
-        variants,
-        ["floor", "inprocess", "uds", "iceoryx2", "iceoryx2+spin"]
-    );
-    for r in rows {
-        assert!(r["samples"].as_u64().unwrap() > 0, "{r}");
-        for q in ["p50", "p99", "p999", "max"] {
-            assert!(r["cycle_us"][q].as_f64().is_some(), "{r}");
-        }
-        // The verdict follows its definition: cycle p99.9 < Ts and misses/M ≤ 2 × floor + 10.
-        if r["variant"] != "floor" {
-            let floor_pm = rows[0]["misses_per_million"].as_f64().unwrap();
-            let expect = r["cycle_us"]["p999"].as_f64().unwrap() < 100.0
-                && r["misses_per_million"].as_f64().unwrap() <= 2.0 * floor_pm + 10.0;
-            assert_eq!(r["holds_budget"].as_bool(), Some(expect), "{r}");
-            assert!(r["p99_ratio_to_floor"].as_f64().is_some());
-        }
-    }
-    assert!(rows[3]["p99_ratio_to_uds"].as_f64().is_some());
-    // Every variant ran under the CPU wake-up latency request when this user may make one.
+    // The request is held when this user may make one; the floor, cyclictest (when it is
+    // installed) and the one-core chain are measured without it too.
     let can_request = std::fs::OpenOptions::new()
         .write(true)
         .open("/dev/cpu_dma_latency")
         .is_ok();
     let held = &report["cpu_latency_request_us"];
-    assert_eq!(held.as_u64(), can_request.then_some(0), "{held}");
-    assert!(rows[4]["p99_ratio_to_uds"].as_f64().is_some());
+    assert_eq!(held.as_u64(), Some(0), "{held}");
+    assert_eq!(report["cpu_latency_request_failed"], !can_request);
+    let r = can_request;
+    let mut expect = vec![("floor", r), ("floor", false)];
+    let cyclictest = on_path("cyclictest");
+    if cyclictest {
+        expect.extend([("cyclictest", r), ("cyclictest", false)]);
+    } else {
+        assert!(
+            String::from_utf8_lossy(&o.stderr).contains("cyclictest cross-check skipped"),
+            "no line says why cyclictest did not run"
+        );
+    }
+    expect.extend([
+        ("inprocess", r),
+        ("uds", r),
+        ("iceoryx2", r),
+        ("iceoryx2", false),
+        ("iceoryx2+spin", r),
+    ]);
+    assert_eq!(variants, expect);
+    let floor_of = |req: bool| {
+        rows.iter()
+            .find(|x| x["variant"] == "floor" && x["cpu_latency_request"] == req)
+            .unwrap()
+    };
+    for r in rows {
+        assert!(r["samples"].as_u64().unwrap() > 0, "{r}");
+        for q in ["p50", "p99", "p999", "max"] {
+            assert!(r["cycle_us"][q].as_f64().is_some(), "{r}");
+        }
+        let floor = floor_of(r["cpu_latency_request"].as_bool().unwrap());
+        // The verdict follows its definition: cycle p99.9 < Ts and misses/M ≤ 2 × floor + 10,
+        // against the floor measured under the same request.
+        if r["variant"] != "floor" && r["variant"] != "cyclictest" {
+            let floor_pm = floor["misses_per_million"].as_f64().unwrap();
+            let expect = r["cycle_us"]["p999"].as_f64().unwrap() < 100.0
+                && r["misses_per_million"].as_f64().unwrap() <= 2.0 * floor_pm + 10.0;
+            assert_eq!(r["holds_budget"].as_bool(), Some(expect), "{r}");
+            let d50 =
+                r["cycle_us"]["p50"].as_f64().unwrap() - floor["cycle_us"]["p50"].as_f64().unwrap();
+            // The report rounds to the ns.
+            assert!(
+                (r["p50_minus_floor_us"].as_f64().unwrap() - d50).abs() < 2e-3,
+                "{r}"
+            );
+        }
+    }
+    // The floor against cyclictest, under each request state, with the agreement verdict.
+    let checks = report["floor_vs_cyclictest"].as_array().unwrap();
+    assert_eq!(checks.len(), if cyclictest { 2 } else { 0 });
+    for c in checks {
+        let req = c["cpu_latency_request"].as_bool().unwrap();
+        let ct = rows
+            .iter()
+            .find(|x| x["variant"] == "cyclictest" && x["cpu_latency_request"] == req)
+            .unwrap();
+        assert_eq!(ct["samples"], 2000, "{ct}");
+        let d = |q: &str| {
+            floor_of(req)["cycle_us"][q].as_f64().unwrap() - ct["cycle_us"][q].as_f64().unwrap()
+        };
+        assert!(
+            (c["p50_diff_us"].as_f64().unwrap() - d("p50")).abs() < 2e-3,
+            "{c}"
+        );
+        assert!(
+            (c["p99_diff_us"].as_f64().unwrap() - d("p99")).abs() < 2e-3,
+            "{c}"
+        );
+        assert_eq!(
+            c["agrees"].as_bool(),
+            Some(d("p50").abs() <= 3.0 && d("p99").abs() <= 3.0),
+            "{c}"
+        );
+    }
+    let ice: Vec<&serde_json::Value> = rows.iter().filter(|x| x["variant"] == "iceoryx2").collect();
+    for r in &ice {
+        assert!(r["p99_ratio_to_uds"].as_f64().is_some());
+        // The cycle's budget: the default chain's critical path, cut at its hops.
+        let b = &r["budget"];
+        assert_eq!(
+            b["path"],
+            serde_json::json!(["plant", "observer", "current-loop"])
+        );
+        let parts: Vec<&str> = b["parts"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|p| p["part"].as_str().unwrap())
+            .collect();
+        assert_eq!(
+            parts,
+            [
+                "plant timer wake-up",
+                "plant execution",
+                "plant publish",
+                "observer wake-up",
+                "observer execution",
+                "observer publish",
+                "current-loop wake-up",
+                "current-loop execution"
+            ]
+        );
+    }
     assert!(
         report["speed"]["lockstep_simulated_s_per_wall_s"]
             .as_f64()
@@ -84,12 +217,18 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         "percentiles-10000hz.png",
         "percentiles-10000hz.svg",
         "floor-core1-10000hz.hgrm",
+        "floor-core1-10000hz-norequest.hgrm",
         "iceoryx2-one-core-10000hz.hgrm",
+        "iceoryx2-one-core-10000hz-norequest.hgrm",
     ] {
         assert!(out.join(f).is_file(), "{f} missing");
     }
     let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
     assert!(md.contains("| 10 kHz | iceoryx2 | one-core |"), "{md}");
+    assert!(
+        md.contains("Where the microseconds go, iceoryx2 one-core at 10 kHz"),
+        "{md}"
+    );
     let _ = std::fs::remove_dir_all(&out);
 }
 

@@ -4,6 +4,8 @@
 //!   alone costs on this machine (wake-up lateness);
 //! * [`run_inprocess`]: the whole control chain ([`InProcessDrive::cycle`]) in one thread on the
 //!   same kind of timer;
+//! * [`cyclictest::run`]: cyclictest (rt-tests), when installed, as a cross-check of the
+//!   floor;
 //! * [`run_uds_chain`]: the four roles as four processes exchanging the bus messages over Unix
 //!   domain sockets, with the same per-sample order and semantics as the iceoryx2 services
 //!   (see [`uds`]).
@@ -16,6 +18,7 @@ use drivelab_runtime::drive::InProcessDrive;
 use drivelab_runtime::rt::{now_ns, setup_rt, sleep_until_ns, RtPolicy, RtReport, RtRequest};
 use drivelab_runtime::timing::{CycleMonitor, LatencyHist, MissCounter};
 
+pub mod cyclictest;
 pub mod uds;
 pub mod wire;
 

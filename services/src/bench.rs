@@ -5,9 +5,11 @@
 use crate::launcher::{self, Clock, RunOptions};
 use anyhow::{anyhow, Context, Result};
 use drivelab_bench::{ChainSpec, NodeSpec, VariantResult};
-use drivelab_runtime::config::{Placement, Scenario, ServicePlacement};
+use drivelab_runtime::config::{CpuLatency, Placement, Scenario, ServicePlacement};
+use drivelab_runtime::service::TopologyPlan;
 use drivelab_runtime::timing::{LatencyHist, Percentiles};
 use serde::Serialize;
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -47,9 +49,15 @@ pub struct BenchArgs {
     #[arg(long, value_delimiter = ',', value_name = "NAME|FILE,...")]
     pub topologies: Vec<String>,
     /// Measure without a CPU wake-up latency request. By default the bench holds one of 0 µs
-    /// (as cyclictest does, and as a real-time drive does) for every variant.
+    /// (as cyclictest does, and as a real-time drive does) for every variant, and measures
+    /// the floor, cyclictest and the one-core iceoryx2 chain also without one, to show what
+    /// the request buys on this machine.
     #[arg(long)]
     pub no_cpu_latency_request: bool,
+    /// The cyclictest (rt-tests) to run as a cross-check of the floor: a name on PATH or a
+    /// path. When it is missing, that variant is skipped with one line saying why.
+    #[arg(long, default_value = "cyclictest", value_name = "CMD")]
+    pub cyclictest: String,
     /// Print bench.json on stdout instead of the Markdown table.
     #[arg(long)]
     pub json: bool,
@@ -96,6 +104,8 @@ pub struct Row {
     pub variant: String,
     /// Placement name ("-" for the single-thread variants, which run on the plant's core).
     pub placement: String,
+    /// Whether a CPU wake-up latency request of 0 µs was held while it was measured.
+    pub cpu_latency_request: bool,
     /// Sample rate, Hz.
     pub rate_hz: f64,
     /// Samples measured.
@@ -116,6 +126,8 @@ pub struct Row {
     pub p99_ratio_to_floor: Option<f64>,
     /// cycle p99 − floor p99, µs.
     pub p99_minus_floor_us: Option<f64>,
+    /// cycle p50 − floor p50, µs.
+    pub p50_minus_floor_us: Option<f64>,
     /// cycle p99 / Unix-socket chain p99 (same placement).
     pub p99_ratio_to_uds: Option<f64>,
     /// Histogram file (.hgrm) of the cycle latency.
@@ -123,6 +135,8 @@ pub struct Row {
     /// CPU time (user + system) of the drive's processes per simulated second, s/s
     /// (iceoryx2 variants).
     pub cpu_s_per_s: Option<f64>,
+    /// Where the cycle's microseconds go (iceoryx2 variants, all rounds merged).
+    pub budget: Option<crate::budget::Budget>,
 }
 
 fn per_million(n: u64, of: u64) -> f64 {
@@ -149,15 +163,11 @@ fn scenario_at(base: &Scenario, hz: f64, seconds: f64, pl: Placement) -> Result<
     Ok(sc)
 }
 
-struct Measured {
-    result: VariantResult,
-    curve_label: String,
-}
-
-fn row(variant: &str, placement: &str, hz: f64, m: &VariantResult, hgrm: &Path) -> Row {
+fn row(job: &Job, hz: f64, m: &VariantResult, hgrm: &Path) -> Row {
     Row {
-        variant: variant.into(),
-        placement: placement.into(),
+        variant: job.variant.into(),
+        placement: job.placement.clone(),
+        cpu_latency_request: job.request,
         rate_hz: hz,
         samples: m.samples,
         cycle_us: m.cycle.percentiles(),
@@ -168,6 +178,7 @@ fn row(variant: &str, placement: &str, hz: f64, m: &VariantResult, hgrm: &Path) 
         holds_budget: None,
         p99_ratio_to_floor: None,
         p99_minus_floor_us: None,
+        p50_minus_floor_us: None,
         p99_ratio_to_uds: None,
         hgrm: hgrm
             .file_name()
@@ -175,17 +186,57 @@ fn row(variant: &str, placement: &str, hz: f64, m: &VariantResult, hgrm: &Path) 
             .to_string_lossy()
             .into_owned(),
         cpu_s_per_s: None,
+        budget: None,
     }
+}
+
+/// One variant of the bench.
+#[derive(Debug, Clone)]
+struct Job {
+    /// floor, cyclictest, inprocess, uds, iceoryx2, iceoryx2+spin, topology.
+    variant: &'static str,
+    /// Placement or topology name ("-" for none).
+    placement: String,
+    /// Measured under a CPU wake-up latency request of 0 µs.
+    request: bool,
+}
+
+impl Job {
+    fn new(variant: &'static str, placement: &str, request: bool) -> Self {
+        Self {
+            variant,
+            placement: placement.into(),
+            request,
+        }
+    }
+
+    /// File and folder tag at `hz`.
+    fn tag(&self, hz: f64) -> String {
+        let p = match self.variant {
+            "floor" | "cyclictest" | "inprocess" => "core1",
+            _ => &self.placement,
+        };
+        let req = if self.request { "" } else { "-norequest" };
+        format!(
+            "{}-{p}-{}hz{req}",
+            self.variant.replace('+', "-"),
+            hz as u64
+        )
+    }
+}
+
+/// What an iceoryx2 run adds to its variant: every histogram the drive wrote (by key, as in
+/// `summary.json → latency_us`), its processes' CPU time and its topology.
+struct DriveRun {
+    result: VariantResult,
+    cpu_s: f64,
+    hists: BTreeMap<String, LatencyHist>,
+    topology: TopologyPlan,
 }
 
 /// Runs the iceoryx2 chain through the real launcher (in `topology`, if given) and reads
 /// its histograms and its processes' CPU time back.
-fn run_iceoryx2(
-    sc: &Scenario,
-    out: &Path,
-    bus: &str,
-    topology: Option<&str>,
-) -> Result<(VariantResult, f64)> {
+fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) -> Result<DriveRun> {
     std::fs::create_dir_all(out)?;
     let file = out.join("scenario.in.toml");
     std::fs::write(&file, toml::to_string(sc)?)?;
@@ -206,32 +257,201 @@ fn run_iceoryx2(
     };
     let r = launcher::run(&o)?;
     // CPU time: every stage's statistics carry its process's total; count each process once.
-    let mut cpu = std::collections::BTreeMap::new();
+    let mut cpu = BTreeMap::new();
+    let mut hists = BTreeMap::new();
     for e in std::fs::read_dir(out)?.flatten() {
         let p = e.path();
-        if p.to_string_lossy().ends_with(".stats.json") {
+        let name = p
+            .file_name()
+            .unwrap_or_default()
+            .to_string_lossy()
+            .into_owned();
+        if name.ends_with(".stats.json") {
             let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&p)?)?;
             if let (Some(pr), Some(c)) = (v["process"].as_str(), v["process_cpu_s"].as_f64()) {
                 cpu.insert(pr.to_string(), c);
             }
+        } else if let Some(key) = name.strip_suffix(".hdr") {
+            hists.insert(key.to_string(), LatencyHist::read_v2("hist", &p)?);
         }
     }
-    let cpu_s: f64 = cpu.values().sum();
+    let topology: TopologyPlan = serde_json::from_slice(&std::fs::read(out.join("topology.json"))?)
+        .context("the run's topology.json")?;
     let cycle = LatencyHist::read_v2("cycle", &out.join("cycle.hdr"))?;
     let lateness = LatencyHist::read_v2("lateness", &out.join("plant.lateness.hdr"))?;
     let plant = &r.summary["counters"]["plant"];
     let mut misses = drivelab_runtime::timing::MissCounter::default();
     misses.misses = plant["deadline_misses"].as_u64().unwrap_or(0);
     misses.longest_run = plant["longest_miss_run"].as_u64().unwrap_or(0);
-    Ok((
-        VariantResult {
+    Ok(DriveRun {
+        result: VariantResult {
             cycle,
             lateness,
             samples: r.summary["samples"].as_u64().unwrap_or(0),
             misses,
         },
-        cpu_s,
-    ))
+        cpu_s: cpu.values().sum(),
+        hists,
+        topology,
+    })
+}
+
+/// Holds or releases the bench's own CPU wake-up latency request so that it matches what
+/// the next variant needs. The request is system-wide while held, so a variant measured
+/// without one must not run while the bench holds it. A request that cannot be made is
+/// reported once; the variants then run without it (and say so in their rows).
+struct RequestHolder {
+    held: Option<drivelab_runtime::rt::CpuLatencyRequest>,
+    failed: bool,
+}
+
+impl RequestHolder {
+    /// Whether a request is held after setting it to `want`.
+    fn set(&mut self, want: bool) -> bool {
+        if !want {
+            self.held = None;
+        } else if self.held.is_none() && !self.failed {
+            match drivelab_runtime::rt::CpuLatencyRequest::hold(0) {
+                Ok(r) => self.held = Some(r),
+                Err(e) => {
+                    self.failed = true;
+                    eprintln!(
+                        "drivelab: warning: bench without a CPU wake-up latency request ({}: {e})",
+                        drivelab_runtime::rt::CPU_DMA_LATENCY
+                    );
+                }
+            }
+        }
+        self.held.is_some()
+    }
+}
+
+/// The variants of one rate, in the order each round runs them.
+fn jobs(a: &BenchArgs, placements: &[String], cyclictest: bool) -> Vec<Job> {
+    let req = !a.no_cpu_latency_request;
+    // Without the request too: the floor, cyclictest and the default chain (one core).
+    let both = |v: &'static str, p: &str| -> Vec<Job> {
+        let mut j = vec![Job::new(v, p, req)];
+        if req {
+            j.push(Job::new(v, p, false));
+        }
+        j
+    };
+    if !a.topologies.is_empty() {
+        // Topologies compare with each other and the floor, all under the same request.
+        let mut jobs = vec![Job::new("floor", "-", req)];
+        jobs.extend(
+            a.topologies
+                .iter()
+                .map(|t| Job::new("topology", &topology_name(t), req)),
+        );
+        return jobs;
+    }
+    let mut jobs = both("floor", "-");
+    if cyclictest {
+        jobs.extend(both("cyclictest", "-"));
+    }
+    jobs.push(Job::new("inprocess", "-", req));
+    for p in placements {
+        jobs.push(Job::new("uds", p, req));
+        if p == "one-core" {
+            jobs.extend(both("iceoryx2", p));
+        } else {
+            jobs.push(Job::new("iceoryx2", p, req));
+        }
+        if a.spin_us > 0.0 && p == "one-core" {
+            jobs.push(Job::new("iceoryx2+spin", p, req));
+        }
+    }
+    jobs
+}
+
+/// A topology is shown (and filed) by its name: a file's stem.
+fn topology_name(t: &str) -> String {
+    Path::new(t)
+        .file_stem()
+        .map_or(t.to_string(), |s| s.to_string_lossy().into_owned())
+}
+
+/// The floor against cyclictest in the same run: both measure a timer thread's wake-up
+/// lateness on the same core, so they should agree (within [`CYCLICTEST_AGREEMENT_US`]).
+#[derive(Debug, Clone, Serialize)]
+pub struct CrossCheck {
+    /// Sample rate, Hz.
+    pub rate_hz: f64,
+    /// Both measured under the CPU wake-up latency request.
+    pub cpu_latency_request: bool,
+    /// floor p50 − cyclictest p50, µs.
+    pub p50_diff_us: f64,
+    /// floor p99 − cyclictest p99, µs.
+    pub p99_diff_us: f64,
+    /// Both differences within the agreement.
+    pub agrees: bool,
+}
+
+/// How close the floor must be to cyclictest at p50 and p99, µs.
+pub const CYCLICTEST_AGREEMENT_US: f64 = 3.0;
+
+/// Verdicts and ratios of one rate's rows against the floor (measured under the same CPU
+/// latency request) and the Unix-socket chain (same placement) of the same run; the floor
+/// against cyclictest.
+fn compare(rows: &mut [Row], hz: f64) -> Vec<CrossCheck> {
+    let ts_us = 1e6 / hz;
+    let floor_of = |rows: &[Row], req: bool| {
+        rows.iter()
+            .find(|r| r.variant == "floor" && r.cpu_latency_request == req)
+            .or_else(|| rows.iter().find(|r| r.variant == "floor"))
+            .map(|r| (r.cycle_us.p50, r.cycle_us.p99, r.misses_per_million))
+    };
+    let uds_p99: Vec<(String, f64)> = rows
+        .iter()
+        .filter(|r| r.variant == "uds")
+        .map(|r| (r.placement.clone(), r.cycle_us.p99))
+        .collect();
+    let mut checks = Vec::new();
+    for i in 0..rows.len() {
+        let Some((f50, f99, f_pm)) = floor_of(rows, rows[i].cpu_latency_request) else {
+            continue;
+        };
+        let r = &mut rows[i];
+        if r.variant == "floor" {
+            continue;
+        }
+        if r.variant == "cyclictest" {
+            let (d50, d99) = (f50 - r.cycle_us.p50, f99 - r.cycle_us.p99);
+            checks.push(CrossCheck {
+                rate_hz: hz,
+                cpu_latency_request: r.cpu_latency_request,
+                p50_diff_us: d50,
+                p99_diff_us: d99,
+                agrees: d50.abs() <= CYCLICTEST_AGREEMENT_US
+                    && d99.abs() <= CYCLICTEST_AGREEMENT_US,
+            });
+            continue;
+        }
+        r.holds_budget = Some(r.cycle_us.p999 < ts_us && r.misses_per_million <= 2.0 * f_pm + 10.0);
+        r.p99_ratio_to_floor = Some(r.cycle_us.p99 / f99.max(1e-3));
+        r.p99_minus_floor_us = Some(r.cycle_us.p99 - f99);
+        r.p50_minus_floor_us = Some(r.cycle_us.p50 - f50);
+        if r.variant.starts_with("iceoryx2") {
+            r.p99_ratio_to_uds = uds_p99
+                .iter()
+                .find(|(p, _)| *p == r.placement)
+                .map(|(_, u)| r.cycle_us.p99 / u.max(1e-3));
+        }
+    }
+    checks
+}
+
+/// Adds a round's measurement to its variant's total.
+fn absorb(total: &mut Option<VariantResult>, m: VariantResult) -> Result<()> {
+    match total {
+        Some(t) => t.merge(&m),
+        slot => {
+            *slot = Some(m);
+            Ok(())
+        }
+    }
 }
 
 /// Runs the whole bench and writes bench.json, bench.md, .hgrm files and percentile plots.
@@ -258,6 +478,25 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     for p in &placements {
         placement(p)?;
     }
+    let mut topo_paths: BTreeMap<String, String> = Default::default();
+    for t in &a.topologies {
+        drivelab_runtime::topology::load(t).map_err(|e| anyhow!("--topologies: {e}"))?;
+        let name = topology_name(t);
+        if topo_paths.insert(name.clone(), t.clone()).is_some() {
+            return Err(anyhow!("--topologies: '{name}' is listed twice"));
+        }
+    }
+    let rounds = a.rounds.unwrap_or(if a.quick { 1 } else { 5 });
+    if !(1..=100).contains(&rounds) {
+        return Err(anyhow!("--rounds must be in 1..=100, got {rounds}"));
+    }
+    let cyclictest = match drivelab_bench::cyclictest::locate(&a.cyclictest) {
+        Ok(p) => Some(p),
+        Err(why) => {
+            eprintln!("drivelab: bench: cyclictest cross-check skipped: {why}");
+            None
+        }
+    };
     let out = a.out.clone().unwrap_or_else(|| {
         let secs = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
@@ -269,53 +508,13 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     let out = out.canonicalize()?;
     let exe = std::env::current_exe()?;
     let (base, _) = Scenario::load("kyslan-pi").map_err(|e| anyhow!(e))?;
-
-    // Every variant runs under the same CPU wake-up latency request, the one a real-time drive
-    // holds (the floor thus measures like cyclictest).
-    let latency_request = if a.no_cpu_latency_request {
-        None
-    } else {
-        match drivelab_runtime::rt::CpuLatencyRequest::hold(0) {
-            Ok(r) => Some(r),
-            Err(e) => {
-                eprintln!(
-                    "drivelab: warning: bench without a CPU wake-up latency request ({}: {e})",
-                    drivelab_runtime::rt::CPU_DMA_LATENCY
-                );
-                None
-            }
-        }
+    let mut request = RequestHolder {
+        held: None,
+        failed: false,
     };
-    let rounds = a.rounds.unwrap_or(if a.quick { 1 } else { 5 });
-    if !(1..=100).contains(&rounds) {
-        return Err(anyhow!("--rounds must be in 1..=100, got {rounds}"));
-    }
     // The variants of every rate, each measured in `rounds` interleaved slices so that the
     // machine's slow changes (a VM's noisy minutes) reach all of them alike.
-    let mut jobs: Vec<(&str, String)> = vec![("floor", "-".into())];
-    let mut topo_paths: std::collections::BTreeMap<String, String> = Default::default();
-    if a.topologies.is_empty() {
-        jobs.push(("inprocess", "-".into()));
-        for p in &placements {
-            jobs.push(("uds", p.clone()));
-            jobs.push(("iceoryx2", p.clone()));
-            if a.spin_us > 0.0 && p == "one-core" {
-                jobs.push(("iceoryx2+spin", p.clone()));
-            }
-        }
-    } else {
-        for t in &a.topologies {
-            drivelab_runtime::topology::load(t).map_err(|e| anyhow!("--topologies: {e}"))?;
-            // Shown (and filed) by its name: a file's stem.
-            let name = Path::new(t.as_str())
-                .file_stem()
-                .map_or(t.clone(), |s| s.to_string_lossy().into_owned());
-            if topo_paths.insert(name.clone(), t.clone()).is_some() {
-                return Err(anyhow!("--topologies: '{name}' is listed twice"));
-            }
-            jobs.push(("topology", name));
-        }
-    }
+    let jobs = jobs(a, &placements, cyclictest.is_some());
     let total = rates.len() * jobs.len() * rounds + 2;
     let bar = indicatif::ProgressBar::new(total as u64);
     bar.set_style(
@@ -325,150 +524,161 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
     let mut rows: Vec<Row> = Vec::new();
+    let mut checks: Vec<CrossCheck> = Vec::new();
     let mut curves_by_rate: Vec<(f64, Vec<drivelab_tools::plot::PercentileSeries>)> = Vec::new();
     for &hz in &rates {
-        let mut measured: Vec<(Row, Measured)> = Vec::new();
         let one = placement("one-core")?;
-        let tag = |v: &str, p: &str| format!("{v}-{p}-{}hz", hz as u64);
         let slice = seconds / rounds as f64;
         let mut acc: Vec<Option<VariantResult>> = jobs.iter().map(|_| None).collect();
         let mut cpu: Vec<f64> = vec![0.0; jobs.len()];
+        let mut stage_hists: Vec<BTreeMap<String, LatencyHist>> =
+            jobs.iter().map(|_| BTreeMap::new()).collect();
+        let mut topologies: Vec<Option<TopologyPlan>> = jobs.iter().map(|_| None).collect();
+        let mut held: Vec<bool> = jobs.iter().map(|j| j.request).collect();
         for round in 0..rounds {
-            for (i, (name, p)) in jobs.iter().enumerate() {
+            for (i, job) in jobs.iter().enumerate() {
                 let round_tag = if rounds > 1 {
                     format!(", round {}/{rounds}", round + 1)
                 } else {
                     String::new()
                 };
-                bar.set_message(format!("{hz} Hz {name} {p}{round_tag}"));
-                let dir = |v: &str| {
-                    let d = out.join(tag(v, p));
+                let req_tag = if job.request { "" } else { " without request" };
+                bar.set_message(format!(
+                    "{hz} Hz {} {}{req_tag}{round_tag}",
+                    job.variant, job.placement
+                ));
+                held[i] = request.set(job.request);
+                let dir = {
+                    let d = out.join(job.tag(hz));
                     if rounds > 1 {
                         d.join(format!("round{}", round + 1))
                     } else {
                         d
                     }
                 };
-                let m = match *name {
-                    // The floor and the in-process chain run on the plant's core at its priority.
-                    "floor" => drivelab_bench::run_floor(hz, slice, &node(one.plant))?,
-                    "inprocess" => drivelab_bench::run_inprocess(&ChainSpec {
-                        scenario: scenario_at(&base, hz, slice, one)?,
+                let bus = format!("b{}r{round}j{i}", std::process::id());
+                let chain = |pl: Placement| -> Result<ChainSpec> {
+                    Ok(ChainSpec {
+                        scenario: scenario_at(&base, hz, slice, pl)?,
                         seconds: slice,
-                        plant: node(one.plant),
-                        observer: node(one.observer),
-                        current_loop: node(one.current_loop),
-                        speed_loop: node(one.speed_loop),
-                    })?,
-                    "uds" => {
-                        let pl = placement(p)?;
-                        let work = dir("uds");
-                        std::fs::create_dir_all(&work)?;
-                        drivelab_bench::run_uds_chain(
-                            &ChainSpec {
-                                scenario: scenario_at(&base, hz, slice, pl)?,
-                                seconds: slice,
-                                plant: node(pl.plant),
-                                observer: node(pl.observer),
-                                current_loop: node(pl.current_loop),
-                                speed_loop: node(pl.speed_loop),
-                            },
-                            &exe,
-                            &work,
-                        )?
+                        plant: node(pl.plant),
+                        observer: node(pl.observer),
+                        current_loop: node(pl.current_loop),
+                        speed_loop: node(pl.speed_loop),
+                    })
+                };
+                let drive = match job.variant {
+                    // The floor, cyclictest and the in-process chain run on the plant's core
+                    // at its priority.
+                    "floor" => {
+                        absorb(
+                            &mut acc[i],
+                            drivelab_bench::run_floor(hz, slice, &node(one.plant))?,
+                        )?;
+                        None
                     }
-                    "iceoryx2" => {
-                        let sc = scenario_at(&base, hz, slice, placement(p)?)?;
-                        let bus = format!("b{}r{}j{i}", std::process::id(), round);
-                        let (m, c) = run_iceoryx2(&sc, &dir("iceoryx2"), &bus, None)?;
-                        cpu[i] += c;
-                        m
+                    "cyclictest" => {
+                        let exe = cyclictest
+                            .as_deref()
+                            .ok_or_else(|| anyhow!("no cyclictest"))?;
+                        let m = drivelab_bench::cyclictest::run(
+                            exe,
+                            hz,
+                            slice,
+                            &node(one.plant),
+                            job.request,
+                            &dir,
+                        )?;
+                        absorb(&mut acc[i], m)?;
+                        None
+                    }
+                    "inprocess" => {
+                        absorb(&mut acc[i], drivelab_bench::run_inprocess(&chain(one)?)?)?;
+                        None
+                    }
+                    "uds" => {
+                        std::fs::create_dir_all(&dir)?;
+                        let m = drivelab_bench::run_uds_chain(
+                            &chain(placement(&job.placement)?)?,
+                            &exe,
+                            &dir,
+                        )?;
+                        absorb(&mut acc[i], m)?;
+                        None
                     }
                     "topology" => {
                         let sc = scenario_at(&base, hz, slice, one)?;
-                        let bus = format!("b{}r{}j{i}t", std::process::id(), round);
-                        let t = topo_paths.get(p).map(String::as_str);
-                        let (m, c) = run_iceoryx2(&sc, &dir("topology"), &bus, t)?;
-                        cpu[i] += c;
-                        m
+                        let t = topo_paths.get(&job.placement).map(String::as_str);
+                        Some(run_iceoryx2(&sc, &dir, &bus, t)?)
                     }
                     _ => {
-                        // The same chain with the plant sleeping to spin_us before each
-                        // deadline and spinning the rest (docs/architecture.md,
-                        // "Real-time rules": sleep-then-short-spin).
-                        let mut sc = scenario_at(&base, hz, slice, placement(p)?)?;
-                        sc.timing.plant_spin_us = spin_us(a.spin_us, hz);
-                        sc.validate().map_err(|e| anyhow!("--spin-us: {e}"))?;
-                        let bus = format!("b{}r{}j{i}s", std::process::id(), round);
-                        let (m, c) = run_iceoryx2(&sc, &dir("iceoryx2-spin"), &bus, None)?;
-                        cpu[i] += c;
-                        m
+                        let mut sc = scenario_at(&base, hz, slice, placement(&job.placement)?)?;
+                        if !job.request {
+                            sc.timing.cpu_latency_us = CpuLatency::None;
+                        }
+                        if job.variant == "iceoryx2+spin" {
+                            // The plant sleeps to spin_us before each deadline and spins the
+                            // rest (docs/architecture.md, "Real-time rules").
+                            sc.timing.plant_spin_us = spin_us(a.spin_us, hz);
+                            sc.validate().map_err(|e| anyhow!("--spin-us: {e}"))?;
+                        }
+                        Some(run_iceoryx2(&sc, &dir, &bus, None)?)
                     }
                 };
-                match &mut acc[i] {
-                    Some(total) => total.merge(&m)?,
-                    slot => *slot = Some(m),
+                if let Some(d) = drive {
+                    absorb(&mut acc[i], d.result)?;
+                    cpu[i] += d.cpu_s;
+                    for (k, h) in d.hists {
+                        match stage_hists[i].get_mut(&k) {
+                            Some(total) => total.add(&h)?,
+                            None => {
+                                stage_hists[i].insert(k, h);
+                            }
+                        }
+                    }
+                    topologies[i] = Some(d.topology);
                 }
                 bar.inc(1);
             }
         }
-        for (((name, p), m), cpu_s) in jobs.iter().zip(acc).zip(cpu) {
-            let m = m.ok_or_else(|| anyhow!("{name} {p}: no measurement"))?;
-            let file_tag = if *name == "floor" || *name == "inprocess" {
-                tag(name, "core1")
-            } else {
-                tag(name, p)
-            };
-            let h = out.join(format!("{file_tag}.hgrm"));
+        let mut measured: Vec<Row> = Vec::new();
+        let mut curves = Vec::new();
+        for (i, job) in jobs.iter().enumerate() {
+            let m = acc[i]
+                .take()
+                .ok_or_else(|| anyhow!("{} {}: no measurement", job.variant, job.placement))?;
+            let h = out.join(format!("{}.hgrm", job.tag(hz)));
             std::fs::write(&h, m.cycle.hgrm())?;
-            let mut r = row(name, p, hz, &m, &h);
-            if cpu_s > 0.0 {
+            let mut r = row(job, hz, &m, &h);
+            // What was held, not what was wanted (a refused request leaves it off).
+            r.cpu_latency_request = held[i];
+            if cpu[i] > 0.0 {
                 // Per simulated second: the rounds add up to `seconds` of drive.
-                r.cpu_s_per_s = Some(cpu_s / seconds);
+                r.cpu_s_per_s = Some(cpu[i] / seconds);
             }
-            measured.push((
-                r,
-                Measured {
-                    result: m,
-                    curve_label: if p == "-" {
-                        name.to_string()
-                    } else {
-                        format!("{name} {p}")
-                    },
-                },
-            ));
-        }
-        // Verdicts and ratios against the floor and the Unix-socket chain of the same run.
-        let floor_row = measured[0].0.clone();
-        let floor_late_pm = floor_row.misses_per_million;
-        let ts_us = 1e6 / hz;
-        let uds_p99: Vec<(String, f64)> = measured
-            .iter()
-            .filter(|(r, _)| r.variant == "uds")
-            .map(|(r, _)| (r.placement.clone(), r.cycle_us.p99))
-            .collect();
-        for (r, _) in measured.iter_mut() {
-            if r.variant == "floor" {
-                continue;
-            }
-            r.holds_budget =
-                Some(r.cycle_us.p999 < ts_us && r.misses_per_million <= 2.0 * floor_late_pm + 10.0);
-            r.p99_ratio_to_floor = Some(r.cycle_us.p99 / floor_row.cycle_us.p99.max(1e-3));
-            r.p99_minus_floor_us = Some(r.cycle_us.p99 - floor_row.cycle_us.p99);
-            if r.variant.starts_with("iceoryx2") {
-                r.p99_ratio_to_uds = uds_p99
+            if let Some(t) = &topologies[i] {
+                let lat = stage_hists[i]
                     .iter()
-                    .find(|(p, _)| *p == r.placement)
-                    .map(|(_, u)| r.cycle_us.p99 / u.max(1e-3));
+                    .map(|(k, h)| (k.clone(), h.percentiles()))
+                    .collect();
+                r.budget = crate::budget::budget(t, &lat);
             }
+            let mut label = job.variant.to_string();
+            if job.placement != "-" {
+                label += &format!(" {}", job.placement);
+            }
+            if !held[i] {
+                label += " (no request)";
+            }
+            curves.push((label, m.cycle.curve()));
+            measured.push(r);
         }
-        let curves = measured
-            .iter()
-            .map(|(_, m)| (m.curve_label.clone(), m.result.cycle.curve()))
-            .collect();
+        checks.extend(compare(&mut measured, hz));
         curves_by_rate.push((hz, curves));
-        rows.extend(measured.into_iter().map(|(r, _)| r));
+        rows.extend(measured);
     }
+    // The speed measurements below are not real time: no request.
+    request.set(false);
     // Simulation speed: lockstep (four processes) and in-process, kyslan-pi.
     bar.set_message("lockstep speed");
     let sim_s = if a.quick { 0.2 } else { 2.0 };
@@ -519,13 +729,15 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         "seconds_per_variant": seconds,
         "rounds": rounds,
         "quick": a.quick,
-        "cpu_latency_request_us": latency_request.as_ref().map(|r| r.value_us),
+        "cpu_latency_request_us": if a.no_cpu_latency_request { None } else { Some(0) },
+        "cpu_latency_request_failed": request.failed,
+        "floor_vs_cyclictest": checks,
         "machine": { "cpus": drivelab_runtime::rt::online_cpus(), "doctor": doctor },
         "rows": rows,
         "speed": speed,
     });
     std::fs::write(out.join("bench.json"), serde_json::to_vec_pretty(&report)?)?;
-    let md = markdown(&rows, &speed, seconds, rounds, a.spin_us);
+    let md = markdown(&rows, &checks, &speed, seconds, rounds, a.spin_us);
     std::fs::write(out.join("bench.md"), &md)?;
     for (hz, curves) in &curves_by_rate {
         let ts_us = 1e6 / hz;
@@ -563,17 +775,18 @@ pub fn spin_us(requested_us: f64, hz: f64) -> f64 {
 /// The Markdown table of the report.
 pub fn markdown(
     rows: &[Row],
+    checks: &[CrossCheck],
     speed: &serde_json::Value,
     seconds: f64,
     rounds: usize,
     spin_arg: f64,
 ) -> String {
     let mut s = String::new();
-    let _ = writeln!(s, "Cycle latency from t_k to command k available at the plant, µs ({seconds} s per variant in {rounds} interleaved round(s); floor = bare timer wake-up lateness).\n");
-    let _ = writeln!(s, "| rate | variant | placement | p50 | p99 | p99.9 | max | misses/M | longest run | p99 − floor | p99 / floor | p99 / uds | CPU s/s | budget |");
+    let _ = writeln!(s, "Cycle latency from t_k to command k available at the plant, µs ({seconds} s per variant in {rounds} interleaved round(s); floor and cyclictest = bare timer wake-up lateness; request = CPU wake-up latency request of 0 µs held; each chain is compared with the floor measured under the same request).\n");
+    let _ = writeln!(s, "| rate | variant | placement | request | p50 | p99 | p99.9 | max | misses/M | longest run | p50 − floor | p99 − floor | p99 / floor | p99 / uds | CPU s/s | budget |");
     let _ = writeln!(
         s,
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for r in rows {
         let verdict = match r.holds_budget {
@@ -583,22 +796,50 @@ pub fn markdown(
         };
         let _ = writeln!(
             s,
-            "| {} kHz | {} | {} | {:.1} | {:.1} | {:.1} | {:.0} | {:.0} | {} | {} | {} | {} | {} | {} |",
+            "| {} kHz | {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.0} | {:.0} | {} | {} | {} | {} | {} | {} | {} |",
             r.rate_hz / 1000.0,
             r.variant,
             r.placement,
+            if r.cpu_latency_request { "0 µs" } else { "none" },
             r.cycle_us.p50,
             r.cycle_us.p99,
             r.cycle_us.p999,
             r.cycle_us.max,
             r.misses_per_million,
             r.longest_miss_run,
+            fmt_opt(r.p50_minus_floor_us, 1),
             fmt_opt(r.p99_minus_floor_us, 1),
             fmt_opt(r.p99_ratio_to_floor, 2),
             fmt_opt(r.p99_ratio_to_uds, 2),
             fmt_opt(r.cpu_s_per_s, 3),
             verdict
         );
+    }
+    for c in checks {
+        let _ = writeln!(
+            s,
+            "\nFloor − cyclictest at {} kHz ({}): p50 {:+.1} µs, p99 {:+.1} µs: {} (within ±{CYCLICTEST_AGREEMENT_US} µs).",
+            c.rate_hz / 1000.0,
+            if c.cpu_latency_request { "request held" } else { "no request" },
+            c.p50_diff_us,
+            c.p99_diff_us,
+            if c.agrees { "agrees" } else { "DISAGREES" }
+        );
+    }
+    for r in rows
+        .iter()
+        .filter(|r| r.variant == "iceoryx2" && r.cpu_latency_request)
+    {
+        if let Some(b) = &r.budget {
+            let _ = writeln!(
+                s,
+                "\nWhere the microseconds go, iceoryx2 {} at {} kHz (path {}):\n\n{}",
+                r.placement,
+                r.rate_hz / 1000.0,
+                b.path.join(" → "),
+                crate::budget::markdown(b)
+            );
+        }
     }
     if rows.iter().any(|r| r.variant == "iceoryx2+spin") {
         let spins: Vec<String> = rows

@@ -2,6 +2,7 @@
 //! `drivelab_runtime::service`; the control maths live in `drivelab-control`.
 
 pub mod bench;
+pub mod budget;
 pub mod cdm_design;
 pub mod common;
 pub mod compare;

@@ -548,6 +548,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     let (latency, curves) = collect_histograms(&out)?;
     if !latency.is_empty() {
         summary["latency_us"] = serde_json::to_value(&latency)?;
+        if let Some(b) = crate::budget::budget(&topo, &latency) {
+            summary["budget"] = serde_json::to_value(&b)?;
+        }
     }
     if !o.no_plots && !curves.is_empty() {
         let budget = Some((

@@ -273,7 +273,7 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Sender<T> {
             Notify::Event(n) => {
                 n.notify().map_err(|e| anyhow!("notify: {e:?}"))?;
             }
-            Notify::Futex(seg, i) => seg.notify(*i),
+            Notify::Futex(seg, i) => seg.notify_stamped(*i, crate::rt::now_ns()),
         }
         Ok(())
     }
@@ -317,6 +317,16 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Receiver<T> {
             Ok(Some(s)) => Ok(Some(*s)),
             Ok(None) => Ok(None),
             Err(e) => Err(anyhow!("receive: {e:?}")),
+        }
+    }
+
+    /// When the sender of the newest stamped wake-up on this topic started its notify
+    /// (CLOCK_MONOTONIC ns; 0 without futex wake-ups or before the first one).
+    #[inline]
+    pub fn notified_ns(&self) -> u64 {
+        match &self.waiter {
+            Waiter::Futex(seg, i, _) => seg.stamp(*i),
+            _ => 0,
         }
     }
 

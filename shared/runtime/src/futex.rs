@@ -7,12 +7,17 @@
 //! `/dev/shm/iox2_dl<BUS>_wake`, so `bus::cleanup` removes it with the rest of the bus.
 
 use anyhow::{anyhow, Result};
-use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 use std::time::Duration;
 
 /// Number of wake words in a segment (one per topic).
 pub const WORDS: usize = 16;
 const SEG_BYTES: usize = 4096;
+/// Offset of the notify stamps (one `AtomicU64` per word, CLOCK_MONOTONIC ns of the last
+/// stamped notify), after the words.
+const STAMPS_AT: usize = 2048;
+const _: () =
+    assert!(WORDS * std::mem::size_of::<Word>() <= STAMPS_AT && STAMPS_AT + WORDS * 8 <= SEG_BYTES);
 
 /// One wake word: a sequence counter and a count of sleepers.
 #[repr(C)]
@@ -78,6 +83,28 @@ impl WakeSegment {
         // SAFETY: the mapping is SEG_BYTES long, zero-filled by ftruncate, page aligned, and
         // WORDS * size_of::<Word>() < SEG_BYTES; Word is two AtomicU32 (valid for any bits).
         unsafe { &*(self.base.add(i * std::mem::size_of::<Word>()) as *const Word) }
+    }
+
+    fn stamp_cell(&self, i: usize) -> &AtomicU64 {
+        assert!(i < WORDS, "wake word {i} out of range");
+        // SAFETY: STAMPS_AT + WORDS * 8 <= SEG_BYTES, the offset is 8-byte aligned in a page
+        // aligned, zero-filled mapping, and AtomicU64 is valid for any bits.
+        unsafe { &*(self.base.add(STAMPS_AT + i * 8) as *const AtomicU64) }
+    }
+
+    /// Like [`notify`](Self::notify), after storing `t_ns` (the moment the notify starts,
+    /// CLOCK_MONOTONIC) in word `i`'s stamp: a woken receiver splits its hop into the
+    /// sender's publish (message stamp → notify) and its own wake-up (notify → running).
+    #[inline]
+    pub fn notify_stamped(&self, i: usize, t_ns: u64) {
+        self.stamp_cell(i).store(t_ns, Ordering::Release);
+        self.notify(i);
+    }
+
+    /// The stamp of the last [`notify_stamped`](Self::notify_stamped) on word `i` (0: none).
+    #[inline]
+    pub fn stamp(&self, i: usize) -> u64 {
+        self.stamp_cell(i).load(Ordering::Acquire)
     }
 
     /// Bumps word `i` and wakes its sleepers (a syscall only if someone sleeps).
@@ -165,6 +192,12 @@ mod tests {
         seg.notify(3);
         let got = t.join().unwrap();
         assert_eq!(got, s0.wrapping_add(1));
+        // A stamped notify wakes like a plain one and leaves its stamp on its own word only.
+        assert_eq!(seg.stamp(4), 0);
+        seg.notify_stamped(4, 123_456);
+        assert_eq!(seg.seq(4), 1);
+        assert_eq!(seg.stamp(4), 123_456);
+        assert_eq!(seg.stamp(3), 0);
         drop(seg);
         crate::bus::cleanup(&id).unwrap();
         assert!(crate::bus::leftovers(&id).is_empty());

@@ -52,6 +52,11 @@ pub trait Transport {
     fn pending(&mut self, topic: TopicId) -> Result<bool>;
     /// Blocks until a message of `topic` may be there, or `timeout`.
     fn wait(&mut self, topic: TopicId, timeout: Duration) -> Result<()>;
+    /// When the sender of `topic`'s newest wake-up started to notify (CLOCK_MONOTONIC ns), if
+    /// the transport stamps its wake-ups; 0 otherwise.
+    fn notified_ns(&mut self, _topic: TopicId) -> u64 {
+        0
+    }
     /// Wakes the receivers of `topic` without a message (they check their inputs' age).
     fn poke(&mut self, _topic: TopicId) -> Result<()> {
         Ok(())
@@ -129,13 +134,22 @@ pub struct Counters {
     pub fallback_steps: u64,
 }
 
-/// Per-stage histograms, preallocated before the loop.
+/// Per-stage histograms, preallocated before the loop. For a stage woken by another
+/// process, `wake` = `send` + `wakeup` sample by sample when the transport stamps its
+/// wake-ups; with `exec`, the parts tile the sample's critical path (docs/architecture.md,
+/// "Where the microseconds go").
 #[derive(Debug)]
 pub struct StageHists {
     /// Wake-up: for the source, release lateness (wake − deadline); for the others, the
     /// hop from the trigger's publication to the stage running.
     pub wake: LatencyHist,
-    /// Execution time of the step (input taken → output published).
+    /// The trigger's sender from stamping the message to starting its notify (loan, copy,
+    /// send): the part of the hop spent in the sender.
+    pub send: LatencyHist,
+    /// From the trigger's notify to this stage running (futex wake, scheduling, receive).
+    pub wakeup: LatencyHist,
+    /// Execution of the step: input taken (for the source: woken) → step returned. It
+    /// excludes publishing, so no stage that this one wakes can be inside it.
     pub exec: LatencyHist,
     /// Age of the trigger when used, from its sample instant t_k (real time only).
     pub input_age: LatencyHist,
@@ -149,6 +163,8 @@ impl StageHists {
     pub fn new(source: bool, ts_ns: u64) -> Self {
         Self {
             wake: LatencyHist::new(if source { "lateness" } else { "wake" }),
+            send: LatencyHist::new("send"),
+            wakeup: LatencyHist::new("wakeup"),
             exec: LatencyHist::new("exec"),
             input_age: LatencyHist::new("input_age"),
             late: MissCounter::default(),
@@ -156,22 +172,45 @@ impl StageHists {
         }
     }
 
+    /// Every histogram, for writing out.
+    pub fn all(&self) -> [&LatencyHist; 5] {
+        [
+            &self.wake,
+            &self.send,
+            &self.wakeup,
+            &self.exec,
+            &self.input_age,
+        ]
+    }
+
+    /// A trigger published at `t_pub`, notified at `t_notify` (0: not stamped) for sample
+    /// instant `t_sample`, taken at `t_in`.
     #[inline]
-    fn input(&mut self, t_in: u64, t_pub: u64, t_sample: u64) {
+    fn input(&mut self, t_in: u64, t_pub: u64, t_notify: u64, t_sample: u64) {
         if t_pub != 0 {
             self.wake.record_ns(t_in as i64 - t_pub as i64);
+            // A stamp outside [t_pub, t_in] belongs to another message (a later one).
+            if (t_pub..=t_in).contains(&t_notify) {
+                self.send.record_ns((t_notify - t_pub) as i64);
+                self.wakeup.record_ns((t_in - t_notify) as i64);
+            }
         }
         if t_sample != 0 {
             self.input_age.record_ns(t_in as i64 - t_sample as i64);
         }
     }
 
+    /// The step taken at `t_in` returned at `t_end`.
     #[inline]
-    fn done(&mut self, t_in: u64, t_sample: u64) {
-        let now = now_ns();
-        self.exec.record_ns(now as i64 - t_in as i64);
+    fn stepped(&mut self, t_in: u64, t_end: u64) {
+        self.exec.record_ns(t_end as i64 - t_in as i64);
+    }
+
+    /// Its outputs for sample instant `t_sample` are published.
+    #[inline]
+    fn published(&mut self, t_sample: u64) {
         self.late
-            .record(t_sample != 0 && now > t_sample + self.ts_ns);
+            .record(t_sample != 0 && now_ns() > t_sample + self.ts_ns);
     }
 }
 
@@ -550,6 +589,7 @@ impl<T: Transport> Host<T> {
         let mut out = Outbox::default();
         let h = &mut self.stages[si];
         h.stage.step(k, ib, &mut out);
+        let t_end = now_ns();
         let t_sample = if self.cfg.pacing == Pacing::Realtime {
             ib.slots
                 .iter()
@@ -577,7 +617,8 @@ impl<T: Transport> Host<T> {
             if fallback {
                 h.counters.fallback_steps += 1;
             }
-            h.hists.done(t_in, t_sample);
+            h.hists.stepped(t_in, t_end);
+            h.hists.published(t_sample);
         }
         h.last_k = Some(k);
         Ok(())
@@ -773,6 +814,7 @@ impl<T: Transport> Host<T> {
         };
         let mut recorder_done = 0u64;
         let mut loop_start = 0u64;
+        let mut t_woken = 0u64;
         // The first delayed input of the source is the command whose availability makes the
         // cycle (t_k → command k available).
         let cmd_topic = self.stages[0]
@@ -792,10 +834,11 @@ impl<T: Transport> Host<T> {
                 } else {
                     sleep_until_ns(deadline);
                 }
+                t_woken = now_ns();
                 self.stages[0]
                     .hists
                     .wake
-                    .record_ns(now_ns() as i64 - deadline as i64);
+                    .record_ns(t_woken as i64 - deadline as i64);
                 self.drain_external(None, Some(k))?;
             } else if k > 0 && !self.wait_inputs(0, k)? {
                 break;
@@ -819,7 +862,8 @@ impl<T: Transport> Host<T> {
                 self.forward_marker(0, hdr)?;
                 break;
             }
-            let t_in = now_ns();
+            // The source's execution starts when it wakes: taking its inputs is part of it.
+            let t_in = if realtime { t_woken } else { now_ns() };
             let (ib, _) = self.inbox(0, k);
             let stale = self.count_stale(0, &ib);
             if stale > 0 {
@@ -833,6 +877,7 @@ impl<T: Transport> Host<T> {
             }
             let mut out = Outbox::default();
             self.stages[0].stage.step(k, &ib, &mut out);
+            self.stages[0].hists.stepped(t_in, now_ns());
             for mut m in out.drain() {
                 let hd = m.hdr_mut();
                 hd.t_sample_ns = if realtime { deadline } else { 0 };
@@ -840,7 +885,6 @@ impl<T: Transport> Host<T> {
                 self.store.put(m);
                 self.transport.send(&m)?;
             }
-            self.stages[0].hists.done(t_in, 0);
             self.stages[0].counters.samples += 1;
             self.stages[0].last_k = Some(k);
             // The rest of this process's chain, in order, on the source's outputs.
@@ -939,9 +983,10 @@ impl<T: Transport> Host<T> {
                     }
                 }
                 let t_in = now_ns();
+                let t_notify = self.transport.notified_ns(topic);
                 self.stages[0]
                     .hists
-                    .input(t_in, hdr.t_pub_ns, hdr.t_sample_ns);
+                    .input(t_in, hdr.t_pub_ns, t_notify, hdr.t_sample_ns);
                 if !self.run_chain(0, hdr.k, t_in)? {
                     break 'outer;
                 }

@@ -566,6 +566,19 @@ impl Transport for BusTransport {
     }
 
     #[inline]
+    fn notified_ns(&mut self, topic: TopicId) -> u64 {
+        match &self.rx[topic.index()] {
+            Some(Rx::Meas(r)) => r.notified_ns(),
+            Some(Rx::Est(r)) => r.notified_ns(),
+            Some(Rx::Iref(r)) => r.notified_ns(),
+            Some(Rx::Cmd(r)) => r.notified_ns(),
+            Some(Rx::Wref(r)) => r.notified_ns(),
+            Some(Rx::Truth(r)) => r.notified_ns(),
+            None => 0,
+        }
+    }
+
+    #[inline]
     fn pending(&mut self, topic: TopicId) -> Result<bool> {
         Ok(match &self.rx[topic.index()] {
             Some(Rx::Meas(r)) => !r.is_empty()?,
@@ -754,10 +767,7 @@ fn write_stats<T: Transport>(
         }
         let mut latency_us = std::collections::BTreeMap::new();
         let cycle: Option<&LatencyHist> = source.then_some(&host.cycle.cycle);
-        for hist in [&h.hists.wake, &h.hists.exec, &h.hists.input_age]
-            .into_iter()
-            .chain(cycle)
-        {
+        for hist in h.hists.all().into_iter().chain(cycle) {
             if hist.is_empty() {
                 continue;
             }

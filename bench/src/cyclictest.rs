@@ -1,0 +1,202 @@
+//! cyclictest (rt-tests) as a cross-check of the floor: the reference tool measures the same
+//! thing (a SCHED_FIFO thread's wake-up lateness from an absolute `clock_nanosleep`, memory
+//! locked) on the same core, at the same priority and rate, in the same interleaved rounds.
+//! If the floor and cyclictest disagree, the floor (and every "− floor" in the report) is
+//! wrong, not the machine.
+//!
+//! cyclictest writes a histogram of whole microseconds (it truncates); each bucket is
+//! recorded at its middle (+0.5 µs). Wake-ups beyond the histogram's range
+//! ([`HIST_MAX_US`]) are recorded at that range, so the maximum is a lower bound then.
+
+use crate::{schedule, NodeSpec, VariantResult};
+use anyhow::{anyhow, bail, Context, Result};
+use drivelab_runtime::timing::{LatencyHist, MissCounter};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// Range of cyclictest's histogram, µs.
+pub const HIST_MAX_US: u64 = 10_000;
+
+/// The cyclictest to run: `cmd` as given if it contains a '/', else found on PATH. Err says
+/// why it cannot be used (for the bench's one-line skip message).
+pub fn locate(cmd: &str) -> std::result::Result<PathBuf, String> {
+    let usable = |p: &Path| {
+        std::fs::metadata(p).is_ok_and(|m| {
+            use std::os::unix::fs::PermissionsExt;
+            m.is_file() && m.permissions().mode() & 0o111 != 0
+        })
+    };
+    if cmd.contains('/') {
+        let p = PathBuf::from(cmd);
+        return if usable(&p) {
+            Ok(p)
+        } else {
+            Err(format!("{cmd} is not an executable file"))
+        };
+    }
+    std::env::var_os("PATH")
+        .and_then(|path| {
+            std::env::split_paths(&path)
+                .map(|d| d.join(cmd))
+                .find(|p| usable(p))
+        })
+        .ok_or_else(|| {
+            format!("{cmd} is not on PATH (Debian: apt-get install rt-tests; scripts/setup.sh installs it)")
+        })
+}
+
+/// Runs `exe` (cyclictest) for round(seconds × hz) wake-ups on `node`'s core at its
+/// SCHED_FIFO priority, memory locked, with its CPU wake-up latency request at 0 µs when
+/// `latency_request` (cyclictest's default) or without one (`--default-system`). The
+/// histogram file goes to `work`.
+pub fn run(
+    exe: &Path,
+    hz: f64,
+    seconds: f64,
+    node: &NodeSpec,
+    latency_request: bool,
+    work: &Path,
+) -> Result<VariantResult> {
+    let (n, ts_ns) = schedule(hz, seconds)?;
+    if ts_ns % 1000 != 0 {
+        bail!("cyclictest takes whole microseconds: T_s = {ts_ns} ns at {hz} Hz is not");
+    }
+    std::fs::create_dir_all(work)?;
+    let hist = work.join("cyclictest.hist");
+    let mut c = Command::new(exe);
+    c.args(["-m", "-q", "-t", "1"])
+        .arg(format!("--interval={}", ts_ns / 1000))
+        .arg(format!("--loops={n}"))
+        .arg(format!("--histogram={HIST_MAX_US}"))
+        .arg(format!("--histfile={}", hist.display()));
+    if let Some(cpu) = node.core {
+        c.arg(format!("--affinity={cpu}"));
+    }
+    if let Some(p) = node.priority {
+        c.arg(format!("--priority={p}"));
+    }
+    if !latency_request {
+        c.arg("--default-system");
+    }
+    let out = c
+        .output()
+        .with_context(|| format!("cannot run {}", exe.display()))?;
+    if !out.status.success() {
+        let err = String::from_utf8_lossy(&out.stderr);
+        bail!(
+            "{} failed ({}): {}",
+            exe.display(),
+            out.status,
+            err.lines().last().unwrap_or("").trim()
+        );
+    }
+    let text = std::fs::read_to_string(&hist)
+        .with_context(|| format!("cyclictest wrote no histogram at {}", hist.display()))?;
+    let r = parse(&text, ts_ns)?;
+    if r.samples != n {
+        bail!(
+            "cyclictest reported {} wake-ups, {n} were asked for",
+            r.samples
+        );
+    }
+    Ok(r)
+}
+
+/// Reads cyclictest's histogram file (one thread): lines `BUCKET_US COUNT`, then `#` lines,
+/// among them `# Histogram Overflows: N`. A wake-up counts as a miss when it is at least
+/// T_s late (as the floor counts); cyclictest does not give the order of wake-ups, so the
+/// longest run of misses is not known and stays 0.
+pub fn parse(text: &str, ts_ns: u64) -> Result<VariantResult> {
+    let mut late = LatencyHist::new("lateness");
+    let mut misses = MissCounter::default();
+    let mut samples = 0u64;
+    let mut overflows = None;
+    for line in text.lines() {
+        let line = line.trim();
+        if let Some(rest) = line.strip_prefix("# Histogram Overflows:") {
+            let v = rest.split_whitespace().next().unwrap_or("");
+            overflows = Some(
+                v.parse::<u64>()
+                    .map_err(|_| anyhow!("cyclictest histogram: bad overflow count '{v}'"))?,
+            );
+            continue;
+        }
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let mut f = line.split_whitespace();
+        let (Some(b), Some(c), None) = (f.next(), f.next(), f.next()) else {
+            bail!("cyclictest histogram: unexpected line '{line}'");
+        };
+        let (Ok(bucket_us), Ok(count)) = (b.parse::<u64>(), c.parse::<u64>()) else {
+            bail!("cyclictest histogram: unexpected line '{line}'");
+        };
+        record(&mut late, &mut misses, bucket_us * 1000 + 500, count, ts_ns);
+        samples += count;
+    }
+    let overflows = overflows
+        .ok_or_else(|| anyhow!("cyclictest histogram: no '# Histogram Overflows' line"))?;
+    record(&mut late, &mut misses, HIST_MAX_US * 1000, overflows, ts_ns);
+    samples += overflows;
+    if samples == 0 {
+        bail!("cyclictest histogram is empty");
+    }
+    let mut cycle = late.clone();
+    cycle.name = "cycle";
+    Ok(VariantResult {
+        cycle,
+        lateness: late,
+        samples,
+        misses,
+    })
+}
+
+fn record(late: &mut LatencyHist, misses: &mut MissCounter, ns: u64, count: u64, ts_ns: u64) {
+    for _ in 0..count {
+        late.record_ns(ns as i64);
+    }
+    misses.misses += if ns >= ts_ns { count } else { 0 };
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const HIST: &str = "# Histogram\n000014 000002\n000015 000005\n000100 000001\n000250 000002\n# Total: 000000010\n# Min Latencies: 00014\n# Histogram Overflows: 00001\n# Histogram Overflow at cycle number:\n# Thread 0: 00007\n";
+
+    #[test]
+    fn buckets_are_recorded_at_their_middle_and_overflows_at_the_range() {
+        let r = parse(HIST, 100_000).unwrap();
+        assert_eq!(r.samples, 11);
+        assert_eq!(r.cycle.len(), 11);
+        // 2 × 14.5, 5 × 15.5 µs: the median is 15.5 µs (within the histogram's precision).
+        let p = r.cycle.percentiles();
+        assert!((p.p50 - 15.5).abs() < 0.02, "{p:?}");
+        assert!((p.max - HIST_MAX_US as f64).abs() / (HIST_MAX_US as f64) < 1e-3);
+        // At least T_s = 100 µs late: the 100.5, the two 250.5 and the overflow.
+        assert_eq!(r.misses.misses, 4);
+    }
+
+    #[test]
+    fn a_malformed_histogram_is_an_error_that_says_what() {
+        let e = parse("000014 x\n", 100_000).unwrap_err().to_string();
+        assert!(e.contains("unexpected line '000014 x'"), "{e}");
+        let e = parse("000014 000002\n", 100_000).unwrap_err().to_string();
+        assert!(e.contains("Histogram Overflows"), "{e}");
+        let e = parse("# Histogram Overflows: 00000\n", 100_000)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("empty"), "{e}");
+    }
+
+    #[test]
+    fn a_missing_tool_says_how_to_get_it() {
+        let e = locate("/nonexistent/cyclictest").unwrap_err();
+        assert!(
+            e.contains("/nonexistent/cyclictest is not an executable file"),
+            "{e}"
+        );
+        let e = locate("no-such-tool-drivelab").unwrap_err();
+        assert!(e.contains("not on PATH") && e.contains("rt-tests"), "{e}");
+    }
+}
