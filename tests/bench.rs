@@ -109,6 +109,7 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         );
     }
     expect.extend([
+        ("hop", r),
         ("inprocess", r),
         ("uds", r),
         ("iceoryx2", r),
@@ -129,7 +130,7 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         let floor = floor_of(r["cpu_latency_request"].as_bool().unwrap());
         // The verdict follows its definition: cycle p99.9 < Ts and misses/M ≤ 2 × floor + 10,
         // against the floor measured under the same request.
-        if r["variant"] != "floor" && r["variant"] != "cyclictest" {
+        if !["floor", "cyclictest", "hop"].contains(&r["variant"].as_str().unwrap()) {
             let floor_pm = floor["misses_per_million"].as_f64().unwrap();
             let expect = r["cycle_us"]["p999"].as_f64().unwrap() < 100.0
                 && r["misses_per_million"].as_f64().unwrap() <= 2.0 * floor_pm + 10.0;
@@ -143,6 +144,15 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
             );
         }
     }
+    // The hop floor: one wake-up per sample, each either recorded or counted as unseen.
+    let hop = rows.iter().find(|x| x["variant"] == "hop").unwrap();
+    assert_eq!(hop["samples"], 2000, "{hop}");
+    assert_eq!(
+        hop["cycle_us"]["count"].as_u64().unwrap() + hop["misses"].as_u64().unwrap(),
+        2000,
+        "{hop}"
+    );
+    assert!(hop["holds_budget"].is_null(), "{hop}");
     // The floor against cyclictest, under each request state, with the agreement verdict.
     let checks = report["floor_vs_cyclictest"].as_array().unwrap();
     assert_eq!(checks.len(), if cyclictest { 2 } else { 0 });

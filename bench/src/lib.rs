@@ -6,6 +6,8 @@
 //!   same kind of timer;
 //! * [`cyclictest::run`]: cyclictest (rt-tests), when installed, as a cross-check of the
 //!   floor;
+//! * [`hop::run`]: one process-to-process futex wake-up with nothing else in it (the
+//!   kernel's part of every hop of the chain);
 //! * [`run_uds_chain`]: the four roles as four processes exchanging the bus messages over Unix
 //!   domain sockets, with the same per-sample order and semantics as the iceoryx2 services
 //!   (see [`uds`]).
@@ -19,6 +21,7 @@ use drivelab_runtime::rt::{now_ns, setup_rt, sleep_until_ns, RtPolicy, RtReport,
 use drivelab_runtime::timing::{CycleMonitor, LatencyHist, MissCounter};
 
 pub mod cyclictest;
+pub mod hop;
 pub mod uds;
 pub mod wire;
 
@@ -124,7 +127,7 @@ pub(crate) fn schedule(hz: f64, seconds: f64) -> Result<(u64, u64)> {
 }
 
 /// Runs `f` in a fresh, named thread (its placement dies with it) and returns its result.
-fn in_fresh_thread<T: Send + 'static>(
+pub(crate) fn in_fresh_thread<T: Send + 'static>(
     name: &str,
     f: impl FnOnce() -> Result<T> + Send + 'static,
 ) -> Result<T> {

@@ -100,7 +100,7 @@ fn node(p: ServicePlacement) -> NodeSpec {
 /// One row of the report.
 #[derive(Debug, Clone, Serialize)]
 pub struct Row {
-    /// floor, inprocess, uds, iceoryx2.
+    /// floor, cyclictest, hop, inprocess, uds, iceoryx2, iceoryx2+spin, topology.
     pub variant: String,
     /// Placement name ("-" for the single-thread variants, which run on the plant's core).
     pub placement: String,
@@ -213,7 +213,7 @@ impl Job {
     /// File and folder tag at `hz`.
     fn tag(&self, hz: f64) -> String {
         let p = match self.variant {
-            "floor" | "cyclictest" | "inprocess" => "core1",
+            "floor" | "cyclictest" | "inprocess" | "hop" => "core1",
             _ => &self.placement,
         };
         let req = if self.request { "" } else { "-norequest" };
@@ -351,6 +351,7 @@ fn jobs(a: &BenchArgs, placements: &[String], cyclictest: bool) -> Vec<Job> {
     if cyclictest {
         jobs.extend(both("cyclictest", "-"));
     }
+    jobs.push(Job::new("hop", "-", req));
     jobs.push(Job::new("inprocess", "-", req));
     for p in placements {
         jobs.push(Job::new("uds", p, req));
@@ -414,7 +415,7 @@ fn compare(rows: &mut [Row], hz: f64) -> Vec<CrossCheck> {
             continue;
         };
         let r = &mut rows[i];
-        if r.variant == "floor" {
+        if r.variant == "floor" || r.variant == "hop" {
             continue;
         }
         if r.variant == "cyclictest" {
@@ -594,6 +595,20 @@ pub fn run(a: &BenchArgs) -> Result<()> {
                     }
                     "inprocess" => {
                         absorb(&mut acc[i], drivelab_bench::run_inprocess(&chain(one)?)?)?;
+                        None
+                    }
+                    // From the plant's place to the observer's, as the chain's first hop.
+                    "hop" => {
+                        let m = drivelab_bench::hop::run(
+                            &exe,
+                            hz,
+                            slice,
+                            &node(one.plant),
+                            &node(one.observer),
+                            &bus,
+                            &dir,
+                        )?;
+                        absorb(&mut acc[i], m)?;
                         None
                     }
                     "uds" => {
@@ -824,6 +839,15 @@ pub fn markdown(
             c.p50_diff_us,
             c.p99_diff_us,
             if c.agrees { "agrees" } else { "DISAGREES" }
+        );
+    }
+    for r in rows.iter().filter(|r| r.variant == "hop") {
+        let _ = writeln!(
+            s,
+            "\nhop at {} kHz: one process-to-process futex wake-up on the plant's core with nothing else in it, notify → running: p50 {:.1} µs, p99 {:.1} µs (the kernel's part of every hop; the default chain has two on its critical path).",
+            r.rate_hz / 1000.0,
+            r.cycle_us.p50,
+            r.cycle_us.p99
         );
     }
     for r in rows

@@ -282,6 +282,24 @@ enum BenchNodeKind {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    /// The receiver of the hop floor.
+    Hop {
+        /// Bus id of the wake segment.
+        #[arg(long)]
+        bus: String,
+        /// Notifies to wait for.
+        #[arg(long)]
+        samples: u64,
+        /// CPU core.
+        #[arg(long)]
+        core: Option<usize>,
+        /// SCHED_FIFO priority.
+        #[arg(long)]
+        priority: Option<u8>,
+        /// Histogram file (HdrHistogram V2).
+        #[arg(long)]
+        out: PathBuf,
+    },
 }
 
 fn main() -> ExitCode {
@@ -585,6 +603,21 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             priority,
             out,
         }),
+        Cmd::BenchNode {
+            kind:
+                BenchNodeKind::Hop {
+                    bus,
+                    samples,
+                    core,
+                    priority,
+                    out,
+                },
+        } => drivelab_bench::hop::receive(
+            &bus,
+            samples,
+            &drivelab_bench::NodeSpec { core, priority },
+            &out,
+        ),
         Cmd::ObserverError(args) => drivelab_services::observer_error::run(&args),
         Cmd::CdmDesign(args) => drivelab_services::cdm_design::run(&args),
         Cmd::Doctor { json } => {
