@@ -135,6 +135,9 @@ pub struct Row {
     /// CPU time (user + system) of the drive's processes per simulated second, s/s
     /// (iceoryx2 variants).
     pub cpu_s_per_s: Option<f64>,
+    /// Voluntary context switches (waits, so wake-ups) of the drive's processes per sample,
+    /// set-up and shutdown included (iceoryx2 variants).
+    pub waits_per_sample: Option<f64>,
     /// Where the cycle's microseconds go (iceoryx2 variants, all rounds merged).
     pub budget: Option<crate::budget::Budget>,
 }
@@ -187,6 +190,7 @@ fn row(job: &Job, hz: f64, m: &VariantResult, hgrm: &Path) -> Row {
             .into_owned(),
         cpu_s_per_s: None,
         budget: None,
+        waits_per_sample: None,
     }
 }
 
@@ -230,6 +234,8 @@ impl Job {
 struct DriveRun {
     result: VariantResult,
     cpu_s: f64,
+    /// Voluntary context switches (waits) of the drive's processes.
+    switches: u64,
     hists: BTreeMap<String, LatencyHist>,
     topology: TopologyPlan,
 }
@@ -269,7 +275,10 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
         if name.ends_with(".stats.json") {
             let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&p)?)?;
             if let (Some(pr), Some(c)) = (v["process"].as_str(), v["process_cpu_s"].as_f64()) {
-                cpu.insert(pr.to_string(), c);
+                let sw = v["process_context_switches"]["voluntary"]
+                    .as_u64()
+                    .unwrap_or(0);
+                cpu.insert(pr.to_string(), (c, sw));
             }
         } else if let Some(key) = name.strip_suffix(".hdr") {
             hists.insert(key.to_string(), LatencyHist::read_v2("hist", &p)?);
@@ -290,7 +299,8 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
             samples: r.summary["samples"].as_u64().unwrap_or(0),
             misses,
         },
-        cpu_s: cpu.values().sum(),
+        cpu_s: cpu.values().map(|c| c.0).sum(),
+        switches: cpu.values().map(|c| c.1).sum(),
         hists,
         topology,
     })
@@ -532,6 +542,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         let slice = seconds / rounds as f64;
         let mut acc: Vec<Option<VariantResult>> = jobs.iter().map(|_| None).collect();
         let mut cpu: Vec<f64> = vec![0.0; jobs.len()];
+        let mut switches: Vec<u64> = vec![0; jobs.len()];
         let mut stage_hists: Vec<BTreeMap<String, LatencyHist>> =
             jobs.iter().map(|_| BTreeMap::new()).collect();
         let mut topologies: Vec<Option<TopologyPlan>> = jobs.iter().map(|_| None).collect();
@@ -643,6 +654,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
                 if let Some(d) = drive {
                     absorb(&mut acc[i], d.result)?;
                     cpu[i] += d.cpu_s;
+                    switches[i] += d.switches;
                     for (k, h) in d.hists {
                         match stage_hists[i].get_mut(&k) {
                             Some(total) => total.add(&h)?,
@@ -670,6 +682,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
             if cpu[i] > 0.0 {
                 // Per simulated second: the rounds add up to `seconds` of drive.
                 r.cpu_s_per_s = Some(cpu[i] / seconds);
+                r.waits_per_sample = Some(switches[i] as f64 / r.samples.max(1) as f64);
             }
             if let Some(t) = &topologies[i] {
                 let lat = stage_hists[i]
@@ -798,10 +811,10 @@ pub fn markdown(
 ) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "Cycle latency from t_k to command k available at the plant, µs ({seconds} s per variant in {rounds} interleaved round(s); floor and cyclictest = bare timer wake-up lateness; request = CPU wake-up latency request of 0 µs held; each chain is compared with the floor measured under the same request).\n");
-    let _ = writeln!(s, "| rate | variant | placement | request | p50 | p99 | p99.9 | max | misses/M | longest run | p50 − floor | p99 − floor | p99 / floor | p99 / uds | CPU s/s | budget |");
+    let _ = writeln!(s, "| rate | variant | placement | request | p50 | p99 | p99.9 | max | misses/M | longest run | p50 − floor | p99 − floor | p99 / floor | p99 / uds | CPU s/s | waits/sample | budget |");
     let _ = writeln!(
         s,
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for r in rows {
         let verdict = match r.holds_budget {
@@ -811,7 +824,7 @@ pub fn markdown(
         };
         let _ = writeln!(
             s,
-            "| {} kHz | {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.0} | {:.0} | {} | {} | {} | {} | {} | {} | {} |",
+            "| {} kHz | {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.0} | {:.0} | {} | {} | {} | {} | {} | {} | {} | {} |",
             r.rate_hz / 1000.0,
             r.variant,
             r.placement,
@@ -827,6 +840,7 @@ pub fn markdown(
             fmt_opt(r.p99_ratio_to_floor, 2),
             fmt_opt(r.p99_ratio_to_uds, 2),
             fmt_opt(r.cpu_s_per_s, 3),
+            fmt_opt(r.waits_per_sample, 2),
             verdict
         );
     }

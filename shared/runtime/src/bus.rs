@@ -102,6 +102,10 @@ enum Wake {
     Futex(Arc<WakeSegment>, usize),
 }
 
+/// Offset of a topic's decimated wake word from its own (see [`Topic::decimated_receiver`]).
+pub const DECIMATED: usize = 8;
+const _: () = assert!(2 * DECIMATED <= crate::futex::WORDS);
+
 /// A typed topic: publish-subscribe plus a wake-up channel.
 pub struct Topic<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> {
     /// The publish-subscribe service.
@@ -205,6 +209,21 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
         })
     }
 
+    /// Like [`Topic::receiver`], but woken only by the sends that ask for it
+    /// ([`Sender::send_waking`]) and by pokes: a stage that steps at a fraction of its
+    /// trigger's rate sleeps through the samples it does not step. Iceoryx2 events have no
+    /// such channel: with them this is [`Topic::receiver`].
+    pub fn decimated_receiver(&self, buffer: usize) -> Result<Receiver<T>> {
+        let Wake::Futex(seg, i) = &self.wake else {
+            return self.receiver(buffer);
+        };
+        let w = i + DECIMATED;
+        Ok(Receiver {
+            subscriber: self.subscriber(buffer)?,
+            waiter: Waiter::Futex(seg.clone(), w, std::cell::Cell::new(seg.seq(w))),
+        })
+    }
+
     /// A receiver that is only polled (the sender does not wake it).
     pub fn polled_receiver(&self, buffer: usize) -> Result<Receiver<T>> {
         Ok(Receiver {
@@ -232,7 +251,10 @@ impl Poker {
             Notify::Event(n) => {
                 n.notify().map_err(|e| anyhow!("notify: {e:?}"))?;
             }
-            Notify::Futex(seg, i) => seg.notify(*i),
+            Notify::Futex(seg, i) => {
+                seg.notify(*i);
+                seg.notify(*i + DECIMATED);
+            }
         }
         Ok(())
     }
@@ -262,6 +284,11 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Sender<T> {
 
     /// Copies `msg` into a loaned sample, sends it and wakes the receivers. No allocation.
     pub fn send(&self, msg: T) -> Result<()> {
+        self.send_waking(msg, false)
+    }
+
+    /// [`Sender::send`], waking the topic's decimated receivers too when `decimated`.
+    pub fn send_waking(&self, msg: T, decimated: bool) -> Result<()> {
         let s = self
             .publisher
             .loan_uninit()
@@ -273,7 +300,13 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Sender<T> {
             Notify::Event(n) => {
                 n.notify().map_err(|e| anyhow!("notify: {e:?}"))?;
             }
-            Notify::Futex(seg, i) => seg.notify_stamped(*i, crate::rt::now_ns()),
+            Notify::Futex(seg, i) => {
+                let t = crate::rt::now_ns();
+                seg.notify_stamped(*i, t);
+                if decimated {
+                    seg.notify_stamped(*i + DECIMATED, t);
+                }
+            }
         }
         Ok(())
     }

@@ -134,6 +134,15 @@ pub struct Counters {
     pub fallback_steps: u64,
 }
 
+/// Greatest common divisor (gcd(0, b) = b).
+pub(crate) fn gcd(a: u64, b: u64) -> u64 {
+    if b == 0 {
+        a
+    } else {
+        gcd(b, a % b)
+    }
+}
+
 /// Per-stage histograms, preallocated before the loop. For a stage woken by another
 /// process, `wake` = `send` + `wakeup` sample by sample when the transport stamps its
 /// wake-ups; with `exec`, the parts tile the sample's critical path (docs/architecture.md,
@@ -930,6 +939,13 @@ impl<T: Transport> Host<T> {
         let fallback_poll = Duration::from_nanos(self.cfg.ts_ns / 2);
         let mut last_input = Instant::now();
         let every_sample = self.stages[0].stage.steps_every_sample();
+        // The samples at which some stage of this process steps: multiples of this.
+        let step_every = self
+            .stages
+            .iter()
+            .map(|h| h.divider)
+            .reduce(gcd)
+            .unwrap_or(1);
         // ---- real-time loop: no allocation, no locks, no logging ----
         'outer: while !self.stopping() {
             self.status()?;
@@ -965,6 +981,11 @@ impl<T: Transport> Host<T> {
                 }
                 h0.last_seen = Some(hdr.k);
                 self.store.put(m);
+                // A sample that no stage here steps (they run slower than their trigger)
+                // only goes into the store: it is neither behind nor a wake-up.
+                if !every_sample && !hdr.k.is_multiple_of(step_every) {
+                    continue;
+                }
                 let behind = realtime && self.transport.pending(topic)?;
                 if behind || (self.stages[0].rejoining && !every_sample) {
                     // Behind (a newer trigger is waiting), or rejoining: only the newest is

@@ -249,6 +249,8 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     let node = bus::node(&bus_id, &pname)?;
     let topics = DriveTopics::open_with(&node, sc.timing.wake, &bus_id)?;
     // Which topics this process receives, sends, waits on and pokes.
+    let decim = decimation(&plan);
+    let mut decimated = [true; N_TOPICS];
     let mut waited = [false; N_TOPICS];
     let mut polled = [false; N_TOPICS];
     let mut sent = [false; N_TOPICS];
@@ -260,6 +262,17 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
         for i in s.inputs() {
             if !external(i.topic) {
                 continue;
+            }
+            // A trigger this process's stages step on only every d-th time can be slept
+            // through in between, unless some other wait here needs every one.
+            let producer_divider = bindings
+                .iter()
+                .find(|(x, _, _)| *x == i.topic)
+                .map_or(1, |b| b.1);
+            let waits = i.role == Role::Trigger || (lockstep && i.role == Role::Latest);
+            let slower = i.role == Role::Trigger && s.divider() > producer_divider;
+            if waits && (!slower || decim[i.topic.index()] == 0) {
+                decimated[i.topic.index()] = false;
             }
             match i.role {
                 Role::Trigger => waited[i.topic.index()] = true,
@@ -294,14 +307,20 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
             }
         }
     }
+    let wait: [Wait; N_TOPICS] = std::array::from_fn(|i| match (waited[i], polled[i]) {
+        (true, _) if decimated[i] => Wait::Decimated,
+        (true, _) => Wait::Woken,
+        (false, true) => Wait::Polled,
+        (false, false) => Wait::None,
+    });
     let mut tr = BusTransport::open(
         &topics,
-        &waited,
-        &polled,
+        &wait,
         &sent,
         &poke,
         lockstep && source && args.recorder,
     )?;
+    tr.decim = decim;
     tr.status = stages
         .iter()
         .map(|s| {
@@ -414,10 +433,63 @@ enum Tx {
     Truth(Sender<PlantTruth>),
 }
 
+/// How a process receives a topic.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Wait {
+    /// Not at all.
+    None,
+    /// Read when needed; never woken by it.
+    Polled,
+    /// Woken by every message.
+    Woken,
+    /// Woken only at the samples its stages step (see [`decimation`]).
+    Decimated,
+}
+
+impl Wait {
+    fn receiver<T: std::fmt::Debug + iceoryx2::prelude::ZeroCopySend + Copy + 'static>(
+        self,
+        topic: &bus::Topic<T>,
+        buffer: usize,
+    ) -> Result<Receiver<T>> {
+        match self {
+            Wait::Decimated => topic.decimated_receiver(buffer),
+            Wait::Woken => topic.receiver(buffer),
+            Wait::Polled | Wait::None => topic.polled_receiver(buffer),
+        }
+    }
+}
+
+/// Per topic, the rate below its producer's at which some stage of another process steps
+/// on it as its trigger: the gcd of those stages' dividers (0: none). Such stages sleep on
+/// the topic's decimated wake word, which the producer bumps only at multiples of it, so a
+/// 1 kHz speed loop is not woken at 10 kHz to do nothing nine times out of ten.
+fn decimation(plan: &TopologyPlan) -> [u64; N_TOPICS] {
+    let mut d = [0u64; N_TOPICS];
+    for s in &plan.stages {
+        let Some(t) = s.inputs.iter().find(|i| i.role == Role::Trigger) else {
+            continue;
+        };
+        let Some(p) = plan.producers.iter().find(|p| p.topic == t.topic) else {
+            continue;
+        };
+        let own = plan
+            .processes
+            .iter()
+            .position(|x| x.stages.contains(&s.name));
+        if own != Some(p.process) && s.divider > p.divider {
+            d[t.topic.index()] = crate::host::gcd(d[t.topic.index()], s.divider);
+        }
+    }
+    d
+}
+
 /// The iceoryx2 bus as a [`Transport`]: one receiver per input topic (waitable for
 /// triggers, and in lockstep for every input; only polled otherwise, so that senders pay no
 /// wake-up for it), one sender per output topic.
 pub struct BusTransport {
+    /// Per topic: its decimated receivers step every this many samples (0: none).
+    decim: [u64; N_TOPICS],
     rx: [Option<Rx>; N_TOPICS],
     tx: [Option<Tx>; N_TOPICS],
     pokers: Vec<(TopicId, Poker)>,
@@ -428,8 +500,7 @@ pub struct BusTransport {
 impl BusTransport {
     fn open(
         topics: &DriveTopics,
-        waited: &[bool; N_TOPICS],
-        polled: &[bool; N_TOPICS],
+        wait: &[Wait; N_TOPICS],
         sent: &[bool; N_TOPICS],
         poke: &[TopicId],
         recorder: bool,
@@ -439,39 +510,15 @@ impl BusTransport {
         let mut tx: [Option<Tx>; N_TOPICS] = Default::default();
         for t in TopicId::ALL {
             let i = t.index();
-            if waited[i] || polled[i] {
-                let w = waited[i];
+            let w = wait[i];
+            if w != Wait::None {
                 rx[i] = Some(match t {
-                    TopicId::Meas => Rx::Meas(if w {
-                        topics.meas.receiver(BUF)?
-                    } else {
-                        topics.meas.polled_receiver(BUF)?
-                    }),
-                    TopicId::Est => Rx::Est(if w {
-                        topics.est.receiver(BUF)?
-                    } else {
-                        topics.est.polled_receiver(BUF)?
-                    }),
-                    TopicId::Iref => Rx::Iref(if w {
-                        topics.iref.receiver(16)?
-                    } else {
-                        topics.iref.polled_receiver(16)?
-                    }),
-                    TopicId::Cmd => Rx::Cmd(if w {
-                        topics.cmd.receiver(16)?
-                    } else {
-                        topics.cmd.polled_receiver(16)?
-                    }),
-                    TopicId::Wref => Rx::Wref(if w {
-                        topics.wref.receiver(16)?
-                    } else {
-                        topics.wref.polled_receiver(16)?
-                    }),
-                    TopicId::Truth => Rx::Truth(if w {
-                        topics.truth.receiver(16)?
-                    } else {
-                        topics.truth.polled_receiver(16)?
-                    }),
+                    TopicId::Meas => Rx::Meas(w.receiver(&topics.meas, BUF)?),
+                    TopicId::Est => Rx::Est(w.receiver(&topics.est, BUF)?),
+                    TopicId::Iref => Rx::Iref(w.receiver(&topics.iref, 16)?),
+                    TopicId::Cmd => Rx::Cmd(w.receiver(&topics.cmd, 16)?),
+                    TopicId::Wref => Rx::Wref(w.receiver(&topics.wref, 16)?),
+                    TopicId::Truth => Rx::Truth(w.receiver(&topics.truth, 16)?),
                 });
             }
             if sent[i] {
@@ -505,6 +552,7 @@ impl BusTransport {
             None
         };
         Ok(Self {
+            decim: [0; N_TOPICS],
             rx,
             tx,
             pokers,
@@ -541,13 +589,18 @@ impl BusTransport {
 impl Transport for BusTransport {
     #[inline]
     fn send(&mut self, msg: &Msg) -> Result<()> {
-        match (&self.tx[msg.topic().index()], msg) {
-            (Some(Tx::Meas(t)), Msg::Meas(m)) => t.send(*m),
-            (Some(Tx::Est(t)), Msg::Est(m)) => t.send(*m),
-            (Some(Tx::Iref(t)), Msg::Iref(m)) => t.send(*m),
-            (Some(Tx::Cmd(t)), Msg::Cmd(m)) => t.send(*m),
-            (Some(Tx::Wref(t)), Msg::Wref(m)) => t.send(*m),
-            (Some(Tx::Truth(t)), Msg::Truth(m)) => t.send(*m),
+        let i = msg.topic().index();
+        let h = msg.hdr();
+        // The decimated receivers wake at the samples they step and at every marker.
+        let d =
+            self.decim[i] > 0 && (h.k.is_multiple_of(self.decim[i]) || h.is_end() || h.is_warmup());
+        match (&self.tx[i], msg) {
+            (Some(Tx::Meas(t)), Msg::Meas(m)) => t.send_waking(*m, d),
+            (Some(Tx::Est(t)), Msg::Est(m)) => t.send_waking(*m, d),
+            (Some(Tx::Iref(t)), Msg::Iref(m)) => t.send_waking(*m, d),
+            (Some(Tx::Cmd(t)), Msg::Cmd(m)) => t.send_waking(*m, d),
+            (Some(Tx::Wref(t)), Msg::Wref(m)) => t.send_waking(*m, d),
+            (Some(Tx::Truth(t)), Msg::Truth(m)) => t.send_waking(*m, d),
             _ => Ok(()),
         }
     }
@@ -738,6 +791,9 @@ pub struct StageStats<'a> {
     pub rt: &'a RtReport,
     /// CPU time (user + system) of the whole process at its end, s.
     pub process_cpu_s: f64,
+    /// Context switches of the whole process at its end: voluntary (it waited) and
+    /// involuntary (it was preempted), the scheduler's view of its wake-ups.
+    pub process_context_switches: ContextSwitches,
     /// Counters.
     pub counters: Counters,
     /// The stage's own diagnostics.
@@ -756,7 +812,7 @@ fn write_stats<T: Transport>(
 ) -> Result<()> {
     let Some(dir) = &args.out else { return Ok(()) };
     let diags = host.diagnostics();
-    let process_cpu_s = process_cpu_s();
+    let (process_cpu_s, process_context_switches) = process_usage();
     for (i, h) in host.stages.iter().enumerate() {
         let name = h.stage.name();
         let source = i == 0 && host.is_source();
@@ -785,6 +841,7 @@ fn write_stats<T: Transport>(
             pid: std::process::id(),
             rt,
             process_cpu_s,
+            process_context_switches,
             counters,
             diagnostics: diags[i].1.iter().copied().collect(),
             latency_us,
@@ -797,7 +854,17 @@ fn write_stats<T: Transport>(
 }
 
 /// CPU time (user + system) this process has used, s.
-fn process_cpu_s() -> f64 {
+/// Context switches of a process (getrusage).
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct ContextSwitches {
+    /// It gave up the CPU (waited).
+    pub voluntary: u64,
+    /// It was preempted.
+    pub involuntary: u64,
+}
+
+/// CPU time (user + system, s) and context switches of this process so far.
+fn process_usage() -> (f64, ContextSwitches) {
     // SAFETY: getrusage writes into the zero-initialised struct we pass; RUSAGE_SELF is valid.
     let ru = unsafe {
         let mut ru: libc::rusage = std::mem::zeroed();
@@ -805,7 +872,13 @@ fn process_cpu_s() -> f64 {
         ru
     };
     let tv = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
-    tv(ru.ru_utime) + tv(ru.ru_stime)
+    (
+        tv(ru.ru_utime) + tv(ru.ru_stime),
+        ContextSwitches {
+            voluntary: ru.ru_nvcsw.max(0) as u64,
+            involuntary: ru.ru_nivcsw.max(0) as u64,
+        },
+    )
 }
 
 /// The plant's last true state as JSON (the supervisor hands it to a restarted source).
@@ -853,4 +926,36 @@ pub fn truth_from_json(v: &serde_json::Value) -> Result<PlantTruth> {
         return Err(anyhow!("rejoin file: non-finite values"));
     }
     Ok(m)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn plan(topology: &str) -> TopologyPlan {
+        let text = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../scenarios/kyslan-pi.toml"
+        ))
+        .unwrap();
+        let sc = Scenario::from_toml(&text, "kyslan-pi.toml").unwrap();
+        let (file, _) = crate::topology::load(topology).unwrap();
+        let r = crate::topology::resolve(&file.process, &mut |_, stage| {
+            crate::topology::builtin_info(&sc, stage).ok_or_else(|| stage.to_string())
+        })
+        .unwrap();
+        TopologyPlan::from_resolved(&r)
+    }
+
+    #[test]
+    fn only_a_slower_stage_of_another_process_sleeps_through_samples() {
+        // kyslan-pi: the speed loop steps every 10th estimate, in its own process.
+        let d = decimation(&plan("four-process"));
+        let mut want = [0u64; N_TOPICS];
+        want[TopicId::Est.index()] = 10;
+        assert_eq!(d, want);
+        // With the observer in its process, nothing crosses at a lower rate.
+        assert_eq!(decimation(&plan("two-process")), [0; N_TOPICS]);
+        assert_eq!(decimation(&plan("one-process")), [0; N_TOPICS]);
+    }
 }
