@@ -148,6 +148,7 @@ pub fn parse(text: &str, ts_ns: u64) -> Result<VariantResult> {
         lateness: late,
         samples,
         misses,
+        cpu_run_ns: None,
     })
 }
 

@@ -109,6 +109,7 @@ pub fn run(
             lateness,
             samples: n,
             misses,
+            cpu_run_ns: None,
         })
     })();
     drop(seg);

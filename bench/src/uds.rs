@@ -261,6 +261,7 @@ pub(crate) fn run_role(ctx: &RoleCtx) -> Result<Option<PlantOutcome>> {
             ),
             samples: c.samples,
             misses: cycle.misses,
+            cpu_run_ns: None,
         },
         counters: c,
         trace,
@@ -539,6 +540,7 @@ fn read_plant_file(out: &Path) -> Result<VariantResult> {
         lateness,
         samples: f.samples,
         misses,
+        cpu_run_ns: None,
     })
 }
 

@@ -138,6 +138,9 @@ pub struct Row {
     /// Voluntary context switches (waits, so wake-ups) of the drive's processes per sample,
     /// set-up and shutdown included (iceoryx2 variants).
     pub waits_per_sample: Option<f64>,
+    /// The floor: its thread's time on the CPU per wake-up, µs (the kernel's timer path
+    /// included): what the timer alone costs the chain's core every sample.
+    pub cpu_per_wakeup_us: Option<f64>,
     /// Where the cycle's microseconds go (iceoryx2 variants, all rounds merged).
     pub budget: Option<crate::budget::Budget>,
 }
@@ -191,6 +194,9 @@ fn row(job: &Job, hz: f64, m: &VariantResult, hgrm: &Path) -> Row {
         cpu_s_per_s: None,
         budget: None,
         waits_per_sample: None,
+        cpu_per_wakeup_us: m
+            .cpu_run_ns
+            .map(|ns| ns as f64 * 1e-3 / m.samples.max(1) as f64),
     }
 }
 
@@ -298,6 +304,7 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
             lateness,
             samples: r.summary["samples"].as_u64().unwrap_or(0),
             misses,
+            cpu_run_ns: None,
         },
         cpu_s: cpu.values().map(|c| c.0).sum(),
         switches: cpu.values().map(|c| c.1).sum(),
@@ -854,6 +861,17 @@ pub fn markdown(
             c.p99_diff_us,
             if c.agrees { "agrees" } else { "DISAGREES" }
         );
+    }
+    for r in rows.iter().filter(|r| r.variant == "floor") {
+        if let Some(c) = r.cpu_per_wakeup_us {
+            let _ = writeln!(
+                s,
+                "\nfloor at {} kHz ({}): each timer wake-up costs its thread {c:.1} µs on the CPU, {:.0} % of the core at this rate before any stage runs.",
+                r.rate_hz / 1000.0,
+                if r.cpu_latency_request { "request held" } else { "no request" },
+                c * r.rate_hz * 1e-4
+            );
+        }
     }
     for r in rows.iter().filter(|r| r.variant == "hop") {
         let _ = writeln!(
