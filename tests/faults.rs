@@ -350,7 +350,7 @@ fn nan_and_reversed_indices_are_rejected_counted_and_never_used() {
 }
 
 #[test]
-fn clean_removes_the_files_of_a_sigkilled_drive_and_refuses_a_live_one() {
+fn a_sigkilled_launchers_services_die_with_it_and_clean_removes_their_files() {
     let _serial = serial();
     let dir = scratch("clean");
     let bus = bus_id("clean");
@@ -366,23 +366,24 @@ fn clean_removes_the_files_of_a_sigkilled_drive_and_refuses_a_live_one() {
         "{err}"
     );
     assert_eq!(err.trim().lines().count(), 1, "{err}");
-    // SIGKILL the launcher first (nobody cleans up), then its services.
+    // SIGKILL the launcher (nobody cleans up): its stage hosts die with it.
     // SAFETY: SIGKILL to this test's own launcher.
     unsafe { libc::kill(child.id() as i32, libc::SIGKILL) };
     let _ = child.wait();
-    for line in processes_on_bus(&bus) {
+    let t = Instant::now();
+    while !processes_on_bus(&bus).is_empty() && t.elapsed() < Duration::from_secs(10) {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let orphans = processes_on_bus(&bus);
+    for line in &orphans {
         let pid: i32 = line.split(' ').next().unwrap().parse().unwrap();
         // SAFETY: SIGKILL to a process of this test's own drive.
         unsafe { libc::kill(pid, libc::SIGKILL) };
     }
-    let t = Instant::now();
-    while !processes_on_bus(&bus).is_empty() {
-        assert!(
-            t.elapsed() < Duration::from_secs(10),
-            "services still alive"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    assert!(
+        orphans.is_empty(),
+        "stage hosts outlived their launcher by 10 s: {orphans:?}"
+    );
     assert!(
         !drivelab_runtime::bus::leftovers(&bus).is_empty(),
         "a SIGKILLed drive should have left its files"
