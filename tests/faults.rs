@@ -366,7 +366,15 @@ fn a_sigkilled_launchers_services_die_with_it_and_clean_removes_their_files() {
         "{err}"
     );
     assert_eq!(err.trim().lines().count(), 1, "{err}");
-    // SIGKILL the launcher (nobody cleans up): its stage hosts die with it.
+    // Freeze the stage hosts (as if hung: they notice nothing), then SIGKILL the launcher
+    // (nobody cleans up): the kernel kills them with it.
+    for line in processes_on_bus(&bus) {
+        let pid: i32 = line.split(' ').next().unwrap().parse().unwrap();
+        if pid != child.id() as i32 {
+            // SAFETY: SIGSTOP to a process of this test's own drive.
+            unsafe { libc::kill(pid, libc::SIGSTOP) };
+        }
+    }
     // SAFETY: SIGKILL to this test's own launcher.
     unsafe { libc::kill(child.id() as i32, libc::SIGKILL) };
     let _ = child.wait();
