@@ -87,10 +87,20 @@ fn assert_trace_continuity(out: &std::path::Path, s: &serde_json::Value) {
 }
 
 fn run_with_fault(name: &str, fault: &str, duration: &str) -> (PathBuf, serde_json::Value) {
+    run_with_fault_and(name, fault, duration, &[])
+}
+
+/// [`run_with_fault`] with `extra` arguments.
+fn run_with_fault_and(
+    name: &str,
+    fault: &str,
+    duration: &str,
+    extra: &[&str],
+) -> (PathBuf, serde_json::Value) {
     let dir = scratch(name);
     let bus = bus_id(name);
     let out = dir.join("run");
-    let o = drivelab(&[
+    let mut args = vec![
         "run",
         "--bus",
         &bus,
@@ -101,7 +111,9 @@ fn run_with_fault(name: &str, fault: &str, duration: &str) -> (PathBuf, serde_js
         "--out",
         out.to_str().unwrap(),
         "--no-plots",
-    ]);
+    ];
+    args.extend_from_slice(extra);
+    let o = drivelab(&args);
     assert!(
         o.status.success(),
         "{fault}: {}",
@@ -220,6 +232,105 @@ fn sigkill_of_each_service_is_detected_made_safe_restarted_and_recovered() {
             assert!(f["safe_state_ms"].as_f64().is_some(), "{f}");
         }
     }
+}
+
+/// The supervisor's events of one service, by name.
+fn events_of(s: &serde_json::Value, svc: &str) -> Vec<String> {
+    s["supervisor_events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["service"] == svc)
+        .map(|e| e["event"].as_str().unwrap().to_string())
+        .collect()
+}
+
+/// The rows with a command from the last one the current loop made from fresh inputs on (the
+/// stage killed for good never comes back, so they are the run's degraded tail). The
+/// injection's `k0` is the recorder's progress when the signal was sent, which can lag the
+/// plant: the tail may start before it, but must reach past it.
+fn degraded_rows(
+    rows: &[drivelab_runtime::trace::TraceRow],
+    k0: u64,
+) -> Vec<drivelab_runtime::trace::TraceRow> {
+    use drivelab_runtime::messages::{FLAG_MISSING, FLAG_STALE_INPUT};
+    let with_cmd: Vec<_> = rows
+        .iter()
+        .filter(|r| r.ctrl_flags & FLAG_MISSING == 0)
+        .copied()
+        .collect();
+    let first = with_cmd
+        .iter()
+        .rposition(|r| r.ctrl_flags & FLAG_STALE_INPUT == 0)
+        .map_or(0, |i| i + 1);
+    let degraded = with_cmd[first..].to_vec();
+    assert!(
+        degraded.last().is_some_and(|r| r.k > k0),
+        "no degraded tail after the injection at {k0}"
+    );
+    degraded
+}
+
+#[test]
+fn with_restart_never_a_killed_loop_stays_dead_and_the_drive_runs_degraded() {
+    let _serial = serial();
+    // Speed loop killed: the current loop holds the last i_q* for 2 speed periods, then ramps
+    // it to zero at i_q_max·T_s/20 ms per sample (kyslan-pi: 1.6 A·0.1 ms/20 ms = 8 mA), the
+    // current loop's stated degraded mode.
+    let (out, s) = run_with_fault_and(
+        "neverspeed",
+        "kill:speed-loop@0.2",
+        "0.4",
+        &["--restart", "never"],
+    );
+    assert_eq!(events_of(&s, "speed-loop"), ["inject", "exited"], "{s}");
+    let f = &s["faults"][0];
+    assert!(
+        f["republished_ms"].is_null() && f["speed_recovered_ms"].is_null(),
+        "{f}"
+    );
+    let rows = drivelab_runtime::trace::read_csv(&out.join("trace.csv")).unwrap();
+    let d = degraded_rows(&rows, f["injected_k"].as_u64().unwrap());
+    let n = 10; // kyslan-pi: speed_divider
+    let ramp = 1.6 * 1e-4 / 0.02;
+    let held = d[0].i_q_ref;
+    assert!(held.abs() > ramp, "i_q* {held} A at the kill");
+    for (i, r) in d.iter().enumerate() {
+        // Samples are consecutive here (no command missing) or the index says how many.
+        let steps = (r.k - d[0].k) as f64;
+        let want = if steps < 2.0 * n as f64 {
+            held
+        } else {
+            let down = (steps - 2.0 * n as f64 + 1.0) * ramp;
+            held.signum() * (held.abs() - down).max(0.0)
+        };
+        assert!(
+            (r.i_q_ref - want).abs() < 1e-9,
+            "row {i} (k = {}): i_q* {} A, want {want} A (held {held} A)",
+            r.k,
+            r.i_q_ref
+        );
+    }
+    assert_eq!(d.last().unwrap().i_q_ref, 0.0, "the ramp reached zero");
+
+    // Observer killed: the current loop controls on the encoder angle from then on and the
+    // speed loop, without estimates, holds its output: i_q* stays where it was.
+    let (out, s) = run_with_fault_and(
+        "neverobs",
+        "kill:observer@0.2",
+        "0.4",
+        &["--restart", "never"],
+    );
+    assert_eq!(events_of(&s, "observer"), ["inject", "exited"], "{s}");
+    let f = &s["faults"][0];
+    let rows = drivelab_runtime::trace::read_csv(&out.join("trace.csv")).unwrap();
+    let d = degraded_rows(&rows, f["injected_k"].as_u64().unwrap());
+    let last = d.last().unwrap();
+    assert!(
+        d.iter().all(|r| r.i_q_ref == last.i_q_ref),
+        "i_q* not held after k = {}",
+        d[0].k
+    );
 }
 
 #[test]
