@@ -142,9 +142,9 @@ impl Stage for ObserverStage {
 ///   estimate; sensorless, zero voltage;
 /// - no fresh current reference: the last one is held; after 2 speed periods i_q* ramps to
 ///   zero (full scale in 20 ms);
-/// - a command made from any stale input (estimate, reference, or a reference the speed
-///   loop held) carries `FLAG_STALE_INPUT`, so the trace shows every sample a stale input
-///   reached;
+/// - a command made from any stale input (estimate, a held reference, or a reference the
+///   speed loop held) carries `FLAG_STALE_INPUT`, so the trace shows every sample a stale
+///   input reached;
 /// - rejoin: its integrators are preset to the voltage the plant is applying.
 pub struct CurrentLoopStage {
     ctrl: CurrentLoopStep,
@@ -215,11 +215,15 @@ impl Stage for CurrentLoopStage {
                     // Nothing expected yet (before the first speed sample): zero references.
                     (true, None) => {}
                     (false, _) => {
-                        // Hold the last reference (a stale input: flagged); after 2 speed
-                        // periods without a fresh one, ramp i_q* to zero.
-                        flags |= FLAG_STALE_INPUT;
+                        // Hold the last reference (a stale input: flagged, once one came;
+                        // before the first, the zero reference stands as at the start);
+                        // after 2 speed periods without a fresh one, ramp i_q* to zero.
+                        if inputs.newest_iref().is_some() {
+                            flags |= FLAG_STALE_INPUT;
+                        }
                         self.stale_ref_samples += 1;
                         if self.stale_ref_samples > 2 * self.divider {
+                            flags |= FLAG_STALE_INPUT;
                             self.ramp_samples += 1;
                             let q = self.active_ref.i_q_ref;
                             self.active_ref.i_q_ref =
@@ -631,6 +635,15 @@ mod tests {
             s.step(k, &ib, &mut out);
             cmd_of(&out)
         };
+        // Before any reference came there is none to hold: the zero reference, unflagged.
+        let mut ib = Inbox::default();
+        ib.put(Msg::Meas(meas(1, 0.0)));
+        ib.put(Msg::Est(est(1, 0.0)));
+        ib.set_stale(TopicId::Iref, 1);
+        let mut out = Outbox::default();
+        CurrentLoopStage::new(&sc).step(1, &ib, &mut out);
+        assert_eq!(cmd_of(&out).i_dq_ref[1], 0.0);
+        assert_eq!(cmd_of(&out).hdr.flags & FLAG_STALE_INPUT, 0);
         assert_eq!(step(&mut s, 1, true).i_dq_ref[1], 1.0);
         // Held for 2 speed periods (flagged: a stale input).
         for k in 2..2 + 2 * n {
