@@ -336,21 +336,26 @@ fn load_step_at_800_rpm_is_rejected() {
     assert!((r.metric("load_dip_rad_s") - dip).abs() < 1e-9);
 }
 
+/// The mean angle error of `rows` and its prediction ([`predicted_bias_deg`], τ_o = 1 ms)
+/// at their mean operating point.
+fn bias_and_prediction(rows: &[&TraceRow], disc: Discretisation) -> (f64, f64) {
+    let pred = predicted_bias_deg(
+        mean(rows.iter().map(|x| x.omega_m)),
+        mean(rows.iter().map(|x| x.i_d)),
+        mean(rows.iter().map(|x| x.i_q)),
+        1e-3,
+        disc,
+    );
+    (mean(rows.iter().map(|x| angle_error_deg(x))), pred)
+}
+
 /// The steady-state angle error of the last 10 % of a monitor/sensorless run, and its
-/// prediction for that operating point ([`predicted_bias_deg`]).
+/// prediction for that operating point.
 fn steady_state(r: &Run, disc: Discretisation) -> (f64, f64) {
     let rows = r.trace();
     let end = rows.last().unwrap().t;
     let tail: Vec<&TraceRow> = rows.iter().filter(|x| x.t >= 0.9 * end).collect();
-    let ss = mean(tail.iter().map(|x| angle_error_deg(x)));
-    let pred = predicted_bias_deg(
-        mean(tail.iter().map(|x| x.omega_m)),
-        mean(tail.iter().map(|x| x.i_d)),
-        mean(tail.iter().map(|x| x.i_q)),
-        1e-3,
-        disc,
-    );
-    (ss, pred)
+    bias_and_prediction(&tail, disc)
 }
 
 #[test]
@@ -414,14 +419,7 @@ fn sensorless_drive_reaches_1200_rpm_and_holds_it_under_2_nm() {
     let e_w = max_abs(hold.iter().map(|x| x.omega_m - w));
     let e_hat = max_abs(hold.iter().map(|x| x.omega_hat - x.omega_m));
     let e_th = max_abs(hold.iter().map(|x| angle_error_deg(x)));
-    let th_mean = mean(hold.iter().map(|x| angle_error_deg(x)));
-    let th_pred = predicted_bias_deg(
-        mean(hold.iter().map(|x| x.omega_m)),
-        mean(hold.iter().map(|x| x.i_d)),
-        mean(hold.iter().map(|x| x.i_q)),
-        1e-3,
-        Discretisation::Truncated,
-    );
+    let (th_mean, th_pred) = bias_and_prediction(&hold, Discretisation::Truncated);
     let i_q = mean(hold.iter().map(|x| x.i_q));
     let (ss, pred) = steady_state(&r, Discretisation::Truncated);
     eprintln!(
