@@ -176,8 +176,14 @@ fn assert_recovered_and_peak(out: &std::path::Path, s: &serde_json::Value, f: &s
 #[test]
 fn sigkill_of_each_service_is_detected_made_safe_restarted_and_recovered() {
     let _serial = serial();
+    let (ls, _) = run_ok("killls", &["--clock", "lockstep", "--duration", "1.0"]);
     for svc in ["plant", "observer", "current-loop", "speed-loop"] {
         let (out, s) = run_with_fault(&format!("kill{svc}"), &format!("kill:{svc}@0.3"), "1.0");
+        // Up to the fault's first trace the drive is the undisturbed one, bit for bit; the
+        // kill does show in the trace.
+        let (rows, disturbed) = assert_identical_until_disturbed(&ls, &out);
+        assert!(disturbed, "{svc}: the kill left no trace");
+        eprintln!("{svc}: identical to lockstep for {rows} rows");
         let f = &s["faults"][0];
         eprintln!("{svc}: {f}");
         assert_eq!(f["service"], svc);

@@ -311,3 +311,44 @@ pub fn number_after(text: &str, label: &str) -> f64 {
         .parse()
         .unwrap_or_else(|e| panic!("'{}' after '{label}': {e}", &rest[..end]))
 }
+
+/// Compares the trace of a real-time run with the lockstep trace of the same scenario: they
+/// agree bit for bit on every row before the first one that a stale input reached (the
+/// plant held a command or went safe: `plant_flags`, `miss`; the current loop used a stale
+/// input: `ctrl_flags`) or that follows a missing sample, and entirely when there is no such
+/// row. Returns the rows compared and whether such a row ended the comparison.
+pub fn assert_identical_until_disturbed(lockstep: &Path, realtime: &Path) -> (usize, bool) {
+    let (a, b) = (
+        read(&lockstep.join("trace.csv")),
+        read(&realtime.join("trace.csv")),
+    );
+    let la: Vec<&[u8]> = a.split(|c| *c == b'\n').filter(|l| !l.is_empty()).collect();
+    let lb: Vec<&[u8]> = b.split(|c| *c == b'\n').filter(|l| !l.is_empty()).collect();
+    assert_eq!(la[0], lb[0], "headers differ");
+    let header: Vec<&str> = std::str::from_utf8(lb[0]).unwrap().split(',').collect();
+    let flag_cols: Vec<usize> = ["plant_flags", "ctrl_flags", "miss"]
+        .iter()
+        .map(|n| header.iter().position(|c| c == n).unwrap())
+        .collect();
+    for (i, line) in lb.iter().enumerate().skip(1) {
+        let f: Vec<&str> = std::str::from_utf8(line).unwrap().split(',').collect();
+        let in_order = f[0].parse::<usize>().unwrap() == i - 1;
+        if !in_order || flag_cols.iter().any(|&c| f[c] != "0") {
+            return (i - 1, true);
+        }
+        assert_eq!(
+            la.get(i).copied(),
+            Some(*line),
+            "{} differs from lockstep at sample {} before any stale input or gap",
+            realtime.display(),
+            i - 1
+        );
+    }
+    assert_eq!(
+        la.len(),
+        lb.len(),
+        "{}: rows missing at the end",
+        realtime.display()
+    );
+    (lb.len() - 1, false)
+}
