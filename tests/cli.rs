@@ -1,10 +1,13 @@
 //! Snapshot tests of the help texts and the scenario catalogue: a change to what
-//! users read must be deliberate. `UPDATE_SNAPSHOTS=1 cargo test --test cli` rewrites them.
+//! users read must be deliberate. `UPDATE_SNAPSHOTS=1 cargo test --test cli` rewrites those that
+//! changed and fails (review the diff, then run again); it is refused when `CI` is set.
 
 use std::path::PathBuf;
 use std::process::Command;
 
-fn snapshot(name: &str, args: &[&str]) {
+/// Compares `drivelab ARGS` with snapshot `name`; with `UPDATE_SNAPSHOTS` rewrites it when it
+/// differs and returns its path (the caller fails after all were rewritten).
+fn snapshot(name: &str, args: &[&str]) -> Option<PathBuf> {
     let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
         .args(args)
         .output()
@@ -17,21 +20,40 @@ fn snapshot(name: &str, args: &[&str]) {
     let got = String::from_utf8(o.stdout).unwrap();
     let file = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../tests/snapshots"))
         .join(format!("{name}.txt"));
+    let want = std::fs::read_to_string(&file).ok();
     if std::env::var_os("UPDATE_SNAPSHOTS").is_some() {
-        std::fs::write(&file, &got).unwrap();
-        return;
+        // CI checks the snapshots; it never rewrites them.
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "UPDATE_SNAPSHOTS is refused when CI is set"
+        );
+        if want.as_deref() != Some(got.as_str()) {
+            std::fs::write(&file, &got).unwrap();
+            return Some(file);
+        }
+        return None;
     }
-    let want = std::fs::read_to_string(&file)
-        .unwrap_or_else(|_| panic!("{} missing: run with UPDATE_SNAPSHOTS=1", file.display()));
+    let want =
+        want.unwrap_or_else(|| panic!("{} missing: run with UPDATE_SNAPSHOTS=1", file.display()));
     assert_eq!(
         got, want,
         "drivelab {args:?} changed; review and run with UPDATE_SNAPSHOTS=1"
+    );
+    None
+}
+
+/// A rewritten snapshot is never a pass: review the diff, then run again.
+fn none_rewritten(rewritten: impl IntoIterator<Item = Option<PathBuf>>) {
+    let files: Vec<PathBuf> = rewritten.into_iter().flatten().collect();
+    assert!(
+        files.is_empty(),
+        "rewritten, review and run again: {files:?}"
     );
 }
 
 #[test]
 fn help_texts() {
-    snapshot("help", &["--help"]);
+    let mut rewritten = vec![snapshot("help", &["--help"])];
     for cmd in [
         "run",
         "bench",
@@ -47,8 +69,9 @@ fn help_texts() {
         "observer-error",
         "cdm-design",
     ] {
-        snapshot(&format!("help-{cmd}"), &[cmd, "--help"]);
+        rewritten.push(snapshot(&format!("help-{cmd}"), &[cmd, "--help"]));
     }
+    none_rewritten(rewritten);
 }
 
 #[test]
@@ -70,5 +93,5 @@ fn every_help_has_an_example_and_units() {
 
 #[test]
 fn scenario_catalogue() {
-    snapshot("scenarios", &["scenarios"]);
+    none_rewritten([snapshot("scenarios", &["scenarios"])]);
 }

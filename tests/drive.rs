@@ -50,14 +50,44 @@ fn kyslan_pi_lockstep_meets_the_papers_rise_time() {
         assert!(p["policy"].as_str().is_some(), "{svc}: {p}");
         assert!(p.get("cpu").is_some(), "{svc}: {p}");
     }
+    // The summary's speed metrics are those of its own trace, recomputed here from their
+    // definitions (kyslan-pi: a 70 rad/s step at 0, the load step at 40 ms). Their values
+    // against the paper are checked in tests/kyslan.rs.
+    let rows = drivelab_runtime::trace::read_csv(&out.join("trace.csv")).unwrap();
+    let err = |r: &&drivelab_runtime::trace::TraceRow| 70.0 - r.omega_m;
+    let before_load = rows.iter().filter(|r| r.t < 0.04 - 1e-12);
+    let after_load: Vec<_> = rows.iter().filter(|r| r.t >= 0.04 - 1e-12).collect();
+    let overshoot = before_load.map(|r| r.omega_m - 70.0).fold(0.0, f64::max) / 70.0 * 100.0;
+    let dip = after_load.iter().map(err).fold(f64::NEG_INFINITY, f64::max);
+    let last_outside = after_load.iter().rposition(|r| err(r).abs() > 0.02 * 70.0);
+    let recovery = match last_outside {
+        None => Some(0.0),
+        Some(i) => after_load.get(i + 1).map(|r| (r.t - 0.04) * 1e3),
+    };
+    let tail: Vec<f64> = rows
+        .iter()
+        .filter(|r| r.t >= 0.09 - 1e-12)
+        .map(|r| err(&r))
+        .collect();
+    let sse = tail.iter().sum::<f64>() / tail.len() as f64;
     let m = &s["metrics"];
-    for key in [
-        "overshoot_pct",
-        "steady_state_error",
-        "load_dip_rad_s",
-        "load_recovery_ms",
+    for (key, want) in [
+        ("overshoot_pct", overshoot),
+        ("load_dip_rad_s", dip),
+        (
+            "load_recovery_ms",
+            recovery.expect("recovered within the run"),
+        ),
+        ("steady_state_error", sse),
     ] {
-        assert!(m[key].as_f64().is_some_and(f64::is_finite), "{key}: {m}");
+        let got = m[key]
+            .as_f64()
+            .unwrap_or_else(|| panic!("{key} missing: {m}"));
+        // Only summation order differs: rounding, far below any physical meaning.
+        assert!(
+            (got - want).abs() <= 1e-9 * want.abs().max(1.0),
+            "{key}: {got} vs {want}"
+        );
     }
     // The trace has every sample, in order, with the documented columns.
     let text = String::from_utf8(read(&out.join("trace.csv"))).unwrap();
@@ -105,11 +135,13 @@ fn lockstep_inprocess_and_clean_realtime_traces_are_bit_identical() {
     // Twice the same lockstep run: also identical.
     let (ls2, _) = run_ok("det-ls2", &["--clock", "lockstep"]);
     assert_eq!(a, read(&ls2.join("trace.csv")));
-    // Real time: a deadline miss legitimately changes the trace (the plant holds the old
-    // command), so the claim is "identical when nothing was missed". The traces must agree bit
-    // for bit up to the first sample where any stage used a stale input, and entirely when
-    // none did. A 2 kHz variant of kyslan-pi gives the debug build room to miss nothing; up
-    // to three attempts are made to get a clean run on this shared VM.
+    // Real time: a stale input legitimately changes the trace (the plant holds the old
+    // command, the current loop falls back or holds its reference), and every such sample is
+    // flagged in the trace: the plant's flags and `miss` for a held or missing command, the
+    // current loop's flags for a stale estimate or reference (also one the speed loop held).
+    // So the traces must agree bit for bit up to the first flagged row, and entirely when no
+    // row is flagged. A 2 kHz variant of kyslan-pi gives the debug build room to miss
+    // nothing; up to three attempts are made to see one run without any flagged row.
     let dir = scratch("det-2k");
     let sc2k = dir.join("kyslan-pi-2k.toml");
     let base = std::fs::read_to_string(concat!(
@@ -128,50 +160,39 @@ fn lockstep_inprocess_and_clean_realtime_traces_are_bit_identical() {
     .unwrap();
     let sc = sc2k.to_str().unwrap();
     let (ls, _) = run_ok("det-2k-ls", &["--clock", "lockstep", "--scenario", sc]);
-    let a = read(&ls.join("trace.csv"));
-    let la: Vec<&[u8]> = a.split(|c| *c == b'\n').collect();
+    assert_eq!(
+        assert_identical_until_disturbed(&ls, &ls),
+        (200, false),
+        "a lockstep run has no stale input"
+    );
     let mut clean = false;
     for attempt in 0..3 {
         let (rt, s) = run_ok(
             &format!("det-2k-rt{attempt}"),
             &["--clock", "realtime", "--scenario", sc],
         );
-        let b = read(&rt.join("trace.csv"));
-        let lb: Vec<&[u8]> = b.split(|c| *c == b'\n').collect();
-        assert_eq!(la.len(), lb.len());
         let stale: u64 = s["counters"]
             .as_object()
             .unwrap()
             .values()
             .map(|c| c["stale_inputs"].as_u64().unwrap())
             .sum();
-        let first_stale = lb
-            .iter()
-            .skip(1)
-            .position(|l| l.ends_with(b",1"))
-            .map(|i| i + 1);
-        let upto = if stale == 0 {
-            la.len()
-        } else {
-            first_stale.unwrap_or(0)
-        };
-        for i in 0..upto {
-            assert_eq!(
-                la[i], lb[i],
-                "realtime differs from lockstep at line {i} before any stale input"
-            );
-        }
-        eprintln!(
-            "realtime attempt {attempt}: identical for {upto} of {} lines (stale inputs {stale})",
-            la.len()
+        let (rows, disturbed) = assert_identical_until_disturbed(&ls, &rt);
+        // A flagged row comes from a stale input some stage counted.
+        assert!(
+            !disturbed || stale > 0,
+            "row {rows} flagged without a counted stale input"
         );
-        if stale == 0 {
+        eprintln!(
+            "realtime attempt {attempt}: identical for {rows} of 200 rows (stale inputs {stale})"
+        );
+        if !disturbed {
             clean = true;
             break;
         }
     }
     if !clean {
-        eprintln!("NOTE: no real-time run without a stale input in 3 attempts; only the prefix property was checked");
+        eprintln!("NOTE: every real-time run had a flagged row; identity was checked up to it");
     }
 }
 
@@ -237,8 +258,7 @@ fn sigterm_stops_the_whole_drive_and_cleans_up() {
     let bus = bus_id("sigterm");
     let out = dir.join("run");
     let mut child = start_drive(&bus, &out, &["--duration", "30"]);
-    wait_for_services(&bus);
-    std::thread::sleep(Duration::from_millis(300));
+    wait_for_progress(&bus, 1);
     // SAFETY: signalling a child process we spawned.
     unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
     let t = Instant::now();

@@ -4,7 +4,7 @@
 //! that no process and no bus file is left.
 
 use drivelab_control::control::rst::{poly_add, poly_mul, roots};
-use drivelab_control::observer_sensorless::{predicted_angle_error, Discretisation};
+use drivelab_control::observer_sensorless::Discretisation;
 use drivelab_runtime::trace::TraceRow;
 use drivelab_runtime::wiring::observer_sensorless::angle_error_deg;
 use serde_json::Value;
@@ -41,6 +41,97 @@ fn mean(it: impl Iterator<Item = f64>) -> f64 {
 /// The motor of the low1998 scenarios: p = 4, ψ = 0.6333/4 Wb, J = 2e-3, B = 1e-3.
 fn k_t() -> f64 {
     1.5 * 0.6333
+}
+
+/// Complex numbers as (re, im), for the prediction below.
+type C = (f64, f64);
+fn cmul(a: C, b: C) -> C {
+    (a.0 * b.0 - a.1 * b.1, a.0 * b.1 + a.1 * b.0)
+}
+fn cdiv(a: C, b: C) -> C {
+    let n = b.0 * b.0 + b.1 * b.1;
+    ((a.0 * b.0 + a.1 * b.1) / n, (a.1 * b.0 - a.0 * b.1) / n)
+}
+fn csub(a: C, b: C) -> C {
+    (a.0 - b.0, a.1 - b.1)
+}
+fn cis(phi: f64) -> C {
+    (phi.cos(), phi.sin())
+}
+
+/// The steady-state angle error θ̂ − θ (degrees) of Low et al.'s minimal-order observer
+/// with time constant `tau_o` at constant speed `w` and dq currents (i_d, i_q), derived here
+/// from the motor's αβ equations (low1998: R = 2.5 Ω, L = 30 mH, p = 4, ψ = 0.6333/4 Wb),
+/// independently of the observer's code:
+///   L·di/dt = u − R·i − jω_e·ψ·X_B,  dX_B/dt = jω_e·X_B  (X_B = e^{jθ_e}).
+/// Truncated (Low eq. 13): a11 = 1 − R·T/L, a12 = −jω_e·ψ·T/L, a22 = 1 + jω_e·T, b1 = T/L.
+/// Exact: a11 = e^{−R·T/L}, a22 = e^{jω_e·T}, a12 = −jω_e·(ψ/L)·(a22 − a11)/(R/L + jω_e),
+/// b1 = (1 − a11)/R. The gain G = (a22 − λ)/a12 places the error pole at λ = e^{−T/τ_o}.
+/// In steady state X̂_B(k) = ρ·X_B(k) and the observer's recursion gives
+/// ρ·(e^{jω_e·T} − λ) = G·ν with ν = i·e^{jω_e·T} − a11·i − b1·u·e^{jω_e·T/2}: the dq
+/// current i, and the dq voltage u = R·i + jω_e·(L·i + ψ) held over the sample and reported
+/// at the mid-sample angle. The error is arg ρ.
+fn predicted_bias_deg(w: f64, i_d: f64, i_q: f64, tau_o: f64, disc: Discretisation) -> f64 {
+    let (r, l, p, psi, ts) = (2.5, 30e-3, 4.0, 0.6333 / 4.0, 2e-4);
+    let we = p * w;
+    let rot = cis(we * ts);
+    let (a11, a12, a22, b1) = match disc {
+        Discretisation::Truncated => (
+            1.0 - r * ts / l,
+            (0.0, -we * psi * ts / l),
+            (1.0, we * ts),
+            ts / l,
+        ),
+        Discretisation::Exact => {
+            let ea = (-r * ts / l).exp();
+            let k = cdiv(
+                cmul((0.0, -we * psi / l), csub(rot, (ea, 0.0))),
+                (r / l, we),
+            );
+            (ea, k, rot, (1.0 - ea) / r)
+        }
+    };
+    let lambda = (-ts / tau_o).exp();
+    let g = cdiv(csub(a22, (lambda, 0.0)), a12);
+    let i = (i_d, i_q);
+    let u = (r * i_d - we * l * i_q, r * i_q + we * (l * i_d + psi));
+    let nu = csub(
+        csub(cmul(i, rot), (a11 * i_d, a11 * i_q)),
+        cmul((b1 * u.0, b1 * u.1), cis(0.5 * we * ts)),
+    );
+    let rho = cdiv(cmul(g, nu), csub(rot, (lambda, 0.0)));
+    rho.1.atan2(rho.0).to_degrees()
+}
+
+/// A settled loop's error with integral action: zero up to rounding and what is left of the
+/// transient (the traces show 1e-8 at the most).
+const SETTLED_TOL: f64 = 1e-6;
+
+/// How closely a steady-state angle error must match [`predicted_bias_deg`]: 1 % of the
+/// 2.2° truncation bias it explains (the prediction is computed, not fitted).
+const PRED_TOL_DEG: f64 = 0.02;
+
+/// The 1 % settling time of the third-order ITAE prototype (Graham-Lathrop:
+/// s³ + 1.75·ω_n·s² + 2.15·ω_n²·s + ω_n³) at `wn`, from its unit-step response (RK4).
+fn itae3_settling_s(wn: f64) -> f64 {
+    let (a1, a2, a3) = (1.75 * wn, 2.15 * wn * wn, wn * wn * wn);
+    let f = |x: [f64; 3]| [x[1], x[2], a3 * (1.0 - x[0]) - a2 * x[1] - a1 * x[2]];
+    let (dt, mut x, mut last_out) = (1e-5, [0.0f64; 3], 0.0);
+    for n in 1..=(20.0 / wn / 1e-5) as usize {
+        let add =
+            |x: [f64; 3], k: [f64; 3], h: f64| [x[0] + h * k[0], x[1] + h * k[1], x[2] + h * k[2]];
+        let k1 = f(x);
+        let k2 = f(add(x, k1, dt / 2.0));
+        let k3 = f(add(x, k2, dt / 2.0));
+        let k4 = f(add(x, k3, dt));
+        for i in 0..3 {
+            x[i] += dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]);
+        }
+        if (x[0] - 1.0).abs() > 0.01 {
+            last_out = n as f64 * dt;
+        }
+    }
+    last_out
 }
 
 #[test]
@@ -121,26 +212,29 @@ fn low_rst_lockstep_currents_settle_without_error_and_i_d_stays_near_zero() {
         eprintln!(
             "{t0}-{t1} s at {w} rpm: max |i_q − i_q*| = {e_q:.2e} A, max |i_d| = {e_d:.2e} A, max |ω − ω*| = {e_w:.2e} rad/s, i_q = {i_q:.4} A"
         );
-        assert!(e_q < 2e-3, "i_q error {e_q} A in {t0}-{t1}");
-        assert!(e_d < 1e-3, "i_d error {e_d} A in {t0}-{t1}");
-        assert!(
-            e_w < 0.05 * w * RPM / 10.0,
-            "speed error {e_w} in {t0}-{t1}"
-        );
+        // Integral action in every loop: no error at constant speed and load. SETTLED_TOL
+        // leaves room for rounding and the last of the transient only.
+        assert!(e_q < SETTLED_TOL, "i_q error {e_q} A in {t0}-{t1}");
+        assert!(e_d < SETTLED_TOL, "i_d error {e_d} A in {t0}-{t1}");
+        assert!(e_w < SETTLED_TOL, "speed error {e_w} in {t0}-{t1}");
         // The torque balance: k_t·i_q = T_L + B·ω.
         let want = (load + 1e-3 * w * RPM) / k_t();
-        assert!((i_q - want).abs() < 5e-3, "i_q = {i_q}, load needs {want}");
+        assert!(
+            (i_q - want).abs() < SETTLED_TOL,
+            "i_q = {i_q}, load needs {want}"
+        );
     }
     // i_d stays near zero through the whole run, although i_q swings over ±4.2 A at up to
     // 1200 rpm (the couplings ±ω_e·L·i are rejected by S/R, no feed-forward).
     let id_peak = max_abs(rows.iter().map(|x| x.i_d));
-    let id_rms = mean(rows.iter().map(|x| x.i_d * x.i_d)).sqrt();
     let iq_peak = max_abs(rows.iter().map(|x| x.i_q));
-    eprintln!("i_d peak {id_peak:.3} A, RMS {id_rms:.4} A; i_q peak {iq_peak:.2} A");
+    eprintln!("i_d peak {id_peak:.3} A; i_q peak {iq_peak:.2} A");
+    // A stated limit, not a derived one: i_d stays below 7 % of the 4.2 A the step draws.
     assert!(id_peak < 0.3, "i_d peak {id_peak}");
-    assert!(id_rms < 0.03, "i_d RMS {id_rms}");
+    // Low Fig. 4: the step draws the 4.2 A limit; the third-order ITAE i_q loop overshoots a
+    // step by 2 % at the most (Graham-Lathrop), and settles within the same band.
     assert!(
-        (iq_peak - 4.2).abs() < 0.2,
+        (iq_peak - 4.2).abs() <= 0.02 * 4.2,
         "the 300 → 1200 step saturates at 4.2 A: {iq_peak}"
     );
     // 300 → 1200 rpm: within 1 % after the current-limited acceleration, little overshoot.
@@ -157,8 +251,20 @@ fn low_rst_lockstep_currents_settle_without_error_and_i_d_stays_near_zero() {
         reach * 1e3,
         peak / RPM
     );
-    assert!(reach < 0.15, "{reach}");
+    let (t_min, t_s) = (acceleration_time(), itae3_settling_s(100.0));
+    assert!(
+        reach >= t_min && reach <= t_min + t_s,
+        "{reach} s vs torque-limited {t_min} s + ITAE settling {t_s} s"
+    );
+    // The ITAE prototype overshoots by 2 % at the most (Graham-Lathrop).
     assert!(peak < 1.02 * 1200.0 * RPM, "{peak}");
+}
+
+/// 300 → 1200 rpm (to 1 % below) can be no faster than at the current limit: J·Δω over the
+/// net torque k_t·4.2 A − 2 N·m − B·ω at 1200 rpm.
+fn acceleration_time() -> f64 {
+    let dw = (0.99 * 1200.0 - 300.0) * RPM;
+    2e-3 * dw / (k_t() * 4.2 - 2.0 - 1e-3 * 1200.0 * RPM)
 }
 
 #[test]
@@ -204,33 +310,52 @@ fn load_step_at_800_rpm_is_rejected() {
         rec_on * 1e3,
         rec_off * 1e3
     );
-    assert!(dip > 1.0 && dip < 0.1 * w, "dip {dip}");
-    assert!(rise > 1.0 && rise < 0.1 * w, "rise {rise}");
-    assert!(rec_on < 0.1 && rec_off < 0.1, "{rec_on} {rec_off}");
-    assert!((i_q - (1.5 + 1e-3 * w) / k_t()).abs() < 5e-3, "i_q {i_q}");
+    // The load steps on the speed loop's grid (T_w = 2 ms): the controller reacts no earlier
+    // than its next sample, so the speed changes by at least ΔT·T_w/J before any correction
+    // (B·ω's change over it is 0.1 % of ΔT).
+    let lower = 0.99 * 1.5 * 2e-3 / 2e-3;
+    assert!(
+        dip >= lower && rise >= lower,
+        "dip {dip}, rise {rise} vs {lower}"
+    );
+    // Back within 1 %: no later than the envelope of the slowest closed-loop pole (the ITAE
+    // prototype's, Re s = −0.521·ω_n, ω_n = 100 rad/s) takes the peak error down to the
+    // band, plus the reaction delay T_w.
+    let sigma = 0.521 * 100.0;
+    for (rec, peak) in [(rec_on, dip), (rec_off, rise)] {
+        let bound = (peak / (0.01 * w)).ln() / sigma + 2e-3;
+        assert!(rec <= bound, "back after {rec} s, envelope bound {bound} s");
+    }
+    assert!(
+        (i_q - (1.5 + 1e-3 * w) / k_t()).abs() < SETTLED_TOL,
+        "i_q {i_q}"
+    );
+    // A stated limit, not a derived one: i_d stays below 6 % of the 1.67 A the load draws.
     assert!(id_peak < 0.1, "i_d peak {id_peak}");
-    assert!(r.metric("load_dip_rad_s") > 1.0);
+    // The summary's dip is the trace's (the load's first step is 1.5 N·m at 0.5 s).
+    assert!((r.metric("load_dip_rad_s") - dip).abs() < 1e-9);
 }
 
-/// The steady-state i_d, i_q and angle error of the last 10 % of a monitor/sensorless run,
-/// and the truncation's prediction for that operating point.
+/// The mean angle error of `rows` and its prediction ([`predicted_bias_deg`], τ_o = 1 ms)
+/// at their mean operating point.
+fn bias_and_prediction(rows: &[&TraceRow], disc: Discretisation) -> (f64, f64) {
+    let pred = predicted_bias_deg(
+        mean(rows.iter().map(|x| x.omega_m)),
+        mean(rows.iter().map(|x| x.i_d)),
+        mean(rows.iter().map(|x| x.i_q)),
+        1e-3,
+        disc,
+    );
+    (mean(rows.iter().map(|x| angle_error_deg(x))), pred)
+}
+
+/// The steady-state angle error of the last 10 % of a monitor/sensorless run, and its
+/// prediction for that operating point.
 fn steady_state(r: &Run, disc: Discretisation) -> (f64, f64) {
     let rows = r.trace();
     let end = rows.last().unwrap().t;
     let tail: Vec<&TraceRow> = rows.iter().filter(|x| x.t >= 0.9 * end).collect();
-    let ss = mean(tail.iter().map(|x| angle_error_deg(x)));
-    let m = drivelab_control::motor::MotorParams::low1998();
-    let pred = predicted_angle_error(
-        &m,
-        2e-4,
-        mean(tail.iter().map(|x| x.omega_m)),
-        mean(tail.iter().map(|x| x.i_d)),
-        mean(tail.iter().map(|x| x.i_q)),
-        1e-3,
-        disc,
-    )
-    .to_degrees();
-    (ss, pred)
+    bias_and_prediction(&tail, disc)
 }
 
 #[test]
@@ -249,14 +374,10 @@ fn observer_converges_from_90_degrees_at_1200_rpm_to_the_truncation_bias() {
         "truncated model (eq. 13): steady-state error {ss:.4}° (truncation predicts {pred:.4}°), converged within ±1° after {conv:.1} ms"
     );
     assert!((ss - ss_trace).abs() < 1e-9);
-    // The error is the truncation's: θ̂ leads by about half a sample of rotation.
-    assert!((ss - pred).abs() < 0.02, "{ss} vs {pred}");
-    let half_sample = (4.0 * 1200.0 * RPM * 2e-4 / 2.0).to_degrees();
-    assert!(
-        ss > 0.5 * half_sample && ss < 1.5 * half_sample,
-        "{ss} vs {half_sample}"
-    );
-    assert!(conv > 1.0 && conv < 20.0, "convergence {conv} ms");
+    // The error is the truncation's, as predicted for this operating point.
+    assert!((ss - pred).abs() < PRED_TOL_DEG, "{ss} vs {pred}");
+    // It converges (the time is reported; no bound is derived for it from 90° away).
+    assert!(conv > 0.0, "convergence {conv} ms");
     // The speed is held by the dynamometer and the current control is sensored throughout.
     assert!(rows.iter().all(|x| (x.omega_m - 1200.0 * RPM).abs() < 1e-9));
 
@@ -277,7 +398,7 @@ fn observer_converges_from_90_degrees_at_1200_rpm_to_the_truncation_bias() {
         "exact model: steady-state error {ssx:.4}° (predicted {predx:.4}°), converged after {:.1} ms",
         x.metric("observer_convergence_ms")
     );
-    assert!((ssx - predx).abs() < 0.02, "{ssx} vs {predx}");
+    assert!((ssx - predx).abs() < PRED_TOL_DEG, "{ssx} vs {predx}");
     assert!(ssx.abs() < 0.1 * ss.abs(), "{ssx}");
 }
 
@@ -298,19 +419,41 @@ fn sensorless_drive_reaches_1200_rpm_and_holds_it_under_2_nm() {
     let e_w = max_abs(hold.iter().map(|x| x.omega_m - w));
     let e_hat = max_abs(hold.iter().map(|x| x.omega_hat - x.omega_m));
     let e_th = max_abs(hold.iter().map(|x| angle_error_deg(x)));
+    let (th_mean, th_pred) = bias_and_prediction(&hold, Discretisation::Truncated);
     let i_q = mean(hold.iter().map(|x| x.i_q));
     let (ss, pred) = steady_state(&r, Discretisation::Truncated);
     eprintln!(
         "sensorless: within 1 % of 1200 rpm {:.1} ms after the step; 0.4-1.2 s under 2 N·m: max |ω − ω*| = {e_w:.4} rad/s, max |ω̂ − ω| = {e_hat:.4} rad/s, max |θ̂ − θ| = {e_th:.3}°, i_q = {i_q:.4} A; at 300 rpm: {ss:.3}° (predicted {pred:.3}°)",
         reach * 1e3
     );
-    assert!(reach < 0.15, "{reach}");
+    let (t_min, t_s) = (acceleration_time(), itae3_settling_s(100.0));
+    assert!(
+        reach >= t_min && reach <= t_min + t_s,
+        "{reach} s vs torque-limited {t_min} s + ITAE settling {t_s} s"
+    );
+    // The drive's stated accuracy on the plateau: 0.5 % of the set-point, for the speed and
+    // its estimate (the encoder drive holds the speed to 1e-9 rad/s).
     assert!(e_w < 0.005 * w, "speed error {e_w}");
     assert!(e_hat < 0.005 * w, "speed estimate error {e_hat}");
-    assert!(e_th < 3.0, "angle error {e_th}");
-    // The whole load is carried: k_t·i_q·cos(θ̂ − θ) = T_L + B·ω.
-    assert!((i_q - (2.0 + 1e-3 * w) / k_t()).abs() < 0.01, "i_q {i_q}");
-    assert!((ss - pred).abs() < 0.02, "{ss} vs {pred}");
+    // The angle error on the plateau is the truncation's bias at that operating point (to
+    // PRED_TOL_DEG); its ripple around it stays below the mean (max {e_th}°).
+    assert!(
+        (th_mean - th_pred).abs() < PRED_TOL_DEG,
+        "{th_mean}° vs {th_pred}°"
+    );
+    assert!(
+        e_th - th_mean.abs() < th_mean.abs(),
+        "max {e_th}° around {th_mean}°"
+    );
+    // The whole load is carried by the true current: k_t·i_q = T_L + B·ω + J·dω/dt, the last
+    // two as the window's means (the speed ripples a little around its set-point).
+    let (first, last) = (hold[0], hold[hold.len() - 1]);
+    let accel = (last.omega_m - first.omega_m) / (last.t - first.t);
+    let want = (2.0 + 1e-3 * mean(hold.iter().map(|x| x.omega_m)) + 2e-3 * accel) / k_t();
+    assert!((i_q - want).abs() < SETTLED_TOL, "i_q {i_q} vs {want}");
+    assert!((ss - pred).abs() < PRED_TOL_DEG, "{ss} vs {pred}");
+    // Integral action: no mean speed error at 300 rpm; a stated limit of 0.05 rad/s (0.16 %)
+    // for the sensorless estimate's ripple.
     assert!(r.metric("steady_state_error").abs() < 0.05);
 }
 

@@ -245,3 +245,49 @@ pub fn to_fault(r: &FaultRequest, at_s: f64, stages: &[String]) -> Result<crate:
         duration_s,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::faults::{Fault, FaultKind};
+
+    #[test]
+    fn a_monitors_request_becomes_a_fault_within_its_bounds() {
+        let stages: Vec<String> = ["plant", "observer"].map(String::from).to_vec();
+        let req = |kind, service, stop_ms| FaultRequest {
+            kind,
+            service,
+            stop_ms,
+            pid: 7,
+        };
+        let fault = |kind, service: &str, duration_s| Fault {
+            kind,
+            service: service.into(),
+            at_s: 0.25,
+            duration_s,
+        };
+        let ok = |r| to_fault(&r, 0.25, &stages).unwrap();
+        let err = |r| format!("{:#}", to_fault(&r, 0.25, &stages).unwrap_err());
+        assert_eq!(
+            ok(req(FAULT_KILL, 1, 0)),
+            fault(FaultKind::Kill, "observer", 0.0)
+        );
+        // A stop lasts 1 ms to 60 s, both ends included.
+        assert_eq!(
+            ok(req(FAULT_STOP, 0, 1)),
+            fault(FaultKind::Stop, "plant", 0.001)
+        );
+        assert_eq!(
+            ok(req(FAULT_STOP, 0, 60_000)),
+            fault(FaultKind::Stop, "plant", 60.0)
+        );
+        for ms in [0, 60_001] {
+            assert!(
+                err(req(FAULT_STOP, 0, ms)).contains("out of range"),
+                "{ms} ms"
+            );
+        }
+        assert!(err(req(FAULT_KILL, 2, 0)).contains("unknown stage #2"));
+        assert!(err(req(9, 0, 0)).contains("unknown fault kind 9"));
+    }
+}

@@ -31,13 +31,41 @@ pub fn scratch(name: &str) -> PathBuf {
     d
 }
 
-/// A bus id unique to this test binary, process and test.
+/// A bus id unique to this test binary, process and test: the binary's initial, the pid and
+/// a 64-bit FNV-1a hash of binary and test name, in base 36 (at most 1 + 5 + 1 + 13 = 20 of
+/// the 24 characters a bus id may have). Two names of one process that hash alike fail the
+/// test instead of sharing a bus.
 pub fn bus_id(name: &str) -> String {
-    format!("{}{}{}", &TAG[..1], std::process::id(), name)
-        .chars()
-        .filter(|c| c.is_ascii_alphanumeric())
-        .take(24)
-        .collect()
+    static ISSUED: std::sync::Mutex<Vec<(String, String)>> = std::sync::Mutex::new(Vec::new());
+    let base36 = |mut v: u64| {
+        let mut s = Vec::new();
+        loop {
+            s.push(b"0123456789abcdefghijklmnopqrstuvwxyz"[(v % 36) as usize]);
+            v /= 36;
+            if v == 0 {
+                break;
+            }
+        }
+        s.reverse();
+        String::from_utf8(s).unwrap()
+    };
+    let hash = format!("{TAG}/{name}")
+        .bytes()
+        .fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+            (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
+        });
+    let id = format!(
+        "{}{}_{}",
+        &TAG[..1],
+        base36(u64::from(std::process::id())),
+        base36(hash)
+    );
+    let mut issued = ISSUED.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some((_, other)) = issued.iter().find(|(i, n)| *i == id && n != name) {
+        panic!("bus id {id} of '{name}' collides with that of '{other}'");
+    }
+    issued.push((id.clone(), name.to_string()));
+    id
 }
 
 /// Runs drivelab with a watchdog; kills it (and fails) if it hangs.
@@ -125,6 +153,39 @@ pub fn wait_for_services(bus: &str) {
             t.elapsed() < Duration::from_secs(60),
             "services did not start"
         );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// Waits until the drive on `bus` has recorded `k` samples (watchdog 60 s), as its supervisor
+/// publishes its progress for `drivelab monitor`: the chain is past its start-up handshake
+/// and running.
+pub fn wait_for_progress(bus: &str, k: u64) {
+    use drivelab_runtime::telemetry::{open_existing, DriveView, PlainReceiver, TOPIC_VIEW};
+    let t = Instant::now();
+    let watchdog = || {
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "watchdog: the drive on {bus} did not reach sample {k} within 60 s"
+        )
+    };
+    let node = drivelab_runtime::bus::node(bus, "test").unwrap();
+    let view = loop {
+        // The topic exists once the supervisor's hub is up.
+        if let Ok(v) = open_existing::<DriveView>(&node, TOPIC_VIEW) {
+            break v;
+        }
+        watchdog();
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let rx = PlainReceiver::new(&view, 4).unwrap();
+    loop {
+        while let Some(v) = rx.try_recv().unwrap() {
+            if v.hdr.k >= k {
+                return;
+            }
+        }
+        watchdog();
         std::thread::sleep(Duration::from_millis(20));
     }
 }
@@ -249,4 +310,45 @@ pub fn number_after(text: &str, label: &str) -> f64 {
     rest[..end]
         .parse()
         .unwrap_or_else(|e| panic!("'{}' after '{label}': {e}", &rest[..end]))
+}
+
+/// Compares the trace of a real-time run with the lockstep trace of the same scenario: they
+/// agree bit for bit on every row before the first one that a stale input reached (the
+/// plant held a command or went safe: `plant_flags`, `miss`; the current loop used a stale
+/// input: `ctrl_flags`) or that follows a missing sample, and entirely when there is no such
+/// row. Returns the rows compared and whether such a row ended the comparison.
+pub fn assert_identical_until_disturbed(lockstep: &Path, realtime: &Path) -> (usize, bool) {
+    let (a, b) = (
+        read(&lockstep.join("trace.csv")),
+        read(&realtime.join("trace.csv")),
+    );
+    let la: Vec<&[u8]> = a.split(|c| *c == b'\n').filter(|l| !l.is_empty()).collect();
+    let lb: Vec<&[u8]> = b.split(|c| *c == b'\n').filter(|l| !l.is_empty()).collect();
+    assert_eq!(la[0], lb[0], "headers differ");
+    let header: Vec<&str> = std::str::from_utf8(lb[0]).unwrap().split(',').collect();
+    let flag_cols: Vec<usize> = ["plant_flags", "ctrl_flags", "miss"]
+        .iter()
+        .map(|n| header.iter().position(|c| c == n).unwrap())
+        .collect();
+    for (i, line) in lb.iter().enumerate().skip(1) {
+        let f: Vec<&str> = std::str::from_utf8(line).unwrap().split(',').collect();
+        let in_order = f[0].parse::<usize>().unwrap() == i - 1;
+        if !in_order || flag_cols.iter().any(|&c| f[c] != "0") {
+            return (i - 1, true);
+        }
+        assert_eq!(
+            la.get(i).copied(),
+            Some(*line),
+            "{} differs from lockstep at sample {} before any stale input or gap",
+            realtime.display(),
+            i - 1
+        );
+    }
+    assert_eq!(
+        la.len(),
+        lb.len(),
+        "{}: rows missing at the end",
+        realtime.display()
+    );
+    (lb.len() - 1, false)
 }

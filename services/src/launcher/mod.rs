@@ -484,23 +484,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     };
     let wall_s = wall.elapsed().as_secs_f64();
     let (faults, windows) = fault_reports(&sc, &rows, &events);
-    // Name the cause of every gap that a plant fault explains.
     let mut gaps = gaps;
-    for g in gaps.iter_mut() {
-        let fs = sc.rates.sample_hz;
-        // The fault whose window (injection → recovery) holds the gap.
-        let in_window = |f: &&FaultReport| {
-            let end = f.injected_k
-                + ((f.speed_recovered_ms.or(f.republished_ms).unwrap_or(200.0)) * 1e-3 * fs) as u64;
-            f.injected_k <= g.from && g.from <= end
-        };
-        if let Some(f) = faults.iter().rev().find(in_window) {
-            g.cause = match (g.part, f.service.as_str()) {
-                ("measurement", "plant") => format!("plant {} at sample {} (fault); the model is not simulated while the plant is down", f.fault, f.injected_k),
-                (part, svc) => format!("no {part} recorded during fault '{} {svc}' injected at sample {}", f.fault, f.injected_k),
-            };
-        }
-    }
+    recorder::attribute_gaps(&mut gaps, &faults, sc.rates.sample_hz);
     drivelab_runtime::trace::write_csv(&out.join("trace.csv"), &rows)?;
     let metrics = speed_metrics(&sc, &rows);
     let design = DriveDesign::from_scenario(&sc);

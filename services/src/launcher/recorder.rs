@@ -2,6 +2,7 @@
 //! references with large buffers, keeps every sample, shares its progress with the
 //! supervisor; and [`assemble`], which joins what it kept into trace rows and gaps.
 
+use super::supervisor::FaultReport;
 use anyhow::{anyhow, Result};
 use drivelab_runtime::bus::{self, DriveTopics, MAX_BUFFER};
 use drivelab_runtime::drive::trace_row;
@@ -245,6 +246,39 @@ pub(super) fn assemble(ts: f64, rec: &Recorder) -> (Vec<TraceRow>, Vec<Gap>) {
     (rows, gaps)
 }
 
+/// Without a recovery or a republished output, a fault's window lasts this long, ms.
+pub const FAULT_WINDOW_MAX_MS: f64 = 200.0;
+
+/// Names the fault behind each gap that starts inside a fault's window: from its injection to
+/// the speed's recovery (else to the republished output, else [`FAULT_WINDOW_MAX_MS`]), both
+/// ends included; the latest such fault wins. A plant's missing measurements are its
+/// downtime; any other missing part happened during the fault. Gaps outside every window keep
+/// the recorder's cause. `fs` is the sample rate, Hz.
+pub(super) fn attribute_gaps(gaps: &mut [Gap], faults: &[FaultReport], fs: f64) {
+    for g in gaps.iter_mut() {
+        let in_window = |f: &&FaultReport| {
+            let ms = f
+                .speed_recovered_ms
+                .or(f.republished_ms)
+                .unwrap_or(FAULT_WINDOW_MAX_MS);
+            let end = f.injected_k + (ms * 1e-3 * fs) as u64;
+            f.injected_k <= g.from && g.from <= end
+        };
+        if let Some(f) = faults.iter().rev().find(in_window) {
+            g.cause = match (g.part, f.service.as_str()) {
+                ("measurement", "plant") => format!(
+                    "plant {} at sample {} (fault); the model is not simulated while the plant is down",
+                    f.fault, f.injected_k
+                ),
+                (part, svc) => format!(
+                    "no {part} recorded during fault '{} {svc}' injected at sample {}",
+                    f.fault, f.injected_k
+                ),
+            };
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -372,6 +406,91 @@ mod tests {
                     "current-loop produced no command for this sample"
                 ),
                 gap(6, 7, "measurement", STOPPED),
+            ]
+        );
+    }
+
+    fn report(
+        service: &str,
+        k: u64,
+        republished: Option<f64>,
+        recovered: Option<f64>,
+    ) -> FaultReport {
+        FaultReport {
+            fault: "kill".into(),
+            service: service.into(),
+            process: service.into(),
+            injected_k: k,
+            injected_t_s: k as f64 / 1000.0,
+            detected_data_path_ms: None,
+            detected_by: None,
+            detected_supervisor_ms: None,
+            safe_state_ms: None,
+            peak_current_a: 0.0,
+            republished_ms: republished,
+            speed_recovered_ms: recovered,
+        }
+    }
+
+    #[test]
+    fn gaps_in_a_fault_window_name_the_fault_and_the_window_ends_are_included() {
+        const CMD: &str = "current-loop produced no command for this sample";
+        let plant =
+            "plant kill at sample 10 (fault); the model is not simulated while the plant is down";
+        let cl = "no command recorded during fault 'kill current-loop' injected at sample 100";
+        // 1 kHz: one sample per ms. The plant's window is 10..=15 (recovered after 5 ms);
+        // the current loop's 100..=102 (republished after 2.9 ms, no recovery: truncated).
+        let faults = [
+            report("plant", 10, Some(3.0), Some(5.0)),
+            report("current-loop", 100, Some(2.9), None),
+        ];
+        let mut gaps = vec![
+            gap(9, 9, "measurement", LOST),
+            gap(10, 12, "measurement", LOST),
+            gap(15, 15, "measurement", STOPPED),
+            gap(16, 16, "measurement", LOST),
+            gap(14, 14, "command", CMD),
+            gap(102, 102, "command", CMD),
+            gap(103, 103, "command", CMD),
+        ];
+        attribute_gaps(&mut gaps, &faults, 1000.0);
+        let causes: Vec<&str> = gaps.iter().map(|g| g.cause.as_str()).collect();
+        assert_eq!(
+            causes,
+            [
+                LOST,
+                plant,
+                plant,
+                LOST,
+                "no command recorded during fault 'kill plant' injected at sample 10",
+                cl,
+                CMD
+            ]
+        );
+    }
+
+    #[test]
+    fn without_recovery_or_republishing_the_window_is_200_ms_and_the_latest_fault_wins() {
+        let faults = [
+            report("observer", 0, None, None),
+            report("plant", 150, None, Some(1.0)),
+        ];
+        let mut gaps = vec![
+            gap(100, 100, "measurement", LOST),
+            gap(150, 151, "measurement", LOST),
+            gap(200, 200, "measurement", LOST),
+            gap(201, 201, "measurement", LOST),
+        ];
+        attribute_gaps(&mut gaps, &faults, 1000.0);
+        let obs = "no measurement recorded during fault 'kill observer' injected at sample 0";
+        let causes: Vec<&str> = gaps.iter().map(|g| g.cause.as_str()).collect();
+        assert_eq!(
+            causes,
+            [
+                obs,
+                "plant kill at sample 150 (fault); the model is not simulated while the plant is down",
+                obs,
+                LOST
             ]
         );
     }

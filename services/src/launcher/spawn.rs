@@ -105,6 +105,7 @@ pub(super) fn spawn_service(
     cmd.stdin(Stdio::piped())
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit());
+    die_with_launcher(&mut cmd);
     let name = p.name.clone();
     let mut child = cmd
         .spawn()
@@ -130,6 +131,31 @@ pub(super) fn spawn_service(
         lines: rx,
         rt: None,
     })
+}
+
+/// The child gets SIGKILL when the launcher dies, however it dies (a SIGKILLed launcher
+/// cannot stop its children, and a real-time stage host left behind would hold its core).
+/// The signal follows the death of the thread that spawned the child: the launcher spawns
+/// and respawns from the thread that runs the whole drive.
+fn die_with_launcher(cmd: &mut Command) {
+    use std::os::unix::process::CommandExt;
+    // SAFETY: getpid(2) only reads the caller's pid.
+    let launcher = unsafe { libc::getpid() };
+    // SAFETY: the closure runs in the forked child before exec and calls only the
+    // async-signal-safe prctl(2), getppid(2) and _exit(2); the io::Error it may return
+    // holds the errno code (no allocation). It touches no memory shared with the parent.
+    unsafe {
+        cmd.pre_exec(move || {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            // The launcher may have died before the prctl: then nobody would signal us.
+            if libc::getppid() != launcher {
+                libc::_exit(1);
+            }
+            Ok(())
+        });
+    }
 }
 
 impl ChildProc {

@@ -752,6 +752,38 @@ mod tests {
     }
 
     #[test]
+    fn a_childs_state_says_whether_it_lives_awaits_ready_and_what_the_hub_shows() {
+        let t = Instant::now();
+        let frozen = |awaiting_ready| State::Frozen {
+            until: t,
+            awaiting_ready,
+        };
+        // (state, alive, awaiting READY, shown as)
+        let table = [
+            (State::Running, true, false, ProcState::Alive),
+            (State::AwaitingReady, true, true, ProcState::Restarting),
+            (frozen(false), true, false, ProcState::Frozen),
+            // Stopped before it said READY: still restarting for the hub.
+            (frozen(true), true, true, ProcState::Restarting),
+            (
+                State::RestartPending { at: t },
+                false,
+                false,
+                ProcState::Restarting,
+            ),
+            (State::Dead, false, false, ProcState::Dead),
+            (State::Finished, false, false, ProcState::Finished),
+        ];
+        for (st, alive, awaiting, shown) in table {
+            assert_eq!(
+                (st.alive(), st.awaiting_ready(), st.proc_state()),
+                (alive, awaiting, shown),
+                "{st:?}"
+            );
+        }
+    }
+
+    #[test]
     fn events_keep_their_json_shape() {
         let all = [
             (kill(), "inject", "kill"),

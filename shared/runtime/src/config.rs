@@ -996,14 +996,159 @@ preset = "kyslan2015"
         let e = Scenario::from_toml(
             &format!("{MIN}\n[placement.plant]\ncore = 1\npriority = 120\n"),
             "x",
-        );
-        assert!(e.is_err());
+        )
+        .unwrap_err();
+        assert!(e.contains("placement.plant.priority = 120"), "{e}");
         let e = Scenario::from_toml(
             &format!("{MIN}\n[load]\ntorque_nm = [{{t_s = 5.0, value = 1.0}}]\n"),
             "x",
         )
         .unwrap_err();
         assert!(e.contains("load.torque_nm[0].t_s"), "{e}");
+    }
+
+    /// One bad value per validation rule; the message names the field (or the rule) it
+    /// breaks. Each case is the minimal scenario with `edit` applied: a TOML tail appended,
+    /// or a (from, to) replacement.
+    #[test]
+    fn every_rule_names_its_field() {
+        let tail = |t: &str| format!("{MIN}{t}\n");
+        let swap = |from: &str, to: &str| {
+            assert!(MIN.contains(from), "{from}");
+            MIN.replace(from, to)
+        };
+        let steps = |field: &str, v: &str| format!("[reference]\n{field} = [{v}]");
+        let cases: Vec<(String, &str)> = vec![
+            (swap("name = \"t\"", "name = \"\""), "name must be 1..=64"),
+            (swap("duration_s = 0.01", "duration_s = 0.0"), "duration_s = 0 must"),
+            (tail("[rates]\nsample_hz = 50.0"), "rates.sample_hz = 50 must"),
+            (tail("[rates]\nspeed_divider = 0"), "rates.speed_divider = 0 must"),
+            (tail("[rates]\nplant_substeps = 0"), "rates.plant_substeps = 0 must"),
+            (
+                format!(
+                    "{}[rates]\nsample_hz = 100000.0\n",
+                    swap("duration_s = 0.01", "duration_s = 3600.0")
+                ),
+                "duration_s × rates.sample_hz = 360000000 samples",
+            ),
+            (tail("[inverter]\nv_dc_v = 0.0"), "inverter.v_dc_v = 0 must"),
+            (tail("[inverter]\nhold_samples = 100001"), "inverter.hold_samples = 100001"),
+            (
+                tail("[mechanics]\nprescribed_speed_rad_s = 1e9"),
+                "mechanics.prescribed_speed_rad_s = 1000000000 must",
+            ),
+            (
+                tail("[mechanics]\ninitial_speed_rad_s = 1e9"),
+                "mechanics.initial_speed_rad_s = 1000000000 must",
+            ),
+            (
+                tail("[mechanics]\nprescribed_speed_rad_s = 1.0\ninitial_speed_rad_s = 1.0"),
+                "not set together with prescribed_speed_rad_s",
+            ),
+            (
+                tail("[sensors]\nencoder_counts_per_rev = 0\ncurrent_noise_a = -1.0\nseed = 1"),
+                "sensors.current_noise_a = -1 must",
+            ),
+            (
+                tail("[observer]\nspeed_filter_tau_s = 0.0"),
+                "observer.speed_filter_tau_s = 0 must",
+            ),
+            (tail("[observer]\npole_tau_s = 0.0"), "observer.pole_tau_s = 0 must"),
+            (
+                tail("[observer]\ninitial_angle_error_deg = 400.0"),
+                "observer.initial_angle_error_deg = 400 must",
+            ),
+            (
+                tail("[observer]\nmode = \"sensorless\""),
+                "observer.mode = \"sensorless\" needs a surface PMSM",
+            ),
+            (
+                tail("[placement.plant]\ncore = 0\n[[process]]\nname = \"all\"\nstages = [\"plant\", \"observer\", \"current-loop\", \"speed-loop\"]"),
+                "either in [placement] or in [[process]]",
+            ),
+            (tail("[stages.pos]\nrate_hz = 3.0"), "stages.pos.rate_hz = 3.0 must divide"),
+            (
+                tail("[current_loop]\nitae_omega_rad_s = 100.0"),
+                "current_loop.itae_omega_rad_s is set but current_loop.controller is not",
+            ),
+            (
+                tail("[speed_loop]\nitae_omega_rad_s = 100.0"),
+                "speed_loop.itae_omega_rad_s is set but speed_loop.controller is not",
+            ),
+            (
+                tail("[current_loop]\ncontroller = \"rst\"\nitae_omega_rad_s = 1e9"),
+                "current_loop.itae_omega_rad_s = 1000000000 must",
+            ),
+            (
+                tail("[speed_loop]\ncontroller = \"rst\"\nitae_omega_rad_s = 1e9"),
+                "speed_loop.itae_omega_rad_s = 1000000000 must",
+            ),
+            (
+                tail(&steps("i_q_a", "{t_s = 0.0, value = 1.0}")),
+                "reference.i_q_a is set but speed_loop.controller is not",
+            ),
+            (
+                tail("[current_loop]\ncontroller = \"polar\""),
+                "current_loop.controller = \"polar\" is the surface-PMSM law",
+            ),
+            (tail("[current_loop]\ntau_c_s = 0.0"), "current_loop.tau_c_s = 0 must"),
+            (
+                tail("[speed_loop]\ncontroller = \"nonlinear\""),
+                "speed_loop.controller = nonlinear and current_loop.controller = pi",
+            ),
+            (tail("[speed_loop]\nrise_time_s = 0.0"), "speed_loop.rise_time_s = 0 must"),
+            (tail("[speed_loop]\ni_q_max_a = 0.0"), "speed_loop.i_q_max_a = 0 must"),
+            (
+                tail(&steps("speed_rad_s", "{t_s = 1.0, value = 1.0}")),
+                "reference.speed_rad_s[0].t_s = 1 must be within",
+            ),
+            (
+                tail(&steps(
+                    "speed_rad_s",
+                    "{t_s = 0.005, value = 1.0}, {t_s = 0.001, value = 2.0}",
+                )),
+                "reference.speed_rad_s[1].t_s = 0.001 must be later",
+            ),
+            (
+                tail(&steps("speed_rad_s", "{t_s = 0.0, value = 1e9}")),
+                "reference.speed_rad_s[0].value = 1000000000 must",
+            ),
+            (
+                tail(&steps("i_d_a", "{t_s = 0.0, value = 1e9}")),
+                "reference.i_d_a[0].value = 1000000000 must",
+            ),
+            (
+                tail(&format!(
+                    "[speed_loop]\ncontroller = \"current-reference\"\n{}",
+                    steps("i_q_a", "{t_s = 0.0, value = 1e9}")
+                )),
+                "reference.i_q_a[0].value = 1000000000 must",
+            ),
+            (
+                tail("[load]\ntorque_nm = [{t_s = 0.0, value = 1e9}]"),
+                "load.torque_nm[0].value = 1000000000 must",
+            ),
+            (tail("[timing]\nplant_spin_us = 1e9"), "timing.plant_spin_us = 1000000000 must"),
+            (tail("[placement.plant]\ncore = 5000"), "placement.plant.core = 5000"),
+            (
+                tail("[placement.current_loop]\npriority = 0"),
+                "placement.current_loop.priority = 0 must",
+            ),
+            (swap("kyslan2015", "nope"), "motor.preset: unknown motor 'nope'"),
+            (
+                swap("preset = \"kyslan2015\"", "r_ohm = 1.0"),
+                "motor.l_d_h is required",
+            ),
+            (tail("r_ohm = -1.0"), "motor.r_ohm must be a finite number > 0, got -1"),
+            (tail("b_nms = -1.0"), "motor.b_nms must be a finite number >= 0, got -1"),
+            (tail("pole_pairs = 0"), "motor.pole_pairs must be in 1..=64, got 0"),
+        ];
+        for (text, needle) in cases {
+            match Scenario::from_toml(&text, "x") {
+                Ok(_) => panic!("accepted:\n{text}"),
+                Err(e) => assert!(e.contains(needle), "'{needle}' not in '{e}' for\n{text}"),
+            }
+        }
     }
 
     #[test]

@@ -5,6 +5,8 @@
 //! Control maths are pure step functions (`fn step(&mut self, input) -> output`), unit-tested
 //! without a bus; the services in `services/` only set up, loop and hand messages over.
 
+#[cfg(test)]
+mod alloc_count;
 pub mod bus;
 pub mod config;
 pub mod drive;

@@ -140,8 +140,11 @@ impl Stage for ObserverStage {
 /// sample before k → command k. Policies (real time):
 /// - no estimate for 2 samples: the encoder angle of the measurement and the last speed
 ///   estimate; sensorless, zero voltage;
-/// - no fresh current reference for 2 speed periods: i_q* ramps to zero (full scale in
-///   20 ms);
+/// - no fresh current reference: the last one is held; after 2 speed periods i_q* ramps to
+///   zero (full scale in 20 ms);
+/// - a command made from any stale input (estimate, a held reference, or a reference the
+///   speed loop held) carries `FLAG_STALE_INPUT`, so the trace shows every sample a stale
+///   input reached;
 /// - rejoin: its integrators are preset to the voltage the plant is applying.
 pub struct CurrentLoopStage {
     ctrl: CurrentLoopStep,
@@ -205,12 +208,19 @@ impl Stage for CurrentLoopStage {
                     (true, Some(r)) => {
                         self.active_ref = *r;
                         self.stale_ref_samples = 0;
+                        // A reference the speed loop made from a stale input (its held
+                        // output) makes this command one too.
+                        flags |= r.hdr.flags & FLAG_STALE_INPUT;
                     }
                     // Nothing expected yet (before the first speed sample): zero references.
                     (true, None) => {}
                     (false, _) => {
-                        // Hold the last reference; after 2 speed periods without a fresh
-                        // one, ramp i_q* to zero.
+                        // Hold the last reference (a stale input: flagged, once one came;
+                        // before the first, the zero reference stands as at the start);
+                        // after 2 speed periods without a fresh one, ramp i_q* to zero.
+                        if inputs.newest_iref().is_some() {
+                            flags |= FLAG_STALE_INPUT;
+                        }
                         self.stale_ref_samples += 1;
                         if self.stale_ref_samples > 2 * self.divider {
                             flags |= FLAG_STALE_INPUT;
@@ -625,21 +635,44 @@ mod tests {
             s.step(k, &ib, &mut out);
             cmd_of(&out)
         };
+        // Before any reference came there is none to hold: the zero reference, unflagged.
+        let mut ib = Inbox::default();
+        ib.put(Msg::Meas(meas(1, 0.0)));
+        ib.put(Msg::Est(est(1, 0.0)));
+        ib.set_stale(TopicId::Iref, 1);
+        let mut out = Outbox::default();
+        CurrentLoopStage::new(&sc).step(1, &ib, &mut out);
+        assert_eq!(cmd_of(&out).i_dq_ref[1], 0.0);
+        assert_eq!(cmd_of(&out).hdr.flags & FLAG_STALE_INPUT, 0);
         assert_eq!(step(&mut s, 1, true).i_dq_ref[1], 1.0);
-        // Held for 2 speed periods, unflagged.
+        // Held for 2 speed periods (flagged: a stale input).
         for k in 2..2 + 2 * n {
             let c = step(&mut s, k, false);
             assert_eq!(c.i_dq_ref[1], 1.0, "k = {k}");
-            assert_eq!(c.hdr.flags & FLAG_STALE_INPUT, 0);
+            assert_ne!(c.hdr.flags & FLAG_STALE_INPUT, 0, "k = {k}");
         }
+        assert_eq!(s.ramp_samples, 0);
         // Then a ramp of i_max·T_s/20 ms per sample, flagged.
         let c = step(&mut s, 2 + 2 * n, false);
         assert!((c.i_dq_ref[1] - (1.0 - ramp)).abs() < 1e-12, "{c:?}");
         assert_ne!(c.hdr.flags & FLAG_STALE_INPUT, 0);
         let c = step(&mut s, 3 + 2 * n, false);
         assert!((c.i_dq_ref[1] - (1.0 - 2.0 * ramp)).abs() < 1e-12, "{c:?}");
-        // A fresh reference ends it.
-        assert_eq!(step(&mut s, 4 + 2 * n, true).i_dq_ref[1], 1.0);
+        assert_eq!(s.ramp_samples, 2);
+        // A fresh reference ends it, unflagged.
+        let c = step(&mut s, 4 + 2 * n, true);
+        assert_eq!(c.i_dq_ref[1], 1.0);
+        assert_eq!(c.hdr.flags & FLAG_STALE_INPUT, 0);
+        // A fresh reference the speed loop held (flagged) flags the command.
+        let mut ib = Inbox::default();
+        ib.put(Msg::Meas(meas(5 + 2 * n, 0.0)));
+        ib.put(Msg::Est(est(5 + 2 * n, 0.0)));
+        let mut held = iref(0, 1.0);
+        held.hdr.flags = FLAG_STALE_INPUT;
+        ib.put(Msg::Iref(held));
+        let mut out = Outbox::default();
+        s.step(5 + 2 * n, &ib, &mut out);
+        assert_ne!(cmd_of(&out).hdr.flags & FLAG_STALE_INPUT, 0);
     }
 
     #[test]
@@ -806,6 +839,45 @@ mod tests {
             log.push((m, e, used, c));
         }
         (plant, cur, log)
+    }
+
+    #[test]
+    fn a_restored_plant_continues_from_the_last_true_state() {
+        let sc = scenario("kyslan-pi");
+        // 35 ms: on the 70 rad/s plateau, currents and voltage far from zero.
+        let (running, _, _) = run_to(&sc, 351);
+        let last = *running.plant.truth();
+        assert_eq!(last.hdr.k, 350);
+        let mut restarted = PlantStage::new(&sc);
+        restarted.plant.restore(&last);
+        // Its first sample (the command is missing after a restart: held) reproduces the
+        // state and the voltage of the last one...
+        let m = restarted.plant.sample(350, None);
+        let t = *restarted.plant.truth();
+        assert_eq!(
+            (t.i_dq, t.omega_m, t.theta_m),
+            (last.i_dq, last.omega_m, last.theta_m)
+        );
+        assert_eq!(t.u_ab_applied, last.u_ab_applied);
+        assert_eq!(m.hdr.flags, FLAG_STALE_CMD);
+        // ...and integrates to the state the running plant reached. Tolerance: the restored
+        // angle is the unwrapped one wrapped again, equal to the model's up to rounding
+        // (~1e-15 rad), which reaches the currents through sin/cos at the same relative size;
+        // 1e-12 is a thousand times that.
+        restarted.plant.advance();
+        let (a, b) = (running.plant.x, restarted.plant.x);
+        for (x, y) in [
+            (a.i_d, b.i_d),
+            (a.i_q, b.i_q),
+            (a.omega_m, b.omega_m),
+            (a.theta_m, b.theta_m),
+        ] {
+            assert!((x - y).abs() <= 1e-12 * x.abs().max(1.0), "{a:?} vs {b:?}");
+        }
+        // A plant that is not restored starts from rest.
+        let mut cold = PlantStage::new(&sc);
+        cold.plant.sample(350, None);
+        assert_eq!(cold.plant.truth().omega_m, 0.0);
     }
 
     #[test]

@@ -266,14 +266,20 @@ mod tests {
     }
 
     #[test]
-    fn recording_does_not_allocate_capacity() {
-        // The histogram's counts array is sized at creation; recording across the whole range
-        // must not need to grow it (auto-resize is off).
+    fn recording_does_not_allocate() {
+        // The histogram's counts array is sized at creation (auto-resize is off) and the
+        // compact histogram is a fixed array: recording across the whole range, beyond it
+        // (clamped) and below it (negative) must not allocate.
         let mut h = LatencyHist::new("x");
-        for e in 0..34 {
-            h.record_ns(1i64 << e);
-        }
-        assert_eq!(h.len(), 34);
+        let ((), allocations) = crate::alloc_count::allocations_during(|| {
+            for e in 0..34 {
+                h.record_ns(1i64 << e);
+            }
+            h.record_ns(-5);
+            h.record_ns(i64::MAX);
+        });
+        assert_eq!(allocations, 0);
+        assert_eq!((h.len(), h.clamped), (36, 1));
     }
 
     #[test]
