@@ -46,10 +46,8 @@ fn a_missing_cyclictest_is_skipped_with_one_line_that_says_why() {
         &[
             "--quick",
             "--json",
-            "--spin-us",
-            "0",
-            "--placements",
-            "one-core",
+            "--variants",
+            "cyclictest",
             "--cyclictest",
             "/nonexistent/cyclictest",
         ],
@@ -62,11 +60,14 @@ fn a_missing_cyclictest_is_skipped_with_one_line_that_says_why() {
         ["drivelab: bench: cyclictest cross-check skipped: /nonexistent/cyclictest is not an executable file"]
     );
     let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    assert!(report["rows"]
+    // Only cyclictest was asked for (and the floor, which always runs): the floor is left.
+    let variants: Vec<&str> = report["rows"]
         .as_array()
         .unwrap()
         .iter()
-        .all(|r| r["variant"] != "cyclictest"));
+        .map(|r| r["variant"].as_str().unwrap())
+        .collect();
+    assert_eq!(variants, ["floor", "floor"]);
     assert_eq!(report["floor_vs_cyclictest"], serde_json::json!([]));
     let _ = std::fs::remove_dir_all(&out);
 }
@@ -270,6 +271,12 @@ fn bench_rounds_interleave_the_variants_and_merge_their_samples() {
         .unwrap();
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("--rounds must be in 1..=100"));
+    let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
+        .args(["bench", "--variants", "floor,ice"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--variants: unknown variant 'ice'"));
     let _ = std::fs::remove_dir_all(&out);
 }
 

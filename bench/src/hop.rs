@@ -72,8 +72,9 @@ pub fn run(
         let seg = WakeSegment::open(bus)?;
         let node = *sender;
         let lateness = in_fresh_thread("bench-hop", move || {
-            apply_rt("hop sender", &node, true)?;
+            // Allocated before the memory lock populates it (as the floor does).
             let mut late = LatencyHist::new("lateness");
+            apply_rt("hop sender", &node, true)?;
             let t0 = now_ns() + 2_000_000;
             // ---- real-time loop: no allocation, no locks, no logging ----
             for k in 0..n {

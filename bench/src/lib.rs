@@ -153,10 +153,13 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
     let (n, ts_ns) = schedule(hz, seconds)?;
     let node = *node;
     in_fresh_thread("bench-floor", move || {
-        // Like cyclictest: memory locked (process-wide, as the drive's hosts do).
-        apply_rt("floor", &node, true)?;
+        // The histogram first: locking memory populates it now, whereas memory allocated
+        // after the lock is only locked page by page as the loop first touches it (a page
+        // fault inside the loop, hundreds per run).
         let mut late = LatencyHist::new("lateness");
         let mut misses = MissCounter::default();
+        // Like cyclictest: memory locked (process-wide, as the drive's hosts do).
+        apply_rt("floor", &node, true)?;
         let t0 = now_ns() + 2_000_000;
         sleep_until_ns(t0 - ts_ns);
         let cpu0 = thread_cpu_ns();

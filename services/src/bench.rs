@@ -58,6 +58,11 @@ pub struct BenchArgs {
     /// path. When it is missing, that variant is skipped with one line saying why.
     #[arg(long, default_value = "cyclictest", value_name = "CMD")]
     pub cyclictest: String,
+    /// Measure only these variants (comma-separated: floor, cyclictest, hop, inprocess, uds,
+    /// iceoryx2, iceoryx2+spin, topology); default all. The floor always runs: every
+    /// comparison is against it.
+    #[arg(long, value_delimiter = ',', value_name = "NAME,...")]
+    pub variants: Vec<String>,
     /// Print bench.json on stdout instead of the Markdown table.
     #[arg(long)]
     pub json: bool,
@@ -532,7 +537,26 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     };
     // The variants of every rate, each measured in `rounds` interleaved slices so that the
     // machine's slow changes (a VM's noisy minutes) reach all of them alike.
-    let jobs = jobs(a, &placements, cyclictest.is_some());
+    const VARIANTS: [&str; 8] = [
+        "floor",
+        "cyclictest",
+        "hop",
+        "inprocess",
+        "uds",
+        "iceoryx2",
+        "iceoryx2+spin",
+        "topology",
+    ];
+    if let Some(v) = a.variants.iter().find(|v| !VARIANTS.contains(&v.as_str())) {
+        return Err(anyhow!(
+            "--variants: unknown variant '{v}' (known: {})",
+            VARIANTS.join(", ")
+        ));
+    }
+    let mut jobs = jobs(a, &placements, cyclictest.is_some());
+    if !a.variants.is_empty() {
+        jobs.retain(|j| j.variant == "floor" || a.variants.iter().any(|v| v == j.variant));
+    }
     let total = rates.len() * jobs.len() * rounds + 2;
     let bar = indicatif::ProgressBar::new(total as u64);
     bar.set_style(
