@@ -367,6 +367,17 @@ pub struct CurrentLoopSpec {
     pub decoupling: bool,
     /// RST only: ITAE natural frequency ω_n of the current loops, rad/s (default 0.3/T_s).
     pub itae_omega_rad_s: Option<f64>,
+    /// voltage-phase and polar-fw only: real part of the phase loop's poles, rad/s
+    /// (default −600, Miyajima et al. section III-C).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub polar_sigma_delta_rad_s: Option<f64>,
+    /// polar-fw only: real part of the amplitude loop's poles, rad/s (default −300).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub polar_sigma_v_rad_s: Option<f64>,
+    /// polar only: "paper" (CDM on the delay-free plant, default) or "predict" (the same
+    /// CDM polynomials, with the current one sample ahead predicted by the model).
+    #[serde(skip_serializing_if = "drivelab_control::control::cdm::CdmDelay::is_paper")]
+    pub cdm_delay: drivelab_control::control::cdm::CdmDelay,
 }
 
 impl Default for CurrentLoopSpec {
@@ -376,6 +387,9 @@ impl Default for CurrentLoopSpec {
             tau_c_s: 2.5e-4,
             decoupling: true,
             itae_omega_rad_s: None,
+            polar_sigma_delta_rad_s: None,
+            polar_sigma_v_rad_s: None,
+            cdm_delay: drivelab_control::control::cdm::CdmDelay::Paper,
         }
     }
 }

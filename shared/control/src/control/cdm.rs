@@ -24,7 +24,26 @@
 //! controller when V_a ≃ 0" of section IV-C. (τ_12 can reach 0.1/(0.001·cos 0.45π)·T_u
 //! ≈ 640·T_u, where a_1 L − R < 0: the placed poles are slower than the winding's own R/L.)
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
+
+/// How the polar CDM loops treat the drive's one-sample computation delay.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CdmDelay {
+    /// The paper's design: gains of eqs (28)–(31) on the delay-free plant, measured currents.
+    #[default]
+    Paper,
+    /// The same gains, fed with the currents predicted one sample ahead by the model (1)
+    /// under the voltage already commanded (a Smith-type predictor).
+    Predict,
+}
+
+impl CdmDelay {
+    /// The paper's design (the default).
+    pub fn is_paper(&self) -> bool {
+        *self == Self::Paper
+    }
+}
 
 /// CDM stability index γ_1 of both loops (eqs 32, 34; γ_1 = 2.5 per docs/architecture.md,
 /// "Paper conventions").

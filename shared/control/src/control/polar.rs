@@ -108,10 +108,10 @@ use std::f64::consts::FRAC_PI_2;
 
 /// Output limit of the voltage phase, ±δ_max = ±π/2 (Fig. 7(d)).
 pub const DELTA_MAX: f64 = FRAC_PI_2;
-/// Real part of the phase loop's poles times T_u (σ_δ = −0.06/T_u = −600 rad/s at 100 µs).
-pub const SIGMA_DELTA_TU: f64 = -0.06;
-/// Ratio of the amplitude loop's real part to the phase loop's (−300/−600, section III-C).
-pub const SIGMA_V_RATIO: f64 = 0.5;
+/// Default real part of the phase loop's poles, both methods (section III-C), rad/s.
+pub const SIGMA_DELTA_RAD_S: f64 = -600.0;
+/// Default real part of the amplitude loop's poles (section III-C), rad/s.
+pub const SIGMA_V_RAD_S: f64 = -300.0;
 
 /// Which of the paper's current laws runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -257,13 +257,41 @@ impl SpmsmModel {
         )
     }
 
-    /// Decoupling inputs (V_ad, δ_d), eqs (14)–(15) in the reading of the module docs.
+    /// Decoupling inputs (V_ad, δ_d), eqs (14)–(15) in the reading of the module docs: the
+    /// amplitude and phase of the speed voltage ω_e·(L i_d + K_e, L i_q) of (1).
     pub fn decoupling(&self, i_d: f64, i_q: f64, omega_e: f64) -> (f64, f64) {
         let l = self.l_h;
         let v_ad = omega_e * (l * i_q).hypot(l * i_d + self.k_e_wb);
-        let num = omega_e * l * i_q - self.r_ohm * i_d;
-        let den = omega_e * (l * i_d + self.k_e_wb) + self.r_ohm * i_q;
-        (v_ad, fold_half_plane(num.atan2(den)))
+        (
+            v_ad,
+            fold_half_plane((l * i_q).atan2(l * i_d + self.k_e_wb)),
+        )
+    }
+
+    /// The currents one period `ts` after (i_d, i_q) under the constant voltage (u_d, u_q)
+    /// at ω_e: the exact solution of (1), x(T) = e^{AT} x + A⁻¹(e^{AT} − I) b.
+    pub fn predict(
+        &self,
+        i_d: f64,
+        i_q: f64,
+        u_d: f64,
+        u_q: f64,
+        omega_e: f64,
+        ts: f64,
+    ) -> (f64, f64) {
+        let (a, w, l) = (self.r_ohm / self.l_h, omega_e, self.l_h);
+        let (sn, cs) = (w * ts).sin_cos();
+        let ea = (-a * ts).exp();
+        // e^{AT} = e^{−aT}·[[cos, sin], [−sin, cos]].
+        let (e11, e12, e21, e22) = (ea * cs, ea * sn, -ea * sn, ea * cs);
+        let (b1, b2) = (u_d / l, (u_q - w * self.k_e_wb) / l);
+        // A⁻¹ = [[−a, −ω], [ω, −a]]/(a² + ω²).
+        let n = a * a + w * w;
+        let (m1, m2) = ((e11 - 1.0) * b1 + e12 * b2, e21 * b1 + (e22 - 1.0) * b2);
+        (
+            e11 * i_d + e12 * i_q + (-a * m1 - w * m2) / n,
+            e21 * i_d + e22 * i_q + (w * m1 - a * m2) / n,
+        )
     }
 
     /// Eq. (9) (reconstructed, module docs reading 6): the equilibrium phase at amplitude
@@ -388,6 +416,195 @@ pub fn place_pid(p: &SecondOrder, d: [f64; 4]) -> Option<PidGains> {
     ok.then_some(g)
 }
 
+/// Closed-loop poles (z-plane) of the flux-weakening loops linearised at (V_ao, δ_o, ω_e) as
+/// they run: plant (2) under a zero-order hold of T_u, the command of sample k applied over
+/// [t_{k+1}, t_{k+2}) (one-sample computation delay), C_δ on i_q and, when `g_v` is given,
+/// C_v on i_d, both discretised as [`ScheduledPid`] does it (neither limited).
+pub fn fw_sampled_poles(
+    md: &SpmsmModel,
+    v_ao: f64,
+    delta_o: f64,
+    omega_e: f64,
+    ts: f64,
+    g_delta: &PidGains,
+    g_v: Option<&PidGains>,
+) -> Vec<nalgebra::Complex<f64>> {
+    use nalgebra::{DMatrix, Matrix4};
+    let (a, b) = md.linearise([v_ao, delta_o], omega_e);
+    // Zero-order hold: exp([[A, B], [0, 0]]·T_u).
+    let mut m = Matrix4::<f64>::zeros();
+    for i in 0..2 {
+        for j in 0..2 {
+            m[(i, j)] = a[i][j] * ts;
+            m[(i, j + 2)] = b[i][j] * ts;
+        }
+    }
+    let e = m.exp();
+    // States: i_d, i_q, held V_a, held δ, C_δ (x_i, z), C_v (x_i, z).
+    let n = 8;
+    let mut c = DMatrix::<f64>::zeros(n, n);
+    for i in 0..2 {
+        for j in 0..4 {
+            c[(i, j)] = e[(i, j)];
+        }
+    }
+    // A PID on measurement `y` (e = −y) writing the held input `u`, states at `k`.
+    let mut pid = |g: &PidGains, y: usize, u: usize, k: usize| {
+        let phi = (-g.f * ts).exp();
+        let bz = g.b() * (1.0 - phi) / g.f;
+        c[(u, y)] = -g.q2;
+        c[(u, k)] = 1.0;
+        c[(u, k + 1)] = 1.0;
+        c[(k, k)] = 1.0;
+        c[(k, y)] = -g.k_i() * ts;
+        c[(k + 1, k + 1)] = phi;
+        c[(k + 1, y)] = -bz;
+    };
+    pid(g_delta, 1, 3, 4);
+    if let Some(g) = g_v {
+        pid(g, 0, 2, 6);
+    }
+    // Without C_v, V_a is held at V_ao: only i_d, i_q, δ and C_δ's states remain.
+    let keep: Vec<usize> = if g_v.is_some() {
+        (0..8).collect()
+    } else {
+        vec![0, 1, 3, 4, 5]
+    };
+    let r = DMatrix::from_fn(keep.len(), keep.len(), |i, j| c[(keep[i], keep[j])]);
+    r.complex_eigenvalues().iter().copied().collect()
+}
+
+/// The section III design at one operating point, for printing and checking
+/// (`drivelab cdm-design --speed-rpm`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FwDesign {
+    /// ω_e, rad/s.
+    pub omega_e: f64,
+    /// V_ao after the limits, V.
+    pub v_ao_v: f64,
+    /// i_q* of the equilibrium, A.
+    pub i_q_ref_a: f64,
+    /// δ_o from (9), limited to 0.9·π/2, rad.
+    pub delta_o_rad: f64,
+    /// i_d of the equilibrium (V_ao, δ_o), A.
+    pub i_d_o_a: f64,
+    /// Radius of the circle through the plant poles −R/L ± jω_e (eq. 12), rad/s.
+    pub rho_rad_s: f64,
+    /// ΔP_22 = Δi_q/Δδ.
+    pub p22: SecondOrder,
+    /// ΔP_11 = Δi_d/ΔV_a.
+    pub p11: SecondOrder,
+    /// Zero of ΔP_22, rad/s (> 0: right half plane).
+    pub zero_22_rad_s: f64,
+    /// Zero of ΔP_11, rad/s.
+    pub zero_11_rad_s: f64,
+    /// Real part asked of the phase loop's poles, rad/s.
+    pub sigma_delta_rad_s: f64,
+    /// Real part asked of the amplitude loop's poles, rad/s.
+    pub sigma_v_rad_s: f64,
+    /// Placed poles of 1 + ΔP_22 C_δ (re, im), rad/s.
+    pub poles_delta: Vec<(f64, f64)>,
+    /// Placed poles of 1 + ΔP_11 C_v (re, im), rad/s (eq. 11).
+    pub poles_v: Vec<(f64, f64)>,
+    /// C_δ, or None when it cannot be placed.
+    pub g_delta: Option<PidGains>,
+    /// C_v, or None when it cannot be placed.
+    pub g_v: Option<PidGains>,
+    /// Sampled loop of C_δ alone (V_a = V_ao), poles as ln(z)/T_u (re, im), rad/s.
+    pub sampled_delta: Vec<(f64, f64)>,
+    /// Sampled loop of C_δ and C_v together, poles as ln(z)/T_u, rad/s.
+    pub sampled_both: Vec<(f64, f64)>,
+}
+
+/// Roots of s⁴ + d3 s³ + d2 s² + d1 s + d0 as (re, im), sorted.
+fn quartic_roots(d: [f64; 4]) -> Vec<(f64, f64)> {
+    let m = nalgebra::Matrix4::new(
+        -d[0], -d[1], -d[2], -d[3], //
+        1.0, 0.0, 0.0, 0.0, //
+        0.0, 1.0, 0.0, 0.0, //
+        0.0, 0.0, 1.0, 0.0,
+    );
+    sorted(
+        m.complex_eigenvalues()
+            .iter()
+            .map(|c| (c.re, c.im))
+            .collect(),
+    )
+}
+
+fn sorted(mut v: Vec<(f64, f64)>) -> Vec<(f64, f64)> {
+    v.sort_by(|p, q| p.0.total_cmp(&q.0).then(p.1.total_cmp(&q.1)));
+    v
+}
+
+impl FwDesign {
+    /// Both section III controllers at V_ao (limited), i_q*, ω_e ≥ 0, as [`PolarCurrentController`]
+    /// designs them every sample.
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        md: &SpmsmModel,
+        v_ao: f64,
+        i_q_ref: f64,
+        omega_e: f64,
+        ts: f64,
+        v_amax: f64,
+        sigma_delta: f64,
+        sigma_v: f64,
+    ) -> Self {
+        let (v_o, _) = cdm::limit_operating_point(v_ao, 0.0, v_amax);
+        let d_o = md
+            .fw_phase(v_o, i_q_ref, omega_e)
+            .clamp(-cdm::DELTA_O_MAX, cdm::DELTA_O_MAX);
+        let (vd, _) = polar_to_dq(v_o, d_o);
+        let i_d_o = (vd + omega_e * md.l_h * i_q_ref) / md.r_ohm;
+        let rho = md.pole_radius(omega_e);
+        let (p22, p11) = (md.plant_22(v_o, d_o, omega_e), md.plant_11(d_o, omega_e));
+        let (dd, dv) = (fw_poles(sigma_delta, rho), fw_poles(sigma_v, rho));
+        let (g_delta, g_v) = (place_pid(&p22, dd), place_pid(&p11, dv));
+        let to_s = |v: Vec<nalgebra::Complex<f64>>| {
+            sorted(
+                v.iter()
+                    .map(|z| {
+                        let l = z.ln() / ts;
+                        (l.re, l.im)
+                    })
+                    .collect(),
+            )
+        };
+        let (sampled_delta, sampled_both) = match (&g_delta, &g_v) {
+            (Some(gd), Some(gv)) => (
+                to_s(fw_sampled_poles(md, v_o, d_o, omega_e, ts, gd, None)),
+                to_s(fw_sampled_poles(md, v_o, d_o, omega_e, ts, gd, Some(gv))),
+            ),
+            (Some(gd), None) => (
+                to_s(fw_sampled_poles(md, v_o, d_o, omega_e, ts, gd, None)),
+                vec![],
+            ),
+            _ => (vec![], vec![]),
+        };
+        Self {
+            omega_e,
+            v_ao_v: v_o,
+            i_q_ref_a: i_q_ref,
+            delta_o_rad: d_o,
+            i_d_o_a: i_d_o,
+            rho_rad_s: rho,
+            p22,
+            p11,
+            zero_22_rad_s: -p22.b0 / p22.b1,
+            zero_11_rad_s: -p11.b0 / p11.b1,
+            sigma_delta_rad_s: sigma_delta,
+            sigma_v_rad_s: sigma_v,
+            poles_delta: quartic_roots(dd),
+            poles_v: quartic_roots(dv),
+            g_delta,
+            g_v,
+            sampled_delta,
+            sampled_both,
+        }
+    }
+}
+
 /// The filtered PID [`PidGains`] in parallel form with a feed-forward, output limits and
 /// conditional integration. Gains are passed in every step (gain scheduling); both states
 /// are in output units, so a gain change does not move them.
@@ -399,10 +616,21 @@ pub struct ScheduledPid {
     pub z: f64,
 }
 
+/// When [`ScheduledPid`] renews its states.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AntiWindup {
+    /// The filter always; the integrator unless the output is limited and its increment
+    /// points further into the limit (C_δ).
+    Conditional,
+    /// Neither state while the output is limited (C_v, section III-B: "the state variables
+    /// of the voltage amplitude controller is not renewed").
+    Freeze,
+}
+
 impl ScheduledPid {
     /// One step: ff + q2·e + x_I + z limited to [lo, hi]. The filter is discretised exactly
-    /// for e held over the sample; the integrator by forward Euler and frozen while the
-    /// output is limited and its increment points further into the limit.
+    /// for e held over the sample; the integrator by forward Euler; `aw` says when they are
+    /// renewed.
     #[allow(clippy::too_many_arguments)]
     pub fn step(
         &mut self,
@@ -412,9 +640,13 @@ impl ScheduledPid {
         lo: f64,
         hi: f64,
         ts: f64,
+        aw: AntiWindup,
     ) -> (f64, bool) {
         let v = ff + g.q2 * e + self.x_i + self.z;
         let out = v.clamp(lo, hi);
+        if aw == AntiWindup::Freeze && out != v {
+            return (out, true);
+        }
         let phi = (-g.f * ts).exp();
         let z = phi * self.z + g.b() * (1.0 - phi) / g.f * e;
         if z.is_finite() {
@@ -476,6 +708,28 @@ pub struct PolarSpec {
     pub tu_s: f64,
     /// Voltage limit V_amax, V (V_dc/√3).
     pub v_amax_v: f64,
+    /// Section III: real part of the phase loop's poles, rad/s (default −600).
+    pub sigma_delta_rad_s: f64,
+    /// Section III: real part of the amplitude loop's poles, rad/s (default −300).
+    pub sigma_v_rad_s: f64,
+    /// Section IV: how C_21 and C_12 treat the one-sample computation delay.
+    pub cdm_delay: cdm::CdmDelay,
+}
+
+impl PolarSpec {
+    /// The paper's design for `mode`: σ_δ = −600 rad/s, σ_v = −300 rad/s, CDM on the
+    /// delay-free plant.
+    pub fn paper(mode: PolarMode, model: SpmsmModel, tu_s: f64, v_amax_v: f64) -> Self {
+        Self {
+            mode,
+            model,
+            tu_s,
+            v_amax_v,
+            sigma_delta_rad_s: SIGMA_DELTA_RAD_S,
+            sigma_v_rad_s: SIGMA_V_RAD_S,
+            cdm_delay: cdm::CdmDelay::Paper,
+        }
+    }
 }
 
 /// What a scenario's polar design looks like (`summary.json` → `design.polar`).
@@ -513,7 +767,6 @@ impl PolarDesign {
         let tau21 = cdm::TAU_SAMPLES * spec.tu_s;
         let (a1, a0) = cdm::cdm_second_order(cdm::GAMMA1, tau21);
         let (kp, ki) = cdm::gains_21(spec.model.r_ohm, spec.model.l_h, a1, a0, 0.0);
-        let sd = SIGMA_DELTA_TU / spec.tu_s;
         Self {
             spec: *spec,
             gamma1: cdm::GAMMA1,
@@ -525,8 +778,8 @@ impl PolarDesign {
             v_ao_min_v: cdm::V_AO_MIN_FRAC * spec.v_amax_v,
             delta_o_max_rad: cdm::DELTA_O_MAX,
             delta_max_rad: DELTA_MAX,
-            sigma_delta_rad_s: sd,
-            sigma_v_rad_s: SIGMA_V_RATIO * sd,
+            sigma_delta_rad_s: spec.sigma_delta_rad_s,
+            sigma_v_rad_s: spec.sigma_v_rad_s,
         }
     }
 }
@@ -537,16 +790,15 @@ pub struct PolarCurrentController {
     spec: PolarSpec,
     a1_21: f64,
     a0_21: f64,
-    sigma_delta: f64,
     // Section IV.
     c21: ScheduledPi,
     c12: ScheduledPi,
     delta_fb_prev: f64,
     // Section III.
     c_delta: ScheduledPid,
-    c_v: ScheduledPi,
+    c_v: ScheduledPid,
     g_delta: PidGains,
-    k_v: f64,
+    g_v: PidGains,
     v_a_prev: Option<f64>,
     started: bool,
     /// Last output (V_a, δ) in the motor's frame.
@@ -570,14 +822,13 @@ impl PolarCurrentController {
             spec: *spec,
             a1_21: d.a1_21,
             a0_21: d.a0_21,
-            sigma_delta: d.sigma_delta_rad_s,
             c21: ScheduledPi::default(),
             c12: ScheduledPi::default(),
             delta_fb_prev: 0.0,
             c_delta: ScheduledPid::default(),
-            c_v: ScheduledPi::default(),
+            c_v: ScheduledPid::default(),
             g_delta: PidGains::default(),
-            k_v: 0.0,
+            g_v: PidGains::default(),
             v_a_prev: None,
             started: false,
             last: (0.0, 0.0),
@@ -612,6 +863,19 @@ impl PolarCurrentController {
     fn step_polar(&mut self, x: &CurrentInput) -> (f64, f64, bool) {
         let sp = self.spec;
         let (r, l, vmax, ts) = (sp.model.r_ohm, sp.model.l_h, sp.v_amax_v, sp.tu_s);
+        // Delay compensation (option): the command of this sample acts from t_{k+1} on, so
+        // the loops see the currents at t_{k+1}, predicted from the measurement under the
+        // command already on its way (a Smith-type predictor of the model (1)).
+        let predicted;
+        let x = match sp.cdm_delay {
+            cdm::CdmDelay::Paper => x,
+            cdm::CdmDelay::Predict => {
+                let (u_d, u_q) = polar_to_dq(self.last.0, self.last.1);
+                let (i_d, i_q) = sp.model.predict(x.i_d, x.i_q, u_d, u_q, x.omega_e, ts);
+                predicted = CurrentInput { i_d, i_q, ..*x };
+                &predicted
+            }
+        };
         let (v_ad, delta_d) = sp.model.decoupling(x.i_d, x.i_q, x.omega_e);
         // (38): δ_o[k] = δ_fb[k−1] + δ_d[k], limited.
         let (_, d_o) = cdm::limit_operating_point(vmax, self.delta_fb_prev + delta_d, vmax);
@@ -663,56 +927,62 @@ impl PolarCurrentController {
             };
             let (v_o, _) = cdm::limit_operating_point(v0, 0.0, vmax);
             self.c_v.x_i = v0;
-            self.c_delta.x_i = md
-                .fw_phase(v_o, i_q_ref, w)
-                .clamp(-DELTA_MAX, md.max_torque_phase(w).min(DELTA_MAX));
+            self.c_delta.x_i = md.fw_phase(v_o, i_q_ref, w).clamp(-DELTA_MAX, DELTA_MAX);
             self.v_a_prev = Some(v0);
         }
+        // Both controllers are designed at V_ao = V_a[k−1] (V_amax in the conventional
+        // method) and δ_o from (9) (reading 6).
+        let prev = match sp.mode {
+            PolarMode::PolarFw => self.v_a_prev.unwrap_or(vmax),
+            _ => vmax,
+        };
+        let (v_o, _) = cdm::limit_operating_point(prev, 0.0, vmax);
+        if v_o <= cdm::V_AO_MIN_FRAC * vmax {
+            self.near_zero_amplitude_samples += 1;
+        }
+        let d_o = md
+            .fw_phase(v_o, i_q_ref, w)
+            .clamp(-cdm::DELTA_O_MAX, cdm::DELTA_O_MAX);
         let mut v_lim = false;
         let v_a = match sp.mode {
             PolarMode::PolarFw => {
-                // C_v designed at V_ao = V_a[k−1] and δ_o from (9) (module docs, reading 6).
-                let prev = self.v_a_prev.unwrap_or(vmax);
-                let (v_o, _) = cdm::limit_operating_point(prev, 0.0, vmax);
-                let d_o = md
-                    .fw_phase(v_o, i_q_ref, w)
-                    .clamp(-cdm::DELTA_O_MAX, cdm::DELTA_O_MAX);
-                let sig_v =
-                    SIGMA_V_RATIO * limit_by_zero(self.sigma_delta, &md.plant_22(v_o, d_o, w));
-                let g = md.amplitude_gain(d_o, w);
-                if g.is_finite() && g.abs() > 1e-9 {
-                    self.k_v = sig_v.abs() / g;
-                } else {
-                    self.kept_gains_samples += 1;
+                // C_v: all four poles of 1 + ΔP_11 C_v = 0 (eq. 11) placed.
+                match place_pid(&md.plant_11(d_o, w), fw_poles(sp.sigma_v_rad_s, rho)) {
+                    Some(g) => self.g_v = g,
+                    None => self.kept_gains_samples += 1,
                 }
-                let (v, lim) = self
-                    .c_v
-                    .step(0.0, self.k_v, x.i_d_ref - x.i_d, 0.0, 0.0, vmax, ts);
+                let (v, lim) = self.c_v.step(
+                    &self.g_v,
+                    x.i_d_ref - x.i_d,
+                    0.0,
+                    0.0,
+                    vmax,
+                    ts,
+                    AntiWindup::Freeze,
+                );
                 v_lim = lim;
                 v
             }
             _ => vmax,
         };
         self.v_a_prev = Some(v_a);
-        let (v_o, _) = cdm::limit_operating_point(v_a, 0.0, vmax);
-        if v_o <= cdm::V_AO_MIN_FRAC * vmax {
-            self.near_zero_amplitude_samples += 1;
-        }
-        // C_δ designed at V_ao = V_a[k] and δ_o from (9).
-        let d_o = md
-            .fw_phase(v_o, i_q_ref, w)
-            .clamp(-cdm::DELTA_O_MAX, cdm::DELTA_O_MAX);
-        let sig_d = limit_by_zero(self.sigma_delta, &md.plant_22(v_o, d_o, w));
-        match place_pid(&md.plant_22(v_o, d_o, w), fw_poles(sig_d, rho)) {
+        // C_δ: all four poles of 1 + ΔP_22 C_δ = 0 placed.
+        match place_pid(
+            &md.plant_22(v_o, d_o, w),
+            fw_poles(sp.sigma_delta_rad_s, rho),
+        ) {
             Some(g) => self.g_delta = g,
             None => self.kept_gains_samples += 1,
         }
-        // Beyond φ = atan2(ω_e L, R) more phase gives less i_q: the phase loop would change
-        // sign. Limit δ to the range where ∂i_q/∂δ > 0 (and to ±δ_max).
-        let d_hi = md.max_torque_phase(w).min(DELTA_MAX);
-        let (delta, d_lim) =
-            self.c_delta
-                .step(&self.g_delta, i_q_ref - i_q, 0.0, -DELTA_MAX, d_hi, ts);
+        let (delta, d_lim) = self.c_delta.step(
+            &self.g_delta,
+            i_q_ref - i_q,
+            0.0,
+            -DELTA_MAX,
+            DELTA_MAX,
+            ts,
+            AntiWindup::Conditional,
+        );
         self.v_a_limited_samples += u64::from(v_lim || sp.mode == PolarMode::VoltagePhase);
         self.delta_limited_samples += u64::from(d_lim);
         (s * v_a, s * delta, v_lim || d_lim)
@@ -736,7 +1006,10 @@ impl PolarCurrentController {
                     x_i: s * delta,
                     z: 0.0,
                 };
-                self.c_v = ScheduledPi { x_i: s * v_a };
+                self.c_v = ScheduledPid {
+                    x_i: s * v_a,
+                    z: 0.0,
+                };
                 self.v_a_prev = Some(s * v_a);
                 self.started = true;
             }
@@ -755,12 +1028,12 @@ mod tests {
     }
 
     fn spec(mode: PolarMode, v_dc: f64) -> PolarSpec {
-        PolarSpec {
+        PolarSpec::paper(
             mode,
-            model: SpmsmModel::from_motor(&motor()),
-            tu_s: 1e-4,
-            v_amax_v: v_dc / 3f64.sqrt(),
-        }
+            SpmsmModel::from_motor(&motor()),
+            1e-4,
+            v_dc / 3f64.sqrt(),
+        )
     }
 
     /// Eq. (2) against central differences of eq. (1) at several equilibria and non-equilibria.
