@@ -424,6 +424,12 @@ pub struct SpeedLoopSpec {
     /// RST only: ITAE natural frequency ω_n of the speed loop, rad/s (default: a tenth of
     /// the current loops', at most 0.2/T_w).
     pub itae_omega_rad_s: Option<f64>,
+    /// Nonlinear only: "continuous" (the paper's dummy system, default) or "sampled" (the
+    /// poles placed on the sampled loop as it runs, see `control::nonlinear`).
+    #[serde(
+        skip_serializing_if = "drivelab_control::control::nonlinear::NlPlacement::is_continuous"
+    )]
+    pub nl_poles: drivelab_control::control::nonlinear::NlPlacement,
 }
 
 impl Default for SpeedLoopSpec {
@@ -433,6 +439,7 @@ impl Default for SpeedLoopSpec {
             rise_time_s: 8e-3,
             i_q_max_a: None,
             itae_omega_rad_s: None,
+            nl_poles: drivelab_control::control::nonlinear::NlPlacement::Continuous,
         }
     }
 }
