@@ -980,21 +980,39 @@ pub fn design_nonlinear(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel) -> 
     }
     let w0 = hi.max(lo);
     let g = gains_for(spec.omega_i_rad_s, w0, spec.zeta);
-    let (r, os) = model.step_response(m, &g, t_end);
-    let (rc, osc) = continuous_step_response(&g, t_end);
-    NlDesign {
-        zeta: spec.zeta,
-        omega_i_rad_s: spec.omega_i_rad_s,
-        omega_0_rad_s: w0,
-        gains: g,
-        g_ss: g.g_ss(),
-        predicted_rise_time_s: r,
-        predicted_overshoot_pct: os,
-        continuous_rise_time_s: rc,
-        continuous_overshoot_pct: osc,
-        i_d_singular_a: KyslanModel::new(m).singular_i_d(),
-        warning,
-        sampled: None,
+    NlDesign::evaluate(m, spec, model, w0, g, warning)
+}
+
+impl NlDesign {
+    /// The design record of gains `g` (speed pair at ω_0 = `w0`): the sampled model's and the
+    /// continuous dummy system's step responses (the latter with the continuous design at
+    /// the same ω_0).
+    fn evaluate(
+        m: &MotorParams,
+        spec: &NlSpec,
+        model: &NlLoopModel,
+        w0: f64,
+        g: NlGains,
+        warning: Option<String>,
+    ) -> Self {
+        let t_end = 10.0 * spec.rise_time_s;
+        let (r, os) = model.step_response(m, &g, t_end);
+        let (rc, osc) =
+            continuous_step_response(&gains_for(spec.omega_i_rad_s, w0, spec.zeta), t_end);
+        Self {
+            zeta: spec.zeta,
+            omega_i_rad_s: spec.omega_i_rad_s,
+            omega_0_rad_s: w0,
+            gains: g,
+            g_ss: g.g_ss(),
+            predicted_rise_time_s: r,
+            predicted_overshoot_pct: os,
+            continuous_rise_time_s: rc,
+            continuous_overshoot_pct: osc,
+            i_d_singular_a: KyslanModel::new(m).singular_i_d(),
+            warning,
+            sampled: None,
+        }
     }
 }
 
@@ -1040,23 +1058,22 @@ fn design_nonlinear_sampled(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel)
         .min_by(|a, b| a.1 .1.total_cmp(&b.1 .1))
         .map(|(i, _)| i);
     let chosen = meets.or(best);
-    let mut d = design_nonlinear(
-        m,
-        &NlSpec {
-            placement: NlPlacement::Continuous,
-            ..*spec
-        },
-        model,
-    );
     let Some(i) = chosen else {
+        let mut d = design_nonlinear(
+            m,
+            &NlSpec {
+                placement: NlPlacement::Continuous,
+                ..*spec
+            },
+            model,
+        );
         d.warning = Some(
             "no placement on the sampled loop converged: the continuous design is used".into(),
         );
         return d;
     };
     let (w0, g) = placed[i];
-    let (r, os) = model.step_response(m, &g, t_end);
-    let (rc, osc) = continuous_step_response(&gains_for(w_i, w0, zeta), t_end);
+    let r = searched[i].1;
     let warning = meets.is_none().then(|| {
         format!(
             "speed rise time {:.2} ms is not reachable with the sampled loop's pairs at damping {zeta}: the fastest placed design (ω_0 = {w0:.0} rad/s) first reaches the set-point at {:.2} ms",
@@ -1070,18 +1087,8 @@ fn design_nonlinear_sampled(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel)
         .filter(|p| p.0.hypot(p.1) > 1e-3)
         .collect();
     NlDesign {
-        zeta,
-        omega_i_rad_s: w_i,
-        omega_0_rad_s: w0,
-        gains: g,
-        g_ss: g.g_ss(),
-        predicted_rise_time_s: r,
-        predicted_overshoot_pct: os,
-        continuous_rise_time_s: rc,
-        continuous_overshoot_pct: osc,
-        i_d_singular_a: d.i_d_singular_a,
-        warning,
         sampled: Some(NlSampledPlacement { poles, searched }),
+        ..NlDesign::evaluate(m, spec, model, w0, g, warning)
     }
 }
 
@@ -1415,6 +1422,49 @@ mod tests {
             &model,
         );
         assert!(d.warning.unwrap().contains("not reachable"));
+    }
+
+    /// The damping of the continuous design is lost on the sampled loop; the sampled
+    /// placement puts both pairs at damping 0.6 on it.
+    #[test]
+    fn sampled_placement_puts_both_pairs_on_the_loop_that_runs() {
+        let model = NlLoopModel {
+            ts: 1e-4,
+            n: 10,
+            tau_f_s: 1e-4,
+        };
+        let zeta_of = |p: &(f64, f64)| -p.0 / p.0.hypot(p.1);
+        for m in motors() {
+            let spec = |placement| NlSpec {
+                rise_time_s: 8e-3,
+                omega_i_rad_s: 2000.0,
+                zeta: DAMPING,
+                placement,
+            };
+            let cont = design_nonlinear(&m, &spec(NlPlacement::Continuous), &model);
+            // The dominant (slowest complex) pole of the loop that runs, continuous design.
+            let poles = model.sampled_poles(&m, &cont.gains);
+            let dom = poles.iter().find(|p| p.1 > 1.0).unwrap();
+            assert!(zeta_of(dom) < 0.3, "{dom:?}");
+            let d = design_nonlinear(&m, &spec(NlPlacement::Sampled), &model);
+            let sp = d.sampled.as_ref().unwrap();
+            for w in [d.omega_0_rad_s, d.omega_i_rad_s] {
+                let want = (-DAMPING * w, w * (1.0 - DAMPING * DAMPING).sqrt());
+                // Newton stops at |det| < 1e-12 of its start; the eigenvalue is then
+                // within 1e-6 in z (checked by place_on_sampled_loop), ~1e-3 rad/s in s.
+                assert!(
+                    sp.poles
+                        .iter()
+                        .any(|p| (p.0 - want.0).abs() < 1e-2 && (p.1 - want.1).abs() < 1e-2),
+                    "{want:?} not in {:?}",
+                    sp.poles
+                );
+            }
+            // Stable, and the placed pair is the slowest complex one.
+            assert!(sp.poles.iter().all(|p| p.0 < 0.0));
+            let dom = sp.poles.iter().find(|p| p.1 > 1.0).unwrap();
+            assert!((zeta_of(dom) - DAMPING).abs() < 1e-6, "{dom:?}");
+        }
     }
 
     #[test]

@@ -1162,6 +1162,108 @@ mod tests {
         assert!(place_pid(&p, d).is_none());
     }
 
+    /// Section III at 800 rpm, V_dc = 100 V (the flux-weakening scenarios): both designs put
+    /// their poles where asked, and the sampled loop shows why the paper's −600 rad/s fails.
+    #[test]
+    fn section_iii_designs_place_the_asked_poles() {
+        let md = SpmsmModel::from_motor(&motor());
+        let w = 4.0 * 800.0 * std::f64::consts::PI / 30.0;
+        let vmax = 100.0 / 3f64.sqrt();
+        let rho = md.pole_radius(w);
+        assert!(rho > 300.0 && rho < 600.0, "{rho}");
+        for iq in [0.5, 3.0] {
+            let f = FwDesign::new(&md, vmax, iq, w, 1e-4, vmax, -600.0, -300.0);
+            // C_v: real parts −300, on the circle through the plant poles (eq. 12), as a
+            // double pair (fw_poles): roots of a double root are accurate to ~√ε relative.
+            for &(re, im) in &f.poles_v {
+                assert!((re + 300.0).abs() < 1e-6 * 300.0, "{:?}", f.poles_v);
+                assert!((re.hypot(im) - rho).abs() < 1e-6 * rho, "{:?}", f.poles_v);
+            }
+            // C_δ: |σ| = 600 > ρ, so all four at −600 (a quadruple root: ~ε^¼ ≈ 1e-4 relative).
+            for &(re, im) in &f.poles_delta {
+                assert!((re + 600.0).abs() < 1e-3 * 600.0 && im.abs() < 1e-3 * 600.0);
+            }
+            // The gains close the loops on exactly those polynomials.
+            for (p, g, want) in [
+                (f.p11, f.g_v.unwrap(), fw_poles(-300.0, rho)),
+                (f.p22, f.g_delta.unwrap(), fw_poles(-600.0, rho)),
+            ] {
+                let got = [
+                    p.a1 + g.f + p.b1 * g.q2,
+                    p.a0 + g.f * p.a1 + p.b1 * g.q1 + p.b0 * g.q2,
+                    g.f * p.a0 + p.b1 * g.q0 + p.b0 * g.q1,
+                    p.b0 * g.q0,
+                ];
+                for i in 0..4 {
+                    assert!((got[i] - want[i]).abs() < 1e-9 * want[i].abs());
+                }
+            }
+        }
+        // The phase loop's zero: right half plane, inside |σ| = 600 at 3 A, beyond it at 0.5 A.
+        let hi = FwDesign::new(&md, vmax, 3.0, w, 1e-4, vmax, -600.0, -300.0);
+        let lo = FwDesign::new(&md, vmax, 0.5, w, 1e-4, vmax, -600.0, -300.0);
+        assert!(hi.zero_22_rad_s > 0.0 && hi.zero_22_rad_s < 600.0);
+        assert!(lo.zero_22_rad_s > 600.0);
+        // As it runs (one-sample delay): unstable at 3 A, stable at 0.5 A.
+        let unstable = |v: &[(f64, f64)]| v.iter().any(|p| p.0 > 0.0);
+        assert!(unstable(&hi.sampled_delta) && unstable(&hi.sampled_both));
+        assert!(!unstable(&lo.sampled_delta) && !unstable(&lo.sampled_both));
+    }
+
+    #[test]
+    fn amplitude_controller_states_are_not_renewed_while_saturated() {
+        let g = PidGains {
+            q2: 2.0,
+            q1: 900.0,
+            q0: 2e5,
+            f: 2000.0,
+        };
+        let mut c = ScheduledPid { x_i: 50.0, z: 1.0 };
+        let (v, lim) = c.step(&g, 10.0, 0.0, 0.0, 57.7, 1e-4, AntiWindup::Freeze);
+        assert!(lim && v == 57.7);
+        assert_eq!((c.x_i, c.z), (50.0, 1.0));
+        // Inside the limits both states move.
+        let (_, lim) = c.step(&g, 0.1, 0.0, 0.0, 57.7, 1e-4, AntiWindup::Freeze);
+        assert!(!lim && c.x_i != 50.0 && c.z != 1.0);
+    }
+
+    #[test]
+    fn prediction_is_the_exact_solution_of_eq_1() {
+        let md = SpmsmModel::from_motor(&motor());
+        for (i_d, i_q, u_d, u_q, w) in [
+            (0.0, 0.0, 0.0, 50.0, 0.0),
+            (0.3, 1.5, -12.0, 40.0, 335.1),
+            (-1.0, -2.0, 20.0, -70.0, -167.5),
+        ] {
+            let (pd, pq) = md.predict(i_d, i_q, u_d, u_q, w, 1e-4);
+            // RK4 with 1000 steps of 0.1 µs: error ~h⁴, far below 1e-9 A.
+            let mut x = [i_d, i_q];
+            let (v_a, delta) = dq_to_polar(u_d, u_q);
+            let h = 1e-7;
+            for _ in 0..1000 {
+                let k1 = md.f(x, [v_a, delta], w);
+                let k2 = md.f(
+                    [x[0] + 0.5 * h * k1[0], x[1] + 0.5 * h * k1[1]],
+                    [v_a, delta],
+                    w,
+                );
+                let k3 = md.f(
+                    [x[0] + 0.5 * h * k2[0], x[1] + 0.5 * h * k2[1]],
+                    [v_a, delta],
+                    w,
+                );
+                let k4 = md.f([x[0] + h * k3[0], x[1] + h * k3[1]], [v_a, delta], w);
+                for j in 0..2 {
+                    x[j] += h / 6.0 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j]);
+                }
+            }
+            assert!(
+                (pd - x[0]).abs() < 1e-9 && (pq - x[1]).abs() < 1e-9,
+                "{pd} {pq} {x:?}"
+            );
+        }
+    }
+
     /// The drive's timing: command k applied on [t_{k+1}, t_{k+2}).
     fn simulate(
         c: &mut PolarCurrentController,
