@@ -1003,6 +1003,16 @@ mod tests {
         )
     }
 
+    /// Coefficients (d3, d2, d1, d0) of s(s + f)(s² + a1 s + a0) + (b1 s + b0)(q2 s² + q1 s + q0).
+    fn closed_loop(p: &SecondOrder, g: &PidGains) -> [f64; 4] {
+        [
+            p.a1 + g.f + p.b1 * g.q2,
+            p.a0 + g.f * p.a1 + p.b1 * g.q1 + p.b0 * g.q2,
+            g.f * p.a0 + p.b1 * g.q0 + p.b0 * g.q1,
+            p.b0 * g.q0,
+        ]
+    }
+
     /// Eq. (2) against central differences of eq. (1) at several equilibria and non-equilibria.
     #[test]
     fn linearisation_matches_a_numerical_jacobian() {
@@ -1122,13 +1132,7 @@ mod tests {
         ] {
             let d = fw_poles(sigma, md.pole_radius(w));
             let g = place_pid(&p, d).unwrap();
-            // s(s + f)(s² + a1 s + a0) + (b1 s + b0)(q2 s² + q1 s + q0)
-            let got = [
-                p.a1 + g.f + p.b1 * g.q2,
-                p.a0 + g.f * p.a1 + p.b1 * g.q1 + p.b0 * g.q2,
-                g.f * p.a0 + p.b1 * g.q0 + p.b0 * g.q1,
-                p.b0 * g.q0,
-            ];
+            let got = closed_loop(&p, &g);
             for i in 0..4 {
                 assert!(
                     (got[i] - d[i]).abs() < 1e-9 * d[i].abs(),
@@ -1188,12 +1192,7 @@ mod tests {
                 (f.p11, f.g_v.unwrap(), fw_poles(-300.0, rho)),
                 (f.p22, f.g_delta.unwrap(), fw_poles(-600.0, rho)),
             ] {
-                let got = [
-                    p.a1 + g.f + p.b1 * g.q2,
-                    p.a0 + g.f * p.a1 + p.b1 * g.q1 + p.b0 * g.q2,
-                    g.f * p.a0 + p.b1 * g.q0 + p.b0 * g.q1,
-                    p.b0 * g.q0,
-                ];
+                let got = closed_loop(&p, &g);
                 for i in 0..4 {
                     assert!((got[i] - want[i]).abs() < 1e-9 * want[i].abs());
                 }
