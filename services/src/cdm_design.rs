@@ -164,7 +164,7 @@ pub fn render_fw(f: &FwDesign) -> String {
     };
     let _ = writeln!(
         o,
-        "flux weakening (section III) at ω_e = {:.3} rad/s, V_ao = {:.4} V, i_q* = {} A: δ_o = {:.4}° (eq. 9), i_d,o = {:.4} A; plant poles −R/L ± jω_e on the circle |s| = {:.3} rad/s (eq. 12)",
+        "flux weakening (section III) at ω_e = {:.3} rad/s, V_ao = {:.4} V, i_q* = {} A: δ_o (eq. 9) = {:.4} °, i_d,o = {:.4} A; plant poles −R/L ± jω_e on the circle |s| = {:.3} rad/s (eq. 12)",
         f.omega_e,
         f.v_ao_v,
         f.i_q_ref_a,

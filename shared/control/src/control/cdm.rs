@@ -213,6 +213,17 @@ impl CdmDesign {
 /// ([`CdmDelay::Paper`]) or the current predicted one sample ahead ([`CdmDelay::Predict`]).
 /// Returns (10–90 % rise time on the sample grid, s; overshoot, %).
 pub fn q_loop_step(r_ohm: f64, l_h: f64, tu_s: f64, delay: CdmDelay) -> (f64, f64) {
+    let ys = q_loop_response(r_ohm, l_h, tu_s, delay);
+    let n = ys.len();
+    let first = |f: f64| ys.iter().position(|&y| y >= f).unwrap_or(n);
+    let rise = (first(0.9) - first(0.1)) as f64 * tu_s;
+    let peak = ys.iter().copied().fold(0.0, f64::max);
+    (rise, (peak - 1.0).max(0.0) * 100.0)
+}
+
+/// The unit-step response of [`q_loop_step`]'s loop, sample k+1 after the step at k = 0, for
+/// 200 samples.
+pub fn q_loop_response(r_ohm: f64, l_h: f64, tu_s: f64, delay: CdmDelay) -> Vec<f64> {
     let (a1, a0) = cdm_second_order(GAMMA1, TAU_SAMPLES * tu_s);
     let (kp, ki) = gains_21(r_ohm, l_h, a1, a0, 0.0);
     let p = (-r_ohm / l_h * tu_s).exp();
@@ -232,10 +243,7 @@ pub fn q_loop_step(r_ohm: f64, l_h: f64, tu_s: f64, delay: CdmDelay) -> (f64, f6
         u_prev = u;
         ys.push(i);
     }
-    let first = |f: f64| ys.iter().position(|&y| y >= f).unwrap_or(n);
-    let rise = (first(0.9) - first(0.1)) as f64 * tu_s;
-    let peak = ys.iter().copied().fold(0.0, f64::max);
-    (rise, (peak - 1.0).max(0.0) * 100.0)
+    ys
 }
 
 #[cfg(test)]
