@@ -179,7 +179,9 @@ fn polar_control_at_0_rpm_reaches_2_a_without_steady_state_error() {
         let (_, d) = drivelab_tools::plot_polar::modulation_and_phase(x, 470.0);
         assert!(d == 0.0, "δ = {d} at t = {}", x.t);
     }
-    settling(&rows, |x| drivelab_tools::plot_polar::modulation_and_phase(x, 470.0).1);
+    settling(&rows, |x| {
+        drivelab_tools::plot_polar::modulation_and_phase(x, 470.0).1
+    });
     let (rise, over) = (r.metric("iq_rise_time_us"), r.metric("iq_overshoot_pct"));
     // The design model of the q loop with the drive's delay (cdm::q_loop_step): the rise on
     // the same 100 µs grid; the overshoot at most the model's, since at standstill δ_d turns
