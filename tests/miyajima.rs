@@ -301,7 +301,7 @@ fn flux_weakening_with_the_papers_poles() {
     }
     // The paper's two claims, measured: the q-axis rise the same for both (±20 %), and no
     // flux strengthening by the proposed method (i_d ≤ 0.01 A over the whole run). With the
-    // paper's design on our motor neither holds (README, docs/miyajima-flux-weakening.md).
+    // paper's design on our motor neither holds (README, docs/paper-departures.md).
     let (rc, rp) = (
         conv.metric("iq_rise_time_us"),
         prop.metric("iq_rise_time_us"),

@@ -84,7 +84,7 @@
 //!    paper's Figs 2–3: ΔP_22 has a right-half-plane zero at ω_e cot δ_o − R/L (≈ 386 rad/s
 //!    at 3 A), inside the −600 rad/s asked of the loop, and with the one-sample delay the
 //!    sampled loop at 3 A is unstable ([`FwDesign`], `drivelab cdm-design --speed-rpm`,
-//!    docs/miyajima-flux-weakening.md).
+//!    docs/paper-departures.md).
 //! 7. **Negative speed.** The flux-weakening laws run in the mirrored frame
 //!    (ω_e, i_q, V_a, δ) → (−ω_e, −i_q, −V_a, −δ), under which (1) is invariant, so the same
 //!    branch of (9) applies in both directions.
