@@ -265,7 +265,11 @@ fn flux_weakening_with_the_papers_poles() {
     let vmax = v_dc / 3f64.sqrt();
     let md = SpmsmModel::from_motor(&sc.motor_params());
     let w = sc.motor_params().p() * sc.mechanics.prescribed_speed_rad_s.unwrap();
-    let at = |iq: f64| FwDesign::new(&md, vmax, iq, w, sc.rates.ts(), vmax, -600.0, -300.0);
+    // Section III-C: phase loop at −600 rad/s, amplitude loop at −300 rad/s, the defaults.
+    let sigma = |k: &str| prop.summary["design"]["polar"][k].as_f64().unwrap();
+    let (s_d, s_v) = (sigma("sigma_delta_rad_s"), sigma("sigma_v_rad_s"));
+    assert_eq!((s_d, s_v), (-600.0, -300.0));
+    let at = |iq: f64| FwDesign::new(&md, vmax, iq, w, sc.rates.ts(), vmax, s_d, s_v);
     let (hi, lo) = (at(3.0), at(0.5));
     // Fig. 2: the conventional method ends flux-strengthening at 0.5 A. The equilibrium of
     // (1) at V_amax, i_q = 0.5 A has i_d > 0; the run settles there within what the slowest
