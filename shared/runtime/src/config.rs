@@ -378,6 +378,12 @@ pub struct CurrentLoopSpec {
     /// CDM polynomials, with the current one sample ahead predicted by the model).
     #[serde(skip_serializing_if = "drivelab_control::control::cdm::CdmDelay::is_paper")]
     pub cdm_delay: drivelab_control::control::cdm::CdmDelay,
+    /// polar only: τ_21 in samples (default 10, eq. 36).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cdm_tau21_samples: Option<f64>,
+    /// polar only: weight β of i_q* in C_21's proportional term (default 1: a PI on the error).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cdm_setpoint_weight: Option<f64>,
 }
 
 impl Default for CurrentLoopSpec {
@@ -390,6 +396,8 @@ impl Default for CurrentLoopSpec {
             polar_sigma_delta_rad_s: None,
             polar_sigma_v_rad_s: None,
             cdm_delay: drivelab_control::control::cdm::CdmDelay::Paper,
+            cdm_tau21_samples: None,
+            cdm_setpoint_weight: None,
         }
     }
 }

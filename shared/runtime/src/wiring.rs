@@ -128,6 +128,12 @@ pub mod polar {
                 sp.sigma_v_rad_s = v;
             }
             sp.cdm_delay = cl.cdm_delay;
+            if let Some(v) = cl.cdm_tau21_samples {
+                sp.cdm_tau21_samples = v;
+            }
+            if let Some(v) = cl.cdm_setpoint_weight {
+                sp.cdm_setpoint_weight = v;
+            }
             sp
         })
     }

@@ -207,43 +207,81 @@ impl CdmDesign {
 }
 
 /// The q loop of section IV at standstill as it runs, for a step of i_q*: the winding
-/// 1/(L s + R) under a zero-order hold of `tu_s`, the command of sample k applied over
-/// [t_{k+1}, t_{k+2}), C_21 of eqs (28)–(29) at δ_o = 0 with γ_1 and τ_21 = 10·T_u, the
-/// integrator by forward Euler as [`super::polar`] runs it, fed the measured current
-/// ([`CdmDelay::Paper`]) or the current predicted one sample ahead ([`CdmDelay::Predict`]).
-/// Returns (10–90 % rise time on the sample grid, s; overshoot, %).
-pub fn q_loop_step(r_ohm: f64, l_h: f64, tu_s: f64, delay: CdmDelay) -> (f64, f64) {
-    let ys = q_loop_response(r_ohm, l_h, tu_s, delay);
-    let n = ys.len();
-    let first = |f: f64| ys.iter().position(|&y| y >= f).unwrap_or(n);
-    let rise = (first(0.9) - first(0.1)) as f64 * tu_s;
-    let peak = ys.iter().copied().fold(0.0, f64::max);
-    (rise, (peak - 1.0).max(0.0) * 100.0)
+/// 1/(L s + R) under a zero-order hold of T_u, the command of sample k applied over
+/// [t_{k+1}, t_{k+2}), C_21 of eqs (28)–(29) at δ_o = 0 with γ_1 and τ_21 = `tau_samples`·T_u
+/// (eq. 36: 10) and the set-point weight `beta` (the paper: 1), the integrator by forward
+/// Euler as [`super::polar`] runs it, fed the measured current ([`CdmDelay::Paper`]) or the
+/// current predicted one sample ahead ([`CdmDelay::Predict`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct QLoop {
+    /// R, Ω.
+    pub r_ohm: f64,
+    /// L, H.
+    pub l_h: f64,
+    /// T_u, s.
+    pub tu_s: f64,
+    /// Delay treatment.
+    pub delay: CdmDelay,
+    /// τ_21 in samples.
+    pub tau_samples: f64,
+    /// Set-point weight β.
+    pub beta: f64,
 }
 
-/// The unit-step response of [`q_loop_step`]'s loop, sample k+1 after the step at k = 0, for
-/// 200 samples.
-pub fn q_loop_response(r_ohm: f64, l_h: f64, tu_s: f64, delay: CdmDelay) -> Vec<f64> {
-    let (a1, a0) = cdm_second_order(GAMMA1, TAU_SAMPLES * tu_s);
-    let (kp, ki) = gains_21(r_ohm, l_h, a1, a0, 0.0);
-    let p = (-r_ohm / l_h * tu_s).exp();
-    let g = (1.0 - p) / r_ohm;
-    let (mut i, mut x_i, mut u_prev) = (0.0, 0.0, 0.0);
-    let n = 200;
-    let mut ys = Vec::with_capacity(n);
-    for _ in 0..n {
-        let y = match delay {
-            CdmDelay::Paper => i,
-            CdmDelay::Predict => p * i + g * u_prev,
-        };
-        let e = 1.0 - y;
-        let u = kp * e + x_i;
-        x_i += ki * tu_s * e;
-        i = p * i + g * u_prev;
-        u_prev = u;
-        ys.push(i);
+impl QLoop {
+    /// The paper's loop (τ_21 = 10·T_u, β = 1) with `delay`.
+    pub fn paper(r_ohm: f64, l_h: f64, tu_s: f64, delay: CdmDelay) -> Self {
+        Self {
+            r_ohm,
+            l_h,
+            tu_s,
+            delay,
+            tau_samples: TAU_SAMPLES,
+            beta: 1.0,
+        }
     }
-    ys
+
+    /// (10–90 % rise time on the sample grid, s; overshoot, %) of the unit step.
+    pub fn step(&self) -> (f64, f64) {
+        let ys = self.response();
+        let n = ys.len();
+        let first = |f: f64| ys.iter().position(|&y| y >= f).unwrap_or(n);
+        let rise = (first(0.9) - first(0.1)) as f64 * self.tu_s;
+        let peak = ys.iter().copied().fold(0.0, f64::max);
+        (rise, (peak - 1.0).max(0.0) * 100.0)
+    }
+
+    /// The unit-step response, sample k+1 after the step at k = 0, for 200 samples.
+    pub fn response(&self) -> Vec<f64> {
+        let Self {
+            r_ohm,
+            l_h,
+            tu_s,
+            delay,
+            tau_samples,
+            beta,
+        } = *self;
+        let (a1, a0) = cdm_second_order(GAMMA1, tau_samples * tu_s);
+        let (kp, ki) = gains_21(r_ohm, l_h, a1, a0, 0.0);
+        let p = (-r_ohm / l_h * tu_s).exp();
+        let g = (1.0 - p) / r_ohm;
+        let (mut i, mut x_i, mut u_prev) = (0.0, 0.0, 0.0);
+        let n = 200;
+        let mut ys = Vec::with_capacity(n);
+        for _ in 0..n {
+            let y = match delay {
+                CdmDelay::Paper => i,
+                CdmDelay::Predict => p * i + g * u_prev,
+            };
+            let e = 1.0 - y;
+            let u = kp * (beta - y) + x_i;
+            x_i += ki * tu_s * e;
+            i = p * i + g * u_prev;
+            u_prev = u;
+            ys.push(i);
+        }
+        ys
+    }
 }
 
 #[cfg(test)]
@@ -259,8 +297,8 @@ mod tests {
     fn q_loop_model_shows_the_delay_and_its_compensation() {
         // The miyajima motor at T_u = 100 µs.
         let (paper, pred) = (
-            q_loop_step(2.5, 30e-3, 1e-4, CdmDelay::Paper),
-            q_loop_step(2.5, 30e-3, 1e-4, CdmDelay::Predict),
+            QLoop::paper(2.5, 30e-3, 1e-4, CdmDelay::Paper).step(),
+            QLoop::paper(2.5, 30e-3, 1e-4, CdmDelay::Predict).step(),
         );
         // The prediction removes the delay: the loop is the delay-free sampled design, whose
         // overshoot comes from the PI zero of the CDM polynomial alone (16.8 % on the

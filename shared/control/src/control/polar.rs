@@ -681,6 +681,11 @@ pub struct PolarSpec {
     pub sigma_v_rad_s: f64,
     /// Section IV: how C_21 and C_12 treat the one-sample computation delay.
     pub cdm_delay: cdm::CdmDelay,
+    /// Section IV: τ_21 in samples T_u (eq. 36: 10).
+    pub cdm_tau21_samples: f64,
+    /// Section IV: weight β of i_q* in C_21's proportional term, K_P21·(β·i_q* − i_q)
+    /// (the paper: 1, a PI on the error).
+    pub cdm_setpoint_weight: f64,
 }
 
 impl PolarSpec {
@@ -695,6 +700,8 @@ impl PolarSpec {
             sigma_delta_rad_s: SIGMA_DELTA_RAD_S,
             sigma_v_rad_s: SIGMA_V_RAD_S,
             cdm_delay: cdm::CdmDelay::Paper,
+            cdm_tau21_samples: cdm::TAU_SAMPLES,
+            cdm_setpoint_weight: 1.0,
         }
     }
 }
@@ -731,7 +738,7 @@ pub struct PolarDesign {
 impl PolarDesign {
     /// The design summary for `spec`.
     pub fn new(spec: &PolarSpec) -> Self {
-        let tau21 = cdm::TAU_SAMPLES * spec.tu_s;
+        let tau21 = spec.cdm_tau21_samples * spec.tu_s;
         let (a1, a0) = cdm::cdm_second_order(cdm::GAMMA1, tau21);
         let (kp, ki) = cdm::gains_21(spec.model.r_ohm, spec.model.l_h, a1, a0, 0.0);
         Self {
@@ -847,9 +854,16 @@ impl PolarCurrentController {
         // (38): δ_o[k] = δ_fb[k−1] + δ_d[k], limited.
         let (_, d_o) = cdm::limit_operating_point(vmax, self.delta_fb_prev + delta_d, vmax);
         let (kp21, ki21) = cdm::gains_21(r, l, self.a1_21, self.a0_21, d_o);
+        // Set-point weight (option): K_P21·(β i_q* − i_q) = K_P21·e − K_P21·(1 − β)·i_q*.
+        let beta = sp.cdm_setpoint_weight;
+        let ff = if beta == 1.0 {
+            v_ad
+        } else {
+            v_ad - kp21 * (1.0 - beta) * x.i_q_ref
+        };
         let (v_a, v_lim) = self
             .c21
-            .step(kp21, ki21, x.i_q_ref - x.i_q, v_ad, -vmax, vmax, ts);
+            .step(kp21, ki21, x.i_q_ref - x.i_q, ff, -vmax, vmax, ts);
         // (39): V_ao[k] = V_a[k], limited; (37) and (30)–(31).
         let (v_o, d_o) = cdm::limit_operating_point(v_a, d_o, vmax);
         if v_o.abs() <= cdm::V_AO_MIN_FRAC * vmax {
