@@ -288,14 +288,22 @@ pub fn render_polar_design(p: &drivelab_control::control::polar::PolarDesign) ->
         PolarMode::Polar => {
             let _ = writeln!(
                 o,
-                "  C_21, C_12: CDM γ_1 = {}, τ_21 = 10·T_u = {:.3} µs (a_1 = {} 1/s, a_0 = {} 1/s²), τ_12 per eq. (37), gains rescheduled every sample from eqs (38)-(39); at δ_o = 0: K_P21 = {} V/A, K_I21 = {} V/(A·s) (drivelab cdm-design prints any operating point)",
+                "  C_21, C_12: CDM γ_1 = {}, τ_21 = {}·T_u = {:.3} µs (a_1 = {} 1/s, a_0 = {} 1/s²), τ_12 per eq. (37), gains rescheduled every sample from eqs (38)-(39); at δ_o = 0: K_P21 = {} V/A, K_I21 = {} V/(A·s) (drivelab cdm-design prints any operating point)",
                 p.gamma1,
+                sp.cdm_tau21_samples,
                 p.tau21_s * 1e6,
                 p.a1_21,
                 p.a0_21,
                 p.k_p21_at_0,
                 p.k_i21_at_0
             );
+            if !sp.cdm_delay.is_paper() || sp.cdm_setpoint_weight != 1.0 {
+                let _ = writeln!(
+                    o,
+                    "  delay: {:?} (the loops see the current predicted one sample ahead when Predict); C_21's proportional term K_P21·(β·i_q* − i_q), β = {}",
+                    sp.cdm_delay, sp.cdm_setpoint_weight
+                );
+            }
             let _ = writeln!(
                 o,
                 "  limits: {:.4} V ≤ |V_ao| ≤ V_amax, |δ_o| ≤ {:.4} rad; outputs |V_a| ≤ V_amax, |δ| ≤ {:.4} rad; integrators frozen while an output is limited",
