@@ -8,8 +8,10 @@
 //! * `polar` (section IV): C_21 drives i_q through V_a, C_12 drives i_d through δ, both PI,
 //!   on top of the decoupling inputs V_ad, δ_d (eqs 14–16); gains by the coefficient diagram
 //!   method (eqs 26–37, [`super::cdm`]) rescheduled every sample from the equilibrium of
-//!   eqs (38)–(39). Option ([`super::cdm::CdmDelay::Predict`]): the loops are fed the currents
-//!   predicted one sample ahead ([`SpmsmModel::predict`]) to compensate the computation delay.
+//!   eqs (38)–(39). Options, off by default: the loops fed the currents predicted one sample
+//!   ahead ([`super::cdm::CdmDelay::Predict`], [`SpmsmModel::predict`]) to compensate the
+//!   computation delay; τ_21 other than eq. (36)'s 10·T_u; a weight β of i_q* in C_21's
+//!   proportional term ([`PolarSpec`]). The design model is [`super::cdm::QLoop`].
 //! * `voltage-phase` (section III, the conventional method): V_a held at V_amax, i_q
 //!   controlled through δ by a (filtered) PID placed on the linearised model (2).
 //! * `polar-fw` (section III, the proposed method): the same phase controller plus the
