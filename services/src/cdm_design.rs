@@ -4,6 +4,7 @@
 
 use anyhow::{bail, Result};
 use drivelab_control::control::cdm::{self, CdmDesign};
+use drivelab_control::control::polar::{self, FwDesign, SpmsmModel};
 use std::fmt::Write;
 
 /// Arguments of `drivelab cdm-design`.
@@ -36,6 +37,25 @@ pub struct CdmArgs {
     /// Use this τ_12 instead of eq. (37), µs.
     #[arg(long = "tau12-us", value_name = "MICROSECONDS")]
     pub tau12_us: Option<f64>,
+    /// Also print the section III designs (phase controller C_δ on ΔP_22, amplitude
+    /// controller C_v on ΔP_11, eq. 11) at this mechanical speed, rpm, with V_ao as the
+    /// equilibrium amplitude and δ_o from eq. (9).
+    #[arg(long = "speed-rpm", value_name = "RPM", allow_hyphen_values = true)]
+    pub speed_rpm: Option<f64>,
+    /// Section III: q-axis current reference of the equilibrium, A.
+    #[arg(
+        long = "i-q-a",
+        value_name = "AMPERES",
+        default_value_t = 0.0,
+        allow_hyphen_values = true
+    )]
+    pub i_q_a: f64,
+    /// Section III: real part of the phase loop's poles, rad/s.
+    #[arg(long = "sigma-delta", value_name = "RAD_PER_S", default_value_t = polar::SIGMA_DELTA_RAD_S, allow_hyphen_values = true)]
+    pub sigma_delta: f64,
+    /// Section III: real part of the amplitude loop's poles, rad/s.
+    #[arg(long = "sigma-v", value_name = "RAD_PER_S", default_value_t = polar::SIGMA_V_RAD_S, allow_hyphen_values = true)]
+    pub sigma_v: f64,
     /// Print the design as JSON (SI units) instead of text.
     #[arg(long)]
     pub json: bool,
@@ -76,12 +96,101 @@ pub fn run(a: &CdmArgs) -> Result<()> {
         a.delta_o_deg.to_radians(),
         a.tau12_us.map(|t| t * 1e-6),
     );
+    let fw = match a.speed_rpm {
+        Some(rpm) => {
+            let bad = |v: f64| !v.is_finite() || v >= 0.0;
+            if !rpm.is_finite() || !a.i_q_a.is_finite() || bad(a.sigma_delta) || bad(a.sigma_v) {
+                bail!(
+                    "--speed-rpm and --i-q-a must be finite, --sigma-delta and --sigma-v negative"
+                );
+            }
+            // The laws run mirrored to ω_e ≥ 0 (polar.rs, reading 7).
+            let w = (m.p() * rpm * std::f64::consts::PI / 30.0).abs();
+            Some(FwDesign::new(
+                &SpmsmModel::from_motor(&m),
+                a.v_ao_v.abs(),
+                a.i_q_a * rpm.signum(),
+                w,
+                a.tu_us * 1e-6,
+                v_amax,
+                a.sigma_delta,
+                a.sigma_v,
+            ))
+        }
+        None => None,
+    };
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&d)?);
+        match &fw {
+            Some(f) => println!(
+                "{}",
+                serde_json::to_string_pretty(
+                    &serde_json::json!({ "cdm": d, "flux_weakening": f })
+                )?
+            ),
+            None => println!("{}", serde_json::to_string_pretty(&d)?),
+        }
     } else {
         print!("{}", render(&a.motor, &d));
+        if let Some(f) = &fw {
+            print!("{}", render_fw(f));
+        }
     }
     Ok(())
+}
+
+/// The text printout of the section III designs at one operating point.
+pub fn render_fw(f: &FwDesign) -> String {
+    let mut o = String::new();
+    let poles = |v: &[(f64, f64)]| {
+        v.iter()
+            .map(|(re, im)| format!("{re:.1}{:+.1}j", im))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    let gains = |g: &Option<polar::PidGains>| {
+        match g {
+        Some(g) => format!(
+            "C(s) = (q2 s² + q1 s + q0)/(s(s + f)): q2 = {:.6}, q1 = {:.6}, q0 = {:.6}, f = {:.3} rad/s (K_P = {:.6}, K_I = {:.6}, B = {:.6})",
+            g.q2,
+            g.q1,
+            g.q0,
+            g.f,
+            g.k_p(),
+            g.k_i(),
+            g.b()
+        ),
+        None => "not placeable (numerator and denominator share a root, or f ≤ 0)".into(),
+    }
+    };
+    let _ = writeln!(
+        o,
+        "flux weakening (section III) at ω_e = {:.3} rad/s, V_ao = {:.4} V, i_q* = {} A: δ_o (eq. 9) = {:.4} °, i_d,o = {:.4} A; plant poles −R/L ± jω_e on the circle |s| = {:.3} rad/s (eq. 12)",
+        f.omega_e,
+        f.v_ao_v,
+        f.i_q_ref_a,
+        f.delta_o_rad.to_degrees(),
+        f.i_d_o_a,
+        f.rho_rad_s
+    );
+    let _ = writeln!(
+        o,
+        "C_δ (i_q through δ) on ΔP_22 = ({:.4} s + {:.4})/(s² + {:.4} s + {:.4}), zero at s = {:.3} rad/s: poles asked real part {} rad/s: {}",
+        f.p22.b1, f.p22.b0, f.p22.a1, f.p22.a0, f.zero_22_rad_s, f.sigma_delta_rad_s, poles(&f.poles_delta)
+    );
+    let _ = writeln!(o, "  {}", gains(&f.g_delta));
+    let _ = writeln!(
+        o,
+        "C_v (i_d through V_a, eq. 11) on ΔP_11 = ({:.4} s + {:.4})/(s² + {:.4} s + {:.4}), zero at s = {:.3} rad/s: poles asked real part {} rad/s: {}",
+        f.p11.b1, f.p11.b0, f.p11.a1, f.p11.a0, f.zero_11_rad_s, f.sigma_v_rad_s, poles(&f.poles_v)
+    );
+    let _ = writeln!(o, "  {}", gains(&f.g_v));
+    let _ = writeln!(
+        o,
+        "sampled loop as it runs (ZOH, one-sample delay), poles ln(z)/T_u in rad/s: C_δ alone (V_a = V_ao): {}",
+        poles(&f.sampled_delta)
+    );
+    let _ = writeln!(o, "  C_δ and C_v together: {}", poles(&f.sampled_both));
+    o
 }
 
 /// The text printout of a design.
@@ -179,14 +288,22 @@ pub fn render_polar_design(p: &drivelab_control::control::polar::PolarDesign) ->
         PolarMode::Polar => {
             let _ = writeln!(
                 o,
-                "  C_21, C_12: CDM γ_1 = {}, τ_21 = 10·T_u = {:.3} µs (a_1 = {} 1/s, a_0 = {} 1/s²), τ_12 per eq. (37), gains rescheduled every sample from eqs (38)-(39); at δ_o = 0: K_P21 = {} V/A, K_I21 = {} V/(A·s) (drivelab cdm-design prints any operating point)",
+                "  C_21, C_12: CDM γ_1 = {}, τ_21 = {}·T_u = {:.3} µs (a_1 = {} 1/s, a_0 = {} 1/s²), τ_12 per eq. (37), gains rescheduled every sample from eqs (38)-(39); at δ_o = 0: K_P21 = {} V/A, K_I21 = {} V/(A·s) (drivelab cdm-design prints any operating point)",
                 p.gamma1,
+                sp.cdm_tau21_samples,
                 p.tau21_s * 1e6,
                 p.a1_21,
                 p.a0_21,
                 p.k_p21_at_0,
                 p.k_i21_at_0
             );
+            if !sp.cdm_delay.is_paper() || sp.cdm_setpoint_weight != 1.0 {
+                let _ = writeln!(
+                    o,
+                    "  delay: {:?} (the loops see the current predicted one sample ahead when Predict); C_21's proportional term K_P21·(β·i_q* − i_q), β = {}",
+                    sp.cdm_delay, sp.cdm_setpoint_weight
+                );
+            }
             let _ = writeln!(
                 o,
                 "  limits: {:.4} V ≤ |V_ao| ≤ V_amax, |δ_o| ≤ {:.4} rad; outputs |V_a| ≤ V_amax, |δ| ≤ {:.4} rad; integrators frozen while an output is limited",
@@ -196,13 +313,13 @@ pub fn render_polar_design(p: &drivelab_control::control::polar::PolarDesign) ->
         PolarMode::VoltagePhase | PolarMode::PolarFw => {
             let _ = writeln!(
                 o,
-                "  phase controller: filtered PID on ΔP_22 = Δi_q/Δδ of eq. (2) at (V_ao, δ_o of eq. 9), four poles with real part σ_δ = {} rad/s (limited to half the right-half-plane zero), pairs on the circle through the plant poles; δ ≤ atan2(ω_e L, R)",
+                "  phase controller: filtered PID on ΔP_22 = Δi_q/Δδ of eq. (2) at (V_ao = V_a[k−1], δ_o of eq. 9), four poles with real part σ_δ = {} rad/s, pairs on the circle through the plant poles (eq. 12); |δ| ≤ π/2",
                 p.sigma_delta_rad_s
             );
             if sp.mode == PolarMode::PolarFw {
                 let _ = writeln!(
                     o,
-                    "  amplitude controller: integral, pole at σ_v = σ_δ/2 = {} rad/s on the gain ∂i_d/∂V_a with i_q held; 0 ≤ V_a ≤ V_amax, integrator frozen while V_a is limited",
+                    "  amplitude controller C_v: filtered PID on ΔP_11 = Δi_d/ΔV_a (eq. 11), four poles with real part σ_v = {} rad/s, pairs on the circle through the plant poles; 0 ≤ V_a ≤ V_amax, states not renewed while V_a is limited",
                     p.sigma_v_rad_s
                 );
             } else {

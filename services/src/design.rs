@@ -103,15 +103,42 @@ fn render_nonlinear(o: &mut String, sc: &Scenario, d: &DriveDesign) {
         "  inner loops (27) i = 2, 3, damping ζ = {z}, ω_i = 1/(2·τ_c) = {wi:.1} rad/s: r2 = r3 = 2ζω_i = {:.2} 1/s, K2 = K3 = ω_i² = {:.6e} 1/s²",
         g.r2, g.k2
     );
-    let _ = writeln!(
-        o,
-        "  speed subsystem (27) i = 1, (31): poles (s² + 2ζω_0 s + ω_0²)(s² + 2ζω_i s + ω_i²), ω_0 = {w0:.3} rad/s (solved for the rise time)"
-    );
-    let _ = writeln!(
-        o,
-        "    K1 = ω_0² = {:.6e} 1/s², r11 = 2ζω_0(ω_0+ω_i)/ω_i = {:.4} 1/s, r12 = (ω_0/ω_i)² = {:.6}, d12 = 2ζω_0/ω_i² = {:.6e} s",
-        g.k1, g.r11, g.r12, g.d12
-    );
+    match &n.sampled {
+        None => {
+            let _ = writeln!(
+                o,
+                "  speed subsystem (27) i = 1, (31): poles (s² + 2ζω_0 s + ω_0²)(s² + 2ζω_i s + ω_i²), ω_0 = {w0:.3} rad/s (solved for the rise time)"
+            );
+            let _ = writeln!(
+                o,
+                "    K1 = ω_0² = {:.6e} 1/s², r11 = 2ζω_0(ω_0+ω_i)/ω_i = {:.4} 1/s, r12 = (ω_0/ω_i)² = {:.6}, d12 = 2ζω_0/ω_i² = {:.6e} s",
+                g.k1, g.r11, g.r12, g.d12
+            );
+        }
+        Some(sp) => {
+            let _ = writeln!(
+                o,
+                "  speed subsystem (27) i = 1, (31) placed on the sampled loop as it runs (delay, speed law every {} samples, speed filter): pairs (ζ, ω_0) and (ζ, ω_i), ω_0 = {w0:.3} rad/s (the slowest that meets the rise time, else the fastest-rising)",
+                sc.rates.speed_divider
+            );
+            let _ = writeln!(
+                o,
+                "    K1 = {:.6e} 1/s², r11 = {:.4} 1/s, r12 = {:.6}, d12 = {:.6e} s (Newton on det(zI − Φ) = 0; the continuous closed forms no longer hold)",
+                g.k1, g.r11, g.r12, g.d12
+            );
+            let poles: Vec<String> = sp
+                .poles
+                .iter()
+                .take(8)
+                .map(|(re, im)| format!("{re:.1}{im:+.1}j"))
+                .collect();
+            let _ = writeln!(
+                o,
+                "    poles of the sampled loop, ln(z)/T_w in rad/s, slowest first: {}",
+                poles.join(", ")
+            );
+        }
+    }
     let _ = writeln!(
         o,
         "    settled gain g = 1 + r12 + d12·r2 = {:.6} (bus i_q* = (v1 - r11·ω)/(g·(a1 + a2·i_d*)))",
@@ -127,7 +154,12 @@ fn render_nonlinear(o: &mut String, sc: &Scenario, d: &DriveDesign) {
     );
     let _ = writeln!(
         o,
-        "  same gains on the continuous dummy system (26)-(27): rise time {:.2} ms, overshoot {:.1} %",
+        "  {} on the continuous dummy system (26)-(27): rise time {:.2} ms, overshoot {:.1} %",
+        if n.sampled.is_some() {
+            "the continuous placement at the same ω_0"
+        } else {
+            "same gains"
+        },
         n.continuous_rise_time_s * 1e3,
         n.continuous_overshoot_pct
     );

@@ -367,6 +367,23 @@ pub struct CurrentLoopSpec {
     pub decoupling: bool,
     /// RST only: ITAE natural frequency ω_n of the current loops, rad/s (default 0.3/T_s).
     pub itae_omega_rad_s: Option<f64>,
+    /// voltage-phase and polar-fw only: real part of the phase loop's poles, rad/s
+    /// (default −600, Miyajima et al. section III-C).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub polar_sigma_delta_rad_s: Option<f64>,
+    /// polar-fw only: real part of the amplitude loop's poles, rad/s (default −300).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub polar_sigma_v_rad_s: Option<f64>,
+    /// polar only: "paper" (CDM on the delay-free plant, default) or "predict" (the same
+    /// CDM polynomials, with the current one sample ahead predicted by the model).
+    #[serde(skip_serializing_if = "drivelab_control::control::cdm::CdmDelay::is_paper")]
+    pub cdm_delay: drivelab_control::control::cdm::CdmDelay,
+    /// polar only: τ_21 in samples (default 10, eq. 36).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cdm_tau21_samples: Option<f64>,
+    /// polar only: weight β of i_q* in C_21's proportional term (default 1: a PI on the error).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cdm_setpoint_weight: Option<f64>,
 }
 
 impl Default for CurrentLoopSpec {
@@ -376,6 +393,11 @@ impl Default for CurrentLoopSpec {
             tau_c_s: 2.5e-4,
             decoupling: true,
             itae_omega_rad_s: None,
+            polar_sigma_delta_rad_s: None,
+            polar_sigma_v_rad_s: None,
+            cdm_delay: drivelab_control::control::cdm::CdmDelay::Paper,
+            cdm_tau21_samples: None,
+            cdm_setpoint_weight: None,
         }
     }
 }
@@ -410,6 +432,12 @@ pub struct SpeedLoopSpec {
     /// RST only: ITAE natural frequency ω_n of the speed loop, rad/s (default: a tenth of
     /// the current loops', at most 0.2/T_w).
     pub itae_omega_rad_s: Option<f64>,
+    /// Nonlinear only: "continuous" (the paper's dummy system, default) or "sampled" (the
+    /// poles placed on the sampled loop as it runs, see `control::nonlinear`).
+    #[serde(
+        skip_serializing_if = "drivelab_control::control::nonlinear::NlPlacement::is_continuous"
+    )]
+    pub nl_poles: drivelab_control::control::nonlinear::NlPlacement,
 }
 
 impl Default for SpeedLoopSpec {
@@ -419,6 +447,7 @@ impl Default for SpeedLoopSpec {
             rise_time_s: 8e-3,
             i_q_max_a: None,
             itae_omega_rad_s: None,
+            nl_poles: drivelab_control::control::nonlinear::NlPlacement::Continuous,
         }
     }
 }

@@ -105,6 +105,11 @@ impl DriveDesign {
                 rise_time_s: sc.speed_loop.rise_time_s,
                 omega_i_rad_s: nonlinear_inner_frequency(sc),
                 zeta: nonlinear::DAMPING,
+                placement: if sc.nonlinear() {
+                    sc.speed_loop.nl_poles
+                } else {
+                    nonlinear::NlPlacement::Continuous
+                },
             },
             &NlLoopModel {
                 ts,

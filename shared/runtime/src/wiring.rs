@@ -113,11 +113,28 @@ pub mod polar {
 
     /// The polar law's settings for a scenario (T_u = T_s, V_amax = V_dc/√3), if it selects one.
     pub fn spec_from_scenario(sc: &Scenario) -> Option<PolarSpec> {
-        mode_of(sc).map(|mode| PolarSpec {
-            mode,
-            model: SpmsmModel::from_motor(&sc.motor_params()),
-            tu_s: sc.rates.ts(),
-            v_amax_v: sc.u_max(),
+        let cl = &sc.current_loop;
+        mode_of(sc).map(|mode| {
+            let mut sp = PolarSpec::paper(
+                mode,
+                SpmsmModel::from_motor(&sc.motor_params()),
+                sc.rates.ts(),
+                sc.u_max(),
+            );
+            if let Some(v) = cl.polar_sigma_delta_rad_s {
+                sp.sigma_delta_rad_s = v;
+            }
+            if let Some(v) = cl.polar_sigma_v_rad_s {
+                sp.sigma_v_rad_s = v;
+            }
+            sp.cdm_delay = cl.cdm_delay;
+            if let Some(v) = cl.cdm_tau21_samples {
+                sp.cdm_tau21_samples = v;
+            }
+            if let Some(v) = cl.cdm_setpoint_weight {
+                sp.cdm_setpoint_weight = v;
+            }
+            sp
         })
     }
 

@@ -24,7 +24,26 @@
 //! controller when V_a ≃ 0" of section IV-C. (τ_12 can reach 0.1/(0.001·cos 0.45π)·T_u
 //! ≈ 640·T_u, where a_1 L − R < 0: the placed poles are slower than the winding's own R/L.)
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
+
+/// How the polar CDM loops treat the drive's one-sample computation delay.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CdmDelay {
+    /// The paper's design: gains of eqs (28)–(31) on the delay-free plant, measured currents.
+    #[default]
+    Paper,
+    /// The same gains, fed with the currents predicted one sample ahead by the model (1)
+    /// under the voltage already commanded (a Smith-type predictor).
+    Predict,
+}
+
+impl CdmDelay {
+    /// The paper's design (the default).
+    pub fn is_paper(&self) -> bool {
+        *self == Self::Paper
+    }
+}
 
 /// CDM stability index γ_1 of both loops (eqs 32, 34; γ_1 = 2.5 per docs/architecture.md,
 /// "Paper conventions").
@@ -187,6 +206,84 @@ impl CdmDesign {
     }
 }
 
+/// The q loop of section IV at standstill as it runs, for a step of i_q*: the winding
+/// 1/(L s + R) under a zero-order hold of T_u, the command of sample k applied over
+/// [t_{k+1}, t_{k+2}), C_21 of eqs (28)–(29) at δ_o = 0 with γ_1 and τ_21 = `tau_samples`·T_u
+/// (eq. 36: 10) and the set-point weight `beta` (the paper: 1), the integrator by forward
+/// Euler as [`super::polar`] runs it, fed the measured current ([`CdmDelay::Paper`]) or the
+/// current predicted one sample ahead ([`CdmDelay::Predict`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct QLoop {
+    /// R, Ω.
+    pub r_ohm: f64,
+    /// L, H.
+    pub l_h: f64,
+    /// T_u, s.
+    pub tu_s: f64,
+    /// Delay treatment.
+    pub delay: CdmDelay,
+    /// τ_21 in samples.
+    pub tau_samples: f64,
+    /// Set-point weight β.
+    pub beta: f64,
+}
+
+impl QLoop {
+    /// The paper's loop (τ_21 = 10·T_u, β = 1) with `delay`.
+    pub fn paper(r_ohm: f64, l_h: f64, tu_s: f64, delay: CdmDelay) -> Self {
+        Self {
+            r_ohm,
+            l_h,
+            tu_s,
+            delay,
+            tau_samples: TAU_SAMPLES,
+            beta: 1.0,
+        }
+    }
+
+    /// (10–90 % rise time on the sample grid, s; overshoot, %) of the unit step.
+    pub fn step(&self) -> (f64, f64) {
+        let ys = self.response();
+        let n = ys.len();
+        let first = |f: f64| ys.iter().position(|&y| y >= f).unwrap_or(n);
+        let rise = (first(0.9) - first(0.1)) as f64 * self.tu_s;
+        let peak = ys.iter().copied().fold(0.0, f64::max);
+        (rise, (peak - 1.0).max(0.0) * 100.0)
+    }
+
+    /// The unit-step response, sample k+1 after the step at k = 0, for 200 samples.
+    pub fn response(&self) -> Vec<f64> {
+        let Self {
+            r_ohm,
+            l_h,
+            tu_s,
+            delay,
+            tau_samples,
+            beta,
+        } = *self;
+        let (a1, a0) = cdm_second_order(GAMMA1, tau_samples * tu_s);
+        let (kp, ki) = gains_21(r_ohm, l_h, a1, a0, 0.0);
+        let p = (-r_ohm / l_h * tu_s).exp();
+        let g = (1.0 - p) / r_ohm;
+        let (mut i, mut x_i, mut u_prev) = (0.0, 0.0, 0.0);
+        let n = 200;
+        let mut ys = Vec::with_capacity(n);
+        for _ in 0..n {
+            let y = match delay {
+                CdmDelay::Paper => i,
+                CdmDelay::Predict => p * i + g * u_prev,
+            };
+            let e = 1.0 - y;
+            let u = kp * (beta - y) + x_i;
+            x_i += ki * tu_s * e;
+            i = p * i + g * u_prev;
+            u_prev = u;
+            ys.push(i);
+        }
+        ys
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -195,6 +292,20 @@ mod tests {
     const L: f64 = 30e-3;
     const TU: f64 = 100e-6;
     const VMAX: f64 = 470.0 / 1.732_050_807_568_877_2;
+
+    #[test]
+    fn q_loop_model_shows_the_delay_and_its_compensation() {
+        // The miyajima motor at T_u = 100 µs.
+        let (paper, pred) = (
+            QLoop::paper(2.5, 30e-3, 1e-4, CdmDelay::Paper).step(),
+            QLoop::paper(2.5, 30e-3, 1e-4, CdmDelay::Predict).step(),
+        );
+        // The prediction removes the delay: the loop is the delay-free sampled design, whose
+        // overshoot comes from the PI zero of the CDM polynomial alone (16.8 % on the
+        // continuous model): less overshoot, slower rise.
+        assert!(pred.1 < paper.1 && pred.0 > paper.0, "{paper:?} {pred:?}");
+        eprintln!("paper {paper:?}, predict {pred:?}");
+    }
 
     #[test]
     fn standard_form_has_the_asked_index_and_time_constant() {

@@ -92,6 +92,7 @@
 //! its PM value) and clamps it at [`GUARD`]·a1 > 0, so the law never divides by zero.
 
 use crate::control::current::CurrentInput;
+use crate::control::filter::Bessel2;
 use crate::motor::{Mechanics, MotorInput, MotorParams, MotorState, Rk4};
 use crate::observer::EncoderObserver;
 use serde::{Deserialize, Serialize};
@@ -565,6 +566,266 @@ impl NlLoopModel {
     }
 }
 
+/// The q/speed part of the sampled loop of [`NlLoopModel`] as an explicit state, for its
+/// linearisation: the motor (i_q, ω, θ), the encoder's last angle, the Bessel filter's
+/// y(k−1), y(k−2), u(k−1), u(k−2), the integrators v_R2 and v1, the held i_q* and the
+/// voltage u_q on its way. At i_d = 0 the field loop is decoupled from it to first order.
+#[derive(Debug, Clone, Copy)]
+struct LoopState {
+    x: MotorState,
+    last_theta: f64,
+    filt: [f64; 4],
+    cl: NlCurrentLaw,
+    sp: NlSpeedLaw,
+    i_q_ref: f64,
+    u_q_prev: f64,
+}
+
+/// Number of states of [`LoopState`].
+const LOOP_STATES: usize = 12;
+
+impl LoopState {
+    fn to_vec(self) -> [f64; LOOP_STATES] {
+        let f = self.filt;
+        [
+            self.x.i_q,
+            self.x.omega_m,
+            self.x.theta_m,
+            self.last_theta,
+            f[0],
+            f[1],
+            f[2],
+            f[3],
+            self.cl.v_r2,
+            self.sp.v1,
+            self.i_q_ref,
+            self.u_q_prev,
+        ]
+    }
+
+    fn set(&mut self, v: &[f64; LOOP_STATES]) {
+        self.x.i_q = v[0];
+        self.x.omega_m = v[1];
+        self.x.theta_m = v[2];
+        self.last_theta = v[3];
+        self.filt = [v[4], v[5], v[6], v[7]];
+        self.cl.v_r2 = v[8];
+        self.sp.v1 = v[9];
+        self.i_q_ref = v[10];
+        self.u_q_prev = v[11];
+    }
+}
+
+impl NlLoopModel {
+    /// One sample of the loop as it runs (the same order as [`Self::step_response`]), with
+    /// the speed law at phase `k` of its divider, the encoder and filter unrolled so that
+    /// their states are visible. No angle wrap (small signals about θ = 0).
+    fn sample(&self, m: &MotorParams, f: &Bessel2, s: &mut LoopState, k: u64, w1: f64) {
+        let n = u64::from(self.n.max(1));
+        let raw = (s.x.theta_m - s.last_theta) / self.ts;
+        s.last_theta = s.x.theta_m;
+        let [y1, y2, u1, u2] = s.filt;
+        let omega_hat = -f.a1 * y1 - f.a0 * y2 + f.b1 * u1 + f.b0 * u2;
+        s.filt = [omega_hat, y1, raw, u1];
+        let out = s.cl.step(&CurrentInput {
+            i_d_ref: 0.0,
+            i_q_ref: s.i_q_ref,
+            i_d: s.x.i_d,
+            i_q: s.x.i_q,
+            omega_e: m.p() * omega_hat,
+        });
+        if k.is_multiple_of(n) {
+            s.i_q_ref = s.sp.step(w1, omega_hat, 0.0).i_q_ref;
+        }
+        let th = s.x.theta_m;
+        s.x = Rk4 { substeps: 4 }.advance(
+            m,
+            Mechanics::Inertia,
+            &s.x,
+            &MotorInput {
+                u_d: 0.0,
+                u_q: s.u_q_prev,
+                t_load: 0.0,
+            },
+            self.ts,
+        );
+        // Unwrapped angle (advance wraps to [0, 2π)).
+        s.x.theta_m = th
+            + ((s.x.theta_m - th + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU)
+                - std::f64::consts::PI);
+        s.u_q_prev = out.u_q;
+    }
+
+    /// The loop's map over one speed period N·T_s (from just before a speed-law sample to
+    /// the next), linearised at rest by central differences: the matrix Φ of
+    /// X[j+1] = Φ X[j] with the states of [`LoopState`].
+    pub fn lifted_matrix(&self, m: &MotorParams, g: &NlGains) -> nalgebra::DMatrix<f64> {
+        let n = u64::from(self.n.max(1));
+        let tw = self.ts * n as f64;
+        let f = Bessel2::design(self.tau_f_s, self.ts);
+        let base = LoopState {
+            x: MotorState::default(),
+            last_theta: 0.0,
+            filt: [0.0; 4],
+            cl: NlCurrentLaw::new(m, g, self.ts, f64::INFINITY),
+            sp: NlSpeedLaw::new(m, g, tw, f64::INFINITY),
+            i_q_ref: 0.0,
+            u_q_prev: 0.0,
+        };
+        let run = |v: &[f64; LOOP_STATES]| {
+            let mut s = base;
+            s.set(v);
+            for k in 0..n {
+                self.sample(m, &f, &mut s, k, 0.0);
+            }
+            s.to_vec()
+        };
+        let mut phi = nalgebra::DMatrix::<f64>::zeros(LOOP_STATES, LOOP_STATES);
+        // Scale of each state for a step of the same relative size.
+        for j in 0..LOOP_STATES {
+            let h = 1e-6;
+            let (mut p, mut q) = ([0.0; LOOP_STATES], [0.0; LOOP_STATES]);
+            p[j] = h;
+            q[j] = -h;
+            let (a, b) = (run(&p), run(&q));
+            for i in 0..LOOP_STATES {
+                phi[(i, j)] = (a[i] - b[i]) / (2.0 * h);
+            }
+        }
+        phi
+    }
+
+    /// Poles of the sampled loop (q axis and speed), as ln(z)/(N·T_s) in rad/s, sorted by
+    /// magnitude. Poles at z ≈ 0 (pure delays) are left out.
+    pub fn sampled_poles(&self, m: &MotorParams, g: &NlGains) -> Vec<(f64, f64)> {
+        let tw = self.ts * f64::from(self.n.max(1));
+        let mut v: Vec<(f64, f64)> = self
+            .lifted_matrix(m, g)
+            .complex_eigenvalues()
+            .iter()
+            .filter(|z| z.norm() > 1e-9)
+            .map(|z| {
+                let l = z.ln() / tw;
+                (l.re, l.im)
+            })
+            .collect();
+        v.sort_by(|p, q| p.0.hypot(p.1).total_cmp(&q.0.hypot(q.1)));
+        v
+    }
+}
+
+/// The speed subsystem's gains (K1, r11, r12, d12) that put two pole pairs of the sampled
+/// loop ([`NlLoopModel::lifted_matrix`]) at damping ζ and natural frequencies ω_0 and ω_2,
+/// mapped by z = e^{s·N·T_s}; the inner loops (r2, K2, r3, K3) stay at (ζ, ω_i) as in
+/// [`gains_for`]. Newton's method with backtracking on det(zI − Φ) = 0 at the targets,
+/// from `start` (default: the continuous design); None if it does not converge.
+pub fn place_on_sampled_loop(
+    m: &MotorParams,
+    model: &NlLoopModel,
+    w_i: f64,
+    (w_0, w_2): (f64, f64),
+    zeta: f64,
+    start: Option<&NlGains>,
+) -> Option<NlGains> {
+    place_on_sampled_loop_at(m, model, w_i, w_0, zeta, Extra::Pair(w_2), start)
+}
+
+/// What [`place_on_sampled_loop_at`] places beside the dominant pair.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Extra {
+    /// A second pair at (ζ, ω), rad/s.
+    Pair(f64),
+    /// Two real poles at −a and −b, rad/s.
+    Reals(f64, f64),
+}
+
+/// See [`place_on_sampled_loop`].
+pub fn place_on_sampled_loop_at(
+    m: &MotorParams,
+    model: &NlLoopModel,
+    w_i: f64,
+    w_0: f64,
+    zeta: f64,
+    extra: Extra,
+    start: Option<&NlGains>,
+) -> Option<NlGains> {
+    use nalgebra::{Complex, DMatrix, DVector};
+    let tw = model.ts * f64::from(model.n.max(1));
+    let pair = |w: f64| (Complex::new(-zeta * w, w * (1.0 - zeta * zeta).sqrt()) * tw).exp();
+    let t0 = pair(w_0);
+    let re = |w: f64| Complex::new((-w * tw).exp(), 0.0);
+    let (t1, t2) = match extra {
+        Extra::Pair(w) => (pair(w), None),
+        Extra::Reals(a, b) => (re(a), Some(re(b))),
+    };
+    let g0 = gains_for(w_i, w_0, zeta);
+    let with = |p: &[f64]| NlGains {
+        k1: p[0],
+        r11: p[1],
+        r12: p[2],
+        d12: p[3],
+        ..g0
+    };
+    // The characteristic polynomial det(zI − Φ) vanishes at each target: four real
+    // equations, no matching of eigenvalues.
+    let residual = |p: &[f64]| -> Option<DVector<f64>> {
+        let phi = model
+            .lifted_matrix(m, &with(p))
+            .map(|v| Complex::new(v, 0.0));
+        let n = phi.nrows();
+        let det =
+            |t: Complex<f64>| (DMatrix::<Complex<f64>>::identity(n, n) * t - &phi).determinant();
+        let (a, b) = (det(t0), det(t1));
+        let v = match t2 {
+            None => DVector::from_vec(vec![a.re, a.im, b.re, b.im]),
+            Some(t2) => DVector::from_vec(vec![a.re, a.im, b.re, det(t2).re]),
+        };
+        v.iter().all(|x| x.is_finite()).then_some(v)
+    };
+    let scale: Vec<f64> = [g0.k1, g0.r11, g0.r12, g0.d12]
+        .iter()
+        .map(|v| v.abs().max(1e-9))
+        .collect();
+    let s0 = start.unwrap_or(&g0);
+    let mut p = vec![s0.k1, s0.r11, s0.r12, s0.d12];
+    let mut r = residual(&p)?;
+    let r_start = r.norm();
+    for _ in 0..200 {
+        if r.norm() < 1e-12 * r_start {
+            break;
+        }
+        let mut j = DMatrix::<f64>::zeros(4, 4);
+        for c in 0..4 {
+            let h = 1e-7 * scale[c];
+            let mut q = p.clone();
+            q[c] += h;
+            let rq = residual(&q)?;
+            for i in 0..4 {
+                j[(i, c)] = (rq[i] - r[i]) / h;
+            }
+        }
+        let dp = j.lu().solve(&(-&r))?;
+        // Damped step: no gain moves by more than half its continuous-design size at a time
+        // (it may change sign).
+        let mut lam: f64 = 1.0;
+        for c in 0..4 {
+            if dp[c].abs() * lam > 0.5 * scale[c] {
+                lam = 0.5 * scale[c] / dp[c].abs();
+            }
+        }
+        for c in 0..4 {
+            p[c] += lam * dp[c];
+        }
+        r = residual(&p)?;
+    }
+    // Converged when every target is an eigenvalue.
+    let g = with(&p);
+    let eig = model.lifted_matrix(m, &g).complex_eigenvalues();
+    let hit = |t: Complex<f64>| eig.iter().any(|z| (z - t).norm() < 1e-6);
+    let hit2 = t2.is_none_or(hit);
+    (hit(t0) && hit(t1) && hit2 && p.iter().all(|v| v.is_finite())).then_some(g)
+}
+
 /// Inputs of the nonlinear design.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct NlSpec {
@@ -574,6 +835,40 @@ pub struct NlSpec {
     pub omega_i_rad_s: f64,
     /// Damping of every pole pair.
     pub zeta: f64,
+    /// Which loop the poles are placed on.
+    #[serde(default)]
+    pub placement: NlPlacement,
+}
+
+/// Which loop [`design_nonlinear`] places the poles on.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum NlPlacement {
+    /// The paper's continuous dummy system (26)–(27); ω_0 solved for the rise time on the
+    /// sampled model.
+    #[default]
+    Continuous,
+    /// The sampled loop as it runs ([`NlLoopModel::lifted_matrix`]): its two pole pairs at
+    /// (ζ, ω_0) and (ζ, ω_i) ([`place_on_sampled_loop`]), ω_0 the slowest that meets the rise
+    /// time.
+    Sampled,
+}
+
+impl NlPlacement {
+    /// The paper's placement (the default).
+    pub fn is_continuous(&self) -> bool {
+        *self == Self::Continuous
+    }
+}
+
+/// The placement on the sampled loop, when asked for ([`NlPlacement::Sampled`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct NlSampledPlacement {
+    /// The poles of the sampled loop (q axis and speed) after placement, ln(z)/(N·T_s),
+    /// (re, im) in rad/s, slowest first, without the encoder angle's z = 1.
+    pub poles: Vec<(f64, f64)>,
+    /// (ω_0, rise s, overshoot %) of every ω_0 the search placed, for the record.
+    pub searched: Vec<(f64, f64, f64)>,
 }
 
 /// Result of the nonlinear design.
@@ -601,6 +896,9 @@ pub struct NlDesign {
     pub i_d_singular_a: Option<f64>,
     /// Set when the rise-time target could not be met; says why.
     pub warning: Option<String>,
+    /// The placement on the sampled loop ([`NlPlacement::Sampled`] only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sampled: Option<NlSampledPlacement>,
 }
 
 /// Unit-step response of the continuous dummy system (26)–(27), (31): the all-pole closed
@@ -644,6 +942,9 @@ pub fn continuous_step_response(g: &NlGains, t_end: f64) -> (f64, f64) {
 /// closed loop (s² + 2ζω_0 s + ω_0²)(s² + 2ζω_i s + ω_i²), and ω_0 solved by bisection so that
 /// the sampled design model [`NlLoopModel`] first reaches the set-point at the target.
 pub fn design_nonlinear(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel) -> NlDesign {
+    if spec.placement == NlPlacement::Sampled {
+        return design_nonlinear_sampled(m, spec, model);
+    }
     let target = spec.rise_time_s;
     let t_end = 10.0 * target;
     let rise = |w0: f64| {
@@ -679,20 +980,115 @@ pub fn design_nonlinear(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel) -> 
     }
     let w0 = hi.max(lo);
     let g = gains_for(spec.omega_i_rad_s, w0, spec.zeta);
-    let (r, os) = model.step_response(m, &g, t_end);
-    let (rc, osc) = continuous_step_response(&g, t_end);
+    NlDesign::evaluate(m, spec, model, w0, g, warning)
+}
+
+impl NlDesign {
+    /// The design record of gains `g` (speed pair at ω_0 = `w0`): the sampled model's and the
+    /// continuous dummy system's step responses (the latter with the continuous design at
+    /// the same ω_0).
+    fn evaluate(
+        m: &MotorParams,
+        spec: &NlSpec,
+        model: &NlLoopModel,
+        w0: f64,
+        g: NlGains,
+        warning: Option<String>,
+    ) -> Self {
+        let t_end = 10.0 * spec.rise_time_s;
+        let (r, os) = model.step_response(m, &g, t_end);
+        let (rc, osc) =
+            continuous_step_response(&gains_for(spec.omega_i_rad_s, w0, spec.zeta), t_end);
+        Self {
+            zeta: spec.zeta,
+            omega_i_rad_s: spec.omega_i_rad_s,
+            omega_0_rad_s: w0,
+            gains: g,
+            g_ss: g.g_ss(),
+            predicted_rise_time_s: r,
+            predicted_overshoot_pct: os,
+            continuous_rise_time_s: rc,
+            continuous_overshoot_pct: osc,
+            i_d_singular_a: KyslanModel::new(m).singular_i_d(),
+            warning,
+            sampled: None,
+        }
+    }
+}
+
+/// [`NlPlacement::Sampled`]: the sampled loop's pairs at (ζ, ω_0) and (ζ, ω_i) for ω_0 on a
+/// grid of ω_i/80 steps from 0.1·ω_i to 0.5·ω_i, each placement started from its converged
+/// neighbour (continuation from 0.25·ω_i); the slowest ω_0 whose sampled step response
+/// first reaches the set-point by the target, else the fastest-rising one with a warning.
+fn design_nonlinear_sampled(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel) -> NlDesign {
+    let (w_i, zeta, target) = (spec.omega_i_rad_s, spec.zeta, spec.rise_time_s);
+    let t_end = 10.0 * target;
+    let grid: Vec<f64> = (8..=40).map(|k| f64::from(k) * w_i / 80.0).collect();
+    let mid = grid.len() / 2;
+    let mut placed: Vec<(f64, NlGains)> = Vec::new();
+    for half in [&grid[mid..], &grid[..mid]] {
+        let order: Vec<f64> = if half[0] == grid[mid] {
+            half.to_vec()
+        } else {
+            half.iter().rev().copied().collect()
+        };
+        let mut start: Option<NlGains> = placed.first().map(|p| p.1);
+        for w0 in order {
+            let g = place_on_sampled_loop(m, model, w_i, (w0, w_i), zeta, start.as_ref())
+                .or_else(|| place_on_sampled_loop(m, model, w_i, (w0, w_i), zeta, None));
+            if let Some(g) = g {
+                placed.push((w0, g));
+                start = Some(g);
+            }
+        }
+    }
+    placed.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let searched: Vec<(f64, f64, f64)> = placed
+        .iter()
+        .map(|(w0, g)| {
+            let (r, os) = model.step_response(m, g, t_end);
+            (*w0, r, os)
+        })
+        .collect();
+    let meets = searched.iter().position(|s| s.1 <= target);
+    let best = searched
+        .iter()
+        .enumerate()
+        .filter(|(_, s)| s.1.is_finite())
+        .min_by(|a, b| a.1 .1.total_cmp(&b.1 .1))
+        .map(|(i, _)| i);
+    let chosen = meets.or(best);
+    let Some(i) = chosen else {
+        let mut d = design_nonlinear(
+            m,
+            &NlSpec {
+                placement: NlPlacement::Continuous,
+                ..*spec
+            },
+            model,
+        );
+        d.warning = Some(
+            "no placement on the sampled loop converged: the continuous design is used".into(),
+        );
+        return d;
+    };
+    let (w0, g) = placed[i];
+    let r = searched[i].1;
+    let warning = meets.is_none().then(|| {
+        format!(
+            "speed rise time {:.2} ms is not reachable with the sampled loop's pairs at damping {zeta}: the fastest placed design (ω_0 = {w0:.0} rad/s) first reaches the set-point at {:.2} ms",
+            target * 1e3,
+            r * 1e3
+        )
+    });
+    let poles = model
+        .sampled_poles(m, &g)
+        .into_iter()
+        .filter(|p| p.0.hypot(p.1) > 1e-3)
+        .collect();
     NlDesign {
-        zeta: spec.zeta,
-        omega_i_rad_s: spec.omega_i_rad_s,
-        omega_0_rad_s: w0,
-        gains: g,
-        g_ss: g.g_ss(),
-        predicted_rise_time_s: r,
-        predicted_overshoot_pct: os,
-        continuous_rise_time_s: rc,
-        continuous_overshoot_pct: osc,
-        i_d_singular_a: KyslanModel::new(m).singular_i_d(),
-        warning,
+        sampled: Some(NlSampledPlacement { poles, searched }),
+        ..NlDesign::evaluate(m, spec, model, w0, g, warning)
     }
 }
 
@@ -1003,6 +1399,7 @@ mod tests {
                     rise_time_s: 8e-3,
                     omega_i_rad_s: 2000.0,
                     zeta: DAMPING,
+                    placement: NlPlacement::Continuous,
                 },
                 &model,
             );
@@ -1020,10 +1417,54 @@ mod tests {
                 rise_time_s: 0.5e-3,
                 omega_i_rad_s: 2000.0,
                 zeta: DAMPING,
+                placement: NlPlacement::Continuous,
             },
             &model,
         );
         assert!(d.warning.unwrap().contains("not reachable"));
+    }
+
+    /// The damping of the continuous design is lost on the sampled loop; the sampled
+    /// placement puts both pairs at damping 0.6 on it.
+    #[test]
+    fn sampled_placement_puts_both_pairs_on_the_loop_that_runs() {
+        let model = NlLoopModel {
+            ts: 1e-4,
+            n: 10,
+            tau_f_s: 1e-4,
+        };
+        let zeta_of = |p: &(f64, f64)| -p.0 / p.0.hypot(p.1);
+        for m in motors() {
+            let spec = |placement| NlSpec {
+                rise_time_s: 8e-3,
+                omega_i_rad_s: 2000.0,
+                zeta: DAMPING,
+                placement,
+            };
+            let cont = design_nonlinear(&m, &spec(NlPlacement::Continuous), &model);
+            // The dominant (slowest complex) pole of the loop that runs, continuous design.
+            let poles = model.sampled_poles(&m, &cont.gains);
+            let dom = poles.iter().find(|p| p.1 > 1.0).unwrap();
+            assert!(zeta_of(dom) < 0.3, "{dom:?}");
+            let d = design_nonlinear(&m, &spec(NlPlacement::Sampled), &model);
+            let sp = d.sampled.as_ref().unwrap();
+            for w in [d.omega_0_rad_s, d.omega_i_rad_s] {
+                let want = (-DAMPING * w, w * (1.0 - DAMPING * DAMPING).sqrt());
+                // Newton stops at |det| < 1e-12 of its start; the eigenvalue is then
+                // within 1e-6 in z (checked by place_on_sampled_loop), ~1e-3 rad/s in s.
+                assert!(
+                    sp.poles
+                        .iter()
+                        .any(|p| (p.0 - want.0).abs() < 1e-2 && (p.1 - want.1).abs() < 1e-2),
+                    "{want:?} not in {:?}",
+                    sp.poles
+                );
+            }
+            // Stable, and the placed pair is the slowest complex one.
+            assert!(sp.poles.iter().all(|p| p.0 < 0.0));
+            let dom = sp.poles.iter().find(|p| p.1 > 1.0).unwrap();
+            assert!((zeta_of(dom) - DAMPING).abs() < 1e-6, "{dom:?}");
+        }
     }
 
     #[test]
