@@ -6,6 +6,7 @@
 //! space), so the chain's median can not come closer to the floor than its number of hops
 //! times this.
 
+use crate::uds::log_tail;
 use crate::{apply_rt, in_fresh_thread, schedule, NodeSpec, VariantResult};
 use anyhow::{anyhow, bail, Context, Result};
 use drivelab_runtime::futex::WakeSegment;
@@ -65,7 +66,7 @@ pub fn run(
             if child.try_wait()?.is_some() || started.elapsed() > watchdog {
                 let _ = child.kill();
                 let _ = child.wait();
-                bail!("hop receiver did not get ready: {}", tail(&log));
+                bail!("hop receiver did not get ready: {}", log_tail(&log));
             }
             std::thread::sleep(Duration::from_millis(1));
         }
@@ -90,7 +91,7 @@ pub fn run(
         loop {
             if let Some(s) = child.try_wait()? {
                 if !s.success() {
-                    bail!("hop receiver exited with {s}: {}", tail(&log));
+                    bail!("hop receiver exited with {s}: {}", log_tail(&log));
                 }
                 break;
             }
@@ -148,13 +149,4 @@ pub fn receive(bus: &str, samples: u64, node: &NodeSpec, out: &Path) -> Result<(
     }
     // ---- end of the real-time loop ----
     h.write_v2(out)
-}
-
-fn tail(log: &Path) -> String {
-    std::fs::read_to_string(log)
-        .unwrap_or_default()
-        .lines()
-        .last()
-        .unwrap_or("(no output)")
-        .to_string()
 }

@@ -17,7 +17,9 @@
 use anyhow::{anyhow, bail, Result};
 use drivelab_runtime::config::Scenario;
 use drivelab_runtime::drive::InProcessDrive;
-use drivelab_runtime::rt::{now_ns, setup_rt, sleep_until_ns, RtPolicy, RtReport, RtRequest};
+use drivelab_runtime::rt::{
+    now_ns, setup_rt, sleep_until_ns, thread_cpu_ns, RtPolicy, RtReport, RtRequest,
+};
 use drivelab_runtime::timing::{CycleMonitor, LatencyHist, MissCounter};
 
 pub mod cyclictest;
@@ -183,20 +185,6 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
             cpu_run_ns,
         })
     })
-}
-
-/// The calling thread's time on the CPU so far (CLOCK_THREAD_CPUTIME_ID), ns.
-fn thread_cpu_ns() -> u64 {
-    let mut ts = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: clock_gettime writes one timespec into the valid, exclusively borrowed `ts`.
-    let rc = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
-    if rc != 0 {
-        return 0;
-    }
-    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
 }
 
 /// In-process: the full control chain ([`InProcessDrive::cycle`]) in one thread on the same

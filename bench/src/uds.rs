@@ -678,7 +678,7 @@ impl Drop for Kids {
 }
 
 /// The last few lines of a node's log, for error messages.
-fn log_tail(log: &Path) -> String {
+pub(crate) fn log_tail(log: &Path) -> String {
     let text = std::fs::read_to_string(log).unwrap_or_default();
     let lines: Vec<&str> = text
         .lines()

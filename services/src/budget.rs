@@ -90,15 +90,10 @@ pub fn budget(t: &TopologyPlan, latency: &BTreeMap<String, Percentiles>) -> Opti
             });
         }
     };
-    let process_of = |s: &str| {
-        t.processes
-            .iter()
-            .position(|p| p.stages.iter().any(|x| x == s))
-    };
     for (i, s) in path.iter().enumerate() {
         if i == 0 {
             add(format!("{s} timer wake-up"), format!("{s}.lateness"));
-        } else if process_of(s) != process_of(&path[i - 1]) {
+        } else if t.process_of(s) != t.process_of(&path[i - 1]) {
             let up = &path[i - 1];
             if latency.contains_key(&format!("{s}.send")) {
                 add(format!("{up} publish"), format!("{s}.send"));

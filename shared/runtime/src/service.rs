@@ -103,6 +103,13 @@ impl TopologyPlan {
                 .collect(),
         }
     }
+
+    /// Index of the process that hosts `stage`.
+    pub fn process_of(&self, stage: &str) -> Option<usize> {
+        self.processes
+            .iter()
+            .position(|p| p.stages.iter().any(|s| s == stage))
+    }
 }
 
 /// Builds a user stage from the scenario.
@@ -473,11 +480,7 @@ fn decimation(plan: &TopologyPlan) -> [u64; N_TOPICS] {
         let Some(p) = plan.producers.iter().find(|p| p.topic == t.topic) else {
             continue;
         };
-        let own = plan
-            .processes
-            .iter()
-            .position(|x| x.stages.contains(&s.name));
-        if own != Some(p.process) && s.divider > p.divider {
+        if plan.process_of(&s.name) != Some(p.process) && s.divider > p.divider {
             d[t.topic.index()] = crate::host::gcd(d[t.topic.index()], s.divider);
         }
     }
