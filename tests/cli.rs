@@ -56,6 +56,7 @@ fn help_texts() {
     let mut rewritten = vec![snapshot("help", &["--help"])];
     for cmd in [
         "run",
+        "campaign",
         "bench",
         "fault",
         "clean",

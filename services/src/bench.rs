@@ -271,6 +271,7 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
         restart: launcher::Restart::Never,
         fault_seed: 0,
         topology: topology.map(String::from),
+        expect: Vec::new(),
     };
     let r = launcher::run(&o)?;
     // CPU time: every stage's statistics carry its process's total; count each process once.
@@ -756,6 +757,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         restart: launcher::Restart::Never,
         fault_seed: 0,
         topology: None,
+        expect: Vec::new(),
     })?;
     bar.inc(1);
     bar.set_message("in-process speed");

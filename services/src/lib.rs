@@ -3,10 +3,12 @@
 
 pub mod bench;
 pub mod budget;
+pub mod campaign;
 pub mod cdm_design;
 pub mod common;
 pub mod compare;
 pub mod design;
+pub mod expect;
 pub mod faults;
 pub mod hub;
 pub mod launcher;

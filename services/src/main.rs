@@ -7,7 +7,8 @@ use std::process::ExitCode;
 
 /// drivelab: a real-time PMSM drive of stages in processes on iceoryx2 shared memory.
 ///
-/// Exit codes: 0 success, 1 error (bad input, a service failed, interrupted), 2 usage error.
+/// Exit codes: 0 success, 1 error (bad input, a service failed, interrupted), 2 usage error
+/// (also a malformed expectation), 3 an expectation failed (the run itself completed).
 #[derive(Debug, Parser)]
 #[command(name = "drivelab", version, long_about = None)]
 struct Cli {
@@ -73,7 +74,24 @@ enum Cmd {
         /// [[process]] tables; replaces the scenario's own.
         #[arg(long, value_name = "NAME|FILE")]
         topology: Option<String>,
+        /// Check a summary figure after the run (repeatable; beside the scenario's [[expect]]
+        /// tables): 'FIGURE OP LIMIT' with OP one of <= < >= > == or 'in A..B', FIGURE a
+        /// path into summary.json (* for every key or element). The run exits with code 3
+        /// when one fails. E.g. 'peak_current_a <= 8', 'faults.*.speed_recovered_ms <= 200',
+        /// 'metrics.rise_time_ms in 7.2..8.8', 'deadline_misses_per_million <= 5000'.
+        #[arg(long = "expect", value_name = "EXPR")]
+        expect: Vec<String>,
     },
+    /// Run a fault campaign: every scenario × fault set × seed of FILE.toml, each checked
+    /// against the campaign's expectations and the scenarios' [[expect]] tables. Writes
+    /// campaign.json, campaign.md and junit.xml (one test case per run). Exit code 3 when an
+    /// expectation failed, 1 when a run did not complete.
+    ///
+    /// Examples:
+    ///   drivelab campaign campaigns/smoke.toml --out runs/smoke
+    ///   drivelab campaign campaigns/thorough.toml --no-rt
+    #[command(verbatim_doc_comment)]
+    Campaign(drivelab_services::campaign::CampaignArgs),
     /// Inject a fault into a drive that is already running (found by its bus id).
     ///
     /// Examples:
@@ -307,8 +325,19 @@ fn main() -> ExitCode {
     match real_main(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
+            if let Some(r) = e.downcast_ref::<drivelab_services::expect::Reported>() {
+                // What failed was printed on its own lines.
+                return ExitCode::from(r.0);
+            }
             eprintln!("drivelab: error: {e:#}");
-            ExitCode::from(1)
+            // A malformed expectation is a usage error, like a bad option.
+            if e.downcast_ref::<drivelab_services::expect::UsageError>()
+                .is_some()
+            {
+                ExitCode::from(2)
+            } else {
+                ExitCode::from(1)
+            }
         }
     }
 }
@@ -320,6 +349,7 @@ fn fmt_opt(v: &serde_json::Value, unit: &str) -> String {
 }
 
 fn real_main(cli: Cli) -> anyhow::Result<()> {
+    use drivelab_services::expect::{Reported, EXIT_EXPECTATION_FAILED};
     match cli.cmd {
         Cmd::Run {
             scenario,
@@ -335,6 +365,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             restart,
             fault_seed,
             topology,
+            expect,
         } => {
             let faults = faults
                 .iter()
@@ -354,8 +385,10 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 restart,
                 fault_seed,
                 topology,
+                expect,
             };
             let r = launcher::run(&o)?;
+            let failed = drivelab_services::expect::failed(&r.summary);
             if json {
                 println!("{}", serde_json::to_string_pretty(&r.summary)?);
             } else {
@@ -401,6 +434,12 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                         f.len()
                     );
                 }
+            }
+            if !failed.is_empty() {
+                for line in &failed {
+                    eprintln!("drivelab: {line}");
+                }
+                return Err(Reported(EXIT_EXPECTATION_FAILED).into());
             }
             Ok(())
         }
@@ -581,6 +620,10 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             }
             Ok(())
         }
+        Cmd::Campaign(args) => match drivelab_services::campaign::run(&args)? {
+            0 => Ok(()),
+            code => Err(Reported(code).into()),
+        },
         Cmd::Compare(args) => drivelab_services::compare::run(&args),
         Cmd::Bench(args) => drivelab_services::bench::run(&args),
         Cmd::BenchNode {

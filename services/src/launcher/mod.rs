@@ -36,7 +36,7 @@ use std::time::{Duration, Instant};
 use supervisor::{supervise, Supervised};
 
 /// Which clock paces the run.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Clock {
     /// The topology's processes; the plant sleeps to absolute deadlines.
@@ -76,10 +76,14 @@ pub struct RunOptions {
     pub fault_seed: u64,
     /// Topology override: a shipped name or a file with `[[process]]` tables.
     pub topology: Option<String>,
+    /// Expectations from the command line (`--expect`), checked after the scenario's own.
+    pub expect: Vec<String>,
 }
 
 /// What the supervisor does when a service dies.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize, Default)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize, serde::Deserialize, Default,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum Restart {
     /// Leave it dead; the rest of the drive goes on in its degraded mode.
@@ -437,6 +441,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         sc.duration_s = d;
         sc.validate().map_err(|e| anyhow!("--duration {d}: {e}"))?;
     }
+    let expectations = crate::expect::collect(&sc.expect, &o.expect)?;
     let topo = resolve_topology(&mut sc, &sc_src, o)?;
     // Faults are checked before anything is created: a bad plan leaves nothing behind.
     let stage_names: Vec<String> = topo.stages.iter().map(|s| s.name.clone()).collect();
@@ -500,6 +505,15 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         "wake": sc.timing.wake,
     });
     drop(latency_request);
+    let samples_missing: u64 = gaps
+        .iter()
+        .filter(|g| g.part == "measurement")
+        .map(|g| g.to + 1 - g.from)
+        .sum();
+    let deadline_misses = info
+        .get("deadline_misses")
+        .and_then(|v| v.as_u64())
+        .unwrap_or(0);
     let mut summary = json!({
         "timing": timing,
         "scenario": sc.name,
@@ -508,7 +522,11 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         "speed_loop_hz": sc.rates.sample_hz / f64::from(sc.rates.speed_divider),
         "samples": rows.len(),
         "samples_expected": sc.samples(),
-        "deadline_misses": info.get("deadline_misses").cloned().unwrap_or(json!(0)),
+        "deadline_misses": deadline_misses,
+        "deadline_misses_per_million": deadline_misses as f64 * 1e6 / sc.samples().max(1) as f64,
+        "samples_missing": samples_missing,
+        "peak_current_a": rows.iter().map(|r| r.i_d.hypot(r.i_q)).fold(0.0, f64::max),
+        "peak_speed_rad_s": rows.iter().map(|r| r.omega_m.abs()).fold(0.0, f64::max),
         "longest_miss_run": info.get("longest_miss_run").cloned().unwrap_or(json!(0)),
         "processes": processes,
         "metrics": metrics,
@@ -577,6 +595,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
                 .into_owned())
             .collect::<Vec<_>>());
     }
+    let outcomes: Vec<_> = expectations.iter().map(|e| e.evaluate(&summary)).collect();
+    summary["expectations"] = serde_json::to_value(&outcomes)?;
     std::fs::write(
         out.join("summary.json"),
         serde_json::to_vec_pretty(&summary)?,

@@ -20,6 +20,10 @@ pub struct Scenario {
     /// Paper figure it reproduces, if any.
     #[serde(default)]
     pub reproduces: String,
+    /// Pass/fail checks of the run's summary figures (`[[expect]]` tables), checked by the
+    /// launcher after the run.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub expect: Vec<ExpectSpec>,
     /// Run length, s.
     pub duration_s: f64,
     /// Motor: a preset name plus optional overrides.
@@ -65,6 +69,19 @@ pub struct Scenario {
     /// four-process layout with `[placement]`.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub process: Vec<crate::topology::ProcessSpec>,
+}
+
+/// One `[[expect]]` table: `check = "FIGURE OP LIMIT"`, e.g. `"peak_current_a <= 8"` or
+/// `"faults.*.speed_recovered_ms <= 200"`, and why it matters. The launcher parses and
+/// checks it against `summary.json`; a failed one makes `drivelab run` exit with code 3.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ExpectSpec {
+    /// `FIGURE OP LIMIT`.
+    pub check: String,
+    /// Why it matters (shown in the reports).
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub note: String,
 }
 
 /// How the plant (timing master) waits for each sample instant in real time.

@@ -1,0 +1,582 @@
+//! `drivelab campaign`: a matrix of runs (scenarios × fault sets × seeds), each checked
+//! against the campaign's expectations, reported as `campaign.json`, `campaign.md` and
+//! `junit.xml` (the test-report format CI systems read).
+
+use crate::expect::{Outcome, UsageError, EXIT_EXPECTATION_FAILED};
+use crate::launcher::{self, Clock, Restart, RunOptions};
+use anyhow::{anyhow, bail, Context, Result};
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Most runs one campaign may hold.
+const MAX_RUNS: usize = 10_000;
+
+/// Options of `drivelab campaign`.
+#[derive(Debug, clap::Args)]
+pub struct CampaignArgs {
+    /// Campaign file (TOML): scenarios, fault sets, seeds, expectations.
+    #[arg(value_name = "FILE.toml")]
+    pub file: PathBuf,
+    /// Report folder (default: runs/campaign-<name>-<unix time>); each run's folder goes
+    /// into its runs/ subfolder.
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
+    /// Draw each run's plots (slower; off by default).
+    #[arg(long)]
+    pub plots: bool,
+    /// Do not pin, raise priority or lock memory in the runs.
+    #[arg(long)]
+    pub no_rt: bool,
+    /// Print the campaign report as JSON on stdout instead of the table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// A campaign file.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct CampaignFile {
+    /// Short name, used in the report and as the JUnit suite's name.
+    name: String,
+    /// One-line purpose.
+    #[serde(default)]
+    purpose: String,
+    /// Scenario names or files (relative to the campaign file).
+    scenarios: Vec<String>,
+    /// Pacing of every run.
+    #[serde(default = "realtime")]
+    clock: Clock,
+    /// Override of every scenario's duration, s.
+    duration_s: Option<f64>,
+    /// Topology override for every run (a shipped name or a file).
+    topology: Option<String>,
+    /// Fault seeds; every run is repeated once per seed.
+    #[serde(default = "one_seed")]
+    seeds: Vec<u64>,
+    /// What the supervisor does when a process dies.
+    #[serde(default)]
+    restart: Restart,
+    /// Fault sets: each is a list of `--fault` specs; `[]` is a run without faults.
+    #[serde(default)]
+    faults: Vec<Vec<String>>,
+    /// More fault sets, one per kind × stage × time.
+    sweep: Option<Sweep>,
+    /// Expectations checked in every run (beside the scenario's own `[[expect]]`).
+    #[serde(default)]
+    expect: Vec<String>,
+}
+
+fn realtime() -> Clock {
+    Clock::Realtime
+}
+
+fn one_seed() -> Vec<u64> {
+    vec![1]
+}
+
+/// `[sweep]`: one fault per kind × stage × injection time.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Sweep {
+    /// `kill` and/or `stop`.
+    kinds: Vec<String>,
+    /// Target stages.
+    stages: Vec<String>,
+    /// Injection times, s.
+    at_s: Vec<f64>,
+    /// How long a `stop` lasts, s.
+    #[serde(default = "stop_default")]
+    stop_duration_s: f64,
+}
+
+fn stop_default() -> f64 {
+    0.05
+}
+
+/// One run of the matrix.
+#[derive(Debug, Clone, Serialize)]
+pub struct Case {
+    /// 1-based number.
+    pub number: usize,
+    /// Scenario name or file.
+    pub scenario: String,
+    /// Its faults (`--fault` specs).
+    pub faults: Vec<String>,
+    /// Fault seed.
+    pub seed: u64,
+}
+
+impl Case {
+    /// `scenario [faults] seed N`, the JUnit test case's name.
+    pub fn title(&self) -> String {
+        format!(
+            "{} [{}] seed {}",
+            self.scenario,
+            if self.faults.is_empty() {
+                "no fault".to_string()
+            } else {
+                self.faults.join(" + ")
+            },
+            self.seed
+        )
+    }
+}
+
+/// What one run gave.
+#[derive(Debug, Clone, Serialize)]
+pub struct CaseResult {
+    /// The run.
+    #[serde(flatten)]
+    pub case: Case,
+    /// `pass`, `fail` (an expectation failed), `error` (the run did not complete) or
+    /// `skipped` (the campaign was interrupted first).
+    pub status: &'static str,
+    /// The run folder.
+    pub out: PathBuf,
+    /// Why the run did not complete.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    /// The expectations' outcomes.
+    pub expectations: Vec<Outcome>,
+    /// Headline figures of the run (see [`FIGURES`]).
+    pub figures: serde_json::Map<String, Value>,
+    /// Wall time of the run, s.
+    pub wall_s: f64,
+}
+
+/// The figures each run reports (JUnit properties, table columns): name and the summary
+/// path, where `*` means the worst (largest) over all faults.
+pub const FIGURES: &[(&str, &str)] = &[
+    ("peak_current_a", "peak_current_a"),
+    ("peak_speed_rad_s", "peak_speed_rad_s"),
+    ("deadline_misses_per_million", "deadline_misses_per_million"),
+    ("samples_missing", "samples_missing"),
+    ("rise_time_ms", "metrics.rise_time_ms"),
+    ("worst_republished_ms", "faults.*.republished_ms"),
+    ("worst_speed_recovered_ms", "faults.*.speed_recovered_ms"),
+    (
+        "worst_detected_data_path_ms",
+        "faults.*.detected_data_path_ms",
+    ),
+];
+
+fn figures(summary: &Value) -> serde_json::Map<String, Value> {
+    let mut m = serde_json::Map::new();
+    for (name, path) in FIGURES {
+        let v = match path.split_once(".*.") {
+            Some((list, key)) => summary[list].as_array().and_then(|a| {
+                a.iter()
+                    .map(|f| f[key].as_f64())
+                    .collect::<Option<Vec<f64>>>()
+                    .filter(|v| !v.is_empty())
+                    .map(|v| v.into_iter().fold(f64::MIN, f64::max))
+            }),
+            None => path.split('.').fold(summary, |v, k| &v[k]).as_f64(),
+        };
+        // A fault that never recovered has no figure: say so rather than leave it out.
+        let never = path.contains(".*.")
+            && summary[path.split_once(".*.").map_or("", |p| p.0)]
+                .as_array()
+                .is_some_and(|a| !a.is_empty());
+        m.insert(
+            name.to_string(),
+            match v {
+                Some(x) => json!(x),
+                None if never => json!("never"),
+                None => Value::Null,
+            },
+        );
+    }
+    m
+}
+
+/// Reads the campaign file and expands its matrix.
+fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
+    let text = std::fs::read_to_string(file)
+        .with_context(|| format!("cannot read campaign {}", file.display()))?;
+    let c: CampaignFile = toml::from_str(&text).map_err(|e| {
+        anyhow!(
+            "campaign {}: {}",
+            file.display(),
+            e.to_string().lines().collect::<Vec<_>>().join(" ")
+        )
+    })?;
+    if c.name.is_empty() || c.scenarios.is_empty() || c.seeds.is_empty() {
+        bail!(
+            "campaign {}: name, scenarios and seeds must not be empty",
+            file.display()
+        );
+    }
+    if c.clock == Clock::Inprocess {
+        bail!(
+            "campaign {}: clock 'inprocess' runs no processes to inject faults into; use realtime or lockstep",
+            file.display()
+        );
+    }
+    let mut sets = c.faults.clone();
+    if let Some(s) = &c.sweep {
+        if !(s.stop_duration_s.is_finite() && s.stop_duration_s > 0.0) {
+            bail!(
+                "campaign {}: [sweep] stop_duration_s must be a positive number of seconds",
+                file.display()
+            );
+        }
+        for kind in &s.kinds {
+            for stage in &s.stages {
+                for at in &s.at_s {
+                    sets.push(vec![match kind.as_str() {
+                        "kill" => format!("kill:{stage}@{at}"),
+                        "stop" => format!("stop:{stage}@{at}:{}", s.stop_duration_s),
+                        other => bail!(
+                            "campaign {}: [sweep] kind '{other}' is not kill or stop",
+                            file.display()
+                        ),
+                    }]);
+                }
+            }
+        }
+    }
+    if sets.is_empty() {
+        sets.push(Vec::new());
+    }
+    // Every spec and expectation is checked before the first run starts.
+    for spec in sets.iter().flatten() {
+        crate::faults::parse(spec).map_err(|e| anyhow!("campaign {}: {e}", file.display()))?;
+    }
+    crate::expect::collect(&[], &c.expect)
+        .map_err(|UsageError(m)| UsageError(format!("campaign {}: {m}", file.display())))?;
+    let base = file.parent().unwrap_or(Path::new("."));
+    let mut scenarios = Vec::new();
+    for s in &c.scenarios {
+        // A file is taken relative to the campaign file; a name is a shipped scenario.
+        let s = if s.ends_with(".toml") || s.contains('/') {
+            base.join(s).display().to_string()
+        } else {
+            s.clone()
+        };
+        let mut sc = launcher::load_scenario(&s, None)
+            .map_err(|e| anyhow!("campaign {}: {e:#}", file.display()))?;
+        if let Some(d) = c.duration_s {
+            sc.duration_s = d;
+            sc.validate().map_err(|e| {
+                anyhow!("campaign {}: duration_s = {d} for {s}: {e}", file.display())
+            })?;
+        }
+        crate::expect::collect(&sc.expect, &[])?;
+        scenarios.push(s);
+    }
+    let n = scenarios.len() * sets.len() * c.seeds.len();
+    if n > MAX_RUNS {
+        bail!(
+            "campaign {}: {n} runs is more than {MAX_RUNS}; split it",
+            file.display()
+        );
+    }
+    let mut cases = Vec::with_capacity(n);
+    for sc in &scenarios {
+        for set in &sets {
+            for &seed in &c.seeds {
+                cases.push(Case {
+                    number: cases.len() + 1,
+                    scenario: sc.clone(),
+                    faults: set.clone(),
+                    seed,
+                });
+            }
+        }
+    }
+    Ok((c, cases))
+}
+
+/// Runs one case.
+fn run_case(c: &CampaignFile, case: &Case, a: &CampaignArgs, out: &Path) -> CaseResult {
+    let dir = out.join("runs").join(format!("{:03}", case.number));
+    let started = Instant::now();
+    let result = (|| -> Result<Value> {
+        let faults = case
+            .faults
+            .iter()
+            .map(|f| crate::faults::parse(f))
+            .collect::<Result<Vec<_>>>()?;
+        let o = RunOptions {
+            scenario: case.scenario.clone(),
+            clock: c.clock,
+            duration_s: c.duration_s,
+            out: Some(dir.clone()),
+            // Unique per campaign process and run, so that campaigns can run side by side.
+            bus: Some(format!("c{}_{}", std::process::id(), case.number)),
+            rt_strict: false,
+            no_rt: a.no_rt,
+            no_plots: !a.plots,
+            verbose: false,
+            faults,
+            restart: c.restart,
+            fault_seed: case.seed,
+            topology: c.topology.clone(),
+            expect: c.expect.clone(),
+        };
+        Ok(launcher::run(&o)?.summary)
+    })();
+    let wall_s = started.elapsed().as_secs_f64();
+    match result {
+        Ok(summary) => {
+            let expectations: Vec<Outcome> =
+                serde_json::from_value(summary["expectations"].clone()).unwrap_or_default();
+            CaseResult {
+                case: case.clone(),
+                status: if expectations.iter().all(|e| e.pass) {
+                    "pass"
+                } else {
+                    "fail"
+                },
+                out: dir,
+                error: None,
+                figures: figures(&summary),
+                expectations,
+                wall_s,
+            }
+        }
+        Err(e) => CaseResult {
+            case: case.clone(),
+            status: "error",
+            out: dir,
+            error: Some(format!("{e:#}")),
+            expectations: Vec::new(),
+            figures: serde_json::Map::new(),
+            wall_s,
+        },
+    }
+}
+
+fn cell(v: Option<&Value>) -> String {
+    match v {
+        Some(Value::Number(n)) => {
+            let x = n.as_f64().unwrap_or(0.0);
+            if x.fract() == 0.0 && x.abs() < 1e15 {
+                format!("{x:.0}")
+            } else {
+                format!("{x:.1}")
+            }
+        }
+        Some(Value::String(s)) => s.clone(),
+        _ => "–".into(),
+    }
+}
+
+/// The Markdown table of a campaign.
+pub fn markdown(name: &str, purpose: &str, results: &[CaseResult]) -> String {
+    let count = |s: &str| results.iter().filter(|r| r.status == s).count();
+    let mut md = format!(
+        "# Campaign {name}\n\n{purpose}\n\n{} runs: {} passed, {} failed, {} errors, {} skipped.\n\n",
+        results.len(),
+        count("pass"),
+        count("fail"),
+        count("error"),
+        count("skipped")
+    );
+    md.push_str("| # | scenario | faults | seed | result | peak \\|i\\| A | misses /M | worst republish ms | worst speed recovery ms | failed expectations |\n");
+    md.push_str("|---|---|---|---|---|---|---|---|---|---|\n");
+    for r in results {
+        let failed: Vec<String> = r
+            .expectations
+            .iter()
+            .filter(|e| !e.pass)
+            .map(|e| format!("`{}`", e.expect))
+            .chain(
+                r.error
+                    .iter()
+                    .map(|e| format!("error: {}", e.replace('|', "/"))),
+            )
+            .collect();
+        md.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            r.case.number,
+            r.case.scenario,
+            if r.case.faults.is_empty() {
+                "–".to_string()
+            } else {
+                r.case.faults.join(" + ")
+            },
+            r.case.seed,
+            r.status,
+            cell(r.figures.get("peak_current_a")),
+            cell(r.figures.get("deadline_misses_per_million")),
+            cell(r.figures.get("worst_republished_ms")),
+            cell(r.figures.get("worst_speed_recovered_ms")),
+            failed.join("; ")
+        ));
+    }
+    md
+}
+
+/// The JUnit XML report: one test suite, one test case per run with its figures as
+/// properties, a `<failure>` per failed expectation, an `<error>` for a run that did not
+/// complete and `<skipped/>` for one that never started.
+pub fn junit(name: &str, results: &[CaseResult]) -> Result<String> {
+    use quick_xml::events::{BytesDecl, BytesEnd, BytesStart, BytesText, Event};
+    let count = |s: &str| results.iter().filter(|r| r.status == s).count().to_string();
+    let time: f64 = results.iter().map(|r| r.wall_s).sum();
+    let mut w = quick_xml::Writer::new_with_indent(Vec::new(), b' ', 2);
+    w.write_event(Event::Decl(BytesDecl::new("1.0", Some("UTF-8"), None)))?;
+    let totals = |tag: &str| {
+        let mut e = BytesStart::new(tag.to_string());
+        e.push_attribute(("name", name));
+        e.push_attribute(("tests", results.len().to_string().as_str()));
+        e.push_attribute(("failures", count("fail").as_str()));
+        e.push_attribute(("errors", count("error").as_str()));
+        e.push_attribute(("skipped", count("skipped").as_str()));
+        e.push_attribute(("time", format!("{time:.3}").as_str()));
+        e
+    };
+    w.write_event(Event::Start(totals("testsuites")))?;
+    w.write_event(Event::Start(totals("testsuite")))?;
+    for r in results {
+        let mut tc = BytesStart::new("testcase");
+        tc.push_attribute(("classname", format!("{name}.{}", r.case.scenario).as_str()));
+        tc.push_attribute(("name", r.case.title().as_str()));
+        tc.push_attribute(("time", format!("{:.3}", r.wall_s).as_str()));
+        w.write_event(Event::Start(tc))?;
+        w.write_event(Event::Start(BytesStart::new("properties")))?;
+        let mut props: Vec<(String, String)> = vec![
+            ("run_folder".into(), r.out.display().to_string()),
+            ("seed".into(), r.case.seed.to_string()),
+        ];
+        // A figure the run does not have (no fault, no rise) is left out.
+        for (k, v) in r.figures.iter().filter(|(_, v)| !v.is_null()) {
+            props.push((k.clone(), cell(Some(v))));
+        }
+        for (k, v) in props {
+            let mut p = BytesStart::new("property");
+            p.push_attribute(("name", k.as_str()));
+            p.push_attribute(("value", v.as_str()));
+            w.write_event(Event::Empty(p))?;
+        }
+        w.write_event(Event::End(BytesEnd::new("properties")))?;
+        let mut element = |tag: &str, kind: &str, message: &str, body: &str| -> Result<()> {
+            let mut f = BytesStart::new(tag.to_string());
+            f.push_attribute(("type", kind));
+            f.push_attribute(("message", message));
+            w.write_event(Event::Start(f))?;
+            w.write_event(Event::Text(BytesText::new(body)))?;
+            w.write_event(Event::End(BytesEnd::new(tag.to_string())))?;
+            Ok(())
+        };
+        for e in r.expectations.iter().filter(|e| !e.pass) {
+            let values: Vec<String> = e
+                .values
+                .iter()
+                .map(|c| {
+                    format!(
+                        "{} = {} ({})",
+                        c.figure,
+                        c.value.map_or("not a number".into(), |v| v.to_string()),
+                        if c.pass { "ok" } else { "violates" }
+                    )
+                })
+                .collect();
+            element("failure", "expectation", &e.violation(), &values.join("\n"))?;
+        }
+        if let Some(err) = &r.error {
+            element("error", "run", err.lines().next().unwrap_or(""), err)?;
+        }
+        if r.status == "skipped" {
+            w.write_event(Event::Empty(BytesStart::new("skipped")))?;
+        }
+        w.write_event(Event::End(BytesEnd::new("testcase")))?;
+    }
+    w.write_event(Event::End(BytesEnd::new("testsuite")))?;
+    w.write_event(Event::End(BytesEnd::new("testsuites")))?;
+    let mut s = String::from_utf8(w.into_inner())?;
+    s.push('\n');
+    Ok(s)
+}
+
+/// Runs a campaign and writes its reports; returns the exit code: 0 all passed,
+/// [`EXIT_EXPECTATION_FAILED`] when an expectation failed, 1 when a run did not complete or
+/// the campaign was interrupted.
+pub fn run(a: &CampaignArgs) -> Result<u8> {
+    drivelab_runtime::service::install_signal_handlers()?;
+    let (c, cases) = load(&a.file)?;
+    let out = a.out.clone().unwrap_or_else(|| {
+        let secs = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_secs())
+            .unwrap_or(0);
+        PathBuf::from("runs").join(format!("campaign-{}-{secs}", c.name))
+    });
+    std::fs::create_dir_all(&out)
+        .with_context(|| format!("cannot create campaign folder {}", out.display()))?;
+    let bar = if a.json {
+        indicatif::ProgressBar::hidden()
+    } else {
+        indicatif::ProgressBar::new(cases.len() as u64)
+    };
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} runs {msg}",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    let mut results = Vec::with_capacity(cases.len());
+    let stop = drivelab_runtime::service::stop_flag();
+    for case in &cases {
+        if stop.load(std::sync::atomic::Ordering::Relaxed) {
+            results.push(CaseResult {
+                case: case.clone(),
+                status: "skipped",
+                out: PathBuf::new(),
+                error: None,
+                expectations: Vec::new(),
+                figures: serde_json::Map::new(),
+                wall_s: 0.0,
+            });
+            continue;
+        }
+        bar.set_message(case.title());
+        let r = run_case(&c, case, a, &out);
+        if r.status != "pass" {
+            bar.println(format!(
+                "run {}: {} — {}",
+                case.number,
+                r.status,
+                case.title()
+            ));
+        }
+        results.push(r);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let md = markdown(&c.name, &c.purpose, &results);
+    std::fs::write(out.join("campaign.md"), &md)?;
+    std::fs::write(out.join("junit.xml"), junit(&c.name, &results)?)?;
+    let report = json!({
+        "name": c.name,
+        "purpose": c.purpose,
+        "file": a.file,
+        "clock": c.clock,
+        "runs": results,
+    });
+    std::fs::write(
+        out.join("campaign.json"),
+        serde_json::to_vec_pretty(&report)?,
+    )?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print!("{md}");
+        println!(
+            "\nreports: {}/{{campaign.json,campaign.md,junit.xml}}",
+            out.display()
+        );
+    }
+    let any = |s: &str| results.iter().any(|r| r.status == s);
+    Ok(if any("error") || any("skipped") {
+        1
+    } else if any("fail") {
+        EXIT_EXPECTATION_FAILED
+    } else {
+        0
+    })
+}

@@ -1,0 +1,476 @@
+//! Expectations: pass/fail checks of a run's summary figures, for CI.
+//!
+//! An expectation is `FIGURE OP LIMIT`, where FIGURE is a dotted path into `summary.json`
+//! (`peak_current_a`, `metrics.rise_time_ms`, `faults.*.speed_recovered_ms`; `*` stands for
+//! every key or element at its level) and OP is `<=`, `<`, `>=`, `>`, `==` or `in A..B`
+//! (both ends included). Every figure the path names must hold; a path that names no figure,
+//! or a figure that is not a number (a recovery that never happened is `null`), fails. A `*`
+//! over an empty list (`faults.*.…` in a run without faults) holds: there is nothing to check.
+
+use anyhow::Result;
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+use std::fmt;
+
+/// Exit code of `drivelab run` and `drivelab campaign` when an expectation failed.
+pub const EXIT_EXPECTATION_FAILED: u8 = 3;
+
+/// Top-level figures of `summary.json` that an expectation may start from.
+pub const FIGURES: &[&str] = &[
+    "peak_current_a",
+    "peak_speed_rad_s",
+    "deadline_misses",
+    "deadline_misses_per_million",
+    "longest_miss_run",
+    "samples",
+    "samples_expected",
+    "samples_missing",
+    "metrics",
+    "faults",
+    "latency_us",
+    "budget",
+    "counters",
+    "timing",
+    "wall_time_s",
+    "simulated_s_per_wall_s",
+    "loop_simulated_s_per_wall_s",
+    "rate_hz",
+    "speed_loop_hz",
+];
+
+/// Bad input that is the user's wording (an expectation that cannot be read): `drivelab`
+/// exits with code 2 for it, as for a command-line usage error.
+#[derive(Debug)]
+pub struct UsageError(pub String);
+
+impl fmt::Display for UsageError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for UsageError {}
+
+/// An outcome already reported on its own lines (failed expectations, a campaign's
+/// failed runs): `drivelab` prints nothing more and exits with this code.
+#[derive(Debug)]
+pub struct Reported(pub u8);
+
+impl fmt::Display for Reported {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "exit code {}", self.0)
+    }
+}
+
+impl std::error::Error for Reported {}
+
+/// The one-line violations of a run's failed expectations (`summary.json → expectations`).
+pub fn failed(summary: &Value) -> Vec<String> {
+    let outcomes: Vec<Outcome> =
+        serde_json::from_value(summary["expectations"].clone()).unwrap_or_default();
+    outcomes
+        .iter()
+        .filter(|o| !o.pass)
+        .map(Outcome::violation)
+        .collect()
+}
+
+/// A comparison.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub enum Op {
+    /// `<=`
+    Le(f64),
+    /// `<`
+    Lt(f64),
+    /// `>=`
+    Ge(f64),
+    /// `>`
+    Gt(f64),
+    /// `==`
+    Eq(f64),
+    /// `in A..B`, both ends included.
+    In(f64, f64),
+}
+
+impl Op {
+    fn holds(self, x: f64) -> bool {
+        match self {
+            Op::Le(l) => x <= l,
+            Op::Lt(l) => x < l,
+            Op::Ge(l) => x >= l,
+            Op::Gt(l) => x > l,
+            Op::Eq(l) => x == l,
+            Op::In(a, b) => (a..=b).contains(&x),
+        }
+    }
+}
+
+impl fmt::Display for Op {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Op::Le(l) => write!(f, "<= {l}"),
+            Op::Lt(l) => write!(f, "< {l}"),
+            Op::Ge(l) => write!(f, ">= {l}"),
+            Op::Gt(l) => write!(f, "> {l}"),
+            Op::Eq(l) => write!(f, "== {l}"),
+            Op::In(a, b) => write!(f, "in {a}..{b}"),
+        }
+    }
+}
+
+/// One parsed expectation.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Expectation {
+    /// As written.
+    pub text: String,
+    /// The figure's path, one entry per level (`*` for all).
+    pub path: Vec<String>,
+    /// The comparison.
+    pub op: Op,
+    /// Why it matters (from the scenario's `[[expect]] note`), may be empty.
+    pub note: String,
+}
+
+fn limit(v: &str, text: &str) -> Result<f64, UsageError> {
+    let x: f64 = v.trim().parse().map_err(|_| {
+        UsageError(format!(
+            "expectation '{text}': limit '{}' is not a number",
+            v.trim()
+        ))
+    })?;
+    if !x.is_finite() {
+        return Err(UsageError(format!(
+            "expectation '{text}': limit '{}' must be a finite number",
+            v.trim()
+        )));
+    }
+    Ok(x)
+}
+
+/// Parses `FIGURE OP LIMIT` (see the module documentation).
+pub fn parse(text: &str) -> Result<Expectation, UsageError> {
+    let form = "expected FIGURE OP LIMIT, e.g. 'peak_current_a <= 8' or 'metrics.rise_time_ms in 7.2..8.8'";
+    let t = text.trim();
+    // Two-character operators first, so that `<=` is not read as `<`.
+    let ops = ["<=", ">=", "==", "<", ">", " in "];
+    let (at, op) = ops
+        .iter()
+        .filter_map(|op| t.find(op).map(|i| (i, *op)))
+        .min_by_key(|&(i, op)| (i, std::cmp::Reverse(op.len())))
+        .ok_or_else(|| UsageError(format!("expectation '{t}': {form}")))?;
+    let (figure, rhs) = (t[..at].trim(), &t[at + op.len()..]);
+    let op = match op {
+        "<=" => Op::Le(limit(rhs, t)?),
+        ">=" => Op::Ge(limit(rhs, t)?),
+        "==" => Op::Eq(limit(rhs, t)?),
+        "<" => Op::Lt(limit(rhs, t)?),
+        ">" => Op::Gt(limit(rhs, t)?),
+        _ => {
+            let (a, b) = rhs.split_once("..").ok_or_else(|| {
+                UsageError(format!(
+                    "expectation '{t}': 'in' needs a range A..B, e.g. in 7.2..8.8"
+                ))
+            })?;
+            let (a, b) = (limit(a, t)?, limit(b, t)?);
+            if a > b {
+                return Err(UsageError(format!(
+                    "expectation '{t}': the range {a}..{b} is empty"
+                )));
+            }
+            Op::In(a, b)
+        }
+    };
+    let path: Vec<String> = figure.split('.').map(str::to_string).collect();
+    let good = |s: &String| {
+        s == "*"
+            || (!s.is_empty()
+                && s.chars()
+                    .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-'))
+    };
+    if figure.is_empty() || !path.iter().all(good) {
+        return Err(UsageError(format!(
+            "expectation '{t}': '{figure}' is not a figure path (names of letters, digits, _ and - joined by '.', or '*')"
+        )));
+    }
+    if !FIGURES.contains(&path[0].as_str()) {
+        return Err(UsageError(format!(
+            "expectation '{t}': unknown figure '{}' (figures: {})",
+            path[0],
+            FIGURES.join(", ")
+        )));
+    }
+    Ok(Expectation {
+        text: t.to_string(),
+        path,
+        op,
+        note: String::new(),
+    })
+}
+
+/// One figure an expectation checked.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Checked {
+    /// Its concrete path, e.g. `faults.3.speed_recovered_ms`.
+    pub figure: String,
+    /// Its value (None: null or not a number).
+    pub value: Option<f64>,
+    /// Whether it holds.
+    pub pass: bool,
+}
+
+/// The outcome of one expectation, as `summary.json → expectations` lists it.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Outcome {
+    /// As written.
+    pub expect: String,
+    /// The comparison and limit, e.g. `<= 8`.
+    pub limit: String,
+    /// Why it matters, may be empty.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub note: String,
+    /// Every figure the path named, in order.
+    pub values: Vec<Checked>,
+    /// All hold, and the path named at least one figure.
+    pub pass: bool,
+}
+
+impl Outcome {
+    /// One line for a failed expectation: the figures that do not hold.
+    pub fn violation(&self) -> String {
+        let bad: Vec<&Checked> = self.values.iter().filter(|c| !c.pass).collect();
+        let shown: Vec<String> = bad
+            .iter()
+            .take(3)
+            .map(|c| match c.value {
+                Some(v) => format!("{} = {v}", c.figure),
+                None => format!("{} is not a number", c.figure),
+            })
+            .collect();
+        let more = if bad.len() > 3 {
+            format!(" and {} more", bad.len() - 3)
+        } else {
+            String::new()
+        };
+        if self.values.is_empty() {
+            format!(
+                "expectation failed: {} (the summary has no such figure)",
+                self.expect
+            )
+        } else {
+            format!(
+                "expectation failed: {}: {}{more}",
+                self.expect,
+                shown.join(", ")
+            )
+        }
+    }
+}
+
+/// Collects the values at `path` below `v` with their concrete paths.
+fn walk<'a>(v: &'a Value, path: &[String], at: String, out: &mut Vec<(String, &'a Value)>) {
+    let Some((head, rest)) = path.split_first() else {
+        out.push((at, v));
+        return;
+    };
+    let join = |k: &str| {
+        if at.is_empty() {
+            k.to_string()
+        } else {
+            format!("{at}.{k}")
+        }
+    };
+    match (v, head.as_str()) {
+        (Value::Object(m), "*") => {
+            for (k, x) in m {
+                walk(x, rest, join(k), out);
+            }
+        }
+        (Value::Array(a), "*") => {
+            for (i, x) in a.iter().enumerate() {
+                walk(x, rest, join(&i.to_string()), out);
+            }
+        }
+        (Value::Object(m), k) => {
+            if let Some(x) = m.get(k) {
+                walk(x, rest, join(k), out);
+            }
+        }
+        (Value::Array(a), k) => {
+            if let Some(x) = k.parse::<usize>().ok().and_then(|i| a.get(i)) {
+                walk(x, rest, join(k), out);
+            }
+        }
+        _ => {}
+    }
+}
+
+impl Expectation {
+    /// Checks the expectation against a run's summary.
+    pub fn evaluate(&self, summary: &Value) -> Outcome {
+        let mut found = Vec::new();
+        walk(summary, &self.path, String::new(), &mut found);
+        let values: Vec<Checked> = found
+            .into_iter()
+            .map(|(figure, v)| {
+                let value = v.as_f64().filter(|x| x.is_finite());
+                Checked {
+                    figure,
+                    value,
+                    pass: value.is_some_and(|x| self.op.holds(x)),
+                }
+            })
+            .collect();
+        // `faults.*.x` over a run without faults holds: there is nothing to check. A path
+        // that names nothing anywhere else (a typo, a figure this run lacks) fails.
+        let star = self.path.iter().position(|p| p == "*");
+        let nothing_to_check = values.is_empty()
+            && star.is_some_and(|i| {
+                let mut at = Vec::new();
+                walk(summary, &self.path[..i], String::new(), &mut at);
+                at.iter().any(|(_, v)| match v {
+                    Value::Array(a) => a.is_empty(),
+                    Value::Object(m) => m.is_empty(),
+                    _ => false,
+                })
+            });
+        Outcome {
+            expect: self.text.clone(),
+            limit: self.op.to_string(),
+            note: self.note.clone(),
+            pass: nothing_to_check || (!values.is_empty() && values.iter().all(|c| c.pass)),
+            values,
+        }
+    }
+}
+
+/// Parses the scenario's `[[expect]]` tables and the command line's `--expect` values, in
+/// that order.
+pub fn collect(
+    scenario: &[drivelab_runtime::config::ExpectSpec],
+    cli: &[String],
+) -> Result<Vec<Expectation>, UsageError> {
+    let mut v = Vec::new();
+    for e in scenario {
+        let mut x =
+            parse(&e.check).map_err(|UsageError(m)| UsageError(format!("[[expect]]: {m}")))?;
+        x.note = e.note.clone();
+        v.push(x);
+    }
+    for e in cli {
+        v.push(parse(e).map_err(|UsageError(m)| UsageError(format!("--expect: {m}")))?);
+    }
+    Ok(v)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    fn summary() -> Value {
+        json!({
+            "peak_current_a": 7.5,
+            "deadline_misses_per_million": 6000.0,
+            "metrics": { "rise_time_ms": 8.1, "overshoot_pct": null },
+            "faults": [
+                { "speed_recovered_ms": 120.0 },
+                { "speed_recovered_ms": 350.0 },
+                { "speed_recovered_ms": null },
+            ],
+            "latency_us": { "cycle": { "p99": 40.0 }, "plant.wake": { "p99": 30.0 } },
+        })
+    }
+
+    fn check(text: &str) -> Outcome {
+        parse(text).unwrap().evaluate(&summary())
+    }
+
+    #[test]
+    fn each_operator_compares_at_its_limit() {
+        assert!(check("peak_current_a <= 7.5").pass);
+        assert!(!check("peak_current_a < 7.5").pass);
+        assert!(check("peak_current_a >= 7.5").pass);
+        assert!(!check("peak_current_a > 7.5").pass);
+        assert!(check("peak_current_a == 7.5").pass);
+        assert!(!check("peak_current_a == 7.4").pass);
+        assert!(check("metrics.rise_time_ms in 7.2..8.8").pass);
+        assert!(check("metrics.rise_time_ms in 8.1..8.1").pass);
+        assert!(!check("metrics.rise_time_ms in 7.2..8.0").pass);
+        assert!(!check("deadline_misses_per_million <= 5000").pass);
+        assert_eq!(parse("peak_current_a<=8").unwrap().op, Op::Le(8.0));
+        assert_eq!(
+            parse(" peak_current_a >= -1e3 ").unwrap().op,
+            Op::Ge(-1000.0)
+        );
+    }
+
+    #[test]
+    fn a_wildcard_checks_every_figure_and_names_the_ones_that_fail() {
+        let o = check("faults.*.speed_recovered_ms <= 200");
+        assert!(!o.pass);
+        let figs: Vec<(&str, bool)> = o
+            .values
+            .iter()
+            .map(|c| (c.figure.as_str(), c.pass))
+            .collect();
+        assert_eq!(
+            figs,
+            [
+                ("faults.0.speed_recovered_ms", true),
+                ("faults.1.speed_recovered_ms", false),
+                ("faults.2.speed_recovered_ms", false)
+            ]
+        );
+        assert_eq!(
+            o.violation(),
+            "expectation failed: faults.*.speed_recovered_ms <= 200: faults.1.speed_recovered_ms = 350, faults.2.speed_recovered_ms is not a number"
+        );
+        assert!(check("faults.*.speed_recovered_ms <= 400").values[2]
+            .value
+            .is_none());
+        assert!(!check("faults.*.speed_recovered_ms <= 400").pass);
+        assert!(check("faults.0.speed_recovered_ms <= 200").pass);
+        assert!(check("latency_us.*.p99 <= 40").pass);
+        assert!(!check("latency_us.*.p99 < 40").pass);
+    }
+
+    #[test]
+    fn a_figure_the_summary_lacks_or_a_null_fails() {
+        let o = check("metrics.settling_ms <= 5");
+        assert!(!o.pass && o.values.is_empty());
+        assert!(
+            o.violation().contains("no such figure"),
+            "{}",
+            o.violation()
+        );
+        assert!(!check("metrics.overshoot_pct <= 5").pass);
+        // No fault injected: nothing to check, so it holds; but a key after the `*` that no
+        // fault has (a typo) fails.
+        let e = parse("faults.*.speed_recovered_ms <= 200").unwrap();
+        assert!(e.evaluate(&json!({ "faults": [] })).pass);
+        assert!(
+            !e.evaluate(&json!({ "faults": [{ "speed_recoverd_ms": 1.0 }] }))
+                .pass
+        );
+        assert!(!e.evaluate(&json!({})).pass);
+    }
+
+    #[test]
+    fn malformed_expectations_are_one_line_errors() {
+        for (text, says) in [
+            ("peak_current_a", "expected FIGURE OP LIMIT"),
+            ("peak_current_a <= eight", "limit 'eight' is not a number"),
+            ("peak_current_a <= NaN", "must be a finite number"),
+            ("peak_current_a <= inf", "must be a finite number"),
+            ("peak_curent_a <= 8", "unknown figure 'peak_curent_a'"),
+            ("metrics..rise <= 8", "is not a figure path"),
+            ("<= 8", "is not a figure path"),
+            ("metrics.rise_time_ms in 8", "needs a range A..B"),
+            ("metrics.rise_time_ms in 9..8", "is empty"),
+        ] {
+            let e = parse(text).unwrap_err().to_string();
+            assert!(e.contains(says), "{text}: {e}");
+            assert!(!e.contains('\n'), "{e}");
+        }
+    }
+}

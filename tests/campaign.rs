@@ -1,0 +1,345 @@
+//! Expectations and campaigns, as a CI job uses them: exit codes, summary.json →
+//! expectations, and the shipped smoke campaign end to end with its junit.xml read back by
+//! an independent XML parser.
+
+mod common;
+
+use common::*;
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+
+const CAMPAIGNS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../campaigns");
+
+fn stderr(o: &std::process::Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// `drivelab run --clock inprocess --no-plots --duration 0.05 --out OUT EXTRA`: the same
+/// maths as the drive, deterministic and fast.
+fn inprocess(out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec![
+        "run",
+        "--clock",
+        "inprocess",
+        "--duration",
+        "0.05",
+        "--no-plots",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    drivelab(&args)
+}
+
+fn summary(dir: &Path) -> Value {
+    serde_json::from_slice(&read(&dir.join("summary.json"))).unwrap()
+}
+
+#[test]
+fn a_failed_expectation_exits_3_with_one_line_and_the_run_is_kept() {
+    let dir = scratch("expect3");
+    let out = dir.join("run");
+    // Kyslan et al. design for an 8 ms rise; the peak |i_dq| is at least the 1.6 A of the
+    // i_d step, so `< 0` must fail.
+    let o = inprocess(
+        &out,
+        &[
+            "--expect",
+            "metrics.rise_time_ms in 7.2..8.8",
+            "--expect",
+            "peak_current_a < 0",
+            "--expect",
+            "faults.*.speed_recovered_ms <= 200",
+        ],
+    );
+    assert_eq!(o.status.code(), Some(3), "{}", stderr(&o));
+    let err = stderr(&o);
+    let lines: Vec<&str> = err
+        .lines()
+        .filter(|l| l.contains("expectation failed"))
+        .map(str::trim)
+        .collect();
+    assert_eq!(lines.len(), 1, "{}", stderr(&o));
+    assert!(
+        lines[0].starts_with("drivelab: expectation failed: peak_current_a < 0: peak_current_a = "),
+        "{}",
+        lines[0]
+    );
+    let s = summary(&out);
+    let e = s["expectations"].as_array().unwrap();
+    assert_eq!(e.len(), 3);
+    let peak = s["peak_current_a"].as_f64().unwrap();
+    assert!(peak >= 1.6, "peak |i_dq| {peak} A below the 1.6 A i_d step");
+    assert_eq!(e[1]["values"][0]["value"].as_f64(), Some(peak));
+    assert_eq!(
+        e.iter()
+            .map(|x| x["pass"].as_bool().unwrap())
+            .collect::<Vec<_>>(),
+        [true, false, true],
+        "{e:?}"
+    );
+    // The figure the rise-time expectation checked is the run's metric.
+    assert_eq!(e[0]["values"][0]["value"], s["metrics"]["rise_time_ms"]);
+    assert!(out.join("trace.csv").is_file());
+}
+
+#[test]
+fn all_expectations_met_exit_0_and_a_scenarios_own_are_checked_first() {
+    let dir = scratch("expect0");
+    let sc = variant(
+        "expect0",
+        "kyslan-pi",
+        &[(
+            "[motor]",
+            "[[expect]]\ncheck = \"peak_current_a <= 100\"\nnote = \"far above the 1.6 A limit\"\n\n[motor]",
+        )],
+    );
+    let out = dir.join("run");
+    let o = inprocess(
+        &out,
+        &[
+            "--scenario",
+            sc.to_str().unwrap(),
+            "--expect",
+            "samples_missing == 0",
+        ],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let e = summary(&out)["expectations"].clone();
+    assert_eq!(e[0]["expect"], "peak_current_a <= 100");
+    assert_eq!(e[0]["note"], "far above the 1.6 A limit");
+    assert_eq!(e[1]["expect"], "samples_missing == 0");
+    assert!(e.as_array().unwrap().iter().all(|x| x["pass"] == true));
+}
+
+#[test]
+fn malformed_expectations_are_usage_errors_before_anything_runs() {
+    let dir = scratch("expect2");
+    let out = dir.join("run");
+    for (expr, says) in [
+        ("peak_curent_a <= 8", "unknown figure 'peak_curent_a'"),
+        ("peak_current_a <= NaN", "must be a finite number"),
+        ("peak_current_a", "expected FIGURE OP LIMIT"),
+    ] {
+        let o = inprocess(&out, &["--expect", expr]);
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(2), "{expr}: {err}");
+        assert_eq!(err.trim().lines().count(), 1, "{err}");
+        assert!(err.contains(says), "{expr}: {err}");
+        assert!(!out.exists(), "a run folder was made for a bad expectation");
+    }
+    // In a scenario's [[expect]] table too.
+    let sc = variant(
+        "expect2",
+        "kyslan-pi",
+        &[(
+            "[motor]",
+            "[[expect]]\ncheck = \"peak_current_a =< 8\"\n\n[motor]",
+        )],
+    );
+    let o = drivelab(&[
+        "run",
+        "--clock",
+        "inprocess",
+        "--scenario",
+        sc.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("[[expect]]"), "{}", stderr(&o));
+}
+
+/// Writes a campaign file into `dir`.
+fn campaign_file(dir: &Path, text: &str) -> PathBuf {
+    let f = dir.join("c.toml");
+    std::fs::write(&f, text).unwrap();
+    f
+}
+
+/// The testcase elements of a junit.xml, as (name, failures, errors, properties).
+type Case = (String, usize, usize, Vec<(String, String)>);
+
+/// Reads junit.xml with roxmltree (not the writer's library) and checks that the suite's
+/// counts are those of its test cases.
+fn junit(path: &Path) -> (roxmltree::Node<'static, 'static>, Vec<Case>) {
+    let text: &'static str = Box::leak(String::from_utf8(read(path)).unwrap().into_boxed_str());
+    let doc: &'static roxmltree::Document = Box::leak(Box::new(
+        roxmltree::Document::parse(text).expect("well-formed XML"),
+    ));
+    let suites = doc.root_element();
+    assert_eq!(suites.tag_name().name(), "testsuites");
+    let suite = suites
+        .children()
+        .find(|n| n.has_tag_name("testsuite"))
+        .expect("a testsuite");
+    let cases: Vec<Case> = suite
+        .children()
+        .filter(|n| n.has_tag_name("testcase"))
+        .map(|tc| {
+            let props = tc
+                .descendants()
+                .filter(|n| n.has_tag_name("property"))
+                .map(|p| {
+                    (
+                        p.attribute("name").unwrap().to_string(),
+                        p.attribute("value").unwrap().to_string(),
+                    )
+                })
+                .collect();
+            (
+                tc.attribute("name").unwrap().to_string(),
+                tc.children().filter(|n| n.has_tag_name("failure")).count(),
+                tc.children().filter(|n| n.has_tag_name("error")).count(),
+                props,
+            )
+        })
+        .collect();
+    let attr = |n: roxmltree::Node, a: &str| n.attribute(a).unwrap().parse::<usize>().unwrap();
+    for n in [suites, suite] {
+        assert_eq!(attr(n, "tests"), cases.len());
+        assert_eq!(
+            attr(n, "failures"),
+            cases.iter().filter(|c| c.1 > 0).count()
+        );
+        assert_eq!(attr(n, "errors"), cases.iter().filter(|c| c.2 > 0).count());
+    }
+    (suite, cases)
+}
+
+#[test]
+fn the_smoke_campaign_reports_every_run_in_json_markdown_and_junit() {
+    let _one = serial();
+    let dir = scratch("smoke");
+    let out = dir.join("c");
+    let file = Path::new(CAMPAIGNS).join("smoke.toml");
+    let o = drivelab(&[
+        "campaign",
+        file.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let report: Value = serde_json::from_slice(&read(&out.join("campaign.json"))).unwrap();
+    let runs = report["runs"].as_array().unwrap();
+    // kyslan-pi × four fault sets × one seed.
+    assert_eq!(runs.len(), 4, "{}", stderr(&o));
+    let status: Vec<&str> = runs.iter().map(|r| r["status"].as_str().unwrap()).collect();
+    assert!(!status.contains(&"error"), "{status:?}: {}", stderr(&o));
+    // The exit code follows the runs: 3 when an expectation failed, 0 when all passed.
+    let expected = if status.contains(&"fail") { 3 } else { 0 };
+    assert_eq!(o.status.code(), Some(expected), "{status:?}");
+    let (_, cases) = junit(&out.join("junit.xml"));
+    assert_eq!(cases.len(), 4);
+    for (r, case) in runs.iter().zip(&cases) {
+        let run = PathBuf::from(r["out"].as_str().unwrap());
+        let s = summary(&run);
+        assert_clean(s["bus"].as_str().unwrap());
+        // The run's own summary says the same as the campaign: each expectation's verdict,
+        // re-counted here from its values.
+        let e = s["expectations"].as_array().unwrap();
+        assert_eq!(e.len(), 3, "the campaign's three expectations");
+        let failed = e.iter().filter(|x| x["pass"] == false).count();
+        for x in e {
+            let values = x["values"].as_array().unwrap();
+            let all = values.iter().all(|v| v["pass"] == true);
+            let empty_list = values.is_empty() && s["faults"].as_array().unwrap().is_empty();
+            assert_eq!(
+                x["pass"] == true,
+                (all && !values.is_empty()) || empty_list,
+                "{x}"
+            );
+        }
+        assert_eq!(case.1, failed, "junit failures of {}", case.0);
+        assert_eq!(r["status"] == "fail", failed > 0);
+        // Figures as properties, equal to the summary's (to the table's rounding).
+        let prop = |k: &str| case.3.iter().find(|p| p.0 == k).map(|p| p.1.clone());
+        let peak: f64 = prop("peak_current_a").unwrap().parse().unwrap();
+        assert!((peak - s["peak_current_a"].as_f64().unwrap()).abs() <= 0.05);
+        assert_eq!(prop("run_folder").unwrap(), run.display().to_string());
+        // The faulted runs injected what the campaign asked for.
+        let faults = r["faults"].as_array().unwrap();
+        assert_eq!(s["faults"].as_array().unwrap().len(), faults.len());
+        assert!(case.0.starts_with("kyslan-pi ["), "{}", case.0);
+    }
+    let md = String::from_utf8(read(&out.join("campaign.md"))).unwrap();
+    assert_eq!(
+        md.lines()
+            .filter(|l| l.starts_with("| ") && !l.starts_with("| #"))
+            .count(),
+        4
+    );
+    assert!(
+        md.contains("| 2 | kyslan-pi | kill:current-loop@0.3 | 1 |"),
+        "{md}"
+    );
+}
+
+#[test]
+fn a_campaign_whose_expectations_fail_exits_3_and_junit_counts_each_failure() {
+    let dir = scratch("fail3");
+    let f = campaign_file(
+        &dir,
+        "name = \"always-fails\"\nscenarios = [\"kyslan-pi\"]\nclock = \"lockstep\"\n\
+         duration_s = 0.05\nseeds = [1, 2]\n\
+         expect = [\"peak_current_a < 0\", \"samples_missing == 0\"]\n",
+    );
+    let out = dir.join("c");
+    let o = drivelab(&[
+        "campaign",
+        f.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(3), "{}", stderr(&o));
+    let (suite, cases) = junit(&out.join("junit.xml"));
+    assert_eq!(suite.attribute("name"), Some("always-fails"));
+    assert_eq!(cases.len(), 2);
+    assert!(cases.iter().all(|c| c.1 == 1 && c.2 == 0), "{cases:?}");
+    let failure = suite
+        .descendants()
+        .find(|n| n.has_tag_name("failure"))
+        .unwrap();
+    assert!(
+        failure
+            .attribute("message")
+            .unwrap()
+            .starts_with("expectation failed: peak_current_a < 0: peak_current_a = "),
+        "{:?}",
+        failure.attribute("message")
+    );
+    for c in &cases {
+        let run = PathBuf::from(&c.3.iter().find(|p| p.0 == "run_folder").unwrap().1);
+        assert_clean(summary(&run)["bus"].as_str().unwrap());
+    }
+}
+
+#[test]
+fn a_bad_campaign_is_a_one_line_error_before_any_run() {
+    let dir = scratch("badcampaign");
+    for (text, code, says) in [
+        ("name = \"x\"\nscenarios = [\"kyslan-pi\"]\nsed = [1]\n", 1, "unknown field `sed`"),
+        ("name = \"x\"\nscenarios = [\"nope\"]\n", 1, "nope"),
+        (
+            "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nfaults = [[\"explode:plant@1\"]]\n",
+            1,
+            "unknown fault kind 'explode'",
+        ),
+        (
+            "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nexpect = [\"peak <= 1\"]\n",
+            2,
+            "unknown figure 'peak'",
+        ),
+        (
+            "name = \"x\"\nscenarios = [\"kyslan-pi\"]\n[sweep]\nkinds = [\"melt\"]\nstages = [\"plant\"]\nat_s = [0.1]\n",
+            1,
+            "kind 'melt'",
+        ),
+    ] {
+        let f = campaign_file(&dir, text);
+        let out = dir.join("c");
+        let o = drivelab(&["campaign", f.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(code), "{text}: {err}");
+        assert_eq!(err.trim().lines().count(), 1, "{err}");
+        assert!(err.contains(says), "{text}: {err}");
+        assert!(!out.exists(), "{text}: the campaign started");
+    }
+}
