@@ -479,7 +479,7 @@ fn a_sigkilled_launchers_services_die_with_it_and_clean_removes_their_files() {
     assert_eq!(o.status.code(), Some(1));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
-        err.contains(&format!("bus {bus} is still in use by pid")),
+        err.contains(&format!("bus {bus} is in use by pid")),
         "{err}"
     );
     assert_eq!(err.trim().lines().count(), 1, "{err}");

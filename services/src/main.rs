@@ -152,6 +152,18 @@ enum Cmd {
         #[arg(long)]
         bus: String,
     },
+    /// Print the iceoryx2 configuration of a bus (TOML). Saved as config/iceoryx2.toml in
+    /// a folder (every run folder has one), it lets iceoryx2's own `iox2` tool, started from
+    /// that folder, see the drive's services.
+    ///
+    /// Example:
+    ///   drivelab bus-config --bus 4242 > config/iceoryx2.toml && iox2 service list
+    #[command(verbatim_doc_comment)]
+    BusConfig {
+        /// Bus id of the drive.
+        #[arg(long)]
+        bus: String,
+    },
     /// Run the plant model alone, open loop, from rest, on recorded voltages.
     ///
     /// IN.csv has columns t,u_d,u_q,t_load (s, V, V, N·m), each row held from its t on.
@@ -541,17 +553,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
         }
         Cmd::Clean { bus } => {
             drivelab_runtime::bus::check_bus_id(&bus)?;
-            let users = drivelab_services::faults::bus_users(&bus);
-            if let Some((pid, what)) = users.first() {
-                anyhow::bail!(
-                    "bus {bus} is still in use by pid {pid} ({what}){}; stop the drive first",
-                    if users.len() > 1 {
-                        format!(" and {} more", users.len() - 1)
-                    } else {
-                        String::new()
-                    }
-                );
-            }
+            launcher::refuse_busy_bus(&bus)?;
             let files = drivelab_runtime::bus::leftovers(&bus);
             drivelab_runtime::bus::cleanup(&bus)?;
             if files.is_empty() {
@@ -559,6 +561,10 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             } else {
                 println!("bus {bus}: removed {} files and folders", files.len());
             }
+            Ok(())
+        }
+        Cmd::BusConfig { bus } => {
+            print!("{}", drivelab_runtime::bus::config_toml(&bus)?);
             Ok(())
         }
         Cmd::Fault {

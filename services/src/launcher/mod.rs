@@ -151,8 +151,13 @@ fn run_bus(
         .clone()
         .unwrap_or_else(|| format!("{}", std::process::id()));
     bus::check_bus_id(&bus_id)?;
+    // Another drive (or any process) on this bus would be wrecked by the clean-up below.
+    refuse_busy_bus(&bus_id)?;
     // Leftovers of an earlier crashed run with the same id would confuse this one.
     bus::cleanup(&bus_id)?;
+    // iceoryx2's own tools (`iox2`) find the drive from the run folder with this file.
+    std::fs::create_dir_all(out.join("config"))?;
+    std::fs::write(out.join("config/iceoryx2.toml"), bus::config_toml(&bus_id)?)?;
     let n = sc.samples();
     let stop = Arc::new(AtomicBool::new(false));
     let progress = Arc::new(Progress {
@@ -301,6 +306,31 @@ fn run_bus(
     })
 }
 
+/// Fails with a one-line error naming a process when bus `id` is in use: a process with
+/// `--bus ID` in its arguments (a drive, a monitor), or a live iceoryx2 node of the bus.
+pub fn refuse_busy_bus(id: &str) -> Result<()> {
+    let users = crate::faults::bus_users(id);
+    if let Some((pid, what)) = users.first() {
+        bail!(
+            "bus {id} is in use by pid {pid} ({what}){}; choose another --bus or stop it first",
+            if users.len() > 1 {
+                format!(" and {} more", users.len() - 1)
+            } else {
+                String::new()
+            }
+        );
+    }
+    let nodes = bus::live_nodes(id)?;
+    if !nodes.is_empty() {
+        bail!(
+            "bus {id} has {} live iceoryx2 node(s) ({}); choose another --bus or stop them first",
+            nodes.len(),
+            nodes.join(", ")
+        );
+    }
+    Ok(())
+}
+
 /// The CPU wake-up latency request of a real-time drive, or why there is none (a one-line
 /// warning; an error with `--rt-strict`).
 fn cpu_latency_request(
@@ -435,6 +465,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     crate::common::install_signal_handlers()?;
     if let Some(b) = &o.bus {
         bus::check_bus_id(b)?;
+        // Before the run folder is made: a busy bus leaves nothing behind.
+        refuse_busy_bus(b)?;
     }
     let (mut sc, sc_src) = Scenario::load(&o.scenario).map_err(|e| anyhow!(e))?;
     if let Some(d) = o.duration_s {

@@ -70,8 +70,113 @@ pub fn config(id: &str) -> Result<Config> {
     Ok(cfg)
 }
 
+/// The iceoryx2 configuration of bus `id` as a TOML file, for iceoryx2's own tools: saved as
+/// `config/iceoryx2.toml` in a run folder, it lets `iox2` find the drive's services when run
+/// from that folder (iceoryx2 reads a project-local `config/iceoryx2.toml` first).
+pub fn config_toml(id: &str) -> Result<String> {
+    let cfg = config(id)?;
+    toml::to_string(&cfg).map_err(|e| anyhow!("cannot write the iceoryx2 config of bus {id}: {e}"))
+}
+
+/// Checks that `path`, if it exists, is a real folder (not a symbolic link) owned by this
+/// process's user; `lstat` does not follow a link.
+fn check_folder(path: &std::path::Path) -> Result<bool> {
+    use std::os::unix::fs::MetadataExt;
+    // A trailing '/' would make lstat follow a link: inspect the entry itself.
+    let path = std::path::Path::new(path.to_str().unwrap_or("").trim_end_matches('/'));
+    let m = match std::fs::symlink_metadata(path) {
+        Ok(m) => m,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(false),
+        Err(e) => return Err(anyhow!("cannot inspect {}: {e}", path.display())),
+    };
+    if m.file_type().is_symlink() {
+        let to = std::fs::read_link(path)
+            .map(|t| t.display().to_string())
+            .unwrap_or_default();
+        return Err(anyhow!(
+            "bus folder {} is a symbolic link (to {to}); refusing to use it: remove the link by hand",
+            path.display()
+        ));
+    }
+    if !m.is_dir() {
+        return Err(anyhow!("bus folder {} is not a folder", path.display()));
+    }
+    // SAFETY: geteuid(2) has no arguments and cannot fail.
+    let me = unsafe { libc::geteuid() };
+    if m.uid() != me {
+        return Err(anyhow!(
+            "bus folder {} belongs to uid {}, not to this user (uid {me}); refusing to use it",
+            path.display(),
+            m.uid()
+        ));
+    }
+    Ok(true)
+}
+
+/// Makes the root folder of bus `id` (mode 0700, owned by this user) if it is missing, and
+/// refuses one that is a symbolic link or belongs to another user.
+pub fn prepare_root(id: &str) -> Result<()> {
+    use std::os::unix::fs::{DirBuilderExt, PermissionsExt};
+    check_bus_id(id)?;
+    let root = root_path(id);
+    let root = std::path::Path::new(root.trim_end_matches('/'));
+    let parent = root.parent().unwrap_or(std::path::Path::new("/tmp"));
+    // The shared parent (iceoryx2's default root) may belong to anyone, but must not be a link.
+    if let Ok(m) = std::fs::symlink_metadata(parent) {
+        if m.file_type().is_symlink() {
+            return Err(anyhow!(
+                "{} is a symbolic link; refusing to make bus folders through it",
+                parent.display()
+            ));
+        }
+    } else {
+        std::fs::DirBuilder::new()
+            .recursive(true)
+            .mode(0o755)
+            .create(parent)
+            .with_context(|| format!("cannot create {}", parent.display()))?;
+    }
+    if check_folder(root)? {
+        // Ours: make sure nobody else can enter it.
+        std::fs::set_permissions(root, std::fs::Permissions::from_mode(0o700))
+            .with_context(|| format!("cannot set the mode of {}", root.display()))?;
+    } else {
+        std::fs::DirBuilder::new()
+            .mode(0o700)
+            .create(root)
+            .with_context(|| format!("cannot create bus folder {}", root.display()))?;
+        check_folder(root)?;
+    }
+    Ok(())
+}
+
+/// Names of the live iceoryx2 nodes of bus `id` (none when the bus has no folder).
+pub fn live_nodes(id: &str) -> Result<Vec<String>> {
+    use iceoryx2::node::NodeView;
+    let root = root_path(id);
+    if !check_folder(std::path::Path::new(&root))? {
+        return Ok(Vec::new());
+    }
+    let cfg = config(id)?;
+    let mut alive = Vec::new();
+    Node::<ipc::Service>::list(&cfg, |state| {
+        if let NodeState::Alive(view) = state {
+            alive.push(
+                view.details()
+                    .as_ref()
+                    .map(|d| d.name().to_string())
+                    .unwrap_or_else(|| "?".into()),
+            );
+        }
+        CallbackProgression::Continue
+    })
+    .map_err(|e| anyhow!("cannot list the nodes of bus {id}: {e:?}"))?;
+    Ok(alive)
+}
+
 /// A node on bus `id`. Signals are handled by the caller (see `services`).
 pub fn node(id: &str, name: &str) -> Result<Node<ipc::Service>> {
+    prepare_root(id)?;
     let cfg = config(id)?;
     NodeBuilder::new()
         .config(&cfg)
@@ -456,6 +561,9 @@ pub fn owned_by(name: &str, id: &str) -> bool {
 /// shared-memory files were removed. Call only when no process of the bus runs.
 pub fn cleanup(id: &str) -> Result<usize> {
     check_bus_id(id)?;
+    // Refuse a bus folder that is a link before anything is removed.
+    let root = root_path(id);
+    let root_exists = check_folder(std::path::Path::new(&root))?;
     let mut n = 0;
     if let Ok(rd) = std::fs::read_dir("/dev/shm") {
         for e in rd.flatten() {
@@ -466,8 +574,7 @@ pub fn cleanup(id: &str) -> Result<usize> {
             }
         }
     }
-    let root = root_path(id);
-    if std::path::Path::new(&root).exists() {
+    if root_exists {
         std::fs::remove_dir_all(&root).with_context(|| format!("remove {root}"))?;
     }
     Ok(n)
@@ -483,7 +590,7 @@ pub fn leftovers(id: &str) -> Vec<String> {
         .filter(|n| owned_by(n, id))
         .map(|n| format!("/dev/shm/{n}"))
         .collect();
-    if std::path::Path::new(&root_path(id)).exists() {
+    if std::fs::symlink_metadata(root_path(id).trim_end_matches('/')).is_ok() {
         v.push(root_path(id));
     }
     v

@@ -1,0 +1,153 @@
+//! The bus belongs to one drive: a second drive on a busy bus is refused and the first goes
+//! on unharmed, a bus folder that is a symbolic link is refused by `run` and `clean`, and a
+//! run folder's `config/iceoryx2.toml` lets iceoryx2's own tools see the drive.
+
+mod common;
+
+use common::*;
+use serde_json::Value;
+use std::time::Duration;
+
+fn stderr(o: &std::process::Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+#[test]
+fn a_second_drive_on_a_busy_bus_is_refused_and_the_first_is_unharmed() {
+    let _one = serial();
+    let dir = scratch("busy");
+    let bus = bus_id("busy");
+    let out = dir.join("first");
+    let first = start_drive(&bus, &out, &["--duration", "2"]);
+    wait_for_services(&bus);
+    let second = dir.join("second");
+    let o = drivelab(&[
+        "run",
+        "--bus",
+        &bus,
+        "--duration",
+        "0.1",
+        "--out",
+        second.to_str().unwrap(),
+    ]);
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+    assert!(
+        err.contains(&format!("bus {bus} is in use by pid")),
+        "{err}"
+    );
+    assert!(!second.exists(), "the refused run made its folder");
+    // `clean` refuses it too.
+    let o = drivelab(&["clean", "--bus", &bus]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(stderr(&o).contains("is in use by pid"), "{}", stderr(&o));
+    // The first drive did not notice: every sample, no fault, exit 0.
+    let o = wait(first, Duration::from_secs(120), "the first drive");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let s: Value = serde_json::from_slice(&read(&out.join("summary.json"))).unwrap();
+    assert_eq!(s["samples"], s["samples_expected"]);
+    assert_eq!(s["samples_missing"], 0);
+    assert_eq!(s["supervisor_events"].as_array().map(Vec::len), Some(0));
+    assert_clean(&bus);
+}
+
+#[test]
+fn a_bus_folder_that_is_a_symbolic_link_is_refused_and_its_target_kept() {
+    let dir = scratch("symlink");
+    let bus = bus_id("symlink");
+    let target = dir.join("precious");
+    std::fs::create_dir_all(&target).unwrap();
+    std::fs::write(target.join("keep.txt"), "keep").unwrap();
+    let root = drivelab_runtime::bus::root_path(&bus);
+    let link = root.trim_end_matches('/');
+    std::fs::create_dir_all(std::path::Path::new(link).parent().unwrap()).unwrap();
+    let _ = std::fs::remove_file(link);
+    std::os::unix::fs::symlink(&target, link).unwrap();
+    let out = dir.join("run");
+    let runs = [
+        vec!["clean", "--bus", &bus],
+        vec![
+            "run",
+            "--bus",
+            &bus,
+            "--clock",
+            "lockstep",
+            "--duration",
+            "0.02",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+    ];
+    let mut errors = Vec::new();
+    for args in &runs {
+        let o = drivelab(args);
+        errors.push(stderr(&o));
+        assert_eq!(o.status.code(), Some(1), "{args:?}: {}", stderr(&o));
+    }
+    // Remove the link before asserting, so that a failure leaves nothing behind.
+    std::fs::remove_file(link).unwrap();
+    for e in &errors {
+        assert_eq!(e.trim().lines().count(), 1, "{e}");
+        assert!(e.contains("is a symbolic link"), "{e}");
+    }
+    assert!(
+        target.join("keep.txt").is_file(),
+        "the link's target was emptied"
+    );
+    assert_clean(&bus);
+}
+
+#[test]
+fn a_run_folder_lets_iceoryx2_tools_list_the_drives_services() {
+    use iceoryx2::prelude::*;
+    let _one = serial();
+    let dir = scratch("iox2cfg");
+    let bus = bus_id("iox2cfg");
+    let out = dir.join("run");
+    let drive = start_drive(&bus, &out, &["--clock", "lockstep", "--duration", "60"]);
+    wait_for_services(&bus);
+    let file = out.join("config/iceoryx2.toml");
+    let printed = drivelab(&["bus-config", "--bus", &bus]);
+    assert!(printed.status.success());
+    assert_eq!(
+        printed.stdout,
+        read(&file),
+        "bus-config differs from the run's file"
+    );
+    // iceoryx2's own loader, as `iox2` uses it, and its own service listing.
+    let cfg = iceoryx2::config::Config::from_file(
+        &iceoryx2::prelude::FilePath::new(file.to_str().unwrap().as_bytes()).unwrap(),
+    )
+    .expect("iceoryx2 reads the file");
+    let mut names = Vec::new();
+    ipc::Service::list(&cfg, |s| {
+        names.push(s.static_details.name().to_string());
+        CallbackProgression::Continue
+    })
+    .unwrap();
+    // With the default configuration (another prefix and root) the running drive is
+    // invisible: the file is what makes it visible.
+    let mut default_names = Vec::new();
+    ipc::Service::list(&iceoryx2::config::Config::default(), |s| {
+        default_names.push(s.static_details.name().to_string());
+        CallbackProgression::Continue
+    })
+    .unwrap();
+    // Stop the drive before asserting, so that a failure leaves nothing running.
+    let pid = drive.id().to_string();
+    let _ = std::process::Command::new("kill")
+        .args(["-INT", &pid])
+        .status();
+    let _ = wait(drive, Duration::from_secs(60), "the drive");
+    assert_clean(&bus);
+    for topic in [
+        "drivelab/meas",
+        "drivelab/est",
+        "drivelab/iref",
+        "drivelab/cmd",
+    ] {
+        assert!(names.iter().any(|n| n == topic), "{topic} not in {names:?}");
+    }
+    assert!(!default_names.iter().any(|n| n == "drivelab/meas"));
+}
