@@ -8,6 +8,16 @@ use common::*;
 use serde_json::Value;
 use std::time::Duration;
 
+/// The pid that `drivelab fault` named as its own in the supervisor's answer.
+fn o_pid(o: &std::process::Output) -> u32 {
+    let e = stderr(o);
+    let at = e.find("monitor pid ").expect("a pid in the answer") + "monitor pid ".len();
+    e[at..]
+        .trim_end_matches(|c: char| !c.is_ascii_digit())
+        .parse()
+        .unwrap()
+}
+
 fn stderr(o: &std::process::Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
@@ -150,4 +160,66 @@ fn a_run_folder_lets_iceoryx2_tools_list_the_drives_services() {
         assert!(names.iter().any(|n| n == topic), "{topic} not in {names:?}");
     }
     assert!(!default_names.iter().any(|n| n == "drivelab/meas"));
+}
+
+#[test]
+fn drivelab_fault_goes_through_the_supervisor_and_cannot_hit_an_impostor() {
+    let _one = serial();
+    let dir = scratch("impostor");
+    let bus = bus_id("impostor");
+    let out = dir.join("run");
+    let drive = start_drive(&bus, &out, &["--duration", "3"]);
+    wait_for_progress(&bus, 1000);
+    // A process that looks like the observer's host to anyone reading command lines.
+    let mut impostor = std::process::Command::new("python3")
+        .args(["-c", "import time; time.sleep(60)"])
+        .args([
+            "--bus",
+            &bus,
+            "--process",
+            "observer",
+            "--hosts",
+            "observer",
+        ])
+        .spawn()
+        .expect("python3");
+    // Bad requests fail before anything is sent.
+    for (args, says) in [
+        (
+            vec!["stop", "observer", "--duration", "1e20"],
+            "a stop lasts 0.001 to 60 s",
+        ),
+        (
+            vec!["stop", "observer", "--duration", "NaN"],
+            "a stop lasts 0.001 to 60 s",
+        ),
+        (vec!["kill", "pump"], "no stage 'pump' in the drive"),
+    ] {
+        let mut a = vec!["fault"];
+        a.extend(args.iter().copied());
+        a.extend(["--bus", &bus]);
+        let o = drivelab(&a);
+        assert_eq!(o.status.code(), Some(1), "{a:?}: {}", stderr(&o));
+        assert_eq!(stderr(&o).trim().lines().count(), 1, "{}", stderr(&o));
+        assert!(stderr(&o).contains(says), "{a:?}: {}", stderr(&o));
+    }
+    let o = drivelab(&["fault", "kill", "observer", "--bus", &bus]);
+    let alive = impostor.try_wait().unwrap().is_none();
+    let _ = impostor.kill();
+    let _ = impostor.wait();
+    let d = wait(drive, Duration::from_secs(60), "the drive");
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("inject observer: kill (from monitor pid"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(alive, "the impostor was signalled");
+    assert!(d.status.success(), "{}", stderr(&d));
+    assert_clean(&bus);
+    // The drive's own report has the fault: its supervisor did it.
+    let s: Value = serde_json::from_slice(&read(&out.join("summary.json"))).unwrap();
+    let f = &s["faults"][0];
+    assert_eq!(f["service"], "observer");
+    assert_eq!(f["fault"], format!("kill (from monitor pid {})", o_pid(&o)));
 }

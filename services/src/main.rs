@@ -92,7 +92,9 @@ enum Cmd {
     ///   drivelab campaign campaigns/thorough.toml --no-rt
     #[command(verbatim_doc_comment)]
     Campaign(drivelab_services::campaign::CampaignArgs),
-    /// Inject a fault into a drive that is already running (found by its bus id).
+    /// Inject a fault into a drive that is already running (found by its bus id). The
+    /// request goes to the drive's supervisor, which signals its own child process; the
+    /// answer is printed (real-time drives only).
     ///
     /// Examples:
     ///   drivelab fault kill current-loop --bus 4242
@@ -108,7 +110,7 @@ enum Cmd {
         /// Bus id of the running drive (printed by `drivelab run`, also in summary.json).
         #[arg(long)]
         bus: String,
-        /// For stop: seconds before SIGCONT.
+        /// For stop: seconds before SIGCONT (0.001 to 60).
         #[arg(long, default_value_t = 0.05, value_name = "SECONDS")]
         duration: f64,
     },
@@ -574,47 +576,18 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             duration,
         } => {
             drivelab_runtime::bus::check_bus_id(&bus)?;
-            let spec = drivelab_services::faults::parse(&format!(
-                "{kind}:{service}@0{}",
-                if kind == "stop" {
-                    format!(":{duration}")
-                } else {
-                    String::new()
-                }
-            ))?;
-            let drivelab_services::faults::FaultSpec::One(f) = spec else {
-                unreachable!("kill/stop parse to one fault")
-            };
-            let procs = drivelab_services::faults::find_services(&bus);
-            let Some((_, pname, pid)) = procs.iter().find(|(s, _, _)| *s == f.service).cloned()
-            else {
-                anyhow::bail!(
-                    "no running stage {} on bus {bus} (running: {})",
-                    f.service,
-                    if procs.is_empty() {
-                        "none".to_string()
-                    } else {
-                        procs
-                            .iter()
-                            .map(|(s, p, pid)| format!("{s} in {p} {pid}"))
-                            .collect::<Vec<_>>()
-                            .join(", ")
-                    }
-                );
-            };
-            // A stage's fault hits the whole process that hosts it.
-            if kind == "kill" {
-                drivelab_services::faults::signal(pid, libc::SIGKILL)?;
-                eprintln!("killed {} (process {pname}, pid {pid})", f.service);
-            } else {
-                drivelab_services::faults::signal(pid, libc::SIGSTOP)?;
-                std::thread::sleep(std::time::Duration::from_secs_f64(duration));
-                drivelab_services::faults::signal(pid, libc::SIGCONT)?;
-                eprintln!(
-                    "stopped {} (process {pname}, pid {pid}) for {duration} s",
-                    f.service
-                );
+            // Bounded before anything is sent, as in the monitor.
+            if !(duration.is_finite() && (0.001..=60.0).contains(&duration)) {
+                anyhow::bail!("--duration {duration}: a stop lasts 0.001 to 60 s");
             }
+            let kind = if kind == "kill" {
+                drivelab_runtime::telemetry::FAULT_KILL
+            } else {
+                drivelab_runtime::telemetry::FAULT_STOP
+            };
+            let stop_ms = (duration * 1000.0).round() as u32;
+            let done = drivelab_services::monitor::request_fault(&bus, kind, &service, stop_ms)?;
+            eprintln!("supervisor: {done}");
             Ok(())
         }
         Cmd::BusInject { bus, kind, count } => {

@@ -72,6 +72,69 @@ fn attach(bus: &str) -> Result<Attached> {
         .with_context(|| format!("cannot attach to the drive on bus '{bus}' (did it just end?)"))
 }
 
+/// `drivelab fault`: asks the supervisor of the drive on `bus` to kill or freeze (for
+/// `stop_ms`) the process of `stage`, as the monitor's `k` and `s` do, and waits for its
+/// answer. The supervisor signals its own child, so no other process can be hit, whatever
+/// its name or pid. Returns the supervisor's event text.
+pub fn request_fault(bus: &str, kind: u32, stage: &str, stop_ms: u32) -> Result<String> {
+    if kind == FAULT_STOP && !(1..=60_000).contains(&stop_ms) {
+        bail!("a stop lasts 1 ms to 60 s, not {stop_ms} ms");
+    }
+    let a = attach(bus)?;
+    let t = Instant::now();
+    let answer_within = Duration::from_secs(3);
+    // The drive's view names its stages; the event history tells which events are old.
+    let mut view = None;
+    let mut last_seq = None;
+    while t.elapsed() < Duration::from_millis(300) || view.is_none() {
+        while let Some(v) = a.view_rx.try_recv()? {
+            view = Some(v);
+        }
+        while let Some(e) = a.events_rx.try_recv()? {
+            last_seq = Some(e.seq);
+        }
+        if t.elapsed() > answer_within {
+            bail!("the drive on bus '{bus}' publishes no view (did it just end?)");
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let view = view.expect("loop ends with a view");
+    let stages: Vec<&str> = (0..view.stages()).map(|i| view.stage_name(i)).collect();
+    let Some(i) = stages.iter().position(|s| *s == stage) else {
+        bail!(
+            "no stage '{stage}' in the drive on bus '{bus}' (its stages: {})",
+            stages.join(", ")
+        );
+    };
+    let me = std::process::id();
+    a.req_tx.send(&FaultRequest {
+        kind,
+        service: i as u32,
+        stop_ms,
+        pid: me,
+    })?;
+    let mine = format!("(from monitor pid {me})");
+    let t = Instant::now();
+    while t.elapsed() < answer_within {
+        while let Some(e) = a.events_rx.try_recv()? {
+            if last_seq.is_some_and(|s| e.seq <= s) {
+                continue;
+            }
+            let text = e.text();
+            if text.starts_with("inject ") && text.contains(&mine) {
+                return Ok(text.to_string());
+            }
+            if text.starts_with("inject-refused")
+                || text.starts_with(&format!("inject-skipped {stage}:"))
+            {
+                bail!("the supervisor did not inject it: {text}");
+            }
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    bail!("the supervisor of bus '{bus}' did not answer within {answer_within:?}")
+}
+
 /// One line of a chart: label, colour, (t, value) points.
 type Series<'a> = (&'a str, Color, Vec<(f64, f64)>);
 

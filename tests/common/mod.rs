@@ -169,6 +169,12 @@ pub fn wait_for_progress(bus: &str, k: u64) {
             "watchdog: the drive on {bus} did not reach sample {k} within 60 s"
         )
     };
+    // The launcher refuses a bus with a live node on it: join only once it has started its
+    // first stage host, past that check.
+    while processes_on_bus(bus).len() < 2 {
+        watchdog();
+        std::thread::sleep(Duration::from_millis(20));
+    }
     let node = drivelab_runtime::bus::node(bus, "test").unwrap();
     let view = loop {
         // The topic exists once the supervisor's hub is up.
