@@ -53,9 +53,26 @@ pub fn resolve_motor(spec: &str) -> Result<MotorParams> {
     ms.resolve().map_err(|e| anyhow!("{spec}: {e}"))
 }
 
+/// Most RK4 steps one replay may take (about a minute of computing).
+pub const MAX_STEPS: u64 = 1_000_000_000;
+
 /// Integrates the model through the input rows; each row's inputs are held from its t on.
 /// Output rows are the state at each input row's time, before that row's input acts.
 pub fn replay(input: &Path, output: &Path, m: &MotorParams, max_step_s: f64) -> Result<usize> {
+    replay_within(input, output, m, max_step_s, MAX_STEPS)
+}
+
+/// [`replay`], refusing an input that needs more than `max_steps` RK4 steps.
+fn replay_within(
+    input: &Path,
+    output: &Path,
+    m: &MotorParams,
+    max_step_s: f64,
+    max_steps: u64,
+) -> Result<usize> {
+    if !(max_step_s.is_finite() && max_step_s > 0.0) {
+        bail!("the largest step must be a positive number of seconds, got {max_step_s}");
+    }
     let mut rd = csv::Reader::from_path(input)
         .with_context(|| format!("cannot read {}", input.display()))?;
     let mut rows = Vec::new();
@@ -89,6 +106,19 @@ pub fn replay(input: &Path, output: &Path, m: &MotorParams, max_step_s: f64) -> 
     if rows.is_empty() {
         bail!("{} has no rows", input.display());
     }
+    // Every step count is known before the first: refuse what cannot be done.
+    let mut total = 0f64;
+    for w in rows.windows(2) {
+        total += ((w[1].t - w[0].t) / max_step_s).ceil().max(1.0);
+    }
+    if total > max_steps as f64 {
+        bail!(
+            "{}: t from {} to {} s at steps of at most {max_step_s} s needs {total:.3e} RK4 steps, more than {max_steps}; raise --max-step or shorten the input",
+            input.display(),
+            rows[0].t,
+            rows[rows.len() - 1].t
+        );
+    }
     let mut w = csv::Writer::from_path(output)
         .with_context(|| format!("cannot write {}", output.display()))?;
     let mut x = MotorState::default();
@@ -117,4 +147,73 @@ pub fn replay(input: &Path, output: &Path, m: &MotorParams, max_step_s: f64) -> 
     }
     w.flush()?;
     Ok(rows.len())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn run(text: &str, max_step_s: f64, max_steps: u64) -> Result<usize> {
+        // One folder per call: the tests run in parallel.
+        static CALLS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let n = CALLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let dir = std::env::temp_dir().join(format!("drivelab-replay-{}-{n}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (i, o) = (dir.join("in.csv"), dir.join("out.csv"));
+        std::fs::write(&i, text).unwrap();
+        let m = MotorParams::preset("kyslan2015").unwrap();
+        let r = replay_within(&i, &o, &m, max_step_s, max_steps);
+        let _ = std::fs::remove_dir_all(&dir);
+        r
+    }
+
+    #[test]
+    fn a_replay_that_needs_too_many_steps_is_refused_before_it_starts() {
+        let e = run("t,u_d,u_q,t_load\n0,0,0,0\n1e300,1,1,0\n", 1e-5, MAX_STEPS)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("RK4 steps, more than 1000000000"), "{e}");
+        assert!(!e.contains('\n'), "{e}");
+        // Within the limit it runs: 1 s at 1 ms steps is 1000 steps.
+        assert_eq!(
+            run("t,u_d,u_q,t_load\n0,0,0,0\n1,1,1,0\n", 1e-3, 1000).unwrap(),
+            2
+        );
+        assert!(run("t,u_d,u_q,t_load\n0,0,0,0\n1,1,1,0\n", 1e-3, 999).is_err());
+        assert!(run("t,u_d,u_q,t_load\n0,0,0,0\n", 0.0, 10).is_err());
+    }
+
+    /// A CSV cell: numbers of every size, the words f64 parsing knows, and junk.
+    fn cell() -> impl Strategy<Value = String> {
+        prop_oneof![
+            any::<f64>().prop_map(|x| x.to_string()),
+            (-10.0f64..10.0).prop_map(|x| x.to_string()),
+            Just("NaN".to_string()),
+            Just("inf".to_string()),
+            Just("".to_string()),
+            "[ -~]{0,8}",
+        ]
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 256, failure_persistence: None, ..ProptestConfig::default() })]
+
+        #[test]
+        fn no_csv_input_panics_and_every_refusal_is_one_line(
+            header in prop_oneof![Just("t,u_d,u_q,t_load".to_string()), "[ -~]{0,30}"],
+            rows in prop::collection::vec(prop::collection::vec(cell(), 0..6), 0..6),
+        ) {
+            let mut text = header + "\n";
+            for r in rows {
+                text += &r.join(",");
+                text += "\n";
+            }
+            // The small step limit keeps each case short; what it refuses is checked above.
+            match run(&text, 1e-3, 100_000) {
+                Ok(n) => prop_assert!(n >= 1),
+                Err(e) => prop_assert!(!format!("{e:#}").contains('\n'), "{e:#}"),
+            }
+        }
+    }
 }

@@ -306,10 +306,15 @@ fn run_bus(
     })
 }
 
-/// Fails with a one-line error naming a process when bus `id` is in use: a process with
-/// `--bus ID` in its arguments (a drive, a monitor), or a live iceoryx2 node of the bus.
+/// Fails with a one-line error naming a process when bus `id` is in use: a drive's launcher
+/// (`drivelab run --bus ID`) or stage host, or a live iceoryx2 node of the bus (an attached
+/// monitor has one; a monitor still waiting for its drive does not count).
 pub fn refuse_busy_bus(id: &str) -> Result<()> {
-    let users = crate::faults::bus_users(id);
+    let hosts = crate::faults::find_services(id);
+    let users: Vec<(u32, String)> = crate::faults::bus_users(id)
+        .into_iter()
+        .filter(|(pid, what)| what.ends_with(" run") || hosts.iter().any(|h| h.2 == *pid))
+        .collect();
     if let Some((pid, what)) = users.first() {
         bail!(
             "bus {id} is in use by pid {pid} ({what}){}; choose another --bus or stop it first",

@@ -272,11 +272,7 @@ impl Plant {
             alpha: self.last_u_ab[0],
             beta: self.last_u_ab[1],
         };
-        let mag = (u.alpha * u.alpha + u.beta * u.beta).sqrt();
-        if mag > self.u_max {
-            u.alpha *= self.u_max / mag;
-            u.beta *= self.u_max / mag;
-        }
+        (u.alpha, u.beta) = limit_vector(u.alpha, u.beta, self.u_max);
         let t = k as f64 * self.ts;
         self.t_load = profile_at(&self.load, t);
         let theta_e = self.x.theta_e(&self.m);
@@ -291,11 +287,7 @@ impl Plant {
             let mut ud = m.r_ohm * x.i_d - omega_e * m.l_q_h * x.i_q - m.l_d_h * x.i_d / ts;
             let mut uq =
                 m.r_ohm * x.i_q + omega_e * (m.l_d_h * x.i_d + m.psi_pm_wb) - m.l_q_h * x.i_q / ts;
-            let mag = (ud * ud + uq * uq).sqrt();
-            if mag > self.u_max {
-                ud *= self.u_max / mag;
-                uq *= self.u_max / mag;
-            }
+            (ud, uq) = limit_vector(ud, uq, self.u_max);
             self.u_dq_applied = Dq { d: ud, q: uq };
             self.last_u_ab = [0.0; 2];
             u = inverse_park(self.u_dq_applied, theta_e + 0.5 * omega_e * self.ts);
@@ -551,9 +543,34 @@ enum CurrentLaw {
     Polar(drivelab_control::control::polar::PolarCurrentController),
 }
 
+/// (a, b) scaled to length `max` when it is longer. Its length is √(a² + b²) as long as
+/// the squares are finite, and `hypot` (which cannot overflow) beyond, so that a huge vector
+/// is limited instead of becoming zero or NaN.
+pub fn limit_vector(a: f64, b: f64, max: f64) -> (f64, f64) {
+    let sq = a * a + b * b;
+    let mag = if sq.is_finite() {
+        sq.sqrt()
+    } else {
+        a.hypot(b)
+    };
+    if mag > max {
+        (a * (max / mag), b * (max / mag))
+    } else {
+        (a, b)
+    }
+}
+
 /// Current-loop service step.
 #[derive(Debug, Clone)]
 pub struct CurrentLoopStep {
+    /// Limit of each current reference taken from the bus, A: the largest of the i_q* limit,
+    /// the motor's rated current and the scenario's own reference steps.
+    i_ref_max: f64,
+    /// Voltage-vector limit, V.
+    u_max: f64,
+    /// Commands replaced by the zero vector because the law's output was not finite (its
+    /// inputs were absurd though finite).
+    pub zeroed_commands: u64,
     law: CurrentLaw,
     pole_pairs: f64,
     ts: f64,
@@ -595,7 +612,17 @@ impl CurrentLoopStep {
                 sc.current_loop.decoupling,
             ))
         };
+        let i_ref_max = sc
+            .reference
+            .i_d_a
+            .iter()
+            .chain(&sc.reference.i_q_a)
+            .map(|s| s.value.abs())
+            .fold(sc.i_q_max().max(m.i_max_a), f64::max);
         Self {
+            i_ref_max,
+            u_max: sc.u_max(),
+            zeroed_commands: 0,
             law,
             pole_pairs: m.p(),
             ts: sc.rates.ts(),
@@ -647,6 +674,13 @@ impl CurrentLoopStep {
         };
         let i = park(i_ab, theta);
         let omega_e = self.pole_pairs * est.omega_m;
+        // A reference from the bus never asks for more than the drive's own limits.
+        let lim = self.i_ref_max;
+        let iref = &CurrentRef {
+            i_d_ref: iref.i_d_ref.clamp(-lim, lim),
+            i_q_ref: iref.i_q_ref.clamp(-lim, lim),
+            ..*iref
+        };
         let input = CurrentInput {
             i_d_ref: iref.i_d_ref,
             i_q_ref: iref.i_q_ref,
@@ -674,6 +708,22 @@ impl CurrentLoopStep {
         // The command acts on [t_{k+1}, t_{k+2}); the plant rotates it with the mid-sample
         // angle, so compensate 1.5 samples of rotation.
         let u_ab = inverse_park(Dq { d: u.u_d, q: u.u_q }, theta + 1.5 * omega_e * self.ts);
+        // The laws limit |u| themselves; this catches what absurd (finite) inputs make of
+        // them: a longer vector is limited, a non-finite one becomes the zero vector.
+        let (a, b) = limit_vector(u_ab.alpha, u_ab.beta, self.u_max * (1.0 + 1e-12));
+        let (u_ab, u) = if a.is_finite() && b.is_finite() {
+            (AlphaBeta { alpha: a, beta: b }, u)
+        } else {
+            self.zeroed_commands += 1;
+            (
+                AlphaBeta::default(),
+                VoltageDq {
+                    u_d: 0.0,
+                    u_q: 0.0,
+                    saturated: true,
+                },
+            )
+        };
         VoltageCommand {
             hdr: Header {
                 k: meas.hdr.k,

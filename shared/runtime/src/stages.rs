@@ -287,14 +287,18 @@ impl Stage for CurrentLoopStage {
             "iq_ramp_samples",
             "kyslan_eq15_near_singular_samples",
             "kyslan_eq15_clamped_samples",
+            "zeroed_commands",
         ]
     }
     fn diagnostics(&self, v: &mut [u64]) {
         let (near, clamped) = self.ctrl.singularity_counts();
-        for (d, s) in v
-            .iter_mut()
-            .zip([self.fallback_samples, self.ramp_samples, near, clamped])
-        {
+        for (d, s) in v.iter_mut().zip([
+            self.fallback_samples,
+            self.ramp_samples,
+            near,
+            clamped,
+            self.ctrl.zeroed_commands,
+        ]) {
             *d = s;
         }
     }
