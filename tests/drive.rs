@@ -276,6 +276,35 @@ fn sigterm_stops_the_whole_drive_and_cleans_up() {
     assert_eq!(status.code(), Some(1), "{err}");
     assert!(err.contains("interrupted"), "{err}");
     assert_clean(&bus);
+    // Nothing recorded is lost: the trace and the summary are written, the failure is in
+    // the summary, and every sample of the run is either in the trace or listed as missing
+    // with the reason.
+    let s: serde_json::Value = serde_json::from_slice(&read(&out.join("summary.json"))).unwrap();
+    assert!(
+        s["failure"].as_str().unwrap().contains("interrupted"),
+        "{}",
+        s["failure"]
+    );
+    let rows = std::fs::read_to_string(out.join("trace.csv"))
+        .unwrap()
+        .lines()
+        .count()
+        - 1;
+    assert_eq!(s["samples"].as_u64(), Some(rows as u64));
+    assert!(rows > 0 && (rows as u64) < 300_000, "{rows} rows");
+    let gaps = s["missing_samples"].as_array().unwrap();
+    let last = gaps
+        .last()
+        .expect("the samples after SIGTERM are listed as missing");
+    assert_eq!(last["to"], 299_999);
+    assert_eq!(last["from"].as_u64(), Some(rows as u64));
+    assert!(
+        last["cause"]
+            .as_str()
+            .unwrap()
+            .starts_with("the run ended early: interrupted"),
+        "{last}"
+    );
 }
 
 #[test]

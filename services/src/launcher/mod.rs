@@ -133,6 +133,9 @@ struct BusRun {
     info: serde_json::Value,
     /// The supervisor's log.
     events: Vec<SupEvent>,
+    /// Why the run ended early (a failed service, Ctrl-C), if it did: what was recorded up
+    /// to then is still written, then the run fails.
+    failure: Option<String>,
 }
 
 /// Runs the topology's processes on a bus and returns the recorder's data, the process info
@@ -263,10 +266,13 @@ fn run_bus(
         .join()
         .map_err(|_| anyhow!("recorder thread panicked"))?;
     bus::cleanup(&bus_id)?;
-    if let Some(f) = failure {
-        bail!(f);
-    }
-    let rec = rec?;
+    // Whatever ended the run, what the recorder holds is written (the failure goes into the
+    // summary and the exit code); only a recorder that failed itself has nothing to give.
+    let rec = match (rec, &failure) {
+        (Ok(r), _) => r,
+        (Err(e), Some(f)) => bail!("{f}; and the recorder failed: {e:#}"),
+        (Err(e), None) => return Err(e),
+    };
     let left = bus::leftovers(&bus_id);
     if !left.is_empty() {
         bail!("bus files left behind: {}", left.join(", "));
@@ -303,6 +309,7 @@ fn run_bus(
         processes: serde_json::Value::Object(processes),
         info,
         events,
+        failure,
     })
 }
 
@@ -504,6 +511,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         processes,
         info,
         events,
+        failure,
     } = match o.clock {
         Clock::Inprocess => {
             if let Some(p) = topo.processes.iter().find(|p| p.exec.is_some()) {
@@ -519,6 +527,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
                 processes: json!({}),
                 info: json!({ "deadline_misses": 0 }),
                 events: Vec::new(),
+                failure: None,
             }
         }
         Clock::Lockstep => run_bus(&sc, &sc_path, &topo, &plan, o, &out, BusClock::Lockstep)?,
@@ -528,6 +537,12 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     let (faults, windows) = fault_reports(&sc, &rows, &events);
     let mut gaps = gaps;
     recorder::attribute_gaps(&mut gaps, &faults, sc.rates.sample_hz);
+    if let Some(f) = &failure {
+        // The samples after the recording stopped were never produced: say why.
+        for g in gaps.iter_mut().filter(|g| g.to + 1 == sc.samples()) {
+            g.cause = format!("the run ended early: {f}");
+        }
+    }
     drivelab_runtime::trace::write_csv(&out.join("trace.csv"), &rows)?;
     let metrics = speed_metrics(&sc, &rows);
     let design = DriveDesign::from_scenario(&sc);
@@ -585,6 +600,11 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     if let Some(b) = info.get("bus") {
         summary["bus"] = b.clone();
     }
+    if let Some(r) = info.get("recorder_rejected") {
+        // Messages the recorder could not place (an index beyond the run's samples).
+        summary["recorder_rejected"] = r.clone();
+    }
+    summary["failure"] = json!(failure);
     let (latency, curves) = collect_histograms(&out)?;
     if !latency.is_empty() {
         summary["latency_us"] = serde_json::to_value(&latency)?;
@@ -638,6 +658,14 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         out.join("summary.json"),
         serde_json::to_vec_pretty(&summary)?,
     )?;
+    if let Some(f) = failure {
+        bail!(
+            "{f} (what was recorded is in {}: {} of {} samples)",
+            out.display(),
+            rows.len(),
+            sc.samples()
+        );
+    }
     Ok(RunResult { out, summary })
 }
 
