@@ -392,7 +392,11 @@ fn killing_every_child_stops_the_drive_and_cleans_up() {
     assert_clean(&bus);
     // What was recorded before the drive died is written, with the failure.
     let s = summary(&out);
-    assert!(s["failure"].as_str().unwrap().contains("failed"), "{}", s["failure"]);
+    assert!(
+        s["failure"].as_str().unwrap().contains("failed"),
+        "{}",
+        s["failure"]
+    );
     assert!(s["samples"].as_u64().unwrap() > 0);
     assert!(out.join("trace.csv").is_file());
 }

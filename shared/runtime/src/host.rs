@@ -964,6 +964,12 @@ impl<T: Transport> Host<T> {
                 got = true;
                 last_input = Instant::now();
                 let hdr = *m.hdr();
+                // An end marker counts only at the run's last sample (the source sends it
+                // there): a forged one cannot stop the drive.
+                if hdr.is_end() && hdr.k < self.cfg.samples {
+                    self.stages[0].counters.rejected_inputs += 1;
+                    continue;
+                }
                 if hdr.is_warmup() || hdr.is_end() {
                     self.forward_marker(0, hdr)?;
                     if hdr.is_end() {
@@ -1139,6 +1145,11 @@ mod tests {
         fn wait(&mut self, _topic: TopicId, _timeout: Duration) -> Result<()> {
             self.waits += 1;
             let n = self.waits;
+            // Watchdog against hangs: a host that never stops fails the test instead.
+            assert!(
+                n < 100_000,
+                "the host is still waiting after the script ended"
+            );
             for (w, m) in self.on_wait.iter().filter(|(w, _)| *w == n) {
                 let _ = w;
                 self.queues[m.topic().index()].push_back(*m);
@@ -1179,6 +1190,30 @@ mod tests {
     }
 
     #[test]
+    fn an_end_marker_before_the_last_sample_is_rejected_and_the_stage_goes_on() {
+        let sc = scenario();
+        let mut tr = Script::default();
+        tr.queues[TopicId::Meas.index()].push_back(meas(0, 0.0));
+        // Forged: the run (config) has 100 samples, the source ends at sample 100.
+        tr.on_wait.push((2, end(TopicId::Meas, 1)));
+        tr.on_wait.push((3, meas(1, 0.01)));
+        tr.on_wait.push((4, end(TopicId::Meas, 100)));
+        let stages: Vec<Box<dyn Stage>> = vec![Box::new(ObserverStage::new(&sc))];
+        let producers = [(TopicId::Meas, 1, false), (TopicId::Est, 1, true)];
+        let mut host = Host::new(stages, &producers, tr, config(&sc));
+        host.run().unwrap();
+        let sent: Vec<(u64, bool)> = host
+            .transport
+            .sent
+            .iter()
+            .filter(|m| m.topic() == TopicId::Est)
+            .map(|m| (m.hdr().k, m.hdr().is_end()))
+            .collect();
+        assert_eq!(sent, vec![(0, false), (1, false), (100, true)]);
+        assert_eq!(host.stages[0].counters.rejected_inputs, 1);
+    }
+
+    #[test]
     fn a_stage_that_fell_behind_publishes_only_the_newest_but_its_filter_sees_every_sample() {
         let sc = scenario();
         let mut tr = Script::default();
@@ -1186,7 +1221,7 @@ mod tests {
             tr.queues[TopicId::Meas.index()].push_back(meas(k, 0.01 * k as f64));
         }
         // The end comes later (a pending END would also count as "a newer message waits").
-        tr.on_wait.push((2, end(TopicId::Meas, 5)));
+        tr.on_wait.push((2, end(TopicId::Meas, 100)));
         let stages: Vec<Box<dyn Stage>> = vec![Box::new(ObserverStage::new(&sc))];
         let producers = [(TopicId::Meas, 1, false), (TopicId::Est, 1, true)];
         let mut host = Host::new(stages, &producers, tr, config(&sc));
@@ -1243,7 +1278,7 @@ mod tests {
         for k in 0..6 {
             tr.queues[TopicId::Meas.index()].push_back(meas(k, 0.2));
         }
-        tr.on_wait.push((4, end(TopicId::Est, 6)));
+        tr.on_wait.push((4, end(TopicId::Est, 100)));
         let stages: Vec<Box<dyn Stage>> = vec![Box::new(CurrentLoopStage::new(&sc))];
         let producers = [
             (TopicId::Meas, 1, false),
