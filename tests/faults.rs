@@ -527,3 +527,41 @@ fn a_sigkilled_launchers_services_die_with_it_and_clean_removes_their_files() {
     let o = drivelab(&["clean", "--bus", &bus]);
     assert!(String::from_utf8_lossy(&o.stdout).contains("nothing to remove"));
 }
+
+#[test]
+fn in_lockstep_a_service_that_dies_without_a_fault_ends_the_run_with_one_line() {
+    let _serial = serial();
+    let dir = scratch("lsdead");
+    let bus = bus_id("lsdead");
+    let out = dir.join("run");
+    let child = start_drive(&bus, &out, &["--clock", "lockstep", "--duration", "600"]);
+    wait_for_progress(&bus, 1000);
+    // A crash, not an injected fault: SIGKILL from outside the supervisor.
+    let observer = processes_on_bus(&bus)
+        .into_iter()
+        .find(|l| l.contains(" --process observer "))
+        .expect("the observer's process");
+    let pid: i32 = observer.split(' ').next().unwrap().parse().unwrap();
+    // SAFETY: SIGKILL to a process of this test's own drive.
+    unsafe { libc::kill(pid, libc::SIGKILL) };
+    let o = wait(child, Duration::from_secs(60), "the lockstep drive");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    let errors: Vec<&str> = err.lines().filter(|l| l.contains("error")).collect();
+    assert_eq!(errors.len(), 1, "{err}");
+    assert!(errors[0].contains("process observer failed"), "{err}");
+    assert_clean(&bus);
+    // No restart was tried, and what was recorded is written.
+    let s = summary(&out);
+    let restarts = s["supervisor_events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["event"] == "restarted")
+        .count();
+    assert_eq!(restarts, 0, "{}", s["supervisor_events"]);
+    assert!(s["failure"]
+        .as_str()
+        .unwrap()
+        .contains("process observer failed"));
+}

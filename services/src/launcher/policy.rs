@@ -6,23 +6,25 @@ use std::time::{Duration, Instant};
 
 /// Restarts of one process after which the supervisor gives up on it.
 pub const MAX_RESTARTS: u32 = 1000;
-/// The first back-off; it doubles per restart in quick succession.
-pub const BACKOFF_MIN: Duration = Duration::from_millis(10);
+/// A process restarted more than [`CRASH_LOOP_RESTARTS`] times within this window is in a
+/// crash loop; until then a dead process is restarted at once.
+pub const CRASH_LOOP_WINDOW: Duration = Duration::from_secs(10);
+/// Restarts within [`CRASH_LOOP_WINDOW`] that a process may have without a back-off.
+pub const CRASH_LOOP_RESTARTS: usize = 5;
+/// The first back-off of a crash loop; it doubles per further restart in the loop.
+pub const BACKOFF_MIN: Duration = Duration::from_millis(100);
 /// The longest back-off.
 pub const BACKOFF_MAX: Duration = Duration::from_millis(1000);
-/// Time from a restart after which a failure counts as a first one again (back-off reset);
-/// the reset needs strictly more than this.
-pub const HEALTHY_AFTER: Duration = Duration::from_secs(2);
 
 /// What the policy knows of one child.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct History {
     /// Restarts so far.
     pub restarts: u32,
-    /// Back-off level of the next restart: the back-off is `BACKOFF_MIN · 2^level`, capped.
-    pub backoff_level: u32,
-    /// When it was last restarted.
-    pub last_restart: Option<Instant>,
+    /// The last [`CRASH_LOOP_RESTARTS`] restarts, newest first.
+    pub recent: [Option<Instant>; CRASH_LOOP_RESTARTS],
+    /// Restarts in the present crash loop beyond the first (0 outside a loop).
+    pub loop_depth: u32,
 }
 
 /// The policy's answer to a failure (an exit other than success).
@@ -45,21 +47,26 @@ pub struct Policy {
     pub restart: Restart,
     /// Restarts of one process at the most.
     pub max_restarts: u32,
+    /// A lockstep drive: a process that dies without an injected fault ends the run (it
+    /// would die again at the same sample: a lockstep run is deterministic).
+    pub lockstep: bool,
 }
 
 impl Policy {
     /// The policy of `--restart restart`, with [`MAX_RESTARTS`].
-    pub fn new(restart: Restart) -> Self {
+    pub fn new(restart: Restart, lockstep: bool) -> Self {
         Self {
             restart,
             max_restarts: MAX_RESTARTS,
+            lockstep,
         }
     }
 
     /// Decides on a failure of a child with history `h` at `now`; `injected` when a fault was
-    /// ever injected into it, `source` when it hosts the plant. A restart raises the history's
-    /// back-off level (after resetting it when the last restart is more than
-    /// [`HEALTHY_AFTER`] ago).
+    /// ever injected into it, `source` when it hosts the plant. A process is restarted at
+    /// once, unless it is in a crash loop (more than [`CRASH_LOOP_RESTARTS`] restarts within
+    /// [`CRASH_LOOP_WINDOW`]): then after a back-off of [`BACKOFF_MIN`], doubled per further
+    /// restart in the loop, up to [`BACKOFF_MAX`].
     pub fn on_failure(
         &self,
         h: &mut History,
@@ -67,6 +74,9 @@ impl Policy {
         source: bool,
         now: Instant,
     ) -> Decision {
+        if self.lockstep && !injected {
+            return Decision::FailRun;
+        }
         if self.restart == Restart::Never || h.restarts >= self.max_restarts {
             return if !injected {
                 Decision::FailRun
@@ -76,15 +86,16 @@ impl Policy {
                 Decision::GiveUp
             };
         }
-        if h.last_restart
-            .is_some_and(|t| now.duration_since(t) > HEALTHY_AFTER)
-        {
-            h.backoff_level = 0;
+        let crash_loop = h.recent[CRASH_LOOP_RESTARTS - 1]
+            .is_some_and(|t| now.duration_since(t) <= CRASH_LOOP_WINDOW);
+        if !crash_loop {
+            h.loop_depth = 0;
+            return Decision::RestartAt(now);
         }
         let backoff = BACKOFF_MIN
-            .saturating_mul(1 << h.backoff_level.min(7))
+            .saturating_mul(1 << h.loop_depth.min(7))
             .min(BACKOFF_MAX);
-        h.backoff_level += 1;
+        h.loop_depth += 1;
         Decision::RestartAt(now + backoff)
     }
 }
@@ -93,7 +104,8 @@ impl History {
     /// Records a restart at `now`.
     pub fn restarted(&mut self, now: Instant) {
         self.restarts += 1;
-        self.last_restart = Some(now);
+        self.recent.rotate_right(1);
+        self.recent[0] = Some(now);
     }
 }
 
@@ -123,47 +135,50 @@ mod tests {
     }
 
     #[test]
-    fn the_back_off_doubles_per_quick_repeat_up_to_one_second() {
-        let p = Policy::new(Restart::OnFailure);
+    fn a_dead_process_restarts_at_once_until_a_crash_loop_then_backs_off_up_to_one_second() {
+        let p = Policy::new(Restart::OnFailure, false);
         let (mut h, mut t) = (History::default(), Instant::now());
+        // Five restarts in quick succession are no loop yet; the sixth within 10 s is.
         assert_eq!(
-            backoffs(&p, &mut h, &mut t, 10, ms(5)),
-            [10, 20, 40, 80, 160, 320, 640, 1000, 1000, 1000]
+            backoffs(&p, &mut h, &mut t, 11, ms(5)),
+            [0, 0, 0, 0, 0, 100, 200, 400, 800, 1000, 1000]
         );
-        assert_eq!(h.restarts, 10);
+        assert_eq!(h.restarts, 11);
         // Uninjected failures are restarted the same way.
         let mut h = History::default();
-        assert_eq!(
-            p.on_failure(&mut h, false, true, t),
-            Decision::RestartAt(t + ms(10))
-        );
+        assert_eq!(p.on_failure(&mut h, false, true, t), Decision::RestartAt(t));
     }
 
     #[test]
-    fn the_back_off_resets_after_more_than_two_seconds_of_good_health() {
-        let p = Policy::new(Restart::OnFailure);
+    fn the_loop_ends_when_the_fifth_last_restart_is_more_than_ten_seconds_old() {
+        let p = Policy::new(Restart::OnFailure, false);
         let (mut h, mut t) = (History::default(), Instant::now());
-        assert_eq!(backoffs(&p, &mut h, &mut t, 3, ms(1)), [10, 20, 40]);
-        // Exactly 2 s after the last restart: still a quick repeat.
-        assert_eq!(backoffs(&p, &mut h, &mut t, 1, HEALTHY_AFTER), [80]);
-        // Just over 2 s: a first failure again.
         assert_eq!(
-            backoffs(
-                &p,
-                &mut h,
-                &mut t,
-                2,
-                HEALTHY_AFTER + Duration::from_nanos(1)
-            ),
-            [10, 10]
+            backoffs(&p, &mut h, &mut t, 7, ms(1)),
+            [0, 0, 0, 0, 0, 100, 200]
         );
-        assert_eq!(backoffs(&p, &mut h, &mut t, 2, ms(100)), [20, 40]);
-        assert_eq!(h.restarts, 8);
+        // 10 s after the last restart the fifth-last is older than the window: at once.
+        assert_eq!(
+            backoffs(&p, &mut h, &mut t, 1, CRASH_LOOP_WINDOW + ms(1)),
+            [0]
+        );
+        // Kills 2.5 s apart (100 in 60 s of a random run) never make a loop: 5 in 10 s.
+        let (mut h, mut t) = (History::default(), Instant::now());
+        assert!(backoffs(&p, &mut h, &mut t, 20, ms(2500))
+            .iter()
+            .all(|&b| b == 0));
+        // The fifth-last restart exactly 10 s ago: still inside the window; 1 ms later: out.
+        let (mut h, mut t) = (History::default(), Instant::now());
+        backoffs(&p, &mut h, &mut t, 5, ms(2500));
+        assert_eq!(backoffs(&p, &mut h, &mut t, 1, ms(0)), [100]);
+        let (mut h, mut t) = (History::default(), Instant::now());
+        backoffs(&p, &mut h, &mut t, 5, ms(2500));
+        assert_eq!(backoffs(&p, &mut h, &mut t, 1, ms(1)), [0]);
     }
 
     #[test]
     fn never_restarts_and_only_an_injected_failure_is_not_a_failed_run() {
-        let p = Policy::new(Restart::Never);
+        let p = Policy::new(Restart::Never, false);
         let t = Instant::now();
         let mut h = History::default();
         assert_eq!(p.on_failure(&mut h, false, false, t), Decision::FailRun);
@@ -175,18 +190,30 @@ mod tests {
     }
 
     #[test]
+    fn in_lockstep_a_death_that_was_not_injected_ends_the_run() {
+        let p = Policy::new(Restart::OnFailure, true);
+        let t = Instant::now();
+        let mut h = History::default();
+        assert_eq!(p.on_failure(&mut h, false, false, t), Decision::FailRun);
+        assert_eq!(p.on_failure(&mut h, false, true, t), Decision::FailRun);
+        // An injected kill is restarted as in real time.
+        assert_eq!(p.on_failure(&mut h, true, false, t), Decision::RestartAt(t));
+    }
+
+    #[test]
     fn after_max_restarts_the_policy_is_that_of_never() {
         let p = Policy {
             restart: Restart::OnFailure,
             max_restarts: 3,
+            lockstep: false,
         };
         let (mut h, mut t) = (History::default(), Instant::now());
-        assert_eq!(backoffs(&p, &mut h, &mut t, 3, ms(1)), [10, 20, 40]);
+        assert_eq!(backoffs(&p, &mut h, &mut t, 3, ms(1)), [0, 0, 0]);
         let before = h;
         assert_eq!(p.on_failure(&mut h, true, false, t), Decision::GiveUp);
         assert_eq!(p.on_failure(&mut h, true, true, t), Decision::StopDrive);
         assert_eq!(p.on_failure(&mut h, false, false, t), Decision::FailRun);
         assert_eq!(h, before);
-        assert_eq!(Policy::new(Restart::OnFailure).max_restarts, 1000);
+        assert_eq!(Policy::new(Restart::OnFailure, false).max_restarts, 1000);
     }
 }

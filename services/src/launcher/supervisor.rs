@@ -258,7 +258,7 @@ pub(super) fn supervise(
     limit: Duration,
 ) -> Result<Option<String>> {
     let (bus_id, clock, out) = (sp.bus_id, sp.clock, sp.out);
-    let policy = Policy::new(sp.o.restart);
+    let policy = Policy::new(sp.o.restart, clock == BusClock::Lockstep);
     let fs = sc.rates.sample_hz;
     let mut next_fault = 0;
     let log = |events: &mut Vec<SupEvent>, kind: EventKind, service: &str, process: &str| {
