@@ -565,3 +565,49 @@ fn in_lockstep_a_service_that_dies_without_a_fault_ends_the_run_with_one_line() 
         .unwrap()
         .contains("process observer failed"));
 }
+
+#[test]
+fn a_passive_load_never_drives_the_motor_backwards_when_the_speed_loop_dies() {
+    let _serial = serial();
+    // Lowest speed after the speed loop died (the current loop then ramps i_q* to zero).
+    let lowest = |kind: &str| {
+        let sc = variant(
+            &format!("load-{kind}"),
+            "kyslan-pi",
+            &[("[load]", &format!("[load]\nkind = \"{kind}\""))],
+        );
+        let (out, s) = run_ok(
+            &format!("load-{kind}"),
+            &[
+                "--scenario",
+                sc.to_str().unwrap(),
+                "--duration",
+                "0.4",
+                "--fault",
+                "kill:speed-loop@0.1",
+                "--restart",
+                "never",
+            ],
+        );
+        assert_eq!(s["faults"].as_array().unwrap().len(), 1);
+        let text = std::fs::read_to_string(out.join("trace.csv")).unwrap();
+        let mut rows = csv::Reader::from_reader(text.as_bytes());
+        let h = rows.headers().unwrap().clone();
+        let (it, iw) = (
+            h.iter().position(|c| c == "t").unwrap(),
+            h.iter().position(|c| c == "omega_m").unwrap(),
+        );
+        rows.records()
+            .map(|r| r.unwrap())
+            .filter(|r| r[it].parse::<f64>().unwrap() > 0.1)
+            .map(|r| r[iw].parse::<f64>().unwrap())
+            .fold(f64::MAX, f64::min)
+    };
+    // A hoist's load (active, the default) pulls the motor backwards: -430 rad/s measured.
+    let active = lowest("active");
+    assert!(active < -100.0, "active load: lowest {active} rad/s");
+    // A conveyor's (passive) only brakes it. What is left below zero is the current loop
+    // holding i_q around zero at standstill (-0.1 rad/s measured), far from the load's pull.
+    let passive = lowest("passive");
+    assert!(passive >= -1.0, "passive load: lowest {passive} rad/s");
+}

@@ -141,6 +141,7 @@ fn replay_within(
                 u_d: r.u_d,
                 u_q: r.u_q,
                 t_load: r.t_load,
+                ..Default::default()
             };
             x = Rk4 { substeps }.advance(m, Mechanics::Inertia, &x, &u, dt);
         }

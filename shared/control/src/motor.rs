@@ -175,6 +175,40 @@ impl MotorState {
     }
 }
 
+/// How the load torque depends on speed: what the driven machine is.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub enum LoadModel {
+    /// The profile's torque whatever the speed (a hoist, a winder): it can drive the motor
+    /// backwards.
+    #[default]
+    Active,
+    /// Opposes the rotation and never drives it (friction, a conveyor): |T|·tanh(ω/ω_ε),
+    /// a sign that is smooth within about ω_ε of standstill.
+    Passive {
+        /// ω_ε, mechanical rad/s.
+        smooth_sign_rad_s: f64,
+    },
+    /// Grows with the square of the speed (a fan, a centrifugal pump): T·ω·|ω|/ω_n², the
+    /// profile's torque at ω_n.
+    Fan {
+        /// ω_n, mechanical rad/s.
+        at_rad_s: f64,
+    },
+}
+
+impl LoadModel {
+    /// The load torque, N·m, for the profile's torque `t` at speed `omega_m`.
+    pub fn torque(&self, t: f64, omega_m: f64) -> f64 {
+        match *self {
+            LoadModel::Active => t,
+            LoadModel::Passive { smooth_sign_rad_s } => {
+                t.abs() * (omega_m / smooth_sign_rad_s).tanh()
+            }
+            LoadModel::Fan { at_rad_s } => t * omega_m * omega_m.abs() / (at_rad_s * at_rad_s),
+        }
+    }
+}
+
 /// Inputs held constant over one integration interval (zero-order hold).
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct MotorInput {
@@ -182,8 +216,11 @@ pub struct MotorInput {
     pub u_d: f64,
     /// q-axis voltage, V.
     pub u_q: f64,
-    /// Load torque, N·m.
+    /// The load profile's torque, N·m.
     pub t_load: f64,
+    /// How the load torque follows the speed within the interval (evaluated at every
+    /// integration stage, so a speed-dependent load is integrated, not held).
+    pub load: LoadModel,
 }
 
 /// Time derivative of the state, Kyslan eqs (1)-(3) plus dθ_m/dt = ω_m.
@@ -197,7 +234,10 @@ pub fn derivative(m: &MotorParams, mech: Mechanics, x: &MotorState, u: &MotorInp
         (u.u_q - m.r_ohm * x.i_q - omega_e * m.l_d_h * x.i_d - omega_e * m.psi_pm_wb) / m.l_q_h;
     // (3): dω/dt = (T_e − T_L − B·ω)/J, T_e from (4)
     let domega = match mech {
-        Mechanics::Inertia => (m.torque(x.i_d, x.i_q) - u.t_load - m.b_nms * x.omega_m) / m.j_kgm2,
+        Mechanics::Inertia => {
+            (m.torque(x.i_d, x.i_q) - u.load.torque(u.t_load, x.omega_m) - m.b_nms * x.omega_m)
+                / m.j_kgm2
+        }
         Mechanics::PrescribedSpeed(_) => 0.0,
     };
     MotorState {
@@ -302,6 +342,7 @@ mod tests {
             u_d: 7.0,
             u_q: 0.0,
             t_load: 0.0,
+            ..Default::default()
         };
         let t = 2e-3;
         let x = run(
@@ -336,6 +377,7 @@ mod tests {
             u_d: -150.0,
             u_q: 160.0,
             t_load: 0.3,
+            ..Default::default()
         };
         let coarse = Rk4 { substeps: 4 }.advance(&m, Mechanics::Inertia, &x0, &u, TS);
         let fine = Rk4 { substeps: 4096 }.advance(&m, Mechanics::Inertia, &x0, &u, TS);
@@ -359,6 +401,7 @@ mod tests {
             u_d: -5.0,
             u_q: 45.0,
             t_load: 0.0,
+            ..Default::default()
         };
         let x = run(
             &m,
@@ -389,6 +432,7 @@ mod tests {
             u_d: 12.0,
             u_q: 80.0,
             t_load: 0.1,
+            ..Default::default()
         };
         let dx = derivative(&m, Mechanics::Inertia, &x, &u);
         let p_in = 1.5 * (u.u_d * x.i_d + u.u_q * x.i_q);
@@ -432,5 +476,66 @@ mod tests {
             let w = wrap_2pi(a);
             assert!((0.0..std::f64::consts::TAU).contains(&w), "{a} -> {w}");
         }
+    }
+
+    #[test]
+    fn each_load_kind_follows_its_law() {
+        let t = 0.5;
+        assert_eq!(LoadModel::Active.torque(t, -300.0), t);
+        // A fan: four times the torque at twice the speed, against the rotation either way.
+        let fan = LoadModel::Fan { at_rad_s: 100.0 };
+        assert_eq!(fan.torque(t, 100.0), t);
+        assert_eq!(fan.torque(t, 200.0), 4.0 * t);
+        assert_eq!(fan.torque(t, -200.0), -4.0 * t);
+        assert_eq!(fan.torque(t, 0.0), 0.0);
+        // Passive: the full torque against the rotation away from standstill, none at rest,
+        // and never with the rotation, whatever the profile's sign.
+        let p = LoadModel::Passive {
+            smooth_sign_rad_s: 1.0,
+        };
+        assert!((p.torque(t, 50.0) - t).abs() < 1e-12);
+        assert!((p.torque(-t, -50.0) + t).abs() < 1e-12);
+        assert_eq!(p.torque(t, 0.0), 0.0);
+        for w in [-10.0, -0.1, 0.1, 10.0f64] {
+            assert!(p.torque(-t, w) * w > 0.0, "ω {w}");
+        }
+    }
+
+    #[test]
+    fn a_passive_load_stops_a_coasting_motor_and_an_active_one_drives_it_backwards() {
+        // Kyslan's motor coasting from 100 rad/s with no magnet and no voltage: no current,
+        // no electrical torque, only the load and viscous friction act on the rotor.
+        let m = MotorParams {
+            psi_pm_wb: 0.0,
+            ..MotorParams::kyslan2015()
+        };
+        let x0 = MotorState {
+            omega_m: 100.0,
+            ..Default::default()
+        };
+        let coast = |load: LoadModel| {
+            let u = MotorInput {
+                t_load: 0.5457,
+                load,
+                ..Default::default()
+            };
+            let (mut x, mut lowest) = (x0, f64::MAX);
+            for _ in 0..5000 {
+                x = Rk4 { substeps: 4 }.advance(&m, Mechanics::Inertia, &x, &u, 1e-4);
+                lowest = lowest.min(x.omega_m);
+            }
+            (lowest, x.omega_m)
+        };
+        let (lowest, end) = coast(LoadModel::Passive {
+            smooth_sign_rad_s: 1.0,
+        });
+        // Only decelerated: never below standstill, and at rest after 0.5 s.
+        assert!(
+            lowest >= 0.0,
+            "passive load drove the motor to {lowest} rad/s"
+        );
+        assert!(end.abs() < 0.1, "{end}");
+        let (lowest, _) = coast(LoadModel::Active);
+        assert!(lowest < -100.0, "active load: lowest {lowest} rad/s");
     }
 }

@@ -608,6 +608,7 @@ mod tests {
                     u_d: ud.d,
                     u_q: ud.q,
                     t_load: 0.0,
+                    ..Default::default()
                 },
                 TS,
             );

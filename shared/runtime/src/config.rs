@@ -495,13 +495,58 @@ pub struct References {
     pub i_q_a: Vec<Step>,
 }
 
-/// Load-torque profile.
+/// Load-torque profile and what kind of machine the motor drives.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Load {
-    /// Load torque steps, N·m.
+    /// Load torque steps, N·m (for `fan`: the torque at `fan_speed_rad_s`).
     #[serde(default)]
     pub torque_nm: Vec<Step>,
+    /// How the torque follows the speed: `active` (the default: the profile's torque at any
+    /// speed, as a hoist), `passive` (opposes the rotation, never drives it: a conveyor,
+    /// friction) or `fan` (∝ ω², a fan or a centrifugal pump).
+    #[serde(default)]
+    pub kind: LoadKind,
+    /// `passive`: the load's sign goes smoothly through zero as tanh(ω/ω_ε) with this ω_ε,
+    /// mechanical rad/s (default 1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub smooth_sign_rad_s: Option<f64>,
+    /// `fan`: the speed at which the load equals `torque_nm`, mechanical rad/s (default: the
+    /// motor's rated speed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fan_speed_rad_s: Option<f64>,
+}
+
+/// What kind of machine the motor drives (see [`Load::kind`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LoadKind {
+    /// The profile's torque whatever the speed.
+    #[default]
+    Active,
+    /// Opposes the rotation, never drives it.
+    Passive,
+    /// ∝ ω².
+    Fan,
+}
+
+impl Scenario {
+    /// The load model of the motor's equation of motion.
+    pub fn load_model(&self) -> drivelab_control::motor::LoadModel {
+        use drivelab_control::motor::LoadModel;
+        match self.load.kind {
+            LoadKind::Active => LoadModel::Active,
+            LoadKind::Passive => LoadModel::Passive {
+                smooth_sign_rad_s: self.load.smooth_sign_rad_s.unwrap_or(1.0),
+            },
+            LoadKind::Fan => LoadModel::Fan {
+                at_rad_s: self
+                    .load
+                    .fan_speed_rad_s
+                    .unwrap_or_else(|| self.motor_params().omega_rated_rad_s),
+            },
+        }
+    }
 }
 
 /// Value of a piecewise-constant profile at time t (0 before the first step). No allocation.
@@ -878,6 +923,16 @@ impl Scenario {
             self.duration_s,
             100.0 * m.t_rated_nm,
         )?;
+        for (name, v) in [
+            ("load.smooth_sign_rad_s", self.load.smooth_sign_rad_s),
+            ("load.fan_speed_rad_s", self.load.fan_speed_rad_s),
+        ] {
+            if let Some(v) = v {
+                check(v.is_finite() && v > 0.0 && v <= 1e5, || {
+                    format!("{name} = {v} must be a speed in (0, 1e5] rad/s")
+                })?;
+            }
+        }
         let spin = self.timing.plant_spin_us;
         check(
             spin.is_finite() && spin >= 0.0 && spin < 0.5e6 / r.sample_hz,
@@ -1144,6 +1199,15 @@ preset = "kyslan2015"
             ),
             (tail("[speed_loop]\nrise_time_s = 0.0"), "speed_loop.rise_time_s = 0 must"),
             (tail("[speed_loop]\ni_q_max_a = 0.0"), "speed_loop.i_q_max_a = 0 must"),
+            (tail("[load]\nkind = \"pump\""), "unknown variant `pump`"),
+            (
+                tail("[load]\nkind = \"passive\"\nsmooth_sign_rad_s = 0.0"),
+                "load.smooth_sign_rad_s = 0 must be a speed",
+            ),
+            (
+                tail("[load]\nkind = \"fan\"\nfan_speed_rad_s = nan"),
+                "load.fan_speed_rad_s = NaN must be a speed",
+            ),
             (
                 tail(&steps("speed_rad_s", "{t_s = 1.0, value = 1.0}")),
                 "reference.speed_rad_s[0].t_s = 1 must be within",

@@ -187,6 +187,7 @@ pub struct Plant {
     hold_samples: u32,
     safe_state: SafeState,
     load: Vec<Step>,
+    load_model: drivelab_control::motor::LoadModel,
     encoder_counts: u32,
     noise: Option<(ChaCha8Rng, Normal<f64>)>,
     last_u_ab: [f64; 2],
@@ -233,6 +234,7 @@ impl Plant {
             hold_samples: sc.inverter.hold_samples,
             safe_state: sc.inverter.safe_state,
             load: sc.load.torque_nm.clone(),
+            load_model: sc.load_model(),
             encoder_counts: sc.sensors.encoder_counts_per_rev,
             noise,
             last_u_ab: [0.0; 2],
@@ -324,7 +326,7 @@ impl Plant {
             theta_m: self.theta_m_unwrapped,
             u_dq_applied: [self.u_dq_applied.d, self.u_dq_applied.q],
             u_ab_applied: [u.alpha, u.beta],
-            t_load: self.t_load,
+            t_load: self.load_model.torque(self.t_load, self.x.omega_m),
             theta_m_enc,
         };
         Measurement {
@@ -346,6 +348,7 @@ impl Plant {
             u_d: self.u_dq_applied.d,
             u_q: self.u_dq_applied.q,
             t_load: self.t_load,
+            load: self.load_model,
         };
         let before = self.x.theta_m;
         self.x = self.rk.advance(&self.m, self.mech, &self.x, &u, self.ts);

@@ -174,6 +174,7 @@ mod tests {
                     u_d: u.u_d,
                     u_q: u.u_q,
                     t_load: 0.0,
+                    ..Default::default()
                 },
                 ts,
             );

@@ -552,6 +552,7 @@ impl NlLoopModel {
                     u_d: u_prev[0],
                     u_q: u_prev[1],
                     t_load: 0.0,
+                    ..Default::default()
                 },
                 self.ts,
             );
@@ -646,6 +647,7 @@ impl NlLoopModel {
                 u_d: 0.0,
                 u_q: s.u_q_prev,
                 t_load: 0.0,
+                ..Default::default()
             },
             self.ts,
         );
@@ -1166,6 +1168,7 @@ mod tests {
                             u_d: u[1],
                             u_q: u[0],
                             t_load: 0.2,
+                            ..Default::default()
                         },
                     );
                     close(

@@ -1321,6 +1321,7 @@ mod tests {
                     u_d: u_prev.0,
                     u_q: u_prev.1,
                     t_load: 0.0,
+                    ..Default::default()
                 },
                 1e-4,
             );

@@ -1117,6 +1117,7 @@ mod tests {
                         u_d: applied.u_d,
                         u_q: applied.u_q,
                         t_load: 0.0,
+                        ..Default::default()
                     },
                     TS,
                 );
