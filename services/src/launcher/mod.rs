@@ -88,9 +88,9 @@ pub struct RunOptions {
 pub enum Restart {
     /// Leave it dead; the rest of the drive goes on in its degraded mode.
     Never,
-    /// Restart it (with --rejoin) at once; in a crash loop (more than 5 restarts of one
-    /// process within 10 s) after a back-off of 100 ms, doubling up to 1 s. In lockstep a
-    /// process that dies without an injected fault ends the run.
+    /// Restart it (with --rejoin) at once; in a crash loop (more than 5 crashes of one
+    /// process within 10 s, injected kills not counted) after a back-off of 100 ms, doubling
+    /// up to 1 s. In lockstep a process that dies without an injected fault ends the run.
     #[default]
     OnFailure,
 }

@@ -6,10 +6,11 @@ use std::time::{Duration, Instant};
 
 /// Restarts of one process after which the supervisor gives up on it.
 pub const MAX_RESTARTS: u32 = 1000;
-/// A process restarted more than [`CRASH_LOOP_RESTARTS`] times within this window is in a
-/// crash loop; until then a dead process is restarted at once.
+/// A process that crashed more than [`CRASH_LOOP_RESTARTS`] times within this window is in
+/// a crash loop; until then a dead process is restarted at once. A death by an injected kill
+/// is no crash: it never counts.
 pub const CRASH_LOOP_WINDOW: Duration = Duration::from_secs(10);
-/// Restarts within [`CRASH_LOOP_WINDOW`] that a process may have without a back-off.
+/// Crashes within [`CRASH_LOOP_WINDOW`] that a process may have without a back-off.
 pub const CRASH_LOOP_RESTARTS: usize = 5;
 /// The first back-off of a crash loop; it doubles per further restart in the loop.
 pub const BACKOFF_MIN: Duration = Duration::from_millis(100);
@@ -21,9 +22,10 @@ pub const BACKOFF_MAX: Duration = Duration::from_millis(1000);
 pub struct History {
     /// Restarts so far.
     pub restarts: u32,
-    /// The last [`CRASH_LOOP_RESTARTS`] restarts, newest first.
-    pub recent: [Option<Instant>; CRASH_LOOP_RESTARTS],
-    /// Restarts in the present crash loop beyond the first (0 outside a loop).
+    /// The last [`CRASH_LOOP_RESTARTS`] crashes (deaths not caused by an injected kill),
+    /// newest first.
+    pub recent_crashes: [Option<Instant>; CRASH_LOOP_RESTARTS],
+    /// Crashes in the present crash loop beyond the first (0 outside a loop).
     pub loop_depth: u32,
 }
 
@@ -63,14 +65,16 @@ impl Policy {
     }
 
     /// Decides on a failure of a child with history `h` at `now`; `injected` when a fault was
-    /// ever injected into it, `source` when it hosts the plant. A process is restarted at
-    /// once, unless it is in a crash loop (more than [`CRASH_LOOP_RESTARTS`] restarts within
-    /// [`CRASH_LOOP_WINDOW`]): then after a back-off of [`BACKOFF_MIN`], doubled per further
-    /// restart in the loop, up to [`BACKOFF_MAX`].
+    /// ever injected into it, `killed` when this death is an injected kill, `source` when it
+    /// hosts the plant. A process is restarted at once, unless it is in a crash loop (more
+    /// than [`CRASH_LOOP_RESTARTS`] crashes within [`CRASH_LOOP_WINDOW`]): then after a
+    /// back-off of [`BACKOFF_MIN`], doubled per further crash in the loop, up to
+    /// [`BACKOFF_MAX`].
     pub fn on_failure(
         &self,
         h: &mut History,
         injected: bool,
+        killed: bool,
         source: bool,
         now: Instant,
     ) -> Decision {
@@ -86,8 +90,13 @@ impl Policy {
                 Decision::GiveUp
             };
         }
-        let crash_loop = h.recent[CRASH_LOOP_RESTARTS - 1]
+        if killed {
+            return Decision::RestartAt(now);
+        }
+        let crash_loop = h.recent_crashes[CRASH_LOOP_RESTARTS - 1]
             .is_some_and(|t| now.duration_since(t) <= CRASH_LOOP_WINDOW);
+        h.recent_crashes.rotate_right(1);
+        h.recent_crashes[0] = Some(now);
         if !crash_loop {
             h.loop_depth = 0;
             return Decision::RestartAt(now);
@@ -101,11 +110,9 @@ impl Policy {
 }
 
 impl History {
-    /// Records a restart at `now`.
-    pub fn restarted(&mut self, now: Instant) {
+    /// Records a restart.
+    pub fn restarted(&mut self) {
         self.restarts += 1;
-        self.recent.rotate_right(1);
-        self.recent[0] = Some(now);
     }
 }
 
@@ -117,16 +124,28 @@ mod tests {
         Duration::from_millis(n)
     }
 
-    /// Fails and restarts a child at once, `n` times, each `gap` after the last restart;
-    /// returns the back-offs, in ms.
+    /// Crashes and restarts a child `n` times, each `gap` after the last restart; returns
+    /// the back-offs, in ms.
     fn backoffs(p: &Policy, h: &mut History, t: &mut Instant, n: usize, gap: Duration) -> Vec<u64> {
+        deaths(p, h, t, n, gap, false)
+    }
+
+    /// Like [`backoffs`], for deaths by an injected kill when `killed`.
+    fn deaths(
+        p: &Policy,
+        h: &mut History,
+        t: &mut Instant,
+        n: usize,
+        gap: Duration,
+        killed: bool,
+    ) -> Vec<u64> {
         (0..n)
             .map(|_| {
                 *t += gap;
-                let Decision::RestartAt(at) = p.on_failure(h, true, false, *t) else {
+                let Decision::RestartAt(at) = p.on_failure(h, true, killed, false, *t) else {
                     panic!("no restart");
                 };
-                h.restarted(at);
+                h.restarted();
                 let b = at.duration_since(*t);
                 *t = at;
                 b.as_millis() as u64
@@ -146,7 +165,21 @@ mod tests {
         assert_eq!(h.restarts, 11);
         // Uninjected failures are restarted the same way.
         let mut h = History::default();
-        assert_eq!(p.on_failure(&mut h, false, true, t), Decision::RestartAt(t));
+        assert_eq!(
+            p.on_failure(&mut h, false, false, true, t),
+            Decision::RestartAt(t)
+        );
+    }
+
+    #[test]
+    fn injected_kills_are_no_crashes_and_never_back_off() {
+        let p = Policy::new(Restart::OnFailure, false);
+        let (mut h, mut t) = (History::default(), Instant::now());
+        assert!(deaths(&p, &mut h, &mut t, 50, ms(5), true)
+            .iter()
+            .all(|&b| b == 0));
+        // Nor do they count towards a crash loop.
+        assert_eq!(backoffs(&p, &mut h, &mut t, 6, ms(5)), [0, 0, 0, 0, 0, 100]);
     }
 
     #[test]
@@ -176,28 +209,55 @@ mod tests {
         assert_eq!(backoffs(&p, &mut h, &mut t, 1, ms(1)), [0]);
     }
 
+    /// The decisions on one failure each of (injected ever, killed now, source), at `t`,
+    /// each with a fresh history.
+    fn decisions(p: &Policy, t: Instant, cases: &[(bool, bool, bool)]) -> Vec<Decision> {
+        cases
+            .iter()
+            .map(|&(injected, killed, source)| {
+                p.on_failure(&mut History::default(), injected, killed, source, t)
+            })
+            .collect()
+    }
+
     #[test]
     fn never_restarts_and_only_an_injected_failure_is_not_a_failed_run() {
         let p = Policy::new(Restart::Never, false);
         let t = Instant::now();
-        let mut h = History::default();
-        assert_eq!(p.on_failure(&mut h, false, false, t), Decision::FailRun);
-        assert_eq!(p.on_failure(&mut h, false, true, t), Decision::FailRun);
-        assert_eq!(p.on_failure(&mut h, true, false, t), Decision::GiveUp);
-        // Without the plant there is no drive.
-        assert_eq!(p.on_failure(&mut h, true, true, t), Decision::StopDrive);
-        assert_eq!(h, History::default());
+        use Decision::*;
+        assert_eq!(
+            decisions(
+                &p,
+                t,
+                &[
+                    (false, false, false),
+                    (false, false, true),
+                    (true, true, false),
+                    (true, true, true)
+                ]
+            ),
+            // Without the plant there is no drive.
+            [FailRun, FailRun, GiveUp, StopDrive]
+        );
     }
 
     #[test]
     fn in_lockstep_a_death_that_was_not_injected_ends_the_run() {
         let p = Policy::new(Restart::OnFailure, true);
         let t = Instant::now();
-        let mut h = History::default();
-        assert_eq!(p.on_failure(&mut h, false, false, t), Decision::FailRun);
-        assert_eq!(p.on_failure(&mut h, false, true, t), Decision::FailRun);
         // An injected kill is restarted as in real time.
-        assert_eq!(p.on_failure(&mut h, true, false, t), Decision::RestartAt(t));
+        assert_eq!(
+            decisions(
+                &p,
+                t,
+                &[
+                    (false, false, false),
+                    (false, false, true),
+                    (true, true, false)
+                ]
+            ),
+            [Decision::FailRun, Decision::FailRun, Decision::RestartAt(t)]
+        );
     }
 
     #[test]
@@ -210,9 +270,15 @@ mod tests {
         let (mut h, mut t) = (History::default(), Instant::now());
         assert_eq!(backoffs(&p, &mut h, &mut t, 3, ms(1)), [0, 0, 0]);
         let before = h;
-        assert_eq!(p.on_failure(&mut h, true, false, t), Decision::GiveUp);
-        assert_eq!(p.on_failure(&mut h, true, true, t), Decision::StopDrive);
-        assert_eq!(p.on_failure(&mut h, false, false, t), Decision::FailRun);
+        assert_eq!(p.on_failure(&mut h, true, true, false, t), Decision::GiveUp);
+        assert_eq!(
+            p.on_failure(&mut h, true, true, true, t),
+            Decision::StopDrive
+        );
+        assert_eq!(
+            p.on_failure(&mut h, false, false, false, t),
+            Decision::FailRun
+        );
         assert_eq!(h, before);
         assert_eq!(Policy::new(Restart::OnFailure, false).max_restarts, 1000);
     }

@@ -227,6 +227,8 @@ pub(super) struct Supervised {
     history: History,
     /// A fault was injected into it at some point.
     injected: bool,
+    /// A kill was injected and its death not yet handled.
+    kill_pending: bool,
 }
 
 impl Supervised {
@@ -237,6 +239,7 @@ impl Supervised {
             state: State::Running,
             history: History::default(),
             injected: false,
+            kill_pending: false,
         }
     }
 }
@@ -328,6 +331,7 @@ pub(super) fn supervise(
             };
             signal(c.proc.pid(), sig)?;
             c.injected = true;
+            c.kill_pending |= f.kind == FaultKind::Kill;
             let kind = EventKind::Inject {
                 fault: f.kind,
                 duration_s: f.duration_s,
@@ -382,7 +386,9 @@ pub(super) fn supervise(
                     any_dead = true;
                     let n = c.proc.name.clone();
                     log(events, EventKind::Exited { status: st }, &n, &n);
-                    match policy.on_failure(&mut c.history, c.injected, c.proc.source, now) {
+                    let killed = std::mem::take(&mut c.kill_pending);
+                    match policy.on_failure(&mut c.history, c.injected, killed, c.proc.source, now)
+                    {
                         Decision::FailRun => return Ok(Some(format!("process {n} failed ({st})"))),
                         Decision::StopDrive => return Ok(None),
                         Decision::GiveUp => c.state = State::Dead,
@@ -414,7 +420,7 @@ pub(super) fn supervise(
                 )?;
             }
             c.proc = c.proc.respawn(sp, &rejoin_file)?;
-            c.history.restarted(now);
+            c.history.restarted();
             c.state = State::AwaitingReady;
             let kind = EventKind::Restarted {
                 restart: c.history.restarts,

@@ -74,49 +74,14 @@ pub fn nonlinear_inner_frequency(sc: &Scenario) -> f64 {
 }
 
 impl DriveDesign {
-    /// Designs the controllers from the scenario's motor, rates and targets.
+    /// Designs the controllers from the scenario's motor, rates and targets (every design,
+    /// for the reports; a stage designs only what it runs, see [`speed_pi_design`] and
+    /// [`nonlinear_design`]).
     pub fn from_scenario(sc: &Scenario) -> Self {
         let m = sc.motor_params();
-        let ts = sc.rates.ts();
         let current = CurrentPiDesign::new(&m, sc.current_loop.tau_c_s);
-        let t_sigma = sum_of_small_time_constants(
-            sc.current_loop.tau_c_s,
-            ts,
-            sc.observer.speed_filter_tau_s,
-            sc.rates.speed_divider,
-        );
-        let model = SpeedLoopModel {
-            ts,
-            n: sc.rates.speed_divider,
-            tau_c_s: sc.current_loop.tau_c_s,
-            tau_f_s: sc.observer.speed_filter_tau_s,
-        };
-        let speed = design_symmetrical_optimum(
-            &m,
-            &SoSpec {
-                t_sigma_s: t_sigma,
-                rise_time_s: sc.speed_loop.rise_time_s,
-            },
-            &model,
-        );
-        let nonlinear = design_nonlinear(
-            &m,
-            &NlSpec {
-                rise_time_s: sc.speed_loop.rise_time_s,
-                omega_i_rad_s: nonlinear_inner_frequency(sc),
-                zeta: nonlinear::DAMPING,
-                placement: if sc.nonlinear() {
-                    sc.speed_loop.nl_poles
-                } else {
-                    nonlinear::NlPlacement::Continuous
-                },
-            },
-            &NlLoopModel {
-                ts,
-                n: sc.rates.speed_divider,
-                tau_f_s: sc.observer.speed_filter_tau_s,
-            },
-        );
+        let speed = speed_pi_design(sc);
+        let nonlinear = nonlinear_design(sc);
         let warnings = if sc.nonlinear() {
             set_point_warnings(sc)
         } else {
@@ -144,6 +109,53 @@ impl DriveDesign {
                 .map(|p| drivelab_control::control::polar::PolarDesign::new(&p)),
         }
     }
+}
+
+/// The speed PI by the symmetrical optimum (an iterative design: milliseconds).
+pub fn speed_pi_design(sc: &Scenario) -> SoDesign {
+    let ts = sc.rates.ts();
+    let t_sigma = sum_of_small_time_constants(
+        sc.current_loop.tau_c_s,
+        ts,
+        sc.observer.speed_filter_tau_s,
+        sc.rates.speed_divider,
+    );
+    let model = SpeedLoopModel {
+        ts,
+        n: sc.rates.speed_divider,
+        tau_c_s: sc.current_loop.tau_c_s,
+        tau_f_s: sc.observer.speed_filter_tau_s,
+    };
+    design_symmetrical_optimum(
+        &sc.motor_params(),
+        &SoSpec {
+            t_sigma_s: t_sigma,
+            rise_time_s: sc.speed_loop.rise_time_s,
+        },
+        &model,
+    )
+}
+
+/// Kyslan et al.'s nonlinear controller design (an iterative design: milliseconds).
+pub fn nonlinear_design(sc: &Scenario) -> NlDesign {
+    design_nonlinear(
+        &sc.motor_params(),
+        &NlSpec {
+            rise_time_s: sc.speed_loop.rise_time_s,
+            omega_i_rad_s: nonlinear_inner_frequency(sc),
+            zeta: nonlinear::DAMPING,
+            placement: if sc.nonlinear() {
+                sc.speed_loop.nl_poles
+            } else {
+                nonlinear::NlPlacement::Continuous
+            },
+        },
+        &NlLoopModel {
+            ts: sc.rates.ts(),
+            n: sc.rates.speed_divider,
+            tau_f_s: sc.observer.speed_filter_tau_s,
+        },
+    )
 }
 
 /// Kyslan eq. (15): the i_d set-points of `sc` at which a1 + a2·i_d falls below
@@ -452,13 +464,13 @@ pub struct SpeedLoopStep {
 impl SpeedLoopStep {
     /// Builds the speed loop from the scenario's design.
     pub fn new(sc: &Scenario) -> Self {
-        let d = DriveDesign::from_scenario(sc);
+        // Only the design of the law in use: a restarted speed loop is back sooner.
         let n = sc.rates.speed_divider;
         let tw = f64::from(n) * sc.rates.ts();
         let law = if sc.speed_loop.controller == crate::config::SpeedController::CurrentReference {
             SpeedLaw::CurrentReference
         } else if sc.speed_loop.controller == crate::config::SpeedController::Rst {
-            let r = d.rst.as_ref().expect("designed when a loop selects rst");
+            let r = crate::wiring::rst::design_from_scenario(sc).expect("validated");
             SpeedLaw::Rst(Box::new(drivelab_control::control::rst::RstSpeed::new(
                 &r.speed,
                 sc.i_q_max(),
@@ -466,12 +478,12 @@ impl SpeedLoopStep {
         } else if sc.nonlinear() {
             SpeedLaw::Nonlinear(NlSpeedLaw::new(
                 &sc.motor_params(),
-                &d.nonlinear.gains,
+                &nonlinear_design(sc).gains,
                 tw,
                 sc.i_q_max(),
             ))
         } else {
-            SpeedLaw::Pi(SpeedPi::new(&d.speed, tw, sc.i_q_max()))
+            SpeedLaw::Pi(SpeedPi::new(&speed_pi_design(sc), tw, sc.i_q_max()))
         };
         let mut law = law;
         if let Some(w) = running_start_speed(sc) {
@@ -587,14 +599,14 @@ impl CurrentLoopStep {
     /// Builds the current loop from the scenario's design.
     pub fn new(sc: &Scenario) -> Self {
         let m = sc.motor_params();
-        let d = DriveDesign::from_scenario(sc);
+        // Only the design of the law in use: a restarted current loop is back sooner.
         let law = if let Some(c) = crate::wiring::polar::controller_from_scenario(sc) {
             CurrentLaw::Polar(c)
         } else if sc.current_loop.controller == crate::config::CurrentController::Rst {
             CurrentLaw::Rst(Box::new(
                 drivelab_control::control::rst::RstCurrentController::new(
                     &m,
-                    d.rst.as_ref().expect("designed when a loop selects rst"),
+                    &crate::wiring::rst::design_from_scenario(sc).expect("validated"),
                     sc.u_max(),
                     sc.current_loop.decoupling,
                 ),
@@ -602,14 +614,14 @@ impl CurrentLoopStep {
         } else if sc.nonlinear() {
             CurrentLaw::Nonlinear(NlCurrentLaw::new(
                 &m,
-                &d.nonlinear.gains,
+                &nonlinear_design(sc).gains,
                 sc.rates.ts(),
                 sc.u_max(),
             ))
         } else {
             CurrentLaw::Pi(PiCurrentController::new(
                 &m,
-                &d.current,
+                &CurrentPiDesign::new(&m, sc.current_loop.tau_c_s),
                 sc.rates.ts(),
                 sc.u_max(),
                 sc.current_loop.decoupling,

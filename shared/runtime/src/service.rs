@@ -199,7 +199,16 @@ fn load_scenario(path: &std::path::Path) -> Result<Scenario> {
 }
 
 fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()> {
+    // Start-up phases, ms: where a restarted process spends its time before READY.
+    let mut phase_start = std::time::Instant::now();
+    let mut startup: Vec<(&'static str, f64)> = Vec::with_capacity(8);
+    let mut phase = |name: &'static str| {
+        let now = std::time::Instant::now();
+        startup.push((name, (now - phase_start).as_secs_f64() * 1e3));
+        phase_start = now;
+    };
     let sc = load_scenario(&args.scenario)?;
+    phase("scenario");
     if args.describe {
         let mut infos = Vec::new();
         for (n, _) in user {
@@ -241,6 +250,7 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
         .iter()
         .map(|s| make_stage(s, &sc, user))
         .collect::<Result<_>>()?;
+    phase("stages");
     for s in &stages {
         for w in s.warnings() {
             eprintln!("{}: warning: {w}", s.name());
@@ -254,7 +264,9 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     let source = pi == 0;
     let lockstep = args.clock == BusClock::Lockstep;
     let node = bus::node(&bus_id, &pname)?;
+    phase("node");
     let topics = DriveTopics::open_with(&node, sc.timing.wake, &bus_id)?;
+    phase("topics");
     // Which topics this process receives, sends, waits on and pokes.
     let decim = decimation(&plan);
     let mut decimated = [true; N_TOPICS];
@@ -335,8 +347,10 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
             StatusPublisher::new(&node, idx, &sc)
         })
         .collect::<Result<_>>()?;
+    phase("ports");
     // Connect now (a restarted process joins running peers), not at real-time priority.
     tr.connect()?;
+    phase("connect");
     let rejoin_from = if args.rejoin && source {
         let path = args
             .rejoin_from
@@ -370,6 +384,7 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     host.stop_when(stop_requested);
     // Last: everything above (designs, histograms, ports) is set-up work, not real-time.
     let report = apply_placement(&pname, &proc, &args)?;
+    phase("rt");
     protocol_line("READY")?;
     if source && !args.rejoin {
         // Wait for the launcher's GO (everyone is subscribed by then).
@@ -388,7 +403,7 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
             eprintln!("{}: warning: {w}", h.stage.name());
         }
     }
-    write_stats(&args, &pname, &report, &host)
+    write_stats(&args, &pname, &report, &host, &startup)
 }
 
 /// Applies the process's placement and prints the one-line report to stderr; also sends
@@ -803,6 +818,9 @@ pub struct StageStats<'a> {
     pub diagnostics: std::collections::BTreeMap<&'static str, u64>,
     /// Tail summary of each histogram, µs, keyed `<stage>.<metric>` (and `cycle`).
     pub latency_us: std::collections::BTreeMap<String, crate::timing::Percentiles>,
+    /// The process's start-up, ms per phase in order (scenario, stages, node, topics,
+    /// ports, connect, rt), from its `main` to READY.
+    pub startup_ms: &'a [(&'static str, f64)],
 }
 
 /// Writes `<out>/<stage>.stats.json` and one `<key>.hdr` per non-empty histogram for every
@@ -812,6 +830,7 @@ fn write_stats<T: Transport>(
     process: &str,
     rt: &RtReport,
     host: &Host<T>,
+    startup_ms: &[(&'static str, f64)],
 ) -> Result<()> {
     let Some(dir) = &args.out else { return Ok(()) };
     let diags = host.diagnostics();
@@ -848,6 +867,7 @@ fn write_stats<T: Transport>(
             counters,
             diagnostics: diags[i].1.iter().copied().collect(),
             latency_us,
+            startup_ms,
         };
         let p = dir.join(format!("{name}.stats.json"));
         std::fs::write(&p, serde_json::to_vec_pretty(&stats)?)

@@ -4,7 +4,7 @@
 //! See docs/architecture.md, "The cycle" and "Fault model".
 
 use crate::config::Scenario;
-use crate::drive::{CurrentLoopStep, DriveDesign, ObserverStep, Plant, SpeedLoopStep};
+use crate::drive::{CurrentLoopStep, ObserverStep, Plant, SpeedLoopStep};
 use crate::messages::*;
 use crate::stage::*;
 use drivelab_control::motor::wrap_2pi;
@@ -347,7 +347,11 @@ impl SpeedLoopStage {
             ctrl: SpeedLoopStep::new(sc),
             divider: u64::from(sc.rates.speed_divider),
             last_out: None,
-            design_warnings: DriveDesign::from_scenario(sc).warnings,
+            design_warnings: if sc.nonlinear() {
+                crate::drive::set_point_warnings(sc)
+            } else {
+                Vec::new()
+            },
             held_samples: 0,
             wref_lost_samples: 0,
         }

@@ -121,10 +121,15 @@ pub fn plot_trace(
     let trace_series = |label: &str, f: fn(&TraceRow) -> f64, color: RGBColor, style: Line| {
         Series::new(label, rows.iter().map(|r| (r.t * 1e3, f(r))), color, style)
     };
-    let shades: Vec<Shade> = opts
+    let finite: Vec<(f64, f64, String)> = opts
         .shaded_windows
         .iter()
         .filter(|(a, b, _)| a.is_finite() && b.is_finite())
+        .cloned()
+        .collect();
+    let (numbered, legend) = numbered_windows(&finite);
+    let shades: Vec<Shade> = numbered
+        .iter()
         .map(|(a, b, label)| Shade {
             x0: a.min(*b) * 1e3,
             x1: a.max(*b) * 1e3,
@@ -213,7 +218,11 @@ pub fn plot_trace(
             skipped.push(stem);
             continue;
         }
-        let fig = Figure { title, panels };
+        let fig = Figure {
+            title,
+            panels,
+            footer: legend.clone(),
+        };
         written.extend(render(&fig, &out_dir.join(stem))?);
     }
     if written.is_empty() {
@@ -497,6 +506,8 @@ impl Panel {
 struct Figure {
     title: String,
     panels: Vec<(Panel, u32)>,
+    /// Lines of text under the panels (the fault markers' legend).
+    footer: Vec<String>,
 }
 
 impl Figure {
@@ -504,8 +515,49 @@ impl Figure {
         Self {
             title: title.to_string(),
             panels: vec![(panel, 1)],
+            footer: Vec::new(),
         }
     }
+}
+
+/// Most legend entries drawn under a figure; the rest are counted.
+const LEGEND_MAX: usize = 40;
+/// Characters per legend line.
+const LEGEND_LINE: usize = 130;
+
+/// Numbers the shaded windows in time order: each window's label becomes its number, and
+/// the legend lists `number label @ start`, packed into lines (at most [`LEGEND_MAX`]
+/// entries; a last line counts the rest). Many windows then never overlap as text.
+pub fn numbered_windows(windows: &[(f64, f64, String)]) -> (Vec<(f64, f64, String)>, Vec<String>) {
+    let mut w: Vec<(f64, f64, String)> = windows.to_vec();
+    w.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let entries: Vec<String> = w
+        .iter()
+        .enumerate()
+        .map(|(i, (a, _, label))| format!("{} {label} @ {a:.3} s", i + 1))
+        .collect();
+    let mut lines: Vec<String> = Vec::new();
+    for e in entries.iter().take(LEGEND_MAX) {
+        match lines.last_mut() {
+            Some(l) if l.len() + 4 + e.len() <= LEGEND_LINE => {
+                l.push_str("  ·  ");
+                l.push_str(e);
+            }
+            _ => lines.push(e.clone()),
+        }
+    }
+    if entries.len() > LEGEND_MAX {
+        lines.push(format!(
+            "… and {} more (summary.json → faults)",
+            entries.len() - LEGEND_MAX
+        ));
+    }
+    let numbered = w
+        .into_iter()
+        .enumerate()
+        .map(|(i, (a, b, _))| (a, b, (i + 1).to_string()))
+        .collect();
+    (numbered, lines)
 }
 
 /// `±limit` as a pair of dashed lines with one legend entry.
@@ -910,6 +962,22 @@ fn draw_figure<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, fig: &Figure) 
         root.titled(&fig.title, (FONT, TITLE_FONT_PX))
             .plot_err("drawing the title")?
     };
+    // The footer's lines at the bottom, the panels above.
+    let body = if fig.footer.is_empty() {
+        body
+    } else {
+        let line_px = ANNOTATION_FONT_PX as i32 + 5;
+        let footer_px = line_px as u32 * fig.footer.len() as u32 + 10;
+        let h = body.dim_in_pixel().1.saturating_sub(footer_px);
+        let (panels, footer) = body.split_vertically(h);
+        let style = (FONT, ANNOTATION_FONT_PX).into_font().color(&C_SHADE_TEXT);
+        for (i, line) in fig.footer.iter().enumerate() {
+            footer
+                .draw_text(line, &style, (12, 4 + i as i32 * line_px))
+                .plot_err("drawing the legend")?;
+        }
+        panels
+    };
     let total: u32 = fig.panels.iter().map(|(_, w)| *w).sum::<u32>().max(1);
     let height = body.dim_in_pixel().1;
     let mut rest = body;
@@ -972,8 +1040,10 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, panel: &Panel) 
             RED.mix(0.12).filled(),
         );
         let text_style = (FONT, ANNOTATION_FONT_PX).into_font().color(&C_SHADE_TEXT);
-        let text =
-            EmptyElement::at((x0, y_range.end)) + Text::new(s.label.clone(), (4, 4), text_style);
+        // Numbered markers step down in three rows, so that close neighbours stay readable.
+        let row = s.label.parse::<i32>().map_or(0, |n| (n - 1).rem_euclid(3));
+        let text = EmptyElement::at((x0, y_range.end))
+            + Text::new(s.label.clone(), (4, 4 + row * 15), text_style);
         chart.draw_series([rect]).plot_err("shading a window")?;
         chart.draw_series([text]).plot_err("labelling a window")?;
     }
@@ -1086,6 +1156,47 @@ fn legend_corner(panel: &Panel, x: &Axis, y: &Axis) -> SeriesLabelPosition {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn fault_windows_become_numbers_in_time_order_with_a_packed_legend() {
+        let w = vec![
+            (0.5, 0.6, "kill plant".to_string()),
+            (0.1, 0.2, "stop for 0.02 s observer".to_string()),
+        ];
+        let (n, legend) = numbered_windows(&w);
+        assert_eq!(
+            n,
+            vec![(0.1, 0.2, "1".to_string()), (0.5, 0.6, "2".to_string())]
+        );
+        assert_eq!(
+            legend,
+            vec!["1 stop for 0.02 s observer @ 0.100 s  ·  2 kill plant @ 0.500 s".to_string()]
+        );
+        // A hundred faults: every line within its width, 40 entries shown, the rest counted.
+        let many: Vec<(f64, f64, String)> = (0..100)
+            .map(|i| {
+                (
+                    f64::from(i) * 0.5,
+                    f64::from(i) * 0.5 + 0.1,
+                    "kill current-loop".into(),
+                )
+            })
+            .collect();
+        let (n, legend) = numbered_windows(&many);
+        assert_eq!(n.len(), 100);
+        assert_eq!(n[99].2, "100");
+        assert!(
+            legend.iter().all(|l| l.chars().count() <= LEGEND_LINE),
+            "{legend:?}"
+        );
+        let shown: usize = legend.iter().map(|l| l.matches(" @ ").count()).sum();
+        assert_eq!(shown, LEGEND_MAX);
+        assert_eq!(
+            legend.last().unwrap(),
+            "… and 60 more (summary.json → faults)"
+        );
+    }
+
     use super::*;
     use std::sync::atomic::{AtomicUsize, Ordering};
 
