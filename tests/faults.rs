@@ -28,6 +28,10 @@ fn causes(s: &serde_json::Value) -> Vec<(String, String)> {
             "command",
             "current-loop produced no command for this sample",
         ),
+        (
+            "command",
+            "none reached the inverter: the plant was down (sample rebuilt, plant_flags 64)",
+        ),
     ]
     .iter()
     .map(|(p, c)| (p.to_string(), c.to_string()))
@@ -38,7 +42,7 @@ fn causes(s: &serde_json::Value) -> Vec<(String, String)> {
         let k = &f["injected_k"];
         for part in ["measurement", "command"] {
             let cause = if part == "measurement" && svc == "plant" {
-                format!("plant {fault} at sample {k} (fault); the model is not simulated while the plant is down")
+                format!("plant {fault} at sample {k} (fault); the plant had not come back yet")
             } else {
                 format!("no {part} recorded during fault '{fault} {svc}' injected at sample {k}")
             };
@@ -206,7 +210,7 @@ fn sigkill_of_each_service_is_detected_made_safe_restarted_and_recovered() {
         // comes after the plant's deadline, the plant.
         let by = f["detected_by"].as_str().unwrap();
         let expected: &[&str] = match svc {
-            "plant" => &["recorder (plant produced no sample)"],
+            "plant" => &["inverter (plant process down)"],
             "current-loop" => &["plant"],
             "speed-loop" => &["current-loop"],
             _ => &["current-loop", "plant"],
@@ -236,6 +240,37 @@ fn sigkill_of_each_service_is_detected_made_safe_restarted_and_recovered() {
         // Without the current loop the plant must reach its safe state (hold 3 samples).
         if svc == "current-loop" {
             assert!(f["safe_state_ms"].as_f64().is_some(), "{f}");
+        }
+        // The motor kept turning while the plant was down: its samples were rebuilt (none
+        // is missing), flagged, and safe after the inverter's hold of 3 samples, as the
+        // restarted plant integrated them; the report gives their peaks.
+        if svc == "plant" {
+            use drivelab_runtime::messages::{FLAG_PLANT_DOWN, FLAG_SAFE_STATE};
+            assert_eq!(
+                s["samples"], s["samples_expected"],
+                "{}",
+                s["missing_samples"]
+            );
+            let rows = drivelab_runtime::trace::read_csv(&out.join("trace.csv")).unwrap();
+            let down: Vec<_> = rows
+                .iter()
+                .filter(|r| r.plant_flags & FLAG_PLANT_DOWN != 0)
+                .collect();
+            let pd = &f["plant_down"];
+            assert!(!down.is_empty(), "{f}");
+            assert_eq!(pd["samples"].as_u64(), Some(down.len() as u64));
+            assert_eq!(s["plant_down_samples"].as_u64(), Some(down.len() as u64));
+            // One contiguous run, safe from its 4th sample on.
+            assert_eq!(down.last().unwrap().k - down[0].k + 1, down.len() as u64);
+            assert!(down[..3]
+                .iter()
+                .all(|r| r.plant_flags & FLAG_SAFE_STATE == 0));
+            assert!(down[3..]
+                .iter()
+                .all(|r| r.plant_flags & FLAG_SAFE_STATE != 0));
+            let peak = down.iter().map(|r| r.i_d.hypot(r.i_q)).fold(0.0, f64::max);
+            assert_eq!(pd["peak_current_a"].as_f64(), Some(peak));
+            assert!(pd["peak_speed_rad_s"].as_f64().unwrap() > 0.0);
         }
     }
 }

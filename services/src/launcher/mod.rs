@@ -298,8 +298,10 @@ fn run_bus(
             }
         }
     }
+    let mut rec = rec;
+    let rebuilt = recorder::fill_plant_downtime(sc, &mut rec);
     let (rows, gaps) = assemble(sc.rates.ts(), &rec);
-    let mut info = json!({ "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "plan": plan });
+    let mut info = json!({ "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "plan": plan, "plant_down_samples": rebuilt });
     if let Some(p) = counters.get("plant") {
         info["deadline_misses"] = p["deadline_misses"].clone();
         info["longest_miss_run"] = p["longest_miss_run"].clone();
@@ -600,6 +602,10 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     }
     if let Some(b) = info.get("bus") {
         summary["bus"] = b.clone();
+    }
+    if let Some(r) = info.get("plant_down_samples") {
+        // Samples of the plant's downtimes, rebuilt (plant_flags bit 64).
+        summary["plant_down_samples"] = r.clone();
     }
     if let Some(r) = info.get("recorder_rejected") {
         // Messages the recorder could not place (an index beyond the run's samples).

@@ -170,6 +170,52 @@ pub(super) fn run_recorder(
     }
 }
 
+/// Rebuilds the samples of the plant's downtimes. A run of missing measurements that ends
+/// where a restarted plant resumed is filled with the motor integrated from the last
+/// recorded sample before it, exactly as the restarted plant did before it resumed
+/// ([`Plant::coast`](drivelab_runtime::drive::Plant::coast)): the rebuilt state at the
+/// resumed sample must equal the recorded one bit for bit, else the run is left missing
+/// (it was no restart of the plant). Returns the number of samples rebuilt.
+pub(super) fn fill_plant_downtime(
+    sc: &drivelab_runtime::config::Scenario,
+    rec: &mut Recorder,
+) -> u64 {
+    use drivelab_runtime::drive::Plant;
+    let mut filled = 0;
+    let mut k = 1;
+    while k < rec.meas.len() {
+        if rec.meas[k].is_some() || rec.meas[k - 1].is_none() {
+            k += 1;
+            continue;
+        }
+        // A run [k, end) of missing measurements after the recorded sample k − 1.
+        let end = (k..rec.meas.len())
+            .find(|&j| rec.meas[j].is_some())
+            .unwrap_or(rec.meas.len());
+        let (Some(last), Some(resumed)) = (rec.meas[k - 1], rec.meas.get(end).copied().flatten())
+        else {
+            k = end + 1;
+            continue;
+        };
+        let mut rebuilt = Vec::with_capacity(end - k);
+        let mut plant = Plant::new(sc);
+        plant.coast(&last, end as u64, |t| rebuilt.push(*t));
+        // The restarted plant's first sample, from the coasted state (no fresh command).
+        plant.sample(end as u64, None);
+        let next = plant.truth();
+        if (next.i_dq, next.omega_m, next.theta_m)
+            == (resumed.i_dq, resumed.omega_m, resumed.theta_m)
+        {
+            for t in rebuilt {
+                rec.meas[t.hdr.k as usize] = Some(t);
+                filled += 1;
+            }
+        }
+        k = end + 1;
+    }
+    filled
+}
+
 /// Joins measurements and commands into trace rows. A sample whose command is missing keeps
 /// its row with NaN in the command's columns; every missing part is listed as a gap.
 /// `ts` is the sample period, s.
@@ -226,11 +272,12 @@ pub(super) fn assemble(ts: f64, rec: &Recorder) -> (Vec<TraceRow>, Vec<Gap>) {
                 let mut row = trace_row(ts, m, &c);
                 row.theta_m_ref = theta_ref;
                 rows.push(row);
-                push_gap(
-                    k,
-                    "command",
-                    "current-loop produced no command for this sample".into(),
-                );
+                let cause = if m.hdr.flags & drivelab_runtime::messages::FLAG_PLANT_DOWN != 0 {
+                    "none reached the inverter: the plant was down (sample rebuilt, plant_flags 64)"
+                } else {
+                    "current-loop produced no command for this sample"
+                };
+                push_gap(k, "command", cause.into());
             }
             (None, _) => {
                 let cause = match last_meas {
@@ -267,7 +314,7 @@ pub(super) fn attribute_gaps(gaps: &mut [Gap], faults: &[FaultReport], fs: f64) 
         if let Some(f) = faults.iter().rev().find(in_window) {
             g.cause = match (g.part, f.service.as_str()) {
                 ("measurement", "plant") => format!(
-                    "plant {} at sample {} (fault); the model is not simulated while the plant is down",
+                    "plant {} at sample {} (fault); the plant had not come back yet",
                     f.fault, f.injected_k
                 ),
                 (part, svc) => format!(
@@ -429,14 +476,14 @@ mod tests {
             peak_current_a: 0.0,
             republished_ms: republished,
             speed_recovered_ms: recovered,
+            plant_down: None,
         }
     }
 
     #[test]
     fn gaps_in_a_fault_window_name_the_fault_and_the_window_ends_are_included() {
         const CMD: &str = "current-loop produced no command for this sample";
-        let plant =
-            "plant kill at sample 10 (fault); the model is not simulated while the plant is down";
+        let plant = "plant kill at sample 10 (fault); the plant had not come back yet";
         let cl = "no command recorded during fault 'kill current-loop' injected at sample 100";
         // 1 kHz: one sample per ms. The plant's window is 10..=15 (recovered after 5 ms);
         // the current loop's 100..=102 (republished after 2.9 ms, no recovery: truncated).
@@ -488,7 +535,7 @@ mod tests {
             causes,
             [
                 obs,
-                "plant kill at sample 150 (fault); the model is not simulated while the plant is down",
+                "plant kill at sample 150 (fault); the plant had not come back yet",
                 obs,
                 LOST
             ]

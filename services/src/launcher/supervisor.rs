@@ -490,6 +490,21 @@ pub struct FaultReport {
     pub republished_ms: Option<f64>,
     /// Speed back within ±2 % of its reference (and staying there 10 ms), ms after injection.
     pub speed_recovered_ms: Option<f64>,
+    /// The plant's downtime: samples rebuilt (plant_flags 64) in the fault's window, and the
+    /// peak |i_dq| (A) and |ω_m| (mechanical rad/s) over them. None when no sample was
+    /// rebuilt (not a plant fault, or the plant did not come back).
+    pub plant_down: Option<PlantDown>,
+}
+
+/// The motor while the plant's process was down (see [`FaultReport::plant_down`]).
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct PlantDown {
+    /// Samples rebuilt.
+    pub samples: u64,
+    /// Peak current magnitude |i_dq|, A.
+    pub peak_current_a: f64,
+    /// Peak speed magnitude, mechanical rad/s.
+    pub peak_speed_rad_s: f64,
 }
 
 /// Builds the fault reports from the supervisor's events and the trace, and the windows to
@@ -499,7 +514,9 @@ pub fn fault_reports(
     rows: &[TraceRow],
     events: &[SupEvent],
 ) -> (Vec<FaultReport>, Vec<(f64, f64, String)>) {
-    use drivelab_runtime::messages::{FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT};
+    use drivelab_runtime::messages::{
+        FLAG_PLANT_DOWN, FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT,
+    };
     let fs = sc.rates.sample_hz;
     let ms = |dk: u64| dk as f64 / fs * 1e3;
     let by_k: BTreeMap<u64, &TraceRow> = rows.iter().map(|r| (r.k, r)).collect();
@@ -518,6 +535,12 @@ pub fn fault_reports(
         for (expect, r) in (k0..).zip(after()) {
             if r.k != expect {
                 det = Some((expect, "recorder (plant produced no sample)".to_string()));
+                break;
+            }
+            // A rebuilt sample of the plant's downtime: the inverter's own watchdog saw the
+            // commands stop.
+            if r.plant_flags & FLAG_PLANT_DOWN != 0 {
+                det = Some((r.k, "inverter (plant process down)".into()));
                 break;
             }
             if r.plant_flags & FLAG_STALE_CMD != 0 {
@@ -569,6 +592,14 @@ pub fn fault_reports(
             k_rec as f64 / fs,
             format!("{} {}", inj.detail(), inj.service),
         ));
+        let down: Vec<&TraceRow> = after()
+            .filter(|r| r.k <= k_rec && r.plant_flags & FLAG_PLANT_DOWN != 0)
+            .collect();
+        let plant_down = (!down.is_empty()).then(|| PlantDown {
+            samples: down.len() as u64,
+            peak_current_a: down.iter().map(|r| r.i_d.hypot(r.i_q)).fold(0.0, f64::max),
+            peak_speed_rad_s: down.iter().map(|r| r.omega_m.abs()).fold(0.0, f64::max),
+        });
         out.push(FaultReport {
             fault: inj.detail(),
             service: inj.service.clone(),
@@ -582,6 +613,7 @@ pub fn fault_reports(
             peak_current_a: peak,
             republished_ms: fresh.map(|f| ms(f - k0)),
             speed_recovered_ms: rec.map(|r| ms(r - k0)),
+            plant_down,
         });
     }
     (out, windows)

@@ -807,14 +807,24 @@ impl<T: Transport> Host<T> {
             if !realtime || last.hdr().t_sample_ns == 0 {
                 bail!("a plant can only rejoin a real-time drive");
             }
-            let mut ib = Inbox::default();
-            ib.put(last);
-            self.stages[0].stage.rejoin(last.hdr().k, &ib);
-            self.stages[0].rejoining = false;
             let lk = last.hdr().k;
             let t0 = last.hdr().t_sample_ns - lk * ts_ns;
-            let k = (now_ns() + 2_000_000 - t0) / ts_ns + 1;
-            (t0, k.max(lk + 1))
+            // The source rejoins at a sample 2 ms ahead, after bringing its model through
+            // the downtime (the plant integrates the motor up to it); if that took so long
+            // that the sample has passed, it aims again (the result depends only on `last`
+            // and the sample).
+            let mut k = lk + 1;
+            for _ in 0..8 {
+                k = ((now_ns() + 2_000_000 - t0) / ts_ns + 1).max(lk + 1);
+                let mut ib = Inbox::default();
+                ib.put(last);
+                self.stages[0].stage.rejoin(k, &ib);
+                if t0 + k * ts_ns > now_ns() {
+                    break;
+                }
+            }
+            self.stages[0].rejoining = false;
+            (t0, k)
         } else {
             if self.cfg.warm_up {
                 self.warm_up()?;

@@ -19,6 +19,9 @@ pub const FLAG_MISSING: u32 = 32;
 /// Header flag: a warm-up message before sample 0. It travels the whole chain (so that every
 /// port has connected and every page is touched) but no step function sees it.
 pub const FLAG_WARMUP: u32 = 16;
+/// Trace only: the plant's process was down at this sample; the motor was integrated
+/// afterwards under the inverter's hold and safe state (no command reached it).
+pub const FLAG_PLANT_DOWN: u32 = 64;
 
 /// Common header.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]

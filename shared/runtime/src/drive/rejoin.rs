@@ -10,8 +10,8 @@ use drivelab_control::transforms::{clarke, park, AlphaBeta};
 
 impl Plant {
     /// A restarted plant resumes from its last published true state: currents, speed,
-    /// position, and the voltage the inverter was applying. The motor's state during the
-    /// plant's own downtime is not simulated (the trace lists those samples as missing).
+    /// position, and the voltage the inverter was applying. [`Plant::coast`] then brings it
+    /// through its downtime.
     pub fn restore(&mut self, last: &PlantTruth) {
         self.x.i_d = last.i_dq[0];
         self.x.i_q = last.i_dq[1];
@@ -19,6 +19,29 @@ impl Plant {
         self.x.theta_m = drivelab_control::motor::wrap_2pi(last.theta_m);
         self.theta_m_unwrapped = last.theta_m;
         self.last_u_ab = last.u_ab_applied;
+        self.stale_run = 0;
+    }
+
+    /// The motor through the plant's downtime: restored to `last` (its last recorded
+    /// sample k0), it integrates from t_k0 up to t_k_to with no command reaching the
+    /// inverter, which holds the last one for `inverter.hold_samples` and then applies its
+    /// safe state, as a real inverter's watchdog would. `each` gets the true state of every
+    /// sample k0 < k < k_to, flagged [`FLAG_PLANT_DOWN`]. Depends only on `last` and `k_to`:
+    /// the launcher rebuilds the same samples for the trace.
+    pub fn coast(&mut self, last: &PlantTruth, k_to: u64, mut each: impl FnMut(&PlantTruth)) {
+        use crate::messages::FLAG_PLANT_DOWN;
+        let k0 = last.hdr.k;
+        self.restore(last);
+        // Sample k0 as it was: its own command (the restored voltage) was fresh.
+        self.sample(k0, None);
+        self.stale_run = 0;
+        self.advance();
+        for k in k0 + 1..k_to {
+            self.sample(k, None);
+            self.truth.hdr.flags |= FLAG_PLANT_DOWN;
+            each(&self.truth);
+            self.advance();
+        }
     }
 }
 
