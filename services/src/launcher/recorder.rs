@@ -170,12 +170,20 @@ pub(super) fn run_recorder(
     }
 }
 
+/// How many recorded samples before a downtime [`fill_plant_downtime`] tries as the state
+/// the restarted plant started from.
+const REBUILD_LOOKBACK: usize = 256;
+
 /// Rebuilds the samples of the plant's downtimes. A run of missing measurements that ends
-/// where a restarted plant resumed is filled with the motor integrated from the last
-/// recorded sample before it, exactly as the restarted plant did before it resumed
+/// where a restarted plant resumed is filled with the motor integrated from a recorded
+/// sample before it, exactly as the restarted plant did before it resumed
 /// ([`Plant::coast`](drivelab_runtime::drive::Plant::coast)): the rebuilt state at the
 /// resumed sample must equal the recorded one bit for bit, else the run is left missing
-/// (it was no restart of the plant). Returns the number of samples rebuilt.
+/// (it was no restart of the plant). The restarted plant was given the newest sample the
+/// recorder had read when the supervisor restarted it, which can be a few samples older
+/// than the last one the recorder got in the end, so the last [`REBUILD_LOOKBACK`] are
+/// tried, newest first; only the samples the recorder lacks are filled. Returns the number
+/// of samples rebuilt.
 pub(super) fn fill_plant_downtime(
     sc: &drivelab_runtime::config::Scenario,
     rec: &mut Recorder,
@@ -192,23 +200,28 @@ pub(super) fn fill_plant_downtime(
         let end = (k..rec.meas.len())
             .find(|&j| rec.meas[j].is_some())
             .unwrap_or(rec.meas.len());
-        let (Some(last), Some(resumed)) = (rec.meas[k - 1], rec.meas.get(end).copied().flatten())
-        else {
+        let Some(resumed) = rec.meas.get(end).copied().flatten() else {
             k = end + 1;
             continue;
         };
-        let mut rebuilt = Vec::with_capacity(end - k);
-        let mut plant = Plant::new(sc);
-        plant.coast(&last, end as u64, |t| rebuilt.push(*t));
-        // The restarted plant's first sample, from the coasted state (no fresh command).
-        plant.sample(end as u64, None);
-        let next = plant.truth();
-        if (next.i_dq, next.omega_m, next.theta_m)
-            == (resumed.i_dq, resumed.omega_m, resumed.theta_m)
-        {
-            for t in rebuilt {
-                rec.meas[t.hdr.k as usize] = Some(t);
-                filled += 1;
+        for k0 in (k.saturating_sub(REBUILD_LOOKBACK).max(1)..=k).rev() {
+            let Some(last) = rec.meas[k0 - 1] else {
+                continue;
+            };
+            let mut rebuilt = Vec::with_capacity(end - k0);
+            let mut plant = Plant::new(sc);
+            plant.coast(&last, end as u64, |t| rebuilt.push(*t));
+            // The restarted plant's first sample, from the coasted state.
+            plant.sample(end as u64, None);
+            let next = plant.truth();
+            if (next.i_dq, next.omega_m, next.theta_m)
+                == (resumed.i_dq, resumed.omega_m, resumed.theta_m)
+            {
+                for t in rebuilt.into_iter().filter(|t| t.hdr.k >= k as u64) {
+                    rec.meas[t.hdr.k as usize] = Some(t);
+                    filled += 1;
+                }
+                break;
             }
         }
         k = end + 1;
