@@ -15,8 +15,8 @@ cp runs/readme-bench/bench.md docs/bench-interleaved.md
 ./target/release/drivelab run --scenario kyslan-pi --duration 1 --fault kill:current-loop@0.3 --out runs/readme-fault
 cp runs/readme-fault/speed.png docs/img/fault-speed.png
 cp runs/readme-fault/currents.png docs/img/fault-currents.png
-# The monitor's screen (as text) during a drive with a killed current loop, pasted into the
-# README between the MONITOR markers.
+# The monitor's screen (as text) during a drive with a killed current loop, pasted into
+# docs/monitor.md between the MONITOR markers.
 ./target/release/drivelab run --bus readmemon --duration 8 --fault kill:current-loop@3 \
   --no-plots --out runs/readme-monitor >/dev/null 2>&1 &
 sleep 6
@@ -25,8 +25,19 @@ wait
 python3 - <<'PY'
 import re
 text = open("docs/img/monitor.txt").read().rstrip("\n")
+doc = open("docs/monitor.md").read()
+doc = re.sub(r"(<!-- MONITOR -->\n```\n).*?(\n```\n<!-- /MONITOR -->)",
+             lambda m: m.group(1) + text + m.group(2), doc, flags=re.S)
+open("docs/monitor.md", "w").write(doc)
+PY
+# The smoke campaign's table, pasted into the README between the SMOKE markers.
+./target/release/drivelab campaign campaigns/smoke.toml --out runs/readme-smoke >/dev/null 2>&1 || true
+python3 - <<'PY'
+import re
+lines = open("runs/readme-smoke/campaign.md").read().splitlines()
+table = "\n".join(l for l in lines if l.startswith("|") or l.endswith("skipped."))
 readme = open("README.md").read()
-readme = re.sub(r"(<!-- MONITOR -->\n```\n).*?(\n```\n<!-- /MONITOR -->)",
-                lambda m: m.group(1) + text + m.group(2), readme, flags=re.S)
+readme = re.sub(r"(<!-- SMOKE -->\n).*?(<!-- /SMOKE -->)",
+                lambda m: m.group(1) + table + "\n" + m.group(2), readme, flags=re.S)
 open("README.md", "w").write(readme)
 PY

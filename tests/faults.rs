@@ -609,7 +609,7 @@ fn a_passive_load_never_drives_the_motor_backwards_when_the_speed_loop_dies() {
         let sc = variant(
             &format!("load-{kind}"),
             "kyslan-pi",
-            &[("[load]", &format!("[load]\nkind = \"{kind}\""))],
+            &[("kind = \"active\"", &format!("kind = \"{kind}\""))],
         );
         let (out, s) = run_ok(
             &format!("load-{kind}"),

@@ -299,7 +299,12 @@ fn run_bus(
         }
     }
     let mut rec = rec;
-    let rebuilt = recorder::fill_plant_downtime(sc, &mut rec);
+    let rejoins = progress
+        .rejoins
+        .lock()
+        .map(|r| r.clone())
+        .unwrap_or_default();
+    let rebuilt = recorder::fill_plant_downtime(sc, &mut rec, &rejoins);
     let (rows, gaps) = assemble(sc.rates.ts(), &rec);
     let mut info = json!({ "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "plan": plan, "plant_down_samples": rebuilt });
     if let Some(p) = counters.get("plant") {

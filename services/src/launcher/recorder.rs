@@ -43,6 +43,8 @@ pub(super) struct Progress {
     pub next_k: std::sync::atomic::AtomicU64,
     /// The plant's newest true state (for a restarted plant to resume from).
     pub last: std::sync::Mutex<Option<PlantTruth>>,
+    /// The states restarted plants were given to resume from, in order.
+    pub rejoins: std::sync::Mutex<Vec<PlantTruth>>,
     /// Decimated trace for `drivelab monitor`.
     pub tail: crate::hub::TraceTail,
 }
@@ -170,23 +172,18 @@ pub(super) fn run_recorder(
     }
 }
 
-/// How many recorded samples before a downtime [`fill_plant_downtime`] tries as the state
-/// the restarted plant started from.
-const REBUILD_LOOKBACK: usize = 256;
-
 /// Rebuilds the samples of the plant's downtimes. A run of missing measurements that ends
-/// where a restarted plant resumed is filled with the motor integrated from a recorded
-/// sample before it, exactly as the restarted plant did before it resumed
-/// ([`Plant::coast`](drivelab_runtime::drive::Plant::coast)): the rebuilt state at the
-/// resumed sample must equal the recorded one bit for bit, else the run is left missing
-/// (it was no restart of the plant). The restarted plant was given the newest sample the
-/// recorder had read when the supervisor restarted it, which can be a few samples older
-/// than the last one the recorder got in the end, so the last [`REBUILD_LOOKBACK`] are
-/// tried, newest first; only the samples the recorder lacks are filled. Returns the number
-/// of samples rebuilt.
+/// where a restarted plant resumed is filled with the motor integrated from the state that
+/// plant was given (`rejoins`, the newest sample the recorder had read when the supervisor
+/// restarted it), exactly as the restarted plant did before it resumed
+/// ([`Plant::coast`](drivelab_runtime::drive::Plant::coast)). The rebuilt state at the
+/// resumed sample must equal the recorded one bit for bit, else the run is left missing (it
+/// was no restart of the plant). Only the samples the recorder lacks are filled. Returns the
+/// number of samples rebuilt.
 pub(super) fn fill_plant_downtime(
     sc: &drivelab_runtime::config::Scenario,
     rec: &mut Recorder,
+    rejoins: &[PlantTruth],
 ) -> u64 {
     use drivelab_runtime::drive::Plant;
     let mut filled = 0;
@@ -204,20 +201,22 @@ pub(super) fn fill_plant_downtime(
             k = end + 1;
             continue;
         };
-        for k0 in (k.saturating_sub(REBUILD_LOOKBACK).max(1)..=k).rev() {
-            let Some(last) = rec.meas[k0 - 1] else {
-                continue;
-            };
-            let mut rebuilt = Vec::with_capacity(end - k0);
+        // The restart that resumed at `end` started from a state before k, newest first.
+        for last in rejoins.iter().rev().filter(|t| t.hdr.k < k as u64) {
+            let mut rebuilt = Vec::with_capacity(end - k);
             let mut plant = Plant::new(sc);
-            plant.coast(&last, end as u64, |t| rebuilt.push(*t));
+            plant.coast(last, end as u64, |t| {
+                if t.hdr.k >= k as u64 {
+                    rebuilt.push(*t);
+                }
+            });
             // The restarted plant's first sample, from the coasted state.
             plant.sample(end as u64, None);
             let next = plant.truth();
             if (next.i_dq, next.omega_m, next.theta_m)
                 == (resumed.i_dq, resumed.omega_m, resumed.theta_m)
             {
-                for t in rebuilt.into_iter().filter(|t| t.hdr.k >= k as u64) {
+                for t in rebuilt {
                     rec.meas[t.hdr.k as usize] = Some(t);
                     filled += 1;
                 }

@@ -414,10 +414,14 @@ pub(super) fn supervise(
                         "plant died before its first sample; cannot resume".into(),
                     ));
                 };
-                std::fs::write(
-                    &rejoin_file,
-                    serde_json::to_vec(&crate::common::truth_to_json(&last))?,
-                )?;
+                // The plant resumes from this state as the file gives it back: keep that.
+                let text = serde_json::to_vec(&crate::common::truth_to_json(&last))?;
+                let given =
+                    drivelab_runtime::service::truth_from_json(&serde_json::from_slice(&text)?)?;
+                if let Ok(mut r) = progress.rejoins.lock() {
+                    r.push(given);
+                }
+                std::fs::write(&rejoin_file, &text)?;
             }
             c.proc = c.proc.respawn(sp, &rejoin_file)?;
             c.history.restarted();
