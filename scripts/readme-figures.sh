@@ -35,7 +35,8 @@ PY
 python3 - <<'PY'
 import re
 lines = open("runs/readme-smoke/campaign.md").read().splitlines()
-table = "\n".join(l for l in lines if l.startswith("|") or l.endswith("skipped."))
+head = "`campaigns/smoke.toml` on this machine: " + next(l for l in lines if l.endswith("skipped."))
+table = head + "\n\n" + "\n".join(l for l in lines if l.startswith("|"))
 readme = open("README.md").read()
 readme = re.sub(r"(<!-- SMOKE -->\n).*?(<!-- /SMOKE -->)",
                 lambda m: m.group(1) + table + "\n" + m.group(2), readme, flags=re.S)
