@@ -329,6 +329,8 @@ pub(super) fn supervise(
                 FaultKind::Kill => libc::SIGKILL,
                 FaultKind::Stop => libc::SIGSTOP,
             };
+            // The plant's sample when the signal goes out: the recorder's progress lags it.
+            let k_signal = plant_sample_now(progress, sc.rates.ts_ns());
             signal(c.proc.pid(), sig)?;
             c.injected = true;
             c.kill_pending |= f.kind == FaultKind::Kill;
@@ -338,6 +340,9 @@ pub(super) fn supervise(
                 monitor_pid,
             };
             log(events, kind, &f.service, &c.proc.name);
+            if let (Some(e), Some(k)) = (events.last_mut(), k_signal) {
+                e.k = e.k.max(k);
+            }
             if f.kind == FaultKind::Stop {
                 c.state = State::Frozen {
                     until: now + Duration::from_secs_f64(f.duration_s),
@@ -465,6 +470,15 @@ pub(super) fn supervise(
         }
         std::thread::sleep(Duration::from_millis(1));
     }
+}
+
+/// The sample the real-time plant is at now: the newest one the recorder has read, plus the
+/// sample periods since its instant (None in lockstep, which has no schedule).
+fn plant_sample_now(progress: &Progress, ts_ns: u64) -> Option<u64> {
+    let last = progress.last.lock().ok().and_then(|l| *l)?;
+    let t = last.hdr.t_sample_ns;
+    (t > 0 && ts_ns > 0)
+        .then(|| last.hdr.k + drivelab_runtime::rt::now_ns().saturating_sub(t) / ts_ns)
 }
 
 /// One entry of `summary.json` → `faults`. Times are in ms from the injection.
