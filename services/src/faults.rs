@@ -243,29 +243,16 @@ pub fn find_services(bus: &str) -> Vec<(String, String, u32)> {
         .collect()
 }
 
-/// Publishes `count` malformed estimates onto a running drive's estimate topic: `nan` puts
-/// NaN in the speed, `backwards` uses sample index 0 (behind the drive). For tests of the
-/// consumers' input checks.
+/// Tries to publish `count` malformed estimates onto a running drive's estimate topic, as a
+/// foreign process on the same account would: `nan` puts NaN in the speed, `backwards` uses
+/// sample index 0 (behind the drive). Every drive topic takes one publisher, its stage, so
+/// this fails with the bus's one-line refusal while the drive runs. For the tests of that
+/// refusal.
 pub fn inject_bad_estimates(bus: &str, kind: &str, count: u32) -> Result<()> {
     use drivelab_runtime::messages::{Estimate, Header};
     drivelab_runtime::bus::check_bus_id(bus)?;
-    if find_services(bus).is_empty() {
-        bail!("no drive is running on bus {bus}");
-    }
-    let node = drivelab_runtime::bus::node(bus, "injector")?;
-    let topics = drivelab_runtime::bus::DriveTopics::open_with(
-        &node,
-        drivelab_runtime::bus::WakeKind::Futex,
-        bus,
-    )?;
-    let tx = topics.est.sender()?;
-    // Connect before the first message, and give the subscribers time to see the new
-    // publisher, so that no bad message is lost to a lazy connection.
-    tx.connect()?;
-    std::thread::sleep(std::time::Duration::from_millis(100));
-    tx.connect()?;
-    for i in 0..count {
-        let e = match kind {
+    let bad = |i: u32| -> Result<Estimate> {
+        Ok(match kind {
             "nan" => Estimate {
                 hdr: Header {
                     k: u64::MAX / 2 + u64::from(i),
@@ -283,9 +270,22 @@ pub fn inject_bad_estimates(bus: &str, kind: &str, count: u32) -> Result<()> {
                 omega_m: 0.0,
             },
             other => bail!("unknown bad-input kind '{other}' (nan, backwards)"),
-        };
-        tx.send(e)?;
-        std::thread::sleep(std::time::Duration::from_millis(2));
+        })
+    };
+    bad(0)?;
+    if find_services(bus).is_empty() {
+        bail!("no drive is running on bus {bus}");
+    }
+    let node = drivelab_runtime::bus::node(bus, "injector")?;
+    let topics = drivelab_runtime::bus::DriveTopics::open_with(
+        &node,
+        drivelab_runtime::bus::WakeKind::Futex,
+        bus,
+    )?;
+    let tx = topics.est.sender()?;
+    tx.connect()?;
+    for i in 0..count {
+        tx.send(bad(i)?)?;
     }
     Ok(())
 }

@@ -236,7 +236,9 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
         let pubsub = node
             .service_builder(&name)
             .publish_subscribe::<T>()
-            .max_publishers(2)
+            // One publisher per topic: the stage that owns it. A second process on the same
+            // account cannot publish here (see docs/architecture.md, "Who can reach a drive").
+            .max_publishers(1)
             .max_subscribers(6)
             .max_nodes(12)
             .subscriber_max_buffer_size(MAX_BUFFER)
@@ -259,7 +261,8 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
         Ok(Self { pubsub, wake })
     }
 
-    /// A sender (publisher + wake-up).
+    /// A sender (publisher + wake-up). Fails while another process publishes on the topic:
+    /// every topic has exactly one publisher.
     pub fn sender(&self) -> Result<Sender<T>> {
         let notify = match &self.wake {
             Wake::Event(ev) => Notify::Event(Box::new(
@@ -275,7 +278,13 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
                 .publisher_builder()
                 .max_loaned_samples(2)
                 .create()
-                .map_err(|e| anyhow!("publisher: {e:?}"))?,
+                .map_err(|e| match e {
+                    iceoryx2::port::publisher::PublisherCreateError::ExceedsMaxSupportedPublishers => anyhow!(
+                        "topic {} already has its one publisher (another process owns it)",
+                        self.pubsub.name()
+                    ),
+                    e => anyhow!("publisher: {e:?}"),
+                })?,
             notify,
         })
     }

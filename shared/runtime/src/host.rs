@@ -113,8 +113,12 @@ pub struct Counters {
     pub samples: u64,
     /// Inputs that were not there (or not the expected index) when needed.
     pub stale_inputs: u64,
-    /// Inputs rejected because they held NaN/∞ or an index that went backwards.
+    /// Inputs rejected as malformed: NaN/∞, an end marker before the last sample, or a
+    /// sample index outside the window the drive can be at ([`IndexWindow`]).
     pub rejected_inputs: u64,
+    /// Triggers that arrived after a newer one had been taken (index at or behind the last
+    /// one seen): late, not malformed.
+    pub late_inputs: u64,
     /// Source only: samples that used a held or safe command (deadline misses).
     pub deadline_misses: u64,
     /// Source only: longest run of consecutive misses.
@@ -323,6 +327,63 @@ impl HostConfig {
     }
 }
 
+/// Lockstep: how far ahead of the newest index taken so far an input may be, samples. In
+/// lockstep no stage runs ahead of the chain by more than the slowest stage's period, and no
+/// process restarts, so a larger jump can only be a foreign or corrupted message.
+const LOCKSTEP_WINDOW_MIN: u64 = 16;
+
+/// Which sample indices a host takes from the bus. Every message of a drive carries the index
+/// of the sample it belongs to, and sample k starts at t0 + k·T_s on the drive's schedule.
+/// In real time an index is taken only if its sample has started by now (plus one sample of
+/// slack): a message cannot come from the future, so a huge index is rejected however it
+/// arrived. The schedule's origin t0 is learnt from the first message with a sample instant.
+/// In lockstep (no wall clock) an index is taken within a window of the newest one taken.
+/// A restarted producer, or a consumer that catches up after a freeze, stays inside both.
+#[derive(Debug, Clone, Copy)]
+struct IndexWindow {
+    realtime: bool,
+    ts_ns: u64,
+    t0_ns: Option<u64>,
+    newest: Option<u64>,
+    window: u64,
+}
+
+impl IndexWindow {
+    fn new(realtime: bool, ts_ns: u64, max_divider: u64) -> Self {
+        Self {
+            realtime,
+            ts_ns: ts_ns.max(1),
+            t0_ns: None,
+            newest: None,
+            window: LOCKSTEP_WINDOW_MIN.max(4 * max_divider),
+        }
+    }
+
+    /// True when sample index `hdr.k` is one the drive can be at now (`now_ns`: the
+    /// monotonic clock). Learns the schedule's origin or the newest index on the way.
+    fn admits(&mut self, hdr: &crate::messages::Header, now_ns: u64) -> bool {
+        if self.realtime {
+            if let Some(t0) = self.t0_ns {
+                // The sample that has started by now, plus one of slack.
+                let k_now = now_ns.saturating_sub(t0) / self.ts_ns;
+                return hdr.k <= k_now + 1;
+            }
+            if hdr.t_sample_ns != 0 {
+                self.t0_ns = hdr
+                    .k
+                    .checked_mul(self.ts_ns)
+                    .and_then(|x| hdr.t_sample_ns.checked_sub(x));
+            }
+            return true;
+        }
+        if self.newest.is_some_and(|n| hdr.k > n.saturating_add(self.window)) {
+            return false;
+        }
+        self.newest = Some(self.newest.map_or(hdr.k, |n| n.max(hdr.k)));
+        true
+    }
+}
+
 /// Per-topic store of the newest messages by index.
 struct Store {
     ring: [[Option<Msg>; RING]; N_TOPICS],
@@ -376,6 +437,8 @@ pub struct Host<T: Transport> {
     /// The external inputs to drain, each topic once, with the stage that owns its counts
     /// (the first one that reads it).
     drains: Vec<(usize, Bound)>,
+    /// The sample indices taken from the bus.
+    window: IndexWindow,
 }
 
 impl<T: Transport> Host<T> {
@@ -437,7 +500,14 @@ impl<T: Transport> Host<T> {
                 }
             }
         }
+        let max_divider = divider
+            .iter()
+            .copied()
+            .chain(hosted.iter().map(|h| h.divider))
+            .max()
+            .unwrap_or(1);
         Self {
+            window: IndexWindow::new(cfg.pacing == Pacing::Realtime, cfg.ts_ns, max_divider),
             stages: hosted,
             transport,
             store: Store::new(divider),
@@ -455,6 +525,17 @@ impl<T: Transport> Host<T> {
 
     fn stopping(&self) -> bool {
         (self.stop)()
+    }
+
+    /// True when message `m` from another process may be used: finite values and a sample
+    /// index the drive can be at ([`IndexWindow`]). Else counted as rejected against stage
+    /// `si`.
+    fn admit(&mut self, si: usize, m: &Msg) -> bool {
+        let ok = m.is_finite() && self.window.admits(m.hdr(), now_ns());
+        if !ok {
+            self.stages[si].counters.rejected_inputs += 1;
+        }
+        ok
     }
 
     /// True when the first stage is the source (no trigger).
@@ -488,8 +569,7 @@ impl<T: Transport> Host<T> {
                 if h.is_warmup() || h.is_end() {
                     continue;
                 }
-                if !m.is_finite() {
-                    self.stages[si].counters.rejected_inputs += 1;
+                if !self.admit(si, &m) {
                     continue;
                 }
                 // Source: a delayed input older than the one this sample expects came
@@ -704,10 +784,8 @@ impl<T: Transport> Host<T> {
                 if m.hdr().is_warmup() || m.hdr().is_end() {
                     continue;
                 }
-                if m.is_finite() {
+                if self.admit(si, &m) {
                     self.store.put(m);
-                } else {
-                    self.stages[si].counters.rejected_inputs += 1;
                 }
             }
             if self.store.get(topic, k).is_some() {
@@ -987,9 +1065,12 @@ impl<T: Transport> Host<T> {
                     }
                     continue;
                 }
+                if !self.admit(0, &m) {
+                    continue;
+                }
                 let h0 = &mut self.stages[0];
-                if !m.is_finite() || h0.last_seen.is_some_and(|l| hdr.k <= l) {
-                    h0.counters.rejected_inputs += 1;
+                if h0.last_seen.is_some_and(|l| hdr.k <= l) {
+                    h0.counters.late_inputs += 1;
                     continue;
                 }
                 if let Some(l) = h0.last_seen {
@@ -1197,6 +1278,91 @@ mod tests {
             warm_up: false,
             ..HostConfig::for_scenario(sc, Pacing::Realtime, 100)
         }
+    }
+
+    #[test]
+    fn an_index_far_ahead_is_rejected_and_a_repeated_one_is_counted_late() {
+        let sc = scenario();
+        // Real time: the drive's sample 0 started 1 ms ago (the run has 100 samples of
+        // 100 µs, so the drive is at sample 10 now).
+        let t0 = now_ns() - 1_000_000;
+        let at = |k: u64| {
+            let Msg::Meas(mut m) = meas(k, k as f64 * 0.01) else {
+                unreachable!()
+            };
+            m.hdr.t_sample_ns = t0 + k * 100_000;
+            Msg::Meas(m)
+        };
+        let mut tr = Script::default();
+        tr.queues[TopicId::Meas.index()].push_back(at(0));
+        tr.on_wait.push((2, at(1)));
+        // Forged: far beyond any sample the drive can be at; then a repeat of sample 1.
+        tr.on_wait.push((3, at(1_000_000)));
+        tr.on_wait.push((4, at(1)));
+        tr.on_wait.push((5, at(2)));
+        tr.on_wait.push((6, end(TopicId::Meas, 100)));
+        let stages: Vec<Box<dyn Stage>> = vec![Box::new(ObserverStage::new(&sc))];
+        let producers = [(TopicId::Meas, 1, false), (TopicId::Est, 1, true)];
+        let mut host = Host::new(stages, &producers, tr, config(&sc));
+        host.run().unwrap();
+        let sent: Vec<u64> = host
+            .transport
+            .sent
+            .iter()
+            .filter(|m| m.topic() == TopicId::Est)
+            .map(|m| m.hdr().k)
+            .collect();
+        assert_eq!(sent, vec![0, 1, 2, 100]);
+        let c = host.stages[0].counters;
+        assert_eq!((c.rejected_inputs, c.late_inputs), (1, 1));
+    }
+
+    fn header(k: u64, t_sample_ns: u64) -> crate::messages::Header {
+        crate::messages::Header {
+            k,
+            t_sample_ns,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn in_real_time_an_index_is_taken_only_once_its_sample_has_started() {
+        // 10 kHz; the drive's sample 0 started at t = 1 ms.
+        let ts = 100_000;
+        let mut w = IndexWindow::new(true, ts, 10);
+        // The first message teaches the schedule: sample 5 at 1.5 ms.
+        assert!(w.admits(&header(5, 1_500_000), 1_520_000));
+        // At 2.0 ms the drive is at sample 10: 10 and 11 (one sample of slack) are taken,
+        // 12 is in the future.
+        let now = 2_000_000;
+        assert!(w.admits(&header(10, 0), now));
+        assert!(w.admits(&header(11, 0), now));
+        assert!(!w.admits(&header(12, 0), now));
+        assert!(!w.admits(&header(u64::MAX, u64::MAX), now));
+        // A producer back after 1 s of downtime is taken at once.
+        assert!(w.admits(&header(10_009, 0), now + 1_000_000_000));
+        // A first message whose instant does not fit its index teaches nothing.
+        let mut w = IndexWindow::new(true, ts, 1);
+        assert!(w.admits(&header(u64::MAX, 7), now));
+        assert_eq!(w.t0_ns, None);
+    }
+
+    #[test]
+    fn in_lockstep_an_index_is_taken_within_the_window_of_the_newest() {
+        // The slowest stage runs every 10 samples: a window of 40.
+        let mut w = IndexWindow::new(false, 100_000, 10);
+        assert!(w.admits(&header(0, 0), 0));
+        assert!(w.admits(&header(40, 0), 0));
+        assert!(!w.admits(&header(81, 0), 0));
+        assert!(w.admits(&header(80, 0), 0));
+        // Older indices are for the caller to judge (late), not the window.
+        assert!(w.admits(&header(3, 0), 0));
+        assert!(!w.admits(&header(u64::MAX, 0), 0));
+        // The window is never narrower than 16 samples.
+        let mut w = IndexWindow::new(false, 100_000, 1);
+        assert!(w.admits(&header(0, 0), 0));
+        assert!(w.admits(&header(16, 0), 0));
+        assert!(!w.admits(&header(33, 0), 0));
     }
 
     #[test]
