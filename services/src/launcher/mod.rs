@@ -9,6 +9,7 @@ mod policy;
 mod recorder;
 mod spawn;
 mod supervisor;
+mod trip;
 
 pub use recorder::Gap;
 pub use supervisor::{fault_reports, EventKind, FaultReport, SupEvent};
@@ -542,7 +543,14 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         Clock::Realtime => run_bus(&sc, &sc_path, &topo, &plan, o, &out, BusClock::Realtime)?,
     };
     let wall_s = wall.elapsed().as_secs_f64();
-    let (faults, windows) = fault_reports(&sc, &rows, &events);
+    let (mut faults, windows) = fault_reports(&sc, &rows, &events);
+    if let Some(t) = trip::trip_report(&sc, &rows) {
+        eprintln!(
+            "drivelab: the inverter tripped on overcurrent at t = {:.4} s (sample {}); it stayed in its safe state",
+            t.injected_t_s, t.injected_k
+        );
+        faults.push(t);
+    }
     let mut gaps = gaps;
     recorder::attribute_gaps(&mut gaps, &faults, sc.rates.sample_hz);
     if let Some(f) = &failure {

@@ -248,6 +248,10 @@ pub struct InverterSpec {
     pub hold_samples: u32,
     /// Safe state after the hold time.
     pub safe_state: SafeState,
+    /// Overcurrent trip, A: when any true phase current exceeds this in magnitude at a
+    /// sample, the inverter applies its safe state from that sample on and stays there
+    /// (latched, as a real inverter's hardware trip). None (the default): no trip.
+    pub i_trip_a: Option<f64>,
 }
 
 impl Default for InverterSpec {
@@ -257,6 +261,7 @@ impl Default for InverterSpec {
             v_dc_v: 325.0,
             hold_samples: 3,
             safe_state: SafeState::ZeroVector,
+            i_trip_a: None,
         }
     }
 }
@@ -788,6 +793,11 @@ impl Scenario {
             inv.v_dc_v.is_finite() && inv.v_dc_v > 0.0 && inv.v_dc_v <= 2000.0,
             || format!("inverter.v_dc_v = {} must be in (0, 2000] V", inv.v_dc_v),
         )?;
+        if let Some(i) = inv.i_trip_a {
+            check(i.is_finite() && i > 0.0 && i <= 1e5, || {
+                format!("inverter.i_trip_a = {i} must be in (0, 100000] A")
+            })?;
+        }
         check(inv.hold_samples <= 100_000, || {
             format!(
                 "inverter.hold_samples = {} must be <= 100000",
@@ -1134,6 +1144,8 @@ preset = "kyslan2015"
             ),
             (tail("[inverter]\nv_dc_v = 0.0"), "inverter.v_dc_v = 0 must"),
             (tail("[inverter]\nhold_samples = 100001"), "inverter.hold_samples = 100001"),
+            (tail("[inverter]\ni_trip_a = 0"), "inverter.i_trip_a = 0"),
+            (tail("[inverter]\ni_trip_a = 1e9"), "inverter.i_trip_a = 1000000000"),
             (
                 tail("[mechanics]\nprescribed_speed_rad_s = 1e9"),
                 "mechanics.prescribed_speed_rad_s = 1000000000 must",

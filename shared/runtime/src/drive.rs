@@ -198,6 +198,10 @@ pub struct Plant {
     u_max: f64,
     hold_samples: u32,
     safe_state: SafeState,
+    /// Overcurrent trip level (peak phase current), A.
+    i_trip_a: Option<f64>,
+    /// The overcurrent trip has fired (latched).
+    pub tripped: bool,
     load: Vec<Step>,
     load_model: drivelab_control::motor::LoadModel,
     encoder_counts: u32,
@@ -245,6 +249,8 @@ impl Plant {
             u_max: sc.u_max(),
             hold_samples: sc.inverter.hold_samples,
             safe_state: sc.inverter.safe_state,
+            i_trip_a: sc.inverter.i_trip_a,
+            tripped: false,
             load: sc.load.torque_nm.clone(),
             load_model: sc.load_model(),
             encoder_counts: sc.sensors.encoder_counts_per_rev,
@@ -262,7 +268,7 @@ impl Plant {
     /// returns measurement k. For k = 0 pass `None`; it is not a miss.
     pub fn sample(&mut self, k: u64, cmd: Option<&VoltageCommand>) -> Measurement {
         let mut flags = 0;
-        let mut pulse_blocked = false;
+        let mut safe = false;
         match cmd {
             Some(c) => {
                 self.last_u_ab = c.u_ab;
@@ -272,13 +278,31 @@ impl Plant {
             None => {
                 self.stale_run = self.stale_run.saturating_add(1);
                 flags |= FLAG_STALE_CMD;
-                if self.stale_run > self.hold_samples {
-                    flags |= FLAG_SAFE_STATE;
-                    match self.safe_state {
-                        SafeState::ZeroVector => self.last_u_ab = [0.0; 2],
-                        SafeState::PulseBlock => pulse_blocked = true,
-                    }
-                }
+                safe = self.stale_run > self.hold_samples;
+            }
+        }
+        // Overcurrent trip: the phase currents at t_k against the trip level; latched.
+        let theta_e = self.x.theta_e(&self.m);
+        let (ia, ib, ic) = inverse_clarke(inverse_park(
+            Dq {
+                d: self.x.i_d,
+                q: self.x.i_q,
+            },
+            theta_e,
+        ));
+        if let Some(i_trip) = self.i_trip_a {
+            self.tripped |= ia.abs().max(ib.abs()).max(ic.abs()) > i_trip;
+        }
+        if self.tripped {
+            flags |= FLAG_TRIPPED;
+            safe = true;
+        }
+        let mut pulse_blocked = false;
+        if safe {
+            flags |= FLAG_SAFE_STATE;
+            match self.safe_state {
+                SafeState::ZeroVector => self.last_u_ab = [0.0; 2],
+                SafeState::PulseBlock => pulse_blocked = true,
             }
         }
         // Inverter: limit the voltage vector to the linear SVPWM range V_dc/√3.
@@ -289,7 +313,6 @@ impl Plant {
         (u.alpha, u.beta) = limit_vector(u.alpha, u.beta, self.u_max);
         let t = k as f64 * self.ts;
         self.t_load = profile_at(&self.load, t);
-        let theta_e = self.x.theta_e(&self.m);
         // Zero-order hold in the rotor frame: the αβ vector is rotated with the mid-sample angle.
         let omega_e = self.m.p() * self.x.omega_m;
         self.u_dq_applied = park(u, theta_e + 0.5 * omega_e * self.ts);
@@ -306,14 +329,7 @@ impl Plant {
             self.last_u_ab = [0.0; 2];
             u = inverse_park(self.u_dq_applied, theta_e + 0.5 * omega_e * self.ts);
         }
-        let i_ab = inverse_park(
-            Dq {
-                d: self.x.i_d,
-                q: self.x.i_q,
-            },
-            theta_e,
-        );
-        let (mut ia, mut ib, mut ic) = inverse_clarke(i_ab);
+        let (mut ia, mut ib, mut ic) = (ia, ib, ic);
         if let Some((rng, n)) = self.noise.as_mut() {
             ia += n.sample(rng);
             ib += n.sample(rng);
@@ -774,7 +790,9 @@ pub fn trace_row(ts: f64, truth: &PlantTruth, cmd: &VoltageCommand) -> TraceRow 
         t_load: truth.t_load,
         plant_flags: truth.hdr.flags,
         ctrl_flags: cmd.hdr.flags,
-        miss: u8::from(truth.hdr.flags & (FLAG_STALE_CMD | FLAG_SAFE_STATE) != 0),
+        // The safe state after the hold comes only with a stale command; a tripped inverter
+        // is safe with every command there (no miss).
+        miss: u8::from(truth.hdr.flags & FLAG_STALE_CMD != 0),
         theta_m: truth.theta_m,
         theta_m_ref: None,
     }

@@ -22,6 +22,9 @@ pub const FLAG_WARMUP: u32 = 16;
 /// Trace only: the plant's process was down at this sample; the motor was integrated
 /// afterwards under the inverter's hold and safe state (no command reached it).
 pub const FLAG_PLANT_DOWN: u32 = 64;
+/// Header flag (measurement): the inverter's overcurrent trip has fired (at this sample or
+/// before). The trip is latched: the inverter stays in its safe state until the run ends.
+pub const FLAG_TRIPPED: u32 = 128;
 
 /// Common header.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]

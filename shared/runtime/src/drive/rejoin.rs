@@ -20,6 +20,8 @@ impl Plant {
         self.theta_m_unwrapped = last.theta_m;
         self.last_u_ab = last.u_ab_applied;
         self.stale_run = 0;
+        // A tripped inverter stays tripped through a restart of the plant's process.
+        self.tripped = last.hdr.flags & crate::messages::FLAG_TRIPPED != 0;
     }
 
     /// The motor through the plant's downtime: restored to `last` (its last recorded

@@ -62,3 +62,66 @@ fn pulse_blocking_lets_the_current_decay_while_zero_vector_short_circuits() {
     assert!(i_pb < 1e-6, "pulse blocking left {i_pb} A");
     assert!(i_zv > 0.5, "active short circuit carries {i_zv} A");
 }
+
+#[test]
+fn an_overcurrent_trips_at_the_first_sample_above_the_level_and_stays_latched() {
+    use crate::messages::FLAG_TRIPPED;
+    let text = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../scenarios/kyslan-pi.toml"
+    ))
+    .unwrap();
+    let mut sc = Scenario::from_toml(&text, "kyslan-pi.toml").unwrap();
+    sc.mechanics.prescribed_speed_rad_s = Some(0.0);
+    // No sensor noise: the measured phase currents are the true ones the trip compares.
+    sc.sensors.current_noise_a = 0.0;
+    // The same plant without and with a 2 A trip, both driven by a constant 20 V on α at
+    // standstill: the current rises towards 20 V / R with the time constant L/R.
+    let plain = Plant::new(&sc);
+    sc.inverter.i_trip_a = Some(2.0);
+    let tripping = Plant::new(&sc);
+    let cmd = VoltageCommand {
+        u_ab: [20.0, 0.0],
+        ..Default::default()
+    };
+    let mut first_trip = None;
+    let (mut a, mut b) = (plain, tripping);
+    for k in 0..400u64 {
+        let ma = a.sample(k, Some(&cmd));
+        let mb = b.sample(k, Some(&cmd));
+        let peak = ma.i_abc.iter().fold(0.0f64, |m, i| m.max(i.abs()));
+        if first_trip.is_none() {
+            // Until the trip, the two plants measure the same currents bit for bit.
+            assert_eq!(ma.i_abc, mb.i_abc, "k = {k}");
+            if peak > 2.0 {
+                first_trip = Some(k);
+            } else {
+                assert_eq!(ma.u_ab_applied, mb.u_ab_applied, "k = {k}");
+                assert_eq!(mb.hdr.flags & FLAG_TRIPPED, 0, "k = {k}");
+            }
+        }
+        if first_trip.is_some() {
+            // From the trip on, latched: safe state although every command is fresh.
+            assert_eq!(
+                mb.hdr.flags & (FLAG_TRIPPED | FLAG_SAFE_STATE),
+                FLAG_TRIPPED | FLAG_SAFE_STATE,
+                "k = {k}"
+            );
+            assert_eq!(mb.u_ab_applied, [0.0; 2], "k = {k}");
+            assert_eq!(mb.hdr.flags & FLAG_STALE_CMD, 0, "k = {k}");
+        }
+        a.advance();
+        b.advance();
+    }
+    let k = first_trip.expect("20 V at standstill must drive the current above 2 A");
+    assert!(k > 0);
+    // The untripped plant stays above the level; the tripped one's current decays (zero
+    // vector at standstill: it decays with L/R, towards nothing).
+    assert!(a.x.i_d.hypot(a.x.i_q) > 2.0);
+    assert!(b.x.i_d.hypot(b.x.i_q) < 0.1 * a.x.i_d.hypot(a.x.i_q));
+    // A restarted plant given the tripped state stays tripped.
+    let mut c = Plant::new(&sc);
+    c.restore(b.truth());
+    assert!(c.tripped);
+    assert_ne!(c.sample(400, Some(&cmd)).hdr.flags & FLAG_TRIPPED, 0);
+}
