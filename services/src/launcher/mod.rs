@@ -8,6 +8,7 @@
 mod policy;
 mod recorder;
 mod spawn;
+mod stream;
 mod supervisor;
 mod trip;
 
@@ -23,7 +24,8 @@ use drivelab_runtime::service::TopologyPlan;
 use drivelab_runtime::topology::StageInfo;
 use drivelab_runtime::trace::TraceRow;
 use drivelab_tools::metrics::speed_metrics;
-use recorder::{assemble, run_recorder, Progress};
+use recorder::{run_recorder, Progress};
+use stream::{TraceStats, TraceStream};
 use serde::Serialize;
 use serde_json::json;
 use spawn::{process_binary, spawn_service, terminate, ChildProc, Spawn};
@@ -125,8 +127,10 @@ fn default_out(sc: &Scenario, clock: Clock) -> PathBuf {
 
 /// What a run on the bus produced.
 struct BusRun {
-    /// The trace.
+    /// The trace's rows kept for the analyses (every row unless `stats` says otherwise).
     rows: Vec<TraceRow>,
+    /// When the trace was written as it went: its figures.
+    stats: Option<TraceStats>,
     /// Samples missing from it.
     gaps: Vec<Gap>,
     /// `summary.json` → `processes`.
@@ -170,16 +174,23 @@ fn run_bus(
         ..Default::default()
     });
     let (ready_tx, ready_rx) = mpsc::channel();
+    // The trace goes to disk as the drive runs.
+    let trace = TraceStream::new(
+        sc,
+        Some(drivelab_runtime::trace::CsvTrace::create(
+            &out.join("trace.csv"),
+        )?),
+    );
     let rec = {
-        let (b, s, w, pr) = (
+        let (b, s, sc, pr) = (
             bus_id.clone(),
             stop.clone(),
-            sc.timing.wake,
+            sc.clone(),
             progress.clone(),
         );
         std::thread::Builder::new()
             .name("recorder".into())
-            .spawn(move || run_recorder(b, w, n, s, pr, ready_tx))?
+            .spawn(move || run_recorder(b, sc, trace, s, pr, ready_tx))?
     };
     let topo_path = out.join("topology.json");
     let sp = Spawn {
@@ -299,22 +310,15 @@ fn run_bus(
             }
         }
     }
-    let mut rec = rec;
-    let rejoins = progress
-        .rejoins
-        .lock()
-        .map(|r| r.clone())
-        .unwrap_or_default();
-    let rebuilt = recorder::fill_plant_downtime(sc, &mut rec, &rejoins);
-    let (rows, gaps) = assemble(sc.rates.ts(), &rec);
-    let mut info = json!({ "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "plan": plan, "plant_down_samples": rebuilt });
+    let mut info = json!({ "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "recorder_late": rec.late, "plan": plan, "plant_down_samples": rec.rebuilt });
     if let Some(p) = counters.get("plant") {
         info["deadline_misses"] = p["deadline_misses"].clone();
         info["longest_miss_run"] = p["longest_miss_run"].clone();
     }
     Ok(BusRun {
-        rows,
-        gaps,
+        rows: rec.kept,
+        gaps: rec.gaps,
+        stats: Some(rec.stats),
         processes: serde_json::Value::Object(processes),
         info,
         events,
@@ -517,6 +521,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     let BusRun {
         rows,
         gaps,
+        stats,
         processes,
         info,
         events,
@@ -531,8 +536,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
                 );
             }
             BusRun {
-                rows: drivelab_runtime::stages::run_inprocess(&sc),
+                rows: drivelab_runtime::stages::try_run_inprocess(&sc)?,
                 gaps: Vec::new(),
+                stats: None,
                 processes: json!({}),
                 info: json!({ "deadline_misses": 0 }),
                 events: Vec::new(),
@@ -559,7 +565,14 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             g.cause = format!("the run ended early: {f}");
         }
     }
-    drivelab_runtime::trace::write_csv(&out.join("trace.csv"), &rows)?;
+    // A bus run wrote its trace as it went; an in-process one holds it whole.
+    let stats = match stats {
+        Some(s) => s,
+        None => {
+            drivelab_runtime::trace::write_csv(&out.join("trace.csv"), &rows)?;
+            TraceStats::of(&rows)
+        }
+    };
     let metrics = speed_metrics(&sc, &rows);
     let design = DriveDesign::from_scenario(&sc);
     let timing = json!({
@@ -588,13 +601,14 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         "clock": o.clock,
         "rate_hz": sc.rates.sample_hz,
         "speed_loop_hz": sc.rates.sample_hz / f64::from(sc.rates.speed_divider),
-        "samples": rows.len(),
+        "samples": stats.rows,
+        "trace": stats,
         "samples_expected": sc.samples(),
         "deadline_misses": deadline_misses,
         "deadline_misses_per_million": deadline_misses as f64 * 1e6 / sc.samples().max(1) as f64,
         "samples_missing": samples_missing,
-        "peak_current_a": rows.iter().map(|r| r.i_d.hypot(r.i_q)).fold(0.0, f64::max),
-        "peak_speed_rad_s": rows.iter().map(|r| r.omega_m.abs()).fold(0.0, f64::max),
+        "peak_current_a": stats.peak_current_a,
+        "peak_speed_rad_s": stats.peak_speed_rad_s,
         "longest_miss_run": info.get("longest_miss_run").cloned().unwrap_or(json!(0)),
         "processes": processes,
         "metrics": metrics,

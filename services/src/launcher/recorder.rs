@@ -1,13 +1,14 @@
 //! The recorder thread: subscribes to the plant's truth, the commands and the position
-//! references with large buffers, keeps every sample, shares its progress with the
-//! supervisor; and [`assemble`], which joins what it kept into trace rows and gaps.
+//! references with large buffers, streams every sample into the trace ([`TraceStream`]),
+//! shares its progress with the supervisor; and [`attribute_gaps`], which names the fault
+//! behind each missing sample.
 
+use super::stream::TraceStream;
 use super::supervisor::FaultReport;
 use anyhow::{anyhow, Result};
 use drivelab_runtime::bus::{self, DriveTopics, MAX_BUFFER};
-use drivelab_runtime::drive::trace_row;
+use drivelab_runtime::config::Scenario;
 use drivelab_runtime::messages::{PlantTruth, VoltageCommand};
-use drivelab_runtime::trace::TraceRow;
 use serde::Serialize;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc;
@@ -27,15 +28,6 @@ pub struct Gap {
     pub cause: String,
 }
 
-/// Recorder: subscribes to measurements and commands with large buffers and keeps every one.
-pub(super) struct Recorder {
-    pub meas: Vec<Option<PlantTruth>>,
-    pub cmd: Vec<Option<VoltageCommand>>,
-    /// Position references of an outer loop, as (k, θ_m*), in arrival order.
-    pub wref: Vec<(u64, f64)>,
-    pub rejected: u64,
-}
-
 /// What the recorder shares with the supervisor while the drive runs.
 #[derive(Default)]
 pub(super) struct Progress {
@@ -50,15 +42,18 @@ pub(super) struct Progress {
 }
 
 /// The recorder thread's body: reports on `ready` whether its subscriptions are in place, then
-/// records samples `0..n` until both streams ended or `stop` is set.
+/// records samples `0..n` of scenario `sc` into `trace` (written to `trace.csv` as it goes)
+/// until both streams ended or `stop` is set.
 pub(super) fn run_recorder(
     bus_id: String,
-    wake: drivelab_runtime::bus::WakeKind,
-    n: u64,
+    sc: Scenario,
+    mut trace: TraceStream,
     stop: Arc<AtomicBool>,
     progress: Arc<Progress>,
     ready: mpsc::Sender<Result<()>>,
-) -> Result<Recorder> {
+) -> Result<TraceStream> {
+    let wake = sc.timing.wake;
+    let n = sc.samples();
     let setup = (|| -> Result<_> {
         let node = bus::node(&bus_id, "recorder")?;
         let topics = DriveTopics::open_with(&node, wake, &bus_id)?;
@@ -80,14 +75,16 @@ pub(super) fn run_recorder(
             return Err(e);
         }
     };
-    let mut r = Recorder {
-        meas: vec![None; n as usize],
-        cmd: vec![None; n as usize],
-        wref: Vec::new(),
-        rejected: 0,
+    let rejoins = || {
+        progress
+            .rejoins
+            .lock()
+            .map(|r| r.clone())
+            .unwrap_or_default()
     };
     let (mut meas_end, mut cmd_end) = (false, false);
-    let (mut next_meas, mut next_cmd) = (0u64, 0u64);
+    // Every sample below `stored` is in the trace or waiting complete in its window.
+    let mut stored = 0u64;
     let mut last_progress = 0u64;
     let mut last_cmd = VoltageCommand::default();
     loop {
@@ -99,8 +96,10 @@ pub(super) fn run_recorder(
             }
             if m.hdr.is_end() {
                 meas_end = true;
-            } else if m.hdr.k < n {
-                r.meas[m.hdr.k as usize] = Some(m);
+                continue;
+            }
+            trace.meas(m, rejoins)?;
+            if m.hdr.k < n {
                 progress
                     .tail
                     .offer(drivelab_runtime::telemetry::TracePoint {
@@ -118,8 +117,6 @@ pub(super) fn run_recorder(
                         *l = Some(m);
                     }
                 }
-            } else {
-                r.rejected += 1;
             }
         }
         while let Some(c) = cmd_rx.try_recv()? {
@@ -129,180 +126,42 @@ pub(super) fn run_recorder(
             }
             if c.hdr.is_end() {
                 cmd_end = true;
-            } else if c.hdr.k < n {
-                r.cmd[c.hdr.k as usize] = Some(c);
-                last_cmd = c;
-            } else {
-                r.rejected += 1;
+                continue;
             }
+            trace.cmd(c)?;
+            last_cmd = c;
         }
         while let Some(w) = wref_rx.try_recv()? {
             if !w.hdr.is_warmup() && !w.hdr.is_end() && w.theta_m_ref.is_finite() {
-                r.wref.push((w.hdr.k, w.theta_m_ref));
+                trace.wref(w.hdr.k, w.theta_m_ref);
             }
         }
-        while next_meas < n && r.meas[next_meas as usize].is_some() {
-            next_meas += 1;
+        while stored < n && trace.complete(stored) {
+            stored += 1;
         }
-        while next_cmd < n && r.cmd[next_cmd as usize].is_some() {
-            next_cmd += 1;
+        if stored >= last_progress + 256 || (stored > last_progress && !got) {
+            rec_tx.send(stored)?;
+            last_progress = stored;
         }
-        let progress = next_meas.min(next_cmd);
-        if progress >= last_progress + 256 || (progress > last_progress && !got) {
-            rec_tx.send(progress)?;
-            last_progress = progress;
-        }
+        trace.advance()?;
         if (meas_end && cmd_end) || stop.load(Ordering::SeqCst) {
             // Take what is still buffered, then stop.
             while let Some(m) = meas_rx.try_recv()? {
-                if !m.hdr.is_end() && !m.hdr.is_warmup() && m.hdr.k < n {
-                    r.meas[m.hdr.k as usize] = Some(m);
+                if !m.hdr.is_end() && !m.hdr.is_warmup() {
+                    trace.meas(m, rejoins)?;
                 }
             }
             while let Some(c) = cmd_rx.try_recv()? {
-                if !c.hdr.is_end() && !c.hdr.is_warmup() && c.hdr.k < n {
-                    r.cmd[c.hdr.k as usize] = Some(c);
+                if !c.hdr.is_end() && !c.hdr.is_warmup() {
+                    trace.cmd(c)?;
                 }
             }
-            return Ok(r);
+            return trace.finish();
         }
         if !got {
             meas_rx.wait(Duration::from_millis(1))?;
         }
     }
-}
-
-/// Rebuilds the samples of the plant's downtimes. A run of missing measurements that ends
-/// where a restarted plant resumed is filled with the motor integrated from the state that
-/// plant was given (`rejoins`, the newest sample the recorder had read when the supervisor
-/// restarted it), exactly as the restarted plant did before it resumed
-/// ([`Plant::coast`](drivelab_runtime::drive::Plant::coast)). The rebuilt state at the
-/// resumed sample must equal the recorded one bit for bit, else the run is left missing (it
-/// was no restart of the plant). Only the samples the recorder lacks are filled. Returns the
-/// number of samples rebuilt.
-pub(super) fn fill_plant_downtime(
-    sc: &drivelab_runtime::config::Scenario,
-    rec: &mut Recorder,
-    rejoins: &[PlantTruth],
-) -> u64 {
-    use drivelab_runtime::drive::Plant;
-    let mut filled = 0;
-    let mut k = 1;
-    while k < rec.meas.len() {
-        if rec.meas[k].is_some() || rec.meas[k - 1].is_none() {
-            k += 1;
-            continue;
-        }
-        // A run [k, end) of missing measurements after the recorded sample k − 1.
-        let end = (k..rec.meas.len())
-            .find(|&j| rec.meas[j].is_some())
-            .unwrap_or(rec.meas.len());
-        let Some(resumed) = rec.meas.get(end).copied().flatten() else {
-            k = end + 1;
-            continue;
-        };
-        // The restart that resumed at `end` started from a state before k, newest first.
-        for last in rejoins.iter().rev().filter(|t| t.hdr.k < k as u64) {
-            let mut rebuilt = Vec::with_capacity(end - k);
-            let mut plant = Plant::new(sc);
-            plant.coast(last, end as u64, |t| {
-                if t.hdr.k >= k as u64 {
-                    rebuilt.push(*t);
-                }
-            });
-            // The restarted plant's first sample, from the coasted state.
-            plant.sample(end as u64, None);
-            let next = plant.truth();
-            if (next.i_dq, next.omega_m, next.theta_m)
-                == (resumed.i_dq, resumed.omega_m, resumed.theta_m)
-            {
-                for t in rebuilt {
-                    rec.meas[t.hdr.k as usize] = Some(t);
-                    filled += 1;
-                }
-                break;
-            }
-        }
-        k = end + 1;
-    }
-    filled
-}
-
-/// Joins measurements and commands into trace rows. A sample whose command is missing keeps
-/// its row with NaN in the command's columns; every missing part is listed as a gap.
-/// `ts` is the sample period, s.
-pub(super) fn assemble(ts: f64, rec: &Recorder) -> (Vec<TraceRow>, Vec<Gap>) {
-    let mut rows = Vec::with_capacity(rec.meas.len());
-    let mut gaps: Vec<Gap> = Vec::new();
-    let last_meas = rec.meas.iter().rposition(Option::is_some);
-    let mut push_gap = |k: u64, part: &'static str, cause: String| {
-        if let Some(g) = gaps.last_mut() {
-            if g.part == part && g.to + 1 == k && g.cause == cause {
-                g.to = k;
-                return;
-            }
-        }
-        gaps.push(Gap {
-            from: k,
-            to: k,
-            part,
-            cause,
-        });
-    };
-    // The outer loop's position reference in use at k: the newest computed before k.
-    let mut wref = rec.wref.clone();
-    wref.sort_by_key(|w| w.0);
-    let mut wi = 0;
-    let mut theta_ref = None;
-    for (k, m) in rec.meas.iter().enumerate() {
-        let k = k as u64;
-        while wi < wref.len() && wref[wi].0 < k {
-            theta_ref = Some(wref[wi].1);
-            wi += 1;
-        }
-        match (m, &rec.cmd[k as usize]) {
-            (Some(m), Some(c)) => {
-                let mut row = trace_row(ts, m, c);
-                row.theta_m_ref = theta_ref;
-                rows.push(row);
-            }
-            (Some(m), None) => {
-                let nan = f64::NAN;
-                let c = VoltageCommand {
-                    hdr: drivelab_runtime::messages::Header {
-                        k: m.hdr.k,
-                        flags: drivelab_runtime::messages::FLAG_MISSING,
-                        ..Default::default()
-                    },
-                    u_ab: [nan; 2],
-                    u_dq: [nan; 2],
-                    i_dq_ref: [nan; 2],
-                    omega_ref: nan,
-                    omega_hat: nan,
-                    theta_hat: nan,
-                };
-                let mut row = trace_row(ts, m, &c);
-                row.theta_m_ref = theta_ref;
-                rows.push(row);
-                let cause = if m.hdr.flags & drivelab_runtime::messages::FLAG_PLANT_DOWN != 0 {
-                    "none reached the inverter: the plant was down (sample rebuilt, plant_flags 64)"
-                } else {
-                    "current-loop produced no command for this sample"
-                };
-                push_gap(k, "command", cause.into());
-            }
-            (None, _) => {
-                let cause = match last_meas {
-                    Some(l) if k < l as u64 => {
-                        "measurement lost between plant and recorder (recorder buffer overflow)"
-                    }
-                    _ => "the plant stopped before this sample",
-                };
-                push_gap(k, "measurement", cause.into());
-            }
-        }
-    }
-    (rows, gaps)
 }
 
 /// Without a recovery or a republished output, a fault's window lasts this long, ms.
@@ -342,40 +201,66 @@ pub(super) fn attribute_gaps(gaps: &mut [Gap], faults: &[FaultReport], fs: f64) 
 mod tests {
     use super::*;
     use drivelab_runtime::messages::{Header, FLAG_MISSING};
+    use drivelab_runtime::trace::TraceRow;
 
     const TS: f64 = 1e-4;
     const LOST: &str = "measurement lost between plant and recorder (recorder buffer overflow)";
     const STOPPED: &str = "the plant stopped before this sample";
 
-    /// A recording of `n` samples with a measurement where `meas` says so and a command
-    /// where `cmd` says so.
-    fn recording(meas: &[bool], cmd: &[bool]) -> Recorder {
+    /// Which samples were recorded: a measurement where `meas` says so and a command where
+    /// `cmd` says so.
+    struct Recording {
+        meas: Vec<bool>,
+        cmd: Vec<bool>,
+        wref: Vec<(u64, f64)>,
+    }
+
+    fn recording(meas: &[bool], cmd: &[bool]) -> Recording {
+        Recording {
+            meas: meas.to_vec(),
+            cmd: cmd.to_vec(),
+            wref: Vec::new(),
+        }
+    }
+
+    /// Streams the recording through a [`TraceStream`] of a scenario with that many samples
+    /// (all measurements in order, then the commands, as the recorder may read them) and
+    /// returns its rows and gaps.
+    fn assemble(ts: f64, rec: &Recording) -> (Vec<TraceRow>, Vec<Gap>) {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../scenarios/kyslan-pi.toml");
+        let mut sc =
+            Scenario::from_toml(&std::fs::read_to_string(path).unwrap(), "kyslan-pi.toml")
+                .unwrap();
+        sc.rates.sample_hz = 1.0 / ts;
+        sc.duration_s = rec.meas.len() as f64 * ts;
+        assert_eq!(sc.samples(), rec.meas.len() as u64);
+        let mut t = TraceStream::new(&sc, None);
         let hdr = |k: usize| Header {
             k: k as u64,
             ..Default::default()
         };
-        Recorder {
-            meas: (0..meas.len())
-                .map(|k| {
-                    meas[k].then(|| PlantTruth {
-                        hdr: hdr(k),
-                        omega_m: k as f64,
-                        ..Default::default()
-                    })
-                })
-                .collect(),
-            cmd: (0..cmd.len())
-                .map(|k| {
-                    cmd[k].then(|| VoltageCommand {
-                        hdr: hdr(k),
-                        omega_ref: 10.0,
-                        ..Default::default()
-                    })
-                })
-                .collect(),
-            wref: Vec::new(),
-            rejected: 0,
+        for (k, w) in &rec.wref {
+            t.wref(*k, *w);
         }
+        for k in (0..rec.meas.len()).filter(|&k| rec.meas[k]) {
+            let m = PlantTruth {
+                hdr: hdr(k),
+                omega_m: k as f64,
+                ..Default::default()
+            };
+            t.meas(m, Vec::new).unwrap();
+        }
+        for k in (0..rec.cmd.len()).filter(|&k| rec.cmd[k]) {
+            let c = VoltageCommand {
+                hdr: hdr(k),
+                omega_ref: 10.0,
+                ..Default::default()
+            };
+            t.cmd(c).unwrap();
+        }
+        let t = t.finish().unwrap();
+        assert_eq!(t.stats.rows, t.kept.len() as u64);
+        (t.kept, t.gaps)
     }
 
     fn gap(from: u64, to: u64, part: &'static str, cause: &str) -> Gap {

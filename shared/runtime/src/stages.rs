@@ -452,11 +452,30 @@ impl Stage for SpeedLoopStage {
 /// Runs every built-in stage of `sc` in one thread on the same host as the bus (the
 /// `inprocess` clock) and returns the trace.
 pub fn run_inprocess(sc: &Scenario) -> Vec<crate::trace::TraceRow> {
+    try_run_inprocess(sc).expect("in-process chain")
+}
+
+/// [`run_inprocess`], with an error where the run cannot be done (no memory for its trace).
+pub fn try_run_inprocess(sc: &Scenario) -> anyhow::Result<Vec<crate::trace::TraceRow>> {
     let stages: Vec<Box<dyn Stage>> = BUILTIN
         .iter()
-        .map(|n| builtin(n, sc).expect("built-in stage"))
-        .collect();
-    run_stages_inprocess(sc, stages).expect("in-process chain")
+        .map(|n| builtin(n, sc).ok_or_else(|| anyhow::anyhow!("no built-in stage {n}")))
+        .collect::<anyhow::Result<_>>()?;
+    run_stages_inprocess(sc, stages)
+}
+
+/// An empty vector with room for `n` entries, or an error naming `what` and the size when
+/// the memory cannot be had (instead of an abort).
+fn fallible_vec<T>(n: usize, what: &str) -> anyhow::Result<Vec<T>> {
+    let mut v = Vec::new();
+    v.try_reserve_exact(n).map_err(|_| {
+        anyhow::anyhow!(
+            "cannot allocate {what}: {n} entries of {} bytes ({:.1} GB); the in-process clock holds the whole run in memory, --clock lockstep streams it to disk",
+            std::mem::size_of::<T>(),
+            n as f64 * std::mem::size_of::<T>() as f64 / 1e9
+        )
+    })?;
+    Ok(v)
 }
 
 /// Runs `stages` (chain order, the source first) in one thread and returns the trace.
@@ -479,7 +498,7 @@ pub fn run_stages_inprocess(
         stages,
         &producers,
         Local {
-            sent: Vec::with_capacity(2 * n as usize + 16),
+            sent: fallible_vec(2 * n as usize + 16, "the in-process run's messages")?,
         },
         HostConfig {
             warm_up: false,
@@ -488,8 +507,9 @@ pub fn run_stages_inprocess(
     );
     host.run()?;
     let ts = sc.rates.ts();
-    let mut truth: Vec<Option<PlantTruth>> = vec![None; n as usize];
-    let mut rows = Vec::with_capacity(n as usize);
+    let mut truth: Vec<Option<PlantTruth>> = fallible_vec(n as usize, "the in-process trace")?;
+    truth.resize(n as usize, None);
+    let mut rows = fallible_vec(n as usize, "the in-process trace")?;
     let mut wref: Option<SpeedRef> = None;
     for m in &host.transport.sent {
         match m {

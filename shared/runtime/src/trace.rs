@@ -53,13 +53,44 @@ pub struct TraceRow {
 
 /// Writes rows to a CSV file with a header line.
 pub fn write_csv(path: &std::path::Path, rows: &[TraceRow]) -> anyhow::Result<()> {
-    let mut w = csv::Writer::from_path(path)
-        .map_err(|e| anyhow::anyhow!("cannot create {}: {e}", path.display()))?;
+    let mut w = CsvTrace::create(path)?;
     for r in rows {
-        w.serialize(r)?;
+        w.push(r)?;
     }
-    w.flush()?;
-    Ok(())
+    w.finish()
+}
+
+/// `trace.csv` written row by row as a run goes (buffered), so that a long run needs no
+/// memory for its trace and what was recorded is on disk.
+pub struct CsvTrace {
+    w: csv::Writer<std::fs::File>,
+    path: std::path::PathBuf,
+}
+
+impl CsvTrace {
+    /// Creates (truncates) the file.
+    pub fn create(path: &std::path::Path) -> anyhow::Result<Self> {
+        let w = csv::Writer::from_path(path)
+            .map_err(|e| anyhow::anyhow!("cannot create {}: {e}", path.display()))?;
+        Ok(Self {
+            w,
+            path: path.to_path_buf(),
+        })
+    }
+
+    /// Appends one row.
+    pub fn push(&mut self, r: &TraceRow) -> anyhow::Result<()> {
+        self.w
+            .serialize(r)
+            .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", self.path.display()))
+    }
+
+    /// Flushes what is buffered to the file.
+    pub fn finish(mut self) -> anyhow::Result<()> {
+        self.w
+            .flush()
+            .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", self.path.display()))
+    }
 }
 
 /// Reads a trace written by [`write_csv`].

@@ -1,0 +1,572 @@
+//! The trace as the drive runs: measurements and commands meet in a bounded window of
+//! samples, each sample leaves it as a row of `trace.csv` (or a listed gap) once its command
+//! had time to arrive, and the plant's downtimes are rebuilt on the way. Memory does not
+//! grow with the run's length: a long run keeps for its analyses (metrics, fault reports,
+//! plots) every row around each disturbance and reference step and every d-th row between
+//! them, and says so in its summary.
+
+use super::recorder::Gap;
+use anyhow::Result;
+use drivelab_runtime::config::Scenario;
+use drivelab_runtime::drive::trace_row;
+use drivelab_runtime::messages::{
+    Header, PlantTruth, VoltageCommand, FLAG_MISSING, FLAG_PLANT_DOWN, FLAG_SAFE_STATE,
+    FLAG_TRIPPED,
+};
+use drivelab_runtime::trace::{CsvTrace, TraceRow};
+use serde::Serialize;
+
+/// Samples held in the window (a power of two above any lag below).
+const WINDOW: u64 = 1 << 16;
+/// How long a sample waits for its command before it leaves the window, s.
+const LAG_S: f64 = 0.2;
+/// Runs up to this many samples keep every row for their analyses.
+pub const FULL_ROWS: u64 = 1 << 20;
+/// Longer runs keep about this many evenly spaced rows, plus the windows below.
+const SPACED_ROWS: u64 = 200_000;
+/// At most this many rows are kept for the windows below, in all (a run disturbed
+/// throughout would otherwise keep every row).
+const WINDOW_ROWS: u64 = 200_000;
+/// Every row is kept from this long before a disturbance or a reference step, s …
+const KEEP_BEFORE_S: f64 = 0.1;
+/// … to this long after it, s.
+const KEEP_AFTER_S: f64 = 1.0;
+
+/// What a run's trace holds and what its analyses saw.
+#[derive(Debug, Clone, Copy, Serialize, PartialEq)]
+pub struct TraceStats {
+    /// Rows in `trace.csv`.
+    pub rows: u64,
+    /// Largest |i_dq| over every row, A.
+    pub peak_current_a: f64,
+    /// Largest |ω_m| over every row, mechanical rad/s.
+    pub peak_speed_rad_s: f64,
+    /// Rows kept for the analyses (metrics, fault reports, plots).
+    pub rows_analysed: u64,
+    /// Between the kept windows, one row in this many was kept (1: every row).
+    pub spacing: u64,
+    /// Rows of windows not kept because the windows' budget was spent.
+    pub window_rows_dropped: u64,
+}
+
+impl TraceStats {
+    /// The figures of rows all held in memory.
+    pub fn of(rows: &[TraceRow]) -> Self {
+        let mut s = Self {
+            rows: 0,
+            peak_current_a: 0.0,
+            peak_speed_rad_s: 0.0,
+            rows_analysed: rows.len() as u64,
+            spacing: 1,
+            window_rows_dropped: 0,
+        };
+        for r in rows {
+            s.count(r);
+        }
+        s
+    }
+
+    fn count(&mut self, r: &TraceRow) {
+        self.rows += 1;
+        self.peak_current_a = self.peak_current_a.max(r.i_d.hypot(r.i_q));
+        self.peak_speed_rad_s = self.peak_speed_rad_s.max(r.omega_m.abs());
+    }
+}
+
+/// Which rows the analyses keep.
+struct Keep {
+    spacing: u64,
+    /// Sample windows [from, to] kept whole: reference and load steps, then disturbances.
+    windows: Vec<(u64, u64)>,
+    before: u64,
+    after: u64,
+    /// Window rows that may still be kept.
+    budget: u64,
+    /// Window rows not kept for want of budget.
+    dropped: u64,
+}
+
+impl Keep {
+    fn new(sc: &Scenario) -> Self {
+        let n = sc.samples();
+        let fs = sc.rates.sample_hz;
+        let before = (KEEP_BEFORE_S * fs).ceil() as u64;
+        let after = (KEEP_AFTER_S * fs).ceil() as u64;
+        let mut k = Self {
+            spacing: if n <= FULL_ROWS {
+                1
+            } else {
+                n.div_ceil(SPACED_ROWS)
+            },
+            windows: Vec::new(),
+            before,
+            after,
+            budget: WINDOW_ROWS,
+            dropped: 0,
+        };
+        if k.spacing > 1 {
+            let steps = sc
+                .reference
+                .speed_rad_s
+                .iter()
+                .chain(&sc.reference.i_d_a)
+                .chain(&sc.load.torque_nm);
+            for s in steps {
+                k.mark((s.t_s.max(0.0) * fs) as u64);
+            }
+        }
+        k
+    }
+
+    /// Keeps every row around sample k.
+    fn mark(&mut self, k: u64) {
+        if self.spacing == 1 {
+            return;
+        }
+        let w = (k.saturating_sub(self.before), k.saturating_add(self.after));
+        match self.windows.last_mut() {
+            // Disturbances come in order: extend the newest window while they overlap.
+            Some(last) if w.0 <= last.1 && w.0 >= last.0 => last.1 = last.1.max(w.1),
+            _ => self.windows.push(w),
+        }
+    }
+
+    fn keeps(&mut self, k: u64) -> bool {
+        // Windows that ended before k are done with (rows leave in order).
+        self.windows.retain(|w| w.1 >= k);
+        if k.is_multiple_of(self.spacing) {
+            return true;
+        }
+        if !self.windows.iter().any(|w| w.0 <= k) {
+            return false;
+        }
+        if self.budget == 0 {
+            self.dropped += 1;
+            return false;
+        }
+        self.budget -= 1;
+        true
+    }
+}
+
+/// The trace of a run being recorded (see the module's comment).
+pub struct TraceStream {
+    ts: f64,
+    n: u64,
+    lag: u64,
+    sc: Scenario,
+    meas: Vec<Option<PlantTruth>>,
+    cmd: Vec<Option<VoltageCommand>>,
+    /// Next sample to leave the window.
+    next: u64,
+    /// Newest measurement taken.
+    newest: Option<u64>,
+    /// Position references of an outer loop, (k, θ_m*), by k.
+    wref: std::collections::VecDeque<(u64, f64)>,
+    theta_ref: Option<f64>,
+    out: Option<CsvTrace>,
+    keep: Keep,
+    /// Rows kept for the analyses.
+    pub kept: Vec<TraceRow>,
+    /// Samples missing from the trace, with their causes.
+    pub gaps: Vec<Gap>,
+    /// The trace's figures.
+    pub stats: TraceStats,
+    /// Samples of the plant's downtimes rebuilt.
+    pub rebuilt: u64,
+    /// Messages that arrived after their sample had left the window (too late to be used).
+    pub late: u64,
+    /// Messages with an index beyond the run (malformed).
+    pub rejected: u64,
+}
+
+impl TraceStream {
+    /// A trace of scenario `sc` written to `out` (None: kept in memory only, for tests).
+    pub fn new(sc: &Scenario, out: Option<CsvTrace>) -> Self {
+        let keep = Keep::new(sc);
+        Self {
+            ts: sc.rates.ts(),
+            n: sc.samples(),
+            lag: ((LAG_S * sc.rates.sample_hz).ceil() as u64).clamp(1, WINDOW / 4),
+            sc: sc.clone(),
+            meas: vec![None; WINDOW as usize],
+            cmd: vec![None; WINDOW as usize],
+            next: 0,
+            newest: None,
+            wref: Default::default(),
+            theta_ref: None,
+            out,
+            kept: Vec::new(),
+            gaps: Vec::new(),
+            stats: TraceStats {
+                rows: 0,
+                peak_current_a: 0.0,
+                peak_speed_rad_s: 0.0,
+                rows_analysed: 0,
+                spacing: keep.spacing,
+                window_rows_dropped: 0,
+            },
+            keep,
+            rebuilt: 0,
+            late: 0,
+            rejected: 0,
+        }
+    }
+
+    fn slot(k: u64) -> usize {
+        (k % WINDOW) as usize
+    }
+
+    /// True when sample k can be taken now; makes room for it.
+    fn admit(&mut self, hdr: &Header) -> Result<bool> {
+        let k = hdr.k;
+        if k >= self.n {
+            self.rejected += 1;
+            return Ok(false);
+        }
+        if k < self.next {
+            self.late += 1;
+            return Ok(false);
+        }
+        if k >= self.next + WINDOW {
+            self.emit_until(k + 1 - WINDOW)?;
+        }
+        Ok(true)
+    }
+
+    /// Takes the plant's true state at its sample. A measurement after missing ones may end
+    /// a downtime of the plant: `rejoins` then gives the states restarted plants were given.
+    pub fn meas(
+        &mut self,
+        m: PlantTruth,
+        rejoins: impl FnOnce() -> Vec<PlantTruth>,
+    ) -> Result<()> {
+        if !self.admit(&m.hdr)? {
+            return Ok(());
+        }
+        let k = m.hdr.k;
+        // Disturbances worth every row: the safe state, a rebuilt downtime, a trip (a held
+        // command alone is a deadline miss, which a loaded machine has every few samples).
+        if m.hdr.flags & (FLAG_SAFE_STATE | FLAG_PLANT_DOWN | FLAG_TRIPPED) != 0 {
+            self.keep.mark(k);
+        }
+        self.meas[Self::slot(k)] = Some(m);
+        match self.newest {
+            Some(l) if k > l + 1 => {
+                self.keep.mark(l + 1);
+                self.rebuild_downtime(l, &m, &rejoins())?;
+            }
+            _ => {}
+        }
+        self.newest = Some(self.newest.map_or(k, |l| l.max(k)));
+        Ok(())
+    }
+
+    /// Takes command k.
+    pub fn cmd(&mut self, c: VoltageCommand) -> Result<()> {
+        if !self.admit(&c.hdr)? {
+            return Ok(());
+        }
+        self.cmd[Self::slot(c.hdr.k)] = Some(c);
+        Ok(())
+    }
+
+    /// Takes an outer loop's position reference computed at sample k.
+    pub fn wref(&mut self, k: u64, theta_m_ref: f64) {
+        let at = self.wref.partition_point(|w| w.0 <= k);
+        self.wref.insert(at, (k, theta_m_ref));
+    }
+
+    /// True when sample k has a measurement and a command in the window.
+    pub fn complete(&self, k: u64) -> bool {
+        k < self.next
+            || (self.meas[Self::slot(k)].is_some_and(|m| m.hdr.k == k)
+                && self.cmd[Self::slot(k)].is_some_and(|c| c.hdr.k == k))
+    }
+
+    /// Lets every sample whose command had its time leave the window.
+    pub fn advance(&mut self) -> Result<()> {
+        if let Some(l) = self.newest {
+            self.emit_until((l + 1).saturating_sub(self.lag))?;
+        }
+        Ok(())
+    }
+
+    /// Lets every sample leave; returns the rows kept. The samples never measured are
+    /// listed as stopped (after the newest measurement) or lost (before it).
+    pub fn finish(mut self) -> Result<Self> {
+        self.emit_until(self.n)?;
+        if let Some(out) = self.out.take() {
+            out.finish()?;
+        }
+        self.stats.rows_analysed = self.kept.len() as u64;
+        self.stats.window_rows_dropped = self.keep.dropped;
+        Ok(self)
+    }
+
+    /// A run of missing measurements after sample `l` that ends at `m`, a restarted plant's
+    /// first: filled with the motor integrated from the state that plant was given, exactly
+    /// as it did before it resumed ([`Plant::coast`](drivelab_runtime::drive::Plant::coast)).
+    /// The rebuilt state at the resumed sample must equal the recorded one bit for bit, else
+    /// the run is left missing (it was no restart of the plant).
+    fn rebuild_downtime(&mut self, l: u64, m: &PlantTruth, rejoins: &[PlantTruth]) -> Result<()> {
+        use drivelab_runtime::drive::Plant;
+        let (a, b) = (l + 1, m.hdr.k);
+        for last in rejoins.iter().rev().filter(|t| t.hdr.k < a) {
+            let mut rebuilt = Vec::new();
+            let mut plant = Plant::new(&self.sc);
+            plant.coast(last, b, |t| {
+                if t.hdr.k >= a {
+                    rebuilt.push(*t);
+                }
+            });
+            plant.sample(b, None);
+            let next = plant.truth();
+            if (next.i_dq, next.omega_m, next.theta_m) == (m.i_dq, m.omega_m, m.theta_m) {
+                // The samples before the downtime are complete (the plant was down for
+                // longer than any command takes): they leave first, then the rebuilt ones.
+                self.emit_until(a)?;
+                // (A downtime longer than the window has already left it as missing.)
+                let from = self.next;
+                for t in rebuilt.iter().filter(|t| t.hdr.k >= from) {
+                    self.row(t, None)?;
+                    self.rebuilt += 1;
+                }
+                self.next = self.next.max(b);
+                return Ok(());
+            }
+        }
+        Ok(())
+    }
+
+    fn emit_until(&mut self, to: u64) -> Result<()> {
+        while self.next < to.min(self.n) {
+            let k = self.next;
+            let s = Self::slot(k);
+            let m = self.meas[s].take().filter(|m| m.hdr.k == k);
+            let c = self.cmd[s].take().filter(|c| c.hdr.k == k);
+            match m {
+                Some(m) => self.row(&m, c.as_ref())?,
+                None => {
+                    let cause = if self.newest.is_some_and(|l| k < l) {
+                        "measurement lost between plant and recorder (recorder buffer overflow)"
+                    } else {
+                        "the plant stopped before this sample"
+                    };
+                    self.gap(k, "measurement", cause);
+                }
+            }
+            self.next += 1;
+        }
+        Ok(())
+    }
+
+    /// Sample k's row from its true state and command (None: no command, NaN in its
+    /// columns).
+    fn row(&mut self, m: &PlantTruth, c: Option<&VoltageCommand>) -> Result<()> {
+        let k = m.hdr.k;
+        while self.wref.front().is_some_and(|w| w.0 < k) {
+            self.theta_ref = self.wref.pop_front().map(|w| w.1);
+        }
+        let mut row = match c {
+            Some(c) => trace_row(self.ts, m, c),
+            None => {
+                let nan = f64::NAN;
+                let c = VoltageCommand {
+                    hdr: Header {
+                        k,
+                        flags: FLAG_MISSING,
+                        ..Default::default()
+                    },
+                    u_ab: [nan; 2],
+                    u_dq: [nan; 2],
+                    i_dq_ref: [nan; 2],
+                    omega_ref: nan,
+                    omega_hat: nan,
+                    theta_hat: nan,
+                };
+                let cause = if m.hdr.flags & FLAG_PLANT_DOWN != 0 {
+                    "none reached the inverter: the plant was down (sample rebuilt, plant_flags 64)"
+                } else {
+                    "current-loop produced no command for this sample"
+                };
+                self.gap(k, "command", cause);
+                trace_row(self.ts, m, &c)
+            }
+        };
+        row.theta_m_ref = self.theta_ref;
+        if let Some(out) = self.out.as_mut() {
+            out.push(&row)?;
+        }
+        self.stats.count(&row);
+        if self.keep.keeps(k) {
+            self.kept.push(row);
+        }
+        Ok(())
+    }
+
+    fn gap(&mut self, k: u64, part: &'static str, cause: &str) {
+        if let Some(g) = self.gaps.last_mut() {
+            if g.part == part && g.to + 1 == k && g.cause == cause {
+                g.to = k;
+                return;
+            }
+        }
+        self.gaps.push(Gap {
+            from: k,
+            to: k,
+            part,
+            cause: cause.into(),
+        });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Kyslan's scenario with `n` samples at 10 kHz; its reference and load steps at 0,
+    /// 20 and 40 ms.
+    fn scenario(n: u64) -> Scenario {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../scenarios/kyslan-pi.toml");
+        let mut sc =
+            Scenario::from_toml(&std::fs::read_to_string(path).unwrap(), "kyslan-pi.toml")
+                .unwrap();
+        sc.duration_s = n as f64 / sc.rates.sample_hz;
+        assert_eq!(sc.samples(), n);
+        sc
+    }
+
+    fn truth(k: u64, flags: u32) -> PlantTruth {
+        PlantTruth {
+            hdr: Header {
+                k,
+                flags,
+                ..Default::default()
+            },
+            omega_m: k as f64,
+            ..Default::default()
+        }
+    }
+
+    fn cmd(k: u64) -> VoltageCommand {
+        VoltageCommand {
+            hdr: Header {
+                k,
+                ..Default::default()
+            },
+            ..Default::default()
+        }
+    }
+
+    /// Feeds samples `ks` (measurement then command) and lets them leave as they would.
+    fn feed(t: &mut TraceStream, ks: impl Iterator<Item = u64>, flags_at: &[u64]) {
+        for k in ks {
+            let f = if flags_at.contains(&k) { FLAG_SAFE_STATE } else { 0 };
+            t.meas(truth(k, f), Vec::new).unwrap();
+            t.cmd(cmd(k)).unwrap();
+            t.advance().unwrap();
+        }
+    }
+
+    #[test]
+    fn a_long_run_keeps_spaced_rows_and_every_row_around_steps_and_disturbances() {
+        // 2^21 samples (3.5 min at 10 kHz): above FULL_ROWS, so one row in
+        // ceil(2^21 / 200 000) = 11 is kept between the windows.
+        let n = 1 << 21;
+        let mut t = TraceStream::new(&scenario(n), None);
+        let disturbed = 1_500_000;
+        feed(&mut t, 0..n, &[disturbed]);
+        let t = t.finish().unwrap();
+        assert_eq!(t.stats.rows, n);
+        assert_eq!(t.stats.spacing, 11);
+        assert!(t.gaps.is_empty());
+        let kept: std::collections::BTreeSet<u64> = t.kept.iter().map(|r| r.k).collect();
+        assert_eq!(t.stats.rows_analysed, kept.len() as u64);
+        // Every row from 0.1 s before to 1 s after the load step at 40 ms (sample 400) and
+        // the disturbed sample; spaced rows elsewhere, and nothing else.
+        let whole = |a: u64, b: u64| (a..=b).all(|k| kept.contains(&k));
+        assert!(whole(0, 400 + 10_000));
+        assert!(whole(disturbed - 1_000, disturbed + 10_000));
+        assert!(!kept.contains(&(disturbed - 1_001)) || (disturbed - 1_001) % 11 == 0);
+        assert!(!kept.contains(&(disturbed + 10_001)) || (disturbed + 10_001) % 11 == 0);
+        let expected = (0..n)
+            .filter(|&k| k % 11 == 0 || k <= 10_400 || (disturbed - 1_000..=disturbed + 10_000).contains(&k))
+            .count();
+        assert_eq!(kept.len(), expected);
+        // Memory: the kept rows stay near SPACED_ROWS plus the windows.
+        assert!(kept.len() < (SPACED_ROWS + 30_000) as usize);
+        assert_eq!(t.stats.window_rows_dropped, 0);
+    }
+
+    #[test]
+    fn a_run_disturbed_throughout_keeps_no_more_window_rows_than_the_budget() {
+        let n = 1 << 21;
+        let mut t = TraceStream::new(&scenario(n), None);
+        // The safe state every 0.5 s: windows would cover every row.
+        let marks: Vec<u64> = (0..n).step_by(5_000).collect();
+        feed(&mut t, 0..n, &marks);
+        let t = t.finish().unwrap();
+        assert_eq!(t.stats.rows, n);
+        let spaced = n.div_ceil(11);
+        let kept = t.kept.len() as u64;
+        // Every spaced row, plus exactly the budget of window rows (not spaced ones); every
+        // other row was in a window and is counted as dropped.
+        assert_eq!(kept, spaced + WINDOW_ROWS);
+        assert_eq!(kept + t.stats.window_rows_dropped, n);
+    }
+
+    #[test]
+    fn a_short_run_keeps_every_row_and_the_file_holds_the_same() {
+        let dir = std::env::temp_dir().join(format!("drivelab-stream-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("trace.csv");
+        let n = 5_000;
+        let mut t = TraceStream::new(&scenario(n), Some(CsvTrace::create(&path).unwrap()));
+        feed(&mut t, 0..n, &[]);
+        let t = t.finish().unwrap();
+        assert_eq!(t.stats.spacing, 1);
+        assert_eq!(t.kept.len() as u64, n);
+        let back = drivelab_runtime::trace::read_csv(&path).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+        assert_eq!(back, t.kept);
+        assert_eq!(t.stats.peak_speed_rad_s, (n - 1) as f64);
+    }
+
+    #[test]
+    fn messages_too_late_or_beyond_the_run_are_counted_apart_and_not_used() {
+        let n = 10_000;
+        let mut t = TraceStream::new(&scenario(n), None);
+        feed(&mut t, 0..5_000, &[]);
+        // The lag is 0.2 s = 2 000 samples: sample 2 999 has left, 3 000 has not.
+        assert!(t.complete(2_999));
+        t.cmd(cmd(2_999)).unwrap();
+        assert_eq!((t.late, t.rejected), (1, 0));
+        t.meas(truth(n, 0), Vec::new).unwrap();
+        t.cmd(cmd(u64::MAX)).unwrap();
+        assert_eq!((t.late, t.rejected), (1, 2));
+        feed(&mut t, 5_000..n, &[]);
+        let t = t.finish().unwrap();
+        assert_eq!(t.stats.rows, n);
+        assert!(t.gaps.is_empty());
+    }
+
+    #[test]
+    fn a_sample_pushed_out_of_the_window_before_its_command_came_is_listed() {
+        let n = 3 * WINDOW;
+        let mut t = TraceStream::new(&scenario(n), None);
+        // Sample 0's command never comes; sample WINDOW needs its slot: 0 leaves without.
+        t.meas(truth(0, 0), Vec::new).unwrap();
+        t.meas(truth(WINDOW, 0), Vec::new).unwrap();
+        assert_eq!(t.next, 1);
+        let t = t.finish().unwrap();
+        assert_eq!(t.gaps[0].part, "command");
+        assert_eq!((t.gaps[0].from, t.gaps[0].to), (0, 0));
+        assert_eq!(t.gaps[1].part, "measurement");
+        assert_eq!((t.gaps[1].from, t.gaps[1].to), (1, WINDOW - 1));
+        assert!(t.gaps[1].cause.contains("lost"), "{}", t.gaps[1].cause);
+        assert_eq!(t.gaps[3].part, "measurement");
+        assert_eq!((t.gaps[3].from, t.gaps[3].to), (WINDOW + 1, n - 1));
+        assert!(t.gaps[3].cause.contains("stopped"), "{}", t.gaps[3].cause);
+    }
+}
