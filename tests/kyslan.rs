@@ -61,39 +61,49 @@ fn nonlinear_poles_placed_on_the_sampled_loop() {
         let f = |k: &str| d[k].as_f64().unwrap();
         let zeta = f("zeta");
         assert_eq!(zeta, 0.6, "Kyslan §6: damping 0.6");
-        // The two pairs asked, (ζ, ω_0) and (ζ, ω_i), are poles of the sampled loop (the
-        // placement stops within 1e-6 of them in z; here 1e-2 rad/s in s).
+        assert!(d["warning"].is_null(), "{name}: {}", d["warning"]);
+        // The dominant pair asked, (ζ, ω_0), is a pole pair of the sampled loop (placed to
+        // 1e-12 of det(zI − Φ); checked against the loop's matrix derived by hand in the
+        // unit test of control::nonlinear); every other pole is at least twice as fast.
         let poles: Vec<(f64, f64)> = d["sampled"]["poles"]
             .as_array()
             .unwrap()
             .iter()
             .map(|p| (p[0].as_f64().unwrap(), p[1].as_f64().unwrap()))
             .collect();
-        for w in [f("omega_0_rad_s"), f("omega_i_rad_s")] {
-            let want = (-zeta * w, w * (1.0 - zeta * zeta).sqrt());
-            assert!(
-                poles
-                    .iter()
-                    .any(|p| (p.0 - want.0).abs() < 1e-2 && (p.1 - want.1).abs() < 1e-2),
-                "{name}: {want:?} not in {poles:?}"
-            );
-        }
-        let (os, os_model) = (r.metric("overshoot_pct"), f("predicted_overshoot_pct"));
-        eprintln!(
-            "{name}: ω_0 = {:.0} rad/s, rise {} ms (asked 8), overshoot {os:.2} % (model {os_model:.2} %, the continuous design on the paper's model {:.2} %); today's continuous placement: overshoot {:.2} %",
-            f("omega_0_rad_s"),
-            r.metric("rise_time_ms"),
-            f("continuous_overshoot_pct"),
-            cont.metric("overshoot_pct")
+        let w0 = f("omega_0_rad_s");
+        let want = (-zeta * w0, w0 * (1.0 - zeta * zeta).sqrt());
+        let is_pair =
+            |p: &(f64, f64)| (p.0 - want.0).abs() < 1e-2 && (p.1.abs() - want.1).abs() < 1e-2;
+        assert_eq!(
+            poles.iter().filter(|p| is_pair(p)).count(),
+            2,
+            "{name}: {want:?} not in {poles:?}"
         );
-        // Asked: within 3 pp of the continuous design's overshoot at the same 8 ms rise. The
-        // design warns when the rise cannot be met; here it cannot (README, docs).
-        assert!(d["warning"].as_str().unwrap().contains("not reachable"));
-        // Closer to the continuous design's overshoot than the continuous placement runs.
+        assert!(
+            poles
+                .iter()
+                .filter(|p| !is_pair(p))
+                .all(|p| p.0 < 2.0 * want.0),
+            "{name}: {poles:?}"
+        );
+        let (rise, os) = (r.metric("rise_time_ms"), r.metric("overshoot_pct"));
         let target = cont.summary["design"]["nonlinear"]["continuous_overshoot_pct"]
             .as_f64()
             .unwrap();
-        assert!((os - target).abs() < (cont.metric("overshoot_pct") - target).abs());
+        eprintln!(
+            "{name}: ω_0 = {w0:.0} rad/s, rise {rise} ms (asked 8), overshoot {os:.2} % (model {:.2} %, the continuous design on the paper's model {target:.2} %); today's continuous placement: overshoot {:.2} %",
+            f("predicted_overshoot_pct"),
+            cont.metric("overshoot_pct")
+        );
+        // The targets of this placement (docs/paper-departures.md, section 3): the 8 ms rise
+        // of Kyslan et al. (to one 0.1 ms trace sample) and an overshoot within 3 percentage
+        // points of the continuous design's on the paper's model.
+        assert!((rise - 8.0).abs() <= 0.1 + 1e-9, "{name}: rise {rise} ms");
+        assert!(
+            (os - target).abs() <= 3.0,
+            "{name}: overshoot {os} % vs {target} %"
+        );
     }
 }
 

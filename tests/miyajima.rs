@@ -111,6 +111,14 @@ fn cdm_printout_gives_the_gains_of_eqs_28_to_31() {
             "{v_ao} {d_deg}: K_I12 {ki12}"
         );
         eprintln!("V_ao = {v_ao} V, δ_o = {d_deg}°: K_P21 {kp21:.4}, K_I21 {ki21:.1}, τ_12 {:.1} µs, K_P12 {kp12:.4}, K_I12 {ki12:.3}", tau12 * 1e6);
+        // C_21 designed on the delayed plant 1/((L s + R)(T_u s + 1)): the closed loop
+        // L·T_u s³ + (L + R·T_u) s² + (R + K_P) s + K_I with γ_1 = 2.5 and γ_2 = 2.
+        let dp = &t[t.find("CDM on the delayed plant").unwrap()..];
+        let (a3, a2) = (l * tu, l + r * tu);
+        let a1 = a2 * a2 / (2.0 * a3);
+        let a0 = a1 * a1 / (2.5 * a2);
+        assert!(close(number_after(dp, "K_P21 = "), a1 - r), "{dp}");
+        assert!(close(number_after(dp, "K_I21 = "), a0), "{dp}");
     }
     // Section III (--speed-rpm): the flux-weakening scenarios' operating point at 3 A.
     let o = drivelab(&[

@@ -265,7 +265,65 @@ pub fn render(motor: &str, d: &CdmDesign) -> String {
         "  K_I12 = a_0·L/(−V_ao·cos δ_o) = {} rad/(A·s)   (eq. 31)",
         d.k_i12
     );
+    render_delay(&mut o, d);
     o
+}
+
+/// Section IV at standstill with the one-sample computation delay: the q loop's design
+/// model (cdm::QLoop, δ_o = 0) for the paper's design and the delay options, against the
+/// target overshoot < 10 % with a rise ≤ 1.5× the paper's.
+fn render_delay(o: &mut String, d: &CdmDesign) {
+    use cdm::{CdmDelay, DelayedPlantCdm, QLoop};
+    let (r, l, tu) = (d.r_ohm, d.l_h, d.tu_s);
+    let us = |s: f64| s * 1e6;
+    let paper = QLoop::paper(r, l, tu, CdmDelay::Paper);
+    let (rise0, os0) = paper.step();
+    let _ = writeln!(
+        o,
+        "q loop at δ_o = 0 with the one-sample delay (design model, 10-90 % rise, overshoot); target < 10 % within {:.0} µs (1.5× the paper's rise):",
+        us(1.5 * rise0)
+    );
+    let _ = writeln!(
+        o,
+        "  paper (γ_1 = 2.5, τ_21 = 10·T_u, measured currents): {:.0} µs, {os0:.1} %",
+        us(rise0)
+    );
+    let (rp, osp) = QLoop::paper(r, l, tu, CdmDelay::Predict).step();
+    let _ = writeln!(
+        o,
+        "  cdm_delay = predict (currents one sample ahead): {:.0} µs, {osp:.1} %",
+        us(rp)
+    );
+    let dp = DelayedPlantCdm::new(r, l, tu, cdm::GAMMA1, 2.0);
+    let q = QLoop::delayed_plant(r, l, tu);
+    let (rd, osd) = q.step();
+    let (rb, osb) = QLoop { beta: 0.0, ..q }.step();
+    let _ = writeln!(
+        o,
+        "  CDM on the delayed plant 1/((L s + R)(T_u s + 1)), γ_1 = {}, γ_2 = {}: a_3..a_0 = {:.6e}, {:.6e}, {:.4}, {:.2}; K_P21 = {} V/A, K_I21 = {} V/(A·s), τ = a_1/a_0 = {:.2} µs: {:.0} µs, {osd:.1} % (reference through the integrator only, β = 0: {:.0} µs, {osb:.1} %)",
+        dp.gamma1, dp.gamma2, dp.a[0], dp.a[1], dp.a[2], dp.a[3], dp.k_p, dp.k_i, us(dp.tau_s), us(rd), us(rb)
+    );
+    for delay in [CdmDelay::Paper, CdmDelay::Predict] {
+        let best = QLoop::paper(r, l, tu, delay).least_overshoot_within(1.5 * rise0);
+        if let Some((t, rr, os)) = best {
+            let _ = writeln!(
+                o,
+                "  γ_1 = 2.5, any τ_21 from 2 to 40·T_u, {delay:?}: least overshoot within the rise: {os:.1} % (τ_21 = {t}·T_u, {:.0} µs)",
+                us(rr)
+            );
+        }
+    }
+    let (rs, oss) = QLoop {
+        tau_samples: 5.0,
+        beta: 0.6,
+        ..QLoop::paper(r, l, tu, CdmDelay::Predict)
+    }
+    .step();
+    let _ = writeln!(
+        o,
+        "  predict, τ_21 = 5·T_u, β = 0.6 (scenario miyajima-polar-0rpm-predict): {:.0} µs, {oss:.1} %",
+        us(rs)
+    );
 }
 
 /// The polar law of a scenario (`drivelab design`): the CDM loops at δ_o = 0, the limits, and

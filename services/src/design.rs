@@ -98,11 +98,19 @@ fn render_nonlinear(o: &mut String, sc: &Scenario, d: &DriveDesign) {
     for w in &d.warnings {
         let _ = writeln!(o, "  WARNING: {w}");
     }
-    let _ = writeln!(
-        o,
-        "  inner loops (27) i = 2, 3, damping ζ = {z}, ω_i = 1/(2·τ_c) = {wi:.1} rad/s: r2 = r3 = 2ζω_i = {:.2} 1/s, K2 = K3 = ω_i² = {:.6e} 1/s²",
-        g.r2, g.k2
-    );
+    if n.sampled.is_none() {
+        let _ = writeln!(
+            o,
+            "  inner loops (27) i = 2, 3, damping ζ = {z}, ω_i = 1/(2·τ_c) = {wi:.1} rad/s: r2 = r3 = 2ζω_i = {:.2} 1/s, K2 = K3 = ω_i² = {:.6e} 1/s²",
+            g.r2, g.k2
+        );
+    } else {
+        let _ = writeln!(
+            o,
+            "  field loop (27) i = 3, damping ζ = {z}, ω_i = 1/(2·τ_c) = {wi:.1} rad/s: r3 = 2ζω_i = {:.2} 1/s, K3 = ω_i² = {:.6e} 1/s²; torque loop (27) i = 2 placed with the speed subsystem: r2 = {:.2} 1/s, K2 = {:.6e} 1/s²",
+            g.r3, g.k3, g.r2, g.k2
+        );
+    }
     match &n.sampled {
         None => {
             let _ = writeln!(
@@ -118,12 +126,12 @@ fn render_nonlinear(o: &mut String, sc: &Scenario, d: &DriveDesign) {
         Some(sp) => {
             let _ = writeln!(
                 o,
-                "  speed subsystem (27) i = 1, (31) placed on the sampled loop as it runs (delay, speed law every {} samples, speed filter): pairs (ζ, ω_0) and (ζ, ω_i), ω_0 = {w0:.3} rad/s (the slowest that meets the rise time, else the fastest-rising)",
-                sc.rates.speed_divider
+                "  speed subsystem (27) i = 1, (31) placed on the sampled loop as it runs (delay, speed law every {} samples, speed filter): dominant pair at (ζ, ω_0), ω_0 = {w0:.3} rad/s (the slowest that meets the rise time, else the fastest-rising); every other pole as fast as r12, d12, r2, K2 make it (slowest at {:.1} rad/s)",
+                sc.rates.speed_divider, sp.others_slowest_rad_s
             );
             let _ = writeln!(
                 o,
-                "    K1 = {:.6e} 1/s², r11 = {:.4} 1/s, r12 = {:.6}, d12 = {:.6e} s (Newton on det(zI − Φ) = 0; the continuous closed forms no longer hold)",
+                "    K1 = {:.6e} 1/s², r11 = {:.4} 1/s (det(zI − Φ) = 0 at the pair, affine in both), r12 = {:.6}, d12 = {:.6e} s (the continuous closed forms no longer hold)",
                 g.k1, g.r11, g.r12, g.d12
             );
             let poles: Vec<String> = sp
