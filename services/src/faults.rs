@@ -51,6 +51,11 @@ fn seconds(v: &str, what: &str, spec: &str) -> Result<f64> {
     Ok(x)
 }
 
+/// Shortest stop, s.
+pub const STOP_MIN_S: f64 = 0.001;
+/// Longest stop, s.
+pub const STOP_MAX_S: f64 = 60.0;
+
 /// Parses one `--fault` value: `kill:SERVICE@SECONDS`, `stop:SERVICE@SECONDS:DURATION` or
 /// `random:N` (expanded later with the run's seed and duration).
 pub fn parse(spec: &str) -> Result<FaultSpec> {
@@ -86,11 +91,17 @@ pub fn parse(spec: &str) -> Result<FaultSpec> {
                 let (at, dur) = when.split_once(':').ok_or_else(|| {
                     anyhow!("fault '{spec}': expected stop:SERVICE@SECONDS:DURATION")
                 })?;
+                let duration_s = seconds(dur, "duration", spec)?;
+                // The same bounds as `drivelab fault stop` and the monitor: a frozen stage
+                // for longer is a dead one (use kill).
+                if !(STOP_MIN_S..=STOP_MAX_S).contains(&duration_s) {
+                    bail!("fault '{spec}': a stop lasts {STOP_MIN_S} to {STOP_MAX_S} s");
+                }
                 Ok(FaultSpec::One(Fault {
                     kind: FaultKind::Stop,
                     service,
                     at_s: seconds(at, "time", spec)?,
-                    duration_s: seconds(dur, "duration", spec)?,
+                    duration_s,
                 }))
             }
         }
@@ -343,6 +354,11 @@ mod tests {
             .to_string()
             .contains("unknown fault kind"));
         assert!(parse("random:0").is_err());
+        for huge in ["1e20", "61", "0.0005"] {
+            let e = parse(&format!("stop:observer@0.05:{huge}")).unwrap_err();
+            assert!(e.to_string().contains("a stop lasts 0.001 to 60 s"), "{huge}: {e}");
+        }
+        assert!(parse("stop:observer@0.05:60").is_ok());
     }
 
     #[test]

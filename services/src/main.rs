@@ -577,8 +577,9 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
         } => {
             drivelab_runtime::bus::check_bus_id(&bus)?;
             // Bounded before anything is sent, as in the monitor.
-            if !(duration.is_finite() && (0.001..=60.0).contains(&duration)) {
-                anyhow::bail!("--duration {duration}: a stop lasts 0.001 to 60 s");
+            use drivelab_services::faults::{STOP_MAX_S, STOP_MIN_S};
+            if !(STOP_MIN_S..=STOP_MAX_S).contains(&duration) {
+                anyhow::bail!("--duration {duration}: a stop lasts {STOP_MIN_S} to {STOP_MAX_S} s");
             }
             let kind = if kind == "kill" {
                 drivelab_runtime::telemetry::FAULT_KILL
