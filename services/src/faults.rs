@@ -243,56 +243,177 @@ pub fn find_services(bus: &str) -> Vec<(String, String, u32)> {
         .collect()
 }
 
+/// How long `drivelab bus-inject` waits for the drive to count what it sent.
+const INJECT_WATCHDOG: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// The stages of `plan` that read the estimate topic while they run (a rejoin-only input is
+/// read only while restarting): every one of them must reject a malformed estimate.
+pub fn estimate_consumers(plan: &drivelab_runtime::service::TopologyPlan) -> Vec<String> {
+    use drivelab_runtime::stage::{Role, TopicId};
+    plan.stages
+        .iter()
+        .filter(|s| {
+            s.inputs
+                .iter()
+                .any(|i| i.topic == TopicId::Est && i.role != Role::Rejoin)
+        })
+        .map(|s| s.name.clone())
+        .collect()
+}
+
+/// The consumers that have not yet counted `count` more rejected inputs than at `base`, as
+/// "stage (n of count)"; `now` and `base` are their counters in the same order.
+pub fn short_of(consumers: &[String], base: &[u64], now: &[u64], count: u32) -> Vec<String> {
+    consumers
+        .iter()
+        .zip(base.iter().zip(now))
+        .filter_map(|(c, (&b, &n))| {
+            let got = n.saturating_sub(b);
+            (got < u64::from(count)).then(|| format!("{c} ({got} of {count})"))
+        })
+        .collect()
+}
+
 /// Publishes `count` malformed estimates onto a running drive's estimate topic: `nan` puts
 /// NaN in the speed, `backwards` uses sample index 0 (behind the drive). For tests of the
-/// consumers' input checks.
+/// consumers' input checks. Returns once every stage that consumes estimates has counted
+/// them as rejected, as the drive's supervisor shows in its view (the counters each stage
+/// publishes); fails if that does not happen within [`INJECT_WATCHDOG`] or the drive ends.
 pub fn inject_bad_estimates(bus: &str, kind: &str, count: u32) -> Result<()> {
     use drivelab_runtime::messages::{Estimate, Header};
+    use drivelab_runtime::telemetry::{open_existing, DriveView, PlainReceiver, TOPIC_VIEW};
+    use std::time::{Duration, Instant};
     drivelab_runtime::bus::check_bus_id(bus)?;
-    if find_services(bus).is_empty() {
-        bail!("no drive is running on bus {bus}");
-    }
+    let bad = |i: u32| match kind {
+        "nan" => Ok(Estimate {
+            hdr: Header {
+                k: u64::MAX / 2 + u64::from(i),
+                ..Default::default()
+            },
+            theta_e: 0.0,
+            omega_m: f64::NAN,
+        }),
+        "backwards" => Ok(Estimate {
+            hdr: Header {
+                k: 0,
+                ..Default::default()
+            },
+            theta_e: 0.0,
+            omega_m: 0.0,
+        }),
+        other => Err(anyhow!("unknown bad-input kind '{other}' (nan, backwards)")),
+    };
+    bad(0)?;
+    // The stage hosts are started with the run's resolved topology.
+    let topo_file = processes_with_bus(bus)
+        .into_iter()
+        .find_map(|(_, args)| {
+            args.windows(2)
+                .find(|w| w[0] == "--topology")
+                .map(|w| w[1].clone())
+        })
+        .ok_or_else(|| anyhow!("no drive is running on bus {bus}"))?;
+    let plan: drivelab_runtime::service::TopologyPlan =
+        serde_json::from_slice(&std::fs::read(&topo_file)?)
+            .map_err(|e| anyhow!("{topo_file}: {e}"))?;
+    let consumers = estimate_consumers(&plan);
     let node = drivelab_runtime::bus::node(bus, "injector")?;
+    let view = open_existing::<DriveView>(&node, TOPIC_VIEW)?;
+    let views = PlainReceiver::new(&view, 4)?;
+    let deadline = Instant::now() + INJECT_WATCHDOG;
+    // The consumers' rejected inputs in the newest view, once there is one.
+    let rejected = || -> Result<Option<Vec<u64>>> {
+        let mut newest = None;
+        while let Some(v) = views.try_recv()? {
+            newest = Some(v);
+        }
+        let Some(v) = newest else {
+            return Ok(None);
+        };
+        if v.hdr.is_end() {
+            bail!("the drive on bus {bus} ended before its stages counted the bad estimates");
+        }
+        let by_name = |c: &String| {
+            (0..v.stages())
+                .find(|&i| v.stage_name(i) == c)
+                .map(|i| v.services[i].status.rejected_inputs)
+                .ok_or_else(|| anyhow!("stage {c} is not in the drive's view"))
+        };
+        consumers
+            .iter()
+            .map(by_name)
+            .collect::<Result<_>>()
+            .map(Some)
+    };
+    let poll = || {
+        if Instant::now() > deadline {
+            return Err(anyhow!(
+                "no view of the drive on bus {bus} within {INJECT_WATCHDOG:?}"
+            ));
+        }
+        std::thread::sleep(Duration::from_millis(5));
+        Ok(())
+    };
+    let base = loop {
+        if let Some(r) = rejected()? {
+            break r;
+        }
+        poll()?;
+    };
     let topics = drivelab_runtime::bus::DriveTopics::open_with(
         &node,
         drivelab_runtime::bus::WakeKind::Futex,
         bus,
     )?;
     let tx = topics.est.sender()?;
-    // Connect before the first message, and give the subscribers time to see the new
-    // publisher, so that no bad message is lost to a lazy connection.
-    tx.connect()?;
-    std::thread::sleep(std::time::Duration::from_millis(100));
-    tx.connect()?;
+    // Every send connects to the subscribers that exist (the consumers subscribed before the
+    // drive started); their 64-sample buffers hold what is sent here between their samples.
     for i in 0..count {
-        let e = match kind {
-            "nan" => Estimate {
-                hdr: Header {
-                    k: u64::MAX / 2 + u64::from(i),
-                    ..Default::default()
-                },
-                theta_e: 0.0,
-                omega_m: f64::NAN,
-            },
-            "backwards" => Estimate {
-                hdr: Header {
-                    k: 0,
-                    ..Default::default()
-                },
-                theta_e: 0.0,
-                omega_m: 0.0,
-            },
-            other => bail!("unknown bad-input kind '{other}' (nan, backwards)"),
-        };
-        tx.send(e)?;
-        std::thread::sleep(std::time::Duration::from_millis(2));
+        tx.send(bad(i)?)?;
     }
-    Ok(())
+    loop {
+        if let Some(now) = rejected()? {
+            let short = short_of(&consumers, &base, &now, count);
+            if short.is_empty() {
+                return Ok(());
+            }
+            if Instant::now() > deadline {
+                bail!(
+                    "sent {count} bad estimates; within {INJECT_WATCHDOG:?} these stages did not reject them all: {}",
+                    short.join(", ")
+                );
+            }
+        }
+        poll()?;
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn bus_inject_waits_for_the_current_and_speed_loops_and_names_who_is_short() {
+        let (sc, _) = drivelab_runtime::config::Scenario::load("kyslan-pi").unwrap();
+        let r = drivelab_runtime::topology::resolve(&sc.topology(), &mut |_, stage| {
+            drivelab_runtime::topology::builtin_info(&sc, stage).ok_or_else(|| stage.to_string())
+        })
+        .unwrap();
+        let plan = drivelab_runtime::service::TopologyPlan::from_resolved(&r);
+        // The observer publishes estimates; the plant reads none.
+        let c = estimate_consumers(&plan);
+        assert_eq!(c, ["current-loop", "speed-loop"]);
+        // Counted from the baseline on, both ends of "enough" included.
+        assert!(short_of(&c, &[3, 0], &[13, 10], 10).is_empty());
+        assert_eq!(
+            short_of(&c, &[3, 0], &[12, 11], 10),
+            ["current-loop (9 of 10)"]
+        );
+        assert_eq!(
+            short_of(&c, &[3, 5], &[3, 5], 10),
+            ["current-loop (0 of 10)", "speed-loop (0 of 10)"]
+        );
+    }
 
     #[test]
     fn parses_the_three_forms() {
