@@ -497,6 +497,10 @@ fn sensorless_drive_reaches_1200_rpm_and_holds_it_under_2_nm() {
     let settled: Vec<&TraceRow> = window(&rows, t_settled, 1.2).collect();
     let e_w = max_abs(settled.iter().map(|x| x.omega_m - w));
     let e_hat = max_abs(settled.iter().map(|x| x.omega_hat - x.omega_m));
+    // Integral action on the estimate: once settled, the speed and its estimate are the
+    // set-point (the angle error is constant there, so the estimate has no error to carry).
+    assert!(e_w < SETTLED_TOL, "speed error {e_w}");
+    assert!(e_hat < SETTLED_TOL, "speed estimate error {e_hat}");
     let (th_mean, th_pred) = bias_and_prediction(&settled, Discretisation::Truncated);
     let i_q = mean(hold.iter().map(|x| x.i_q));
     let (ss, pred) = steady_state(&r, Discretisation::Truncated);
@@ -510,10 +514,6 @@ fn sensorless_drive_reaches_1200_rpm_and_holds_it_under_2_nm() {
         reach >= t_min && reach <= t_min + t_s,
         "{reach} s vs torque-limited {t_min} s + ITAE settling {t_s} s"
     );
-    // Integral action on the estimate: once settled, the speed and its estimate are the
-    // set-point (the angle error is constant there, so the estimate has no error to carry).
-    assert!(e_w < SETTLED_TOL, "speed error {e_w}");
-    assert!(e_hat < SETTLED_TOL, "speed estimate error {e_hat}");
     // The whole load is carried by the true current: k_t·i_q = T_L + B·ω + J·dω/dt, the last
     // two as the window's means (the speed ripples a little around its set-point).
     let (first, last) = (hold[0], hold[hold.len() - 1]);
