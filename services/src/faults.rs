@@ -243,6 +243,10 @@ pub fn find_services(bus: &str) -> Vec<(String, String, u32)> {
         .collect()
 }
 
+/// The estimate topic's word in the bus's wake segment (as `DriveTopics::open_with` numbers
+/// the topics).
+const EST_WAKE_WORD: usize = 1;
+
 /// How long `drivelab bus-inject` waits for the drive to count what it sent.
 const INJECT_WATCHDOG: std::time::Duration = std::time::Duration::from_secs(10);
 
@@ -360,12 +364,17 @@ pub fn inject_bad_estimates(bus: &str, kind: &str, count: u32) -> Result<()> {
         }
         poll()?;
     };
-    let topics = drivelab_runtime::bus::DriveTopics::open_with(
+    // The estimate topic alone, which the drive has created. Opening every drive topic
+    // would create those this drive does not use (an outer loop's speed references), to be
+    // removed again as this process ends: a second injector opening them meanwhile found
+    // one half gone (iceoryx2's HangsInCreation).
+    let wake = std::sync::Arc::new(drivelab_runtime::futex::WakeSegment::open(bus)?);
+    let est = drivelab_runtime::bus::Topic::<Estimate>::open_with(
         &node,
-        drivelab_runtime::bus::WakeKind::Futex,
-        bus,
+        drivelab_runtime::bus::TOPIC_EST,
+        Some((wake, EST_WAKE_WORD)),
     )?;
-    let tx = topics.est.sender()?;
+    let tx = est.sender()?;
     // Every send connects to the subscribers that exist (the consumers subscribed before the
     // drive started); their 64-sample buffers hold what is sent here between their samples.
     for i in 0..count {
