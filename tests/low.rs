@@ -107,9 +107,9 @@ fn predicted_bias_deg(w: f64, i_d: f64, i_q: f64, tau_o: f64, disc: Discretisati
 /// transient (the traces show 1e-8 at the most).
 const SETTLED_TOL: f64 = 1e-6;
 
-/// How closely a steady-state angle error must match [`predicted_bias_deg`]: 1 % of the
-/// 2.2° truncation bias it explains (the prediction is computed, not fitted).
-const PRED_TOL_DEG: f64 = 0.02;
+/// Rounding of an angle error, degrees: the trace's angles and the prediction are f64
+/// computations (about 1e-12 rad each) far below it.
+const ANGLE_ROUNDING_DEG: f64 = 1e-9;
 
 /// The 1 % settling time of the third-order ITAE prototype (Graham-Lathrop:
 /// s³ + 1.75·ω_n·s² + 2.15·ω_n²·s + ω_n³) at `wn`, from its unit-step response (RK4).
@@ -199,6 +199,7 @@ fn rst_loops_have_exactly_the_designed_itae_poles() {
 fn low_rst_lockstep_currents_settle_without_error_and_i_d_stays_near_zero() {
     let _s = serial();
     let r = run("rst-ls", "low-rst", "lockstep");
+    assert_eq!(r.summary["design"]["controller"], "rst");
     assert_eq!(r.summary["deadline_misses"], 0);
     assert_eq!(r.summary["samples"], 8000);
     let rows = r.trace();
@@ -228,9 +229,12 @@ fn low_rst_lockstep_currents_settle_without_error_and_i_d_stays_near_zero() {
     // 1200 rpm (the couplings ±ω_e·L·i are rejected by S/R, no feed-forward).
     let id_peak = max_abs(rows.iter().map(|x| x.i_d));
     let iq_peak = max_abs(rows.iter().map(|x| x.i_q));
-    eprintln!("i_d peak {id_peak:.3} A; i_q peak {iq_peak:.2} A");
-    // A stated limit, not a derived one: i_d stays below 7 % of the 4.2 A the step draws.
-    assert!(id_peak < 0.3, "i_d peak {id_peak}");
+    let id_bound = i_d_coupling_bound(&r.summary["design"], &rows);
+    eprintln!("i_d peak {id_peak:.3} A (coupling bound {id_bound:.3} A); i_q peak {iq_peak:.2} A");
+    assert!(
+        id_peak <= id_bound,
+        "i_d peak {id_peak} A, bound {id_bound} A"
+    );
     // Low Fig. 4: the step draws the 4.2 A limit; the third-order ITAE i_q loop overshoots a
     // step by 2 % at the most (Graham-Lathrop), and settles within the same band.
     assert!(
@@ -265,6 +269,58 @@ fn low_rst_lockstep_currents_settle_without_error_and_i_d_stays_near_zero() {
 fn acceleration_time() -> f64 {
     let dw = (0.99 * 1200.0 - 300.0) * RPM;
     2e-3 * dw / (k_t() * 4.2 - 2.0 - 1e-3 * 1200.0 * RPM)
+}
+
+/// The largest |i_d| the designed i_d loop lets the cross-coupling voltage v = ω_e·L·i_q
+/// (low1998: p = 4, L = 30 mH) drive in `rows`: the RST closed loop (summary.json → design →
+/// rst → i_d) maps a voltage v entering the plant beside its (one sample later) command to
+/// i_d = z·B·R/(A·R + B·S)·v. R holds the integrator, R = (z − 1)·R̄, so
+/// i_d = H'·Δv with H' = z·B·R̄/(A·R + B·S), and |i_d| ≤ Σ|h'_j|·max|Δv| (the impulse
+/// response's ℓ1 norm). The continuous v acts through the sample as its value somewhere in
+/// it, so Δv is taken over two samples.
+fn i_d_coupling_bound(design: &Value, rows: &[TraceRow]) -> f64 {
+    let l = &design["rst"]["i_d"];
+    let (a, b, r, s) = (poly(&l["a"]), poly(&l["b"]), poly(&l["r"]), poly(&l["s"]));
+    // R̄ = R / (z − 1) by synthetic division; R(1) = 0 leaves no remainder.
+    let mut r_bar = Vec::with_capacity(r.len() - 1);
+    let mut acc = 0.0;
+    for c in &r[..r.len() - 1] {
+        acc += c;
+        r_bar.push(acc);
+    }
+    assert!((acc + r[r.len() - 1]).abs() < 1e-9, "R(1) = 0");
+    let num = poly_mul(&poly_mul(&[1.0, 0.0], &b), &r_bar);
+    let den = poly_add(&poly_mul(&a, &r), &poly_mul(&b, &s));
+    // Impulse response of num/den (descending powers of z, den monic after scaling) by long
+    // division in z⁻¹: 4000 samples (0.8 s), where the slowest closed-loop pole (the ITAE
+    // prototype's at 1500 rad/s) has long decayed.
+    let lead = den[0];
+    let (den, lag) = (
+        den.iter().map(|c| c / lead).collect::<Vec<_>>(),
+        den.len() - num.len(),
+    );
+    let mut x: Vec<f64> = vec![0.0; lag];
+    x.extend(num.iter().map(|c| c / lead));
+    let mut h = Vec::with_capacity(4000);
+    for j in 0..4000 {
+        let hj = x.get(j).copied().unwrap_or(0.0)
+            - (1..den.len())
+                .filter(|&i| i <= j)
+                .map(|i| den[i] * h[j - i])
+                .sum::<f64>();
+        h.push(hj);
+    }
+    let l1: f64 = h.iter().map(|v| v.abs()).sum();
+    let v: Vec<f64> = rows
+        .iter()
+        .map(|x| 4.0 * x.omega_m * 30e-3 * x.i_q)
+        .collect();
+    let dv = v
+        .windows(3)
+        .map(|w| (w[2] - w[0]).abs())
+        .fold(0.0, f64::max);
+    eprintln!("i_d coupling bound: Σ|h'| = {l1:.4e} A/V, max |Δv| over two samples {dv:.3} V");
+    l1 * dv
 }
 
 #[test]
@@ -330,14 +386,20 @@ fn load_step_at_800_rpm_is_rejected() {
         (i_q - (1.5 + 1e-3 * w) / k_t()).abs() < SETTLED_TOL,
         "i_q {i_q}"
     );
-    // A stated limit, not a derived one: i_d stays below 6 % of the 1.67 A the load draws.
-    assert!(id_peak < 0.1, "i_d peak {id_peak}");
+    let id_bound = i_d_coupling_bound(&r.summary["design"], &rows);
+    assert!(
+        id_peak <= id_bound,
+        "i_d peak {id_peak} A, bound {id_bound} A"
+    );
     // The summary's dip is the trace's (the load's first step is 1.5 N·m at 0.5 s).
     assert!((r.metric("load_dip_rad_s") - dip).abs() < 1e-9);
 }
 
 /// The mean angle error of `rows` and its prediction ([`predicted_bias_deg`], τ_o = 1 ms)
-/// at their mean operating point.
+/// at their mean operating point, which must lie within the range the error covers in
+/// `rows` (up to [`ANGLE_ROUNDING_DEG`]): a steady state predicted for this operating point
+/// is a value the settled error takes. The range is the window's own ripple (nothing with
+/// the speed held, 1e-4° on a sensorless plateau), not a tolerance chosen here.
 fn bias_and_prediction(rows: &[&TraceRow], disc: Discretisation) -> (f64, f64) {
     let pred = predicted_bias_deg(
         mean(rows.iter().map(|x| x.omega_m)),
@@ -346,7 +408,16 @@ fn bias_and_prediction(rows: &[&TraceRow], disc: Discretisation) -> (f64, f64) {
         1e-3,
         disc,
     );
-    (mean(rows.iter().map(|x| angle_error_deg(x))), pred)
+    let e = || rows.iter().map(|x| angle_error_deg(x));
+    let (lo, hi) = (
+        e().fold(f64::INFINITY, f64::min),
+        e().fold(f64::NEG_INFINITY, f64::max),
+    );
+    assert!(
+        pred >= lo - ANGLE_ROUNDING_DEG && pred <= hi + ANGLE_ROUNDING_DEG,
+        "{disc:?}: predicted {pred}° outside the window's {lo}°..{hi}°"
+    );
+    (mean(e()), pred)
 }
 
 /// The steady-state angle error of the last 10 % of a monitor/sensorless run, and its
@@ -373,9 +444,9 @@ fn observer_converges_from_90_degrees_at_1200_rpm_to_the_truncation_bias() {
     eprintln!(
         "truncated model (eq. 13): steady-state error {ss:.4}° (truncation predicts {pred:.4}°), converged within ±1° after {conv:.1} ms"
     );
+    // The summary's figure is the trace's; the error is the truncation's, as predicted for
+    // this operating point (checked in steady_state).
     assert!((ss - ss_trace).abs() < 1e-9);
-    // The error is the truncation's, as predicted for this operating point.
-    assert!((ss - pred).abs() < PRED_TOL_DEG, "{ss} vs {pred}");
     // It converges (the time is reported; no bound is derived for it from 90° away).
     assert!(conv > 0.0, "convergence {conv} ms");
     // The speed is held by the dynamometer and the current control is sensored throughout.
@@ -393,13 +464,15 @@ fn observer_converges_from_90_degrees_at_1200_rpm_to_the_truncation_bias() {
     );
     let x = run("obs-exact", sc.to_str().unwrap(), "lockstep");
     let ssx = x.metric("angle_error_ss_deg");
-    let (_, predx) = steady_state(&x, Discretisation::Exact);
+    let (ssx_trace, predx) = steady_state(&x, Discretisation::Exact);
     eprintln!(
         "exact model: steady-state error {ssx:.4}° (predicted {predx:.4}°), converged after {:.1} ms",
         x.metric("observer_convergence_ms")
     );
-    assert!((ssx - predx).abs() < PRED_TOL_DEG, "{ssx} vs {predx}");
-    assert!(ssx.abs() < 0.1 * ss.abs(), "{ssx}");
+    assert!((ssx - ssx_trace).abs() < 1e-9);
+    // Both biases are their predictions (to the window's ripple): the exact model's is the
+    // smaller.
+    assert!(ssx.abs() < ss.abs(), "{ssx} vs {ss}");
 }
 
 #[test]
@@ -416,34 +489,30 @@ fn sensorless_drive_reaches_1200_rpm_and_holds_it_under_2_nm() {
         .expect("reaches 1200 rpm");
     let hold: Vec<&TraceRow> = window(&rows, 0.4, 1.2).collect();
     assert!(hold.iter().all(|x| x.t_load == 2.0), "loaded at 2 N·m");
-    let e_w = max_abs(hold.iter().map(|x| x.omega_m - w));
-    let e_hat = max_abs(hold.iter().map(|x| x.omega_hat - x.omega_m));
-    let e_th = max_abs(hold.iter().map(|x| angle_error_deg(x)));
-    let (th_mean, th_pred) = bias_and_prediction(&hold, Discretisation::Truncated);
+    // Settled: from within 1 % of the set-point the slowest closed-loop pole's envelope (the
+    // ITAE prototype's, Re s = −0.521·ω_n, ω_n = 100 rad/s) takes the error down to
+    // SETTLED_TOL after ln(0.01·ω*/SETTLED_TOL)/σ.
+    let sigma = 0.521 * 100.0;
+    let t_settled = 0.2 + reach + (0.01 * w / SETTLED_TOL).ln() / sigma;
+    let settled: Vec<&TraceRow> = window(&rows, t_settled, 1.2).collect();
+    let e_w = max_abs(settled.iter().map(|x| x.omega_m - w));
+    let e_hat = max_abs(settled.iter().map(|x| x.omega_hat - x.omega_m));
+    // Integral action on the estimate: once settled, the speed and its estimate are the
+    // set-point (the angle error is constant there, so the estimate has no error to carry).
+    assert!(e_w < SETTLED_TOL, "speed error {e_w}");
+    assert!(e_hat < SETTLED_TOL, "speed estimate error {e_hat}");
+    let (th_mean, th_pred) = bias_and_prediction(&settled, Discretisation::Truncated);
     let i_q = mean(hold.iter().map(|x| x.i_q));
     let (ss, pred) = steady_state(&r, Discretisation::Truncated);
     eprintln!(
-        "sensorless: within 1 % of 1200 rpm {:.1} ms after the step; 0.4-1.2 s under 2 N·m: max |ω − ω*| = {e_w:.4} rad/s, max |ω̂ − ω| = {e_hat:.4} rad/s, max |θ̂ − θ| = {e_th:.3}°, i_q = {i_q:.4} A; at 300 rpm: {ss:.3}° (predicted {pred:.3}°)",
-        reach * 1e3
+        "sensorless: within 1 % of 1200 rpm {:.1} ms after the step; settled from {t_settled:.3} s to 1.2 s under 2 N·m: max |ω − ω*| = {e_w:.2e} rad/s, max |ω̂ − ω| = {e_hat:.2e} rad/s, θ̂ − θ = {th_mean:.4}° (predicted {th_pred:.4}°); 0.4-1.2 s: max |ω − ω*| = {:.4} rad/s, i_q = {i_q:.4} A; at 300 rpm: {ss:.3}° (predicted {pred:.3}°)",
+        reach * 1e3,
+        max_abs(hold.iter().map(|x| x.omega_m - w)),
     );
     let (t_min, t_s) = (acceleration_time(), itae3_settling_s(100.0));
     assert!(
         reach >= t_min && reach <= t_min + t_s,
         "{reach} s vs torque-limited {t_min} s + ITAE settling {t_s} s"
-    );
-    // The drive's stated accuracy on the plateau: 0.5 % of the set-point, for the speed and
-    // its estimate (the encoder drive holds the speed to 1e-9 rad/s).
-    assert!(e_w < 0.005 * w, "speed error {e_w}");
-    assert!(e_hat < 0.005 * w, "speed estimate error {e_hat}");
-    // The angle error on the plateau is the truncation's bias at that operating point (to
-    // PRED_TOL_DEG); its ripple around it stays below the mean (max {e_th}°).
-    assert!(
-        (th_mean - th_pred).abs() < PRED_TOL_DEG,
-        "{th_mean}° vs {th_pred}°"
-    );
-    assert!(
-        e_th - th_mean.abs() < th_mean.abs(),
-        "max {e_th}° around {th_mean}°"
     );
     // The whole load is carried by the true current: k_t·i_q = T_L + B·ω + J·dω/dt, the last
     // two as the window's means (the speed ripples a little around its set-point).
@@ -451,10 +520,65 @@ fn sensorless_drive_reaches_1200_rpm_and_holds_it_under_2_nm() {
     let accel = (last.omega_m - first.omega_m) / (last.t - first.t);
     let want = (2.0 + 1e-3 * mean(hold.iter().map(|x| x.omega_m)) + 2e-3 * accel) / k_t();
     assert!((i_q - want).abs() < SETTLED_TOL, "i_q {i_q} vs {want}");
-    assert!((ss - pred).abs() < PRED_TOL_DEG, "{ss} vs {pred}");
-    // Integral action: no mean speed error at 300 rpm; a stated limit of 0.05 rad/s (0.16 %)
-    // for the sensorless estimate's ripple.
-    assert!(r.metric("steady_state_error").abs() < 0.05);
+    // Back at 300 rpm: the mean speed error of the run's last 10 % (the summary's
+    // steady_state_error) is within the same envelope, taken from where the speed came
+    // within 1 % of 300 rpm to where that window starts.
+    let w300 = 300.0 * RPM;
+    let back = rows
+        .iter()
+        .find(|x| x.t >= 1.2 && (x.omega_m - w300).abs() <= 0.01 * w300)
+        .expect("back at 300 rpm")
+        .t;
+    let t_tail = 0.9 * rows.last().unwrap().t;
+    let envelope = 0.01 * w300 * (-sigma * (t_tail - back)).exp();
+    let sse = r.metric("steady_state_error");
+    eprintln!("300 rpm: steady-state error {sse:.2e} rad/s, envelope {envelope:.2e} rad/s");
+    assert!(sse.abs() <= envelope, "{sse} vs {envelope}");
+}
+
+/// ζ of Low eq. (14), in %, computed here independently of the observer module:
+/// ‖e^{A·T} − (I + A·T)‖_F / ‖e^{A·T}‖_F for the continuous model of eq. (11), state
+/// [i_α, i_β, sin θ_e, cos θ_e], with e^{A·T} summed as its Taylor series (40 terms; ‖A·T‖
+/// is below 1 here). low1998: R = 2.5 Ω, L = 30 mH, p = 4, ψ = 0.6333/4 Wb.
+fn zeta_pct(ts: f64, rpm: f64) -> f64 {
+    let (r, l, p, psi) = (2.5, 30e-3, 4.0, 0.6333 / 4.0);
+    let w = rpm * RPM;
+    let (a, kappa, we) = (-r / l, p * psi * w / l, p * w);
+    let at = [
+        [a, 0.0, kappa, 0.0],
+        [0.0, a, 0.0, -kappa],
+        [0.0, 0.0, 0.0, we],
+        [0.0, 0.0, -we, 0.0],
+    ]
+    .map(|row| row.map(|c| c * ts));
+    let mul = |x: &[[f64; 4]; 4], y: &[[f64; 4]; 4]| {
+        let mut z = [[0.0; 4]; 4];
+        for i in 0..4 {
+            for j in 0..4 {
+                z[i][j] = (0..4).map(|k| x[i][k] * y[k][j]).sum();
+            }
+        }
+        z
+    };
+    // The series beyond I + A·T: the truncation's error; e^{A·T} = I + A·T + that.
+    let mut term = mul(&at, &at).map(|row| row.map(|c| c / 2.0));
+    let mut rest = term;
+    for n in 3..40 {
+        term = mul(&term, &at).map(|row| row.map(|c| c / n as f64));
+        for i in 0..4 {
+            for j in 0..4 {
+                rest[i][j] += term[i][j];
+            }
+        }
+    }
+    let fro = |m: &[[f64; 4]; 4]| m.iter().flatten().map(|c| c * c).sum::<f64>().sqrt();
+    let mut e = rest;
+    for i in 0..4 {
+        for j in 0..4 {
+            e[i][j] += at[i][j] + if i == j { 1.0 } else { 0.0 };
+        }
+    }
+    100.0 * fro(&rest) / fro(&e)
 }
 
 #[test]
@@ -471,11 +595,19 @@ fn observer_error_reports_zeta_and_plots_it() {
     ]);
     let t = String::from_utf8_lossy(&o.stdout).into_owned();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    // Low et al.: ζ below 2 % at 1200 rpm with T_s = 0.2 ms.
+    // Each printed ζ is eq. (14) as computed here (to the printout's 3 decimals), and Low
+    // et al.: ζ below 2 % at 1200 rpm with T_s = 0.2 ms.
     let z = number_after(&t, "T_s = 200 µs: ζ(1200 rpm) = ");
-    assert!(z > 1.0 && z < 2.0, "{z}\n{t}");
     let z1 = number_after(&t, "T_s = 100 µs: ζ(1200 rpm) = ");
     let z5 = number_after(&t, "T_s = 500 µs: ζ(1200 rpm) = ");
+    for (printed, ts) in [(z1, 1e-4), (z, 2e-4), (z5, 5e-4)] {
+        let want = zeta_pct(ts, 1200.0);
+        assert!(
+            (printed - want).abs() <= 0.0005 + 1e-12,
+            "T_s = {ts} s: printed ζ = {printed} %, eq. (14) gives {want} %"
+        );
+    }
+    assert!(z < 2.0, "{z}\n{t}");
     assert!(z1 < z && z < z5, "{z1} {z} {z5}");
     let line = t
         .lines()

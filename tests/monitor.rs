@@ -1,7 +1,9 @@
 //! `drivelab monitor` driven through tmux: it attaches to a running drive, shows the
 //! services, the traces and the event log, asks before it injects a fault, and leaves the
 //! terminal as it found it. Each test has its own bus and tmux server and checks that nothing
-//! is left behind. Times are watchdogs only.
+//! is left behind. Times are watchdogs only: the drives are held (a lockstep drive by
+//! freezing its plant) or ended (a real-time drive by SIGTERM) on the test's events, so
+//! they last as long as the checks need, however fast or slow the machine.
 
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -114,12 +116,48 @@ fn monitor_cmd(bus: &str) -> String {
     format!("{DRIVELAB} monitor --bus {bus}")
 }
 
+/// Sends `sig` to `pid`, a process of this test's own drive.
+fn signal(pid: i32, sig: i32) {
+    // SAFETY: a signal to a process of this test's own drive.
+    assert_eq!(unsafe { libc::kill(pid, sig) }, 0, "kill({pid}, {sig})");
+}
+
+/// A lockstep drive held still: its plant (the source, which every other stage waits for)
+/// is stopped; dropping this resumes it, also when the test fails.
+struct Held(i32);
+
+impl Held {
+    /// Holds the drive on `bus` once every stage has published a status and is alive, as
+    /// the supervisor's view shows (the first status comes with a stage's first sample).
+    fn once_all_report(bus: &str) -> Self {
+        use drivelab_runtime::telemetry::ProcState;
+        wait_for_view(bus, "show four live stages with a status each", |v| {
+            v.stages() == 4
+                && v.services[..4]
+                    .iter()
+                    .all(|s| s.has_status == 1 && ProcState::from_u32(s.state) == ProcState::Alive)
+        });
+        let pid = process_pid(bus, "plant");
+        signal(pid, libc::SIGSTOP);
+        Self(pid)
+    }
+}
+
+impl Drop for Held {
+    fn drop(&mut self) {
+        signal(self.0, libc::SIGCONT);
+    }
+}
+
 #[test]
 fn monitor_shows_a_lockstep_drive_refuses_faults_and_restores_the_terminal() {
     let _serial = serial();
     let bus = bus_id("lock");
     let out = scratch("lock").join("run");
-    let drive = start_drive(&bus, &out, &["--clock", "lockstep", "--duration", "60"]);
+    // 10 s of drive (10^5 samples) after the first statuses: far more than the moment the
+    // test takes to hold it.
+    let drive = start_drive(&bus, &out, &["--clock", "lockstep", "--duration", "10"]);
+    let held = Held::once_all_report(&bus);
     let printed = wait_attachable(&bus);
     assert!(
         printed.contains("lockstep") && printed.contains("kyslan-pi"),
@@ -150,10 +188,13 @@ fn monitor_shows_a_lockstep_drive_refuses_faults_and_restores_the_terminal() {
         })
         .collect();
     assert_eq!(rows.len(), 4, "four live services expected:\n{s}");
-    assert!(
-        !s.contains("no status yet"),
-        "a service published no status:\n{s}"
-    );
+    // Each has its figures ("–" stands for each of them until a stage's first status).
+    for r in &rows {
+        assert!(
+            !r.split_whitespace().any(|w| w == "–"),
+            "a service published no status:\n{s}"
+        );
+    }
     assert!(s.contains("not measured in lockstep"), "{s}");
     // Selecting a service and asking for a fault in lockstep is refused with a reason.
     tmux.keys("2");
@@ -171,6 +212,7 @@ fn monitor_shows_a_lockstep_drive_refuses_faults_and_restores_the_terminal() {
         !after.contains("supervisor events"),
         "the monitor's screen is still shown after it exited:\n{after}"
     );
+    drop(held);
     let o = wait(drive, Duration::from_secs(600), "drive");
     assert!(
         o.status.success(),
@@ -187,7 +229,9 @@ fn a_fault_from_the_monitor_is_confirmed_injected_logged_and_reported() {
     let _serial = serial();
     let bus = bus_id("rt");
     let out = scratch("rt").join("run");
-    let drive = start_drive(&bus, &out, &["--duration", "8"]);
+    // Longer than the test needs: it ends the drive itself (SIGTERM) once the fault is
+    // through; the duration only bounds a test that hangs.
+    let drive = start_drive(&bus, &out, &["--duration", "60"]);
     wait_attachable(&bus);
     let tmux = Tmux::start(&bus, &monitor_cmd(&bus));
     tmux.wait_for(&["realtime", "speed-loop"], Duration::from_secs(30));
@@ -217,14 +261,14 @@ fn a_fault_from_the_monitor_is_confirmed_injected_logged_and_reported() {
         s.contains("asked the supervisor to kill current-loop"),
         "{s}"
     );
-    // When the drive ends the monitor says so and lets go of the bus.
-    tmux.wait_for(&["ENDED", "the drive has ended"], Duration::from_secs(120));
-    let o = wait(drive, Duration::from_secs(120), "drive");
-    assert!(
-        o.status.success(),
-        "drive failed: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
+    // The drive is stopped (SIGTERM: it writes its run folder, then exits 1); the monitor
+    // says it has ended and lets go of the bus.
+    signal(drive.id() as i32, libc::SIGTERM);
+    tmux.wait_for(&["ENDED", "the drive has ended"], Duration::from_secs(60));
+    let o = wait(drive, Duration::from_secs(60), "drive");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("interrupted (SIGINT/SIGTERM)"), "{err}");
     // Ctrl-C leaves too (the terminal is in raw mode: it arrives as a key).
     tmux.keys("C-c");
     assert_eq!(tmux.wait_exit(Duration::from_secs(10)), 0);

@@ -254,6 +254,10 @@ pub fn find_services(bus: &str) -> Vec<(String, String, u32)> {
         .collect()
 }
 
+/// The estimate topic's word in the bus's wake segment (as `DriveTopics::open_with` numbers
+/// the topics).
+const EST_WAKE_WORD: usize = 1;
+
 /// Tries to publish `count` malformed estimates onto a running drive's estimate topic, as a
 /// foreign process on the same account would: `nan` puts NaN in the speed, `backwards` uses
 /// sample index 0 (behind the drive). Every drive topic takes one publisher, its stage, so
@@ -288,12 +292,17 @@ pub fn inject_bad_estimates(bus: &str, kind: &str, count: u32) -> Result<()> {
         bail!("no drive is running on bus {bus}");
     }
     let node = drivelab_runtime::bus::node(bus, "injector")?;
-    let topics = drivelab_runtime::bus::DriveTopics::open_with(
+    // The estimate topic alone, which the drive has created. Opening every drive topic
+    // would create those this drive does not use (an outer loop's speed references), to be
+    // removed again as this process ends: a second injector opening them meanwhile found
+    // one half gone (iceoryx2's HangsInCreation).
+    let wake = std::sync::Arc::new(drivelab_runtime::futex::WakeSegment::open(bus)?);
+    let est = drivelab_runtime::bus::Topic::<Estimate>::open_with(
         &node,
-        drivelab_runtime::bus::WakeKind::Futex,
-        bus,
+        drivelab_runtime::bus::TOPIC_EST,
+        Some((wake, EST_WAKE_WORD)),
     )?;
-    let tx = topics.est.sender()?;
+    let tx = est.sender()?;
     tx.connect()?;
     for i in 0..count {
         tx.send(bad(i)?)?;

@@ -152,6 +152,9 @@ struct Ui {
 
 const LOG_KEEP: usize = 200;
 
+/// What a stage's figures show before its first status.
+const NO_STATUS: &str = "–";
+
 impl Ui {
     fn new(o: &MonitorOptions) -> Self {
         Self {
@@ -184,22 +187,34 @@ impl Ui {
     /// Takes everything new from the bus. Returns true when the drive has ended.
     fn pull(&mut self, a: &Attached) -> Result<bool> {
         while let Some(e) = a.events_rx.try_recv()? {
-            if self.events.back().is_none_or(|b| e.seq > b.seq) {
-                if self.events.len() == LOG_KEEP {
-                    self.events.pop_front();
-                }
-                self.events.push_back(e);
-            }
+            self.log_event(e);
         }
         let mut end = false;
         while let Some(v) = a.view_rx.try_recv()? {
-            end |= v.hdr.is_end();
             if self.view.is_none() {
                 self.message = keep_off(v.rt_cores);
             }
-            self.view = Some(Box::new(v));
+            end |= self.show(v);
         }
         Ok(end)
+    }
+
+    /// Keeps a supervisor event unless it is not newer than the last one kept (a history
+    /// resent to a late subscriber); the oldest go beyond [`LOG_KEEP`].
+    fn log_event(&mut self, e: EventEntry) {
+        if self.events.back().is_none_or(|b| e.seq > b.seq) {
+            if self.events.len() == LOG_KEEP {
+                self.events.pop_front();
+            }
+            self.events.push_back(e);
+        }
+    }
+
+    /// Shows view `v`; true when it is the drive's last.
+    fn show(&mut self, v: DriveView) -> bool {
+        let end = v.hdr.is_end();
+        self.view = Some(Box::new(v));
+        end
     }
 
     /// Handles one key; returns false to quit.
@@ -362,7 +377,8 @@ impl Ui {
                     Cell::from(x.rejected_inputs.to_string()),
                 ]);
             } else {
-                cells.push(Cell::from("no status yet"));
+                // No status yet: every figure a dash (the title says so).
+                cells.extend(std::iter::repeat_n(Cell::from(NO_STATUS), 8));
             }
             let row = Row::new(cells);
             if i == self.selected {
@@ -403,9 +419,9 @@ impl Ui {
         f.render_widget(
             Table::new(rows, widths)
                 .header(header)
-                .block(Block::bordered().title(
-                    " stages · µs, since start · wake: plant = timer lateness, others = bus hop ",
-                )),
+                .block(Block::bordered().title(format!(
+                    " stages · µs, since start · wake: plant = timer lateness, others = bus hop · {NO_STATUS} no status yet "
+                ))),
             area,
         );
     }
@@ -700,4 +716,200 @@ fn print_once(ui: &mut Ui, a: Attached, w: u16, h: u16) -> Result<()> {
     }
     print!("{out}");
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ratatui::backend::TestBackend;
+
+    fn ui() -> Ui {
+        Ui::new(&MonitorOptions {
+            bus: "b1".into(),
+            refresh: Duration::from_millis(100),
+            stop_ms: 20,
+            print: None,
+        })
+    }
+
+    /// A view of a four-stage drive at sample `k` of 1000 (10 kHz); every stage alive with
+    /// a status except the last; the plant's cycle at 30 µs with 2 misses.
+    fn view(k: u64, lockstep: bool) -> DriveView {
+        let mut v = DriveView {
+            sample_hz: 10_000.0,
+            n_samples: 1000,
+            lockstep: u32::from(lockstep),
+            n_stages: 4,
+            ..Default::default()
+        };
+        v.hdr.k = k;
+        put_str(&mut v.scenario, "kyslan-pi");
+        for (i, name) in ["plant", "observer", "current-loop", "speed-loop"]
+            .iter()
+            .enumerate()
+        {
+            put_str(&mut v.stage_names[i], name);
+            v.services[i].state = ProcState::Alive as u32;
+            v.services[i].pid = 100 + i as u32;
+            v.services[i].has_status = u32::from(i < 3);
+        }
+        let p = &mut v.services[0].status;
+        (p.misses, p.samples, p.longest_miss_run) = (2, k, 1);
+        p.cycle.record_ns(30_000);
+        v
+    }
+
+    fn press(u: &mut Ui, keys: &str) -> bool {
+        keys.chars()
+            .all(|c| u.key(KeyCode::Char(c), KeyModifiers::NONE, None).unwrap())
+    }
+
+    /// The screen as text.
+    fn screen(u: &Ui) -> String {
+        let mut term = ratatui::Terminal::new(TestBackend::new(150, 45)).unwrap();
+        term.draw(|f| u.draw(f)).unwrap();
+        let buf = term.backend().buffer();
+        (0..buf.area.height)
+            .map(|y| {
+                (0..buf.area.width)
+                    .map(|x| buf[(x, y)].symbol())
+                    .collect::<String>()
+            })
+            .collect::<Vec<_>>()
+            .join("\n")
+    }
+
+    #[test]
+    fn keys_select_stages_within_the_drive_and_quit() {
+        let mut u = ui();
+        assert!(!u.show(view(10, false)));
+        // Arrows wrap both ways; a digit selects only a stage that exists.
+        u.key(KeyCode::Left, KeyModifiers::NONE, None).unwrap();
+        assert_eq!(u.selected, 3);
+        u.key(KeyCode::Right, KeyModifiers::NONE, None).unwrap();
+        assert_eq!(u.selected, 0);
+        assert!(press(&mut u, "3"));
+        assert_eq!(u.stage_name(u.selected), "current-loop");
+        assert!(press(&mut u, "5"));
+        assert_eq!(u.selected, 2);
+        assert!(!press(&mut u, "q"));
+        assert!(!u.key(KeyCode::Esc, KeyModifiers::NONE, None).unwrap());
+        assert!(!u
+            .key(KeyCode::Char('c'), KeyModifiers::CONTROL, None)
+            .unwrap());
+    }
+
+    #[test]
+    fn a_fault_is_asked_confirmed_or_cancelled_and_refused_in_lockstep_or_after_the_end() {
+        let mut u = ui();
+        u.show(view(10, false));
+        press(&mut u, "2k");
+        assert!(
+            screen(&u).contains("kill observer (SIGKILL)? press y to confirm"),
+            "{}",
+            screen(&u)
+        );
+        press(&mut u, "n");
+        assert_eq!((u.confirm, u.message.as_str()), (None, "cancelled"));
+        // A stop names its duration; confirmed without a bus, nothing is sent.
+        press(&mut u, "s");
+        assert_eq!(u.confirm, Some(FAULT_STOP));
+        assert!(screen(&u).contains("freeze observer for 20 ms (SIGSTOP, then SIGCONT)?"));
+        press(&mut u, "y");
+        assert_eq!((u.confirm, u.message.as_str()), (None, "not attached"));
+        // Lockstep: refused at once, no confirmation asked.
+        u.show(view(10, true));
+        press(&mut u, "k");
+        assert_eq!(u.confirm, None);
+        assert_eq!(
+            u.message,
+            "faults need a real-time drive (this one runs in lockstep)"
+        );
+        u.ended = true;
+        press(&mut u, "s");
+        assert_eq!(
+            (u.confirm, u.message.as_str()),
+            (None, "the drive has ended; no fault to inject")
+        );
+    }
+
+    #[test]
+    fn the_event_log_keeps_new_events_only_and_the_last_200() {
+        let mut u = ui();
+        for seq in [0, 1, 1, 0, 2] {
+            u.log_event(EventEntry::new(0.1, 5, seq, "inject plant: kill"));
+        }
+        assert_eq!(
+            u.events.iter().map(|e| e.seq).collect::<Vec<_>>(),
+            [0, 1, 2]
+        );
+        for seq in 3..=LOG_KEEP as u64 + 9 {
+            u.log_event(EventEntry::new(0.1, 5, seq, "resume observer: SIGCONT"));
+        }
+        assert_eq!(u.events.len(), LOG_KEEP);
+        assert_eq!(u.events.front().unwrap().seq, 10);
+        // The log's title counts every event the supervisor logged.
+        u.show(view(10, false));
+        assert!(screen(&u).contains("supervisor events (210 so far)"));
+    }
+
+    #[test]
+    fn the_screen_shows_progress_states_the_plants_cycle_and_the_end() {
+        let mut u = ui();
+        assert!(screen(&u).contains("waiting for the drive's first view"));
+        assert!(screen(&u).contains("no events: every service running since the start"));
+        u.log_event(EventEntry::new(
+            1.25,
+            500,
+            0,
+            "exited current-loop: signal: 9",
+        ));
+        u.show(view(500, false));
+        let s = screen(&u);
+        for want in [
+            "bus b1 · kyslan-pi · realtime 10000 Hz · sample 500/1000 (50 %) · t 0.050 s",
+            "deadline misses 2/500 samples, longest run 1",
+            "wall    1.250 s  sample      500 (t 0.0500 s)  exited current-loop",
+        ] {
+            assert!(s.contains(want), "{want}\n{s}");
+        }
+        // Four stages alive; three with a status, the fourth without one yet.
+        let rows: Vec<&str> = s.lines().filter(|l| l.contains(" alive ")).collect();
+        assert_eq!(rows.len(), 4, "{s}");
+        let dashes = |l: &str| l.split_whitespace().filter(|w| *w == NO_STATUS).count();
+        assert_eq!(
+            rows.iter().map(|l| dashes(l)).collect::<Vec<_>>(),
+            [0, 0, 0, 8]
+        );
+        assert!(rows[0].contains(" 2 (1) "), "{}", rows[0]);
+        // The drive's last view ends it.
+        let mut last = view(1000, true);
+        last.hdr.flags |= drivelab_runtime::messages::FLAG_END;
+        assert!(u.show(last));
+        u.ended = true;
+        let s = screen(&u);
+        assert!(
+            s.contains("lockstep 10000 Hz · sample 1000/1000 (100 %)"),
+            "{s}"
+        );
+        assert!(s.contains("· ENDED"), "{s}");
+        assert!(s.contains("cycle latency: not measured in lockstep"), "{s}");
+    }
+
+    #[test]
+    fn a_stop_beyond_a_minute_or_of_nothing_is_refused_before_attaching() {
+        for stop_ms in [0, 60_001] {
+            let o = MonitorOptions {
+                bus: "no-such-bus".into(),
+                refresh: Duration::from_millis(100),
+                stop_ms,
+                print: None,
+            };
+            let e = run(&o).unwrap_err().to_string();
+            assert_eq!(
+                e,
+                format!("--stop-ms {stop_ms} is out of range (1..60000 ms)")
+            );
+        }
+    }
 }

@@ -161,19 +161,29 @@ pub fn wait_for_services(bus: &str) {
 /// publishes its progress for `drivelab monitor`: the chain is past its start-up handshake
 /// and running.
 pub fn wait_for_progress(bus: &str, k: u64) {
+    wait_for_view(bus, &format!("reach sample {k}"), |v| v.hdr.k >= k);
+}
+
+/// Waits until a view the supervisor of the drive on `bus` publishes for `drivelab monitor`
+/// satisfies `done` (watchdog 60 s, naming `what`), and returns it.
+pub fn wait_for_view(
+    bus: &str,
+    what: &str,
+    done: impl Fn(&drivelab_runtime::telemetry::DriveView) -> bool,
+) -> drivelab_runtime::telemetry::DriveView {
     use drivelab_runtime::telemetry::{open_existing, DriveView, PlainReceiver, TOPIC_VIEW};
     let t = Instant::now();
     let watchdog = || {
         assert!(
             t.elapsed() < Duration::from_secs(60),
-            "watchdog: the drive on {bus} did not reach sample {k} within 60 s"
+            "watchdog: the drive on {bus} did not {what} within 60 s"
         )
     };
     // The launcher refuses a bus with a live node on it: join only once it has started its
     // first stage host, past that check.
     while processes_on_bus(bus).len() < 2 {
         watchdog();
-        std::thread::sleep(Duration::from_millis(20));
+        std::thread::sleep(Duration::from_millis(5));
     }
     let node = drivelab_runtime::bus::node(bus, "test").unwrap();
     let view = loop {
@@ -182,18 +192,34 @@ pub fn wait_for_progress(bus: &str, k: u64) {
             break v;
         }
         watchdog();
-        std::thread::sleep(Duration::from_millis(20));
+        std::thread::sleep(Duration::from_millis(5));
     };
     let rx = PlainReceiver::new(&view, 4).unwrap();
     loop {
         while let Some(v) = rx.try_recv().unwrap() {
-            if v.hdr.k >= k {
-                return;
+            if done(&v) {
+                return v;
             }
         }
         watchdog();
-        std::thread::sleep(Duration::from_millis(20));
+        std::thread::sleep(Duration::from_millis(5));
     }
+}
+
+/// The pid of the stage host `process` (its `--process` argument) of the drive on `bus`.
+pub fn process_pid(bus: &str, process: &str) -> i32 {
+    processes_on_bus(bus)
+        .iter()
+        .find(|l| {
+            let args: Vec<&str> = l.split(' ').collect();
+            args.windows(2).any(|w| w == ["--process", process])
+        })
+        .unwrap_or_else(|| panic!("no process {process} on bus {bus}"))
+        .split(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap()
 }
 
 /// Processes whose command line names this bus, as "PID ARGS".

@@ -560,10 +560,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     let mut gaps = gaps;
     recorder::attribute_gaps(&mut gaps, &faults, sc.rates.sample_hz);
     if let Some(f) = &failure {
-        // The samples after the recording stopped were never produced: say why.
-        for g in gaps.iter_mut().filter(|g| g.to + 1 == sc.samples()) {
-            g.cause = format!("the run ended early: {f}");
-        }
+        ended_early(&mut gaps, sc.samples(), f);
     }
     // A bus run wrote its trace as it went; an in-process one holds it whole.
     let stats = match stats {
@@ -586,15 +583,11 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         "wake": sc.timing.wake,
     });
     drop(latency_request);
-    let samples_missing: u64 = gaps
-        .iter()
-        .filter(|g| g.part == "measurement")
-        .map(|g| g.to + 1 - g.from)
-        .sum();
     let deadline_misses = info
         .get("deadline_misses")
         .and_then(|v| v.as_u64())
         .unwrap_or(0);
+    let h = headline(&stats, &gaps, deadline_misses, sc.samples());
     let mut summary = json!({
         "timing": timing,
         "scenario": sc.name,
@@ -605,10 +598,10 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         "trace": stats,
         "samples_expected": sc.samples(),
         "deadline_misses": deadline_misses,
-        "deadline_misses_per_million": deadline_misses as f64 * 1e6 / sc.samples().max(1) as f64,
-        "samples_missing": samples_missing,
-        "peak_current_a": stats.peak_current_a,
-        "peak_speed_rad_s": stats.peak_speed_rad_s,
+        "deadline_misses_per_million": h.deadline_misses_per_million,
+        "samples_missing": h.samples_missing,
+        "peak_current_a": h.peak_current_a,
+        "peak_speed_rad_s": h.peak_speed_rad_s,
         "longest_miss_run": info.get("longest_miss_run").cloned().unwrap_or(json!(0)),
         "processes": processes,
         "metrics": metrics,
@@ -703,6 +696,42 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     Ok(RunResult { out, summary })
 }
 
+/// The samples after the recording stopped were never produced: the gap that reaches the
+/// run's last sample (of `samples`) says the run ended early, and why (`failure`).
+fn ended_early(gaps: &mut [Gap], samples: u64, failure: &str) {
+    for g in gaps.iter_mut().filter(|g| g.to + 1 == samples) {
+        g.cause = format!("the run ended early: {failure}");
+    }
+}
+
+/// Headline figures of `summary.json`, which `[[expect]]` checks read.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Headline {
+    /// Plant deadline misses per million expected samples.
+    deadline_misses_per_million: f64,
+    /// Samples with no measurement (gaps of the "measurement" part, both ends included).
+    samples_missing: u64,
+    /// Largest |i_dq| of the trace, A.
+    peak_current_a: f64,
+    /// Largest |ω_m| of the trace, mechanical rad/s.
+    peak_speed_rad_s: f64,
+}
+
+/// The headline figures of a run of `samples` expected samples from its trace's figures,
+/// its gaps and the plant's deadline misses.
+fn headline(trace: &TraceStats, gaps: &[Gap], deadline_misses: u64, samples: u64) -> Headline {
+    Headline {
+        deadline_misses_per_million: deadline_misses as f64 * 1e6 / samples.max(1) as f64,
+        samples_missing: gaps
+            .iter()
+            .filter(|g| g.part == "measurement")
+            .map(|g| g.to + 1 - g.from)
+            .sum(),
+        peak_current_a: trace.peak_current_a,
+        peak_speed_rad_s: trace.peak_speed_rad_s,
+    }
+}
+
 /// Reads every `<key>.hdr` histogram the services wrote, writes `<key>.hgrm` beside it and
 /// returns the percentiles by key and the percentile curves for the plot.
 fn collect_histograms(
@@ -741,4 +770,121 @@ pub fn counters(summary: &serde_json::Value) -> BTreeMap<String, serde_json::Val
         .as_object()
         .map(|m| m.clone().into_iter().collect())
         .unwrap_or_default()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn gap(from: u64, to: u64, part: &'static str) -> Gap {
+        Gap {
+            from,
+            to,
+            part,
+            cause: "fault".into(),
+        }
+    }
+
+    #[test]
+    fn headline_figures_count_missing_measurements_with_both_ends_and_take_magnitudes() {
+        let rows = [
+            TraceRow {
+                i_d: -3.0,
+                i_q: 4.0,
+                omega_m: 10.0,
+                ..Default::default()
+            },
+            TraceRow {
+                i_q: 4.5,
+                omega_m: -12.0,
+                ..Default::default()
+            },
+        ];
+        // A one-sample gap counts 1; a missing command is not a missing sample.
+        let gaps = [
+            gap(5, 5, "measurement"),
+            gap(10, 19, "measurement"),
+            gap(30, 39, "command"),
+        ];
+        let h = headline(&TraceStats::of(&rows), &gaps, 3, 2_000_000);
+        assert_eq!(
+            h,
+            Headline {
+                deadline_misses_per_million: 1.5,
+                samples_missing: 11,
+                peak_current_a: 5.0,
+                peak_speed_rad_s: 12.0,
+            }
+        );
+        // Nothing expected, nothing recorded: no division by zero.
+        let h = headline(&TraceStats::of(&[]), &[], 0, 0);
+        assert_eq!(
+            (h.deadline_misses_per_million, h.peak_current_a),
+            (0.0, 0.0)
+        );
+    }
+
+    #[test]
+    fn only_the_gap_that_reaches_the_last_sample_ended_early() {
+        let mut gaps = [
+            gap(10, 19, "measurement"),
+            gap(50, 99, "measurement"),
+            gap(98, 98, "command"),
+        ];
+        ended_early(
+            &mut gaps,
+            100,
+            "interrupted (SIGINT/SIGTERM): drive stopped",
+        );
+        let causes: Vec<&str> = gaps.iter().map(|g| g.cause.as_str()).collect();
+        assert_eq!(
+            causes,
+            [
+                "fault",
+                "the run ended early: interrupted (SIGINT/SIGTERM): drive stopped",
+                "fault"
+            ]
+        );
+    }
+
+    #[test]
+    fn a_duration_override_is_validated_with_a_one_line_error() {
+        let sc = load_scenario("kyslan-pi", Some(0.25)).unwrap();
+        assert_eq!(sc.duration_s, 0.25);
+        for bad in [-1.0, 0.0] {
+            let e = load_scenario("kyslan-pi", Some(bad))
+                .unwrap_err()
+                .to_string();
+            assert!(e.starts_with(&format!("--duration {bad}: ")), "{e}");
+            assert!(!e.contains('\n'), "{e}");
+        }
+        assert!(load_scenario("no-such-scenario", None).is_err());
+    }
+
+    #[test]
+    fn default_run_folders_and_exec_paths() {
+        let sc = load_scenario("kyslan-pi", None).unwrap();
+        let d = default_out(&sc, Clock::Lockstep);
+        let name = d.file_name().unwrap().to_string_lossy().into_owned();
+        assert_eq!(d.parent(), Some(Path::new("runs")));
+        let secs = name.strip_prefix("kyslan-pi-lockstep-").expect(&name);
+        assert!(secs.parse::<u64>().is_ok(), "{name}");
+        // A relative exec is taken from the naming file's folder; an absolute one stays.
+        let mut procs = sc.topology();
+        procs[0].exec = Some("bin/stage".into());
+        procs[1].exec = Some("/opt/stage".into());
+        absolute_execs(&mut procs, Path::new("/etc/drivelab/topology.toml")).unwrap();
+        assert_eq!(procs[0].exec.as_deref(), Some("/etc/drivelab/bin/stage"));
+        assert_eq!(procs[1].exec.as_deref(), Some("/opt/stage"));
+        assert_eq!(procs[2].exec, None);
+    }
+
+    #[test]
+    fn counters_are_read_by_service() {
+        let s = json!({ "counters": { "plant": { "samples": 5 }, "observer": {} } });
+        let c = counters(&s);
+        assert_eq!(c.keys().collect::<Vec<_>>(), ["observer", "plant"]);
+        assert_eq!(c["plant"]["samples"], 5);
+        assert!(counters(&json!({})).is_empty());
+    }
 }

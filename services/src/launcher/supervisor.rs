@@ -3,7 +3,7 @@
 //! process's state; its typed event log; and the fault reports built from that log and the
 //! trace.
 
-use super::policy::{Decision, History, Policy};
+use super::policy::{run_state, Decision, Injection, Life, Policy, RunState, State};
 use super::recorder::Progress;
 use super::spawn::{ChildProc, Spawn};
 use crate::common::BusClock;
@@ -11,7 +11,6 @@ use crate::faults::{signal, FaultKind};
 use anyhow::Result;
 use drivelab_runtime::bus;
 use drivelab_runtime::config::Scenario;
-use drivelab_runtime::telemetry::ProcState;
 use drivelab_runtime::trace::TraceRow;
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -162,85 +161,19 @@ impl Serialize for SupEvent {
     }
 }
 
-/// Where a child process is in its life.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum State {
-    /// Running (and ready).
-    Running,
-    /// Restarted, not ready yet.
-    AwaitingReady,
-    /// Stopped by a fault until `until`; `awaiting_ready` when it was not ready yet.
-    Frozen {
-        until: Instant,
-        awaiting_ready: bool,
-    },
-    /// Dead, to be restarted at `at`.
-    RestartPending { at: Instant },
-    /// Dead for good.
-    Dead,
-    /// Exited normally.
-    Finished,
-}
-
-impl State {
-    /// Its process exists (and may be waited for).
-    fn alive(self) -> bool {
-        matches!(
-            self,
-            Self::Running | Self::AwaitingReady | Self::Frozen { .. }
-        )
-    }
-
-    /// It has not said READY yet.
-    fn awaiting_ready(self) -> bool {
-        matches!(
-            self,
-            Self::AwaitingReady
-                | Self::Frozen {
-                    awaiting_ready: true,
-                    ..
-                }
-        )
-    }
-
-    /// What the hub shows.
-    fn proc_state(self) -> ProcState {
-        match self {
-            Self::Finished => ProcState::Finished,
-            Self::Dead => ProcState::Dead,
-            Self::RestartPending { .. } | Self::AwaitingReady => ProcState::Restarting,
-            Self::Frozen {
-                awaiting_ready: true,
-                ..
-            } => ProcState::Restarting,
-            Self::Frozen { .. } => ProcState::Frozen,
-            Self::Running => ProcState::Alive,
-        }
-    }
-}
-
 /// One child process under supervision.
 pub(super) struct Supervised {
     /// The process.
     pub proc: ChildProc,
-    state: State,
-    history: History,
-    /// A fault was injected into it at some point.
-    injected: bool,
-    /// A kill was injected and its death not yet handled.
-    kill_pending: bool,
+    /// Its life under the policy.
+    life: Life,
 }
 
 impl Supervised {
     /// A child that has passed the start-up handshake.
     pub fn new(proc: ChildProc) -> Self {
-        Self {
-            proc,
-            state: State::Running,
-            history: History::default(),
-            injected: false,
-            kill_pending: false,
-        }
+        let life = Life::new(proc.source);
+        Self { proc, life }
     }
 }
 
@@ -311,95 +244,65 @@ pub(super) fn supervise(
             else {
                 continue;
             };
-            let refusal = if clock != BusClock::Realtime {
-                // Only a monitor's request can get here: a plan is refused before the start.
-                Some(EventKind::InjectRefused {
-                    reason: "faults need --clock realtime".into(),
-                })
-            } else if !matches!(c.state, State::Running | State::AwaitingReady) {
-                Some(EventKind::InjectSkipped)
-            } else {
-                None
-            };
-            if let Some(kind) = refusal {
-                log(events, kind, &f.service, &c.proc.name);
-                continue;
-            }
-            let sig = match f.kind {
-                FaultKind::Kill => libc::SIGKILL,
-                FaultKind::Stop => libc::SIGSTOP,
-            };
             // The plant's sample when the signal goes out: the recorder's progress lags it.
             let k_signal = plant_sample_now(progress, sc.rates.ts_ns());
-            signal(c.proc.pid(), sig)?;
-            c.injected = true;
-            c.kill_pending |= f.kind == FaultKind::Kill;
-            let kind = EventKind::Inject {
-                fault: f.kind,
-                duration_s: f.duration_s,
-                monitor_pid,
+            let stop = match f.kind {
+                FaultKind::Stop => Duration::from_secs_f64(f.duration_s),
+                FaultKind::Kill => Duration::ZERO,
             };
+            let kind = match c
+                .life
+                .inject(f.kind, stop, now, clock == BusClock::Realtime)
+            {
+                // Only a monitor's request can get here: a plan is refused before the start.
+                Injection::Refused => EventKind::InjectRefused {
+                    reason: "faults need --clock realtime".into(),
+                },
+                Injection::Skipped => EventKind::InjectSkipped,
+                Injection::Signal(sig) => {
+                    signal(c.proc.pid(), sig)?;
+                    EventKind::Inject {
+                        fault: f.kind,
+                        duration_s: f.duration_s,
+                        monitor_pid,
+                    }
+                }
+            };
+            let injected = matches!(kind, EventKind::Inject { .. });
             log(events, kind, &f.service, &c.proc.name);
-            if let (Some(e), Some(k)) = (events.last_mut(), k_signal) {
+            if let (true, Some(e), Some(k)) = (injected, events.last_mut(), k_signal) {
                 e.k = e.k.max(k);
-            }
-            if f.kind == FaultKind::Stop {
-                c.state = State::Frozen {
-                    until: now + Duration::from_secs_f64(f.duration_s),
-                    awaiting_ready: c.state.awaiting_ready(),
-                };
             }
         }
         for c in children.iter_mut() {
-            if let State::Frozen {
-                until,
-                awaiting_ready,
-            } = c.state
-            {
-                if now >= until {
-                    let _ = signal(c.proc.pid(), libc::SIGCONT);
-                    log(events, EventKind::Resume, &c.proc.name, &c.proc.name);
-                    c.state = if awaiting_ready {
-                        State::AwaitingReady
-                    } else {
-                        State::Running
-                    };
-                }
+            if c.life.resume_due(now) {
+                let _ = signal(c.proc.pid(), libc::SIGCONT);
+                log(events, EventKind::Resume, &c.proc.name, &c.proc.name);
             }
         }
         // Liveness: our own children first (waitpid), then iceoryx2's view of the bus.
         let mut any_dead = false;
         for c in children.iter_mut() {
-            if !c.state.alive() {
+            if !c.life.state.alive() {
                 continue;
             }
-            if c.state.awaiting_ready() && c.proc.poll_ready() {
-                c.state = match c.state {
-                    State::Frozen { until, .. } => State::Frozen {
-                        until,
-                        awaiting_ready: false,
-                    },
-                    _ => State::Running,
-                };
+            if c.life.state.awaiting_ready() && c.proc.poll_ready() {
+                c.life.ready();
                 let kind = EventKind::Ready { pid: c.proc.pid() };
                 log(events, kind, &c.proc.name, &c.proc.name);
             }
-            match c.proc.child.try_wait()? {
-                None => {}
-                Some(st) if st.success() => c.state = State::Finished,
-                Some(st) => {
-                    any_dead = true;
-                    let n = c.proc.name.clone();
-                    log(events, EventKind::Exited { status: st }, &n, &n);
-                    let killed = std::mem::take(&mut c.kill_pending);
-                    match policy.on_failure(&mut c.history, c.injected, killed, c.proc.source, now)
-                    {
-                        Decision::FailRun => return Ok(Some(format!("process {n} failed ({st})"))),
-                        Decision::StopDrive => return Ok(None),
-                        Decision::GiveUp => c.state = State::Dead,
-                        Decision::RestartAt(at) => c.state = State::RestartPending { at },
-                    }
-                }
+            let Some(st) = c.proc.child.try_wait()? else {
+                continue;
+            };
+            any_dead |= !st.success();
+            let n = c.proc.name.clone();
+            if !st.success() {
+                log(events, EventKind::Exited { status: st }, &n, &n);
+            }
+            match c.life.exited(st.success(), &policy, now) {
+                Some(Decision::FailRun) => return Ok(Some(format!("process {n} failed ({st})"))),
+                Some(Decision::StopDrive) => return Ok(None),
+                _ => {}
             }
         }
         if any_dead {
@@ -407,7 +310,7 @@ pub(super) fn supervise(
             log(events, EventKind::Reaped { nodes }, "-", "-");
         }
         for c in children.iter_mut() {
-            if !matches!(c.state, State::RestartPending { at } if now >= at) {
+            if !c.life.restart_due(now) {
                 continue;
             }
             let name = c.proc.name.clone();
@@ -429,44 +332,35 @@ pub(super) fn supervise(
                 std::fs::write(&rejoin_file, &text)?;
             }
             c.proc = c.proc.respawn(sp, &rejoin_file)?;
-            c.history.restarted();
-            c.state = State::AwaitingReady;
             let kind = EventKind::Restarted {
-                restart: c.history.restarts,
+                restart: c.life.restarted(),
                 pid: c.proc.pid(),
             };
             log(events, kind, &name, &name);
         }
         for c in children.iter() {
-            let state = c.state.proc_state();
+            let state = c.life.state.proc_state();
             for st in &c.proc.stages {
-                hub.set_process(st, state, c.proc.pid(), c.history.restarts);
+                hub.set_process(st, state, c.proc.pid(), c.life.history.restarts);
             }
         }
-        let restart_pending = children
-            .iter()
-            .any(|c| matches!(c.state, State::RestartPending { .. }));
-        if children
-            .iter()
-            .all(|c| matches!(c.state, State::Finished | State::Dead))
-        {
-            return Ok(None);
-        }
-        let plant_done = children
-            .iter()
-            .any(|c| c.proc.source && c.state == State::Finished);
-        if plant_done && !restart_pending {
-            // The plant has finished; anyone not done within 2 s is stopped by the caller.
-            let t = Instant::now();
-            while t.elapsed() < Duration::from_secs(2) {
-                if children.iter_mut().all(|c| {
-                    c.state == State::Finished || matches!(c.proc.child.try_wait(), Ok(Some(_)))
-                }) {
-                    break;
+        match run_state(children.iter().map(|c| &c.life)) {
+            RunState::Going => {}
+            RunState::Over => return Ok(None),
+            RunState::PlantFinished => {
+                // Anyone not done within 2 s is stopped by the caller.
+                let t = Instant::now();
+                while t.elapsed() < Duration::from_secs(2) {
+                    if children.iter_mut().all(|c| {
+                        c.life.state == State::Finished
+                            || matches!(c.proc.child.try_wait(), Ok(Some(_)))
+                    }) {
+                        break;
+                    }
+                    std::thread::sleep(Duration::from_millis(5));
                 }
-                std::thread::sleep(Duration::from_millis(5));
+                return Ok(None);
             }
-            return Ok(None);
         }
         std::thread::sleep(Duration::from_millis(1));
     }
@@ -805,38 +699,6 @@ mod tests {
         assert_eq!((f.republished_ms, f.speed_recovered_ms), (None, None));
         // The shaded window is 200 ms at the most.
         assert_eq!(windows[0].1, 0.205);
-    }
-
-    #[test]
-    fn a_childs_state_says_whether_it_lives_awaits_ready_and_what_the_hub_shows() {
-        let t = Instant::now();
-        let frozen = |awaiting_ready| State::Frozen {
-            until: t,
-            awaiting_ready,
-        };
-        // (state, alive, awaiting READY, shown as)
-        let table = [
-            (State::Running, true, false, ProcState::Alive),
-            (State::AwaitingReady, true, true, ProcState::Restarting),
-            (frozen(false), true, false, ProcState::Frozen),
-            // Stopped before it said READY: still restarting for the hub.
-            (frozen(true), true, true, ProcState::Restarting),
-            (
-                State::RestartPending { at: t },
-                false,
-                false,
-                ProcState::Restarting,
-            ),
-            (State::Dead, false, false, ProcState::Dead),
-            (State::Finished, false, false, ProcState::Finished),
-        ];
-        for (st, alive, awaiting, shown) in table {
-            assert_eq!(
-                (st.alive(), st.awaiting_ready(), st.proc_state()),
-                (alive, awaiting, shown),
-                "{st:?}"
-            );
-        }
     }
 
     #[test]
