@@ -261,15 +261,22 @@ fn malformed_scenario_fails_with_a_clear_message_and_leaves_nothing() {
 }
 
 #[test]
-fn sigterm_stops_the_whole_drive_and_cleans_up() {
+fn sigint_and_sigterm_stop_the_whole_drive_keep_the_trace_and_clean_up() {
     let _serial = serial();
-    let dir = scratch("sigterm");
-    let bus = bus_id("sigterm");
+    for (sig, name) in [(libc::SIGINT, "sigint"), (libc::SIGTERM, "sigterm")] {
+        stopped_by(sig, name);
+    }
+}
+
+/// A 30 s drive stopped by signal `sig` (Ctrl-C is SIGINT) once it runs.
+fn stopped_by(sig: libc::c_int, name: &str) {
+    let dir = scratch(name);
+    let bus = bus_id(name);
     let out = dir.join("run");
     let mut child = start_drive(&bus, &out, &["--duration", "30"]);
     wait_for_progress(&bus, 1);
     // SAFETY: signalling a child process we spawned.
-    unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
+    unsafe { libc::kill(child.id() as i32, sig) };
     let t = Instant::now();
     let status = loop {
         if let Some(s) = child.try_wait().unwrap() {
@@ -277,7 +284,7 @@ fn sigterm_stops_the_whole_drive_and_cleans_up() {
         }
         assert!(
             t.elapsed() < Duration::from_secs(30),
-            "watchdog: drivelab did not stop after SIGTERM"
+            "watchdog: drivelab did not stop after {name}"
         );
         std::thread::sleep(Duration::from_millis(20));
     };
@@ -304,7 +311,7 @@ fn sigterm_stops_the_whole_drive_and_cleans_up() {
     let gaps = s["missing_samples"].as_array().unwrap();
     let last = gaps
         .last()
-        .expect("the samples after SIGTERM are listed as missing");
+        .unwrap_or_else(|| panic!("{name}: the samples after it are listed as missing"));
     assert_eq!(last["to"], 299_999);
     assert_eq!(last["from"].as_u64(), Some(rows as u64));
     assert!(

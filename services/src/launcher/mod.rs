@@ -315,14 +315,41 @@ fn run_bus(
         info["deadline_misses"] = p["deadline_misses"].clone();
         info["longest_miss_run"] = p["longest_miss_run"].clone();
     }
+    let mut gaps = rec.gaps;
+    let mut failure = failure;
+    let produced = counters
+        .get("plant")
+        .and_then(|p| p["samples"].as_u64())
+        .unwrap_or(0);
+    if let Some(f) = unreceived(&mut gaps, produced, sc.samples(), rec.stats.rows) {
+        failure.get_or_insert(f);
+    }
     Ok(BusRun {
         rows: rec.kept,
-        gaps: rec.gaps,
+        gaps,
         stats: Some(rec.stats),
         processes: serde_json::Value::Object(processes),
         info,
         events,
         failure,
+    })
+}
+
+/// A plant process that stepped through every one of the run's `samples` (its `produced`
+/// counter: it never restarted) published each of them, so a measurement missing from a
+/// trace of `recorded` rows never reached the recorder: its gap says so instead of "the
+/// plant stopped", and the run fails with the count. None when nothing is amiss.
+fn unreceived(gaps: &mut [Gap], produced: u64, samples: u64, recorded: u64) -> Option<String> {
+    if produced < samples || recorded >= samples {
+        return None;
+    }
+    let mut any = false;
+    for g in gaps.iter_mut().filter(|g| g.part == "measurement") {
+        g.cause = "the plant published it; it never reached the recorder".into();
+        any = true;
+    }
+    any.then(|| {
+        format!("the recorder received {recorded} of the {samples} samples the plant published")
     })
 }
 
@@ -822,6 +849,21 @@ mod tests {
             (h.deadline_misses_per_million, h.peak_current_a),
             (0.0, 0.0)
         );
+    }
+
+    #[test]
+    fn samples_the_plant_published_but_the_recorder_lacks_fail_the_run() {
+        // A plant that stepped every sample: the recorder's missing ones are its own loss.
+        let mut gaps = vec![gap(0, 999, "measurement"), gap(5, 5, "command")];
+        let f = unreceived(&mut gaps, 1000, 1000, 0).unwrap();
+        assert_eq!(f, "the recorder received 0 of the 1000 samples the plant published");
+        assert!(gaps[0].cause.contains("never reached the recorder"));
+        assert_eq!(gaps[1].cause, "fault");
+        // A restarted plant (fewer samples of its own), or a complete trace: nothing said.
+        let mut gaps = vec![gap(0, 9, "measurement")];
+        assert_eq!(unreceived(&mut gaps, 990, 1000, 990), None);
+        assert_eq!(gaps[0].cause, "fault");
+        assert_eq!(unreceived(&mut [], 1000, 1000, 1000), None);
     }
 
     #[test]
