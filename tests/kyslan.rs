@@ -311,7 +311,10 @@ fn design_printout_gives_both_designs_checkable_by_hand() {
     // it commands (the cascade's premise, eq. 31).
     let w0 = number_after(&t, "ω_0 = ");
     assert!(w0 < wi, "{w0}");
-    let rise = number_after(&t, "sampled, 1-sample delay, speed law every 10 samples): rise time ");
+    let rise = number_after(
+        &t,
+        "sampled, 1-sample delay, speed law every 10 samples): rise time ",
+    );
     assert!((rise - 8.0).abs() <= 0.005, "{rise}");
     assert!((number_after(&t, "K1 = ω_0² = ") - w0 * w0).abs() < 1e-5 * w0 * w0);
     let r11 = number_after(&t, "r11 = 2ζω_0(ω_0+ω_i)/ω_i = ");

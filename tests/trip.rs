@@ -25,7 +25,12 @@ fn an_overcurrent_trips_the_inverter_latches_its_safe_state_and_is_reported_as_a
     // inverter is latched safe to the end of the run although every command arrived.
     assert!(first > 0);
     for r in &rows[first..] {
-        assert_eq!(r.plant_flags & (TRIPPED | SAFE), TRIPPED | SAFE, "k = {}", r.k);
+        assert_eq!(
+            r.plant_flags & (TRIPPED | SAFE),
+            TRIPPED | SAFE,
+            "k = {}",
+            r.k
+        );
         assert_eq!(r.miss, 0, "k = {}", r.k);
     }
     assert!(rows[..first].iter().all(|r| r.plant_flags & TRIPPED == 0));
@@ -39,11 +44,7 @@ fn an_overcurrent_trips_the_inverter_latches_its_safe_state_and_is_reported_as_a
     );
     assert_eq!(f["injected_k"].as_u64(), Some(rows[first].k));
     assert_eq!(f["speed_recovered_ms"], serde_json::Value::Null);
-    assert!(
-        r.stderr.contains("tripped on overcurrent"),
-        "{}",
-        r.stderr
-    );
+    assert!(r.stderr.contains("tripped on overcurrent"), "{}", r.stderr);
     // The same scenario without the trip never flags one.
     let plain = run("trip-plain", "kyslan-pi", "lockstep");
     assert!(plain.trace().iter().all(|r| r.plant_flags & TRIPPED == 0));

@@ -1107,8 +1107,32 @@ mod tests {
                 std::thread::sleep(Duration::from_millis(5));
             }
         };
-        // Let the chain run (warm-up done once the plant has measured something).
-        std::thread::sleep(Duration::from_millis(600));
+        // Let the chain run: wait until the plant sleeps and wakes per sample (at 2 kHz, its
+        // voluntary context switches pass 200 within 0.1 s of its warm-up), as the
+        // scheduler sees it: the UDS nodes publish no progress of their own.
+        let plant_pid = kids[3].1.id();
+        let switches = || -> u64 {
+            // Over every thread of the process.
+            std::fs::read_dir(format!("/proc/{plant_pid}/task"))
+                .into_iter()
+                .flatten()
+                .flatten()
+                .filter_map(|t| std::fs::read_to_string(t.path().join("status")).ok())
+                .filter_map(|t| {
+                    t.lines()
+                        .find_map(|l| l.strip_prefix("voluntary_ctxt_switches:"))
+                        .and_then(|v| v.trim().parse::<u64>().ok())
+                })
+                .sum()
+        };
+        let t = Instant::now();
+        while switches() < 200 {
+            assert!(
+                t.elapsed() < Duration::from_secs(20),
+                "watchdog: the plant did not start sampling within 20 s"
+            );
+            std::thread::sleep(Duration::from_millis(5));
+        }
         for (_, c) in &mut kids {
             assert!(c.try_wait().unwrap().is_none(), "a node ended early");
         }
@@ -1128,65 +1152,6 @@ mod tests {
         // The observer was gone for a while: the plant saw misses.
         assert!(r.misses.misses > 0);
         drop(sock);
-        std::fs::remove_dir_all(&work).unwrap();
-    }
-
-    /// Manual measurement (no assertions): `DRIVELAB_BENCH_SECONDS=2 cargo test -p
-    /// drivelab-bench --release manual_measurement -- --ignored --nocapture`. Needs root
-    /// for SCHED_FIFO; one-core placement on the last CPU, priorities as `drivelab bench`.
-    #[test]
-    #[ignore]
-    fn manual_measurement() {
-        let seconds: f64 = std::env::var("DRIVELAB_BENCH_SECONDS")
-            .ok()
-            .and_then(|s| s.parse().ok())
-            .unwrap_or(2.0);
-        let hz: f64 = std::env::var("DRIVELAB_BENCH_HZ")
-            .ok()
-            .and_then(|s| s.parse().ok())
-            .unwrap_or(10_000.0);
-        let core = drivelab_runtime::rt::online_cpus() - 1;
-        let at = |p| NodeSpec {
-            core: Some(core),
-            priority: Some(p),
-        };
-        let work = std::env::temp_dir().join(format!("drivelab-bench-man-{}", std::process::id()));
-        std::fs::create_dir_all(&work).unwrap();
-        let spec = ChainSpec {
-            scenario: kyslan(hz),
-            seconds,
-            plant: at(70),
-            observer: at(72),
-            current_loop: at(76),
-            speed_loop: at(74),
-        };
-        let show = |name: &str, r: &VariantResult| {
-            let c = r.cycle.percentiles();
-            let l = r.lateness.percentiles();
-            eprintln!(
-                "{name:>9}: {} samples, cycle p50 {:.1} p99 {:.1} p99.9 {:.1} max {:.0} µs; \
-                 lateness p50 {:.1} p99 {:.1} µs; misses {} (longest run {})",
-                r.samples,
-                c.p50,
-                c.p99,
-                c.p999,
-                c.max,
-                l.p50,
-                l.p99,
-                r.misses.misses,
-                r.misses.longest_run
-            );
-        };
-        show(
-            "floor",
-            &crate::run_floor(hz, seconds, &spec.plant).unwrap(),
-        );
-        show("inprocess", &crate::run_inprocess(&spec).unwrap());
-        let script = fake_drivelab(&work);
-        show(
-            "uds",
-            &run_uds_chain(&spec, &script, &work.join("uds")).unwrap(),
-        );
         std::fs::remove_dir_all(&work).unwrap();
     }
 }

@@ -365,7 +365,10 @@ mod tests {
         assert!(parse("random:0").is_err());
         for huge in ["1e20", "61", "0.0005"] {
             let e = parse(&format!("stop:observer@0.05:{huge}")).unwrap_err();
-            assert!(e.to_string().contains("a stop lasts 0.001 to 60 s"), "{huge}: {e}");
+            assert!(
+                e.to_string().contains("a stop lasts 0.001 to 60 s"),
+                "{huge}: {e}"
+            );
         }
         assert!(parse("stop:observer@0.05:60").is_ok());
     }

@@ -25,7 +25,6 @@ use drivelab_runtime::topology::StageInfo;
 use drivelab_runtime::trace::TraceRow;
 use drivelab_tools::metrics::speed_metrics;
 use recorder::{run_recorder, Progress};
-use stream::{TraceStats, TraceStream};
 use serde::Serialize;
 use serde_json::json;
 use spawn::{process_binary, spawn_service, terminate, ChildProc, Spawn};
@@ -36,6 +35,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+use stream::{TraceStats, TraceStream};
 use supervisor::{supervise, Supervised};
 
 /// Which clock paces the run.
@@ -182,12 +182,7 @@ fn run_bus(
         )?),
     );
     let rec = {
-        let (b, s, sc, pr) = (
-            bus_id.clone(),
-            stop.clone(),
-            sc.clone(),
-            progress.clone(),
-        );
+        let (b, s, sc, pr) = (bus_id.clone(), stop.clone(), sc.clone(), progress.clone());
         std::thread::Builder::new()
             .name("recorder".into())
             .spawn(move || run_recorder(b, sc, trace, s, pr, ready_tx))?
@@ -856,7 +851,10 @@ mod tests {
         // A plant that stepped every sample: the recorder's missing ones are its own loss.
         let mut gaps = vec![gap(0, 999, "measurement"), gap(5, 5, "command")];
         let f = unreceived(&mut gaps, 1000, 1000, 0).unwrap();
-        assert_eq!(f, "the recorder received 0 of the 1000 samples the plant published");
+        assert_eq!(
+            f,
+            "the recorder received 0 of the 1000 samples the plant published"
+        );
         assert!(gaps[0].cause.contains("never reached the recorder"));
         assert_eq!(gaps[1].cause, "fault");
         // A restarted plant (fewer samples of its own), or a complete trace: nothing said.

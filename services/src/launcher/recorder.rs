@@ -229,8 +229,7 @@ mod tests {
     fn assemble(ts: f64, rec: &Recording) -> (Vec<TraceRow>, Vec<Gap>) {
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../scenarios/kyslan-pi.toml");
         let mut sc =
-            Scenario::from_toml(&std::fs::read_to_string(path).unwrap(), "kyslan-pi.toml")
-                .unwrap();
+            Scenario::from_toml(&std::fs::read_to_string(path).unwrap(), "kyslan-pi.toml").unwrap();
         sc.rates.sample_hz = 1.0 / ts;
         sc.duration_s = rec.meas.len() as f64 * ts;
         assert_eq!(sc.samples(), rec.meas.len() as u64);

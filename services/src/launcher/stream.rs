@@ -236,11 +236,7 @@ impl TraceStream {
 
     /// Takes the plant's true state at its sample. A measurement after missing ones may end
     /// a downtime of the plant: `rejoins` then gives the states restarted plants were given.
-    pub fn meas(
-        &mut self,
-        m: PlantTruth,
-        rejoins: impl FnOnce() -> Vec<PlantTruth>,
-    ) -> Result<()> {
+    pub fn meas(&mut self, m: PlantTruth, rejoins: impl FnOnce() -> Vec<PlantTruth>) -> Result<()> {
         if !self.admit(&m.hdr)? {
             return Ok(());
         }
@@ -430,8 +426,7 @@ mod tests {
     fn scenario(n: u64) -> Scenario {
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../scenarios/kyslan-pi.toml");
         let mut sc =
-            Scenario::from_toml(&std::fs::read_to_string(path).unwrap(), "kyslan-pi.toml")
-                .unwrap();
+            Scenario::from_toml(&std::fs::read_to_string(path).unwrap(), "kyslan-pi.toml").unwrap();
         sc.duration_s = n as f64 / sc.rates.sample_hz;
         assert_eq!(sc.samples(), n);
         sc
@@ -462,7 +457,11 @@ mod tests {
     /// Feeds samples `ks` (measurement then command) and lets them leave as they would.
     fn feed(t: &mut TraceStream, ks: impl Iterator<Item = u64>, flags_at: &[u64]) {
         for k in ks {
-            let f = if flags_at.contains(&k) { FLAG_SAFE_STATE } else { 0 };
+            let f = if flags_at.contains(&k) {
+                FLAG_SAFE_STATE
+            } else {
+                0
+            };
             t.meas(truth(k, f), Vec::new).unwrap();
             t.cmd(cmd(k)).unwrap();
             t.advance().unwrap();
@@ -491,7 +490,9 @@ mod tests {
         assert!(!kept.contains(&(disturbed - 1_001)) || (disturbed - 1_001) % 11 == 0);
         assert!(!kept.contains(&(disturbed + 10_001)) || (disturbed + 10_001) % 11 == 0);
         let expected = (0..n)
-            .filter(|&k| k % 11 == 0 || k <= 10_400 || (disturbed - 1_000..=disturbed + 10_000).contains(&k))
+            .filter(|&k| {
+                k % 11 == 0 || k <= 10_400 || (disturbed - 1_000..=disturbed + 10_000).contains(&k)
+            })
             .count();
         assert_eq!(kept.len(), expected);
         // Memory: the kept rows stay near SPACED_ROWS plus the windows.

@@ -10,7 +10,9 @@ use drivelab_runtime::trace::TraceRow;
 /// made safe there (the inverter trips within the sample), the peak current from that sample
 /// to the end, and no recovery (the trip is latched). None when the inverter never tripped.
 pub(super) fn trip_report(sc: &Scenario, rows: &[TraceRow]) -> Option<FaultReport> {
-    let first = rows.iter().position(|r| r.plant_flags & FLAG_TRIPPED != 0)?;
+    let first = rows
+        .iter()
+        .position(|r| r.plant_flags & FLAG_TRIPPED != 0)?;
     let r = &rows[first];
     let peak = rows[first..]
         .iter()
@@ -54,8 +56,7 @@ mod tests {
     fn the_first_tripped_sample_is_the_fault_and_the_peak_counts_from_there() {
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../scenarios/kyslan-pi.toml");
         let mut sc =
-            Scenario::from_toml(&std::fs::read_to_string(path).unwrap(), "kyslan-pi.toml")
-                .unwrap();
+            Scenario::from_toml(&std::fs::read_to_string(path).unwrap(), "kyslan-pi.toml").unwrap();
         sc.inverter.i_trip_a = Some(5.0);
         let rows = [
             row(0, 9.0, 0),

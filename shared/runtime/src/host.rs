@@ -376,7 +376,10 @@ impl IndexWindow {
             }
             return true;
         }
-        if self.newest.is_some_and(|n| hdr.k > n.saturating_add(self.window)) {
+        if self
+            .newest
+            .is_some_and(|n| hdr.k > n.saturating_add(self.window))
+        {
             return false;
         }
         self.newest = Some(self.newest.map_or(hdr.k, |n| n.max(hdr.k)));
