@@ -180,7 +180,7 @@ fn run_bus(
         Some(drivelab_runtime::trace::CsvTrace::create(
             &out.join("trace.csv"),
         )?),
-    );
+    )?;
     let rec = {
         let (b, s, sc, pr) = (bus_id.clone(), stop.clone(), sc.clone(), progress.clone());
         std::thread::Builder::new()

@@ -233,7 +233,7 @@ mod tests {
         sc.rates.sample_hz = 1.0 / ts;
         sc.duration_s = rec.meas.len() as f64 * ts;
         assert_eq!(sc.samples(), rec.meas.len() as u64);
-        let mut t = TraceStream::new(&sc, None);
+        let mut t = TraceStream::new(&sc, None).unwrap();
         let hdr = |k: usize| Header {
             k: k as u64,
             ..Default::default()

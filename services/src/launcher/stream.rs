@@ -181,10 +181,25 @@ pub struct TraceStream {
 }
 
 impl TraceStream {
-    /// A trace of scenario `sc` written to `out` (None: kept in memory only, for tests).
-    pub fn new(sc: &Scenario, out: Option<CsvTrace>) -> Self {
+    /// A trace of scenario `sc` written to `out` (None: kept in memory only, for tests). The
+    /// rows kept for the analyses get their room now, exactly (a vector that doubles as it
+    /// grows would hold up to twice that), or the run is refused with the size it needs.
+    pub fn new(sc: &Scenario, out: Option<CsvTrace>) -> Result<Self> {
         let keep = Keep::new(sc);
-        Self {
+        let n = sc.samples();
+        let rows = if keep.spacing == 1 {
+            n
+        } else {
+            n.div_ceil(keep.spacing) + WINDOW_ROWS
+        };
+        let mut kept = Vec::new();
+        kept.try_reserve_exact(rows as usize).map_err(|_| {
+            anyhow::anyhow!(
+                "cannot allocate the trace's analysis rows: {rows} rows of {} bytes",
+                std::mem::size_of::<TraceRow>()
+            )
+        })?;
+        Ok(Self {
             ts: sc.rates.ts(),
             n: sc.samples(),
             lag: ((LAG_S * sc.rates.sample_hz).ceil() as u64).clamp(1, WINDOW / 4),
@@ -196,7 +211,7 @@ impl TraceStream {
             wref: Default::default(),
             theta_ref: None,
             out,
-            kept: Vec::new(),
+            kept,
             gaps: Vec::new(),
             stats: TraceStats {
                 rows: 0,
@@ -210,7 +225,7 @@ impl TraceStream {
             rebuilt: 0,
             late: 0,
             rejected: 0,
-        }
+        })
     }
 
     fn slot(k: u64) -> usize {
@@ -473,7 +488,7 @@ mod tests {
         // 2^21 samples (3.5 min at 10 kHz): above FULL_ROWS, so one row in
         // ceil(2^21 / 200 000) = 11 is kept between the windows.
         let n = 1 << 21;
-        let mut t = TraceStream::new(&scenario(n), None);
+        let mut t = TraceStream::new(&scenario(n), None).unwrap();
         let disturbed = 1_500_000;
         feed(&mut t, 0..n, &[disturbed]);
         let t = t.finish().unwrap();
@@ -503,7 +518,7 @@ mod tests {
     #[test]
     fn a_run_disturbed_throughout_keeps_no_more_window_rows_than_the_budget() {
         let n = 1 << 21;
-        let mut t = TraceStream::new(&scenario(n), None);
+        let mut t = TraceStream::new(&scenario(n), None).unwrap();
         // The safe state every 0.5 s: windows would cover every row.
         let marks: Vec<u64> = (0..n).step_by(5_000).collect();
         feed(&mut t, 0..n, &marks);
@@ -523,7 +538,7 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("trace.csv");
         let n = 5_000;
-        let mut t = TraceStream::new(&scenario(n), Some(CsvTrace::create(&path).unwrap()));
+        let mut t = TraceStream::new(&scenario(n), Some(CsvTrace::create(&path).unwrap())).unwrap();
         feed(&mut t, 0..n, &[]);
         let t = t.finish().unwrap();
         assert_eq!(t.stats.spacing, 1);
@@ -537,7 +552,7 @@ mod tests {
     #[test]
     fn messages_too_late_or_beyond_the_run_are_counted_apart_and_not_used() {
         let n = 10_000;
-        let mut t = TraceStream::new(&scenario(n), None);
+        let mut t = TraceStream::new(&scenario(n), None).unwrap();
         feed(&mut t, 0..5_000, &[]);
         // The lag is 0.2 s = 2 000 samples: sample 2 999 has left, 3 000 has not.
         assert!(t.complete(2_999));
@@ -555,7 +570,7 @@ mod tests {
     #[test]
     fn a_sample_pushed_out_of_the_window_before_its_command_came_is_listed() {
         let n = 3 * WINDOW;
-        let mut t = TraceStream::new(&scenario(n), None);
+        let mut t = TraceStream::new(&scenario(n), None).unwrap();
         // Sample 0's command never comes; sample WINDOW needs its slot: 0 leaves without.
         t.meas(truth(0, 0), Vec::new).unwrap();
         t.meas(truth(WINDOW, 0), Vec::new).unwrap();
