@@ -705,13 +705,13 @@ impl NlLoopModel {
             .lifted_matrix(m, g)
             .complex_eigenvalues()
             .iter()
-            .filter(|z| z.norm() > 1e-9)
+            .filter(|z| crate::math::cnorm(**z) > 1e-9)
             .map(|z| {
-                let l = z.ln() / tw;
+                let l = crate::math::cln(*z) / tw;
                 (l.re, l.im)
             })
             .collect();
-        v.sort_by(|p, q| p.0.hypot(p.1).total_cmp(&q.0.hypot(q.1)));
+        v.sort_by(|p, q| libm::hypot(p.0, p.1).total_cmp(&libm::hypot(q.0, q.1)));
         v
     }
 }
@@ -753,9 +753,10 @@ pub fn place_on_sampled_loop_at(
 ) -> Option<NlGains> {
     use nalgebra::{Complex, DMatrix, DVector};
     let tw = model.ts * f64::from(model.n.max(1));
-    let pair = |w: f64| (Complex::new(-zeta * w, w * (1.0 - zeta * zeta).sqrt()) * tw).exp();
+    let pair =
+        |w: f64| crate::math::cexp(Complex::new(-zeta * w, w * (1.0 - zeta * zeta).sqrt()) * tw);
     let t0 = pair(w_0);
-    let re = |w: f64| Complex::new((-w * tw).exp(), 0.0);
+    let re = |w: f64| Complex::new(libm::exp(-w * tw), 0.0);
     let (t1, t2) = match extra {
         Extra::Pair(w) => (pair(w), None),
         Extra::Reals(a, b) => (re(a), Some(re(b))),
@@ -823,7 +824,7 @@ pub fn place_on_sampled_loop_at(
     // Converged when every target is an eigenvalue.
     let g = with(&p);
     let eig = model.lifted_matrix(m, &g).complex_eigenvalues();
-    let hit = |t: Complex<f64>| eig.iter().any(|z| (z - t).norm() < 1e-6);
+    let hit = |t: Complex<f64>| eig.iter().any(|z| crate::math::cnorm(z - t) < 1e-6);
     let hit2 = t2.is_none_or(hit);
     (hit(t0) && hit(t1) && hit2 && p.iter().all(|v| v.is_finite())).then_some(g)
 }
@@ -955,8 +956,9 @@ pub fn design_nonlinear(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel) -> 
             .0
     };
     // A second-order pair alone reaches the set-point at (π − acos ζ)/(ω√(1 − ζ²)).
-    let w_nominal =
-        (std::f64::consts::PI - spec.zeta.acos()) / (1.0 - spec.zeta * spec.zeta).sqrt() / target;
+    let w_nominal = (std::f64::consts::PI - libm::acos(spec.zeta))
+        / (1.0 - spec.zeta * spec.zeta).sqrt()
+        / target;
     let (mut lo, mut hi) = (0.2 * w_nominal, spec.omega_i_rad_s);
     let mut warning = None;
     let r_hi = rise(hi);
@@ -1086,7 +1088,7 @@ fn design_nonlinear_sampled(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel)
     let poles = model
         .sampled_poles(m, &g)
         .into_iter()
-        .filter(|p| p.0.hypot(p.1) > 1e-3)
+        .filter(|p| libm::hypot(p.0, p.1) > 1e-3)
         .collect();
     NlDesign {
         sampled: Some(NlSampledPlacement { poles, searched }),
@@ -1360,7 +1362,7 @@ mod tests {
         // Closed forms printed by `drivelab design`.
         assert!((g.k1 - w0 * w0).abs() < 1e-9 * w0 * w0);
         assert!((g.r11 - 2.0 * zeta * w0 * (w0 + wi) / wi).abs() < 1e-9 * g.r11);
-        assert!((g.r12 - (w0 / wi).powi(2)).abs() < 1e-12);
+        assert!((g.r12 - libm::pow(w0 / wi, 2.0)).abs() < 1e-12);
         assert!((g.d12 - 2.0 * zeta * w0 / (wi * wi)).abs() < 1e-15);
         assert_eq!(
             (g.r2, g.k2, g.r3, g.k3),
@@ -1436,7 +1438,7 @@ mod tests {
             n: 10,
             tau_f_s: 1e-4,
         };
-        let zeta_of = |p: &(f64, f64)| -p.0 / p.0.hypot(p.1);
+        let zeta_of = |p: &(f64, f64)| -p.0 / libm::hypot(p.0, p.1);
         for m in motors() {
             let spec = |placement| NlSpec {
                 rise_time_s: 8e-3,
@@ -1493,7 +1495,7 @@ mod tests {
                     omega_e: 250.0,
                 });
                 assert!(u.u_d.is_finite() && u.u_q.is_finite() && u.w2.is_finite());
-                assert!(u.u_d.hypot(u.u_q) <= 180.0 + 1e-9);
+                assert!(libm::hypot(u.u_d, u.u_q) <= 180.0 + 1e-9);
             }
             assert_eq!(cl.near_singular_samples, 10);
             assert_eq!(cl.clamped_samples, if i_d == 0.6 * sing { 0 } else { 10 });

@@ -57,8 +57,8 @@ fn pulse_blocking_lets_the_current_decay_while_zero_vector_short_circuits() {
         zv.sample(k, None);
         zv.advance();
     }
-    let i_pb = (pb.x.i_d.powi(2) + pb.x.i_q.powi(2)).sqrt();
-    let i_zv = (zv.x.i_d.powi(2) + zv.x.i_q.powi(2)).sqrt();
+    let i_pb = (libm::pow(pb.x.i_d, 2.0) + libm::pow(pb.x.i_q, 2.0)).sqrt();
+    let i_zv = (libm::pow(zv.x.i_d, 2.0) + libm::pow(zv.x.i_q, 2.0)).sqrt();
     assert!(i_pb < 1e-6, "pulse blocking left {i_pb} A");
     assert!(i_zv > 0.5, "active short circuit carries {i_zv} A");
 }
