@@ -19,6 +19,7 @@ pub mod futex;
 pub mod host;
 pub mod messages;
 pub mod rt;
+pub mod runner;
 pub mod service;
 pub mod stage;
 pub mod stages;
