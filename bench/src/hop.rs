@@ -13,7 +13,7 @@ use drivelab_runtime::futex::WakeSegment;
 use drivelab_runtime::rt::{now_ns, sleep_until_ns};
 use drivelab_runtime::timing::{LatencyHist, MissCounter};
 use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 /// Wake word of the samples.
@@ -41,7 +41,8 @@ pub fn run(
     let _ = std::fs::remove_file(&out);
     let seg = WakeSegment::open(bus)?;
     let result = (|| {
-        let mut cmd = Command::new(exe);
+        // Through DRIVELAB_RUNNER when set (an aarch64 build under qemu-user).
+        let mut cmd = drivelab_runtime::runner::env_command(exe).map_err(|e| anyhow!(e))?;
         cmd.args(["bench-node", "hop", "--bus", bus, "--samples"])
             .arg(n.to_string())
             .arg("--out")

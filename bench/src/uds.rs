@@ -41,7 +41,7 @@ use drivelab_runtime::timing::{LatencyHist, MissCounter};
 use drivelab_runtime::trace::TraceRow;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, ExitStatus, Stdio};
+use std::process::{Child, ExitStatus, Stdio};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
@@ -727,7 +727,8 @@ pub fn run_uds_chain(spec: &ChainSpec, exe: &Path, workdir: &Path) -> Result<Var
         let log = workdir.join(format!("uds-{}.log", role.name()));
         let f = std::fs::File::create(&log)
             .with_context(|| format!("cannot create {}", log.display()))?;
-        let mut cmd = Command::new(exe);
+        // Through DRIVELAB_RUNNER when set (an aarch64 build under qemu-user).
+        let mut cmd = drivelab_runtime::runner::env_command(exe).map_err(|e| anyhow!(e))?;
         cmd.args(["bench-node", "uds", "--role", role.name(), "--dir"])
             .arg(&sock.path)
             .arg("--scenario")
@@ -856,6 +857,7 @@ mod tests {
     use super::*;
     use crate::testutil::kyslan;
     use drivelab_runtime::drive::InProcessDrive;
+    use std::process::Command;
 
     #[test]
     fn unknown_role_is_a_one_line_error() {

@@ -316,6 +316,7 @@ fn run_case(c: &CampaignFile, case: &Case, a: &CampaignArgs, out: &Path) -> Case
             fault_seed: case.seed,
             topology: c.topology.clone(),
             expect: c.expect.clone(),
+            runner: None,
         };
         Ok(launcher::run(&o)?.summary)
     })();

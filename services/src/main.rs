@@ -81,6 +81,12 @@ enum Cmd {
         /// 'metrics.rise_time_ms in 7.2..8.8', 'deadline_misses_per_million <= 5000'.
         #[arg(long = "expect", value_name = "EXPR")]
         expect: Vec<String>,
+        /// Put CMD in front of every process the launcher starts, as cargo's runner (split
+        /// at whitespace; it must exec the program it is given). E.g. 'qemu-aarch64 -L
+        /// /usr/aarch64-linux-gnu' runs an aarch64 build's stage hosts on x86_64. Default:
+        /// the DRIVELAB_RUNNER environment variable.
+        #[arg(long, value_name = "CMD")]
+        runner: Option<String>,
     },
     /// Run a fault campaign: every scenario × fault set × seed of FILE.toml, each checked
     /// against the campaign's expectations and the scenarios' [[expect]] tables. Writes
@@ -380,7 +386,12 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             fault_seed,
             topology,
             expect,
+            runner,
         } => {
+            let runner = runner
+                .map(|r| drivelab_runtime::runner::Runner::parse(&r))
+                .transpose()
+                .map_err(|e| anyhow::anyhow!("--runner: {e}"))?;
             let faults = faults
                 .iter()
                 .map(|f| drivelab_services::faults::parse(f))
@@ -400,6 +411,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 fault_seed,
                 topology,
                 expect,
+                runner,
             };
             let r = launcher::run(&o)?;
             let failed = drivelab_services::expect::failed(&r.summary);

@@ -9,16 +9,25 @@
 //! confirmation.
 
 use anyhow::{anyhow, bail, Context, Result};
+#[cfg(feature = "tui")]
 use drivelab_runtime::config::SERVICES;
 use drivelab_runtime::telemetry::*;
 use iceoryx2::prelude::*;
+#[cfg(feature = "tui")]
 use ratatui::crossterm::event::{self, Event, KeyCode, KeyEventKind, KeyModifiers};
+#[cfg(feature = "tui")]
 use ratatui::layout::{Constraint, Layout, Rect};
+#[cfg(feature = "tui")]
 use ratatui::style::{Color, Modifier, Style};
+#[cfg(feature = "tui")]
 use ratatui::symbols::Marker;
+#[cfg(feature = "tui")]
 use ratatui::text::{Line, Span};
+#[cfg(feature = "tui")]
 use ratatui::widgets::{Axis, Block, Cell, Chart, Dataset, GraphType, Paragraph, Row, Table};
+#[cfg(feature = "tui")]
 use ratatui::Frame;
+#[cfg(feature = "tui")]
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
@@ -135,9 +144,11 @@ pub fn request_fault(bus: &str, kind: u32, stage: &str, stop_ms: u32) -> Result<
     bail!("the supervisor of bus '{bus}' did not answer within {answer_within:?}")
 }
 
+#[cfg(feature = "tui")]
 /// One line of a chart: label, colour, (t, value) points.
 type Series<'a> = (&'a str, Color, Vec<(f64, f64)>);
 
+#[cfg(feature = "tui")]
 /// What the screen shows.
 struct Ui {
     bus: String,
@@ -150,11 +161,14 @@ struct Ui {
     stop_ms: u32,
 }
 
+#[cfg(feature = "tui")]
 const LOG_KEEP: usize = 200;
 
 /// What a stage's figures show before its first status.
+#[cfg(feature = "tui")]
 const NO_STATUS: &str = "–";
 
+#[cfg(feature = "tui")]
 impl Ui {
     fn new(o: &MonitorOptions) -> Self {
         Self {
@@ -604,6 +618,7 @@ impl Ui {
     }
 }
 
+#[cfg(feature = "tui")]
 /// Moves this process off the drive's real-time cores (when another core is left) and
 /// lowers its priority, so that drawing the screen competes with nothing the drive needs.
 /// Returns a note for the footer.
@@ -633,6 +648,16 @@ fn keep_off(rt_cores: u64) -> String {
     }
 }
 
+/// Without the terminal UI (the cross build): says so in one line.
+#[cfg(not(feature = "tui"))]
+pub fn run(_: &MonitorOptions) -> Result<()> {
+    bail!(
+        "this drivelab was built without the monitor's terminal UI (cargo feature `tui`, off \
+         in the cross build); rebuild with it: scripts/cross.sh TARGET --features tui"
+    )
+}
+
+#[cfg(feature = "tui")]
 /// Runs `drivelab monitor`.
 pub fn run(o: &MonitorOptions) -> Result<()> {
     if o.stop_ms == 0 || o.stop_ms > 60_000 {
@@ -653,6 +678,7 @@ pub fn run(o: &MonitorOptions) -> Result<()> {
     result
 }
 
+#[cfg(feature = "tui")]
 fn ui_loop(
     terminal: &mut ratatui::DefaultTerminal,
     ui: &mut Ui,
@@ -690,6 +716,7 @@ fn ui_loop(
     }
 }
 
+#[cfg(feature = "tui")]
 fn print_once(ui: &mut Ui, a: Attached, w: u16, h: u16) -> Result<()> {
     use ratatui::backend::TestBackend;
     let t = Instant::now();

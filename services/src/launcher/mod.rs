@@ -27,10 +27,10 @@ use drivelab_tools::metrics::speed_metrics;
 use recorder::{run_recorder, Progress};
 use serde::Serialize;
 use serde_json::json;
-use spawn::{process_binary, spawn_service, terminate, ChildProc, Spawn};
+use spawn::{process_binary, runner_of, spawn_service, terminate, ChildProc, Spawn};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::Stdio;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc;
 use std::sync::Arc;
@@ -81,6 +81,9 @@ pub struct RunOptions {
     pub topology: Option<String>,
     /// Expectations from the command line (`--expect`), checked after the scenario's own.
     pub expect: Vec<String>,
+    /// A command put in front of every process the launcher starts (`--runner`); None: the
+    /// `DRIVELAB_RUNNER` variable, if set (see `drivelab_runtime::runner`).
+    pub runner: Option<drivelab_runtime::runner::Runner>,
 }
 
 /// What the supervisor does when a service dies.
@@ -431,6 +434,7 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
     let mut described: BTreeMap<String, Vec<StageInfo>> = BTreeMap::new();
     let scr: &Scenario = sc;
     let sc_text = toml::to_string(scr)?;
+    let runner = runner_of(o)?;
     let resolved = drivelab_runtime::topology::resolve(&procs, &mut |p, stage| {
         if let Some(i) = drivelab_runtime::topology::builtin_info(scr, stage) {
             return Ok(i);
@@ -442,7 +446,8 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
         if !described.contains_key(&exe) {
             described.insert(
                 exe.clone(),
-                describe(&exe, &sc_text).map_err(|e| format!("process '{}': {e:#}", p.name))?,
+                describe(&exe, &sc_text, runner.as_ref())
+                    .map_err(|e| format!("process '{}': {e:#}", p.name))?,
             );
         }
         described[&exe]
@@ -479,7 +484,11 @@ fn absolute_execs(
 }
 
 /// Asks a user's stage executable which stages it hosts.
-fn describe(exe: &str, sc_text: &str) -> Result<Vec<StageInfo>> {
+fn describe(
+    exe: &str,
+    sc_text: &str,
+    runner: Option<&drivelab_runtime::runner::Runner>,
+) -> Result<Vec<StageInfo>> {
     if !Path::new(exe).is_file() {
         bail!("executable {exe} not found (build it first: cargo build --release --workspace)");
     }
@@ -487,7 +496,7 @@ fn describe(exe: &str, sc_text: &str) -> Result<Vec<StageInfo>> {
     std::fs::create_dir_all(&dir)?;
     let f = dir.join("scenario.toml");
     std::fs::write(&f, sc_text)?;
-    let out = Command::new(exe)
+    let out = drivelab_runtime::runner::command(runner, exe)
         .arg("--describe")
         .arg("--scenario")
         .arg(&f)
@@ -661,7 +670,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             summary["budget"] = serde_json::to_value(&b)?;
         }
     }
-    if !o.no_plots && !curves.is_empty() {
+    // A build without figures (the cross build) leaves them to `drivelab plot RUNDIR`.
+    let plots = !o.no_plots && drivelab_tools::plot::AVAILABLE;
+    if plots && !curves.is_empty() {
         let budget = Some((
             1e6 / sc.rates.sample_hz,
             format!("T_s = {:.0} µs", 1e6 / sc.rates.sample_hz),
@@ -674,7 +685,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             &out.join("latency"),
         )?;
     }
-    if !o.no_plots && !rows.is_empty() {
+    if plots && !rows.is_empty() {
         let opts = drivelab_tools::plot::TraceFigureOptions {
             current_limit_a: Some(sc.i_q_max()),
             voltage_limit_v: Some(sc.u_max()),

@@ -4,6 +4,7 @@
 use super::RunOptions;
 use crate::common::BusClock;
 use anyhow::{anyhow, bail, Context, Result};
+use drivelab_runtime::runner::Runner;
 use drivelab_runtime::topology::ProcessSpec;
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
@@ -57,6 +58,14 @@ fn service_binary(name: &str) -> Result<PathBuf> {
     Ok(p)
 }
 
+/// The runner of a run's processes: `--runner`, else the `DRIVELAB_RUNNER` variable.
+pub(super) fn runner_of(o: &RunOptions) -> Result<Option<Runner>> {
+    match &o.runner {
+        Some(r) => Ok(Some(r.clone())),
+        None => Runner::from_env().map_err(|e| anyhow!(e)),
+    }
+}
+
 /// What every stage host of one run is started with.
 pub(super) struct Spawn<'a> {
     pub sc_path: &'a Path,
@@ -76,7 +85,8 @@ pub(super) fn spawn_service(
     sp: &Spawn,
     rejoin_from: Option<&Path>,
 ) -> Result<ChildProc> {
-    let mut cmd = Command::new(exe);
+    let runner = runner_of(sp.o)?;
+    let mut cmd = drivelab_runtime::runner::command(runner.as_ref(), exe);
     cmd.arg("--scenario").arg(sp.sc_path);
     cmd.arg("--topology").arg(sp.topo_path);
     cmd.arg("--process").arg(&p.name);
@@ -107,9 +117,14 @@ pub(super) fn spawn_service(
         .stderr(Stdio::inherit());
     die_with_launcher(&mut cmd);
     let name = p.name.clone();
-    let mut child = cmd
-        .spawn()
-        .with_context(|| format!("cannot start process {name} ({})", exe.display()))?;
+    let mut child = cmd.spawn().with_context(|| match &runner {
+        Some(r) => format!(
+            "cannot start process {name} ({} through the runner '{}')",
+            exe.display(),
+            r.display()
+        ),
+        None => format!("cannot start process {name} ({})", exe.display()),
+    })?;
     let stdout = child.stdout.take().expect("piped");
     let stdin = child.stdin.take();
     let (tx, rx) = mpsc::channel();

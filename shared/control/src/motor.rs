@@ -202,7 +202,7 @@ impl LoadModel {
         match *self {
             LoadModel::Active => t,
             LoadModel::Passive { smooth_sign_rad_s } => {
-                t.abs() * (omega_m / smooth_sign_rad_s).tanh()
+                t.abs() * libm::tanh(omega_m / smooth_sign_rad_s)
             }
             LoadModel::Fan { at_rad_s } => t * omega_m * omega_m.abs() / (at_rad_s * at_rad_s),
         }
@@ -353,7 +353,7 @@ mod tests {
             t,
             4,
         );
-        let exact = 1.0 * (1.0 - (-t * m.r_ohm / m.l_d_h).exp());
+        let exact = 1.0 * (1.0 - libm::exp(-t * m.r_ohm / m.l_d_h));
         assert!(
             (x.i_d - exact).abs() < 1e-9 * exact.abs().max(1.0),
             "{} vs {exact}",

@@ -176,8 +176,8 @@ impl DiscreteModel {
                 b1: ts / l,
             },
             Discretisation::Exact => {
-                let ea = (-alpha * ts).exp();
-                let rot = Complex::new(0.0, we * ts).exp();
+                let ea = libm::exp(-alpha * ts);
+                let rot = crate::math::cexp(Complex::new(0.0, we * ts));
                 Self {
                     a11: ea,
                     a12: -j * kappa * (rot - ea) / Complex::new(alpha, we),
@@ -254,12 +254,12 @@ pub fn predicted_angle_error(
         m.r_ohm * i_q + we * (m.l_d_h * i_d + m.psi_pm_wb),
     );
     let model = DiscreteModel::new(m, ts, omega_m, disc);
-    let lambda = (-ts / pole_tau_s).exp();
-    let rot = Complex::new(0.0, phi).exp();
-    let half = Complex::new(0.0, 0.5 * phi).exp();
+    let lambda = libm::exp(-ts / pole_tau_s);
+    let rot = crate::math::cexp(Complex::new(0.0, phi));
+    let half = crate::math::cexp(Complex::new(0.0, 0.5 * phi));
     let nu = i * rot - i * model.a11 - u * half * model.b1;
     let rho = model.gain(lambda) * nu / (rot - lambda);
-    rho.arg()
+    crate::math::carg(rho)
 }
 
 /// Settings of the sensorless observer.
@@ -302,11 +302,11 @@ pub struct SensorlessObserver {
 impl SensorlessObserver {
     /// A new observer at θ̂_e = `initial_angle_rad`, ω̂ = 0.
     pub fn new(m: &MotorParams, s: SensorlessSettings) -> Self {
-        let (sin, cos) = s.initial_angle_rad.sin_cos();
+        let (sin, cos) = libm::sincos(s.initial_angle_rad);
         Self {
             m: *m,
             s,
-            lambda: (-s.ts / s.pole_tau_s).exp(),
+            lambda: libm::exp(-s.ts / s.pole_tau_s),
             omega_min: OMEGA_MIN_FRACTION * m.omega_rated_rad_s,
             w: Complex::new(cos, sin),
             y_prev: Complex::new(0.0, 0.0),
@@ -361,10 +361,12 @@ impl SensorlessObserver {
         self.y_prev = y;
         self.u_prev = Complex::new(u_ab_applied[0], u_ab_applied[1]);
         // Eq. (17).
-        let theta = wrap_2pi(self.w.im.atan2(self.w.re));
-        let dtheta = if emf.norm() > self.emf_gate && self.emf_prev.norm() > self.emf_gate {
+        let theta = wrap_2pi(libm::atan2(self.w.im, self.w.re));
+        let dtheta = if crate::math::cnorm(emf) > self.emf_gate
+            && crate::math::cnorm(self.emf_prev) > self.emf_gate
+        {
             // Rotation of the measured back-EMF vector over one sample.
-            (emf * self.emf_prev.conj()).arg()
+            crate::math::carg(emf * self.emf_prev.conj())
         } else {
             // Too little back-EMF to trust its direction: the estimate's own rotation.
             (theta - self.theta_prev + PI).rem_euclid(TAU) - PI
@@ -387,7 +389,7 @@ impl SensorlessObserver {
     /// Bumpless start at a known electrical angle and mechanical speed; the next step starts
     /// a fresh prediction.
     pub fn preset(&mut self, theta_e: f64, omega_m: f64) {
-        let (s, c) = theta_e.sin_cos();
+        let (s, c) = libm::sincos(theta_e);
         self.w = Complex::new(c, s);
         self.theta_prev = wrap_2pi(theta_e);
         self.omega_hat = omega_m;
@@ -465,6 +467,8 @@ pub fn render_design(d: &ObserverDesign, m: &MotorParams, ts: f64) -> String {
 }
 
 #[cfg(test)]
+// The tests' own reference values come from std's maths: they never reach a trace.
+#[allow(clippy::disallowed_methods)]
 mod tests {
     use super::*;
     use crate::motor::{Mechanics, MotorInput, MotorState, Rk4};
@@ -543,13 +547,16 @@ mod tests {
                 a[1][0] * x[0] + a[1][1] * x[1],
             ]
         };
-        let mut xb = [1f64.sin(), 1f64.cos()];
+        let mut xb = [libm::sin(1f64), libm::cos(1f64)];
         let mut z = [0.0; 2];
         let mut first = true;
         for k in 0..200 {
             let th = w * 4.0 * k as f64 * TS;
-            let y = [0.3 * th.cos() - 1.0 * th.sin(), 0.3 * th.sin() + th.cos()];
-            let u = [40.0 * (th + 0.2).cos(), 40.0 * (th + 0.2).sin()];
+            let y = [
+                0.3 * libm::cos(th) - 1.0 * libm::sin(th),
+                0.3 * libm::sin(th) + libm::cos(th),
+            ];
+            let u = [40.0 * libm::cos(th + 0.2), 40.0 * libm::sin(th + 0.2)];
             if first {
                 let v = mv(&mx.v2, y);
                 z = [xb[0] - v[0], xb[1] - v[1]];

@@ -38,7 +38,7 @@ pub fn inverse_clarke(x: AlphaBeta) -> (f64, f64, f64) {
 
 /// Park: αβ → dq at electrical angle θ_e.
 pub fn park(x: AlphaBeta, theta_e: f64) -> Dq {
-    let (s, c) = theta_e.sin_cos();
+    let (s, c) = libm::sincos(theta_e);
     Dq {
         d: c * x.alpha + s * x.beta,
         q: -s * x.alpha + c * x.beta,
@@ -47,7 +47,7 @@ pub fn park(x: AlphaBeta, theta_e: f64) -> Dq {
 
 /// Inverse Park: dq → αβ at electrical angle θ_e.
 pub fn inverse_park(x: Dq, theta_e: f64) -> AlphaBeta {
-    let (s, c) = theta_e.sin_cos();
+    let (s, c) = libm::sincos(theta_e);
     AlphaBeta {
         alpha: c * x.d - s * x.q,
         beta: s * x.d + c * x.q,
@@ -63,12 +63,12 @@ mod tests {
         // i_a = I cos(θ + φ) … a balanced set at angle θ gives d = I cos φ, q = I sin φ.
         let (amp, phi) = (2.0f64, 0.4f64);
         for th in [0.0, 0.7, 2.0, 4.5, -1.0] {
-            let a = amp * (th + phi).cos();
-            let b = amp * (th + phi - 2.0 * std::f64::consts::PI / 3.0).cos();
-            let c = amp * (th + phi + 2.0 * std::f64::consts::PI / 3.0).cos();
+            let a = amp * libm::cos(th + phi);
+            let b = amp * libm::cos(th + phi - 2.0 * std::f64::consts::PI / 3.0);
+            let c = amp * libm::cos(th + phi + 2.0 * std::f64::consts::PI / 3.0);
             let dq = park(clarke(a, b, c), th);
-            assert!((dq.d - amp * phi.cos()).abs() < 1e-12);
-            assert!((dq.q - amp * phi.sin()).abs() < 1e-12);
+            assert!((dq.d - amp * libm::cos(phi)).abs() < 1e-12);
+            assert!((dq.q - amp * libm::sin(phi)).abs() < 1e-12);
         }
     }
 

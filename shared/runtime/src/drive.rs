@@ -582,7 +582,7 @@ pub fn limit_vector(a: f64, b: f64, max: f64) -> (f64, f64) {
     let mag = if sq.is_finite() {
         sq.sqrt()
     } else {
-        a.hypot(b)
+        libm::hypot(a, b)
     };
     if mag > max {
         (a * (max / mag), b * (max / mag))

@@ -4,6 +4,11 @@
 //!
 //! Control maths are pure step functions (`fn step(&mut self, input) -> output`), unit-tested
 //! without a bus; the services in `services/` only set up, loop and hand messages over.
+//!
+//! As in `drivelab_control`, elementary functions come from the pure-Rust `libm` crate
+//! (the workspace's `clippy.toml` forbids std's `f64::sin`, `exp`, ... here): the trace is
+//! the same bit for bit on every architecture.
+#![warn(clippy::disallowed_methods)]
 
 #[cfg(test)]
 mod alloc_count;
@@ -14,6 +19,7 @@ pub mod futex;
 pub mod host;
 pub mod messages;
 pub mod rt;
+pub mod runner;
 pub mod service;
 pub mod stage;
 pub mod stages;

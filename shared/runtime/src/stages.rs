@@ -998,7 +998,7 @@ mod tests {
         let mut out = Outbox::default();
         fresh.step(k, &ib, &mut out);
         let took_over = cmd_of(&out);
-        let norm = |u: [f64; 2]| u[0].hypot(u[1]);
+        let norm = |u: [f64; 2]| libm::hypot(u[0], u[1]);
         let bump = norm([
             took_over.u_dq[0] - running.u_dq[0],
             took_over.u_dq[1] - running.u_dq[1],

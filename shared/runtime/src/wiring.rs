@@ -190,7 +190,7 @@ pub mod observer_sensorless {
                 mode: o.mode,
                 discretisation: o.discretisation,
                 pole_tau_s: o.pole_tau_s,
-                lambda: (-ts / o.pole_tau_s).exp(),
+                lambda: libm::exp(-ts / o.pole_tau_s),
                 omega_min_rad_s: OMEGA_MIN_FRACTION * m.omega_rated_rad_s,
                 initial_angle_error_deg: o.initial_angle_error_deg,
                 zeta_at_rated_speed: truncation_error(&m, ts, m.omega_rated_rad_s),

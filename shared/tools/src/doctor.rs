@@ -9,6 +9,10 @@
 //! All file reads go through [`read_trimmed`] and a root directory (`/` for the real
 //! machine, see [`run_checks_in`]), so a missing or unreadable file gives
 //! [`Status::Unknown`], never a panic, and the checks can be tested on a fake tree.
+//!
+//! Nothing assumes an x86 machine: the checks read what ARM boards have and x86 VMs often do
+//! not (cpufreq policies and their frequency limits, cpuidle states per CPU, the
+//! architected timer `arch_sys_counter`), and a file that is not there is reported as such.
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -88,6 +92,7 @@ pub fn run_checks_in(root: &Path) -> Vec<Check> {
         online_cpus_check(&online),
         isolated_cpus_check(&fs, &online),
         governor_check(&fs),
+        cpufreq_limits_check(&fs),
         smt_check(&fs),
         irqbalance_check(&fs),
         sched_fifo_check(&caps),
@@ -100,35 +105,45 @@ pub fn run_checks_in(root: &Path) -> Vec<Check> {
     ]
 }
 
-/// The idle driver and its states (exit latency, µs) on CPU 0: an idle CPU that must leave a
+/// The idle driver and the states (exit latency, µs) of every CPU, grouped by CPUs with the
+/// same states (the clusters of an ARM board may differ): an idle CPU that must leave a
 /// state with a long exit latency wakes late.
 fn cpuidle_check(fs: &Fs) -> Check {
     const NAME: &str = "cpuidle";
     let driver = fs.read("/sys/devices/system/cpu/cpuidle/current_driver");
-    let mut states = Vec::new();
     let mut worst = 0u64;
-    for st in fs
-        .list("/sys/devices/system/cpu/cpu0/cpuidle")
-        .unwrap_or_default()
-    {
-        let dir = format!("/sys/devices/system/cpu/cpu0/cpuidle/{st}");
-        let (Some(name), Some(lat)) = (
-            fs.read(&format!("{dir}/name")),
-            fs.read(&format!("{dir}/latency")),
-        ) else {
-            continue;
-        };
-        let lat: u64 = lat.parse().unwrap_or(0);
-        let disabled = fs.read(&format!("{dir}/disable")).is_some_and(|d| d == "1");
-        if !disabled {
-            worst = worst.max(lat);
+    // (states of a CPU, the CPUs that have them), in CPU order.
+    let mut groups: Vec<(Vec<String>, Vec<usize>)> = Vec::new();
+    for cpu in fs.cpu_dirs().unwrap_or_default() {
+        let base = format!("/sys/devices/system/cpu/cpu{cpu}/cpuidle");
+        let mut states = Vec::new();
+        for st in fs.list(&base).unwrap_or_default() {
+            let dir = format!("{base}/{st}");
+            let (Some(name), Some(lat)) = (
+                fs.read(&format!("{dir}/name")),
+                fs.read(&format!("{dir}/latency")),
+            ) else {
+                continue;
+            };
+            let lat: u64 = lat.parse().unwrap_or(0);
+            let disabled = fs.read(&format!("{dir}/disable")).is_some_and(|d| d == "1");
+            if !disabled {
+                worst = worst.max(lat);
+            }
+            states.push(format!(
+                "{name} {lat} µs{}",
+                if disabled { " (disabled)" } else { "" }
+            ));
         }
-        states.push(format!(
-            "{name} {lat} µs{}",
-            if disabled { " (disabled)" } else { "" }
-        ));
+        if states.is_empty() {
+            continue;
+        }
+        match groups.iter_mut().find(|(s, _)| *s == states) {
+            Some((_, cpus)) => cpus.push(cpu),
+            None => groups.push((states, vec![cpu])),
+        }
     }
-    let value = match (&driver, states.is_empty()) {
+    let value = match (&driver, groups.is_empty()) {
         (None, true) => {
             return Check::new(
                 NAME,
@@ -138,12 +153,18 @@ fn cpuidle_check(fs: &Fs) -> Check {
             )
         }
         (d, _) => format!(
-            "driver {}; states on cpu0: {}",
+            "driver {}; {}",
             d.as_deref().unwrap_or("unknown"),
-            if states.is_empty() {
-                "none".to_string()
+            if groups.is_empty() {
+                "no states".to_string()
             } else {
-                states.join(", ")
+                groups
+                    .iter()
+                    .map(|(s, cpus)| {
+                        format!("states on cpu{}: {}", fmt_cpu_list(cpus), s.join(", "))
+                    })
+                    .collect::<Vec<_>>()
+                    .join("; ")
             }
         ),
     };
@@ -391,6 +412,8 @@ pub(crate) fn fmt_cpu_list(cpus: &[usize]) -> String {
 struct Uname {
     release: String,
     version: String,
+    /// The architecture, e.g. `x86_64`, `aarch64`, `armv7l`.
+    machine: String,
 }
 
 fn uname() -> Option<Uname> {
@@ -412,6 +435,7 @@ fn uname() -> Option<Uname> {
     Some(Uname {
         release: field(&u.release),
         version: field(&u.version),
+        machine: field(&u.machine),
     })
 }
 
@@ -464,7 +488,7 @@ fn kernel_check(uts: Option<&Uname>) -> Check {
     match uts {
         Some(u) => Check::new(
             "kernel",
-            format!("{} {}", u.release, u.version),
+            format!("{} {} ({})", u.release, u.version, u.machine),
             Status::Ok,
             None,
         ),
@@ -764,6 +788,76 @@ fn governor_check(fs: &Fs) -> Check {
     }
 }
 
+/// The frequency limits of each cpufreq policy (a cluster of CPUs that share a clock, e.g.
+/// the little and the big cores of an ARM board): a loop's execution time follows the
+/// clock, so a frequency that may move between `scaling_min_freq` and `scaling_max_freq`
+/// moves it, and a `scaling_max_freq` below `cpuinfo_max_freq` caps it.
+fn cpufreq_limits_check(fs: &Fs) -> Check {
+    const NAME: &str = "cpufreq limits";
+    const DIR: &str = "/sys/devices/system/cpu/cpufreq";
+    let policies: Vec<String> = fs
+        .list(DIR)
+        .unwrap_or_default()
+        .into_iter()
+        .filter(|p| p.starts_with("policy"))
+        .collect();
+    let khz =
+        |p: &str, f: &str| -> Option<u64> { fs.read(&format!("{DIR}/{p}/{f}"))?.parse().ok() };
+    let mhz = |k: u64| format!("{}", k / 1000);
+    let mut parts = Vec::new();
+    let mut moves = false;
+    let mut capped = false;
+    for p in &policies {
+        let cpus = fs
+            .read(&format!("{DIR}/{p}/affected_cpus"))
+            .and_then(|s| parse_cpu_list(&s.replace(' ', ",")))
+            .map(|c| fmt_cpu_list(&c))
+            .unwrap_or_else(|| "?".into());
+        let (Some(lo), Some(hi)) = (khz(p, "scaling_min_freq"), khz(p, "scaling_max_freq")) else {
+            parts.push(format!("cpu {cpus}: limits not readable"));
+            continue;
+        };
+        let hw = khz(p, "cpuinfo_max_freq");
+        moves |= lo < hi;
+        capped |= hw.is_some_and(|h| hi < h);
+        parts.push(format!(
+            "cpu {cpus}: {}-{} MHz{}",
+            mhz(lo),
+            mhz(hi),
+            hw.map(|h| format!(
+                " of {}-{} MHz",
+                khz(p, "cpuinfo_min_freq").map_or("?".into(), mhz),
+                mhz(h)
+            ))
+            .unwrap_or_default()
+        ));
+    }
+    if parts.is_empty() {
+        return Check::new(
+            NAME,
+            "no cpufreq policy (a VM, or the firmware sets the clock)",
+            Status::Unknown,
+            None,
+        );
+    }
+    let value = parts.join("; ");
+    if !moves && !capped {
+        return Check::new(NAME, format!("{value}: fixed"), Status::Ok, None);
+    }
+    let mut advice = Vec::new();
+    if moves {
+        advice.push(
+            "fix each real-time cluster's clock: write its cpuinfo_max_freq to scaling_min_freq              (or use the performance governor), so execution times do not follow the load",
+        );
+    }
+    if capped {
+        advice.push(
+            "scaling_max_freq is below the hardware's maximum (a thermal or power limit?): the              loops run slower than the CPU can",
+        );
+    }
+    Check::new(NAME, value, Status::Warn, Some(advice.join("; ")))
+}
+
 fn smt_check(fs: &Fs) -> Check {
     const NAME: &str = "smt";
     let control = fs.read("/sys/devices/system/cpu/smt/control");
@@ -782,6 +876,16 @@ fn smt_check(fs: &Fs) -> Check {
         }
     }
     if control.is_none() && active.is_none() && groups.is_empty() {
+        // ARM cores have one thread each; their kernels may have no smt directory at all.
+        let topology_read = fs.cpu_dirs().unwrap_or_default().iter().any(|c| {
+            fs.read(&format!(
+                "/sys/devices/system/cpu/cpu{c}/topology/thread_siblings_list"
+            ))
+            .is_some()
+        });
+        if topology_read {
+            return Check::new(NAME, "no sibling threads (one per core)", Status::Ok, None);
+        }
         return Check::new(
             NAME,
             "unknown (/sys/devices/system/cpu/smt not readable)",
@@ -994,8 +1098,9 @@ fn clocksource_check(fs: &Fs) -> Check {
                 Status::Warn,
                 format!("{s}: slow clock reads (clock_gettime may enter the kernel)"),
                 Some(
-                    "find out why the TSC is not used (dmesg | grep -i tsc); a stable TSC gives \
-                     fast, precise clock_gettime"
+                    "use a clock read without entering the kernel: on x86 find out why the TSC is \
+                     not used (dmesg | grep -i tsc); on ARM the architected timer \
+                     (arch_sys_counter) should be the clocksource"
                         .into(),
                 ),
             ),
@@ -1175,6 +1280,92 @@ mod tests {
         assert_eq!(c.value, "0 µs in force; held by pid 4242 (drivelab)");
         std::fs::remove_file(&dev).unwrap();
         assert_eq!(cpu_latency_request_check(&root.fs()).status, Status::Warn);
+    }
+
+    /// A Raspberry Pi 4 style tree: one cpufreq policy for four Cortex-A72 cores, PSCI idle
+    /// states, the architected timer, no smt directory, CPU 3 isolated; no x86 file at all.
+    #[test]
+    fn an_arm_board_is_read_without_x86_files() {
+        let root = FakeRoot::new();
+        let cpu = "/sys/devices/system/cpu";
+        root.write(&format!("{cpu}/online"), "0-3\n");
+        for c in 0..4 {
+            root.write(
+                &format!("{cpu}/cpu{c}/topology/thread_siblings_list"),
+                &format!("{c}\n"),
+            );
+            root.write(
+                &format!("{cpu}/cpu{c}/cpufreq/scaling_governor"),
+                "ondemand\n",
+            );
+            root.write(&format!("{cpu}/cpu{c}/cpuidle/state0/name"), "WFI\n");
+            root.write(&format!("{cpu}/cpu{c}/cpuidle/state0/latency"), "1\n");
+            if c < 2 {
+                root.write(&format!("{cpu}/cpu{c}/cpuidle/state1/name"), "cpu-sleep\n");
+                root.write(&format!("{cpu}/cpu{c}/cpuidle/state1/latency"), "150\n");
+            }
+        }
+        root.write(&format!("{cpu}/cpuidle/current_driver"), "psci_idle\n");
+        let pol = format!("{cpu}/cpufreq/policy0");
+        root.write(&format!("{pol}/affected_cpus"), "0 1 2 3\n");
+        root.write(&format!("{pol}/scaling_min_freq"), "600000\n");
+        root.write(&format!("{pol}/scaling_max_freq"), "1500000\n");
+        root.write(&format!("{pol}/cpuinfo_min_freq"), "600000\n");
+        root.write(&format!("{pol}/cpuinfo_max_freq"), "1800000\n");
+        root.write(
+            "/sys/devices/system/clocksource/clocksource0/current_clocksource",
+            "arch_sys_counter\n",
+        );
+        root.write(&format!("{cpu}/isolated"), "3\n");
+        root.write(&format!("{cpu}/nohz_full"), "3\n");
+        root.write(
+            "/proc/cmdline",
+            "console=ttyS0 isolcpus=3 nohz_full=3 rcu_nocbs=3\n",
+        );
+        root.write("/proc/sys/kernel/sched_rt_runtime_us", "950000\n");
+        root.write("/proc/sys/kernel/sched_rt_period_us", "1000000\n");
+        let checks = run_checks_in(&root.0);
+
+        let g = find(&checks, "governor");
+        assert_eq!(
+            (g.status, g.value.as_str()),
+            (Status::Warn, "ondemand: cpu 0-3")
+        );
+        let f = find(&checks, "cpufreq limits");
+        assert_eq!(f.status, Status::Warn);
+        assert_eq!(f.value, "cpu 0-3: 600-1500 MHz of 600-1800 MHz");
+        let advice = f.advice.as_deref().unwrap();
+        assert!(advice.contains("scaling_min_freq") && advice.contains("below the hardware"));
+        let i = find(&checks, "cpuidle");
+        assert_eq!(
+            i.value,
+            "driver psci_idle; states on cpu0-1: WFI 1 µs, cpu-sleep 150 µs; states on cpu2-3: WFI 1 µs"
+        );
+        assert_eq!(i.status, Status::Warn);
+        let c = find(&checks, "clocksource");
+        assert_eq!(
+            (c.status, c.value.as_str()),
+            (Status::Ok, "arch_sys_counter")
+        );
+        assert_eq!(find(&checks, "isolated cpus").status, Status::Ok);
+        assert_eq!(find(&checks, "rt throttling").status, Status::Warn);
+        let smt = find(&checks, "smt");
+        assert_eq!(
+            (smt.status, smt.value.as_str()),
+            (Status::Ok, "no sibling threads (one per core)")
+        );
+
+        // A fixed clock at the top is fine.
+        root.write(&format!("{pol}/scaling_min_freq"), "1800000\n");
+        root.write(&format!("{pol}/scaling_max_freq"), "1800000\n");
+        let f = cpufreq_limits_check(&root.fs());
+        assert_eq!(
+            (f.status, f.value.as_str()),
+            (Status::Ok, "cpu 0-3: 1800-1800 MHz of 600-1800 MHz: fixed")
+        );
+        // No cpufreq at all (an x86 VM) is unknown, not an error.
+        let empty = FakeRoot::new();
+        assert_eq!(cpufreq_limits_check(&empty.fs()).status, Status::Unknown);
     }
 
     #[test]

@@ -27,6 +27,9 @@ const FIGURE_SIZE: (u32, u32) = (1200, 700);
 /// Upper bound (approximately) on the number of points drawn per series.
 pub const MAX_POINTS_PER_SERIES: usize = 4000;
 
+/// True: this build draws figures (cargo feature `plot`).
+pub const AVAILABLE: bool = true;
+
 const FONT: &str = "sans-serif";
 const TITLE_FONT_PX: u32 = 28;
 const AXIS_DESC_FONT_PX: u32 = 20;
@@ -60,20 +63,7 @@ const C_SHADE_TEXT: RGBColor = RGBColor(160, 20, 20);
 // Public API
 // ---------------------------------------------------------------------------------------------
 
-/// Options for trace figures.
-#[derive(Debug, Clone, Default)]
-pub struct TraceFigureOptions {
-    /// Only draw samples with t in [t0, t1] (seconds); None = all.
-    pub window_s: Option<(f64, f64)>,
-    /// Current limit to draw as dashed horizontal lines at ±value on the current plot, A.
-    pub current_limit_a: Option<f64>,
-    /// Voltage limit (max |u| available, V) drawn as dashed lines at ± on the voltage plot.
-    pub voltage_limit_v: Option<f64>,
-    /// Time windows to shade (e.g. faults), with a label each: (t_start_s, t_end_s, label).
-    pub shaded_windows: Vec<(f64, f64, String)>,
-    /// Title prefix, e.g. the scenario name.
-    pub title: String,
-}
+pub use crate::plot_options::{PercentileSeries, TraceFigureOptions};
 
 /// Draws the trace figures into `out_dir` (created if missing), each as `.png` and `.svg`:
 ///
@@ -233,10 +223,6 @@ pub fn plot_trace(
     }
     Ok(written)
 }
-
-/// One latency distribution for a percentile chart: (label, points) where each point is
-/// (percentile in [0, 100), value in microseconds).
-pub type PercentileSeries = (String, Vec<(f64, f64)>);
 
 /// HdrHistogram-style percentile plot: x axis is "percentile" on a log scale of 1/(1-q)
 /// (ticks labelled 0%, 90%, 99%, 99.9%, 99.99%, 99.999%), y axis latency in µs (linear, or log

@@ -85,7 +85,7 @@ pub fn limit_operating_point(v_ao: f64, delta_o: f64, v_amax: f64) -> (f64, f64)
 
 /// Eq. (37): τ_12 for a (limited) operating point, s.
 pub fn tau12(v_ao: f64, delta_o: f64, tu_s: f64, v_amax: f64) -> f64 {
-    let g = (v_ao * delta_o.cos()).abs();
+    let g = (v_ao * libm::cos(delta_o)).abs();
     if g >= TAU12_SWITCH_FRAC * v_amax {
         TAU_SAMPLES * tu_s
     } else {
@@ -100,13 +100,13 @@ pub fn pi_gains(r_ohm: f64, l_h: f64, a1: f64, a0: f64, b: f64) -> (f64, f64) {
 
 /// Gains of C_21 (eqs 28–29) at the (limited) phase δ_o: (K_P21 in V/A, K_I21 in V/(A·s)).
 pub fn gains_21(r_ohm: f64, l_h: f64, a1: f64, a0: f64, delta_o: f64) -> (f64, f64) {
-    pi_gains(r_ohm, l_h, a1, a0, delta_o.cos())
+    pi_gains(r_ohm, l_h, a1, a0, libm::cos(delta_o))
 }
 
 /// Gains of C_12 (eqs 30–31) at the (limited) point (V_ao, δ_o): (K_P12 in rad/A,
 /// K_I12 in rad/(A·s)).
 pub fn gains_12(r_ohm: f64, l_h: f64, a1: f64, a0: f64, v_ao: f64, delta_o: f64) -> (f64, f64) {
-    pi_gains(r_ohm, l_h, a1, a0, -v_ao * delta_o.cos())
+    pi_gains(r_ohm, l_h, a1, a0, -v_ao * libm::cos(delta_o))
 }
 
 /// The whole CDM design at one operating point, for printing and checking by hand.
@@ -175,7 +175,7 @@ impl CdmDesign {
         let tau21 = TAU_SAMPLES * tu_s;
         let (a1_21, a0_21) = cdm_second_order(GAMMA1, tau21);
         let (k_p21, k_i21) = gains_21(r_ohm, l_h, a1_21, a0_21, d);
-        let v_cos = (v * d.cos()).abs();
+        let v_cos = (v * libm::cos(d)).abs();
         let t12 = tau12_s.unwrap_or_else(|| tau12(v, d, tu_s, v_amax_v));
         let (a1_12, a0_12) = cdm_second_order(GAMMA1, t12);
         let (k_p12, k_i12) = gains_12(r_ohm, l_h, a1_12, a0_12, v, d);
@@ -339,7 +339,7 @@ impl QLoop {
             let (a1, a0) = cdm_second_order(GAMMA1, tau_samples * tu_s);
             gains_21(r_ohm, l_h, a1, a0, 0.0)
         });
-        let p = (-r_ohm / l_h * tu_s).exp();
+        let p = libm::exp(-r_ohm / l_h * tu_s);
         let g = (1.0 - p) / r_ohm;
         let (mut i, mut x_i, mut u_prev) = (0.0, 0.0, 0.0);
         let n = 200;
@@ -361,6 +361,8 @@ impl QLoop {
 }
 
 #[cfg(test)]
+// The tests' own reference values come from std's maths: they never reach a trace.
+#[allow(clippy::disallowed_methods)]
 mod tests {
     use super::*;
 
@@ -472,7 +474,7 @@ mod tests {
             let d: f64 = f64::to_radians(d_deg);
             let g = CdmDesign::new(R, L, TU, VMAX, v_ao, d, None);
             // τ21 = 1 ms: a1 = 2.5/τ = 2500 1/s, a0 = 2.5/τ² = 2.5e6 1/s².
-            let c = d.cos();
+            let c = libm::cos(d);
             assert!((g.k_p21 - (2500.0 * L - R) / c).abs() < 1e-9);
             assert!((g.k_i21 - 2.5e6 * L / c).abs() < 1e-6);
             // All these points have |V_ao cos δ_o| ≥ 0.01·V_amax = 2.71 V: τ12 = 1 ms too.
@@ -509,11 +511,11 @@ mod tests {
                     assert!(k.is_finite(), "{g:?}");
                 }
                 // Bounded d controller: |K_P12| ≤ 25·L/(V_amax T_u) + R/|g|_min, K_I12 ∝ |g|.
-                let g_min = V_AO_MIN_FRAC * VMAX * DELTA_O_MAX.cos();
+                let g_min = V_AO_MIN_FRAC * VMAX * libm::cos(DELTA_O_MAX);
                 let bound = 25.0 * L / (VMAX * TU) + R / g_min;
                 assert!(g.k_p12.abs() <= bound * 1.0001, "{g:?}");
-                let vc = (g.v_ao_v * g.delta_o_rad.cos()).abs();
-                let ki = 250.0 * L * vc / (VMAX * TU).powi(2);
+                let vc = (g.v_ao_v * libm::cos(g.delta_o_rad)).abs();
+                let ki = 250.0 * L * vc / libm::pow(VMAX * TU, 2.0);
                 assert!((g.k_i12.abs() - ki).abs() <= 1e-9 * ki, "{g:?}");
             }
         }

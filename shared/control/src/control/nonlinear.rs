@@ -730,13 +730,13 @@ impl NlLoopModel {
             .lifted_matrix(m, g)
             .complex_eigenvalues()
             .iter()
-            .filter(|z| z.norm() > 1e-9)
+            .filter(|z| crate::math::cnorm(**z) > 1e-9)
             .map(|z| {
-                let l = z.ln() / tw;
+                let l = crate::math::cln(*z) / tw;
                 (l.re, l.im)
             })
             .collect();
-        v.sort_by(|p, q| p.0.hypot(p.1).total_cmp(&q.0.hypot(q.1)));
+        v.sort_by(|p, q| libm::hypot(p.0, p.1).total_cmp(&libm::hypot(q.0, q.1)));
         v
     }
 }
@@ -744,7 +744,7 @@ impl NlLoopModel {
 /// z = e^{s·N·T_s} of the pair s = −ζω ± jω√(1 − ζ²) (upper half).
 fn pair_z(model: &NlLoopModel, zeta: f64, w: f64) -> nalgebra::Complex<f64> {
     let tw = model.ts * f64::from(model.n.max(1));
-    (nalgebra::Complex::new(-zeta * w, w * (1.0 - zeta * zeta).sqrt()) * tw).exp()
+    crate::math::cexp(nalgebra::Complex::new(-zeta * w, w * (1.0 - zeta * zeta).sqrt()) * tw)
 }
 
 /// K1 and r11 that put a pole pair of the sampled loop at (ζ, ω_0), the other gains of `g`
@@ -779,10 +779,10 @@ pub fn place_dominant_pair(
             .determinant()
     };
     let (mut k1, mut r11) = (0.0, 0.0);
-    let p_start = det(0.0, 0.0).norm();
+    let p_start = crate::math::cnorm(det(0.0, 0.0));
     for _ in 0..8 {
         let p0 = det(k1, r11);
-        if p0.norm() <= 1e-12 * p_start {
+        if crate::math::cnorm(p0) <= 1e-12 * p_start {
             break;
         }
         let p1 = det(k1 + s1, r11) - p0;
@@ -806,16 +806,16 @@ fn other_poles(
         .complex_eigenvalues()
         .iter()
         .copied()
-        .filter(|z| (z - one).norm() > 1e-6)
+        .filter(|z| crate::math::cnorm(z - one) > 1e-6)
         .collect();
     for t in [z0, z0.conj()] {
-        if let Some(i) =
-            (0..v.len()).min_by(|&a, &b| (v[a] - t).norm().total_cmp(&(v[b] - t).norm()))
+        if let Some(i) = (0..v.len())
+            .min_by(|&a, &b| crate::math::cnorm(v[a] - t).total_cmp(&crate::math::cnorm(v[b] - t)))
         {
             v.remove(i);
         }
     }
-    v.sort_by(|a, b| b.norm().total_cmp(&a.norm()));
+    v.sort_by(|a, b| crate::math::cnorm(*b).total_cmp(&crate::math::cnorm(*a)));
     v
 }
 
@@ -882,16 +882,20 @@ pub fn place_on_sampled_loop(
     let base = gains_for(w_i, w_0, zeta);
     let z0 = pair_z(model, zeta, w_0);
     let from = |x: &[f64]| NlGains {
-        r12: base.r12 * x[0].exp(),
-        d12: base.d12 * x[1].exp(),
-        r2: base.r2 * x[2].exp(),
-        k2: base.k2 * x[3].exp(),
+        r12: base.r12 * libm::exp(x[0]),
+        d12: base.d12 * libm::exp(x[1]),
+        r2: base.r2 * libm::exp(x[2]),
+        k2: base.k2 * libm::exp(x[3]),
         ..base
     };
     let placed = |x: &[f64]| place_dominant_pair(m, model, &from(x), w_0, zeta);
     let cost = |x: &[f64]| -> f64 {
         placed(x)
-            .map(|(_, phi)| other_poles(&phi, z0).first().map_or(0.0, |z| z.norm()))
+            .map(|(_, phi)| {
+                other_poles(&phi, z0)
+                    .first()
+                    .map_or(0.0, |z| crate::math::cnorm(*z))
+            })
             .filter(|v| v.is_finite())
             .unwrap_or(f64::INFINITY)
     };
@@ -903,7 +907,7 @@ pub fn place_on_sampled_loop(
             s.k2 / base.k2,
         ]
         .iter()
-        .map(|v| v.max(1e-12).ln())
+        .map(|v| libm::log(v.max(1e-12)))
         .collect(),
         None => vec![0.0; 4],
     };
@@ -1044,8 +1048,9 @@ pub fn design_nonlinear(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel) -> 
             .0
     };
     // A second-order pair alone reaches the set-point at (π − acos ζ)/(ω√(1 − ζ²)).
-    let w_nominal =
-        (std::f64::consts::PI - spec.zeta.acos()) / (1.0 - spec.zeta * spec.zeta).sqrt() / target;
+    let w_nominal = (std::f64::consts::PI - libm::acos(spec.zeta))
+        / (1.0 - spec.zeta * spec.zeta).sqrt()
+        / target;
     let (mut lo, mut hi) = (0.2 * w_nominal, spec.omega_i_rad_s);
     let mut warning = None;
     let r_hi = rise(hi);
@@ -1114,7 +1119,7 @@ impl NlDesign {
 fn design_nonlinear_sampled(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel) -> NlDesign {
     let (w_i, zeta, target) = (spec.omega_i_rad_s, spec.zeta, spec.rise_time_s);
     let t_end = 10.0 * target;
-    let w_nominal = (std::f64::consts::PI - zeta.acos()) / (1.0 - zeta * zeta).sqrt() / target;
+    let w_nominal = (std::f64::consts::PI - libm::acos(zeta)) / (1.0 - zeta * zeta).sqrt() / target;
     let step = w_i / 200.0;
     let first = (w_nominal / step).floor().max(1.0) as u32;
     let mut placed: Vec<(f64, NlGains, f64)> = Vec::new();
@@ -1167,7 +1172,7 @@ fn design_nonlinear_sampled(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel)
         )
     });
     let z0 = pair_z(model, zeta, w0);
-    if rho >= z0.norm() {
+    if rho >= crate::math::cnorm(z0) {
         warning = Some(format!(
             "the placed pair (ζ = {zeta}, ω_0 = {w0:.0} rad/s) is not the slowest pole of the sampled loop (another at |z| = {rho:.3})"
         ));
@@ -1175,19 +1180,21 @@ fn design_nonlinear_sampled(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel)
     let poles = model
         .sampled_poles(m, &g)
         .into_iter()
-        .filter(|p| p.0.hypot(p.1) > 1e-3)
+        .filter(|p| libm::hypot(p.0, p.1) > 1e-3)
         .collect();
     NlDesign {
         sampled: Some(NlSampledPlacement {
             poles,
             searched,
-            others_slowest_rad_s: rho.ln() / tw,
+            others_slowest_rad_s: libm::log(rho) / tw,
         }),
         ..NlDesign::evaluate(m, spec, model, w0, g, warning)
     }
 }
 
 #[cfg(test)]
+// The tests' own reference values come from std's maths: they never reach a trace.
+#[allow(clippy::disallowed_methods)]
 mod tests {
     use super::*;
     use nalgebra::Matrix4;
@@ -1453,7 +1460,7 @@ mod tests {
         // Closed forms printed by `drivelab design`.
         assert!((g.k1 - w0 * w0).abs() < 1e-9 * w0 * w0);
         assert!((g.r11 - 2.0 * zeta * w0 * (w0 + wi) / wi).abs() < 1e-9 * g.r11);
-        assert!((g.r12 - (w0 / wi).powi(2)).abs() < 1e-12);
+        assert!((g.r12 - libm::pow(w0 / wi, 2.0)).abs() < 1e-12);
         assert!((g.d12 - 2.0 * zeta * w0 / (wi * wi)).abs() < 1e-15);
         assert_eq!(
             (g.r2, g.k2, g.r3, g.k3),
@@ -1707,7 +1714,7 @@ mod tests {
                     omega_e: 250.0,
                 });
                 assert!(u.u_d.is_finite() && u.u_q.is_finite() && u.w2.is_finite());
-                assert!(u.u_d.hypot(u.u_q) <= 180.0 + 1e-9);
+                assert!(libm::hypot(u.u_d, u.u_q) <= 180.0 + 1e-9);
             }
             assert_eq!(cl.near_singular_samples, 10);
             assert_eq!(cl.clamped_samples, if i_d == 0.6 * sing { 0 } else { 10 });

@@ -185,16 +185,16 @@ impl PidGains {
 
 /// (V_a, δ) → (v_d, v_q) (eq. 1).
 pub fn polar_to_dq(v_a: f64, delta: f64) -> (f64, f64) {
-    let (s, c) = delta.sin_cos();
+    let (s, c) = libm::sincos(delta);
     (-v_a * s, v_a * c)
 }
 
 /// (v_d, v_q) → (V_a, δ) with |δ| ≤ π/2 and V_a signed (reading 2), so that
 /// [`polar_to_dq`] inverts it. (0, 0) → (0, 0).
 pub fn dq_to_polar(v_d: f64, v_q: f64) -> (f64, f64) {
-    let a = (-v_d).atan2(v_q);
+    let a = libm::atan2(-v_d, v_q);
     let d = fold_half_plane(a);
-    let mag = v_d.hypot(v_q);
+    let mag = libm::hypot(v_d, v_q);
     (if d == a { mag } else { -mag }, d)
 }
 
@@ -233,7 +233,7 @@ impl SpmsmModel {
     pub fn linearise(&self, u_o: [f64; 2], omega_e: f64) -> ([[f64; 2]; 2], [[f64; 2]; 2]) {
         let a = self.r_ohm / self.l_h;
         let l = self.l_h;
-        let (s, c) = u_o[1].sin_cos();
+        let (s, c) = libm::sincos(u_o[1]);
         (
             [[-a, omega_e], [-omega_e, -a]],
             [[-s / l, -u_o[0] * c / l], [c / l, -u_o[0] * s / l]],
@@ -252,10 +252,10 @@ impl SpmsmModel {
     /// amplitude and phase of the speed voltage ω_e·(L i_d + K_e, L i_q) of (1).
     pub fn decoupling(&self, i_d: f64, i_q: f64, omega_e: f64) -> (f64, f64) {
         let l = self.l_h;
-        let v_ad = omega_e * (l * i_q).hypot(l * i_d + self.k_e_wb);
+        let v_ad = omega_e * libm::hypot(l * i_q, l * i_d + self.k_e_wb);
         (
             v_ad,
-            fold_half_plane((l * i_q).atan2(l * i_d + self.k_e_wb)),
+            fold_half_plane(libm::atan2(l * i_q, l * i_d + self.k_e_wb)),
         )
     }
 
@@ -271,8 +271,8 @@ impl SpmsmModel {
         ts: f64,
     ) -> (f64, f64) {
         let (a, w, l) = (self.r_ohm / self.l_h, omega_e, self.l_h);
-        let (sn, cs) = (w * ts).sin_cos();
-        let ea = (-a * ts).exp();
+        let (sn, cs) = libm::sincos(w * ts);
+        let ea = libm::exp(-a * ts);
         // e^{AT} = e^{−aT}·[[cos, sin], [−sin, cos]].
         let (e11, e12, e21, e22) = (ea * cs, ea * sn, -ea * sn, ea * cs);
         let (b1, b2) = (u_d / l, (u_q - w * self.k_e_wb) / l);
@@ -289,17 +289,17 @@ impl SpmsmModel {
     /// `v_ao` ≥ 0 with i_q = `i_q` at ω_e ≥ 0, the root δ_o ≤ φ; φ when out of reach.
     pub fn fw_phase(&self, v_ao: f64, i_q: f64, omega_e: f64) -> f64 {
         let (r, l) = (self.r_ohm, self.l_h);
-        let z = r.hypot(omega_e * l);
+        let z = libm::hypot(r, omega_e * l);
         let phi = self.max_torque_phase(omega_e);
         let c = (z * z * i_q + omega_e * self.k_e_wb * r) / (v_ao * z);
         let c = if c.is_nan() { 1.0 } else { c.clamp(-1.0, 1.0) };
-        phi - c.acos()
+        phi - libm::acos(c)
     }
 
     /// ΔP_11(s) = Δi_d/ΔV_a of the full model (2) at (V_ao, δ_o, ω_e).
     pub fn plant_11(&self, delta_o: f64, omega_e: f64) -> SecondOrder {
         let a = self.r_ohm / self.l_h;
-        let (s, c) = delta_o.sin_cos();
+        let (s, c) = libm::sincos(delta_o);
         SecondOrder {
             b1: -s / self.l_h,
             b0: (omega_e * c - a * s) / self.l_h,
@@ -321,12 +321,12 @@ impl SpmsmModel {
     /// φ = atan2(ω_e L, R): the phase of the largest i_q at a given amplitude (the steady
     /// state of (1) gives i_q ∝ cos(δ − φ) + const).
     pub fn max_torque_phase(&self, omega_e: f64) -> f64 {
-        (omega_e * self.l_h).atan2(self.r_ohm)
+        libm::atan2(omega_e * self.l_h, self.r_ohm)
     }
 
     /// |p_1| = √((R/L)² + ω_e²): radius of the circle through the plant poles (eq. 12).
     pub fn pole_radius(&self, omega_e: f64) -> f64 {
-        (self.r_ohm / self.l_h).hypot(omega_e)
+        libm::hypot(self.r_ohm / self.l_h, omega_e)
     }
 }
 
@@ -336,7 +336,7 @@ impl SpmsmModel {
 /// poles coincide at σ.
 pub fn fw_poles(sigma: f64, rho: f64) -> [f64; 4] {
     let s_ = sigma.abs();
-    let r2 = rho.max(s_).powi(2);
+    let r2 = libm::pow(rho.max(s_), 2.0);
     let (c1, c0) = (2.0 * s_, r2);
     [2.0 * c1, c1 * c1 + 2.0 * c0, 2.0 * c1 * c0, c0 * c0]
 }
@@ -419,7 +419,7 @@ pub fn fw_sampled_poles(
     }
     // A PID on measurement `y` (e = −y) writing the held input `u`, states at `k`.
     let mut pid = |g: &PidGains, y: usize, u: usize, k: usize| {
-        let phi = (-g.f * ts).exp();
+        let phi = libm::exp(-g.f * ts);
         let bz = g.b() * (1.0 - phi) / g.f;
         c[(u, y)] = -g.q2;
         c[(u, k)] = 1.0;
@@ -534,7 +534,7 @@ impl FwDesign {
             sorted(
                 v.iter()
                     .map(|z| {
-                        let l = z.ln() / ts;
+                        let l = crate::math::cln(*z) / ts;
                         (l.re, l.im)
                     })
                     .collect(),
@@ -616,7 +616,7 @@ impl ScheduledPid {
         if aw == AntiWindup::Freeze && out != v {
             return (out, true);
         }
-        let phi = (-g.f * ts).exp();
+        let phi = libm::exp(-g.f * ts);
         let z = phi * self.z + g.b() * (1.0 - phi) / g.f * e;
         if z.is_finite() {
             self.z = z;
@@ -905,7 +905,7 @@ impl PolarCurrentController {
             self.started = true;
             let (a, b) = md.steady_voltage(x.i_d_ref, i_q_ref, w);
             let v0 = match sp.mode {
-                PolarMode::PolarFw => a.hypot(b).min(vmax),
+                PolarMode::PolarFw => libm::hypot(a, b).min(vmax),
                 _ => vmax,
             };
             let (v_o, _) = cdm::limit_operating_point(v0, 0.0, vmax);
@@ -1097,7 +1097,7 @@ mod tests {
         // and small at small currents (L/K_e ≈ 0.19 rad/A), whatever the noise.
         let (v, d) = md.decoupling(0.0, 2.0, 0.0);
         assert_eq!(v, 0.0);
-        assert!((d - (l * 2.0).atan2(k)).abs() < 1e-15);
+        assert!((d - libm::atan2(l * 2.0, k)).abs() < 1e-15);
         let (_, d) = md.decoupling(0.003, -0.002, 0.0);
         assert!(d.abs() < l * 0.002 / (k - l * 0.003) * 1.001, "{d}");
         // At speed: V_ad∠δ_d is ω_e·(L i_d + K_e, L i_q), the speed voltage of (1):
@@ -1108,7 +1108,7 @@ mod tests {
             let (vd, vq) = polar_to_dq(v, d);
             assert!((vd + w * l * i_q).abs() < 1e-9 && (vq - w * (l * i_d + k)).abs() < 1e-9);
             // Eq. (14) as printed.
-            assert!((v - w * (l * i_q).hypot(l * i_d + k)).abs() < 1e-9);
+            assert!((v - w * libm::hypot(l * i_q, l * i_d + k)).abs() < 1e-9);
         }
         // Negative speed: V_ad < 0, the same phase (signed amplitude, reading 2).
         let (v, d) = md.decoupling(0.0, 2.0, -w);
@@ -1133,7 +1133,7 @@ mod tests {
         }
         // Out of reach: clamped at φ, finite.
         let d = md.fw_phase(10.0, 5.0, w);
-        assert!((d - (w * md.l_h).atan2(md.r_ohm)).abs() < 1e-12);
+        assert!((d - libm::atan2(w * md.l_h, md.r_ohm)).abs() < 1e-12);
         assert!(md.fw_phase(0.0, 0.0, 0.0).is_finite());
     }
 
@@ -1197,7 +1197,11 @@ mod tests {
             // double pair (fw_poles): roots of a double root are accurate to ~√ε relative.
             for &(re, im) in &f.poles_v {
                 assert!((re + 300.0).abs() < 1e-6 * 300.0, "{:?}", f.poles_v);
-                assert!((re.hypot(im) - rho).abs() < 1e-6 * rho, "{:?}", f.poles_v);
+                assert!(
+                    (libm::hypot(re, im) - rho).abs() < 1e-6 * rho,
+                    "{:?}",
+                    f.poles_v
+                );
             }
             // C_δ: |σ| = 600 > ρ, so all four at −600 (a quadruple root: ~ε^¼ ≈ 1e-4 relative).
             for &(re, im) in &f.poles_delta {

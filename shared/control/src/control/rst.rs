@@ -106,7 +106,7 @@ pub fn itae_poles_s(order: usize, omega: f64) -> Vec<Complex<f64>> {
     let scaled: Poly = c
         .iter()
         .enumerate()
-        .map(|(i, a)| a * omega.powi(i as i32))
+        .map(|(i, a)| a * libm::pow(omega, i as f64))
         .collect();
     roots(&scaled)
 }
@@ -116,7 +116,7 @@ pub fn itae_poles_s(order: usize, omega: f64) -> Vec<Complex<f64>> {
 pub fn itae_discrete(order: usize, omega: f64, ts: f64) -> Poly {
     let z: Vec<Complex<f64>> = itae_poles_s(order, omega)
         .into_iter()
-        .map(|s| (s * ts).exp())
+        .map(|s| crate::math::cexp(s * ts))
         .collect();
     poly_from_roots(&z)
 }
@@ -345,7 +345,7 @@ impl RstDesign {
     pub fn designed_poles(&self) -> Vec<(Complex<f64>, Complex<f64>)> {
         roots(&self.a_m)
             .into_iter()
-            .map(|z| (z, z.ln() / self.ts_s))
+            .map(|z| (z, crate::math::cln(z) / self.ts_s))
             .collect()
     }
 
@@ -459,7 +459,7 @@ pub fn margins(a: &[f64], b: &[f64], r: &[f64], s: &[f64], ts: f64) -> Margins {
     let w_nyq = std::f64::consts::PI / ts;
     let w_min = 1e-4 * w_nyq;
     let l = |w: f64| {
-        let z = Complex::new(0.0, w * ts).exp();
+        let z = crate::math::cexp(Complex::new(0.0, w * ts));
         poly_eval_c(b, z) * poly_eval_c(s, z) / (poly_eval_c(a, z) * poly_eval_c(r, z))
     };
     let mut out = Margins {
@@ -470,10 +470,10 @@ pub fn margins(a: &[f64], b: &[f64], r: &[f64], s: &[f64], ts: f64) -> Margins {
     // Unwrapped phase, degrees.
     let mut phase_prev = 0.0;
     for i in 0..=n {
-        let w = w_min * (w_nyq / w_min).powf(i as f64 / n as f64);
+        let w = w_min * libm::pow(w_nyq / w_min, i as f64 / n as f64);
         let v = l(w);
-        out.modulus_margin = out.modulus_margin.min((v + 1.0).norm());
-        let mut ph = v.arg().to_degrees();
+        out.modulus_margin = out.modulus_margin.min(crate::math::cnorm(v + 1.0));
+        let mut ph = crate::math::carg(v).to_degrees();
         if let Some((_, _)) = prev {
             while ph - phase_prev > 180.0 {
                 ph -= 360.0;
@@ -483,14 +483,17 @@ pub fn margins(a: &[f64], b: &[f64], r: &[f64], s: &[f64], ts: f64) -> Margins {
             }
         }
         if let Some((_, pv)) = prev {
-            if out.phase_margin_deg.is_none() && pv.norm() >= 1.0 && v.norm() < 1.0 {
+            if out.phase_margin_deg.is_none()
+                && crate::math::cnorm(pv) >= 1.0
+                && crate::math::cnorm(v) < 1.0
+            {
                 out.phase_margin_deg = Some(180.0 + ph);
             }
             // Phase crossing of −180° (mod 360).
             let k_prev = ((phase_prev + 180.0) / 360.0).floor();
             let k_now = ((ph + 180.0) / 360.0).floor();
-            if out.gain_margin_db.is_none() && k_prev != k_now && v.norm() < 1.0 {
-                out.gain_margin_db = Some(-20.0 * v.norm().log10());
+            if out.gain_margin_db.is_none() && k_prev != k_now && crate::math::cnorm(v) < 1.0 {
+                out.gain_margin_db = Some(-20.0 * libm::log10(crate::math::cnorm(v)));
             }
         }
         phase_prev = ph;
@@ -613,7 +616,7 @@ fn zoh2(a: [[f64; 2]; 2], b: [f64; 2], ts: f64) -> (Poly, Poly) {
 
 /// The sampled i_d model of Low eq. (7) with the computation delay: b/(z·(z − a)).
 pub fn model_i_d(m: &MotorParams, ts: f64) -> (Poly, Poly) {
-    let a = (-m.r_ohm * ts / m.l_d_h).exp();
+    let a = libm::exp(-m.r_ohm * ts / m.l_d_h);
     let b = (1.0 - a) / m.r_ohm;
     (vec![1.0, -a, 0.0], vec![b])
 }
@@ -637,7 +640,7 @@ pub fn model_i_q(m: &MotorParams, ts: f64) -> (Poly, Poly) {
 /// `tau_f` discretised at T_w: b_w·N_f/(z·(z − a_w)·D_f). The output is the filtered speed.
 pub fn model_speed(m: &MotorParams, tw: f64, tau_f: f64) -> (Poly, Poly) {
     let (a_w, b_w) = if m.b_nms > 0.0 {
-        let a = (-m.b_nms * tw / m.j_kgm2).exp();
+        let a = libm::exp(-m.b_nms * tw / m.j_kgm2);
         (a, m.k_t() * (1.0 - a) / m.b_nms)
     } else {
         (1.0, m.k_t() * tw / m.j_kgm2)
@@ -937,7 +940,7 @@ mod tests {
     }
 
     fn close(a: Complex<f64>, b: Complex<f64>, tol: f64) -> bool {
-        (a - b).norm() < tol
+        crate::math::cnorm(a - b) < tol
     }
 
     /// Every requested pole is a root of the closed loop, with its multiplicity.
@@ -955,7 +958,7 @@ mod tests {
             let n_want = want.iter().filter(|q| close(**q, *p, 1e-6)).count();
             // Multiple roots at the origin are ill-conditioned numerically; compare A_m's poles
             // (distinct) by root, the deadbeat part by its coefficients (checked above).
-            if p.norm() > 1e-3 {
+            if crate::math::cnorm(*p) > 1e-3 {
                 let n_got = cl.iter().filter(|q| close(**q, *p, 1e-5)).count();
                 assert!(n_got >= n_want, "{}: pole {p} missing in {cl:?}", d.name);
             }
@@ -963,7 +966,7 @@ mod tests {
         // The poles of A_m are the ITAE poles mapped to z.
         let s = itae_poles_s(d.itae_order, d.omega_n_rad_s);
         for sp in s {
-            let z = (sp * d.ts_s).exp();
+            let z = crate::math::cexp(sp * d.ts_s);
             assert!(
                 cl.iter().any(|q| close(*q, z, 1e-5)),
                 "{}: ITAE pole {z} not in the closed loop {cl:?}",

@@ -120,9 +120,9 @@ impl SpeedLoopModel {
         let tw = ts * n as f64;
         let ti = a * a * t_eq;
         let kk = 1.0 / (a * t_eq); // K_p·k_t/J
-        let pole = (-tw / ti).exp();
+        let pole = libm::exp(-tw / ti);
         let mut filt = super::filter::Bessel2::design(self.tau_f_s, ts);
-        let lag = 1.0 - (-ts / self.tau_c_s).exp();
+        let lag = 1.0 - libm::exp(-ts / self.tau_c_s);
         let (mut rf, mut xi, mut iq_cmd, mut iq_cmd_prev, mut iq, mut w, mut w_prev) =
             (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
         let mut rise = f64::NAN;
@@ -235,7 +235,7 @@ impl SpeedPi {
         Self {
             pi: Pi::new(d.k_p, d.k_p / d.t_i_s, t_w, i_max),
             r_f: 0.0,
-            prefilter_pole: (-t_w / d.t_prefilter_s).exp(),
+            prefilter_pole: libm::exp(-t_w / d.t_prefilter_s),
         }
     }
 

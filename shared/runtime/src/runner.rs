@@ -1,0 +1,101 @@
+//! A runner for the processes that drivelab starts: a command put in front of each one, as
+//! cargo's `target.<triple>.runner` is. With `qemu-aarch64 -L /usr/aarch64-linux-gnu` a
+//! launcher built for aarch64 starts its aarch64 stage hosts on an x86_64 machine without
+//! any binfmt handler; with `strace -f -o trace.log` or a logging script it shows what is
+//! started.
+//!
+//! The runner is given by `drivelab run --runner 'CMD'` or by the environment variable
+//! [`ENV`] (the bench's nodes read only the variable). It is split at whitespace, with no
+//! shell quoting, as cargo splits its runner. It must end by exec'ing the program it is
+//! given (qemu-user and `exec "$@"` scripts do): drivelab signals the process it started,
+//! and a runner that stays in front would take the signals of fault injection and shutdown.
+
+use std::ffi::OsStr;
+use std::process::Command;
+
+/// The environment variable that holds a runner.
+pub const ENV: &str = "DRIVELAB_RUNNER";
+
+/// A command put in front of every process that drivelab starts.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Runner {
+    program: String,
+    args: Vec<String>,
+}
+
+impl Runner {
+    /// Parses `CMD` (split at whitespace). An empty or blank `CMD` is an error.
+    pub fn parse(cmd: &str) -> Result<Self, String> {
+        let mut words = cmd.split_whitespace().map(String::from);
+        let program = words.next().ok_or_else(|| {
+            "the runner is empty: give a command, e.g. 'qemu-aarch64 -L /usr/aarch64-linux-gnu'"
+                .to_string()
+        })?;
+        Ok(Self {
+            program,
+            args: words.collect(),
+        })
+    }
+
+    /// The runner of [`ENV`], if it is set (an empty value counts as unset).
+    pub fn from_env() -> Result<Option<Self>, String> {
+        match std::env::var(ENV) {
+            Ok(v) if !v.trim().is_empty() => {
+                Self::parse(&v).map(Some).map_err(|e| format!("{ENV}: {e}"))
+            }
+            _ => Ok(None),
+        }
+    }
+
+    /// The runner's words, to show in messages.
+    pub fn display(&self) -> String {
+        std::iter::once(self.program.as_str())
+            .chain(self.args.iter().map(String::as_str))
+            .collect::<Vec<_>>()
+            .join(" ")
+    }
+}
+
+/// A command that starts `program`, through `runner` when there is one.
+pub fn command(runner: Option<&Runner>, program: impl AsRef<OsStr>) -> Command {
+    match runner {
+        Some(r) => {
+            let mut c = Command::new(&r.program);
+            c.args(&r.args).arg(program);
+            c
+        }
+        None => Command::new(program),
+    }
+}
+
+/// A command that starts `program` through the runner of [`ENV`], if set. A malformed
+/// variable is an error (so that a typo does not silently start native binaries).
+pub fn env_command(program: impl AsRef<OsStr>) -> Result<Command, String> {
+    Ok(command(Runner::from_env()?.as_ref(), program))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_runner_goes_in_front_of_the_program() {
+        let r = Runner::parse("  qemu-aarch64  -L /usr/aarch64-linux-gnu ").unwrap();
+        assert_eq!(r.display(), "qemu-aarch64 -L /usr/aarch64-linux-gnu");
+        let c = command(Some(&r), "/x/drivelab-host");
+        assert_eq!(c.get_program(), "qemu-aarch64");
+        let args: Vec<_> = c.get_args().collect();
+        assert_eq!(args, ["-L", "/usr/aarch64-linux-gnu", "/x/drivelab-host"]);
+        let c = command(None, "/x/drivelab-host");
+        assert_eq!(c.get_program(), "/x/drivelab-host");
+        assert_eq!(c.get_args().count(), 0);
+    }
+
+    #[test]
+    fn an_empty_runner_is_refused() {
+        assert!(Runner::parse("").is_err());
+        assert!(Runner::parse(" \t ")
+            .unwrap_err()
+            .contains("runner is empty"));
+    }
+}

@@ -1,0 +1,360 @@
+//! The embedded target: the runner that prefixes every process the launcher starts, and an
+//! aarch64 build (`scripts/cross.sh aarch64-unknown-linux-gnu`) run under qemu-user, whose
+//! lockstep traces must equal the x86_64 ones byte for byte and whose doctor must read this
+//! machine's files without failing.
+//!
+//! The aarch64 tests need the Rust target, Debian's `aarch64-linux-gnu-gcc` and
+//! `qemu-aarch64` (all installed by `scripts/cross.sh`). Without them each says in one line
+//! why it did not run, and passes. With them it builds the two aarch64 binaries (release,
+//! `--no-default-features`, into `target/aarch64-unknown-linux-gnu/release`, as the script
+//! does; a no-op when they are up to date).
+
+mod common;
+
+use common::*;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::sync::OnceLock;
+use std::time::Duration;
+
+const TARGET: &str = "aarch64-unknown-linux-gnu";
+/// The runner of the aarch64 binaries on this machine (no binfmt handler is registered).
+const QEMU: &str = "qemu-aarch64 -L /usr/aarch64-linux-gnu";
+
+/// A script that logs its arguments to the file named first and then execs the rest.
+fn logging_runner(dir: &Path) -> (String, PathBuf) {
+    let script = dir.join("log-runner.sh");
+    std::fs::write(
+        &script,
+        "#!/bin/sh\nlog=$1\nshift\necho \"$*\" >> \"$log\"\nexec \"$@\"\n",
+    )
+    .unwrap();
+    let log = dir.join("runner.log");
+    (format!("sh {} {}", script.display(), log.display()), log)
+}
+
+fn lines(p: &Path) -> Vec<String> {
+    std::fs::read_to_string(p)
+        .unwrap_or_default()
+        .lines()
+        .map(String::from)
+        .collect()
+}
+
+#[test]
+fn the_runner_prefixes_every_stage_host_and_changes_no_sample() {
+    let _g = serial();
+    let dir = scratch("runner");
+    let (runner, log) = logging_runner(&dir);
+    let plain = run_ok("runner-plain", &["--clock", "lockstep", "--no-rt"]).0;
+    let (through, summary) = run_ok(
+        "runner-flag",
+        &["--clock", "lockstep", "--no-rt", "--runner", &runner],
+    );
+    // One line per process of the default topology, each the stage host with its process.
+    let started = lines(&log);
+    let procs: Vec<&str> = summary["processes"]
+        .as_object()
+        .expect("processes")
+        .keys()
+        .map(String::as_str)
+        .collect();
+    assert_eq!(started.len(), procs.len(), "{started:?}");
+    for p in &procs {
+        assert!(
+            started
+                .iter()
+                .any(|l| l.contains("drivelab-host") && l.contains(&format!("--process {p} "))),
+            "no process {p} in {started:?}"
+        );
+    }
+    assert_eq!(
+        std::fs::read(plain.join("trace.csv")).unwrap(),
+        std::fs::read(through.join("trace.csv")).unwrap()
+    );
+
+    // DRIVELAB_RUNNER does the same when --runner is not given.
+    std::fs::remove_file(&log).unwrap();
+    let bus = bus_id("runner-env");
+    let out = dir.join("env");
+    let o = Command::new(DRIVELAB)
+        .args(["run", "--clock", "lockstep", "--no-rt", "--no-plots"])
+        .args(["--topology", "one-process", "--bus", &bus, "--out"])
+        .arg(&out)
+        .env("DRIVELAB_RUNNER", &runner)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let o = wait(
+        o,
+        Duration::from_secs(120),
+        "drivelab run with DRIVELAB_RUNNER",
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_clean(&bus);
+    assert_eq!(lines(&log).len(), 1, "{:?}", lines(&log));
+}
+
+#[test]
+fn a_restarted_process_goes_through_the_runner_too() {
+    let _g = serial();
+    let dir = scratch("runner-restart-script");
+    let (runner, log) = logging_runner(&dir);
+    let (_, summary) = run_ok(
+        "runner-restart",
+        &[
+            "--duration",
+            "0.3",
+            "--no-rt",
+            "--fault",
+            "kill:observer@0.1",
+            "--runner",
+            &runner,
+        ],
+    );
+    let started = lines(&log);
+    let rejoined: Vec<_> = started.iter().filter(|l| l.contains("--rejoin")).collect();
+    assert_eq!(rejoined.len(), 1, "{started:?}");
+    assert!(rejoined[0].contains("--process observer "), "{started:?}");
+    assert_eq!(started.len(), 5, "{started:?}");
+    assert_eq!(summary["faults"].as_array().map(Vec::len), Some(1));
+}
+
+#[test]
+fn a_bad_runner_is_one_line_and_leaves_nothing() {
+    let dir = scratch("bad-runner");
+    let o = drivelab(&["run", "--runner", " ", "--clock", "lockstep"]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("--runner: the runner is empty"), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+
+    let bus = bus_id("bad-runner");
+    let out = dir.join("run");
+    let o = drivelab(&[
+        "run",
+        "--clock",
+        "lockstep",
+        "--no-rt",
+        "--no-plots",
+        "--bus",
+        &bus,
+        "--out",
+        out.to_str().unwrap(),
+        "--runner",
+        "/nonexistent/runner --flag",
+    ]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("through the runner '/nonexistent/runner --flag'"),
+        "{err}"
+    );
+    assert_clean(&bus);
+}
+
+/// The aarch64 binaries, built once per test binary; Err(why) when the toolchain is absent
+/// or the build failed (then the reason says which).
+fn aarch64_build() -> &'static Result<PathBuf, String> {
+    static BUILT: OnceLock<Result<PathBuf, String>> = OnceLock::new();
+    BUILT.get_or_init(|| {
+        let on_path = |c: &str| {
+            Command::new("sh")
+                .args(["-c", &format!("command -v {c}")])
+                .output()
+                .is_ok_and(|o| o.status.success())
+        };
+        let sysroot = Command::new("rustc")
+            .args(["--print", "sysroot"])
+            .output()
+            .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
+            .unwrap_or_default();
+        let missing: Vec<&str> = [
+            (
+                Path::new(&sysroot)
+                    .join("lib/rustlib")
+                    .join(TARGET)
+                    .is_dir(),
+                "the Rust target",
+            ),
+            (on_path("aarch64-linux-gnu-gcc"), "aarch64-linux-gnu-gcc"),
+            (on_path("qemu-aarch64"), "qemu-aarch64"),
+            (
+                Path::new("/usr/aarch64-linux-gnu/lib").is_dir(),
+                "/usr/aarch64-linux-gnu",
+            ),
+        ]
+        .into_iter()
+        .filter(|(ok, _)| !ok)
+        .map(|(_, what)| what)
+        .collect();
+        if !missing.is_empty() {
+            return Err(format!(
+                "not run: {} missing (scripts/cross.sh {TARGET} installs them)",
+                missing.join(", ")
+            ));
+        }
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+        let o = Command::new(cargo)
+            .current_dir(&root)
+            .args([
+                "build",
+                "--release",
+                "--target",
+                TARGET,
+                "--no-default-features",
+            ])
+            .args(["-p", "drivelab-runtime", "--bin", "drivelab-host"])
+            .args(["-p", "drivelab-services", "--bin", "drivelab"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .output()
+            .map_err(|e| format!("cannot run cargo: {e}"))?;
+        if !o.status.success() {
+            // A toolchain that is there but does not build is a failure, not a skip.
+            panic!(
+                "the aarch64 build failed:\n{}",
+                String::from_utf8_lossy(&o.stderr)
+            );
+        }
+        Ok(root.join("target").join(TARGET).join("release"))
+    })
+}
+
+/// The aarch64 build's directory, or None after printing why the test does not run.
+fn aarch64_or_skip(test: &str) -> Option<PathBuf> {
+    match aarch64_build() {
+        Ok(d) => Some(d.clone()),
+        Err(why) => {
+            eprintln!("{test}: {why}");
+            None
+        }
+    }
+}
+
+/// `drivelab` of the aarch64 build under qemu-user, with a watchdog.
+fn aarch64_drivelab(bin: &Path, args: &[&str], watchdog: Duration) -> Output {
+    let mut words = QEMU.split_whitespace();
+    let child = Command::new(words.next().unwrap())
+        .args(words)
+        .arg(bin.join("drivelab"))
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start qemu-aarch64");
+    wait(child, watchdog, &format!("aarch64 drivelab {args:?}"))
+}
+
+/// Where two traces first differ: "line N, column NAME: A vs B".
+fn first_difference(a: &str, b: &str) -> String {
+    let header: Vec<&str> = a.lines().next().unwrap_or("").split(',').collect();
+    for (n, (la, lb)) in a.lines().zip(b.lines()).enumerate() {
+        if la != lb {
+            for (i, (x, y)) in la.split(',').zip(lb.split(',')).enumerate() {
+                if x != y {
+                    let col = header.get(i).copied().unwrap_or("?");
+                    return format!("line {}, column {col}: {x} vs {y}", n + 1);
+                }
+            }
+            return format!("line {}: {la} vs {lb}", n + 1);
+        }
+    }
+    format!(
+        "lengths {} vs {} lines",
+        a.lines().count(),
+        b.lines().count()
+    )
+}
+
+#[test]
+fn an_aarch64_lockstep_trace_equals_the_x86_64_one_byte_for_byte() {
+    const TEST: &str = "an_aarch64_lockstep_trace_equals_the_x86_64_one_byte_for_byte";
+    let Some(bin) = aarch64_or_skip(TEST) else {
+        return;
+    };
+    let _g = serial();
+    for sc in ["kyslan-pi", "low-rst-sensorless", "miyajima-polar-400rpm"] {
+        let (x86, _) = run_ok(
+            &format!("x86-{sc}"),
+            &["--clock", "lockstep", "--scenario", sc],
+        );
+        let dir = scratch(&format!("arm-{sc}"));
+        let bus = bus_id(&format!("arm-{sc}"));
+        let out = dir.join("run");
+        let o = aarch64_drivelab(
+            &bin,
+            &[
+                "run",
+                "--clock",
+                "lockstep",
+                "--scenario",
+                sc,
+                "--no-rt",
+                "--bus",
+                &bus,
+                "--out",
+                out.to_str().unwrap(),
+                "--runner",
+                QEMU,
+            ],
+            Duration::from_secs(300),
+        );
+        assert!(
+            o.status.success(),
+            "{sc} under qemu: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        assert_clean(&bus);
+        let a = std::fs::read_to_string(x86.join("trace.csv")).unwrap();
+        let b = std::fs::read_to_string(out.join("trace.csv")).unwrap();
+        assert!(a.lines().count() > 100, "{sc}: a short trace");
+        assert!(
+            a == b,
+            "{sc}: the aarch64 trace differs from the x86_64 one at {}",
+            first_difference(&a, &b)
+        );
+    }
+}
+
+#[test]
+fn doctor_runs_under_qemu_and_reads_the_arm_checks() {
+    const TEST: &str = "doctor_runs_under_qemu_and_reads_the_arm_checks";
+    let Some(bin) = aarch64_or_skip(TEST) else {
+        return;
+    };
+    let o = aarch64_drivelab(&bin, &["doctor", "--json"], Duration::from_secs(60));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    let checks: serde_json::Value = serde_json::from_slice(&o.stdout).expect("doctor --json");
+    let names: Vec<&str> = checks
+        .as_array()
+        .expect("a list of checks")
+        .iter()
+        .map(|c| c["name"].as_str().unwrap())
+        .collect();
+    for want in [
+        "governor",
+        "cpufreq limits",
+        "cpuidle",
+        "isolated cpus",
+        "rt throttling",
+        "clocksource",
+    ] {
+        assert!(names.contains(&want), "no '{want}' in {names:?}");
+    }
+    // The kernel is this machine's: the guest's uname says aarch64.
+    let kernel = checks
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["name"] == "kernel")
+        .expect("kernel check");
+    assert!(
+        kernel["value"].as_str().unwrap_or("").contains("aarch64"),
+        "{kernel}"
+    );
+}
