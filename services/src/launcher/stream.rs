@@ -20,6 +20,8 @@ use serde::Serialize;
 const WINDOW: u64 = 1 << 16;
 /// How long a sample waits for its command before it leaves the window, s.
 const LAG_S: f64 = 0.2;
+/// A plant downtime longer than this is not rebuilt (left missing), s.
+const MAX_DOWNTIME_S: f64 = 10.0;
 /// Runs up to this many samples keep every row for their analyses.
 pub const FULL_ROWS: u64 = 1 << 20;
 /// Longer runs keep about this many evenly spaced rows, plus the windows below.
@@ -319,11 +321,18 @@ impl TraceStream {
     /// first: filled with the motor integrated from the state that plant was given, exactly
     /// as it did before it resumed ([`Plant::coast`](drivelab_runtime::drive::Plant::coast)).
     /// The rebuilt state at the resumed sample must equal the recorded one bit for bit, else
-    /// the run is left missing (it was no restart of the plant).
+    /// the run is left missing (it was no restart of the plant). The restarted plant was given
+    /// the newest sample the recorder had read, which lags `l` by less than the window's lag:
+    /// only those states are tried, and a downtime longer than [`MAX_DOWNTIME_S`] is not
+    /// rebuilt (the recorder must keep reading while the drive runs).
     fn rebuild_downtime(&mut self, l: u64, m: &PlantTruth, rejoins: &[PlantTruth]) -> Result<()> {
         use drivelab_runtime::drive::Plant;
         let (a, b) = (l + 1, m.hdr.k);
-        for last in rejoins.iter().rev().filter(|t| t.hdr.k < a) {
+        let max_down = (MAX_DOWNTIME_S * self.sc.rates.sample_hz) as u64;
+        let candidates = rejoins.iter().rev().filter(|t| {
+            t.hdr.k <= l && t.hdr.k + self.lag >= l && b - t.hdr.k <= max_down
+        });
+        for last in candidates {
             let mut rebuilt = Vec::new();
             let mut plant = Plant::new(&self.sc);
             plant.coast(last, b, |t| {
