@@ -329,9 +329,10 @@ impl TraceStream {
         use drivelab_runtime::drive::Plant;
         let (a, b) = (l + 1, m.hdr.k);
         let max_down = (MAX_DOWNTIME_S * self.sc.rates.sample_hz) as u64;
-        let candidates = rejoins.iter().rev().filter(|t| {
-            t.hdr.k <= l && t.hdr.k + self.lag >= l && b - t.hdr.k <= max_down
-        });
+        let candidates = rejoins
+            .iter()
+            .rev()
+            .filter(|t| t.hdr.k <= l && t.hdr.k + self.lag >= l && b - t.hdr.k <= max_down);
         for last in candidates {
             let mut rebuilt = Vec::new();
             let mut plant = Plant::new(&self.sc);
