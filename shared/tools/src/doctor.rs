@@ -1642,13 +1642,6 @@ mod tests {
         assert_eq!(fmt_bytes(3 * 1024 * 1024), "3.0 MiB");
     }
 
-    /// `cargo test -p drivelab-tools --lib doctor::tests::print_report -- --ignored --nocapture`
-    #[test]
-    #[ignore = "prints the live report"]
-    fn print_report() {
-        print!("{}", render_text(&run_checks()));
-    }
-
     #[test]
     fn dev_shm_live() {
         let c = dev_shm_check(&Fs {
