@@ -52,6 +52,10 @@ pub trait Transport {
     fn pending(&mut self, topic: TopicId) -> Result<bool>;
     /// Blocks until a message of `topic` may be there, or `timeout`.
     fn wait(&mut self, topic: TopicId, timeout: Duration) -> Result<()>;
+    /// Stops receiving `topic` for good and releases its subscription. A restarted stage
+    /// calls it once, when its rejoin is done, for an input read only while rejoining: a
+    /// subscription nobody drains would keep every dead publisher's segment mapped.
+    fn close(&mut self, _topic: TopicId) {}
     /// When the sender of `topic`'s newest wake-up started to notify (CLOCK_MONOTONIC ns), if
     /// the transport stamps its wake-ups; 0 otherwise.
     fn notified_ns(&mut self, _topic: TopicId) -> u64 {
@@ -755,7 +759,7 @@ impl<T: Transport> Host<T> {
                     self.stages[si].last_k = Some(k);
                     continue;
                 }
-                self.stages[si].rejoining = false;
+                self.end_rejoin(si);
                 // Re-read: rejoin may have consumed nothing, but keep the same inputs.
                 ib = self.inbox(si, k).0;
             }
@@ -763,6 +767,28 @@ impl<T: Transport> Host<T> {
             self.step_publish(si, k, &ib, t_in, fallback)?;
         }
         Ok(true)
+    }
+
+    /// Stage `si` has taken over. Its rejoin-only inputs that no other stage here still
+    /// reads are closed (see [`Transport::close`]): once per restart, not per sample.
+    fn end_rejoin(&mut self, si: usize) {
+        self.stages[si].rejoining = false;
+        for i in 0..self.stages[si].inputs.len() {
+            let b = self.stages[si].inputs[i];
+            if b.spec.role != Role::Rejoin || b.origin != Origin::External {
+                continue;
+            }
+            let still_read = self.stages.iter().any(|h| {
+                h.inputs.iter().any(|o| {
+                    o.spec.topic == b.spec.topic
+                        && o.origin == Origin::External
+                        && (o.spec.role != Role::Rejoin || h.rejoining)
+                })
+            });
+            if !still_read {
+                self.transport.close(b.spec.topic);
+            }
+        }
     }
 
     /// Inputs of stage `si` that `ib` marks stale (rejoin-only and absent ones do not count).
@@ -904,7 +930,7 @@ impl<T: Transport> Host<T> {
                     break;
                 }
             }
-            self.stages[0].rejoining = false;
+            self.end_rejoin(0);
             (t0, k)
         } else {
             if self.cfg.warm_up {
@@ -1205,7 +1231,7 @@ mod tests {
     use super::*;
     use crate::config::Scenario;
     use crate::messages::*;
-    use crate::stages::{CurrentLoopStage, ObserverStage};
+    use crate::stages::{CurrentLoopStage, ObserverStage, SpeedLoopStage};
     use std::collections::VecDeque;
 
     fn scenario() -> Scenario {
@@ -1223,6 +1249,7 @@ mod tests {
         sent: Vec<Msg>,
         waits: usize,
         on_wait: Vec<(usize, Msg)>,
+        closed: Vec<TopicId>,
     }
 
     impl Transport for Script {
@@ -1235,6 +1262,9 @@ mod tests {
         }
         fn pending(&mut self, topic: TopicId) -> Result<bool> {
             Ok(!self.queues[topic.index()].is_empty())
+        }
+        fn close(&mut self, topic: TopicId) {
+            self.closed.push(topic);
         }
         fn wait(&mut self, _topic: TopicId, _timeout: Duration) -> Result<()> {
             self.waits += 1;
@@ -1281,6 +1311,60 @@ mod tests {
             warm_up: false,
             ..HostConfig::for_scenario(sc, Pacing::Realtime, 100)
         }
+    }
+
+    fn est(k: u64, omega_m: f64) -> Msg {
+        Msg::Est(Estimate {
+            hdr: Header {
+                k,
+                t_sample_ns: 1_000_000 + k * 100_000,
+                ..Default::default()
+            },
+            omega_m,
+            ..Default::default()
+        })
+    }
+
+    #[test]
+    fn a_restarted_speed_loop_closes_its_rejoin_only_input_once_it_has_taken_over() {
+        let sc = scenario();
+        let run = |rejoin: bool| {
+            let mut tr = Script::default();
+            let cmd = Msg::Cmd(VoltageCommand {
+                hdr: header(0, 1_000_000),
+                ..Default::default()
+            });
+            tr.queues[TopicId::Est.index()].push_back(est(0, 10.0));
+            tr.queues[TopicId::Cmd.index()].push_back(cmd);
+            for k in 1..=20 {
+                tr.on_wait.push((k as usize + 1, est(k, 10.0)));
+            }
+            tr.on_wait.push((22, end(TopicId::Est, 100)));
+            let stages: Vec<Box<dyn Stage>> = vec![Box::new(SpeedLoopStage::new(&sc))];
+            let producers = [
+                (TopicId::Est, 1, false),
+                (TopicId::Cmd, 1, false),
+                (TopicId::Iref, 1, true),
+            ];
+            let cfg = HostConfig {
+                rejoin,
+                ..config(&sc)
+            };
+            let mut host = Host::new(stages, &producers, tr, cfg);
+            host.run().unwrap();
+            let steps = host
+                .transport
+                .sent
+                .iter()
+                .filter(|m| m.topic() == TopicId::Iref && !m.hdr().is_end())
+                .count();
+            (host.transport.closed, steps)
+        };
+        // Restarted: the command topic is read while rejoining, then released, once; the
+        // stage then steps as usual (samples 0, 10 and 20 of the 10-sample speed period).
+        assert_eq!(run(true), (vec![TopicId::Cmd], 3));
+        // A first start never subscribed to it, and closes nothing.
+        assert_eq!(run(false), (vec![], 3));
     }
 
     #[test]

@@ -636,6 +636,12 @@ impl Transport for BusTransport {
         })
     }
 
+    fn close(&mut self, topic: TopicId) {
+        // Dropping the subscriber unmaps its publishers' segments and removes its port: a
+        // bus call, made once per restart (see `Transport::close`).
+        self.rx[topic.index()] = None;
+    }
+
     #[inline]
     fn notified_ns(&mut self, topic: TopicId) -> u64 {
         match &self.rx[topic.index()] {
