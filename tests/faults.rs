@@ -372,6 +372,22 @@ fn with_restart_never_a_killed_loop_stays_dead_and_the_drive_runs_degraded() {
         "i_q* not held after k = {}",
         d[0].k
     );
+    // The current loop runs on the clock, woken by every measurement, and its commands
+    // reach the plant in time: the inverter neither holds nor goes to its safe state
+    // (before it was woken in time, 84 % of the samples after an observer kill held a
+    // stale command and 73 % were in the safe state). A tenth allows for a loaded machine.
+    let k0 = f["injected_k"].as_u64().unwrap();
+    let after: Vec<_> = rows.iter().filter(|r| r.k > k0 + 10).collect();
+    let stale = after.iter().filter(|r| r.miss != 0).count();
+    let on_encoder = after
+        .iter()
+        .filter(|r| r.ctrl_flags & drivelab_runtime::messages::FLAG_STALE_INPUT != 0)
+        .count();
+    assert!(
+        stale * 10 <= after.len() && on_encoder * 10 >= 9 * (after.len() - stale),
+        "{stale} of {} samples after the kill held a stale command, {on_encoder} ran on the encoder",
+        after.len()
+    );
 }
 
 #[test]

@@ -311,6 +311,10 @@ pub struct HostConfig {
     pub poke: Vec<TopicId>,
     /// The topic that tells where the drive is (the source's output), for fallbacks.
     pub clock_topic: TopicId,
+    /// The transport wakes this process at each message of the clock topic when it waits
+    /// on it (futex wake words): a stage falling back on the clock then sleeps until the
+    /// next sample is out instead of polling on a timer.
+    pub clock_wakes: bool,
 }
 
 impl HostConfig {
@@ -327,6 +331,7 @@ impl HostConfig {
             warm_up: true,
             poke: Vec::new(),
             clock_topic: TopicId::Meas,
+            clock_wakes: false,
         }
     }
 }
@@ -992,15 +997,7 @@ impl<T: Transport> Host<T> {
             let t_in = if realtime { t_woken } else { now_ns() };
             let (ib, _) = self.inbox(0, k);
             let stale = self.count_stale(0, &ib);
-            if stale > 0 {
-                self.stages[0].counters.stale_inputs += stale;
-                if realtime {
-                    for i in 0..self.cfg.poke.len() {
-                        let t = self.cfg.poke[i];
-                        self.transport.poke(t)?;
-                    }
-                }
-            }
+            self.stages[0].counters.stale_inputs += stale;
             let mut out = Outbox::default();
             self.stages[0].stage.step(k, &ib, &mut out);
             self.stages[0].hists.stepped(t_in, now_ns());
@@ -1010,6 +1007,15 @@ impl<T: Transport> Host<T> {
                 hd.t_pub_ns = now_ns();
                 self.store.put(m);
                 self.transport.send(&m)?;
+            }
+            // A missing input: wake the stages that should have produced it, after this
+            // sample's outputs are out, so that a stage falling back on the clock computes
+            // this sample's output in time for the next one.
+            if stale > 0 && realtime {
+                for i in 0..self.cfg.poke.len() {
+                    let t = self.cfg.poke[i];
+                    self.transport.poke(t)?;
+                }
             }
             self.stages[0].counters.samples += 1;
             self.stages[0].last_k = Some(k);
@@ -1053,7 +1059,6 @@ impl<T: Transport> Host<T> {
         let trig = self.stages[0].trigger().expect("not the source");
         let topic = trig.spec.topic;
         let realtime = self.cfg.pacing == Pacing::Realtime;
-        let fallback_poll = Duration::from_nanos(self.cfg.ts_ns / 2);
         let mut last_input = Instant::now();
         let every_sample = self.stages[0].stage.steps_every_sample();
         // The samples at which some stage of this process steps: multiples of this.
@@ -1063,18 +1068,28 @@ impl<T: Transport> Host<T> {
             .map(|h| h.divider)
             .reduce(gcd)
             .unwrap_or(1);
+        // Running on the clock (the trigger is lost): a process that steps every sample
+        // sleeps until the next clock message if the transport wakes it for that (a
+        // missing sample, the source dead, ends the sleep after two sample times);
+        // otherwise it polls at half its own period.
+        let on_clock = self.cfg.clock_wakes && step_every == 1;
+        let (fallback_topic, fallback_wait) = if on_clock {
+            (
+                self.cfg.clock_topic,
+                Duration::from_nanos(2 * self.cfg.ts_ns),
+            )
+        } else {
+            (topic, Duration::from_nanos(self.cfg.ts_ns * step_every / 2))
+        };
         // ---- real-time loop: no allocation, no locks, no logging ----
         'outer: while !self.stopping() {
             self.status()?;
             let in_fallback = self.stages.iter().any(|h| h.in_fallback);
-            self.transport.wait(
-                topic,
-                if in_fallback && realtime {
-                    fallback_poll
-                } else {
-                    WAIT_SLICE
-                },
-            )?;
+            if in_fallback && realtime {
+                self.transport.wait(fallback_topic, fallback_wait)?;
+            } else {
+                self.transport.wait(topic, WAIT_SLICE)?;
+            }
             self.drain_external(Some(topic), None)?;
             let mut got = false;
             while let Some(m) = self.transport.try_recv(topic)? {
@@ -1107,6 +1122,13 @@ impl<T: Transport> Host<T> {
                 }
                 h0.last_seen = Some(hdr.k);
                 self.store.put(m);
+                // The trigger is back: the stages it triggers leave the clock (a sample the
+                // fallback already computed is not stepped again).
+                for h in self.stages.iter_mut() {
+                    if h.trigger().is_some_and(|t| t.spec.topic == topic) {
+                        h.in_fallback = false;
+                    }
+                }
                 // A sample that no stage here steps (they run slower than their trigger)
                 // only goes into the store: it is neither behind nor a wake-up.
                 if !every_sample && !hdr.k.is_multiple_of(step_every) {

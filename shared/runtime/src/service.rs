@@ -302,8 +302,15 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
             }
         }
     }
-    // Not the source, in real time: the source's output tells where the drive is.
-    if !source && !lockstep {
+    // Not the source, in real time: the source's output tells where the drive is. With
+    // futex wake words, waiting on it costs the source nothing while nobody sleeps there
+    // (a stage falls back on it only while its trigger is lost); an iceoryx2 listener
+    // would cost the source a syscall per sample, so with events it is only polled.
+    let clock_wakes = !source && !lockstep && sc.timing.wake == crate::bus::WakeKind::Futex;
+    if clock_wakes {
+        waited[TopicId::Meas.index()] = true;
+        decimated[TopicId::Meas.index()] = false;
+    } else if !source && !lockstep {
         polled[TopicId::Meas.index()] = true;
     }
     // The source pokes the triggers of the other processes when its delayed input is
@@ -370,6 +377,7 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
             rejoin: args.rejoin,
             rejoin_from,
             poke,
+            clock_wakes,
             ..HostConfig::for_scenario(
                 &sc,
                 if lockstep {
