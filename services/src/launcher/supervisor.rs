@@ -464,9 +464,6 @@ pub fn fault_reports(
                 break;
             }
         }
-        let safe = after()
-            .find(|r| r.plant_flags & FLAG_SAFE_STATE != 0)
-            .map(|r| ms(r.k - k0));
         let sup = events
             .iter()
             .find(|e| {
@@ -495,6 +492,12 @@ pub fn fault_reports(
         let k_rec = rec
             .or(fresh)
             .unwrap_or(k_end_window.min(k0 + (0.2 * fs) as u64));
+        // The safe state this fault caused: reached before the drive had recovered from it
+        // (a later one, after a burst of deadline misses say, is not this fault's).
+        let safe = after()
+            .take_while(|r| r.k <= k_rec)
+            .find(|r| r.plant_flags & FLAG_SAFE_STATE != 0)
+            .map(|r| ms(r.k - k0));
         let peak = after()
             .filter(|r| r.k <= k_rec)
             .map(|r| (r.i_d * r.i_d + r.i_q * r.i_q).sqrt())
@@ -685,6 +688,24 @@ mod tests {
             windows[1].2,
             "stop for 0.02 s (from monitor pid 4242) observer"
         );
+    }
+
+    #[test]
+    fn a_safe_state_after_the_recovery_is_not_the_faults() {
+        let sc = scenario();
+        let mut tr = rows(0..300);
+        // The speed loop is killed at 10; the current loop holds its reference (11-12),
+        // fresh again from 13. Much later the plant misses deadlines and goes safe.
+        at(&mut tr, 11..=12, |r| r.ctrl_flags = FLAG_STALE_INPUT);
+        at(&mut tr, 150..=152, |r| {
+            r.plant_flags = FLAG_STALE_CMD | FLAG_SAFE_STATE
+        });
+        let sl = "speed-loop";
+        let (reports, _) = fault_reports(&sc, &tr, &[ev(1.0, 10, kill(), sl, sl)]);
+        let f = &reports[0];
+        assert_eq!(f.detected_data_path_ms, Some(1.0));
+        assert_eq!(f.republished_ms, Some(3.0));
+        assert_eq!(f.safe_state_ms, None, "{f:?}");
     }
 
     #[test]
