@@ -666,10 +666,15 @@ impl<T: Transport> Host<T> {
             }
             self.transport.wait(b.spec.topic, WAIT_SLICE)?;
             if started.elapsed() > LOCKSTEP_WATCHDOG {
+                let c = self.stages[si].counters;
                 bail!(
-                    "{}: no {} for sample {k} for {LOCKSTEP_WATCHDOG:?}",
+                    "{}: no {} for sample {k} for {LOCKSTEP_WATCHDOG:?} (newest {}: {:?}; {} rejected, {} late)",
                     self.stages[si].stage.name(),
-                    b.spec.topic.name()
+                    b.spec.topic.name(),
+                    b.spec.topic.name(),
+                    self.store.newest_k(b.spec.topic),
+                    c.rejected_inputs,
+                    c.late_inputs,
                 );
             }
         }
@@ -1162,10 +1167,14 @@ impl<T: Transport> Host<T> {
             }
             if !realtime {
                 if self.stages[0].last_k.is_some() && last_input.elapsed() > LOCKSTEP_WATCHDOG {
+                    let c = self.stages[0].counters;
                     bail!(
-                        "{}: no {} for {LOCKSTEP_WATCHDOG:?}",
+                        "{}: no {} for {LOCKSTEP_WATCHDOG:?} (last stepped: {:?}; {} rejected, {} late)",
                         self.stages[0].stage.name(),
-                        topic.name()
+                        topic.name(),
+                        self.stages[0].last_k,
+                        c.rejected_inputs,
+                        c.late_inputs,
                     );
                 }
                 continue;
