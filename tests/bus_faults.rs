@@ -254,3 +254,45 @@ fn corrupt_estimates_in_lockstep_are_rejected_by_each_reader_and_deterministic()
         );
     }
 }
+
+#[test]
+fn every_shipped_topology_gives_the_inprocess_trace_under_drop_and_corrupt() {
+    let _serial = serial();
+    let faults = [
+        "--fault",
+        "drop:meas@0.1:2",
+        "--fault",
+        "corrupt:est@0.15:3",
+        "--fault",
+        "drop:iref@0.2:1",
+        "--fault",
+        "corrupt:cmd@0.25:2",
+    ];
+    let with = |head: &[&'static str]| [head, &faults[..]].concat();
+    let (p, _) = run_ok(
+        "topoinproc",
+        &with(&["--clock", "inprocess", "--duration", "0.3"]),
+    );
+    let tp = read(&p.join("trace.csv"));
+    let rows = drivelab_runtime::trace::read_csv(&p.join("trace.csv")).unwrap();
+    let missing = samples(&rows, |r| r.ctrl_flags & FLAG_MISSING != 0);
+    assert_eq!(missing, [1000, 1001, 2500, 2501].into(), "{missing:?}");
+    for topo in ["four-process", "two-process", "one-process"] {
+        let (a, s) = run_ok(
+            &format!("topo{topo}"),
+            &with(&[
+                "--clock",
+                "lockstep",
+                "--duration",
+                "0.3",
+                "--topology",
+                topo,
+            ]),
+        );
+        assert!(
+            read(&a.join("trace.csv")) == tp,
+            "{topo}: not the in-process trace"
+        );
+        assert_eq!(s["faults"].as_array().unwrap().len(), 4, "{topo}");
+    }
+}
