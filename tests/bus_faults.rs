@@ -296,3 +296,49 @@ fn every_shipped_topology_gives_the_inprocess_trace_under_drop_and_corrupt() {
         assert_eq!(s["faults"].as_array().unwrap().len(), 4, "{topo}");
     }
 }
+
+#[test]
+fn a_restarted_stage_keeps_applying_the_schedule() {
+    let _serial = serial();
+    // The current loop is killed at 0.1 s and restarted: the corrupt commands at 1.5 s come
+    // from the restarted process, which read the schedule from the same resolved scenario.
+    let (out, s) = run_ok(
+        "restartcorrupt",
+        &[
+            "--duration",
+            "2.0",
+            "--fault",
+            "kill:current-loop@0.1",
+            "--fault",
+            "corrupt:cmd@1.5:5",
+        ],
+    );
+    let events = s["supervisor_events"].as_array().unwrap();
+    let ready = events
+        .iter()
+        .find(|e| e["event"] == "ready" && e["process"] == "current-loop")
+        .unwrap_or_else(|| panic!("no restart: {events:?}"));
+    assert!(
+        ready["k"].as_u64().unwrap() < 15_000,
+        "restarted too late: {ready}"
+    );
+    let f = s["faults"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|f| f["fault"] == "corrupt:cmd@1.5:5")
+        .unwrap();
+    // Every corrupt command the restarted loop published was rejected by the plant (a loop
+    // that fell behind on a loaded machine publishes only its newest command, so up to 5).
+    let n = f["rejected_inputs"].as_u64().unwrap();
+    assert!((1..=5).contains(&n), "{f}");
+    assert_eq!(f["rejected_by"], serde_json::json!({ "plant": n }), "{f}");
+    let rows = drivelab_runtime::trace::read_csv(&out.join("trace.csv")).unwrap();
+    let corrupt_rows = samples(&rows, |r| {
+        (15_000..15_005).contains(&r.k) && r.ctrl_flags & FLAG_MISSING != 0
+    });
+    assert!(corrupt_rows.len() as u64 >= n, "{corrupt_rows:?}");
+    for r in &rows {
+        assert!(r.u_d.is_finite() && r.u_q.is_finite(), "k = {}", r.k);
+    }
+}

@@ -1489,6 +1489,85 @@ mod tests {
         }
     }
 
+    /// Counts what is sent, in plain integers (no allocation).
+    #[derive(Default)]
+    struct Tally {
+        sent: u64,
+        absent: u64,
+        unusable: u64,
+    }
+
+    impl Transport for Tally {
+        fn send(&mut self, msg: &Msg) -> Result<()> {
+            self.sent += 1;
+            self.absent += u64::from(msg.hdr().is_absent());
+            self.unusable += u64::from(!msg.is_finite());
+            Ok(())
+        }
+        fn try_recv(&mut self, _topic: TopicId) -> Result<Option<Msg>> {
+            Ok(None)
+        }
+        fn pending(&mut self, _topic: TopicId) -> Result<bool> {
+            Ok(false)
+        }
+        fn wait(&mut self, _topic: TopicId, _timeout: Duration) -> Result<()> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn the_injection_schedule_on_the_publish_path_is_applied_by_index_without_allocating() {
+        use crate::inject::{Inject, InjectKind};
+        let mut sc = scenario();
+        let at = |kind, target: &str, at_s, count| Inject {
+            kind,
+            target: target.into(),
+            at_s,
+            duration_s: 0.0,
+            latency_us: 0.0,
+            count,
+        };
+        // 10 kHz: commands 10 and 11 dropped, 20 and 21 corrupt, 30..40 published 1 µs late.
+        sc.inject = vec![
+            at(InjectKind::Drop, "cmd", 0.001, 2),
+            at(InjectKind::Corrupt, "cmd", 0.002, 2),
+            Inject {
+                duration_s: 0.001,
+                latency_us: 1.0,
+                ..at(InjectKind::Delay, "current-loop", 0.003, 0)
+            },
+        ];
+        let stages: Vec<Box<dyn Stage>> = vec![Box::new(CurrentLoopStage::new(&sc))];
+        let cfg = HostConfig::for_scenario(&sc, Pacing::Lockstep, 100);
+        let mut host = Host::new(stages, &[(TopicId::Cmd, 1, true)], Tally::default(), cfg);
+        let cmd = |k| {
+            Msg::Cmd(VoltageCommand {
+                hdr: Header {
+                    k,
+                    ..Default::default()
+                },
+                ..Default::default()
+            })
+        };
+        let ((), allocations) = crate::alloc_count::allocations_during(|| {
+            for k in 0..40 {
+                host.delay(0, k);
+                host.publish(cmd(k)).unwrap();
+            }
+            host.observe_cycle(35, 1_000, Some(200_000), true);
+        });
+        assert_eq!(allocations, 0);
+        let t = &host.transport;
+        // Lockstep: an absent marker in place of each dropped command.
+        assert_eq!((t.sent, t.absent, t.unusable), (40, 2, 2));
+        for k in [10, 11, 20, 21] {
+            assert!(host.store.get(TopicId::Cmd, k).is_none(), "{k}");
+        }
+        assert!(host.store.settled(TopicId::Cmd, 10) && host.store.get(TopicId::Cmd, 12).is_some());
+        let o = host.stages[0].inject[2];
+        assert_eq!((o.cycles, o.misses, o.cycle_max_ns), (1, 1, 199_000));
+    }
+
     #[test]
     fn an_index_far_ahead_is_rejected_and_a_repeated_one_is_counted_late() {
         let sc = scenario();
