@@ -163,13 +163,14 @@ pub struct BusFigures {
 }
 
 /// The reports of the scenario's bus faults from the trace `rows` and the per-stage
-/// `counters` (`summary.json → counters`; None in process).
+/// `counters` (`summary.json → counters`; None in process), and the windows to shade on the
+/// plots (from, to in s, label).
 pub fn reports(
     sc: &Scenario,
     topo: &TopologyPlan,
     rows: &[TraceRow],
     counters: Option<&serde_json::Value>,
-) -> Vec<FaultReport> {
+) -> (Vec<FaultReport>, Vec<(f64, f64, String)>) {
     let fs = sc.rates.sample_hz;
     let ms = |dk: u64| dk as f64 / fs * 1e3;
     let divider = |t: drivelab_runtime::stage::TopicId| {
@@ -179,6 +180,7 @@ pub fn reports(
             .map_or(1, |p| p.divider)
     };
     let mut out = Vec::new();
+    let mut windows = Vec::new();
     for (n, i) in sc.inject.iter().enumerate() {
         let a = Armed::bind(i, fs, &[], divider);
         let stage = match a.topic {
@@ -220,6 +222,7 @@ pub fn reports(
             .collect();
         let rec = crate::launcher::speed_recovered(sc, &tail);
         let k_end = rec.or(fresh).unwrap_or(a.to_k + (0.2 * fs) as u64);
+        windows.push((a.from_k as f64 / fs, k_end as f64 / fs, i.spec()));
         let span: Vec<&TraceRow> = after.iter().take_while(|r| r.k <= k_end).collect();
         let count = |f: &dyn Fn(&TraceRow) -> bool| span.iter().filter(|r| f(r)).count() as u64;
         let obs = |field: &str| -> Vec<(String, u64)> {
@@ -282,7 +285,7 @@ pub fn reports(
             }),
         });
     }
-    out
+    (out, windows)
 }
 
 #[cfg(test)]

@@ -585,13 +585,11 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         Clock::Realtime => run_bus(&sc, &sc_path, &topo, &plan, o, &out, BusClock::Realtime)?,
     };
     let wall_s = wall.elapsed().as_secs_f64();
-    let (mut faults, windows) = fault_reports(&sc, &rows, &events);
-    faults.extend(crate::bus_faults::reports(
-        &sc,
-        &topo,
-        &rows,
-        info.get("counters"),
-    ));
+    let (mut faults, mut windows) = fault_reports(&sc, &rows, &events);
+    let (bus_faults, bus_windows) =
+        crate::bus_faults::reports(&sc, &topo, &rows, info.get("counters"));
+    faults.extend(bus_faults);
+    windows.extend(bus_windows);
     if let Some(t) = trip::trip_report(&sc, &rows) {
         eprintln!(
             "drivelab: the inverter tripped on overcurrent at t = {:.4} s (sample {}); it stayed in its safe state",
