@@ -342,3 +342,31 @@ fn a_restarted_stage_keeps_applying_the_schedule() {
         assert!(r.u_d.is_finite() && r.u_q.is_finite(), "k = {}", r.k);
     }
 }
+
+#[test]
+fn a_delay_is_accepted_in_lockstep_and_changes_nothing_in_the_trace() {
+    let _serial = serial();
+    let (plain, _) = run_ok("delayplain", &["--clock", "inprocess", "--duration", "0.2"]);
+    let (ls, s) = run_ok(
+        "delayls",
+        &[
+            "--clock",
+            "lockstep",
+            "--duration",
+            "0.2",
+            "--fault",
+            "delay:observer@0.05:0.1:300us",
+        ],
+    );
+    assert!(
+        read(&ls.join("trace.csv")) == read(&plain.join("trace.csv")),
+        "a delay changed the lockstep trace"
+    );
+    let f = &s["faults"][0];
+    assert_eq!(f["fault"], "delay:observer@0.05:0.1:300us", "{f}");
+    // No deadline in lockstep: no misses, no cycle latency to report.
+    assert!(
+        f["deadline_misses"].is_null() && f["cycle_latency_max_us"].is_null(),
+        "{f}"
+    );
+}

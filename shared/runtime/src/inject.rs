@@ -401,6 +401,32 @@ mod tests {
             let e = validate(&[i], 1.0).unwrap_err();
             assert!(e.contains(want) && !e.contains('\n'), "{e}");
         }
+        // In a scenario file: checked with the rest, unknown keys refused.
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../scenarios/kyslan-pi.toml"
+        );
+        let text = std::fs::read_to_string(path).unwrap();
+        let with = |t: &str| crate::config::Scenario::from_toml(&format!("{text}\n{t}"), path);
+        let ok = with("[[inject]]\nkind = \"corrupt\"\ntarget = \"est\"\nat_s = 0.05\ncount = 3\n");
+        assert_eq!(ok.unwrap().inject[0].spec(), "corrupt:est@0.05:3");
+        for (bad, want) in [
+            (
+                "kind = \"drop\"\ntarget = \"cmd\"\nat_s = 0.05\ncount = 0",
+                "count must be in",
+            ),
+            (
+                "kind = \"drop\"\ntarget = \"cmd\"\nat_s = 0.05\nn = 3",
+                "unknown field",
+            ),
+            (
+                "kind = \"melt\"\ntarget = \"cmd\"\nat_s = 0.05",
+                "unknown variant",
+            ),
+        ] {
+            let e = with(&format!("[[inject]]\n{bad}\n")).unwrap_err();
+            assert!(e.contains(want), "{bad}: {e}");
+        }
         let many = vec![drop_cmd(0.1, 1); MAX_INJECT + 1];
         assert!(validate(&many, 1.0).unwrap_err().contains("at most 16"));
     }
