@@ -242,6 +242,7 @@ fn corrupt_estimates_in_lockstep_are_rejected_by_each_reader_and_deterministic()
     assert_eq!(rows.len(), 3000);
     assert!(samples(&rows, |r| r.ctrl_flags & FLAG_MISSING != 0).is_empty());
     let stale = samples(&rows, |r| r.ctrl_flags & FLAG_STALE_INPUT != 0);
+    assert_eq!(f["stale_input_samples"], stale.len(), "{f}");
     assert!(
         stale.contains(&2000) && stale.iter().all(|k| (2000..2013).contains(k)),
         "{stale:?}"

@@ -154,6 +154,9 @@ pub struct BusFigures {
     pub safe_state_samples: u64,
     /// Samples of the same span with no usable command recorded (`ctrl_flags` 32).
     pub missing_command_samples: u64,
+    /// Samples of the same span whose command was made from a stale input or a fallback
+    /// (`ctrl_flags` 8: a held estimate or reference).
+    pub stale_input_samples: u64,
     /// delay, real time: commands of the window's samples not there at their deadline, as
     /// the plant counted them (None elsewhere).
     pub deadline_misses: Option<u64>,
@@ -272,6 +275,7 @@ pub fn reports(
                 stale_command_samples: count(&|r| r.plant_flags & FLAG_STALE_CMD != 0),
                 safe_state_samples: count(&|r| r.plant_flags & FLAG_SAFE_STATE != 0),
                 missing_command_samples: count(&|r| r.ctrl_flags & FLAG_MISSING != 0),
+                stale_input_samples: count(&|r| r.ctrl_flags & FLAG_STALE_INPUT != 0),
                 deadline_misses: if realtime_delay {
                     plant("misses")
                 } else {
