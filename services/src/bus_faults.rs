@@ -375,8 +375,8 @@ mod tests {
         assert!(err("explode:cmd@1:1").contains("delay, drop, corrupt"));
     }
 
-    #[test]
-    fn the_schedule_is_checked_against_the_topology_and_the_run() {
+    /// kyslan-pi (1 s, 10 kHz) and its default topology.
+    fn kyslan() -> (Scenario, TopologyPlan) {
         let mut sc = crate::launcher::load_scenario("kyslan-pi", Some(1.0)).unwrap();
         let o = crate::launcher::RunOptions {
             scenario: "kyslan-pi".into(),
@@ -401,6 +401,80 @@ mod tests {
             &o,
         )
         .unwrap();
+        (sc, topo)
+    }
+
+    #[test]
+    fn reports_count_the_window_from_the_trace_and_the_stages_counters() {
+        let (mut sc, topo) = kyslan();
+        let specs = [
+            crate::faults::parse("corrupt:cmd@0.001:3").unwrap(),
+            crate::faults::parse("delay:current-loop@0.001:0.001:150us").unwrap(),
+        ];
+        schedule(&specs, &mut sc, &topo).unwrap();
+        // Commands 10..=12 unusable: no command in those rows, the plant holds 11..=13
+        // (within hold_samples = 3: no safe state), fresh again at 14.
+        let rows: Vec<TraceRow> = (0..100)
+            .map(|k| TraceRow {
+                k,
+                t: k as f64 * 1e-4,
+                omega_m: 70.0,
+                i_q: if k == 12 { 3.0 } else { 1.0 },
+                ctrl_flags: if (10..13).contains(&k) {
+                    FLAG_MISSING
+                } else {
+                    0
+                },
+                plant_flags: if (11..14).contains(&k) {
+                    FLAG_STALE_CMD
+                } else {
+                    0
+                },
+                ..Default::default()
+            })
+            .collect();
+        let obs = |rejected: u64, cycles: u64, misses: u64| {
+            serde_json::json!([
+                { "rejected": rejected, "cycles": 0, "misses": 0, "cycle_max_ns": 0 },
+                { "rejected": 0, "cycles": cycles, "misses": misses, "cycle_max_ns": 250_000 },
+            ])
+        };
+        let counters = serde_json::json!({
+            "plant": { "inject": obs(3, 10, 7) },
+            "observer": { "inject": obs(0, 0, 0) },
+        });
+        let (r, windows) = reports(&sc, &topo, &rows, Some(&counters));
+        assert_eq!(windows.len(), 2);
+        let (c, d) = (&r[0], &r[1]);
+        let b = c.bus.as_ref().unwrap();
+        assert_eq!((c.service.as_str(), c.injected_k), ("current-loop", 10));
+        assert_eq!((b.window_from_k, b.window_to_k), (10, 13));
+        assert_eq!(b.rejected_inputs, Some(3));
+        assert_eq!(b.rejected_by, BTreeMap::from([("plant".to_string(), 3)]));
+        assert_eq!((b.stale_command_samples, b.missing_command_samples), (3, 3));
+        assert_eq!(
+            c.detected_by.as_deref(),
+            Some("recorder (no usable command)")
+        );
+        assert_eq!(c.republished_ms, Some(0.4));
+        assert_eq!(c.peak_current_a, 3.0);
+        assert_eq!((b.deadline_misses, b.cycle_latency_max_us), (None, None));
+        let b = d.bus.as_ref().unwrap();
+        assert_eq!((b.window_from_k, b.window_to_k), (10, 20));
+        assert_eq!(
+            (b.deadline_misses, b.cycle_latency_max_us),
+            (Some(7), Some(250.0))
+        );
+        assert_eq!(b.rejected_inputs, None);
+        // In process: no counters, no counts from them.
+        let (r, _) = reports(&sc, &topo, &rows, None);
+        let b = r[0].bus.as_ref().unwrap();
+        assert_eq!((b.rejected_inputs, b.stale_command_samples), (None, 3));
+    }
+
+    #[test]
+    fn the_schedule_is_checked_against_the_topology_and_the_run() {
+        let (sc, topo) = kyslan();
         let specs = [
             crate::faults::parse("drop:cmd@0.5:3").unwrap(),
             crate::faults::parse("kill:plant@0.5").unwrap(),
