@@ -29,7 +29,7 @@ pub enum FaultKind {
 
 /// A stage name as a fault target: checked for its form here, against the run's topology
 /// by [`plan`].
-fn service(name: &str) -> Result<String> {
+pub(crate) fn service(name: &str) -> Result<String> {
     if name.is_empty()
         || !name
             .chars()
@@ -40,7 +40,7 @@ fn service(name: &str) -> Result<String> {
     Ok(name.to_string())
 }
 
-fn seconds(v: &str, what: &str, spec: &str) -> Result<f64> {
+pub(crate) fn seconds(v: &str, what: &str, spec: &str) -> Result<f64> {
     let x: f64 = v
         .trim_end_matches('s')
         .parse()
@@ -56,12 +56,13 @@ pub const STOP_MIN_S: f64 = 0.001;
 /// Longest stop, s.
 pub const STOP_MAX_S: f64 = 60.0;
 
-/// Parses one `--fault` value: `kill:SERVICE@SECONDS`, `stop:SERVICE@SECONDS:DURATION` or
-/// `random:N` (expanded later with the run's seed and duration).
+/// Parses one `--fault` value: `kill:SERVICE@SECONDS`, `stop:SERVICE@SECONDS:DURATION`,
+/// `random:N` (expanded later with the run's seed and duration) or a bus fault
+/// (`delay:…`, `drop:…`, `corrupt:…`, see [`crate::bus_faults`]).
 pub fn parse(spec: &str) -> Result<FaultSpec> {
     let (kind, rest) = spec
         .split_once(':')
-        .ok_or_else(|| anyhow!("fault '{spec}': expected kill:SERVICE@SECONDS, stop:SERVICE@SECONDS:DURATION or random:N"))?;
+        .ok_or_else(|| anyhow!("fault '{spec}': expected kill:SERVICE@SECONDS, stop:SERVICE@SECONDS:DURATION, random:N, delay:STAGE@SECONDS:DURATION:LATENCY, drop:TOPIC@SECONDS:N or corrupt:TOPIC@SECONDS:N"))?;
     match kind {
         "random" => {
             let n: u32 = rest
@@ -105,7 +106,10 @@ pub fn parse(spec: &str) -> Result<FaultSpec> {
                 }))
             }
         }
-        other => bail!("fault '{spec}': unknown fault kind '{other}' (kill, stop, random)"),
+        "delay" | "drop" | "corrupt" => crate::bus_faults::parse(kind, rest, spec),
+        other => bail!(
+            "fault '{spec}': unknown fault kind '{other}' (kill, stop, random, delay, drop, corrupt)"
+        ),
     }
 }
 
@@ -116,6 +120,8 @@ pub enum FaultSpec {
     One(Fault),
     /// N kills of random services at random instants.
     Random(u32),
+    /// A bus fault, injected by the stage hosts by sample index (not part of the plan).
+    Bus(drivelab_runtime::inject::Inject),
 }
 
 /// Expands the specs into a time-ordered plan against the run's `stages`. Random kills of
@@ -174,6 +180,8 @@ pub fn plan(
                     });
                 }
             }
+            // Carried in the scenario instead (`crate::bus_faults::schedule`).
+            FaultSpec::Bus(_) => {}
         }
     }
     out.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));

@@ -3,6 +3,7 @@
 
 pub mod bench;
 pub mod budget;
+pub mod bus_faults;
 pub mod campaign;
 pub mod cdm_design;
 pub mod common;

@@ -57,10 +57,14 @@ enum Cmd {
         /// Print the summary as JSON on stdout instead of the human summary.
         #[arg(long)]
         json: bool,
-        /// Inject a fault (repeatable, realtime only): kill:STAGE@SECONDS (SIGKILL),
+        /// Inject a fault (repeatable): kill:STAGE@SECONDS (SIGKILL),
         /// stop:STAGE@SECONDS:DURATION (SIGSTOP, then SIGCONT), random:N (N kills of random
-        /// stages at random instants, seeded by --fault-seed). SECONDS are simulated time. The
-        /// signal goes to the process that hosts the stage, and so to all its stages.
+        /// stages at random instants, seeded by --fault-seed), all three realtime only; the
+        /// signal goes to the process that hosts the stage, and so to all its stages. Bus
+        /// faults, applied by sample index in every clock: delay:STAGE@SECONDS:DURATION:LATENCY
+        /// (the stage's outputs published LATENCY late, e.g. 200us or 0.3ms; real time only,
+        /// accepted elsewhere), drop:TOPIC@SECONDS:N (N messages not published),
+        /// corrupt:TOPIC@SECONDS:N (N messages with NaN and 1e30). SECONDS are simulated time.
         #[arg(long = "fault", value_name = "SPEC")]
         faults: Vec<String>,
         /// What the supervisor does when a process dies.

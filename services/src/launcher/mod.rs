@@ -13,7 +13,7 @@ mod supervisor;
 mod trip;
 
 pub use recorder::Gap;
-pub use supervisor::{fault_reports, EventKind, FaultReport, SupEvent};
+pub use supervisor::{fault_reports, speed_recovered, EventKind, FaultReport, SupEvent};
 
 use crate::common::BusClock;
 use anyhow::{anyhow, bail, Context, Result};
@@ -304,6 +304,9 @@ fn run_bus(
                 if let Some(d) = v.get("diagnostics") {
                     cv["diagnostics"] = d.clone();
                 }
+                if let Some(d) = v.get("inject") {
+                    cv["inject"] = d.clone();
+                }
                 counters.insert(st.clone(), cv);
             }
         }
@@ -537,6 +540,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     if !plan.is_empty() && o.clock != Clock::Realtime {
         bail!("fault injection needs --clock realtime");
     }
+    // Bus faults (delay, drop, corrupt) go to every stage host in the resolved scenario.
+    crate::bus_faults::schedule(&o.faults, &mut sc, &topo)?;
     let out = o.out.clone().unwrap_or_else(|| default_out(&sc, o.clock));
     std::fs::create_dir_all(&out)
         .with_context(|| format!("cannot create run folder {}", out.display()))?;
@@ -580,7 +585,11 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         Clock::Realtime => run_bus(&sc, &sc_path, &topo, &plan, o, &out, BusClock::Realtime)?,
     };
     let wall_s = wall.elapsed().as_secs_f64();
-    let (mut faults, windows) = fault_reports(&sc, &rows, &events);
+    let (mut faults, mut windows) = fault_reports(&sc, &rows, &events);
+    let (bus_faults, bus_windows) =
+        crate::bus_faults::reports(&sc, &topo, &rows, info.get("counters"));
+    faults.extend(bus_faults);
+    windows.extend(bus_windows);
     if let Some(t) = trip::trip_report(&sc, &rows) {
         eprintln!(
             "drivelab: the inverter tripped on overcurrent at t = {:.4} s (sample {}); it stayed in its safe state",

@@ -41,6 +41,24 @@ pub(super) struct Progress {
     pub tail: crate::hub::TraceTail,
 }
 
+/// Command `c` as the trace takes it: an unusable one (NaN, ∞ or an absurd magnitude, e.g.
+/// from a `corrupt` fault) is never recorded; like an absent marker, it leaves its sample
+/// without a command (docs/architecture.md, "Fault model").
+fn usable(c: VoltageCommand) -> VoltageCommand {
+    use drivelab_runtime::messages::{Finite, FLAG_ABSENT};
+    if c.hdr.is_absent() || c.is_finite() {
+        return c;
+    }
+    VoltageCommand {
+        hdr: drivelab_runtime::messages::Header {
+            k: c.hdr.k,
+            flags: FLAG_ABSENT,
+            ..Default::default()
+        },
+        ..Default::default()
+    }
+}
+
 /// The recorder thread's body: reports on `ready` whether its subscriptions are in place, then
 /// records samples `0..n` of scenario `sc` into `trace` (written to `trace.csv` as it goes)
 /// until both streams ended or `stop` is set.
@@ -128,8 +146,11 @@ pub(super) fn run_recorder(
                 cmd_end = true;
                 continue;
             }
+            let c = usable(c);
             trace.cmd(c)?;
-            last_cmd = c;
+            if !c.hdr.is_absent() {
+                last_cmd = c;
+            }
         }
         while let Some(w) = wref_rx.try_recv()? {
             if !w.hdr.is_warmup() && !w.hdr.is_end() && w.theta_m_ref.is_finite() {
@@ -153,7 +174,7 @@ pub(super) fn run_recorder(
             }
             while let Some(c) = cmd_rx.try_recv()? {
                 if !c.hdr.is_end() && !c.hdr.is_warmup() {
-                    trace.cmd(c)?;
+                    trace.cmd(usable(c))?;
                 }
             }
             return trace.finish();
@@ -373,6 +394,7 @@ mod tests {
             republished_ms: republished,
             speed_recovered_ms: recovered,
             plant_down: None,
+            bus: None,
         }
     }
 

@@ -10,8 +10,7 @@ use anyhow::Result;
 use drivelab_runtime::config::Scenario;
 use drivelab_runtime::drive::trace_row;
 use drivelab_runtime::messages::{
-    Header, PlantTruth, VoltageCommand, FLAG_MISSING, FLAG_PLANT_DOWN, FLAG_SAFE_STATE,
-    FLAG_TRIPPED,
+    Header, PlantTruth, VoltageCommand, FLAG_PLANT_DOWN, FLAG_SAFE_STATE, FLAG_TRIPPED,
 };
 use drivelab_runtime::trace::{CsvTrace, TraceRow};
 use serde::Serialize;
@@ -365,7 +364,11 @@ impl TraceStream {
             let k = self.next;
             let s = Self::slot(k);
             let m = self.meas[s].take().filter(|m| m.hdr.k == k);
-            let c = self.cmd[s].take().filter(|c| c.hdr.k == k);
+            // An absent marker (lockstep: no usable command will come) completes the sample
+            // without a command.
+            let c = self.cmd[s]
+                .take()
+                .filter(|c| c.hdr.k == k && !c.hdr.is_absent());
             match m {
                 Some(m) => self.row(&m, c.as_ref())?,
                 None => {
@@ -392,20 +395,7 @@ impl TraceStream {
         let mut row = match c {
             Some(c) => trace_row(self.ts, m, c),
             None => {
-                let nan = f64::NAN;
-                let c = VoltageCommand {
-                    hdr: Header {
-                        k,
-                        flags: FLAG_MISSING,
-                        ..Default::default()
-                    },
-                    u_ab: [nan; 2],
-                    u_dq: [nan; 2],
-                    i_dq_ref: [nan; 2],
-                    omega_ref: nan,
-                    omega_hat: nan,
-                    theta_hat: nan,
-                };
+                let c = drivelab_runtime::drive::missing_command(k);
                 let cause = if m.hdr.flags & FLAG_PLANT_DOWN != 0 {
                     "none reached the inverter: the plant was down (sample rebuilt, plant_flags 64)"
                 } else {

@@ -406,6 +406,9 @@ pub struct FaultReport {
     /// peak |i_dq| (A) and |ω_m| (mechanical rad/s) over them. None when no sample was
     /// rebuilt (not a plant fault, or the plant did not come back).
     pub plant_down: Option<PlantDown>,
+    /// A bus fault's own figures (delay, drop, corrupt), beside the ones above.
+    #[serde(flatten)]
+    pub bus: Option<crate::bus_faults::BusFigures>,
 }
 
 /// The motor while the plant's process was down (see [`FaultReport::plant_down`]).
@@ -417,6 +420,19 @@ pub struct PlantDown {
     pub peak_current_a: f64,
     /// Peak speed magnitude, mechanical rad/s.
     pub peak_speed_rad_s: f64,
+}
+
+/// The first sample of `tail` (rows in order) from which the speed stays within ±2 % of its
+/// reference for 10 ms.
+pub fn speed_recovered(sc: &Scenario, tail: &[&TraceRow]) -> Option<u64> {
+    let hold = (0.01 * sc.rates.sample_hz).ceil() as usize;
+    let within = |r: &TraceRow| {
+        let w = drivelab_runtime::config::profile_at(&sc.reference.speed_rad_s, r.t);
+        (r.omega_m - w).abs() <= 0.02 * w.abs().max(1e-9)
+    };
+    (0..tail.len())
+        .find(|&i| tail[i..].iter().take(hold).all(|r| within(r)) && tail.len() - i >= hold)
+        .map(|i| tail[i].k)
 }
 
 /// Builds the fault reports from the supervisor's events and the trace, and the windows to
@@ -478,17 +494,10 @@ pub fn fault_reports(
             .filter(|r| r.k > k_det)
             .find(|r| r.plant_flags & (FLAG_STALE_CMD | FLAG_SAFE_STATE) == 0 && r.ctrl_flags == 0)
             .map(|r| r.k);
-        let hold = (0.01 * fs).ceil() as usize;
-        let within = |r: &TraceRow| {
-            let w = drivelab_runtime::config::profile_at(&sc.reference.speed_rad_s, r.t);
-            (r.omega_m - w).abs() <= 0.02 * w.abs().max(1e-9)
-        };
         let tail: Vec<&TraceRow> = after()
             .filter(|r| fresh.is_some_and(|f| r.k >= f))
             .collect();
-        let rec = (0..tail.len())
-            .find(|&i| tail[i..].iter().take(hold).all(|r| within(r)) && tail.len() - i >= hold)
-            .map(|i| tail[i].k);
+        let rec = speed_recovered(sc, &tail);
         let k_rec = rec
             .or(fresh)
             .unwrap_or(k_end_window.min(k0 + (0.2 * fs) as u64));
@@ -529,6 +538,7 @@ pub fn fault_reports(
             republished_ms: fresh.map(|f| ms(f - k0)),
             speed_recovered_ms: rec.map(|r| ms(r - k0)),
             plant_down,
+            bus: None,
         });
     }
     (out, windows)

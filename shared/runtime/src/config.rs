@@ -69,6 +69,10 @@ pub struct Scenario {
     /// four-process layout with `[placement]`.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub process: Vec<crate::topology::ProcessSpec>,
+    /// Bus faults the stage hosts inject by sample index (`[[inject]]` tables, written by the
+    /// launcher from `--fault delay:…`, `drop:…`, `corrupt:…`; see [`crate::inject`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub inject: Vec<crate::inject::Inject>,
 }
 
 /// One `[[expect]]` table: `check = "FIGURE OP LIMIT"`, e.g. `"peak_current_a <= 8"` or
@@ -976,6 +980,7 @@ impl Scenario {
                 })?;
             }
         }
+        crate::inject::validate(&self.inject, self.duration_s)?;
         Ok(())
     }
 }

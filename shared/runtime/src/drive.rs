@@ -771,6 +771,25 @@ impl CurrentLoopStep {
     }
 }
 
+/// The stand-in for a command that never came (or came unusable) for sample k: NaN in every
+/// column, flagged [`FLAG_MISSING`](crate::messages::FLAG_MISSING).
+pub fn missing_command(k: u64) -> VoltageCommand {
+    let nan = f64::NAN;
+    VoltageCommand {
+        hdr: crate::messages::Header {
+            k,
+            flags: crate::messages::FLAG_MISSING,
+            ..Default::default()
+        },
+        u_ab: [nan; 2],
+        u_dq: [nan; 2],
+        i_dq_ref: [nan; 2],
+        omega_ref: nan,
+        omega_hat: nan,
+        theta_hat: nan,
+    }
+}
+
 /// One trace row from measurement k and command k.
 pub fn trace_row(ts: f64, truth: &PlantTruth, cmd: &VoltageCommand) -> TraceRow {
     TraceRow {

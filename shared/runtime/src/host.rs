@@ -19,7 +19,8 @@
 //!
 //! The loops make no allocation, take no lock, do no logging.
 
-use crate::messages::{Header, FLAG_END, FLAG_STALE_INPUT, FLAG_WARMUP};
+use crate::inject::{Armed, Inject, InjectKind, InjectObs};
+use crate::messages::{Header, FLAG_ABSENT, FLAG_END, FLAG_STALE_INPUT, FLAG_WARMUP};
 use crate::rt::{now_ns, sleep_until_ns};
 use crate::stage::*;
 use crate::timing::{CycleMonitor, LatencyHist, MissCounter};
@@ -263,6 +264,8 @@ pub struct Hosted {
     pub counters: Counters,
     /// Its histograms.
     pub hists: StageHists,
+    /// What it saw of each injection of the schedule (same order as the scenario's).
+    pub inject: Vec<InjectObs>,
     last_k: Option<u64>,
     /// Index of the newest trigger received (for gaps, order and staleness).
     last_seen: Option<u64>,
@@ -315,6 +318,10 @@ pub struct HostConfig {
     /// on it (futex wake words): a stage falling back on the clock then sleeps until the
     /// next sample is out instead of polling on a timer.
     pub clock_wakes: bool,
+    /// Bus faults to inject by sample index (the scenario's `[[inject]]` tables).
+    pub inject: Vec<Inject>,
+    /// Sample rate, Hz (to turn the injections' times into sample indices).
+    pub sample_hz: f64,
 }
 
 impl HostConfig {
@@ -332,6 +339,8 @@ impl HostConfig {
             poke: Vec::new(),
             clock_topic: TopicId::Meas,
             clock_wakes: false,
+            inject: sc.inject.clone(),
+            sample_hz: sc.rates.sample_hz,
         }
     }
 }
@@ -427,7 +436,26 @@ impl Store {
     }
 
     fn get(&self, t: TopicId, k: u64) -> Option<Msg> {
-        self.ring[t.index()][self.slot_of(t, k)].filter(|m| m.hdr().k == k)
+        self.ring[t.index()][self.slot_of(t, k)].filter(|m| m.hdr().k == k && !m.hdr().is_absent())
+    }
+
+    /// Marks message k of `t` absent: lockstep knows it will not come (a message already
+    /// taken for k stays).
+    fn put_absent(&mut self, t: TopicId, k: u64) {
+        let s = self.slot_of(t, k);
+        if self.get(t, k).is_none() {
+            let hdr = Header {
+                k,
+                flags: FLAG_ABSENT,
+                ..Default::default()
+            };
+            self.ring[t.index()][s] = Some(Msg::marker(t, hdr));
+        }
+    }
+
+    /// True when message k of `t` is there or known to be absent.
+    fn settled(&self, t: TopicId, k: u64) -> bool {
+        self.ring[t.index()][self.slot_of(t, k)].is_some_and(|m| m.hdr().k == k)
     }
 
     fn newest_k(&self, t: TopicId) -> Option<u64> {
@@ -451,6 +479,8 @@ pub struct Host<T: Transport> {
     drains: Vec<(usize, Bound)>,
     /// The sample indices taken from the bus.
     window: IndexWindow,
+    /// The injection schedule bound to this host's stages and topics.
+    armed: Vec<Armed>,
 }
 
 impl<T: Transport> Host<T> {
@@ -494,6 +524,7 @@ impl<T: Transport> Host<T> {
                     inputs,
                     counters: Counters::default(),
                     hists: StageHists::new(source, cfg.ts_ns),
+                    inject: vec![InjectObs::default(); cfg.inject.len()],
                     last_k: None,
                     last_seen: None,
                     in_fallback: false,
@@ -518,7 +549,14 @@ impl<T: Transport> Host<T> {
             .chain(hosted.iter().map(|h| h.divider))
             .max()
             .unwrap_or(1);
+        let names: Vec<&str> = hosted.iter().map(|h| h.stage.name()).collect();
+        let armed = cfg
+            .inject
+            .iter()
+            .map(|i| Armed::bind(i, cfg.sample_hz, &names, |t| divider[t.index()]))
+            .collect();
         Self {
+            armed,
             window: IndexWindow::new(cfg.pacing == Pacing::Realtime, cfg.ts_ns, max_divider),
             stages: hosted,
             transport,
@@ -543,11 +581,141 @@ impl<T: Transport> Host<T> {
     /// index the drive can be at ([`IndexWindow`]). Else counted as rejected against stage
     /// `si`.
     fn admit(&mut self, si: usize, m: &Msg) -> bool {
-        let ok = m.is_finite() && self.window.admits(m.hdr(), now_ns());
+        let plausible = self.window.admits(m.hdr(), now_ns());
+        let ok = plausible && m.is_finite();
         if !ok {
-            self.stages[si].counters.rejected_inputs += 1;
+            self.reject(si, m, plausible);
         }
         ok
+    }
+
+    /// Counts message `m` as rejected by stage `si`, and against the corrupt fault whose
+    /// window it is in. In lockstep an unusable message of a `plausible` index is absent for
+    /// its sample: nobody waits for it any more.
+    fn reject(&mut self, si: usize, m: &Msg, plausible: bool) {
+        let (t, k) = (m.topic(), m.hdr().k);
+        self.stages[si].counters.rejected_inputs += 1;
+        for i in 0..self.armed.len() {
+            if self.armed[i].kind == InjectKind::Corrupt && self.armed[i].hits(t, k) {
+                self.stages[si].inject[i].rejected += 1;
+            }
+        }
+        if plausible && self.cfg.pacing == Pacing::Lockstep {
+            self.store.put_absent(t, k);
+        }
+    }
+
+    /// Lockstep: takes absent marker `hdr` of `t` (a sample the producer has no message
+    /// for). False when its index is not one the drive can be at.
+    fn take_absent(&mut self, t: TopicId, hdr: &Header) -> bool {
+        let ok = self.window.admits(hdr, now_ns());
+        if ok {
+            self.store.put_absent(t, hdr.k);
+        }
+        ok
+    }
+
+    /// The first stage of this process that reads `t` from a stage of this process.
+    fn local_reader(&self, t: TopicId) -> Option<usize> {
+        self.stages.iter().position(|h| {
+            h.inputs.iter().any(|b| {
+                b.spec.topic == t && b.origin == Origin::Local && b.spec.role != Role::Rejoin
+            })
+        })
+    }
+
+    /// Publishes output `m` of this process, or what the injection schedule makes of it:
+    /// nothing (drop; lockstep tells the consumers so) or a corrupt copy, which this
+    /// process's own reader rejects as a peer's would.
+    fn publish(&mut self, m: Msg) -> Result<()> {
+        let (t, k) = (m.topic(), m.hdr().k);
+        let hit = self
+            .armed
+            .iter()
+            .position(|a| a.kind != InjectKind::Delay && a.hits(t, k));
+        let Some(i) = hit else {
+            self.store.put(m);
+            return self.transport.send(&m);
+        };
+        let a = self.armed[i];
+        if a.kind == InjectKind::Drop {
+            return self.absent(t, k);
+        }
+        let mut c = m;
+        crate::inject::corrupt(&mut c, a.nth(k));
+        if let Some(r) = self.local_reader(t) {
+            self.reject(r, &c, true);
+        }
+        self.transport.send(&c)
+    }
+
+    /// No message of `t` for sample k: in lockstep the consumers get an absent marker.
+    fn absent(&mut self, t: TopicId, k: u64) -> Result<()> {
+        self.store.put_absent(t, k);
+        if self.cfg.pacing == Pacing::Lockstep {
+            let hdr = Header {
+                k,
+                flags: FLAG_ABSENT,
+                ..Default::default()
+            };
+            self.transport.send(&Msg::marker(t, hdr))?;
+        }
+        Ok(())
+    }
+
+    /// Lockstep: stage `si` cannot step at k (a required input is absent): its outputs of
+    /// sample k are absent too, so that their consumers do not wait for them.
+    fn absent_outputs(&mut self, si: usize, k: u64) -> Result<()> {
+        if self.cfg.pacing != Pacing::Lockstep {
+            return Ok(());
+        }
+        let outs = self.stages[si].stage.outputs();
+        for &t in outs {
+            self.absent(t, k)?;
+        }
+        Ok(())
+    }
+
+    /// Real time: the outputs of stage `si` for sample k wait out every delay fault that
+    /// covers k (a slow computation): a spin on the monotonic clock (vDSO, no system call),
+    /// no allocation.
+    #[inline]
+    fn delay(&self, si: usize, k: u64) {
+        let lat = self
+            .armed
+            .iter()
+            .filter(|a| a.kind == InjectKind::Delay && a.stage == Some(si) && a.covers(k))
+            .map(|a| a.latency_ns)
+            .max()
+            .unwrap_or(0);
+        if lat > 0 {
+            let until = now_ns() + lat;
+            while now_ns() < until {
+                std::hint::spin_loop();
+            }
+        }
+    }
+
+    /// Source, real time: command `kc` (of sample instant `t_k`) was published at `avail`
+    /// (None: not there at its deadline), for the delay faults whose window covers `kc`.
+    /// `at_deadline`: seen at its deadline (counted) rather than arriving late.
+    fn observe_cycle(&mut self, kc: u64, t_k: u64, avail: Option<u64>, at_deadline: bool) {
+        let ts = self.cfg.ts_ns;
+        for i in 0..self.armed.len() {
+            let a = self.armed[i];
+            if a.kind != InjectKind::Delay || !a.covers(kc) {
+                continue;
+            }
+            let o = &mut self.stages[0].inject[i];
+            let lat = avail.map(|t| t.saturating_sub(t_k));
+            if let Some(l) = lat {
+                o.cycle_max_ns = o.cycle_max_ns.max(l);
+            }
+            if at_deadline {
+                o.cycles += 1;
+                o.misses += u64::from(lat.is_none_or(|l| l > ts));
+            }
+        }
     }
 
     /// True when the first stage is the source (no trigger).
@@ -581,6 +749,10 @@ impl<T: Transport> Host<T> {
                 if h.is_warmup() || h.is_end() {
                     continue;
                 }
+                if h.is_absent() {
+                    self.take_absent(b.spec.topic, h);
+                    continue;
+                }
                 if !self.admit(si, &m) {
                     continue;
                 }
@@ -593,6 +765,7 @@ impl<T: Transport> Host<T> {
                         self.stages[si].counters.late_commands += 1;
                         if h.t_sample_ns != 0 {
                             self.cycle.late_command(h.t_sample_ns, h.t_pub_ns);
+                            self.observe_cycle(h.k, h.t_sample_ns, Some(h.t_pub_ns), false);
                         }
                         continue;
                     }
@@ -658,7 +831,7 @@ impl<T: Transport> Host<T> {
                 b.origin == Origin::External
                     && b.spec.role == Role::Latest
                     && expected_index(k, b.spec.delay, b.producer_divider)
-                        .is_some_and(|w| self.store.get(b.spec.topic, w).is_none())
+                        .is_some_and(|w| !self.store.settled(b.spec.topic, w))
             });
             let Some(b) = missing else { return Ok(true) };
             if self.stopping() {
@@ -707,6 +880,9 @@ impl<T: Transport> Host<T> {
             0
         };
         let mut any = false;
+        if self.cfg.pacing == Pacing::Realtime {
+            self.delay(si, k);
+        }
         for mut m in out.drain() {
             any = true;
             let hd = m.hdr_mut();
@@ -714,8 +890,7 @@ impl<T: Transport> Host<T> {
                 hd.flags |= FLAG_STALE_INPUT;
             }
             hd.t_pub_ns = now_ns();
-            self.store.put(m);
-            self.transport.send(&m)?;
+            self.publish(m)?;
         }
         let h = &mut self.stages[si];
         if any {
@@ -749,7 +924,11 @@ impl<T: Transport> Host<T> {
                         && self.store.get(tb.spec.topic, k).is_none()
                         && !self.wait_trigger_k(si, tb.spec.topic, k)?
                     {
-                        if self.stopping() || tb.spec.on_stale != OnStale::Fallback {
+                        if self.stopping() {
+                            continue;
+                        }
+                        if tb.spec.on_stale != OnStale::Fallback {
+                            self.absent_outputs(si, k)?;
                             continue;
                         }
                         fallback = true;
@@ -762,6 +941,7 @@ impl<T: Transport> Host<T> {
             let (mut ib, complete) = self.inbox(si, k);
             self.stages[si].counters.stale_inputs += self.count_stale(si, &ib);
             if !complete {
+                self.absent_outputs(si, k)?;
                 continue;
             }
             if self.stages[si].rejoining {
@@ -823,12 +1003,20 @@ impl<T: Transport> Host<T> {
                 if m.hdr().is_warmup() || m.hdr().is_end() {
                     continue;
                 }
+                if m.hdr().is_absent() {
+                    self.take_absent(topic, m.hdr());
+                    continue;
+                }
                 if self.admit(si, &m) {
                     self.store.put(m);
                 }
             }
             if self.store.get(topic, k).is_some() {
                 return Ok(true);
+            }
+            // Lockstep: known to be absent (dropped, or rejected as unusable).
+            if self.store.settled(topic, k) {
+                return Ok(false);
             }
             if self.stopping() {
                 return Ok(false);
@@ -983,6 +1171,7 @@ impl<T: Transport> Host<T> {
                 if let Some(t) = cmd_topic {
                     let avail = self.store.get(t, k - 1).map(|m| m.hdr().t_pub_ns);
                     self.cycle.at_deadline(deadline - ts_ns, avail);
+                    self.observe_cycle(k - 1, deadline - ts_ns, avail, true);
                 }
             }
             if k == k_start {
@@ -1006,12 +1195,14 @@ impl<T: Transport> Host<T> {
             let mut out = Outbox::default();
             self.stages[0].stage.step(k, &ib, &mut out);
             self.stages[0].hists.stepped(t_in, now_ns());
+            if realtime {
+                self.delay(0, k);
+            }
             for mut m in out.drain() {
                 let hd = m.hdr_mut();
                 hd.t_sample_ns = if realtime { deadline } else { 0 };
                 hd.t_pub_ns = now_ns();
-                self.store.put(m);
-                self.transport.send(&m)?;
+                self.publish(m)?;
             }
             // A missing input: wake the stages that should have produced it, after this
             // sample's outputs are out, so that a stage falling back on the clock computes
@@ -1114,9 +1305,21 @@ impl<T: Transport> Host<T> {
                     }
                     continue;
                 }
-                if !self.admit(0, &m) {
+                // Lockstep: an absent marker, or an unusable trigger, leaves the sample without
+                // its trigger; the chain runs it as it would a stale one (docs/architecture.md,
+                // "Fault model").
+                let usable = if hdr.is_absent() {
+                    if !self.take_absent(topic, &hdr) {
+                        continue;
+                    }
+                    false
+                } else if self.admit(0, &m) {
+                    true
+                } else if !realtime && self.store.settled(topic, hdr.k) {
+                    false
+                } else {
                     continue;
-                }
+                };
                 let h0 = &mut self.stages[0];
                 if h0.last_seen.is_some_and(|l| hdr.k <= l) {
                     h0.counters.late_inputs += 1;
@@ -1126,12 +1329,14 @@ impl<T: Transport> Host<T> {
                     h0.counters.stale_inputs += hdr.k - l - 1;
                 }
                 h0.last_seen = Some(hdr.k);
-                self.store.put(m);
-                // The trigger is back: the stages it triggers leave the clock (a sample the
-                // fallback already computed is not stepped again).
-                for h in self.stages.iter_mut() {
-                    if h.trigger().is_some_and(|t| t.spec.topic == topic) {
-                        h.in_fallback = false;
+                if usable {
+                    self.store.put(m);
+                    // The trigger is back: the stages it triggers leave the clock (a sample
+                    // the fallback already computed is not stepped again).
+                    for h in self.stages.iter_mut() {
+                        if h.trigger().is_some_and(|t| t.spec.topic == topic) {
+                            h.in_fallback = false;
+                        }
                     }
                 }
                 // A sample that no stage here steps (they run slower than their trigger)
@@ -1195,7 +1400,8 @@ impl<T: Transport> Host<T> {
         let clock = self.cfg.clock_topic;
         self.drain_external(None, None)?;
         while let Some(m) = self.transport.try_recv(clock)? {
-            if !m.hdr().is_warmup() && !m.hdr().is_end() && m.is_finite() {
+            let h = m.hdr();
+            if !h.is_warmup() && !h.is_end() && !h.is_absent() && m.is_finite() {
                 self.store.put(m);
             }
         }
@@ -1396,6 +1602,68 @@ mod tests {
         assert_eq!(run(true), (vec![TopicId::Cmd], 3));
         // A first start never subscribed to it, and closes nothing.
         assert_eq!(run(false), (vec![], 3));
+    }
+
+    #[test]
+    fn the_injection_schedule_on_the_publish_path_is_applied_by_index_without_allocating() {
+        use crate::inject::{Inject, InjectKind};
+        let mut sc = scenario();
+        let at = |kind, target: &str, at_s, count| Inject {
+            kind,
+            target: target.into(),
+            at_s,
+            duration_s: 0.0,
+            latency_us: 0.0,
+            count,
+        };
+        // 10 kHz: commands 10 and 11 dropped, 20 and 21 corrupt, 30..40 published 1 µs late.
+        sc.inject = vec![
+            at(InjectKind::Drop, "cmd", 0.001, 2),
+            at(InjectKind::Corrupt, "cmd", 0.002, 2),
+            Inject {
+                duration_s: 0.001,
+                latency_us: 1.0,
+                ..at(InjectKind::Delay, "current-loop", 0.003, 0)
+            },
+        ];
+        let stages: Vec<Box<dyn Stage>> = vec![Box::new(CurrentLoopStage::new(&sc))];
+        let cfg = HostConfig::for_scenario(&sc, Pacing::Lockstep, 100);
+        // Room for every message beforehand: pushing within it does not allocate.
+        let local = Local {
+            sent: Vec::with_capacity(64),
+        };
+        let mut host = Host::new(stages, &[(TopicId::Cmd, 1, true)], local, cfg);
+        let cmd = |k| {
+            Msg::Cmd(VoltageCommand {
+                hdr: Header {
+                    k,
+                    ..Default::default()
+                },
+                ..Default::default()
+            })
+        };
+        let ((), allocations) = crate::alloc_count::allocations_during(|| {
+            for k in 0..40 {
+                host.delay(0, k);
+                host.publish(cmd(k)).unwrap();
+            }
+            host.observe_cycle(35, 1_000, Some(200_000), true);
+        });
+        assert_eq!(allocations, 0);
+        let sent = &host.transport.sent;
+        let ks = |f: fn(&Msg) -> bool| -> Vec<u64> {
+            sent.iter().filter(|m| f(m)).map(|m| m.hdr().k).collect()
+        };
+        // Lockstep: an absent marker in place of each dropped command.
+        assert_eq!(sent.len(), 40);
+        assert_eq!(ks(|m| m.hdr().is_absent()), [10, 11]);
+        assert_eq!(ks(|m| !m.is_finite()), [20, 21]);
+        for k in [10, 11, 20, 21] {
+            assert!(host.store.get(TopicId::Cmd, k).is_none(), "{k}");
+        }
+        assert!(host.store.settled(TopicId::Cmd, 10) && host.store.get(TopicId::Cmd, 12).is_some());
+        let o = host.stages[0].inject[2];
+        assert_eq!((o.cycles, o.misses, o.cycle_max_ns), (1, 1, 199_000));
     }
 
     #[test]

@@ -17,6 +17,7 @@ pub mod config;
 pub mod drive;
 pub mod futex;
 pub mod host;
+pub mod inject;
 pub mod messages;
 pub mod rt;
 pub mod runner;

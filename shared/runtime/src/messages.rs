@@ -25,6 +25,14 @@ pub const FLAG_PLANT_DOWN: u32 = 64;
 /// Header flag (measurement): the inverter's overcurrent trip has fired (at this sample or
 /// before). The trip is latched: the inverter stays in its safe state until the run ends.
 pub const FLAG_TRIPPED: u32 = 128;
+/// Header flag, lockstep only: the producer has no message for this sample (a `drop` fault,
+/// or a stage that could not step for want of an input). The marker carries no values;
+/// consumers take the input as absent for that sample instead of waiting for it
+/// (docs/architecture.md, "Fault model").
+pub const FLAG_ABSENT: u32 = 256;
+/// Largest magnitude a payload value may have: no current (A), voltage (V), speed (rad/s),
+/// angle (rad) or torque (N·m) of a drive comes near it, so a larger value is corrupt.
+pub const MAX_ABS_VALUE: f64 = 1e12;
 
 /// Common header.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
@@ -51,6 +59,11 @@ impl Header {
     /// True when the WARMUP flag is set.
     pub fn is_warmup(&self) -> bool {
         self.flags & FLAG_WARMUP != 0
+    }
+
+    /// True when the ABSENT flag is set (lockstep: no message for this sample).
+    pub fn is_absent(&self) -> bool {
+        self.flags & FLAG_ABSENT != 0
     }
 }
 
@@ -155,19 +168,21 @@ pub struct SpeedRef {
     pub theta_m_ref: f64,
 }
 
-/// Every payload must be finite; a NaN or infinity from a peer is rejected, never used.
+/// Every payload must be finite and plausible; a NaN, an infinity or a value beyond
+/// [`MAX_ABS_VALUE`] from a peer is rejected, never used.
 pub trait Finite {
-    /// True when every floating-point field is finite.
+    /// True when every floating-point field is finite and at most [`MAX_ABS_VALUE`] in
+    /// magnitude.
     fn is_finite(&self) -> bool;
 }
 
 fn all_finite(v: &[f64]) -> bool {
-    v.iter().all(|x| x.is_finite())
+    v.iter().all(|x| x.is_finite() && x.abs() <= MAX_ABS_VALUE)
 }
 
 impl Finite for Measurement {
     fn is_finite(&self) -> bool {
-        all_finite(&self.i_abc) && all_finite(&self.u_ab_applied) && self.theta_m_enc.is_finite()
+        all_finite(&self.i_abc) && all_finite(&self.u_ab_applied) && all_finite(&[self.theta_m_enc])
     }
 }
 
@@ -226,6 +241,11 @@ mod tests {
         let mut c = VoltageCommand::default();
         c.u_ab[0] = f64::INFINITY;
         assert!(!c.is_finite());
+        // Finite but absurd: as unusable as NaN.
+        c.u_ab[0] = 1e30;
+        assert!(!c.is_finite());
+        c.u_ab[0] = -MAX_ABS_VALUE;
+        assert!(c.is_finite());
     }
 
     #[test]

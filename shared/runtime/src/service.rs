@@ -838,6 +838,10 @@ pub struct StageStats<'a> {
     pub counters: Counters,
     /// The stage's own diagnostics.
     pub diagnostics: std::collections::BTreeMap<&'static str, u64>,
+    /// What the stage saw of each `[[inject]]` fault, in the scenario's order (empty without
+    /// any). A restarted process starts these again from zero.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub inject: Vec<crate::inject::InjectObs>,
     /// Tail summary of each histogram, µs, keyed `<stage>.<metric>` (and `cycle`).
     pub latency_us: std::collections::BTreeMap<String, crate::timing::Percentiles>,
     /// The process's start-up, ms per phase in order (scenario, stages, node, topics,
@@ -888,6 +892,7 @@ fn write_stats<T: Transport>(
             process_context_switches,
             counters,
             diagnostics: diags[i].1.iter().copied().collect(),
+            inject: h.inject.clone(),
             latency_us,
             startup_ms,
         };

@@ -514,10 +514,19 @@ pub fn run_stages_inprocess(
     for m in &host.transport.sent {
         match m {
             Msg::Truth(x) if !x.hdr.is_end() && x.hdr.k < n => truth[x.hdr.k as usize] = Some(*x),
-            Msg::Wref(w) if !w.hdr.is_end() => wref = Some(*w),
+            Msg::Wref(w) if !w.hdr.is_end() && !w.hdr.is_absent() && m.is_finite() => {
+                wref = Some(*w)
+            }
             Msg::Cmd(c) if !c.hdr.is_end() && c.hdr.k < n => {
                 if let Some(x) = truth[c.hdr.k as usize] {
-                    let mut r = crate::drive::trace_row(ts, &x, c);
+                    // An absent or unusable command (a drop or corrupt fault) leaves the row
+                    // without one, as the recorder of a bus run does.
+                    let c = if c.hdr.is_absent() || !m.is_finite() {
+                        crate::drive::missing_command(c.hdr.k)
+                    } else {
+                        *c
+                    };
+                    let mut r = crate::drive::trace_row(ts, &x, &c);
                     // The outer reference in use at k: the newest computed before k.
                     r.theta_m_ref = wref.filter(|w| w.hdr.k < c.hdr.k).map(|w| w.theta_m_ref);
                     rows.push(r);

@@ -1,0 +1,505 @@
+//! Bus faults on the command line (`delay:STAGE@S:DUR:LAT`, `drop:TOPIC@S:N`,
+//! `corrupt:TOPIC@S:N`): parsing, checking against the run's topology, the schedule put into
+//! the resolved scenario (`[[inject]]`, read by every stage host, restarted ones included),
+//! and their reports in `summary.json → faults`. The hosts apply them by sample index
+//! (`drivelab_runtime::inject`); see docs/architecture.md, "Fault model".
+
+use crate::faults::FaultSpec;
+use crate::launcher::FaultReport;
+use anyhow::{anyhow, bail, Result};
+use drivelab_runtime::config::Scenario;
+use drivelab_runtime::inject::{
+    self, Armed, Inject, InjectKind, COUNT_MAX, DELAY_MAX_S, DELAY_MIN_S, LATENCY_MAX_US,
+    LATENCY_MIN_US,
+};
+use drivelab_runtime::messages::{FLAG_MISSING, FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT};
+use drivelab_runtime::service::TopologyPlan;
+use drivelab_runtime::trace::TraceRow;
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+/// The forms, for error messages.
+const FORMS: &str =
+    "delay:STAGE@SECONDS:DURATION:LATENCY, drop:TOPIC@SECONDS:N or corrupt:TOPIC@SECONDS:N";
+
+/// A latency with its unit: `200us`, `200µs` or `0.3ms`, 1 µs to 100 ms.
+fn latency_us(v: &str, spec: &str) -> Result<f64> {
+    let bad = || {
+        anyhow!(
+            "fault '{spec}': latency '{v}' must be a number with a unit: 200us, 200µs or 0.3ms (1 µs to 100 ms)"
+        )
+    };
+    let (num, scale) = if let Some(n) = v.strip_suffix("ms") {
+        (n, 1e3)
+    } else if let Some(n) = v.strip_suffix("us").or_else(|| v.strip_suffix("µs")) {
+        (n, 1.0)
+    } else {
+        return Err(bad());
+    };
+    let x: f64 = num.parse().map_err(|_| bad())?;
+    let us = x * scale;
+    if !(LATENCY_MIN_US..=LATENCY_MAX_US).contains(&us) {
+        return Err(bad());
+    }
+    Ok(us)
+}
+
+/// Parses the part after `kind:` of a bus fault (`kind` is delay, drop or corrupt).
+pub fn parse(kind: &str, rest: &str, spec: &str) -> Result<FaultSpec> {
+    let form = if kind == "delay" {
+        "delay:STAGE@SECONDS:DURATION:LATENCY".to_string()
+    } else {
+        format!("{kind}:TOPIC@SECONDS:N")
+    };
+    let (target, when) = rest
+        .split_once('@')
+        .ok_or_else(|| anyhow!("fault '{spec}': expected {form}"))?;
+    let parts: Vec<&str> = when.split(':').collect();
+    let inject = match (kind, parts.as_slice()) {
+        ("delay", [at, dur, lat]) => {
+            let duration_s = crate::faults::seconds(dur, "duration", spec)?;
+            if !(DELAY_MIN_S..=DELAY_MAX_S).contains(&duration_s) {
+                bail!("fault '{spec}': a delay lasts {DELAY_MIN_S} to {DELAY_MAX_S} s");
+            }
+            Inject {
+                kind: InjectKind::Delay,
+                target: crate::faults::service(target)?,
+                at_s: crate::faults::seconds(at, "time", spec)?,
+                duration_s,
+                latency_us: latency_us(lat, spec)?,
+                count: 0,
+            }
+        }
+        ("drop" | "corrupt", [at, n]) => {
+            let count: u64 = n
+                .parse()
+                .ok()
+                .filter(|c| (1..=COUNT_MAX).contains(c))
+                .ok_or_else(|| {
+                    anyhow!("fault '{spec}': N must be a whole number in 1..={COUNT_MAX}")
+                })?;
+            inject::topic(target).map_err(|e| anyhow!("fault '{spec}': {e}"))?;
+            Inject {
+                kind: if kind == "drop" {
+                    InjectKind::Drop
+                } else {
+                    InjectKind::Corrupt
+                },
+                target: target.to_string(),
+                at_s: crate::faults::seconds(at, "time", spec)?,
+                duration_s: 0.0,
+                latency_us: 0.0,
+                count,
+            }
+        }
+        ("delay" | "drop" | "corrupt", _) => bail!("fault '{spec}': expected {form}"),
+        _ => bail!("fault '{spec}': not a bus fault (expected {FORMS})"),
+    };
+    Ok(FaultSpec::Bus(inject))
+}
+
+/// Checks the bus faults of `specs` against the run's topology (a delayed stage must be
+/// hosted, a topic produced) and duration, and appends them to `sc.inject`.
+pub fn schedule(specs: &[FaultSpec], sc: &mut Scenario, topo: &TopologyPlan) -> Result<()> {
+    for s in specs {
+        let FaultSpec::Bus(i) = s else { continue };
+        let spec = i.spec();
+        match i.kind {
+            InjectKind::Delay => {
+                if !topo.stages.iter().any(|x| x.name == i.target) {
+                    let names: Vec<&str> = topo.stages.iter().map(|x| x.name.as_str()).collect();
+                    bail!(
+                        "fault {spec}: unknown stage '{}' (this drive's stages: {})",
+                        i.target,
+                        names.join(", ")
+                    );
+                }
+            }
+            InjectKind::Drop | InjectKind::Corrupt => {
+                let produced: Vec<&str> = inject::TOPICS
+                    .iter()
+                    .filter(|t| topo.producers.iter().any(|p| p.topic == **t))
+                    .map(|t| t.name())
+                    .collect();
+                if !produced.contains(&i.target.as_str()) {
+                    bail!(
+                        "fault {spec}: no stage of this drive publishes topic '{}' (its topics: {})",
+                        i.target,
+                        produced.join(", ")
+                    );
+                }
+            }
+        }
+        sc.inject.push(i.clone());
+    }
+    inject::validate(&sc.inject, sc.duration_s).map_err(|e| anyhow!("--fault: {e}"))
+}
+
+/// What a bus fault caused, beside the common figures of a [`FaultReport`].
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct BusFigures {
+    /// The samples the fault covers: [window_from_k, window_to_k).
+    pub window_from_k: u64,
+    /// The first sample after them.
+    pub window_to_k: u64,
+    /// corrupt: messages of the window rejected, every receiving stage together (None: no
+    /// per-stage counters, the in-process clock).
+    pub rejected_inputs: Option<u64>,
+    /// corrupt: the same per receiving stage.
+    pub rejected_by: BTreeMap<String, u64>,
+    /// Samples from the window's start to fresh outputs again at which the plant had no
+    /// fresh command (held it or applied its safe state: `plant_flags` 2, `miss` = 1).
+    pub stale_command_samples: u64,
+    /// Of those, samples in the inverter's safe state.
+    pub safe_state_samples: u64,
+    /// Samples of the same span with no usable command recorded (`ctrl_flags` 32).
+    pub missing_command_samples: u64,
+    /// Samples of the same span whose command was made from a stale input or a fallback
+    /// (`ctrl_flags` 8: a held estimate or reference).
+    pub stale_input_samples: u64,
+    /// delay, real time: commands of the window's samples not there at their deadline, as
+    /// the plant counted them (None elsewhere).
+    pub deadline_misses: Option<u64>,
+    /// delay, real time: the longest cycle latency of the window's samples (t_k to command k
+    /// published), µs.
+    pub cycle_latency_max_us: Option<f64>,
+}
+
+/// The reports of the scenario's bus faults from the trace `rows` and the per-stage
+/// `counters` (`summary.json → counters`; None in process), and the windows to shade on the
+/// plots (from, to in s, label).
+pub fn reports(
+    sc: &Scenario,
+    topo: &TopologyPlan,
+    rows: &[TraceRow],
+    counters: Option<&serde_json::Value>,
+) -> (Vec<FaultReport>, Vec<(f64, f64, String)>) {
+    let fs = sc.rates.sample_hz;
+    let ms = |dk: u64| dk as f64 / fs * 1e3;
+    let divider = |t: drivelab_runtime::stage::TopicId| {
+        topo.producers
+            .iter()
+            .find(|p| p.topic == t)
+            .map_or(1, |p| p.divider)
+    };
+    let mut out = Vec::new();
+    let mut windows = Vec::new();
+    for (n, i) in sc.inject.iter().enumerate() {
+        let a = Armed::bind(i, fs, &[], divider);
+        let stage = match a.topic {
+            Some(t) => topo
+                .producers
+                .iter()
+                .find(|p| p.topic == t)
+                .map_or_else(String::new, |p| p.stage.clone()),
+            None => i.target.clone(),
+        };
+        let process = topo
+            .process_of(&stage)
+            .map_or_else(String::new, |p| topo.processes[p].name.clone());
+        let from = rows.partition_point(|r| r.k < a.from_k);
+        let after = &rows[from..];
+        let disturbed = |r: &TraceRow| {
+            r.plant_flags & (FLAG_STALE_CMD | FLAG_SAFE_STATE) != 0
+                || r.ctrl_flags & (FLAG_STALE_INPUT | FLAG_MISSING) != 0
+        };
+        let det = after.iter().find(|r| disturbed(r)).map(|r| {
+            let by = if r.plant_flags & (FLAG_STALE_CMD | FLAG_SAFE_STATE) != 0 {
+                "plant"
+            } else if r.ctrl_flags & FLAG_MISSING != 0 {
+                "recorder (no usable command)"
+            } else {
+                "current-loop"
+            };
+            (r.k, by.to_string())
+        });
+        // Fresh again: the first undisturbed sample after the window and the detection.
+        let k_det = det.as_ref().map_or(a.from_k, |d| d.0);
+        let fresh = after
+            .iter()
+            .find(|r| r.k >= a.to_k && r.k > k_det && !disturbed(r))
+            .map(|r| r.k);
+        let tail: Vec<&TraceRow> = after
+            .iter()
+            .filter(|r| fresh.is_some_and(|f| r.k >= f))
+            .collect();
+        let rec = crate::launcher::speed_recovered(sc, &tail);
+        let k_end = rec.or(fresh).unwrap_or(a.to_k + (0.2 * fs) as u64);
+        windows.push((a.from_k as f64 / fs, k_end as f64 / fs, i.spec()));
+        let span: Vec<&TraceRow> = after.iter().take_while(|r| r.k <= k_end).collect();
+        let count = |f: &dyn Fn(&TraceRow) -> bool| span.iter().filter(|r| f(r)).count() as u64;
+        let obs = |field: &str| -> Vec<(String, u64)> {
+            counters
+                .and_then(|c| c.as_object())
+                .map(|m| {
+                    m.iter()
+                        .filter_map(|(st, v)| {
+                            Some((st.clone(), v["inject"].get(n)?[field].as_u64()?))
+                        })
+                        .collect()
+                })
+                .unwrap_or_default()
+        };
+        let rejected: Vec<(String, u64)> = obs("rejected");
+        let plant = |field: &str| {
+            obs(field)
+                .into_iter()
+                .find(|(st, _)| st == "plant")
+                .map(|x| x.1)
+        };
+        // Only a real-time plant waits for commands at deadlines.
+        let realtime_delay = i.kind == InjectKind::Delay && plant("cycles").is_some_and(|c| c > 0);
+        out.push(FaultReport {
+            fault: i.spec(),
+            service: stage,
+            process,
+            injected_k: a.from_k,
+            injected_t_s: a.from_k as f64 / fs,
+            detected_data_path_ms: det.as_ref().map(|d| ms(d.0 - a.from_k)),
+            detected_by: det.map(|d| d.1),
+            detected_supervisor_ms: None,
+            safe_state_ms: span
+                .iter()
+                .find(|r| r.plant_flags & FLAG_SAFE_STATE != 0)
+                .map(|r| ms(r.k - a.from_k)),
+            peak_current_a: span.iter().map(|r| r.i_d.hypot(r.i_q)).fold(0.0, f64::max),
+            republished_ms: fresh.map(|f| ms(f - a.from_k)),
+            speed_recovered_ms: rec.map(|r| ms(r - a.from_k)),
+            plant_down: None,
+            bus: Some(BusFigures {
+                window_from_k: a.from_k,
+                window_to_k: a.to_k,
+                rejected_inputs: (i.kind == InjectKind::Corrupt && counters.is_some())
+                    .then(|| rejected.iter().map(|x| x.1).sum()),
+                rejected_by: rejected.into_iter().filter(|x| x.1 > 0).collect(),
+                stale_command_samples: count(&|r| r.plant_flags & FLAG_STALE_CMD != 0),
+                safe_state_samples: count(&|r| r.plant_flags & FLAG_SAFE_STATE != 0),
+                missing_command_samples: count(&|r| r.ctrl_flags & FLAG_MISSING != 0),
+                stale_input_samples: count(&|r| r.ctrl_flags & FLAG_STALE_INPUT != 0),
+                deadline_misses: if realtime_delay {
+                    plant("misses")
+                } else {
+                    None
+                },
+                cycle_latency_max_us: if realtime_delay {
+                    plant("cycle_max_ns").map(|ns| ns as f64 * 1e-3)
+                } else {
+                    None
+                },
+            }),
+        });
+    }
+    (out, windows)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn one(spec: &str) -> Inject {
+        match crate::faults::parse(spec).unwrap() {
+            FaultSpec::Bus(i) => i,
+            other => panic!("{other:?}"),
+        }
+    }
+
+    fn err(spec: &str) -> String {
+        let e = crate::faults::parse(spec).unwrap_err().to_string();
+        assert!(!e.contains('\n'), "{e}");
+        e
+    }
+
+    #[test]
+    fn parses_every_kind_and_unit() {
+        let d = one("delay:current-loop@0.5:0.2:200us");
+        assert_eq!(
+            (
+                d.kind,
+                d.target.as_str(),
+                d.at_s,
+                d.duration_s,
+                d.latency_us
+            ),
+            (InjectKind::Delay, "current-loop", 0.5, 0.2, 200.0)
+        );
+        assert_eq!(one("delay:plant@1s:1s:0.3ms").latency_us, 300.0);
+        assert_eq!(one("delay:plant@1:1:7µs").latency_us, 7.0);
+        assert_eq!(one("delay:plant@1:0.001:1us").duration_s, 0.001);
+        assert_eq!(one("delay:plant@1:60:100ms").latency_us, 100_000.0);
+        let d = one("drop:cmd@0.25:3");
+        assert_eq!(
+            (d.kind, d.target.as_str(), d.at_s, d.count),
+            (InjectKind::Drop, "cmd", 0.25, 3)
+        );
+        let c = one("corrupt:est@0:100000");
+        assert_eq!((c.kind, c.count), (InjectKind::Corrupt, 100_000));
+        // The spec round-trips.
+        assert_eq!(one(&d.spec()), d);
+    }
+
+    #[test]
+    fn every_bound_and_malformed_input_is_a_one_line_error() {
+        for lat in [
+            "0.5us", "100001us", "100.1ms", "200", "2s", "xus", "-5us", "NaNus",
+        ] {
+            let e = err(&format!("delay:plant@1:0.1:{lat}"));
+            assert!(
+                e.contains("must be a number with a unit: 200us, 200µs or 0.3ms (1 µs to 100 ms)"),
+                "{lat}: {e}"
+            );
+        }
+        for dur in ["0.0005", "61", "1e20"] {
+            let e = err(&format!("delay:plant@1:{dur}:10us"));
+            assert!(e.contains("a delay lasts 0.001 to 60 s"), "{dur}: {e}");
+        }
+        for n in ["0", "100001", "-1", "1.5", "x", ""] {
+            let e = err(&format!("drop:cmd@1:{n}"));
+            assert!(
+                e.contains("N must be a whole number in 1..=100000"),
+                "{n}: {e}"
+            );
+        }
+        let e = err("corrupt:bogus@1:1");
+        assert!(
+            e.contains("unknown topic 'bogus' (topics a stage reads: meas, est, iref, cmd, wref)"),
+            "{e}"
+        );
+        assert!(err("drop:truth@1:1").contains("unknown topic 'truth'"));
+        assert!(err("drop:cmd@1").contains("expected drop:TOPIC@SECONDS:N"));
+        assert!(err("corrupt:cmd").contains("expected corrupt:TOPIC@SECONDS:N"));
+        assert!(err("delay:plant@1:0.1").contains("expected delay:STAGE@SECONDS:DURATION:LATENCY"));
+        assert!(err("delay:plant@1:0.1:5us:9").contains("expected delay:"));
+        assert!(err("delay:Pump@1:0.1:5us").contains("unknown stage 'Pump'"));
+        assert!(err("drop:cmd@x:1").contains("not a number"));
+        assert!(err("drop:cmd@-1:1").contains("finite number of seconds >= 0"));
+        assert!(err("explode:cmd@1:1").contains("delay, drop, corrupt"));
+    }
+
+    /// kyslan-pi (1 s, 10 kHz) and its default topology.
+    fn kyslan() -> (Scenario, TopologyPlan) {
+        let mut sc = crate::launcher::load_scenario("kyslan-pi", Some(1.0)).unwrap();
+        let o = crate::launcher::RunOptions {
+            scenario: "kyslan-pi".into(),
+            clock: crate::launcher::Clock::Lockstep,
+            duration_s: None,
+            out: None,
+            bus: None,
+            rt_strict: false,
+            no_rt: true,
+            no_plots: true,
+            verbose: false,
+            faults: Vec::new(),
+            restart: Default::default(),
+            fault_seed: 0,
+            topology: None,
+            expect: Vec::new(),
+            runner: None,
+        };
+        let topo = crate::launcher::resolve_topology(
+            &mut sc,
+            std::path::Path::new("./kyslan-pi.toml"),
+            &o,
+        )
+        .unwrap();
+        (sc, topo)
+    }
+
+    #[test]
+    fn reports_count_the_window_from_the_trace_and_the_stages_counters() {
+        let (mut sc, topo) = kyslan();
+        let specs = [
+            crate::faults::parse("corrupt:cmd@0.001:3").unwrap(),
+            crate::faults::parse("delay:current-loop@0.001:0.001:150us").unwrap(),
+        ];
+        schedule(&specs, &mut sc, &topo).unwrap();
+        // Commands 10..=12 unusable: no command in those rows, the plant holds 11..=13
+        // (within hold_samples = 3: no safe state), fresh again at 14.
+        let rows: Vec<TraceRow> = (0..100)
+            .map(|k| TraceRow {
+                k,
+                t: k as f64 * 1e-4,
+                omega_m: 70.0,
+                i_q: if k == 12 { 3.0 } else { 1.0 },
+                ctrl_flags: if (10..13).contains(&k) {
+                    FLAG_MISSING
+                } else {
+                    0
+                },
+                plant_flags: if (11..14).contains(&k) {
+                    FLAG_STALE_CMD
+                } else {
+                    0
+                },
+                ..Default::default()
+            })
+            .collect();
+        let obs = |rejected: u64, cycles: u64, misses: u64| {
+            serde_json::json!([
+                { "rejected": rejected, "cycles": 0, "misses": 0, "cycle_max_ns": 0 },
+                { "rejected": 0, "cycles": cycles, "misses": misses, "cycle_max_ns": 250_000 },
+            ])
+        };
+        let counters = serde_json::json!({
+            "plant": { "inject": obs(3, 10, 7) },
+            "observer": { "inject": obs(0, 0, 0) },
+        });
+        let (r, windows) = reports(&sc, &topo, &rows, Some(&counters));
+        assert_eq!(windows.len(), 2);
+        let (c, d) = (&r[0], &r[1]);
+        let b = c.bus.as_ref().unwrap();
+        assert_eq!((c.service.as_str(), c.injected_k), ("current-loop", 10));
+        assert_eq!((b.window_from_k, b.window_to_k), (10, 13));
+        assert_eq!(b.rejected_inputs, Some(3));
+        assert_eq!(b.rejected_by, BTreeMap::from([("plant".to_string(), 3)]));
+        assert_eq!((b.stale_command_samples, b.missing_command_samples), (3, 3));
+        assert_eq!(
+            c.detected_by.as_deref(),
+            Some("recorder (no usable command)")
+        );
+        assert_eq!(c.republished_ms, Some(0.4));
+        assert_eq!(c.peak_current_a, 3.0);
+        assert_eq!((b.deadline_misses, b.cycle_latency_max_us), (None, None));
+        let b = d.bus.as_ref().unwrap();
+        assert_eq!((b.window_from_k, b.window_to_k), (10, 20));
+        assert_eq!(
+            (b.deadline_misses, b.cycle_latency_max_us),
+            (Some(7), Some(250.0))
+        );
+        assert_eq!(b.rejected_inputs, None);
+        // In process: no counters, no counts from them.
+        let (r, _) = reports(&sc, &topo, &rows, None);
+        let b = r[0].bus.as_ref().unwrap();
+        assert_eq!((b.rejected_inputs, b.stale_command_samples), (None, 3));
+    }
+
+    #[test]
+    fn the_schedule_is_checked_against_the_topology_and_the_run() {
+        let (sc, topo) = kyslan();
+        let specs = [
+            crate::faults::parse("drop:cmd@0.5:3").unwrap(),
+            crate::faults::parse("kill:plant@0.5").unwrap(),
+        ];
+        let mut a = sc.clone();
+        schedule(&specs, &mut a, &topo).unwrap();
+        assert_eq!(a.inject.len(), 1);
+        let refused = |spec: &str| {
+            let specs = [crate::faults::parse(spec).unwrap()];
+            let e = schedule(&specs, &mut sc.clone(), &topo).unwrap_err();
+            e.to_string()
+        };
+        for (spec, want) in [
+            (
+                "drop:wref@0.5:3",
+                "no stage of this drive publishes topic 'wref' (its topics: meas, est, iref, cmd)",
+            ),
+            (
+                "delay:pump@0.5:0.1:5us",
+                "unknown stage 'pump' (this drive's stages: plant",
+            ),
+            ("drop:cmd@1.5:3", "at_s must be within [0, duration_s = 1)"),
+        ] {
+            let e = refused(spec);
+            assert!(e.contains(want), "{spec}: {e}");
+        }
+    }
+}
