@@ -57,10 +57,14 @@ enum Cmd {
         /// Print the summary as JSON on stdout instead of the human summary.
         #[arg(long)]
         json: bool,
-        /// Inject a fault (repeatable, realtime only): kill:STAGE@SECONDS (SIGKILL),
+        /// Inject a fault (repeatable): kill:STAGE@SECONDS (SIGKILL),
         /// stop:STAGE@SECONDS:DURATION (SIGSTOP, then SIGCONT), random:N (N kills of random
-        /// stages at random instants, seeded by --fault-seed). SECONDS are simulated time. The
-        /// signal goes to the process that hosts the stage, and so to all its stages.
+        /// stages at random instants, seeded by --fault-seed), hog:CPU@SECONDS:DURATION:PRIO (a
+        /// SCHED_FIFO busy loop pinned to CPU): realtime only. SECONDS are simulated time. The
+        /// signal goes to the process that hosts the stage, and so to all its stages. Sensor
+        /// faults work in every clock: encoder-stuck@SECONDS:DURATION (the encoder reading
+        /// frozen), current-offset:PHASE@SECONDS:AMPS (phase a, b or c measured with an
+        /// offset in A, to the end of the run).
         #[arg(long = "fault", value_name = "SPEC")]
         faults: Vec<String>,
         /// What the supervisor does when a process dies.
@@ -248,6 +252,22 @@ enum Cmd {
         /// How many messages.
         #[arg(long, default_value_t = 10)]
         count: u32,
+    },
+    /// Internal: a hog fault's busy loop (started by the supervisor for `--fault hog:…`).
+    #[command(hide = true)]
+    Hog {
+        /// CPU to pin to.
+        #[arg(long)]
+        cpu: usize,
+        /// SCHED_FIFO priority, 1..=99.
+        #[arg(long)]
+        priority: u8,
+        /// How long to spin, s (0: only check that the CPU and priority are granted).
+        #[arg(long)]
+        duration_s: f64,
+        /// Bus id of the drive it disturbs (a label: the hog uses no bus).
+        #[arg(long)]
+        bus: Option<String>,
     },
     /// Internal: one node of the Unix-socket chain (started by `drivelab bench`).
     #[command(hide = true)]
@@ -603,6 +623,12 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             eprintln!("supervisor: {done}");
             Ok(())
         }
+        Cmd::Hog {
+            cpu,
+            priority,
+            duration_s,
+            bus: _,
+        } => drivelab_services::faults::hog::run(cpu, priority, duration_s),
         Cmd::BusInject { bus, kind, count } => {
             drivelab_services::faults::inject_bad_estimates(&bus, &kind, count)
         }

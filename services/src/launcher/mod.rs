@@ -13,7 +13,8 @@ mod supervisor;
 mod trip;
 
 pub use recorder::Gap;
-pub use supervisor::{fault_reports, EventKind, FaultReport, SupEvent};
+pub(crate) use spawn::die_with_launcher;
+pub use supervisor::{fault_reports, speed_recovered, EventKind, FaultReport, SupEvent};
 
 use crate::common::BusClock;
 use anyhow::{anyhow, bail, Context, Result};
@@ -145,6 +146,8 @@ struct BusRun {
     /// Why the run ended early (a failed service, Ctrl-C), if it did: what was recorded up
     /// to then is still written, then the run fails.
     failure: Option<String>,
+    /// Cycle latencies around each hog's window.
+    hog_latency: Vec<crate::faults::hog::WindowLatency>,
 }
 
 /// Runs the topology's processes on a bus and returns the recorder's data, the process info
@@ -154,6 +157,7 @@ fn run_bus(
     sc_path: &Path,
     plan_topo: &TopologyPlan,
     plan: &[crate::faults::Fault],
+    hogs: &[crate::faults::hog::Hog],
     o: &RunOptions,
     out: &Path,
     clock: BusClock,
@@ -174,6 +178,11 @@ fn run_bus(
     let stop = Arc::new(AtomicBool::new(false));
     let progress = Arc::new(Progress {
         tail: crate::hub::TraceTail::new(sc.rates.sample_hz),
+        hog_latency: std::sync::Mutex::new(
+            hogs.iter()
+                .map(|h| crate::faults::hog::WindowLatency::new(h, sc.rates.sample_hz))
+                .collect(),
+        ),
         ..Default::default()
     });
     let (ready_tx, ready_rx) = mpsc::channel();
@@ -251,6 +260,7 @@ fn run_bus(
             &bar,
             &mut supervised,
             plan,
+            hogs,
             &mut events,
             &progress,
             sc,
@@ -322,6 +332,11 @@ fn run_bus(
     if let Some(f) = unreceived(&mut gaps, produced, sc.samples(), rec.stats.rows) {
         failure.get_or_insert(f);
     }
+    let hog_latency = progress
+        .hog_latency
+        .lock()
+        .map(|mut l| std::mem::take(&mut *l))
+        .map_err(|_| anyhow!("recorder thread panicked"))?;
     Ok(BusRun {
         rows: rec.kept,
         gaps,
@@ -330,6 +345,7 @@ fn run_bus(
         info,
         events,
         failure,
+        hog_latency,
     })
 }
 
@@ -530,12 +546,23 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         sc.validate().map_err(|e| anyhow!("--duration {d}: {e}"))?;
     }
     let expectations = crate::expect::collect(&sc.expect, &o.expect)?;
+    // Sensor faults go into the resolved scenario: every plant applies them.
+    crate::faults::sensor::add_to_scenario(&o.faults, &mut sc)?;
     let topo = resolve_topology(&mut sc, &sc_src, o)?;
     // Faults are checked before anything is created: a bad plan leaves nothing behind.
     let stage_names: Vec<String> = topo.stages.iter().map(|s| s.name.clone()).collect();
     let plan = crate::faults::plan(&o.faults, sc.duration_s, o.fault_seed, 0.3, &stage_names)?;
     if !plan.is_empty() && o.clock != Clock::Realtime {
         bail!("fault injection needs --clock realtime");
+    }
+    let hogs = crate::faults::hog::plan(
+        &o.faults,
+        sc.duration_s,
+        o.clock == Clock::Realtime,
+        &crate::faults::hog::allowed_cpus(),
+    )?;
+    for h in &hogs {
+        crate::faults::hog::check_privilege(h)?;
     }
     let out = o.out.clone().unwrap_or_else(|| default_out(&sc, o.clock));
     std::fs::create_dir_all(&out)
@@ -557,6 +584,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         info,
         events,
         failure,
+        hog_latency,
     } = match o.clock {
         Clock::Inprocess => {
             if let Some(p) = topo.processes.iter().find(|p| p.exec.is_some()) {
@@ -574,13 +602,34 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
                 info: json!({ "deadline_misses": 0 }),
                 events: Vec::new(),
                 failure: None,
+                hog_latency: Vec::new(),
             }
         }
-        Clock::Lockstep => run_bus(&sc, &sc_path, &topo, &plan, o, &out, BusClock::Lockstep)?,
-        Clock::Realtime => run_bus(&sc, &sc_path, &topo, &plan, o, &out, BusClock::Realtime)?,
+        Clock::Lockstep => run_bus(
+            &sc,
+            &sc_path,
+            &topo,
+            &plan,
+            &hogs,
+            o,
+            &out,
+            BusClock::Lockstep,
+        )?,
+        Clock::Realtime => run_bus(
+            &sc,
+            &sc_path,
+            &topo,
+            &plan,
+            &hogs,
+            o,
+            &out,
+            BusClock::Realtime,
+        )?,
     };
     let wall_s = wall.elapsed().as_secs_f64();
     let (mut faults, windows) = fault_reports(&sc, &rows, &events);
+    crate::faults::hog::add_latency(&mut faults, &hog_latency);
+    faults.extend(crate::faults::sensor::reports(&sc, &rows));
     if let Some(t) = trip::trip_report(&sc, &rows) {
         eprintln!(
             "drivelab: the inverter tripped on overcurrent at t = {:.4} s (sample {}); it stayed in its safe state",
@@ -643,6 +692,16 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         "wall_time_s": wall_s,
         "simulated_s_per_wall_s": sc.duration_s / wall_s.max(1e-9),
     });
+    if !hogs.is_empty() {
+        // Read, never changed: the kernel leaves (period − runtime) of each period to
+        // non-real-time tasks, so a hog cannot take its CPU whole.
+        summary["timing"]["rt_throttling"] = match crate::faults::hog::rt_throttling() {
+            Some((runtime, period)) => {
+                json!({ "sched_rt_runtime_us": runtime, "sched_rt_period_us": period })
+            }
+            None => serde_json::Value::Null,
+        };
+    }
     if let Some(c) = info.get("counters") {
         summary["counters"] = c.clone();
         if let Some(ns) = c["plant"]["loop_wall_ns"].as_u64().filter(|&n| n > 0) {

@@ -61,6 +61,13 @@ pub enum EventKind {
         /// Its pid.
         pid: u32,
     },
+    /// A hog (a competing SCHED_FIFO busy loop, `crate::faults::hog`) was started.
+    Hog {
+        /// What it does.
+        hog: crate::faults::hog::Hog,
+        /// Its pid.
+        pid: u32,
+    },
 }
 
 impl EventKind {
@@ -75,6 +82,7 @@ impl EventKind {
             Self::Reaped { .. } => "reaped",
             Self::Restarted { .. } => "restarted",
             Self::Ready { .. } => "ready",
+            Self::Hog { .. } => "hog",
         }
     }
 
@@ -104,6 +112,7 @@ impl EventKind {
             }
             Self::Restarted { restart, pid } => format!("restart #{restart}, pid {pid}"),
             Self::Ready { pid } => format!("pid {pid}"),
+            Self::Hog { hog, pid } => format!("{} (pid {pid})", hog.describe()),
         }
     }
 }
@@ -186,6 +195,7 @@ pub(super) fn supervise(
     bar: &indicatif::ProgressBar,
     children: &mut [Supervised],
     plan: &[crate::faults::Fault],
+    hogs: &[crate::faults::hog::Hog],
     events: &mut Vec<SupEvent>,
     progress: &Progress,
     sc: &Scenario,
@@ -197,6 +207,9 @@ pub(super) fn supervise(
     let policy = Policy::new(sp.o.restart, clock == BusClock::Lockstep);
     let fs = sc.rates.sample_hz;
     let mut next_fault = 0;
+    let mut next_hog = 0;
+    // Killed and reaped when this function returns, however it returns.
+    let mut running = crate::faults::hog::Running::default();
     let log = |events: &mut Vec<SupEvent>, kind: EventKind, service: &str, process: &str| {
         events.push(SupEvent {
             t_wall_s: started.elapsed().as_secs_f64(),
@@ -235,6 +248,28 @@ pub(super) fn supervise(
                     "-",
                 ),
             }
+        }
+        while next_hog < hogs.len() && k_now as f64 >= hogs[next_hog].at_s * fs {
+            let h = &hogs[next_hog];
+            next_hog += 1;
+            let k_start = plant_sample_now(progress, sc.rates.ts_ns());
+            let kind = match running.start(h, bus_id) {
+                Ok(pid) => EventKind::Hog {
+                    hog: h.clone(),
+                    pid,
+                },
+                Err(e) => EventKind::InjectRefused {
+                    reason: format!("{}: {e:#}", h.describe()),
+                },
+            };
+            log(events, kind, &format!("cpu{}", h.cpu), "hog");
+            if let (Some(e), Some(k)) = (events.last_mut(), k_start) {
+                e.k = e.k.max(k);
+            }
+        }
+        for (pid, st) in running.poll(now) {
+            let reason = format!("the hog (pid {pid}) failed: {st}");
+            log(events, EventKind::InjectRefused { reason }, "-", "hog");
         }
         for (f, monitor_pid) in due {
             // A stage's fault hits the whole process that hosts it.
@@ -406,6 +441,9 @@ pub struct FaultReport {
     /// peak |i_dq| (A) and |ω_m| (mechanical rad/s) over them. None when no sample was
     /// rebuilt (not a plant fault, or the plant did not come back).
     pub plant_down: Option<PlantDown>,
+    /// Hog and sensor faults: the trace before the fault against during it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub window: Option<crate::faults::window::FaultWindow>,
 }
 
 /// The motor while the plant's process was down (see [`FaultReport::plant_down`]).
@@ -436,7 +474,7 @@ pub fn fault_reports(
     let mut windows = Vec::new();
     let injects: Vec<&SupEvent> = events
         .iter()
-        .filter(|e| matches!(e.kind, EventKind::Inject { .. }))
+        .filter(|e| matches!(e.kind, EventKind::Inject { .. } | EventKind::Hog { .. }))
         .collect();
     for (n, inj) in injects.iter().enumerate() {
         let k0 = inj.k;
@@ -481,17 +519,10 @@ pub fn fault_reports(
             .filter(|r| r.k > k_det)
             .find(|r| r.plant_flags & (FLAG_STALE_CMD | FLAG_SAFE_STATE) == 0 && r.ctrl_flags == 0)
             .map(|r| r.k);
-        let hold = (0.01 * fs).ceil() as usize;
-        let within = |r: &TraceRow| {
-            let w = drivelab_runtime::config::profile_at(&sc.reference.speed_rad_s, r.t);
-            (r.omega_m - w).abs() <= 0.02 * w.abs().max(1e-9)
-        };
         let tail: Vec<&TraceRow> = after()
             .filter(|r| fresh.is_some_and(|f| r.k >= f))
             .collect();
-        let rec = (0..tail.len())
-            .find(|&i| tail[i..].iter().take(hold).all(|r| within(r)) && tail.len() - i >= hold)
-            .map(|i| tail[i].k);
+        let rec = speed_recovered(sc, &tail);
         let k_rec = rec
             .or(fresh)
             .unwrap_or(k_end_window.min(k0 + (0.2 * fs) as u64));
@@ -512,6 +543,10 @@ pub fn fault_reports(
             peak_current_a: down.iter().map(|r| r.i_d.hypot(r.i_q)).fold(0.0, f64::max),
             peak_speed_rad_s: down.iter().map(|r| r.omega_m.abs()).fold(0.0, f64::max),
         });
+        let window = match &inj.kind {
+            EventKind::Hog { hog, .. } => Some(crate::faults::hog::window(hog, rows, k0, fs)),
+            _ => None,
+        };
         out.push(FaultReport {
             fault: inj.detail(),
             service: inj.service.clone(),
@@ -526,9 +561,23 @@ pub fn fault_reports(
             republished_ms: fresh.map(|f| ms(f - k0)),
             speed_recovered_ms: rec.map(|r| ms(r - k0)),
             plant_down,
+            window,
         });
     }
     (out, windows)
+}
+
+/// The first sample of `tail` (rows in order) from which the speed is within ±2 % of its
+/// reference and stays there for 10 ms.
+pub fn speed_recovered(sc: &Scenario, tail: &[&TraceRow]) -> Option<u64> {
+    let hold = (0.01 * sc.rates.sample_hz).ceil() as usize;
+    let within = |r: &TraceRow| {
+        let w = drivelab_runtime::config::profile_at(&sc.reference.speed_rad_s, r.t);
+        (r.omega_m - w).abs() <= 0.02 * w.abs().max(1e-9)
+    };
+    (0..tail.len())
+        .find(|&i| tail[i..].iter().take(hold).all(|r| within(r)) && tail.len() - i >= hold)
+        .map(|i| tail[i].k)
 }
 
 #[cfg(test)]

@@ -20,6 +20,7 @@ pub mod host;
 pub mod messages;
 pub mod rt;
 pub mod runner;
+pub mod sensor_faults;
 pub mod service;
 pub mod stage;
 pub mod stages;
