@@ -92,13 +92,7 @@ fn hog_errors_are_one_line() {
             format!("there is no CPU {} here (CPUs: 0", cpus + 7),
         ),
     ] {
-        let mut a = vec!["run", "--bus", &bus, "--no-plots"];
-        a.extend_from_slice(&args);
-        let o = drivelab(&a);
-        assert_eq!(o.status.code(), Some(1), "{args:?}");
-        let err = String::from_utf8_lossy(&o.stderr);
-        assert!(err.contains(&needle), "{args:?}: {err}");
-        assert_eq!(err.lines().count(), 1, "{args:?}: {err}");
+        assert_run_refused(&bus, &args, &needle);
     }
     assert_clean(&bus);
 }

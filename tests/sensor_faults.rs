@@ -197,20 +197,7 @@ fn bad_sensor_faults_are_one_line_errors() {
             "at or after the end of the run (0.1 s)",
         ),
     ] {
-        let o = drivelab(&[
-            "run",
-            "--bus",
-            &bus,
-            "--clock",
-            "lockstep",
-            "--fault",
-            spec,
-            "--no-plots",
-        ]);
-        assert_eq!(o.status.code(), Some(1), "{spec}");
-        let err = String::from_utf8_lossy(&o.stderr);
-        assert!(err.contains(needle), "{spec}: {err}");
-        assert_eq!(err.lines().count(), 1, "{spec}: {err}");
+        assert_run_refused(&bus, &["--clock", "lockstep", "--fault", spec], needle);
     }
     assert_clean(&bus);
 }

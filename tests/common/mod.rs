@@ -87,6 +87,18 @@ pub fn drivelab(args: &[&str]) -> Output {
     child.wait_with_output().unwrap()
 }
 
+/// Runs `drivelab run --bus BUS --no-plots EXTRA` and asserts that it fails before the start
+/// with exit code 1 and a one-line error containing `needle`.
+pub fn assert_run_refused(bus: &str, extra: &[&str], needle: &str) {
+    let mut args = vec!["run", "--bus", bus, "--no-plots"];
+    args.extend_from_slice(extra);
+    let o = drivelab(&args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{extra:?}: {err}");
+    assert!(err.contains(needle), "{extra:?}: {err}");
+    assert_eq!(err.lines().count(), 1, "{extra:?}: {err}");
+}
+
 /// Runs `drivelab run --bus <own id> --out <scratch>/run --no-plots EXTRA`, asserts success
 /// and a clean bus, and returns the run folder and its summary.
 pub fn run_ok(name: &str, extra: &[&str]) -> (PathBuf, Value) {

@@ -605,26 +605,14 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
                 hog_latency: Vec::new(),
             }
         }
-        Clock::Lockstep => run_bus(
-            &sc,
-            &sc_path,
-            &topo,
-            &plan,
-            &hogs,
-            o,
-            &out,
-            BusClock::Lockstep,
-        )?,
-        Clock::Realtime => run_bus(
-            &sc,
-            &sc_path,
-            &topo,
-            &plan,
-            &hogs,
-            o,
-            &out,
-            BusClock::Realtime,
-        )?,
+        Clock::Lockstep | Clock::Realtime => {
+            let clock = if o.clock == Clock::Lockstep {
+                BusClock::Lockstep
+            } else {
+                BusClock::Realtime
+            };
+            run_bus(&sc, &sc_path, &topo, &plan, &hogs, o, &out, clock)?
+        }
     };
     let wall_s = wall.elapsed().as_secs_f64();
     let (mut faults, windows) = fault_reports(&sc, &rows, &events);
