@@ -69,6 +69,47 @@ fn a_hog_above_the_drive_on_its_core_costs_deadlines_and_is_gone_at_the_end() {
 }
 
 #[test]
+fn without_the_privilege_for_sched_fifo_a_hog_is_a_one_line_error() {
+    let _serial = serial();
+    let setpriv = "/usr/bin/setpriv";
+    if !std::path::Path::new(setpriv).exists() {
+        eprintln!("skipped: no {setpriv} to drop root");
+        return;
+    }
+    let bus = bus_id("hog-nopriv");
+    // As user nobody (no CAP_SYS_NICE, RLIMIT_RTPRIO 0): refused before the drive starts.
+    let o = std::process::Command::new(setpriv)
+        .args([
+            "--reuid",
+            "65534",
+            "--regid",
+            "65534",
+            "--clear-groups",
+            DRIVELAB,
+        ])
+        .args([
+            "run",
+            "--bus",
+            &bus,
+            "--no-plots",
+            "--fault",
+            "hog:1@0.05:0.01:50",
+        ])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.starts_with(
+            "drivelab: error: fault hog:1@0.05:0.01:50: hog: SCHED_FIFO priority 50 refused"
+        ),
+        "{err}"
+    );
+    assert_eq!(err.lines().count(), 1, "{err}");
+    assert_clean(&bus);
+}
+
+#[test]
 fn hog_errors_are_one_line() {
     let _serial = serial();
     let bus = bus_id("hog-cli");

@@ -29,6 +29,14 @@ pub struct Hog {
 }
 
 impl Hog {
+    /// The spec as `--fault` takes it, e.g. `hog:1@0.5:0.3:99`.
+    pub fn spec(&self) -> String {
+        format!(
+            "hog:{}@{}:{}:{}",
+            self.cpu, self.at_s, self.duration_s, self.priority
+        )
+    }
+
     /// E.g. `hog cpu 1 SCHED_FIFO 99 for 0.3 s`.
     pub fn describe(&self) -> String {
         format!(
@@ -105,7 +113,7 @@ pub fn plan(
         })
         .collect();
     for h in &hogs {
-        let spec = format!("hog:{}@{}:{}:{}", h.cpu, h.at_s, h.duration_s, h.priority);
+        let spec = h.spec();
         if !realtime {
             bail!("fault {spec}: fault injection needs --clock realtime");
         }
@@ -140,9 +148,8 @@ pub fn check_privilege(h: &Hog) -> Result<()> {
         let err = String::from_utf8_lossy(&out.stderr);
         let line = err.lines().last().unwrap_or("").trim();
         bail!(
-            "fault hog:{}@{}: {}",
-            h.cpu,
-            h.at_s,
+            "fault {}: {}",
+            h.spec(),
             line.trim_start_matches("drivelab: error: ")
         );
     }
@@ -182,7 +189,7 @@ pub fn run(cpu: usize, priority: u8, duration_s: f64) -> Result<()> {
         prefault_stack_bytes: 0,
     };
     drivelab_runtime::rt::setup_rt(&req, drivelab_runtime::rt::RtPolicy::Strict)
-        .map_err(|e| anyhow!("hog: {e:#} (SCHED_FIFO needs root or CAP_SYS_NICE)"))?;
+        .map_err(|e| anyhow!("hog: {e:#}"))?;
     let end = Instant::now() + Duration::from_secs_f64(duration_s);
     while Instant::now() < end {
         std::hint::spin_loop();

@@ -564,6 +564,14 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     for h in &hogs {
         crate::faults::hog::check_privilege(h)?;
     }
+    if let (true, Some((runtime, period))) = (
+        o.verbose && !hogs.is_empty(),
+        crate::faults::hog::rt_throttling(),
+    ) {
+        eprintln!(
+            "drivelab: RT throttling (read, not changed): sched_rt_runtime_us = {runtime} of sched_rt_period_us = {period}; a hog leaves the rest to tasks that are not real-time"
+        );
+    }
     let out = o.out.clone().unwrap_or_else(|| default_out(&sc, o.clock));
     std::fs::create_dir_all(&out)
         .with_context(|| format!("cannot create run folder {}", out.display()))?;
