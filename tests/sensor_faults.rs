@@ -178,6 +178,25 @@ fn a_current_offset_ripples_at_the_electrical_frequency_from_its_sample_on() {
         read(&out.join("trace.csv")),
         read(&inproc.join("trace.csv"))
     );
+    // A scenario's own [[sensor_fault]] table does the same as --fault.
+    let load = "torque_nm = [{ t_s = 0.04, value = 0.5457 }]   # 200 W at 3500 rpm";
+    let table = format!(
+        "{load}\n\n[[sensor_fault]]\nkind = \"current-offset\"\nphase = \"a\"\nat_s = 0.2\namps = 0.3\n"
+    );
+    let file = variant(
+        "offset-table",
+        "kyslan-pi",
+        &[(load, &table), ("duration_s = 0.1", "duration_s = 0.35")],
+    );
+    let (from_table, st) = run_ok(
+        "offset-table",
+        &["--scenario", file.to_str().unwrap(), "--clock", "inprocess"],
+    );
+    assert_eq!(
+        read(&out.join("trace.csv")),
+        read(&from_table.join("trace.csv"))
+    );
+    assert_eq!(st["faults"], s["faults"]);
 }
 
 #[test]
