@@ -3,6 +3,8 @@
 //! nothing here asserts a latency: only that the hog's window shows misses, that the report
 //! has its figures and that no process is left.
 
+use std::time::{Duration, Instant};
+
 mod common;
 use common::*;
 
@@ -135,5 +137,33 @@ fn hog_errors_are_one_line() {
     ] {
         assert_run_refused(&bus, &args, &needle);
     }
+    assert_clean(&bus);
+}
+
+#[test]
+fn a_hog_dies_with_a_sigkilled_launcher() {
+    let _serial = serial();
+    let dir = scratch("hog-orphan");
+    let bus = bus_id("hog-orphan");
+    // Below the drive's priorities, so the drive runs on while the hog spins.
+    let child = start_drive(
+        &bus,
+        &dir.join("run"),
+        &["--duration", "20", "--fault", "hog:1@0.2:15:10"],
+    );
+    let t = Instant::now();
+    while !processes_on_bus(&bus)
+        .iter()
+        .any(|l| l.contains(" hog --cpu 1"))
+    {
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "watchdog: no hog started"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    kill_launcher_and_assert_no_orphans(child, &bus);
+    let o = drivelab(&["clean", "--bus", &bus]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert_clean(&bus);
 }

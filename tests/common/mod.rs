@@ -255,6 +255,29 @@ pub fn processes_on_bus(bus: &str) -> Vec<String> {
     v
 }
 
+/// SIGKILLs the launcher `child` (nobody cleans up) and asserts that the kernel ends every
+/// other process of `bus` with it (their parent-death signal) within 10 s; those left are
+/// killed before the assertion fails.
+pub fn kill_launcher_and_assert_no_orphans(mut child: std::process::Child, bus: &str) {
+    // SAFETY: SIGKILL to this test's own launcher.
+    unsafe { libc::kill(child.id() as i32, libc::SIGKILL) };
+    let _ = child.wait();
+    let t = Instant::now();
+    while !processes_on_bus(bus).is_empty() && t.elapsed() < Duration::from_secs(10) {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let orphans = processes_on_bus(bus);
+    for line in &orphans {
+        let pid: i32 = line.split(' ').next().unwrap().parse().unwrap();
+        // SAFETY: SIGKILL to a process of this test's own drive.
+        unsafe { libc::kill(pid, libc::SIGKILL) };
+    }
+    assert!(
+        orphans.is_empty(),
+        "processes outlived their launcher by 10 s: {orphans:?}"
+    );
+}
+
 /// No process and no bus file of `bus` is left.
 pub fn assert_clean(bus: &str) {
     let procs = processes_on_bus(bus);
