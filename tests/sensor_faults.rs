@@ -220,3 +220,56 @@ fn bad_sensor_faults_are_one_line_errors() {
     }
     assert_clean(&bus);
 }
+
+#[test]
+fn a_plant_restarted_inside_a_freeze_keeps_the_frozen_encoder_then_reads_true() {
+    let _serial = serial();
+    // Real time: the encoder freezes at 0.1 s for 0.4 s, the plant is killed at 0.2 s and
+    // restarted by the supervisor (no timing is asserted, only what the controllers saw).
+    let (out, s) = run_ok(
+        "stuck-restart",
+        &[
+            "--duration",
+            "1",
+            "--fault",
+            "encoder-stuck@0.1:0.4",
+            "--fault",
+            "kill:plant@0.2",
+        ],
+    );
+    let faults = s["faults"].as_array().unwrap();
+    assert!(
+        faults
+            .iter()
+            .any(|f| f["fault"] == "kill" && !f["plant_down"].is_null()),
+        "{faults:?}"
+    );
+    let rows = read_csv(&out.join("trace.csv")).unwrap();
+    // The rebuilt downtime (plant_flags 64) ends where the restarted plant resumed.
+    let resumed = rows
+        .iter()
+        .filter(|r| r.plant_flags & 64 != 0)
+        .map(|r| r.k + 1)
+        .max()
+        .expect("a plant downtime");
+    assert!(
+        resumed + 100 < 4900,
+        "the plant resumed after the freeze: {resumed}"
+    );
+    // The controllers' angle is the frozen reading of sample 1000 on every sample with a
+    // command up to the freeze's end, after the restart too: a restarted plant that froze
+    // anew, or read true, would show another angle.
+    let frozen = rows[1000].theta_hat;
+    assert_eq!(frozen, rows[1000].theta_e);
+    let seen: Vec<&TraceRow> = rows
+        .iter()
+        .filter(|r| (1000..5000).contains(&r.k) && r.plant_flags & 64 == 0)
+        .filter(|r| r.theta_hat.is_finite())
+        .collect();
+    assert!(seen.iter().filter(|r| r.k > resumed).count() > 1000);
+    for r in seen {
+        assert_eq!(r.theta_hat, frozen, "sample {} (resumed at {resumed})", r.k);
+    }
+    let after = max_abs(&rows, 5500..6000, angle_error);
+    assert!(after < 0.5, "angle error {after} rad after the freeze");
+}
