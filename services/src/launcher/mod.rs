@@ -623,9 +623,16 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         }
     };
     let wall_s = wall.elapsed().as_secs_f64();
-    let (mut faults, windows) = fault_reports(&sc, &rows, &events);
+    let (mut faults, mut windows) = fault_reports(&sc, &rows, &events);
     crate::faults::hog::add_latency(&mut faults, &hog_latency);
-    faults.extend(crate::faults::sensor::reports(&sc, &rows));
+    for r in crate::faults::sensor::reports(&sc, &rows) {
+        // Shaded on the plots like the other faults.
+        if let Some(w) = &r.window {
+            let t = |k: u64| k as f64 / sc.rates.sample_hz;
+            windows.push((t(w.during_k[0]), t(w.during_k[1]), r.fault.clone()));
+        }
+        faults.push(r);
+    }
     if let Some(t) = trip::trip_report(&sc, &rows) {
         eprintln!(
             "drivelab: the inverter tripped on overcurrent at t = {:.4} s (sample {}); it stayed in its safe state",
