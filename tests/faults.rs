@@ -2,7 +2,7 @@
 //! id and run folder and checks that nothing is left behind. Times are watchdogs only.
 
 use std::path::PathBuf;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 mod common;
 use common::*;
@@ -522,7 +522,7 @@ fn a_sigkilled_launchers_services_die_with_it_and_clean_removes_their_files() {
     let dir = scratch("clean");
     let bus = bus_id("clean");
     let out = dir.join("run");
-    let mut child = start_drive(&bus, &out, &["--duration", "30"]);
+    let child = start_drive(&bus, &out, &["--duration", "30"]);
     wait_for_services(&bus);
     // While the drive runs, clean refuses and names who uses the bus.
     let o = drivelab(&["clean", "--bus", &bus]);
@@ -542,23 +542,7 @@ fn a_sigkilled_launchers_services_die_with_it_and_clean_removes_their_files() {
             unsafe { libc::kill(pid, libc::SIGSTOP) };
         }
     }
-    // SAFETY: SIGKILL to this test's own launcher.
-    unsafe { libc::kill(child.id() as i32, libc::SIGKILL) };
-    let _ = child.wait();
-    let t = Instant::now();
-    while !processes_on_bus(&bus).is_empty() && t.elapsed() < Duration::from_secs(10) {
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    let orphans = processes_on_bus(&bus);
-    for line in &orphans {
-        let pid: i32 = line.split(' ').next().unwrap().parse().unwrap();
-        // SAFETY: SIGKILL to a process of this test's own drive.
-        unsafe { libc::kill(pid, libc::SIGKILL) };
-    }
-    assert!(
-        orphans.is_empty(),
-        "stage hosts outlived their launcher by 10 s: {orphans:?}"
-    );
+    kill_launcher_and_assert_no_orphans(child, &bus);
     assert!(
         !drivelab_runtime::bus::leftovers(&bus).is_empty(),
         "a SIGKILLed drive should have left its files"

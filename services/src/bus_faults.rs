@@ -266,6 +266,7 @@ pub fn reports(
             republished_ms: fresh.map(|f| ms(f - a.from_k)),
             speed_recovered_ms: rec.map(|r| ms(r - a.from_k)),
             plant_down: None,
+            window: None,
             bus: Some(BusFigures {
                 window_from_k: a.from_k,
                 window_to_k: a.to_k,

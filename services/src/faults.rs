@@ -4,6 +4,10 @@ use anyhow::{anyhow, bail, Result};
 use drivelab_runtime::config::SERVICES;
 use serde::Serialize;
 
+pub mod hog;
+pub mod sensor;
+pub mod window;
+
 /// One injected fault.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Fault {
@@ -57,13 +61,15 @@ pub const STOP_MIN_S: f64 = 0.001;
 pub const STOP_MAX_S: f64 = 60.0;
 
 /// Parses one `--fault` value: `kill:SERVICE@SECONDS`, `stop:SERVICE@SECONDS:DURATION`,
-/// `random:N` (expanded later with the run's seed and duration) or a bus fault
-/// (`delay:…`, `drop:…`, `corrupt:…`, see [`crate::bus_faults`]).
+/// `random:N` (expanded later with the run's seed and duration), a bus fault (`delay:…`,
+/// `drop:…`, `corrupt:…`, see [`crate::bus_faults`]), `hog:CPU@S:DUR:PRIO` ([`hog`]),
+/// `encoder-stuck@S:DUR` or `current-offset:PHASE@S:AMPS` ([`sensor`]).
 pub fn parse(spec: &str) -> Result<FaultSpec> {
-    let (kind, rest) = spec
-        .split_once(':')
-        .ok_or_else(|| anyhow!("fault '{spec}': expected kill:SERVICE@SECONDS, stop:SERVICE@SECONDS:DURATION, random:N, delay:STAGE@SECONDS:DURATION:LATENCY, drop:TOPIC@SECONDS:N or corrupt:TOPIC@SECONDS:N"))?;
+    let kind = spec.split([':', '@']).next().unwrap_or_default();
+    let rest = spec.split_once(':').map_or("", |(_, r)| r);
     match kind {
+        "hog" => hog::parse(spec).map(FaultSpec::Hog),
+        "encoder-stuck" | "current-offset" => sensor::parse(spec).map(FaultSpec::Sensor),
         "random" => {
             let n: u32 = rest
                 .parse()
@@ -108,7 +114,7 @@ pub fn parse(spec: &str) -> Result<FaultSpec> {
         }
         "delay" | "drop" | "corrupt" => crate::bus_faults::parse(kind, rest, spec),
         other => bail!(
-            "fault '{spec}': unknown fault kind '{other}' (kill, stop, random, delay, drop, corrupt)"
+            "fault '{spec}': unknown fault kind '{other}' (kill, stop, random, delay, drop, corrupt, hog, encoder-stuck, current-offset)"
         ),
     }
 }
@@ -122,6 +128,10 @@ pub enum FaultSpec {
     Random(u32),
     /// A bus fault, injected by the stage hosts by sample index (not part of the plan).
     Bus(drivelab_runtime::inject::Inject),
+    /// A competing SCHED_FIFO busy loop, started by the supervisor ([`hog`]).
+    Hog(hog::Hog),
+    /// A sensor fault, applied by the plant from the resolved scenario ([`sensor`]).
+    Sensor(drivelab_runtime::sensor_faults::SensorFault),
 }
 
 /// Expands the specs into a time-ordered plan against the run's `stages`. Random kills of
@@ -159,6 +169,8 @@ pub fn plan(
                 }
                 out.push(f.clone());
             }
+            // Not signals: the launcher plans them (`hog::plan`, `sensor::add_to_scenario`).
+            FaultSpec::Hog(_) | FaultSpec::Sensor(_) => {}
             FaultSpec::Random(n) => {
                 let span = 0.8 * duration_s;
                 let slot = span / f64::from(*n);

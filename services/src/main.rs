@@ -59,12 +59,15 @@ enum Cmd {
         json: bool,
         /// Inject a fault (repeatable): kill:STAGE@SECONDS (SIGKILL),
         /// stop:STAGE@SECONDS:DURATION (SIGSTOP, then SIGCONT), random:N (N kills of random
-        /// stages at random instants, seeded by --fault-seed), all three realtime only; the
-        /// signal goes to the process that hosts the stage, and so to all its stages. Bus
-        /// faults, applied by sample index in every clock: delay:STAGE@SECONDS:DURATION:LATENCY
-        /// (the stage's outputs published LATENCY late, e.g. 200us or 0.3ms; real time only,
-        /// accepted elsewhere), drop:TOPIC@SECONDS:N (N messages not published),
-        /// corrupt:TOPIC@SECONDS:N (N messages with NaN and 1e30). SECONDS are simulated time.
+        /// stages at random instants, seeded by --fault-seed) and hog:CPU@SECONDS:DURATION:PRIO
+        /// (a SCHED_FIFO busy loop pinned to CPU): realtime only; the signal goes to the
+        /// process that hosts the stage, and so to all its stages. Applied by sample index in
+        /// every clock: delay:STAGE@SECONDS:DURATION:LATENCY (the stage's outputs published
+        /// LATENCY late, e.g. 200us or 0.3ms; felt in real time only), drop:TOPIC@SECONDS:N (N
+        /// messages not published), corrupt:TOPIC@SECONDS:N (N messages with NaN and 1e30),
+        /// encoder-stuck@SECONDS:DURATION (the encoder reading frozen),
+        /// current-offset:PHASE@SECONDS:AMPS (phase a, b or c measured with an offset in A, to
+        /// the end of the run). SECONDS are simulated time.
         #[arg(long = "fault", value_name = "SPEC")]
         faults: Vec<String>,
         /// What the supervisor does when a process dies.
@@ -252,6 +255,22 @@ enum Cmd {
         /// How many messages.
         #[arg(long, default_value_t = 10)]
         count: u32,
+    },
+    /// Internal: a hog fault's busy loop (started by the supervisor for `--fault hog:…`).
+    #[command(hide = true)]
+    Hog {
+        /// CPU to pin to.
+        #[arg(long)]
+        cpu: usize,
+        /// SCHED_FIFO priority, 1..=99.
+        #[arg(long)]
+        priority: u8,
+        /// How long to spin, s (0: only check that the CPU and priority are granted).
+        #[arg(long)]
+        duration_s: f64,
+        /// Bus id of the drive it disturbs (a label: the hog uses no bus).
+        #[arg(long)]
+        bus: Option<String>,
     },
     /// Internal: one node of the Unix-socket chain (started by `drivelab bench`).
     #[command(hide = true)]
@@ -607,6 +626,12 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             eprintln!("supervisor: {done}");
             Ok(())
         }
+        Cmd::Hog {
+            cpu,
+            priority,
+            duration_s,
+            bus: _,
+        } => drivelab_services::faults::hog::run(cpu, priority, duration_s),
         Cmd::BusInject { bus, kind, count } => {
             drivelab_services::faults::inject_bad_estimates(&bus, &kind, count)
         }

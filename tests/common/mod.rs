@@ -87,6 +87,18 @@ pub fn drivelab(args: &[&str]) -> Output {
     child.wait_with_output().unwrap()
 }
 
+/// Runs `drivelab run --bus BUS --no-plots EXTRA` and asserts that it fails before the start
+/// with exit code 1 and a one-line error containing `needle`.
+pub fn assert_run_refused(bus: &str, extra: &[&str], needle: &str) {
+    let mut args = vec!["run", "--bus", bus, "--no-plots"];
+    args.extend_from_slice(extra);
+    let o = drivelab(&args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{extra:?}: {err}");
+    assert!(err.contains(needle), "{extra:?}: {err}");
+    assert_eq!(err.lines().count(), 1, "{extra:?}: {err}");
+}
+
 /// Runs `drivelab run --bus <own id> --out <scratch>/run --no-plots EXTRA`, asserts success
 /// and a clean bus, and returns the run folder and its summary.
 pub fn run_ok(name: &str, extra: &[&str]) -> (PathBuf, Value) {
@@ -241,6 +253,29 @@ pub fn processes_on_bus(bus: &str) -> Vec<String> {
         }
     }
     v
+}
+
+/// SIGKILLs the launcher `child` (nobody cleans up) and asserts that the kernel ends every
+/// other process of `bus` with it (their parent-death signal) within 10 s; those left are
+/// killed before the assertion fails.
+pub fn kill_launcher_and_assert_no_orphans(mut child: std::process::Child, bus: &str) {
+    // SAFETY: SIGKILL to this test's own launcher.
+    unsafe { libc::kill(child.id() as i32, libc::SIGKILL) };
+    let _ = child.wait();
+    let t = Instant::now();
+    while !processes_on_bus(bus).is_empty() && t.elapsed() < Duration::from_secs(10) {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let orphans = processes_on_bus(bus);
+    for line in &orphans {
+        let pid: i32 = line.split(' ').next().unwrap().parse().unwrap();
+        // SAFETY: SIGKILL to a process of this test's own drive.
+        unsafe { libc::kill(pid, libc::SIGKILL) };
+    }
+    assert!(
+        orphans.is_empty(),
+        "processes outlived their launcher by 10 s: {orphans:?}"
+    );
 }
 
 /// No process and no bus file of `bus` is left.

@@ -13,6 +13,7 @@ mod supervisor;
 mod trip;
 
 pub use recorder::Gap;
+pub(crate) use spawn::die_with_launcher;
 pub use supervisor::{fault_reports, speed_recovered, EventKind, FaultReport, SupEvent};
 
 use crate::common::BusClock;
@@ -145,6 +146,8 @@ struct BusRun {
     /// Why the run ended early (a failed service, Ctrl-C), if it did: what was recorded up
     /// to then is still written, then the run fails.
     failure: Option<String>,
+    /// Cycle latencies around each hog's window.
+    hog_latency: Vec<crate::faults::hog::WindowLatency>,
 }
 
 /// Runs the topology's processes on a bus and returns the recorder's data, the process info
@@ -154,6 +157,7 @@ fn run_bus(
     sc_path: &Path,
     plan_topo: &TopologyPlan,
     plan: &[crate::faults::Fault],
+    hogs: &[crate::faults::hog::Hog],
     o: &RunOptions,
     out: &Path,
     clock: BusClock,
@@ -174,6 +178,11 @@ fn run_bus(
     let stop = Arc::new(AtomicBool::new(false));
     let progress = Arc::new(Progress {
         tail: crate::hub::TraceTail::new(sc.rates.sample_hz),
+        hog_latency: std::sync::Mutex::new(
+            hogs.iter()
+                .map(|h| crate::faults::hog::WindowLatency::new(h, sc.rates.sample_hz))
+                .collect(),
+        ),
         ..Default::default()
     });
     let (ready_tx, ready_rx) = mpsc::channel();
@@ -251,6 +260,7 @@ fn run_bus(
             &bar,
             &mut supervised,
             plan,
+            hogs,
             &mut events,
             &progress,
             sc,
@@ -325,6 +335,11 @@ fn run_bus(
     if let Some(f) = unreceived(&mut gaps, produced, sc.samples(), rec.stats.rows) {
         failure.get_or_insert(f);
     }
+    let hog_latency = progress
+        .hog_latency
+        .lock()
+        .map(|mut l| std::mem::take(&mut *l))
+        .map_err(|_| anyhow!("recorder thread panicked"))?;
     Ok(BusRun {
         rows: rec.kept,
         gaps,
@@ -333,6 +348,7 @@ fn run_bus(
         info,
         events,
         failure,
+        hog_latency,
     })
 }
 
@@ -533,6 +549,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         sc.validate().map_err(|e| anyhow!("--duration {d}: {e}"))?;
     }
     let expectations = crate::expect::collect(&sc.expect, &o.expect)?;
+    // Sensor faults go into the resolved scenario: every plant applies them.
+    crate::faults::sensor::add_to_scenario(&o.faults, &mut sc)?;
     let topo = resolve_topology(&mut sc, &sc_src, o)?;
     // Faults are checked before anything is created: a bad plan leaves nothing behind.
     let stage_names: Vec<String> = topo.stages.iter().map(|s| s.name.clone()).collect();
@@ -542,6 +560,23 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     }
     // Bus faults (delay, drop, corrupt) go to every stage host in the resolved scenario.
     crate::bus_faults::schedule(&o.faults, &mut sc, &topo)?;
+    let hogs = crate::faults::hog::plan(
+        &o.faults,
+        sc.duration_s,
+        o.clock == Clock::Realtime,
+        &crate::faults::hog::allowed_cpus(),
+    )?;
+    for h in &hogs {
+        crate::faults::hog::check_privilege(h)?;
+    }
+    if let (true, Some((runtime, period))) = (
+        o.verbose && !hogs.is_empty(),
+        crate::faults::hog::rt_throttling(),
+    ) {
+        eprintln!(
+            "drivelab: RT throttling (read, not changed): sched_rt_runtime_us = {runtime} of sched_rt_period_us = {period}; a hog leaves the rest to tasks that are not real-time"
+        );
+    }
     let out = o.out.clone().unwrap_or_else(|| default_out(&sc, o.clock));
     std::fs::create_dir_all(&out)
         .with_context(|| format!("cannot create run folder {}", out.display()))?;
@@ -562,6 +597,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         info,
         events,
         failure,
+        hog_latency,
     } = match o.clock {
         Clock::Inprocess => {
             if let Some(p) = topo.processes.iter().find(|p| p.exec.is_some()) {
@@ -579,10 +615,17 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
                 info: json!({ "deadline_misses": 0 }),
                 events: Vec::new(),
                 failure: None,
+                hog_latency: Vec::new(),
             }
         }
-        Clock::Lockstep => run_bus(&sc, &sc_path, &topo, &plan, o, &out, BusClock::Lockstep)?,
-        Clock::Realtime => run_bus(&sc, &sc_path, &topo, &plan, o, &out, BusClock::Realtime)?,
+        Clock::Lockstep | Clock::Realtime => {
+            let clock = if o.clock == Clock::Lockstep {
+                BusClock::Lockstep
+            } else {
+                BusClock::Realtime
+            };
+            run_bus(&sc, &sc_path, &topo, &plan, &hogs, o, &out, clock)?
+        }
     };
     let wall_s = wall.elapsed().as_secs_f64();
     let (mut faults, mut windows) = fault_reports(&sc, &rows, &events);
@@ -590,6 +633,15 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         crate::bus_faults::reports(&sc, &topo, &rows, info.get("counters"));
     faults.extend(bus_faults);
     windows.extend(bus_windows);
+    crate::faults::hog::add_latency(&mut faults, &hog_latency);
+    for r in crate::faults::sensor::reports(&sc, &rows) {
+        // Shaded on the plots like the other faults.
+        if let Some(w) = &r.window {
+            let t = |k: u64| k as f64 / sc.rates.sample_hz;
+            windows.push((t(w.during_k[0]), t(w.during_k[1]), r.fault.clone()));
+        }
+        faults.push(r);
+    }
     if let Some(t) = trip::trip_report(&sc, &rows) {
         eprintln!(
             "drivelab: the inverter tripped on overcurrent at t = {:.4} s (sample {}); it stayed in its safe state",
@@ -652,6 +704,16 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         "wall_time_s": wall_s,
         "simulated_s_per_wall_s": sc.duration_s / wall_s.max(1e-9),
     });
+    if !hogs.is_empty() {
+        // Read, never changed: the kernel leaves (period − runtime) of each period to
+        // non-real-time tasks, so a hog cannot take its CPU whole.
+        summary["timing"]["rt_throttling"] = match crate::faults::hog::rt_throttling() {
+            Some((runtime, period)) => {
+                json!({ "sched_rt_runtime_us": runtime, "sched_rt_period_us": period })
+            }
+            None => serde_json::Value::Null,
+        };
+    }
     if let Some(c) = info.get("counters") {
         summary["counters"] = c.clone();
         if let Some(ns) = c["plant"]["loop_wall_ns"].as_u64().filter(|&n| n > 0) {

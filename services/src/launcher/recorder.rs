@@ -39,6 +39,8 @@ pub(super) struct Progress {
     pub rejoins: std::sync::Mutex<Vec<PlantTruth>>,
     /// Decimated trace for `drivelab monitor`.
     pub tail: crate::hub::TraceTail,
+    /// Cycle latencies around each hog's window (`crate::faults::hog`).
+    pub hog_latency: std::sync::Mutex<Vec<crate::faults::hog::WindowLatency>>,
 }
 
 /// Command `c` as the trace takes it: an unusable one (NaN, ∞ or an absurd magnitude, e.g.
@@ -105,6 +107,11 @@ pub(super) fn run_recorder(
     let mut stored = 0u64;
     let mut last_progress = 0u64;
     let mut last_cmd = VoltageCommand::default();
+    let hogs = progress
+        .hog_latency
+        .lock()
+        .map(|v| !v.is_empty())
+        .unwrap_or(false);
     loop {
         let mut got = false;
         while let Some(m) = meas_rx.try_recv()? {
@@ -150,6 +157,12 @@ pub(super) fn run_recorder(
             trace.cmd(c)?;
             if !c.hdr.is_absent() {
                 last_cmd = c;
+                if hogs && c.hdr.t_sample_ns > 0 {
+                    if let Ok(mut lat) = progress.hog_latency.lock() {
+                        let ns = c.hdr.t_pub_ns as i64 - c.hdr.t_sample_ns as i64;
+                        lat.iter_mut().for_each(|w| w.record(c.hdr.k, ns));
+                    }
+                }
             }
         }
         while let Some(w) = wref_rx.try_recv()? {
@@ -395,6 +408,7 @@ mod tests {
             speed_recovered_ms: recovered,
             plant_down: None,
             bus: None,
+            window: None,
         }
     }
 

@@ -152,7 +152,7 @@ pub(super) fn spawn_service(
 /// cannot stop its children, and a real-time stage host left behind would hold its core).
 /// The signal follows the death of the thread that spawned the child: the launcher spawns
 /// and respawns from the thread that runs the whole drive.
-fn die_with_launcher(cmd: &mut Command) {
+pub(crate) fn die_with_launcher(cmd: &mut Command) {
     use std::os::unix::process::CommandExt;
     // SAFETY: getpid(2) only reads the caller's pid.
     let launcher = unsafe { libc::getpid() };

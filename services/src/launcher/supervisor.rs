@@ -61,6 +61,13 @@ pub enum EventKind {
         /// Its pid.
         pid: u32,
     },
+    /// A hog (a competing SCHED_FIFO busy loop, `crate::faults::hog`) was started.
+    Hog {
+        /// What it does.
+        hog: crate::faults::hog::Hog,
+        /// Its pid.
+        pid: u32,
+    },
 }
 
 impl EventKind {
@@ -75,6 +82,7 @@ impl EventKind {
             Self::Reaped { .. } => "reaped",
             Self::Restarted { .. } => "restarted",
             Self::Ready { .. } => "ready",
+            Self::Hog { .. } => "hog",
         }
     }
 
@@ -104,6 +112,7 @@ impl EventKind {
             }
             Self::Restarted { restart, pid } => format!("restart #{restart}, pid {pid}"),
             Self::Ready { pid } => format!("pid {pid}"),
+            Self::Hog { hog, pid } => format!("{} (pid {pid})", hog.describe()),
         }
     }
 }
@@ -186,6 +195,7 @@ pub(super) fn supervise(
     bar: &indicatif::ProgressBar,
     children: &mut [Supervised],
     plan: &[crate::faults::Fault],
+    hogs: &[crate::faults::hog::Hog],
     events: &mut Vec<SupEvent>,
     progress: &Progress,
     sc: &Scenario,
@@ -197,6 +207,9 @@ pub(super) fn supervise(
     let policy = Policy::new(sp.o.restart, clock == BusClock::Lockstep);
     let fs = sc.rates.sample_hz;
     let mut next_fault = 0;
+    let mut next_hog = 0;
+    // Killed and reaped when this function returns, however it returns.
+    let mut running = crate::faults::hog::Running::default();
     let log = |events: &mut Vec<SupEvent>, kind: EventKind, service: &str, process: &str| {
         events.push(SupEvent {
             t_wall_s: started.elapsed().as_secs_f64(),
@@ -235,6 +248,28 @@ pub(super) fn supervise(
                     "-",
                 ),
             }
+        }
+        while next_hog < hogs.len() && k_now as f64 >= hogs[next_hog].at_s * fs {
+            let h = &hogs[next_hog];
+            next_hog += 1;
+            let k_start = plant_sample_now(progress, sc.rates.ts_ns());
+            let kind = match running.start(h, bus_id) {
+                Ok(pid) => EventKind::Hog {
+                    hog: h.clone(),
+                    pid,
+                },
+                Err(e) => EventKind::InjectRefused {
+                    reason: format!("{}: {e:#}", h.describe()),
+                },
+            };
+            log(events, kind, &format!("cpu{}", h.cpu), "hog");
+            if let (Some(e), Some(k)) = (events.last_mut(), k_start) {
+                e.k = e.k.max(k);
+            }
+        }
+        for (pid, st) in running.poll(now) {
+            let reason = format!("the hog (pid {pid}) failed: {st}");
+            log(events, EventKind::InjectRefused { reason }, "-", "hog");
         }
         for (f, monitor_pid) in due {
             // A stage's fault hits the whole process that hosts it.
@@ -409,6 +444,9 @@ pub struct FaultReport {
     /// A bus fault's own figures (delay, drop, corrupt), beside the ones above.
     #[serde(flatten)]
     pub bus: Option<crate::bus_faults::BusFigures>,
+    /// Hog and sensor faults: the trace before the fault against during it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub window: Option<crate::faults::window::FaultWindow>,
 }
 
 /// The motor while the plant's process was down (see [`FaultReport::plant_down`]).
@@ -452,7 +490,7 @@ pub fn fault_reports(
     let mut windows = Vec::new();
     let injects: Vec<&SupEvent> = events
         .iter()
-        .filter(|e| matches!(e.kind, EventKind::Inject { .. }))
+        .filter(|e| matches!(e.kind, EventKind::Inject { .. } | EventKind::Hog { .. }))
         .collect();
     for (n, inj) in injects.iter().enumerate() {
         let k0 = inj.k;
@@ -524,6 +562,10 @@ pub fn fault_reports(
             peak_current_a: down.iter().map(|r| r.i_d.hypot(r.i_q)).fold(0.0, f64::max),
             peak_speed_rad_s: down.iter().map(|r| r.omega_m.abs()).fold(0.0, f64::max),
         });
+        let window = match &inj.kind {
+            EventKind::Hog { hog, .. } => Some(crate::faults::hog::window(hog, rows, k0, fs)),
+            _ => None,
+        };
         out.push(FaultReport {
             fault: inj.detail(),
             service: inj.service.clone(),
@@ -539,6 +581,7 @@ pub fn fault_reports(
             speed_recovered_ms: rec.map(|r| ms(r - k0)),
             plant_down,
             bus: None,
+            window,
         });
     }
     (out, windows)

@@ -36,6 +36,7 @@ pub(super) fn trip_report(sc: &Scenario, rows: &[TraceRow]) -> Option<FaultRepor
         speed_recovered_ms: None,
         plant_down: None,
         bus: None,
+        window: None,
     })
 }
 

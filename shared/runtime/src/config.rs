@@ -40,6 +40,10 @@ pub struct Scenario {
     /// Sensor models.
     #[serde(default)]
     pub sensors: Sensors,
+    /// Sensor faults applied by the plant by sample index (`[[sensor_fault]]` tables, or
+    /// `--fault encoder-stuck@…` / `current-offset:…`); none by default.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub sensor_fault: Vec<crate::sensor_faults::SensorFault>,
     /// Observer settings.
     #[serde(default)]
     pub observer: ObserverSpec,
@@ -826,6 +830,7 @@ impl Scenario {
                 },
             )?;
         }
+        crate::sensor_faults::validate(&self.sensor_fault, self.duration_s)?;
         let s = &self.sensors;
         check(
             s.current_noise_a.is_finite()

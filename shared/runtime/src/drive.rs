@@ -206,6 +206,8 @@ pub struct Plant {
     load_model: drivelab_control::motor::LoadModel,
     encoder_counts: u32,
     noise: Option<(ChaCha8Rng, Normal<f64>)>,
+    /// Sensor faults (`[[sensor_fault]]`): what the measurement shows, never the truth.
+    sensor_faults: crate::sensor_faults::SensorModel,
     last_u_ab: [f64; 2],
     /// Consecutive samples without a fresh command.
     pub stale_run: u32,
@@ -255,6 +257,10 @@ impl Plant {
             load_model: sc.load_model(),
             encoder_counts: sc.sensors.encoder_counts_per_rev,
             noise,
+            sensor_faults: crate::sensor_faults::SensorModel::new(
+                &sc.sensor_fault,
+                sc.rates.sample_hz,
+            ),
             last_u_ab: [0.0; 2],
             stale_run: 0,
             u_dq_applied: Dq::default(),
@@ -335,12 +341,15 @@ impl Plant {
             ib += n.sample(rng);
             ic += n.sample(rng);
         }
+        let mut i_abc = [ia, ib, ic];
+        self.sensor_faults.currents(k, &mut i_abc);
         let theta_m_enc = if self.encoder_counts > 0 {
             let step = std::f64::consts::TAU / f64::from(self.encoder_counts);
             (self.x.theta_m / step).floor() * step
         } else {
             self.x.theta_m
         };
+        let theta_m_enc = self.sensor_faults.encoder(k, theta_m_enc);
         let hdr = Header {
             k,
             flags,
@@ -359,7 +368,7 @@ impl Plant {
         };
         Measurement {
             hdr,
-            i_abc: [ia, ib, ic],
+            i_abc,
             theta_m_enc,
             u_ab_applied: [u.alpha, u.beta],
         }

@@ -22,6 +22,8 @@ impl Plant {
         self.stale_run = 0;
         // A tripped inverter stays tripped through a restart of the plant's process.
         self.tripped = last.hdr.flags & crate::messages::FLAG_TRIPPED != 0;
+        // Inside an encoder freeze, the frozen reading it had published.
+        self.sensor_faults.resume(last.hdr.k, last.theta_m_enc);
     }
 
     /// The motor through the plant's downtime: restored to `last` (its last recorded

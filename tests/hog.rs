@@ -1,0 +1,169 @@
+//! `--fault hog:CPU@S:DUR:PRIO`: a competing SCHED_FIFO busy loop started by the supervisor
+//! in a process of its own. Real-time runs (as root); the timeouts are watchdogs only, and
+//! nothing here asserts a latency: only that the hog's window shows misses, that the report
+//! has its figures and that no process is left.
+
+use std::time::{Duration, Instant};
+
+mod common;
+use common::*;
+
+#[test]
+fn a_hog_above_the_drive_on_its_core_costs_deadlines_and_is_gone_at_the_end() {
+    let _serial = serial();
+    // The drive runs on core 1 at FIFO 70..76 (the default placement): FIFO 99 on core 1
+    // starves it for the hog's 0.1 s (the kernel's RT throttling lends its 5 % to tasks that
+    // are not real-time, not to the drive).
+    let (_out, s) = run_ok(
+        "hog-above",
+        &["--duration", "2", "--fault", "hog:1@0.5:0.1:99"],
+    );
+    let faults = s["faults"].as_array().expect("faults");
+    assert_eq!(faults.len(), 1, "{faults:?}");
+    let f = &faults[0];
+    assert!(
+        f["fault"]
+            .as_str()
+            .unwrap()
+            .starts_with("hog cpu 1 SCHED_FIFO 99 for 0.1 s (pid "),
+        "{f}"
+    );
+    let w = &f["window"];
+    let (k0, k1) = (
+        w["during_k"][0].as_u64().unwrap(),
+        w["during_k"][1].as_u64().unwrap(),
+    );
+    assert_eq!(k1 - k0, 1000, "{w}");
+    assert!(k0 >= 5000, "started before its sample: {w}");
+    // Misses in the window (no comparison with before it: the machine is shared, and
+    // another drive on core 1 makes its own).
+    assert!(w["deadline_misses"]["during"].as_u64().unwrap() > 0, "{w}");
+    assert!(w["deadline_misses"]["before"].as_u64().is_some(), "{w}");
+    for side in ["before", "during"] {
+        assert!(w["cycle_p99_us"][side].as_f64().is_some(), "{w}");
+    }
+    // Back on schedule after the hog, or null when that was not seen: a figure either way.
+    assert!(w.get("cycle_recovered_ms").is_some(), "{w}");
+    // Safe state reached or not: a figure either way.
+    assert!(f.get("safe_state_ms").is_some(), "{f}");
+    let throttling = &s["timing"]["rt_throttling"];
+    assert!(
+        throttling["sched_rt_runtime_us"].as_i64().is_some(),
+        "{throttling}"
+    );
+    // The hog process is gone: the event names its pid.
+    let ev = s["supervisor_events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|e| e["event"] == "hog")
+        .expect("a hog event");
+    let detail = ev["detail"].as_str().unwrap();
+    let pid: u32 = detail
+        .rsplit("pid ")
+        .next()
+        .and_then(|p| p.trim_end_matches(')').parse().ok())
+        .unwrap_or_else(|| panic!("no pid in {detail}"));
+    let alive = std::fs::read(format!("/proc/{pid}/cmdline"))
+        .map(|c| String::from_utf8_lossy(&c).contains("hog"))
+        .unwrap_or(false);
+    assert!(!alive, "the hog (pid {pid}) is still running");
+}
+
+#[test]
+fn without_the_privilege_for_sched_fifo_a_hog_is_a_one_line_error() {
+    let _serial = serial();
+    let setpriv = "/usr/bin/setpriv";
+    if !std::path::Path::new(setpriv).exists() {
+        eprintln!("skipped: no {setpriv} to drop root");
+        return;
+    }
+    let bus = bus_id("hog-nopriv");
+    // As user nobody (no CAP_SYS_NICE, RLIMIT_RTPRIO 0): refused before the drive starts.
+    let o = std::process::Command::new(setpriv)
+        .args([
+            "--reuid",
+            "65534",
+            "--regid",
+            "65534",
+            "--clear-groups",
+            DRIVELAB,
+        ])
+        .args([
+            "run",
+            "--bus",
+            &bus,
+            "--no-plots",
+            "--fault",
+            "hog:1@0.05:0.01:50",
+        ])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.starts_with(
+            "drivelab: error: fault hog:1@0.05:0.01:50: hog: SCHED_FIFO priority 50 refused"
+        ),
+        "{err}"
+    );
+    assert_eq!(err.lines().count(), 1, "{err}");
+    assert_clean(&bus);
+}
+
+#[test]
+fn hog_errors_are_one_line() {
+    let _serial = serial();
+    let bus = bus_id("hog-cli");
+    let cpus = std::thread::available_parallelism().unwrap().get();
+    let nowhere = format!("hog:{}@0.05:0.01:50", cpus + 7);
+    for (args, needle) in [
+        (
+            vec!["--fault", "hog:1@0.05:0.01:50", "--clock", "lockstep"],
+            "needs --clock realtime".to_string(),
+        ),
+        (
+            vec!["--fault", "hog:1@0.05:0.01:0"],
+            "must be a SCHED_FIFO priority in 1..=99".into(),
+        ),
+        (
+            vec!["--fault", "hog:1@0.05:90:50"],
+            "a hog lasts 0.001 to 60 s".into(),
+        ),
+        (
+            vec!["--fault", &nowhere],
+            format!("there is no CPU {} here (CPUs: 0", cpus + 7),
+        ),
+    ] {
+        assert_run_refused(&bus, &args, &needle);
+    }
+    assert_clean(&bus);
+}
+
+#[test]
+fn a_hog_dies_with_a_sigkilled_launcher() {
+    let _serial = serial();
+    let dir = scratch("hog-orphan");
+    let bus = bus_id("hog-orphan");
+    // Below the drive's priorities, so the drive runs on while the hog spins.
+    let child = start_drive(
+        &bus,
+        &dir.join("run"),
+        &["--duration", "20", "--fault", "hog:1@0.2:15:10"],
+    );
+    let t = Instant::now();
+    while !processes_on_bus(&bus)
+        .iter()
+        .any(|l| l.contains(" hog --cpu 1"))
+    {
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "watchdog: no hog started"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    kill_launcher_and_assert_no_orphans(child, &bus);
+    let o = drivelab(&["clean", "--bus", &bus]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_clean(&bus);
+}
