@@ -463,3 +463,39 @@ fn a_realtime_drive_reports_its_cpu_latency_request() {
         s["timing"]
     );
 }
+
+#[test]
+fn a_drive_whose_output_nobody_reads_any_more_still_finishes_and_cleans_up() {
+    // `drivelab run 2>&1 | head -1`: the reader goes away after the first line. Before,
+    // the next line printed panicked a stage host (exit 101 at start-up) or the launcher,
+    // which then left its shared-memory files behind.
+    let _serial = serial();
+    let dir = scratch("closedpipe");
+    let bus = bus_id("closedpipe");
+    let out = dir.join("run");
+    let mut child = start_drive(&bus, &out, &["--duration", "0.5"]);
+    // Both pipes closed at once: nobody reads stdout or stderr from here on.
+    drop(child.stdout.take());
+    drop(child.stderr.take());
+    let t = Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "watchdog: drivelab did not finish"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    assert_eq!(status.code(), Some(0));
+    let s: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(
+        s["samples"], s["samples_expected"],
+        "{}",
+        s["missing_samples"]
+    );
+    assert_clean(&bus);
+    let _ = std::fs::remove_dir_all(&dir);
+}

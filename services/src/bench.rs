@@ -339,7 +339,7 @@ impl RequestHolder {
                 Ok(r) => self.held = Some(r),
                 Err(e) => {
                     self.failed = true;
-                    eprintln!(
+                    crate::errln!(
                         "drivelab: warning: bench without a CPU wake-up latency request ({}: {e})",
                         drivelab_runtime::rt::CPU_DMA_LATENCY
                     );
@@ -518,7 +518,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     let cyclictest = match drivelab_bench::cyclictest::locate(&a.cyclictest) {
         Ok(p) => Some(p),
         Err(why) => {
-            eprintln!("drivelab: bench: cyclictest cross-check skipped: {why}");
+            crate::errln!("drivelab: bench: cyclictest cross-check skipped: {why}");
             None
         }
     };
@@ -820,10 +820,10 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         )?;
     }
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
+        crate::outln!("{}", serde_json::to_string_pretty(&report)?);
     } else {
-        print!("{md}");
-        println!("\nwritten: {}", out.display());
+        crate::out!("{md}");
+        crate::outln!("\nwritten: {}", out.display());
     }
     Ok(())
 }

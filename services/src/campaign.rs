@@ -564,10 +564,10 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
         serde_json::to_vec_pretty(&report)?,
     )?;
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
+        crate::outln!("{}", serde_json::to_string_pretty(&report)?);
     } else {
-        print!("{md}");
-        println!(
+        crate::out!("{md}");
+        crate::outln!(
             "\nreports: {}/{{campaign.json,campaign.md,junit.xml}}",
             out.display()
         );

@@ -121,18 +121,18 @@ pub fn run(a: &CdmArgs) -> Result<()> {
     };
     if a.json {
         match &fw {
-            Some(f) => println!(
+            Some(f) => crate::outln!(
                 "{}",
                 serde_json::to_string_pretty(
                     &serde_json::json!({ "cdm": d, "flux_weakening": f })
                 )?
             ),
-            None => println!("{}", serde_json::to_string_pretty(&d)?),
+            None => crate::outln!("{}", serde_json::to_string_pretty(&d)?),
         }
     } else {
-        print!("{}", render(&a.motor, &d));
+        crate::out!("{}", render(&a.motor, &d));
         if let Some(f) = &fw {
-            print!("{}", render_fw(f));
+            crate::out!("{}", render_fw(f));
         }
     }
     Ok(())

@@ -218,7 +218,7 @@ pub fn run(args: &CompareArgs) -> Result<()> {
     };
     std::fs::create_dir_all(&out)
         .with_context(|| format!("cannot create output folder {}", out.display()))?;
-    print!("{}", table(&runs));
+    crate::out!("{}", table(&runs));
     let files = plot(&runs, &out)?;
     let summary = json!({
         "runs": runs.iter().zip(&args.runs).map(|(r, d)| json!({
@@ -234,6 +234,6 @@ pub fn run(args: &CompareArgs) -> Result<()> {
         out.join("comparison.json"),
         serde_json::to_vec_pretty(&summary)?,
     )?;
-    println!("plots and comparison.json in {}", out.display());
+    crate::outln!("plots and comparison.json in {}", out.display());
     Ok(())
 }

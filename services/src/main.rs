@@ -372,7 +372,7 @@ fn main() -> ExitCode {
                 // What failed was printed on its own lines.
                 return ExitCode::from(r.0);
             }
-            eprintln!("drivelab: error: {e:#}");
+            drivelab_services::errln!("drivelab: error: {e:#}");
             // A malformed expectation is a usage error, like a bad option.
             if e.downcast_ref::<drivelab_services::expect::UsageError>()
                 .is_some()
@@ -439,12 +439,12 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             let r = launcher::run(&o)?;
             let failed = drivelab_services::expect::failed(&r.summary);
             if json {
-                println!("{}", serde_json::to_string_pretty(&r.summary)?);
+                drivelab_services::outln!("{}", serde_json::to_string_pretty(&r.summary)?);
             } else {
                 let s = &r.summary;
                 let m = &s["metrics"];
-                println!("run folder: {}", r.out.display());
-                println!(
+                drivelab_services::outln!("run folder: {}", r.out.display());
+                drivelab_services::outln!(
                     "{} samples ({} expected), deadline misses {}, wall {:.2} s ({:.1}× real time)",
                     s["samples"],
                     s["samples_expected"],
@@ -452,7 +452,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                     s["wall_time_s"].as_f64().unwrap_or(0.0),
                     s["simulated_s_per_wall_s"].as_f64().unwrap_or(0.0)
                 );
-                println!(
+                drivelab_services::outln!(
                     "rise {}, overshoot {}, load dip {}, load recovery {}, steady-state error {}",
                     fmt_opt(&m["rise_time_ms"], "ms"),
                     fmt_opt(&m["overshoot_pct"], "%"),
@@ -461,7 +461,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                     fmt_opt(&m["steady_state_error"], "rad/s")
                 );
                 if m["iq_rise_time_us"].as_f64().is_some() || m["id_max_a"].as_f64().is_some() {
-                    println!(
+                    drivelab_services::outln!(
                         "i_q rise (10-90 %) {}, i_q overshoot {}, max settled i_d {}",
                         fmt_opt(&m["iq_rise_time_us"], "µs"),
                         fmt_opt(&m["iq_overshoot_pct"], "%"),
@@ -475,10 +475,10 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                             x["to"].as_u64().unwrap_or(0) + 1 - x["from"].as_u64().unwrap_or(0)
                         })
                         .sum();
-                    println!("missing: {n} sample parts in {} ranges, each with its cause in summary.json → missing_samples", g.len());
+                    drivelab_services::outln!("missing: {n} sample parts in {} ranges, each with its cause in summary.json → missing_samples", g.len());
                 }
                 if let Some(f) = s["faults"].as_array().filter(|f| !f.is_empty()) {
-                    println!(
+                    drivelab_services::outln!(
                         "faults: {} injected; report in summary.json → faults",
                         f.len()
                     );
@@ -486,7 +486,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             }
             if !failed.is_empty() {
                 for line in &failed {
-                    eprintln!("drivelab: {line}");
+                    drivelab_services::errln!("drivelab: {line}");
                 }
                 return Err(Reported(EXIT_EXPECTATION_FAILED).into());
             }
@@ -503,7 +503,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             }
             let m = drivelab_services::replay::resolve_motor(&motor)?;
             let n = drivelab_services::replay::replay(&replay, &out, &m, max_step)?;
-            eprintln!("wrote {n} rows to {}", out.display());
+            drivelab_services::errln!("wrote {n} rows to {}", out.display());
             Ok(())
         }
         Cmd::Scenarios => {
@@ -514,15 +514,17 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                     drivelab_runtime::config::scenarios_dir().display()
                 );
             }
-            println!("{:<24} {:<40} purpose", "name", "reproduces");
+            drivelab_services::outln!("{:<24} {:<40} purpose", "name", "reproduces");
             for (name, path) in list {
                 let text = std::fs::read_to_string(&path)?;
                 match drivelab_runtime::config::Scenario::from_toml(
                     &text,
                     &path.display().to_string(),
                 ) {
-                    Ok(s) => println!("{:<24} {:<40} {}", name, s.reproduces, s.purpose),
-                    Err(e) => println!("{name:<24} INVALID: {e}"),
+                    Ok(s) => {
+                        drivelab_services::outln!("{:<24} {:<40} {}", name, s.reproduces, s.purpose)
+                    }
+                    Err(e) => drivelab_services::outln!("{name:<24} INVALID: {e}"),
                 }
             }
             Ok(())
@@ -553,7 +555,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 sc.speed_loop.rise_time_s = r * 1e-3;
             }
             sc.validate().map_err(|e| anyhow::anyhow!(e))?;
-            print!("{}", drivelab_services::design::render(&sc));
+            drivelab_services::out!("{}", drivelab_services::design::render(&sc));
             Ok(())
         }
         Cmd::Monitor {
@@ -594,14 +596,14 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             let files = drivelab_runtime::bus::leftovers(&bus);
             drivelab_runtime::bus::cleanup(&bus)?;
             if files.is_empty() {
-                println!("bus {bus}: nothing to remove");
+                drivelab_services::outln!("bus {bus}: nothing to remove");
             } else {
-                println!("bus {bus}: removed {} files and folders", files.len());
+                drivelab_services::outln!("bus {bus}: removed {} files and folders", files.len());
             }
             Ok(())
         }
         Cmd::BusConfig { bus } => {
-            print!("{}", drivelab_runtime::bus::config_toml(&bus)?);
+            drivelab_services::out!("{}", drivelab_runtime::bus::config_toml(&bus)?);
             Ok(())
         }
         Cmd::Fault {
@@ -623,7 +625,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             };
             let stop_ms = (duration * 1000.0).round() as u32;
             let done = drivelab_services::monitor::request_fault(&bus, kind, &service, stop_ms)?;
-            eprintln!("supervisor: {done}");
+            drivelab_services::errln!("supervisor: {done}");
             Ok(())
         }
         Cmd::Hog {
@@ -637,7 +639,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
         }
         Cmd::Plot(args) => {
             for f in drivelab_services::plotcmd::run(&args)? {
-                println!("{}", f.display());
+                drivelab_services::outln!("{}", f.display());
             }
             Ok(())
         }
@@ -687,9 +689,9 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
         Cmd::Doctor { json } => {
             let checks = drivelab_tools::doctor::run_checks();
             if json {
-                println!("{}", serde_json::to_string_pretty(&checks)?);
+                drivelab_services::outln!("{}", serde_json::to_string_pretty(&checks)?);
             } else {
-                print!("{}", drivelab_tools::doctor::render_text(&checks));
+                drivelab_services::out!("{}", drivelab_tools::doctor::render_text(&checks));
             }
             Ok(())
         }

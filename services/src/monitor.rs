@@ -741,7 +741,7 @@ fn print_once(ui: &mut Ui, a: Attached, w: u16, h: u16) -> Result<()> {
         out.push_str(line.trim_end());
         out.push('\n');
     }
-    print!("{out}");
+    crate::out!("{out}");
     Ok(())
 }
 

@@ -231,13 +231,13 @@ pub fn run(a: &ObserverErrorArgs) -> Result<()> {
         )?);
     }
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
+        crate::outln!("{}", serde_json::to_string_pretty(&report)?);
         return Ok(());
     }
-    print!("{}", render_table(&m, &rpm, &sweeps, a.pole_tau_ms));
-    println!("wrote {}", a.out.join("observer_error.json").display());
+    crate::out!("{}", render_table(&m, &rpm, &sweeps, a.pole_tau_ms));
+    crate::outln!("wrote {}", a.out.join("observer_error.json").display());
     for f in files {
-        println!("wrote {}", f.display());
+        crate::outln!("wrote {}", f.display());
     }
     Ok(())
 }

@@ -231,9 +231,10 @@ fn run_bus(
             return Ok((children, Some(failure)));
         }
         if o.verbose {
-            eprintln!(
+            crate::errln!(
                 "drivelab: {} samples at {} Hz, clock {clock:?}, bus {bus_id}",
-                n, sc.rates.sample_hz
+                n,
+                sc.rates.sample_hz
             );
         }
         // Supervise until the services finish.
@@ -420,7 +421,7 @@ fn cpu_latency_request(
     match CpuLatencyRequest::hold(v) {
         Ok(r) => {
             if o.verbose {
-                eprintln!("drivelab: holding a CPU wake-up latency request of {v} µs ({CPU_DMA_LATENCY}) while the drive runs");
+                crate::errln!("drivelab: holding a CPU wake-up latency request of {v} µs ({CPU_DMA_LATENCY}) while the drive runs");
             }
             Ok((Some(r), None))
         }
@@ -431,7 +432,7 @@ fn cpu_latency_request(
             if o.rt_strict {
                 bail!("--rt-strict: {why}");
             }
-            eprintln!("drivelab: warning: {why}; idle CPUs may wake late ([timing] cpu_latency_us = \"none\" silences this)");
+            crate::errln!("drivelab: warning: {why}; idle CPUs may wake late ([timing] cpu_latency_us = \"none\" silences this)");
             Ok((None, Some(why)))
         }
     }
@@ -573,7 +574,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         o.verbose && !hogs.is_empty(),
         crate::faults::hog::rt_throttling(),
     ) {
-        eprintln!(
+        crate::errln!(
             "drivelab: RT throttling (read, not changed): sched_rt_runtime_us = {runtime} of sched_rt_period_us = {period}; a hog leaves the rest to tasks that are not real-time"
         );
     }
@@ -643,7 +644,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         faults.push(r);
     }
     if let Some(t) = trip::trip_report(&sc, &rows) {
-        eprintln!(
+        crate::errln!(
             "drivelab: the inverter tripped on overcurrent at t = {:.4} s (sample {}); it stayed in its safe state",
             t.injected_t_s, t.injected_k
         );
