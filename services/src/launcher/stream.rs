@@ -200,6 +200,13 @@ impl TraceStream {
                 std::mem::size_of::<TraceRow>()
             )
         })?;
+        if keep.spacing > 1 {
+            // A long run: its analysis rows are bounded, so they are made resident now (each
+            // page written once), and the drive's memory is the same from its first minute
+            // to its last instead of rising as they fill.
+            kept.resize(rows as usize, TraceRow::default());
+            kept.clear();
+        }
         Ok(Self {
             ts: sc.rates.ts(),
             n: sc.samples(),
