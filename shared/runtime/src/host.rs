@@ -825,8 +825,15 @@ impl<T: Transport> Host<T> {
     /// Lockstep: waits until every external input stage `si` expects at k is there.
     fn wait_inputs(&mut self, si: usize, k: u64) -> Result<bool> {
         let started = Instant::now();
+        // The process's trigger is taken only by its trigger loop: drained here, a trigger
+        // that came early (the next sample's, from a producer on another core) would sit in
+        // the store and never wake the chain.
+        let trigger = self.stages[0]
+            .trigger()
+            .filter(|t| t.origin == Origin::External)
+            .map(|t| t.spec.topic);
         loop {
-            self.drain_external(None, None)?;
+            self.drain_external(trigger, None)?;
             let missing = self.stages[si].inputs.iter().copied().find(|b| {
                 b.origin == Origin::External
                     && b.spec.role == Role::Latest
