@@ -105,7 +105,7 @@ pub fn schedule(specs: &[FaultSpec], sc: &mut Scenario, topo: &TopologyPlan) -> 
         let FaultSpec::Bus(i) = s else { continue };
         let spec = i.spec();
         match i.kind {
-            InjectKind::Delay => {
+            InjectKind::Delay | InjectKind::Kill | InjectKind::Stop => {
                 if !topo.stages.iter().any(|x| x.name == i.target) {
                     let names: Vec<&str> = topo.stages.iter().map(|x| x.name.as_str()).collect();
                     bail!(
@@ -391,6 +391,7 @@ mod tests {
             faults: Vec::new(),
             restart: Default::default(),
             fault_seed: 0,
+            lockstep_restart_ms: drivelab_runtime::inject::RESTART_DEFAULT_MS,
             topology: None,
             expect: Vec::new(),
             runner: None,

@@ -59,8 +59,10 @@ enum Cmd {
         json: bool,
         /// Inject a fault (repeatable): kill:STAGE@SECONDS (SIGKILL),
         /// stop:STAGE@SECONDS:DURATION (SIGSTOP, then SIGCONT), random:N (N kills of random
-        /// stages at random instants, seeded by --fault-seed), all three realtime only; the
-        /// signal goes to the process that hosts the stage, and so to all its stages. Bus
+        /// stages at random instants, seeded by --fault-seed); in real time the signal goes
+        /// to the process that hosts the stage, and so to all its stages; lockstep and
+        /// inprocess simulate them at their sample (not the plant's, see
+        /// --lockstep-restart-ms). Bus
         /// faults, applied by sample index in every clock: delay:STAGE@SECONDS:DURATION:LATENCY
         /// (the stage's outputs published LATENCY late, e.g. 200us or 0.3ms; real time only,
         /// accepted elsewhere), drop:TOPIC@SECONDS:N (N messages not published),
@@ -70,6 +72,10 @@ enum Cmd {
         /// What the supervisor does when a process dies.
         #[arg(long, value_enum, default_value_t = launcher::Restart::OnFailure)]
         restart: launcher::Restart,
+        /// Lockstep and inprocess: how long a killed stage stays dead before it rejoins
+        /// (its simulated restart), milliseconds, 1 to 10000.
+        #[arg(long, value_name = "MS", default_value_t = drivelab_runtime::inject::RESTART_DEFAULT_MS, value_parser = drivelab_services::faults::restart_ms)]
+        lockstep_restart_ms: f64,
         /// Seed of random:N fault plans.
         #[arg(long, default_value_t = 1)]
         fault_seed: u64,
@@ -388,6 +394,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             faults,
             restart,
             fault_seed,
+            lockstep_restart_ms,
             topology,
             expect,
             runner,
@@ -413,6 +420,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 faults,
                 restart,
                 fault_seed,
+                lockstep_restart_ms,
                 topology,
                 expect,
                 runner,

@@ -71,8 +71,11 @@ pub struct RunOptions {
     pub no_plots: bool,
     /// Print progress lines.
     pub verbose: bool,
-    /// Faults to inject (realtime only).
+    /// Faults to inject.
     pub faults: Vec<crate::faults::FaultSpec>,
+    /// Lockstep and in process: the simulated restart of a killed stage, ms (see
+    /// docs/architecture.md, "Fault model").
+    pub lockstep_restart_ms: f64,
     /// Restart policy of the supervisor.
     pub restart: Restart,
     /// Seed of `random:N` fault plans.
@@ -535,10 +538,21 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     let expectations = crate::expect::collect(&sc.expect, &o.expect)?;
     let topo = resolve_topology(&mut sc, &sc_src, o)?;
     // Faults are checked before anything is created: a bad plan leaves nothing behind.
-    let stage_names: Vec<String> = topo.stages.iter().map(|s| s.name.clone()).collect();
-    let plan = crate::faults::plan(&o.faults, sc.duration_s, o.fault_seed, 0.3, &stage_names)?;
-    if !plan.is_empty() && o.clock != Clock::Realtime {
-        bail!("fault injection needs --clock realtime");
+    // Lockstep and in process simulate kills and stops at their sample (not the plant's).
+    let simulated = o.clock != Clock::Realtime;
+    if simulated {
+        crate::faults::refuse_unsimulated(&o.faults)?;
+    }
+    let stage_names: Vec<String> = topo
+        .stages
+        .iter()
+        .map(|s| s.name.clone())
+        .filter(|n| !(simulated && n == crate::faults::SIMULATED_NOT))
+        .collect();
+    let mut plan = crate::faults::plan(&o.faults, sc.duration_s, o.fault_seed, 0.3, &stage_names)?;
+    if simulated {
+        crate::faults::schedule_simulated(&plan, o.lockstep_restart_ms, &mut sc)?;
+        plan.clear();
     }
     // Bus faults (delay, drop, corrupt) go to every stage host in the resolved scenario.
     crate::bus_faults::schedule(&o.faults, &mut sc, &topo)?;
