@@ -231,6 +231,26 @@ pub fn refuse_unsimulated(specs: &[FaultSpec]) -> Result<()> {
     Ok(())
 }
 
+/// Refuses `[[inject]]` kills and stops (a scenario may carry its own) where they are not
+/// simulated: in real time (the supervisor signals processes there) and on the plant.
+pub fn check_simulated(inject: &[drivelab_runtime::inject::Inject], simulated: bool) -> Result<()> {
+    for i in inject.iter().filter(|i| i.kind.downs_stage()) {
+        if !simulated {
+            bail!(
+                "[[inject]] {}: kill and stop tables are simulated in --clock lockstep and inprocess only (in real time use --fault)",
+                i.spec()
+            );
+        }
+        if i.target == SIMULATED_NOT {
+            bail!(
+                "[[inject]] {}: a plant kill or stop needs --clock realtime (not simulated in lockstep or in process)",
+                i.spec()
+            );
+        }
+    }
+    Ok(())
+}
+
 /// The stage whose kill and stop are not simulated in lockstep (random plans there draw
 /// among the others).
 pub const SIMULATED_NOT: &str = "plant";
@@ -471,6 +491,15 @@ mod tests {
         assert_eq!(
             e.to_string(),
             "fault stop:plant@0.05: a plant kill or stop needs --clock realtime (not simulated in lockstep or in process)"
+        );
+        check_simulated(&sc.inject, true).unwrap();
+        let e = check_simulated(&sc.inject, false).unwrap_err().to_string();
+        assert!(e.contains("kill:observer@0.05: kill and stop tables are simulated in --clock lockstep and inprocess only"), "{e}");
+        sc.inject[1].target = "plant".into();
+        let e = check_simulated(&sc.inject, true).unwrap_err().to_string();
+        assert!(
+            e.contains("stop:plant@0.06:0.02: a plant kill or stop needs --clock realtime"),
+            "{e}"
         );
         assert_eq!(restart_ms("40"), Ok(40.0));
         assert_eq!(restart_ms("2.5ms"), Ok(2.5));

@@ -556,6 +556,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     }
     // Bus faults (delay, drop, corrupt) go to every stage host in the resolved scenario.
     crate::bus_faults::schedule(&o.faults, &mut sc, &topo)?;
+    // Simulated kills and stops, from the plan or a scenario's own [[inject]] tables.
+    crate::faults::check_simulated(&sc.inject, simulated)?;
     let out = o.out.clone().unwrap_or_else(|| default_out(&sc, o.clock));
     std::fs::create_dir_all(&out)
         .with_context(|| format!("cannot create run folder {}", out.display()))?;
