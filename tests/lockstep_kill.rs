@@ -3,7 +3,9 @@
 //! every run and in both clocks. Each test has its own bus id and run folder and checks that
 //! nothing is left behind. Times are watchdogs only.
 
-use drivelab_runtime::messages::{FLAG_MISSING, FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT};
+use drivelab_runtime::messages::{
+    FLAG_MISSING, FLAG_PLANT_DOWN, FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT,
+};
 use drivelab_runtime::trace::TraceRow;
 use std::collections::BTreeSet;
 
@@ -115,6 +117,29 @@ fn killed_observer_and_speed_loop_fall_back_downstream_deterministically() {
 }
 
 #[test]
+fn a_killed_plant_coasts_flagged_plant_down_with_no_measurement_then_resumes() {
+    let _serial = serial();
+    let (rows, s) = deterministic("killpl", "0.2", &["--fault", "kill:plant@0.05"]);
+    assert_eq!(rows.len(), 2000);
+    // Down for 500..900: every row there is the motor integrated with no command reaching
+    // the inverter (command 499 lost with the plant: held 500..503, safe state from 503),
+    // the controllers have no measurement (no command recorded). The first measurement
+    // after it is 900, its command takes effect at 901.
+    assert_eq!(
+        samples(&rows, |r| r.plant_flags & FLAG_PLANT_DOWN != 0),
+        ks(500..900)
+    );
+    assert_eq!(
+        command_loss(&rows),
+        [ks(500..900), ks(500..901), ks(503..901)]
+    );
+    let f = &s["faults"][0];
+    assert_eq!(f["fault"], "kill:plant@0.05", "{f}");
+    assert_eq!(f["plant_down"]["samples"], 400, "{f}");
+    assert!(f["speed_recovered_ms"].as_f64().is_some(), "{f}");
+}
+
+#[test]
 fn a_stopped_current_loop_is_absent_for_exactly_its_duration() {
     let _serial = serial();
     let (rows, s) = deterministic("stopcl", "0.2", &["--fault", "stop:current-loop@0.05:0.01"]);
@@ -127,7 +152,7 @@ fn a_stopped_current_loop_is_absent_for_exactly_its_duration() {
 }
 
 #[test]
-fn random_kills_in_lockstep_are_the_same_every_time_and_spare_the_plant() {
+fn random_kills_in_lockstep_are_the_same_every_time() {
     let _serial = serial();
     let (rows, s) = deterministic(
         "rndkill",
@@ -139,7 +164,6 @@ fn random_kills_in_lockstep_are_the_same_every_time_and_spare_the_plant() {
     assert_eq!(faults.len(), 5, "{faults:?}");
     for f in faults {
         assert!(f["fault"].as_str().unwrap().starts_with("kill:"), "{f}");
-        assert_ne!(f["service"], "plant", "{f}");
         assert_eq!(
             f["window_to_k"].as_u64().unwrap() - f["window_from_k"].as_u64().unwrap(),
             400
@@ -148,7 +172,7 @@ fn random_kills_in_lockstep_are_the_same_every_time_and_spare_the_plant() {
 }
 
 #[test]
-fn bad_restart_times_and_plant_kills_are_refused_before_anything_starts() {
+fn bad_restart_times_are_refused_before_anything_starts() {
     let _serial = serial();
     let dir = scratch("badrestart");
     let out = dir.join("run");
@@ -182,16 +206,5 @@ fn bad_restart_times_and_plant_kills_are_refused_before_anything_starts() {
             "{bad}: {e}"
         );
         assert!(!out.exists(), "{bad}: a run folder was made");
-    }
-    for fault in ["kill:plant@0.05", "stop:plant@0.05:0.01"] {
-        let o = run(&["--fault", fault]);
-        let e = String::from_utf8_lossy(&o.stderr);
-        assert_eq!(o.status.code(), Some(1), "{fault}: {e}");
-        assert!(
-            e.contains("a plant kill or stop needs --clock realtime"),
-            "{fault}: {e}"
-        );
-        assert_eq!(e.trim().lines().count(), 1, "{fault}: {e}");
-        assert!(!out.exists(), "{fault}: a run folder was made");
     }
 }

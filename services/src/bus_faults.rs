@@ -265,7 +265,7 @@ pub fn reports(
             peak_current_a: span.iter().map(|r| r.i_d.hypot(r.i_q)).fold(0.0, f64::max),
             republished_ms: fresh.map(|f| ms(f - a.from_k)),
             speed_recovered_ms: rec.map(|r| ms(r - a.from_k)),
-            plant_down: None,
+            plant_down: crate::launcher::PlantDown::of(span.iter().copied()),
             bus: Some(BusFigures {
                 window_from_k: a.from_k,
                 window_to_k: a.to_k,

@@ -190,8 +190,7 @@ pub fn plan(
 
 /// Lockstep and in process (docs/architecture.md, "Fault model"): the kills and stops of
 /// `plan` become `[[inject]]` entries of `sc`, simulated by the stage hosts at their sample;
-/// a kill's outputs are absent for `restart_ms`, the simulated restart. The plant's kill or
-/// stop is refused (simulated in real time only).
+/// a kill's outputs are absent for `restart_ms`, the simulated restart.
 pub fn schedule_simulated(plan: &[Fault], restart_ms: f64, sc: &mut Scenario) -> Result<()> {
     use drivelab_runtime::inject::{Inject, InjectKind};
     for f in plan {
@@ -213,26 +212,8 @@ pub fn schedule_simulated(plan: &[Fault], restart_ms: f64, sc: &mut Scenario) ->
     Ok(())
 }
 
-/// Lockstep and in process: refuses a kill or stop of the plant among `specs`, with a
-/// one-line error (simulated in real time only).
-pub fn refuse_unsimulated(specs: &[FaultSpec]) -> Result<()> {
-    for s in specs {
-        if let FaultSpec::One(f) = s {
-            if f.service == SIMULATED_NOT {
-                bail!(
-                    "fault {}:{}@{}: a plant kill or stop needs --clock realtime (not simulated in lockstep or in process)",
-                    kind_name(f.kind),
-                    f.service,
-                    f.at_s
-                );
-            }
-        }
-    }
-    Ok(())
-}
-
-/// Refuses `[[inject]]` kills and stops (a scenario may carry its own) where they are not
-/// simulated: in real time (the supervisor signals processes there) and on the plant.
+/// Refuses `[[inject]]` kills and stops (a scenario may carry its own) in real time, where
+/// the supervisor signals processes instead.
 pub fn check_simulated(inject: &[drivelab_runtime::inject::Inject], simulated: bool) -> Result<()> {
     for i in inject.iter().filter(|i| i.kind.downs_stage()) {
         if !simulated {
@@ -241,19 +222,9 @@ pub fn check_simulated(inject: &[drivelab_runtime::inject::Inject], simulated: b
                 i.spec()
             );
         }
-        if i.target == SIMULATED_NOT {
-            bail!(
-                "[[inject]] {}: a plant kill or stop needs --clock realtime (not simulated in lockstep or in process)",
-                i.spec()
-            );
-        }
     }
     Ok(())
 }
-
-/// The stage whose kill and stop are not simulated in lockstep (random plans there draw
-/// among the others).
-pub const SIMULATED_NOT: &str = "plant";
 
 /// `--lockstep-restart-ms`: a number of milliseconds within the bounds of a simulated
 /// restart, or a one-line error.
@@ -467,7 +438,7 @@ mod tests {
     }
 
     #[test]
-    fn simulated_kills_and_stops_become_inject_tables_and_the_plant_is_refused() {
+    fn simulated_kills_and_stops_become_inject_tables_refused_in_real_time() {
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../scenarios/kyslan-pi.toml");
         let (mut sc, _) = Scenario::load(path).unwrap();
         let specs = [
@@ -476,7 +447,6 @@ mod tests {
         ];
         let stages: Vec<String> = SERVICES.iter().map(|s| s.to_string()).collect();
         let p = plan(&specs, 0.1, 1, 0.3, &stages).unwrap();
-        refuse_unsimulated(&specs).unwrap();
         schedule_simulated(&p, 25.0, &mut sc).unwrap();
         let specs: Vec<(String, f64)> =
             sc.inject.iter().map(|i| (i.spec(), i.duration_s)).collect();
@@ -487,20 +457,9 @@ mod tests {
                 ("stop:speed-loop@0.06:0.02".to_string(), 0.02)
             ]
         );
-        let e = refuse_unsimulated(&[parse("stop:plant@0.05:0.01").unwrap()]).unwrap_err();
-        assert_eq!(
-            e.to_string(),
-            "fault stop:plant@0.05: a plant kill or stop needs --clock realtime (not simulated in lockstep or in process)"
-        );
         check_simulated(&sc.inject, true).unwrap();
         let e = check_simulated(&sc.inject, false).unwrap_err().to_string();
         assert!(e.contains("kill:observer@0.05: kill and stop tables are simulated in --clock lockstep and inprocess only"), "{e}");
-        sc.inject[1].target = "plant".into();
-        let e = check_simulated(&sc.inject, true).unwrap_err().to_string();
-        assert!(
-            e.contains("stop:plant@0.06:0.02: a plant kill or stop needs --clock realtime"),
-            "{e}"
-        );
         assert_eq!(restart_ms("40"), Ok(40.0));
         assert_eq!(restart_ms("2.5ms"), Ok(2.5));
         for bad in ["0", "0.5", "10001", "NaN", "inf", "-3"] {

@@ -61,8 +61,7 @@ enum Cmd {
         /// stop:STAGE@SECONDS:DURATION (SIGSTOP, then SIGCONT), random:N (N kills of random
         /// stages at random instants, seeded by --fault-seed); in real time the signal goes
         /// to the process that hosts the stage, and so to all its stages; lockstep and
-        /// inprocess simulate them at their sample (not the plant's, see
-        /// --lockstep-restart-ms). Bus
+        /// inprocess simulate them at their sample (see --lockstep-restart-ms). Bus
         /// faults, applied by sample index in every clock: delay:STAGE@SECONDS:DURATION:LATENCY
         /// (the stage's outputs published LATENCY late, e.g. 200us or 0.3ms; real time only,
         /// accepted elsewhere), drop:TOPIC@SECONDS:N (N messages not published),

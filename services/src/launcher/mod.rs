@@ -13,7 +13,7 @@ mod supervisor;
 mod trip;
 
 pub use recorder::Gap;
-pub use supervisor::{fault_reports, speed_recovered, EventKind, FaultReport, SupEvent};
+pub use supervisor::{fault_reports, speed_recovered, EventKind, FaultReport, PlantDown, SupEvent};
 
 use crate::common::BusClock;
 use anyhow::{anyhow, bail, Context, Result};
@@ -538,17 +538,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     let expectations = crate::expect::collect(&sc.expect, &o.expect)?;
     let topo = resolve_topology(&mut sc, &sc_src, o)?;
     // Faults are checked before anything is created: a bad plan leaves nothing behind.
-    // Lockstep and in process simulate kills and stops at their sample (not the plant's).
+    // Lockstep and in process simulate kills and stops at their sample.
     let simulated = o.clock != Clock::Realtime;
-    if simulated {
-        crate::faults::refuse_unsimulated(&o.faults)?;
-    }
-    let stage_names: Vec<String> = topo
-        .stages
-        .iter()
-        .map(|s| s.name.clone())
-        .filter(|n| !(simulated && n == crate::faults::SIMULATED_NOT))
-        .collect();
+    let stage_names: Vec<String> = topo.stages.iter().map(|s| s.name.clone()).collect();
     let mut plan = crate::faults::plan(&o.faults, sc.duration_s, o.fault_seed, 0.3, &stage_names)?;
     if simulated {
         crate::faults::schedule_simulated(&plan, o.lockstep_restart_ms, &mut sc)?;

@@ -422,6 +422,21 @@ pub struct PlantDown {
     pub peak_speed_rad_s: f64,
 }
 
+impl PlantDown {
+    /// The rows of `rows` flagged `plant_down`, or None when there are none.
+    pub fn of<'a>(rows: impl Iterator<Item = &'a TraceRow>) -> Option<Self> {
+        use drivelab_runtime::messages::FLAG_PLANT_DOWN;
+        let down: Vec<&TraceRow> = rows
+            .filter(|r| r.plant_flags & FLAG_PLANT_DOWN != 0)
+            .collect();
+        (!down.is_empty()).then(|| PlantDown {
+            samples: down.len() as u64,
+            peak_current_a: down.iter().map(|r| r.i_d.hypot(r.i_q)).fold(0.0, f64::max),
+            peak_speed_rad_s: down.iter().map(|r| r.omega_m.abs()).fold(0.0, f64::max),
+        })
+    }
+}
+
 /// The first sample of `tail` (rows in order) from which the speed stays within ±2 % of its
 /// reference for 10 ms.
 pub fn speed_recovered(sc: &Scenario, tail: &[&TraceRow]) -> Option<u64> {
@@ -516,14 +531,7 @@ pub fn fault_reports(
             k_rec as f64 / fs,
             format!("{} {}", inj.detail(), inj.service),
         ));
-        let down: Vec<&TraceRow> = after()
-            .filter(|r| r.k <= k_rec && r.plant_flags & FLAG_PLANT_DOWN != 0)
-            .collect();
-        let plant_down = (!down.is_empty()).then(|| PlantDown {
-            samples: down.len() as u64,
-            peak_current_a: down.iter().map(|r| r.i_d.hypot(r.i_q)).fold(0.0, f64::max),
-            peak_speed_rad_s: down.iter().map(|r| r.omega_m.abs()).fold(0.0, f64::max),
-        });
+        let plant_down = PlantDown::of(after().filter(|r| r.k <= k_rec));
         out.push(FaultReport {
             fault: inj.detail(),
             service: inj.service.clone(),

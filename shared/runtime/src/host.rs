@@ -20,7 +20,9 @@
 //! The loops make no allocation, take no lock, do no logging.
 
 use crate::inject::{Armed, Inject, InjectKind, InjectObs};
-use crate::messages::{Header, FLAG_ABSENT, FLAG_END, FLAG_STALE_INPUT, FLAG_WARMUP};
+use crate::messages::{
+    Header, FLAG_ABSENT, FLAG_END, FLAG_PLANT_DOWN, FLAG_STALE_INPUT, FLAG_WARMUP,
+};
 use crate::rt::{now_ns, sleep_until_ns};
 use crate::stage::*;
 use crate::timing::{CycleMonitor, LatencyHist, MissCounter};
@@ -592,6 +594,11 @@ impl<T: Transport> Host<T> {
             let name = self.stages[si].stage.name();
             if self.cfg.pacing != Pacing::Lockstep {
                 bail!("kill of {name} by the injection schedule: lockstep only");
+            }
+            // The source (the plant) keeps its state: the motor keeps turning while its
+            // process is down (see `run_source`).
+            if si == 0 && self.is_source() {
+                continue;
             }
             let fresh = build(name)
                 .ok_or_else(|| anyhow!("kill of {name} in lockstep: no fresh {name} stage can be built to restart it (a stage this executable can build)"))?;
@@ -1299,7 +1306,17 @@ impl<T: Transport> Host<T> {
             }
             // The source's execution starts when it wakes: taking its inputs is part of it.
             let t_in = if realtime { t_woken } else { now_ns() };
-            let (ib, _) = self.inbox(0, k);
+            let (mut ib, _) = self.inbox(0, k);
+            // Lockstep, the plant killed or stopped: no command reaches the inverter (held,
+            // then its safe state), the motor is integrated on, the measurements are absent
+            // and the true state is flagged `plant_down`, as a real-time downtime is rebuilt.
+            let down = self.down(0, k);
+            if down {
+                for s in ib.slots.iter_mut() {
+                    s.msg = None;
+                    s.fresh = false;
+                }
+            }
             let stale = self.count_stale(0, &ib);
             self.stages[0].counters.stale_inputs += stale;
             let mut out = Outbox::default();
@@ -1309,9 +1326,17 @@ impl<T: Transport> Host<T> {
                 self.delay(0, k);
             }
             for mut m in out.drain() {
+                let t = m.topic();
                 let hd = m.hdr_mut();
                 hd.t_sample_ns = if realtime { deadline } else { 0 };
                 hd.t_pub_ns = now_ns();
+                if down {
+                    if t != TopicId::Truth {
+                        self.absent(t, k)?;
+                        continue;
+                    }
+                    hd.flags |= FLAG_PLANT_DOWN;
+                }
                 self.publish(m)?;
             }
             // A missing input: wake the stages that should have produced it, after this
