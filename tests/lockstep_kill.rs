@@ -62,6 +62,14 @@ fn a_killed_current_loop_is_absent_for_the_restart_then_rejoins_the_same_every_t
         "{f}"
     );
     assert!(f["speed_recovered_ms"].as_f64().is_some(), "{f}");
+    // One supervisor event, at the fault's sample, and no signal.
+    let ev = s["supervisor_events"].as_array().unwrap();
+    assert_eq!(ev.len(), 1, "{ev:?}");
+    assert_eq!(ev[0]["event"], "inject-simulated", "{ev:?}");
+    assert_eq!(
+        (ev[0]["k"].as_u64(), ev[0]["service"].as_str()),
+        (Some(500), Some("current-loop"))
+    );
 }
 
 #[test]

@@ -598,6 +598,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         crate::bus_faults::reports(&sc, &topo, &rows, info.get("counters"));
     faults.extend(bus_faults);
     windows.extend(bus_windows);
+    // After the reports: these are no signals, the reports above already cover them.
+    let mut events = events;
+    events.extend(supervisor::simulated_events(&sc, &topo));
     if let Some(t) = trip::trip_report(&sc, &rows) {
         eprintln!(
             "drivelab: the inverter tripped on overcurrent at t = {:.4} s (sample {}); it stayed in its safe state",

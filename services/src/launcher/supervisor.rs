@@ -11,6 +11,7 @@ use crate::faults::{signal, FaultKind};
 use anyhow::Result;
 use drivelab_runtime::bus;
 use drivelab_runtime::config::Scenario;
+use drivelab_runtime::service::TopologyPlan;
 use drivelab_runtime::trace::TraceRow;
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -37,6 +38,12 @@ pub enum EventKind {
     },
     /// A fault was not injected: its process was not running (dead, frozen or finished).
     InjectSkipped,
+    /// Lockstep and in process: a kill or stop simulated by the stage hosts at its sample
+    /// (no signal, no wall time: `t_wall_s` is 0).
+    Simulated {
+        /// The fault, as on the command line.
+        spec: String,
+    },
     /// A stopped process was resumed (SIGCONT).
     Resume,
     /// A process exited with a failure.
@@ -70,6 +77,7 @@ impl EventKind {
             Self::Inject { .. } => "inject",
             Self::InjectRefused { .. } => "inject-refused",
             Self::InjectSkipped => "inject-skipped",
+            Self::Simulated { .. } => "inject-simulated",
             Self::Resume => "resume",
             Self::Exited { .. } => "exited",
             Self::Reaped { .. } => "reaped",
@@ -97,6 +105,7 @@ impl EventKind {
             }
             Self::InjectRefused { reason } => reason.clone(),
             Self::InjectSkipped => "its process is not running".into(),
+            Self::Simulated { spec } => format!("{spec}, simulated at its sample"),
             Self::Resume => "SIGCONT".into(),
             Self::Exited { status } => format!("{status}"),
             Self::Reaped { nodes } => {
@@ -159,6 +168,24 @@ impl Serialize for SupEvent {
         }
         .serialize(s)
     }
+}
+
+/// Lockstep and in process: an `inject-simulated` event for each kill and stop of the
+/// scenario's schedule, at its sample (docs/architecture.md, "Fault model").
+pub fn simulated_events(sc: &Scenario, topo: &TopologyPlan) -> Vec<SupEvent> {
+    sc.inject
+        .iter()
+        .filter(|i| i.kind.downs_stage())
+        .map(|i| SupEvent {
+            t_wall_s: 0.0,
+            k: (i.at_s * sc.rates.sample_hz).round() as u64,
+            kind: EventKind::Simulated { spec: i.spec() },
+            service: i.target.clone(),
+            process: topo
+                .process_of(&i.target)
+                .map_or_else(|| "-".to_string(), |p| topo.processes[p].name.clone()),
+        })
+        .collect()
 }
 
 /// One child process under supervision.
