@@ -3,42 +3,18 @@
 //! checks that nothing is left behind. Times are watchdogs only.
 
 use drivelab_runtime::messages::{FLAG_MISSING, FLAG_SAFE_STATE, FLAG_STALE_CMD};
-use drivelab_runtime::trace::TraceRow;
-use std::collections::BTreeSet;
 
 mod common;
 use common::*;
 
-/// Samples of `rows` whose row satisfies `f`.
-fn samples(rows: &[TraceRow], f: impl Fn(&TraceRow) -> bool) -> BTreeSet<u64> {
-    rows.iter().filter(|r| f(r)).map(|r| r.k).collect()
-}
-
-fn ks(r: std::ops::Range<u64>) -> BTreeSet<u64> {
-    r.collect()
-}
-
-/// Runs `fault` for `duration` s twice in lockstep and once in process (runs `TAGa`, `TAGb`,
-/// `TAGp`), checks that the three traces are the same bytes and returns the first run.
+/// Runs `fault` for `duration` s twice in lockstep and once in process and checks that the
+/// three traces are the same bytes (see [`same_trace_in_every_run`]).
 fn deterministic(
     tag: &str,
     fault: &str,
     duration: &str,
 ) -> (std::path::PathBuf, serde_json::Value) {
-    let args = |clock| ["--clock", clock, "--duration", duration, "--fault", fault];
-    let (a, sa) = run_ok(&format!("{tag}a"), &args("lockstep"));
-    let (b, _) = run_ok(&format!("{tag}b"), &args("lockstep"));
-    let (p, _) = run_ok(&format!("{tag}p"), &args("inprocess"));
-    let ta = read(&a.join("trace.csv"));
-    assert!(
-        ta == read(&b.join("trace.csv")),
-        "{fault}: two lockstep runs differ"
-    );
-    assert!(
-        ta == read(&p.join("trace.csv")),
-        "{fault}: lockstep and in-process differ"
-    );
-    (a, sa)
+    same_trace_in_every_run(tag, &["--duration", duration, "--fault", fault])
 }
 
 #[test]

@@ -105,7 +105,7 @@ pub fn schedule(specs: &[FaultSpec], sc: &mut Scenario, topo: &TopologyPlan) -> 
         let FaultSpec::Bus(i) = s else { continue };
         let spec = i.spec();
         match i.kind {
-            InjectKind::Delay => {
+            InjectKind::Delay | InjectKind::Kill | InjectKind::Stop => {
                 if !topo.stages.iter().any(|x| x.name == i.target) {
                     let names: Vec<&str> = topo.stages.iter().map(|x| x.name.as_str()).collect();
                     bail!(
@@ -265,7 +265,7 @@ pub fn reports(
             peak_current_a: span.iter().map(|r| r.i_d.hypot(r.i_q)).fold(0.0, f64::max),
             republished_ms: fresh.map(|f| ms(f - a.from_k)),
             speed_recovered_ms: rec.map(|r| ms(r - a.from_k)),
-            plant_down: None,
+            plant_down: crate::launcher::PlantDown::of(span.iter().copied()),
             window: None,
             bus: Some(BusFigures {
                 window_from_k: a.from_k,
@@ -392,6 +392,7 @@ mod tests {
             faults: Vec::new(),
             restart: Default::default(),
             fault_seed: 0,
+            lockstep_restart_ms: drivelab_runtime::inject::RESTART_DEFAULT_MS,
             topology: None,
             expect: Vec::new(),
             runner: None,

@@ -314,6 +314,7 @@ fn run_case(c: &CampaignFile, case: &Case, a: &CampaignArgs, out: &Path) -> Case
             faults,
             restart: c.restart,
             fault_seed: case.seed,
+            lockstep_restart_ms: drivelab_runtime::inject::RESTART_DEFAULT_MS,
             topology: c.topology.clone(),
             expect: c.expect.clone(),
             runner: None,

@@ -1,7 +1,7 @@
 //! Fault injection: parsing of `--fault` specs, the seeded random plan, and signals.
 
 use anyhow::{anyhow, bail, Result};
-use drivelab_runtime::config::SERVICES;
+use drivelab_runtime::config::{Scenario, SERVICES};
 use serde::Serialize;
 
 pub mod hog;
@@ -200,6 +200,62 @@ pub fn plan(
     Ok(out)
 }
 
+/// Lockstep and in process (docs/architecture.md, "Fault model"): the kills and stops of
+/// `plan` become `[[inject]]` entries of `sc`, simulated by the stage hosts at their sample;
+/// a kill's outputs are absent for `restart_ms`, the simulated restart.
+pub fn schedule_simulated(plan: &[Fault], restart_ms: f64, sc: &mut Scenario) -> Result<()> {
+    use drivelab_runtime::inject::{Inject, InjectKind};
+    for f in plan {
+        sc.inject.push(Inject {
+            kind: match f.kind {
+                FaultKind::Kill => InjectKind::Kill,
+                FaultKind::Stop => InjectKind::Stop,
+            },
+            target: f.service.clone(),
+            at_s: f.at_s,
+            duration_s: match f.kind {
+                FaultKind::Kill => restart_ms * 1e-3,
+                FaultKind::Stop => f.duration_s,
+            },
+            latency_us: 0.0,
+            count: 0,
+        });
+    }
+    Ok(())
+}
+
+/// Refuses `[[inject]]` kills and stops (a scenario may carry its own) in real time, where
+/// the supervisor signals processes instead.
+pub fn check_simulated(inject: &[drivelab_runtime::inject::Inject], simulated: bool) -> Result<()> {
+    for i in inject.iter().filter(|i| i.kind.downs_stage()) {
+        if !simulated {
+            bail!(
+                "[[inject]] {}: kill and stop tables are simulated in --clock lockstep and inprocess only (in real time use --fault)",
+                i.spec()
+            );
+        }
+    }
+    Ok(())
+}
+
+/// `--lockstep-restart-ms`: a number of milliseconds within the bounds of a simulated
+/// restart, or a one-line error.
+pub fn restart_ms(v: &str) -> std::result::Result<f64, String> {
+    use drivelab_runtime::inject::{RESTART_MAX_S, RESTART_MIN_S};
+    let x: f64 = v
+        .trim_end_matches("ms")
+        .parse()
+        .map_err(|_| format!("'{v}' is not a number of milliseconds"))?;
+    if !(RESTART_MIN_S * 1e3..=RESTART_MAX_S * 1e3).contains(&x) {
+        return Err(format!(
+            "the simulated restart lasts {} to {} ms",
+            RESTART_MIN_S * 1e3,
+            RESTART_MAX_S * 1e3
+        ));
+    }
+    Ok(x)
+}
+
 /// `kill` or `stop`.
 pub fn kind_name(k: FaultKind) -> &'static str {
     match k {
@@ -391,6 +447,41 @@ mod tests {
             );
         }
         assert!(parse("stop:observer@0.05:60").is_ok());
+    }
+
+    #[test]
+    fn simulated_kills_and_stops_become_inject_tables_refused_in_real_time() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../scenarios/kyslan-pi.toml");
+        let (mut sc, _) = Scenario::load(path).unwrap();
+        let specs = [
+            parse("kill:observer@0.05").unwrap(),
+            parse("stop:speed-loop@0.06:0.02").unwrap(),
+        ];
+        let stages: Vec<String> = SERVICES.iter().map(|s| s.to_string()).collect();
+        let p = plan(&specs, 0.1, 1, 0.3, &stages).unwrap();
+        schedule_simulated(&p, 25.0, &mut sc).unwrap();
+        let specs: Vec<(String, f64)> =
+            sc.inject.iter().map(|i| (i.spec(), i.duration_s)).collect();
+        assert_eq!(
+            specs,
+            [
+                ("kill:observer@0.05".to_string(), 0.025),
+                ("stop:speed-loop@0.06:0.02".to_string(), 0.02)
+            ]
+        );
+        check_simulated(&sc.inject, true).unwrap();
+        let e = check_simulated(&sc.inject, false).unwrap_err().to_string();
+        assert!(e.contains("kill:observer@0.05: kill and stop tables are simulated in --clock lockstep and inprocess only"), "{e}");
+        assert_eq!(restart_ms("40"), Ok(40.0));
+        assert_eq!(restart_ms("2.5ms"), Ok(2.5));
+        for bad in ["0", "0.5", "10001", "NaN", "inf", "-3"] {
+            assert_eq!(
+                restart_ms(bad).unwrap_err(),
+                "the simulated restart lasts 1 to 10000 ms",
+                "{bad}"
+            );
+        }
+        assert!(restart_ms("soon").unwrap_err().contains("not a number"));
     }
 
     #[test]

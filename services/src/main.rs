@@ -59,20 +59,25 @@ enum Cmd {
         json: bool,
         /// Inject a fault (repeatable): kill:STAGE@SECONDS (SIGKILL),
         /// stop:STAGE@SECONDS:DURATION (SIGSTOP, then SIGCONT), random:N (N kills of random
-        /// stages at random instants, seeded by --fault-seed) and hog:CPU@SECONDS:DURATION:PRIO
-        /// (a SCHED_FIFO busy loop pinned to CPU): realtime only; the signal goes to the
-        /// process that hosts the stage, and so to all its stages. Applied by sample index in
-        /// every clock: delay:STAGE@SECONDS:DURATION:LATENCY (the stage's outputs published
-        /// LATENCY late, e.g. 200us or 0.3ms; felt in real time only), drop:TOPIC@SECONDS:N (N
-        /// messages not published), corrupt:TOPIC@SECONDS:N (N messages with NaN and 1e30),
-        /// encoder-stuck@SECONDS:DURATION (the encoder reading frozen),
-        /// current-offset:PHASE@SECONDS:AMPS (phase a, b or c measured with an offset in A, to
-        /// the end of the run). SECONDS are simulated time.
+        /// stages at random instants, seeded by --fault-seed): in real time the signal goes to
+        /// the process that hosts the stage, and so to all its stages; lockstep and inprocess
+        /// simulate them at their sample (see --lockstep-restart-ms).
+        /// hog:CPU@SECONDS:DURATION:PRIO (a SCHED_FIFO busy loop pinned to CPU): realtime only.
+        /// Applied by sample index in every clock: delay:STAGE@SECONDS:DURATION:LATENCY (the
+        /// stage's outputs published LATENCY late, e.g. 200us or 0.3ms; felt in real time
+        /// only), drop:TOPIC@SECONDS:N (N messages not published), corrupt:TOPIC@SECONDS:N (N
+        /// messages with NaN and 1e30), encoder-stuck@SECONDS:DURATION (the encoder reading
+        /// frozen), current-offset:PHASE@SECONDS:AMPS (phase a, b or c measured with an offset
+        /// in A, to the end of the run). SECONDS are simulated time.
         #[arg(long = "fault", value_name = "SPEC")]
         faults: Vec<String>,
         /// What the supervisor does when a process dies.
         #[arg(long, value_enum, default_value_t = launcher::Restart::OnFailure)]
         restart: launcher::Restart,
+        /// Lockstep and inprocess: how long a killed stage stays dead before it rejoins
+        /// (its simulated restart), milliseconds, 1 to 10000.
+        #[arg(long, value_name = "MS", default_value_t = drivelab_runtime::inject::RESTART_DEFAULT_MS, value_parser = drivelab_services::faults::restart_ms)]
+        lockstep_restart_ms: f64,
         /// Seed of random:N fault plans.
         #[arg(long, default_value_t = 1)]
         fault_seed: u64,
@@ -407,6 +412,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             faults,
             restart,
             fault_seed,
+            lockstep_restart_ms,
             topology,
             expect,
             runner,
@@ -432,6 +438,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 faults,
                 restart,
                 fault_seed,
+                lockstep_restart_ms,
                 topology,
                 expect,
                 runner,

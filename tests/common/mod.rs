@@ -419,3 +419,40 @@ pub fn assert_identical_until_disturbed(lockstep: &Path, realtime: &Path) -> (us
     );
     (lb.len() - 1, false)
 }
+
+/// Samples of `rows` whose row satisfies `f`.
+pub fn samples(
+    rows: &[drivelab_runtime::trace::TraceRow],
+    f: impl Fn(&drivelab_runtime::trace::TraceRow) -> bool,
+) -> std::collections::BTreeSet<u64> {
+    rows.iter().filter(|r| f(r)).map(|r| r.k).collect()
+}
+
+/// The samples of range `r`, to compare with [`samples`].
+pub fn ks(r: std::ops::Range<u64>) -> std::collections::BTreeSet<u64> {
+    r.collect()
+}
+
+/// Runs `drivelab run EXTRA` twice in lockstep and once in process (runs `TAGa`, `TAGb`,
+/// `TAGp`), checks that the three traces are the same bytes and returns the first run's
+/// folder and summary.
+pub fn same_trace_in_every_run(tag: &str, extra: &[&str]) -> (PathBuf, Value) {
+    let args = |clock: &'static str| {
+        let mut a = vec!["--clock", clock];
+        a.extend_from_slice(extra);
+        a
+    };
+    let (a, sa) = run_ok(&format!("{tag}a"), &args("lockstep"));
+    let (b, _) = run_ok(&format!("{tag}b"), &args("lockstep"));
+    let (p, _) = run_ok(&format!("{tag}p"), &args("inprocess"));
+    let ta = read(&a.join("trace.csv"));
+    assert!(
+        ta == read(&b.join("trace.csv")),
+        "{extra:?}: two lockstep runs differ"
+    );
+    assert!(
+        ta == read(&p.join("trace.csv")),
+        "{extra:?}: lockstep and in-process differ"
+    );
+    (a, sa)
+}

@@ -14,7 +14,7 @@ mod trip;
 
 pub use recorder::Gap;
 pub(crate) use spawn::die_with_launcher;
-pub use supervisor::{fault_reports, speed_recovered, EventKind, FaultReport, SupEvent};
+pub use supervisor::{fault_reports, speed_recovered, EventKind, FaultReport, PlantDown, SupEvent};
 
 use crate::common::BusClock;
 use anyhow::{anyhow, bail, Context, Result};
@@ -72,8 +72,11 @@ pub struct RunOptions {
     pub no_plots: bool,
     /// Print progress lines.
     pub verbose: bool,
-    /// Faults to inject (realtime only).
+    /// Faults to inject.
     pub faults: Vec<crate::faults::FaultSpec>,
+    /// Lockstep and in process: the simulated restart of a killed stage, ms (see
+    /// docs/architecture.md, "Fault model").
+    pub lockstep_restart_ms: f64,
     /// Restart policy of the supervisor.
     pub restart: Restart,
     /// Seed of `random:N` fault plans.
@@ -554,10 +557,13 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     crate::faults::sensor::add_to_scenario(&o.faults, &mut sc)?;
     let topo = resolve_topology(&mut sc, &sc_src, o)?;
     // Faults are checked before anything is created: a bad plan leaves nothing behind.
+    // Lockstep and in process simulate kills and stops at their sample.
+    let simulated = o.clock != Clock::Realtime;
     let stage_names: Vec<String> = topo.stages.iter().map(|s| s.name.clone()).collect();
-    let plan = crate::faults::plan(&o.faults, sc.duration_s, o.fault_seed, 0.3, &stage_names)?;
-    if !plan.is_empty() && o.clock != Clock::Realtime {
-        bail!("fault injection needs --clock realtime");
+    let mut plan = crate::faults::plan(&o.faults, sc.duration_s, o.fault_seed, 0.3, &stage_names)?;
+    if simulated {
+        crate::faults::schedule_simulated(&plan, o.lockstep_restart_ms, &mut sc)?;
+        plan.clear();
     }
     // Bus faults (delay, drop, corrupt) go to every stage host in the resolved scenario.
     crate::bus_faults::schedule(&o.faults, &mut sc, &topo)?;
@@ -578,6 +584,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             "drivelab: RT throttling (read, not changed): sched_rt_runtime_us = {runtime} of sched_rt_period_us = {period}; a hog leaves the rest to tasks that are not real-time"
         );
     }
+    // Simulated kills and stops, from the plan or a scenario's own [[inject]] tables.
+    crate::faults::check_simulated(&sc.inject, simulated)?;
     let out = o.out.clone().unwrap_or_else(|| default_out(&sc, o.clock));
     std::fs::create_dir_all(&out)
         .with_context(|| format!("cannot create run folder {}", out.display()))?;
@@ -643,6 +651,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         }
         faults.push(r);
     }
+    // After the reports: these are no signals, the reports above already cover them.
+    let mut events = events;
+    events.extend(supervisor::simulated_events(&sc, &topo));
     if let Some(t) = trip::trip_report(&sc, &rows) {
         crate::errln!(
             "drivelab: the inverter tripped on overcurrent at t = {:.4} s (sample {}); it stayed in its safe state",

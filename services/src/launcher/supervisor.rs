@@ -11,6 +11,7 @@ use crate::faults::{signal, FaultKind};
 use anyhow::Result;
 use drivelab_runtime::bus;
 use drivelab_runtime::config::Scenario;
+use drivelab_runtime::service::TopologyPlan;
 use drivelab_runtime::trace::TraceRow;
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -37,6 +38,12 @@ pub enum EventKind {
     },
     /// A fault was not injected: its process was not running (dead, frozen or finished).
     InjectSkipped,
+    /// Lockstep and in process: a kill or stop simulated by the stage hosts at its sample
+    /// (no signal, no wall time: `t_wall_s` is 0).
+    Simulated {
+        /// The fault, as on the command line.
+        spec: String,
+    },
     /// A stopped process was resumed (SIGCONT).
     Resume,
     /// A process exited with a failure.
@@ -77,6 +84,7 @@ impl EventKind {
             Self::Inject { .. } => "inject",
             Self::InjectRefused { .. } => "inject-refused",
             Self::InjectSkipped => "inject-skipped",
+            Self::Simulated { .. } => "inject-simulated",
             Self::Resume => "resume",
             Self::Exited { .. } => "exited",
             Self::Reaped { .. } => "reaped",
@@ -105,6 +113,7 @@ impl EventKind {
             }
             Self::InjectRefused { reason } => reason.clone(),
             Self::InjectSkipped => "its process is not running".into(),
+            Self::Simulated { spec } => format!("{spec}, simulated at its sample"),
             Self::Resume => "SIGCONT".into(),
             Self::Exited { status } => format!("{status}"),
             Self::Reaped { nodes } => {
@@ -168,6 +177,24 @@ impl Serialize for SupEvent {
         }
         .serialize(s)
     }
+}
+
+/// Lockstep and in process: an `inject-simulated` event for each kill and stop of the
+/// scenario's schedule, at its sample (docs/architecture.md, "Fault model").
+pub fn simulated_events(sc: &Scenario, topo: &TopologyPlan) -> Vec<SupEvent> {
+    sc.inject
+        .iter()
+        .filter(|i| i.kind.downs_stage())
+        .map(|i| SupEvent {
+            t_wall_s: 0.0,
+            k: (i.at_s * sc.rates.sample_hz).round() as u64,
+            kind: EventKind::Simulated { spec: i.spec() },
+            service: i.target.clone(),
+            process: topo
+                .process_of(&i.target)
+                .map_or_else(|| "-".to_string(), |p| topo.processes[p].name.clone()),
+        })
+        .collect()
 }
 
 /// One child process under supervision.
@@ -460,6 +487,21 @@ pub struct PlantDown {
     pub peak_speed_rad_s: f64,
 }
 
+impl PlantDown {
+    /// The rows of `rows` flagged `plant_down`, or None when there are none.
+    pub fn of<'a>(rows: impl Iterator<Item = &'a TraceRow>) -> Option<Self> {
+        use drivelab_runtime::messages::FLAG_PLANT_DOWN;
+        let down: Vec<&TraceRow> = rows
+            .filter(|r| r.plant_flags & FLAG_PLANT_DOWN != 0)
+            .collect();
+        (!down.is_empty()).then(|| PlantDown {
+            samples: down.len() as u64,
+            peak_current_a: down.iter().map(|r| r.i_d.hypot(r.i_q)).fold(0.0, f64::max),
+            peak_speed_rad_s: down.iter().map(|r| r.omega_m.abs()).fold(0.0, f64::max),
+        })
+    }
+}
+
 /// The first sample of `tail` (rows in order) from which the speed stays within ±2 % of its
 /// reference for 10 ms.
 pub fn speed_recovered(sc: &Scenario, tail: &[&TraceRow]) -> Option<u64> {
@@ -554,14 +596,7 @@ pub fn fault_reports(
             k_rec as f64 / fs,
             format!("{} {}", inj.detail(), inj.service),
         ));
-        let down: Vec<&TraceRow> = after()
-            .filter(|r| r.k <= k_rec && r.plant_flags & FLAG_PLANT_DOWN != 0)
-            .collect();
-        let plant_down = (!down.is_empty()).then(|| PlantDown {
-            samples: down.len() as u64,
-            peak_current_a: down.iter().map(|r| r.i_d.hypot(r.i_q)).fold(0.0, f64::max),
-            peak_speed_rad_s: down.iter().map(|r| r.omega_m.abs()).fold(0.0, f64::max),
-        });
+        let plant_down = PlantDown::of(after().filter(|r| r.k <= k_rec));
         let window = match &inj.kind {
             EventKind::Hog { hog, .. } => Some(crate::faults::hog::window(hog, rows, k0, fs)),
             _ => None,

@@ -20,7 +20,9 @@
 //! The loops make no allocation, take no lock, do no logging.
 
 use crate::inject::{Armed, Inject, InjectKind, InjectObs};
-use crate::messages::{Header, FLAG_ABSENT, FLAG_END, FLAG_STALE_INPUT, FLAG_WARMUP};
+use crate::messages::{
+    Header, FLAG_ABSENT, FLAG_END, FLAG_PLANT_DOWN, FLAG_STALE_INPUT, FLAG_WARMUP,
+};
 use crate::rt::{now_ns, sleep_until_ns};
 use crate::stage::*;
 use crate::timing::{CycleMonitor, LatencyHist, MissCounter};
@@ -272,6 +274,9 @@ pub struct Hosted {
     in_fallback: bool,
     rejoining: bool,
     divider: u64,
+    /// Lockstep: a simulated kill of this stage is scheduled (its rejoin-only inputs are
+    /// kept drained and open, see [`Host::arm_spares`]).
+    killable: bool,
 }
 
 impl Hosted {
@@ -481,6 +486,11 @@ pub struct Host<T: Transport> {
     window: IndexWindow,
     /// The injection schedule bound to this host's stages and topics.
     armed: Vec<Armed>,
+    /// Lockstep kills: per injection, the freshly built stage that replaces the killed one
+    /// (built at set-up by [`Host::arm_spares`]; after the swap, the dead one until the end).
+    spares: Vec<Option<Box<dyn Stage>>>,
+    /// Per injection: the kill's swap is done.
+    swapped: Vec<bool>,
 }
 
 impl<T: Transport> Host<T> {
@@ -530,6 +540,7 @@ impl<T: Transport> Host<T> {
                     in_fallback: false,
                     rejoining: cfg.rejoin,
                     divider,
+                    killable: false,
                 }
             })
             .collect::<Vec<Hosted>>();
@@ -550,12 +561,14 @@ impl<T: Transport> Host<T> {
             .max()
             .unwrap_or(1);
         let names: Vec<&str> = hosted.iter().map(|h| h.stage.name()).collect();
-        let armed = cfg
+        let armed: Vec<Armed> = cfg
             .inject
             .iter()
             .map(|i| Armed::bind(i, cfg.sample_hz, &names, |t| divider[t.index()]))
             .collect();
         Self {
+            spares: armed.iter().map(|_| None).collect(),
+            swapped: vec![false; armed.len()],
             armed,
             window: IndexWindow::new(cfg.pacing == Pacing::Realtime, cfg.ts_ns, max_divider),
             stages: hosted,
@@ -566,6 +579,61 @@ impl<T: Transport> Host<T> {
             stop: Box::new(|| false),
             drains,
         }
+    }
+
+    /// Lockstep kills (docs/architecture.md, "Fault model"): builds, with `build` (a stage
+    /// name → a fresh stage), the stage that replaces each killed stage of this host, at
+    /// set-up rather than in the loop. An error when a kill targets a stage of this host that
+    /// `build` cannot make, or when the run is not in lockstep.
+    pub fn arm_spares(&mut self, build: impl Fn(&str) -> Option<Box<dyn Stage>>) -> Result<()> {
+        for i in 0..self.armed.len() {
+            let a = self.armed[i];
+            let Some(si) = a.stage.filter(|_| a.kind == InjectKind::Kill) else {
+                continue;
+            };
+            let name = self.stages[si].stage.name();
+            if self.cfg.pacing != Pacing::Lockstep {
+                bail!("kill of {name} by the injection schedule: lockstep only");
+            }
+            // The source (the plant) keeps its state: the motor keeps turning while its
+            // process is down (see `run_source`).
+            if si == 0 && self.is_source() {
+                continue;
+            }
+            let fresh = build(name)
+                .ok_or_else(|| anyhow!("kill of {name} in lockstep: no fresh {name} stage can be built to restart it (a stage this executable can build)"))?;
+            self.spares[i] = Some(fresh);
+            self.stages[si].killable = true;
+        }
+        Ok(())
+    }
+
+    /// Lockstep kill or stop of stage `si` (docs/architecture.md, "Fault model"): true when
+    /// it is down at k (no step, its outputs absent). From a kill's first sample on, the
+    /// stage is the fresh one built at set-up, marked rejoining: once the window is over it
+    /// takes over through [`Stage::rejoin`] as a restarted process would. A stop keeps it.
+    fn down(&mut self, si: usize, k: u64) -> bool {
+        if self.cfg.pacing != Pacing::Lockstep {
+            return false;
+        }
+        let mut down = false;
+        for i in 0..self.armed.len() {
+            let a = self.armed[i];
+            if !a.kind.downs_stage() || a.stage != Some(si) || k < a.from_k {
+                continue;
+            }
+            if a.kind == InjectKind::Kill && !self.swapped[i] {
+                if let Some(fresh) = self.spares[i].as_mut() {
+                    // The dead stage stays in the spare's place until the end: no drop here.
+                    std::mem::swap(&mut self.stages[si].stage, fresh);
+                    self.stages[si].rejoining = true;
+                    self.stages[si].in_fallback = false;
+                }
+                self.swapped[i] = true;
+            }
+            down |= a.covers(k);
+        }
+        down
     }
 
     /// Sets the function that says a stop was requested (SIGINT/SIGTERM).
@@ -740,7 +808,9 @@ impl<T: Transport> Host<T> {
         for di in 0..self.drains.len() {
             let (si, b) = self.drains[di];
             if Some(b.spec.topic) == skip
-                || (b.spec.role == Role::Rejoin && !self.stages[si].rejoining)
+                || (b.spec.role == Role::Rejoin
+                    && !self.stages[si].rejoining
+                    && !self.stages[si].killable)
             {
                 continue;
             }
@@ -922,6 +992,11 @@ impl<T: Transport> Host<T> {
             if self.stages[si].last_k.is_some_and(|l| k <= l) {
                 continue;
             }
+            if self.down(si, k) {
+                self.absent_outputs(si, k)?;
+                self.stages[si].last_k = Some(k);
+                continue;
+            }
             // A trigger from another process than the one that ran this chain: wait for it;
             // in real time, a stage with a fallback runs without it after one sample.
             let mut fallback = false;
@@ -952,8 +1027,15 @@ impl<T: Transport> Host<T> {
                 continue;
             }
             if self.stages[si].rejoining {
+                if self.stages[si].killable {
+                    // Lockstep: the rejoin-only inputs of sample k exactly, not whatever is
+                    // newest (that would depend on how far the peers have run).
+                    self.rejoin_inputs_at(si, k, &mut ib)?;
+                }
                 if self.stages[si].stage.rejoin(k, &ib) == Rejoin::NeedMore {
                     self.stages[si].last_k = Some(k);
+                    // Lockstep: nothing of sample k will come from it.
+                    self.absent_outputs(si, k)?;
                     continue;
                 }
                 self.end_rejoin(si);
@@ -966,13 +1048,48 @@ impl<T: Transport> Host<T> {
         Ok(true)
     }
 
+    /// Lockstep, a killed stage `si` rejoining at k: its rejoin-only inputs become the
+    /// messages of sample k (waited for; None when absent), as the in-process chain order
+    /// has them.
+    fn rejoin_inputs_at(&mut self, si: usize, k: u64, ib: &mut Inbox) -> Result<()> {
+        let started = Instant::now();
+        for i in 0..self.stages[si].inputs.len() {
+            let b = self.stages[si].inputs[i];
+            if b.spec.role != Role::Rejoin || b.origin == Origin::Absent {
+                continue;
+            }
+            let t = b.spec.topic;
+            while !self.store.settled(t, k) && b.origin == Origin::External {
+                if self.stopping() {
+                    break;
+                }
+                if started.elapsed() > LOCKSTEP_WATCHDOG {
+                    bail!(
+                        "{}: no {} for sample {k} to rejoin from for {LOCKSTEP_WATCHDOG:?}",
+                        self.stages[si].stage.name(),
+                        t.name()
+                    );
+                }
+                self.transport.wait(t, WAIT_SLICE)?;
+                self.drain_external(None, None)?;
+            }
+            let slot = &mut ib.slots[t.index()];
+            slot.msg = self.store.get(t, k);
+            slot.fresh = slot.msg.is_some();
+        }
+        Ok(())
+    }
+
     /// Stage `si` has taken over. Its rejoin-only inputs that no other stage here still
     /// reads are closed (see [`Transport::close`]): once per restart, not per sample.
     fn end_rejoin(&mut self, si: usize) {
         self.stages[si].rejoining = false;
         for i in 0..self.stages[si].inputs.len() {
             let b = self.stages[si].inputs[i];
-            if b.spec.role != Role::Rejoin || b.origin != Origin::External {
+            if b.spec.role != Role::Rejoin
+                || b.origin != Origin::External
+                || self.stages[si].killable
+            {
                 continue;
             }
             let still_read = self.stages.iter().any(|h| {
@@ -1196,7 +1313,17 @@ impl<T: Transport> Host<T> {
             }
             // The source's execution starts when it wakes: taking its inputs is part of it.
             let t_in = if realtime { t_woken } else { now_ns() };
-            let (ib, _) = self.inbox(0, k);
+            let (mut ib, _) = self.inbox(0, k);
+            // Lockstep, the plant killed or stopped: no command reaches the inverter (held,
+            // then its safe state), the motor is integrated on, the measurements are absent
+            // and the true state is flagged `plant_down`, as a real-time downtime is rebuilt.
+            let down = self.down(0, k);
+            if down {
+                for s in ib.slots.iter_mut() {
+                    s.msg = None;
+                    s.fresh = false;
+                }
+            }
             let stale = self.count_stale(0, &ib);
             self.stages[0].counters.stale_inputs += stale;
             let mut out = Outbox::default();
@@ -1206,9 +1333,17 @@ impl<T: Transport> Host<T> {
                 self.delay(0, k);
             }
             for mut m in out.drain() {
+                let t = m.topic();
                 let hd = m.hdr_mut();
                 hd.t_sample_ns = if realtime { deadline } else { 0 };
                 hd.t_pub_ns = now_ns();
+                if down {
+                    if t != TopicId::Truth {
+                        self.absent(t, k)?;
+                        continue;
+                    }
+                    hd.flags |= FLAG_PLANT_DOWN;
+                }
                 self.publish(m)?;
             }
             // A missing input: wake the stages that should have produced it, after this

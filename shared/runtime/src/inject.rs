@@ -16,6 +16,13 @@ pub const DELAY_MIN_S: f64 = 0.001;
 pub const DELAY_MAX_S: f64 = 60.0;
 /// Smallest added latency, µs.
 pub const LATENCY_MIN_US: f64 = 1.0;
+/// Shortest simulated restart of a killed stage in lockstep, s.
+pub const RESTART_MIN_S: f64 = 0.001;
+/// Longest simulated restart of a killed stage in lockstep, s.
+pub const RESTART_MAX_S: f64 = 10.0;
+/// Default simulated restart of a killed stage in lockstep, ms: close to the restart time
+/// measured in real time (docs/architecture.md, "Fault model").
+pub const RESTART_DEFAULT_MS: f64 = 40.0;
 /// Largest added latency, µs (100 ms).
 pub const LATENCY_MAX_US: f64 = 100_000.0;
 /// Most messages one drop or corrupt fault removes or spoils.
@@ -34,6 +41,13 @@ pub enum InjectKind {
     Drop,
     /// `count` consecutive messages of the target topic carry NaN and 1e30 alternately.
     Corrupt,
+    /// Lockstep only (written by the launcher from `--fault kill:…`): the target stage dies
+    /// at `at_s`, its outputs are absent for `duration_s` (the simulated restart time), and
+    /// a freshly built stage rejoins.
+    Kill,
+    /// Lockstep only (from `--fault stop:…`): the target stage's outputs are absent for
+    /// `duration_s`, then it resumes with its old state.
+    Stop,
 }
 
 impl InjectKind {
@@ -43,7 +57,22 @@ impl InjectKind {
             InjectKind::Delay => "delay",
             InjectKind::Drop => "drop",
             InjectKind::Corrupt => "corrupt",
+            InjectKind::Kill => "kill",
+            InjectKind::Stop => "stop",
         }
+    }
+
+    /// True for the kinds that name a stage (delay, kill, stop) rather than a topic.
+    pub fn on_stage(self) -> bool {
+        matches!(
+            self,
+            InjectKind::Delay | InjectKind::Kill | InjectKind::Stop
+        )
+    }
+
+    /// True for a lockstep kill or stop: the stage is down (outputs absent) in the window.
+    pub fn downs_stage(self) -> bool {
+        matches!(self, InjectKind::Kill | InjectKind::Stop)
     }
 }
 
@@ -53,11 +82,12 @@ impl InjectKind {
 pub struct Inject {
     /// `delay`, `drop` or `corrupt`.
     pub kind: InjectKind,
-    /// `delay`: a stage name; `drop`, `corrupt`: a topic name (meas, est, iref, cmd, wref).
+    /// `delay`, `kill`, `stop`: a stage name; `drop`, `corrupt`: a topic name (meas, est,
+    /// iref, cmd, wref).
     pub target: String,
     /// First affected sample, as simulated seconds after sample 0 (rounded to a sample).
     pub at_s: f64,
-    /// `delay`: how long the window lasts, s.
+    /// `delay`, `stop`: how long the window lasts, s; `kill`: the simulated restart time, s.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub duration_s: f64,
     /// `delay`: the added latency before each output is published, µs.
@@ -108,6 +138,8 @@ impl Inject {
                 "delay:{}@{}:{}:{}us",
                 self.target, self.at_s, self.duration_s, self.latency_us
             ),
+            InjectKind::Kill => format!("kill:{}@{}", self.target, self.at_s),
+            InjectKind::Stop => format!("stop:{}@{}:{}", self.target, self.at_s, self.duration_s),
             k => format!("{}:{}@{}:{}", k.name(), self.target, self.at_s, self.count),
         }
     }
@@ -120,16 +152,34 @@ impl Inject {
                 "inject {what}: at_s must be within [0, duration_s = {duration_s})"
             ));
         }
+        if self.kind.on_stage() {
+            let stage_form = !self.target.is_empty()
+                && self
+                    .target
+                    .chars()
+                    .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-');
+            if !stage_form {
+                return Err(format!("inject {what}: '{}' is no stage name", self.target));
+            }
+        }
         match self.kind {
-            InjectKind::Delay => {
-                let stage_form = !self.target.is_empty()
-                    && self
-                        .target
-                        .chars()
-                        .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-');
-                if !stage_form {
-                    return Err(format!("inject {what}: '{}' is no stage name", self.target));
+            InjectKind::Kill | InjectKind::Stop => {
+                let (lo, hi, name) = if self.kind == InjectKind::Kill {
+                    (RESTART_MIN_S, RESTART_MAX_S, "the simulated restart")
+                } else {
+                    (DELAY_MIN_S, DELAY_MAX_S, "a stop")
+                };
+                if !(lo..=hi).contains(&self.duration_s) {
+                    return Err(format!("inject {what}: {name} lasts {lo} to {hi} s"));
                 }
+                if self.count != 0 || self.latency_us != 0.0 {
+                    return Err(format!(
+                        "inject {what}: a {} takes no count or latency",
+                        self.kind.name()
+                    ));
+                }
+            }
+            InjectKind::Delay => {
                 if !(DELAY_MIN_S..=DELAY_MAX_S).contains(&self.duration_s) {
                     return Err(format!(
                         "inject {what}: a delay lasts {DELAY_MIN_S} to {DELAY_MAX_S} s"
@@ -203,7 +253,7 @@ impl Armed {
     ) -> Self {
         let k0 = (i.at_s * sample_hz).round() as u64;
         match i.kind {
-            InjectKind::Delay => Self {
+            InjectKind::Delay | InjectKind::Kill | InjectKind::Stop => Self {
                 kind: i.kind,
                 topic: None,
                 stage: stages.iter().position(|s| *s == i.target),
@@ -426,6 +476,45 @@ mod tests {
         ] {
             let e = with(&format!("[[inject]]\n{bad}\n")).unwrap_err();
             assert!(e.contains(want), "{bad}: {e}");
+        }
+        let down = |kind, duration_s| Inject {
+            kind,
+            target: "observer".into(),
+            duration_s,
+            ..drop_cmd(0.1, 0)
+        };
+        assert!(validate(
+            &[down(InjectKind::Kill, 0.04), down(InjectKind::Stop, 60.0)],
+            1.0
+        )
+        .is_ok());
+        for (i, want) in [
+            (
+                down(InjectKind::Kill, 0.0005),
+                "the simulated restart lasts 0.001 to 10 s",
+            ),
+            (
+                down(InjectKind::Kill, 10.5),
+                "the simulated restart lasts 0.001 to 10 s",
+            ),
+            (down(InjectKind::Stop, 61.0), "a stop lasts 0.001 to 60 s"),
+            (
+                Inject {
+                    count: 3,
+                    ..down(InjectKind::Stop, 0.01)
+                },
+                "a stop takes no count or latency",
+            ),
+            (
+                Inject {
+                    target: "Obs erver".into(),
+                    ..down(InjectKind::Kill, 0.04)
+                },
+                "is no stage name",
+            ),
+        ] {
+            let e = validate(&[i], 1.0).unwrap_err();
+            assert!(e.contains(want) && !e.contains('\n'), "{e}");
         }
         let many = vec![drop_cmd(0.1, 1); MAX_INJECT + 1];
         assert!(validate(&many, 1.0).unwrap_err().contains("at most 16"));

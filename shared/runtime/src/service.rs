@@ -282,6 +282,12 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     let mut polled = [false; N_TOPICS];
     let mut sent = [false; N_TOPICS];
     let external = |t: TopicId| bindings.iter().any(|(x, _, local)| *x == t && !*local);
+    // A stage killed by the lockstep schedule rejoins later: it keeps its rejoin inputs.
+    let killed = |name: &str| {
+        sc.inject
+            .iter()
+            .any(|i| i.kind == crate::inject::InjectKind::Kill && i.target == name)
+    };
     for s in &stages {
         for &t in s.outputs() {
             sent[t.index()] = true;
@@ -305,7 +311,9 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
                 Role::Trigger => waited[i.topic.index()] = true,
                 Role::Latest if lockstep => waited[i.topic.index()] = true,
                 Role::Latest => polled[i.topic.index()] = true,
-                Role::Rejoin if args.rejoin => polled[i.topic.index()] = true,
+                Role::Rejoin if args.rejoin || (lockstep && killed(s.name())) => {
+                    polled[i.topic.index()] = true
+                }
                 Role::Rejoin => {}
             }
         }
@@ -397,6 +405,7 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
             )
         },
     );
+    host.arm_spares(|name| make_stage(name, &sc, user).ok())?;
     host.stop_when(stop_requested);
     // Last: everything above (designs, histograms, ports) is set-up work, not real-time.
     let report = apply_placement(&pname, &proc, &args)?;

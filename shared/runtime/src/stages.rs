@@ -505,6 +505,7 @@ pub fn run_stages_inprocess(
             ..HostConfig::for_scenario(sc, Pacing::Lockstep, n)
         },
     );
+    host.arm_spares(|name| builtin(name, sc))?;
     host.run()?;
     let ts = sc.rates.ts();
     let mut truth: Vec<Option<PlantTruth>> = fallible_vec(n as usize, "the in-process trace")?;

@@ -1,0 +1,218 @@
+//! Kill and stop faults in lockstep and in process: simulated by the stage hosts at the
+//! fault's sample (docs/architecture.md, "Fault model"), so the trace is the same bytes on
+//! every run and in both clocks. Each test has its own bus id and run folder and checks that
+//! nothing is left behind. Times are watchdogs only.
+
+use drivelab_runtime::messages::{
+    FLAG_MISSING, FLAG_PLANT_DOWN, FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT,
+};
+use drivelab_runtime::trace::TraceRow;
+use std::collections::BTreeSet;
+
+mod common;
+use common::*;
+
+/// The samples with no command recorded, with the plant holding a stale command, and with
+/// the inverter in its safe state.
+fn command_loss(rows: &[TraceRow]) -> [BTreeSet<u64>; 3] {
+    [
+        samples(rows, |r| r.ctrl_flags & FLAG_MISSING != 0),
+        samples(rows, |r| r.plant_flags & FLAG_STALE_CMD != 0),
+        samples(rows, |r| r.plant_flags & FLAG_SAFE_STATE != 0),
+    ]
+}
+
+/// Runs `extra` for `duration` s twice in lockstep and once in process, checks that the
+/// three traces are the same bytes and returns the first run's trace and summary.
+fn deterministic(tag: &str, duration: &str, extra: &[&str]) -> (Vec<TraceRow>, serde_json::Value) {
+    let mut args = vec!["--duration", duration];
+    args.extend_from_slice(extra);
+    let (a, s) = same_trace_in_every_run(tag, &args);
+    let rows = drivelab_runtime::trace::read_csv(&a.join("trace.csv")).unwrap();
+    (rows, s)
+}
+
+#[test]
+fn a_killed_current_loop_is_absent_for_the_restart_then_rejoins_the_same_every_time() {
+    let _serial = serial();
+    // kyslan-pi at 10 kHz: k0 = 500, default restart 40 ms = 400 samples.
+    let (rows, s) = deterministic("killcl", "0.2", &["--fault", "kill:current-loop@0.05"]);
+    assert_eq!(rows.len(), 2000);
+    // No command for 500..900; the plant applies command k−1, so it holds from 501 for
+    // hold_samples (3) and is in its safe state from 504 until the rejoined loop's first
+    // command (900) takes effect at 901.
+    assert_eq!(
+        command_loss(&rows),
+        [ks(500..900), ks(501..901), ks(504..901)]
+    );
+    let f = &s["faults"][0];
+    assert_eq!(f["fault"], "kill:current-loop@0.05", "{f}");
+    assert_eq!(f["service"], "current-loop", "{f}");
+    assert_eq!(
+        (f["injected_k"].as_u64(), f["window_to_k"].as_u64()),
+        (Some(500), Some(900))
+    );
+    assert_eq!(
+        f["safe_state_ms"].as_f64().map(|x| (x * 10.0).round()),
+        Some(4.0),
+        "{f}"
+    );
+    assert!(
+        f["republished_ms"].as_f64().is_some_and(|x| x > 40.0),
+        "{f}"
+    );
+    assert!(f["speed_recovered_ms"].as_f64().is_some(), "{f}");
+    // One supervisor event, at the fault's sample, and no signal.
+    let ev = s["supervisor_events"].as_array().unwrap();
+    assert_eq!(ev.len(), 1, "{ev:?}");
+    assert_eq!(ev[0]["event"], "inject-simulated", "{ev:?}");
+    assert_eq!(
+        (ev[0]["k"].as_u64(), ev[0]["service"].as_str()),
+        (Some(500), Some("current-loop"))
+    );
+}
+
+#[test]
+fn killed_observer_and_speed_loop_fall_back_downstream_deterministically() {
+    let _serial = serial();
+    let (rows, s) = deterministic(
+        "killos",
+        "0.3",
+        &[
+            "--fault",
+            "kill:observer@0.05",
+            "--fault",
+            "kill:speed-loop@0.15",
+            "--lockstep-restart-ms",
+            "20",
+        ],
+    );
+    // Every command is made (no plant hold), but from a stale input while either is down:
+    // the current loop on the encoder angle (observer), then on its held reference.
+    assert!(command_loss(&rows).iter().all(|s| s.is_empty()));
+    let stale = samples(&rows, |r| r.ctrl_flags & FLAG_STALE_INPUT != 0);
+    assert!(
+        ks(500..700).is_subset(&stale),
+        "observer window not flagged"
+    );
+    assert!(
+        ks(1501..1700).is_subset(&stale),
+        "speed-loop window not flagged"
+    );
+    let faults: Vec<(String, u64, u64)> = s["faults"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| {
+            (
+                f["fault"].as_str().unwrap().to_string(),
+                f["window_from_k"].as_u64().unwrap(),
+                f["window_to_k"].as_u64().unwrap(),
+            )
+        })
+        .collect();
+    assert_eq!(
+        faults,
+        [
+            ("kill:observer@0.05".to_string(), 500, 700),
+            ("kill:speed-loop@0.15".to_string(), 1500, 1700)
+        ]
+    );
+    for f in s["faults"].as_array().unwrap() {
+        assert_eq!(f["detected_by"], "current-loop", "{f}");
+        assert!(f["republished_ms"].as_f64().is_some(), "{f}");
+    }
+}
+
+#[test]
+fn a_killed_plant_coasts_flagged_plant_down_with_no_measurement_then_resumes() {
+    let _serial = serial();
+    let (rows, s) = deterministic("killpl", "0.2", &["--fault", "kill:plant@0.05"]);
+    assert_eq!(rows.len(), 2000);
+    // Down for 500..900: every row there is the motor integrated with no command reaching
+    // the inverter (command 499 lost with the plant: held 500..503, safe state from 503),
+    // the controllers have no measurement (no command recorded). The first measurement
+    // after it is 900, its command takes effect at 901.
+    assert_eq!(
+        samples(&rows, |r| r.plant_flags & FLAG_PLANT_DOWN != 0),
+        ks(500..900)
+    );
+    assert_eq!(
+        command_loss(&rows),
+        [ks(500..900), ks(500..901), ks(503..901)]
+    );
+    let f = &s["faults"][0];
+    assert_eq!(f["fault"], "kill:plant@0.05", "{f}");
+    assert_eq!(f["plant_down"]["samples"], 400, "{f}");
+    assert!(f["speed_recovered_ms"].as_f64().is_some(), "{f}");
+}
+
+#[test]
+fn a_stopped_current_loop_is_absent_for_exactly_its_duration() {
+    let _serial = serial();
+    let (rows, s) = deterministic("stopcl", "0.2", &["--fault", "stop:current-loop@0.05:0.01"]);
+    // 0.01 s · 10 kHz = 100 samples with no command, then the old state resumes.
+    assert_eq!(
+        command_loss(&rows),
+        [ks(500..600), ks(501..601), ks(504..601)]
+    );
+    assert_eq!(s["faults"][0]["fault"], "stop:current-loop@0.05:0.01");
+}
+
+#[test]
+fn random_kills_in_lockstep_are_the_same_every_time() {
+    let _serial = serial();
+    let (rows, s) = deterministic(
+        "rndkill",
+        "2",
+        &["--fault", "random:5", "--fault-seed", "3"],
+    );
+    assert_eq!(rows.len(), 20_000);
+    let faults = s["faults"].as_array().unwrap();
+    assert_eq!(faults.len(), 5, "{faults:?}");
+    for f in faults {
+        assert!(f["fault"].as_str().unwrap().starts_with("kill:"), "{f}");
+        assert_eq!(
+            f["window_to_k"].as_u64().unwrap() - f["window_from_k"].as_u64().unwrap(),
+            400
+        );
+    }
+}
+
+#[test]
+fn bad_restart_times_are_refused_before_anything_starts() {
+    let _serial = serial();
+    let dir = scratch("badrestart");
+    let out = dir.join("run");
+    let run = |extra: &[&str]| {
+        let mut a = vec![
+            "run",
+            "--clock",
+            "lockstep",
+            "--duration",
+            "0.1",
+            "--out",
+            out.to_str().unwrap(),
+            "--no-plots",
+        ];
+        a.extend_from_slice(extra);
+        drivelab(&a)
+    };
+    for bad in ["0", "10001", "NaN", "soon"] {
+        let o = run(&[
+            "--fault",
+            "kill:observer@0.05",
+            "--lockstep-restart-ms",
+            bad,
+        ]);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{bad}: {e}");
+        let first = e.lines().next().unwrap_or("");
+        assert!(
+            first.contains("--lockstep-restart-ms")
+                && (first.contains("lasts 1 to 10000 ms") || first.contains("not a number")),
+            "{bad}: {e}"
+        );
+        assert!(!out.exists(), "{bad}: a run folder was made");
+    }
+}
