@@ -31,9 +31,8 @@ fn every_shipped_topology_gives_the_inprocess_trace_in_lockstep() {
         assert!(want.len() > 1000, "{scenario}: trace too short");
         for t in TOPOLOGIES {
             let tag = format!("{}{}", &scenario[..3], &t[..3]);
-            let (ls, s) = run_ok(
-                &tag,
-                &[
+            let lockstep = |tag: &str, extra: &[&str]| {
+                let mut args = vec![
                     "--scenario",
                     scenario,
                     "--duration",
@@ -42,11 +41,22 @@ fn every_shipped_topology_gives_the_inprocess_trace_in_lockstep() {
                     "lockstep",
                     "--topology",
                     t,
-                ],
-            );
+                ];
+                args.extend_from_slice(extra);
+                run_ok(tag, &args)
+            };
+            let (ls, s) = lockstep(&tag, &[]);
             assert!(
                 read(&ls.join("trace.csv")) == want,
                 "{scenario} with topology {t}: the lockstep trace differs from inprocess"
+            );
+            // Without real-time set-up the processes run side by side on both cores, so a
+            // producer can be a sample ahead while a consumer still works (on one core at
+            // rising priorities it never is): the same trace, and no stall.
+            let (free, _) = lockstep(&format!("{tag}free"), &["--no-rt"]);
+            assert!(
+                read(&free.join("trace.csv")) == want,
+                "{scenario} with topology {t}, --no-rt: the lockstep trace differs from inprocess"
             );
             // summary.json → processes is keyed by process, each with its stages; together
             // they host every stage once.
@@ -68,27 +78,6 @@ fn every_shipped_topology_gives_the_inprocess_trace_in_lockstep() {
                 _ => 1,
             };
             assert_eq!(procs.len(), expected, "{t}: {procs:?}");
-            // Without real-time set-up the processes run side by side on both cores, so a
-            // producer can be a sample ahead while a consumer still works (on one core at
-            // rising priorities it never is): the same trace, and no stall.
-            let (free, _) = run_ok(
-                &format!("{tag}free"),
-                &[
-                    "--scenario",
-                    scenario,
-                    "--duration",
-                    seconds,
-                    "--clock",
-                    "lockstep",
-                    "--topology",
-                    t,
-                    "--no-rt",
-                ],
-            );
-            assert!(
-                read(&free.join("trace.csv")) == want,
-                "{scenario} with topology {t}, --no-rt: the lockstep trace differs from inprocess"
-            );
         }
     }
 }
