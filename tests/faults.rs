@@ -180,9 +180,10 @@ fn assert_recovered_and_peak(out: &std::path::Path, s: &serde_json::Value, f: &s
 #[test]
 fn sigkill_of_each_service_is_detected_made_safe_restarted_and_recovered() {
     let _serial = serial();
-    let (ls, _) = run_ok("killls", &["--clock", "lockstep", "--duration", "1.0"]);
+    // 1.7 s after the kill: a restart on a loaded machine has taken 0.8 s.
+    let (ls, _) = run_ok("killls", &["--clock", "lockstep", "--duration", "2.0"]);
     for svc in ["plant", "observer", "current-loop", "speed-loop"] {
-        let (out, s) = run_with_fault(&format!("kill{svc}"), &format!("kill:{svc}@0.3"), "1.0");
+        let (out, s) = run_with_fault(&format!("kill{svc}"), &format!("kill:{svc}@0.3"), "2.0");
         // Up to the fault's first trace the drive is the undisturbed one, bit for bit; the
         // kill does show in the trace.
         let (rows, disturbed) = assert_identical_until_disturbed(&ls, &out);
@@ -197,12 +198,12 @@ fn sigkill_of_each_service_is_detected_made_safe_restarted_and_recovered() {
         let detected = f["detected_data_path_ms"].as_f64().expect("detected");
         let republished = f["republished_ms"].as_f64().expect("republished");
         let recovered = f["speed_recovered_ms"].as_f64().expect("speed recovered");
-        // In this order, all within the 0.7 s the run has after the kill.
+        // In this order, all within the 1.7 s the run has after the kill.
         assert!(
             0.0 <= detected && detected < republished && republished <= recovered,
             "{svc}: {f}"
         );
-        assert!(recovered <= 700.0, "{svc}: {f}");
+        assert!(recovered <= 1700.0, "{svc}: {f}");
         assert_recovered_and_peak(&out, &s, f);
         // Who notices first: the recorder misses the plant's samples; the plant misses the
         // current loop's commands; the current loop holds a reference the speed loop no longer
