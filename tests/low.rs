@@ -750,3 +750,39 @@ fn observer_angle_error_from_a_30_pct_resistance_error_follows_the_first_order_p
         "shifts {shifts:?}"
     );
 }
+
+/// `drivelab design` prints the plant's and the controller's motor when they differ
+/// (`[model]`), and designs with the controller's: the RST current loop of the mismatch
+/// scenario is the nominal one's.
+#[test]
+fn design_prints_the_true_and_the_controllers_motor_when_they_differ() {
+    let text = |sc: &str| {
+        let o = drivelab(&["design", "--scenario", sc]);
+        assert!(o.status.success());
+        String::from_utf8(o.stdout).unwrap()
+    };
+    let nominal = text("low-rst-sensorless");
+    let mm = text("low-rst-sensorless-mismatch");
+    assert!(
+        nominal.contains("scenario low-rst-sensorless: motor R = 2.5 Ω"),
+        "{nominal}"
+    );
+    assert!(!nominal.contains("controller's model"), "{nominal}");
+    assert!(
+        mm.contains("plant (true) motor R = 3.25 Ω,") && mm.contains("ψ = 0.1424925 Wb"),
+        "{mm}"
+    );
+    assert!(
+        mm.contains("controller's model ([model], every design below): R = 2.5 Ω,")
+            && mm.contains("ψ = 0.158325 Wb"),
+        "{mm}"
+    );
+    // Below the motor lines the designs are the nominal scenario's, line for line.
+    let body = |t: &str| {
+        t.lines()
+            .skip_while(|l| !l.starts_with("current PI"))
+            .collect::<Vec<_>>()
+            .join("\n")
+    };
+    assert_eq!(body(&nominal), body(&mm));
+}
