@@ -786,3 +786,29 @@ fn design_prints_the_true_and_the_controllers_motor_when_they_differ() {
     };
     assert_eq!(body(&nominal), body(&mm));
 }
+
+/// `[plant_drift]` reaches the plant in every clock (the scenario is handed to the stage
+/// processes as a file): low-rst with R rising 1.0 → 1.5 over the run gives the same trace
+/// in lockstep and in process, and not low-rst's.
+#[test]
+fn plant_drift_gives_the_same_trace_in_lockstep_and_in_process() {
+    let _s = serial();
+    let sc = variant(
+        "drift",
+        "low-rst",
+        &[(
+            "[load]",
+            "[plant_drift]\nr_factor = [{ t_s = 0.0, value = 1.0 }, { t_s = 1.6, value = 1.5 }]\npsi_factor = [{ t_s = 0.5, value = 1.0 }, { t_s = 0.6, value = 0.9 }]\n\n[load]",
+        )],
+    );
+    let ls = run("drift-ls", sc.to_str().unwrap(), "lockstep");
+    let ip = run("drift-ip", sc.to_str().unwrap(), "inprocess");
+    let plain = run("drift-plain", "low-rst", "inprocess");
+    let (a, b, c) = (
+        read(&ls.dir.join("trace.csv")),
+        read(&ip.dir.join("trace.csv")),
+        read(&plain.dir.join("trace.csv")),
+    );
+    assert_eq!(a, b, "lockstep and inprocess traces with drift differ");
+    assert_ne!(a, c, "the drift changed nothing");
+}
