@@ -72,6 +72,21 @@ fn cis(phi: f64) -> C {
 /// current i, and the dq voltage u = R·i + jω_e·(L·i + ψ) held over the sample and reported
 /// at the mid-sample angle. The error is arg ρ.
 fn predicted_bias_deg(w: f64, i_d: f64, i_q: f64, tau_o: f64, disc: Discretisation) -> f64 {
+    predicted_bias_mismatch_deg(w, i_d, i_q, tau_o, disc, 2.5)
+}
+
+/// [`predicted_bias_deg`] with the plant's true resistance `r_true` (Ω) where the observer
+/// keeps the nominal 2.5 Ω (docs/architecture.md, "Model mismatch"): the dq voltage that
+/// holds the currents is the plant's, u = R_true·i + jω_e·(L·i + ψ); the observer's a11, a12,
+/// b1 and G are the model's.
+fn predicted_bias_mismatch_deg(
+    w: f64,
+    i_d: f64,
+    i_q: f64,
+    tau_o: f64,
+    disc: Discretisation,
+    r_true: f64,
+) -> f64 {
     let (r, l, p, psi, ts) = (2.5, 30e-3, 4.0, 0.6333 / 4.0, 2e-4);
     let we = p * w;
     let rot = cis(we * ts);
@@ -94,7 +109,10 @@ fn predicted_bias_deg(w: f64, i_d: f64, i_q: f64, tau_o: f64, disc: Discretisati
     let lambda = (-ts / tau_o).exp();
     let g = cdiv(csub(a22, (lambda, 0.0)), a12);
     let i = (i_d, i_q);
-    let u = (r * i_d - we * l * i_q, r * i_q + we * (l * i_d + psi));
+    let u = (
+        r_true * i_d - we * l * i_q,
+        r_true * i_q + we * (l * i_d + psi),
+    );
     let nu = csub(
         csub(cmul(i, rot), (a11 * i_d, a11 * i_q)),
         cmul((b1 * u.0, b1 * u.1), cis(0.5 * we * ts)),
@@ -326,7 +344,11 @@ fn i_d_coupling_bound(design: &Value, rows: &[TraceRow]) -> f64 {
 #[test]
 fn low_rst_lockstep_and_inprocess_traces_are_bit_identical() {
     let _s = serial();
-    for name in ["low-rst", "low-rst-sensorless"] {
+    for name in [
+        "low-rst",
+        "low-rst-sensorless",
+        "low-rst-sensorless-mismatch",
+    ] {
         let ls = run(&format!("det-{name}-ls"), name, "lockstep");
         let ip = run(&format!("det-{name}-ip"), name, "inprocess");
         assert_eq!(
@@ -653,4 +675,140 @@ fn low_scenarios_are_listed_with_the_figure_they_reproduce() {
             .unwrap_or_else(|| panic!("{name} not listed:\n{t}"));
         assert!(line.contains(fig) && !line.contains("INVALID"), "{line}");
     }
+}
+
+/// Low's observer with the plant's R 30 % above the model's (docs/architecture.md, "Model
+/// mismatch"): the steady angle error at 300, 600 and 1200 rpm on a dynamometer, sensored
+/// control holding i_d = −2 A, i_q = 0 (the observer in monitor mode).
+///
+/// First order, from eq. (16) in steady state (X̂_B = ρ·X_B, see [`predicted_bias_deg`]):
+/// the innovation per unit X_B is ν = i·(e^{jφ} − â11) − b1·u·e^{jφ/2} with â11 = 1 − R̂·T/L.
+/// Against the plant's own R it gains −ΔR·T/L·i (ΔR = R − R̂), while ν₀ ≈ a12 = −jω_e·ψ·T/L.
+/// So ρ scales by ν/ν₀ ≈ 1 − j·ΔR·i/(ω_e·ψ) (i = i_d + j·i_q as a complex number) and the
+/// angle error moves by Δθ ≈ −ΔR·i_d/(ω_e·ψ): only the d-current turns the back-EMF
+/// estimate; ΔR·i_q lies along the back-EMF and changes its magnitude, not its angle (and a
+/// wrong ψ̂ only scales G, so it leaves the angle alone to first order). Assumed: constant
+/// speed and dq currents, L_d = L_q, |ΔR·i| ≪ ω_e·ψ, φ = ω_e·T ≪ 1.
+#[test]
+fn observer_angle_error_from_a_30_pct_resistance_error_follows_the_first_order_prediction() {
+    let _s = serial();
+    let (r_nom, r_true, psi, i_d) = (2.5, 3.25, 0.6333 / 4.0, -2.0);
+    let mut shifts = Vec::new();
+    for rpm in [300.0, 600.0, 1200.0] {
+        let w = rpm * RPM;
+        let tag = format!("mm-obs-{rpm}");
+        let speed = format!("{w}");
+        let sc = variant(
+            &tag,
+            "low-observer-1200",
+            &[
+                (
+                    "preset = \"low1998\"",
+                    "preset = \"low1998\"\nr_ohm = 3.25\n\n[model]\nr_ohm = 2.5\n",
+                ),
+                ("125.66370614359172", &speed),
+                ("i_d_a = []", "i_d_a = [{ t_s = 0.0, value = -2.0 }]"),
+                (
+                    "initial_angle_error_deg = 90.0",
+                    "initial_angle_error_deg = 0.0",
+                ),
+            ],
+        );
+        let r = run(&tag, sc.to_str().unwrap(), "inprocess");
+        let rows = r.trace();
+        let end = rows.last().unwrap().t;
+        let tail: Vec<&TraceRow> = rows.iter().filter(|x| x.t >= 0.9 * end).collect();
+        let (id, iq) = (
+            mean(tail.iter().map(|x| x.i_d)),
+            mean(tail.iter().map(|x| x.i_q)),
+        );
+        let measured = mean(tail.iter().map(|x| angle_error_deg(x)));
+        let exact = predicted_bias_mismatch_deg(w, id, iq, 1e-3, Discretisation::Truncated, r_true);
+        let nominal = predicted_bias_deg(w, id, iq, 1e-3, Discretisation::Truncated);
+        let first_order = (-(r_true - r_nom) * i_d / (4.0 * w * psi)).to_degrees();
+        let shift = measured - nominal;
+        eprintln!(
+            "{rpm} rpm: i_d {id:.4} A, i_q {iq:.4} A; angle error {measured:.4}° (steady state with R mismatch {exact:.4}°, without {nominal:.4}°): shift {shift:.4}°, first order {first_order:.4}°"
+        );
+        assert!((id - i_d).abs() < 1e-3, "i_d {id}");
+        // The steady state of eq. (16) with the plant's R: what the run settles to.
+        assert!(
+            (measured - exact).abs() < 1e-3,
+            "{rpm} rpm: measured {measured}° vs steady state {exact}°"
+        );
+        // The first-order shift, within 1 % (second-order terms: (ΔR·i/(ω_e·ψ))²/3 < 0.2 %,
+        // the R·T/L and φ/2 cross terms; measured 0.13-0.32 %).
+        assert!(
+            (shift - first_order).abs() < 0.01 * first_order.abs(),
+            "{rpm} rpm: shift {shift}° vs first order {first_order}°"
+        );
+        shifts.push(shift);
+    }
+    // It grows as the speed falls (∝ 1/ω_e).
+    assert!(
+        shifts[0] > shifts[1] && shifts[1] > shifts[2],
+        "shifts {shifts:?}"
+    );
+}
+
+/// `drivelab design` prints the plant's and the controller's motor when they differ
+/// (`[model]`), and designs with the controller's: the RST current loop of the mismatch
+/// scenario is the nominal one's.
+#[test]
+fn design_prints_the_true_and_the_controllers_motor_when_they_differ() {
+    let text = |sc: &str| {
+        let o = drivelab(&["design", "--scenario", sc]);
+        assert!(o.status.success());
+        String::from_utf8(o.stdout).unwrap()
+    };
+    let nominal = text("low-rst-sensorless");
+    let mm = text("low-rst-sensorless-mismatch");
+    assert!(
+        nominal.contains("scenario low-rst-sensorless: motor R = 2.5 Ω"),
+        "{nominal}"
+    );
+    assert!(!nominal.contains("controller's model"), "{nominal}");
+    assert!(
+        mm.contains("plant (true) motor R = 3.25 Ω,") && mm.contains("ψ = 0.1424925 Wb"),
+        "{mm}"
+    );
+    assert!(
+        mm.contains("controller's model ([model], every design below): R = 2.5 Ω,")
+            && mm.contains("ψ = 0.158325 Wb"),
+        "{mm}"
+    );
+    // Below the motor lines the designs are the nominal scenario's, line for line.
+    let body = |t: &str| {
+        t.lines()
+            .skip_while(|l| !l.starts_with("current PI"))
+            .collect::<Vec<_>>()
+            .join("\n")
+    };
+    assert_eq!(body(&nominal), body(&mm));
+}
+
+/// `[plant_drift]` reaches the plant in every clock (the scenario is handed to the stage
+/// processes as a file): low-rst with R rising 1.0 → 1.5 over the run gives the same trace
+/// in lockstep and in process, and not low-rst's.
+#[test]
+fn plant_drift_gives_the_same_trace_in_lockstep_and_in_process() {
+    let _s = serial();
+    let sc = variant(
+        "drift",
+        "low-rst",
+        &[(
+            "[load]",
+            "[plant_drift]\nr_factor = [{ t_s = 0.0, value = 1.0 }, { t_s = 1.6, value = 1.5 }]\npsi_factor = [{ t_s = 0.5, value = 1.0 }, { t_s = 0.6, value = 0.9 }]\n\n[load]",
+        )],
+    );
+    let ls = run("drift-ls", sc.to_str().unwrap(), "lockstep");
+    let ip = run("drift-ip", sc.to_str().unwrap(), "inprocess");
+    let plain = run("drift-plain", "low-rst", "inprocess");
+    let (a, b, c) = (
+        read(&ls.dir.join("trace.csv")),
+        read(&ip.dir.join("trace.csv")),
+        read(&plain.dir.join("trace.csv")),
+    );
+    assert_eq!(a, b, "lockstep and inprocess traces with drift differ");
+    assert_ne!(a, c, "the drift changed nothing");
 }

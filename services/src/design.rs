@@ -8,15 +8,52 @@ use drivelab_runtime::drive::DriveDesign;
 use std::fmt::Write;
 
 /// Renders the design printout of `sc`.
-pub fn render(sc: &Scenario) -> String {
+/// The controllers and observers are designed with the controller's view of the motor
+/// (`[model]`); when it differs from the plant's, both sets are printed.
+pub fn render(sc_true: &Scenario) -> String {
+    let truth = sc_true.motor_params();
+    let view = sc_true.controller_view();
+    let sc = &view;
     let m = sc.motor_params();
     let d = DriveDesign::from_scenario(sc);
     let mut o = String::new();
-    let _ = writeln!(
-        o,
-        "scenario {}: motor R = {} Ω, Ld = {} mH, Lq = {} mH, p = {}, ψ = {} Wb, J = {:e} kg·m², k_t = {:.4} N·m/A",
-        sc.name, m.r_ohm, m.l_d_h * 1e3, m.l_q_h * 1e3, m.pole_pairs, m.psi_pm_wb, m.j_kgm2, m.k_t()
-    );
+    let motor_line = |o: &mut String, what: &str, m: &drivelab_control::motor::MotorParams| {
+        let _ = writeln!(
+            o,
+            "{what}R = {} Ω, Ld = {} mH, Lq = {} mH, p = {}, ψ = {} Wb, J = {:e} kg·m², B = {:e} N·m·s/rad, k_t = {:.4} N·m/A",
+            m.r_ohm, m.l_d_h * 1e3, m.l_q_h * 1e3, m.pole_pairs, m.psi_pm_wb, m.j_kgm2, m.b_nms, m.k_t()
+        );
+    };
+    if truth == m {
+        motor_line(&mut o, &format!("scenario {}: motor ", sc.name), &m);
+    } else {
+        motor_line(
+            &mut o,
+            &format!("scenario {}: plant (true) motor ", sc.name),
+            &truth,
+        );
+        motor_line(
+            &mut o,
+            "  controller's model ([model], every design below): ",
+            &m,
+        );
+    }
+    for (what, pts) in [
+        ("R", &sc_true.plant_drift.r_factor),
+        ("ψ", &sc_true.plant_drift.psi_factor),
+    ] {
+        if !pts.is_empty() {
+            let p: Vec<String> = pts
+                .iter()
+                .map(|p| format!("{} at {} s", p.value, p.t_s))
+                .collect();
+            let _ = writeln!(
+                o,
+                "  plant drift: true {what} × ({}), linear between the points",
+                p.join(", ")
+            );
+        }
+    }
     let c = &d.current;
     let _ = writeln!(
         o,

@@ -675,7 +675,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         }
     };
     let metrics = speed_metrics(&sc, &rows);
-    let design = DriveDesign::from_scenario(&sc);
+    let design = DriveDesign::from_scenario(&sc.controller_view()); // the design that runs ([model])
     let timing = json!({
         "cpu_latency_us_requested": match sc.timing.cpu_latency_us {
             drivelab_runtime::config::CpuLatency::Us(v) if o.clock == Clock::Realtime && !o.no_rt => Some(v),

@@ -77,6 +77,174 @@ pub struct Scenario {
     /// launcher from `--fault delay:…`, `drop:…`, `corrupt:…`; see [`crate::inject`]).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub inject: Vec<crate::inject::Inject>,
+    /// The motor parameters the controllers and observers design with, when they differ from
+    /// the plant's (`[model]`); none: the true ones. See docs/architecture.md, "Model
+    /// mismatch".
+    #[serde(default, skip_serializing_if = "ModelSpec::is_nominal")]
+    pub model: ModelSpec,
+    /// Drift of the plant's true R and ψ over the run (`[plant_drift]`); none by default.
+    #[serde(default, skip_serializing_if = "PlantDrift::is_none")]
+    pub plant_drift: PlantDrift,
+}
+
+/// `[model]`: the controller's view of the motor, each parameter as a value (SI unit in the
+/// name) or as a factor of the true one, never both; absent ones are the true values.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModelSpec {
+    /// Stator resistance, Ω.
+    pub r_ohm: Option<f64>,
+    /// Stator resistance as a factor of the true one.
+    pub r_factor: Option<f64>,
+    /// d-axis inductance, H.
+    pub l_d_h: Option<f64>,
+    /// d-axis inductance as a factor of the true one.
+    pub ld_factor: Option<f64>,
+    /// q-axis inductance, H.
+    pub l_q_h: Option<f64>,
+    /// q-axis inductance as a factor of the true one.
+    pub lq_factor: Option<f64>,
+    /// PM flux, Wb.
+    pub psi_pm_wb: Option<f64>,
+    /// PM flux as a factor of the true one.
+    pub psi_factor: Option<f64>,
+    /// Inertia, kg·m².
+    pub j_kgm2: Option<f64>,
+    /// Inertia as a factor of the true one.
+    pub j_factor: Option<f64>,
+    /// Viscous friction, N·m·s/rad.
+    pub b_nms: Option<f64>,
+    /// Viscous friction as a factor of the true one.
+    pub b_factor: Option<f64>,
+}
+
+/// Bounds of a `[model]` factor, and of a value as a multiple of the true one.
+pub const MODEL_FACTOR_RANGE: (f64, f64) = (0.1, 10.0);
+
+impl ModelSpec {
+    /// True when no parameter is given: the controllers design with the plant's own.
+    pub fn is_nominal(&self) -> bool {
+        *self == Self::default()
+    }
+
+    /// The controller's parameters from the true ones `m`; the error names the field.
+    pub fn apply(&self, m: &MotorParams) -> Result<MotorParams, String> {
+        let (lo, hi) = MODEL_FACTOR_RANGE;
+        let one = |name: &str, fname: &str, truth: f64, v: Option<f64>, f: Option<f64>| match (v, f)
+        {
+            (Some(_), Some(_)) => Err(format!("model: give {name} or {fname}, not both")),
+            (Some(v), None) => {
+                if v.is_finite() && v > 0.0 && v >= lo * truth && v <= hi * truth.max(1e-3) {
+                    Ok(v)
+                } else {
+                    Err(format!(
+                            "model.{name} = {v} must be finite, > 0 and within [{lo}, {hi}] × the true {truth}"
+                        ))
+                }
+            }
+            (None, Some(f)) => {
+                if f.is_finite() && (lo..=hi).contains(&f) {
+                    Ok(f * truth)
+                } else {
+                    Err(format!(
+                        "model.{fname} = {f} must be finite and within [{lo}, {hi}]"
+                    ))
+                }
+            }
+            (None, None) => Ok(truth),
+        };
+        Ok(MotorParams {
+            r_ohm: one("r_ohm", "r_factor", m.r_ohm, self.r_ohm, self.r_factor)?,
+            l_d_h: one("l_d_h", "ld_factor", m.l_d_h, self.l_d_h, self.ld_factor)?,
+            l_q_h: one("l_q_h", "lq_factor", m.l_q_h, self.l_q_h, self.lq_factor)?,
+            psi_pm_wb: one(
+                "psi_pm_wb",
+                "psi_factor",
+                m.psi_pm_wb,
+                self.psi_pm_wb,
+                self.psi_factor,
+            )?,
+            j_kgm2: one("j_kgm2", "j_factor", m.j_kgm2, self.j_kgm2, self.j_factor)?,
+            b_nms: one("b_nms", "b_factor", m.b_nms, self.b_nms, self.b_factor)?,
+            ..*m
+        })
+    }
+}
+
+/// One point of a drift profile: from `t_s` on the factor moves linearly to the next point's.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DriftPoint {
+    /// Time, s.
+    pub t_s: f64,
+    /// Factor of the true (nominal) parameter.
+    pub value: f64,
+}
+
+/// `[plant_drift]`: the plant's true R and ψ as factors of the motor's, piecewise linear in
+/// time (held at the first point's value before it and at the last one's after it).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlantDrift {
+    /// Resistance factor profile (a temperature rise).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub r_factor: Vec<DriftPoint>,
+    /// PM flux factor profile.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub psi_factor: Vec<DriftPoint>,
+}
+
+impl PlantDrift {
+    /// True when nothing drifts.
+    pub fn is_none(&self) -> bool {
+        self.r_factor.is_empty() && self.psi_factor.is_empty()
+    }
+}
+
+/// Value of a piecewise-linear drift profile at time t (1 when empty). No allocation.
+pub fn drift_at(points: &[DriftPoint], t: f64) -> f64 {
+    let Some(first) = points.first() else {
+        return 1.0;
+    };
+    if t <= first.t_s {
+        return first.value;
+    }
+    for w in points.windows(2) {
+        let (a, b) = (w[0], w[1]);
+        if t < b.t_s {
+            return a.value + (b.value - a.value) * (t - a.t_s) / (b.t_s - a.t_s);
+        }
+    }
+    points[points.len() - 1].value
+}
+
+fn check_drift(name: &str, points: &[DriftPoint], dur: f64) -> Result<(), String> {
+    let (lo, hi) = MODEL_FACTOR_RANGE;
+    let mut last = f64::NEG_INFINITY;
+    for (i, s) in points.iter().enumerate() {
+        check(s.t_s.is_finite() && s.t_s >= 0.0 && s.t_s <= dur, || {
+            format!(
+                "{name}[{i}].t_s = {} must be within [0, duration_s = {dur}]",
+                s.t_s
+            )
+        })?;
+        check(s.t_s > last, || {
+            format!(
+                "{name}[{i}].t_s = {} must be later than the point before",
+                s.t_s
+            )
+        })?;
+        check(s.value.is_finite() && (lo..=hi).contains(&s.value), || {
+            format!(
+                "{name}[{i}].value = {} must be finite and within [{lo}, {hi}]",
+                s.value
+            )
+        })?;
+        last = s.t_s;
+    }
+    check(points.len() <= 1000, || {
+        format!("{name} has more than 1000 points")
+    })
 }
 
 /// One `[[expect]]` table: `check = "FIGURE OP LIMIT"`, e.g. `"peak_current_a <= 8"` or
@@ -693,9 +861,36 @@ impl Scenario {
         Ok((Self::from_toml(&text, &path.display().to_string())?, path))
     }
 
-    /// Resolved motor parameters.
+    /// Resolved motor parameters (the plant's true ones).
     pub fn motor_params(&self) -> MotorParams {
         self.motor.resolve().expect("validated scenario")
+    }
+
+    /// The motor parameters the controllers and observers design with (`[model]`).
+    pub fn controller_motor_params(&self) -> MotorParams {
+        self.model
+            .apply(&self.motor_params())
+            .expect("validated scenario")
+    }
+
+    /// The scenario as the controllers and observers see it: the motor of `[model]`, no
+    /// `[model]` and no `[plant_drift]`. Every stage but the plant is built from it. Without
+    /// a `[model]` it is the scenario itself. See docs/architecture.md, "Model mismatch".
+    pub fn controller_view(&self) -> Scenario {
+        let mut v = self.clone();
+        v.plant_drift = PlantDrift::default();
+        if self.model.is_nominal() {
+            return v;
+        }
+        let c = self.controller_motor_params();
+        v.motor.r_ohm = Some(c.r_ohm);
+        v.motor.l_d_h = Some(c.l_d_h);
+        v.motor.l_q_h = Some(c.l_q_h);
+        v.motor.psi_pm_wb = Some(c.psi_pm_wb);
+        v.motor.j_kgm2 = Some(c.j_kgm2);
+        v.motor.b_nms = Some(c.b_nms);
+        v.model = ModelSpec::default();
+        v
     }
 
     /// The topology: the `[[process]]` tables, or one process per built-in stage placed by
@@ -768,6 +963,17 @@ impl Scenario {
             || format!("duration_s = {} must be in (0, 3600]", self.duration_s),
         )?;
         let m = self.motor.resolve()?;
+        self.model.apply(&m)?;
+        check_drift(
+            "plant_drift.r_factor",
+            &self.plant_drift.r_factor,
+            self.duration_s,
+        )?;
+        check_drift(
+            "plant_drift.psi_factor",
+            &self.plant_drift.psi_factor,
+            self.duration_s,
+        )?;
         let r = &self.rates;
         check(
             r.sample_hz.is_finite() && (100.0..=100_000.0).contains(&r.sample_hz),
@@ -1299,5 +1505,112 @@ preset = "kyslan2015"
         assert_eq!(profile_at(&st, 0.019_999), 70.0);
         assert_eq!(profile_at(&st, 0.02), 10.0);
         assert_eq!(profile_at(&[], 1.0), 0.0);
+    }
+
+    #[test]
+    fn no_model_table_is_the_scenario_itself() {
+        let s = Scenario::from_toml(MIN, "t.toml").unwrap();
+        assert!(s.model.is_nominal());
+        assert_eq!(s.controller_view(), s);
+        assert_eq!(s.controller_motor_params(), s.motor_params());
+        // Nothing new is written back for a scenario without the tables.
+        let text = toml::to_string(&s).unwrap();
+        assert!(
+            !text.contains("model") && !text.contains("plant_drift"),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn model_values_and_factors_give_the_controllers_motor() {
+        let s = Scenario::from_toml(
+            &format!(
+                "{MIN}[model]\nr_factor = 0.5\nl_q_h = 0.02\npsi_factor = 1.1\nj_factor = 2.0\n"
+            ),
+            "t.toml",
+        )
+        .unwrap();
+        let (t, c) = (s.motor_params(), s.controller_motor_params());
+        assert_eq!(c.r_ohm, 0.5 * t.r_ohm);
+        assert_eq!(c.l_q_h, 0.02);
+        assert_eq!(c.psi_pm_wb, 1.1 * t.psi_pm_wb);
+        assert_eq!(c.j_kgm2, 2.0 * t.j_kgm2);
+        assert_eq!(
+            (c.l_d_h, c.b_nms, c.pole_pairs),
+            (t.l_d_h, t.b_nms, t.pole_pairs)
+        );
+        let v = s.controller_view();
+        assert_eq!(v.motor_params(), c);
+        assert!(v.model.is_nominal());
+        // The plant keeps the true motor.
+        assert_eq!(s.motor_params(), MotorParams::kyslan2015());
+    }
+
+    #[test]
+    fn model_errors_are_one_line_and_name_the_field() {
+        for (table, want) in [
+            (
+                "r_ohm = 1.0\nr_factor = 0.8",
+                "model: give r_ohm or r_factor, not both",
+            ),
+            (
+                "psi_pm_wb = 0.1\npsi_factor = 0.8",
+                "model: give psi_pm_wb or psi_factor, not both",
+            ),
+            (
+                "r_factor = 0.0",
+                "model.r_factor = 0 must be finite and within [0.1, 10]",
+            ),
+            (
+                "lq_factor = 11.0",
+                "model.lq_factor = 11 must be finite and within [0.1, 10]",
+            ),
+            ("j_factor = nan", "model.j_factor = NaN must be finite"),
+            ("l_d_h = -0.01", "model.l_d_h = -0.01 must be finite, > 0"),
+            ("b_factor = inf", "model.b_factor = inf must be finite"),
+            (
+                "r_ohm = 1e9",
+                "model.r_ohm = 1000000000 must be finite, > 0 and within [0.1, 10]",
+            ),
+            ("x_factor = 1.0", "unknown field `x_factor`"),
+        ] {
+            let e = Scenario::from_toml(&format!("{MIN}[model]\n{table}\n"), "t.toml").unwrap_err();
+            assert!(e.contains(want), "{table}: {e}");
+            assert!(!e.contains('\n'), "{table}: not one line: {e}");
+        }
+    }
+
+    #[test]
+    fn drift_profiles_are_piecewise_linear_and_validated() {
+        let p = |t, v| DriftPoint { t_s: t, value: v };
+        let pts = [p(0.1, 1.0), p(0.3, 1.4)];
+        assert_eq!(drift_at(&pts, 0.0), 1.0);
+        assert_eq!(drift_at(&pts, 0.1), 1.0);
+        assert!((drift_at(&pts, 0.2) - 1.2).abs() < 1e-12);
+        assert_eq!(drift_at(&pts, 0.3), 1.4);
+        assert_eq!(drift_at(&pts, 5.0), 1.4);
+        assert_eq!(drift_at(&[], 1.0), 1.0);
+        let ok = format!(
+            "{MIN}[plant_drift]\nr_factor = [{{t_s = 0.0, value = 1.0}}, {{t_s = 0.01, value = 1.3}}]\n"
+        );
+        Scenario::from_toml(&ok, "t.toml").unwrap();
+        for (prof, want) in [
+            (
+                "r_factor = [{t_s = 0.0, value = 0.0}]",
+                "plant_drift.r_factor[0].value = 0 must be finite and within [0.1, 10]",
+            ),
+            (
+                "psi_factor = [{t_s = 0.02, value = 1.0}]",
+                "plant_drift.psi_factor[0].t_s = 0.02 must be within [0, duration_s = 0.01]",
+            ),
+            (
+                "r_factor = [{t_s = 0.005, value = 1.0}, {t_s = 0.005, value = 1.1}]",
+                "plant_drift.r_factor[1].t_s = 0.005 must be later than the point before",
+            ),
+        ] {
+            let e = Scenario::from_toml(&format!("{MIN}[plant_drift]\n{prof}\n"), "t.toml")
+                .unwrap_err();
+            assert!(e.contains(want), "{prof}: {e}");
+        }
     }
 }

@@ -10,11 +10,13 @@
 //! The in-process runner, the lockstep bus and the real-time bus all call these same functions
 //! in this order, so their traces are bit-identical when no deadline is missed.
 
+#[cfg(test)]
+mod drift_tests;
 mod rejoin;
 #[cfg(test)]
 mod safe_state_tests;
 
-use crate::config::{profile_at, SafeState, Scenario, Step};
+use crate::config::{drift_at, profile_at, SafeState, Scenario, Step};
 use crate::messages::*;
 use crate::trace::TraceRow;
 use drivelab_control::control::current::{
@@ -204,6 +206,9 @@ pub struct Plant {
     pub tripped: bool,
     load: Vec<Step>,
     load_model: drivelab_control::motor::LoadModel,
+    /// The nominal (t = 0, undrifted) motor; `m` is it with the drift of `[plant_drift]`.
+    m_nominal: MotorParams,
+    drift: crate::config::PlantDrift,
     encoder_counts: u32,
     noise: Option<(ChaCha8Rng, Normal<f64>)>,
     /// Sensor faults (`[[sensor_fault]]`): what the measurement shows, never the truth.
@@ -255,6 +260,8 @@ impl Plant {
             tripped: false,
             load: sc.load.torque_nm.clone(),
             load_model: sc.load_model(),
+            m_nominal: m,
+            drift: sc.plant_drift.clone(),
             encoder_counts: sc.sensors.encoder_counts_per_rev,
             noise,
             sensor_faults: crate::sensor_faults::SensorModel::new(
@@ -319,6 +326,11 @@ impl Plant {
         (u.alpha, u.beta) = limit_vector(u.alpha, u.beta, self.u_max);
         let t = k as f64 * self.ts;
         self.t_load = profile_at(&self.load, t);
+        if !self.drift.is_none() {
+            // R and ψ drift (`[plant_drift]`): the profile at t_k, held over [t_k, t_{k+1}).
+            self.m.r_ohm = self.m_nominal.r_ohm * drift_at(&self.drift.r_factor, t);
+            self.m.psi_pm_wb = self.m_nominal.psi_pm_wb * drift_at(&self.drift.psi_factor, t);
+        }
         // Zero-order hold in the rotor frame: the αβ vector is rotated with the mid-sample angle.
         let omega_e = self.m.p() * self.x.omega_m;
         self.u_dq_applied = park(u, theta_e + 0.5 * omega_e * self.ts);
@@ -845,11 +857,12 @@ pub struct InProcessDrive {
 impl InProcessDrive {
     /// Builds the drive.
     pub fn new(sc: &Scenario) -> Self {
+        let view = sc.controller_view();
         Self {
             plant: Plant::new(sc),
-            observer: ObserverStep::new(sc),
-            current: CurrentLoopStep::new(sc),
-            speed: SpeedLoopStep::new(sc),
+            observer: ObserverStep::new(&view),
+            current: CurrentLoopStep::new(&view),
+            speed: SpeedLoopStep::new(&view),
             iref: CurrentRef::default(),
             cmd: None,
             ts: sc.rates.ts(),

@@ -168,7 +168,8 @@ pub fn make_stage(
     user: &[(&str, StageFactory)],
 ) -> Result<Box<dyn Stage>> {
     if let Some((_, f)) = user.iter().find(|(n, _)| *n == name) {
-        return f(sc).with_context(|| format!("stage '{name}'"));
+        // A user's stage is a controller or an observer: it sees the controller's model.
+        return f(&sc.controller_view()).with_context(|| format!("stage '{name}'"));
     }
     crate::stages::builtin(name, sc).ok_or_else(|| {
         let mut known: Vec<&str> = crate::stages::BUILTIN.to_vec();

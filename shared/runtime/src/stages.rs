@@ -15,9 +15,15 @@ use std::f64::consts::{PI, TAU};
 pub const BUILTIN: [&str; 4] = ["plant", "observer", "current-loop", "speed-loop"];
 
 /// Builds built-in stage `name` for scenario `sc`.
+/// The plant is built from the true scenario, every other stage from its
+/// [`Scenario::controller_view`] (docs/architecture.md, "Model mismatch").
 pub fn builtin(name: &str, sc: &Scenario) -> Option<Box<dyn Stage>> {
+    if name == "plant" {
+        return Some(Box::new(PlantStage::new(sc)));
+    }
+    let view = sc.controller_view();
+    let sc = &view;
     Some(match name {
-        "plant" => Box::new(PlantStage::new(sc)),
         "observer" => Box::new(ObserverStage::new(sc)),
         "current-loop" => Box::new(CurrentLoopStage::new(sc)),
         "speed-loop" => Box::new(SpeedLoopStage::new(sc)),
