@@ -176,22 +176,16 @@ pub fn reports(
 ) -> (Vec<FaultReport>, Vec<(f64, f64, String)>) {
     let fs = sc.rates.sample_hz;
     let ms = |dk: u64| dk as f64 / fs * 1e3;
-    let divider = |t: drivelab_runtime::stage::TopicId| {
-        topo.producers
-            .iter()
-            .find(|p| p.topic == t)
-            .map_or(1, |p| p.divider)
-    };
+    let producer =
+        |t: drivelab_runtime::stage::TopicId| topo.producers.iter().find(|p| p.topic == t);
+    let divider = |t| producer(t).map_or(1, |p| p.divider);
     let mut out = Vec::new();
     let mut windows = Vec::new();
     for (n, i) in sc.inject.iter().enumerate() {
         let a = Armed::bind(i, fs, &[], divider);
+        // A topic's fault is its producer's; a stage's names the stage.
         let stage = match a.topic {
-            Some(t) => topo
-                .producers
-                .iter()
-                .find(|p| p.topic == t)
-                .map_or_else(String::new, |p| p.stage.clone()),
+            Some(t) => producer(t).map_or_else(String::new, |p| p.stage.clone()),
             None => i.target.clone(),
         };
         let process = topo

@@ -81,20 +81,11 @@ pub fn parse(spec: &str) -> Result<Hog> {
     })
 }
 
-/// The CPUs this process may run on (its affinity mask).
+/// The CPUs this process may run on (its affinity mask; every online CPU when it cannot
+/// be read).
 pub fn allowed_cpus() -> Vec<usize> {
-    // SAFETY: cpu_set_t is plain data; all zeroes is an empty set.
-    let mut set: libc::cpu_set_t = unsafe { std::mem::zeroed() };
-    // SAFETY: pid 0 = this thread; `set` is a valid, writable cpu_set_t of the size given.
-    let rc =
-        unsafe { libc::sched_getaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &mut set) };
-    if rc != 0 {
-        return (0..drivelab_runtime::rt::online_cpus()).collect();
-    }
-    // SAFETY: every `c` is below CPU_SETSIZE, so CPU_ISSET reads inside `set`'s bit array.
-    (0..libc::CPU_SETSIZE as usize)
-        .filter(|&c| unsafe { libc::CPU_ISSET(c, &set) })
-        .collect()
+    drivelab_runtime::rt::affinity_cpus()
+        .unwrap_or_else(|| (0..drivelab_runtime::rt::online_cpus()).collect())
 }
 
 /// The hogs among `specs`, in the order they start, checked against the run: the CPU

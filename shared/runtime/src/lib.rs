@@ -10,6 +10,35 @@
 //! the same bit for bit on every architecture.
 #![warn(clippy::disallowed_methods)]
 
+/// `println!` that does not panic when nobody reads stdout any more (`drivelab … | head`
+/// closes the pipe): a drive (launcher or stage host) must still stop cleanly, write its trace and remove its
+/// bus files, so a failed write of a line for the person watching is ignored.
+#[macro_export]
+macro_rules! outln {
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stdout(), $($t)*);
+    }};
+}
+
+/// `print!` that does not panic on a closed stdout (see [`outln!`]).
+#[macro_export]
+macro_rules! out {
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        let _ = write!(std::io::stdout(), $($t)*);
+    }};
+}
+
+/// `eprintln!` that does not panic on a closed stderr (see [`outln!`]).
+#[macro_export]
+macro_rules! errln {
+    ($($t:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stderr(), $($t)*);
+    }};
+}
+
 #[cfg(test)]
 mod alloc_count;
 pub mod bus;

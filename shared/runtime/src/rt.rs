@@ -363,8 +363,8 @@ fn set_affinity_single(cpu: usize) -> io::Result<()> {
     }
 }
 
-/// The single CPU the calling thread's affinity mask allows, if exactly one.
-fn pinned_cpu() -> Option<usize> {
+/// The CPUs the calling thread's affinity mask allows, in order; None when it cannot be read.
+pub fn affinity_cpus() -> Option<Vec<usize>> {
     // SAFETY: cpu_set_t is a plain bit array; all-zero is a valid (empty) set.
     let mut set: libc::cpu_set_t = unsafe { std::mem::zeroed() };
     // SAFETY: pid 0 = the calling thread; `set` is a valid, writable cpu_set_t of the size
@@ -374,12 +374,20 @@ fn pinned_cpu() -> Option<usize> {
     if rc != 0 {
         return None;
     }
-    // SAFETY: `set` is a valid cpu_set_t filled in by sched_getaffinity.
-    if unsafe { libc::CPU_COUNT(&set) } != 1 {
-        return None;
-    }
     // SAFETY: every `c` is below CPU_SETSIZE, so CPU_ISSET reads inside `set`'s bit array.
-    (0..libc::CPU_SETSIZE as usize).find(|&c| unsafe { libc::CPU_ISSET(c, &set) })
+    Some(
+        (0..libc::CPU_SETSIZE as usize)
+            .filter(|&c| unsafe { libc::CPU_ISSET(c, &set) })
+            .collect(),
+    )
+}
+
+/// The single CPU the calling thread's affinity mask allows, if exactly one.
+fn pinned_cpu() -> Option<usize> {
+    match affinity_cpus()?.as_slice() {
+        [c] => Some(*c),
+        _ => None,
+    }
 }
 
 /// `sched_setscheduler(0, policy, prio)` for the calling thread.

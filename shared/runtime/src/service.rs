@@ -181,21 +181,13 @@ pub fn make_stage(
     })
 }
 
-/// One line for the person watching, on stderr. A stage host must not die because nobody
-/// reads it any more (`drivelab run 2>&1 | head` closes the pipe): unlike `eprintln!`,
-/// this ignores a failed write.
-fn say(line: std::fmt::Arguments) {
-    use std::io::Write;
-    let _ = writeln!(std::io::stderr(), "{line}");
-}
-
 /// The `main` of a stage host: the built-in stages plus `user`. Prints a one-line error and
 /// exits 1 on failure.
 pub fn host_main(user: &[(&'static str, StageFactory)]) -> std::process::ExitCode {
     let args = HostArgs::parse();
     let name = args.process.clone().unwrap_or_else(|| "host".into());
     if let Err(e) = install_signal_handlers().and_then(|_| run_host(args, user)) {
-        say(format_args!("{name}: error: {e:#}"));
+        crate::errln!("{name}: error: {e:#}");
         return std::process::ExitCode::from(1);
     }
     std::process::ExitCode::SUCCESS
@@ -262,7 +254,7 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     phase("stages");
     for s in &stages {
         for w in s.warnings() {
-            say(format_args!("{}: warning: {w}", s.name()));
+            crate::errln!("{}: warning: {w}", s.name());
         }
     }
     let bindings: Vec<(TopicId, u64, bool)> = plan
@@ -426,7 +418,7 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     host.run()?;
     for h in &host.stages {
         for w in h.stage.exit_warnings() {
-            say(format_args!("{}: warning: {w}", h.stage.name()));
+            crate::errln!("{}: warning: {w}", h.stage.name());
         }
     }
     write_stats(&args, &pname, &report, &host, &startup)
@@ -456,7 +448,7 @@ fn apply_placement(process: &str, p: &ProcessSpec, args: &HostArgs) -> Result<Rt
         RtPolicy::Warn
     };
     let report = setup_rt(&req, policy).map_err(|e| anyhow!("{process}: {e}"))?;
-    say(format_args!("{}", report.one_line(process)));
+    crate::errln!("{}", report.one_line(process));
     protocol_line(&format!("RT {}", serde_json::to_string(&report)?))?;
     Ok(report)
 }
