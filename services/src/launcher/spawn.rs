@@ -27,6 +27,8 @@ pub(super) struct ChildProc {
     lines: mpsc::Receiver<String>,
     /// Its RT setup as it reported it (`RT {json}`).
     pub rt: Option<serde_json::Value>,
+    /// A standby twin that has not taken over.
+    pub standby: bool,
 }
 
 /// The executable of process `p`: its `exec` (relative to `base`) or the built-in host next
@@ -84,6 +86,7 @@ pub(super) fn spawn_service(
     source: bool,
     sp: &Spawn,
     rejoin_from: Option<&Path>,
+    standby: bool,
 ) -> Result<ChildProc> {
     let runner = runner_of(sp.o)?;
     let mut cmd = drivelab_runtime::runner::command(runner.as_ref(), exe);
@@ -105,6 +108,9 @@ pub(super) fn spawn_service(
     }
     if source {
         cmd.arg("--recorder");
+    }
+    if standby {
+        cmd.arg("--standby");
     }
     if let Some(f) = rejoin_from {
         cmd.arg("--rejoin");
@@ -145,6 +151,7 @@ pub(super) fn spawn_service(
         stdin,
         lines: rx,
         rt: None,
+        standby,
     })
 }
 
@@ -176,7 +183,20 @@ pub(crate) fn die_with_launcher(cmd: &mut Command) {
 impl ChildProc {
     /// The same process started again with `--rejoin`.
     pub fn respawn(&self, sp: &Spawn, rejoin_from: &Path) -> Result<ChildProc> {
-        spawn_service(&self.spec, &self.exe, self.source, sp, Some(rejoin_from))
+        spawn_service(
+            &self.spec,
+            &self.exe,
+            self.source,
+            sp,
+            Some(rejoin_from),
+            false,
+        )
+    }
+
+    /// A standby twin of this process (`standby = true`), joining the running drive.
+    pub fn respawn_standby(&self, sp: &Spawn) -> Result<ChildProc> {
+        let rejoin = sp.out.join(format!("rejoin-{}.json", self.name));
+        spawn_service(&self.spec, &self.exe, false, sp, Some(&rejoin), true)
     }
 
     /// Its pid.
@@ -214,9 +234,17 @@ impl ChildProc {
     }
 }
 
-/// Handshake: waits for each process to report its RT setup and READY (20 s in all), then
-/// tells the first (the source) to go. Returns why the start failed, if it did.
-pub(super) fn handshake(children: &mut [ChildProc]) -> Result<Option<String>> {
+/// Tells the first process (the source) to start the drive.
+pub(super) fn go(children: &mut [ChildProc]) -> Result<Option<String>> {
+    if let Some(c) = children.first_mut() {
+        c.go()?;
+    }
+    Ok(None)
+}
+
+/// Waits for each process to report its RT setup and READY (20 s in all). Returns why the
+/// start failed, if it did.
+pub(super) fn wait_ready(children: &mut [ChildProc]) -> Result<Option<String>> {
     let t = Instant::now();
     for c in children.iter_mut() {
         loop {
@@ -243,9 +271,6 @@ pub(super) fn handshake(children: &mut [ChildProc]) -> Result<Option<String>> {
                 }
             }
         }
-    }
-    if let Some(c) = children.first_mut() {
-        c.go()?;
     }
     Ok(None)
 }

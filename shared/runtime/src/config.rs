@@ -909,6 +909,7 @@ impl Scenario {
                     cpu: p.core,
                     priority: p.priority,
                     exec: None,
+                    standby: false,
                 }
             })
             .collect()

@@ -47,6 +47,7 @@ pub mod drive;
 pub mod futex;
 pub mod host;
 pub mod inject;
+pub mod lease;
 pub mod messages;
 pub mod rt;
 pub mod runner;
