@@ -196,17 +196,18 @@ fn run_bus(
             &out.join("trace.csv"),
         )?),
     )?;
-    // Standby twins (real time): each such process's lease, made before anyone starts.
+    // Real time: the liveness segment (every process's lease, and its twin's), made before
+    // anyone starts; the processes with a standby twin.
     let lockstep = clock == BusClock::Lockstep;
+    if !lockstep {
+        drivelab_runtime::lease::Life::create(&bus_id, plan_topo.processes.len())?;
+    }
     let standby: Vec<String> = plan_topo
         .processes
         .iter()
         .filter(|p| p.standby && !lockstep)
         .map(|p| p.name.clone())
         .collect();
-    for p in &standby {
-        drivelab_runtime::lease::Lease::create(&bus_id, p)?;
-    }
     let publishers = drivelab_runtime::service::publishers_per_topic(plan_topo, lockstep);
     let rec = {
         let (b, s, sc, pr) = (bus_id.clone(), stop.clone(), sc.clone(), progress.clone());

@@ -587,18 +587,14 @@ impl DriveTopics {
 }
 
 /// True when /dev/shm file `name` belongs to bus `id`: the bus prefix followed by the futex
-/// segment (`wake`) or an iceoryx2 name (40 hex digits, then `_` or `.`). Bus ids may contain
+/// segment (`wake`), the liveness segment (`life`) or an iceoryx2 name (40 hex digits, then `_` or `.`). Bus ids may contain
 /// `_`, so the prefix alone would also match bus `<id>_x`.
 pub fn owned_by(name: &str, id: &str) -> bool {
     let Some(rest) = name.strip_prefix(&shm_prefix(id)) else {
         return false;
     };
-    // The futex segment and the standby leases (process names have no '_').
-    if rest == "wake"
-        || rest
-            .strip_prefix("lease-")
-            .is_some_and(|p| !p.contains('_'))
-    {
+    // The futex segment and the liveness segment.
+    if rest == "wake" || rest == "life" {
         return true;
     }
     let b = rest.as_bytes();
@@ -674,8 +670,8 @@ mod tests {
     fn bus_files_are_told_apart_by_id() {
         let hash = "b9fc73e5c1f646968758453273c6c65cb372831b";
         assert!(owned_by("iox2_dlab_wake", "ab"));
-        assert!(owned_by("iox2_dlab_lease-current-loop", "ab"));
-        assert!(!owned_by("iox2_dlab_c_lease-current-loop", "ab"));
+        assert!(owned_by("iox2_dlab_life", "ab"));
+        assert!(!owned_by("iox2_dlab_c_life", "ab"));
         assert!(owned_by(
             &format!("iox2_dlab_{hash}_7922874017454358376"),
             "ab"

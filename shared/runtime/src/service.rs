@@ -7,6 +7,7 @@
 use crate::bus::{self, DriveTopics, Poker, Receiver, Sender};
 use crate::config::Scenario;
 use crate::host::{Counters, Host, HostConfig, Pacing, StageHists, Transport};
+use crate::lease::{Lease, Life, Role as LifeRole};
 use crate::messages::*;
 use crate::rt::{setup_rt, RtPolicy, RtReport, RtRequest};
 use crate::stage::{Msg, Role, Stage, TopicId, N_TOPICS};
@@ -375,14 +376,27 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
         lockstep && source && args.recorder,
     )?;
     tr.decim = decim;
-    if proc.standby && !lockstep {
-        let mut lease = crate::lease::Lease::open(&bus_id, &pname)?;
+    if !lockstep {
+        // Liveness (docs/architecture.md, "Liveness words and standby twins"): this instance
+        // holds its process's lease, or as a twin its standby mutex, from here to its end;
+        // each input from another process goes stale the moment its producer is down.
+        let life = std::sync::Arc::new(Life::open(&bus_id, plan.processes.len())?);
         if args.standby {
-            tr.shadow = Some(Shadow::new(lease, &topics, &sent)?);
+            let mut own = life.lease(pi, LifeRole::Standby)?;
+            own.hold()?;
+            let lease = life.lease(pi, LifeRole::Active)?;
+            tr.shadow = Some(Shadow::new(lease, own, &topics, &sent)?);
         } else {
+            let mut lease = life.lease(pi, LifeRole::Active)?;
             lease.hold()?;
             tr.lease = Some(lease);
         }
+        for b in &plan.producers {
+            if b.process != pi {
+                tr.producer[b.topic.index()] = Some(b.process);
+            }
+        }
+        tr.life = Some(life);
     }
     tr.status = stages
         .iter()
@@ -614,9 +628,13 @@ pub struct BusTransport {
     status: Vec<StatusPublisher>,
     /// A standby twin that has not taken over: it publishes nothing (see [`Shadow`]).
     shadow: Option<Shadow>,
-    /// The lease this instance holds (the active instance of a process with a twin; the
-    /// twin once it has taken over). Kept until the process ends.
-    lease: Option<crate::lease::Lease>,
+    /// The lease this instance holds (its process's; a twin's once it has taken over). Kept
+    /// until the process ends. None in lockstep.
+    lease: Option<Lease>,
+    /// The bus's liveness segment (real time).
+    life: Option<std::sync::Arc<Life>>,
+    /// Per topic, the process that produces it when that is another process.
+    producer: [Option<usize>; N_TOPICS],
     /// Per topic: the newest index the instance before this one published (a twin that
     /// took over sends only later ones).
     before: [Option<u64>; N_TOPICS],
@@ -627,7 +645,11 @@ pub struct BusTransport {
 /// died the lease is its, it reads which samples its predecessor had published, and from
 /// then on it is the process.
 pub struct Shadow {
-    lease: crate::lease::Lease,
+    /// The process's lease, taken at the takeover.
+    lease: Lease,
+    /// The twin's own standby mutex, held while it waits (its process reads up while it
+    /// lives), given up at the takeover for the next twin.
+    own: Lease,
     /// Per output topic, a polled receiver of the active instance's messages (read once, at
     /// the takeover, for their newest index).
     watch: [Option<Rx>; N_TOPICS],
@@ -635,7 +657,8 @@ pub struct Shadow {
 
 impl Shadow {
     fn new(
-        lease: crate::lease::Lease,
+        lease: Lease,
+        own: Lease,
         topics: &DriveTopics,
         sent: &[bool; N_TOPICS],
     ) -> Result<Self> {
@@ -645,7 +668,7 @@ impl Shadow {
                 watch[t.index()] = Some(rx_of(topics, t, Wait::Polled, 4)?);
             }
         }
-        Ok(Self { lease, watch })
+        Ok(Self { lease, own, watch })
     }
 }
 
@@ -709,6 +732,8 @@ impl BusTransport {
             status: Vec::new(),
             shadow: None,
             lease: None,
+            life: None,
+            producer: [None; N_TOPICS],
             before: [None; N_TOPICS],
         })
     }
@@ -725,7 +750,8 @@ impl BusTransport {
         if !sh.lease.try_take() {
             return Ok(false);
         }
-        let sh = self.shadow.take().expect("checked above");
+        let mut sh = self.shadow.take().expect("checked above");
+        sh.own.release();
         for (i, w) in sh.watch.iter().enumerate() {
             if let Some(w) = w {
                 while let Some(m) = recv_rx(w)? {
@@ -839,6 +865,14 @@ impl Transport for BusTransport {
                 std::thread::sleep(timeout.min(bus::POLL_SLEEP));
                 Ok(())
             }
+        }
+    }
+
+    #[inline]
+    fn producer_up(&self, topic: TopicId) -> bool {
+        match (&self.life, self.producer[topic.index()]) {
+            (Some(life), Some(p)) => life.up(p),
+            _ => true,
         }
     }
 
