@@ -115,8 +115,7 @@ fn a_killed_process_is_replaced_by_its_twin_within_three_samples_and_again_by_th
         .as_array()
         .unwrap()
         .iter()
-        .filter(|e| e["process"] == "current-loop" && e["event"] == "taken-over")
-        .next_back()
+        .rfind(|e| e["process"] == "current-loop" && e["event"] == "taken-over")
         .map(|e| e["detail"].as_str().unwrap().to_string())
         .unwrap();
     let pid = s["processes"]["current-loop"]["pid"].as_u64().unwrap();

@@ -268,10 +268,8 @@ impl Lease {
             libc::EOWNERDEAD => {
                 // SAFETY: we hold the mutex (EOWNERDEAD hands it over); marking it
                 // consistent lets later holders lock it normally.
-                check(
-                    unsafe { libc::pthread_mutex_consistent(self.mutex) },
-                    "consistent",
-                )?;
+                let r = unsafe { libc::pthread_mutex_consistent(self.mutex) };
+                check(r, "consistent")?;
             }
             e => return Err(anyhow!("lease: {}", std::io::Error::from_raw_os_error(e))),
         }
@@ -350,7 +348,7 @@ mod tests {
         standby.release();
         assert!(!standby.held() && !life.held_by_live(1, Role::Standby));
         assert!(life.up(1));
-        drop((holder, twin, life, creator));
+        let _ = (holder, twin, life, creator);
         let name = std::ffi::CString::new(format!("/{}", name(&bus))).unwrap();
         // SAFETY: removes the test's own segment.
         unsafe { libc::shm_unlink(name.as_ptr()) };
