@@ -71,8 +71,11 @@ fn main() -> Result<(), Box<dyn core::error::Error>> {
                 p.advance();
             }
             plant_ns.push(t.elapsed().as_nanos() as f64 / SAMPLES as f64);
-            let mut d = InProcessDrive::new(sc);
-            let n = SAMPLES.min(sc.samples());
+            // The scenario's profiles end at 0.1 s; longer runs hold the last values.
+            let mut long = sc.clone();
+            long.duration_s = SAMPLES as f64 / long.rates.sample_hz;
+            let mut d = InProcessDrive::new(&long);
+            let n = SAMPLES;
             let t = Instant::now();
             for k in 0..n {
                 std::hint::black_box(d.cycle(k));

@@ -22,7 +22,8 @@
 //! low for i_x > 0 and high for i_x < 0 (the sign taken at τ_x; at i_x = 0 the pole keeps its
 //! outgoing state). One of the two edges of a carrier period is thus delayed by t_d, and the
 //! mean pole voltage moves by −sign(i_x)·t_d·f_sw·V_dc. An edge within t_d of the end of its
-//! half-period has its dead time cut at that end (the carrier's peak or valley).
+//! half-period has its dead time cut at that end (the carrier's peak or valley); a phase at
+//! full modulation (|m_x| = 1) does not switch and has none.
 //!
 //! **Device drop**: every conducting device (transistor or diode) drops `v_drop_v` along the
 //! current: the pole voltage is (s_x − 1/2)·V_dc − sign(i_x)·v_drop (i_x at the start of the
@@ -363,7 +364,7 @@ impl SwitchingInverter {
                 for p in 0..3 {
                     s[p] = if t < edge[p] {
                         out_state
-                    } else if t < edge[p] + td {
+                    } else if t < edge[p] + td && edge[p] > 0.0 {
                         // Dead time: the diode the current chooses (sign at the edge).
                         *diode[p].get_or_insert(if i[p] > 0.0 {
                             0.0
@@ -549,6 +550,35 @@ mod tests {
             -4.0 / 3.0 * dv
         );
         assert!((o.mean_u_ab.beta).abs() < 1e-9 * 470.0, "{o:?}");
+    }
+
+    #[test]
+    fn a_phase_at_full_modulation_does_not_switch_and_has_no_dead_time() {
+        // |u| = V_dc/√3 at 30°: m_a = +1, m_b = 0, m_c = −1. Locked rotor, i along phase a
+        // (i_a = 2 A, i_b = i_c = −1 A); the voltage drives the current along 30°, where
+        // i_b's share is cos(−90°) = 0, so no sign changes within the sample. Only phase b
+        // switches, so the error is Clarke(0, +ΔV, 0) = (−ΔV/3, ΔV/√3).
+        let (mot, mech) = locked();
+        let sp = spec(2e-6);
+        let mut inv = SwitchingInverter::new(sp, TS, TS / 4.0);
+        let r = 470.0 / 3f64.sqrt();
+        let a = std::f64::consts::PI / 6.0;
+        let u = AlphaBeta {
+            alpha: r * libm::cos(a),
+            beta: r * libm::sin(a),
+        };
+        let x = MotorState {
+            i_d: 2.0,
+            ..Default::default()
+        };
+        let o = inv.sample(&mot, mech, &x, 0, u, 0.0, LoadModel::Active, TS, 0.0);
+        let dv = sp.dead_time_error_v();
+        let (ea, eb) = (o.mean_u_ab.alpha - u.alpha, o.mean_u_ab.beta - u.beta);
+        assert!((ea + dv / 3.0).abs() < 1e-9 * 470.0, "α error {ea} V");
+        assert!(
+            (eb - dv / 3f64.sqrt()).abs() < 1e-9 * 470.0,
+            "β error {eb} V"
+        );
     }
 
     #[test]
