@@ -1039,6 +1039,35 @@ mod tests {
         assert!(d.plant.x.omega_m > 1.0, "the drive turns: {:?}", d.plant.x);
     }
 
+    /// `[sensors]` in the plant's measurement, in order: the current at the ADC's instant,
+    /// gain and offset per phase, then the ADC's rounding and saturation; the truth stays
+    /// true.
+    #[test]
+    fn the_measurement_goes_through_gain_offset_and_the_adc() {
+        let mut sc = scenario("kyslan-pi");
+        sc.sensors.current_gain = [1.1, 1.0, 0.9];
+        sc.sensors.current_offset_a = [0.0, 0.2, 0.0];
+        sc.sensors.adc_bits = Some(8);
+        sc.sensors.adc_range_a = Some(1.5);
+        sc.validate().unwrap();
+        let mut p = Plant::new(&sc);
+        p.x.i_d = 1.0;
+        p.x.i_q = 0.5;
+        p.x.theta_m = 0.3;
+        let m = p.sample(0, None);
+        let (ia, ib, ic) = inverse_clarke(inverse_park(
+            Dq { d: 1.0, q: 0.5 },
+            p.x.theta_e(&sc.motor_params()),
+        ));
+        let adc = crate::sensor_errors::Adc::new(8, 1.5);
+        let want = [adc.read(1.1 * ia), adc.read(ib + 0.2), adc.read(0.9 * ic)];
+        assert_eq!(m.i_abc, want, "true ({ia}, {ib}, {ic})");
+        // |i| = 1.12 A: every reading lies within ±1.5 A, so the ADC only rounds, by half
+        // an LSB (1.5/128 A) at most.
+        assert!((m.i_abc[0] - 1.1 * ia).abs() <= 0.5 * 1.5 / 128.0 + 1e-12);
+        assert_eq!(p.truth().i_dq, [1.0, 0.5]);
+    }
+
     #[test]
     fn mismatched_controllers_are_rejected() {
         let text = std::fs::read_to_string(format!(
