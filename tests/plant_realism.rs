@@ -12,8 +12,25 @@ use common::*;
 fn new_scenarios_give_the_same_trace_in_lockstep_and_in_process() {
     let _s = serial();
     for name in ["kyslan-pi-pwm", "miyajima-polar-0rpm-noise"] {
-        let (_, summary) = same_trace_in_every_run(&format!("same-{name}"), &["--scenario", name]);
+        let (dir, summary) =
+            same_trace_in_every_run(&format!("same-{name}"), &["--scenario", name]);
         assert_eq!(summary["scenario"], name);
+        // And with every stage in one process (the plant is a stage like the others).
+        let (one, _) = run_ok(
+            &format!("one-{name}"),
+            &[
+                "--scenario",
+                name,
+                "--clock",
+                "lockstep",
+                "--topology",
+                "one-process",
+            ],
+        );
+        assert!(
+            read(&dir.join("trace.csv")) == read(&one.join("trace.csv")),
+            "{name}: one-process lockstep differs from four-process"
+        );
     }
     // Every sensor error and the DC link at once, on a short kyslan-pi-pwm.
     let all = variant(
