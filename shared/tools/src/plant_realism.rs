@@ -20,15 +20,17 @@ pub fn scenario_text(name: &str) -> String {
     std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
 
-/// The voltage the switching inverter loses against what the current loop asked for,
-/// averaged from `t_from_s` to the end of the run: (along the current, across it), V. Per
-/// sample, the law's dq voltage of the command applied over it (before any dead-time
-/// compensation) minus the mean applied αβ voltage turned into dq at the mid-sample angle
-/// (the angle the current loop aimed the command at), projected on the unit vector of the
-/// true dq current.
+/// The fundamental voltage the switching inverter loses against what the current loop asked
+/// for, from `t_from_s` to the end of the run (whole electrical periods): (along the
+/// current, across it), V. Per sample the loss is the law's dq voltage of the command
+/// applied over the sample (before any dead-time compensation) minus the mean applied αβ
+/// voltage turned into dq at the mid-sample angle (the angle the current loop aimed the
+/// command at). Its mean in the rotor frame is the fundamental of the loss (the harmonics,
+/// 6th and up in dq, average out over whole periods); it is split along and across the mean
+/// dq current, the current's fundamental.
 pub fn dead_time_loss(sc: &Scenario, t_from_s: f64) -> (f64, f64) {
     let mut d = InProcessDrive::new(sc);
-    let (mut along, mut across, mut n) = (0.0, 0.0, 0.0);
+    let (mut du, mut dq, mut id, mut iq, mut n) = (0.0, 0.0, 0.0, 0.0, 0.0);
     let ts = sc.rates.ts();
     let p = sc.motor_params().p();
     let mut asked = None;
@@ -39,15 +41,17 @@ pub fn dead_time_loss(sc: &Scenario, t_from_s: f64) -> (f64, f64) {
             let [a, b] = d.plant.mean_u_ab;
             let mid = row.theta_e + 0.5 * p * row.omega_m * ts;
             let applied = park(AlphaBeta { alpha: a, beta: b }, mid);
-            let (du, dq) = (ud - applied.d, uq - applied.q);
-            let mag = row.i_d.hypot(row.i_q);
-            along += (du * row.i_d + dq * row.i_q) / mag;
-            across += (dq * row.i_d - du * row.i_q) / mag;
+            du += ud - applied.d;
+            dq += uq - applied.q;
+            id += row.i_d;
+            iq += row.i_q;
             n += 1.0;
         }
         asked = d.command().map(|c| c.u_dq);
     }
-    (along / n, across / n)
+    let (du, dq, id, iq) = (du / n, dq / n, id / n, iq / n);
+    let mag = id.hypot(iq);
+    ((du * id + dq * iq) / mag, (dq * id - du * iq) / mag)
 }
 
 /// The voltage phase δ of a run (degrees, against t in ms), from the applied u_d, u_q in
