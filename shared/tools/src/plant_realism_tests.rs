@@ -51,7 +51,11 @@ i_q_a = [{{ t_s = 0.0, value = 3.0 }}]
 #[test]
 fn dead_time_loses_td_fsw_vdc_per_phase_against_the_current() {
     let sc = dead_time_drive(false);
-    let dv = sc.inverter.pwm(sc.rates.sample_hz).unwrap().dead_time_error_v();
+    let dv = sc
+        .inverter
+        .pwm(sc.rates.sample_hz)
+        .unwrap()
+        .dead_time_error_v();
     assert!((dv - 9.4).abs() < 1e-9, "{dv}");
     let predicted = 4.0 / std::f64::consts::PI * dv;
     let (along, across) = dead_time_loss(&sc, 0.1);
