@@ -51,6 +51,7 @@ pub mod lease;
 pub mod messages;
 pub mod rt;
 pub mod runner;
+pub mod sensor_errors;
 pub mod sensor_faults;
 pub mod service;
 pub mod stage;
