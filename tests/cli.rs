@@ -69,6 +69,7 @@ fn help_texts() {
         "doctor",
         "observer-error",
         "cdm-design",
+        "record",
     ] {
         rewritten.push(snapshot(&format!("help-{cmd}"), &[cmd, "--help"]));
     }
@@ -79,6 +80,7 @@ fn help_texts() {
 fn every_help_has_an_example_and_units() {
     for cmd in [
         "run", "bench", "fault", "clean", "monitor", "plot", "plant", "design", "compare", "doctor",
+        "record",
     ] {
         let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
             .args([cmd, "--help"])

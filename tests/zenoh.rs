@@ -1,0 +1,188 @@
+//! Remote operation over Zenoh on localhost (docs/architecture.md, "Across machines
+//! (Zenoh)"): a drive run with `--zenoh-listen` is watched, recorded and faulted from
+//! `--connect` clients; bad endpoints, a busy port and a fault the drive does not allow are
+//! refused with one line. Each test has its own bus and its own free port, and checks that
+//! no process and no bus file is left. Times are watchdogs only.
+
+use serde_json::Value;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+mod common;
+use common::*;
+
+/// A TCP port of 127.0.0.1 that was free a moment ago (the kernel's pick).
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn endpoint(port: u16) -> String {
+    format!("tcp/127.0.0.1:{port}")
+}
+
+/// Runs `drivelab ARGS` until it succeeds (the drive's bridge may not listen yet), with a
+/// watchdog; returns its output.
+fn until_ok(args: &[&str]) -> std::process::Output {
+    let t = Instant::now();
+    loop {
+        let o = drivelab(args);
+        if o.status.success() {
+            return o;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "watchdog: drivelab {args:?} kept failing: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+fn summary(dir: &std::path::Path) -> Value {
+    serde_json::from_slice(&std::fs::read(dir.join("summary.json")).unwrap()).unwrap()
+}
+
+#[test]
+fn a_remote_monitor_sees_the_drive_and_a_remote_recorder_writes_its_trace() {
+    let _g = serial();
+    let dir = scratch("monitor-record");
+    let bus = bus_id("monitor-record");
+    let ep = endpoint(free_port());
+    // The recorder first: it waits for the drive's bridge.
+    let rec_dir = dir.join("remote");
+    let recorder = Command::new(DRIVELAB)
+        .args(["record", "--connect", &ep, "--wait", "60", "--out"])
+        .arg(&rec_dir)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let local = dir.join("run");
+    let drive = start_drive(
+        &bus,
+        &local,
+        &["--duration", "1.5", "--zenoh-listen", &ep],
+    );
+    wait_for_progress(&bus, 2000);
+    // The monitor's screen over the network, as a local one shows it.
+    let o = until_ok(&["monitor", "--connect", &ep, "--print"]);
+    let screen = String::from_utf8(o.stdout).unwrap();
+    for want in [
+        format!("bus {bus} at {ep}"),
+        "kyslan-pi".to_string(),
+        "realtime 10000 Hz".to_string(),
+        "current-loop".to_string(),
+    ] {
+        assert!(screen.contains(&want), "{want}\n{screen}");
+    }
+    let d = wait(drive, Duration::from_secs(120), "the drive");
+    assert!(d.status.success(), "{}", String::from_utf8_lossy(&d.stderr));
+    let r = wait(recorder, Duration::from_secs(60), "the recorder");
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    assert_clean(&bus);
+    // Every row the drive recorded, bit for bit, and its summary with the recording's own
+    // figures.
+    let trace = |d: &std::path::Path| std::fs::read_to_string(d.join("trace.csv")).unwrap();
+    let (l, rm) = (trace(&local), trace(&rec_dir));
+    assert_eq!(l.lines().count(), 15_001, "header + 15000 rows");
+    assert!(l == rm, "the remote trace differs from the drive's");
+    let (ls, rs) = (summary(&local), summary(&rec_dir));
+    assert_eq!(rs["samples"], 15_000);
+    assert_eq!(rs["missing_samples"], serde_json::json!([]));
+    assert_eq!(rs["drive_missing_samples"], ls["missing_samples"]);
+    for same in ["scenario", "deadline_misses", "metrics", "faults"] {
+        assert_eq!(rs[same], ls[same], "{same}");
+    }
+    assert_eq!(rs["record"]["bus"], bus.as_str());
+    assert_eq!(rs["record"]["rejected_frames"], 0);
+    assert_eq!(rs["record"]["drive_summary"], true);
+    // The drive's bridge forwarded every sample of truth and cmd (with the warm-up and the
+    // end marker) and refused nothing.
+    let b = &ls["bridge"];
+    assert_eq!(b["listen"], ep.as_str());
+    assert!(b["forwarded"]["truth"].as_u64().unwrap() >= 15_000, "{b}");
+    assert!(b["forwarded"]["cmd"].as_u64().unwrap() >= 15_000, "{b}");
+    assert_eq!((b["faults_refused"].as_u64(), b["rejected"].as_u64()), (Some(0), Some(0)));
+}
+
+#[test]
+fn a_remote_fault_needs_allow_remote_faults_on_the_drive() {
+    let _g = serial();
+    let dir = scratch("fault");
+    for allow in [false, true] {
+        let name = format!("fault-{allow}");
+        let bus = bus_id(&name);
+        let ep = endpoint(free_port());
+        let mut extra = vec!["--duration", "3", "--zenoh-listen", ep.as_str()];
+        if allow {
+            extra.push("--allow-remote-faults");
+        }
+        let out = dir.join(&name);
+        let drive = start_drive(&bus, &out, &extra);
+        wait_for_progress(&bus, 3000);
+        let o = drivelab(&["fault", "kill", "observer", "--connect", &ep]);
+        let err = String::from_utf8_lossy(&o.stderr).into_owned();
+        if allow {
+            assert!(o.status.success(), "{err}");
+            assert!(err.contains("supervisor: inject observer: kill"), "{err}");
+        } else {
+            assert_eq!(o.status.code(), Some(1), "{err}");
+            assert_eq!(
+                err.trim(),
+                "drivelab: error: the drive refused: remote faults are not allowed on this drive (start it with --allow-remote-faults)"
+            );
+        }
+        let d = wait(drive, Duration::from_secs(120), "the drive");
+        let derr = String::from_utf8_lossy(&d.stderr);
+        assert!(d.status.success(), "{derr}");
+        assert_clean(&bus);
+        let s = summary(&out);
+        let kills = s["faults"].as_array().unwrap().len();
+        assert_eq!(kills, usize::from(allow), "{}", s["faults"]);
+        assert_eq!(s["bridge"]["faults_forwarded"], u64::from(allow));
+        assert_eq!(s["bridge"]["faults_refused"], u64::from(!allow));
+        if !allow {
+            // The drive's operator is told too.
+            assert!(derr.contains("refused a fault request"), "{derr}");
+        }
+    }
+}
+
+#[test]
+fn bad_endpoints_a_busy_port_and_no_drive_are_one_line_errors() {
+    let dir = scratch("errors");
+    let one_line = |o: &std::process::Output, code: i32, needle: &str| {
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(code), "{err}");
+        assert_eq!(err.trim().lines().count(), 1, "{err}");
+        assert!(err.contains(needle), "{needle}: {err}");
+    };
+    let bus = bus_id("errors");
+    let out = dir.join("run");
+    let o = drivelab(&[
+        "run", "--bus", &bus, "--out", out.to_str().unwrap(), "--zenoh-listen", "udp/127.0.0.1:7447",
+    ]);
+    one_line(&o, 2, "--zenoh-listen: endpoint 'udp/127.0.0.1:7447': protocol 'udp' is not built in");
+    assert!(!out.exists(), "a refused run makes no folder");
+    let o = drivelab(&["monitor", "--connect", "127.0.0.1:7447", "--print"]);
+    one_line(&o, 2, "--connect: endpoint '127.0.0.1:7447' must be PROTOCOL/HOST:PORT");
+    let o = drivelab(&["fault", "kill", "plant", "--connect", "tcp/localhost:http"]);
+    one_line(&o, 2, "port 'http' is not a number");
+    // Nobody listens there.
+    let ep = endpoint(free_port());
+    let o = drivelab(&["record", "--connect", &ep, "--out", out.to_str().unwrap()]);
+    one_line(&o, 1, &format!("cannot connect to {ep}"));
+    // A port in use: the drive does not start, and leaves nothing behind.
+    let holder = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let busy = endpoint(holder.local_addr().unwrap().port());
+    let _g = serial();
+    let o = drivelab(&[
+        "run", "--bus", &bus, "--out", out.to_str().unwrap(), "--no-plots", "--json", "--zenoh-listen", &busy,
+    ]);
+    one_line(&o, 1, &format!("zenoh bridge: cannot listen on {busy}"));
+    assert_clean(&bus);
+}
