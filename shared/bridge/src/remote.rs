@@ -194,12 +194,19 @@ impl Remote {
 
     /// Asks the drive's supervisor for a fault; the error is the bridge's refusal.
     pub fn request_fault(&self, req: &FaultRequest) -> Result<()> {
-        self.query(
-            &crate::query_key(&self.bus, "fault"),
-            Some(codec::encode(&[*req])),
-        )
-        .map(|_| ())
-        .map_err(|e| anyhow!("the drive refused: {e:#}"))
+        let answers = self
+            .query(
+                &crate::query_key(&self.bus, "fault"),
+                Some(codec::encode(&[*req])),
+            )
+            .map_err(|e| anyhow!("the drive refused: {e:#}"))?;
+        if answers.is_empty() {
+            // Zenoh's access control drops a denied query without a word.
+            bail!(
+                "the drive's bridge did not answer the fault request within {QUERY_TIMEOUT:?} (denied by its access control?)"
+            );
+        }
+        Ok(())
     }
 
     /// Subscribes to the run's summary (published once, when the drive has ended).
