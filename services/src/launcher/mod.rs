@@ -570,6 +570,9 @@ fn describe(
 pub fn run(o: &RunOptions) -> Result<RunResult> {
     // The launcher stops on SIGINT/SIGTERM the same way the services do.
     crate::common::install_signal_handlers()?;
+    if o.zenoh.is_some() && o.clock == Clock::Inprocess {
+        bail!("--zenoh-listen needs a drive on a bus: use --clock realtime or lockstep");
+    }
     if let Some(b) = &o.bus {
         bus::check_bus_id(b)?;
         // Before the run folder is made: a busy bus leaves nothing behind.
