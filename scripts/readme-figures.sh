@@ -15,6 +15,12 @@ cp runs/readme-bench/bench.md docs/bench-interleaved.md
 ./target/release/drivelab run --scenario kyslan-pi --duration 1 --fault kill:current-loop@0.3 --out runs/readme-fault
 cp runs/readme-fault/speed.png docs/img/fault-speed.png
 cp runs/readme-fault/currents.png docs/img/fault-currents.png
+# Plant realism (docs/architecture.md): Low's observer under R +30 %, Miyajima's voltage
+# phase with current noise, kyslan-pi behind the switching inverter.
+cargo run --release -p drivelab-tools --example plant_realism_figures -- docs/img
+rm -f docs/img/low-angle-error-r30.svg docs/img/miyajima-0rpm-noise-phase.svg
+./target/release/drivelab run --scenario kyslan-pi-pwm --clock inprocess --out runs/readme-pwm
+cp runs/readme-pwm/currents.png docs/img/kyslan-pi-pwm-currents.png
 # The monitor's screen (as text) during a drive with a killed current loop, pasted into
 # docs/monitor.md between the MONITOR markers.
 ./target/release/drivelab run --bus readmemon --duration 8 --fault kill:current-loop@3 \

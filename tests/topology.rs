@@ -6,7 +6,14 @@
 mod common;
 use common::*;
 
-const TOPOLOGIES: [&str; 3] = ["four-process", "two-process", "one-process"];
+/// The shipped topologies. In lockstep `four-process-standby` starts no twin (a simulated
+/// kill rejoins), so it gives the trace of the others.
+const TOPOLOGIES: [&str; 4] = [
+    "four-process",
+    "two-process",
+    "one-process",
+    "four-process-standby",
+];
 
 #[test]
 fn every_shipped_topology_gives_the_inprocess_trace_in_lockstep() {
@@ -29,8 +36,8 @@ fn every_shipped_topology_gives_the_inprocess_trace_in_lockstep() {
         );
         let want = read(&ip.join("trace.csv"));
         assert!(want.len() > 1000, "{scenario}: trace too short");
-        for t in TOPOLOGIES {
-            let tag = format!("{}{}", &scenario[..3], &t[..3]);
+        for (i, t) in TOPOLOGIES.into_iter().enumerate() {
+            let tag = format!("{}{i}", &scenario[..3]);
             let lockstep = |tag: &str, extra: &[&str]| {
                 let mut args = vec![
                     "--scenario",
@@ -73,7 +80,7 @@ fn every_shipped_topology_gives_the_inprocess_trace_in_lockstep() {
                 "{t}: {procs:?}"
             );
             let expected = match t {
-                "four-process" => 4,
+                "four-process" | "four-process-standby" => 4,
                 "two-process" => 2,
                 _ => 1,
             };
@@ -171,6 +178,13 @@ fn bad_topologies_fail_with_one_line_naming_the_problem_and_leave_nothing() {
                 + "exec = \"no-such-binary\"\n",
             "no-such-binary not found",
         ),
+        (
+            "standby.toml",
+            p("a", "\"plant\", \"observer\"")
+                + "standby = true\n"
+                + &p("b", "\"current-loop\", \"speed-loop\""),
+            "process 'a': standby = true is not for the plant's process",
+        ),
     ];
     for (file, text, needle) in cases {
         let f = dir.join(file);
@@ -203,7 +217,7 @@ fn bad_topologies_fail_with_one_line_naming_the_problem_and_leave_nothing() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
         err.contains(
-            "unknown topology 'three-process' (known: four-process, one-process, two-process)"
+            "unknown topology 'three-process' (known: four-process, four-process-standby, one-process, two-process)"
         ),
         "{err}"
     );

@@ -98,7 +98,7 @@ enum Cmd {
         #[arg(long, default_value_t = 1)]
         fault_seed: u64,
         /// Topology: which stages share a process, on which core, at which priority. A
-        /// shipped one (four-process, two-process, one-process) or a TOML file with
+        /// shipped one (four-process, two-process, one-process, four-process-standby) or a TOML file with
         /// [[process]] tables; replaces the scenario's own.
         #[arg(long, value_name = "NAME|FILE")]
         topology: Option<String>,

@@ -203,11 +203,24 @@ fn run_bus(
             &out.join("trace.csv"),
         )?),
     )?;
+    // Real time: the liveness segment (every process's lease, and its twin's), made before
+    // anyone starts; the processes with a standby twin.
+    let lockstep = clock == BusClock::Lockstep;
+    if !lockstep {
+        drivelab_runtime::lease::Life::create(&bus_id, plan_topo.processes.len())?;
+    }
+    let standby: Vec<String> = plan_topo
+        .processes
+        .iter()
+        .filter(|p| p.standby && !lockstep)
+        .map(|p| p.name.clone())
+        .collect();
+    let publishers = drivelab_runtime::service::publishers_per_topic(plan_topo, lockstep);
     let rec = {
         let (b, s, sc, pr) = (bus_id.clone(), stop.clone(), sc.clone(), progress.clone());
         std::thread::Builder::new()
             .name("recorder".into())
-            .spawn(move || run_recorder(b, sc, trace, s, pr, ready_tx))?
+            .spawn(move || run_recorder(b, sc, trace, s, pr, ready_tx, publishers))?
     };
     let topo_path = out.join("topology.json");
     let sp = Spawn {
@@ -235,16 +248,44 @@ fn run_bus(
         for (i, p) in plan_topo.processes.iter().enumerate() {
             // `exec` paths were made absolute when the topology was resolved.
             let spawned = process_binary(p, Path::new("/"))
-                .and_then(|exe| spawn_service(p, &exe, i == 0, &sp, None));
+                .and_then(|exe| spawn_service(p, &exe, i == 0, &sp, None, false));
             match spawned {
                 Ok(c) => children.push(c),
                 Err(e) => return Ok((children, Some(format!("{e:#}")))),
             }
         }
-        // Handshake: each service reports its RT setup and READY; then the source goes.
-        if let Some(failure) = spawn::handshake(&mut children)? {
+        // Handshake: each service reports its RT setup and READY (the processes with a twin
+        // hold their lease by then); then their twins start and report; then the source goes.
+        if let Some(failure) = spawn::wait_ready(&mut children)? {
             return Ok((children, Some(failure)));
         }
+        let mut twins: Vec<Option<ChildProc>> = Vec::with_capacity(children.len());
+        for c in &children {
+            let twin = standby
+                .contains(&c.name)
+                .then(|| c.respawn_standby(&sp))
+                .transpose();
+            match twin {
+                Ok(t) => twins.push(t),
+                Err(e) => {
+                    children.extend(twins.into_iter().flatten());
+                    return Ok((children, Some(format!("{e:#}"))));
+                }
+            }
+        }
+        let mut started: Vec<ChildProc> = twins.iter_mut().filter_map(Option::take).collect();
+        let failure = spawn::wait_ready(&mut started)?;
+        let mut started = started.into_iter();
+        for (t, c) in twins.iter_mut().zip(&children) {
+            if standby.contains(&c.name) {
+                *t = started.next();
+            }
+        }
+        if let Some(failure) = failure {
+            children.extend(twins.into_iter().flatten());
+            return Ok((children, Some(failure)));
+        }
+        spawn::go(&mut children)?;
         if o.verbose {
             crate::errln!(
                 "drivelab: {} samples at {} Hz, clock {clock:?}, bus {bus_id}",
@@ -270,7 +311,11 @@ fn run_bus(
             )
             .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
         );
-        let mut supervised: Vec<_> = children.into_iter().map(Supervised::new).collect();
+        let mut supervised: Vec<_> = children
+            .into_iter()
+            .zip(twins)
+            .map(|(c, t)| Supervised::new(c, t))
+            .collect();
         let failure = supervise(
             &mut hub,
             &bar,
@@ -291,7 +336,13 @@ fn run_bus(
             &progress.tail,
             Duration::from_secs(1),
         )?;
-        Ok((supervised.into_iter().map(|c| c.proc).collect(), failure))
+        Ok((
+            supervised
+                .into_iter()
+                .flat_map(|c| std::iter::once(c.proc).chain(c.standby))
+                .collect(),
+            failure,
+        ))
     })();
     let (mut children, mut failure) = match result {
         Ok(v) => v,
@@ -331,6 +382,13 @@ fn run_bus(
     let mut counters = serde_json::Map::new();
     for c in &children {
         let rt = c.rt.clone().unwrap_or(serde_json::Value::Null);
+        if c.standby {
+            // A twin that never took over: beside its process, no statistics of its own.
+            if let Some(p) = processes.get_mut(&c.name) {
+                p["standby"] = json!({ "pid": c.child.id(), "cpu": rt.get("cpu"), "priority": rt.get("priority") });
+            }
+            continue;
+        }
         processes.insert(
             c.name.clone(),
             json!({ "stages": c.stages, "executable": c.exe, "pid": c.child.id(), "cpu": rt.get("cpu"), "policy": rt.get("policy"), "priority": rt.get("priority"), "memory_locked": rt.get("memory_locked") }),

@@ -63,7 +63,8 @@ fn usable(c: VoltageCommand) -> VoltageCommand {
 
 /// The recorder thread's body: reports on `ready` whether its subscriptions are in place, then
 /// records samples `0..n` of scenario `sc` into `trace` (written to `trace.csv` as it goes)
-/// until both streams ended or `stop` is set.
+/// until both streams ended or `stop` is set. It opens the drive's topics first, with
+/// `publishers` publishers each (see `service::publishers_per_topic`).
 pub(super) fn run_recorder(
     bus_id: String,
     sc: Scenario,
@@ -71,12 +72,13 @@ pub(super) fn run_recorder(
     stop: Arc<AtomicBool>,
     progress: Arc<Progress>,
     ready: mpsc::Sender<Result<()>>,
+    publishers: usize,
 ) -> Result<TraceStream> {
     let wake = sc.timing.wake;
     let n = sc.samples();
     let setup = (|| -> Result<_> {
         let node = bus::node(&bus_id, "recorder")?;
-        let topics = DriveTopics::open_with(&node, wake, &bus_id)?;
+        let topics = DriveTopics::open_for(&node, wake, &bus_id, publishers)?;
         // Polled: a listener would cost the real-time senders a wake-up syscall per sample.
         // The trace is the plant's true state (its own topic), joined with the commands.
         let meas_rx = topics.truth.polled_receiver(MAX_BUFFER)?;

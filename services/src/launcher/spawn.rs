@@ -27,6 +27,8 @@ pub(super) struct ChildProc {
     lines: mpsc::Receiver<String>,
     /// Its RT setup as it reported it (`RT {json}`).
     pub rt: Option<serde_json::Value>,
+    /// A standby twin that has not taken over.
+    pub standby: bool,
 }
 
 /// The executable of process `p`: its `exec` (relative to `base`) or the built-in host next
@@ -84,6 +86,7 @@ pub(super) fn spawn_service(
     source: bool,
     sp: &Spawn,
     rejoin_from: Option<&Path>,
+    standby: bool,
 ) -> Result<ChildProc> {
     let runner = runner_of(sp.o)?;
     let mut cmd = drivelab_runtime::runner::command(runner.as_ref(), exe);
@@ -106,6 +109,9 @@ pub(super) fn spawn_service(
     if source {
         cmd.arg("--recorder");
     }
+    if standby {
+        cmd.arg("--standby");
+    }
     if let Some(f) = rejoin_from {
         cmd.arg("--rejoin");
         if source {
@@ -116,6 +122,9 @@ pub(super) fn spawn_service(
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit());
     die_with_launcher(&mut cmd);
+    if sp.clock == BusClock::Realtime && !sp.o.no_rt && p.priority.is_some() {
+        set_up_above_normal_tasks(&mut cmd);
+    }
     let name = p.name.clone();
     let mut child = cmd.spawn().with_context(|| match &runner {
         Some(r) => format!(
@@ -145,6 +154,7 @@ pub(super) fn spawn_service(
         stdin,
         lines: rx,
         rt: None,
+        standby,
     })
 }
 
@@ -173,10 +183,42 @@ pub(crate) fn die_with_launcher(cmd: &mut Command) {
     }
 }
 
+/// A real-time drive's stage host runs its set-up (loading, the bus's ports, its design,
+/// mlock) at SCHED_FIFO 1, above every normal task and below every real-time stage, until
+/// its placement gives it its own priority (only a process that has one): a restart then does not wait for the CPU behind
+/// a busy machine's normal work (compilers beside a drive made restarts 3–5 × slower). A
+/// refusal (no privilege) is ignored here: the host's real-time report says what it got.
+fn set_up_above_normal_tasks(cmd: &mut Command) {
+    use std::os::unix::process::CommandExt;
+    // SAFETY: the closure runs in the forked child before exec and calls only the
+    // async-signal-safe sched_setscheduler(2) with a parameter on its own stack; it
+    // allocates nothing and ignores the result.
+    unsafe {
+        cmd.pre_exec(|| {
+            let param = libc::sched_param { sched_priority: 1 };
+            libc::sched_setscheduler(0, libc::SCHED_FIFO, &param);
+            Ok(())
+        });
+    }
+}
+
 impl ChildProc {
     /// The same process started again with `--rejoin`.
     pub fn respawn(&self, sp: &Spawn, rejoin_from: &Path) -> Result<ChildProc> {
-        spawn_service(&self.spec, &self.exe, self.source, sp, Some(rejoin_from))
+        spawn_service(
+            &self.spec,
+            &self.exe,
+            self.source,
+            sp,
+            Some(rejoin_from),
+            false,
+        )
+    }
+
+    /// A standby twin of this process (`standby = true`), joining the running drive.
+    pub fn respawn_standby(&self, sp: &Spawn) -> Result<ChildProc> {
+        let rejoin = sp.out.join(format!("rejoin-{}.json", self.name));
+        spawn_service(&self.spec, &self.exe, false, sp, Some(&rejoin), true)
     }
 
     /// Its pid.
@@ -214,9 +256,17 @@ impl ChildProc {
     }
 }
 
-/// Handshake: waits for each process to report its RT setup and READY (20 s in all), then
-/// tells the first (the source) to go. Returns why the start failed, if it did.
-pub(super) fn handshake(children: &mut [ChildProc]) -> Result<Option<String>> {
+/// Tells the first process (the source) to start the drive.
+pub(super) fn go(children: &mut [ChildProc]) -> Result<Option<String>> {
+    if let Some(c) = children.first_mut() {
+        c.go()?;
+    }
+    Ok(None)
+}
+
+/// Waits for each process to report its RT setup and READY (20 s in all). Returns why the
+/// start failed, if it did.
+pub(super) fn wait_ready(children: &mut [ChildProc]) -> Result<Option<String>> {
     let t = Instant::now();
     for c in children.iter_mut() {
         loop {
@@ -243,9 +293,6 @@ pub(super) fn handshake(children: &mut [ChildProc]) -> Result<Option<String>> {
                 }
             }
         }
-    }
-    if let Some(c) = children.first_mut() {
-        c.go()?;
     }
     Ok(None)
 }

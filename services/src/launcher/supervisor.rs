@@ -68,6 +68,26 @@ pub enum EventKind {
         /// Its pid.
         pid: u32,
     },
+    /// The standby twin of a process that died took over: it is the process now.
+    TakenOver {
+        /// The twin's pid.
+        pid: u32,
+    },
+    /// A (new) standby twin of a process was started.
+    StandbyStarted {
+        /// Its pid.
+        pid: u32,
+    },
+    /// A standby twin is ready to take over.
+    StandbyReady {
+        /// Its pid.
+        pid: u32,
+    },
+    /// A standby twin died (it is started again as a restart would be).
+    StandbyExited {
+        /// Its exit status.
+        status: ExitStatus,
+    },
     /// A hog (a competing SCHED_FIFO busy loop, `crate::faults::hog`) was started.
     Hog {
         /// What it does.
@@ -91,6 +111,10 @@ impl EventKind {
             Self::Restarted { .. } => "restarted",
             Self::Ready { .. } => "ready",
             Self::Hog { .. } => "hog",
+            Self::TakenOver { .. } => "taken-over",
+            Self::StandbyStarted { .. } => "standby-started",
+            Self::StandbyReady { .. } => "standby-ready",
+            Self::StandbyExited { .. } => "standby-exited",
         }
     }
 
@@ -122,6 +146,9 @@ impl EventKind {
             Self::Restarted { restart, pid } => format!("restart #{restart}, pid {pid}"),
             Self::Ready { pid } => format!("pid {pid}"),
             Self::Hog { hog, pid } => format!("{} (pid {pid})", hog.describe()),
+            Self::TakenOver { pid } => format!("its standby twin (pid {pid}) is the process now"),
+            Self::StandbyStarted { pid } | Self::StandbyReady { pid } => format!("pid {pid}"),
+            Self::StandbyExited { status } => format!("{status}"),
         }
     }
 }
@@ -203,13 +230,32 @@ pub(super) struct Supervised {
     pub proc: ChildProc,
     /// Its life under the policy.
     life: Life,
+    /// Its standby twin (`standby = true` in the topology, real time), ready or starting.
+    pub standby: Option<ChildProc>,
+    /// The twin has not said READY yet.
+    standby_starting: bool,
+    /// When to start a new twin (after a takeover, or after the twin died).
+    standby_due: Option<Instant>,
 }
 
 impl Supervised {
-    /// A child that has passed the start-up handshake.
-    pub fn new(proc: ChildProc) -> Self {
+    /// A child that has passed the start-up handshake, with its twin if it has one.
+    pub fn new(proc: ChildProc, standby: Option<ChildProc>) -> Self {
         let life = Life::new(proc.source);
-        Self { proc, life }
+        Self {
+            proc,
+            life,
+            standby,
+            standby_starting: false,
+            standby_due: None,
+        }
+    }
+
+    /// Its standby twin is alive (and has not exited unnoticed).
+    fn twin_alive(&mut self) -> bool {
+        self.standby
+            .as_mut()
+            .is_some_and(|t| matches!(t.child.try_wait(), Ok(None)))
     }
 }
 
@@ -344,6 +390,24 @@ pub(super) fn supervise(
         }
         // Liveness: our own children first (waitpid), then iceoryx2's view of the bus.
         let mut any_dead = false;
+        // Twins: ready, or dead (then started again as a restart would be).
+        for c in children.iter_mut() {
+            let n = c.proc.name.clone();
+            let Some(t) = c.standby.as_mut() else {
+                continue;
+            };
+            if c.standby_starting && t.poll_ready() {
+                c.standby_starting = false;
+                log(events, EventKind::StandbyReady { pid: t.pid() }, &n, &n);
+            }
+            // A twin that ended with the drive stays listed (the summary names it).
+            if let Some(st) = t.child.try_wait()?.filter(|st| !st.success()) {
+                c.standby = None;
+                any_dead = true;
+                log(events, EventKind::StandbyExited { status: st }, &n, &n);
+                c.standby_due = Some(now + Duration::from_millis(100));
+            }
+        }
         for c in children.iter_mut() {
             if !c.life.state.alive() {
                 continue;
@@ -361,9 +425,32 @@ pub(super) fn supervise(
             if !st.success() {
                 log(events, EventKind::Exited { status: st }, &n, &n);
             }
+            // A ready twin has taken over already (it watches the dead one's lease): it is
+            // the process now, and a new twin is started when the policy would restart. A
+            // twin still starting is stopped: the process restarts as it would without one.
+            let promote = !st.success() && !c.standby_starting && c.twin_alive();
+            if !st.success() && !promote {
+                if let Some(mut t) = c.standby.take() {
+                    let _ = t.child.kill();
+                    let _ = t.child.wait();
+                    c.standby_starting = false;
+                    c.standby_due = Some(now + Duration::from_millis(200));
+                }
+            }
             match c.life.exited(st.success(), &policy, now) {
                 Some(Decision::FailRun) => return Ok(Some(format!("process {n} failed ({st})"))),
                 Some(Decision::StopDrive) => return Ok(None),
+                Some(d) if promote => {
+                    let mut twin = c.standby.take().expect("alive above");
+                    twin.standby = false;
+                    let pid = twin.pid();
+                    c.proc = twin;
+                    c.life.ready();
+                    if let Decision::RestartAt(at) = d {
+                        c.standby_due = Some(at);
+                    }
+                    log(events, EventKind::TakenOver { pid }, &n, &n);
+                }
                 _ => {}
             }
         }
@@ -372,6 +459,17 @@ pub(super) fn supervise(
             log(events, EventKind::Reaped { nodes }, "-", "-");
         }
         for c in children.iter_mut() {
+            let due = c.standby_due.is_some_and(|at| now >= at);
+            if due && c.standby.is_none() && c.life.state.alive() {
+                // After the reaping above: the dead instance's ports are gone, so the new
+                // twin gets their publisher slots.
+                c.standby_due = None;
+                let t = c.proc.respawn_standby(sp)?;
+                let n = c.proc.name.clone();
+                log(events, EventKind::StandbyStarted { pid: t.pid() }, &n, &n);
+                c.standby = Some(t);
+                c.standby_starting = true;
+            }
             if !c.life.restart_due(now) {
                 continue;
             }

@@ -12,6 +12,7 @@
 #![warn(clippy::disallowed_methods)]
 
 pub mod control;
+pub mod inverter;
 pub mod math;
 pub mod motor;
 pub mod observer;

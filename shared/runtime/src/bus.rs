@@ -36,6 +36,12 @@ pub const POLL_SLEEP: Duration = Duration::from_micros(200);
 pub const MAX_BUFFER: usize = 4096;
 /// Samples kept for late joiners (publisher history).
 pub const HISTORY: usize = 256;
+/// Subscribers per topic: the stage hosts that read it, their standby twins (each also
+/// watches its own outputs), the recorder and a restarted host joining before its dead
+/// predecessor's port is removed.
+const MAX_SUBSCRIBERS: usize = 8;
+/// Nodes per topic: the hosts, their twins, the launcher and the tools that attach.
+const MAX_NODES: usize = 16;
 
 /// Validates a bus id: 1–24 characters of [A-Za-z0-9_].
 pub fn check_bus_id(id: &str) -> Result<()> {
@@ -232,15 +238,28 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
         topic: &str,
         futex: Option<(Arc<WakeSegment>, usize)>,
     ) -> Result<Self> {
+        Self::open_shared(node, topic, futex, 1)
+    }
+
+    /// [`Topic::open_with`] for a topic with `publishers` publishers: 1, the stage that owns
+    /// it, or 2 in a drive with standby twins (the twin's publisher is made at its set-up).
+    /// Opening a topic that exists takes its own number (it must be at least this).
+    pub fn open_shared(
+        node: &Node<ipc::Service>,
+        topic: &str,
+        futex: Option<(Arc<WakeSegment>, usize)>,
+        publishers: usize,
+    ) -> Result<Self> {
         let name = service_name(topic)?;
         let pubsub = node
             .service_builder(&name)
             .publish_subscribe::<T>()
-            // One publisher per topic: the stage that owns it. A second process on the same
-            // account cannot publish here (see docs/architecture.md, "Who can reach a drive").
-            .max_publishers(1)
-            .max_subscribers(6)
-            .max_nodes(12)
+            // One publisher per topic: the stage that owns it (and its twin). A further
+            // process on the same account cannot publish here (see docs/architecture.md,
+            // "Who can reach a drive").
+            .max_publishers(publishers)
+            .max_subscribers(MAX_SUBSCRIBERS)
+            .max_nodes(MAX_NODES)
             .subscriber_max_buffer_size(MAX_BUFFER)
             .history_size(HISTORY)
             .enable_safe_overflow(true)
@@ -253,7 +272,7 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
                     .event()
                     .max_notifiers(4)
                     .max_listeners(8)
-                    .max_nodes(12)
+                    .max_nodes(MAX_NODES)
                     .open_or_create()
                     .map_err(|e| anyhow!("cannot open event {topic}: {e:?}"))?,
             ),
@@ -534,32 +553,48 @@ impl DriveTopics {
 
     /// Opens (or creates) all topics of bus `bus_id` with the given wake-up mechanism.
     pub fn open_with(node: &Node<ipc::Service>, wake: WakeKind, bus_id: &str) -> Result<Self> {
+        Self::open_for(node, wake, bus_id, 1)
+    }
+
+    /// [`DriveTopics::open_with`] with `publishers` publishers per topic (2 in a drive with
+    /// standby twins; see [`Topic::open_shared`]).
+    pub fn open_for(
+        node: &Node<ipc::Service>,
+        wake: WakeKind,
+        bus_id: &str,
+        publishers: usize,
+    ) -> Result<Self> {
         let seg = match wake {
             WakeKind::Iceoryx2 => None,
             WakeKind::Futex => Some(Arc::new(WakeSegment::open(bus_id)?)),
         };
         let w = |i: usize| seg.as_ref().map(|s| (s.clone(), i));
         Ok(Self {
-            meas: Topic::open_with(node, TOPIC_MEAS, w(0)).context("measurement topic")?,
-            est: Topic::open_with(node, TOPIC_EST, w(1)).context("estimate topic")?,
-            iref: Topic::open_with(node, TOPIC_IREF, w(2)).context("current-reference topic")?,
-            cmd: Topic::open_with(node, TOPIC_CMD, w(3)).context("command topic")?,
-            rec: Topic::open_with(node, TOPIC_REC, w(4)).context("recorder topic")?,
-            wref: Topic::open_with(node, TOPIC_WREF, w(5)).context("speed-reference topic")?,
-            truth: Topic::open_with(node, TOPIC_TRUTH, w(6)).context("plant-truth topic")?,
+            meas: Topic::open_shared(node, TOPIC_MEAS, w(0), publishers)
+                .context("measurement topic")?,
+            est: Topic::open_shared(node, TOPIC_EST, w(1), publishers).context("estimate topic")?,
+            iref: Topic::open_shared(node, TOPIC_IREF, w(2), publishers)
+                .context("current-reference topic")?,
+            cmd: Topic::open_shared(node, TOPIC_CMD, w(3), publishers).context("command topic")?,
+            rec: Topic::open_shared(node, TOPIC_REC, w(4), publishers).context("recorder topic")?,
+            wref: Topic::open_shared(node, TOPIC_WREF, w(5), publishers)
+                .context("speed-reference topic")?,
+            truth: Topic::open_shared(node, TOPIC_TRUTH, w(6), publishers)
+                .context("plant-truth topic")?,
             _seg: seg.clone(),
         })
     }
 }
 
 /// True when /dev/shm file `name` belongs to bus `id`: the bus prefix followed by the futex
-/// segment (`wake`) or an iceoryx2 name (40 hex digits, then `_` or `.`). Bus ids may contain
+/// segment (`wake`), the liveness segment (`life`) or an iceoryx2 name (40 hex digits, then `_` or `.`). Bus ids may contain
 /// `_`, so the prefix alone would also match bus `<id>_x`.
 pub fn owned_by(name: &str, id: &str) -> bool {
     let Some(rest) = name.strip_prefix(&shm_prefix(id)) else {
         return false;
     };
-    if rest == "wake" {
+    // The futex segment and the liveness segment.
+    if rest == "wake" || rest == "life" {
         return true;
     }
     let b = rest.as_bytes();
@@ -635,6 +670,8 @@ mod tests {
     fn bus_files_are_told_apart_by_id() {
         let hash = "b9fc73e5c1f646968758453273c6c65cb372831b";
         assert!(owned_by("iox2_dlab_wake", "ab"));
+        assert!(owned_by("iox2_dlab_life", "ab"));
+        assert!(!owned_by("iox2_dlab_c_life", "ab"));
         assert!(owned_by(
             &format!("iox2_dlab_{hash}_7922874017454358376"),
             "ab"

@@ -428,6 +428,109 @@ pub struct InverterSpec {
     /// sample, the inverter applies its safe state from that sample on and stays there
     /// (latched, as a real inverter's hardware trip). None (the default): no trip.
     pub i_trip_a: Option<f64>,
+    /// "averaged" (the default: the commanded voltage, exactly) or "switching" (carrier PWM,
+    /// dead time, device drop, DC link; docs/architecture.md, "Plant realism").
+    #[serde(skip_serializing_if = "InverterModel::is_averaged")]
+    pub model: InverterModel,
+    /// Switching only: carrier frequency, Hz; 2·f_sw/f_s must be a whole number (the samples
+    /// fall on the carrier's peaks and valleys). Default: the sample rate.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub f_sw_hz: Option<f64>,
+    /// Switching only: dead time, µs (>= 0, below half the switching period).
+    #[serde(skip_serializing_if = "is_zero")]
+    pub dead_time_us: f64,
+    /// Switching only: forward drop of a conducting transistor or diode, V.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub v_drop_v: f64,
+    /// Switching only: DC-link capacitance, µF (with `r_source_ohm`; none: a stiff bus).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub dc_link_c_uf: Option<f64>,
+    /// Switching only: resistance of the source feeding the DC link, Ω.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub r_source_ohm: Option<f64>,
+}
+
+/// `[inverter] model`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum InverterModel {
+    /// The commanded voltage vector, limited to V_dc/√3, held over the sample.
+    #[default]
+    Averaged,
+    /// Carrier-comparison PWM with dead time, device drop and an optional DC link.
+    Switching,
+}
+
+impl InverterModel {
+    /// True for the default.
+    pub fn is_averaged(&self) -> bool {
+        *self == Self::Averaged
+    }
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
+}
+
+impl InverterSpec {
+    /// The switching inverter's parameters at sample rate `sample_hz`, when
+    /// `model = "switching"`.
+    pub fn pwm(&self, sample_hz: f64) -> Option<drivelab_control::inverter::PwmSpec> {
+        (self.model == InverterModel::Switching).then(|| drivelab_control::inverter::PwmSpec {
+            v_dc_v: self.v_dc_v,
+            f_sw_hz: self.f_sw_hz.unwrap_or(sample_hz),
+            dead_time_s: self.dead_time_us * 1e-6,
+            v_drop_v: self.v_drop_v,
+            dc_link: self.dc_link_c_uf.zip(self.r_source_ohm).map(|(c, r)| {
+                drivelab_control::inverter::DcLink {
+                    c_f: c * 1e-6,
+                    r_source_ohm: r,
+                }
+            }),
+        })
+    }
+
+    /// Checks the model's fields at sample rate `sample_hz`: a one-line error naming the field.
+    fn check_model(&self, sample_hz: f64) -> Result<(), String> {
+        match self.pwm(sample_hz) {
+            None => {
+                let given = [
+                    ("f_sw_hz", self.f_sw_hz.is_some()),
+                    ("dead_time_us", self.dead_time_us != 0.0),
+                    ("v_drop_v", self.v_drop_v != 0.0),
+                    ("dc_link_c_uf", self.dc_link_c_uf.is_some()),
+                    ("r_source_ohm", self.r_source_ohm.is_some()),
+                ];
+                match given.iter().find(|(_, g)| *g) {
+                    Some((f, _)) => Err(format!(
+                        "inverter.{f} applies to model = \"switching\" only (the averaged inverter applies the command exactly)"
+                    )),
+                    None => Ok(()),
+                }
+            }
+            Some(p) => {
+                // The fields in the units given (the model's check works in seconds and farads).
+                let (td, half_us) = (self.dead_time_us, 0.5e6 / p.f_sw_hz);
+                if p.f_sw_hz.is_finite() && p.f_sw_hz > 0.0 {
+                    check(td.is_finite() && td >= 0.0 && td < half_us, || {
+                        format!("inverter.dead_time_us = {td} must be >= 0 and below half the switching period ({half_us} µs)")
+                    })?;
+                }
+                if let Some(c) = self.dc_link_c_uf {
+                    check(c.is_finite() && c > 0.0 && c <= 1e6, || {
+                        format!("inverter.dc_link_c_uf = {c} must be in (0, 1e6] µF")
+                    })?;
+                }
+                check(
+                    self.dc_link_c_uf.is_some() == self.r_source_ohm.is_some(),
+                    || {
+                        "inverter.dc_link_c_uf and inverter.r_source_ohm go together (a DC link is a capacitor fed through a resistance)".into()
+                    },
+                )?;
+                drivelab_control::inverter::SwitchingInverter::check(&p, 1.0 / sample_hz)
+            }
+        }
+    }
 }
 
 impl Default for InverterSpec {
@@ -438,6 +541,12 @@ impl Default for InverterSpec {
             hold_samples: 3,
             safe_state: SafeState::ZeroVector,
             i_trip_a: None,
+            model: InverterModel::Averaged,
+            f_sw_hz: None,
+            dead_time_us: 0.0,
+            v_drop_v: 0.0,
+            dc_link_c_uf: None,
+            r_source_ohm: None,
         }
     }
 }
@@ -487,9 +596,9 @@ impl Rates {
     }
 }
 
-/// Sensor models (ideal by default).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+/// Sensor models (ideal by default; docs/architecture.md, "Plant realism").
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
 pub struct Sensors {
     /// Encoder counts per mechanical revolution; 0 = ideal (no quantisation).
     pub encoder_counts_per_rev: u32,
@@ -497,6 +606,103 @@ pub struct Sensors {
     pub current_noise_a: f64,
     /// Seed of the noise generator (runs are reproducible).
     pub seed: u64,
+    /// Gain of each phase's current sensor (a, b, c): measured = gain·i + offset.
+    #[serde(skip_serializing_if = "is_unit_gain")]
+    pub current_gain: [f64; 3],
+    /// Offset of each phase's current sensor (a, b, c), A.
+    #[serde(skip_serializing_if = "is_zero3")]
+    pub current_offset_a: [f64; 3],
+    /// ADC resolution, bits (1–24), with `adc_range_a`; none: no quantisation.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub adc_bits: Option<u32>,
+    /// ADC full scale, ±A (the reading saturates there).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub adc_range_a: Option<f64>,
+    /// The ADC samples the currents this long before the sample instant t_k (the carrier's
+    /// peak or valley), µs, in [0, T_s).
+    #[serde(skip_serializing_if = "is_zero")]
+    pub adc_lead_us: f64,
+    /// The encoder reports the position of this long ago, µs (0 to 16·T_s).
+    #[serde(skip_serializing_if = "is_zero")]
+    pub encoder_delay_us: f64,
+}
+
+impl Default for Sensors {
+    fn default() -> Self {
+        Self {
+            encoder_counts_per_rev: 0,
+            current_noise_a: 0.0,
+            seed: 0,
+            current_gain: [1.0; 3],
+            current_offset_a: [0.0; 3],
+            adc_bits: None,
+            adc_range_a: None,
+            adc_lead_us: 0.0,
+            encoder_delay_us: 0.0,
+        }
+    }
+}
+
+fn is_unit_gain(g: &[f64; 3]) -> bool {
+    *g == [1.0; 3]
+}
+
+fn is_zero3(v: &[f64; 3]) -> bool {
+    *v == [0.0; 3]
+}
+
+impl Sensors {
+    /// Checks the static sensor errors at sample time `ts` against the motor's rated current
+    /// `i_max`: a one-line error naming the field.
+    fn check_errors(&self, ts: f64, i_max: f64) -> Result<(), String> {
+        for (p, g) in self.current_gain.iter().enumerate() {
+            check(g.is_finite() && (0.5..=2.0).contains(g), || {
+                format!("sensors.current_gain[{p}] = {g} must be in [0.5, 2]")
+            })?;
+        }
+        for (p, o) in self.current_offset_a.iter().enumerate() {
+            check(o.is_finite() && o.abs() <= i_max, || {
+                format!(
+                    "sensors.current_offset_a[{p}] = {o} must be within ±motor.i_max_a = {i_max} A"
+                )
+            })?;
+        }
+        check(
+            self.adc_bits.is_some() == self.adc_range_a.is_some(),
+            || "sensors.adc_bits and sensors.adc_range_a go together".into(),
+        )?;
+        if let Some(b) = self.adc_bits {
+            check((1..=24).contains(&b), || {
+                format!("sensors.adc_bits = {b} must be in 1..=24")
+            })?;
+        }
+        if let Some(r) = self.adc_range_a {
+            check(r.is_finite() && r > 0.0 && r <= 1e4, || {
+                format!("sensors.adc_range_a = {r} must be in (0, 10000] A")
+            })?;
+        }
+        let lead = self.adc_lead_us;
+        check(lead.is_finite() && lead >= 0.0 && lead < ts * 1e6, || {
+            format!(
+                "sensors.adc_lead_us = {lead} must be in [0, T_s = {} µs)",
+                ts * 1e6
+            )
+        })?;
+        let d = self.encoder_delay_us;
+        check(
+            d.is_finite()
+                && d >= 0.0
+                && d <= crate::sensor_errors::MAX_ENCODER_DELAY_SAMPLES as f64 * ts * 1e6,
+            || {
+                format!(
+                    "sensors.encoder_delay_us = {d} must be in [0, {}·T_s = {} µs]",
+                    crate::sensor_errors::MAX_ENCODER_DELAY_SAMPLES,
+                    crate::sensor_errors::MAX_ENCODER_DELAY_SAMPLES as f64 * ts * 1e6
+                )
+            },
+        )?;
+        Ok(())
+    }
 }
 
 /// Observer settings.
@@ -582,6 +788,10 @@ pub struct CurrentLoopSpec {
     /// polar only: weight β of i_q* in C_21's proportional term (default 1: a PI on the error).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub cdm_setpoint_weight: Option<f64>,
+    /// Dead-time compensation: each phase's reference gets sign(i_x)·(t_d·f_sw·V_dc + v_drop)
+    /// from the measured current's sign (needs `inverter.model = "switching"`).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub dead_time_comp: bool,
 }
 
 impl Default for CurrentLoopSpec {
@@ -596,6 +806,7 @@ impl Default for CurrentLoopSpec {
             cdm_delay: drivelab_control::control::cdm::CdmDelay::Paper,
             cdm_tau21_samples: None,
             cdm_setpoint_weight: None,
+            dead_time_comp: false,
         }
     }
 }
@@ -909,6 +1120,7 @@ impl Scenario {
                     cpu: p.core,
                     priority: p.priority,
                     exec: None,
+                    standby: false,
                 }
             })
             .collect()
@@ -1037,7 +1249,15 @@ impl Scenario {
             )?;
         }
         crate::sensor_faults::validate(&self.sensor_fault, self.duration_s)?;
+        inv.check_model(r.sample_hz)?;
+        check(
+            !self.current_loop.dead_time_comp || inv.model == InverterModel::Switching,
+            || {
+                "current_loop.dead_time_comp needs inverter.model = \"switching\" (the averaged inverter has no dead time)".into()
+            },
+        )?;
         let s = &self.sensors;
+        s.check_errors(r.ts(), m.i_max_a)?;
         check(
             s.current_noise_a.is_finite()
                 && s.current_noise_a >= 0.0

@@ -214,6 +214,19 @@ pub struct Plant {
     /// Sensor faults (`[[sensor_fault]]`): what the measurement shows, never the truth.
     sensor_faults: crate::sensor_faults::SensorModel,
     last_u_ab: [f64; 2],
+    /// `[inverter] model = "switching"`: carrier PWM, dead time, drop, DC link.
+    pwm: Option<drivelab_control::inverter::SwitchingInverter>,
+    /// The limited αβ command of this sample (the modulator's reference).
+    u_ab_cmd: AlphaBeta,
+    /// This sample's inverter is pulse-blocked (the averaged coasting model applies).
+    pulse_blocked: bool,
+    /// Mean αβ voltage the inverter applied over the last integrated sample, V.
+    pub mean_u_ab: [f64; 2],
+    /// Static sensor errors (`[sensors]`): gain, offset, ADC, encoder delay.
+    sensor_errors: crate::sensor_errors::SensorErrors,
+    /// The ADC samples `adc_lead_s` before t_k; the state there (when > 0).
+    adc_lead_s: f64,
+    x_adc: MotorState,
     /// Consecutive samples without a fresh command.
     pub stale_run: u32,
     u_dq_applied: Dq,
@@ -269,6 +282,19 @@ impl Plant {
                 sc.rates.sample_hz,
             ),
             last_u_ab: [0.0; 2],
+            pwm: sc.inverter.pwm(sc.rates.sample_hz).map(|p| {
+                drivelab_control::inverter::SwitchingInverter::new(
+                    p,
+                    sc.rates.ts(),
+                    sc.rates.ts() / f64::from(sc.rates.plant_substeps),
+                )
+            }),
+            u_ab_cmd: AlphaBeta::default(),
+            pulse_blocked: false,
+            mean_u_ab: [0.0; 2],
+            sensor_errors: crate::sensor_errors::SensorErrors::new(&sc.sensors, sc.rates.ts()),
+            adc_lead_s: sc.sensors.adc_lead_us * 1e-6,
+            x_adc: x,
             stale_run: 0,
             u_dq_applied: Dq::default(),
             t_load: 0.0,
@@ -324,6 +350,8 @@ impl Plant {
             beta: self.last_u_ab[1],
         };
         (u.alpha, u.beta) = limit_vector(u.alpha, u.beta, self.u_max);
+        self.u_ab_cmd = u;
+        self.pulse_blocked = pulse_blocked;
         let t = k as f64 * self.ts;
         self.t_load = profile_at(&self.load, t);
         if !self.drift.is_none() {
@@ -347,19 +375,26 @@ impl Plant {
             self.last_u_ab = [0.0; 2];
             u = inverse_park(self.u_dq_applied, theta_e + 0.5 * omega_e * self.ts);
         }
-        let (mut ia, mut ib, mut ic) = (ia, ib, ic);
+        let mut i_abc = if self.adc_lead_s > 0.0 {
+            // The ADC's instant, adc_lead_s before t_k.
+            drivelab_control::inverter::phase_currents(&self.m, &self.x_adc)
+        } else {
+            [ia, ib, ic]
+        };
+        self.sensor_errors.analog(&mut i_abc);
         if let Some((rng, n)) = self.noise.as_mut() {
-            ia += n.sample(rng);
-            ib += n.sample(rng);
-            ic += n.sample(rng);
+            for i in &mut i_abc {
+                *i += n.sample(rng);
+            }
         }
-        let mut i_abc = [ia, ib, ic];
         self.sensor_faults.currents(k, &mut i_abc);
+        self.sensor_errors.digitise(&mut i_abc);
+        let theta_m_seen = self.sensor_errors.encoder(self.x.theta_m);
         let theta_m_enc = if self.encoder_counts > 0 {
             let step = std::f64::consts::TAU / f64::from(self.encoder_counts);
-            (self.x.theta_m / step).floor() * step
+            (theta_m_seen / step).floor() * step
         } else {
-            self.x.theta_m
+            theta_m_seen
         };
         let theta_m_enc = self.sensor_faults.encoder(k, theta_m_enc);
         let hdr = Header {
@@ -400,7 +435,37 @@ impl Plant {
             load: self.load_model,
         };
         let before = self.x.theta_m;
-        self.x = self.rk.advance(&self.m, self.mech, &self.x, &u, self.ts);
+        match self.pwm.as_mut().filter(|_| !self.pulse_blocked) {
+            Some(inv) => {
+                let o = inv.sample(
+                    &self.m,
+                    self.mech,
+                    &self.x,
+                    self.truth.hdr.k,
+                    self.u_ab_cmd,
+                    self.t_load,
+                    self.load_model,
+                    self.ts,
+                    self.adc_lead_s,
+                );
+                self.x = o.x;
+                self.x_adc = o.x_adc;
+                self.mean_u_ab = [o.mean_u_ab.alpha, o.mean_u_ab.beta];
+            }
+            None if self.adc_lead_s > 0.0 => {
+                self.x_adc =
+                    self.rk
+                        .advance(&self.m, self.mech, &self.x, &u, self.ts - self.adc_lead_s);
+                self.x = self
+                    .rk
+                    .advance(&self.m, self.mech, &self.x_adc, &u, self.adc_lead_s);
+                self.mean_u_ab = self.truth.u_ab_applied;
+            }
+            None => {
+                self.x = self.rk.advance(&self.m, self.mech, &self.x, &u, self.ts);
+                self.mean_u_ab = self.truth.u_ab_applied;
+            }
+        }
         // The model wraps θ_m; a sample moves it by far less than π.
         let d = (self.x.theta_m - before + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU)
             - std::f64::consts::PI;
@@ -630,6 +695,9 @@ pub struct CurrentLoopStep {
     /// `observer.mode = "monitor"`: control on the encoder angle of the measurement, the
     /// estimate's angle (the sensorless observer's) only goes to the trace.
     monitor: bool,
+    /// `current_loop.dead_time_comp`: the per-phase voltage added along each current's sign,
+    /// t_d·f_sw·V_dc + v_drop, V.
+    dead_time_comp_v: Option<f64>,
 }
 
 impl CurrentLoopStep {
@@ -680,6 +748,12 @@ impl CurrentLoopStep {
             ts: sc.rates.ts(),
             divider: u64::from(sc.rates.speed_divider),
             monitor: sc.observer.mode == ObserverMode::Monitor,
+            dead_time_comp_v: sc
+                .current_loop
+                .dead_time_comp
+                .then(|| sc.inverter.pwm(sc.rates.sample_hz))
+                .flatten()
+                .map(|p| p.dead_time_error_v() + p.v_drop_v),
         }
     }
 
@@ -759,7 +833,11 @@ impl CurrentLoopStep {
         };
         // The command acts on [t_{k+1}, t_{k+2}); the plant rotates it with the mid-sample
         // angle, so compensate 1.5 samples of rotation.
-        let u_ab = inverse_park(Dq { d: u.u_d, q: u.u_q }, theta + 1.5 * omega_e * self.ts);
+        let theta_apply = theta + 1.5 * omega_e * self.ts;
+        let mut u_ab = inverse_park(Dq { d: u.u_d, q: u.u_q }, theta_apply);
+        if let Some(dv) = self.dead_time_comp_v {
+            u_ab = dead_time_compensation(u_ab, i, theta_apply, dv);
+        }
         // The laws limit |u| themselves; this catches what absurd (finite) inputs make of
         // them: a longer vector is limited, a non-finite one becomes the zero vector.
         let (a, b) = limit_vector(u_ab.alpha, u_ab.beta, self.u_max * (1.0 + 1e-12));
@@ -789,6 +867,30 @@ impl CurrentLoopStep {
             omega_hat: est.omega_m,
             theta_hat: wrap_2pi(est.theta_e),
         }
+    }
+}
+
+/// Dead-time compensation (docs/architecture.md, "Plant realism"): the inverter moves each
+/// pole's mean voltage by −sign(i_x)·ΔV (ΔV = t_d·f_sw·V_dc, plus the device drop), so each
+/// phase reference gets +sign(i_x)·ΔV. The signs are those of the measured dq current `i`
+/// turned to the angle at which the command will act (`theta_apply`, mid-application), so
+/// the 1.5 samples of delay do not put the switch-over late.
+pub fn dead_time_compensation(u_ab: AlphaBeta, i: Dq, theta_apply: f64, dv: f64) -> AlphaBeta {
+    let (ia, ib, ic) = inverse_clarke(inverse_park(i, theta_apply));
+    let sgn = |x: f64| {
+        if x > 0.0 {
+            dv
+        } else if x < 0.0 {
+            -dv
+        } else {
+            0.0
+        }
+    };
+    // The zero sequence of the three corrections drops out in Clarke.
+    let c = clarke(sgn(ia), sgn(ib), sgn(ic));
+    AlphaBeta {
+        alpha: u_ab.alpha + c.alpha,
+        beta: u_ab.beta + c.beta,
     }
 }
 
@@ -869,6 +971,11 @@ impl InProcessDrive {
         }
     }
 
+    /// The command of the last sample run (applied over the next one).
+    pub fn command(&self) -> Option<&VoltageCommand> {
+        self.cmd.as_ref()
+    }
+
     /// Runs sample k and returns its trace row.
     pub fn cycle(&mut self, k: u64) -> TraceRow {
         let meas = self.plant.sample(k, self.cmd.as_ref());
@@ -903,6 +1010,62 @@ mod tests {
     fn scenario(name: &str) -> Scenario {
         let path = format!("{}/../../scenarios/{name}.toml", env!("CARGO_MANIFEST_DIR"));
         Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
+    }
+
+    /// The plant's step with the switching inverter, a DC link and every sensor error
+    /// (docs/architecture.md, "Real-time rules"): no allocation per sample.
+    #[test]
+    fn the_switching_plant_with_sensor_errors_steps_without_allocating() {
+        let mut sc = scenario("kyslan-pi-pwm");
+        sc.inverter.v_drop_v = 1.0;
+        sc.inverter.dc_link_c_uf = Some(100.0);
+        sc.inverter.r_source_ohm = Some(2.0);
+        sc.current_loop.dead_time_comp = true;
+        sc.sensors.current_gain = [1.01, 1.0, 0.99];
+        sc.sensors.adc_bits = Some(12);
+        sc.sensors.adc_range_a = Some(5.0);
+        sc.sensors.adc_lead_us = 10.0;
+        sc.sensors.encoder_delay_us = 150.0;
+        sc.sensors.current_noise_a = 0.01;
+        sc.validate().unwrap();
+        let mut d = InProcessDrive::new(&sc);
+        d.cycle(0);
+        let (_, allocations) = crate::alloc_count::allocations_during(|| {
+            for k in 1..500 {
+                d.cycle(k);
+            }
+        });
+        assert_eq!(allocations, 0);
+        assert!(d.plant.x.omega_m > 1.0, "the drive turns: {:?}", d.plant.x);
+    }
+
+    /// `[sensors]` in the plant's measurement, in order: the current at the ADC's instant,
+    /// gain and offset per phase, then the ADC's rounding and saturation; the truth stays
+    /// true.
+    #[test]
+    fn the_measurement_goes_through_gain_offset_and_the_adc() {
+        let mut sc = scenario("kyslan-pi");
+        sc.sensors.current_gain = [1.1, 1.0, 0.9];
+        sc.sensors.current_offset_a = [0.0, 0.2, 0.0];
+        sc.sensors.adc_bits = Some(8);
+        sc.sensors.adc_range_a = Some(1.5);
+        sc.validate().unwrap();
+        let mut p = Plant::new(&sc);
+        p.x.i_d = 1.0;
+        p.x.i_q = 0.5;
+        p.x.theta_m = 0.3;
+        let m = p.sample(0, None);
+        let (ia, ib, ic) = inverse_clarke(inverse_park(
+            Dq { d: 1.0, q: 0.5 },
+            p.x.theta_e(&sc.motor_params()),
+        ));
+        let adc = crate::sensor_errors::Adc::new(8, 1.5);
+        let want = [adc.read(1.1 * ia), adc.read(ib + 0.2), adc.read(0.9 * ic)];
+        assert_eq!(m.i_abc, want, "true ({ia}, {ib}, {ic})");
+        // |i| = 1.12 A: every reading lies within ±1.5 A, so the ADC only rounds, by half
+        // an LSB (1.5/128 A) at most.
+        assert!((m.i_abc[0] - 1.1 * ia).abs() <= 0.5 * 1.5 / 128.0 + 1e-12);
+        assert_eq!(p.truth().i_dq, [1.0, 0.5]);
     }
 
     #[test]

@@ -64,6 +64,12 @@ pub trait Transport {
     fn notified_ns(&mut self, _topic: TopicId) -> u64 {
         0
     }
+    /// Whether the process that produces `topic` is up (real time, from the bus's liveness
+    /// words: a killed process is down until its restart or its twin holds its lease; a
+    /// stopped one is up). True where nothing can die on its own: in process, in lockstep.
+    fn producer_up(&self, _topic: TopicId) -> bool {
+        true
+    }
     /// Wakes the receivers of `topic` without a message (they check their inputs' age).
     fn poke(&mut self, _topic: TopicId) -> Result<()> {
         Ok(())
@@ -872,12 +878,27 @@ impl<T: Transport> Host<T> {
                     slot.fresh = true;
                 }
                 Some(want) => match self.store.get(t, want) {
+                    // A fallback input whose producer's process is down is stale from the
+                    // sample this host sees it down, even when its last message was the one
+                    // expected: the stage takes its fallback at once (the plant starts its
+                    // hold), not a producer period later.
+                    Some(m)
+                        if b.origin == Origin::External
+                            && b.spec.on_stale == OnStale::Fallback
+                            && !self.transport.producer_up(t) =>
+                    {
+                        slot.msg = Some(m);
+                        slot.fresh = false;
+                        slot.producer_down = true;
+                    }
                     Some(m) => {
                         slot.msg = Some(m);
                         slot.fresh = true;
                     }
                     None => {
                         slot.fresh = false;
+                        slot.producer_down =
+                            b.origin == Origin::External && !self.transport.producer_up(t);
                         slot.age = match self.store.newest_k(t) {
                             Some(nk) if nk < want => (want - nk) / b.producer_divider.max(1),
                             _ => want / b.producer_divider.max(1) + 1,
@@ -1629,6 +1650,8 @@ mod tests {
         waits: usize,
         on_wait: Vec<(usize, Msg)>,
         closed: Vec<TopicId>,
+        /// From this wait on, the producer of this topic is down.
+        down_from: Option<(usize, TopicId)>,
     }
 
     impl Transport for Script {
@@ -1644,6 +1667,11 @@ mod tests {
         }
         fn close(&mut self, topic: TopicId) {
             self.closed.push(topic);
+        }
+        fn producer_up(&self, topic: TopicId) -> bool {
+            !self
+                .down_from
+                .is_some_and(|(w, t)| t == topic && self.waits >= w)
         }
         fn wait(&mut self, _topic: TopicId, _timeout: Duration) -> Result<()> {
             self.waits += 1;
@@ -1960,6 +1988,70 @@ mod tests {
         assert_eq!(est[0].theta_e, last.theta_e);
     }
 
+    /// Runs a current loop of `sc` (speed loop at a tenth of the rate, in another process)
+    /// on the script to its end.
+    fn run_current_loop(sc: &Scenario, tr: Script) -> Host<Script> {
+        let stages: Vec<Box<dyn Stage>> = vec![Box::new(CurrentLoopStage::new(sc))];
+        let producers = [
+            (TopicId::Meas, 1, false),
+            (TopicId::Est, 1, false),
+            (TopicId::Iref, 10, false),
+            (TopicId::Cmd, 1, true),
+        ];
+        let mut host = Host::new(stages, &producers, tr, config(sc));
+        host.run().unwrap();
+        host
+    }
+
+    /// The speed loop's reference of sample 0 is the one the current loop expects up to
+    /// sample 9; when the speed loop's process goes down after command 2, commands 3 and 4
+    /// are made from a stale reference (flagged) at once, not from sample 10 on.
+    #[test]
+    fn an_input_whose_producer_is_down_is_stale_at_once() {
+        let sc = scenario();
+        let mut tr = Script::default();
+        tr.queues[TopicId::Est.index()].push_back(est(0, 7.0));
+        for k in 0..6 {
+            tr.queues[TopicId::Meas.index()].push_back(meas(k, 0.2));
+        }
+        tr.queues[TopicId::Iref.index()].push_back(Msg::Iref(CurrentRef {
+            hdr: Header {
+                k: 0,
+                ..Default::default()
+            },
+            omega_ref: 50.0,
+            i_d_ref: 0.0,
+            i_q_ref: 0.5,
+        }));
+        // Estimate k comes at the (k+1)-th wait (the first steps on estimate 0).
+        for k in 1..5 {
+            tr.on_wait.push((k as usize + 1, est(k, 7.0)));
+        }
+        tr.on_wait.push((6, end(TopicId::Est, 100)));
+        tr.down_from = Some((4, TopicId::Iref));
+        let host = run_current_loop(&sc, tr);
+        let flagged: Vec<(u64, bool)> = host
+            .transport
+            .sent
+            .iter()
+            .filter_map(|m| match m {
+                Msg::Cmd(c) if !c.hdr.is_end() => {
+                    Some((c.hdr.k, c.hdr.flags & FLAG_STALE_INPUT != 0))
+                }
+                _ => None,
+            })
+            .collect();
+        assert_eq!(
+            flagged,
+            vec![(0, false), (1, false), (2, false), (3, true), (4, true)]
+        );
+        // The reference it held is the one it had: only the flag says the speed loop is gone.
+        let Some(Msg::Cmd(c)) = host.transport.sent.iter().rev().nth(1) else {
+            panic!("no command 4")
+        };
+        assert_eq!((c.i_dq_ref, c.omega_ref), ([0.0, 0.5], 50.0));
+    }
+
     #[test]
     fn a_trigger_that_stops_is_replaced_by_the_clock_after_max_age_samples() {
         let sc = scenario();
@@ -1983,15 +2075,7 @@ mod tests {
             tr.queues[TopicId::Meas.index()].push_back(meas(k, 0.2));
         }
         tr.on_wait.push((4, end(TopicId::Est, 100)));
-        let stages: Vec<Box<dyn Stage>> = vec![Box::new(CurrentLoopStage::new(&sc))];
-        let producers = [
-            (TopicId::Meas, 1, false),
-            (TopicId::Est, 1, false),
-            (TopicId::Iref, 10, false),
-            (TopicId::Cmd, 1, true),
-        ];
-        let mut host = Host::new(stages, &producers, tr, config(&sc));
-        host.run().unwrap();
+        let host = run_current_loop(&sc, tr);
         let cmds: Vec<VoltageCommand> = host
             .transport
             .sent

@@ -7,6 +7,7 @@
 use crate::bus::{self, DriveTopics, Poker, Receiver, Sender};
 use crate::config::Scenario;
 use crate::host::{Counters, Host, HostConfig, Pacing, StageHists, Transport};
+use crate::lease::{Lease, Life, Role as LifeRole};
 use crate::messages::*;
 use crate::rt::{setup_rt, RtPolicy, RtReport, RtRequest};
 use crate::stage::{Msg, Role, Stage, TopicId, N_TOPICS};
@@ -77,6 +78,10 @@ pub struct HostArgs {
     /// Print the declarations of the stages this executable can host (JSON) and exit.
     #[arg(long)]
     pub describe: bool,
+    /// Run as the process's standby twin: step on the same inputs, publish nothing, and take
+    /// over when the active instance dies (see docs/architecture.md, "Standby twins").
+    #[arg(long)]
+    pub standby: bool,
 }
 
 /// A resolved topology as the launcher hands it to the hosts.
@@ -264,9 +269,24 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
         .collect();
     let source = pi == 0;
     let lockstep = args.clock == BusClock::Lockstep;
-    let node = bus::node(&bus_id, &pname)?;
+    if args.standby && (lockstep || !proc.standby) {
+        bail!("--standby: process '{pname}' has no standby twin in a real-time drive");
+    }
+    let node = bus::node(
+        &bus_id,
+        &if args.standby {
+            format!("{pname}-standby")
+        } else {
+            pname.clone()
+        },
+    )?;
     phase("node");
-    let topics = DriveTopics::open_with(&node, sc.timing.wake, &bus_id)?;
+    let topics = DriveTopics::open_for(
+        &node,
+        sc.timing.wake,
+        &bus_id,
+        publishers_per_topic(&plan, lockstep),
+    )?;
     phase("topics");
     // Which topics this process receives, sends, waits on and pokes.
     let decim = decimation(&plan);
@@ -356,6 +376,28 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
         lockstep && source && args.recorder,
     )?;
     tr.decim = decim;
+    if !lockstep {
+        // Liveness (docs/architecture.md, "Liveness words and standby twins"): this instance
+        // holds its process's lease, or as a twin its standby mutex, from here to its end;
+        // each input from another process goes stale the moment its producer is down.
+        let life = std::sync::Arc::new(Life::open(&bus_id, plan.processes.len())?);
+        if args.standby {
+            let mut own = life.lease(pi, LifeRole::Standby)?;
+            own.hold()?;
+            let lease = life.lease(pi, LifeRole::Active)?;
+            tr.shadow = Some(Shadow::new(lease, own, &topics, &sent)?);
+        } else {
+            let mut lease = life.lease(pi, LifeRole::Active)?;
+            lease.hold()?;
+            tr.lease = Some(lease);
+        }
+        for b in &plan.producers {
+            if b.process != pi {
+                tr.producer[b.topic.index()] = Some(b.process);
+            }
+        }
+        tr.life = Some(life);
+    }
     tr.status = stages
         .iter()
         .map(|s| {
@@ -401,7 +443,12 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     host.arm_spares(|name| make_stage(name, &sc, user).ok())?;
     host.stop_when(stop_requested);
     // Last: everything above (designs, histograms, ports) is set-up work, not real-time.
-    let report = apply_placement(&pname, &proc, &args)?;
+    let label = if args.standby {
+        format!("{pname} (standby)")
+    } else {
+        pname.clone()
+    };
+    let report = apply_placement(&label, &proc, &args)?;
     phase("rt");
     protocol_line("READY")?;
     if source && !args.rejoin {
@@ -416,12 +463,27 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
         }
     }
     host.run()?;
+    if host.transport.shadow.is_some() {
+        // A twin that never took over: the active instance's statistics are the process's.
+        return Ok(());
+    }
     for h in &host.stages {
         for w in h.stage.exit_warnings() {
             crate::errln!("{}: warning: {w}", h.stage.name());
         }
     }
     write_stats(&args, &pname, &report, &host, &startup)
+}
+
+/// Publishers per drive topic: 1, or 2 when a process of a real-time drive has a standby
+/// twin (its publishers are made at its set-up). Every node of the bus opens the topics with
+/// this number, the launcher's recorder first.
+pub fn publishers_per_topic(plan: &TopologyPlan, lockstep: bool) -> usize {
+    if !lockstep && plan.processes.iter().any(|p| p.standby) {
+        2
+    } else {
+        1
+    }
 }
 
 /// Applies the process's placement and prints the one-line report to stderr; also sends
@@ -437,7 +499,15 @@ fn apply_placement(process: &str, p: &ProcessSpec, args: &HostArgs) -> Result<Rt
     } else {
         RtRequest {
             core: p.cpu,
-            fifo_priority: p.priority,
+            // The twin runs right after the active instance on its core (docs/architecture.md,
+            // "Standby twins").
+            fifo_priority: p.priority.map(|pr| {
+                if args.standby {
+                    pr.saturating_sub(1).max(1)
+                } else {
+                    pr
+                }
+            }),
             lock_memory: true,
             prefault_stack_bytes: 256 * 1024,
         }
@@ -500,6 +570,31 @@ impl Wait {
     }
 }
 
+/// A receiver of topic `t` that waits per `w`, with a buffer of `buf` samples.
+fn rx_of(topics: &DriveTopics, t: TopicId, w: Wait, buf: usize) -> Result<Rx> {
+    Ok(match t {
+        TopicId::Meas => Rx::Meas(w.receiver(&topics.meas, buf)?),
+        TopicId::Est => Rx::Est(w.receiver(&topics.est, buf)?),
+        TopicId::Iref => Rx::Iref(w.receiver(&topics.iref, buf)?),
+        TopicId::Cmd => Rx::Cmd(w.receiver(&topics.cmd, buf)?),
+        TopicId::Wref => Rx::Wref(w.receiver(&topics.wref, buf)?),
+        TopicId::Truth => Rx::Truth(w.receiver(&topics.truth, buf)?),
+    })
+}
+
+/// The next message of `r`, if one is there.
+#[inline]
+fn recv_rx(r: &Rx) -> Result<Option<Msg>> {
+    Ok(match r {
+        Rx::Meas(r) => r.try_recv()?.map(Msg::Meas),
+        Rx::Est(r) => r.try_recv()?.map(Msg::Est),
+        Rx::Iref(r) => r.try_recv()?.map(Msg::Iref),
+        Rx::Cmd(r) => r.try_recv()?.map(Msg::Cmd),
+        Rx::Wref(r) => r.try_recv()?.map(Msg::Wref),
+        Rx::Truth(r) => r.try_recv()?.map(Msg::Truth),
+    })
+}
+
 /// Per topic, the rate below its producer's at which some stage of another process steps
 /// on it as its trigger: the gcd of those stages' dividers (0: none). Such stages sleep on
 /// the topic's decimated wake word, which the producer bumps only at multiples of it, so a
@@ -531,6 +626,50 @@ pub struct BusTransport {
     pokers: Vec<(TopicId, Poker)>,
     rec: Option<Receiver<u64>>,
     status: Vec<StatusPublisher>,
+    /// A standby twin that has not taken over: it publishes nothing (see [`Shadow`]).
+    shadow: Option<Shadow>,
+    /// The lease this instance holds (its process's; a twin's once it has taken over). Kept
+    /// until the process ends. None in lockstep.
+    lease: Option<Lease>,
+    /// The bus's liveness segment (real time).
+    life: Option<std::sync::Arc<Life>>,
+    /// Per topic, the process that produces it when that is another process.
+    producer: [Option<usize>; N_TOPICS],
+    /// Per topic: the newest index the instance before this one published (a twin that
+    /// took over sends only later ones).
+    before: [Option<u64>; N_TOPICS],
+}
+
+/// A standby twin before it takes over: it steps on the same inputs as the active instance
+/// and publishes nothing. It tries the lease at every output; once the active instance has
+/// died the lease is its, it reads which samples its predecessor had published, and from
+/// then on it is the process.
+pub struct Shadow {
+    /// The process's lease, taken at the takeover.
+    lease: Lease,
+    /// The twin's own standby mutex, held while it waits (its process reads up while it
+    /// lives), given up at the takeover for the next twin.
+    own: Lease,
+    /// Per output topic, a polled receiver of the active instance's messages (read once, at
+    /// the takeover, for their newest index).
+    watch: [Option<Rx>; N_TOPICS],
+}
+
+impl Shadow {
+    fn new(
+        lease: Lease,
+        own: Lease,
+        topics: &DriveTopics,
+        sent: &[bool; N_TOPICS],
+    ) -> Result<Self> {
+        let mut watch: [Option<Rx>; N_TOPICS] = Default::default();
+        for t in TopicId::ALL {
+            if sent[t.index()] {
+                watch[t.index()] = Some(rx_of(topics, t, Wait::Polled, 4)?);
+            }
+        }
+        Ok(Self { lease, own, watch })
+    }
 }
 
 impl BusTransport {
@@ -548,14 +687,11 @@ impl BusTransport {
             let i = t.index();
             let w = wait[i];
             if w != Wait::None {
-                rx[i] = Some(match t {
-                    TopicId::Meas => Rx::Meas(w.receiver(&topics.meas, BUF)?),
-                    TopicId::Est => Rx::Est(w.receiver(&topics.est, BUF)?),
-                    TopicId::Iref => Rx::Iref(w.receiver(&topics.iref, 16)?),
-                    TopicId::Cmd => Rx::Cmd(w.receiver(&topics.cmd, 16)?),
-                    TopicId::Wref => Rx::Wref(w.receiver(&topics.wref, 16)?),
-                    TopicId::Truth => Rx::Truth(w.receiver(&topics.truth, 16)?),
-                });
+                let buf = match t {
+                    TopicId::Meas | TopicId::Est => BUF,
+                    _ => 16,
+                };
+                rx[i] = Some(rx_of(topics, t, w, buf)?);
             }
             if sent[i] {
                 tx[i] = Some(match t {
@@ -594,11 +730,43 @@ impl BusTransport {
             pokers,
             rec,
             status: Vec::new(),
+            shadow: None,
+            lease: None,
+            life: None,
+            producer: [None; N_TOPICS],
+            before: [None; N_TOPICS],
         })
     }
 
+    /// A standby twin's check at each output: false while the active instance lives. At the
+    /// first call after its death the twin takes the lease, notes the newest index its
+    /// predecessor published per topic, and drops its watching receivers (a bus call, once
+    /// per takeover, as a rejoin's `close`).
+    #[inline]
+    fn active(&mut self) -> Result<bool> {
+        let Some(sh) = self.shadow.as_mut() else {
+            return Ok(true);
+        };
+        if !sh.lease.try_take() {
+            return Ok(false);
+        }
+        let mut sh = self.shadow.take().expect("checked above");
+        sh.own.release();
+        for (i, w) in sh.watch.iter().enumerate() {
+            if let Some(w) = w {
+                while let Some(m) = recv_rx(w)? {
+                    let k = m.hdr().k;
+                    self.before[i] = Some(self.before[i].map_or(k, |b| b.max(k)));
+                }
+            }
+        }
+        self.lease = Some(sh.lease);
+        Ok(true)
+    }
+
     fn connect(&self) -> Result<()> {
-        for r in self.rx.iter().flatten() {
+        let watched = self.shadow.iter().flat_map(|s| s.watch.iter().flatten());
+        for r in self.rx.iter().flatten().chain(watched) {
             match r {
                 Rx::Meas(r) => r.connect()?,
                 Rx::Est(r) => r.connect()?,
@@ -627,6 +795,9 @@ impl Transport for BusTransport {
     fn send(&mut self, msg: &Msg) -> Result<()> {
         let i = msg.topic().index();
         let h = msg.hdr();
+        if !self.active()? || self.before[i].is_some_and(|b| h.k <= b) {
+            return Ok(());
+        }
         // The decimated receivers wake at the samples they step and at every marker.
         let d =
             self.decim[i] > 0 && (h.k.is_multiple_of(self.decim[i]) || h.is_end() || h.is_warmup());
@@ -643,15 +814,10 @@ impl Transport for BusTransport {
 
     #[inline]
     fn try_recv(&mut self, topic: TopicId) -> Result<Option<Msg>> {
-        Ok(match &self.rx[topic.index()] {
-            Some(Rx::Meas(r)) => r.try_recv()?.map(Msg::Meas),
-            Some(Rx::Est(r)) => r.try_recv()?.map(Msg::Est),
-            Some(Rx::Iref(r)) => r.try_recv()?.map(Msg::Iref),
-            Some(Rx::Cmd(r)) => r.try_recv()?.map(Msg::Cmd),
-            Some(Rx::Wref(r)) => r.try_recv()?.map(Msg::Wref),
-            Some(Rx::Truth(r)) => r.try_recv()?.map(Msg::Truth),
-            None => None,
-        })
+        match &self.rx[topic.index()] {
+            Some(r) => recv_rx(r),
+            None => Ok(None),
+        }
     }
 
     fn close(&mut self, topic: TopicId) {
@@ -702,7 +868,18 @@ impl Transport for BusTransport {
         }
     }
 
+    #[inline]
+    fn producer_up(&self, topic: TopicId) -> bool {
+        match (&self.life, self.producer[topic.index()]) {
+            (Some(life), Some(p)) => life.up(p),
+            _ => true,
+        }
+    }
+
     fn poke(&mut self, topic: TopicId) -> Result<()> {
+        if self.shadow.is_some() {
+            return Ok(());
+        }
         for (t, p) in &self.pokers {
             if *t == topic {
                 p.poke()?;
@@ -736,6 +913,9 @@ impl Transport for BusTransport {
         h: &StageHists,
         cycle: Option<&CycleMonitor>,
     ) -> Result<()> {
+        if self.shadow.is_some() {
+            return Ok(());
+        }
         match self.status.get_mut(i) {
             Some(s) => s.tick(k, c, h, cycle),
             None => Ok(()),

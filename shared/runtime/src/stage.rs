@@ -245,8 +245,12 @@ pub struct Slot {
     pub msg: Option<Msg>,
     /// True when `msg` is the one this sample expects (index and rate match).
     pub fresh: bool,
-    /// Samples since the expected index when stale (0 when fresh).
+    /// Samples since the expected index when stale (0 when fresh, and when the expected
+    /// message came but its producer is down).
     pub age: u64,
+    /// The process that produces it is down (real time; docs/architecture.md, "Liveness
+    /// words and standby twins").
+    pub producer_down: bool,
 }
 
 /// The inputs of one step, by topic.
@@ -295,7 +299,7 @@ impl Inbox {
         self.slots[msg.topic().index()] = Slot {
             msg: Some(msg),
             fresh: true,
-            age: 0,
+            ..Slot::default()
         };
     }
 

@@ -28,6 +28,12 @@ pub struct ProcessSpec {
     /// scenario file; default: the built-in host `drivelab-host`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub exec: Option<String>,
+    /// Keep a warm twin of this process: started beside it on the same CPU one priority
+    /// below, fed the same inputs, publishing nothing until the process dies; then it takes
+    /// over within a sample or two (docs/architecture.md, "Standby twins"). Not for the
+    /// plant's process. Real-time clock only.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub standby: bool,
 }
 
 /// A topology file: `[[process]]` tables.
@@ -182,6 +188,12 @@ pub fn check_specs(procs: &[ProcessSpec]) -> Result<(), String> {
                     p.name
                 ));
             }
+        }
+        if p.standby && p.stages.iter().any(|s| s == "plant") {
+            return Err(format!(
+                "process '{}': standby = true is not for the plant's process (the plant is the drive's clock and its motor; a restarted plant rebuilds its downtime instead)",
+                p.name
+            ));
         }
         for s in &p.stages {
             if let Some(other) = hosted.insert(s.as_str(), p.name.as_str()) {
@@ -416,6 +428,7 @@ mod tests {
                 cpu: Some(1),
                 priority: Some(70),
                 exec: None,
+                standby: false,
             })
             .collect()
     }
@@ -555,6 +568,7 @@ mod tests {
                 cpu: None,
                 priority: None,
                 exec: Some("/bin/true".into()),
+                standby: false,
             });
             v
         };

@@ -10,6 +10,7 @@ pub mod doctor;
 pub mod metrics;
 #[cfg(not(feature = "plot"))]
 mod no_plot;
+pub mod plant_realism;
 #[cfg(feature = "plot")]
 pub mod plot;
 mod plot_options;
@@ -18,5 +19,7 @@ pub mod plot_polar;
 #[cfg(not(feature = "plot"))]
 pub use no_plot::{plot, plot_polar};
 
+#[cfg(test)]
+mod plant_realism_tests;
 #[cfg(test)]
 mod scenario_tests;

@@ -18,6 +18,8 @@ impl Plant {
         self.x.omega_m = last.omega_m;
         self.x.theta_m = drivelab_control::motor::wrap_2pi(last.theta_m);
         self.theta_m_unwrapped = last.theta_m;
+        // The ADC's instant before t_k is not in the record: the first reading is at t_k.
+        self.x_adc = self.x;
         self.last_u_ab = last.u_ab_applied;
         self.stale_run = 0;
         // A tripped inverter stays tripped through a restart of the plant's process.
