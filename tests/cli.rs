@@ -79,8 +79,8 @@ fn help_texts() {
 #[test]
 fn every_help_has_an_example_and_units() {
     for cmd in [
-        "run", "bench", "fault", "clean", "monitor", "plot", "plant", "design", "compare", "doctor",
-        "record",
+        "run", "bench", "fault", "clean", "monitor", "plot", "plant", "design", "compare",
+        "doctor", "record",
     ] {
         let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
             .args([cmd, "--help"])

@@ -62,11 +62,7 @@ fn a_remote_monitor_sees_the_drive_and_a_remote_recorder_writes_its_trace() {
         .spawn()
         .unwrap();
     let local = dir.join("run");
-    let drive = start_drive(
-        &bus,
-        &local,
-        &["--duration", "1.5", "--zenoh-listen", &ep],
-    );
+    let drive = start_drive(&bus, &local, &["--duration", "1.5", "--zenoh-listen", &ep]);
     wait_for_progress(&bus, 2000);
     // The monitor's screen over the network, as a local one shows it.
     let o = until_ok(&["monitor", "--connect", &ep, "--print"]);
@@ -108,11 +104,19 @@ fn a_remote_monitor_sees_the_drive_and_a_remote_recorder_writes_its_trace() {
         .iter()
         .filter(|g| g["part"] == "measurement")
         .map(|g| {
-            assert!(g["cause"].as_str().unwrap().contains("remote recorder"), "{g}");
+            assert!(
+                g["cause"].as_str().unwrap().contains("remote recorder"),
+                "{g}"
+            );
             g["to"].as_u64().unwrap() + 1 - g["from"].as_u64().unwrap()
         })
         .sum();
-    assert_eq!(rm.len() as u64 + listed, 15_000, "{}", rs["missing_samples"]);
+    assert_eq!(
+        rm.len() as u64 + listed,
+        15_000,
+        "{}",
+        rs["missing_samples"]
+    );
     assert_eq!(rs["samples"], rm.len());
     if listed > 0 {
         eprintln!("note: the remote recorder lost {listed} samples (listed); a loaded machine");
@@ -131,7 +135,10 @@ fn a_remote_monitor_sees_the_drive_and_a_remote_recorder_writes_its_trace() {
     for t in ["truth", "cmd"] {
         assert!(b["forwarded"][t].as_u64().unwrap() > rm.len() as u64, "{b}");
     }
-    assert_eq!((b["faults_refused"].as_u64(), b["rejected"].as_u64()), (Some(0), Some(0)));
+    assert_eq!(
+        (b["faults_refused"].as_u64(), b["rejected"].as_u64()),
+        (Some(0), Some(0))
+    );
 }
 
 #[test]
@@ -189,17 +196,38 @@ fn bad_endpoints_a_busy_port_and_no_drive_are_one_line_errors() {
     let bus = bus_id("errors");
     let out = dir.join("run");
     let o = drivelab(&[
-        "run", "--bus", &bus, "--out", out.to_str().unwrap(), "--zenoh-listen", "udp/127.0.0.1:7447",
+        "run",
+        "--bus",
+        &bus,
+        "--out",
+        out.to_str().unwrap(),
+        "--zenoh-listen",
+        "udp/127.0.0.1:7447",
     ]);
-    one_line(&o, 2, "--zenoh-listen: endpoint 'udp/127.0.0.1:7447': protocol 'udp' is not built in");
+    one_line(
+        &o,
+        2,
+        "--zenoh-listen: endpoint 'udp/127.0.0.1:7447': protocol 'udp' is not built in",
+    );
     assert!(!out.exists(), "a refused run makes no folder");
     let o = drivelab(&[
-        "run", "--bus", &bus, "--out", out.to_str().unwrap(), "--clock", "inprocess", "--zenoh-listen",
+        "run",
+        "--bus",
+        &bus,
+        "--out",
+        out.to_str().unwrap(),
+        "--clock",
+        "inprocess",
+        "--zenoh-listen",
     ]);
     one_line(&o, 1, "--zenoh-listen needs a drive on a bus");
     assert!(!out.exists());
     let o = drivelab(&["monitor", "--connect", "127.0.0.1:7447", "--print"]);
-    one_line(&o, 2, "--connect: endpoint '127.0.0.1:7447' must be PROTOCOL/HOST:PORT");
+    one_line(
+        &o,
+        2,
+        "--connect: endpoint '127.0.0.1:7447' must be PROTOCOL/HOST:PORT",
+    );
     let o = drivelab(&["fault", "kill", "plant", "--connect", "tcp/localhost:http"]);
     one_line(&o, 2, "port 'http' is not a number");
     // Nobody listens there.
@@ -211,7 +239,15 @@ fn bad_endpoints_a_busy_port_and_no_drive_are_one_line_errors() {
     let busy = endpoint(holder.local_addr().unwrap().port());
     let _g = serial();
     let o = drivelab(&[
-        "run", "--bus", &bus, "--out", out.to_str().unwrap(), "--no-plots", "--json", "--zenoh-listen", &busy,
+        "run",
+        "--bus",
+        &bus,
+        "--out",
+        out.to_str().unwrap(),
+        "--no-plots",
+        "--json",
+        "--zenoh-listen",
+        &busy,
     ]);
     one_line(&o, 1, &format!("zenoh bridge: cannot listen on {busy}"));
     assert_clean(&bus);

@@ -547,7 +547,11 @@ fn record(
         wait: std::time::Duration::from_secs_f64(wait),
     })?;
     let s = &r.summary;
-    drivelab_services::outln!("run folder: {} (bus {} at {endpoint})", out.display(), r.bus);
+    drivelab_services::outln!(
+        "run folder: {} (bus {} at {endpoint})",
+        out.display(),
+        r.bus
+    );
     drivelab_services::outln!(
         "{} samples ({} expected), {} missing; deadline misses on the drive {}",
         s["samples"],
@@ -559,7 +563,13 @@ fn record(
 }
 
 #[cfg(not(feature = "zenoh"))]
-fn record(_: String, _: PathBuf, _: Option<String>, _: f64, _: Option<PathBuf>) -> anyhow::Result<()> {
+fn record(
+    _: String,
+    _: PathBuf,
+    _: Option<String>,
+    _: f64,
+    _: Option<PathBuf>,
+) -> anyhow::Result<()> {
     unreachable!("endpoint_arg refuses --connect without zenoh")
 }
 
@@ -833,7 +843,14 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             topics,
             zenoh_config,
             allow_remote_faults,
-        } => bridge(bus, listen, run_dir, topics, zenoh_config, allow_remote_faults),
+        } => bridge(
+            bus,
+            listen,
+            run_dir,
+            topics,
+            zenoh_config,
+            allow_remote_faults,
+        ),
         Cmd::Clean { bus } => {
             drivelab_runtime::bus::check_bus_id(&bus)?;
             launcher::refuse_busy_bus(&bus)?;

@@ -274,7 +274,8 @@ fn remote_gaps(
             .iter()
             .find(|(from, to, part, _)| part == g.part && *from <= g.from && g.from <= *to);
         if first_k.is_none_or(|f| g.to < f) {
-            g.cause = "before the remote recorder's first sample (older than the bridge's history)".into();
+            g.cause = "before the remote recorder's first sample (older than the bridge's history)"
+                .into();
         } else if let Some((.., cause)) = theirs {
             g.cause = cause.clone();
         } else if have_drive {
@@ -299,20 +300,31 @@ mod tests {
         let lost = "measurement lost between plant and recorder (recorder buffer overflow)";
         let stopped = "the plant stopped before this sample";
         // The drive itself lacks 900..999 (its plant stopped), not 150..151.
-        let drive = [(900, 999, "measurement".to_string(), "plant kill at sample 900".to_string())];
+        let drive = [(
+            900,
+            999,
+            "measurement".to_string(),
+            "plant kill at sample 900".to_string(),
+        )];
         let out = remote_gaps(
             vec![g(0, 99, lost), g(150, 151, lost), g(900, 999, stopped)],
             Some(100),
             &drive,
             true,
         );
-        assert!(out[0].cause.starts_with("before the remote recorder's first sample"));
-        assert!(out[1].cause.starts_with("lost between the drive and the remote recorder"));
+        assert!(out[0]
+            .cause
+            .starts_with("before the remote recorder's first sample"));
+        assert!(out[1]
+            .cause
+            .starts_with("lost between the drive and the remote recorder"));
         assert_eq!(out[2].cause, "plant kill at sample 900");
         // Without the drive's summary, nothing is known beyond the recorder's own view.
         let out = remote_gaps(vec![g(150, 151, lost)], Some(100), &[], false);
         assert_eq!(out[0].cause, lost);
         let none = remote_gaps(vec![g(0, 9, stopped)], None, &[], true);
-        assert!(none[0].cause.starts_with("before the remote recorder's first sample"));
+        assert!(none[0]
+            .cause
+            .starts_with("before the remote recorder's first sample"));
     }
 }

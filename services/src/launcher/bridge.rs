@@ -105,7 +105,11 @@ impl Bridge {
                     crate::errln!(
                         "drivelab: zenoh bridge listening on {} ({placed}); remote faults {}",
                         z.endpoint,
-                        if z.allow_remote_faults { "allowed" } else { "refused" }
+                        if z.allow_remote_faults {
+                            "allowed"
+                        } else {
+                            "refused"
+                        }
                     );
                 }
                 Ok(b)

@@ -273,7 +273,13 @@ mod tests {
         assert_eq!(size_of::<ServiceStatus>(), status);
         assert_eq!(size_of::<ServiceView>(), status + 4 * 4 + 8);
         assert_eq!(size_of::<TracePoint>(), 8 * 7);
-        let view = 32 + 8 * 2 + 4 * 2 + 8 * 2 + 48 + 4 * 2 + 32 * MAX_STAGES
+        let view = 32
+            + 8 * 2
+            + 4 * 2
+            + 8 * 2
+            + 48
+            + 4 * 2
+            + 32 * MAX_STAGES
             + size_of::<ServiceView>() * MAX_STAGES
             + size_of::<TracePoint>() * VIEW_POINTS;
         assert_eq!(size_of::<DriveView>(), view);
@@ -315,8 +321,14 @@ mod tests {
         bad(&|f| f[..4].reverse(), Reject::Magic);
         bad(&|f| f[4] = 2, Reject::Version(2));
         bad(&|f| f[6] = 1, Reject::Kind(1));
-        bad(&|f| f[8] += 8, Reject::Size(size_of::<VoltageCommand>() as u32 + 8));
-        bad(&|f| f[12..16].copy_from_slice(&0u32.to_ne_bytes()), Reject::Count(0));
+        bad(
+            &|f| f[8] += 8,
+            Reject::Size(size_of::<VoltageCommand>() as u32 + 8),
+        );
+        bad(
+            &|f| f[12..16].copy_from_slice(&0u32.to_ne_bytes()),
+            Reject::Count(0),
+        );
         bad(
             &|f| f[12..16].copy_from_slice(&5000u32.to_ne_bytes()),
             Reject::Count(5000),

@@ -16,9 +16,9 @@ pub const DEFAULT_LISTEN: &str = "tcp/127.0.0.1:7447";
 /// listener, 0 meaning any free port). Returns it unchanged, or a one-line error naming the
 /// problem.
 pub fn check_endpoint(ep: &str, listen: bool) -> Result<String, String> {
-    let (proto, addr) = ep
-        .split_once('/')
-        .ok_or_else(|| format!("endpoint '{ep}' must be PROTOCOL/HOST:PORT, e.g. {DEFAULT_LISTEN}"))?;
+    let (proto, addr) = ep.split_once('/').ok_or_else(|| {
+        format!("endpoint '{ep}' must be PROTOCOL/HOST:PORT, e.g. {DEFAULT_LISTEN}")
+    })?;
     if !matches!(proto, "tcp" | "tls") {
         return Err(format!(
             "endpoint '{ep}': protocol '{proto}' is not built in (tcp or tls)"
@@ -42,7 +42,9 @@ pub fn check_endpoint(ep: &str, listen: bool) -> Result<String, String> {
                 .all(|c| c.is_ascii_alphanumeric() || c == '.' || c == '-')
     };
     if !host_ok {
-        return Err(format!("endpoint '{ep}': '{host}' is not a host name or address"));
+        return Err(format!(
+            "endpoint '{ep}': '{host}' is not a host name or address"
+        ));
     }
     ep.parse::<zenoh::config::EndPoint>()
         .map_err(|e| format!("endpoint '{ep}': {e}"))?;
@@ -63,8 +65,9 @@ pub enum Side {
 /// endpoint and no scouting.
 pub fn config(side: Side, endpoint: &str, file: Option<&Path>) -> Result<zenoh::Config> {
     let mut c = match file {
-        Some(p) => zenoh::Config::from_file(p)
-            .map_err(|e| anyhow!("zenoh config {}: {e}", p.display()))?,
+        Some(p) => {
+            zenoh::Config::from_file(p).map_err(|e| anyhow!("zenoh config {}: {e}", p.display()))?
+        }
         None => zenoh::Config::default(),
     };
     let set = |c: &mut zenoh::Config, key: &str, value: &str| {
@@ -113,8 +116,12 @@ pub fn tidy(text: &str) -> String {
         match tail.find(".rs:") {
             Some(j) => {
                 let after = &tail[j + 4..];
-                let digits = after.find(|c: char| !c.is_ascii_digit()).unwrap_or(after.len());
-                rest = after[digits..].strip_prefix('.').unwrap_or(&after[digits..]);
+                let digits = after
+                    .find(|c: char| !c.is_ascii_digit())
+                    .unwrap_or(after.len());
+                rest = after[digits..]
+                    .strip_prefix('.')
+                    .unwrap_or(&after[digits..]);
             }
             None => {
                 out.push_str(" at ");
@@ -196,9 +203,13 @@ mod tests {
         assert_eq!(c.get_json("scouting/multicast/enabled").unwrap(), "false");
         let c = config(Side::Connect, "tcp/10.0.0.2:7447", None).unwrap();
         assert_eq!(c.get_json("mode").unwrap(), "\"client\"");
-        let e = config(Side::Connect, "tcp/10.0.0.2:7447", Some(Path::new("/no/such.json5")))
-            .unwrap_err()
-            .to_string();
+        let e = config(
+            Side::Connect,
+            "tcp/10.0.0.2:7447",
+            Some(Path::new("/no/such.json5")),
+        )
+        .unwrap_err()
+        .to_string();
         assert!(e.starts_with("zenoh config /no/such.json5:"), "{e}");
     }
 }

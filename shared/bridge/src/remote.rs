@@ -72,7 +72,10 @@ impl Remote {
         let key = crate::query_key(want.unwrap_or("*"), "scenario");
         let mut buses: Vec<String> = Vec::new();
         for (k, _) in self.query(&key, None)? {
-            if let Some(b) = k.strip_prefix("drivelab/").and_then(|r| r.split('/').next()) {
+            if let Some(b) = k
+                .strip_prefix("drivelab/")
+                .and_then(|r| r.split('/').next())
+            {
                 if !buses.iter().any(|x| x == b) {
                     buses.push(b.to_string());
                 }
@@ -105,7 +108,10 @@ impl Remote {
         let mut out = Vec::new();
         while let Ok(reply) = replies.recv() {
             match reply.result() {
-                Ok(s) => out.push((s.key_expr().as_str().to_string(), s.payload().to_bytes().into_owned())),
+                Ok(s) => out.push((
+                    s.key_expr().as_str().to_string(),
+                    s.payload().to_bytes().into_owned(),
+                )),
                 Err(e) => bail!("{}", String::from_utf8_lossy(&e.payload().to_bytes())),
             }
         }

@@ -216,12 +216,19 @@ impl std::fmt::Display for Refusal {
 
 /// Checks a fault request from the network: one well-formed [`FaultRequest`], and a drive
 /// that allows remote faults. Counts a refusal in `stats`.
-pub fn check_fault(payload: &[u8], allow: bool, stats: &mut Stats) -> Result<FaultRequest, Refusal> {
+pub fn check_fault(
+    payload: &[u8],
+    allow: bool,
+    stats: &mut Stats,
+) -> Result<FaultRequest, Refusal> {
     let reqs = match codec::decode::<FaultRequest>(payload) {
         Ok(r) if r.len() == 1 => r,
         Ok(r) => {
             stats.rejected += 1;
-            return Err(Refusal::Malformed(format!("{} requests in one frame", r.len())));
+            return Err(Refusal::Malformed(format!(
+                "{} requests in one frame",
+                r.len()
+            )));
         }
         Err(e) => {
             stats.rejected += 1;
@@ -285,32 +292,76 @@ fn attach(o: &ServeOptions, sc: &Scenario, session: &zenoh::Session) -> Result<B
     let b = o.bus.as_str();
     // Polled receivers only: a listener would cost the real-time senders a wake-up.
     if want("meas") {
-        pumps.push(forward(session, b, topics.meas.polled_receiver(MAX_BUFFER)?, 0, false, never)?);
+        pumps.push(forward(
+            session,
+            b,
+            topics.meas.polled_receiver(MAX_BUFFER)?,
+            0,
+            false,
+            never,
+        )?);
     }
     if want("truth") {
         let rx = topics.truth.polled_receiver(MAX_BUFFER)?;
-        pumps.push(forward::<PlantTruth, _>(session, b, rx, HISTORY_MAX, false, never)?);
+        pumps.push(forward::<PlantTruth, _>(
+            session,
+            b,
+            rx,
+            HISTORY_MAX,
+            false,
+            never,
+        )?);
     }
     if want("est") {
-        pumps.push(forward(session, b, topics.est.polled_receiver(MAX_BUFFER)?, 0, false, never)?);
+        pumps.push(forward(
+            session,
+            b,
+            topics.est.polled_receiver(MAX_BUFFER)?,
+            0,
+            false,
+            never,
+        )?);
     }
     if want("iref") {
-        pumps.push(forward(session, b, topics.iref.polled_receiver(MAX_BUFFER)?, 0, false, never)?);
+        pumps.push(forward(
+            session,
+            b,
+            topics.iref.polled_receiver(MAX_BUFFER)?,
+            0,
+            false,
+            never,
+        )?);
     }
     if want("cmd") {
         let rx = topics.cmd.polled_receiver(MAX_BUFFER)?;
-        pumps.push(forward::<VoltageCommand, _>(session, b, rx, HISTORY_MAX, false, never)?);
+        pumps.push(forward::<VoltageCommand, _>(
+            session,
+            b,
+            rx,
+            HISTORY_MAX,
+            false,
+            never,
+        )?);
     }
     if want("wref") {
         let rx = topics.wref.polled_receiver(MAX_BUFFER)?;
-        pumps.push(forward::<SpeedRef, _>(session, b, rx, HISTORY_MAX, false, never)?);
+        pumps.push(forward::<SpeedRef, _>(
+            session,
+            b,
+            rx,
+            HISTORY_MAX,
+            false,
+            never,
+        )?);
     }
     // The supervisor's telemetry exists before the bridge starts (the launcher made it).
     if want("view") {
         let t = tm::open_existing::<DriveView>(&node, tm::TOPIC_VIEW)?;
         let rx = tm::PlainReceiver::new(&t, 4)?;
         plain.push(Box::new(t));
-        pumps.push(forward(session, b, rx, 1, true, |v: &DriveView| v.hdr.is_end())?);
+        pumps.push(forward(session, b, rx, 1, true, |v: &DriveView| {
+            v.hdr.is_end()
+        })?);
     }
     if want("events") {
         let t = tm::open_existing::<EventEntry>(&node, tm::TOPIC_EVENTS)?;
@@ -366,7 +417,10 @@ fn answer(
             None => reply_err("the drive has not ended yet".into()),
         },
         "fault" => {
-            let payload = q.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
+            let payload = q
+                .payload()
+                .map(|p| p.to_bytes().into_owned())
+                .unwrap_or_default();
             match check_fault(&payload, o.allow_remote_faults, stats) {
                 Err(r) => {
                     drivelab_runtime::errln!("drivelab bridge: refused a fault request: {r}");
@@ -452,7 +506,14 @@ pub fn serve(o: &ServeOptions) -> Result<()> {
         }
         while let Ok(Some(q)) = queries.try_recv() {
             // A client that left before its answer is no reason to stop the bridge.
-            if let Err(e) = answer(&q, o, &scenario_toml, side.as_ref(), summary.as_deref(), &mut stats) {
+            if let Err(e) = answer(
+                &q,
+                o,
+                &scenario_toml,
+                side.as_ref(),
+                summary.as_deref(),
+                &mut stats,
+            ) {
                 stats.failed_replies += 1;
                 drivelab_runtime::errln!("drivelab bridge: {e:#}");
             }
@@ -469,8 +530,8 @@ pub fn serve(o: &ServeOptions) -> Result<()> {
             }
             Ok(line) if line.starts_with("summary ") => {
                 let path = line.trim_start_matches("summary ");
-                let text = std::fs::read_to_string(path)
-                    .with_context(|| format!("cannot read {path}"))?;
+                let text =
+                    std::fs::read_to_string(path).with_context(|| format!("cannot read {path}"))?;
                 summary_pub
                     .put(text.clone().into_bytes())
                     .wait()
@@ -480,7 +541,9 @@ pub fn serve(o: &ServeOptions) -> Result<()> {
                 let t = Instant::now();
                 while t.elapsed() < Duration::from_secs(2) && subscribed(&summary_pub) {
                     while let Ok(Some(q)) = queries.try_recv() {
-                        if answer(&q, o, &scenario_toml, None, summary.as_deref(), &mut stats).is_err() {
+                        if answer(&q, o, &scenario_toml, None, summary.as_deref(), &mut stats)
+                            .is_err()
+                        {
                             stats.failed_replies += 1;
                         }
                     }
@@ -539,10 +602,19 @@ mod tests {
         assert_eq!((st.faults_refused, st.rejected), (1, 0));
         // Foreign bytes, two requests in one frame, an unknown kind: rejected and counted,
         // whatever the permission.
-        let two = codec::encode(&[req, FaultRequest { kind: FAULT_KILL, ..req }]);
+        let two = codec::encode(&[
+            req,
+            FaultRequest {
+                kind: FAULT_KILL,
+                ..req
+            },
+        ]);
         let forged = codec::encode(&[FaultRequest { kind: 99, ..req }]);
         for (bytes, why) in [
-            (b"please kill the plant".to_vec(), "not a drivelab frame (bad magic)"),
+            (
+                b"please kill the plant".to_vec(),
+                "not a drivelab frame (bad magic)",
+            ),
             (two, "2 requests in one frame"),
             (forged, "a message with implausible values"),
         ] {
