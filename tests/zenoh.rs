@@ -252,3 +252,110 @@ fn bad_endpoints_a_busy_port_and_no_drive_are_one_line_errors() {
     one_line(&o, 1, &format!("zenoh bridge: cannot listen on {busy}"));
     assert_clean(&bus);
 }
+
+/// The documented secure set-up, as docs/remote.md gives it: certificates from
+/// scripts/zenoh-certs.sh, the drive on TLS with client certificates and access control
+/// (docs/zenoh/drive-tls-acl.json5) and --allow-remote-faults. The viewer watches but its
+/// fault request is dropped by the access control; the operator's is injected; a client
+/// without a certificate, or on plain TCP, cannot connect.
+#[test]
+fn tls_with_access_control_lets_the_operator_fault_and_the_viewer_only_watch() {
+    let _g = serial();
+    let dir = scratch("tls");
+    let repo = concat!(env!("CARGO_MANIFEST_DIR"), "/..");
+    let made = Command::new("bash")
+        .arg(format!("{repo}/scripts/zenoh-certs.sh"))
+        .arg(dir.join("certs"))
+        .output()
+        .expect("bash");
+    assert!(
+        made.status.success(),
+        "scripts/zenoh-certs.sh (openssl: bash scripts/setup.sh): {}",
+        String::from_utf8_lossy(&made.stderr)
+    );
+    // The example configs name certs/... relative to where drivelab starts.
+    let cfg = |f: &str| format!("{repo}/docs/zenoh/{f}");
+    let bus = bus_id("tls");
+    let port = free_port();
+    let (tls, tcp) = (format!("tls/127.0.0.1:{port}"), endpoint(port));
+    let drive = Command::new(DRIVELAB)
+        .current_dir(&dir)
+        .args([
+            "run",
+            "--bus",
+            &bus,
+            "--out",
+            "run",
+            "--no-plots",
+            "--duration",
+            "4",
+        ])
+        .args([
+            "--zenoh-listen",
+            &tls,
+            "--zenoh-config",
+            &cfg("drive-tls-acl.json5"),
+        ])
+        .arg("--allow-remote-faults")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    wait_for_progress(&bus, 3000);
+    let at = |args: &[&str], who: &str| {
+        let mut c = Command::new(DRIVELAB);
+        c.current_dir(&dir).args(args);
+        if !who.is_empty() {
+            c.args(["--zenoh-config", &cfg(who)]);
+        }
+        c.output().unwrap()
+    };
+    let o = at(
+        &["monitor", "--connect", &tls, "--print"],
+        "viewer-tls.json5",
+    );
+    let screen = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(screen.contains(&format!("bus {bus} at {tls}")), "{screen}");
+    let o = at(
+        &["fault", "kill", "observer", "--connect", &tls],
+        "viewer-tls.json5",
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("denied by its access control?"), "{err}");
+    let o = at(
+        &["fault", "kill", "observer", "--connect", &tls],
+        "operator-tls.json5",
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("supervisor: inject observer: kill"), "{err}");
+    let o = at(&["monitor", "--connect", &tcp, "--print"], "");
+    assert_eq!(o.status.code(), Some(1));
+    std::fs::write(
+        dir.join("nocert.json5"),
+        r#"{transport:{link:{tls:{root_ca_certificate:"certs/ca.pem"}}}}"#,
+    )
+    .unwrap();
+    let o = at(
+        &[
+            "monitor",
+            "--connect",
+            &tls,
+            "--print",
+            "--zenoh-config",
+            "nocert.json5",
+        ],
+        "",
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains(&format!("cannot connect to {tls}")), "{err}");
+    let d = wait(drive, Duration::from_secs(120), "the drive");
+    assert!(d.status.success(), "{}", String::from_utf8_lossy(&d.stderr));
+    assert_clean(&bus);
+    let s = summary(&dir.join("run"));
+    assert_eq!(s["faults"].as_array().unwrap().len(), 1, "{}", s["faults"]);
+    assert_eq!(s["bridge"]["faults_forwarded"], 1);
+}
