@@ -10,6 +10,10 @@
 #   scripts/cross.sh aarch64-unknown-linux-gnu           # i.MX 8, AM62, Zynq MPSoC, Pi 3/4/5
 #   scripts/cross.sh armv7-unknown-linux-gnueabihf       # 32-bit Cortex-A boards
 #   scripts/cross.sh aarch64-unknown-linux-gnu --features tui
+#   scripts/cross.sh aarch64-unknown-linux-gnu --features zenoh   # drivelab run --zenoh-listen
+#
+# The Zenoh bridge (cargo feature `zenoh`, docs/remote.md) is off here like the other
+# features; it builds ring (C) with the same cross compiler. drivelab-host never links it.
 #
 # The linker and the qemu runner of each target are in .cargo/config.toml.
 set -euo pipefail

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Installs what drivelab needs beyond the Rust toolchain, only if it is missing:
 # fontconfig headers and a TrueType font (plotters draws its labels with them), tmux
-# (the monitor's terminal test runs it) and rt-tests (cyclictest: `drivelab bench`
-# cross-checks its floor against it).
+# (the monitor's terminal test runs it), rt-tests (cyclictest: `drivelab bench`
+# cross-checks its floor against it) and openssl (the Zenoh TLS test's certificates).
 # Idempotent; changes no kernel setting.
 set -euo pipefail
 need=()
@@ -17,6 +17,8 @@ fi
 command -v tmux >/dev/null 2>&1 || need+=(tmux)
 # cyclictest, the reference latency tool, measures beside the bench's floor.
 command -v cyclictest >/dev/null 2>&1 || need+=(rt-tests)
+# openssl makes the certificates of the Zenoh TLS example (scripts/zenoh-certs.sh, tested).
+command -v openssl >/dev/null 2>&1 || need+=(openssl)
 if ! command -v cargo >/dev/null 2>&1; then
   echo "setup: cargo is not installed; install the Rust toolchain (rustup) first" >&2
   exit 1

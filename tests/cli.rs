@@ -69,6 +69,7 @@ fn help_texts() {
         "doctor",
         "observer-error",
         "cdm-design",
+        "record",
     ] {
         rewritten.push(snapshot(&format!("help-{cmd}"), &[cmd, "--help"]));
     }
@@ -78,7 +79,8 @@ fn help_texts() {
 #[test]
 fn every_help_has_an_example_and_units() {
     for cmd in [
-        "run", "bench", "fault", "clean", "monitor", "plot", "plant", "design", "compare", "doctor",
+        "run", "bench", "fault", "clean", "monitor", "plot", "plant", "design", "compare",
+        "doctor", "record",
     ] {
         let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
             .args([cmd, "--help"])

@@ -274,6 +274,7 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
         topology: topology.map(String::from),
         expect: Vec::new(),
         runner: None,
+        zenoh: None,
     };
     let r = launcher::run(&o)?;
     // CPU time: every stage's statistics carry its process's total; count each process once.
@@ -762,6 +763,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         topology: None,
         expect: Vec::new(),
         runner: None,
+        zenoh: None,
     })?;
     bar.inc(1);
     bar.set_message("in-process speed");

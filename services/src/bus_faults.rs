@@ -390,6 +390,7 @@ mod tests {
             topology: None,
             expect: Vec::new(),
             runner: None,
+            zenoh: None,
         };
         let topo = crate::launcher::resolve_topology(
             &mut sc,

@@ -318,6 +318,7 @@ fn run_case(c: &CampaignFile, case: &Case, a: &CampaignArgs, out: &Path) -> Case
             topology: c.topology.clone(),
             expect: c.expect.clone(),
             runner: None,
+            zenoh: None,
         };
         Ok(launcher::run(&o)?.summary)
     })();

@@ -19,4 +19,6 @@ pub mod launcher;
 pub mod monitor;
 pub mod observer_error;
 pub mod plotcmd;
+#[cfg(feature = "zenoh")]
+pub mod record;
 pub mod replay;

@@ -16,6 +16,22 @@ struct Cli {
     cmd: Cmd,
 }
 
+/// Which running drive `monitor` and `fault` address.
+#[derive(Debug, clap::Args)]
+struct DriveArgs {
+    /// Bus id of the running drive (printed by `drivelab run`, also in summary.json); with
+    /// --connect, picks one of several drives behind the endpoint.
+    #[arg(long, required_unless_present = "connect")]
+    bus: Option<String>,
+    /// A remote drive instead, through its Zenoh endpoint (tcp/HOST:PORT or tls/HOST:PORT;
+    /// the drive runs with --zenoh-listen).
+    #[arg(long, value_name = "ENDPOINT")]
+    connect: Option<String>,
+    /// With --connect: a Zenoh configuration file (JSON5) for TLS.
+    #[arg(long, value_name = "FILE", requires = "connect")]
+    zenoh_config: Option<PathBuf>,
+}
+
 #[derive(Debug, Subcommand)]
 enum Cmd {
     /// Run a scenario: start the processes of its topology (plant, observer, current-loop and
@@ -99,6 +115,64 @@ enum Cmd {
         /// the DRIVELAB_RUNNER environment variable.
         #[arg(long, value_name = "CMD")]
         runner: Option<String>,
+        /// Make the drive reachable from other machines over Zenoh: a bridge process (on a
+        /// core the drive does not use) listens on ENDPOINT, tcp/HOST:PORT or tls/HOST:PORT
+        /// (default tcp/127.0.0.1:7447: this machine only; tcp/0.0.0.0:7447 for every
+        /// interface). Off by default. See docs/remote.md.
+        #[arg(long, value_name = "ENDPOINT", num_args = 0..=1, default_missing_value = "tcp/127.0.0.1:7447")]
+        zenoh_listen: Option<String>,
+        /// With --zenoh-listen: let `drivelab fault --connect` kill or freeze this drive's
+        /// processes (refused otherwise).
+        #[arg(long, requires = "zenoh_listen")]
+        allow_remote_faults: bool,
+        /// With --zenoh-listen: the bus topics to forward, comma-separated, from meas, truth,
+        /// est, iref, cmd, wref, view, events (default truth,cmd,wref,view,events).
+        #[arg(long, value_name = "LIST", requires = "zenoh_listen")]
+        zenoh_topics: Option<String>,
+        /// With --zenoh-listen: a Zenoh configuration file (JSON5) for TLS and access
+        /// control; its mode and endpoints are replaced by drivelab's.
+        #[arg(long, value_name = "FILE", requires = "zenoh_listen")]
+        zenoh_config: Option<PathBuf>,
+    },
+    /// Record a remote drive (one started with --zenoh-listen) into a local run folder:
+    /// scenario.toml, trace.csv and summary.json with the missing samples and their causes,
+    /// as a local run's.
+    ///
+    /// Example:
+    ///   drivelab record --connect tcp/192.168.1.20:7447 --out runs/board --wait 30
+    #[command(verbatim_doc_comment)]
+    Record {
+        /// The drive's Zenoh endpoint (tcp/HOST:PORT or tls/HOST:PORT).
+        #[arg(long, value_name = "ENDPOINT")]
+        connect: String,
+        /// Run folder to write.
+        #[arg(long, value_name = "DIR")]
+        out: PathBuf,
+        /// Bus id of the drive (only when the endpoint serves several).
+        #[arg(long)]
+        bus: Option<String>,
+        /// Seconds to keep trying to connect while the drive is not up yet (0: one try).
+        #[arg(long, default_value_t = 0.0, value_name = "SECONDS")]
+        wait: f64,
+        /// Zenoh configuration file (JSON5) for TLS.
+        #[arg(long, value_name = "FILE")]
+        zenoh_config: Option<PathBuf>,
+    },
+    /// Internal: the Zenoh bridge of a drive (started by `drivelab run --zenoh-listen`).
+    #[command(hide = true)]
+    Bridge {
+        #[arg(long)]
+        bus: String,
+        #[arg(long)]
+        listen: String,
+        #[arg(long)]
+        run_dir: PathBuf,
+        #[arg(long)]
+        topics: String,
+        #[arg(long)]
+        zenoh_config: Option<PathBuf>,
+        #[arg(long)]
+        allow_remote_faults: bool,
     },
     /// Run a fault campaign: every scenario × fault set × seed of FILE.toml, each checked
     /// against the campaign's expectations and the scenarios' [[expect]] tables. Writes
@@ -117,6 +191,7 @@ enum Cmd {
     /// Examples:
     ///   drivelab fault kill current-loop --bus 4242
     ///   drivelab fault stop observer --bus 4242 --duration 0.05
+    ///   drivelab fault kill observer --connect tcp/192.168.1.20:7447
     #[command(verbatim_doc_comment)]
     Fault {
         /// kill (SIGKILL) or stop (SIGSTOP, then SIGCONT after --duration).
@@ -125,9 +200,9 @@ enum Cmd {
         /// The stage (plant, observer, current-loop, speed-loop or a user stage); its whole
         /// process is signalled.
         service: String,
-        /// Bus id of the running drive (printed by `drivelab run`, also in summary.json).
-        #[arg(long)]
-        bus: String,
+        /// The drive (a remote one must run with --allow-remote-faults).
+        #[command(flatten)]
+        drive: DriveArgs,
         /// For stop: seconds before SIGCONT (0.001 to 60).
         #[arg(long, default_value_t = 0.05, value_name = "SECONDS")]
         duration: f64,
@@ -143,11 +218,12 @@ enum Cmd {
     ///   drivelab run --bus 4242 --duration 60 &
     ///   drivelab monitor --bus 4242
     ///   drivelab monitor --bus 4242 --print        # one text frame on stdout, no terminal
+    ///   drivelab monitor --connect tcp/192.168.1.20:7447   # a drive run with --zenoh-listen
     #[command(verbatim_doc_comment)]
     Monitor {
-        /// Bus id of the running drive (`drivelab run --bus ID`; also in summary.json).
-        #[arg(long)]
-        bus: String,
+        /// The drive.
+        #[command(flatten)]
+        drive: DriveArgs,
         /// Screen refresh period, ms.
         #[arg(long, default_value_t = 100, value_name = "MS")]
         refresh_ms: u64,
@@ -396,6 +472,138 @@ fn fmt_opt(v: &serde_json::Value, unit: &str) -> String {
         .unwrap_or_else(|| "n/a".into())
 }
 
+/// A usage error: one line, exit code 2.
+fn usage(text: String) -> anyhow::Error {
+    drivelab_services::expect::UsageError(text).into()
+}
+
+/// Checks a Zenoh endpoint given to `flag` (a usage error names the problem).
+#[cfg(feature = "zenoh")]
+fn endpoint_arg(flag: &str, ep: &str, listen: bool) -> anyhow::Result<String> {
+    drivelab_bridge::link::check_endpoint(ep, listen).map_err(|e| usage(format!("{flag}: {e}")))
+}
+
+#[cfg(not(feature = "zenoh"))]
+fn endpoint_arg(flag: &str, _: &str, _: bool) -> anyhow::Result<String> {
+    Err(usage(format!(
+        "{flag}: this drivelab was built without Zenoh (cargo feature `zenoh`)"
+    )))
+}
+
+#[cfg(feature = "zenoh")]
+fn zenoh_topics_arg(list: &str) -> anyhow::Result<Vec<String>> {
+    drivelab_bridge::parse_topics(list).map_err(|e| usage(format!("--zenoh-topics: {e}")))
+}
+
+#[cfg(not(feature = "zenoh"))]
+fn zenoh_topics_arg(_: &str) -> anyhow::Result<Vec<String>> {
+    Ok(Vec::new())
+}
+
+#[cfg(feature = "zenoh")]
+fn default_zenoh_topics() -> Vec<String> {
+    drivelab_bridge::DEFAULT_TOPICS
+        .iter()
+        .map(|t| t.to_string())
+        .collect()
+}
+
+#[cfg(not(feature = "zenoh"))]
+fn default_zenoh_topics() -> Vec<String> {
+    Vec::new()
+}
+
+/// The drive of `monitor` and `fault`: a local bus or a remote endpoint.
+fn target(d: DriveArgs) -> anyhow::Result<drivelab_services::monitor::Target> {
+    use drivelab_services::monitor::Target;
+    let config = d.zenoh_config;
+    Ok(match (d.connect, d.bus) {
+        (Some(ep), bus) => Target::Remote {
+            endpoint: endpoint_arg("--connect", &ep, false)?,
+            bus,
+            config,
+        },
+        (None, Some(bus)) => {
+            drivelab_runtime::bus::check_bus_id(&bus)?;
+            Target::Bus(bus)
+        }
+        (None, None) => return Err(usage("give --bus ID or --connect ENDPOINT".into())),
+    })
+}
+
+#[cfg(feature = "zenoh")]
+fn record(
+    endpoint: String,
+    out: PathBuf,
+    bus: Option<String>,
+    wait: f64,
+    config: Option<PathBuf>,
+) -> anyhow::Result<()> {
+    let r = drivelab_services::record::record(&drivelab_services::record::RecordOptions {
+        endpoint: endpoint.clone(),
+        bus,
+        config,
+        out: out.clone(),
+        wait: std::time::Duration::from_secs_f64(wait),
+    })?;
+    let s = &r.summary;
+    drivelab_services::outln!(
+        "run folder: {} (bus {} at {endpoint})",
+        out.display(),
+        r.bus
+    );
+    drivelab_services::outln!(
+        "{} samples ({} expected), {} missing; deadline misses on the drive {}",
+        s["samples"],
+        s["samples_expected"],
+        s["samples_missing"],
+        s["deadline_misses"]
+    );
+    Ok(())
+}
+
+#[cfg(not(feature = "zenoh"))]
+fn record(
+    _: String,
+    _: PathBuf,
+    _: Option<String>,
+    _: f64,
+    _: Option<PathBuf>,
+) -> anyhow::Result<()> {
+    unreachable!("endpoint_arg refuses --connect without zenoh")
+}
+
+#[cfg(feature = "zenoh")]
+fn bridge(
+    bus: String,
+    listen: String,
+    run_dir: PathBuf,
+    topics: String,
+    config: Option<PathBuf>,
+    allow_remote_faults: bool,
+) -> anyhow::Result<()> {
+    drivelab_bridge::serve::serve(&drivelab_bridge::serve::ServeOptions {
+        bus,
+        listen,
+        config,
+        allow_remote_faults,
+        topics: drivelab_bridge::parse_topics(&topics).map_err(|e| anyhow::anyhow!(e))?,
+        run_dir,
+    })
+}
+
+#[cfg(not(feature = "zenoh"))]
+fn bridge(
+    _: String,
+    _: String,
+    _: PathBuf,
+    _: String,
+    _: Option<PathBuf>,
+    _: bool,
+) -> anyhow::Result<()> {
+    anyhow::bail!("this drivelab was built without Zenoh (cargo feature `zenoh`)")
+}
+
 fn real_main(cli: Cli) -> anyhow::Result<()> {
     use drivelab_services::expect::{Reported, EXIT_EXPECTATION_FAILED};
     match cli.cmd {
@@ -416,7 +624,24 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             topology,
             expect,
             runner,
+            zenoh_listen,
+            allow_remote_faults,
+            zenoh_topics,
+            zenoh_config,
         } => {
+            let zenoh = zenoh_listen
+                .map(|ep| -> anyhow::Result<launcher::ZenohListen> {
+                    Ok(launcher::ZenohListen {
+                        endpoint: endpoint_arg("--zenoh-listen", &ep, true)?,
+                        config: zenoh_config,
+                        allow_remote_faults,
+                        topics: match zenoh_topics {
+                            Some(t) => zenoh_topics_arg(&t)?,
+                            None => default_zenoh_topics(),
+                        },
+                    })
+                })
+                .transpose()?;
             let runner = runner
                 .map(|r| drivelab_runtime::runner::Runner::parse(&r))
                 .transpose()
@@ -442,6 +667,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 topology,
                 expect,
                 runner,
+                zenoh,
             };
             let r = launcher::run(&o)?;
             let failed = drivelab_services::expect::failed(&r.summary);
@@ -566,7 +792,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             Ok(())
         }
         Cmd::Monitor {
-            bus,
+            drive,
             refresh_ms,
             stop_ms,
             print,
@@ -590,13 +816,41 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 anyhow::bail!("--refresh-ms {refresh_ms} is out of range (10..10000 ms)");
             }
             drivelab_services::monitor::run(&drivelab_services::monitor::MonitorOptions {
-                bus,
+                target: target(drive)?,
                 refresh: std::time::Duration::from_millis(refresh_ms),
                 stop_ms,
                 print: size,
             })?;
             Ok(())
         }
+        Cmd::Record {
+            connect,
+            out,
+            bus,
+            wait,
+            zenoh_config,
+        } => {
+            let endpoint = endpoint_arg("--connect", &connect, false)?;
+            if !(0.0..=3600.0).contains(&wait) {
+                return Err(usage(format!("--wait {wait}: 0 to 3600 seconds")));
+            }
+            record(endpoint, out, bus, wait, zenoh_config)
+        }
+        Cmd::Bridge {
+            bus,
+            listen,
+            run_dir,
+            topics,
+            zenoh_config,
+            allow_remote_faults,
+        } => bridge(
+            bus,
+            listen,
+            run_dir,
+            topics,
+            zenoh_config,
+            allow_remote_faults,
+        ),
         Cmd::Clean { bus } => {
             drivelab_runtime::bus::check_bus_id(&bus)?;
             launcher::refuse_busy_bus(&bus)?;
@@ -616,10 +870,10 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
         Cmd::Fault {
             kind,
             service,
-            bus,
+            drive,
             duration,
         } => {
-            drivelab_runtime::bus::check_bus_id(&bus)?;
+            let target = target(drive)?;
             // Bounded before anything is sent, as in the monitor.
             use drivelab_services::faults::{STOP_MAX_S, STOP_MIN_S};
             if !(STOP_MIN_S..=STOP_MAX_S).contains(&duration) {
@@ -631,7 +885,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 drivelab_runtime::telemetry::FAULT_STOP
             };
             let stop_ms = (duration * 1000.0).round() as u32;
-            let done = drivelab_services::monitor::request_fault(&bus, kind, &service, stop_ms)?;
+            let done = drivelab_services::monitor::request_fault(&target, kind, &service, stop_ms)?;
             drivelab_services::errln!("supervisor: {done}");
             Ok(())
         }

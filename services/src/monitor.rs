@@ -34,8 +34,8 @@ use std::time::{Duration, Instant};
 /// Options of `drivelab monitor`.
 #[derive(Debug, Clone)]
 pub struct MonitorOptions {
-    /// Bus id of the drive.
-    pub bus: String,
+    /// Where the drive is.
+    pub target: Target,
     /// Screen refresh period.
     pub refresh: Duration,
     /// Freeze time of a stop fault, ms.
@@ -44,8 +44,25 @@ pub struct MonitorOptions {
     pub print: Option<(u16, u16)>,
 }
 
+/// Where a drive is: on this machine's bus, or behind its Zenoh bridge (`--connect`;
+/// docs/architecture.md, "Across machines (Zenoh)").
+#[derive(Debug, Clone)]
+pub enum Target {
+    /// The bus id of a drive on this machine.
+    Bus(String),
+    /// A drive started with `drivelab run --zenoh-listen`.
+    Remote {
+        /// Its bridge's endpoint, e.g. tcp/192.168.1.20:7447.
+        endpoint: String,
+        /// Its bus id, needed only when the bridge serves several drives.
+        bus: Option<String>,
+        /// Zenoh configuration file (TLS, access control).
+        config: Option<std::path::PathBuf>,
+    },
+}
+
 /// The monitor's ports on the bus.
-struct Attached {
+struct LocalPorts {
     view_rx: PlainReceiver<DriveView>,
     events_rx: PlainReceiver<EventEntry>,
     req_tx: PlainSender<FaultRequest>,
@@ -53,7 +70,102 @@ struct Attached {
     _node: Node<ipc::Service>,
 }
 
-fn attach(bus: &str) -> Result<Attached> {
+/// The monitor's subscriptions to a remote drive, and what it had missed when it attached.
+#[cfg(feature = "zenoh")]
+struct RemotePorts {
+    remote: drivelab_bridge::remote::Remote,
+    view: drivelab_bridge::remote::Feed<DriveView>,
+    events: drivelab_bridge::remote::Feed<EventEntry>,
+    missed_view: std::cell::Cell<Option<DriveView>>,
+    missed_events: std::cell::RefCell<std::collections::VecDeque<EventEntry>>,
+}
+
+/// A drive the monitor is attached to.
+enum Attached {
+    Local(Box<LocalPorts>),
+    #[cfg(feature = "zenoh")]
+    Remote(Box<RemotePorts>),
+}
+
+impl Attached {
+    /// The drive's bus id, with its endpoint when remote.
+    fn label(&self, target: &Target) -> String {
+        match (self, target) {
+            #[cfg(feature = "zenoh")]
+            (Attached::Remote(r), _) => format!("{} at {}", r.remote.bus(), r.remote.endpoint()),
+            (_, Target::Bus(b)) => b.clone(),
+            (_, Target::Remote { endpoint, .. }) => endpoint.clone(),
+        }
+    }
+
+    fn try_view(&self) -> Result<Option<DriveView>> {
+        match self {
+            Attached::Local(l) => l.view_rx.try_recv(),
+            #[cfg(feature = "zenoh")]
+            Attached::Remote(r) => match r.missed_view.take() {
+                Some(v) => Ok(Some(v)),
+                None => r.remote.next(&r.view),
+            },
+        }
+    }
+
+    fn try_event(&self) -> Result<Option<EventEntry>> {
+        match self {
+            Attached::Local(l) => l.events_rx.try_recv(),
+            #[cfg(feature = "zenoh")]
+            Attached::Remote(r) => match r.missed_events.borrow_mut().pop_front() {
+                Some(e) => Ok(Some(e)),
+                None => r.remote.next(&r.events),
+            },
+        }
+    }
+
+    /// Sends a fault request; a remote drive's refusal is the error.
+    fn send(&self, req: &FaultRequest) -> Result<()> {
+        match self {
+            Attached::Local(l) => l.req_tx.send(req),
+            #[cfg(feature = "zenoh")]
+            Attached::Remote(r) => r.remote.request_fault(req),
+        }
+    }
+}
+
+fn attach(target: &Target) -> Result<Attached> {
+    match target {
+        Target::Bus(bus) => attach_local(bus).map(|l| Attached::Local(Box::new(l))),
+        #[cfg(feature = "zenoh")]
+        Target::Remote {
+            endpoint,
+            bus,
+            config,
+        } => {
+            let remote = drivelab_bridge::remote::Remote::connect(
+                endpoint,
+                bus.as_deref(),
+                config.as_deref(),
+                Duration::ZERO,
+            )?;
+            // Subscribe first, then fetch what was missed: nothing falls in between (the
+            // log drops events it already has).
+            let view = remote.feed::<DriveView>()?;
+            let events = remote.feed::<EventEntry>()?;
+            let (missed_view, missed) = remote.catch_up()?;
+            Ok(Attached::Remote(Box::new(RemotePorts {
+                remote,
+                view,
+                events,
+                missed_view: std::cell::Cell::new(missed_view),
+                missed_events: std::cell::RefCell::new(missed.into()),
+            })))
+        }
+        #[cfg(not(feature = "zenoh"))]
+        Target::Remote { .. } => bail!(
+            "this drivelab was built without Zenoh (cargo feature `zenoh`); --connect needs it"
+        ),
+    }
+}
+
+fn attach_local(bus: &str) -> Result<LocalPorts> {
     drivelab_runtime::bus::check_bus_id(bus)?;
     // iceoryx2 must not write to the screen the UI owns.
     iceoryx2::prelude::set_log_level(LogLevel::Fatal);
@@ -65,11 +177,11 @@ fn attach(bus: &str) -> Result<Attached> {
         bail!("no drive on bus '{bus}': start one with `drivelab run --bus {bus}`");
     }
     let node = drivelab_runtime::bus::node(bus, "monitor")?;
-    let open = |node: Node<ipc::Service>| -> Result<Attached> {
+    let open = |node: Node<ipc::Service>| -> Result<LocalPorts> {
         let view = open_existing::<DriveView>(&node, TOPIC_VIEW)?;
         let events = open_existing::<EventEntry>(&node, TOPIC_EVENTS)?;
         let req = open_existing::<FaultRequest>(&node, TOPIC_FAULT_REQ)?;
-        Ok(Attached {
+        Ok(LocalPorts {
             view_rx: PlainReceiver::new(&view, 4)?,
             events_rx: PlainReceiver::new(&events, 64)?,
             req_tx: PlainSender::new(&req)?,
@@ -85,21 +197,22 @@ fn attach(bus: &str) -> Result<Attached> {
 /// `stop_ms`) the process of `stage`, as the monitor's `k` and `s` do, and waits for its
 /// answer. The supervisor signals its own child, so no other process can be hit, whatever
 /// its name or pid. Returns the supervisor's event text.
-pub fn request_fault(bus: &str, kind: u32, stage: &str, stop_ms: u32) -> Result<String> {
+pub fn request_fault(target: &Target, kind: u32, stage: &str, stop_ms: u32) -> Result<String> {
     if kind == FAULT_STOP && !(1..=60_000).contains(&stop_ms) {
         bail!("a stop lasts 1 ms to 60 s, not {stop_ms} ms");
     }
-    let a = attach(bus)?;
+    let a = attach(target)?;
+    let bus = a.label(target);
     let t = Instant::now();
     let answer_within = Duration::from_secs(3);
     // The drive's view names its stages; the event history tells which events are old.
     let mut view = None;
     let mut last_seq = None;
     while t.elapsed() < Duration::from_millis(300) || view.is_none() {
-        while let Some(v) = a.view_rx.try_recv()? {
+        while let Some(v) = a.try_view()? {
             view = Some(v);
         }
-        while let Some(e) = a.events_rx.try_recv()? {
+        while let Some(e) = a.try_event()? {
             last_seq = Some(e.seq);
         }
         if t.elapsed() > answer_within {
@@ -116,7 +229,7 @@ pub fn request_fault(bus: &str, kind: u32, stage: &str, stop_ms: u32) -> Result<
         );
     };
     let me = std::process::id();
-    a.req_tx.send(&FaultRequest {
+    a.send(&FaultRequest {
         kind,
         service: i as u32,
         stop_ms,
@@ -125,7 +238,7 @@ pub fn request_fault(bus: &str, kind: u32, stage: &str, stop_ms: u32) -> Result<
     let mine = format!("(from monitor pid {me})");
     let t = Instant::now();
     while t.elapsed() < answer_within {
-        while let Some(e) = a.events_rx.try_recv()? {
+        while let Some(e) = a.try_event()? {
             if last_seq.is_some_and(|s| e.seq <= s) {
                 continue;
             }
@@ -172,7 +285,10 @@ const NO_STATUS: &str = "–";
 impl Ui {
     fn new(o: &MonitorOptions) -> Self {
         Self {
-            bus: o.bus.clone(),
+            bus: match &o.target {
+                Target::Bus(b) => b.clone(),
+                Target::Remote { endpoint, .. } => endpoint.clone(),
+            },
             view: None,
             events: VecDeque::new(),
             selected: 0,
@@ -200,13 +316,13 @@ impl Ui {
 
     /// Takes everything new from the bus. Returns true when the drive has ended.
     fn pull(&mut self, a: &Attached) -> Result<bool> {
-        while let Some(e) = a.events_rx.try_recv()? {
+        while let Some(e) = a.try_event()? {
             self.log_event(e);
         }
         let mut end = false;
-        while let Some(v) = a.view_rx.try_recv()? {
+        while let Some(v) = a.try_view()? {
             if self.view.is_none() {
-                self.message = keep_off(v.rt_cores);
+                self.message = drivelab_runtime::rt::keep_off(v.rt_cores, "monitor");
             }
             end |= self.show(v);
         }
@@ -288,13 +404,17 @@ impl Ui {
         let Some(a) = a else {
             return Ok("not attached".into());
         };
-        a.req_tx.send(&FaultRequest {
+        let sent = a.send(&FaultRequest {
             kind,
             service: self.selected as u32,
             stop_ms: self.stop_ms,
             pid: std::process::id(),
-        })?;
-        Ok(format!("asked the supervisor to {}", self.fault_text(kind)))
+        });
+        Ok(match sent {
+            Ok(()) => format!("asked the supervisor to {}", self.fault_text(kind)),
+            // A remote drive's refusal is shown, not fatal.
+            Err(e) => format!("{e:#}"),
+        })
     }
 
     fn draw(&self, f: &mut Frame) {
@@ -618,36 +738,6 @@ impl Ui {
     }
 }
 
-#[cfg(feature = "tui")]
-/// Moves this process off the drive's real-time cores (when another core is left) and
-/// lowers its priority, so that drawing the screen competes with nothing the drive needs.
-/// Returns a note for the footer.
-fn keep_off(rt_cores: u64) -> String {
-    let n = drivelab_runtime::rt::online_cpus().min(64);
-    let free: Vec<usize> = (0..n).filter(|c| rt_cores & (1 << c) == 0).collect();
-    // SAFETY: setpriority on our own process (who = 0) only changes our nice value.
-    unsafe {
-        libc::setpriority(libc::PRIO_PROCESS, 0, 10);
-    }
-    if free.is_empty() {
-        return "every core runs the drive: the monitor shares them at nice 10".into();
-    }
-    // SAFETY: `set` is a zeroed cpu_set_t filled with CPU_SET for indices below 64 (within
-    // its 1024 bits); sched_setaffinity(0, ...) applies to the calling thread.
-    let rc = unsafe {
-        let mut set: libc::cpu_set_t = std::mem::zeroed();
-        for &c in &free {
-            libc::CPU_SET(c, &mut set);
-        }
-        libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set)
-    };
-    if rc == 0 {
-        format!("monitor on CPU {free:?}, nice 10")
-    } else {
-        "could not move the monitor off the drive's cores".into()
-    }
-}
-
 /// Without the terminal UI (the cross build): says so in one line.
 #[cfg(not(feature = "tui"))]
 pub fn run(_: &MonitorOptions) -> Result<()> {
@@ -663,8 +753,9 @@ pub fn run(o: &MonitorOptions) -> Result<()> {
     if o.stop_ms == 0 || o.stop_ms > 60_000 {
         bail!("--stop-ms {} is out of range (1..60000 ms)", o.stop_ms);
     }
-    let attached = attach(&o.bus)?;
+    let attached = attach(&o.target)?;
     let mut ui = Ui::new(o);
+    ui.bus = attached.label(&o.target);
     if let Some((w, h)) = o.print {
         return print_once(&mut ui, attached, w, h);
     }
@@ -752,7 +843,7 @@ mod tests {
 
     fn ui() -> Ui {
         Ui::new(&MonitorOptions {
-            bus: "b1".into(),
+            target: Target::Bus("b1".into()),
             refresh: Duration::from_millis(100),
             stop_ms: 20,
             print: None,
@@ -927,7 +1018,7 @@ mod tests {
     fn a_stop_beyond_a_minute_or_of_nothing_is_refused_before_attaching() {
         for stop_ms in [0, 60_001] {
             let o = MonitorOptions {
-                bus: "no-such-bus".into(),
+                target: Target::Bus("no-such-bus".into()),
                 refresh: Duration::from_millis(100),
                 stop_ms,
                 print: None,

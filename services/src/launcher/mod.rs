@@ -5,13 +5,15 @@
 //! the trace, [`supervisor`] injects faults and keeps the processes alive per [`policy`];
 //! this module resolves the topology, runs the whole and writes the summary.
 
+mod bridge;
 mod policy;
 mod recorder;
 mod spawn;
-mod stream;
+pub(crate) mod stream;
 mod supervisor;
 mod trip;
 
+pub use bridge::ZenohListen;
 pub use recorder::Gap;
 pub(crate) use spawn::die_with_launcher;
 pub use supervisor::{fault_reports, speed_recovered, EventKind, FaultReport, PlantDown, SupEvent};
@@ -88,6 +90,9 @@ pub struct RunOptions {
     /// A command put in front of every process the launcher starts (`--runner`); None: the
     /// `DRIVELAB_RUNNER` variable, if set (see `drivelab_runtime::runner`).
     pub runner: Option<drivelab_runtime::runner::Runner>,
+    /// Make the drive reachable over Zenoh (`--zenoh-listen`; docs/architecture.md,
+    /// "Across machines (Zenoh)").
+    pub zenoh: Option<ZenohListen>,
 }
 
 /// What the supervisor does when a service dies.
@@ -151,6 +156,8 @@ struct BusRun {
     failure: Option<String>,
     /// Cycle latencies around each hog's window.
     hog_latency: Vec<crate::faults::hog::WindowLatency>,
+    /// The Zenoh bridge, detached from the bus: it publishes the summary once written.
+    bridge: Option<bridge::Bridge>,
 }
 
 /// Runs the topology's processes on a bus and returns the recorder's data, the process info
@@ -225,6 +232,7 @@ fn run_bus(
         out,
     };
     let mut events: Vec<SupEvent> = Vec::new();
+    let mut bridge: Option<bridge::Bridge> = None;
     let result = (|| -> Result<(Vec<ChildProc>, Option<String>)> {
         ready_rx
             .recv()
@@ -232,6 +240,10 @@ fn run_bus(
         // The telemetry hub subscribes to the services' statuses before they start.
         let stage_names: Vec<String> = plan_topo.stages.iter().map(|s| s.name.clone()).collect();
         let mut hub = crate::hub::Hub::new(&bus_id, sc, clock == BusClock::Lockstep, &stage_names)?;
+        // The bridge subscribes (polled) before the stage hosts start, like the recorder.
+        if let Some(z) = &o.zenoh {
+            bridge = Some(bridge::Bridge::start(z, &bus_id, out, o.verbose)?);
+        }
         let mut children = Vec::new();
         for (i, p) in plan_topo.processes.iter().enumerate() {
             // `exec` paths were made absolute when the topology was resolved.
@@ -332,7 +344,7 @@ fn run_bus(
             failure,
         ))
     })();
-    let (mut children, failure) = match result {
+    let (mut children, mut failure) = match result {
         Ok(v) => v,
         Err(e) => (Vec::new(), Some(format!("{e:#}"))),
     };
@@ -341,6 +353,19 @@ fn run_bus(
     let rec = rec
         .join()
         .map_err(|_| anyhow!("recorder thread panicked"))?;
+    // The bridge forwards what is left and lets go of the bus before its files go.
+    let bridge_stats = match bridge.as_mut().map(|b| b.detach()) {
+        Some(Ok(s)) => Some(s),
+        Some(Err(e)) => {
+            // Killed, its bus files go with the rest; the run fails with the reason.
+            if let Some(mut b) = bridge.take() {
+                b.kill();
+            }
+            failure.get_or_insert(format!("{e:#}"));
+            None
+        }
+        None => None,
+    };
     bus::cleanup(&bus_id)?;
     // Whatever ended the run, what the recorder holds is written (the failure goes into the
     // summary and the exit code); only a recorder that failed itself has nothing to give.
@@ -384,12 +409,14 @@ fn run_bus(
         }
     }
     let mut info = json!({ "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "recorder_late": rec.late, "plan": plan, "plant_down_samples": rec.rebuilt });
+    if let Some(b) = bridge_stats {
+        info["bridge"] = b;
+    }
     if let Some(p) = counters.get("plant") {
         info["deadline_misses"] = p["deadline_misses"].clone();
         info["longest_miss_run"] = p["longest_miss_run"].clone();
     }
     let mut gaps = rec.gaps;
-    let mut failure = failure;
     let produced = counters
         .get("plant")
         .and_then(|p| p["samples"].as_u64())
@@ -411,6 +438,7 @@ fn run_bus(
         events,
         failure,
         hog_latency,
+        bridge,
     })
 }
 
@@ -600,6 +628,9 @@ fn describe(
 pub fn run(o: &RunOptions) -> Result<RunResult> {
     // The launcher stops on SIGINT/SIGTERM the same way the services do.
     crate::common::install_signal_handlers()?;
+    if o.zenoh.is_some() && o.clock == Clock::Inprocess {
+        bail!("--zenoh-listen needs a drive on a bus: use --clock realtime or lockstep");
+    }
     if let Some(b) = &o.bus {
         bus::check_bus_id(b)?;
         // Before the run folder is made: a busy bus leaves nothing behind.
@@ -665,6 +696,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         events,
         failure,
         hog_latency,
+        bridge,
     } = match o.clock {
         Clock::Inprocess => {
             if let Some(p) = topo.processes.iter().find(|p| p.exec.is_some()) {
@@ -683,6 +715,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
                 events: Vec::new(),
                 failure: None,
                 hog_latency: Vec::new(),
+                bridge: None,
             }
         }
         Clock::Lockstep | Clock::Realtime => {
@@ -799,6 +832,10 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         // Samples of the plant's downtimes, rebuilt (plant_flags bit 64).
         summary["plant_down_samples"] = r.clone();
     }
+    if let Some(b) = info.get("bridge") {
+        // What the Zenoh bridge forwarded, refused and rejected.
+        summary["bridge"] = b.clone();
+    }
     if let Some(r) = info.get("recorder_rejected") {
         // Messages the recorder could not place (an index beyond the run's samples).
         summary["recorder_rejected"] = r.clone();
@@ -859,6 +896,10 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         out.join("summary.json"),
         serde_json::to_vec_pretty(&summary)?,
     )?;
+    if let Some(b) = bridge {
+        // Remote recorders get the summary, then the bridge ends.
+        b.finish(&out.join("summary.json"))?;
+    }
     if let Some(f) = failure {
         bail!(
             "{f} (what was recorded is in {}: {} of {} samples)",

@@ -592,6 +592,36 @@ pub fn online_cpus() -> usize {
     }
 }
 
+/// Moves this process off the drive's real-time cores `rt_cores` (bit i = CPU i; when
+/// another core is left) and lowers its priority to nice 10, so that a tool beside the drive
+/// (the monitor, the Zenoh bridge) competes with nothing the drive needs. Call it before
+/// starting threads: they inherit both. Returns a note naming `who`.
+pub fn keep_off(rt_cores: u64, who: &str) -> String {
+    let n = online_cpus().min(64);
+    let free: Vec<usize> = (0..n).filter(|c| rt_cores & (1 << c) == 0).collect();
+    // SAFETY: setpriority on our own process (who = 0) only changes our nice value.
+    unsafe {
+        libc::setpriority(libc::PRIO_PROCESS, 0, 10);
+    }
+    if free.is_empty() {
+        return format!("every core runs the drive: the {who} shares them at nice 10");
+    }
+    // SAFETY: `set` is a zeroed cpu_set_t filled with CPU_SET for indices below 64 (within
+    // its 1024 bits); sched_setaffinity(0, ...) applies to the calling thread.
+    let rc = unsafe {
+        let mut set: libc::cpu_set_t = std::mem::zeroed();
+        for &c in &free {
+            libc::CPU_SET(c, &mut set);
+        }
+        libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set)
+    };
+    if rc == 0 {
+        format!("{who} on CPU {free:?}, nice 10")
+    } else {
+        format!("could not move the {who} off the drive's cores")
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

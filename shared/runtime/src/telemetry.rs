@@ -263,6 +263,9 @@ pub struct DriveView {
     pub scenario: [u8; NAME_LEN],
     /// Valid entries of `stage_names` and `services`.
     pub n_stages: u32,
+    /// Padding made explicit (zero): the view has no hidden bytes, so the Zenoh bridge can
+    /// send it as it is in memory.
+    pub reserved: u32,
     /// Stage names in the topology's order (process, then chain), NUL-padded UTF-8.
     pub stage_names: [[u8; STAGE_NAME_LEN]; MAX_STAGES],
     /// Per stage, in `stage_names` order.
@@ -295,6 +298,7 @@ impl Default for DriveView {
             rt_cores: 0,
             scenario: [0; NAME_LEN],
             n_stages: 0,
+            reserved: 0,
             stage_names: [[0; STAGE_NAME_LEN]; MAX_STAGES],
             services: [ServiceView::default(); MAX_STAGES],
             points: [TracePoint::default(); VIEW_POINTS],

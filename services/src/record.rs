@@ -1,0 +1,330 @@
+//! `drivelab record --connect ENDPOINT --out DIR`: records a remote drive (one started with
+//! `drivelab run --zenoh-listen`) into a local run folder: its scenario, `trace.csv` built
+//! by the same [`TraceStream`] as a local run's, and `summary.json`, the drive's own summary
+//! with this recording's trace figures and missing samples (docs/architecture.md, "Across
+//! machines (Zenoh)").
+//!
+//! It subscribes first, then fetches the bridge's history (the last 6.5 s at 10 kHz), so a
+//! recorder that joins early in a run misses nothing; samples older than that history, or
+//! lost on the way, are listed in `missing_samples` with their cause.
+
+use crate::launcher::stream::TraceStream;
+use crate::launcher::Gap;
+use anyhow::{anyhow, bail, Context, Result};
+use drivelab_bridge::codec::Wire;
+use drivelab_bridge::remote::{Feed, Remote};
+use drivelab_runtime::config::Scenario;
+use drivelab_runtime::messages::{PlantTruth, SpeedRef, VoltageCommand};
+use serde_json::json;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+/// Options of `drivelab record`.
+#[derive(Debug, Clone)]
+pub struct RecordOptions {
+    /// The drive's bridge.
+    pub endpoint: String,
+    /// Its bus id (needed only when the bridge serves several drives).
+    pub bus: Option<String>,
+    /// Zenoh configuration file (TLS, access control).
+    pub config: Option<PathBuf>,
+    /// The local run folder.
+    pub out: PathBuf,
+    /// How long to retry a refused connection (the drive not started yet).
+    pub wait: Duration,
+}
+
+/// What a recording produced.
+#[derive(Debug)]
+pub struct Recorded {
+    /// The bus id of the drive.
+    pub bus: String,
+    /// The summary as written.
+    pub summary: serde_json::Value,
+}
+
+/// After the drive's last sample, how long to wait for its summary (it draws its plots
+/// first).
+const SUMMARY_WAIT: Duration = Duration::from_secs(120);
+/// With no message for this long and no end seen, the drive is taken as gone.
+const SILENCE: Duration = Duration::from_secs(30);
+
+/// Feeds the messages of `feed` newer than `*last` to `take`; true when one ended the run.
+fn drain<T: Wire>(
+    remote: &Remote,
+    feed: &Feed<T>,
+    last: &mut Option<u64>,
+    mut take: impl FnMut(T) -> Result<()>,
+    hdr: impl Fn(&T) -> drivelab_runtime::messages::Header,
+) -> Result<(bool, usize)> {
+    let (mut ended, mut n) = (false, 0);
+    while let Some(m) = remote.next(feed)? {
+        n += 1;
+        let h = hdr(&m);
+        if h.is_warmup() {
+            continue;
+        }
+        if h.is_end() {
+            ended = true;
+            continue;
+        }
+        // The history and the live feed overlap: each sample once.
+        if last.is_some_and(|l| h.k <= l) {
+            continue;
+        }
+        *last = Some(h.k);
+        take(m)?;
+    }
+    Ok((ended, n))
+}
+
+/// Records the remote drive into `o.out`.
+pub fn record(o: &RecordOptions) -> Result<Recorded> {
+    crate::common::install_signal_handlers()?;
+    let remote = Remote::connect(&o.endpoint, o.bus.as_deref(), o.config.as_deref(), o.wait)?;
+    let toml_text = remote.scenario_toml()?;
+    let sc = Scenario::from_toml(&toml_text, "the remote drive's scenario")
+        .map_err(|e| anyhow!("the remote drive's scenario: {e}"))?;
+    std::fs::create_dir_all(&o.out)
+        .with_context(|| format!("cannot create run folder {}", o.out.display()))?;
+    std::fs::write(o.out.join("scenario.toml"), &toml_text)?;
+    // Subscribe, then fetch the history: nothing falls in between.
+    let truth = remote.feed::<PlantTruth>()?;
+    let cmd = remote.feed::<VoltageCommand>()?;
+    let wref = remote.feed::<SpeedRef>()?;
+    let summary_feed = remote.summary_feed()?;
+    let mut trace = TraceStream::new(
+        &sc,
+        Some(drivelab_runtime::trace::CsvTrace::create(
+            &o.out.join("trace.csv"),
+        )?),
+    )?;
+    let (mut last_truth, mut last_cmd) = (None, None);
+    let mut first_k = None;
+    for m in remote.history::<PlantTruth>()? {
+        if !m.hdr.is_warmup() && !m.hdr.is_end() && last_truth.is_none_or(|l| m.hdr.k > l) {
+            first_k.get_or_insert(m.hdr.k);
+            last_truth = Some(m.hdr.k);
+            trace.meas(m, Vec::new)?;
+        }
+    }
+    for c in remote.history::<VoltageCommand>()? {
+        if !c.hdr.is_warmup() && !c.hdr.is_end() && last_cmd.is_none_or(|l| c.hdr.k > l) {
+            last_cmd = Some(c.hdr.k);
+            trace.cmd(c)?;
+        }
+    }
+    for w in remote.history::<SpeedRef>()? {
+        if !w.hdr.is_warmup() && !w.hdr.is_end() {
+            trace.wref(w.hdr.k, w.theta_m_ref);
+        }
+    }
+    // Live samples only (not the history): published by the plant → decoded here, ns.
+    // CLOCK_MONOTONIC is one clock on one machine only: meaningful over localhost.
+    let mut hop_ns: Vec<u64> = Vec::new();
+    let (mut truth_end, mut cmd_end) = (false, false);
+    let mut last_wref = None;
+    let mut heard = Instant::now();
+    let mut ended_at: Option<Instant> = None;
+    let mut failure = None;
+    let summary = loop {
+        let (e1, n1) = drain(
+            &remote,
+            &truth,
+            &mut last_truth,
+            |m| {
+                first_k.get_or_insert(m.hdr.k);
+                if m.hdr.t_pub_ns > 0 {
+                    hop_ns.push(drivelab_runtime::rt::now_ns().saturating_sub(m.hdr.t_pub_ns));
+                }
+                trace.meas(m, Vec::new)
+            },
+            |m| m.hdr,
+        )?;
+        let (e2, n2) = drain(&remote, &cmd, &mut last_cmd, |c| trace.cmd(c), |c| c.hdr)?;
+        let (_, n3) = drain(
+            &remote,
+            &wref,
+            &mut last_wref,
+            |w| {
+                trace.wref(w.hdr.k, w.theta_m_ref);
+                Ok(())
+            },
+            |w| w.hdr,
+        )?;
+        truth_end |= e1;
+        cmd_end |= e2;
+        trace.advance()?;
+        if let Some(s) = Remote::take_summary(&summary_feed) {
+            break Some(s);
+        }
+        if n1 + n2 + n3 > 0 {
+            heard = Instant::now();
+        } else {
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        if truth_end && cmd_end {
+            let t = *ended_at.get_or_insert_with(Instant::now);
+            if t.elapsed() > SUMMARY_WAIT {
+                failure = Some(format!(
+                    "the drive ended but sent no summary within {SUMMARY_WAIT:?}"
+                ));
+                break None;
+            }
+        } else if heard.elapsed() > SILENCE {
+            failure = Some(format!(
+                "no data from the drive for {SILENCE:?} and no end: the drive or the link is gone"
+            ));
+            break None;
+        }
+        if crate::common::stop_requested() {
+            failure = Some("interrupted".into());
+            break None;
+        }
+    };
+    let t = trace.finish()?;
+    let mut s: serde_json::Value = match &summary {
+        Some(text) => serde_json::from_str(text)
+            .map_err(|e| anyhow!("the drive's summary is not JSON: {e}"))?,
+        None => json!({ "scenario": sc.name, "rate_hz": sc.rates.sample_hz }),
+    };
+    let gaps = remote_gaps(t.gaps, first_k, &drive_gaps(&s), summary.is_some());
+    if let Some(m) = s.as_object_mut() {
+        // Its plots stay in the drive's own run folder.
+        m.remove("plots");
+        let drive_gaps = m.remove("missing_samples").unwrap_or(json!([]));
+        m.insert("drive_missing_samples".into(), drive_gaps);
+    }
+    let missing: u64 = gaps
+        .iter()
+        .filter(|g| g.part == "measurement")
+        .map(|g| g.to + 1 - g.from)
+        .sum();
+    s["samples"] = json!(t.stats.rows);
+    s["samples_expected"] = json!(sc.samples());
+    s["samples_missing"] = json!(missing);
+    s["trace"] = serde_json::to_value(t.stats)?;
+    s["missing_samples"] = serde_json::to_value(&gaps)?;
+    s["record"] = json!({
+        "endpoint": remote.endpoint(),
+        "bus": remote.bus(),
+        "first_sample": first_k,
+        "rejected_frames": remote.rejected(),
+        "late_messages": t.late,
+        "drive_summary": summary.is_some(),
+        "failure": failure,
+        "live_samples": hop_ns.len(),
+        "published_to_recorded_us": percentiles_us(&mut hop_ns),
+    });
+    std::fs::write(o.out.join("summary.json"), serde_json::to_vec_pretty(&s)?)?;
+    let bus = remote.bus().to_string();
+    remote.close()?;
+    if let Some(f) = failure {
+        bail!(
+            "{f} (what was recorded is in {}: {} of {} samples)",
+            o.out.display(),
+            t.stats.rows,
+            sc.samples()
+        );
+    }
+    Ok(Recorded { bus, summary: s })
+}
+
+/// p50, p99, p99.9 and max of `v` (ns) in µs; null when empty.
+fn percentiles_us(v: &mut [u64]) -> serde_json::Value {
+    if v.is_empty() {
+        return serde_json::Value::Null;
+    }
+    v.sort_unstable();
+    let at = |q: f64| v[((q * v.len() as f64).ceil() as usize).clamp(1, v.len()) - 1] as f64 / 1e3;
+    json!({ "p50": at(0.5), "p99": at(0.99), "p99_9": at(0.999), "max": at(1.0) })
+}
+
+/// The drive's own missing samples from its summary: (from, to, part, cause).
+fn drive_gaps(summary: &serde_json::Value) -> Vec<(u64, u64, String, String)> {
+    summary["missing_samples"]
+        .as_array()
+        .map(|a| {
+            a.iter()
+                .filter_map(|g| {
+                    Some((
+                        g["from"].as_u64()?,
+                        g["to"].as_u64()?,
+                        g["part"].as_str()?.to_string(),
+                        g["cause"].as_str()?.to_string(),
+                    ))
+                })
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
+/// The causes of a remote recording's gaps: before its first sample, the samples were never
+/// offered to it (older than the bridge's history); a gap the drive's own trace has too
+/// keeps the drive's cause; any other was lost between the drive and this recorder (only
+/// known when the drive's summary, `have_drive`, arrived).
+fn remote_gaps(
+    mut gaps: Vec<Gap>,
+    first_k: Option<u64>,
+    drive: &[(u64, u64, String, String)],
+    have_drive: bool,
+) -> Vec<Gap> {
+    for g in gaps.iter_mut() {
+        let theirs = drive
+            .iter()
+            .find(|(from, to, part, _)| part == g.part && *from <= g.from && g.from <= *to);
+        if first_k.is_none_or(|f| g.to < f) {
+            g.cause = "before the remote recorder's first sample (older than the bridge's history)"
+                .into();
+        } else if let Some((.., cause)) = theirs {
+            g.cause = cause.clone();
+        } else if have_drive {
+            g.cause = "lost between the drive and the remote recorder (the bridge's bus buffer overflowed or the link dropped it)".into();
+        }
+    }
+    gaps
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gaps_before_the_first_sample_were_never_offered_and_later_ones_were_lost() {
+        let g = |from, to, cause: &str| Gap {
+            from,
+            to,
+            part: "measurement",
+            cause: cause.into(),
+        };
+        let lost = "measurement lost between plant and recorder (recorder buffer overflow)";
+        let stopped = "the plant stopped before this sample";
+        // The drive itself lacks 900..999 (its plant stopped), not 150..151.
+        let drive = [(
+            900,
+            999,
+            "measurement".to_string(),
+            "plant kill at sample 900".to_string(),
+        )];
+        let out = remote_gaps(
+            vec![g(0, 99, lost), g(150, 151, lost), g(900, 999, stopped)],
+            Some(100),
+            &drive,
+            true,
+        );
+        assert!(out[0]
+            .cause
+            .starts_with("before the remote recorder's first sample"));
+        assert!(out[1]
+            .cause
+            .starts_with("lost between the drive and the remote recorder"));
+        assert_eq!(out[2].cause, "plant kill at sample 900");
+        // Without the drive's summary, nothing is known beyond the recorder's own view.
+        let out = remote_gaps(vec![g(150, 151, lost)], Some(100), &[], false);
+        assert_eq!(out[0].cause, lost);
+        let none = remote_gaps(vec![g(0, 9, stopped)], None, &[], true);
+        assert!(none[0]
+            .cause
+            .starts_with("before the remote recorder's first sample"));
+    }
+}

@@ -1,0 +1,215 @@
+//! Endpoints and Zenoh sessions: the drive's bridge listens (a Zenoh peer), the remote
+//! tools connect (Zenoh clients). Multicast scouting and gossip are off on both sides, so a
+//! session reaches exactly the endpoint it was given and announces itself to nobody.
+
+use anyhow::{anyhow, Result};
+use std::path::Path;
+use zenoh::Wait;
+
+/// Port of `drivelab run --zenoh-listen` without an endpoint (Zenoh's own default port).
+pub const DEFAULT_PORT: u16 = 7447;
+/// Endpoint of `drivelab run --zenoh-listen` without an endpoint: this machine only.
+pub const DEFAULT_LISTEN: &str = "tcp/127.0.0.1:7447";
+
+/// Checks an endpoint of the form `tcp/HOST:PORT` or `tls/HOST:PORT` (HOST a name, an IPv4
+/// address or a bracketed IPv6 address; PORT 1-65535 for a connection, 0-65535 for a
+/// listener, 0 meaning any free port). Returns it unchanged, or a one-line error naming the
+/// problem.
+pub fn check_endpoint(ep: &str, listen: bool) -> Result<String, String> {
+    let (proto, addr) = ep.split_once('/').ok_or_else(|| {
+        format!("endpoint '{ep}' must be PROTOCOL/HOST:PORT, e.g. {DEFAULT_LISTEN}")
+    })?;
+    if !matches!(proto, "tcp" | "tls") {
+        return Err(format!(
+            "endpoint '{ep}': protocol '{proto}' is not built in (tcp or tls)"
+        ));
+    }
+    let (host, port) = addr
+        .rsplit_once(':')
+        .ok_or_else(|| format!("endpoint '{ep}' has no port (PROTOCOL/HOST:PORT)"))?;
+    let port: u16 = port
+        .parse()
+        .map_err(|_| format!("endpoint '{ep}': port '{port}' is not a number from 0 to 65535"))?;
+    if port == 0 && !listen {
+        return Err(format!("endpoint '{ep}': port 0 can only listen"));
+    }
+    let host_ok = if let Some(v6) = host.strip_prefix('[').and_then(|h| h.strip_suffix(']')) {
+        v6.parse::<std::net::Ipv6Addr>().is_ok()
+    } else {
+        !host.is_empty()
+            && host
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '.' || c == '-')
+    };
+    if !host_ok {
+        return Err(format!(
+            "endpoint '{ep}': '{host}' is not a host name or address"
+        ));
+    }
+    ep.parse::<zenoh::config::EndPoint>()
+        .map_err(|e| format!("endpoint '{ep}': {e}"))?;
+    Ok(ep.to_string())
+}
+
+/// Which side of a link a session is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Side {
+    /// The drive's bridge: a Zenoh peer listening on the endpoint.
+    Listen,
+    /// A remote tool: a Zenoh client connecting to the endpoint.
+    Connect,
+}
+
+/// The Zenoh configuration of one side: `file` (a Zenoh JSON5 configuration, for TLS and
+/// access control; see docs/remote.md) if given, else Zenoh's defaults; then the mode, the
+/// endpoint and no scouting.
+pub fn config(side: Side, endpoint: &str, file: Option<&Path>) -> Result<zenoh::Config> {
+    let mut c = match file {
+        Some(p) => {
+            zenoh::Config::from_file(p).map_err(|e| anyhow!("zenoh config {}: {e}", p.display()))?
+        }
+        None => zenoh::Config::default(),
+    };
+    let set = |c: &mut zenoh::Config, key: &str, value: &str| {
+        c.insert_json5(key, value)
+            .map_err(|e| anyhow!("zenoh config {key}: {e}"))
+    };
+    let eps = format!("[\"{endpoint}\"]");
+    match side {
+        Side::Listen => {
+            set(&mut c, "mode", "\"peer\"")?;
+            set(&mut c, "listen/endpoints", &eps)?;
+            set(&mut c, "connect/endpoints", "[]")?;
+        }
+        Side::Connect => {
+            set(&mut c, "mode", "\"client\"")?;
+            set(&mut c, "connect/endpoints", &eps)?;
+            set(&mut c, "listen/endpoints", "[]")?;
+        }
+    }
+    set(&mut c, "scouting/multicast/enabled", "false")?;
+    set(&mut c, "scouting/gossip/enabled", "false")?;
+    Ok(c)
+}
+
+/// Opens a session; the error names the endpoint and Zenoh's reason on one line.
+pub fn open(side: Side, endpoint: &str, file: Option<&Path>) -> Result<zenoh::Session> {
+    let c = config(side, endpoint, file)?;
+    zenoh::open(c).wait().map_err(|e| {
+        let what = match side {
+            Side::Listen => "listen on",
+            Side::Connect => "connect to",
+        };
+        anyhow!("cannot {what} {endpoint}: {}", tidy(&e.to_string()))
+    })
+}
+
+/// Zenoh's error text on one line, without the source locations it appends (" at
+/// /path/file.rs:12.") and the brackets around nested errors.
+pub fn tidy(text: &str) -> String {
+    let mut out = String::new();
+    let mut rest = text;
+    while let Some(i) = rest.find(" at /") {
+        out.push_str(&rest[..i]);
+        let tail = &rest[i + 4..];
+        // The location ends at ".rs:LINE" and an optional '.'.
+        match tail.find(".rs:") {
+            Some(j) => {
+                let after = &tail[j + 4..];
+                let digits = after
+                    .find(|c: char| !c.is_ascii_digit())
+                    .unwrap_or(after.len());
+                rest = after[digits..]
+                    .strip_prefix('.')
+                    .unwrap_or(&after[digits..]);
+            }
+            None => {
+                out.push_str(" at ");
+                rest = tail;
+            }
+        }
+    }
+    out.push_str(rest);
+    let out = out.replace(['\n', '[', ']'], " ");
+    out.split_whitespace().collect::<Vec<_>>().join(" ")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn endpoints_are_checked_with_one_line_errors() {
+        for ok in [
+            "tcp/127.0.0.1:7447",
+            "tcp/[::1]:7447",
+            "tls/drive-1.lab:7447",
+            "tcp/0.0.0.0:0",
+        ] {
+            assert_eq!(check_endpoint(ok, true).as_deref(), Ok(ok));
+        }
+        let err = |ep: &str, listen| check_endpoint(ep, listen).unwrap_err();
+        assert_eq!(
+            err("127.0.0.1:7447", true),
+            "endpoint '127.0.0.1:7447' must be PROTOCOL/HOST:PORT, e.g. tcp/127.0.0.1:7447"
+        );
+        assert_eq!(
+            err("udp/127.0.0.1:7447", true),
+            "endpoint 'udp/127.0.0.1:7447': protocol 'udp' is not built in (tcp or tls)"
+        );
+        assert_eq!(
+            err("tcp/127.0.0.1", true),
+            "endpoint 'tcp/127.0.0.1' has no port (PROTOCOL/HOST:PORT)"
+        );
+        assert_eq!(
+            err("tcp/127.0.0.1:99999", true),
+            "endpoint 'tcp/127.0.0.1:99999': port '99999' is not a number from 0 to 65535"
+        );
+        assert_eq!(
+            err("tcp/127.0.0.1:0", false),
+            "endpoint 'tcp/127.0.0.1:0': port 0 can only listen"
+        );
+        assert_eq!(
+            err("tcp/bad host:1", false),
+            "endpoint 'tcp/bad host:1': 'bad host' is not a host name or address"
+        );
+        assert!(err("tcp/[::zz]:1", false).contains("is not a host name"));
+        for e in ["", "tcp/", "tcp/:7447"] {
+            assert!(!err(e, true).contains('\n'), "{e}");
+        }
+    }
+
+    #[test]
+    fn zenoh_errors_lose_their_source_locations() {
+        let e = "Can not create a new TCP listener bound to tcp/127.0.0.1:40359: [127.0.0.1:40359: Address already in use (os error 98) at /root/.cargo/registry/src/x/zenoh-link-commons-1.10.2/src/tcp.rs:61.] at /root/y/unicast.rs:338.";
+        assert_eq!(
+            tidy(e),
+            "Can not create a new TCP listener bound to tcp/127.0.0.1:40359: 127.0.0.1:40359: Address already in use (os error 98)"
+        );
+        assert_eq!(
+            tidy("Unable to connect to any of [Single(tcp/127.0.0.1:1)]!  at /a/orchestrator.rs:447."),
+            "Unable to connect to any of Single(tcp/127.0.0.1:1) !"
+        );
+    }
+
+    #[test]
+    fn a_listener_is_a_peer_and_a_connector_a_client_without_scouting() {
+        let c = config(Side::Listen, DEFAULT_LISTEN, None).unwrap();
+        assert_eq!(c.get_json("mode").unwrap(), "\"peer\"");
+        assert_eq!(
+            c.get_json("listen/endpoints").unwrap().replace(' ', ""),
+            "[\"tcp/127.0.0.1:7447\"]"
+        );
+        assert_eq!(c.get_json("scouting/multicast/enabled").unwrap(), "false");
+        let c = config(Side::Connect, "tcp/10.0.0.2:7447", None).unwrap();
+        assert_eq!(c.get_json("mode").unwrap(), "\"client\"");
+        let e = config(
+            Side::Connect,
+            "tcp/10.0.0.2:7447",
+            Some(Path::new("/no/such.json5")),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.starts_with("zenoh config /no/such.json5:"), "{e}");
+    }
+}
