@@ -20,7 +20,6 @@ use crate::link::{self, Side};
 use anyhow::{anyhow, bail, Context, Result};
 use drivelab_runtime::bus::{self, DriveTopics, MAX_BUFFER};
 use drivelab_runtime::config::Scenario;
-use drivelab_runtime::messages::{PlantTruth, SpeedRef, VoltageCommand};
 use drivelab_runtime::telemetry::{self as tm, DriveView, EventEntry, FaultRequest};
 use iceoryx2::prelude::*;
 use std::collections::VecDeque;
@@ -290,70 +289,23 @@ fn attach(o: &ServeOptions, sc: &Scenario, session: &zenoh::Session) -> Result<B
     let mut plain: Vec<Box<dyn std::any::Any>> = Vec::new();
     let want = |t: &str| o.topics.iter().any(|x| x == t);
     let b = o.bus.as_str();
-    // Polled receivers only: a listener would cost the real-time senders a wake-up.
-    if want("meas") {
-        pumps.push(forward(
-            session,
-            b,
-            topics.meas.polled_receiver(MAX_BUFFER)?,
-            0,
-            false,
-            never,
-        )?);
+    // Polled receivers only: a listener would cost the real-time senders a wake-up. The
+    // plant's truth and the command (the trace's parts) and the outer reference keep a
+    // history for a late recorder; the rest only their live stream.
+    macro_rules! drive_topic {
+        ($name:literal, $field:ident, $keep:expr) => {
+            if want($name) {
+                let rx = topics.$field.polled_receiver(MAX_BUFFER)?;
+                pumps.push(forward(session, b, rx, $keep, false, never)?);
+            }
+        };
     }
-    if want("truth") {
-        let rx = topics.truth.polled_receiver(MAX_BUFFER)?;
-        pumps.push(forward::<PlantTruth, _>(
-            session,
-            b,
-            rx,
-            HISTORY_MAX,
-            false,
-            never,
-        )?);
-    }
-    if want("est") {
-        pumps.push(forward(
-            session,
-            b,
-            topics.est.polled_receiver(MAX_BUFFER)?,
-            0,
-            false,
-            never,
-        )?);
-    }
-    if want("iref") {
-        pumps.push(forward(
-            session,
-            b,
-            topics.iref.polled_receiver(MAX_BUFFER)?,
-            0,
-            false,
-            never,
-        )?);
-    }
-    if want("cmd") {
-        let rx = topics.cmd.polled_receiver(MAX_BUFFER)?;
-        pumps.push(forward::<VoltageCommand, _>(
-            session,
-            b,
-            rx,
-            HISTORY_MAX,
-            false,
-            never,
-        )?);
-    }
-    if want("wref") {
-        let rx = topics.wref.polled_receiver(MAX_BUFFER)?;
-        pumps.push(forward::<SpeedRef, _>(
-            session,
-            b,
-            rx,
-            HISTORY_MAX,
-            false,
-            never,
-        )?);
-    }
+    drive_topic!("meas", meas, 0);
+    drive_topic!("truth", truth, HISTORY_MAX);
+    drive_topic!("est", est, 0);
+    drive_topic!("iref", iref, 0);
+    drive_topic!("cmd", cmd, HISTORY_MAX);
+    drive_topic!("wref", wref, HISTORY_MAX);
     // The supervisor's telemetry exists before the bridge starts (the launcher made it).
     if want("view") {
         let t = tm::open_existing::<DriveView>(&node, tm::TOPIC_VIEW)?;
