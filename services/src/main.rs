@@ -131,8 +131,20 @@ enum Cmd {
         zenoh_topics: Option<String>,
         /// With --zenoh-listen: a Zenoh configuration file (JSON5) for TLS and access
         /// control; its mode and endpoints are replaced by drivelab's.
-        #[arg(long, value_name = "FILE", requires = "zenoh_listen")]
+        #[arg(long, value_name = "FILE")]
         zenoh_config: Option<PathBuf>,
+        /// Run only machine NAME's processes of a split topology (one whose processes name
+        /// a `machine`); the other machine runs the rest, joined over Zenoh: one side with
+        /// --zenoh-listen, the other with --zenoh-connect. See docs/remote.md.
+        #[arg(long, value_name = "NAME")]
+        machine: Option<String>,
+        /// With --machine: join the other machine's drive, started with --machine and
+        /// --zenoh-listen, at ENDPOINT (tcp/HOST:PORT or tls/HOST:PORT).
+        #[arg(long, value_name = "ENDPOINT", requires = "machine", conflicts_with = "zenoh_listen")]
+        zenoh_connect: Option<String>,
+        /// With --machine: seconds to wait for the other machine to connect and be ready.
+        #[arg(long, value_name = "SECONDS", default_value_t = 120.0, requires = "machine")]
+        zenoh_wait: f64,
     },
     /// Record a remote drive (one started with --zenoh-listen) into a local run folder:
     /// scenario.toml, trace.csv and summary.json with the missing samples and their causes,
@@ -173,6 +185,14 @@ enum Cmd {
         zenoh_config: Option<PathBuf>,
         #[arg(long)]
         allow_remote_faults: bool,
+        #[arg(long)]
+        connect: bool,
+        #[arg(long)]
+        machine: Option<String>,
+        #[arg(long)]
+        clock: Option<String>,
+        #[arg(long, default_value_t = 120.0)]
+        wait_s: f64,
     },
     /// Run a fault campaign: every scenario × fault set × seed of FILE.toml, each checked
     /// against the campaign's expectations and the scenarios' [[expect]] tables. Writes
@@ -573,34 +593,36 @@ fn record(
     unreachable!("endpoint_arg refuses --connect without zenoh")
 }
 
-#[cfg(feature = "zenoh")]
-fn bridge(
+/// The internal `drivelab bridge` command's options, as the launcher passes them.
+struct BridgeArgs {
     bus: String,
     listen: String,
     run_dir: PathBuf,
     topics: String,
     config: Option<PathBuf>,
     allow_remote_faults: bool,
-) -> anyhow::Result<()> {
+    connect: bool,
+    split: Option<(String, String)>,
+    wait_s: f64,
+}
+
+#[cfg(feature = "zenoh")]
+fn bridge(a: BridgeArgs) -> anyhow::Result<()> {
     drivelab_bridge::serve::serve(&drivelab_bridge::serve::ServeOptions {
-        bus,
-        listen,
-        config,
-        allow_remote_faults,
-        topics: drivelab_bridge::parse_topics(&topics).map_err(|e| anyhow::anyhow!(e))?,
-        run_dir,
+        bus: a.bus,
+        listen: a.listen,
+        config: a.config,
+        allow_remote_faults: a.allow_remote_faults,
+        topics: drivelab_bridge::parse_topics(&a.topics).map_err(|e| anyhow::anyhow!(e))?,
+        run_dir: a.run_dir,
+        connect: a.connect,
+        split: a.split,
+        wait: std::time::Duration::from_secs_f64(a.wait_s),
     })
 }
 
 #[cfg(not(feature = "zenoh"))]
-fn bridge(
-    _: String,
-    _: String,
-    _: PathBuf,
-    _: String,
-    _: Option<PathBuf>,
-    _: bool,
-) -> anyhow::Result<()> {
+fn bridge(_: BridgeArgs) -> anyhow::Result<()> {
     anyhow::bail!("this drivelab was built without Zenoh (cargo feature `zenoh`)")
 }
 
@@ -628,17 +650,41 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             allow_remote_faults,
             zenoh_topics,
             zenoh_config,
+            machine,
+            zenoh_connect,
+            zenoh_wait,
         } => {
-            let zenoh = zenoh_listen
-                .map(|ep| -> anyhow::Result<launcher::ZenohListen> {
+            if zenoh_config.is_some() && zenoh_listen.is_none() && zenoh_connect.is_none() {
+                return Err(usage(
+                    "--zenoh-config needs --zenoh-listen or --zenoh-connect".into(),
+                ));
+            }
+            if machine.is_some() && zenoh_listen.is_none() && zenoh_connect.is_none() {
+                return Err(usage(
+                    "--machine needs --zenoh-listen (this side listens) or --zenoh-connect ENDPOINT (this side joins the other)".into(),
+                ));
+            }
+            if !(1.0..=3600.0).contains(&zenoh_wait) {
+                return Err(usage(format!("--zenoh-wait {zenoh_wait}: 1 to 3600 seconds")));
+            }
+            let endpoint = match (zenoh_listen, zenoh_connect) {
+                (Some(ep), _) => Some((endpoint_arg("--zenoh-listen", &ep, true)?, false)),
+                (None, Some(ep)) => Some((endpoint_arg("--zenoh-connect", &ep, false)?, true)),
+                (None, None) => None,
+            };
+            let zenoh = endpoint
+                .map(|(endpoint, connect)| -> anyhow::Result<launcher::ZenohListen> {
                     Ok(launcher::ZenohListen {
-                        endpoint: endpoint_arg("--zenoh-listen", &ep, true)?,
+                        endpoint,
                         config: zenoh_config,
                         allow_remote_faults,
                         topics: match zenoh_topics {
                             Some(t) => zenoh_topics_arg(&t)?,
                             None => default_zenoh_topics(),
                         },
+                        connect,
+                        machine,
+                        wait: std::time::Duration::from_secs_f64(zenoh_wait),
                     })
                 })
                 .transpose()?;
@@ -843,14 +889,21 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             topics,
             zenoh_config,
             allow_remote_faults,
-        } => bridge(
+            connect,
+            machine,
+            clock,
+            wait_s,
+        } => bridge(BridgeArgs {
             bus,
             listen,
             run_dir,
             topics,
-            zenoh_config,
+            config: zenoh_config,
             allow_remote_faults,
-        ),
+            connect,
+            split: machine.zip(clock),
+            wait_s,
+        }),
         Cmd::Clean { bus } => {
             drivelab_runtime::bus::check_bus_id(&bus)?;
             launcher::refuse_busy_bus(&bus)?;

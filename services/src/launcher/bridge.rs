@@ -23,6 +23,13 @@ pub struct ZenohListen {
     pub allow_remote_faults: bool,
     /// Topics to forward (short names).
     pub topics: Vec<String>,
+    /// Connect to `endpoint` instead of listening there (`--zenoh-connect`: the side of a
+    /// split drive that joins the other).
+    pub connect: bool,
+    /// This machine of a split topology (`--machine`): only its processes run here.
+    pub machine: Option<String>,
+    /// A split drive: how long to wait for the other machine (`--zenoh-wait`).
+    pub wait: Duration,
 }
 
 /// The running bridge.
@@ -37,7 +44,13 @@ const ANSWER: Duration = Duration::from_secs(10);
 
 impl Bridge {
     /// Starts the bridge of bus `bus` for the run in `out` and waits until it listens.
-    pub fn start(z: &ZenohListen, bus: &str, out: &Path, verbose: bool) -> Result<Self> {
+    pub fn start(
+        z: &ZenohListen,
+        bus: &str,
+        out: &Path,
+        clock: &str,
+        verbose: bool,
+    ) -> Result<Self> {
         let exe = std::env::current_exe().context("cannot find the drivelab executable")?;
         let mut cmd = Command::new(exe);
         cmd.arg("bridge")
@@ -54,6 +67,17 @@ impl Bridge {
         }
         if z.allow_remote_faults {
             cmd.arg("--allow-remote-faults");
+        }
+        if z.connect {
+            cmd.arg("--connect");
+        }
+        if let Some(m) = &z.machine {
+            cmd.arg("--machine")
+                .arg(m)
+                .arg("--clock")
+                .arg(clock)
+                .arg("--wait-s")
+                .arg(z.wait.as_secs_f64().to_string());
         }
         cmd.stdin(Stdio::piped())
             .stdout(Stdio::piped())
@@ -85,7 +109,16 @@ impl Bridge {
             child,
             lines,
         };
-        let ready = b.answer("ready");
+        // The joining side of a split drive retries its connection and then asks the other
+        // side for its scenario.
+        let ready = b.answer_within(
+            "ready",
+            if z.connect {
+                ANSWER + z.wait * 2
+            } else {
+                ANSWER
+            },
+        );
         let mut early: Vec<String> = errors.try_iter().collect();
         if ready.is_err() {
             b.kill();
@@ -129,7 +162,11 @@ impl Bridge {
 
     /// Waits for the line that starts with `word`; returns the rest of it.
     fn answer(&mut self, word: &str) -> Result<String> {
-        match self.lines.recv_timeout(ANSWER) {
+        self.answer_within(word, ANSWER)
+    }
+
+    fn answer_within(&mut self, word: &str, within: Duration) -> Result<String> {
+        match self.lines.recv_timeout(within) {
             Ok(line) if line.split(' ').next() == Some(word) => {
                 Ok(line[word.len()..].trim().to_string())
             }
@@ -138,7 +175,7 @@ impl Bridge {
                 let status = self.child.try_wait().ok().flatten();
                 match status {
                     Some(s) => bail!("the zenoh bridge exited ({s})"),
-                    None => bail!("the zenoh bridge did not answer '{word}' within {ANSWER:?}"),
+                    None => bail!("the zenoh bridge did not answer '{word}' within {within:?}"),
                 }
             }
         }
@@ -152,6 +189,14 @@ impl Bridge {
         writeln!(stdin, "{line}")
             .and_then(|_| stdin.flush())
             .map_err(|e| anyhow!("zenoh bridge: {e}"))
+    }
+
+    /// A split drive: tells the other machine that this one's stage hosts are ready and
+    /// waits until the other's are (the bridge gives up after `wait`).
+    pub fn meet(&mut self, wait: Duration) -> Result<()> {
+        self.tell("peer")?;
+        self.answer_within("peer", wait + ANSWER)
+            .map(|_| ())
     }
 
     /// Makes the bridge forward what is left and let go of the bus; returns its counters.

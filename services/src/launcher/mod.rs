@@ -242,10 +242,17 @@ fn run_bus(
         let mut hub = crate::hub::Hub::new(&bus_id, sc, clock == BusClock::Lockstep, &stage_names)?;
         // The bridge subscribes (polled) before the stage hosts start, like the recorder.
         if let Some(z) = &o.zenoh {
-            bridge = Some(bridge::Bridge::start(z, &bus_id, out, o.verbose)?);
+            let clock_name = match clock {
+                BusClock::Realtime => "realtime",
+                BusClock::Lockstep => "lockstep",
+            };
+            bridge = Some(bridge::Bridge::start(z, &bus_id, out, clock_name, o.verbose)?);
         }
         let mut children = Vec::new();
         for (i, p) in plan_topo.processes.iter().enumerate() {
+            if plan_topo.away.contains(&i) {
+                continue;
+            }
             // `exec` paths were made absolute when the topology was resolved.
             let spawned = process_binary(p, Path::new("/"))
                 .and_then(|exe| spawn_service(p, &exe, i == 0, &sp, None, false));
@@ -284,6 +291,14 @@ fn run_bus(
         if let Some(failure) = failure {
             children.extend(twins.into_iter().flatten());
             return Ok((children, Some(failure)));
+        }
+        // A split drive starts when both machines' hosts are ready.
+        if let (Some(b), Some(z)) = (bridge.as_mut(), o.zenoh.as_ref()) {
+            if z.machine.is_some() {
+                if let Err(e) = b.meet(z.wait) {
+                    return Ok((children, Some(format!("{e:#}"))));
+                }
+            }
         }
         spawn::go(&mut children)?;
         if o.verbose {
@@ -629,7 +644,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     // The launcher stops on SIGINT/SIGTERM the same way the services do.
     crate::common::install_signal_handlers()?;
     if o.zenoh.is_some() && o.clock == Clock::Inprocess {
-        bail!("--zenoh-listen needs a drive on a bus: use --clock realtime or lockstep");
+        bail!("--zenoh-listen and --machine need a drive on a bus: use --clock realtime or lockstep");
     }
     if let Some(b) = &o.bus {
         bus::check_bus_id(b)?;
@@ -644,11 +659,37 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     let expectations = crate::expect::collect(&sc.expect, &o.expect)?;
     // Sensor faults go into the resolved scenario: every plant applies them.
     crate::faults::sensor::add_to_scenario(&o.faults, &mut sc)?;
-    let topo = resolve_topology(&mut sc, &sc_src, o)?;
+    let mut topo = resolve_topology(&mut sc, &sc_src, o)?;
+    // A drive split across two machines: the processes of the other one are away.
+    if let Some(m) = o.zenoh.as_ref().and_then(|z| z.machine.as_deref()) {
+        let machines = drivelab_runtime::topology::machines(&topo.processes);
+        if !machines.iter().any(|x| x == m) {
+            bail!(
+                "--machine {m}: {}",
+                if machines.is_empty() {
+                    "the topology names no machines (give its processes `machine = \"...\"`, e.g. --topology split-hil)".to_string()
+                } else {
+                    format!("the topology's machines are {}", machines.join(", "))
+                }
+            );
+        }
+        topo.away = (0..topo.processes.len())
+            .filter(|&i| topo.processes[i].machine.as_deref() != Some(m))
+            .collect();
+    }
     // Faults are checked before anything is created: a bad plan leaves nothing behind.
     // Lockstep and in process simulate kills and stops at their sample.
     let simulated = o.clock != Clock::Realtime;
-    let stage_names: Vec<String> = topo.stages.iter().map(|s| s.name.clone()).collect();
+    // Faults reach the stages of this machine only.
+    let stage_names: Vec<String> = topo
+        .stages
+        .iter()
+        .filter(|s| {
+            topo.process_of(&s.name)
+                .is_some_and(|i| !topo.away.contains(&i))
+        })
+        .map(|s| s.name.clone())
+        .collect();
     let mut plan = crate::faults::plan(&o.faults, sc.duration_s, o.fault_seed, 0.3, &stage_names)?;
     if simulated {
         crate::faults::schedule_simulated(&plan, o.lockstep_restart_ms, &mut sc)?;

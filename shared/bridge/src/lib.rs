@@ -17,6 +17,7 @@ pub mod codec;
 pub mod link;
 pub mod remote;
 pub mod serve;
+pub mod split;
 
 /// The bus topics the bridge can forward, by their short name (the key's last part).
 pub const TOPICS: &[&str] = &[

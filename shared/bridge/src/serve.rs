@@ -17,6 +17,7 @@
 
 use crate::codec::{self, Wire};
 use crate::link::{self, Side};
+use crate::split;
 use anyhow::{anyhow, bail, Context, Result};
 use drivelab_runtime::bus::{self, DriveTopics, MAX_BUFFER};
 use drivelab_runtime::config::Scenario;
@@ -52,6 +53,26 @@ pub struct ServeOptions {
     pub topics: Vec<String>,
     /// The run folder (its scenario.toml describes the drive).
     pub run_dir: PathBuf,
+    /// Connect to `listen` (a Zenoh client) instead of listening there: the side of a split
+    /// drive that joins the other.
+    pub connect: bool,
+    /// This machine of a split drive, and the drive's clock (`realtime` or `lockstep`): the
+    /// bridge carries the topics that cross to the other machine ([`crate::split`]).
+    pub split: Option<(String, String)>,
+    /// A split drive: how long the joining side retries its connection and each side waits
+    /// for the other to be ready.
+    pub wait: Duration,
+}
+
+/// What a listening side of a split drive tells the joining side (`q/split`).
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+pub struct SplitInfo {
+    /// The listening machine.
+    pub machine: String,
+    /// The drive's clock.
+    pub clock: String,
+    /// The resolved scenario (both sides must run the same).
+    pub scenario: String,
 }
 
 /// What the bridge did, reported on `detach` and in `summary.json → bridge`.
@@ -77,6 +98,9 @@ pub struct Stats {
     pub failed_replies: u64,
     /// CPU time the bridge process used (user + system, all its threads), s.
     pub cpu_s: f64,
+    /// The split link's counters (a drive split across machines).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub split: Option<serde_json::Value>,
 }
 
 /// CPU time of this process so far (user + system), s.
@@ -364,6 +388,14 @@ fn answer(
     };
     match what.as_str() {
         "scenario" => reply(scenario_toml.as_bytes().to_vec()),
+        "split" => match (&o.split, o.connect) {
+            (Some((machine, clock)), false) => reply(serde_json::to_vec(&SplitInfo {
+                machine: machine.clone(),
+                clock: clock.clone(),
+                scenario: scenario_toml.to_string(),
+            })?),
+            _ => reply_err("this drive is not the listening side of a split drive".into()),
+        },
         "summary" => match summary {
             Some(s) => reply(s.as_bytes().to_vec()),
             None => reply_err("the drive has not ended yet".into()),
@@ -407,7 +439,7 @@ fn answer(
 /// Runs the bridge until the launcher says `summary` or goes away.
 pub fn serve(o: &ServeOptions) -> Result<()> {
     bus::check_bus_id(&o.bus)?;
-    link::check_endpoint(&o.listen, true).map_err(|e| anyhow!(e))?;
+    link::check_endpoint(&o.listen, !o.connect).map_err(|e| anyhow!(e))?;
     let sc_path = o.run_dir.join("scenario.toml");
     let scenario_toml = std::fs::read_to_string(&sc_path)
         .with_context(|| format!("cannot read {}", sc_path.display()))?;
@@ -421,7 +453,12 @@ pub fn serve(o: &ServeOptions) -> Result<()> {
         .fold(0u64, |m, c| m | (1 << c));
     // Before Zenoh starts its threads, so that they inherit the placement.
     let placed = drivelab_runtime::rt::keep_off(rt_cores, "zenoh bridge");
-    let session = link::open(Side::Listen, &o.listen, o.config.as_deref())?;
+    let side_of_link = if o.connect {
+        Side::Connect
+    } else {
+        Side::Listen
+    };
+    let session = open_session(side_of_link, o)?;
     let queries = session
         .declare_queryable(crate::query_key(&o.bus, "**"))
         .wait()
@@ -431,6 +468,12 @@ pub fn serve(o: &ServeOptions) -> Result<()> {
         .congestion_control(zenoh::qos::CongestionControl::Block)
         .wait()
         .map_err(|e| anyhow!("zenoh publisher summary: {e}"))?;
+    let mut split = match &o.split {
+        Some((machine, clock)) => Some(start_split(o, &sc, &scenario_toml, machine, clock, &session)?),
+        None => None,
+    };
+    // Set when the launcher says `peer`: until when the other machine may take to join.
+    let mut meeting: Option<Instant> = None;
     let mut side = Some(attach(o, &sc, &session)?);
     let mut stats = Stats {
         listen: o.listen.clone(),
@@ -470,8 +513,35 @@ pub fn serve(o: &ServeOptions) -> Result<()> {
                 drivelab_runtime::errln!("drivelab bridge: {e:#}");
             }
         }
+        if let Some(sp) = split.as_mut() {
+            if let Some(until) = meeting {
+                if sp.met()? {
+                    meeting = None;
+                    say("peer")?;
+                } else if Instant::now() > until {
+                    bail!(
+                        "machine '{}' did not join within {} s (start its side with --machine {} --zenoh-connect ENDPOINT)",
+                        sp.there(),
+                        o.wait.as_secs(),
+                        sp.there()
+                    );
+                }
+            } else {
+                sp.check()?;
+            }
+        }
         match commands.try_recv() {
+            Ok(line) if line == "peer" => match split.as_mut() {
+                Some(sp) => {
+                    sp.announce(&session)?;
+                    meeting = Some(Instant::now() + o.wait);
+                }
+                None => bail!("bridge: 'peer' without a split drive"),
+            },
             Ok(line) if line == "detach" => {
+                if let Some(sp) = split.take() {
+                    stats.split = Some(sp.finish()?);
+                }
                 if let Some(mut s) = side.take() {
                     for p in s.pumps.iter_mut() {
                         p.pump(&mut stats)?;
@@ -518,6 +588,107 @@ pub fn serve(o: &ServeOptions) -> Result<()> {
         .wait()
         .map_err(|e| anyhow!("zenoh close: {e}"))?;
     Ok(())
+}
+
+fn open_session(side: Side, o: &ServeOptions) -> Result<zenoh::Session> {
+    if side == Side::Listen {
+        return link::open(side, &o.listen, o.config.as_deref());
+    }
+    let t = Instant::now();
+    loop {
+        match link::open(side, &o.listen, o.config.as_deref()) {
+            Ok(s) => return Ok(s),
+            Err(e) if t.elapsed() >= o.wait => return Err(e),
+            Err(_) => std::thread::sleep(Duration::from_millis(200)),
+        }
+    }
+}
+
+/// The split link of machine `machine`: the listening side names it by its own bus; the
+/// joining side asks the listener (`q/split`) and checks that both run the same scenario
+/// with the same clock.
+fn start_split(
+    o: &ServeOptions,
+    sc: &Scenario,
+    scenario_toml: &str,
+    machine: &str,
+    clock: &str,
+    session: &zenoh::Session,
+) -> Result<split::Split> {
+    let topo_path = o.run_dir.join("topology.json");
+    let plan: drivelab_runtime::service::TopologyPlan = serde_json::from_slice(
+        &std::fs::read(&topo_path).with_context(|| format!("cannot read {}", topo_path.display()))?,
+    )?;
+    let sp = split::SplitPlan::new(&plan, machine).map_err(|e| anyhow!(e))?;
+    let link = if o.connect {
+        join(session, o, scenario_toml, &sp.there, clock)?
+    } else {
+        o.bus.clone()
+    };
+    let publishers =
+        drivelab_runtime::service::publishers_per_topic(&plan, clock == "lockstep");
+    split::Split::start(session, sp, &link, &o.bus, sc.timing.wake, publishers)
+}
+
+/// Finds the listening machine `there` and checks it runs `scenario_toml` on `clock`;
+/// returns the link's name.
+fn join(
+    session: &zenoh::Session,
+    o: &ServeOptions,
+    scenario_toml: &str,
+    there: &str,
+    clock: &str,
+) -> Result<String> {
+    let t = Instant::now();
+    loop {
+        let replies = session
+            .get(crate::query_key("*", "split"))
+            .timeout(Duration::from_secs(5))
+            .wait()
+            .map_err(|e| anyhow!("zenoh query: {e}"))?;
+        let mut found: Vec<(String, SplitInfo)> = Vec::new();
+        while let Ok(reply) = replies.recv() {
+            let Ok(s) = reply.result() else { continue };
+            let bus = s.key_expr().as_str().split('/').nth(1).unwrap_or("").to_string();
+            if let Ok(info) = serde_json::from_slice::<SplitInfo>(&s.payload().to_bytes()) {
+                if info.machine == there {
+                    found.push((bus, info));
+                }
+            }
+        }
+        match found.len() {
+            0 if t.elapsed() < o.wait => std::thread::sleep(Duration::from_millis(200)),
+            0 => bail!(
+                "no split drive with machine '{there}' answers at {} (start it first with --machine {there} --zenoh-listen)",
+                o.listen
+            ),
+            1 => {
+                let (bus, info) = found.remove(0);
+                if info.clock != clock {
+                    bail!(
+                        "machine '{there}' runs the {} clock and this one {clock}: start both with the same --clock",
+                        info.clock
+                    );
+                }
+                if let Some((n, (a, b))) = scenario_toml
+                    .lines()
+                    .zip(info.scenario.lines())
+                    .enumerate()
+                    .find(|(_, (a, b))| a != b)
+                {
+                    bail!(
+                        "machine '{there}' runs another scenario (line {}: '{b}' there, '{a}' here): give both sides the same scenario, topology and options",
+                        n + 1
+                    );
+                }
+                if scenario_toml.lines().count() != info.scenario.lines().count() {
+                    bail!("machine '{there}' runs another scenario (its resolved scenario has {} lines, this one {}): give both sides the same scenario, topology and options", info.scenario.lines().count(), scenario_toml.lines().count());
+                }
+                return Ok(bus);
+            }
+            n => bail!("{n} split drives with machine '{there}' answer at {}", o.listen),
+        }
+    }
 }
 
 /// True while a remote subscriber matches `p`.

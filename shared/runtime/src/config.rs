@@ -1121,6 +1121,7 @@ impl Scenario {
                     priority: p.priority,
                     exec: None,
                     standby: false,
+                    machine: None,
                 }
             })
             .collect()

@@ -93,6 +93,11 @@ pub struct TopologyPlan {
     pub producers: Vec<Producer>,
     /// Every stage's declaration, in process and chain order.
     pub stages: Vec<StageInfo>,
+    /// Processes that run on the other machine of a split drive (indices into
+    /// `processes`): their topics reach this bus through the Zenoh bridge, whose process
+    /// stands in for them, so their liveness words here are not read.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub away: Vec<usize>,
 }
 
 impl TopologyPlan {
@@ -106,6 +111,7 @@ impl TopologyPlan {
                 .iter()
                 .flat_map(|(_, s)| s.iter().cloned())
                 .collect(),
+            away: Vec::new(),
         }
     }
 
@@ -392,7 +398,7 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
             tr.lease = Some(lease);
         }
         for b in &plan.producers {
-            if b.process != pi {
+            if b.process != pi && !plan.away.contains(&b.process) {
                 tr.producer[b.topic.index()] = Some(b.process);
             }
         }
@@ -599,7 +605,7 @@ fn recv_rx(r: &Rx) -> Result<Option<Msg>> {
 /// on it as its trigger: the gcd of those stages' dividers (0: none). Such stages sleep on
 /// the topic's decimated wake word, which the producer bumps only at multiples of it, so a
 /// 1 kHz speed loop is not woken at 10 kHz to do nothing nine times out of ten.
-fn decimation(plan: &TopologyPlan) -> [u64; N_TOPICS] {
+pub fn decimation(plan: &TopologyPlan) -> [u64; N_TOPICS] {
     let mut d = [0u64; N_TOPICS];
     for s in &plan.stages {
         let Some(t) = s.inputs.iter().find(|i| i.role == Role::Trigger) else {

@@ -34,6 +34,12 @@ pub struct ProcessSpec {
     /// plant's process. Real-time clock only.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub standby: bool,
+    /// The machine this process runs on, in a drive split across two machines joined by
+    /// Zenoh bridges (docs/architecture.md, "The drive split across machines"). Either every
+    /// process names one or none does; `drivelab run --machine NAME` starts that machine's
+    /// processes. Without `--machine` the whole topology runs here.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub machine: Option<String>,
 }
 
 /// A topology file: `[[process]]` tables.
@@ -220,7 +226,60 @@ pub fn check_specs(procs: &[ProcessSpec]) -> Result<(), String> {
             return Err(format!("stage '{b}' is not hosted by any process"));
         }
     }
+    check_machines(procs)
+}
+
+/// The machines of a split topology: none, or exactly two, named by every process (1-32
+/// characters of a-z, 0-9 or -).
+fn check_machines(procs: &[ProcessSpec]) -> Result<(), String> {
+    let named = procs.iter().filter(|p| p.machine.is_some()).count();
+    if named == 0 {
+        return Ok(());
+    }
+    if let Some(p) = procs.iter().find(|p| p.machine.is_none()) {
+        return Err(format!(
+            "process '{}' names no machine; in a split topology every process does",
+            p.name
+        ));
+    }
+    let mut machines: Vec<&str> = Vec::new();
+    for p in procs {
+        let m = p.machine.as_deref().unwrap_or_default();
+        if m.is_empty()
+            || m.len() > 32
+            || !m
+                .chars()
+                .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-')
+        {
+            return Err(format!(
+                "process '{}': machine '{m}' must be 1-32 characters of a-z, 0-9 or -",
+                p.name
+            ));
+        }
+        if !machines.contains(&m) {
+            machines.push(m);
+        }
+    }
+    if machines.len() != 2 {
+        return Err(format!(
+            "a split topology places its processes on exactly two machines, found {}: {}",
+            machines.len(),
+            machines.join(", ")
+        ));
+    }
     Ok(())
+}
+
+/// The two machines of a split topology in order of appearance (the first hosts the first
+/// process); empty when the topology is not split.
+pub fn machines(procs: &[ProcessSpec]) -> Vec<String> {
+    let mut v: Vec<String> = Vec::new();
+    for m in procs.iter().filter_map(|p| p.machine.as_ref()) {
+        if !v.contains(m) {
+            v.push(m.clone());
+        }
+    }
+    v
 }
 
 /// Checks a topology against the stages' declarations (`info(process, stage)`) and orders
@@ -429,6 +488,7 @@ mod tests {
                 priority: Some(70),
                 exec: None,
                 standby: false,
+                machine: None,
             })
             .collect()
     }
@@ -547,6 +607,47 @@ mod tests {
         assert!(e.contains("either in [placement] or in [[process]]"), "{e}");
     }
 
+    #[test]
+    fn a_split_topology_names_exactly_two_machines_for_every_process() {
+        let split = |machines: &[Option<&str>]| {
+            let mut v = procs(&[
+                ("plant", &["plant"]),
+                ("observer", &["observer"]),
+                ("loops", &["current-loop", "speed-loop"]),
+            ]);
+            for (p, m) in v.iter_mut().zip(machines) {
+                p.machine = m.map(str::to_string);
+            }
+            v
+        };
+        let ok = split(&[Some("bench"), Some("board"), Some("board")]);
+        assert!(resolve_builtin(&ok).is_ok());
+        assert_eq!(machines(&ok), ["bench", "board"]);
+        assert!(machines(&split(&[None, None, None])).is_empty());
+        let cases = [
+            (
+                split(&[Some("bench"), None, Some("board")]),
+                "process 'observer' names no machine; in a split topology every process does",
+            ),
+            (
+                split(&[Some("bench"), Some("bench"), Some("bench")]),
+                "exactly two machines, found 1: bench",
+            ),
+            (
+                split(&[Some("a"), Some("b"), Some("c")]),
+                "exactly two machines, found 3: a, b, c",
+            ),
+            (
+                split(&[Some("Bench PC"), Some("board"), Some("board")]),
+                "process 'plant': machine 'Bench PC' must be 1-32 characters of a-z, 0-9 or -",
+            ),
+        ];
+        for (p, want) in cases {
+            let e = resolve_builtin(&p).unwrap_err();
+            assert!(e.contains(want), "{e} (want {want})");
+        }
+    }
+
     fn info(name: &str, inputs: Vec<InputSpec>, outputs: Vec<TopicId>) -> StageInfo {
         StageInfo {
             name: name.into(),
@@ -569,6 +670,7 @@ mod tests {
                 priority: None,
                 exec: Some("/bin/true".into()),
                 standby: false,
+                machine: None,
             });
             v
         };
