@@ -7,12 +7,14 @@ mod common;
 use common::*;
 
 /// The shipped topologies. In lockstep `four-process-standby` starts no twin (a simulated
-/// kill rejoins), so it gives the trace of the others.
-const TOPOLOGIES: [&str; 4] = [
+/// kill rejoins), so it gives the trace of the others; `split-hil` without `--machine`
+/// runs both of its machines' processes here (tests/split.rs splits it).
+const TOPOLOGIES: [&str; 5] = [
     "four-process",
     "two-process",
     "one-process",
     "four-process-standby",
+    "split-hil",
 ];
 
 #[test]
@@ -80,7 +82,7 @@ fn every_shipped_topology_gives_the_inprocess_trace_in_lockstep() {
                 "{t}: {procs:?}"
             );
             let expected = match t {
-                "four-process" | "four-process-standby" => 4,
+                "four-process" | "four-process-standby" | "split-hil" => 4,
                 "two-process" => 2,
                 _ => 1,
             };
@@ -217,7 +219,7 @@ fn bad_topologies_fail_with_one_line_naming_the_problem_and_leave_nothing() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
         err.contains(
-            "unknown topology 'three-process' (known: four-process, four-process-standby, one-process, two-process)"
+            "unknown topology 'three-process' (known: four-process, four-process-standby, one-process, split-hil, two-process)"
         ),
         "{err}"
     );

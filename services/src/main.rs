@@ -98,7 +98,7 @@ enum Cmd {
         #[arg(long, default_value_t = 1)]
         fault_seed: u64,
         /// Topology: which stages share a process, on which core, at which priority. A
-        /// shipped one (four-process, two-process, one-process, four-process-standby) or a TOML file with
+        /// shipped one (four-process, two-process, one-process, four-process-standby, split-hil) or a TOML file with
         /// [[process]] tables; replaces the scenario's own.
         #[arg(long, value_name = "NAME|FILE")]
         topology: Option<String>,
@@ -129,8 +129,8 @@ enum Cmd {
         /// est, iref, cmd, wref, view, events (default truth,cmd,wref,view,events).
         #[arg(long, value_name = "LIST", requires = "zenoh_listen")]
         zenoh_topics: Option<String>,
-        /// With --zenoh-listen: a Zenoh configuration file (JSON5) for TLS and access
-        /// control; its mode and endpoints are replaced by drivelab's.
+        /// With --zenoh-listen or --zenoh-connect: a Zenoh configuration file (JSON5) for TLS
+        /// and access control; its mode and endpoints are replaced by drivelab's.
         #[arg(long, value_name = "FILE")]
         zenoh_config: Option<PathBuf>,
         /// Run only machine NAME's processes of a split topology (one whose processes name
@@ -140,10 +140,20 @@ enum Cmd {
         machine: Option<String>,
         /// With --machine: join the other machine's drive, started with --machine and
         /// --zenoh-listen, at ENDPOINT (tcp/HOST:PORT or tls/HOST:PORT).
-        #[arg(long, value_name = "ENDPOINT", requires = "machine", conflicts_with = "zenoh_listen")]
+        #[arg(
+            long,
+            value_name = "ENDPOINT",
+            requires = "machine",
+            conflicts_with = "zenoh_listen"
+        )]
         zenoh_connect: Option<String>,
         /// With --machine: seconds to wait for the other machine to connect and be ready.
-        #[arg(long, value_name = "SECONDS", default_value_t = 120.0, requires = "machine")]
+        #[arg(
+            long,
+            value_name = "SECONDS",
+            default_value_t = 120.0,
+            requires = "machine"
+        )]
         zenoh_wait: f64,
     },
     /// Record a remote drive (one started with --zenoh-listen) into a local run folder:
@@ -665,7 +675,9 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 ));
             }
             if !(1.0..=3600.0).contains(&zenoh_wait) {
-                return Err(usage(format!("--zenoh-wait {zenoh_wait}: 1 to 3600 seconds")));
+                return Err(usage(format!(
+                    "--zenoh-wait {zenoh_wait}: 1 to 3600 seconds"
+                )));
             }
             let endpoint = match (zenoh_listen, zenoh_connect) {
                 (Some(ep), _) => Some((endpoint_arg("--zenoh-listen", &ep, true)?, false)),
@@ -673,20 +685,22 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 (None, None) => None,
             };
             let zenoh = endpoint
-                .map(|(endpoint, connect)| -> anyhow::Result<launcher::ZenohListen> {
-                    Ok(launcher::ZenohListen {
-                        endpoint,
-                        config: zenoh_config,
-                        allow_remote_faults,
-                        topics: match zenoh_topics {
-                            Some(t) => zenoh_topics_arg(&t)?,
-                            None => default_zenoh_topics(),
-                        },
-                        connect,
-                        machine,
-                        wait: std::time::Duration::from_secs_f64(zenoh_wait),
-                    })
-                })
+                .map(
+                    |(endpoint, connect)| -> anyhow::Result<launcher::ZenohListen> {
+                        Ok(launcher::ZenohListen {
+                            endpoint,
+                            config: zenoh_config,
+                            allow_remote_faults,
+                            topics: match zenoh_topics {
+                                Some(t) => zenoh_topics_arg(&t)?,
+                                None => default_zenoh_topics(),
+                            },
+                            connect,
+                            machine,
+                            wait: std::time::Duration::from_secs_f64(zenoh_wait),
+                        })
+                    },
+                )
                 .transpose()?;
             let runner = runner
                 .map(|r| drivelab_runtime::runner::Runner::parse(&r))

@@ -195,8 +195,7 @@ impl Bridge {
     /// waits until the other's are (the bridge gives up after `wait`).
     pub fn meet(&mut self, wait: Duration) -> Result<()> {
         self.tell("peer")?;
-        self.answer_within("peer", wait + ANSWER)
-            .map(|_| ())
+        self.answer_within("peer", wait + ANSWER).map(|_| ())
     }
 
     /// Makes the bridge forward what is left and let go of the bus; returns its counters.

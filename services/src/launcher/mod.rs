@@ -246,7 +246,9 @@ fn run_bus(
                 BusClock::Realtime => "realtime",
                 BusClock::Lockstep => "lockstep",
             };
-            bridge = Some(bridge::Bridge::start(z, &bus_id, out, clock_name, o.verbose)?);
+            bridge = Some(bridge::Bridge::start(
+                z, &bus_id, out, clock_name, o.verbose,
+            )?);
         }
         let mut children = Vec::new();
         for (i, p) in plan_topo.processes.iter().enumerate() {
@@ -644,7 +646,12 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     // The launcher stops on SIGINT/SIGTERM the same way the services do.
     crate::common::install_signal_handlers()?;
     if o.zenoh.is_some() && o.clock == Clock::Inprocess {
-        bail!("--zenoh-listen and --machine need a drive on a bus: use --clock realtime or lockstep");
+        let flag = if o.zenoh.as_ref().is_some_and(|z| z.connect) {
+            "--zenoh-connect"
+        } else {
+            "--zenoh-listen"
+        };
+        bail!("{flag} needs a drive on a bus: use --clock realtime or lockstep");
     }
     if let Some(b) = &o.bus {
         bus::check_bus_id(b)?;

@@ -469,7 +469,14 @@ pub fn serve(o: &ServeOptions) -> Result<()> {
         .wait()
         .map_err(|e| anyhow!("zenoh publisher summary: {e}"))?;
     let mut split = match &o.split {
-        Some((machine, clock)) => Some(start_split(o, &sc, &scenario_toml, machine, clock, &session)?),
+        Some((machine, clock)) => Some(start_split(
+            o,
+            &sc,
+            &scenario_toml,
+            machine,
+            clock,
+            &session,
+        )?),
         None => None,
     };
     // Set when the launcher says `peer`: until when the other machine may take to join.
@@ -617,7 +624,8 @@ fn start_split(
 ) -> Result<split::Split> {
     let topo_path = o.run_dir.join("topology.json");
     let plan: drivelab_runtime::service::TopologyPlan = serde_json::from_slice(
-        &std::fs::read(&topo_path).with_context(|| format!("cannot read {}", topo_path.display()))?,
+        &std::fs::read(&topo_path)
+            .with_context(|| format!("cannot read {}", topo_path.display()))?,
     )?;
     let sp = split::SplitPlan::new(&plan, machine).map_err(|e| anyhow!(e))?;
     let link = if o.connect {
@@ -625,8 +633,7 @@ fn start_split(
     } else {
         o.bus.clone()
     };
-    let publishers =
-        drivelab_runtime::service::publishers_per_topic(&plan, clock == "lockstep");
+    let publishers = drivelab_runtime::service::publishers_per_topic(&plan, clock == "lockstep");
     split::Split::start(session, sp, &link, &o.bus, sc.timing.wake, publishers)
 }
 
@@ -649,7 +656,13 @@ fn join(
         let mut found: Vec<(String, SplitInfo)> = Vec::new();
         while let Ok(reply) = replies.recv() {
             let Ok(s) = reply.result() else { continue };
-            let bus = s.key_expr().as_str().split('/').nth(1).unwrap_or("").to_string();
+            let bus = s
+                .key_expr()
+                .as_str()
+                .split('/')
+                .nth(1)
+                .unwrap_or("")
+                .to_string();
             if let Ok(info) = serde_json::from_slice::<SplitInfo>(&s.payload().to_bytes()) {
                 if info.machine == there {
                     found.push((bus, info));

@@ -143,8 +143,13 @@ impl Counters {
     /// As JSON for `summary.json → bridge.split`.
     pub fn to_json(&self, plan: &SplitPlan) -> serde_json::Value {
         let per = |a: &[AtomicU64; N_TOPICS], ts: &mut dyn Iterator<Item = TopicId>| {
-            ts.map(|t| (t.name().to_string(), a[t.index()].load(Ordering::Relaxed).into()))
-                .collect::<serde_json::Map<_, _>>()
+            ts.map(|t| {
+                (
+                    t.name().to_string(),
+                    a[t.index()].load(Ordering::Relaxed).into(),
+                )
+            })
+            .collect::<serde_json::Map<_, _>>()
         };
         serde_json::json!({
             "here": plan.here,
@@ -194,7 +199,13 @@ struct BusRef {
 }
 
 impl BusRef {
-    fn open(&self, name: &str) -> Result<(iceoryx2::node::Node<iceoryx2::prelude::ipc::Service>, DriveTopics)> {
+    fn open(
+        &self,
+        name: &str,
+    ) -> Result<(
+        iceoryx2::node::Node<iceoryx2::prelude::ipc::Service>,
+        DriveTopics,
+    )> {
         let node = bus::node(&self.id, name)?;
         let topics = DriveTopics::open_for(&node, self.wake, &self.id, self.publishers)?;
         Ok((node, topics))
@@ -258,7 +269,12 @@ impl Split {
                 .express(woken)
                 .wait()
                 .map_err(|e| anyhow!("zenoh publisher {}: {e}", t.name()))?;
-            let (b, s, c, r) = (bus.clone(), stop.clone(), counters.clone(), ready_tx.clone());
+            let (b, s, c, r) = (
+                bus.clone(),
+                stop.clone(),
+                counters.clone(),
+                ready_tx.clone(),
+            );
             threads.push(
                 std::thread::Builder::new()
                     .name(format!("send-{}", t.name()))
@@ -272,7 +288,12 @@ impl Split {
                 .wait()
                 .map_err(|e| anyhow!("zenoh subscriber {}: {e}", t.name()))?;
             let d = plan.decim[t.index()];
-            let (b, s, c, r) = (bus.clone(), stop.clone(), counters.clone(), ready_tx.clone());
+            let (b, s, c, r) = (
+                bus.clone(),
+                stop.clone(),
+                counters.clone(),
+                ready_tx.clone(),
+            );
             threads.push(
                 std::thread::Builder::new()
                     .name(format!("take-{}", t.name()))
@@ -374,7 +395,9 @@ impl Split {
         self.token = None;
         let mut first = Ok(());
         for h in self.threads.drain(..) {
-            let r = h.join().unwrap_or_else(|_| Err(anyhow!("a split-link thread panicked")));
+            let r = h
+                .join()
+                .unwrap_or_else(|_| Err(anyhow!("a split-link thread panicked")));
             if first.is_ok() {
                 first = r;
             }
@@ -495,8 +518,7 @@ fn take<T: Data>(
             let h = m.hdr();
             // As the producer wakes them (see `BusTransport`): the decimated receivers at the
             // samples they step and at every marker.
-            let decimated =
-                decim > 0 && (h.k.is_multiple_of(decim) || h.is_end() || h.is_warmup());
+            let decimated = decim > 0 && (h.k.is_multiple_of(decim) || h.is_end() || h.is_warmup());
             tx.send_waking(*m, decimated)?;
         }
         counters.taken[T::TOPIC.index()].fetch_add(msgs.len() as u64, Ordering::Relaxed);
