@@ -247,6 +247,44 @@ fn a_split_drive_in_lockstep_gives_the_in_process_trace_on_both_machines() {
 }
 
 #[test]
+fn a_real_time_split_drive_keeps_every_sample_on_both_machines() {
+    let _g = serial();
+    let dir = scratch("realtime");
+    let (bus_a, bus_b) = (bus_id("realtime-simulator"), bus_id("realtime-board"));
+    let sides = Sides::new("r");
+    let ep = sides.endpoint();
+    let (out_a, out_b) = (dir.join("simulator"), dir.join("board"));
+    let common = ["--scenario", "kyslan-pi", "--duration", "0.5"];
+    let mut a = common.to_vec();
+    a.extend(["--zenoh-listen", &ep]);
+    let mut b = common.to_vec();
+    b.extend(["--zenoh-connect", &ep]);
+    let sim = sides.start(0, &side_args(&bus_a, &out_a, "simulator", &a));
+    let board = sides.start(1, &side_args(&bus_b, &out_b, "board", &b));
+    let ob = wait(board, Duration::from_secs(240), "the board's side");
+    let oa = wait(sim, Duration::from_secs(240), "the simulator's side");
+    ok(&oa, "the simulator's side");
+    ok(&ob, "the board's side");
+    assert_clean(&bus_a);
+    assert_clean(&bus_b);
+    // The plant kept its schedule whatever the network did (late commands are misses, not
+    // lost samples), and both recorders saw the same messages: the same rows, misses
+    // included.
+    let (ta, tb) = (
+        read(&out_a.join("trace.csv")),
+        read(&out_b.join("trace.csv")),
+    );
+    assert_eq!(ta.iter().filter(|&&c| c == b'\n').count(), 5001);
+    assert!(ta == tb, "the two machines' traces differ");
+    let (sa, sb) = (summary(&out_a), summary(&out_b));
+    assert_eq!(sa["samples"], 5000);
+    assert_eq!(sa["samples_missing"], 0, "{}", sa["missing_samples"]);
+    let (la, lb) = (&sa["bridge"]["split"], &sb["bridge"]["split"]);
+    assert_eq!(la["sent"]["meas"], lb["taken"]["meas"], "{la} / {lb}");
+    assert_eq!(lb["sent"]["cmd"], la["taken"]["cmd"], "{la} / {lb}");
+}
+
+#[test]
 fn the_two_sides_must_run_the_same_scenario_and_clock_and_a_side_alone_gives_up() {
     let _g = serial();
     let dir = scratch("mismatch");

@@ -35,6 +35,8 @@ use zenoh::Wait;
 pub const HISTORY_MAX: usize = 1 << 16;
 /// Events kept for a monitor that joins late (as the supervisor's hub).
 pub const EVENTS_KEPT: usize = 64;
+/// SCHED_FIFO priority of a split drive's bridge (below the stages' 70 and up).
+pub const LINK_PRIORITY: i32 = 60;
 /// How long the bridge sleeps when nothing arrived.
 pub const POLL: Duration = Duration::from_millis(1);
 
@@ -452,7 +454,20 @@ pub fn serve(o: &ServeOptions) -> Result<()> {
         .filter(|&c| c < 64)
         .fold(0u64, |m, c| m | (1 << c));
     // Before Zenoh starts its threads, so that they inherit the placement.
-    let placed = drivelab_runtime::rt::keep_off(rt_cores, "zenoh bridge");
+    let mut placed = drivelab_runtime::rt::keep_off(rt_cores, "zenoh bridge");
+    // A split drive's link is on its data path: the bridge and Zenoh's threads (they
+    // inherit the policy) run at SCHED_FIFO, below every stage, still off the drive's cores.
+    if o.split.is_some() {
+        match drivelab_runtime::rt::set_scheduler(libc::SCHED_FIFO, LINK_PRIORITY) {
+            Ok(()) => placed = format!("{placed}; link at SCHED_FIFO {LINK_PRIORITY}"),
+            Err(e) => {
+                placed = format!(
+                    "{placed}; link not real-time ({})",
+                    drivelab_runtime::rt::os_error_text(&e)
+                )
+            }
+        }
+    }
     let side_of_link = if o.connect {
         Side::Connect
     } else {

@@ -12,7 +12,8 @@
 //!   parts are polled every millisecond.
 //! - Taken topics arrive on a Zenoh subscriber; a thread checks each frame ([`codec`]) and
 //!   publishes the messages on the local bus, waking its receivers as their producer would
-//!   (the decimated word at the multiples its slower stages step on). The bridge's process
+//!   (the decimated word at the multiples its slower stages step on), stamped with the
+//!   instant it was published here (`t_pub_ns`). The bridge's process
 //!   stands in for the remote producer; only topics the other machine produces are
 //!   subscribed, so the network cannot publish anything else here.
 //! - Each side declares a liveliness token once its stage hosts are ready and waits for the
@@ -166,6 +167,7 @@ impl Counters {
 trait Data: Wire + ZeroCopySend + std::fmt::Debug {
     const TOPIC: TopicId;
     fn hdr(&self) -> &Header;
+    fn hdr_mut(&mut self) -> &mut Header;
     fn topic(t: &DriveTopics) -> &Topic<Self>;
 }
 
@@ -175,6 +177,9 @@ macro_rules! data {
             const TOPIC: TopicId = $id;
             fn hdr(&self) -> &Header {
                 &self.hdr
+            }
+            fn hdr_mut(&mut self) -> &mut Header {
+                &mut self.hdr
             }
             fn topic(t: &DriveTopics) -> &Topic<Self> {
                 &t.$field
@@ -514,7 +519,11 @@ fn take<T: Data>(
             counters.rejected.fetch_add(1, Ordering::Relaxed);
             continue;
         }
-        for m in &msgs {
+        for m in msgs.iter_mut() {
+            // Published here now: the message is available on this machine from this
+            // instant, so the plant's cycle latency includes the way back over the network
+            // and is measured on one clock (this machine's).
+            m.hdr_mut().t_pub_ns = drivelab_runtime::rt::now_ns();
             let h = m.hdr();
             // As the producer wakes them (see `BusTransport`): the decimated receivers at the
             // samples they step and at every marker.
