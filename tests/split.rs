@@ -6,7 +6,7 @@
 //! side has its own bus; no process, namespace or bus file is left. Times are watchdogs.
 
 use serde_json::Value;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::Duration;
 
@@ -155,26 +155,23 @@ fn summary(dir: &Path) -> Value {
     serde_json::from_slice(&std::fs::read(dir.join("summary.json")).unwrap()).unwrap()
 }
 
-#[test]
-fn a_split_drive_in_lockstep_gives_the_in_process_trace_on_both_machines() {
-    let _g = serial();
-    let dir = scratch("lockstep");
-    let (bus_a, bus_b) = (bus_id("lockstep-simulator"), bus_id("lockstep-board"));
-    let sides = Sides::new("l");
+/// Runs kyslan-pi for 0.5 s split across the two sides (the simulator listens, the board
+/// joins), with `extra` on both; asserts that both succeed and leave nothing on their buses.
+/// Returns both run folders and the sides (their namespaces go when it is dropped).
+fn run_split(tag: &str, name: &str, extra: &[&str]) -> (PathBuf, PathBuf, Sides) {
+    let dir = scratch(name);
+    let (bus_a, bus_b) = (
+        bus_id(&format!("{name}-simulator")),
+        bus_id(&format!("{name}-board")),
+    );
+    let sides = Sides::new(tag);
     let ep = sides.endpoint();
     let (out_a, out_b) = (dir.join("simulator"), dir.join("board"));
-    // 0.5 s: the speed step, the load step and the recovery.
-    let common = [
-        "--scenario",
-        "kyslan-pi",
-        "--clock",
-        "lockstep",
-        "--duration",
-        "0.5",
-    ];
-    let mut a = common.to_vec();
+    let mut common = vec!["--scenario", "kyslan-pi", "--duration", "0.5"];
+    common.extend_from_slice(extra);
+    let mut a = common.clone();
     a.extend(["--zenoh-listen", &ep]);
-    let mut b = common.to_vec();
+    let mut b = common;
     b.extend(["--zenoh-connect", &ep]);
     let sim = sides.start(0, &side_args(&bus_a, &out_a, "simulator", &a));
     let board = sides.start(1, &side_args(&bus_b, &out_b, "board", &b));
@@ -184,6 +181,14 @@ fn a_split_drive_in_lockstep_gives_the_in_process_trace_on_both_machines() {
     ok(&ob, "the board's side");
     assert_clean(&bus_a);
     assert_clean(&bus_b);
+    (out_a, out_b, sides)
+}
+
+#[test]
+fn a_split_drive_in_lockstep_gives_the_in_process_trace_on_both_machines() {
+    let _g = serial();
+    // 0.5 s: the speed step, the load step and the recovery.
+    let (out_a, out_b, sides) = run_split("l", "lockstep", &["--clock", "lockstep"]);
     let (ref_dir, _) = run_ok(
         "lockstep-inprocess",
         &[
@@ -249,24 +254,7 @@ fn a_split_drive_in_lockstep_gives_the_in_process_trace_on_both_machines() {
 #[test]
 fn a_real_time_split_drive_keeps_every_sample_on_both_machines() {
     let _g = serial();
-    let dir = scratch("realtime");
-    let (bus_a, bus_b) = (bus_id("realtime-simulator"), bus_id("realtime-board"));
-    let sides = Sides::new("r");
-    let ep = sides.endpoint();
-    let (out_a, out_b) = (dir.join("simulator"), dir.join("board"));
-    let common = ["--scenario", "kyslan-pi", "--duration", "0.5"];
-    let mut a = common.to_vec();
-    a.extend(["--zenoh-listen", &ep]);
-    let mut b = common.to_vec();
-    b.extend(["--zenoh-connect", &ep]);
-    let sim = sides.start(0, &side_args(&bus_a, &out_a, "simulator", &a));
-    let board = sides.start(1, &side_args(&bus_b, &out_b, "board", &b));
-    let ob = wait(board, Duration::from_secs(240), "the board's side");
-    let oa = wait(sim, Duration::from_secs(240), "the simulator's side");
-    ok(&oa, "the simulator's side");
-    ok(&ob, "the board's side");
-    assert_clean(&bus_a);
-    assert_clean(&bus_b);
+    let (out_a, out_b, _sides) = run_split("r", "realtime", &[]);
     // The plant kept its schedule whatever the network did (late commands are misses, not
     // lost samples), and both recorders saw the same messages: the same rows, misses
     // included.
