@@ -272,6 +272,106 @@ fn a_real_time_split_drive_keeps_every_sample_on_both_machines() {
     assert_eq!(lb["sent"]["cmd"], la["taken"]["cmd"], "{la} / {lb}");
 }
 
+/// The two sides of a real-time split drive, started: their launchers, buses and run folders.
+struct Running {
+    sim: std::process::Child,
+    board: std::process::Child,
+    buses: (String, String),
+    outs: (PathBuf, PathBuf),
+}
+
+fn start_real_time(sides: &Sides, name: &str, seconds: &str) -> Running {
+    let dir = scratch(name);
+    let buses = (
+        bus_id(&format!("{name}-simulator")),
+        bus_id(&format!("{name}-board")),
+    );
+    let outs = (dir.join("simulator"), dir.join("board"));
+    let ep = sides.endpoint();
+    let a = [
+        "--scenario",
+        "kyslan-pi",
+        "--duration",
+        seconds,
+        "--zenoh-listen",
+        &ep,
+    ];
+    let b = [
+        "--scenario",
+        "kyslan-pi",
+        "--duration",
+        seconds,
+        "--zenoh-connect",
+        &ep,
+    ];
+    Running {
+        sim: sides.start(0, &side_args(&buses.0, &outs.0, "simulator", &a)),
+        board: sides.start(1, &side_args(&buses.1, &outs.1, "board", &b)),
+        buses,
+        outs,
+    }
+}
+
+/// Removes the bus files a SIGKILLed launcher left, then checks that nothing is left.
+fn clean_after_kill(bus: &str) {
+    let o = drivelab(&["clean", "--bus", bus]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_clean(bus);
+}
+
+#[test]
+fn when_a_machine_leaves_the_board_stops_at_once_and_the_simulator_goes_on_safe() {
+    let _g = serial();
+    let sides = Sides::new("k");
+    // The simulator's machine goes: the board has nothing to control and stops in one line
+    // (not at its watchdog, long after).
+    let r = start_real_time(&sides, "sim-leaves", "60");
+    wait_for_progress(&r.buses.1, 5000);
+    kill_launcher_and_assert_no_orphans(r.sim, &r.buses.0);
+    let o = wait(r.board, Duration::from_secs(30), "the board's side");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("drivelab: error: machine 'simulator' left the split link: no measurement comes any more"),
+        "{err}"
+    );
+    assert_clean(&r.buses.1);
+    clean_after_kill(&r.buses.0);
+    // The board's machine goes: the plant keeps its schedule without commands, holds, then
+    // applies its safe state to the end, and every sample is in the trace.
+    let r = start_real_time(&sides, "board-leaves", "3");
+    wait_for_progress(&r.buses.0, 5000);
+    kill_launcher_and_assert_no_orphans(r.board, &r.buses.1);
+    let o = wait(r.sim, Duration::from_secs(60), "the simulator's side");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains("drivelab: machine 'board' left the split link; the plant goes on without its commands (hold, then safe state)"),
+        "{err}"
+    );
+    let s = summary(&r.outs.0);
+    assert_eq!(s["samples"], 30_000);
+    let lost: Vec<&Value> = s["missing_samples"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|g| g["part"] == "measurement")
+        .collect();
+    assert!(lost.is_empty(), "{lost:?}");
+    let trace = std::fs::read_to_string(r.outs.0.join("trace.csv")).unwrap();
+    let header: Vec<&str> = trace.lines().next().unwrap().split(',').collect();
+    let flags = header.iter().position(|c| *c == "plant_flags").unwrap();
+    let last: Vec<&str> = trace.lines().last().unwrap().split(',').collect();
+    let f: u32 = last[flags].parse().unwrap();
+    assert!(
+        f & 4 != 0,
+        "the last sample is not in the safe state: {}",
+        last.join(",")
+    );
+    assert_clean(&r.buses.0);
+    clean_after_kill(&r.buses.1);
+}
+
 #[test]
 fn the_two_sides_must_run_the_same_scenario_and_clock_and_a_side_alone_gives_up() {
     let _g = serial();

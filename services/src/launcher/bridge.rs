@@ -198,6 +198,15 @@ impl Bridge {
         self.answer_within("peer", wait + ANSWER).map(|_| ())
     }
 
+    /// A split drive: `Some(why)` once the other machine has left the link (its bridge
+    /// ended or the network failed); never blocks.
+    pub fn lost(&mut self) -> Option<String> {
+        match self.lines.try_recv() {
+            Ok(line) => line.strip_prefix("lost ").map(str::to_string),
+            Err(_) => None,
+        }
+    }
+
     /// Makes the bridge forward what is left and let go of the bus; returns its counters.
     pub fn detach(&mut self) -> Result<serde_json::Value> {
         self.tell("detach")?;

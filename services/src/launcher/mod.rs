@@ -160,6 +160,10 @@ struct BusRun {
     bridge: Option<bridge::Bridge>,
 }
 
+/// SCHED_FIFO priority of the recorder thread of a real-time drive: below the stages (70 and
+/// up in the shipped topologies), above a split drive's link (60).
+const RECORDER_PRIORITY: i32 = 65;
+
 /// Runs the topology's processes on a bus and returns the recorder's data, the process info
 /// and the supervisor's events.
 fn run_bus(
@@ -216,11 +220,22 @@ fn run_bus(
         .map(|p| p.name.clone())
         .collect();
     let publishers = drivelab_runtime::service::publishers_per_topic(plan_topo, lockstep);
+    // In real time the recorder thread runs at SCHED_FIFO, below every stage and above a
+    // split drive's link, so that no normal task on its core (a build, the OS) can keep it
+    // from draining its buffers (4096 samples) for long enough to lose one. Refused without
+    // the privilege: it runs as before.
+    let recorder_fifo = clock == BusClock::Realtime && !o.no_rt;
     let rec = {
         let (b, s, sc, pr) = (bus_id.clone(), stop.clone(), sc.clone(), progress.clone());
         std::thread::Builder::new()
             .name("recorder".into())
-            .spawn(move || run_recorder(b, sc, trace, s, pr, ready_tx, publishers))?
+            .spawn(move || {
+                if recorder_fifo {
+                    let _ =
+                        drivelab_runtime::rt::set_scheduler(libc::SCHED_FIFO, RECORDER_PRIORITY);
+                }
+                run_recorder(b, sc, trace, s, pr, ready_tx, publishers)
+            })?
     };
     let topo_path = out.join("topology.json");
     let sp = Spawn {
@@ -333,6 +348,21 @@ fn run_bus(
             .zip(twins)
             .map(|(c, t)| Supervised::new(c, t))
             .collect();
+        // A split drive goes on when the controllers' machine leaves (the plant holds, then
+        // goes safe: the drive's reaction is the point of the test) and stops when the
+        // plant's machine does (nothing comes any more).
+        let plant_here = !plan_topo.away.contains(&0);
+        let mut link = || -> Option<String> {
+            let why = bridge.as_mut()?.lost()?;
+            if plant_here {
+                crate::errln!(
+                    "drivelab: {why}; the plant goes on without its commands (hold, then safe state)"
+                );
+                None
+            } else {
+                Some(format!("{why}: no measurement comes any more"))
+            }
+        };
         let failure = supervise(
             &mut hub,
             &bar,
@@ -345,6 +375,7 @@ fn run_bus(
             &sp,
             started,
             limit,
+            &mut link,
         )?;
         bar.finish_and_clear();
         // Let attached monitors see the end and detach before the bus goes away.

@@ -275,6 +275,7 @@ pub(super) fn supervise(
     sp: &Spawn,
     started: Instant,
     limit: Duration,
+    link: &mut dyn FnMut() -> Option<String>,
 ) -> Result<Option<String>> {
     let (bus_id, clock, out) = (sp.bus_id, sp.clock, sp.out);
     let policy = Policy::new(sp.o.restart, clock == BusClock::Lockstep);
@@ -295,6 +296,10 @@ pub(super) fn supervise(
     loop {
         if crate::common::stop_requested() {
             return Ok(Some("interrupted (SIGINT/SIGTERM): drive stopped".into()));
+        }
+        // A split drive whose other machine is gone (see `Bridge::lost`).
+        if let Some(why) = link() {
+            return Ok(Some(why));
         }
         if started.elapsed() > limit {
             return Ok(Some(format!("the drive did not finish within {limit:?}")));

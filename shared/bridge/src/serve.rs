@@ -542,14 +542,25 @@ pub fn serve(o: &ServeOptions) -> Result<()> {
                     say("peer")?;
                 } else if Instant::now() > until {
                     bail!(
-                        "machine '{}' did not join within {} s (start its side with --machine {} --zenoh-connect ENDPOINT)",
+                        "machine '{}' did not join within {} s (start its side with --machine {} {})",
                         sp.there(),
                         o.wait.as_secs(),
-                        sp.there()
+                        sp.there(),
+                        if o.connect {
+                            "--zenoh-listen ENDPOINT"
+                        } else {
+                            "--zenoh-connect ENDPOINT"
+                        }
                     );
                 }
             } else {
                 sp.check()?;
+                if sp.left()? {
+                    say(&format!(
+                        "lost machine '{}' left the split link",
+                        sp.there()
+                    ))?;
+                }
             }
         }
         match commands.try_recv() {

@@ -364,6 +364,24 @@ impl Split {
             .map_err(|e| anyhow!("zenoh liveliness: {e}"))?
         {
             if s.kind() == zenoh::sample::SampleKind::Put {
+                return Ok(true);
+            }
+        }
+        Ok(false)
+    }
+
+    /// True once the other machine, after [`Split::met`], has withdrawn its declaration: its
+    /// bridge ended or the network between them failed (Zenoh's lease, about 10 s by
+    /// default, when nothing closes the connection).
+    pub fn left(&mut self) -> Result<bool> {
+        let Some(sub) = &self.peer else {
+            return Ok(false);
+        };
+        while let Some(s) = sub
+            .try_recv()
+            .map_err(|e| anyhow!("zenoh liveliness: {e}"))?
+        {
+            if s.kind() == zenoh::sample::SampleKind::Delete {
                 self.peer = None;
                 return Ok(true);
             }
