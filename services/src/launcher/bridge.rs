@@ -166,7 +166,14 @@ impl Bridge {
     }
 
     fn answer_within(&mut self, word: &str, within: Duration) -> Result<String> {
-        match self.lines.recv_timeout(within) {
+        let line = loop {
+            match self.lines.recv_timeout(within) {
+                // A notice that the other machine left (see `lost`) is no answer.
+                Ok(line) if line.starts_with("lost ") => continue,
+                other => break other,
+            }
+        };
+        match line {
             Ok(line) if line.split(' ').next() == Some(word) => {
                 Ok(line[word.len()..].trim().to_string())
             }

@@ -354,6 +354,10 @@ fn run_bus(
         let plant_here = !plan_topo.away.contains(&0);
         let mut link = || -> Option<String> {
             let why = bridge.as_mut()?.lost()?;
+            // At the end the machines leave one after the other: that is no news.
+            if progress.next_k.load(Ordering::Relaxed) >= n {
+                return None;
+            }
             if plant_here {
                 crate::errln!(
                     "drivelab: {why}; the plant goes on without its commands (hold, then safe state)"
