@@ -148,6 +148,13 @@ fn latency_per_second(
                 .push((t, s["cycle_us"][q].as_f64().unwrap_or(f64::NAN)));
         }
     }
+    if !series
+        .iter()
+        .any(|(_, p)| p.iter().any(|(_, y)| y.is_finite()))
+    {
+        // No cycle latency (lockstep or an exported run): no figure.
+        return Ok(Vec::new());
+    }
     let ts_us = 1e6 / summary["rate_hz"].as_f64().unwrap_or(10_000.0);
     drivelab_tools::plot::plot_lines(
         &series,
