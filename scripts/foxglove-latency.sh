@@ -13,8 +13,14 @@ bin=target/release/drivelab
 watch=target/release/examples/foxglove_watch
 mkdir -p "$out"
 line() {
-  python3 -c 'import json,sys; s=json.load(open(sys.argv[1])); c=s["latency_us"]["cycle"]
-print(f"{sys.argv[2]:>10} cycle p50 {c[\"p50\"]:.1f} p99 {c[\"p99\"]:.1f} p99.9 {c[\"p999\"]:.1f} max {c[\"max\"]:.1f} us, misses {s[\"deadline_misses\"]}, load {open(\"/proc/loadavg\").read().split()[0]}")' "$1/summary.json" "$2"
+  python3 - "$1/summary.json" "$2" <<'EOF'
+import json, sys
+s = json.load(open(sys.argv[1]))
+c = s["latency_us"]["cycle"]
+load = open("/proc/loadavg").read().split()[0]
+print("%10s cycle p50 %.1f p99 %.1f p99.9 %.1f max %.1f us, misses %d, load %s"
+      % (sys.argv[2], c["p50"], c["p99"], c["p999"], c["max"], s["deadline_misses"], load))
+EOF
 }
 for i in $(seq 1 "$rounds"); do
   "$bin" run --duration 10 --no-plots --bus fgl$$ --out "$out/none-$i" >/dev/null 2>&1
