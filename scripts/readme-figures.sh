@@ -8,6 +8,9 @@ cargo build --release --workspace --bins
 mkdir -p docs/img
 ./target/release/drivelab run --out runs/readme-default
 for f in speed currents voltages latency; do cp "runs/readme-default/$f.png" "docs/img/$f.png"; done
+# The cycle latency of each second, read back from the same run's trace.mcap.
+./target/release/drivelab plot runs/readme-default --from-mcap --out runs/readme-default/from-mcap
+cp runs/readme-default/from-mcap/latency-per-second.png docs/img/mcap-latency-per-second.png
 ./target/release/drivelab bench --rates 10000,20000 --placements one-core --seconds 20 --rounds 10 --out runs/readme-bench
 cp runs/readme-bench/percentiles-10000hz.png docs/img/bench-10khz.png
 cp runs/readme-bench/percentiles-20000hz.png docs/img/bench-20khz.png

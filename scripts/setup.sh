@@ -2,7 +2,9 @@
 # Installs what drivelab needs beyond the Rust toolchain, only if it is missing:
 # fontconfig headers and a TrueType font (plotters draws its labels with them), tmux
 # (the monitor's terminal test runs it), rt-tests (cyclictest: `drivelab bench`
-# cross-checks its floor against it) and openssl (the Zenoh TLS test's certificates).
+# cross-checks its floor against it), openssl (the Zenoh TLS test's certificates) and a
+# project-local Python environment, .venv/ (git-ignored), with the `mcap` package from PyPI
+# (the test that reads trace.mcap with a reader drivelab did not write).
 # Idempotent; changes no kernel setting.
 set -euo pipefail
 need=()
@@ -19,6 +21,9 @@ command -v tmux >/dev/null 2>&1 || need+=(tmux)
 command -v cyclictest >/dev/null 2>&1 || need+=(rt-tests)
 # openssl makes the certificates of the Zenoh TLS example (scripts/zenoh-certs.sh, tested).
 command -v openssl >/dev/null 2>&1 || need+=(openssl)
+# python3 with venv and pip (Debian splits them out) for .venv below.
+command -v python3 >/dev/null 2>&1 || need+=(python3)
+if ! python3 -c 'import ensurepip, venv' >/dev/null 2>&1; then need+=(python3-venv); fi
 if ! command -v cargo >/dev/null 2>&1; then
   echo "setup: cargo is not installed; install the Rust toolchain (rustup) first" >&2
   exit 1
@@ -28,4 +33,14 @@ if [ ${#need[@]} -gt 0 ]; then
   if [ "$(id -u)" -eq 0 ]; then SUDO=""; else SUDO="sudo"; fi
   $SUDO apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need[@]}" >/dev/null
+fi
+# The mcap reader of tests/mcap.rs, pinned, in .venv at the repository's root.
+cd "$(dirname "$0")/.."
+MCAP_PY=1.6.0
+if [ ! -x .venv/bin/python ]; then
+  python3 -m venv .venv
+fi
+if ! .venv/bin/python -c "import importlib.metadata as m, sys; sys.exit(m.version('mcap') != '$MCAP_PY')" >/dev/null 2>&1; then
+  echo "setup: installing mcap==$MCAP_PY into .venv" >&2
+  .venv/bin/python -m pip install --quiet --disable-pip-version-check "mcap==$MCAP_PY"
 fi

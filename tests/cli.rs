@@ -70,6 +70,7 @@ fn help_texts() {
         "observer-error",
         "cdm-design",
         "record",
+        "export",
     ] {
         rewritten.push(snapshot(&format!("help-{cmd}"), &[cmd, "--help"]));
     }

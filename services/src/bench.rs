@@ -275,6 +275,7 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
         expect: Vec::new(),
         runner: None,
         zenoh: None,
+        foxglove: None,
     };
     let r = launcher::run(&o)?;
     // CPU time: every stage's statistics carry its process's total; count each process once.
@@ -764,6 +765,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         expect: Vec::new(),
         runner: None,
         zenoh: None,
+        foxglove: None,
     })?;
     bar.inc(1);
     bar.set_message("in-process speed");

@@ -391,6 +391,7 @@ mod tests {
             expect: Vec::new(),
             runner: None,
             zenoh: None,
+            foxglove: None,
         };
         let topo = crate::launcher::resolve_topology(
             &mut sc,

@@ -319,6 +319,7 @@ fn run_case(c: &CampaignFile, case: &Case, a: &CampaignArgs, out: &Path) -> Case
             expect: c.expect.clone(),
             runner: None,
             zenoh: None,
+            foxglove: None,
         };
         Ok(launcher::run(&o)?.summary)
     })();

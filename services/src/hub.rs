@@ -69,6 +69,10 @@ pub struct Hub {
     stages: Vec<String>,
     last_view: Option<Instant>,
     events_sent: usize,
+    /// Per-second figures of each stage, for `trace.mcap` and the live stream.
+    per_second: crate::per_second::PerSecond,
+    sinks: crate::launcher::sinks::Sinks,
+    sample_hz: f64,
 }
 
 impl Hub {
@@ -117,7 +121,15 @@ impl Hub {
             stages: stages.to_vec(),
             last_view: None,
             events_sent: 0,
+            per_second: crate::per_second::PerSecond::new(stages.len(), sc.rates.sample_hz),
+            sinks: crate::launcher::sinks::Sinks::none(),
+            sample_hz: sc.rates.sample_hz,
         })
+    }
+
+    /// Sends each stage's per-second figures and the events to `sinks` too.
+    pub fn set_sinks(&mut self, sinks: crate::launcher::sinks::Sinks) {
+        self.sinks = sinks;
     }
 
     /// Sets what the supervisor knows of the process that hosts `stage`.
@@ -166,12 +178,17 @@ impl Hub {
                 s.rate_hz = 0.0;
             }
             self.prev[i] = Some((st.samples, st.hdr.t_pub_ns));
+            if let Some(sec) = self.per_second.offer(&self.stages[i], &st) {
+                self.sinks.second(&sec)?;
+            }
             s.status = st;
             s.has_status = 1;
         }
         while self.events_sent < events.len() {
             let e = &events[self.events_sent];
             let text = format!("{} {}: {}", e.name(), e.service, e.detail());
+            self.sinks
+                .event(crate::trace_mcap::ns(e.k as f64 / self.sample_hz), &text);
             self.events_tx.send(&EventEntry::new(
                 e.t_wall_s,
                 e.k,

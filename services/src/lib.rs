@@ -14,11 +14,14 @@ pub mod compare;
 pub mod design;
 pub mod expect;
 pub mod faults;
+pub mod foxglove;
 pub mod hub;
 pub mod launcher;
 pub mod monitor;
 pub mod observer_error;
+pub mod per_second;
 pub mod plotcmd;
 #[cfg(feature = "zenoh")]
 pub mod record;
 pub mod replay;
+pub mod trace_mcap;

@@ -36,7 +36,7 @@ struct DriveArgs {
 enum Cmd {
     /// Run a scenario: start the processes of its topology (plant, observer, current-loop and
     /// speed-loop stages, and any user stages), record every sample, stop them and write
-    /// trace.csv, summary.json and plots into the run folder.
+    /// trace.csv, trace.mcap, summary.json and plots into the run folder.
     ///
     /// Examples:
     ///   drivelab run                                  # kyslan-pi, realtime, 10 kHz
@@ -155,6 +155,27 @@ enum Cmd {
             requires = "machine"
         )]
         zenoh_wait: f64,
+        /// Serve the drive live over the Foxglove WebSocket protocol (subprotocol
+        /// foxglove.websocket.v1) on ADDR, HOST:PORT or PORT (default 127.0.0.1:8765: this
+        /// machine only; port 0: any free port, printed). Signals at 100 Hz of simulated
+        /// time, per-stage rates, misses and latency percentiles once a second, the event log.
+        /// Off by default. See docs/foxglove.md.
+        #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = drivelab_services::foxglove::DEFAULT_ADDR)]
+        foxglove: Option<String>,
+    },
+    /// Convert a run folder: write trace.mcap (every sample of trace.csv, the supervisor's
+    /// events and fault reports, scenario and summary as metadata) for an older run that has
+    /// none. Runs write trace.mcap themselves.
+    ///
+    /// Examples:
+    ///   drivelab export runs/default --mcap
+    #[command(verbatim_doc_comment)]
+    Export {
+        /// Run folder (with trace.csv, scenario.toml and summary.json).
+        run: PathBuf,
+        /// Write RUNDIR/trace.mcap (the only format so far, required).
+        #[arg(long, required = true)]
+        mcap: bool,
     },
     /// Record a remote drive (one started with --zenoh-listen) into a local run folder:
     /// scenario.toml, trace.csv and summary.json with the missing samples and their causes,
@@ -663,7 +684,11 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             machine,
             zenoh_connect,
             zenoh_wait,
+            foxglove,
         } => {
+            let foxglove = foxglove
+                .map(|a| drivelab_services::foxglove::parse_addr(&a))
+                .transpose()?;
             if zenoh_config.is_some() && zenoh_listen.is_none() && zenoh_connect.is_none() {
                 return Err(usage(
                     "--zenoh-config needs --zenoh-listen or --zenoh-connect".into(),
@@ -728,6 +753,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 expect,
                 runner,
                 zenoh,
+                foxglove,
             };
             let r = launcher::run(&o)?;
             let failed = drivelab_services::expect::failed(&r.summary);
@@ -964,6 +990,11 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
         } => drivelab_services::faults::hog::run(cpu, priority, duration_s),
         Cmd::BusInject { bus, kind, count } => {
             drivelab_services::faults::inject_bad_estimates(&bus, &kind, count)
+        }
+        Cmd::Export { run, mcap: _ } => {
+            let f = drivelab_services::trace_mcap::export(&run)?;
+            drivelab_services::outln!("{}", f.display());
+            Ok(())
         }
         Cmd::Plot(args) => {
             for f in drivelab_services::plotcmd::run(&args)? {

@@ -15,6 +15,10 @@ pub struct PlotArgs {
     /// Output folder (default: the run folder).
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
+    /// Read the samples from trace.mcap instead of trace.csv, and also draw
+    /// latency-per-second.png: the cycle latency's p50, p99 and maximum of each second, µs.
+    #[arg(long)]
+    pub from_mcap: bool,
 }
 
 fn parse_window(w: &str) -> Result<(f64, f64)> {
@@ -37,11 +41,16 @@ fn parse_window(w: &str) -> Result<(f64, f64)> {
 
 /// Redraws the figures; returns the files written.
 pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
-    let trace = a.run.join("trace.csv");
-    if !trace.is_file() {
-        bail!("{} has no trace.csv (not a run folder)", a.run.display());
-    }
-    let rows = drivelab_runtime::trace::read_csv(&trace)?;
+    let (rows, seconds) = if a.from_mcap {
+        let m = crate::trace_mcap::read(&a.run.join("trace.mcap"))?;
+        (m.rows, m.seconds)
+    } else {
+        let trace = a.run.join("trace.csv");
+        if !trace.is_file() {
+            bail!("{} has no trace.csv (not a run folder)", a.run.display());
+        }
+        (drivelab_runtime::trace::read_csv(&trace)?, Vec::new())
+    };
     let summary: serde_json::Value = std::fs::read(a.run.join("summary.json"))
         .ok()
         .and_then(|b| serde_json::from_slice(&b).ok())
@@ -83,6 +92,9 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
         ),
     };
     let mut files = drivelab_tools::plot::plot_trace(&rows, &out, &opts)?;
+    if !seconds.is_empty() {
+        files.extend(latency_per_second(&seconds, &summary, &out)?);
+    }
     let mut curves = Vec::new();
     let mut hdrs: Vec<PathBuf> = std::fs::read_dir(&a.run)?
         .flatten()
@@ -115,4 +127,41 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
         )?);
     }
     Ok(files)
+}
+
+/// The plant's cycle latency second by second (`/services` of `trace.mcap`).
+fn latency_per_second(
+    seconds: &[serde_json::Value],
+    summary: &serde_json::Value,
+    out: &std::path::Path,
+) -> Result<Vec<PathBuf>> {
+    let plant = seconds.iter().filter(|s| s["service"] == "plant");
+    let mut series: Vec<(String, Vec<(f64, f64)>)> = ["p50", "p99", "max"]
+        .iter()
+        .map(|q| (format!("cycle {q}"), Vec::new()))
+        .collect();
+    for s in plant {
+        let t = s["t_s"].as_f64().unwrap_or(f64::NAN);
+        for (i, q) in ["p50", "p99", "max"].iter().enumerate() {
+            series[i]
+                .1
+                .push((t, s["cycle_us"][q].as_f64().unwrap_or(f64::NAN)));
+        }
+    }
+    if !series
+        .iter()
+        .any(|(_, p)| p.iter().any(|(_, y)| y.is_finite()))
+    {
+        // No cycle latency (lockstep or an exported run): no figure.
+        return Ok(Vec::new());
+    }
+    let ts_us = 1e6 / summary["rate_hz"].as_f64().unwrap_or(10_000.0);
+    drivelab_tools::plot::plot_lines(
+        &series,
+        "cycle latency of each second (trace.mcap, /services)",
+        "end of the second, s",
+        "µs",
+        &[(ts_us, format!("T_s = {ts_us:.0} µs"))],
+        &out.join("latency-per-second"),
+    )
 }

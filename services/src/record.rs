@@ -93,12 +93,21 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
     let cmd = remote.feed::<VoltageCommand>()?;
     let wref = remote.feed::<SpeedRef>()?;
     let summary_feed = remote.summary_feed()?;
-    let mut trace = TraceStream::new(
+    let trace = TraceStream::new(
         &sc,
         Some(drivelab_runtime::trace::CsvTrace::create(
             &o.out.join("trace.csv"),
         )?),
     )?;
+    // trace.mcap beside it, as a local run's (the drive's clock is not this machine's).
+    let sinks = crate::launcher::sinks::Sinks::new(
+        Some(crate::trace_mcap::McapTrace::create(
+            &o.out.join("trace.mcap"),
+        )?),
+        None,
+    )
+    .without_wall_time();
+    let mut trace = trace.with_sinks(sinks.clone());
     let (mut last_truth, mut last_cmd) = (None, None);
     let mut first_k = None;
     for m in remote.history::<PlantTruth>()? {
@@ -217,6 +226,9 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
         "published_to_recorded_us": percentiles_us(&mut hop_ns),
     });
     std::fs::write(o.out.join("summary.json"), serde_json::to_vec_pretty(&s)?)?;
+    if let Some(m) = sinks.take_mcap() {
+        m.finish(&toml_text, &s, sc.rates.sample_hz)?;
+    }
     let bus = remote.bus().to_string();
     remote.close()?;
     if let Some(f) = failure {

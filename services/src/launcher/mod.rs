@@ -8,6 +8,7 @@
 mod bridge;
 mod policy;
 mod recorder;
+pub mod sinks;
 mod spawn;
 pub(crate) mod stream;
 mod supervisor;
@@ -93,6 +94,9 @@ pub struct RunOptions {
     /// Make the drive reachable over Zenoh (`--zenoh-listen`; docs/architecture.md,
     /// "Across machines (Zenoh)").
     pub zenoh: Option<ZenohListen>,
+    /// Serve the Foxglove WebSocket protocol on this address while the drive runs
+    /// (`--foxglove`; docs/foxglove.md).
+    pub foxglove: Option<std::net::SocketAddr>,
 }
 
 /// What the supervisor does when a service dies.
@@ -175,6 +179,7 @@ fn run_bus(
     o: &RunOptions,
     out: &Path,
     clock: BusClock,
+    sinks: &sinks::Sinks,
 ) -> Result<BusRun> {
     let bus_id = o
         .bus
@@ -206,7 +211,8 @@ fn run_bus(
         Some(drivelab_runtime::trace::CsvTrace::create(
             &out.join("trace.csv"),
         )?),
-    )?;
+    )?
+    .with_sinks(sinks.clone());
     // Real time: the liveness segment (every process's lease, and its twin's), made before
     // anyone starts; the processes with a standby twin.
     let lockstep = clock == BusClock::Lockstep;
@@ -255,6 +261,7 @@ fn run_bus(
         // The telemetry hub subscribes to the services' statuses before they start.
         let stage_names: Vec<String> = plan_topo.stages.iter().map(|s| s.name.clone()).collect();
         let mut hub = crate::hub::Hub::new(&bus_id, sc, clock == BusClock::Lockstep, &stage_names)?;
+        hub.set_sinks(sinks.clone());
         // The bridge subscribes (polled) before the stage hosts start, like the recorder.
         if let Some(z) = &o.zenoh {
             let clock_name = match clock {
@@ -688,6 +695,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         };
         bail!("{flag} needs a drive on a bus: use --clock realtime or lockstep");
     }
+    if o.foxglove.is_some() {
+        crate::foxglove::check_clock(o.clock == Clock::Inprocess)?;
+    }
     if let Some(b) = &o.bus {
         bus::check_bus_id(b)?;
         // Before the run folder is made: a busy bus leaves nothing behind.
@@ -699,6 +709,24 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         sc.validate().map_err(|e| anyhow!("--duration {d}: {e}"))?;
     }
     let expectations = crate::expect::collect(&sc.expect, &o.expect)?;
+    // The live stream's address is taken before anything is created: an address in use
+    // leaves nothing behind.
+    let live = match o.foxglove {
+        Some(addr) => {
+            let l = crate::foxglove::Live::start(
+                addr,
+                sc.rates.sample_hz,
+                &[("scenario", sc.name.clone())],
+            )?;
+            crate::errln!(
+                "drivelab: Foxglove WebSocket server on ws://{} (subprotocol {})",
+                l.addr(),
+                crate::foxglove::SUBPROTOCOL
+            );
+            Some(Arc::new(l))
+        }
+        None => None,
+    };
     // Sensor faults go into the resolved scenario: every plant applies them.
     crate::faults::sensor::add_to_scenario(&o.faults, &mut sc)?;
     let mut topo = resolve_topology(&mut sc, &sc_src, o)?;
@@ -769,6 +797,12 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     // A real-time drive holds the CPU wake-up latency request while it runs (released when
     // this value drops, or by the kernel if the launcher dies).
     let (latency_request, latency_error) = cpu_latency_request(&sc, o)?;
+    let sinks = sinks::Sinks::new(
+        Some(crate::trace_mcap::McapTrace::create(
+            &out.join("trace.mcap"),
+        )?),
+        live.clone(),
+    );
     let wall = Instant::now();
     let BusRun {
         rows,
@@ -807,7 +841,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             } else {
                 BusClock::Realtime
             };
-            run_bus(&sc, &sc_path, &topo, &plan, &hogs, o, &out, clock)?
+            run_bus(&sc, &sc_path, &topo, &plan, &hogs, o, &out, clock, &sinks)?
         }
     };
     let wall_s = wall.elapsed().as_secs_f64();
@@ -845,6 +879,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         Some(s) => s,
         None => {
             drivelab_runtime::trace::write_csv(&out.join("trace.csv"), &rows)?;
+            for r in &rows {
+                sinks.row(r, 0)?;
+            }
             TraceStats::of(&rows)
         }
     };
@@ -979,6 +1016,22 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         out.join("summary.json"),
         serde_json::to_vec_pretty(&summary)?,
     )?;
+    if let Some(m) = sinks.take_mcap() {
+        m.finish(
+            &std::fs::read_to_string(&sc_path)?,
+            &summary,
+            sc.rates.sample_hz,
+        )?;
+    }
+    if let Some(l) = &live {
+        // Connected clients get what is queued for them, then a close.
+        let dropped = l.stop();
+        if dropped > 0 {
+            crate::errln!(
+                "drivelab: Foxglove: {dropped} messages dropped for clients that did not keep up"
+            );
+        }
+    }
     if let Some(b) = bridge {
         // Remote recorders get the summary, then the bridge ends.
         b.finish(&out.join("summary.json"))?;

@@ -166,6 +166,8 @@ pub struct TraceStream {
     wref: std::collections::VecDeque<(u64, f64)>,
     theta_ref: Option<f64>,
     out: Option<CsvTrace>,
+    /// `trace.mcap` and the live stream.
+    sinks: super::sinks::Sinks,
     keep: Keep,
     /// Rows kept for the analyses.
     pub kept: Vec<TraceRow>,
@@ -219,6 +221,7 @@ impl TraceStream {
             wref: Default::default(),
             theta_ref: None,
             out,
+            sinks: super::sinks::Sinks::none(),
             kept,
             gaps: Vec::new(),
             stats: TraceStats {
@@ -234,6 +237,12 @@ impl TraceStream {
             late: 0,
             rejected: 0,
         })
+    }
+
+    /// Sends every row to `sinks` too (`trace.mcap`, the live stream).
+    pub fn with_sinks(mut self, sinks: super::sinks::Sinks) -> Self {
+        self.sinks = sinks;
+        self
     }
 
     fn slot(k: u64) -> usize {
@@ -416,6 +425,7 @@ impl TraceStream {
         if let Some(out) = self.out.as_mut() {
             out.push(&row)?;
         }
+        self.sinks.row(&row, m.hdr.t_pub_ns)?;
         self.stats.count(&row);
         if self.keep.keeps(k) {
             self.kept.push(row);
