@@ -1,6 +1,7 @@
 //! A minimal client of the Foxglove WebSocket protocol (subprotocol `foxglove.websocket.v1`):
 //! connects to `drivelab run --foxglove`, subscribes to every advertised channel and prints,
-//! when the server closes, how many messages and bytes each channel brought. It is the client
+//! when the server closes, how many messages and bytes each channel brought. It keeps off the
+//! drive's real-time cores (`rt_cores` in the server's metadata) at nice 10. It is the client
 //! of the with/without-client latency measurement (docs/measurements.md).
 //!
 //! ```sh
@@ -39,6 +40,15 @@ fn main() -> Result<(), Box<dyn core::error::Error>> {
         match ws.read() {
             Ok(Message::Text(t)) => {
                 let v: serde_json::Value = serde_json::from_str(t.as_str())?;
+                if v["op"] == "serverInfo" {
+                    // On the drive's machine, keep off its real-time cores.
+                    let cores = v["metadata"]["rt_cores"]
+                        .as_str()
+                        .and_then(|c| c.parse().ok());
+                    if let Some(c) = cores {
+                        eprintln!("{}", drivelab_runtime::rt::keep_off(c, "client"));
+                    }
+                }
                 if v["op"] == "advertise" {
                     let mut subs = Vec::new();
                     for c in v["channels"].as_array().into_iter().flatten() {

@@ -182,10 +182,17 @@ pub fn parse_addr(s: &str) -> Result<SocketAddr> {
 }
 
 impl Live {
-    /// Listens on `addr` (port 0: any free port) for a drive sampled at `sample_hz`; fails
-    /// with one line when the address cannot be had (in use, not this machine's). `info`
-    /// goes into the server's `serverInfo.metadata`.
-    pub fn start(addr: SocketAddr, sample_hz: f64, info: &[(&str, String)]) -> Result<Self> {
+    /// Listens on `addr` (port 0: any free port) for a drive sampled at `sample_hz` whose
+    /// real-time processes run on `rt_cores` (bit i = CPU i); fails with one line when the
+    /// address cannot be had (in use, not this machine's). `info` goes into the server's
+    /// `serverInfo.metadata`. The server's threads keep off `rt_cores` at nice 10, as the
+    /// monitor does (`drivelab_runtime::rt::keep_off`).
+    pub fn start(
+        addr: SocketAddr,
+        sample_hz: f64,
+        rt_cores: u64,
+        info: &[(&str, String)],
+    ) -> Result<Self> {
         let listener = TcpListener::bind(addr)
             .map_err(|e| anyhow!("--foxglove {addr}: cannot listen: {e}"))?;
         let addr = listener.local_addr()?;
@@ -204,6 +211,8 @@ impl Live {
             );
         }
         metadata.insert("rate_hz:/services".into(), "1".into());
+        // A client on this machine keeps off these CPUs (the foxglove_watch example does).
+        metadata.insert("rt_cores".into(), rt_cores.to_string());
         metadata.insert(
             "time".into(),
             "message timestamps are simulated time t_k, ns".into(),
@@ -216,7 +225,11 @@ impl Live {
             let (stop, clients) = (stop.clone(), clients.clone());
             std::thread::Builder::new()
                 .name("foxglove".into())
-                .spawn(move || accept_loop(&listener, &stop, &clients, &hello))?
+                .spawn(move || {
+                    // Before any client thread: they inherit the CPUs and the nice value.
+                    drivelab_runtime::rt::keep_off(rt_cores, "Foxglove server");
+                    accept_loop(&listener, &stop, &clients, &hello)
+                })?
         };
         Ok(Self {
             addr,

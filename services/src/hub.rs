@@ -53,6 +53,15 @@ impl TraceTail {
     }
 }
 
+/// The CPUs of the drive's real-time processes (bit i = CPU i) in `sc`'s topology.
+pub fn rt_cores(sc: &Scenario) -> u64 {
+    sc.topology()
+        .iter()
+        .filter_map(|p| p.cpu)
+        .filter(|&c| c < 64)
+        .fold(0u64, |m, c| m | (1 << c))
+}
+
 /// The hub's ports and state.
 pub struct Hub {
     _node: Node<ipc::Service>,
@@ -95,12 +104,7 @@ impl Hub {
         view.sample_hz = sc.rates.sample_hz;
         view.n_samples = sc.samples();
         view.lockstep = u32::from(lockstep);
-        view.rt_cores = sc
-            .topology()
-            .iter()
-            .filter_map(|p| p.cpu)
-            .filter(|&c| c < 64)
-            .fold(0u64, |m, c| m | (1 << c));
+        view.rt_cores = rt_cores(sc);
         view.n_stages = stages.len().min(MAX_STAGES) as u32;
         for (slot, name) in view.stage_names.iter_mut().zip(stages) {
             put_str(slot, name);

@@ -709,24 +709,6 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         sc.validate().map_err(|e| anyhow!("--duration {d}: {e}"))?;
     }
     let expectations = crate::expect::collect(&sc.expect, &o.expect)?;
-    // The live stream's address is taken before anything is created: an address in use
-    // leaves nothing behind.
-    let live = match o.foxglove {
-        Some(addr) => {
-            let l = crate::foxglove::Live::start(
-                addr,
-                sc.rates.sample_hz,
-                &[("scenario", sc.name.clone())],
-            )?;
-            crate::errln!(
-                "drivelab: Foxglove WebSocket server on ws://{} (subprotocol {})",
-                l.addr(),
-                crate::foxglove::SUBPROTOCOL
-            );
-            Some(Arc::new(l))
-        }
-        None => None,
-    };
     // Sensor faults go into the resolved scenario: every plant applies them.
     crate::faults::sensor::add_to_scenario(&o.faults, &mut sc)?;
     let mut topo = resolve_topology(&mut sc, &sc_src, o)?;
@@ -786,6 +768,25 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     }
     // Simulated kills and stops, from the plan or a scenario's own [[inject]] tables.
     crate::faults::check_simulated(&sc.inject, simulated)?;
+    // The live stream's address is taken before anything is created: an address in use
+    // leaves nothing behind.
+    let live = match o.foxglove {
+        Some(addr) => {
+            let l = crate::foxglove::Live::start(
+                addr,
+                sc.rates.sample_hz,
+                crate::hub::rt_cores(&sc),
+                &[("scenario", sc.name.clone())],
+            )?;
+            crate::errln!(
+                "drivelab: Foxglove WebSocket server on ws://{} (subprotocol {})",
+                l.addr(),
+                crate::foxglove::SUBPROTOCOL
+            );
+            Some(Arc::new(l))
+        }
+        None => None,
+    };
     let out = o.out.clone().unwrap_or_else(|| default_out(&sc, o.clock));
     std::fs::create_dir_all(&out)
         .with_context(|| format!("cannot create run folder {}", out.display()))?;
