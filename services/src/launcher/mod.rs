@@ -226,17 +226,26 @@ fn run_bus(
         .map(|p| p.name.clone())
         .collect();
     let publishers = drivelab_runtime::service::publishers_per_topic(plan_topo, lockstep);
-    // In real time the recorder thread runs at SCHED_FIFO, below every stage and above a
-    // split drive's link, so that no normal task on its core (a build, the OS) can keep it
-    // from draining its buffers (4096 samples) for long enough to lose one. Refused without
-    // the privilege: it runs as before.
+    // In real time the recorder thread runs off the drive's cores at SCHED_FIFO, below every
+    // stage and above a split drive's link, so that no normal task on its core (a build, the
+    // OS) can keep it from draining its buffers (4096 samples) for long enough to lose one.
+    // Refused without the privilege: it runs as before.
     let recorder_fifo = clock == BusClock::Realtime && !o.no_rt;
+    let rt_cores = plan_topo
+        .processes
+        .iter()
+        .filter_map(|p| p.cpu)
+        .filter(|&c| c < 64)
+        .fold(0u64, |m, c| m | (1 << c));
     let rec = {
         let (b, s, sc, pr) = (bus_id.clone(), stop.clone(), sc.clone(), progress.clone());
         std::thread::Builder::new()
             .name("recorder".into())
             .spawn(move || {
                 if recorder_fifo {
+                    // Off the drive's cores first (where it could only wait below the
+                    // stages), then above every normal task there.
+                    let _ = drivelab_runtime::rt::keep_off(rt_cores, "recorder");
                     let _ =
                         drivelab_runtime::rt::set_scheduler(libc::SCHED_FIFO, RECORDER_PRIORITY);
                 }
