@@ -55,11 +55,7 @@ impl TraceTail {
 
 /// The CPUs of the drive's real-time processes (bit i = CPU i) in `sc`'s topology.
 pub fn rt_cores(sc: &Scenario) -> u64 {
-    sc.topology()
-        .iter()
-        .filter_map(|p| p.cpu)
-        .filter(|&c| c < 64)
-        .fold(0u64, |m, c| m | (1 << c))
+    drivelab_runtime::topology::cores(&sc.topology())
 }
 
 /// The hub's ports and state.

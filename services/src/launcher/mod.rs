@@ -231,12 +231,7 @@ fn run_bus(
     // OS) can keep it from draining its buffers (4096 samples) for long enough to lose one.
     // Refused without the privilege: it runs as before.
     let recorder_fifo = clock == BusClock::Realtime && !o.no_rt;
-    let rt_cores = plan_topo
-        .processes
-        .iter()
-        .filter_map(|p| p.cpu)
-        .filter(|&c| c < 64)
-        .fold(0u64, |m, c| m | (1 << c));
+    let rt_cores = drivelab_runtime::topology::cores(&plan_topo.processes);
     let rec = {
         let (b, s, sc, pr) = (bus_id.clone(), stop.clone(), sc.clone(), progress.clone());
         std::thread::Builder::new()

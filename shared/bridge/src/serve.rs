@@ -447,12 +447,7 @@ pub fn serve(o: &ServeOptions) -> Result<()> {
         .with_context(|| format!("cannot read {}", sc_path.display()))?;
     let sc = Scenario::from_toml(&scenario_toml, &sc_path.display().to_string())
         .map_err(|e| anyhow!(e))?;
-    let rt_cores = sc
-        .topology()
-        .iter()
-        .filter_map(|p| p.cpu)
-        .filter(|&c| c < 64)
-        .fold(0u64, |m, c| m | (1 << c));
+    let rt_cores = drivelab_runtime::topology::cores(&sc.topology());
     // Before Zenoh starts its threads, so that they inherit the placement.
     let mut placed = drivelab_runtime::rt::keep_off(rt_cores, "zenoh bridge");
     // A split drive's link is on its data path: the bridge and Zenoh's threads (they
@@ -709,19 +704,18 @@ fn join(
                         info.clock
                     );
                 }
-                if let Some((n, (a, b))) = scenario_toml
-                    .lines()
-                    .zip(info.scenario.lines())
-                    .enumerate()
-                    .find(|(_, (a, b))| a != b)
-                {
+                if info.scenario != scenario_toml {
+                    let (here, theirs): (Vec<&str>, Vec<&str>) =
+                        (scenario_toml.lines().collect(), info.scenario.lines().collect());
+                    let n = (0..here.len().max(theirs.len()))
+                        .find(|&i| here.get(i) != theirs.get(i))
+                        .unwrap_or(0);
                     bail!(
-                        "machine '{there}' runs another scenario (line {}: '{b}' there, '{a}' here): give both sides the same scenario, topology and options",
-                        n + 1
+                        "machine '{there}' runs another scenario (line {}: '{}' there, '{}' here): give both sides the same scenario, topology and options",
+                        n + 1,
+                        theirs.get(n).unwrap_or(&""),
+                        here.get(n).unwrap_or(&"")
                     );
-                }
-                if scenario_toml.lines().count() != info.scenario.lines().count() {
-                    bail!("machine '{there}' runs another scenario (its resolved scenario has {} lines, this one {}): give both sides the same scenario, topology and options", info.scenario.lines().count(), scenario_toml.lines().count());
                 }
                 return Ok(bus);
             }

@@ -356,24 +356,22 @@ impl Split {
     /// the error of a thread that failed.
     pub fn met(&mut self) -> Result<bool> {
         self.check()?;
-        let Some(sub) = &self.peer else {
-            return Ok(false);
-        };
-        while let Some(s) = sub
-            .try_recv()
-            .map_err(|e| anyhow!("zenoh liveliness: {e}"))?
-        {
-            if s.kind() == zenoh::sample::SampleKind::Put {
-                return Ok(true);
-            }
-        }
-        Ok(false)
+        self.peer_saw(zenoh::sample::SampleKind::Put)
     }
 
     /// True once the other machine, after [`Split::met`], has withdrawn its declaration: its
     /// bridge ended or the network between them failed (Zenoh's lease, about 10 s by
-    /// default, when nothing closes the connection).
+    /// default, when nothing closes the connection). Told once.
     pub fn left(&mut self) -> Result<bool> {
+        let gone = self.peer_saw(zenoh::sample::SampleKind::Delete)?;
+        if gone {
+            self.peer = None;
+        }
+        Ok(gone)
+    }
+
+    /// True when the other machine's token has changed as `kind` since the last look.
+    fn peer_saw(&self, kind: zenoh::sample::SampleKind) -> Result<bool> {
         let Some(sub) = &self.peer else {
             return Ok(false);
         };
@@ -381,8 +379,7 @@ impl Split {
             .try_recv()
             .map_err(|e| anyhow!("zenoh liveliness: {e}"))?
         {
-            if s.kind() == zenoh::sample::SampleKind::Delete {
-                self.peer = None;
+            if s.kind() == kind {
                 return Ok(true);
             }
         }
@@ -435,6 +432,21 @@ impl Drop for Split {
     }
 }
 
+/// Tells [`Split::start`] how a thread's set-up went; its ports, if it succeeded.
+fn report<V>(
+    set_up: Result<V>,
+    ready: &mpsc::Sender<Result<()>>,
+    what: &str,
+    topic: &str,
+) -> Option<V> {
+    let (answer, ports) = match set_up {
+        Ok(v) => (Ok(()), Some(v)),
+        Err(e) => (Err(anyhow!("split link, {what} {topic}: {e:#}")), None),
+    };
+    let _ = ready.send(answer);
+    ports
+}
+
 /// Sends topic `T` of the bus to the other machine until stopped, then what is left.
 fn send<T: Data>(
     publisher: zenoh::pubsub::Publisher<'static>,
@@ -455,15 +467,8 @@ fn send<T: Data>(
         rx.connect()?;
         Ok((node, topics, rx))
     })();
-    let (_node, _topics, rx) = match set_up {
-        Ok(v) => {
-            let _ = ready.send(Ok(()));
-            v
-        }
-        Err(e) => {
-            let _ = ready.send(Err(anyhow!("split link, sending {}: {e:#}", T::NAME)));
-            return Ok(());
-        }
+    let Some((_node, _topics, rx)) = report(set_up, &ready, "sending", T::NAME) else {
+        return Ok(());
     };
     let mut batch: Vec<T> = Vec::with_capacity(codec::MAX_COUNT);
     let mut buf = Vec::new();
@@ -515,15 +520,8 @@ fn take<T: Data>(
         tx.connect()?;
         Ok((node, topics, tx))
     })();
-    let (_node, _topics, tx) = match set_up {
-        Ok(v) => {
-            let _ = ready.send(Ok(()));
-            v
-        }
-        Err(e) => {
-            let _ = ready.send(Err(anyhow!("split link, taking {}: {e:#}", T::NAME)));
-            return Ok(());
-        }
+    let Some((_node, _topics, tx)) = report(set_up, &ready, "taking", T::NAME) else {
+        return Ok(());
     };
     let mut msgs: Vec<T> = Vec::with_capacity(codec::MAX_COUNT);
     while !stop.load(Ordering::SeqCst) {

@@ -270,6 +270,16 @@ fn check_machines(procs: &[ProcessSpec]) -> Result<(), String> {
     Ok(())
 }
 
+/// The CPUs the processes are pinned to (bit i = CPU i, CPUs 0–63): the drive's real-time
+/// cores, which tools keep off.
+pub fn cores(procs: &[ProcessSpec]) -> u64 {
+    procs
+        .iter()
+        .filter_map(|p| p.cpu)
+        .filter(|&c| c < 64)
+        .fold(0u64, |m, c| m | (1 << c))
+}
+
 /// The two machines of a split topology in order of appearance (the first hosts the first
 /// process); empty when the topology is not split.
 pub fn machines(procs: &[ProcessSpec]) -> Vec<String> {
