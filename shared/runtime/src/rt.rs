@@ -557,28 +557,42 @@ fn clock_ns(clock: libc::clockid_t) -> u64 {
 
 /// Sleeps until the absolute `CLOCK_MONOTONIC` deadline `deadline_ns` (ns), with
 /// `clock_nanosleep(TIMER_ABSTIME)`; restarts after signals (`EINTR`) — with an absolute
-/// deadline a restart never accumulates drift. Returns at once if the deadline has passed.
+/// deadline a restart never accumulates drift. A deadline that has passed returns at once,
+/// without the system call: `clock_nanosleep` to a past deadline still arms the timer and takes
+/// its interrupt (15–21 µs on a 2-vCPU VM, where programming the timer traps into the
+/// hypervisor), which a loop catching up after a stall would pay on every late sample
+/// (docs/architecture.md, "Falling behind and catching up").
 pub fn sleep_until_ns(deadline_ns: u64) {
+    sleep_until_with(deadline_ns, now_ns, |ts| {
+        // SAFETY: `ts` is a valid timespec; the remaining-time pointer may be null (and is
+        // unused with TIMER_ABSTIME).
+        unsafe {
+            libc::clock_nanosleep(
+                libc::CLOCK_MONOTONIC,
+                libc::TIMER_ABSTIME,
+                ts,
+                std::ptr::null_mut(),
+            )
+        }
+    })
+}
+
+/// [`sleep_until_ns`] with its clock and its `clock_nanosleep` passed in (`nanosleep` returns
+/// the error number, as `clock_nanosleep` does).
+fn sleep_until_with(
+    deadline_ns: u64,
+    now: impl Fn() -> u64,
+    mut nanosleep: impl FnMut(&libc::timespec) -> libc::c_int,
+) {
+    if now() >= deadline_ns {
+        return;
+    }
     let ts = libc::timespec {
         tv_sec: (deadline_ns / 1_000_000_000) as libc::time_t,
         tv_nsec: (deadline_ns % 1_000_000_000) as libc::c_long,
     };
-    loop {
-        // SAFETY: `ts` is a valid timespec; the remaining-time pointer may be null (and is
-        // unused with TIMER_ABSTIME).
-        let rc = unsafe {
-            libc::clock_nanosleep(
-                libc::CLOCK_MONOTONIC,
-                libc::TIMER_ABSTIME,
-                &ts,
-                std::ptr::null_mut(),
-            )
-        };
-        // clock_nanosleep returns the error number directly (it does not set errno).
-        if rc != libc::EINTR {
-            return;
-        }
-    }
+    // clock_nanosleep returns the error number directly (it does not set errno).
+    while nanosleep(&ts) == libc::EINTR {}
 }
 
 /// Number of online CPUs (`sysconf(_SC_NPROCESSORS_ONLN)`, at least 1).
@@ -871,6 +885,27 @@ mod tests {
         sleep_until_ns(t0);
         let dt = now_ns() - t0;
         assert!(dt < 50_000_000, "past deadlines took {dt} ns");
+    }
+
+    /// A late loop (a plant catching up after a stall) makes no system call for a deadline
+    /// that has passed or is now; a future one is slept to, restarted after each signal.
+    #[test]
+    fn only_a_future_deadline_reaches_clock_nanosleep() {
+        let mut calls = Vec::new();
+        for deadline in [0, 4_999_999_999, 5_000_000_000] {
+            sleep_until_with(deadline, || 5_000_000_000, |_| {
+                calls.push(deadline);
+                0
+            });
+        }
+        assert!(calls.is_empty(), "past deadlines reached clock_nanosleep: {calls:?}");
+        let mut seen = Vec::new();
+        let mut rc = [libc::EINTR, libc::EINTR, 0].into_iter();
+        sleep_until_with(6_250_000_001, || 5_000_000_000, |ts| {
+            seen.push((ts.tv_sec, ts.tv_nsec));
+            rc.next().expect("called after it returned 0")
+        });
+        assert_eq!(seen, vec![(6, 250_000_001); 3]);
     }
 
     #[test]
