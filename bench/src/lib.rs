@@ -1,7 +1,8 @@
 //! drivelab latency/jitter benchmarks: the measurement back-ends of `drivelab bench`.
 //!
 //! * [`run_floor`]: a bare periodic `clock_nanosleep(TIMER_ABSTIME)` loop — what the timer
-//!   alone costs on this machine (wake-up lateness);
+//!   alone costs on this machine (wake-up lateness, one per wake-up: after a late wake-up the
+//!   deadlines that passed are skipped, as cyclictest does, and counted as misses);
 //! * [`run_inprocess`]: the whole control chain ([`InProcessDrive::cycle`]) in one thread on the
 //!   same kind of timer;
 //! * [`cyclictest::run`]: cyclictest (rt-tests), when installed, as a cross-check of the
@@ -166,12 +167,13 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
         sleep_until_ns(t0 - ts_ns);
         let cpu0 = thread_cpu_ns();
         // ---- real-time loop: no allocation, no locks, no logging ----
-        for k in 0..n {
+        let mut k = 0;
+        while k < n {
             let deadline = t0 + k * ts_ns;
             sleep_until_ns(deadline);
-            let l = now_ns() as i64 - deadline as i64;
-            late.record_ns(l);
-            misses.record(l > ts_ns as i64);
+            let now = now_ns();
+            late.record_ns(now as i64 - deadline as i64);
+            k = wake_up_covers(k, now, t0, ts_ns, n, &mut misses);
         }
         // ---- end of the real-time loop ----
         let cpu_run_ns = Some(thread_cpu_ns().saturating_sub(cpu0));
@@ -185,6 +187,20 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
             cpu_run_ns,
         })
     })
+}
+
+/// The floor's bookkeeping after its wake-up for deadline `k` at `now` (deadline j is t0 +
+/// j·ts_ns), as cyclictest keeps it: one lateness per wake-up, and the deadlines that passed
+/// while it was late are not slept to (a stall is one late wake-up, not a burst of them).
+/// Every deadline from `k` up to the next one ahead is recorded in `misses`, as a miss when
+/// `now` is after the deadline that follows it (the chain's rule: command j later than
+/// t_{j+1}). Returns the next deadline's index, at most `n`.
+fn wake_up_covers(k: u64, now: u64, t0: u64, ts_ns: u64, n: u64, misses: &mut MissCounter) -> u64 {
+    let next = ((now.saturating_sub(t0) / ts_ns) + 1).clamp(k + 1, n.max(k + 1));
+    for j in k..next {
+        misses.record(now > t0 + (j + 1) * ts_ns);
+    }
+    next
 }
 
 /// In-process: the full control chain ([`InProcessDrive::cycle`]) in one thread on the same
@@ -255,11 +271,33 @@ mod tests {
     fn floor_runs_the_expected_samples() {
         let r = run_floor(2000.0, 0.05, &NodeSpec::default()).unwrap();
         assert_eq!(r.samples, 100);
-        assert_eq!(r.lateness.len(), 100);
-        assert_eq!(r.cycle.len(), 100);
+        // One lateness per wake-up: 100 on time, fewer after a late one.
+        assert!((1..=100).contains(&r.lateness.len()), "{}", r.lateness.len());
+        assert_eq!(r.cycle.len(), r.lateness.len());
         assert_eq!(r.cycle.name, "cycle");
         assert_eq!(r.lateness.name, "lateness");
         assert!(r.misses.misses <= r.samples);
+    }
+
+    #[test]
+    fn a_late_wake_up_skips_the_deadlines_that_passed_and_misses_them() {
+        let (t0, ts) = (1_000_000, 100);
+        let mut m = MissCounter::default();
+        // On time (and early): the next deadline, no miss.
+        assert_eq!(wake_up_covers(0, t0 + 30, t0, ts, 10, &mut m), 1);
+        assert_eq!(wake_up_covers(1, t0 + 100, t0, ts, 10, &mut m), 2);
+        assert_eq!((m.misses, m.longest_run), (0, 0));
+        // Woken for deadline 2 at t0 + 550 (3.5 periods late): deadlines 3, 4 and 5 have
+        // passed and are not slept to; 2, 3 and 4 missed (t0 + 550 is after t_3, t_4, t_5),
+        // 5 did not (its command is due at t_6 = t0 + 600).
+        assert_eq!(wake_up_covers(2, t0 + 550, t0, ts, 10, &mut m), 6);
+        assert_eq!((m.misses, m.longest_run), (3, 3));
+        // Exactly at the next deadline is not after it; the end of the run caps the skip.
+        let mut m = MissCounter::default();
+        assert_eq!(wake_up_covers(0, t0 + 100, t0, ts, 10, &mut m), 2);
+        assert_eq!(m.misses, 0);
+        assert_eq!(wake_up_covers(8, t0 + 5_000, t0, ts, 10, &mut m), 10);
+        assert_eq!(m.misses, 2);
     }
 
     #[test]

@@ -201,7 +201,7 @@ fn row(job: &Job, hz: f64, m: &VariantResult, hgrm: &Path) -> Row {
         waits_per_sample: None,
         cpu_per_wakeup_us: m
             .cpu_run_ns
-            .map(|ns| ns as f64 * 1e-3 / m.samples.max(1) as f64),
+            .map(|ns| ns as f64 * 1e-3 / m.lateness.len().max(1) as f64),
     }
 }
 
