@@ -160,6 +160,7 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
         // after the lock is only locked page by page as the loop first touches it (a page
         // fault inside the loop, hundreds per run).
         let mut late = LatencyHist::new("lateness");
+        let mut cycle = LatencyHist::new("cycle");
         let mut misses = MissCounter::default();
         // Like cyclictest: memory locked (process-wide, as the drive's hosts do).
         apply_rt("floor", &node, true)?;
@@ -173,12 +174,10 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
             sleep_until_ns(deadline);
             let now = now_ns();
             late.record_ns(now as i64 - deadline as i64);
-            k = wake_up_covers(k, now, t0, ts_ns, n, &mut misses);
+            k = wake_up_covers(k, now, t0, ts_ns, n, &mut cycle, &mut misses);
         }
         // ---- end of the real-time loop ----
         let cpu_run_ns = Some(thread_cpu_ns().saturating_sub(cpu0));
-        let mut cycle = late.clone();
-        cycle.name = "cycle";
         Ok(VariantResult {
             cycle,
             lateness: late,
@@ -190,14 +189,24 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
 }
 
 /// The floor's bookkeeping after its wake-up for deadline `k` at `now` (deadline j is t0 +
-/// j·ts_ns), as cyclictest keeps it: one lateness per wake-up, and the deadlines that passed
-/// while it was late are not slept to (a stall is one late wake-up, not a burst of them).
-/// Every deadline from `k` up to the next one ahead is recorded in `misses`, as a miss when
-/// `now` is after the deadline that follows it (the chain's rule: command j later than
+/// j·ts_ns). The caller records one lateness per wake-up and does not sleep to the deadlines
+/// that passed while it was late, as cyclictest does (a stall is one late wake-up). Every
+/// deadline from `k` up to the next one ahead is handled by this wake-up, as a chain that
+/// cost nothing would handle it: its lateness `now − t_j` goes into `cycle`, and it is a miss
+/// when `now` is after the deadline that follows it (the chain's rule: command j later than
 /// t_{j+1}). Returns the next deadline's index, at most `n`.
-fn wake_up_covers(k: u64, now: u64, t0: u64, ts_ns: u64, n: u64, misses: &mut MissCounter) -> u64 {
+fn wake_up_covers(
+    k: u64,
+    now: u64,
+    t0: u64,
+    ts_ns: u64,
+    n: u64,
+    cycle: &mut LatencyHist,
+    misses: &mut MissCounter,
+) -> u64 {
     let next = ((now.saturating_sub(t0) / ts_ns) + 1).clamp(k + 1, n.max(k + 1));
     for j in k..next {
+        cycle.record_ns(now as i64 - (t0 + j * ts_ns) as i64);
         misses.record(now > t0 + (j + 1) * ts_ns);
     }
     next
@@ -271,9 +280,10 @@ mod tests {
     fn floor_runs_the_expected_samples() {
         let r = run_floor(2000.0, 0.05, &NodeSpec::default()).unwrap();
         assert_eq!(r.samples, 100);
-        // One lateness per wake-up: 100 on time, fewer after a late one.
+        // One lateness per wake-up (100 on time, fewer after a late one); one cycle entry
+        // per deadline.
         assert!((1..=100).contains(&r.lateness.len()), "{}", r.lateness.len());
-        assert_eq!(r.cycle.len(), r.lateness.len());
+        assert_eq!(r.cycle.len(), 100);
         assert_eq!(r.cycle.name, "cycle");
         assert_eq!(r.lateness.name, "lateness");
         assert!(r.misses.misses <= r.samples);
@@ -281,22 +291,27 @@ mod tests {
 
     #[test]
     fn a_late_wake_up_skips_the_deadlines_that_passed_and_misses_them() {
-        let (t0, ts) = (1_000_000, 100);
+        let (t0, ts) = (1_000_000_000, 100_000);
         let mut m = MissCounter::default();
-        // On time (and early): the next deadline, no miss.
-        assert_eq!(wake_up_covers(0, t0 + 30, t0, ts, 10, &mut m), 1);
-        assert_eq!(wake_up_covers(1, t0 + 100, t0, ts, 10, &mut m), 2);
-        assert_eq!((m.misses, m.longest_run), (0, 0));
-        // Woken for deadline 2 at t0 + 550 (3.5 periods late): deadlines 3, 4 and 5 have
-        // passed and are not slept to; 2, 3 and 4 missed (t0 + 550 is after t_3, t_4, t_5),
-        // 5 did not (its command is due at t_6 = t0 + 600).
-        assert_eq!(wake_up_covers(2, t0 + 550, t0, ts, 10, &mut m), 6);
-        assert_eq!((m.misses, m.longest_run), (3, 3));
+        let mut c = LatencyHist::new("cycle");
+        // On time: the next deadline, no miss.
+        assert_eq!(wake_up_covers(0, t0 + 30_000, t0, ts, 10, &mut c, &mut m), 1);
+        assert_eq!((m.misses, m.longest_run, c.len()), (0, 0, 1));
+        // Woken for deadline 1 at t0 + 450 µs (3.5 periods late): deadlines 2, 3 and 4 have
+        // passed and are not slept to; 1, 2 and 3 missed (t0 + 450 µs is after t_2, t_3, t_4),
+        // 4 did not (its command is due at t_5 = t0 + 500 µs). Each is in the cycle
+        // histogram with its own lateness: 350, 250, 150, 50 µs.
+        assert_eq!(wake_up_covers(1, t0 + 450_000, t0, ts, 10, &mut c, &mut m), 5);
+        assert_eq!((m.misses, m.longest_run, c.len()), (3, 3, 5));
+        assert_eq!(
+            (c.quantile_ns(1.0) / 1000, c.quantile_ns(0.0) / 1000),
+            (350, 30)
+        );
         // Exactly at the next deadline is not after it; the end of the run caps the skip.
         let mut m = MissCounter::default();
-        assert_eq!(wake_up_covers(0, t0 + 100, t0, ts, 10, &mut m), 2);
+        assert_eq!(wake_up_covers(0, t0 + ts, t0, ts, 10, &mut c, &mut m), 2);
         assert_eq!(m.misses, 0);
-        assert_eq!(wake_up_covers(8, t0 + 5_000, t0, ts, 10, &mut m), 10);
+        assert_eq!(wake_up_covers(8, t0 + 50 * ts, t0, ts, 10, &mut c, &mut m), 10);
         assert_eq!(m.misses, 2);
     }
 
