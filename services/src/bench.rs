@@ -820,7 +820,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         drivelab_tools::plot::plot_percentiles(
             curves,
             &format!(
-                "cycle latency at {} kHz (floor: timer wake-up lateness)",
+                "cycle latency at {} kHz (floor: a bare timer's lateness at every deadline)",
                 hz / 1000.0
             ),
             Some((ts_us, format!("T_s = {ts_us:.0} µs"))),
