@@ -31,10 +31,6 @@ fn inprocess(out: &Path, extra: &[&str]) -> std::process::Output {
     drivelab(&args)
 }
 
-fn summary(dir: &Path) -> Value {
-    serde_json::from_slice(&read(&dir.join("summary.json"))).unwrap()
-}
-
 #[test]
 fn a_failed_expectation_exits_3_with_one_line_and_the_run_is_kept() {
     let dir = scratch("expect3");

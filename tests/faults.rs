@@ -12,10 +12,6 @@ fn assert_clean(bus: &str) {
     assert_clean_within(bus, Duration::from_secs(5));
 }
 
-fn summary(out: &std::path::Path) -> serde_json::Value {
-    serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap()
-}
-
 /// The causes a missing part can have: the recorder's, or a fault of the run.
 fn causes(s: &serde_json::Value) -> Vec<(String, String)> {
     let mut c: Vec<(String, String)> = [

@@ -127,18 +127,8 @@ impl Sides {
 
 /// `run --bus BUS --out OUT --no-plots --topology split-hil --machine M` and `extra`.
 fn side_args<'a>(bus: &'a str, out: &'a Path, machine: &'a str, extra: &[&'a str]) -> Vec<&'a str> {
-    let mut v = vec![
-        "run",
-        "--bus",
-        bus,
-        "--out",
-        out.to_str().unwrap(),
-        "--no-plots",
-        "--topology",
-        "split-hil",
-        "--machine",
-        machine,
-    ];
+    let mut v = run_args(bus, out).to_vec();
+    v.extend_from_slice(&["--topology", "split-hil", "--machine", machine]);
     v.extend_from_slice(extra);
     v
 }
@@ -149,10 +139,6 @@ fn ok(o: &Output, what: &str) {
         "{what} failed: {}",
         String::from_utf8_lossy(&o.stderr)
     );
-}
-
-fn summary(dir: &Path) -> Value {
-    serde_json::from_slice(&std::fs::read(dir.join("summary.json")).unwrap()).unwrap()
 }
 
 /// Runs kyslan-pi for 0.5 s split across the two sides (the simulator listens, the board

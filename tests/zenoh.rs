@@ -4,7 +4,6 @@
 //! refused with one line. Each test has its own bus and its own free port, and checks that
 //! no process and no bus file is left. Times are watchdogs only.
 
-use serde_json::Value;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -40,10 +39,6 @@ fn until_ok(args: &[&str]) -> std::process::Output {
         );
         std::thread::sleep(Duration::from_millis(100));
     }
-}
-
-fn summary(dir: &std::path::Path) -> Value {
-    serde_json::from_slice(&std::fs::read(dir.join("summary.json")).unwrap()).unwrap()
 }
 
 #[test]

@@ -282,7 +282,11 @@ mod tests {
         assert_eq!(r.samples, 100);
         // One lateness per wake-up (100 on time, fewer after a late one); one cycle entry
         // per deadline.
-        assert!((1..=100).contains(&r.lateness.len()), "{}", r.lateness.len());
+        assert!(
+            (1..=100).contains(&r.lateness.len()),
+            "{}",
+            r.lateness.len()
+        );
         assert_eq!(r.cycle.len(), 100);
         assert_eq!(r.cycle.name, "cycle");
         assert_eq!(r.lateness.name, "lateness");
@@ -295,13 +299,19 @@ mod tests {
         let mut m = MissCounter::default();
         let mut c = LatencyHist::new("cycle");
         // On time: the next deadline, no miss.
-        assert_eq!(wake_up_covers(0, t0 + 30_000, t0, ts, 10, &mut c, &mut m), 1);
+        assert_eq!(
+            wake_up_covers(0, t0 + 30_000, t0, ts, 10, &mut c, &mut m),
+            1
+        );
         assert_eq!((m.misses, m.longest_run, c.len()), (0, 0, 1));
         // Woken for deadline 1 at t0 + 450 µs (3.5 periods late): deadlines 2, 3 and 4 have
         // passed and are not slept to; 1, 2 and 3 missed (t0 + 450 µs is after t_2, t_3, t_4),
         // 4 did not (its command is due at t_5 = t0 + 500 µs). Each is in the cycle
         // histogram with its own lateness: 350, 250, 150, 50 µs.
-        assert_eq!(wake_up_covers(1, t0 + 450_000, t0, ts, 10, &mut c, &mut m), 5);
+        assert_eq!(
+            wake_up_covers(1, t0 + 450_000, t0, ts, 10, &mut c, &mut m),
+            5
+        );
         assert_eq!((m.misses, m.longest_run, c.len()), (3, 3, 5));
         assert_eq!(
             (c.quantile_ns(1.0) / 1000, c.quantile_ns(0.0) / 1000),
@@ -311,7 +321,10 @@ mod tests {
         let mut m = MissCounter::default();
         assert_eq!(wake_up_covers(0, t0 + ts, t0, ts, 10, &mut c, &mut m), 2);
         assert_eq!(m.misses, 0);
-        assert_eq!(wake_up_covers(8, t0 + 50 * ts, t0, ts, 10, &mut c, &mut m), 10);
+        assert_eq!(
+            wake_up_covers(8, t0 + 50 * ts, t0, ts, 10, &mut c, &mut m),
+            10
+        );
         assert_eq!(m.misses, 2);
     }
 

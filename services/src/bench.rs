@@ -432,7 +432,14 @@ fn compare(rows: &mut [Row], hz: f64) -> Vec<CrossCheck> {
         rows.iter()
             .find(|r| r.variant == "floor" && r.cpu_latency_request == req)
             .or_else(|| rows.iter().find(|r| r.variant == "floor"))
-            .map(|r| (r.cycle_us.p50, r.cycle_us.p99, r.misses_per_million, r.lateness_us))
+            .map(|r| {
+                (
+                    r.cycle_us.p50,
+                    r.cycle_us.p99,
+                    r.misses_per_million,
+                    r.lateness_us,
+                )
+            })
     };
     let uds_p99: Vec<(String, f64)> = rows
         .iter()

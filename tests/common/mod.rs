@@ -139,17 +139,27 @@ pub fn wait(mut child: std::process::Child, watchdog: Duration, what: &str) -> O
     child.wait_with_output().unwrap()
 }
 
+/// `run --bus BUS --out OUT --no-plots`: the start of every test drive's command line.
+pub fn run_args<'a>(bus: &'a str, out: &'a Path) -> [&'a str; 6] {
+    [
+        "run",
+        "--bus",
+        bus,
+        "--out",
+        out.to_str().unwrap(),
+        "--no-plots",
+    ]
+}
+
+/// A run folder's `summary.json`.
+pub fn summary(dir: &Path) -> Value {
+    serde_json::from_slice(&read(&dir.join("summary.json"))).unwrap()
+}
+
 /// Starts `drivelab run --bus BUS --out OUT --no-plots EXTRA` (stdout and stderr piped).
 pub fn start_drive(bus: &str, out: &Path, extra: &[&str]) -> std::process::Child {
     Command::new(DRIVELAB)
-        .args([
-            "run",
-            "--bus",
-            bus,
-            "--out",
-            out.to_str().unwrap(),
-            "--no-plots",
-        ])
+        .args(run_args(bus, out))
         .args(extra)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())

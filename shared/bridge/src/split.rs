@@ -217,6 +217,29 @@ impl BusRef {
     }
 }
 
+/// What every thread of the link shares: the bus, the stop flag, the counters and the channel
+/// on which it reports its set-up.
+type LinkShared<'a> = (
+    &'a BusRef,
+    &'a Arc<AtomicBool>,
+    &'a Arc<Counters>,
+    &'a mpsc::Sender<Result<()>>,
+);
+
+/// Starts thread `name` running `body` on its own handles of `shared`.
+fn spawn_link<F>(name: String, shared: LinkShared, body: F) -> Result<JoinHandle<Result<()>>>
+where
+    F: FnOnce(BusRef, Arc<AtomicBool>, Arc<Counters>, mpsc::Sender<Result<()>>) -> Result<()>
+        + Send
+        + 'static,
+{
+    let (b, s, c, r) = shared;
+    let (b, s, c, r) = (b.clone(), s.clone(), c.clone(), r.clone());
+    Ok(std::thread::Builder::new()
+        .name(name)
+        .spawn(move || body(b, s, c, r))?)
+}
+
 /// The running link: its threads and counters.
 pub struct Split {
     plan: SplitPlan,
@@ -274,17 +297,11 @@ impl Split {
                 .express(woken)
                 .wait()
                 .map_err(|e| anyhow!("zenoh publisher {}: {e}", t.name()))?;
-            let (b, s, c, r) = (
-                bus.clone(),
-                stop.clone(),
-                counters.clone(),
-                ready_tx.clone(),
-            );
-            threads.push(
-                std::thread::Builder::new()
-                    .name(format!("send-{}", t.name()))
-                    .spawn(move || each!(t, send, publisher, b, woken, s, c, r))?,
-            );
+            threads.push(spawn_link(
+                format!("send-{}", t.name()),
+                (&bus, &stop, &counters, &ready_tx),
+                move |b, s, c, r| each!(t, send, publisher, b, woken, s, c, r),
+            )?);
         }
         for &t in &plan.takes {
             let sub = session
@@ -293,17 +310,11 @@ impl Split {
                 .wait()
                 .map_err(|e| anyhow!("zenoh subscriber {}: {e}", t.name()))?;
             let d = plan.decim[t.index()];
-            let (b, s, c, r) = (
-                bus.clone(),
-                stop.clone(),
-                counters.clone(),
-                ready_tx.clone(),
-            );
-            threads.push(
-                std::thread::Builder::new()
-                    .name(format!("take-{}", t.name()))
-                    .spawn(move || each!(t, take, sub, b, d, s, c, r))?,
-            );
+            threads.push(spawn_link(
+                format!("take-{}", t.name()),
+                (&bus, &stop, &counters, &ready_tx),
+                move |b, s, c, r| each!(t, take, sub, b, d, s, c, r),
+            )?);
         }
         drop(ready_tx);
         let mut split = Self {

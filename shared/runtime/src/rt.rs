@@ -893,18 +893,29 @@ mod tests {
     fn only_a_future_deadline_reaches_clock_nanosleep() {
         let mut calls = Vec::new();
         for deadline in [0, 4_999_999_999, 5_000_000_000] {
-            sleep_until_with(deadline, || 5_000_000_000, |_| {
-                calls.push(deadline);
-                0
-            });
+            sleep_until_with(
+                deadline,
+                || 5_000_000_000,
+                |_| {
+                    calls.push(deadline);
+                    0
+                },
+            );
         }
-        assert!(calls.is_empty(), "past deadlines reached clock_nanosleep: {calls:?}");
+        assert!(
+            calls.is_empty(),
+            "past deadlines reached clock_nanosleep: {calls:?}"
+        );
         let mut seen = Vec::new();
         let mut rc = [libc::EINTR, libc::EINTR, 0].into_iter();
-        sleep_until_with(6_250_000_001, || 5_000_000_000, |ts| {
-            seen.push((ts.tv_sec, ts.tv_nsec));
-            rc.next().expect("called after it returned 0")
-        });
+        sleep_until_with(
+            6_250_000_001,
+            || 5_000_000_000,
+            |ts| {
+                seen.push((ts.tv_sec, ts.tv_nsec));
+                rc.next().expect("called after it returned 0")
+            },
+        );
         assert_eq!(seen, vec![(6, 250_000_001); 3]);
     }
 
