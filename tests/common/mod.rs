@@ -23,12 +23,53 @@ pub fn serial() -> std::sync::MutexGuard<'static, ()> {
     SERIAL.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-/// A fresh scratch folder for test `name`.
+/// A fresh scratch folder for test `name`. The test binary removes its scratch folders when
+/// it exits with no test failed; after a failure it keeps them and names them on stderr.
 pub fn scratch(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("drivelab-{TAG}-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
+    remove_at_exit(&d);
     d
+}
+
+/// Scratch folders made by this test binary.
+static MADE: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
+/// Set by the first panic of any test thread (a failed assertion).
+static FAILED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+fn remove_at_exit(d: &Path) {
+    static HOOKS: std::sync::Once = std::sync::Once::new();
+    HOOKS.call_once(|| {
+        let report = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            FAILED.store(true, std::sync::atomic::Ordering::SeqCst);
+            report(info);
+        }));
+        // SAFETY: registers a function without arguments that runs once when the process
+        // exits (the test harness returns from main or calls exit).
+        unsafe { libc::atexit(remove_scratch) };
+    });
+    MADE.lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .push(d.to_path_buf());
+}
+
+extern "C" fn remove_scratch() {
+    let made = std::mem::take(&mut *MADE.lock().unwrap_or_else(|e| e.into_inner()));
+    if FAILED.load(std::sync::atomic::Ordering::SeqCst) {
+        eprintln!(
+            "scratch folders kept after a failure: {}",
+            made.iter()
+                .map(|d| d.display().to_string())
+                .collect::<Vec<_>>()
+                .join(" ")
+        );
+        return;
+    }
+    for d in made {
+        let _ = std::fs::remove_dir_all(d);
+    }
 }
 
 /// A bus id unique to this test binary, process and test: the binary's initial, the pid and
