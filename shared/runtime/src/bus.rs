@@ -422,6 +422,14 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Sender<T> {
 
     /// [`Sender::send`], waking the topic's decimated receivers too when `decimated`.
     pub fn send_waking(&self, msg: T, decimated: bool) -> Result<()> {
+        self.publish(msg)?;
+        self.wake(decimated)
+    }
+
+    /// Sends `msg` without waking anyone: the first half of [`Sender::send_waking`]. A
+    /// producer killed between the two halves leaves a message its readers were not woken
+    /// for (a standby twin that takes over wakes them, see [`Sender::wake`]).
+    pub fn publish(&self, msg: T) -> Result<()> {
         let s = self
             .publisher
             .loan_uninit()
@@ -429,6 +437,13 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Sender<T> {
         s.write_payload(msg)
             .send()
             .map_err(|e| anyhow!("send: {e:?}"))?;
+        Ok(())
+    }
+
+    /// Wakes the topic's receivers (and its decimated receivers when `decimated`) without
+    /// sending: the second half of [`Sender::send_waking`]. No allocation; a system call
+    /// only for a word that has sleepers.
+    pub fn wake(&self, decimated: bool) -> Result<()> {
         match &self.notify {
             Notify::Event(n) => {
                 n.notify().map_err(|e| anyhow!("notify: {e:?}"))?;

@@ -590,6 +590,18 @@ fn rx_of(topics: &DriveTopics, t: TopicId, w: Wait, buf: usize) -> Result<Rx> {
 
 /// The next message of `r`, if one is there.
 #[inline]
+/// [`Sender::wake`] on whichever topic `t` sends.
+fn wake_tx(t: &Tx, decimated: bool) -> Result<()> {
+    match t {
+        Tx::Meas(t) => t.wake(decimated),
+        Tx::Est(t) => t.wake(decimated),
+        Tx::Iref(t) => t.wake(decimated),
+        Tx::Cmd(t) => t.wake(decimated),
+        Tx::Wref(t) => t.wake(decimated),
+        Tx::Truth(t) => t.wake(decimated),
+    }
+}
+
 fn recv_rx(r: &Rx) -> Result<Option<Msg>> {
     Ok(match r {
         Rx::Meas(r) => r.try_recv()?.map(Msg::Meas),
@@ -644,6 +656,8 @@ pub struct BusTransport {
     /// Per topic: the newest index the instance before this one published (a twin that
     /// took over sends only later ones).
     before: [Option<u64>; N_TOPICS],
+    /// A twin that took over: its watching receivers, kept (never read) until the end.
+    retired: Option<[Option<Rx>; N_TOPICS]>,
 }
 
 /// A standby twin before it takes over: it steps on the same inputs as the active instance
@@ -741,6 +755,7 @@ impl BusTransport {
             life: None,
             producer: [None; N_TOPICS],
             before: [None; N_TOPICS],
+            retired: None,
         })
     }
 
@@ -756,9 +771,14 @@ impl BusTransport {
         if !sh.lease.try_take() {
             return Ok(false);
         }
-        let mut sh = self.shadow.take().expect("checked above");
-        sh.own.release();
-        for (i, w) in sh.watch.iter().enumerate() {
+        let sh = self.shadow.take().expect("checked above");
+        let Shadow {
+            lease,
+            mut own,
+            watch,
+        } = sh;
+        own.release();
+        for (i, w) in watch.iter().enumerate() {
             if let Some(w) = w {
                 while let Some(m) = recv_rx(w)? {
                     let k = m.hdr().k;
@@ -766,7 +786,19 @@ impl BusTransport {
                 }
             }
         }
-        self.lease = Some(sh.lease);
+        // A predecessor killed between a send and its wake-up left that message unannounced:
+        // its readers would sleep through it (a decimated reader for a whole period). Wake
+        // them for the newest message it sent; a reader that already has it drains nothing.
+        for (i, b) in self.before.iter().enumerate() {
+            if let (Some(b), Some(t)) = (b, &self.tx[i]) {
+                wake_tx(t, self.decim[i] > 0 && b.is_multiple_of(self.decim[i]))?;
+            }
+        }
+        // The watching receivers stay until the host ends: dropping a subscriber unmaps its
+        // publishers' segments, about half a millisecond here at the drive's priority, in the
+        // sample of the takeover. Each costs the publisher one more delivery per message.
+        self.retired = Some(watch);
+        self.lease = Some(lease);
         Ok(true)
     }
 
@@ -1183,6 +1215,73 @@ mod tests {
         })
         .unwrap();
         TopologyPlan::from_resolved(&r)
+    }
+
+    /// The active instance dies between sending estimate 10 and waking its readers (a
+    /// thread that sends without waking and ends holding the lease, as a SIGKILL between
+    /// the two would leave it). Its twin takes the lease at its first output and wakes the
+    /// readers for that estimate, the decimated ones too (10 is a multiple of the speed
+    /// loop's divider): without it the speed loop would sleep through sample 10.
+    #[test]
+    fn a_twin_that_takes_over_wakes_the_readers_its_dead_predecessor_did_not() {
+        struct Cleanup(String);
+        impl Drop for Cleanup {
+            fn drop(&mut self) {
+                let _ = bus::cleanup(&self.0);
+            }
+        }
+        let bus = format!("svtw{}", std::process::id());
+        let _cleanup = Cleanup(bus.clone());
+        let life = std::sync::Arc::new(Life::create(&bus, 1).unwrap());
+        let node = bus::node(&bus, "twin").unwrap();
+        let topics = DriveTopics::open_for(&node, bus::WakeKind::Futex, &bus, 2).unwrap();
+        let reader = topics.est.receiver(8).unwrap();
+        let slow_reader = topics.est.decimated_receiver(8).unwrap();
+        // The twin as `serve` sets it up: it sends estimates and watches its own topic.
+        let mut sent = [false; N_TOPICS];
+        sent[TopicId::Est.index()] = true;
+        let mut tr =
+            BusTransport::open(&topics, &[Wait::None; N_TOPICS], &sent, &[], false).unwrap();
+        tr.decim[TopicId::Est.index()] = 10;
+        let mut own = life.lease(0, LifeRole::Standby).unwrap();
+        own.hold().unwrap();
+        let lease = life.lease(0, LifeRole::Active).unwrap();
+        tr.shadow = Some(Shadow::new(lease, own, &topics, &sent).unwrap());
+        tr.connect().unwrap();
+        let (life2, bus2) = (life.clone(), bus.clone());
+        std::thread::spawn(move || {
+            let node = bus::node(&bus2, "active").unwrap();
+            let topics = DriveTopics::open_for(&node, bus::WakeKind::Futex, &bus2, 2).unwrap();
+            let mut lease = life2.lease(0, LifeRole::Active).unwrap();
+            lease.hold().unwrap();
+            let tx = topics.est.sender().unwrap();
+            tx.connect().unwrap();
+            let mut est = Estimate::default();
+            est.hdr.k = 10;
+            tx.publish(est).unwrap();
+            // Dies here: no wake-up, the lease still held, nothing dropped.
+            std::mem::forget((lease, tx, topics, node));
+        })
+        .join()
+        .unwrap();
+        assert!(!reader.is_empty().unwrap(), "estimate 10 did not arrive");
+        assert_eq!(
+            (reader.notified_ns(), slow_reader.notified_ns()),
+            (0, 0),
+            "woken before the takeover"
+        );
+        assert!(
+            tr.active().unwrap(),
+            "the twin did not take over from a dead holder"
+        );
+        assert_eq!(tr.before[TopicId::Est.index()], Some(10));
+        assert_ne!(reader.notified_ns(), 0, "readers not woken at the takeover");
+        assert_ne!(
+            slow_reader.notified_ns(),
+            0,
+            "decimated readers not woken for sample 10"
+        );
+        drop((tr, reader, slow_reader, topics, node, life));
     }
 
     #[test]
