@@ -35,6 +35,13 @@ fn scratch(name: &str) -> PathBuf {
     d
 }
 
+/// Removes the scratch folder of a run folder `out` (called last: a failed test keeps it).
+fn remove_scratch(out: &Path) {
+    if let Some(dir) = out.parent() {
+        let _ = std::fs::remove_dir_all(dir);
+    }
+}
+
 fn bus_id(name: &str) -> String {
     format!("p{}{name}", std::process::id())
         .chars()
@@ -181,15 +188,19 @@ fn position_step_settles_within_one_percent() {
     // whole step to 1 % takes ln(100)/K_p = 147 ms; plus the speed loop's 8 ms rise: 218 ms.
     assert!(settle < 0.218 + 0.01, "settling time {settle} s");
     assert!((fin - target).abs() < tol, "final θ_m = {fin}");
+    remove_scratch(&out);
 }
 
 #[test]
 fn lockstep_runs_are_bit_identical() {
     let _s = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let a = std::fs::read(run("twice-a").join("trace.csv")).unwrap();
-    let b = std::fs::read(run("twice-b").join("trace.csv")).unwrap();
+    let (out_a, out_b) = (run("twice-a"), run("twice-b"));
+    let a = std::fs::read(out_a.join("trace.csv")).unwrap();
+    let b = std::fs::read(out_b.join("trace.csv")).unwrap();
     assert!(!a.is_empty());
     assert!(a == b, "the two lockstep traces differ");
+    remove_scratch(&out_a);
+    remove_scratch(&out_b);
 }
 
 /// The user stage is supervised like a built-in one: a kill names the stage, its process is
@@ -246,4 +257,5 @@ fn a_killed_user_stage_is_restarted_and_the_speed_loop_stops_following_it() {
         .unwrap();
     assert!(lost > 0, "{}", s["counters"]["speed-loop"]);
     assert!(s["processes"]["position-loop"]["stages"] == serde_json::json!(["position-loop"]));
+    remove_scratch(&out);
 }
