@@ -588,8 +588,6 @@ fn rx_of(topics: &DriveTopics, t: TopicId, w: Wait, buf: usize) -> Result<Rx> {
     })
 }
 
-/// The next message of `r`, if one is there.
-#[inline]
 /// [`Sender::wake`] on whichever topic `t` sends.
 fn wake_tx(t: &Tx, decimated: bool) -> Result<()> {
     match t {
@@ -602,6 +600,8 @@ fn wake_tx(t: &Tx, decimated: bool) -> Result<()> {
     }
 }
 
+/// The next message of `r`, if one is there.
+#[inline]
 fn recv_rx(r: &Rx) -> Result<Option<Msg>> {
     Ok(match r {
         Rx::Meas(r) => r.try_recv()?.map(Msg::Meas),
