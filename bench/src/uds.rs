@@ -1109,9 +1109,12 @@ mod tests {
                 std::thread::sleep(Duration::from_millis(5));
             }
         };
-        // Let the chain run: wait until the plant sleeps and wakes per sample (at 2 kHz, its
-        // voluntary context switches pass 200 within 0.1 s of its warm-up), as the
-        // scheduler sees it: the UDS nodes publish no progress of their own.
+        // Let the chain run: wait until the plant samples, as the scheduler sees it (the UDS
+        // nodes publish no progress of their own): its voluntary context switches rise by at
+        // least 70 in each of two consecutive 50 ms windows. Sampling at 2 kHz sleeps 100
+        // times per window; before it, the plant's connect retries (1 ms apart) make at most
+        // 50 per window, and its 50 warm-up round trips end within one. A plain count (200)
+        // was reached by connect retries alone when the peers started slowly.
         let plant_pid = kids[3].1.id();
         let switches = || -> u64 {
             // Over every thread of the process.
@@ -1128,12 +1131,20 @@ mod tests {
                 .sum()
         };
         let t = Instant::now();
-        while switches() < 200 {
+        let (mut last, mut fast_windows) = (switches(), 0);
+        while fast_windows < 2 {
             assert!(
                 t.elapsed() < Duration::from_secs(20),
                 "watchdog: the plant did not start sampling within 20 s"
             );
-            std::thread::sleep(Duration::from_millis(5));
+            std::thread::sleep(Duration::from_millis(50));
+            let now = switches();
+            fast_windows = if now >= last + 70 {
+                fast_windows + 1
+            } else {
+                0
+            };
+            last = now;
         }
         for (_, c) in &mut kids {
             assert!(c.try_wait().unwrap().is_none(), "a node ended early");
