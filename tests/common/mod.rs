@@ -146,14 +146,7 @@ pub fn run_ok(name: &str, extra: &[&str]) -> (PathBuf, Value) {
     let dir = scratch(name);
     let bus = bus_id(name);
     let out = dir.join("run");
-    let mut args = vec![
-        "run",
-        "--bus",
-        &bus,
-        "--out",
-        out.to_str().unwrap(),
-        "--no-plots",
-    ];
+    let mut args = run_args(&bus, &out).to_vec();
     args.extend_from_slice(extra);
     let o = drivelab(&args);
     assert!(
@@ -162,9 +155,8 @@ pub fn run_ok(name: &str, extra: &[&str]) -> (PathBuf, Value) {
         String::from_utf8_lossy(&o.stderr)
     );
     assert_clean(&bus);
-    let summary: Value =
-        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
-    (out, summary)
+    let s = summary(&out);
+    (out, s)
 }
 
 /// Waits for a spawned child with a watchdog against hangs; kills it (and fails) on expiry.

@@ -771,12 +771,11 @@ impl BusTransport {
         if !sh.lease.try_take() {
             return Ok(false);
         }
-        let sh = self.shadow.take().expect("checked above");
         let Shadow {
             lease,
             mut own,
             watch,
-        } = sh;
+        } = self.shadow.take().expect("checked above");
         own.release();
         for (i, w) in watch.iter().enumerate() {
             if let Some(w) = w {
@@ -791,7 +790,7 @@ impl BusTransport {
         // them for the newest message it sent; a reader that already has it drains nothing.
         for (i, b) in self.before.iter().enumerate() {
             if let (Some(b), Some(t)) = (b, &self.tx[i]) {
-                wake_tx(t, self.decim[i] > 0 && b.is_multiple_of(self.decim[i]))?;
+                wake_tx(t, self.wakes_decimated(i, *b))?;
             }
         }
         // The watching receivers stay until the host ends: dropping a subscriber unmaps its
@@ -800,6 +799,12 @@ impl BusTransport {
         self.retired = Some(watch);
         self.lease = Some(lease);
         Ok(true)
+    }
+
+    /// Whether sample `k` of topic `i` wakes its decimated receivers: it is one they step.
+    #[inline]
+    fn wakes_decimated(&self, i: usize, k: u64) -> bool {
+        self.decim[i] > 0 && k.is_multiple_of(self.decim[i])
     }
 
     fn connect(&self) -> Result<()> {
@@ -838,7 +843,7 @@ impl Transport for BusTransport {
         }
         // The decimated receivers wake at the samples they step and at every marker.
         let d =
-            self.decim[i] > 0 && (h.k.is_multiple_of(self.decim[i]) || h.is_end() || h.is_warmup());
+            self.wakes_decimated(i, h.k) || (self.decim[i] > 0 && (h.is_end() || h.is_warmup()));
         match (&self.tx[i], msg) {
             (Some(Tx::Meas(t)), Msg::Meas(m)) => t.send_waking(*m, d),
             (Some(Tx::Est(t)), Msg::Est(m)) => t.send_waking(*m, d),
@@ -1281,7 +1286,6 @@ mod tests {
             0,
             "decimated readers not woken for sample 10"
         );
-        drop((tr, reader, slow_reader, topics, node, life));
     }
 
     #[test]
