@@ -145,6 +145,22 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
             );
         }
     }
+    // Before each round without the request the core's idle governor is let settle; a round
+    // whose core still polled (another test's drive may hold a request meanwhile) is counted
+    // in its row and named in one warning line each, and a row with the request has none.
+    let still_polling: u64 = rows
+        .iter()
+        .map(|r| {
+            let n = r["idle_still_polling_rounds"].as_u64().unwrap();
+            assert!(n == 0 || r["cpu_latency_request"] == false, "{r}");
+            n
+        })
+        .sum();
+    let warned = String::from_utf8_lossy(&o.stderr)
+        .lines()
+        .filter(|l| l.contains("still polls when idle"))
+        .count();
+    assert_eq!(still_polling, warned as u64);
     // The hop floor: one wake-up per sample, each either recorded or counted as unseen.
     let hop = rows.iter().find(|x| x["variant"] == "hop").unwrap();
     assert_eq!(hop["samples"], 2000, "{hop}");

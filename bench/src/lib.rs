@@ -7,6 +7,8 @@
 //!   same kind of timer;
 //! * [`cyclictest::run`]: cyclictest (rt-tests), when installed, as a cross-check of the
 //!   floor;
+//! * [`idle::settle`]: before a variant measured without the CPU wake-up latency request, lets
+//!   the core's idle governor stop the polling that the request left behind;
 //! * [`hop::run`]: one process-to-process futex wake-up with nothing else in it (the
 //!   kernel's part of every hop of the chain);
 //! * [`run_uds_chain`]: the four roles as four processes exchanging the bus messages over Unix
@@ -25,6 +27,7 @@ use drivelab_runtime::timing::{CycleMonitor, LatencyHist, MissCounter};
 
 pub mod cyclictest;
 pub mod hop;
+pub mod idle;
 pub mod uds;
 pub mod wire;
 

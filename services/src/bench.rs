@@ -4,6 +4,7 @@
 
 use crate::launcher::{self, Clock, RunOptions};
 use anyhow::{anyhow, Context, Result};
+use drivelab_bench::idle::Settle;
 use drivelab_bench::{ChainSpec, NodeSpec, VariantResult};
 use drivelab_runtime::config::{CpuLatency, Placement, Scenario, ServicePlacement};
 use drivelab_runtime::service::TopologyPlan;
@@ -111,6 +112,10 @@ pub struct Row {
     pub placement: String,
     /// Whether a CPU wake-up latency request of 0 µs was held while it was measured.
     pub cpu_latency_request: bool,
+    /// Without the request: the rounds whose core still polled when idle after the bench had
+    /// let its idle governor settle (another process holds a request; see
+    /// `drivelab_bench::idle`), so that they measured a request after all. 0 when fine.
+    pub idle_still_polling_rounds: u32,
     /// Sample rate, Hz.
     pub rate_hz: f64,
     /// Samples measured.
@@ -179,6 +184,7 @@ fn row(job: &Job, hz: f64, m: &VariantResult, hgrm: &Path) -> Row {
         variant: job.variant.into(),
         placement: job.placement.clone(),
         cpu_latency_request: job.request,
+        idle_still_polling_rounds: 0,
         rate_hz: hz,
         samples: m.samples,
         cycle_us: m.cycle.percentiles(),
@@ -350,6 +356,26 @@ impl RequestHolder {
             }
         }
         self.held.is_some()
+    }
+}
+
+/// Lets the idle governor of `node`'s core settle before a variant measured without the CPU
+/// wake-up latency request ([`drivelab_bench::idle`]). True when the core still polls (a
+/// one-line warning says so).
+fn settle_idle(node: &NodeSpec) -> Result<bool> {
+    let Some(cpu) = node.core else {
+        return Ok(false);
+    };
+    match drivelab_bench::idle::settle(cpu)? {
+        Settle::StillPolling => {
+            crate::errln!(
+                "drivelab: warning: bench: cpu {cpu} still polls when idle after {} sleeps of {} ms: another process holds a CPU wake-up latency request, so this round without one measures a request",
+                drivelab_bench::idle::MAX_SLEEPS,
+                drivelab_bench::idle::SLEEP.as_millis()
+            );
+            Ok(true)
+        }
+        Settle::NoPollState | Settle::Settled { .. } => Ok(false),
     }
 }
 
@@ -593,6 +619,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
             jobs.iter().map(|_| BTreeMap::new()).collect();
         let mut topologies: Vec<Option<TopologyPlan>> = jobs.iter().map(|_| None).collect();
         let mut held: Vec<bool> = jobs.iter().map(|j| j.request).collect();
+        let mut still_polling: Vec<u32> = vec![0; jobs.len()];
         for round in 0..rounds {
             for (i, job) in jobs.iter().enumerate() {
                 let round_tag = if rounds > 1 {
@@ -606,6 +633,11 @@ pub fn run(a: &BenchArgs) -> Result<()> {
                     job.variant, job.placement
                 ));
                 held[i] = request.set(job.request);
+                if !held[i] {
+                    // The request just released may leave the core polling when idle
+                    // (drivelab_bench::idle): let it settle, or the row measures a request.
+                    still_polling[i] += u32::from(settle_idle(&node(one.plant))?);
+                }
                 let dir = {
                     let d = out.join(job.tag(hz));
                     if rounds > 1 {
@@ -725,6 +757,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
             let mut r = row(job, hz, &m, &h);
             // What was held, not what was wanted (a refused request leaves it off).
             r.cpu_latency_request = held[i];
+            r.idle_still_polling_rounds = still_polling[i];
             if cpu[i] > 0.0 {
                 // Per simulated second: the rounds add up to `seconds` of drive.
                 r.cpu_s_per_s = Some(cpu[i] / seconds);
@@ -856,6 +889,15 @@ pub fn spin_us(requested_us: f64, hz: f64) -> f64 {
 }
 
 /// The Markdown table of the report.
+/// The report's request column: what was held, and a round that measured a request after all.
+fn request_cell(r: &Row) -> String {
+    match (r.cpu_latency_request, r.idle_still_polling_rounds) {
+        (true, _) => "0 µs".into(),
+        (false, 0) => "none".into(),
+        (false, n) => format!("none (core polled in {n} round(s))"),
+    }
+}
+
 pub fn markdown(
     rows: &[Row],
     checks: &[CrossCheck],
@@ -865,7 +907,7 @@ pub fn markdown(
     spin_arg: f64,
 ) -> String {
     let mut s = String::new();
-    let _ = writeln!(s, "Cycle latency from t_k to command k available at the plant, µs ({seconds} s per variant in {rounds} interleaved round(s); floor = a bare timer loop's lateness at every deadline (deadlines that passed while it was late are handled by its next wake-up, as a chain that cost nothing would handle them), cyclictest = its wake-ups' lateness; request = CPU wake-up latency request of 0 µs held; each chain is compared with the floor measured under the same request).\n");
+    let _ = writeln!(s, "Cycle latency from t_k to command k available at the plant, µs ({seconds} s per variant in {rounds} interleaved round(s); floor = a bare timer loop's lateness at every deadline (deadlines that passed while it was late are handled by its next wake-up, as a chain that cost nothing would handle them), cyclictest = its wake-ups' lateness; request = CPU wake-up latency request of 0 µs held (none: before each such round the core idled in 2 ms sleeps until its idle governor stopped the polling a released request leaves behind); each chain is compared with the floor measured under the same request).\n");
     let _ = writeln!(s, "| rate | variant | placement | request | p50 | p99 | p99.9 | max | misses/M | longest run | p50 − floor | p99 − floor | p99 / floor | p99 / uds | CPU s/s | waits/sample | budget |");
     let _ = writeln!(
         s,
@@ -883,7 +925,7 @@ pub fn markdown(
             r.rate_hz / 1000.0,
             r.variant,
             r.placement,
-            if r.cpu_latency_request { "0 µs" } else { "none" },
+            request_cell(r),
             r.cycle_us.p50,
             r.cycle_us.p99,
             r.cycle_us.p999,
