@@ -87,7 +87,11 @@ pub fn run_checks_in(root: &Path) -> Vec<Check> {
     let caps = Caps::read(&fs);
     vec![
         kernel_check(uts.as_ref()),
-        preemption_check(&fs, uts.as_ref().map(|u| u.version.as_str())),
+        preemption_check(
+            &fs,
+            uts.as_ref().map(|u| u.version.as_str()),
+            uts.as_ref().map(|u| u.release.as_str()),
+        ),
         rt_throttling_check(&fs),
         online_cpus_check(&online),
         isolated_cpus_check(&fs, &online),
@@ -512,7 +516,7 @@ const RT_KERNEL_ADVICE: &str =
 
 /// Preemption model from `/sys/kernel/realtime`, `/sys/kernel/debug/sched/preempt`,
 /// `preempt=` on the command line and the `PREEMPT*` words of `uname -v`.
-fn preemption_check(fs: &Fs, uname_version: Option<&str>) -> Check {
+fn preemption_check(fs: &Fs, uname_version: Option<&str>, release: Option<&str>) -> Check {
     let realtime = fs.read("/sys/kernel/realtime");
     let debug_mode = fs
         .read("/sys/kernel/debug/sched/preempt")
@@ -522,8 +526,41 @@ fn preemption_check(fs: &Fs, uname_version: Option<&str>) -> Check {
         realtime.as_deref(),
         debug_mode.as_deref(),
         cmdline_mode.as_deref(),
+        built_preempt_mode(fs, release),
         uname_version,
     )
+}
+
+/// The preemption model the kernel was built with (`none`, `voluntary`, `full` or `lazy`),
+/// from `/proc/config.gz` or else `/boot/config-<release>`: the mode a PREEMPT_DYNAMIC
+/// kernel starts in when no `preempt=` on its command line says otherwise.
+fn built_preempt_mode(fs: &Fs, release: Option<&str>) -> Option<&'static str> {
+    let gz = std::fs::File::open(fs.path("/proc/config.gz"))
+        .ok()
+        .and_then(|f| {
+            let mut text = String::new();
+            std::io::Read::read_to_string(&mut flate2::read::GzDecoder::new(f), &mut text)
+                .ok()
+                .map(|_| text)
+        });
+    let text = gz.or_else(|| release.and_then(|r| fs.read(&format!("/boot/config-{r}"))))?;
+    config_preempt_mode(&text)
+}
+
+/// The preemption model chosen in a kernel configuration's text.
+fn config_preempt_mode(config: &str) -> Option<&'static str> {
+    const MODES: [(&str, &str); 4] = [
+        ("CONFIG_PREEMPT_NONE=y", "none"),
+        ("CONFIG_PREEMPT_VOLUNTARY=y", "voluntary"),
+        ("CONFIG_PREEMPT=y", "full"),
+        ("CONFIG_PREEMPT_LAZY=y", "lazy"),
+    ];
+    config.lines().find_map(|l| {
+        MODES
+            .iter()
+            .find(|(line, _)| l.trim() == *line)
+            .map(|(_, mode)| *mode)
+    })
 }
 
 /// The mode in parentheses in `/sys/kernel/debug/sched/preempt`, e.g. `"full"` from
@@ -538,6 +575,7 @@ fn preemption_verdict(
     realtime: Option<&str>,
     debug_mode: Option<&str>,
     cmdline_mode: Option<&str>,
+    built_mode: Option<&str>,
     uname_version: Option<&str>,
 ) -> Check {
     const NAME: &str = "preemption";
@@ -558,9 +596,16 @@ fn preemption_verdict(
             _ => Status::Unknown,
         };
         let prefix = if dynamic { "PREEMPT_DYNAMIC, " } else { "" };
+        // Without preemption of kernel code, a real-time task that wakes while any task on
+        // its CPU is inside a system call waits until that call returns.
+        let effect = if status == Status::Bad {
+            ": a task's system call on a drive's core holds up the drive's wake-up until it returns"
+        } else {
+            ""
+        };
         Check::new(
             NAME,
-            format!("{prefix}mode {mode} ({source}); not PREEMPT_RT"),
+            format!("{prefix}mode {mode} ({source}){effect}; not PREEMPT_RT"),
             status,
             advice.clone(),
         )
@@ -571,6 +616,12 @@ fn preemption_verdict(
     if dynamic {
         if let Some(mode) = cmdline_mode {
             return mode_verdict(mode, "preempt= on /proc/cmdline");
+        }
+        if let Some(mode) = built_mode {
+            return mode_verdict(
+                mode,
+                "the kernel's built-in default, no preempt= on the command line",
+            );
         }
         return Check::new(
             NAME,
@@ -1571,7 +1622,7 @@ mod tests {
 
     #[test]
     fn preemption_values() {
-        let v = |rt, dbg, cmd, un| preemption_verdict(rt, dbg, cmd, un);
+        let v = |rt, dbg, cmd, un| preemption_verdict(rt, dbg, cmd, None, un);
         assert_eq!(v(Some("1"), None, None, None).status, Status::Ok);
         assert_eq!(
             v(None, None, None, Some("#1 SMP PREEMPT_RT Mon")).status,
@@ -1599,7 +1650,58 @@ mod tests {
 
         let root = FakeRoot::new();
         root.write("/sys/kernel/realtime", "1\n");
-        assert_eq!(preemption_check(&root.fs(), None).status, Status::Ok);
+        assert_eq!(preemption_check(&root.fs(), None, None).status, Status::Ok);
+    }
+
+    #[test]
+    fn a_dynamic_kernel_without_preempt_on_its_command_line_runs_its_built_in_mode() {
+        let dynamic = Some("#1 SMP PREEMPT_DYNAMIC @0");
+        let root = FakeRoot::new();
+        root.write("/proc/cmdline", "quiet\n");
+        // Neither debugfs nor a configuration: unknown.
+        let c = preemption_check(&root.fs(), dynamic, Some("6.18.0"));
+        assert_eq!(c.status, Status::Warn);
+        assert!(c.value.contains("current mode unknown"), "{}", c.value);
+        // /boot/config-<release>, as distributions install it.
+        root.write(
+            "/boot/config-6.18.0",
+            "CONFIG_PREEMPT_BUILD=y\n# CONFIG_PREEMPT_VOLUNTARY is not set\nCONFIG_PREEMPT_NONE=y\n",
+        );
+        let c = preemption_check(&root.fs(), dynamic, Some("6.18.0"));
+        assert_eq!(c.status, Status::Bad);
+        assert_eq!(
+            c.value,
+            "PREEMPT_DYNAMIC, mode none (the kernel's built-in default, no preempt= on the \
+             command line): a task's system call on a drive's core holds up the drive's \
+             wake-up until it returns; not PREEMPT_RT"
+        );
+        // /proc/config.gz comes first; preempt= on the command line overrides either.
+        let gz = {
+            use std::io::Write;
+            let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+            e.write_all(b"CONFIG_PREEMPT_DYNAMIC=y\nCONFIG_PREEMPT=y\n")
+                .unwrap();
+            e.finish().unwrap()
+        };
+        std::fs::write(root.0.join("proc/config.gz"), gz).unwrap();
+        let c = preemption_check(&root.fs(), dynamic, Some("6.18.0"));
+        assert_eq!(c.status, Status::Warn);
+        assert!(
+            c.value.contains("mode full (the kernel's built-in default"),
+            "{}",
+            c.value
+        );
+        root.write("/proc/cmdline", "quiet preempt=voluntary\n");
+        let c = preemption_check(&root.fs(), dynamic, Some("6.18.0"));
+        assert_eq!(c.status, Status::Bad);
+        assert!(
+            c.value
+                .contains("mode voluntary (preempt= on /proc/cmdline)"),
+            "{}",
+            c.value
+        );
+        assert_eq!(config_preempt_mode("CONFIG_PREEMPT_LAZY=y\n"), Some("lazy"));
+        assert_eq!(config_preempt_mode("# CONFIG_PREEMPT is not set\n"), None);
     }
 
     #[test]
