@@ -464,6 +464,86 @@ fn a_realtime_drive_reports_its_cpu_latency_request() {
     );
 }
 
+/// The CPUs in a `/proc/.../status` file's `Cpus_allowed_list` (e.g. "0-1,3").
+fn allowed_cpus(status: &std::path::Path) -> Vec<usize> {
+    let text = std::fs::read_to_string(status).unwrap();
+    let list = text
+        .lines()
+        .find_map(|l| l.strip_prefix("Cpus_allowed_list:"))
+        .unwrap()
+        .trim();
+    let mut cpus = Vec::new();
+    for part in list.split(',') {
+        let (a, b) = part.split_once('-').unwrap_or((part, part));
+        cpus.extend(a.parse::<usize>().unwrap()..=b.parse::<usize>().unwrap());
+    }
+    cpus
+}
+
+#[test]
+fn the_launcher_keeps_off_the_stages_cores_and_an_unpinned_stage_starts_where_it_would() {
+    let _serial = serial();
+    // SAFETY: sysconf only reads a system value.
+    let online = unsafe { libc::sysconf(libc::_SC_NPROCESSORS_ONLN) } as usize;
+    assert!(
+        online >= 2,
+        "this test needs two CPUs: the stages' core 1 and another"
+    );
+    // Three stages pinned to core 1, the speed loop on no core.
+    let sc = variant(
+        "offcores",
+        "kyslan-pi",
+        &[(
+            "# 200 W at 3500 rpm",
+            "# 200 W at 3500 rpm\n\n[placement]\nplant = { core = 1, priority = 70 }\n\
+             observer = { core = 1, priority = 72 }\ncurrent_loop = { core = 1, priority = 76 }\n\
+             speed_loop = { priority = 74 }",
+        )],
+    );
+    let bus = bus_id("offcores");
+    let out = scratch("offcores");
+    let child = start_drive(
+        &bus,
+        &out,
+        &["--duration", "3", "--scenario", sc.to_str().unwrap()],
+    );
+    wait_for_progress(&bus, 2000);
+    // Every thread of the launcher (supervisor, recorder, the readers of the hosts' output,
+    // the hub) runs on the CPUs no stage is pinned to.
+    let off_stage_cores: Vec<usize> = (0..online).filter(|&c| c != 1).collect();
+    let tasks = std::fs::read_dir(format!("/proc/{}/task", child.id())).unwrap();
+    let mut threads = 0;
+    for t in tasks.flatten() {
+        let name = std::fs::read_to_string(t.path().join("comm")).unwrap();
+        assert_eq!(
+            allowed_cpus(&t.path().join("status")),
+            off_stage_cores,
+            "launcher thread {}",
+            name.trim()
+        );
+        threads += 1;
+    }
+    assert!(threads >= 3, "{threads} launcher threads");
+    // The pinned stages run on core 1; the unpinned one starts with the mask the launcher
+    // was started with (this test's), not the launcher's narrower one.
+    let pid_status =
+        |p: &str| std::path::PathBuf::from(format!("/proc/{}/status", process_pid(&bus, p)));
+    for p in ["plant", "observer", "current-loop"] {
+        assert_eq!(allowed_cpus(&pid_status(p)), [1], "{p}");
+    }
+    assert_eq!(
+        allowed_cpus(&pid_status("speed-loop")),
+        allowed_cpus(std::path::Path::new("/proc/self/status"))
+    );
+    let o = wait(child, Duration::from_secs(60), "the drive");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(
+        summary(&out)["timing"]["launcher_cpus"],
+        serde_json::json!(off_stage_cores)
+    );
+    assert_clean(&bus);
+}
+
 #[test]
 fn a_drive_whose_output_nobody_reads_any_more_still_finishes_and_cleans_up() {
     // `drivelab run 2>&1 | head -1`: the reader goes away after the first line. Before,

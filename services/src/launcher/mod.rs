@@ -181,6 +181,12 @@ fn run_bus(
     clock: BusClock,
     sinks: &sinks::Sinks,
 ) -> Result<BusRun> {
+    // In real time the launcher's own threads (the supervisor, the readers of the hosts'
+    // output, the hub) keep off the stages' cores until the drive ends; the hosts start with
+    // the mask the launcher had (docs/architecture.md, "Real-time rules").
+    let off = (clock == BusClock::Realtime && !o.no_rt).then(|| {
+        drivelab_runtime::rt::off_rt_cores(drivelab_runtime::topology::cores(&plan_topo.processes))
+    });
     let bus_id = o
         .bus
         .clone()
@@ -255,6 +261,7 @@ fn run_bus(
         clock,
         o,
         out,
+        cpus: off.as_ref().and_then(|g| g.previous()),
     };
     let mut events: Vec<SupEvent> = Vec::new();
     let mut bridge: Option<bridge::Bridge> = None;
@@ -475,6 +482,11 @@ fn run_bus(
     if let Some(b) = bridge_stats {
         info["bridge"] = b;
     }
+    // The CPUs the launcher's threads ran on (null: it was left on its own mask).
+    info["launcher_cpus"] = match off.as_ref().map(|g| g.cpus()) {
+        Some(c) if !c.is_empty() => json!(c),
+        _ => serde_json::Value::Null,
+    };
     if let Some(p) = counters.get("plant") {
         info["deadline_misses"] = p["deadline_misses"].clone();
         info["longest_miss_run"] = p["longest_miss_run"].clone();
@@ -960,6 +972,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     if let Some(b) = info.get("bridge") {
         // What the Zenoh bridge forwarded, refused and rejected.
         summary["bridge"] = b.clone();
+    }
+    if let Some(c) = info.get("launcher_cpus") {
+        summary["timing"]["launcher_cpus"] = c.clone();
     }
     if let Some(r) = info.get("recorder_rejected") {
         // Messages the recorder could not place (an index beyond the run's samples).

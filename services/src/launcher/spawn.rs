@@ -76,6 +76,9 @@ pub(super) struct Spawn<'a> {
     pub clock: BusClock,
     pub o: &'a RunOptions,
     pub out: &'a Path,
+    /// The CPU mask every host starts with (the launcher's before it moved off the stages'
+    /// cores); `None`: the launcher's own.
+    pub cpus: Option<libc::cpu_set_t>,
 }
 
 /// Starts the stage host of process `p`; `source` when it hosts the plant; `rejoin_from`
@@ -122,6 +125,9 @@ pub(super) fn spawn_service(
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit());
     die_with_launcher(&mut cmd);
+    if let Some(set) = sp.cpus {
+        start_on(&mut cmd, set);
+    }
     if sp.clock == BusClock::Realtime && !sp.o.no_rt && p.priority.is_some() {
         set_up_above_normal_tasks(&mut cmd);
     }
@@ -178,6 +184,21 @@ pub(crate) fn die_with_launcher(cmd: &mut Command) {
             if libc::getppid() != launcher {
                 libc::_exit(1);
             }
+            Ok(())
+        });
+    }
+}
+
+/// The child starts with CPU mask `set` instead of the launcher's (which keeps off the
+/// stages' cores); its placement then pins it.
+fn start_on(cmd: &mut Command, set: libc::cpu_set_t) {
+    use std::os::unix::process::CommandExt;
+    // SAFETY: the closure runs in the forked child before exec and calls only the
+    // async-signal-safe sched_setaffinity(2) with a mask copied into the closure; it
+    // allocates nothing and ignores the result (the host reports where it runs).
+    unsafe {
+        cmd.pre_exec(move || {
+            libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set);
             Ok(())
         });
     }

@@ -611,28 +611,100 @@ pub fn online_cpus() -> usize {
 /// (the monitor, the Zenoh bridge) competes with nothing the drive needs. Call it before
 /// starting threads: they inherit both. Returns a note naming `who`.
 pub fn keep_off(rt_cores: u64, who: &str) -> String {
-    let n = online_cpus().min(64);
-    let free: Vec<usize> = (0..n).filter(|c| rt_cores & (1 << c) == 0).collect();
     // SAFETY: setpriority on our own process (who = 0) only changes our nice value.
     unsafe {
         libc::setpriority(libc::PRIO_PROCESS, 0, 10);
     }
+    let free = cpus_besides(rt_cores);
     if free.is_empty() {
         return format!("every core runs the drive: the {who} shares them at nice 10");
     }
-    // SAFETY: `set` is a zeroed cpu_set_t filled with CPU_SET for indices below 64 (within
-    // its 1024 bits); sched_setaffinity(0, ...) applies to the calling thread.
-    let rc = unsafe {
-        let mut set: libc::cpu_set_t = std::mem::zeroed();
-        for &c in &free {
-            libc::CPU_SET(c, &mut set);
-        }
-        libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set)
-    };
-    if rc == 0 {
+    if set_affinity(&cpu_set(&free)) {
         format!("{who} on CPU {free:?}, nice 10")
     } else {
         format!("could not move the {who} off the drive's cores")
+    }
+}
+
+/// The online CPUs (the first 64) that are not in `rt_cores` (bit i = CPU i).
+fn cpus_besides(rt_cores: u64) -> Vec<usize> {
+    let n = online_cpus().min(64);
+    (0..n).filter(|c| rt_cores & (1 << c) == 0).collect()
+}
+
+/// A CPU mask of `cpus` (each below 64).
+fn cpu_set(cpus: &[usize]) -> libc::cpu_set_t {
+    // SAFETY: cpu_set_t is a plain bit array; all-zero is a valid (empty) set.
+    let mut set: libc::cpu_set_t = unsafe { std::mem::zeroed() };
+    for &c in cpus {
+        // SAFETY: the index is below 64, within the set's 1024 bits.
+        unsafe { libc::CPU_SET(c, &mut set) };
+    }
+    set
+}
+
+/// Sets the calling thread's CPU mask; false when the kernel refuses it.
+fn set_affinity(set: &libc::cpu_set_t) -> bool {
+    // SAFETY: `set` is a valid cpu_set_t of the size passed; pid 0 = the calling thread.
+    unsafe { libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), set) == 0 }
+}
+
+/// The calling thread kept off the drive's real-time cores while this lives
+/// ([`off_rt_cores`]); dropping it gives the thread its previous CPU mask back.
+#[derive(Debug)]
+pub struct OffRtCores {
+    previous: Option<libc::cpu_set_t>,
+    cpus: Vec<usize>,
+}
+
+impl OffRtCores {
+    /// The CPUs the thread may run on now; empty when it was left as it was.
+    pub fn cpus(&self) -> &[usize] {
+        &self.cpus
+    }
+
+    /// The mask the thread had before, for a child process to start with again (`None` when
+    /// the thread was left as it was).
+    pub fn previous(&self) -> Option<libc::cpu_set_t> {
+        self.previous
+    }
+}
+
+impl Drop for OffRtCores {
+    fn drop(&mut self) {
+        if let Some(set) = &self.previous {
+            set_affinity(set);
+        }
+    }
+}
+
+/// Keeps the calling thread, and the threads it starts from now on, off the drive's
+/// real-time cores `rt_cores` (bit i = CPU i) for as long as the guard lives: on a kernel
+/// without full preemption, a normal task inside a system call on a stage's core holds up
+/// the stage's wake-up until the call returns. Its priority is not changed. When no other
+/// core is online, or the mask cannot be read or set, the thread is left as it was.
+pub fn off_rt_cores(rt_cores: u64) -> OffRtCores {
+    let left = OffRtCores {
+        previous: None,
+        cpus: Vec::new(),
+    };
+    let free = cpus_besides(rt_cores);
+    if free.is_empty() {
+        return left;
+    }
+    // SAFETY: cpu_set_t is a plain bit array; all-zero is a valid (empty) set.
+    let mut previous: libc::cpu_set_t = unsafe { std::mem::zeroed() };
+    // SAFETY: pid 0 = the calling thread; `previous` is a valid, writable cpu_set_t of the
+    // size passed.
+    let read = unsafe {
+        libc::sched_getaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &mut previous)
+    };
+    if read != 0 || !set_affinity(&cpu_set(&free)) {
+        return left;
+    }
+    OffRtCores {
+        previous: Some(previous),
+        cpus: free,
     }
 }
 
@@ -653,6 +725,41 @@ mod tests {
     /// harness threads.
     fn in_thread<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> T {
         std::thread::spawn(f).join().expect("test thread panicked")
+    }
+
+    #[test]
+    fn a_thread_kept_off_the_drive_cores_gets_its_mask_back() {
+        in_thread(|| {
+            let before = affinity_cpus().unwrap();
+            let n = online_cpus().min(64);
+            // The last online CPU runs the drive.
+            let drive = n - 1;
+            let off = off_rt_cores(1 << drive);
+            if n == 1 {
+                // Nothing else to run on: left as it was.
+                assert!(off.cpus().is_empty() && off.previous().is_none());
+                assert_eq!(affinity_cpus().unwrap(), before);
+                return;
+            }
+            let expect: Vec<usize> = (0..drive).collect();
+            assert_eq!(off.cpus(), expect.as_slice());
+            assert_eq!(affinity_cpus().unwrap(), expect);
+            // A thread started meanwhile inherits the narrower mask.
+            let child = std::thread::spawn(affinity_cpus).join().unwrap().unwrap();
+            assert_eq!(child, expect);
+            drop(off);
+            assert_eq!(affinity_cpus().unwrap(), before);
+        });
+    }
+
+    #[test]
+    fn every_core_running_the_drive_leaves_the_thread_as_it_was() {
+        in_thread(|| {
+            let before = affinity_cpus().unwrap();
+            let off = off_rt_cores(u64::MAX);
+            assert!(off.cpus().is_empty() && off.previous().is_none());
+            assert_eq!(affinity_cpus().unwrap(), before);
+        });
     }
 
     #[test]
