@@ -888,7 +888,6 @@ pub fn spin_us(requested_us: f64, hz: f64) -> f64 {
     requested_us.min(0.25e6 / hz)
 }
 
-/// The Markdown table of the report.
 /// The report's request column: what was held, and a round that measured a request after all.
 fn request_cell(r: &Row) -> String {
     match (r.cpu_latency_request, r.idle_still_polling_rounds) {
@@ -898,6 +897,7 @@ fn request_cell(r: &Row) -> String {
     }
 }
 
+/// The Markdown table of the report.
 pub fn markdown(
     rows: &[Row],
     checks: &[CrossCheck],
