@@ -228,6 +228,41 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
             ]
         );
     }
+    // The default chain's targets, from its row (one core, under the request when it could
+    // be held) and the floor's under the same request.
+    let targets = report["targets"].as_array().unwrap();
+    assert_eq!(targets.len(), 1, "{targets:?}");
+    let t = &targets[0];
+    let chain = rows
+        .iter()
+        .find(|x| x["variant"] == "iceoryx2" && x["cpu_latency_request"] == can_request)
+        .unwrap();
+    assert_eq!(t["rate_hz"], 10000.0);
+    assert_eq!(t["cpu_latency_request"], can_request);
+    for (k, limit) in [("p50_minus_floor_us", 10.0), ("p99_minus_floor_us", 15.0)] {
+        let d = chain[k].as_f64().unwrap();
+        assert_eq!(t[k].as_f64(), Some(d), "{k}");
+        let met = k.replace("minus_floor_us", "met");
+        assert_eq!(t[&met].as_bool(), Some(d <= limit), "{met}: {t}");
+    }
+    let bound = 2.0
+        * floor_of(can_request)["misses_per_million"]
+            .as_f64()
+            .unwrap()
+        + 10.0;
+    assert_eq!(t["misses_bound"].as_f64(), Some(bound));
+    let pm = chain["misses_per_million"].as_f64().unwrap();
+    assert_eq!(t["misses_met"].as_bool(), Some(pm <= bound));
+    let uds = chain["p99_ratio_to_uds"].as_f64().unwrap();
+    assert_eq!(t["p99_ratio_to_uds"].as_f64(), Some(uds));
+    assert_eq!(t["uds_met"].as_bool(), Some(uds <= 0.8));
+    assert!(
+        report_md_contains(
+            &out,
+            "Targets at 10 kHz (iceoryx2 one-core against the floor"
+        ),
+        "bench.md has no targets line"
+    );
     assert!(
         report["speed"]["lockstep_simulated_s_per_wall_s"]
             .as_f64()
@@ -355,4 +390,9 @@ fn bench_compares_topologies_with_their_cpu_time() {
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("unknown topology 'nine-process'"));
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// Whether the run's bench.md contains `needle`.
+fn report_md_contains(out: &std::path::Path, needle: &str) -> bool {
+    std::fs::read_to_string(out.join("bench.md")).is_ok_and(|md| md.contains(needle))
 }

@@ -507,6 +507,115 @@ fn compare(rows: &mut [Row], hz: f64) -> Vec<CrossCheck> {
     checks
 }
 
+/// The default chain's latency targets against the bare timer of the same run: p50 at most
+/// [`TARGET_P50_US`] and p99 at most [`TARGET_P99_US`] above the floor's, misses per million
+/// at most twice the floor's + 10, and p99 at most [`TARGET_UDS_RATIO`] × the Unix-socket
+/// chain's (the same four processes over sockets). `None` fields: not measured in this run.
+#[derive(Debug, Clone, Serialize)]
+pub struct Targets {
+    /// Sample rate, Hz.
+    pub rate_hz: f64,
+    /// Measured under the CPU wake-up latency request (the chain and its floor).
+    pub cpu_latency_request: bool,
+    /// Cycle p50 − floor p50, µs.
+    pub p50_minus_floor_us: f64,
+    /// Within [`TARGET_P50_US`].
+    pub p50_met: bool,
+    /// Cycle p99 − floor p99, µs.
+    pub p99_minus_floor_us: f64,
+    /// Within [`TARGET_P99_US`].
+    pub p99_met: bool,
+    /// The chain's misses per million.
+    pub misses_per_million: f64,
+    /// Twice the floor's misses per million + 10.
+    pub misses_bound: f64,
+    /// Within the bound.
+    pub misses_met: bool,
+    /// Cycle p99 / the Unix-socket chain's (same placement).
+    pub p99_ratio_to_uds: Option<f64>,
+    /// Within [`TARGET_UDS_RATIO`].
+    pub uds_met: Option<bool>,
+}
+
+/// Largest cycle p50 above the floor's that meets the target, µs.
+pub const TARGET_P50_US: f64 = 10.0;
+/// Largest cycle p99 above the floor's that meets the target, µs.
+pub const TARGET_P99_US: f64 = 15.0;
+/// Largest ratio of the iceoryx2 chain's p99 to the Unix-socket chain's that meets the target.
+pub const TARGET_UDS_RATIO: f64 = 0.8;
+
+/// The targets of the default chain (iceoryx2, one core; under the request when it was
+/// measured both ways) at each rate of `rows`, after [`compare`] filled in the differences.
+fn targets(rows: &[Row]) -> Vec<Targets> {
+    let mut rates: Vec<f64> = Vec::new();
+    for r in rows {
+        if !rates.contains(&r.rate_hz) {
+            rates.push(r.rate_hz);
+        }
+    }
+    rates
+        .into_iter()
+        .filter_map(|hz| {
+            let at = |variant: &str, req: Option<bool>| {
+                let m: Vec<&Row> = rows
+                    .iter()
+                    .filter(|r| {
+                        r.rate_hz == hz
+                            && r.variant == variant
+                            && (variant == "floor" || r.placement == "one-core")
+                            && req.is_none_or(|q| r.cpu_latency_request == q)
+                    })
+                    .collect();
+                m.iter()
+                    .find(|r| r.cpu_latency_request)
+                    .or_else(|| m.first())
+                    .copied()
+            };
+            let chain = at("iceoryx2", None)?;
+            let floor = at("floor", Some(chain.cpu_latency_request))?;
+            let (d50, d99) = (chain.p50_minus_floor_us?, chain.p99_minus_floor_us?);
+            let bound = 2.0 * floor.misses_per_million + 10.0;
+            Some(Targets {
+                rate_hz: hz,
+                cpu_latency_request: chain.cpu_latency_request,
+                p50_minus_floor_us: d50,
+                p50_met: d50 <= TARGET_P50_US,
+                p99_minus_floor_us: d99,
+                p99_met: d99 <= TARGET_P99_US,
+                misses_per_million: chain.misses_per_million,
+                misses_bound: bound,
+                misses_met: chain.misses_per_million <= bound,
+                p99_ratio_to_uds: chain.p99_ratio_to_uds,
+                uds_met: chain.p99_ratio_to_uds.map(|u| u <= TARGET_UDS_RATIO),
+            })
+        })
+        .collect()
+}
+
+/// One line of the report per rate: the targets and whether each is met.
+fn targets_line(t: &Targets) -> String {
+    let met = |ok: bool| if ok { "met" } else { "missed" };
+    let uds = match (t.p99_ratio_to_uds, t.uds_met) {
+        (Some(r), Some(ok)) => format!(
+            "; p99 {r:.2} × the Unix-socket chain's (≤ {TARGET_UDS_RATIO}: {})",
+            met(ok)
+        ),
+        _ => "; the Unix-socket chain was not measured".into(),
+    };
+    format!(
+        "Targets at {} kHz (iceoryx2 one-core against the floor, {}): p50 {:+.1} µs (≤ +{TARGET_P50_US}: {}); p99 {:+.1} µs (≤ +{TARGET_P99_US}: {}); misses {:.0}/M (≤ 2 × floor + 10 = {:.0}: {}){uds}.",
+        t.rate_hz / 1000.0,
+        if t.cpu_latency_request { "request held" } else { "no request" },
+        t.p50_minus_floor_us,
+        met(t.p50_met),
+        t.p99_minus_floor_us,
+        met(t.p99_met),
+        t.misses_per_million,
+        t.misses_bound,
+        met(t.misses_met),
+    )
+}
+
 /// Adds a round's measurement to its variant's total.
 fn absorb(total: &mut Option<VariantResult>, m: VariantResult) -> Result<()> {
     match total {
@@ -844,6 +953,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         "cpu_latency_request_us": if a.no_cpu_latency_request { None } else { Some(0) },
         "cpu_latency_request_failed": request.failed,
         "floor_vs_cyclictest": checks,
+        "targets": targets(&rows),
         "machine": { "cpus": drivelab_runtime::rt::online_cpus(), "doctor": doctor },
         "rows": rows,
         "speed": speed,
@@ -940,6 +1050,9 @@ pub fn markdown(
             fmt_opt(r.waits_per_sample, 2),
             verdict
         );
+    }
+    for t in targets(rows) {
+        let _ = writeln!(s, "\n{}", targets_line(&t));
     }
     for c in checks {
         let _ = writeln!(
