@@ -946,6 +946,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         "inprocess_simulated_s": ip_sc.duration_s,
     });
     let doctor = drivelab_tools::doctor::run_checks();
+    let goals = targets(&rows);
     let report = serde_json::json!({
         "seconds_per_variant": seconds,
         "rounds": rounds,
@@ -953,13 +954,13 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         "cpu_latency_request_us": if a.no_cpu_latency_request { None } else { Some(0) },
         "cpu_latency_request_failed": request.failed,
         "floor_vs_cyclictest": checks,
-        "targets": targets(&rows),
+        "targets": goals,
         "machine": { "cpus": drivelab_runtime::rt::online_cpus(), "doctor": doctor },
         "rows": rows,
         "speed": speed,
     });
     std::fs::write(out.join("bench.json"), serde_json::to_vec_pretty(&report)?)?;
-    let md = markdown(&rows, &checks, &speed, seconds, rounds, a.spin_us);
+    let md = markdown(&rows, &checks, &goals, &speed, seconds, rounds, a.spin_us);
     std::fs::write(out.join("bench.md"), &md)?;
     // A build without figures (the cross build) writes the tables and .hgrm files only.
     for (hz, curves) in curves_by_rate
@@ -1011,6 +1012,7 @@ fn request_cell(r: &Row) -> String {
 pub fn markdown(
     rows: &[Row],
     checks: &[CrossCheck],
+    goals: &[Targets],
     speed: &serde_json::Value,
     seconds: f64,
     rounds: usize,
@@ -1051,8 +1053,8 @@ pub fn markdown(
             verdict
         );
     }
-    for t in targets(rows) {
-        let _ = writeln!(s, "\n{}", targets_line(&t));
+    for t in goals {
+        let _ = writeln!(s, "\n{}", targets_line(t));
     }
     for c in checks {
         let _ = writeln!(

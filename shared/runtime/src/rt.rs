@@ -363,17 +363,20 @@ fn set_affinity_single(cpu: usize) -> io::Result<()> {
     }
 }
 
-/// The CPUs the calling thread's affinity mask allows, in order; None when it cannot be read.
-pub fn affinity_cpus() -> Option<Vec<usize>> {
+/// The calling thread's affinity mask; None when it cannot be read.
+fn thread_cpu_set() -> Option<libc::cpu_set_t> {
     // SAFETY: cpu_set_t is a plain bit array; all-zero is a valid (empty) set.
     let mut set: libc::cpu_set_t = unsafe { std::mem::zeroed() };
     // SAFETY: pid 0 = the calling thread; `set` is a valid, writable cpu_set_t of the size
     // passed.
     let rc =
         unsafe { libc::sched_getaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &mut set) };
-    if rc != 0 {
-        return None;
-    }
+    (rc == 0).then_some(set)
+}
+
+/// The CPUs the calling thread's affinity mask allows, in order; None when it cannot be read.
+pub fn affinity_cpus() -> Option<Vec<usize>> {
+    let set = thread_cpu_set()?;
     // SAFETY: every `c` is below CPU_SETSIZE, so CPU_ISSET reads inside `set`'s bit array.
     Some(
         (0..libc::CPU_SETSIZE as usize)
@@ -692,14 +695,10 @@ pub fn off_rt_cores(rt_cores: u64) -> OffRtCores {
     if free.is_empty() {
         return left;
     }
-    // SAFETY: cpu_set_t is a plain bit array; all-zero is a valid (empty) set.
-    let mut previous: libc::cpu_set_t = unsafe { std::mem::zeroed() };
-    // SAFETY: pid 0 = the calling thread; `previous` is a valid, writable cpu_set_t of the
-    // size passed.
-    let read = unsafe {
-        libc::sched_getaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &mut previous)
+    let Some(previous) = thread_cpu_set() else {
+        return left;
     };
-    if read != 0 || !set_affinity(&cpu_set(&free)) {
+    if !set_affinity(&cpu_set(&free)) {
         return left;
     }
     OffRtCores {
