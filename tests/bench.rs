@@ -237,8 +237,11 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         .iter()
         .find(|x| x["variant"] == "iceoryx2" && x["cpu_latency_request"] == can_request)
         .unwrap();
+    assert_eq!(t["chain"], "iceoryx2 one-core");
     assert_eq!(t["rate_hz"], 10000.0);
     assert_eq!(t["cpu_latency_request"], can_request);
+    // One round: nothing to compare round by round.
+    assert!(t["by_round"].is_null(), "{t}");
     for (k, limit) in [("p50_minus_floor_us", 10.0), ("p99_minus_floor_us", 15.0)] {
         let d = chain[k].as_f64().unwrap();
         assert_eq!(t[k].as_f64(), Some(d), "{k}");
@@ -371,6 +374,58 @@ fn bench_compares_topologies_with_their_cpu_time() {
         assert_eq!(r["samples"].as_u64(), Some(2000), "{r}");
         assert!(r["cpu_s_per_s"].as_f64().is_some_and(|c| c > 0.0), "{r}");
         assert!(r["p99_ratio_to_floor"].as_f64().is_some(), "{r}");
+    }
+    // Every topology gets the targets against the floor, overall and round by round: round
+    // i of the topology against round i of the floor.
+    let num = |v: &serde_json::Value| v.as_f64().unwrap();
+    let floor_rounds = rows[0]["rounds"].as_array().unwrap();
+    assert_eq!(floor_rounds.len(), 2, "{}", rows[0]);
+    let targets = report["targets"].as_array().unwrap();
+    assert_eq!(targets.len(), 3, "{targets:?}");
+    let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
+    for (t, r) in targets.iter().zip(&rows[1..]) {
+        let name = r["placement"].as_str().unwrap();
+        assert_eq!(t["chain"], format!("topology {name}"));
+        assert_eq!(t["p99_minus_floor_us"], r["p99_minus_floor_us"], "{name}");
+        assert!(t["p99_ratio_to_uds"].is_null(), "{t}");
+        let rounds = r["rounds"].as_array().unwrap();
+        assert_eq!(rounds.len(), 2, "{r}");
+        let by = &t["by_round"];
+        for (key, field, limit) in [
+            ("p50_minus_floor_us", "p50_us", 10.0),
+            ("p99_minus_floor_us", "p99_us", 15.0),
+        ] {
+            let want: Vec<f64> = rounds
+                .iter()
+                .zip(floor_rounds)
+                .map(|(c, f)| num(&c[field]) - num(&f[field]))
+                .collect();
+            let got: Vec<f64> = by[key].as_array().unwrap().iter().map(num).collect();
+            assert_eq!(got, want, "{name} {key}");
+            let met = want.iter().filter(|d| **d <= limit).count();
+            assert_eq!(
+                by[key.replace("minus_floor_us", "met")],
+                met,
+                "{name} {key}"
+            );
+        }
+        let misses_met = rounds
+            .iter()
+            .zip(floor_rounds)
+            .filter(|(c, f)| {
+                num(&c["misses_per_million"]) <= 2.0 * num(&f["misses_per_million"]) + 10.0
+            })
+            .count();
+        assert_eq!(by["misses_met"], misses_met, "{name}");
+        let line = md
+            .lines()
+            .find(|l| {
+                l.starts_with(&format!(
+                    "Targets at 10 kHz (topology {name} against the floor"
+                ))
+            })
+            .unwrap_or_else(|| panic!("bench.md has no targets line for {name}"));
+        assert!(line.contains("Round by round (2): p50 "), "{line}");
     }
     // Each topology ran once per round in its own folder, with its processes.
     let s: serde_json::Value = serde_json::from_slice(

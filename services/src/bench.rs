@@ -40,13 +40,15 @@ pub struct BenchArgs {
     pub spin_us: f64,
     /// Split each variant's measurement into this many interleaved rounds (every variant
     /// runs once per round), so that slow changes of the machine reach all variants alike
-    /// (default 5; with --quick 1).
+    /// (default 5; with --quick 1). With two or more, the targets are also judged round by
+    /// round, each round's chain against that round's floor.
     #[arg(long, value_name = "N")]
     pub rounds: Option<usize>,
     /// Compare topologies instead of placements (comma-separated shipped names or files):
     /// the iceoryx2 chain in each topology, interleaved with the floor, e.g.
     /// `--topologies four-process,two-process,one-process --rates 10000`. Reports each
-    /// topology's cycle latency, misses and the CPU time its processes used.
+    /// topology's cycle latency, misses, the CPU time its processes used, where its
+    /// microseconds go and its targets against the floor.
     #[arg(long, value_delimiter = ',', value_name = "NAME|FILE,...")]
     pub topologies: Vec<String>,
     /// Measure without a CPU wake-up latency request. By default the bench holds one of 0 µs
@@ -153,6 +155,31 @@ pub struct Row {
     pub cpu_per_wakeup_us: Option<f64>,
     /// Where the cycle's microseconds go (iceoryx2 variants, all rounds merged).
     pub budget: Option<crate::budget::Budget>,
+    /// Each interleaved round's own figures, in the order the rounds ran (the percentiles
+    /// above are of all rounds merged).
+    pub rounds: Vec<RoundFigures>,
+}
+
+/// One interleaved round of one variant.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct RoundFigures {
+    /// Cycle latency (floor: wake-up lateness) p50, µs.
+    pub p50_us: f64,
+    /// Cycle latency p99, µs.
+    pub p99_us: f64,
+    /// Misses per million samples of this round.
+    pub misses_per_million: f64,
+}
+
+impl RoundFigures {
+    fn of(m: &VariantResult) -> Self {
+        let p = m.cycle.percentiles();
+        Self {
+            p50_us: p.p50,
+            p99_us: p.p99,
+            misses_per_million: per_million(m.misses.misses, m.samples),
+        }
+    }
 }
 
 fn per_million(n: u64, of: u64) -> f64 {
@@ -204,6 +231,7 @@ fn row(job: &Job, hz: f64, m: &VariantResult, hgrm: &Path) -> Row {
             .into_owned(),
         cpu_s_per_s: None,
         budget: None,
+        rounds: Vec::new(),
         waits_per_sample: None,
         cpu_per_wakeup_us: m
             .cpu_run_ns
@@ -507,12 +535,15 @@ fn compare(rows: &mut [Row], hz: f64) -> Vec<CrossCheck> {
     checks
 }
 
-/// The default chain's latency targets against the bare timer of the same run: p50 at most
+/// A chain's latency targets against the bare timer of the same run: p50 at most
 /// [`TARGET_P50_US`] and p99 at most [`TARGET_P99_US`] above the floor's, misses per million
 /// at most twice the floor's + 10, and p99 at most [`TARGET_UDS_RATIO`] × the Unix-socket
 /// chain's (the same four processes over sockets). `None` fields: not measured in this run.
 #[derive(Debug, Clone, Serialize)]
 pub struct Targets {
+    /// The chain: "iceoryx2 one-core" (the default chain), or "topology NAME" when the bench
+    /// compared topologies.
+    pub chain: String,
     /// Sample rate, Hz.
     pub rate_hz: f64,
     /// Measured under the CPU wake-up latency request (the chain and its floor).
@@ -535,6 +566,24 @@ pub struct Targets {
     pub p99_ratio_to_uds: Option<f64>,
     /// Within [`TARGET_UDS_RATIO`].
     pub uds_met: Option<bool>,
+    /// The same targets round by round, each round's chain against that round's floor (two
+    /// or more rounds): how much of a verdict the machine's noise decides.
+    pub by_round: Option<TargetRounds>,
+}
+
+/// [`Targets`] per interleaved round.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TargetRounds {
+    /// Cycle p50 − floor p50 of each round, µs.
+    pub p50_minus_floor_us: Vec<f64>,
+    /// Cycle p99 − floor p99 of each round, µs.
+    pub p99_minus_floor_us: Vec<f64>,
+    /// Rounds that met the p50 target.
+    pub p50_met: usize,
+    /// Rounds that met the p99 target.
+    pub p99_met: usize,
+    /// Rounds whose misses were within twice that round's floor's + 10 per million.
+    pub misses_met: usize,
 }
 
 /// Largest cycle p50 above the floor's that meets the target, µs.
@@ -544,8 +593,9 @@ pub const TARGET_P99_US: f64 = 15.0;
 /// Largest ratio of the iceoryx2 chain's p99 to the Unix-socket chain's that meets the target.
 pub const TARGET_UDS_RATIO: f64 = 0.8;
 
-/// The targets of the default chain (iceoryx2, one core; under the request when it was
-/// measured both ways) at each rate of `rows`, after [`compare`] filled in the differences.
+/// The targets at each rate of `rows`, after [`compare`] filled in the differences: of the
+/// default chain (iceoryx2, one core; under the request when it was measured both ways), and
+/// of every topology when the bench compared topologies.
 fn targets(rows: &[Row]) -> Vec<Targets> {
     let mut rates: Vec<f64> = Vec::new();
     for r in rows {
@@ -553,46 +603,77 @@ fn targets(rows: &[Row]) -> Vec<Targets> {
             rates.push(r.rate_hz);
         }
     }
-    rates
-        .into_iter()
-        .filter_map(|hz| {
-            let at = |variant: &str, req: Option<bool>| {
-                let m: Vec<&Row> = rows
-                    .iter()
-                    .filter(|r| {
-                        r.rate_hz == hz
-                            && r.variant == variant
-                            && (variant == "floor" || r.placement == "one-core")
-                            && req.is_none_or(|q| r.cpu_latency_request == q)
-                    })
-                    .collect();
-                m.iter()
-                    .find(|r| r.cpu_latency_request)
-                    .or_else(|| m.first())
-                    .copied()
-            };
-            let chain = at("iceoryx2", None)?;
-            let floor = at("floor", Some(chain.cpu_latency_request))?;
-            let (d50, d99) = (chain.p50_minus_floor_us?, chain.p99_minus_floor_us?);
-            let bound = 2.0 * floor.misses_per_million + 10.0;
-            Some(Targets {
-                rate_hz: hz,
-                cpu_latency_request: chain.cpu_latency_request,
-                p50_minus_floor_us: d50,
-                p50_met: d50 <= TARGET_P50_US,
-                p99_minus_floor_us: d99,
-                p99_met: d99 <= TARGET_P99_US,
-                misses_per_million: chain.misses_per_million,
-                misses_bound: bound,
-                misses_met: chain.misses_per_million <= bound,
-                p99_ratio_to_uds: chain.p99_ratio_to_uds,
-                uds_met: chain.p99_ratio_to_uds.map(|u| u <= TARGET_UDS_RATIO),
-            })
-        })
-        .collect()
+    let mut goals = Vec::new();
+    for hz in rates {
+        let at_rate = || rows.iter().filter(move |r| r.rate_hz == hz);
+        let default_chain = {
+            let m: Vec<&Row> = at_rate()
+                .filter(|r| r.variant == "iceoryx2" && r.placement == "one-core")
+                .collect();
+            m.iter()
+                .find(|r| r.cpu_latency_request)
+                .or_else(|| m.first())
+                .map(|r| ("iceoryx2 one-core".to_string(), *r))
+        };
+        let chains = default_chain.into_iter().chain(
+            at_rate()
+                .filter(|r| r.variant == "topology")
+                .map(|r| (format!("topology {}", r.placement), r)),
+        );
+        for (label, chain) in chains {
+            let floor = at_rate().find(|r| {
+                r.variant == "floor" && r.cpu_latency_request == chain.cpu_latency_request
+            });
+            if let Some(t) = floor.and_then(|f| goal(label, chain, f)) {
+                goals.push(t);
+            }
+        }
+    }
+    goals
 }
 
-/// One line of the report per rate: the targets and whether each is met.
+/// `chain`'s targets against `floor` (same rate, same request); `None` before [`compare`].
+fn goal(chain_label: String, chain: &Row, floor: &Row) -> Option<Targets> {
+    let (d50, d99) = (chain.p50_minus_floor_us?, chain.p99_minus_floor_us?);
+    let bound = 2.0 * floor.misses_per_million + 10.0;
+    Some(Targets {
+        chain: chain_label,
+        rate_hz: chain.rate_hz,
+        cpu_latency_request: chain.cpu_latency_request,
+        p50_minus_floor_us: d50,
+        p50_met: d50 <= TARGET_P50_US,
+        p99_minus_floor_us: d99,
+        p99_met: d99 <= TARGET_P99_US,
+        misses_per_million: chain.misses_per_million,
+        misses_bound: bound,
+        misses_met: chain.misses_per_million <= bound,
+        p99_ratio_to_uds: chain.p99_ratio_to_uds,
+        uds_met: chain.p99_ratio_to_uds.map(|u| u <= TARGET_UDS_RATIO),
+        by_round: target_rounds(&chain.rounds, &floor.rounds),
+    })
+}
+
+/// The targets of each round: round i of the chain against round i of its floor, which ran
+/// in the same interleaved pass. `None` for a single round or rounds that do not pair up.
+fn target_rounds(chain: &[RoundFigures], floor: &[RoundFigures]) -> Option<TargetRounds> {
+    if chain.len() < 2 || chain.len() != floor.len() {
+        return None;
+    }
+    let pairs = || chain.iter().zip(floor);
+    let d50: Vec<f64> = pairs().map(|(c, f)| c.p50_us - f.p50_us).collect();
+    let d99: Vec<f64> = pairs().map(|(c, f)| c.p99_us - f.p99_us).collect();
+    Some(TargetRounds {
+        p50_met: d50.iter().filter(|d| **d <= TARGET_P50_US).count(),
+        p99_met: d99.iter().filter(|d| **d <= TARGET_P99_US).count(),
+        misses_met: pairs()
+            .filter(|(c, f)| c.misses_per_million <= 2.0 * f.misses_per_million + 10.0)
+            .count(),
+        p50_minus_floor_us: d50,
+        p99_minus_floor_us: d99,
+    })
+}
+
+/// One line of the report per chain and rate: the targets and whether each is met.
 fn targets_line(t: &Targets) -> String {
     let met = |ok: bool| if ok { "met" } else { "missed" };
     let uds = match (t.p99_ratio_to_uds, t.uds_met) {
@@ -602,9 +683,29 @@ fn targets_line(t: &Targets) -> String {
         ),
         _ => "; the Unix-socket chain was not measured".into(),
     };
+    let by_round = match &t.by_round {
+        Some(r) => {
+            let n = r.p50_minus_floor_us.len();
+            let span = |d: &[f64]| {
+                let lo = d.iter().copied().fold(f64::INFINITY, f64::min);
+                let hi = d.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                format!("{lo:+.1} … {hi:+.1} µs")
+            };
+            format!(
+                " Round by round ({n}): p50 {} (met in {}), p99 {} (met in {}), misses met in {}.",
+                span(&r.p50_minus_floor_us),
+                r.p50_met,
+                span(&r.p99_minus_floor_us),
+                r.p99_met,
+                r.misses_met
+            )
+        }
+        None => String::new(),
+    };
     format!(
-        "Targets at {} kHz (iceoryx2 one-core against the floor, {}): p50 {:+.1} µs (≤ +{TARGET_P50_US}: {}); p99 {:+.1} µs (≤ +{TARGET_P99_US}: {}); misses {:.0}/M (≤ 2 × floor + 10 = {:.0}: {}){uds}.",
+        "Targets at {} kHz ({} against the floor, {}): p50 {:+.1} µs (≤ +{TARGET_P50_US}: {}); p99 {:+.1} µs (≤ +{TARGET_P99_US}: {}); misses {:.0}/M (≤ 2 × floor + 10 = {:.0}: {}){uds}.{by_round}",
         t.rate_hz / 1000.0,
+        t.chain,
         if t.cpu_latency_request { "request held" } else { "no request" },
         t.p50_minus_floor_us,
         met(t.p50_met),
@@ -616,9 +717,17 @@ fn targets_line(t: &Targets) -> String {
     )
 }
 
+/// A variant's measurement so far: its rounds merged, and each round's own figures.
+#[derive(Default)]
+struct Acc {
+    total: Option<VariantResult>,
+    rounds: Vec<RoundFigures>,
+}
+
 /// Adds a round's measurement to its variant's total.
-fn absorb(total: &mut Option<VariantResult>, m: VariantResult) -> Result<()> {
-    match total {
+fn absorb(acc: &mut Acc, m: VariantResult) -> Result<()> {
+    acc.rounds.push(RoundFigures::of(&m));
+    match &mut acc.total {
         Some(t) => t.merge(&m),
         slot => {
             *slot = Some(m);
@@ -721,7 +830,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     for &hz in &rates {
         let one = placement("one-core")?;
         let slice = seconds / rounds as f64;
-        let mut acc: Vec<Option<VariantResult>> = jobs.iter().map(|_| None).collect();
+        let mut acc: Vec<Acc> = jobs.iter().map(|_| Acc::default()).collect();
         let mut cpu: Vec<f64> = vec![0.0; jobs.len()];
         let mut switches: Vec<u64> = vec![0; jobs.len()];
         let mut stage_hists: Vec<BTreeMap<String, LatencyHist>> =
@@ -858,12 +967,16 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         let mut measured: Vec<Row> = Vec::new();
         let mut curves = Vec::new();
         for (i, job) in jobs.iter().enumerate() {
-            let m = acc[i]
-                .take()
+            let Acc {
+                total,
+                rounds: by_round,
+            } = std::mem::take(&mut acc[i]);
+            let m = total
                 .ok_or_else(|| anyhow!("{} {}: no measurement", job.variant, job.placement))?;
             let h = out.join(format!("{}.hgrm", job.tag(hz)));
             std::fs::write(&h, m.cycle.hgrm())?;
             let mut r = row(job, hz, &m, &h);
+            r.rounds = by_round;
             // What was held, not what was wanted (a refused request leaves it off).
             r.cpu_latency_request = held[i];
             r.idle_still_polling_rounds = still_polling[i];
@@ -1089,12 +1202,13 @@ pub fn markdown(
     }
     for r in rows
         .iter()
-        .filter(|r| r.variant == "iceoryx2" && r.cpu_latency_request)
+        .filter(|r| (r.variant == "iceoryx2" || r.variant == "topology") && r.cpu_latency_request)
     {
         if let Some(b) = &r.budget {
             let _ = writeln!(
                 s,
-                "\nWhere the microseconds go, iceoryx2 {} at {} kHz (path {}):\n\n{}",
+                "\nWhere the microseconds go, {} {} at {} kHz (path {}):\n\n{}",
+                r.variant,
                 r.placement,
                 r.rate_hz / 1000.0,
                 b.path.join(" → "),
@@ -1127,4 +1241,36 @@ pub fn markdown(
         speed["inprocess_simulated_s_per_wall_s"].as_f64().unwrap_or(f64::NAN)
     );
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn round(p50_us: f64, p99_us: f64, misses_per_million: f64) -> RoundFigures {
+        RoundFigures {
+            p50_us,
+            p99_us,
+            misses_per_million,
+        }
+    }
+
+    #[test]
+    fn each_round_of_a_chain_is_judged_against_the_floor_of_the_same_round() {
+        let floor = [round(13.0, 30.0, 100.0), round(20.0, 60.0, 1000.0)];
+        // Round 1 misses every target against its own floor (p50 +11, p99 +16, 220 > 210);
+        // round 2 meets them all against its floor, though it is worse than round 1 in every
+        // figure: judged against round 1's floor instead, it would miss them all.
+        let chain = [round(24.0, 46.0, 220.0), round(29.0, 74.0, 2000.0)];
+        let r = target_rounds(&chain, &floor).unwrap();
+        assert_eq!(r.p50_minus_floor_us, [11.0, 9.0]);
+        assert_eq!(r.p99_minus_floor_us, [16.0, 14.0]);
+        assert_eq!((r.p50_met, r.p99_met, r.misses_met), (1, 1, 1));
+        // At the limits: met.
+        let r = target_rounds(&[round(23.0, 45.0, 210.0)].repeat(2), &[floor[0]; 2]).unwrap();
+        assert_eq!((r.p50_met, r.p99_met, r.misses_met), (2, 2, 2));
+        // One round, or rounds that do not pair up: nothing to say round by round.
+        assert_eq!(target_rounds(&chain[..1], &floor[..1]), None);
+        assert_eq!(target_rounds(&chain, &floor[..1]), None);
+    }
 }
