@@ -402,6 +402,14 @@ fn bench_compares_topologies_with_their_cpu_time() {
                 .collect();
             let got: Vec<f64> = by[key].as_array().unwrap().iter().map(num).collect();
             assert_eq!(got, want, "{name} {key}");
+            // Two rounds: the median is their mean.
+            let median = by[key.replace("minus_floor_us", "median_us")]
+                .as_f64()
+                .unwrap();
+            assert!(
+                (median - (want[0] + want[1]) / 2.0).abs() < 1e-9,
+                "{name} {key}"
+            );
             let met = want.iter().filter(|d| **d <= limit).count();
             assert_eq!(
                 by[key.replace("minus_floor_us", "met")],
@@ -425,7 +433,10 @@ fn bench_compares_topologies_with_their_cpu_time() {
                 ))
             })
             .unwrap_or_else(|| panic!("bench.md has no targets line for {name}"));
-        assert!(line.contains("Round by round (2): p50 "), "{line}");
+        assert!(
+            line.contains("Round by round (2, each against its own floor): p50 median "),
+            "{line}"
+        );
     }
     // Each topology ran once per round in its own folder, with its processes.
     let s: serde_json::Value = serde_json::from_slice(
