@@ -118,6 +118,31 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         ("iceoryx2+spin", r),
     ]);
     assert_eq!(variants, expect);
+    // What the spin buys, from the two chains' rows (same request, one round: no median).
+    let chain_of = |v: &str| {
+        rows.iter()
+            .find(|x| x["variant"] == v && x["cpu_latency_request"] == r)
+            .unwrap()
+    };
+    let (spin, plain) = (chain_of("iceoryx2+spin"), chain_of("iceoryx2"));
+    let spins = report["spin"].as_array().unwrap();
+    assert_eq!(spins.len(), 1, "{spins:?}");
+    let e = &spins[0];
+    let f = |row: &serde_json::Value, k: &str, q: &str| row[k][q].as_f64().unwrap();
+    assert_eq!(
+        e["spin_us"].as_f64(),
+        Some(25.0),
+        "30 µs capped at T_s/4: {e}"
+    );
+    for q in ["p50", "p99"] {
+        let want = f(spin, "cycle_us", q) - f(plain, "cycle_us", q);
+        assert_eq!(e[format!("{q}_change_us")].as_f64(), Some(want), "{q}: {e}");
+    }
+    assert_eq!(e["misses_per_million"], spin["misses_per_million"]);
+    assert_eq!(e["misses_per_million_without"], plain["misses_per_million"]);
+    let cpu = spin["cpu_s_per_s"].as_f64().unwrap() - plain["cpu_s_per_s"].as_f64().unwrap();
+    assert_eq!(e["cpu_change_s_per_s"].as_f64(), Some(cpu));
+    assert!(e["p99_median_change_us"].is_null(), "{e}");
     let floor_of = |req: bool| {
         rows.iter()
             .find(|x| x["variant"] == "floor" && x["cpu_latency_request"] == req)
@@ -292,6 +317,10 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     assert!(
         md.contains("Targets at 10 kHz (iceoryx2 one-core against the floor"),
         "bench.md has no targets line"
+    );
+    assert!(
+        md.contains("Sleep-then-spin at 10 kHz (25 µs) against the same chain without it: p50 "),
+        "bench.md has no spin line"
     );
     let _ = std::fs::remove_dir_all(&out);
 }

@@ -737,6 +737,84 @@ fn targets_line(t: &Targets) -> String {
     )
 }
 
+/// What sleep-then-spin buys at one rate: the `iceoryx2+spin` chain against the same chain
+/// without it (one core, the same request, the same rounds). Negative changes are gains.
+#[derive(Debug, Clone, Serialize)]
+pub struct SpinEffect {
+    /// Sample rate, Hz.
+    pub rate_hz: f64,
+    /// The plant's spin before each deadline, µs.
+    pub spin_us: f64,
+    /// Cycle p50 with the spin − without, µs.
+    pub p50_change_us: f64,
+    /// Cycle p99 with the spin − without, µs.
+    pub p99_change_us: f64,
+    /// Median over the rounds of each round's p99 change, µs (two or more rounds).
+    pub p99_median_change_us: Option<f64>,
+    /// Misses per million with the spin.
+    pub misses_per_million: f64,
+    /// Misses per million without it.
+    pub misses_per_million_without: f64,
+    /// CPU time of the drive's processes with the spin − without, s per simulated second.
+    pub cpu_change_s_per_s: Option<f64>,
+}
+
+/// The spin's effect at each rate where both chains were measured under the same request.
+fn spin_effects(rows: &[Row], spin_arg: f64) -> Vec<SpinEffect> {
+    rows.iter()
+        .filter(|r| r.variant == "iceoryx2+spin")
+        .filter_map(|spin| {
+            let plain = rows.iter().find(|r| {
+                r.variant == "iceoryx2"
+                    && r.placement == spin.placement
+                    && r.rate_hz == spin.rate_hz
+                    && r.cpu_latency_request == spin.cpu_latency_request
+            })?;
+            let p99_median_change_us =
+                (spin.rounds.len() >= 2 && spin.rounds.len() == plain.rounds.len()).then(|| {
+                    let d: Vec<f64> = spin
+                        .rounds
+                        .iter()
+                        .zip(&plain.rounds)
+                        .map(|(a, b)| a.p99_us - b.p99_us)
+                        .collect();
+                    median(&d)
+                });
+            Some(SpinEffect {
+                rate_hz: spin.rate_hz,
+                spin_us: spin_us(spin_arg, spin.rate_hz),
+                p50_change_us: spin.cycle_us.p50 - plain.cycle_us.p50,
+                p99_change_us: spin.cycle_us.p99 - plain.cycle_us.p99,
+                p99_median_change_us,
+                misses_per_million: spin.misses_per_million,
+                misses_per_million_without: plain.misses_per_million,
+                cpu_change_s_per_s: spin.cpu_s_per_s.zip(plain.cpu_s_per_s).map(|(a, b)| a - b),
+            })
+        })
+        .collect()
+}
+
+/// One line of the report per rate: what the spin bought and cost.
+fn spin_line(e: &SpinEffect) -> String {
+    let rounds = e
+        .p99_median_change_us
+        .map(|m| format!(" (median round {m:+.1} µs)"))
+        .unwrap_or_default();
+    let cpu = e
+        .cpu_change_s_per_s
+        .map(|c| format!("; CPU {c:+.3} s per simulated second"))
+        .unwrap_or_default();
+    format!(
+        "Sleep-then-spin at {} kHz ({} µs) against the same chain without it: p50 {:+.1} µs, p99 {:+.1} µs{rounds}; misses {:.0}/M against {:.0}/M{cpu}.",
+        e.rate_hz / 1000.0,
+        e.spin_us,
+        e.p50_change_us,
+        e.p99_change_us,
+        e.misses_per_million,
+        e.misses_per_million_without,
+    )
+}
+
 /// A variant's measurement so far: its rounds merged, and each round's own figures.
 #[derive(Default)]
 struct Acc {
@@ -1080,6 +1158,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     });
     let doctor = drivelab_tools::doctor::run_checks();
     let goals = targets(&rows);
+    let spins = spin_effects(&rows, a.spin_us);
     let report = serde_json::json!({
         "seconds_per_variant": seconds,
         "rounds": rounds,
@@ -1088,12 +1167,20 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         "cpu_latency_request_failed": request.failed,
         "floor_vs_cyclictest": checks,
         "targets": goals,
+        "spin": spins,
         "machine": { "cpus": drivelab_runtime::rt::online_cpus(), "doctor": doctor },
         "rows": rows,
         "speed": speed,
     });
     std::fs::write(out.join("bench.json"), serde_json::to_vec_pretty(&report)?)?;
-    let md = markdown(&rows, &checks, &goals, &speed, seconds, rounds, a.spin_us);
+    let md = markdown(
+        &rows,
+        &checks,
+        &goals,
+        &spins,
+        &speed,
+        (seconds, rounds, a.spin_us),
+    );
     std::fs::write(out.join("bench.md"), &md)?;
     // A build without figures (the cross build) writes the tables and .hgrm files only.
     for (hz, curves) in curves_by_rate
@@ -1146,10 +1233,9 @@ pub fn markdown(
     rows: &[Row],
     checks: &[CrossCheck],
     goals: &[Targets],
+    spins: &[SpinEffect],
     speed: &serde_json::Value,
-    seconds: f64,
-    rounds: usize,
-    spin_arg: f64,
+    (seconds, rounds, spin_arg): (f64, usize, f64),
 ) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "Cycle latency from t_k to command k available at the plant, µs ({seconds} s per variant in {rounds} interleaved round(s); floor = a bare timer loop's lateness at every deadline (deadlines that passed while it was late are handled by its next wake-up, as a chain that cost nothing would handle them), cyclictest = its wake-ups' lateness; request = CPU wake-up latency request of 0 µs held (none: before each such round the core idled in 2 ms sleeps until its idle governor stopped the polling a released request leaves behind); each chain is compared with the floor measured under the same request).\n");
@@ -1237,7 +1323,7 @@ pub fn markdown(
         }
     }
     if rows.iter().any(|r| r.variant == "iceoryx2+spin") {
-        let spins: Vec<String> = rows
+        let spin_at: Vec<String> = rows
             .iter()
             .filter(|r| r.variant == "iceoryx2+spin")
             .map(|r| {
@@ -1251,8 +1337,11 @@ pub fn markdown(
         let _ = writeln!(
             s,
             "\niceoryx2+spin: the plant sleeps to {} before each deadline and spins the rest (--spin-us, capped at T_s/4).",
-            spins.join(", ")
+            spin_at.join(", ")
         );
+    }
+    for e in spins {
+        let _ = writeln!(s, "\n{}", spin_line(e));
     }
     let _ = writeln!(
         s,
