@@ -143,6 +143,11 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     let cpu = spin["cpu_s_per_s"].as_f64().unwrap() - plain["cpu_s_per_s"].as_f64().unwrap();
     assert_eq!(e["cpu_change_s_per_s"].as_f64(), Some(cpu));
     assert!(e["p99_median_change_us"].is_null(), "{e}");
+    assert_eq!(
+        e["p99_change_by_round_us"].as_array().map(Vec::len),
+        Some(0),
+        "{e}"
+    );
     let floor_of = |req: bool| {
         rows.iter()
             .find(|x| x["variant"] == "floor" && x["cpu_latency_request"] == req)
@@ -329,16 +334,44 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
 fn bench_rounds_interleave_the_variants_and_merge_their_samples() {
     let out = std::env::temp_dir().join(format!("drivelab-bench-rounds-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
-    let o = bench(
-        &["--quick", "--rounds", "2", "--spin-us", "0", "--json"],
-        &out,
-    );
+    let o = bench(&["--quick", "--rounds", "2", "--json"], &out);
     let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(report["rounds"], 2);
     let rows = report["rows"].as_array().unwrap();
     // 0.2 s at 10 kHz in two slices of 0.1 s: both slices count.
     let floor = rows[0]["samples"].as_u64().unwrap();
     assert!((1990..=2010).contains(&floor), "floor samples {floor}");
+    // What the spin bought, round by round: each round of the spin chain against the same
+    // round of the chain without it; with two rounds the median is their mean.
+    let chain_rounds = |v: &str| -> Vec<f64> {
+        let row = rows
+            .iter()
+            .find(|x| {
+                x["variant"] == v && x["cpu_latency_request"] == rows[0]["cpu_latency_request"]
+            })
+            .unwrap();
+        row["rounds"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|r| r["p99_us"].as_f64().unwrap())
+            .collect()
+    };
+    let (spin, plain) = (chain_rounds("iceoryx2+spin"), chain_rounds("iceoryx2"));
+    assert_eq!((spin.len(), plain.len()), (2, 2));
+    let e = &report["spin"][0];
+    let by_round: Vec<f64> = e["p99_change_by_round_us"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|d| d.as_f64().unwrap())
+        .collect();
+    assert_eq!(by_round, [spin[0] - plain[0], spin[1] - plain[1]], "{e}");
+    let median = e["p99_median_change_us"].as_f64().unwrap();
+    assert!(
+        (median - (by_round[0] + by_round[1]) / 2.0).abs() < 1e-9,
+        "{e}"
+    );
     // Each chain ran once per round, in its own folder.
     for v in ["iceoryx2-one-core-10000hz", "uds-one-core-10000hz"] {
         for r in ["round1", "round2"] {

@@ -749,7 +749,10 @@ pub struct SpinEffect {
     pub p50_change_us: f64,
     /// Cycle p99 with the spin − without, µs.
     pub p99_change_us: f64,
-    /// Median over the rounds of each round's p99 change, µs (two or more rounds).
+    /// Each round's p99 change, round i with the spin against round i without it, µs (empty
+    /// for a single round).
+    pub p99_change_by_round_us: Vec<f64>,
+    /// Median of `p99_change_by_round_us`, µs.
     pub p99_median_change_us: Option<f64>,
     /// Misses per million with the spin.
     pub misses_per_million: f64,
@@ -770,22 +773,23 @@ fn spin_effects(rows: &[Row], spin_arg: f64) -> Vec<SpinEffect> {
                     && r.rate_hz == spin.rate_hz
                     && r.cpu_latency_request == spin.cpu_latency_request
             })?;
-            let p99_median_change_us =
-                (spin.rounds.len() >= 2 && spin.rounds.len() == plain.rounds.len()).then(|| {
-                    let d: Vec<f64> = spin
-                        .rounds
+            let by_round: Vec<f64> =
+                if spin.rounds.len() >= 2 && spin.rounds.len() == plain.rounds.len() {
+                    spin.rounds
                         .iter()
                         .zip(&plain.rounds)
                         .map(|(a, b)| a.p99_us - b.p99_us)
-                        .collect();
-                    median(&d)
-                });
+                        .collect()
+                } else {
+                    Vec::new()
+                };
             Some(SpinEffect {
                 rate_hz: spin.rate_hz,
                 spin_us: spin_us(spin_arg, spin.rate_hz),
                 p50_change_us: spin.cycle_us.p50 - plain.cycle_us.p50,
                 p99_change_us: spin.cycle_us.p99 - plain.cycle_us.p99,
-                p99_median_change_us,
+                p99_median_change_us: (!by_round.is_empty()).then(|| median(&by_round)),
+                p99_change_by_round_us: by_round,
                 misses_per_million: spin.misses_per_million,
                 misses_per_million_without: plain.misses_per_million,
                 cpu_change_s_per_s: spin.cpu_s_per_s.zip(plain.cpu_s_per_s).map(|(a, b)| a - b),
