@@ -521,7 +521,8 @@ fn compare(rows: &mut [Row], hz: f64) -> Vec<CrossCheck> {
             });
             continue;
         }
-        r.holds_budget = Some(r.cycle_us.p999 < ts_us && r.misses_per_million <= 2.0 * f_pm + 10.0);
+        r.holds_budget =
+            Some(r.cycle_us.p999 < ts_us && r.misses_per_million <= misses_bound(f_pm));
         r.p99_ratio_to_floor = Some(r.cycle_us.p99 / f99.max(1e-3));
         r.p99_minus_floor_us = Some(r.cycle_us.p99 - f99);
         r.p50_minus_floor_us = Some(r.cycle_us.p50 - f50);
@@ -640,7 +641,7 @@ fn targets(rows: &[Row]) -> Vec<Targets> {
 /// `chain`'s targets against `floor` (same rate, same request); `None` before [`compare`].
 fn goal(chain_label: String, chain: &Row, floor: &Row) -> Option<Targets> {
     let (d50, d99) = (chain.p50_minus_floor_us?, chain.p99_minus_floor_us?);
-    let bound = 2.0 * floor.misses_per_million + 10.0;
+    let bound = misses_bound(floor.misses_per_million);
     Some(Targets {
         chain: chain_label,
         rate_hz: chain.rate_hz,
@@ -661,23 +662,42 @@ fn goal(chain_label: String, chain: &Row, floor: &Row) -> Option<Targets> {
 /// The targets of each round: round i of the chain against round i of its floor, which ran
 /// in the same interleaved pass. `None` for a single round or rounds that do not pair up.
 fn target_rounds(chain: &[RoundFigures], floor: &[RoundFigures]) -> Option<TargetRounds> {
-    if chain.len() < 2 || chain.len() != floor.len() {
-        return None;
-    }
-    let pairs = || chain.iter().zip(floor);
-    let d50: Vec<f64> = pairs().map(|(c, f)| c.p50_us - f.p50_us).collect();
-    let d99: Vec<f64> = pairs().map(|(c, f)| c.p99_us - f.p99_us).collect();
+    let d50 = round_diffs(chain, floor, |r| r.p50_us)?;
+    let d99 = round_diffs(chain, floor, |r| r.p99_us)?;
     Some(TargetRounds {
         p50_met: d50.iter().filter(|d| **d <= TARGET_P50_US).count(),
         p99_met: d99.iter().filter(|d| **d <= TARGET_P99_US).count(),
-        misses_met: pairs()
-            .filter(|(c, f)| c.misses_per_million <= 2.0 * f.misses_per_million + 10.0)
+        misses_met: chain
+            .iter()
+            .zip(floor)
+            .filter(|(c, f)| c.misses_per_million <= misses_bound(f.misses_per_million))
             .count(),
         p50_median_us: median(&d50),
         p99_median_us: median(&d99),
         p50_minus_floor_us: d50,
         p99_minus_floor_us: d99,
     })
+}
+
+/// Round i of `a` minus round i of `b` in `figure`, for two or more rounds that pair up
+/// (they ran in the same interleaved passes); `None` otherwise.
+fn round_diffs(
+    a: &[RoundFigures],
+    b: &[RoundFigures],
+    figure: fn(&RoundFigures) -> f64,
+) -> Option<Vec<f64>> {
+    (a.len() >= 2 && a.len() == b.len()).then(|| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| figure(x) - figure(y))
+            .collect()
+    })
+}
+
+/// The most misses per million a chain may have against a floor with `floor_pm`: twice the
+/// floor's + 10.
+fn misses_bound(floor_pm: f64) -> f64 {
+    2.0 * floor_pm + 10.0
 }
 
 /// The median of `v` (the mean of the middle two for an even count); NaN when empty.
@@ -773,16 +793,8 @@ fn spin_effects(rows: &[Row], spin_arg: f64) -> Vec<SpinEffect> {
                     && r.rate_hz == spin.rate_hz
                     && r.cpu_latency_request == spin.cpu_latency_request
             })?;
-            let by_round: Vec<f64> =
-                if spin.rounds.len() >= 2 && spin.rounds.len() == plain.rounds.len() {
-                    spin.rounds
-                        .iter()
-                        .zip(&plain.rounds)
-                        .map(|(a, b)| a.p99_us - b.p99_us)
-                        .collect()
-                } else {
-                    Vec::new()
-                };
+            let by_round =
+                round_diffs(&spin.rounds, &plain.rounds, |r| r.p99_us).unwrap_or_default();
             Some(SpinEffect {
                 rate_hz: spin.rate_hz,
                 spin_us: spin_us(spin_arg, spin.rate_hz),
