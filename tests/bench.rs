@@ -228,6 +228,18 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
             Some(d("p50").abs() <= 3.0 && d("p99").abs() <= 3.0),
             "{c}"
         );
+        assert!(c["by_round"].is_null(), "one round, nothing to pair: {c}");
+        // cyclictest's main thread runs off the measured core (1), as the floor's process does,
+        // when this cyclictest can place it (rt-tests 2.0 and later).
+        let help = std::process::Command::new("cyclictest")
+            .arg("--help")
+            .output()
+            .unwrap();
+        let can = String::from_utf8_lossy(&[help.stdout, help.stderr].concat())
+            .contains("--mainaffinity");
+        let main = c["cyclictest_main_thread_core"].as_u64();
+        assert_eq!(main.is_some(), can, "{c}");
+        assert_ne!(main, Some(1), "{c}");
     }
     let ice: Vec<&serde_json::Value> = rows.iter().filter(|x| x["variant"] == "iceoryx2").collect();
     for r in &ice {
@@ -330,6 +342,34 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
+/// `figure` of each round of the row of `variant` measured with `request` held or not.
+fn by_round(
+    rows: &[serde_json::Value],
+    variant: &str,
+    request: &serde_json::Value,
+    figure: &str,
+) -> Vec<f64> {
+    let row = rows
+        .iter()
+        .find(|x| x["variant"] == variant && &x["cpu_latency_request"] == request)
+        .unwrap();
+    row["rounds"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r[figure].as_f64().unwrap())
+        .collect()
+}
+
+/// A JSON array of numbers.
+fn floats(v: &serde_json::Value) -> Vec<f64> {
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|d| d.as_f64().unwrap())
+        .collect()
+}
+
 #[test]
 fn bench_rounds_interleave_the_variants_and_merge_their_samples() {
     let out = std::env::temp_dir().join(format!("drivelab-bench-rounds-{}", std::process::id()));
@@ -343,35 +383,37 @@ fn bench_rounds_interleave_the_variants_and_merge_their_samples() {
     assert!((1990..=2010).contains(&floor), "floor samples {floor}");
     // What the spin bought, round by round: each round of the spin chain against the same
     // round of the chain without it; with two rounds the median is their mean.
-    let chain_rounds = |v: &str| -> Vec<f64> {
-        let row = rows
-            .iter()
-            .find(|x| {
-                x["variant"] == v && x["cpu_latency_request"] == rows[0]["cpu_latency_request"]
-            })
-            .unwrap();
-        row["rounds"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|r| r["p99_us"].as_f64().unwrap())
-            .collect()
-    };
-    let (spin, plain) = (chain_rounds("iceoryx2+spin"), chain_rounds("iceoryx2"));
+    let req0 = &rows[0]["cpu_latency_request"];
+    let (spin, plain) = (
+        by_round(rows, "iceoryx2+spin", req0, "p99_us"),
+        by_round(rows, "iceoryx2", req0, "p99_us"),
+    );
     assert_eq!((spin.len(), plain.len()), (2, 2));
     let e = &report["spin"][0];
-    let by_round: Vec<f64> = e["p99_change_by_round_us"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|d| d.as_f64().unwrap())
-        .collect();
-    assert_eq!(by_round, [spin[0] - plain[0], spin[1] - plain[1]], "{e}");
+    let change = floats(&e["p99_change_by_round_us"]);
+    assert_eq!(change, [spin[0] - plain[0], spin[1] - plain[1]], "{e}");
     let median = e["p99_median_change_us"].as_f64().unwrap();
-    assert!(
-        (median - (by_round[0] + by_round[1]) / 2.0).abs() < 1e-9,
-        "{e}"
-    );
+    assert!((median - (change[0] + change[1]) / 2.0).abs() < 1e-9, "{e}");
+    // The floor against cyclictest, round by round on the wake-ups: round i of each.
+    let checks = report["floor_vs_cyclictest"].as_array().unwrap();
+    assert_eq!(checks.len(), if on_path("cyclictest") { 2 } else { 0 });
+    for c in checks {
+        let req = &c["cpu_latency_request"];
+        for (q, field) in [
+            ("wake_p50_us", "p50_diff_us"),
+            ("wake_p99_us", "p99_diff_us"),
+        ] {
+            let (f, ct) = (
+                by_round(rows, "floor", req, q),
+                by_round(rows, "cyclictest", req, q),
+            );
+            assert_eq!(
+                floats(&c["by_round"][field]),
+                [f[0] - ct[0], f[1] - ct[1]],
+                "{field}: {c}"
+            );
+        }
+    }
     // Each chain ran once per round, in its own folder.
     for v in ["iceoryx2-one-core-10000hz", "uds-one-core-10000hz"] {
         for r in ["round1", "round2"] {

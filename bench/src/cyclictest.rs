@@ -4,6 +4,15 @@
 //! If the floor and cyclictest disagree, the floor (and every "− floor" in the report) is
 //! wrong, not the machine.
 //!
+//! cyclictest's main thread goes to another core (`--mainaffinity`) so that cyclictest, like
+//! the floor, measures a lone timer thread. With `-a N` alone cyclictest pins its main
+//! thread to core N too, and that thread wakes every 10 ms: on a machine whose idle vCPU
+//! halts, that alone lowers the timer thread's wake-up lateness without the CPU wake-up
+//! latency request (by about 3 µs at p50 on the VM of docs/measurements.md, where a C loop
+//! with such a companion thread read as low as cyclictest and cyclictest with its main
+//! thread moved read as high as the floor). A cyclictest without `--mainaffinity` (rt-tests
+//! before 2.0) runs with its default layout.
+//!
 //! cyclictest writes a histogram of whole microseconds (it truncates); each bucket is
 //! recorded at its middle (+0.5 µs). Wake-ups beyond the histogram's range
 //! ([`HIST_MAX_US`]) are recorded at that range, so the maximum is a lower bound then.
@@ -47,8 +56,8 @@ pub fn locate(cmd: &str) -> std::result::Result<PathBuf, String> {
 
 /// Runs `exe` (cyclictest) for round(seconds × hz) wake-ups on `node`'s core at its
 /// SCHED_FIFO priority, memory locked, with its CPU wake-up latency request at 0 µs when
-/// `latency_request` (cyclictest's default) or without one (`--default-system`). The
-/// histogram file goes to `work`.
+/// `latency_request` (cyclictest's default) or without one (`--default-system`), its main
+/// thread on another core ([`main_thread_core`]). The histogram file goes to `work`.
 pub fn run(
     exe: &Path,
     hz: f64,
@@ -71,6 +80,9 @@ pub fn run(
         .arg(format!("--histfile={}", hist.display()));
     if let Some(cpu) = node.core {
         c.arg(format!("--affinity={cpu}"));
+        if let Some(other) = main_thread_core(exe, cpu) {
+            c.arg(format!("--mainaffinity={other}"));
+        }
     }
     if let Some(p) = node.priority {
         c.arg(format!("--priority={p}"));
@@ -100,6 +112,20 @@ pub fn run(
         );
     }
     Ok(r)
+}
+
+/// The core for cyclictest's main thread when its timer thread runs on `timer_core`: the
+/// lowest core this thread may use other than `timer_core`. None when there is no such core
+/// or when `exe` does not take `--mainaffinity` (its `--help` does not mention it).
+pub fn main_thread_core(exe: &Path, timer_core: usize) -> Option<usize> {
+    let other = drivelab_runtime::rt::affinity_cpus()?
+        .into_iter()
+        .find(|&c| c != timer_core)?;
+    let help = Command::new(exe).arg("--help").output().ok()?;
+    let text = [help.stdout, help.stderr].concat();
+    String::from_utf8_lossy(&text)
+        .contains("--mainaffinity")
+        .then_some(other)
 }
 
 /// Reads cyclictest's histogram file (one thread): lines `BUCKET_US COUNT`, then `#` lines,

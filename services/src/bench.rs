@@ -169,15 +169,21 @@ pub struct RoundFigures {
     pub p99_us: f64,
     /// Misses per million samples of this round.
     pub misses_per_million: f64,
+    /// The plant's (floor: the timer thread's) wake-up lateness p50, µs.
+    pub wake_p50_us: f64,
+    /// Its p99, µs.
+    pub wake_p99_us: f64,
 }
 
 impl RoundFigures {
     fn of(m: &VariantResult) -> Self {
-        let p = m.cycle.percentiles();
+        let (p, w) = (m.cycle.percentiles(), m.lateness.percentiles());
         Self {
             p50_us: p.p50,
             p99_us: p.p99,
             misses_per_million: per_million(m.misses.misses, m.samples),
+            wake_p50_us: w.p50,
+            wake_p99_us: w.p99,
         }
     }
 }
@@ -469,6 +475,46 @@ pub struct CrossCheck {
     pub p99_diff_us: f64,
     /// Both differences within the agreement.
     pub agrees: bool,
+    /// The same differences round by round (each round's floor against the same round's
+    /// cyclictest; at least two rounds).
+    pub by_round: Option<CrossRounds>,
+    /// The core cyclictest's main thread ran on, off the measured core (None: cyclictest's
+    /// default layout, its main thread on the measured core; drivelab_bench::cyclictest).
+    pub cyclictest_main_thread_core: Option<usize>,
+}
+
+/// [`CrossCheck`] per interleaved round.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CrossRounds {
+    /// floor p50 − cyclictest p50 of each round's wake-ups, µs.
+    pub p50_diff_us: Vec<f64>,
+    /// floor p99 − cyclictest p99 of each round's wake-ups, µs.
+    pub p99_diff_us: Vec<f64>,
+    /// Median over the rounds of `p50_diff_us`, µs.
+    pub p50_median_us: f64,
+    /// Median over the rounds of `p99_diff_us`, µs.
+    pub p99_median_us: f64,
+    /// Rounds in which both differences are within the agreement.
+    pub rounds_agreeing: usize,
+}
+
+impl CrossRounds {
+    fn of(floor: &[RoundFigures], cyclictest: &[RoundFigures]) -> Option<Self> {
+        let p50 = round_diffs(floor, cyclictest, |r| r.wake_p50_us)?;
+        let p99 = round_diffs(floor, cyclictest, |r| r.wake_p99_us)?;
+        let within = |d: f64| d.abs() <= CYCLICTEST_AGREEMENT_US;
+        Some(Self {
+            p50_median_us: median(&p50),
+            p99_median_us: median(&p99),
+            rounds_agreeing: p50
+                .iter()
+                .zip(&p99)
+                .filter(|&(&a, &b)| within(a) && within(b))
+                .count(),
+            p50_diff_us: p50,
+            p99_diff_us: p99,
+        })
+    }
 }
 
 /// How close the floor must be to cyclictest at p50 and p99, µs.
@@ -492,6 +538,7 @@ fn compare(rows: &mut [Row], hz: f64) -> Vec<CrossCheck> {
                     r.cycle_us.p99,
                     r.misses_per_million,
                     r.lateness_us,
+                    r.rounds.clone(),
                 )
             })
     };
@@ -502,7 +549,9 @@ fn compare(rows: &mut [Row], hz: f64) -> Vec<CrossCheck> {
         .collect();
     let mut checks = Vec::new();
     for i in 0..rows.len() {
-        let Some((f50, f99, f_pm, wake)) = floor_of(rows, rows[i].cpu_latency_request) else {
+        let Some((f50, f99, f_pm, wake, floor_rounds)) =
+            floor_of(rows, rows[i].cpu_latency_request)
+        else {
             continue;
         };
         let r = &mut rows[i];
@@ -518,6 +567,8 @@ fn compare(rows: &mut [Row], hz: f64) -> Vec<CrossCheck> {
                 p99_diff_us: d99,
                 agrees: d50.abs() <= CYCLICTEST_AGREEMENT_US
                     && d99.abs() <= CYCLICTEST_AGREEMENT_US,
+                by_round: CrossRounds::of(&floor_rounds, &r.rounds),
+                cyclictest_main_thread_core: None,
             });
             continue;
         }
@@ -1116,7 +1167,15 @@ pub fn run(a: &BenchArgs) -> Result<()> {
             curves.push((label, m.cycle.curve()));
             measured.push(r);
         }
-        checks.extend(compare(&mut measured, hz));
+        let main_core = cyclictest.as_deref().and_then(|exe| {
+            node(one.plant)
+                .core
+                .and_then(|c| drivelab_bench::cyclictest::main_thread_core(exe, c))
+        });
+        checks.extend(compare(&mut measured, hz).into_iter().map(|c| CrossCheck {
+            cyclictest_main_thread_core: main_core,
+            ..c
+        }));
         curves_by_rate.push((hz, curves));
         rows.extend(measured);
     }
@@ -1294,12 +1353,23 @@ pub fn markdown(
     for c in checks {
         let _ = writeln!(
             s,
-            "\nFloor − cyclictest at {} kHz ({}), wake-up lateness: p50 {:+.1} µs, p99 {:+.1} µs: {} (within ±{CYCLICTEST_AGREEMENT_US} µs).",
+            "\nFloor − cyclictest at {} kHz ({}), wake-up lateness: p50 {:+.1} µs, p99 {:+.1} µs: {} (within ±{CYCLICTEST_AGREEMENT_US} µs){} ({}).",
             c.rate_hz / 1000.0,
             if c.cpu_latency_request { "request held" } else { "no request" },
             c.p50_diff_us,
             c.p99_diff_us,
-            if c.agrees { "agrees" } else { "DISAGREES" }
+            if c.agrees { "agrees" } else { "DISAGREES" },
+            c.by_round.as_ref().map_or(String::new(), |b| format!(
+                "; round by round ({}): p50 median {:+.1} µs, p99 median {:+.1} µs, both within ±{CYCLICTEST_AGREEMENT_US} µs in {} of them",
+                b.p50_diff_us.len(),
+                b.p50_median_us,
+                b.p99_median_us,
+                b.rounds_agreeing
+            )),
+            match c.cyclictest_main_thread_core {
+                Some(core) => format!("cyclictest's main thread on CPU {core}"),
+                None => "cyclictest's main thread on the measured core".to_string(),
+            }
         );
     }
     for r in rows.iter().filter(|r| r.variant == "floor") {
@@ -1377,6 +1447,8 @@ mod tests {
             p50_us,
             p99_us,
             misses_per_million,
+            wake_p50_us: p50_us,
+            wake_p99_us: p99_us,
         }
     }
 
@@ -1398,6 +1470,29 @@ mod tests {
         // One round, or rounds that do not pair up: nothing to say round by round.
         assert_eq!(target_rounds(&chain[..1], &floor[..1]), None);
         assert_eq!(target_rounds(&chain, &floor[..1]), None);
+    }
+
+    #[test]
+    fn the_floor_is_checked_against_cyclictest_round_by_round_on_the_wake_ups() {
+        // The wake-up figures, not the cycle's, are compared.
+        let wake = |p50: f64, p99: f64| RoundFigures {
+            wake_p50_us: p50,
+            wake_p99_us: p99,
+            ..round(500.0, 900.0, 0.0)
+        };
+        let floor = [wake(15.0, 30.0), wake(25.0, 80.0), wake(16.0, 31.0)];
+        // Round 2 was a noisy minute for both: it agrees with its own round (+1, +2), though
+        // its floor is 10 µs and 50 µs above round 1's cyclictest. Round 3 disagrees at p99.
+        let ct = [wake(14.0, 28.0), wake(24.0, 78.0), wake(15.0, 20.0)];
+        let r = CrossRounds::of(&floor, &ct).unwrap();
+        assert_eq!(r.p50_diff_us, [1.0, 1.0, 1.0]);
+        assert_eq!(r.p99_diff_us, [2.0, 2.0, 11.0]);
+        assert_eq!((r.p50_median_us, r.p99_median_us), (1.0, 2.0));
+        assert_eq!(r.rounds_agreeing, 2);
+        // At the limit (±3 µs): agrees.
+        let r = CrossRounds::of(&[wake(15.0, 30.0); 2], &[wake(18.0, 27.0); 2]).unwrap();
+        assert_eq!(r.rounds_agreeing, 2);
+        assert_eq!(CrossRounds::of(&floor[..1], &ct[..1]), None);
     }
 
     #[test]
