@@ -57,12 +57,14 @@ pub fn locate(cmd: &str) -> std::result::Result<PathBuf, String> {
 /// Runs `exe` (cyclictest) for round(seconds × hz) wake-ups on `node`'s core at its
 /// SCHED_FIFO priority, memory locked, with its CPU wake-up latency request at 0 µs when
 /// `latency_request` (cyclictest's default) or without one (`--default-system`), its main
-/// thread on another core ([`main_thread_core`]). The histogram file goes to `work`.
+/// thread on `main_core` when given (see [`main_thread_core`]). The histogram file goes to
+/// `work`.
 pub fn run(
     exe: &Path,
     hz: f64,
     seconds: f64,
     node: &NodeSpec,
+    main_core: Option<usize>,
     latency_request: bool,
     work: &Path,
 ) -> Result<VariantResult> {
@@ -80,9 +82,9 @@ pub fn run(
         .arg(format!("--histfile={}", hist.display()));
     if let Some(cpu) = node.core {
         c.arg(format!("--affinity={cpu}"));
-        if let Some(other) = main_thread_core(exe, cpu) {
-            c.arg(format!("--mainaffinity={other}"));
-        }
+    }
+    if let Some(other) = main_core {
+        c.arg(format!("--mainaffinity={other}"));
     }
     if let Some(p) = node.priority {
         c.arg(format!("--priority={p}"));

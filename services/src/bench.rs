@@ -523,7 +523,8 @@ pub const CYCLICTEST_AGREEMENT_US: f64 = 3.0;
 /// Verdicts and ratios of one rate's rows against the floor (measured under the same CPU
 /// latency request) and the Unix-socket chain (same placement) of the same run; the floor
 /// against cyclictest.
-fn compare(rows: &mut [Row], hz: f64) -> Vec<CrossCheck> {
+/// `cyclictest_main_core`: where cyclictest's main thread ran (reported with the check).
+fn compare(rows: &mut [Row], hz: f64, cyclictest_main_core: Option<usize>) -> Vec<CrossCheck> {
     let ts_us = 1e6 / hz;
     // The chains compare with the floor's every deadline (`cycle_us`), cyclictest with its
     // wake-ups (`lateness_us`: after a late one the passed deadlines are skipped, as
@@ -568,7 +569,7 @@ fn compare(rows: &mut [Row], hz: f64) -> Vec<CrossCheck> {
                 agrees: d50.abs() <= CYCLICTEST_AGREEMENT_US
                     && d99.abs() <= CYCLICTEST_AGREEMENT_US,
                 by_round: CrossRounds::of(&floor_rounds, &r.rounds),
-                cyclictest_main_thread_core: None,
+                cyclictest_main_thread_core: cyclictest_main_core,
             });
             continue;
         }
@@ -992,6 +993,13 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     let mut rows: Vec<Row> = Vec::new();
     let mut checks: Vec<CrossCheck> = Vec::new();
     let mut curves_by_rate: Vec<(f64, Vec<drivelab_tools::plot::PercentileSeries>)> = Vec::new();
+    // cyclictest runs on the plant's core of the one-core placement; its main thread goes to
+    // another core, decided once for every run of it.
+    let cyclictest_main_core = cyclictest.as_deref().and_then(|exe| {
+        node(placement("one-core").ok()?.plant)
+            .core
+            .and_then(|c| drivelab_bench::cyclictest::main_thread_core(exe, c))
+    });
     for &hz in &rates {
         let one = placement("one-core")?;
         let slice = seconds / rounds as f64;
@@ -1059,6 +1067,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
                             hz,
                             slice,
                             &node(one.plant),
+                            cyclictest_main_core,
                             job.request,
                             &dir,
                         )?;
@@ -1167,15 +1176,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
             curves.push((label, m.cycle.curve()));
             measured.push(r);
         }
-        let main_core = cyclictest.as_deref().and_then(|exe| {
-            node(one.plant)
-                .core
-                .and_then(|c| drivelab_bench::cyclictest::main_thread_core(exe, c))
-        });
-        checks.extend(compare(&mut measured, hz).into_iter().map(|c| CrossCheck {
-            cyclictest_main_thread_core: main_core,
-            ..c
-        }));
+        checks.extend(compare(&mut measured, hz, cyclictest_main_core));
         curves_by_rate.push((hz, curves));
         rows.extend(measured);
     }
