@@ -111,6 +111,7 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     }
     expect.extend([
         ("hop", r),
+        ("bare-chain", r),
         ("inprocess", r),
         ("uds", r),
         ("iceoryx2", r),
@@ -200,6 +201,13 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         "{hop}"
     );
     assert!(hop["holds_budget"].is_null(), "{hop}");
+    // The bare chain: every sample that reached its last receiver is in the histogram, and
+    // every sample that did not is a miss (late arrivals are misses too).
+    let bare = rows.iter().find(|x| x["variant"] == "bare-chain").unwrap();
+    assert_eq!(bare["samples"], 2000, "{bare}");
+    let arrived = bare["cycle_us"]["count"].as_u64().unwrap();
+    let missed = bare["misses"].as_u64().unwrap();
+    assert!(arrived <= 2000 && missed >= 2000 - arrived, "{bare}");
     // The floor against cyclictest, under each request state, with the agreement verdict: on
     // the wake-ups' lateness (cyclictest skips the periods that pass while it is late, and so
     // do the floor's wake-ups), not on the floor's every deadline that the chains compare with.
@@ -301,6 +309,31 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     let uds = chain["p99_ratio_to_uds"].as_f64().unwrap();
     assert_eq!(t["p99_ratio_to_uds"].as_f64(), Some(uds));
     assert_eq!(t["uds_met"].as_bool(), Some(uds <= 0.8));
+    // The bare chain of the same request against the floor, and the chain against it.
+    let b = &t["bare_chain"];
+    let bare = rows
+        .iter()
+        .find(|x| x["variant"] == "bare-chain" && x["cpu_latency_request"] == can_request)
+        .unwrap();
+    let q = |row: &serde_json::Value, p: &str| row["cycle_us"][p].as_f64().unwrap();
+    let floor = floor_of(can_request);
+    for p in ["p50", "p99"] {
+        assert_eq!(
+            b[format!("{p}_minus_floor_us")].as_f64(),
+            Some(q(bare, p) - q(floor, p)),
+            "{p}: {b}"
+        );
+        assert_eq!(
+            b[format!("chain_{p}_minus_bare_us")].as_f64(),
+            Some(q(chain, p) - q(bare, p)),
+            "{p}: {b}"
+        );
+    }
+    assert!(b["p99_minus_floor_median_us"].is_null(), "one round: {b}");
+    assert!(
+        b["chain_p99_minus_bare_median_us"].is_null(),
+        "one round: {b}"
+    );
     assert!(
         report["speed"]["lockstep_simulated_s_per_wall_s"]
             .as_f64()
@@ -334,6 +367,10 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     assert!(
         md.contains("Targets at 10 kHz (iceoryx2 one-core against the floor"),
         "bench.md has no targets line"
+    );
+    assert!(
+        md.contains("The same critical path bare (timer and two futex wake-ups"),
+        "bench.md does not compare with the bare chain"
     );
     assert!(
         md.contains("Sleep-then-spin at 10 kHz (25 µs) against the same chain without it: p50 "),
@@ -414,6 +451,24 @@ fn bench_rounds_interleave_the_variants_and_merge_their_samples() {
             );
         }
     }
+    // The bare chain round by round: round i of it against round i of the floor, and round
+    // i of the default chain against round i of it (two rounds: the median is the mean).
+    let t = &report["targets"][0];
+    let treq = &t["cpu_latency_request"];
+    let (floor, bare, chain) = (
+        by_round(rows, "floor", treq, "p99_us"),
+        by_round(rows, "bare-chain", treq, "p99_us"),
+        by_round(rows, "iceoryx2", treq, "p99_us"),
+    );
+    let mean = |a: &[f64], b: &[f64]| ((a[0] - b[0]) + (a[1] - b[1])) / 2.0;
+    let b = &t["bare_chain"];
+    for (field, want) in [
+        ("p99_minus_floor_median_us", mean(&bare, &floor)),
+        ("chain_p99_minus_bare_median_us", mean(&chain, &bare)),
+    ] {
+        let got = b[field].as_f64().unwrap();
+        assert!((got - want).abs() < 1e-9, "{field}: {b}");
+    }
     // Each chain ran once per round, in its own folder.
     for v in ["iceoryx2-one-core-10000hz", "uds-one-core-10000hz"] {
         for r in ["round1", "round2"] {
@@ -492,6 +547,8 @@ fn bench_compares_topologies_with_their_cpu_time() {
         assert_eq!(t["chain"], format!("topology {name}"));
         assert_eq!(t["p99_minus_floor_us"], r["p99_minus_floor_us"], "{name}");
         assert!(t["p99_ratio_to_uds"].is_null(), "{t}");
+        // The bare chain mirrors the default chain's critical path, not a topology's.
+        assert!(t["bare_chain"].is_null(), "{t}");
         let rounds = r["rounds"].as_array().unwrap();
         assert_eq!(rounds.len(), 2, "{r}");
         let by = &t["by_round"];

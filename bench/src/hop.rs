@@ -1,10 +1,16 @@
-//! The hop floor: what one process-to-process wake-up costs on the chain's core, with nothing
-//! else in it. A sender thread (the plant's place: core, priority, timer) wakes every sample,
-//! stamps the moment and notifies a futex word of a wake segment; a receiver process (the
-//! observer's place) waits on that word and records notify → running. This is the kernel's
-//! part of every hop of the iceoryx2 chain (a futex wake and a switch to another address
-//! space), so the chain's median can not come closer to the floor than its number of hops
-//! times this.
+//! The hop floor: what the chain's process-to-process wake-ups cost on its core, with nothing
+//! else in them. A sender thread (the plant's place: core, priority, timer) wakes every
+//! sample, stamps it and notifies a futex word of a wake segment; receiver processes (the
+//! places of the stages downstream) each wait on their word and, but the last, pass the
+//! stamp on to the next one's word. Two measurements use it:
+//!
+//! * [`Measure::Wakeup`], one receiver: notify → running, the kernel's part of every hop of
+//!   the iceoryx2 chain (a futex wake and a switch to another process), so the chain's median
+//!   can not come closer to the floor than its number of hops times this;
+//! * [`Measure::Cycle`], as many receivers as the chain has processes after the plant on its
+//!   critical path: deadline → the last receiver running, the bare chain. It is the iceoryx2
+//!   chain's cycle without the bus, the messages and the stages' work, so it says how much of
+//!   the chain's distance to the floor the machine's wake-ups take and how much is drivelab's.
 
 use crate::uds::log_tail;
 use crate::{apply_rt, in_fresh_thread, schedule, NodeSpec, VariantResult};
@@ -16,58 +22,141 @@ use std::path::Path;
 use std::process::Stdio;
 use std::time::{Duration, Instant};
 
-/// Wake word of the samples.
+/// Wake word of the samples (the first receiver's input).
 const SAMPLE: usize = 0;
-/// Wake word the receiver bumps once it is ready (placed, waiting).
+/// Wake word every receiver bumps once it is ready (placed, waiting).
 const READY: usize = 1;
-/// The receiver gives up after this long without a notify.
+/// Most receivers in one chain (wake words 2..=MAX_RECEIVERS are the later receivers' inputs).
+pub const MAX_RECEIVERS: usize = 8;
+/// The stamp that ends the run: the sender's last notify, passed along the chain.
+const END: u64 = u64::MAX;
+/// A receiver gives up after this long without a notify.
 const SENDER_GONE: Duration = Duration::from_secs(5);
 
-/// Runs round(seconds × hz) hops: this process sends from a fresh thread placed at
-/// `sender`, `exe bench-node hop` receives placed at `receiver`. The wake segment is bus
-/// `bus`'s and is removed afterwards.
+/// What the sender stamps and the last receiver records.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Measure {
+    /// The sender stamps the moment it notifies; the receiver records notify → running for
+    /// each notify it sees one by one.
+    Wakeup,
+    /// The sender stamps the sample's deadline; the last receiver records deadline → running
+    /// for each sample that reaches it. A sample misses when it reaches the last receiver
+    /// more than a period after its deadline (the plant would not have its command), or not
+    /// at all (it coalesced with a later one on the way).
+    Cycle,
+}
+
+impl Measure {
+    /// The name on `drivelab bench-node hop --measure`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Measure::Wakeup => "wakeup",
+            Measure::Cycle => "cycle",
+        }
+    }
+}
+
+impl std::str::FromStr for Measure {
+    type Err = anyhow::Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "wakeup" => Ok(Measure::Wakeup),
+            "cycle" => Ok(Measure::Cycle),
+            other => bail!("unknown hop measure '{other}' (known: wakeup, cycle)"),
+        }
+    }
+}
+
+/// The wake word receiver `position` (1-based) waits on.
+fn input_word(position: usize) -> usize {
+    if position == 1 {
+        SAMPLE
+    } else {
+        position
+    }
+}
+
+/// Runs round(seconds × hz) samples: this process sends from a fresh thread placed at
+/// `sender`; `exe bench-node hop` receives, once per entry of `receivers` (1 to
+/// [`MAX_RECEIVERS`]), each placed there. The wake segment is bus `bus`'s and is removed
+/// afterwards. The result's cycle is what `measure` says; its lateness is the sender's.
+#[allow(clippy::too_many_arguments)]
 pub fn run(
     exe: &Path,
     hz: f64,
     seconds: f64,
     sender: &NodeSpec,
-    receiver: &NodeSpec,
+    receivers: &[NodeSpec],
+    measure: Measure,
     bus: &str,
     work: &Path,
 ) -> Result<VariantResult> {
+    if receivers.is_empty() || receivers.len() > MAX_RECEIVERS {
+        bail!(
+            "a hop chain has 1 to {MAX_RECEIVERS} receivers, not {}",
+            receivers.len()
+        );
+    }
     let (n, ts_ns) = schedule(hz, seconds)?;
     std::fs::create_dir_all(work)?;
-    let out = work.join("hop.wakeup.hdr");
+    let out = work.join(format!("hop-{}.hdr", measure.name()));
     let _ = std::fs::remove_file(&out);
+    let _ = std::fs::remove_file(misses_file(&out));
     let seg = WakeSegment::open(bus)?;
+    let mut children = Vec::new();
     let result = (|| {
-        // Through DRIVELAB_RUNNER when set (an aarch64 build under qemu-user).
-        let mut cmd = drivelab_runtime::runner::env_command(exe).map_err(|e| anyhow!(e))?;
-        cmd.args(["bench-node", "hop", "--bus", bus, "--samples"])
-            .arg(n.to_string())
+        let hops = receivers.len();
+        for (i, node) in receivers.iter().enumerate() {
+            let position = i + 1;
+            // Through DRIVELAB_RUNNER when set (an aarch64 build under qemu-user).
+            let mut cmd = drivelab_runtime::runner::env_command(exe).map_err(|e| anyhow!(e))?;
+            cmd.args([
+                "bench-node",
+                "hop",
+                "--bus",
+                bus,
+                "--measure",
+                measure.name(),
+            ])
+            .arg("--period-ns")
+            .arg(ts_ns.to_string())
+            .arg("--position")
+            .arg(position.to_string())
+            .arg("--hops")
+            .arg(hops.to_string())
             .arg("--out")
             .arg(&out);
-        if let Some(c) = receiver.core {
-            cmd.arg("--core").arg(c.to_string());
+            if let Some(c) = node.core {
+                cmd.arg("--core").arg(c.to_string());
+            }
+            if let Some(p) = node.priority {
+                cmd.arg("--priority").arg(p.to_string());
+            }
+            let log = work.join(format!("hop-receiver-{position}.log"));
+            let f = std::fs::File::create(&log)?;
+            let child = cmd
+                .stdin(Stdio::null())
+                .stdout(f.try_clone()?)
+                .stderr(f)
+                .spawn()
+                .with_context(|| {
+                    format!("cannot start {} for hop receiver {position}", exe.display())
+                })?;
+            children.push((child, log));
         }
-        if let Some(p) = receiver.priority {
-            cmd.arg("--priority").arg(p.to_string());
-        }
-        let log = work.join("hop-receiver.log");
-        let f = std::fs::File::create(&log)?;
-        let mut child = cmd
-            .stdin(Stdio::null())
-            .stdout(f.try_clone()?)
-            .stderr(f)
-            .spawn()
-            .with_context(|| format!("cannot start {} for the hop receiver", exe.display()))?;
         let watchdog = Duration::from_secs_f64(seconds * 3.0 + 10.0);
         let started = Instant::now();
-        while seg.seq(READY) == 0 {
-            if child.try_wait()?.is_some() || started.elapsed() > watchdog {
-                let _ = child.kill();
-                let _ = child.wait();
-                bail!("hop receiver did not get ready: {}", log_tail(&log));
+        while (seg.seq(READY) as usize) < hops {
+            for (child, log) in children.iter_mut() {
+                if child.try_wait()?.is_some() {
+                    bail!(
+                        "a hop receiver exited before it was ready: {}",
+                        log_tail(log)
+                    );
+                }
+            }
+            if started.elapsed() > watchdog {
+                bail!("the hop receivers did not get ready within {watchdog:?}");
             }
             std::thread::sleep(Duration::from_millis(1));
         }
@@ -84,70 +173,245 @@ pub fn run(
                 sleep_until_ns(deadline);
                 let t = now_ns();
                 late.record_ns(t as i64 - deadline as i64);
-                seg.notify_stamped(SAMPLE, t);
+                let stamp = match measure {
+                    Measure::Wakeup => t,
+                    Measure::Cycle => deadline,
+                };
+                seg.notify_stamped(SAMPLE, stamp);
             }
             // ---- end of the real-time loop ----
+            seg.notify_stamped(SAMPLE, END);
             Ok(late)
         })?;
-        loop {
-            if let Some(s) = child.try_wait()? {
-                if !s.success() {
-                    bail!("hop receiver exited with {s}: {}", log_tail(&log));
+        for (child, log) in children.iter_mut() {
+            loop {
+                if let Some(s) = child.try_wait()? {
+                    if !s.success() {
+                        bail!("a hop receiver exited with {s}: {}", log_tail(log));
+                    }
+                    break;
                 }
-                break;
+                if started.elapsed() > watchdog {
+                    bail!("a hop receiver was still running after {watchdog:?}");
+                }
+                std::thread::sleep(Duration::from_millis(5));
             }
-            if started.elapsed() > watchdog {
-                let _ = child.kill();
-                let _ = child.wait();
-                bail!("hop receiver still running after {watchdog:?}; killed");
-            }
-            std::thread::sleep(Duration::from_millis(5));
         }
-        let wakeup = LatencyHist::read_v2("cycle", &out)?;
-        let mut misses = MissCounter::default();
-        // Hops the receiver did not see one by one (it woke after two or more notifies).
-        misses.misses = n.saturating_sub(wakeup.len());
+        let cycle = LatencyHist::read_v2("cycle", &out)?;
+        let misses = match measure {
+            // Hops the receiver did not see one by one.
+            Measure::Wakeup => {
+                let mut m = MissCounter::default();
+                m.misses = n.saturating_sub(cycle.len());
+                m
+            }
+            Measure::Cycle => {
+                let (mut m, counted) = read_misses(&misses_file(&out))?;
+                // Samples before the first that reached the last receiver.
+                m.misses += n.saturating_sub(counted);
+                m
+            }
+        };
         Ok(VariantResult {
-            cycle: wakeup,
+            cycle,
             lateness,
             samples: n,
             misses,
             cpu_run_ns: None,
         })
     })();
+    // Whatever happened, no receiver outlives the run.
+    for (mut child, _) in children {
+        if child.try_wait().ok().flatten().is_none() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
     drop(seg);
     drivelab_runtime::bus::cleanup(bus)?;
     result
 }
 
-/// The receiver (`drivelab bench-node hop`): opens bus `bus`'s wake segment, takes its
-/// placement, says it is ready and records, for each notify it sees, stamp → running, until
-/// `samples` notifies were sent; writes the histogram to `out`.
-pub fn receive(bus: &str, samples: u64, node: &NodeSpec, out: &Path) -> Result<()> {
+/// Accounts for one arrival at the last receiver of a [`Measure::Cycle`] chain, in sample
+/// order: the samples between the previous arrival's deadline and this one's never arrived
+/// (misses), and this one misses when it `arrived` more than a period after its `deadline`.
+/// Returns how many samples it accounted for.
+#[inline]
+fn account(
+    misses: &mut MissCounter,
+    prev_deadline: Option<u64>,
+    deadline: u64,
+    arrived: u64,
+    period_ns: u64,
+) -> u64 {
+    let skipped = prev_deadline.map_or(0, |p| {
+        (deadline.saturating_sub(p) / period_ns).saturating_sub(1)
+    });
+    for _ in 0..skipped {
+        misses.record(true);
+    }
+    misses.record(arrived.saturating_sub(deadline) > period_ns);
+    skipped + 1
+}
+
+/// Where the last receiver of a [`Measure::Cycle`] chain writes its misses, beside `out`.
+fn misses_file(out: &Path) -> std::path::PathBuf {
+    out.with_extension("misses")
+}
+
+/// Misses, longest run of misses and samples accounted for, as the last receiver wrote them.
+fn read_misses(path: &Path) -> Result<(MissCounter, u64)> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read the bare chain's misses {}", path.display()))?;
+    let v: Vec<u64> = text
+        .split_whitespace()
+        .map(str::parse)
+        .collect::<std::result::Result<_, _>>()
+        .with_context(|| format!("malformed misses file {}", path.display()))?;
+    match v[..] {
+        [misses, longest_run, counted] => {
+            let mut m = MissCounter::default();
+            m.misses = misses;
+            m.longest_run = longest_run;
+            Ok((m, counted))
+        }
+        _ => bail!("malformed misses file {}: want 3 numbers", path.display()),
+    }
+}
+
+/// Receiver `position` of `hops` (`drivelab bench-node hop`): opens bus `bus`'s wake segment,
+/// takes its placement, says it is ready, then for each notify on its word passes the stamp
+/// on to the next receiver or, the last, records it as `measure` says (samples `period_ns`
+/// apart), until the sender's end stamp; the last writes its histogram to `out` (and, for
+/// [`Measure::Cycle`], its misses beside it).
+pub fn receive(
+    bus: &str,
+    position: usize,
+    hops: usize,
+    measure: Measure,
+    period_ns: u64,
+    node: &NodeSpec,
+    out: &Path,
+) -> Result<()> {
+    if hops == 0 || hops > MAX_RECEIVERS || position == 0 || position > hops {
+        bail!("hop receiver {position} of {hops}: the position must be in 1..={hops} and the receivers 1 to {MAX_RECEIVERS}");
+    }
+    if measure == Measure::Cycle && period_ns == 0 {
+        bail!("hop receiver {position}: --period-ns must be positive to measure a cycle");
+    }
+    let mut misses = MissCounter::default();
+    let mut counted = 0u64;
+    let mut prev_deadline: Option<u64> = None;
     let seg = WakeSegment::open(bus)?;
-    let mut h = LatencyHist::new("wakeup");
+    let input = input_word(position);
+    let next = (position < hops).then(|| input_word(position + 1));
+    let mut h = LatencyHist::new("cycle");
     apply_rt("hop receiver", node, true)?;
-    let mut seen = seg.seq(SAMPLE);
+    let mut seen = seg.seq(input);
     seg.notify(READY);
     let mut last = Instant::now();
     // ---- real-time loop: no allocation, no locks, no logging ----
-    while u64::from(seen) < samples {
-        let now = seg.wait(SAMPLE, seen, Duration::from_millis(100));
+    loop {
+        let now = seg.wait(input, seen, Duration::from_millis(100));
         if now == seen {
             // The sender is gone (its bench was killed): do not outlive it.
             if last.elapsed() > SENDER_GONE {
-                return Err(anyhow!("hop receiver: no notify for {SENDER_GONE:?}"));
+                return Err(anyhow!(
+                    "hop receiver {position}: no notify for {SENDER_GONE:?}"
+                ));
             }
             continue;
         }
-        last = Instant::now();
         let t = now_ns();
-        // Only a single step is one hop; after a jump the stamp is the newest notify's.
-        if now == seen.wrapping_add(1) {
-            h.record_ns(t as i64 - seg.stamp(SAMPLE) as i64);
-        }
+        last = Instant::now();
+        // Read after the word: at least as new as the notify that bumped it.
+        let stamp = seg.stamp(input);
+        let single = now == seen.wrapping_add(1);
         seen = now;
+        if let Some(w) = next {
+            seg.notify_stamped(w, stamp);
+        }
+        if stamp == END {
+            break;
+        }
+        if next.is_some() {
+            continue;
+        }
+        match measure {
+            // Only a single step is one hop (after a jump the stamp is the newest notify's).
+            Measure::Wakeup if single => h.record_ns(t as i64 - stamp as i64),
+            Measure::Wakeup => {}
+            // The stamp is the newest sample's deadline; the ones between it and the last
+            // seen never arrived.
+            Measure::Cycle => {
+                counted += account(&mut misses, prev_deadline, stamp, t, period_ns);
+                prev_deadline = Some(stamp);
+                h.record_ns(t as i64 - stamp as i64);
+            }
+        }
     }
     // ---- end of the real-time loop ----
-    h.write_v2(out)
+    if next.is_none() {
+        h.write_v2(out)?;
+        if measure == Measure::Cycle {
+            let path = misses_file(out);
+            std::fs::write(
+                &path,
+                format!("{} {} {counted}\n", misses.misses, misses.longest_run),
+            )
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_bare_chain_counts_skipped_and_late_samples_as_misses_in_order() {
+        let mut m = MissCounter::default();
+        // The first arrival, 400 ns after its deadline: in time.
+        assert_eq!(account(&mut m, None, 1_000, 1_400, 1_000), 1);
+        assert_eq!((m.misses, m.longest_run), (0, 0));
+        // Two samples coalesced on the way (deadlines 2 000 and 3 000), the third arrives in
+        // time: three accounted for, two misses in a row.
+        assert_eq!(account(&mut m, Some(1_000), 4_000, 4_900, 1_000), 3);
+        assert_eq!((m.misses, m.longest_run), (2, 2));
+        // Exactly a period late still has its command at the next deadline; one ns more not.
+        assert_eq!(account(&mut m, Some(4_000), 5_000, 6_000, 1_000), 1);
+        assert_eq!(m.misses, 2);
+        assert_eq!(account(&mut m, Some(5_000), 6_000, 7_001, 1_000), 1);
+        assert_eq!((m.misses, m.longest_run), (3, 2));
+    }
+
+    #[test]
+    fn measures_are_named_and_unknown_ones_are_refused() {
+        for m in [Measure::Wakeup, Measure::Cycle] {
+            assert_eq!(m.name().parse::<Measure>().unwrap(), m);
+        }
+        let e = "deadline".parse::<Measure>().unwrap_err().to_string();
+        assert_eq!(e, "unknown hop measure 'deadline' (known: wakeup, cycle)");
+    }
+
+    #[test]
+    fn a_malformed_misses_file_is_an_error_that_names_it() {
+        let dir = std::env::temp_dir().join(format!("drivelab-hop-misses-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("hop-cycle.misses");
+        std::fs::write(&path, "3 2 2000\n").unwrap();
+        let (m, counted) = read_misses(&path).unwrap();
+        assert_eq!((m.misses, m.longest_run, counted), (3, 2, 2000));
+        std::fs::write(&path, "3 2\n").unwrap();
+        let e = read_misses(&path).unwrap_err().to_string();
+        assert!(
+            e.starts_with("malformed misses file ") && e.ends_with("want 3 numbers"),
+            "{e}"
+        );
+        std::fs::write(&path, "3 x 1\n").unwrap();
+        let e = read_misses(&path).unwrap_err().to_string();
+        assert!(e.starts_with("malformed misses file "), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }

@@ -4,6 +4,7 @@
 
 use crate::launcher::{self, Clock, RunOptions};
 use anyhow::{anyhow, Context, Result};
+use drivelab_bench::hop::Measure;
 use drivelab_bench::idle::Settle;
 use drivelab_bench::{ChainSpec, NodeSpec, VariantResult};
 use drivelab_runtime::config::{CpuLatency, Placement, Scenario, ServicePlacement};
@@ -61,9 +62,9 @@ pub struct BenchArgs {
     /// path. When it is missing, that variant is skipped with one line saying why.
     #[arg(long, default_value = "cyclictest", value_name = "CMD")]
     pub cyclictest: String,
-    /// Measure only these variants (comma-separated: floor, cyclictest, hop, inprocess, uds,
-    /// iceoryx2, iceoryx2+spin, topology); default all. The floor always runs: every
-    /// comparison is against it.
+    /// Measure only these variants (comma-separated: floor, cyclictest, hop, bare-chain,
+    /// inprocess, uds, iceoryx2, iceoryx2+spin, topology); default all. The floor always
+    /// runs: every comparison is against it.
     #[arg(long, value_delimiter = ',', value_name = "NAME,...")]
     pub variants: Vec<String>,
     /// Print bench.json on stdout instead of the Markdown table.
@@ -108,7 +109,7 @@ fn node(p: ServicePlacement) -> NodeSpec {
 /// One row of the report.
 #[derive(Debug, Clone, Serialize)]
 pub struct Row {
-    /// floor, cyclictest, hop, inprocess, uds, iceoryx2, iceoryx2+spin, topology.
+    /// floor, cyclictest, hop, bare-chain, inprocess, uds, iceoryx2, iceoryx2+spin, topology.
     pub variant: String,
     /// Placement name ("-" for the single-thread variants, which run on the plant's core).
     pub placement: String,
@@ -122,7 +123,8 @@ pub struct Row {
     pub rate_hz: f64,
     /// Samples measured.
     pub samples: u64,
-    /// Cycle latency (floor: wake-up lateness), µs.
+    /// Cycle latency (floor: wake-up lateness; hop: notify → running; bare-chain: deadline →
+    /// the last receiver running), µs.
     pub cycle_us: Percentiles,
     /// Plant wake-up lateness, µs.
     pub lateness_us: Percentiles,
@@ -268,7 +270,7 @@ impl Job {
     /// File and folder tag at `hz`.
     fn tag(&self, hz: f64) -> String {
         let p = match self.variant {
-            "floor" | "cyclictest" | "inprocess" | "hop" => "core1",
+            "floor" | "cyclictest" | "inprocess" | "hop" | "bare-chain" => "core1",
             _ => &self.placement,
         };
         let req = if self.request { "" } else { "-norequest" };
@@ -439,6 +441,7 @@ fn jobs(a: &BenchArgs, placements: &[String], cyclictest: bool) -> Vec<Job> {
         jobs.extend(both("cyclictest", "-"));
     }
     jobs.push(Job::new("hop", "-", req));
+    jobs.push(Job::new("bare-chain", "-", req));
     jobs.push(Job::new("inprocess", "-", req));
     for p in placements {
         jobs.push(Job::new("uds", p, req));
@@ -622,6 +625,46 @@ pub struct Targets {
     /// The same targets round by round, each round's chain against that round's floor (two
     /// or more rounds): how much of a verdict the machine's noise decides.
     pub by_round: Option<TargetRounds>,
+    /// The default chain's critical path bare, measured in the same run (the `bare-chain`
+    /// variant: the timer and the same two futex wake-ups, no bus, no messages, no stage
+    /// work): what this machine's wake-ups take of the distance to the floor, and what the
+    /// chain adds to them. `None` when it was not measured, and for topologies.
+    pub bare_chain: Option<BareChain>,
+}
+
+/// The bare chain against the floor, and the chain against the bare chain.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct BareChain {
+    /// Bare chain p50 − floor p50, µs.
+    pub p50_minus_floor_us: f64,
+    /// Bare chain p99 − floor p99, µs.
+    pub p99_minus_floor_us: f64,
+    /// Chain p50 − bare chain p50: what the bus, the messages and the stages add, µs.
+    pub chain_p50_minus_bare_us: f64,
+    /// Chain p99 − bare chain p99, µs.
+    pub chain_p99_minus_bare_us: f64,
+    /// Median over the rounds of the bare chain's p99 − that round's floor p99, µs (two or
+    /// more rounds).
+    pub p99_minus_floor_median_us: Option<f64>,
+    /// Median over the rounds of the chain's p99 − that round's bare chain p99, µs.
+    pub chain_p99_minus_bare_median_us: Option<f64>,
+}
+
+impl BareChain {
+    /// `bare` against `floor`, and `chain` against `bare` (same rate and request).
+    fn of(chain: &Row, bare: &Row, floor: &Row) -> Self {
+        let p99 = |r: &RoundFigures| r.p99_us;
+        let median_of =
+            |a: &[RoundFigures], b: &[RoundFigures]| round_diffs(a, b, p99).map(|d| median(&d));
+        Self {
+            p50_minus_floor_us: bare.cycle_us.p50 - floor.cycle_us.p50,
+            p99_minus_floor_us: bare.cycle_us.p99 - floor.cycle_us.p99,
+            chain_p50_minus_bare_us: chain.cycle_us.p50 - bare.cycle_us.p50,
+            chain_p99_minus_bare_us: chain.cycle_us.p99 - bare.cycle_us.p99,
+            p99_minus_floor_median_us: median_of(&bare.rounds, &floor.rounds),
+            chain_p99_minus_bare_median_us: median_of(&chain.rounds, &bare.rounds),
+        }
+    }
 }
 
 /// [`Targets`] per interleaved round.
@@ -673,16 +716,20 @@ fn targets(rows: &[Row]) -> Vec<Targets> {
                 .or_else(|| m.first())
                 .map(|r| ("iceoryx2 one-core".to_string(), *r))
         };
+        let same_request = |variant: &'static str, chain: &Row| {
+            at_rate().find(move |r| {
+                r.variant == variant && r.cpu_latency_request == chain.cpu_latency_request
+            })
+        };
+        let default_chain = default_chain.map(|(l, c)| (l, c, same_request("bare-chain", c)));
         let chains = default_chain.into_iter().chain(
             at_rate()
                 .filter(|r| r.variant == "topology")
-                .map(|r| (format!("topology {}", r.placement), r)),
+                .map(|r| (format!("topology {}", r.placement), r, None)),
         );
-        for (label, chain) in chains {
-            let floor = at_rate().find(|r| {
-                r.variant == "floor" && r.cpu_latency_request == chain.cpu_latency_request
-            });
-            if let Some(t) = floor.and_then(|f| goal(label, chain, f)) {
+        for (label, chain, bare) in chains {
+            if let Some(t) = same_request("floor", chain).and_then(|f| goal(label, chain, f, bare))
+            {
                 goals.push(t);
             }
         }
@@ -690,8 +737,9 @@ fn targets(rows: &[Row]) -> Vec<Targets> {
     goals
 }
 
-/// `chain`'s targets against `floor` (same rate, same request); `None` before [`compare`].
-fn goal(chain_label: String, chain: &Row, floor: &Row) -> Option<Targets> {
+/// `chain`'s targets against `floor` (same rate, same request), with `bare`, the bare chain
+/// of the same run, when it was measured; `None` before [`compare`].
+fn goal(chain_label: String, chain: &Row, floor: &Row, bare: Option<&Row>) -> Option<Targets> {
     let (d50, d99) = (chain.p50_minus_floor_us?, chain.p99_minus_floor_us?);
     let bound = misses_bound(floor.misses_per_million);
     Some(Targets {
@@ -708,6 +756,7 @@ fn goal(chain_label: String, chain: &Row, floor: &Row) -> Option<Targets> {
         p99_ratio_to_uds: chain.p99_ratio_to_uds,
         uds_met: chain.p99_ratio_to_uds.map(|u| u <= TARGET_UDS_RATIO),
         by_round: target_rounds(&chain.rounds, &floor.rounds),
+        bare_chain: bare.map(|b| BareChain::of(chain, b, floor)),
     })
 }
 
@@ -794,8 +843,26 @@ fn targets_line(t: &Targets) -> String {
         }
         None => String::new(),
     };
+    let bare = match &t.bare_chain {
+        Some(b) => {
+            let median = |m: Option<f64>| match m {
+                Some(v) => format!(" (median round {v:+.1})"),
+                None => String::new(),
+            };
+            format!(
+                " The same critical path bare (timer and two futex wake-ups; no bus, messages or stage work): p50 {:+.1} µs, p99 {:+.1} µs{} above the floor; the chain adds p50 {:+.1} µs, p99 {:+.1} µs{} to it.",
+                b.p50_minus_floor_us,
+                b.p99_minus_floor_us,
+                median(b.p99_minus_floor_median_us),
+                b.chain_p50_minus_bare_us,
+                b.chain_p99_minus_bare_us,
+                median(b.chain_p99_minus_bare_median_us),
+            )
+        }
+        None => String::new(),
+    };
     format!(
-        "Targets at {} kHz ({} against the floor, {}): p50 {:+.1} µs (≤ +{TARGET_P50_US}: {}); p99 {:+.1} µs (≤ +{TARGET_P99_US}: {}); misses {:.0}/M (≤ 2 × floor + 10 = {:.0}: {}){uds}.{by_round}",
+        "Targets at {} kHz ({} against the floor, {}): p50 {:+.1} µs (≤ +{TARGET_P50_US}: {}); p99 {:+.1} µs (≤ +{TARGET_P99_US}: {}); misses {:.0}/M (≤ 2 × floor + 10 = {:.0}: {}){uds}.{by_round}{bare}",
         t.rate_hz / 1000.0,
         t.chain,
         if t.cpu_latency_request { "request held" } else { "no request" },
@@ -962,10 +1029,11 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     };
     // The variants of every rate, each measured in `rounds` interleaved slices so that the
     // machine's slow changes (a VM's noisy minutes) reach all of them alike.
-    const VARIANTS: [&str; 8] = [
+    const VARIANTS: [&str; 9] = [
         "floor",
         "cyclictest",
         "hop",
+        "bare-chain",
         "inprocess",
         "uds",
         "iceoryx2",
@@ -1078,14 +1146,25 @@ pub fn run(a: &BenchArgs) -> Result<()> {
                         absorb(&mut acc[i], drivelab_bench::run_inprocess(&chain(one)?)?)?;
                         None
                     }
-                    // From the plant's place to the observer's, as the chain's first hop.
-                    "hop" => {
+                    // "hop": from the plant's place to the observer's, as the chain's first
+                    // hop. "bare-chain": the default chain's critical path (plant →
+                    // observer → current loop) with nothing but the timer and the wake-ups.
+                    "hop" | "bare-chain" => {
+                        let (receivers, measure) = if job.variant == "hop" {
+                            (vec![node(one.observer)], Measure::Wakeup)
+                        } else {
+                            (
+                                vec![node(one.observer), node(one.current_loop)],
+                                Measure::Cycle,
+                            )
+                        };
                         let m = drivelab_bench::hop::run(
                             &exe,
                             hz,
                             slice,
                             &node(one.plant),
-                            &node(one.observer),
+                            &receivers,
+                            measure,
                             &bus,
                             &dir,
                         )?;

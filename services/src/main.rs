@@ -480,9 +480,19 @@ enum BenchNodeKind {
         /// Bus id of the wake segment.
         #[arg(long)]
         bus: String,
-        /// Notifies to wait for.
-        #[arg(long)]
-        samples: u64,
+        /// This receiver's place in the chain, 1-based.
+        #[arg(long, default_value_t = 1)]
+        position: usize,
+        /// Receivers in the chain.
+        #[arg(long, default_value_t = 1)]
+        hops: usize,
+        /// What the last receiver records: wakeup (notify → running) or cycle (deadline →
+        /// running).
+        #[arg(long, default_value = "wakeup")]
+        measure: drivelab_bench::hop::Measure,
+        /// Sample period, ns (to count a cycle's misses).
+        #[arg(long, default_value_t = 0)]
+        period_ns: u64,
         /// CPU core.
         #[arg(long)]
         core: Option<usize>,
@@ -1032,14 +1042,20 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             kind:
                 BenchNodeKind::Hop {
                     bus,
-                    samples,
+                    position,
+                    hops,
+                    measure,
+                    period_ns,
                     core,
                     priority,
                     out,
                 },
         } => drivelab_bench::hop::receive(
             &bus,
-            samples,
+            position,
+            hops,
+            measure,
+            period_ns,
             &drivelab_bench::NodeSpec { core, priority },
             &out,
         ),
