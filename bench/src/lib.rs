@@ -10,7 +10,8 @@
 //! * [`idle::settle`]: before a variant measured without the CPU wake-up latency request, lets
 //!   the core's idle governor stop the polling that the request left behind;
 //! * [`hop::run`]: one process-to-process futex wake-up with nothing else in it (the
-//!   kernel's part of every hop of the chain);
+//!   kernel's part of every hop of the chain), or the bare chain: the timer and the default
+//!   chain's two wake-ups, with no bus, messages or stage work;
 //! * [`run_uds_chain`]: the four roles as four processes exchanging the bus messages over Unix
 //!   domain sockets, with the same per-sample order and semantics as the iceoryx2 services
 //!   (see [`uds`]).
