@@ -17,7 +17,7 @@ use crate::{apply_rt, in_fresh_thread, schedule, NodeSpec, VariantResult};
 use anyhow::{anyhow, bail, Context, Result};
 use drivelab_runtime::futex::WakeSegment;
 use drivelab_runtime::rt::{now_ns, sleep_until_ns};
-use drivelab_runtime::timing::{LatencyHist, MissCounter};
+use drivelab_runtime::timing::{CycleMonitor, LatencyHist, MissCounter};
 use std::path::Path;
 use std::process::Stdio;
 use std::time::{Duration, Instant};
@@ -232,13 +232,13 @@ pub fn run(
     result
 }
 
-/// Accounts for one arrival at the last receiver of a [`Measure::Cycle`] chain, in sample
-/// order: the samples between the previous arrival's deadline and this one's never arrived
-/// (misses), and this one misses when it `arrived` more than a period after its `deadline`.
-/// Returns how many samples it accounted for.
+/// Accounts for one arrival at the last receiver of a [`Measure::Cycle`] chain in `mon`
+/// (samples `period_ns` apart, the plant's cycle rule), in sample order: the samples between
+/// the previous arrival's deadline and this one's never arrived (misses), and this one is
+/// recorded as `deadline` → `arrived`. Returns how many samples it accounted for.
 #[inline]
 fn account(
-    misses: &mut MissCounter,
+    mon: &mut CycleMonitor,
     prev_deadline: Option<u64>,
     deadline: u64,
     arrived: u64,
@@ -247,10 +247,10 @@ fn account(
     let skipped = prev_deadline.map_or(0, |p| {
         (deadline.saturating_sub(p) / period_ns).saturating_sub(1)
     });
-    for _ in 0..skipped {
-        misses.record(true);
+    for j in 1..=skipped {
+        mon.at_deadline(deadline - j * period_ns, None);
     }
-    misses.record(arrived.saturating_sub(deadline) > period_ns);
+    mon.at_deadline(deadline, Some(arrived));
     skipped + 1
 }
 
@@ -299,23 +299,23 @@ pub fn receive(
     if measure == Measure::Cycle && period_ns == 0 {
         bail!("hop receiver {position}: --period-ns must be positive to measure a cycle");
     }
-    let mut misses = MissCounter::default();
+    // The wake-up or cycle histogram, and (cycle) the misses by the plant's rule.
+    let mut mon = CycleMonitor::new(period_ns);
     let mut counted = 0u64;
     let mut prev_deadline: Option<u64> = None;
     let seg = WakeSegment::open(bus)?;
     let input = input_word(position);
     let next = (position < hops).then(|| input_word(position + 1));
-    let mut h = LatencyHist::new("cycle");
     apply_rt("hop receiver", node, true)?;
     let mut seen = seg.seq(input);
     seg.notify(READY);
-    let mut last = Instant::now();
+    let mut last_ns = now_ns();
     // ---- real-time loop: no allocation, no locks, no logging ----
     loop {
         let now = seg.wait(input, seen, Duration::from_millis(100));
         if now == seen {
             // The sender is gone (its bench was killed): do not outlive it.
-            if last.elapsed() > SENDER_GONE {
+            if now_ns().saturating_sub(last_ns) > SENDER_GONE.as_nanos() as u64 {
                 return Err(anyhow!(
                     "hop receiver {position}: no notify for {SENDER_GONE:?}"
                 ));
@@ -323,7 +323,7 @@ pub fn receive(
             continue;
         }
         let t = now_ns();
-        last = Instant::now();
+        last_ns = t;
         // Read after the word: at least as new as the notify that bumped it.
         let stamp = seg.stamp(input);
         let single = now == seen.wrapping_add(1);
@@ -339,25 +339,27 @@ pub fn receive(
         }
         match measure {
             // Only a single step is one hop (after a jump the stamp is the newest notify's).
-            Measure::Wakeup if single => h.record_ns(t as i64 - stamp as i64),
+            Measure::Wakeup if single => mon.cycle.record_ns(t as i64 - stamp as i64),
             Measure::Wakeup => {}
             // The stamp is the newest sample's deadline; the ones between it and the last
             // seen never arrived.
             Measure::Cycle => {
-                counted += account(&mut misses, prev_deadline, stamp, t, period_ns);
+                counted += account(&mut mon, prev_deadline, stamp, t, period_ns);
                 prev_deadline = Some(stamp);
-                h.record_ns(t as i64 - stamp as i64);
             }
         }
     }
     // ---- end of the real-time loop ----
     if next.is_none() {
-        h.write_v2(out)?;
+        mon.cycle.write_v2(out)?;
         if measure == Measure::Cycle {
             let path = misses_file(out);
             std::fs::write(
                 &path,
-                format!("{} {} {counted}\n", misses.misses, misses.longest_run),
+                format!(
+                    "{} {} {counted}\n",
+                    mon.misses.misses, mon.misses.longest_run
+                ),
             )
             .with_context(|| format!("cannot write {}", path.display()))?;
         }
@@ -371,19 +373,19 @@ mod tests {
 
     #[test]
     fn the_bare_chain_counts_skipped_and_late_samples_as_misses_in_order() {
-        let mut m = MissCounter::default();
+        let mut mon = CycleMonitor::new(1_000);
         // The first arrival, 400 ns after its deadline: in time.
-        assert_eq!(account(&mut m, None, 1_000, 1_400, 1_000), 1);
-        assert_eq!((m.misses, m.longest_run), (0, 0));
+        assert_eq!(account(&mut mon, None, 1_000, 1_400, 1_000), 1);
+        assert_eq!((mon.misses.misses, mon.misses.longest_run), (0, 0));
         // Two samples coalesced on the way (deadlines 2 000 and 3 000), the third arrives in
         // time: three accounted for, two misses in a row.
-        assert_eq!(account(&mut m, Some(1_000), 4_000, 4_900, 1_000), 3);
-        assert_eq!((m.misses, m.longest_run), (2, 2));
+        assert_eq!(account(&mut mon, Some(1_000), 4_000, 4_900, 1_000), 3);
+        assert_eq!((mon.misses.misses, mon.misses.longest_run), (2, 2));
         // Exactly a period late still has its command at the next deadline; one ns more not.
-        assert_eq!(account(&mut m, Some(4_000), 5_000, 6_000, 1_000), 1);
-        assert_eq!(m.misses, 2);
-        assert_eq!(account(&mut m, Some(5_000), 6_000, 7_001, 1_000), 1);
-        assert_eq!((m.misses, m.longest_run), (3, 2));
+        assert_eq!(account(&mut mon, Some(4_000), 5_000, 6_000, 1_000), 1);
+        assert_eq!(mon.misses.misses, 2);
+        assert_eq!(account(&mut mon, Some(5_000), 6_000, 7_001, 1_000), 1);
+        assert_eq!((mon.misses.misses, mon.misses.longest_run), (3, 2));
     }
 
     #[test]
