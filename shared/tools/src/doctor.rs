@@ -1,7 +1,8 @@
 //! `drivelab doctor`: how ready this machine is for real-time work.
 //!
 //! Every check only **reads** (files under `/sys` and `/proc`, `uname`, `getrlimit`,
-//! `statvfs`). The one active probe, "can this process use `SCHED_FIFO`", runs in a
+//! `statvfs`; "other load" reads every thread's CPU time twice, 300 ms apart). The one
+//! active probe, "can this process use `SCHED_FIFO`", runs in a
 //! short-lived thread of its own that switches to `SCHED_FIFO` priority 1 and straight back
 //! to `SCHED_OTHER`, then exits; nothing persists. Advice strings describe what an operator
 //! could do to improve timing; they are text only and are never executed.
@@ -106,6 +107,7 @@ pub fn run_checks_in(root: &Path) -> Vec<Check> {
         dev_shm_check(&fs),
         cpuidle_check(&fs),
         cpu_latency_request_check(&fs),
+        other_load_check(&fs, BUSY_WINDOW),
     ]
 }
 
@@ -1170,6 +1172,194 @@ fn clocksource_check(fs: &Fs) -> Check {
     )
 }
 
+/// How long [`other_load_check`] watches the machine.
+const BUSY_WINDOW: std::time::Duration = std::time::Duration::from_millis(300);
+
+/// A task that used more than this share of one CPU over the window is reported.
+const BUSY_PERMILLE: u64 = 5;
+
+/// One user-space task as read from `/proc/PID/task/TID`.
+#[derive(Debug, Clone, PartialEq)]
+struct TaskSample {
+    pid: u32,
+    tid: u32,
+    comm: String,
+    /// The process's name (its main thread's).
+    process: String,
+    /// Time on a CPU so far (`schedstat`, ns).
+    cpu_ns: u64,
+    /// The CPUs it may run on (`Cpus_allowed_list`).
+    allowed: String,
+}
+
+/// Every user-space thread of every process but `skip_pid` (kernel threads are left out: they
+/// cannot be moved, and per-CPU ones belong to their CPU).
+fn task_samples(fs: &Fs, skip_pid: u32) -> Vec<TaskSample> {
+    const PF_KTHREAD: u64 = 0x0020_0000;
+    let mut v = Vec::new();
+    for pid in fs.list("/proc").unwrap_or_default() {
+        let Ok(pid_n) = pid.parse::<u32>() else {
+            continue;
+        };
+        if pid_n == skip_pid {
+            continue;
+        }
+        let process = fs.read(&format!("/proc/{pid}/comm")).unwrap_or_default();
+        for tid in fs.list(&format!("/proc/{pid}/task")).unwrap_or_default() {
+            let Ok(tid_n) = tid.parse::<u32>() else {
+                continue;
+            };
+            let dir = format!("/proc/{pid}/task/{tid}");
+            let Some(stat) = fs.read(&format!("{dir}/stat")) else {
+                continue;
+            };
+            // "pid (comm) state ppid pgrp session tty tpgid flags ...": comm may hold spaces
+            // and parentheses, so the fields are counted after the last ')'.
+            let (Some(open), Some(close)) = (stat.find('('), stat.rfind(')')) else {
+                continue;
+            };
+            let flags = stat[close + 1..]
+                .split_whitespace()
+                .nth(6)
+                .and_then(|f| f.parse::<u64>().ok());
+            if flags.is_none_or(|f| f & PF_KTHREAD != 0) {
+                continue;
+            }
+            let cpu_ns = fs
+                .read(&format!("{dir}/schedstat"))
+                .and_then(|s| s.split_whitespace().next()?.parse().ok());
+            let Some(cpu_ns) = cpu_ns else {
+                continue;
+            };
+            let allowed = fs
+                .read(&format!("{dir}/status"))
+                .and_then(|s| {
+                    s.lines()
+                        .find_map(|l| l.strip_prefix("Cpus_allowed_list:"))
+                        .map(|l| l.trim().to_string())
+                })
+                .unwrap_or_else(|| "?".into());
+            v.push(TaskSample {
+                pid: pid_n,
+                tid: tid_n,
+                comm: stat[open + 1..close].to_string(),
+                process: process.clone(),
+                cpu_ns,
+                allowed,
+            });
+        }
+    }
+    v
+}
+
+/// The tasks of `after` that used more than [`BUSY_PERMILLE`] of a CPU since `before`
+/// (`window_ns` apart), busiest first, with their share in per mille. A thread that started
+/// during the window counts from zero.
+fn busy_tasks(
+    before: &[TaskSample],
+    after: &[TaskSample],
+    window_ns: u64,
+) -> Vec<(TaskSample, u64)> {
+    let was: BTreeMap<(u32, u32), u64> =
+        before.iter().map(|t| ((t.pid, t.tid), t.cpu_ns)).collect();
+    let mut v: Vec<(TaskSample, u64)> = after
+        .iter()
+        .filter_map(|t| {
+            let used = t
+                .cpu_ns
+                .saturating_sub(was.get(&(t.pid, t.tid)).copied().unwrap_or(0));
+            let permille = used.saturating_mul(1000) / window_ns.max(1);
+            (permille > BUSY_PERMILLE).then(|| (t.clone(), permille))
+        })
+        .collect();
+    v.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.tid.cmp(&b.0.tid)));
+    v
+}
+
+/// Other user-space tasks that used CPU time while doctor watched for `window`: each can
+/// take a drive's core, and on a kernel without full preemption its system calls hold up
+/// the drive's wake-ups until they return. A running drive's own tasks are counted apart.
+fn other_load_check(fs: &Fs, window: std::time::Duration) -> Check {
+    const NAME: &str = "other load";
+    let me = std::process::id();
+    let before = task_samples(fs, me);
+    let started = std::time::Instant::now();
+    std::thread::sleep(window);
+    let after = task_samples(fs, me);
+    if after.is_empty() {
+        return Check::new(NAME, "no /proc task could be read", Status::Unknown, None);
+    }
+    let window_ns = started.elapsed().as_nanos().min(u128::from(u64::MAX)) as u64;
+    load_verdict(busy_tasks(&before, &after, window_ns), window.as_millis())
+}
+
+/// The "other load" line for the busy tasks seen in `ms` milliseconds.
+fn load_verdict(busy: Vec<(TaskSample, u64)>, ms: u128) -> Check {
+    const NAME: &str = "other load";
+    let (drive, other): (Vec<_>, Vec<_>) = busy
+        .into_iter()
+        .partition(|(t, _)| t.process.starts_with("drivelab"));
+    let list = |v: &[(TaskSample, u64)]| {
+        v.iter()
+            .take(5)
+            .map(|(t, pm)| {
+                format!(
+                    "{} (pid {}{}, {}.{} % of a CPU, cpus {})",
+                    t.comm,
+                    t.pid,
+                    if t.tid == t.pid {
+                        String::new()
+                    } else {
+                        format!(" thread {}", t.tid)
+                    },
+                    pm / 10,
+                    pm % 10,
+                    t.allowed
+                )
+            })
+            .collect::<Vec<_>>()
+            .join(", ")
+            + &if v.len() > 5 {
+                format!(" and {} more", v.len() - 5)
+            } else {
+                String::new()
+            }
+    };
+    let drive_note = if drive.is_empty() {
+        String::new()
+    } else {
+        format!("; a drive's own tasks: {} (not counted)", drive.len())
+    };
+    if other.is_empty() {
+        return Check::new(
+            NAME,
+            format!(
+                "no other user-space task used more than {}.{} % of a CPU in {ms} ms{drive_note}",
+                BUSY_PERMILLE / 10,
+                BUSY_PERMILLE % 10
+            ),
+            Status::Ok,
+            None,
+        );
+    }
+    Check::new(
+        NAME,
+        format!(
+            "{} other user-space task(s) used CPU in {ms} ms: {}{drive_note}",
+            other.len(),
+            list(&other)
+        ),
+        Status::Warn,
+        Some(
+            "a task allowed on a drive's core competes with it (SCHED_FIFO preempts it, but on a \
+             kernel without full preemption only when its system call returns): stop it during \
+             measurements, or keep it off the drive's cores (taskset -a -p -c CPUS PID, a cpuset \
+             cgroup, or isolcpus= at boot)"
+                .into(),
+        ),
+    )
+}
+
 fn dev_shm_check(fs: &Fs) -> Check {
     const NAME: &str = "/dev/shm";
     let path = fs.path("/dev/shm");
@@ -1255,7 +1445,7 @@ mod tests {
     use super::*;
     use std::sync::atomic::{AtomicUsize, Ordering};
 
-    const REQUIRED: [&str; 7] = [
+    const REQUIRED: [&str; 8] = [
         "preemption",
         "rt throttling",
         "governor",
@@ -1263,6 +1453,7 @@ mod tests {
         "sched_fifo privilege",
         "mlock",
         "/dev/shm",
+        "other load",
     ];
 
     /// A fresh empty directory under the system temp dir, removed on drop.
@@ -1444,6 +1635,170 @@ mod tests {
         // No cpufreq at all (an x86 VM) is unknown, not an error.
         let empty = FakeRoot::new();
         assert_eq!(cpufreq_limits_check(&empty.fs()).status, Status::Unknown);
+    }
+
+    fn task(pid: u32, tid: u32, cpu_ns: u64) -> TaskSample {
+        TaskSample {
+            pid,
+            tid,
+            comm: format!("t{tid}"),
+            process: format!("p{pid}"),
+            cpu_ns,
+            allowed: "0-1".into(),
+        }
+    }
+
+    #[test]
+    fn busy_tasks_are_those_above_the_threshold_busiest_first() {
+        let window = 100_000_000; // 100 ms
+        let before = [task(1, 1, 1_000), task(2, 2, 0), task(2, 3, 50)];
+        let after = [
+            // 0.5 % exactly: not more than the threshold.
+            task(1, 1, 1_000 + 500_000),
+            // 0.6 %.
+            task(2, 2, 600_000),
+            // 30 %.
+            task(2, 3, 50 + 30_000_000),
+            // Started during the window: counted from zero (2 %).
+            task(4, 4, 2_000_000),
+        ];
+        let busy = busy_tasks(&before, &after, window);
+        let got: Vec<(u32, u64)> = busy.iter().map(|(t, pm)| (t.tid, *pm)).collect();
+        assert_eq!(got, vec![(3, 300), (4, 20), (2, 6)]);
+        // A counter that went backwards (a reused tid) is not busy.
+        assert!(busy_tasks(&[task(5, 5, 9_000_000)], &[task(5, 5, 10)], window).is_empty());
+    }
+
+    #[test]
+    fn task_samples_read_user_threads_and_skip_kernel_threads() {
+        let root = FakeRoot::new();
+        // /proc/PID/task/TID of a process `comm` with stat flags `flags` and CPU time `ns`.
+        let thread = |pid: u32, tid: u32, comm: &str, flags: u64, ns: u64| {
+            root.write(&format!("/proc/{pid}/comm"), &format!("{comm}\n"));
+            let dir = format!("/proc/{pid}/task/{tid}");
+            root.write(
+                &format!("{dir}/stat"),
+                &format!(
+                    "{tid} ({comm}) S 1 {pid} {pid} 0 -1 {flags} 100 0 0 0 3 1 0 0 20 0 2 0\n"
+                ),
+            );
+            root.write(&format!("{dir}/schedstat"), &format!("{ns} 10 3\n"));
+            root.write(
+                &format!("{dir}/status"),
+                "Name:\tx\nCpus_allowed:\t2\nCpus_allowed_list:\t1\n",
+            );
+        };
+        // A user process whose name holds a space and a parenthesis, with two threads.
+        thread(42, 42, "my (app) x", 4_194_560, 1_500);
+        thread(42, 43, "my (app) x", 4_194_560, 7);
+        // A kernel thread (PF_KTHREAD in the flags): left out.
+        thread(7, 7, "kworker/1:1", 69_238_880, 99_999_999);
+        // The doctor's own process: left out.
+        thread(9, 9, "drivelab", 4_194_304, 5);
+        let got = task_samples(&root.fs(), 9);
+        assert_eq!(
+            got.iter()
+                .map(|t| (
+                    t.pid,
+                    t.tid,
+                    t.comm.as_str(),
+                    t.process.as_str(),
+                    t.cpu_ns,
+                    t.allowed.as_str()
+                ))
+                .collect::<Vec<_>>(),
+            vec![
+                (42, 42, "my (app) x", "my (app) x", 1_500, "1"),
+                (42, 43, "my (app) x", "my (app) x", 7, "1"),
+            ]
+        );
+        // A quiet tree is OK; no /proc at all is unknown.
+        let quiet = other_load_check(&root.fs(), std::time::Duration::from_millis(1));
+        assert_eq!(quiet.status, Status::Ok, "{}", quiet.value);
+        let empty = FakeRoot::new();
+        let none = other_load_check(&empty.fs(), std::time::Duration::from_millis(1));
+        assert_eq!(
+            (none.status, none.value.as_str()),
+            (Status::Unknown, "no /proc task could be read")
+        );
+    }
+
+    /// Kills and reaps the child on drop, also when an assertion fails.
+    struct Child(std::process::Child);
+
+    impl Drop for Child {
+        fn drop(&mut self) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+
+    #[test]
+    fn a_busy_process_is_found() {
+        let child = Child(
+            std::process::Command::new("sh")
+                .args(["-c", "while :; do :; done"])
+                .spawn()
+                .unwrap(),
+        );
+        let pid = child.0.id();
+        let fs = Fs {
+            root: Path::new("/"),
+        };
+        let me = std::process::id();
+        let before = task_samples(&fs, me);
+        assert!(before.iter().all(|t| t.pid != me));
+        std::thread::sleep(BUSY_WINDOW);
+        let after = task_samples(&fs, me);
+        let busy = busy_tasks(&before, &after, BUSY_WINDOW.as_nanos() as u64);
+        assert!(
+            busy.iter()
+                .any(|(t, _)| t.pid == pid && t.comm == "sh" && t.allowed != "?"),
+            "{busy:?}"
+        );
+        // Other load makes the check warn (the child alone is enough).
+        assert_eq!(other_load_check(&fs, BUSY_WINDOW).status, Status::Warn);
+    }
+
+    #[test]
+    fn the_load_line_names_the_tasks_and_counts_a_drive_apart() {
+        let t = |pid, tid, comm: &str, process: &str, pm| {
+            let mut x = task(pid, tid, 0);
+            x.comm = comm.into();
+            x.process = process.into();
+            (x, pm)
+        };
+        let c = load_verdict(
+            vec![
+                t(10, 10, "sh", "sh", 717),
+                t(20, 22, "recorder", "drivelab", 119),
+                t(1, 75, "tokio-rt-worker", "init", 14),
+            ],
+            300,
+        );
+        assert_eq!(
+            (c.status, c.value.as_str()),
+            (
+                Status::Warn,
+                "2 other user-space task(s) used CPU in 300 ms: sh (pid 10, 71.7 % of a CPU, \
+                 cpus 0-1), tokio-rt-worker (pid 1 thread 75, 1.4 % of a CPU, cpus 0-1); a \
+                 drive's own tasks: 1 (not counted)"
+            )
+        );
+        assert!(c.advice.as_deref().is_some_and(|a| a.contains("taskset")));
+        let many: Vec<_> = (0..7).map(|i| t(100 + i, 100 + i, "w", "w", 50)).collect();
+        assert!(load_verdict(many, 300)
+            .value
+            .ends_with("cpus 0-1) and 2 more"));
+        let drive_only = load_verdict(vec![t(20, 20, "drivelab-host", "drivelab-host", 90)], 300);
+        assert_eq!(
+            (drive_only.status, drive_only.value.as_str()),
+            (
+                Status::Ok,
+                "no other user-space task used more than 0.5 % of a CPU in 300 ms; a drive's \
+                 own tasks: 1 (not counted)"
+            )
+        );
     }
 
     #[test]
