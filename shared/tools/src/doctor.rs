@@ -96,6 +96,7 @@ pub fn run_checks_in(root: &Path) -> Vec<Check> {
         rt_throttling_check(&fs),
         online_cpus_check(&online),
         isolated_cpus_check(&fs, &online),
+        device_irq_check(&fs, &online),
         governor_check(&fs),
         cpufreq_limits_check(&fs),
         smt_check(&fs),
@@ -745,6 +746,154 @@ fn online_cpus_check(online: &[usize]) -> Check {
     }
 }
 
+/// The isolated CPUs: `/sys/devices/system/cpu/isolated`, else `isolcpus=` of the command
+/// line; empty when neither names any.
+fn isolated_list(fs: &Fs) -> Vec<usize> {
+    fs.read("/sys/devices/system/cpu/isolated")
+        .as_deref()
+        .and_then(parse_cpu_list)
+        .or_else(|| {
+            fs.cmdline_param("isolcpus")
+                .as_deref()
+                .and_then(parse_cpu_list)
+        })
+        .unwrap_or_default()
+}
+
+/// The CPUs a drive runs on by default: the isolated ones, else every online CPU but the
+/// first (drivelab's default placement puts the stages on core 1 and leaves core 0 to the
+/// OS, the supervisor and the recorder).
+fn drive_cpus(fs: &Fs, online: &[usize]) -> Vec<usize> {
+    let isolated = isolated_list(fs);
+    if isolated.is_empty() {
+        online.iter().skip(1).copied().collect()
+    } else {
+        isolated
+    }
+}
+
+/// One device interrupt line of `/proc/interrupts`.
+#[derive(Debug, Clone, PartialEq)]
+struct DeviceIrq {
+    irq: u32,
+    /// The device's name (the line's last field).
+    name: String,
+    /// Interrupts served since boot, all CPUs.
+    count: u64,
+    /// The CPUs that serve it now (`effective_affinity_list`, else `smp_affinity_list`).
+    cpus: Vec<usize>,
+}
+
+/// The numbered (device) lines of `/proc/interrupts` that fired at least once, most first.
+/// The per-CPU architecture lines (LOC, RES, ...) are the CPUs' own.
+fn device_irqs(fs: &Fs) -> Option<Vec<DeviceIrq>> {
+    let text = fs.read("/proc/interrupts")?;
+    let mut lines = text.lines();
+    let n_cpus = lines.next()?.split_whitespace().count();
+    let mut v = Vec::new();
+    for l in lines {
+        let mut f = l.split_whitespace();
+        let Some(irq) = f
+            .next()
+            .and_then(|t| t.strip_suffix(':')?.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        let fields: Vec<&str> = f.collect();
+        if fields.len() <= n_cpus {
+            continue;
+        }
+        let count: u64 = fields[..n_cpus]
+            .iter()
+            .filter_map(|c| c.parse::<u64>().ok())
+            .sum();
+        if count == 0 {
+            continue;
+        }
+        let cpus = ["effective_affinity_list", "smp_affinity_list"]
+            .iter()
+            .find_map(|f| {
+                fs.read(&format!("/proc/irq/{irq}/{f}"))
+                    .as_deref()
+                    .and_then(parse_cpu_list)
+            })
+            .unwrap_or_default();
+        v.push(DeviceIrq {
+            irq,
+            name: fields[fields.len() - 1].to_string(),
+            count,
+            cpus,
+        });
+    }
+    v.sort_by(|a, b| b.count.cmp(&a.count).then(a.irq.cmp(&b.irq)));
+    Some(v)
+}
+
+/// Device interrupts served by the CPUs a drive runs on: each interrupt, and the softirq and
+/// kernel-thread work it starts, runs ahead of the drive's tasks on that CPU.
+fn device_irq_check(fs: &Fs, online: &[usize]) -> Check {
+    const NAME: &str = "device irqs";
+    let Some(irqs) = device_irqs(fs) else {
+        return Check::new(NAME, "/proc/interrupts not readable", Status::Unknown, None);
+    };
+    let drive = drive_cpus(fs, online);
+    let on_drive: Vec<&DeviceIrq> = irqs
+        .iter()
+        .filter(|d| d.cpus.iter().any(|c| drive.contains(c)))
+        .collect();
+    let drive_list = fmt_cpu_list(&drive);
+    if on_drive.is_empty() {
+        return Check::new(
+            NAME,
+            format!(
+                "{} device interrupt line(s), none served by the drive's cpu {}",
+                irqs.len(),
+                if drive.is_empty() {
+                    "-".into()
+                } else {
+                    drive_list
+                }
+            ),
+            Status::Ok,
+            None,
+        );
+    }
+    let names: Vec<String> = on_drive
+        .iter()
+        .take(5)
+        .map(|d| {
+            format!(
+                "{} (irq {}, {} since boot, cpu {})",
+                d.name,
+                d.irq,
+                d.count,
+                fmt_cpu_list(&d.cpus)
+            )
+        })
+        .collect();
+    let more = if on_drive.len() > 5 {
+        format!(" and {} more", on_drive.len() - 5)
+    } else {
+        String::new()
+    };
+    Check::new(
+        NAME,
+        format!(
+            "{} of {} device interrupt line(s) served by the drive's cpu {drive_list}: {}{more}",
+            on_drive.len(),
+            irqs.len(),
+            names.join(", ")
+        ),
+        Status::Warn,
+        Some(
+            "each of these interrupts, and the softirq and kernel-thread work it starts, runs \
+             ahead of the drive on its cpu; route them to the OS's cpu (boot with irqaffinity=0, \
+             or as root write 0 to /proc/irq/N/smp_affinity_list; drivelab changes nothing)"
+                .into(),
+        ),
+    )
+}
+
 fn isolated_cpus_check(fs: &Fs, online: &[usize]) -> Check {
     const NAME: &str = "isolated cpus";
     let isolated_file = fs.read("/sys/devices/system/cpu/isolated");
@@ -759,11 +908,7 @@ fn isolated_cpus_check(fs: &Fs, online: &[usize]) -> Check {
         );
     }
     let param = |k: &str| cmdline.as_deref().and_then(|c| cmdline_param(c, k));
-    let isolated = isolated_file
-        .as_deref()
-        .and_then(parse_cpu_list)
-        .or_else(|| param("isolcpus").as_deref().and_then(parse_cpu_list))
-        .unwrap_or_default();
+    let isolated = isolated_list(fs);
     let nohz = nohz_file
         .as_deref()
         .filter(|s| !s.is_empty() && *s != "(null)")
@@ -1445,7 +1590,7 @@ mod tests {
     use super::*;
     use std::sync::atomic::{AtomicUsize, Ordering};
 
-    const REQUIRED: [&str; 8] = [
+    const REQUIRED: [&str; 9] = [
         "preemption",
         "rt throttling",
         "governor",
@@ -1454,6 +1599,7 @@ mod tests {
         "mlock",
         "/dev/shm",
         "other load",
+        "device irqs",
     ];
 
     /// A fresh empty directory under the system temp dir, removed on drop.
@@ -1635,6 +1781,58 @@ mod tests {
         // No cpufreq at all (an x86 VM) is unknown, not an error.
         let empty = FakeRoot::new();
         assert_eq!(cpufreq_limits_check(&empty.fs()).status, Status::Unknown);
+    }
+
+    #[test]
+    fn device_interrupts_on_the_drive_cpus_are_named() {
+        let root = FakeRoot::new();
+        root.write(
+            "/proc/interrupts",
+            "           CPU0       CPU1\n  \
+             0:         40          0   IO-APIC   2-edge      timer\n \
+             26:          0         16   IO-APIC   4-edge      ttyS0\n \
+             31:          0        336   PCI-MSIX-0000:00:01.0   3-edge      virtio0-stats\n \
+             36:          0      43330   PCI-MSIX-0000:00:02.0   1-edge      virtio1-req.0\n \
+             37:          0          0   PCI-MSIX-0000:00:02.0   0-edge      virtio1-config\n \
+             NMI:          0          0   Non-maskable interrupts\n \
+             LOC:     146000      80000   Local timer interrupts\n",
+        );
+        root.write("/proc/irq/0/effective_affinity_list", "0\n");
+        root.write("/proc/irq/26/smp_affinity_list", "1\n");
+        root.write("/proc/irq/31/effective_affinity_list", "1\n");
+        root.write("/proc/irq/36/effective_affinity_list", "1\n");
+        root.write("/proc/irq/36/smp_affinity_list", "0-1\n");
+        let c = device_irq_check(&root.fs(), &[0, 1]);
+        assert_eq!(
+            (c.status, c.value.as_str()),
+            (
+                Status::Warn,
+                "3 of 4 device interrupt line(s) served by the drive's cpu 1: virtio1-req.0 (irq \
+                 36, 43330 since boot, cpu 1), virtio0-stats (irq 31, 336 since boot, cpu 1), \
+                 ttyS0 (irq 26, 16 since boot, cpu 1)"
+            )
+        );
+        assert!(c
+            .advice
+            .as_deref()
+            .is_some_and(|a| a.contains("irqaffinity=0")));
+        // With CPUs 2-3 isolated the drive runs there; nothing is served by them.
+        let four = [0, 1, 2, 3];
+        root.write("/sys/devices/system/cpu/isolated", "2-3\n");
+        let c = device_irq_check(&root.fs(), &four);
+        assert_eq!(
+            (c.status, c.value.as_str()),
+            (
+                Status::Ok,
+                "4 device interrupt line(s), none served by the drive's cpu 2-3"
+            )
+        );
+        // No /proc/interrupts: unknown.
+        let empty = FakeRoot::new();
+        assert_eq!(
+            device_irq_check(&empty.fs(), &[0, 1]).status,
+            Status::Unknown
+        );
     }
 
     fn task(pid: u32, tid: u32, cpu_ns: u64) -> TaskSample {
