@@ -785,7 +785,8 @@ struct DeviceIrq {
 }
 
 /// The numbered (device) lines of `/proc/interrupts` that fired at least once, most first.
-/// The per-CPU architecture lines (LOC, RES, ...) are the CPUs' own.
+/// The per-CPU architecture lines (LOC, RES, ...) are the CPUs' own, and so is a numbered
+/// line that fired on every CPU.
 fn device_irqs(fs: &Fs) -> Option<Vec<DeviceIrq>> {
     let text = fs.read("/proc/interrupts")?;
     let mut lines = text.lines();
@@ -803,11 +804,14 @@ fn device_irqs(fs: &Fs) -> Option<Vec<DeviceIrq>> {
         if fields.len() <= n_cpus {
             continue;
         }
-        let count: u64 = fields[..n_cpus]
+        let counts: Vec<u64> = fields[..n_cpus]
             .iter()
-            .filter_map(|c| c.parse::<u64>().ok())
-            .sum();
-        if count == 0 {
+            .map(|c| c.parse::<u64>().unwrap_or(0))
+            .collect();
+        let count: u64 = counts.iter().sum();
+        // Never fired; or fired on every CPU: a per-CPU line (an ARM board's architected
+        // timer or PMU is numbered like a device), each CPU's own, nothing to steer.
+        if count == 0 || (n_cpus > 1 && counts.iter().all(|&c| c > 0)) {
             continue;
         }
         let cpus = ["effective_affinity_list", "smp_affinity_list"]
@@ -1795,6 +1799,7 @@ mod tests {
              36:          0      43330   PCI-MSIX-0000:00:02.0   1-edge      virtio1-req.0\n \
              37:          0          0   PCI-MSIX-0000:00:02.0   0-edge      virtio1-config\n \
              NMI:          0          0   Non-maskable interrupts\n \
+             11:      12345      12345   GICv3  30 Level     arch_timer\n \
              LOC:     146000      80000   Local timer interrupts\n",
         );
         root.write("/proc/irq/0/effective_affinity_list", "0\n");
@@ -1802,6 +1807,8 @@ mod tests {
         root.write("/proc/irq/31/effective_affinity_list", "1\n");
         root.write("/proc/irq/36/effective_affinity_list", "1\n");
         root.write("/proc/irq/36/smp_affinity_list", "0-1\n");
+        // An ARM board's per-CPU timer: numbered, but every CPU's own.
+        root.write("/proc/irq/11/effective_affinity_list", "0-1\n");
         let c = device_irq_check(&root.fs(), &[0, 1]);
         assert_eq!(
             (c.status, c.value.as_str()),
