@@ -772,6 +772,15 @@ fn drive_cpus(fs: &Fs, online: &[usize]) -> Vec<usize> {
     }
 }
 
+/// The first five of `items`, comma-separated, then how many more there are.
+fn first_five(items: &[String]) -> String {
+    let mut s = items[..items.len().min(5)].join(", ");
+    if items.len() > 5 {
+        let _ = write!(s, " and {} more", items.len() - 5);
+    }
+    s
+}
+
 /// One device interrupt line of `/proc/interrupts`.
 #[derive(Debug, Clone, PartialEq)]
 struct DeviceIrq {
@@ -864,7 +873,6 @@ fn device_irq_check(fs: &Fs, online: &[usize]) -> Check {
     }
     let names: Vec<String> = on_drive
         .iter()
-        .take(5)
         .map(|d| {
             format!(
                 "{} (irq {}, {} since boot, cpu {})",
@@ -875,18 +883,13 @@ fn device_irq_check(fs: &Fs, online: &[usize]) -> Check {
             )
         })
         .collect();
-    let more = if on_drive.len() > 5 {
-        format!(" and {} more", on_drive.len() - 5)
-    } else {
-        String::new()
-    };
     Check::new(
         NAME,
         format!(
-            "{} of {} device interrupt line(s) served by the drive's cpu {drive_list}: {}{more}",
+            "{} of {} device interrupt line(s) served by the drive's cpu {drive_list}: {}",
             on_drive.len(),
             irqs.len(),
-            names.join(", ")
+            first_five(&names)
         ),
         Status::Warn,
         Some(
@@ -1449,30 +1452,25 @@ fn load_verdict(busy: Vec<(TaskSample, u64)>, ms: u128) -> Check {
         .into_iter()
         .partition(|(t, _)| t.process.starts_with("drivelab"));
     let list = |v: &[(TaskSample, u64)]| {
-        v.iter()
-            .take(5)
+        let named: Vec<String> = v
+            .iter()
             .map(|(t, pm)| {
+                let thread = if t.tid == t.pid {
+                    String::new()
+                } else {
+                    format!(" thread {}", t.tid)
+                };
                 format!(
-                    "{} (pid {}{}, {}.{} % of a CPU, cpus {})",
+                    "{} (pid {}{thread}, {}.{} % of a CPU, cpus {})",
                     t.comm,
                     t.pid,
-                    if t.tid == t.pid {
-                        String::new()
-                    } else {
-                        format!(" thread {}", t.tid)
-                    },
                     pm / 10,
                     pm % 10,
                     t.allowed
                 )
             })
-            .collect::<Vec<_>>()
-            .join(", ")
-            + &if v.len() > 5 {
-                format!(" and {} more", v.len() - 5)
-            } else {
-                String::new()
-            }
+            .collect();
+        first_five(&named)
     };
     let drive_note = if drive.is_empty() {
         String::new()
