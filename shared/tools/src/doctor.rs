@@ -230,10 +230,7 @@ fn cpu_latency_request_check(fs: &Fs) -> Check {
 /// Processes with /dev/cpu_dma_latency open, as "pid N (name)".
 fn latency_request_holders(fs: &Fs) -> Vec<String> {
     let mut v = Vec::new();
-    for pid in fs.list("/proc").unwrap_or_default() {
-        if pid.parse::<u32>().is_err() {
-            continue;
-        }
+    for pid in fs.numbered("/proc").unwrap_or_default() {
         let fds = fs.list(&format!("/proc/{pid}/fd")).unwrap_or_default();
         let holds = fds.iter().any(|fd| {
             std::fs::read_link(fs.path(&format!("/proc/{pid}/fd/{fd}")))
@@ -343,6 +340,17 @@ impl Fs<'_> {
             .collect();
         v.sort();
         Some(v)
+    }
+
+    /// The numbered entries of directory `abs` (the processes of `/proc`, the threads of
+    /// `/proc/PID/task`), in [`Fs::list`]'s order; `None` if it cannot be listed.
+    fn numbered(&self, abs: &str) -> Option<Vec<u32>> {
+        Some(
+            self.list(abs)?
+                .iter()
+                .filter_map(|n| n.parse().ok())
+                .collect(),
+        )
     }
 
     /// CPU numbers that have a `/sys/devices/system/cpu/cpuN` directory.
@@ -1137,13 +1145,9 @@ fn smt_check(fs: &Fs) -> Check {
 
 fn irqbalance_check(fs: &Fs) -> Check {
     const NAME: &str = "irqbalance";
-    let Some(entries) = fs.list("/proc") else {
+    let Some(pids) = fs.numbered("/proc") else {
         return Check::new(NAME, "unknown (/proc not readable)", Status::Unknown, None);
     };
-    let pids: Vec<&String> = entries
-        .iter()
-        .filter(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()))
-        .collect();
     if pids.is_empty() {
         return Check::new(
             NAME,
@@ -1152,10 +1156,10 @@ fn irqbalance_check(fs: &Fs) -> Check {
             None,
         );
     }
-    let running: Vec<&str> = pids
+    let running: Vec<String> = pids
         .iter()
         .filter(|pid| fs.read(&format!("/proc/{pid}/comm")).as_deref() == Some("irqbalance"))
-        .map(|p| p.as_str())
+        .map(u32::to_string)
         .collect();
     if running.is_empty() {
         Check::new(NAME, "not running", Status::Ok, None)
@@ -1349,18 +1353,15 @@ struct TaskSample {
 fn task_samples(fs: &Fs, skip_pid: u32) -> Vec<TaskSample> {
     const PF_KTHREAD: u64 = 0x0020_0000;
     let mut v = Vec::new();
-    for pid in fs.list("/proc").unwrap_or_default() {
-        let Ok(pid_n) = pid.parse::<u32>() else {
-            continue;
-        };
-        if pid_n == skip_pid {
+    for pid in fs.numbered("/proc").unwrap_or_default() {
+        if pid == skip_pid {
             continue;
         }
         let process = fs.read(&format!("/proc/{pid}/comm")).unwrap_or_default();
-        for tid in fs.list(&format!("/proc/{pid}/task")).unwrap_or_default() {
-            let Ok(tid_n) = tid.parse::<u32>() else {
-                continue;
-            };
+        for tid in fs
+            .numbered(&format!("/proc/{pid}/task"))
+            .unwrap_or_default()
+        {
             let dir = format!("/proc/{pid}/task/{tid}");
             let Some(stat) = fs.read(&format!("{dir}/stat")) else {
                 continue;
@@ -1392,8 +1393,8 @@ fn task_samples(fs: &Fs, skip_pid: u32) -> Vec<TaskSample> {
                 })
                 .unwrap_or_else(|| "?".into());
             v.push(TaskSample {
-                pid: pid_n,
-                tid: tid_n,
+                pid,
+                tid,
                 comm: stat[open + 1..close].to_string(),
                 process: process.clone(),
                 cpu_ns,
