@@ -9,13 +9,17 @@ CPU when perf watches only that CPU), then run this on the text dump:
     perf script --ns -i drive.data > drive.txt
     python3 bench/tools/perf_at_deadline.py drive.txt PLANT_PID [CPU]
 
+(Start perf pinned to another CPU, `taskset -c 0 perf record ...`, or perf's own process
+shows up on the measured CPU and pushes other tasks over to it.)
+
 The deadlines are the expiry times of the plant's own `clock_nanosleep` timers
 (`hrtimer_start` by the plant's pid, function `hrtimer_wakeup`). For each, the task on the
 CPU at that instant is the one the last switch before it put there ("idle" after a switch
 to the idle task), and the delay is deadline → the plant's first wake-up of another task
-(its publish of the measurement). Prints the delay's percentiles by that state, and every
-task's time on the CPU and switches per period. docs/measurements.md, "Where the chain's
-tail is not".
+(its publish of the measurement). Prints the delay's percentiles by that state, how many
+deadlines were later than half and 90 % of a period by that state (the ones that cost
+samples), and every task's time on the CPU, switches per period and longest single run.
+docs/measurements.md, "Where the chain's tail is not" and "Who holds the drive's core".
 """
 import bisect
 import re
@@ -38,6 +42,7 @@ def main():
     cpu = int(sys.argv[3]) if len(sys.argv) > 3 else 1
     events, deadlines = [], []
     on_cpu, comms, switches = defaultdict(int), {}, defaultdict(int)
+    longest = defaultdict(int)
     cur, since = None, 0
     for ln in open(path):
         m = LINE.match(ln)
@@ -54,6 +59,7 @@ def main():
             comms[nxt] = kv['next_comm']
             if cur is not None:
                 on_cpu[cur] += t - since
+                longest[cur] = max(longest[cur], t - since)
             switches[pid] += 1
             cur, since = nxt, t
     if not events or not deadlines:
@@ -83,11 +89,19 @@ def main():
         tail = sum(1 for x in v if x >= top)
         print(f'  at the deadline {state}: {len(v)} ({100 * len(v) / len(every):.2f} %), '
               f'p50 {pct(v, 50):.1f}  p99 {pct(v, 99):.1f}, in the slowest 1 %: {tail}')
-    periods = (times[-1] - times[0]) / (deadlines[1] - deadlines[0] if len(deadlines) > 1 else 1)
-    print('time on the cpu and switches out, per period:')
-    for p in sorted(on_cpu, key=lambda p: -on_cpu[p])[:8]:
+    period = sorted(b - a for a, b in zip(deadlines, deadlines[1:]))[len(deadlines) // 2] \
+        if len(deadlines) > 1 else 1
+    # The deadlines late enough to cost a sample once the chain's own hops are added.
+    for frac in (0.5, 0.9):
+        late = {s: sum(1 for x in v if x > frac * period) for s, v in by_state.items()}
+        named = ', '.join(f'{s} {n}' for s, n in sorted(late.items(), key=lambda x: -x[1]) if n)
+        print(f'  later than {frac * period / 1e3:.0f} us ({frac:.0%} of the period): '
+              f'{sum(late.values())}, by the task at the deadline: {named or "-"}')
+    periods = (times[-1] - times[0]) / period
+    print('time on the cpu, switches out per period, and the longest single run:')
+    for p in sorted(on_cpu, key=lambda p: -on_cpu[p])[:10]:
         print(f'  {comms.get(p, "?"):20s} {p:7d}  {on_cpu[p] / periods / 1e3:6.2f} us  '
-              f'{switches[p] / periods:5.2f}')
+              f'{switches[p] / periods:5.2f}  {longest[p] / 1e3:8.1f} us')
 
 
 if __name__ == '__main__':

@@ -1,7 +1,8 @@
 //! `drivelab doctor`: how ready this machine is for real-time work.
 //!
 //! Every check only **reads** (files under `/sys` and `/proc`, `uname`, `getrlimit`,
-//! `statvfs`; "other load" reads every thread's CPU time twice, 300 ms apart). The one
+//! `statvfs`; "other load" reads every thread's CPU time twice, 300 ms apart; "kernel
+//! threads" reads each kernel thread's run count and CPU time since boot). The one
 //! active probe, "can this process use `SCHED_FIFO`", runs in a
 //! short-lived thread of its own that switches to `SCHED_FIFO` priority 1 and straight back
 //! to `SCHED_OTHER`, then exits; nothing persists. Advice strings describe what an operator
@@ -109,6 +110,7 @@ pub fn run_checks_in(root: &Path) -> Vec<Check> {
         cpuidle_check(&fs),
         cpu_latency_request_check(&fs),
         other_load_check(&fs, BUSY_WINDOW),
+        kernel_thread_check(&fs, &online),
     ]
 }
 
@@ -1348,10 +1350,32 @@ struct TaskSample {
     allowed: String,
 }
 
-/// Every user-space thread of every process but `skip_pid` (kernel threads are left out: they
-/// cannot be moved, and per-CPU ones belong to their CPU).
+/// The name and the fields after it of a `/proc/.../stat` line ("pid (comm) state ppid pgrp
+/// session tty tpgid flags ..."): the name may hold spaces and parentheses, so the fields
+/// are counted after the last ')'. Field 0 is the state, field 6 the flags.
+fn stat_fields(stat: &str) -> Option<(&str, Vec<&str>)> {
+    let (open, close) = (stat.find('(')?, stat.rfind(')')?);
+    let name = stat.get(open + 1..close)?;
+    Some((name, stat[close + 1..].split_whitespace().collect()))
+}
+
+/// `PF_KTHREAD` in a task's flags: a kernel thread.
+const PF_KTHREAD: u64 = 0x0020_0000;
+/// `PF_NO_SETAFFINITY`: a kernel thread whose CPUs user space cannot change (per-CPU threads,
+/// workqueue workers).
+const PF_NO_SETAFFINITY: u64 = 0x0400_0000;
+
+/// The `Cpus_allowed_list` of the task whose `/proc` directory is `dir`.
+fn allowed_cpus(fs: &Fs, dir: &str) -> Option<String> {
+    fs.read(&format!("{dir}/status"))?
+        .lines()
+        .find_map(|l| l.strip_prefix("Cpus_allowed_list:"))
+        .map(|l| l.trim().to_string())
+}
+
+/// Every user-space thread of every process but `skip_pid` (kernel threads are left out:
+/// [`kernel_thread_check`] looks at them).
 fn task_samples(fs: &Fs, skip_pid: u32) -> Vec<TaskSample> {
-    const PF_KTHREAD: u64 = 0x0020_0000;
     let mut v = Vec::new();
     for pid in fs.numbered("/proc").unwrap_or_default() {
         if pid == skip_pid {
@@ -1366,15 +1390,10 @@ fn task_samples(fs: &Fs, skip_pid: u32) -> Vec<TaskSample> {
             let Some(stat) = fs.read(&format!("{dir}/stat")) else {
                 continue;
             };
-            // "pid (comm) state ppid pgrp session tty tpgid flags ...": comm may hold spaces
-            // and parentheses, so the fields are counted after the last ')'.
-            let (Some(open), Some(close)) = (stat.find('('), stat.rfind(')')) else {
+            let Some((comm, fields)) = stat_fields(&stat) else {
                 continue;
             };
-            let flags = stat[close + 1..]
-                .split_whitespace()
-                .nth(6)
-                .and_then(|f| f.parse::<u64>().ok());
+            let flags = fields.get(6).and_then(|f| f.parse::<u64>().ok());
             if flags.is_none_or(|f| f & PF_KTHREAD != 0) {
                 continue;
             }
@@ -1384,21 +1403,13 @@ fn task_samples(fs: &Fs, skip_pid: u32) -> Vec<TaskSample> {
             let Some(cpu_ns) = cpu_ns else {
                 continue;
             };
-            let allowed = fs
-                .read(&format!("{dir}/status"))
-                .and_then(|s| {
-                    s.lines()
-                        .find_map(|l| l.strip_prefix("Cpus_allowed_list:"))
-                        .map(|l| l.trim().to_string())
-                })
-                .unwrap_or_else(|| "?".into());
             v.push(TaskSample {
                 pid,
                 tid,
-                comm: stat[open + 1..close].to_string(),
+                comm: comm.to_string(),
                 process: process.clone(),
                 cpu_ns,
-                allowed,
+                allowed: allowed_cpus(fs, &dir).unwrap_or_else(|| "?".into()),
             });
         }
     }
@@ -1508,6 +1519,182 @@ fn load_verdict(busy: Vec<(TaskSample, u64)>, ms: u128) -> Check {
     )
 }
 
+/// A kernel thread that has run this long per run on average since boot, µs, holds a CPU
+/// for a whole sample at 10 kHz.
+const LONG_RUN_US: u64 = 100;
+
+/// ... once it has run this many times (not a thread that ran a few times at boot).
+const LONG_RUN_MIN_RUNS: u64 = 100;
+
+/// One kernel thread as read from `/proc/PID`.
+#[derive(Debug, Clone, PartialEq)]
+struct KernelThread {
+    pid: u32,
+    comm: String,
+    /// Time on a CPU since it started, ns (`schedstat`).
+    run_ns: u64,
+    /// Times it was put on a CPU (`schedstat`).
+    runs: u64,
+    /// The CPUs it may run on.
+    allowed: Vec<usize>,
+    /// User space may change its CPUs (no `PF_NO_SETAFFINITY`).
+    movable: bool,
+}
+
+impl KernelThread {
+    /// Average time per run, µs.
+    fn run_us(&self) -> u64 {
+        self.run_ns / self.runs.max(1) / 1000
+    }
+}
+
+/// Every kernel thread of `/proc` (a kernel thread is a process of one task).
+fn kernel_threads(fs: &Fs) -> Option<Vec<KernelThread>> {
+    let mut v = Vec::new();
+    for pid in fs.numbered("/proc")? {
+        let dir = format!("/proc/{pid}");
+        let Some(stat) = fs.read(&format!("{dir}/stat")) else {
+            continue;
+        };
+        let Some((comm, fields)) = stat_fields(&stat) else {
+            continue;
+        };
+        let Some(flags) = fields.get(6).and_then(|f| f.parse::<u64>().ok()) else {
+            continue;
+        };
+        if flags & PF_KTHREAD == 0 {
+            continue;
+        }
+        let sched: Vec<u64> = fs
+            .read(&format!("{dir}/schedstat"))
+            .map(|s| {
+                s.split_whitespace()
+                    .filter_map(|f| f.parse().ok())
+                    .collect()
+            })
+            .unwrap_or_default();
+        let (Some(&run_ns), Some(&runs)) = (sched.first(), sched.get(2)) else {
+            continue;
+        };
+        v.push(KernelThread {
+            pid,
+            comm: comm.to_string(),
+            run_ns,
+            runs,
+            allowed: allowed_cpus(fs, &dir)
+                .as_deref()
+                .and_then(parse_cpu_list)
+                .unwrap_or_default(),
+            movable: flags & PF_NO_SETAFFINITY == 0,
+        });
+    }
+    Some(v)
+}
+
+/// The DAMON monitors that are on (`/sys/kernel/mm/damon/admin/kdamonds/N/state`), with
+/// their thread's pid.
+fn damon_on(fs: &Fs) -> Vec<(u32, Option<u32>)> {
+    const DIR: &str = "/sys/kernel/mm/damon/admin/kdamonds";
+    fs.numbered(DIR)
+        .unwrap_or_default()
+        .into_iter()
+        .filter(|n| fs.read(&format!("{DIR}/{n}/state")).as_deref() == Some("on"))
+        .map(|n| {
+            let pid = fs
+                .read(&format!("{DIR}/{n}/pid"))
+                .and_then(|p| p.parse().ok());
+            (n, pid)
+        })
+        .collect()
+}
+
+/// Kernel threads allowed on a drive's CPUs that run long at a time (on average since boot):
+/// on a kernel without full preemption a drive's task that wakes while one runs waits until
+/// it reaches a preemption point. DAMON's monitor thread is named as such.
+fn kernel_thread_check(fs: &Fs, online: &[usize]) -> Check {
+    const NAME: &str = "kernel threads";
+    let Some(threads) = kernel_threads(fs) else {
+        return Check::new(NAME, "/proc not readable", Status::Unknown, None);
+    };
+    let drive = drive_cpus(fs, online);
+    let damon = damon_on(fs);
+    let damon_of = |pid: u32| damon.iter().find(|(_, p)| *p == Some(pid)).map(|(n, _)| *n);
+    let mut long: Vec<&KernelThread> = threads
+        .iter()
+        .filter(|t| t.runs >= LONG_RUN_MIN_RUNS && t.run_us() >= LONG_RUN_US)
+        .filter(|t| t.allowed.iter().any(|c| drive.contains(c)))
+        .collect();
+    long.sort_by(|a, b| b.run_us().cmp(&a.run_us()).then(a.pid.cmp(&b.pid)));
+    // The monitors whose thread is not named among the long ones.
+    let other_damon: Vec<&(u32, Option<u32>)> = damon
+        .iter()
+        .filter(|(_, pid)| pid.is_none_or(|p| long.iter().all(|t| t.pid != p)))
+        .collect();
+    let damon_note = match other_damon.as_slice() {
+        [] => String::new(),
+        d => {
+            let names: Vec<String> = d
+                .iter()
+                .map(|(n, pid)| match pid {
+                    Some(p) => format!("kdamond {n} (pid {p})"),
+                    None => format!("kdamond {n}"),
+                })
+                .collect();
+            format!("; DAMON on: {}", names.join(", "))
+        }
+    };
+    let drive_list = if drive.is_empty() {
+        "-".to_string()
+    } else {
+        fmt_cpu_list(&drive)
+    };
+    if long.is_empty() {
+        return Check::new(
+            NAME,
+            format!(
+                "none allowed on the drive's cpu {drive_list} runs {LONG_RUN_US} µs or more at a \
+                 time on average{damon_note}"
+            ),
+            Status::Ok,
+            None,
+        );
+    }
+    let names: Vec<String> = long
+        .iter()
+        .map(|t| {
+            let damon = damon_of(t.pid).map_or(String::new(), |n| format!(", DAMON kdamond {n}"));
+            format!(
+                "{} (pid {}, {} µs per run over {} runs, cpus {}{}{damon})",
+                t.comm,
+                t.pid,
+                t.run_us(),
+                t.runs,
+                fmt_cpu_list(&t.allowed),
+                if t.movable { "" } else { ", fixed" },
+            )
+        })
+        .collect();
+    Check::new(
+        NAME,
+        format!(
+            "{} kernel thread(s) allowed on the drive's cpu {drive_list} run {LONG_RUN_US} µs or \
+             more at a time on average since boot: {}{damon_note}",
+            long.len(),
+            first_five(&names)
+        ),
+        Status::Warn,
+        Some(
+            "on a kernel without full preemption a drive task that wakes while one of them runs \
+             waits for its next preemption point; keep them off the drive's cores (taskset -p -c \
+             CPUS PID for a thread not marked fixed, the OS's cpus in \
+             /sys/devices/virtual/workqueue/cpumask for kworkers, isolcpus= at boot) and stop \
+             DAMON while measuring (echo off > /sys/kernel/mm/damon/admin/kdamonds/N/state); \
+             drivelab changes nothing"
+                .into(),
+        ),
+    )
+}
+
 fn dev_shm_check(fs: &Fs) -> Check {
     const NAME: &str = "/dev/shm";
     let path = fs.path("/dev/shm");
@@ -1593,7 +1780,7 @@ mod tests {
     use super::*;
     use std::sync::atomic::{AtomicUsize, Ordering};
 
-    const REQUIRED: [&str; 9] = [
+    const REQUIRED: [&str; 10] = [
         "preemption",
         "rt throttling",
         "governor",
@@ -1603,6 +1790,7 @@ mod tests {
         "/dev/shm",
         "other load",
         "device irqs",
+        "kernel threads",
     ];
 
     /// A fresh empty directory under the system temp dir, removed on drop.
@@ -1962,6 +2150,83 @@ mod tests {
         );
         // Other load makes the check warn (the child alone is enough).
         assert_eq!(other_load_check(&fs, BUSY_WINDOW).status, Status::Warn);
+    }
+
+    #[test]
+    fn kernel_threads_that_run_long_on_the_drive_cpus_are_named() {
+        let root = FakeRoot::new();
+        // /proc/PID of a task `comm` with stat flags `flags`, `runs` runs of `us` µs each and
+        // allowed CPUs `cpus`.
+        let task = |pid: u32, comm: &str, flags: u64, us: u64, runs: u64, cpus: &str| {
+            root.write(
+                &format!("/proc/{pid}/stat"),
+                &format!("{pid} ({comm}) S 2 0 0 0 -1 {flags} 0 0 0 0 5 9 0 0 20 0 1 0\n"),
+            );
+            root.write(
+                &format!("/proc/{pid}/schedstat"),
+                &format!("{} 1000 {runs}\n", us * 1000 * runs),
+            );
+            root.write(
+                &format!("/proc/{pid}/status"),
+                &format!("Name:\t{comm}\nCpus_allowed_list:\t{cpus}\n"),
+            );
+        };
+        const KTHREAD: u64 = 0x0020_8040;
+        const FIXED: u64 = KTHREAD | 0x0400_0000;
+        task(77, "kdamond.0", KTHREAD, 586, 65_000, "0-1");
+        task(150, "kworker/u8:2-ipv6_addrconf", FIXED, 235, 10_000, "0-1");
+        // Left out: only on the OS's cpu, a few long runs at boot, short runs, exactly
+        // under the bound, and a user-space process however long its runs.
+        task(20, "kworker/0:1", FIXED, 900, 5_000, "0");
+        task(24, "irq/24-ACPI:Ged", KTHREAD, 1_800, 4, "0-1");
+        task(31, "ksoftirqd/1", FIXED, 36, 14_000, "1");
+        task(32, "khugepaged", KTHREAD, 99, 1_000, "0-1");
+        task(400, "busy (user)", 0x0040_0100, 5_000, 1_000, "0-1");
+        let damon = "/sys/kernel/mm/damon/admin/kdamonds";
+        root.write(&format!("{damon}/0/state"), "on\n");
+        root.write(&format!("{damon}/0/pid"), "77\n");
+        root.write(&format!("{damon}/1/state"), "off\n");
+        root.write(&format!("{damon}/1/pid"), "-1\n");
+        let c = kernel_thread_check(&root.fs(), &[0, 1]);
+        assert_eq!(
+            (c.status, c.value.as_str()),
+            (
+                Status::Warn,
+                "2 kernel thread(s) allowed on the drive's cpu 1 run 100 µs or more at a time on \
+                 average since boot: kdamond.0 (pid 77, 586 µs per run over 65000 runs, cpus \
+                 0-1, DAMON kdamond 0), kworker/u8:2-ipv6_addrconf (pid 150, 235 µs per run \
+                 over 10000 runs, cpus 0-1, fixed)"
+            )
+        );
+        assert!(c.advice.unwrap().contains("kdamonds/N/state"));
+        // With cpu 0 isolated, the drive's cpu is 0: the kworker bound to it is named too.
+        root.write("/sys/devices/system/cpu/isolated", "0\n");
+        let c = kernel_thread_check(&root.fs(), &[0, 1]);
+        assert!(
+            c.value
+                .starts_with("3 kernel thread(s) allowed on the drive's cpu 0")
+                && c.value.contains("kworker/0:1 (pid 20, 900 µs"),
+            "{}",
+            c.value
+        );
+        // A monitor whose thread runs short is still reported as on.
+        task(77, "kdamond.0", KTHREAD, 20, 65_000, "0-1");
+        task(150, "kworker/u8:2-ipv6_addrconf", FIXED, 20, 10_000, "0-1");
+        task(20, "kworker/0:1", FIXED, 20, 5_000, "0");
+        let c = kernel_thread_check(&root.fs(), &[0, 1]);
+        assert_eq!(
+            (c.status, c.value.as_str()),
+            (
+                Status::Ok,
+                "none allowed on the drive's cpu 0 runs 100 µs or more at a time on average; \
+                 DAMON on: kdamond 0 (pid 77)"
+            )
+        );
+        let empty = FakeRoot::new();
+        assert_eq!(
+            kernel_thread_check(&empty.fs(), &[0, 1]).status,
+            Status::Unknown
+        );
     }
 
     #[test]
