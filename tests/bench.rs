@@ -309,6 +309,39 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     let uds = chain["p99_ratio_to_uds"].as_f64().unwrap();
     assert_eq!(t["p99_ratio_to_uds"].as_f64(), Some(uds));
     assert_eq!(t["uds_met"].as_bool(), Some(uds <= 0.8));
+    // What each chain adds to the floor's p99, one against the other.
+    let p99 = |row: &serde_json::Value| row["cycle_us"]["p99"].as_f64().unwrap();
+    let uds_row = rows
+        .iter()
+        .find(|x| x["variant"] == "uds" && x["placement"] == "one-core")
+        .unwrap();
+    let f99 = p99(floor_of(can_request));
+    let above = (p99(uds_row) > f99).then(|| (p99(chain) - f99) / (p99(uds_row) - f99));
+    assert_eq!(t["p99_above_floor_ratio_to_uds"].as_f64(), above, "{t}");
+    // The floor's misses had its deadlines been due sooner: one figure per µs from 0 (its
+    // own misses, to the histogram's resolution), never fewer the sooner; the target reads
+    // it at the chain's p50 above the floor.
+    let curve: Vec<f64> = floor_of(can_request)["misses_pm_if_sooner_us"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    assert_eq!(curve.len(), 41);
+    assert!(curve.windows(2).all(|w| w[0] <= w[1]), "{curve:?}");
+    let floor_pm = floor_of(can_request)["misses_per_million"]
+        .as_f64()
+        .unwrap();
+    assert!(curve[0] <= floor_pm, "{curve:?} vs {floor_pm}");
+    let predicted = t["misses_floor_predicts"].as_f64().unwrap();
+    let d50 = t["p50_minus_floor_us"].as_f64().unwrap().clamp(0.0, 40.0);
+    let (lo, hi) = (curve[d50.floor() as usize], curve[d50.ceil() as usize]);
+    assert!(
+        lo <= predicted && predicted <= hi,
+        "{predicted} not in {lo}..{hi}"
+    );
+    // Only the floor carries the curve.
+    assert!(chain["misses_pm_if_sooner_us"].is_null());
     // The bare chain of the same request against the floor, and the chain against it.
     let b = &t["bare_chain"];
     let bare = rows
@@ -368,6 +401,21 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         md.contains("Targets at 10 kHz (iceoryx2 one-core against the floor"),
         "bench.md has no targets line"
     );
+    assert!(
+        md.contains(&format!(
+            "; the floor's own tail gives {predicted:.0}/M to a chain that costs its {:+.1} µs at every deadline",
+            t["p50_minus_floor_us"].as_f64().unwrap()
+        )),
+        "bench.md does not give the floor's prediction: {md}"
+    );
+    if let Some(a) = above {
+        assert!(
+            md.contains(&format!(
+                "; above the floor's p99, {a:.2} × what the Unix-socket chain adds)"
+            )),
+            "{md}"
+        );
+    }
     assert!(
         md.contains("The same critical path bare (timer and two futex wake-ups"),
         "bench.md does not compare with the bare chain"

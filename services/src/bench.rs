@@ -160,6 +160,34 @@ pub struct Row {
     /// Each interleaved round's own figures, in the order the rounds ran (the percentiles
     /// above are of all rounds merged).
     pub rounds: Vec<RoundFigures>,
+    /// The floor: its misses per million had every deadline been due d µs sooner, for d = 0,
+    /// 1, ... [`SOONER_MAX_US`] (index d; entry 0 is the floor's own misses, to the
+    /// histogram's resolution). What this machine's timer tail alone gives a chain that
+    /// costs d µs per sample and has no tail of its own.
+    pub misses_pm_if_sooner_us: Option<Vec<f64>>,
+}
+
+/// The largest shift of [`Row::misses_pm_if_sooner_us`], µs.
+pub const SOONER_MAX_US: u32 = 40;
+
+/// [`Row::misses_pm_if_sooner_us`] of a floor whose deadline lateness is `cycle`, at a
+/// period of `ts_ns`.
+fn misses_pm_if_sooner(cycle: &LatencyHist, ts_ns: u64) -> Vec<f64> {
+    (0..=SOONER_MAX_US)
+        .map(|d| {
+            let above = cycle.count_above_ns(ts_ns.saturating_sub(u64::from(d) * 1000));
+            per_million(above, cycle.len())
+        })
+        .collect()
+}
+
+/// `curve` (per-µs values from 0) at `d` µs, linear between the whole µs, clamped to its ends.
+fn at_shift(curve: &[f64], d: f64) -> Option<f64> {
+    let last = curve.len().checked_sub(1)?;
+    let d = d.clamp(0.0, last as f64);
+    let i = (d.floor() as usize).min(last);
+    let j = (i + 1).min(last);
+    Some(curve[i] + (curve[j] - curve[i]) * (d - i as f64))
 }
 
 /// One interleaved round of one variant.
@@ -244,6 +272,8 @@ fn row(job: &Job, hz: f64, m: &VariantResult, hgrm: &Path) -> Row {
         cpu_per_wakeup_us: m
             .cpu_run_ns
             .map(|ns| ns as f64 * 1e-3 / m.lateness.len().max(1) as f64),
+        misses_pm_if_sooner_us: (job.variant == "floor")
+            .then(|| misses_pm_if_sooner(&m.cycle, (1e9 / hz).round() as u64)),
     }
 }
 
@@ -622,6 +652,16 @@ pub struct Targets {
     pub p99_ratio_to_uds: Option<f64>,
     /// Within [`TARGET_UDS_RATIO`].
     pub uds_met: Option<bool>,
+    /// What each chain adds to the floor's p99, the iceoryx2 chain's over the Unix-socket
+    /// chain's: (cycle p99 − floor p99) / (Unix-socket p99 − floor p99). The machine's own
+    /// timer tail, which both chains share, left out of the ratio; `None` without the
+    /// Unix-socket chain, or when it is not above the floor.
+    pub p99_above_floor_ratio_to_uds: Option<f64>,
+    /// The misses per million the floor of the same run gives a chain that costs its p50
+    /// above the floor's at every deadline and has no tail of its own (the floor's deadline
+    /// lateness above T_s − that cost): how many of the chain's misses this machine's timer
+    /// tail accounts for. `None` when the floor's curve was not measured.
+    pub misses_floor_predicts: Option<f64>,
     /// The same targets round by round, each round's chain against that round's floor (two
     /// or more rounds): how much of a verdict the machine's noise decides.
     pub by_round: Option<TargetRounds>,
@@ -721,14 +761,24 @@ fn targets(rows: &[Row]) -> Vec<Targets> {
                 r.variant == variant && r.cpu_latency_request == chain.cpu_latency_request
             })
         };
-        let default_chain = default_chain.map(|(l, c)| (l, c, same_request("bare-chain", c)));
+        // The Unix-socket chain of the same placement, as `compare` pairs them.
+        let uds_of =
+            |chain: &Row| at_rate().find(|r| r.variant == "uds" && r.placement == chain.placement);
+        let default_chain = default_chain.map(|(l, c)| {
+            let others = Others {
+                bare: same_request("bare-chain", c),
+                uds: uds_of(c),
+            };
+            (l, c, others)
+        });
         let chains = default_chain.into_iter().chain(
             at_rate()
                 .filter(|r| r.variant == "topology")
-                .map(|r| (format!("topology {}", r.placement), r, None)),
+                .map(|r| (format!("topology {}", r.placement), r, Others::default())),
         );
-        for (label, chain, bare) in chains {
-            if let Some(t) = same_request("floor", chain).and_then(|f| goal(label, chain, f, bare))
+        for (label, chain, others) in chains {
+            if let Some(t) =
+                same_request("floor", chain).and_then(|f| goal(label, chain, f, others))
             {
                 goals.push(t);
             }
@@ -737,9 +787,24 @@ fn targets(rows: &[Row]) -> Vec<Targets> {
     goals
 }
 
-/// `chain`'s targets against `floor` (same rate, same request), with `bare`, the bare chain
-/// of the same run, when it was measured; `None` before [`compare`].
-fn goal(chain_label: String, chain: &Row, floor: &Row, bare: Option<&Row>) -> Option<Targets> {
+/// The rows a chain's targets also look at, when they were measured in the same run.
+#[derive(Default, Clone, Copy)]
+struct Others<'a> {
+    /// The bare chain (same rate and request).
+    bare: Option<&'a Row>,
+    /// The Unix-socket chain (same rate and placement).
+    uds: Option<&'a Row>,
+}
+
+/// (chain − floor) / (other − floor): what one chain adds to the floor against what another
+/// adds; `None` unless the other is above the floor.
+fn above_floor_ratio(chain: f64, other: f64, floor: f64) -> Option<f64> {
+    (other > floor).then(|| (chain - floor) / (other - floor))
+}
+
+/// `chain`'s targets against `floor` (same rate, same request), with the bare and the
+/// Unix-socket chains of the same run when they were measured; `None` before [`compare`].
+fn goal(chain_label: String, chain: &Row, floor: &Row, others: Others) -> Option<Targets> {
     let (d50, d99) = (chain.p50_minus_floor_us?, chain.p99_minus_floor_us?);
     let bound = misses_bound(floor.misses_per_million);
     Some(Targets {
@@ -755,8 +820,15 @@ fn goal(chain_label: String, chain: &Row, floor: &Row, bare: Option<&Row>) -> Op
         misses_met: chain.misses_per_million <= bound,
         p99_ratio_to_uds: chain.p99_ratio_to_uds,
         uds_met: chain.p99_ratio_to_uds.map(|u| u <= TARGET_UDS_RATIO),
+        p99_above_floor_ratio_to_uds: others.uds.and_then(|u| {
+            above_floor_ratio(chain.cycle_us.p99, u.cycle_us.p99, floor.cycle_us.p99)
+        }),
+        misses_floor_predicts: floor
+            .misses_pm_if_sooner_us
+            .as_deref()
+            .and_then(|c| at_shift(c, d50)),
         by_round: target_rounds(&chain.rounds, &floor.rounds),
-        bare_chain: bare.map(|b| BareChain::of(chain, b, floor)),
+        bare_chain: others.bare.map(|b| BareChain::of(chain, b, floor)),
     })
 }
 
@@ -815,12 +887,23 @@ fn median(v: &[f64]) -> f64 {
 /// One line of the report per chain and rate: the targets and whether each is met.
 fn targets_line(t: &Targets) -> String {
     let met = |ok: bool| if ok { "met" } else { "missed" };
+    let above_floor = match t.p99_above_floor_ratio_to_uds {
+        Some(r) => format!("; above the floor's p99, {r:.2} × what the Unix-socket chain adds"),
+        None => String::new(),
+    };
     let uds = match (t.p99_ratio_to_uds, t.uds_met) {
         (Some(r), Some(ok)) => format!(
-            "; p99 {r:.2} × the Unix-socket chain's (≤ {TARGET_UDS_RATIO}: {})",
+            "; p99 {r:.2} × the Unix-socket chain's (≤ {TARGET_UDS_RATIO}: {}{above_floor})",
             met(ok)
         ),
         _ => "; the Unix-socket chain was not measured".into(),
+    };
+    let predicted = match t.misses_floor_predicts {
+        Some(p) => format!(
+            "; the floor's own tail gives {p:.0}/M to a chain that costs its {:+.1} µs at every deadline",
+            t.p50_minus_floor_us
+        ),
+        None => String::new(),
     };
     let by_round = match &t.by_round {
         Some(r) => {
@@ -862,7 +945,7 @@ fn targets_line(t: &Targets) -> String {
         None => String::new(),
     };
     format!(
-        "Targets at {} kHz ({} against the floor, {}): p50 {:+.1} µs (≤ +{TARGET_P50_US}: {}); p99 {:+.1} µs (≤ +{TARGET_P99_US}: {}); misses {:.0}/M (≤ 2 × floor + 10 = {:.0}: {}){uds}.{by_round}{bare}",
+        "Targets at {} kHz ({} against the floor, {}): p50 {:+.1} µs (≤ +{TARGET_P50_US}: {}); p99 {:+.1} µs (≤ +{TARGET_P99_US}: {}); misses {:.0}/M (≤ 2 × floor + 10 = {:.0}: {}{predicted}){uds}.{by_round}{bare}",
         t.rate_hz / 1000.0,
         t.chain,
         if t.cpu_latency_request { "request held" } else { "no request" },
@@ -1573,6 +1656,42 @@ mod tests {
         let r = CrossRounds::of(&[wake(15.0, 30.0); 2], &[wake(18.0, 27.0); 2]).unwrap();
         assert_eq!(r.rounds_agreeing, 2);
         assert_eq!(CrossRounds::of(&floor[..1], &ct[..1]), None);
+    }
+
+    #[test]
+    fn the_floor_predicts_the_misses_of_a_chain_that_costs_only_its_median() {
+        // 10 kHz: 990 deadlines 12 µs late, 5 at 95 µs and 5 at 150 µs.
+        let mut h = LatencyHist::new("cycle");
+        for _ in 0..990 {
+            h.record_ns(12_000);
+        }
+        for _ in 0..5 {
+            h.record_ns(95_000);
+            h.record_ns(150_000);
+        }
+        let c = misses_pm_if_sooner(&h, 100_000);
+        assert_eq!(c.len(), SOONER_MAX_US as usize + 1);
+        // Due on time, only the 150 µs ones miss; due 5 µs sooner, 95 µs is not yet a miss;
+        // 6 µs sooner it is; none of the 12 µs ones ever is.
+        assert_eq!(
+            (c[0], c[5], c[6], c[40]),
+            (5_000.0, 5_000.0, 10_000.0, 10_000.0)
+        );
+        assert_eq!(at_shift(&c, 5.5), Some(7_500.0));
+        // A chain faster than the floor (sleep-then-spin) is read at 0, a slow one at the end.
+        assert_eq!(at_shift(&c, -3.0), Some(5_000.0));
+        assert_eq!(at_shift(&c, 99.0), Some(10_000.0));
+        assert_eq!(at_shift(&[], 1.0), None);
+    }
+
+    #[test]
+    fn what_a_chain_adds_to_the_floor_is_compared_with_what_another_adds() {
+        let r = above_floor_ratio(32.0, 39.0, 20.0).unwrap();
+        assert!((r - 12.0 / 19.0).abs() < 1e-12, "{r}");
+        // The raw ratio of the same p99s is 0.82: the shared floor hides the difference.
+        assert!((32.0_f64 / 39.0 - 0.82).abs() < 0.01);
+        assert_eq!(above_floor_ratio(32.0, 20.0, 20.0), None);
+        assert_eq!(above_floor_ratio(32.0, 18.0, 20.0), None);
     }
 
     #[test]

@@ -68,6 +68,12 @@ impl LatencyHist {
         self.h.is_empty()
     }
 
+    /// Number of values above `v` ns (a value within the resolution of `v`, 0.1 %, counts as
+    /// not above).
+    pub fn count_above_ns(&self, v: u64) -> u64 {
+        self.h.len() - self.h.count_between(0, v.min(MAX_NS))
+    }
+
     /// Value at quantile q (0..=1), ns.
     pub fn quantile_ns(&self, q: f64) -> u64 {
         self.h.value_at_quantile(q)
@@ -254,6 +260,19 @@ mod tests {
         assert!((p.p99 - 990.0).abs() < 1.0, "{p:?}");
         assert!((p.max - 1000.0).abs() < 1.0);
         assert_eq!(p.count, 1000);
+    }
+
+    #[test]
+    fn values_above_a_bound_are_counted() {
+        let mut h = LatencyHist::new("x");
+        for v in 1..=1000i64 {
+            h.record_ns(v * 1000); // 1..1000 µs
+        }
+        h.record_ns(i64::MAX); // clamped: still above every bound
+        assert_eq!(h.count_above_ns(990_000), 11);
+        assert_eq!(h.count_above_ns(989_000), 12);
+        assert_eq!(h.count_above_ns(0), 1001);
+        assert_eq!(h.count_above_ns(u64::MAX), 0);
     }
 
     #[test]
