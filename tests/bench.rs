@@ -408,6 +408,13 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         )),
         "bench.md does not give the floor's prediction: {md}"
     );
+    assert!(
+        md.contains(&format!(
+            "; p99 {uds:.3} × the Unix-socket chain's (≤ 0.8: {}",
+            if uds <= 0.8 { "met" } else { "missed" }
+        )),
+        "{md}"
+    );
     if let Some(a) = above {
         assert!(
             md.contains(&format!(

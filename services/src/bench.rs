@@ -893,7 +893,8 @@ fn targets_line(t: &Targets) -> String {
     };
     let uds = match (t.p99_ratio_to_uds, t.uds_met) {
         (Some(r), Some(ok)) => format!(
-            "; p99 {r:.2} × the Unix-socket chain's (≤ {TARGET_UDS_RATIO}: {}{above_floor})",
+            // Three decimals: 0.803 reads as missed, where "0.80" would not.
+            "; p99 {r:.3} × the Unix-socket chain's (≤ {TARGET_UDS_RATIO}: {}{above_floor})",
             met(ok)
         ),
         _ => "; the Unix-socket chain was not measured".into(),
