@@ -2,7 +2,7 @@
 //!
 //! Every check only **reads** (files under `/sys` and `/proc`, `uname`, `getrlimit`,
 //! `statvfs`; "other load" reads every thread's CPU time twice, 300 ms apart; "kernel
-//! threads" reads each kernel thread's run count and CPU time since boot). The one
+//! runs" reads every task's run count and CPU time since it started). The one
 //! active probe, "can this process use `SCHED_FIFO`", runs in a
 //! short-lived thread of its own that switches to `SCHED_FIFO` priority 1 and straight back
 //! to `SCHED_OTHER`, then exits; nothing persists. Advice strings describe what an operator
@@ -110,7 +110,7 @@ pub fn run_checks_in(root: &Path) -> Vec<Check> {
         cpuidle_check(&fs),
         cpu_latency_request_check(&fs),
         other_load_check(&fs, BUSY_WINDOW),
-        kernel_thread_check(&fs, &online),
+        kernel_runs_check(&fs, &online),
     ]
 }
 
@@ -1336,7 +1336,7 @@ const BUSY_WINDOW: std::time::Duration = std::time::Duration::from_millis(300);
 /// A task that used more than this share of one CPU over the window is reported.
 const BUSY_PERMILLE: u64 = 5;
 
-/// One user-space task as read from `/proc/PID/task/TID`.
+/// One task (a thread of a process, or a kernel thread) as read from `/proc/PID/task/TID`.
 #[derive(Debug, Clone, PartialEq)]
 struct TaskSample {
     pid: u32,
@@ -1346,8 +1346,33 @@ struct TaskSample {
     process: String,
     /// Time on a CPU so far (`schedstat`, ns).
     cpu_ns: u64,
+    /// Times it was put on a CPU so far (`schedstat`).
+    runs: u64,
+    /// Clock ticks it ran in user mode and in the kernel (`stat`: utime, stime).
+    user_ticks: u64,
+    system_ticks: u64,
+    /// A kernel thread (`PF_KTHREAD`).
+    kthread: bool,
+    /// User space may change its CPUs (no `PF_NO_SETAFFINITY`).
+    movable: bool,
     /// The CPUs it may run on (`Cpus_allowed_list`).
     allowed: String,
+}
+
+impl TaskSample {
+    /// Its time in the kernel per run on average since it started, ns: all of its time for
+    /// a kernel thread, the system share of it (stime over utime + stime) for a user task.
+    fn kernel_ns_per_run(&self) -> u64 {
+        let ticks = self.user_ticks + self.system_ticks;
+        let share = if self.kthread {
+            1.0
+        } else if ticks == 0 {
+            0.0
+        } else {
+            self.system_ticks as f64 / ticks as f64
+        };
+        (self.cpu_ns as f64 * share / self.runs.max(1) as f64) as u64
+    }
 }
 
 /// The name and the fields after it of a `/proc/.../stat` line ("pid (comm) state ppid pgrp
@@ -1373,8 +1398,7 @@ fn allowed_cpus(fs: &Fs, dir: &str) -> Option<String> {
         .map(|l| l.trim().to_string())
 }
 
-/// Every user-space thread of every process but `skip_pid` (kernel threads are left out:
-/// [`kernel_thread_check`] looks at them).
+/// Every thread of every process but `skip_pid`, kernel threads included.
 fn task_samples(fs: &Fs, skip_pid: u32) -> Vec<TaskSample> {
     let mut v = Vec::new();
     for pid in fs.numbered("/proc").unwrap_or_default() {
@@ -1393,14 +1417,19 @@ fn task_samples(fs: &Fs, skip_pid: u32) -> Vec<TaskSample> {
             let Some((comm, fields)) = stat_fields(&stat) else {
                 continue;
             };
-            let flags = fields.get(6).and_then(|f| f.parse::<u64>().ok());
-            if flags.is_none_or(|f| f & PF_KTHREAD != 0) {
+            let field = |i: usize| fields.get(i).and_then(|f| f.parse::<u64>().ok());
+            let Some(flags) = field(6) else {
                 continue;
-            }
-            let cpu_ns = fs
+            };
+            let sched: Vec<u64> = fs
                 .read(&format!("{dir}/schedstat"))
-                .and_then(|s| s.split_whitespace().next()?.parse().ok());
-            let Some(cpu_ns) = cpu_ns else {
+                .map(|s| {
+                    s.split_whitespace()
+                        .filter_map(|f| f.parse().ok())
+                        .collect()
+                })
+                .unwrap_or_default();
+            let Some(&cpu_ns) = sched.first() else {
                 continue;
             };
             v.push(TaskSample {
@@ -1409,6 +1438,11 @@ fn task_samples(fs: &Fs, skip_pid: u32) -> Vec<TaskSample> {
                 comm: comm.to_string(),
                 process: process.clone(),
                 cpu_ns,
+                runs: sched.get(2).copied().unwrap_or(0),
+                user_ticks: field(11).unwrap_or(0),
+                system_ticks: field(12).unwrap_or(0),
+                kthread: flags & PF_KTHREAD != 0,
+                movable: flags & PF_NO_SETAFFINITY == 0,
                 allowed: allowed_cpus(fs, &dir).unwrap_or_else(|| "?".into()),
             });
         }
@@ -1446,10 +1480,14 @@ fn busy_tasks(
 fn other_load_check(fs: &Fs, window: std::time::Duration) -> Check {
     const NAME: &str = "other load";
     let me = std::process::id();
-    let before = task_samples(fs, me);
+    let user_space = |mut v: Vec<TaskSample>| {
+        v.retain(|t| !t.kthread);
+        v
+    };
+    let before = user_space(task_samples(fs, me));
     let started = std::time::Instant::now();
     std::thread::sleep(window);
-    let after = task_samples(fs, me);
+    let after = user_space(task_samples(fs, me));
     if after.is_empty() {
         return Check::new(NAME, "no /proc task could be read", Status::Unknown, None);
     }
@@ -1519,77 +1557,12 @@ fn load_verdict(busy: Vec<(TaskSample, u64)>, ms: u128) -> Check {
     )
 }
 
-/// A kernel thread that has run this long per run on average since boot, µs, holds a CPU
-/// for a whole sample at 10 kHz.
+/// A task that spends this long in the kernel per run on average, µs, can hold a CPU for
+/// a whole sample at 10 kHz on a kernel without full preemption.
 const LONG_RUN_US: u64 = 100;
 
 /// ... once it has run this many times (not a thread that ran a few times at boot).
 const LONG_RUN_MIN_RUNS: u64 = 100;
-
-/// One kernel thread as read from `/proc/PID`.
-#[derive(Debug, Clone, PartialEq)]
-struct KernelThread {
-    pid: u32,
-    comm: String,
-    /// Time on a CPU since it started, ns (`schedstat`).
-    run_ns: u64,
-    /// Times it was put on a CPU (`schedstat`).
-    runs: u64,
-    /// The CPUs it may run on.
-    allowed: Vec<usize>,
-    /// User space may change its CPUs (no `PF_NO_SETAFFINITY`).
-    movable: bool,
-}
-
-impl KernelThread {
-    /// Average time per run, µs.
-    fn run_us(&self) -> u64 {
-        self.run_ns / self.runs.max(1) / 1000
-    }
-}
-
-/// Every kernel thread of `/proc` (a kernel thread is a process of one task).
-fn kernel_threads(fs: &Fs) -> Option<Vec<KernelThread>> {
-    let mut v = Vec::new();
-    for pid in fs.numbered("/proc")? {
-        let dir = format!("/proc/{pid}");
-        let Some(stat) = fs.read(&format!("{dir}/stat")) else {
-            continue;
-        };
-        let Some((comm, fields)) = stat_fields(&stat) else {
-            continue;
-        };
-        let Some(flags) = fields.get(6).and_then(|f| f.parse::<u64>().ok()) else {
-            continue;
-        };
-        if flags & PF_KTHREAD == 0 {
-            continue;
-        }
-        let sched: Vec<u64> = fs
-            .read(&format!("{dir}/schedstat"))
-            .map(|s| {
-                s.split_whitespace()
-                    .filter_map(|f| f.parse().ok())
-                    .collect()
-            })
-            .unwrap_or_default();
-        let (Some(&run_ns), Some(&runs)) = (sched.first(), sched.get(2)) else {
-            continue;
-        };
-        v.push(KernelThread {
-            pid,
-            comm: comm.to_string(),
-            run_ns,
-            runs,
-            allowed: allowed_cpus(fs, &dir)
-                .as_deref()
-                .and_then(parse_cpu_list)
-                .unwrap_or_default(),
-            movable: flags & PF_NO_SETAFFINITY == 0,
-        });
-    }
-    Some(v)
-}
 
 /// The DAMON monitors that are on (`/sys/kernel/mm/damon/admin/kdamonds/N/state`), with
 /// their thread's pid.
@@ -1608,40 +1581,43 @@ fn damon_on(fs: &Fs) -> Vec<(u32, Option<u32>)> {
         .collect()
 }
 
-/// Kernel threads allowed on a drive's CPUs that run long at a time (on average since boot):
-/// on a kernel without full preemption a drive's task that wakes while one runs waits until
-/// it reaches a preemption point. DAMON's monitor thread is named as such.
-fn kernel_thread_check(fs: &Fs, online: &[usize]) -> Check {
-    const NAME: &str = "kernel threads";
-    let Some(threads) = kernel_threads(fs) else {
-        return Check::new(NAME, "/proc not readable", Status::Unknown, None);
-    };
+/// Tasks allowed on a drive's CPUs that spend long in the kernel at a time (on average
+/// since they started): kernel threads, and user tasks by the kernel's share of their time.
+/// On a kernel without full preemption a drive task that wakes while one of them is in the
+/// kernel waits for its next preemption point (user code it preempts at once). A running
+/// drive's own tasks are left out; DAMON's monitor thread is named as such.
+fn kernel_runs_check(fs: &Fs, online: &[usize]) -> Check {
+    const NAME: &str = "kernel runs";
+    let tasks = task_samples(fs, std::process::id());
+    if tasks.is_empty() {
+        return Check::new(NAME, "no /proc task could be read", Status::Unknown, None);
+    }
     let drive = drive_cpus(fs, online);
     let damon = damon_on(fs);
-    let damon_of = |pid: u32| damon.iter().find(|(_, p)| *p == Some(pid)).map(|(n, _)| *n);
-    let mut long: Vec<&KernelThread> = threads
+    let mut long: Vec<&TaskSample> = tasks
         .iter()
-        .filter(|t| t.runs >= LONG_RUN_MIN_RUNS && t.run_us() >= LONG_RUN_US)
-        .filter(|t| t.allowed.iter().any(|c| drive.contains(c)))
+        .filter(|t| !t.process.starts_with("drivelab"))
+        .filter(|t| t.runs >= LONG_RUN_MIN_RUNS && t.kernel_ns_per_run() >= LONG_RUN_US * 1000)
+        .filter(|t| parse_cpu_list(&t.allowed).is_some_and(|a| a.iter().any(|c| drive.contains(c))))
         .collect();
-    long.sort_by(|a, b| b.run_us().cmp(&a.run_us()).then(a.pid.cmp(&b.pid)));
+    long.sort_by(|a, b| {
+        b.kernel_ns_per_run()
+            .cmp(&a.kernel_ns_per_run())
+            .then(a.tid.cmp(&b.tid))
+    });
     // The monitors whose thread is not named among the long ones.
-    let other_damon: Vec<&(u32, Option<u32>)> = damon
+    let other_damon: Vec<String> = damon
         .iter()
-        .filter(|(_, pid)| pid.is_none_or(|p| long.iter().all(|t| t.pid != p)))
+        .filter(|(_, pid)| pid.is_none_or(|p| long.iter().all(|t| t.tid != p)))
+        .map(|(n, pid)| match pid {
+            Some(p) => format!("kdamond {n} (pid {p})"),
+            None => format!("kdamond {n}"),
+        })
         .collect();
-    let damon_note = match other_damon.as_slice() {
-        [] => String::new(),
-        d => {
-            let names: Vec<String> = d
-                .iter()
-                .map(|(n, pid)| match pid {
-                    Some(p) => format!("kdamond {n} (pid {p})"),
-                    None => format!("kdamond {n}"),
-                })
-                .collect();
-            format!("; DAMON on: {}", names.join(", "))
-        }
+    let damon_note = if other_damon.is_empty() {
+        String::new()
+    } else {
+        format!("; DAMON on: {}", other_damon.join(", "))
     };
     let drive_list = if drive.is_empty() {
         "-".to_string()
@@ -1652,8 +1628,8 @@ fn kernel_thread_check(fs: &Fs, online: &[usize]) -> Check {
         return Check::new(
             NAME,
             format!(
-                "none allowed on the drive's cpu {drive_list} runs {LONG_RUN_US} µs or more at a \
-                 time on average{damon_note}"
+                "no task allowed on the drive's cpu {drive_list} spends {LONG_RUN_US} µs or more \
+                 in the kernel per run on average{damon_note}"
             ),
             Status::Ok,
             None,
@@ -1662,14 +1638,31 @@ fn kernel_thread_check(fs: &Fs, online: &[usize]) -> Check {
     let names: Vec<String> = long
         .iter()
         .map(|t| {
-            let damon = damon_of(t.pid).map_or(String::new(), |n| format!(", DAMON kdamond {n}"));
+            let who = if t.kthread {
+                format!("kernel thread, pid {}", t.pid)
+            } else if t.tid == t.pid {
+                format!("pid {}", t.pid)
+            } else {
+                format!("pid {} thread {}", t.pid, t.tid)
+            };
+            let per_run = if t.kthread {
+                format!("{} µs per run", t.kernel_ns_per_run() / 1000)
+            } else {
+                format!(
+                    "{} µs in the kernel of {} µs per run",
+                    t.kernel_ns_per_run() / 1000,
+                    t.cpu_ns / t.runs.max(1) / 1000
+                )
+            };
+            let damon = damon
+                .iter()
+                .find(|(_, p)| *p == Some(t.tid))
+                .map_or(String::new(), |(n, _)| format!(", DAMON kdamond {n}"));
             format!(
-                "{} (pid {}, {} µs per run over {} runs, cpus {}{}{damon})",
+                "{} ({who}, {per_run} over {} runs, cpus {}{}{damon})",
                 t.comm,
-                t.pid,
-                t.run_us(),
                 t.runs,
-                fmt_cpu_list(&t.allowed),
+                t.allowed,
                 if t.movable { "" } else { ", fixed" },
             )
         })
@@ -1677,16 +1670,16 @@ fn kernel_thread_check(fs: &Fs, online: &[usize]) -> Check {
     Check::new(
         NAME,
         format!(
-            "{} kernel thread(s) allowed on the drive's cpu {drive_list} run {LONG_RUN_US} µs or \
-             more at a time on average since boot: {}{damon_note}",
+            "{} task(s) allowed on the drive's cpu {drive_list} spend {LONG_RUN_US} µs or more \
+             in the kernel per run on average since they started: {}{damon_note}",
             long.len(),
             first_five(&names)
         ),
         Status::Warn,
         Some(
-            "on a kernel without full preemption a drive task that wakes while one of them runs \
-             waits for its next preemption point; keep them off the drive's cores (taskset -p -c \
-             CPUS PID for a thread not marked fixed, the OS's cpus in \
+            "on a kernel without full preemption a drive task that wakes while one of them is in \
+             the kernel waits for its next preemption point; keep them off the drive's cores \
+             (taskset -a -p -c CPUS PID for a task not marked fixed, the OS's cpus in \
              /sys/devices/virtual/workqueue/cpumask for kworkers, isolcpus= at boot) and stop \
              DAMON while measuring (echo off > /sys/kernel/mm/damon/admin/kdamonds/N/state); \
              drivelab changes nothing"
@@ -1790,7 +1783,7 @@ mod tests {
         "/dev/shm",
         "other load",
         "device irqs",
-        "kernel threads",
+        "kernel runs",
     ];
 
     /// A fresh empty directory under the system temp dir, removed on drop.
@@ -2036,6 +2029,11 @@ mod tests {
             comm: format!("t{tid}"),
             process: format!("p{pid}"),
             cpu_ns,
+            runs: 1,
+            user_ticks: 1,
+            system_ticks: 0,
+            kthread: false,
+            movable: true,
             allowed: "0-1".into(),
         }
     }
@@ -2062,9 +2060,10 @@ mod tests {
     }
 
     #[test]
-    fn task_samples_read_user_threads_and_skip_kernel_threads() {
+    fn task_samples_read_every_thread_and_mark_kernel_threads() {
         let root = FakeRoot::new();
-        // /proc/PID/task/TID of a process `comm` with stat flags `flags` and CPU time `ns`.
+        // /proc/PID/task/TID of a process `comm` with stat flags `flags` and CPU time `ns`
+        // (utime 3 and stime 1 ticks, 3 runs).
         let thread = |pid: u32, tid: u32, comm: &str, flags: u64, ns: u64| {
             root.write(&format!("/proc/{pid}/comm"), &format!("{comm}\n"));
             let dir = format!("/proc/{pid}/task/{tid}");
@@ -2083,7 +2082,8 @@ mod tests {
         // A user process whose name holds a space and a parenthesis, with two threads.
         thread(42, 42, "my (app) x", 4_194_560, 1_500);
         thread(42, 43, "my (app) x", 4_194_560, 7);
-        // A kernel thread (PF_KTHREAD in the flags): left out.
+        // A kernel thread (PF_KTHREAD) whose CPUs cannot be changed (PF_NO_SETAFFINITY);
+        // `/proc` lists by name, so pid 7 comes after 42.
         thread(7, 7, "kworker/1:1", 69_238_880, 99_999_999);
         // The doctor's own process: left out.
         thread(9, 9, "drivelab", 4_194_304, 5);
@@ -2096,14 +2096,30 @@ mod tests {
                     t.comm.as_str(),
                     t.process.as_str(),
                     t.cpu_ns,
-                    t.allowed.as_str()
+                    t.allowed.as_str(),
+                    t.kthread,
+                    t.movable
                 ))
                 .collect::<Vec<_>>(),
             vec![
-                (42, 42, "my (app) x", "my (app) x", 1_500, "1"),
-                (42, 43, "my (app) x", "my (app) x", 7, "1"),
+                (42, 42, "my (app) x", "my (app) x", 1_500, "1", false, true),
+                (42, 43, "my (app) x", "my (app) x", 7, "1", false, true),
+                (
+                    7,
+                    7,
+                    "kworker/1:1",
+                    "kworker/1:1",
+                    99_999_999,
+                    "1",
+                    true,
+                    false
+                ),
             ]
         );
+        assert!(got
+            .iter()
+            .all(|t| (t.runs, t.user_ticks, t.system_ticks) == (3, 3, 1)));
+        // Other load counts user-space tasks only: the kernel thread is not in it.
         // A quiet tree is OK; no /proc at all is unknown.
         let quiet = other_load_check(&root.fs(), std::time::Duration::from_millis(1));
         assert_eq!(quiet.status, Status::Ok, "{}", quiet.value);
@@ -2153,78 +2169,117 @@ mod tests {
     }
 
     #[test]
-    fn kernel_threads_that_run_long_on_the_drive_cpus_are_named() {
+    fn tasks_that_spend_long_in_the_kernel_on_the_drive_cpus_are_named() {
         let root = FakeRoot::new();
-        // /proc/PID of a task `comm` with stat flags `flags`, `runs` runs of `us` µs each and
-        // allowed CPUs `cpus`.
-        let task = |pid: u32, comm: &str, flags: u64, us: u64, runs: u64, cpus: &str| {
+        // /proc/PID/task/PID of a single-threaded task `comm` with stat flags `flags`, `runs`
+        // runs of `us` µs each (`user` and `sys` clock ticks) and allowed CPUs `cpus`.
+        let task = |pid: u32,
+                    comm: &str,
+                    flags: u64,
+                    us: u64,
+                    runs: u64,
+                    ticks: (u64, u64),
+                    cpus: &str| {
+            let dir = format!("/proc/{pid}/task/{pid}");
+            root.write(&format!("/proc/{pid}/comm"), &format!("{comm}\n"));
             root.write(
-                &format!("/proc/{pid}/stat"),
-                &format!("{pid} ({comm}) S 2 0 0 0 -1 {flags} 0 0 0 0 5 9 0 0 20 0 1 0\n"),
+                &format!("{dir}/stat"),
+                &format!(
+                    "{pid} ({comm}) S 2 0 0 0 -1 {flags} 0 0 0 0 {} {} 0 0 20 0 1 0\n",
+                    ticks.0, ticks.1
+                ),
             );
             root.write(
-                &format!("/proc/{pid}/schedstat"),
+                &format!("{dir}/schedstat"),
                 &format!("{} 1000 {runs}\n", us * 1000 * runs),
             );
             root.write(
-                &format!("/proc/{pid}/status"),
+                &format!("{dir}/status"),
                 &format!("Name:\t{comm}\nCpus_allowed_list:\t{cpus}\n"),
             );
         };
         const KTHREAD: u64 = 0x0020_8040;
         const FIXED: u64 = KTHREAD | 0x0400_0000;
-        task(77, "kdamond.0", KTHREAD, 586, 65_000, "0-1");
-        task(150, "kworker/u8:2-ipv6_addrconf", FIXED, 235, 10_000, "0-1");
-        // Left out: only on the OS's cpu, a few long runs at boot, short runs, exactly
-        // under the bound, and a user-space process however long its runs.
-        task(20, "kworker/0:1", FIXED, 900, 5_000, "0");
-        task(24, "irq/24-ACPI:Ged", KTHREAD, 1_800, 4, "0-1");
-        task(31, "ksoftirqd/1", FIXED, 36, 14_000, "1");
-        task(32, "khugepaged", KTHREAD, 99, 1_000, "0-1");
-        task(400, "busy (user)", 0x0040_0100, 5_000, 1_000, "0-1");
+        const USER: u64 = 0x0040_0100;
+        task(77, "kdamond.0", KTHREAD, 586, 65_000, (0, 4_713), "0-1");
+        task(
+            150,
+            "kworker/u8:2-ipv6_addrconf",
+            FIXED,
+            235,
+            10_000,
+            (0, 241),
+            "0-1",
+        );
+        // A user task that is in the kernel 90 % of its 640 µs runs: 576 µs.
+        task(
+            75,
+            "tokio-rt-worker",
+            USER,
+            640,
+            54_000,
+            (317, 2_853),
+            "0-1",
+        );
+        // Left out: only on the OS's cpu, a few long runs at boot, short runs, exactly under
+        // the bound, long runs of user code (preempted at once), a running drive's own task.
+        task(20, "kworker/0:1", FIXED, 900, 5_000, (0, 450), "0");
+        task(24, "irq/24-ACPI:Ged", KTHREAD, 1_800, 4, (0, 1), "0-1");
+        task(31, "ksoftirqd/1", FIXED, 36, 14_000, (0, 50), "1");
+        task(32, "khugepaged", KTHREAD, 99, 1_000, (0, 10), "0-1");
+        task(400, "make", USER, 5_000, 1_000, (495, 5), "0-1");
+        task(500, "drivelab-host", USER, 5_000, 1_000, (0, 500), "1");
         let damon = "/sys/kernel/mm/damon/admin/kdamonds";
         root.write(&format!("{damon}/0/state"), "on\n");
         root.write(&format!("{damon}/0/pid"), "77\n");
         root.write(&format!("{damon}/1/state"), "off\n");
         root.write(&format!("{damon}/1/pid"), "-1\n");
-        let c = kernel_thread_check(&root.fs(), &[0, 1]);
+        let c = kernel_runs_check(&root.fs(), &[0, 1]);
         assert_eq!(
             (c.status, c.value.as_str()),
             (
                 Status::Warn,
-                "2 kernel thread(s) allowed on the drive's cpu 1 run 100 µs or more at a time on \
-                 average since boot: kdamond.0 (pid 77, 586 µs per run over 65000 runs, cpus \
-                 0-1, DAMON kdamond 0), kworker/u8:2-ipv6_addrconf (pid 150, 235 µs per run \
-                 over 10000 runs, cpus 0-1, fixed)"
+                "3 task(s) allowed on the drive's cpu 1 spend 100 µs or more in the kernel per \
+                 run on average since they started: kdamond.0 (kernel thread, pid 77, 586 µs \
+                 per run over 65000 runs, cpus 0-1, DAMON kdamond 0), tokio-rt-worker (pid 75, \
+                 576 µs in the kernel of 640 µs per run over 54000 runs, cpus 0-1), \
+                 kworker/u8:2-ipv6_addrconf (kernel thread, pid 150, 235 µs per run over 10000 \
+                 runs, cpus 0-1, fixed)"
             )
         );
         assert!(c.advice.unwrap().contains("kdamonds/N/state"));
         // With cpu 0 isolated, the drive's cpu is 0: the kworker bound to it is named too.
         root.write("/sys/devices/system/cpu/isolated", "0\n");
-        let c = kernel_thread_check(&root.fs(), &[0, 1]);
+        let c = kernel_runs_check(&root.fs(), &[0, 1]);
         assert!(
             c.value
-                .starts_with("3 kernel thread(s) allowed on the drive's cpu 0")
-                && c.value.contains("kworker/0:1 (pid 20, 900 µs"),
+                .starts_with("4 task(s) allowed on the drive's cpu 0")
+                && c.value
+                    .contains("kworker/0:1 (kernel thread, pid 20, 900 µs"),
             "{}",
             c.value
         );
         // A monitor whose thread runs short is still reported as on.
-        task(77, "kdamond.0", KTHREAD, 20, 65_000, "0-1");
-        task(150, "kworker/u8:2-ipv6_addrconf", FIXED, 20, 10_000, "0-1");
-        task(20, "kworker/0:1", FIXED, 20, 5_000, "0");
-        let c = kernel_thread_check(&root.fs(), &[0, 1]);
+        for (pid, comm, flags, cpus) in [
+            (77, "kdamond.0", KTHREAD, "0-1"),
+            (150, "kworker/u8:2-ipv6_addrconf", FIXED, "0-1"),
+            (20, "kworker/0:1", FIXED, "0"),
+            (75, "tokio-rt-worker", USER, "0-1"),
+        ] {
+            task(pid, comm, flags, 20, 5_000, (0, 10), cpus);
+        }
+        let c = kernel_runs_check(&root.fs(), &[0, 1]);
         assert_eq!(
             (c.status, c.value.as_str()),
             (
                 Status::Ok,
-                "none allowed on the drive's cpu 0 runs 100 µs or more at a time on average; \
-                 DAMON on: kdamond 0 (pid 77)"
+                "no task allowed on the drive's cpu 0 spends 100 µs or more in the kernel per \
+                 run on average; DAMON on: kdamond 0 (pid 77)"
             )
         );
         let empty = FakeRoot::new();
         assert_eq!(
-            kernel_thread_check(&empty.fs(), &[0, 1]).status,
+            kernel_runs_check(&empty.fs(), &[0, 1]).status,
             Status::Unknown
         );
     }
