@@ -185,7 +185,7 @@ fn misses_pm_if_sooner(cycle: &LatencyHist, ts_ns: u64) -> Vec<f64> {
 fn at_shift(curve: &[f64], d: f64) -> Option<f64> {
     let last = curve.len().checked_sub(1)?;
     let d = d.clamp(0.0, last as f64);
-    let i = (d.floor() as usize).min(last);
+    let i = d.floor() as usize;
     let j = (i + 1).min(last);
     Some(curve[i] + (curve[j] - curve[i]) * (d - i as f64))
 }

@@ -782,6 +782,15 @@ fn drive_cpus(fs: &Fs, online: &[usize]) -> Vec<usize> {
     }
 }
 
+/// The drive's CPUs for a check's line: `-` when there are none.
+fn drive_cpu_text(drive: &[usize]) -> String {
+    if drive.is_empty() {
+        "-".into()
+    } else {
+        fmt_cpu_list(drive)
+    }
+}
+
 /// The first five of `items`, comma-separated, then how many more there are.
 fn first_five(items: &[String]) -> String {
     let mut s = items[..items.len().min(5)].join(", ");
@@ -864,18 +873,14 @@ fn device_irq_check(fs: &Fs, online: &[usize]) -> Check {
         .iter()
         .filter(|d| d.cpus.iter().any(|c| drive.contains(c)))
         .collect();
-    let drive_list = fmt_cpu_list(&drive);
+    let drive_list = drive_cpu_text(&drive);
     if on_drive.is_empty() {
         return Check::new(
             NAME,
             format!(
                 "{} device interrupt line(s), none served by the drive's cpu {}",
                 irqs.len(),
-                if drive.is_empty() {
-                    "-".into()
-                } else {
-                    drive_list
-                }
+                drive_list
             ),
             Status::Ok,
             None,
@@ -1619,11 +1624,7 @@ fn kernel_runs_check(fs: &Fs, online: &[usize]) -> Check {
     } else {
         format!("; DAMON on: {}", other_damon.join(", "))
     };
-    let drive_list = if drive.is_empty() {
-        "-".to_string()
-    } else {
-        fmt_cpu_list(&drive)
-    };
+    let drive_list = drive_cpu_text(&drive);
     if long.is_empty() {
         return Check::new(
             NAME,
