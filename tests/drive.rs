@@ -216,6 +216,9 @@ fn malformed_scenario_fails_with_a_clear_message_and_leaves_nothing() {
         ("motor.toml", "name = \"x\"\nduration_s = 0.01\n[motor]\npreset = \"nope\"\n", "unknown motor 'nope'"),
         ("syntax.toml", "name = \"x\n", "syntax.toml"),
         ("prio.toml", "name = \"x\"\nduration_s = 0.01\n[motor]\npreset = \"kyslan2015\"\n[placement.plant]\ncore = 1\npriority = 120\n", "placement"),
+        // A huge number is shown as typed, not as its 301 decimal digits.
+        ("huge.toml", "name = \"x\"\nduration_s = 0.01\n[motor]\npreset = \"kyslan2015\"\n[inverter]\nv_dc_v = 1e300\n", "inverter.v_dc_v = 1e300 must be in (0, 2000] V"),
+        ("hugeint.toml", "name = \"x\"\nduration_s = 0.01\n[motor]\npreset = \"kyslan2015\"\n[rates]\nspeed_divider = -1e300\n", "invalid type: floating point `-1e300`"),
     ];
     for (file, text, needle) in cases {
         let p = dir.join(file);
@@ -242,6 +245,7 @@ fn malformed_scenario_fails_with_a_clear_message_and_leaves_nothing() {
         assert!(lines[0].starts_with("drivelab: error: "), "{file}: {err}");
         assert!(err.contains(needle), "{file}: '{needle}' not in {err}");
         assert!(!err.contains("panicked"), "{file}: {err}");
+        assert!(lines[0].len() < 200, "{file}: {err}");
         assert!(
             !out.exists(),
             "{file}: a failed run left its folder {}",

@@ -214,6 +214,26 @@ fn bad_topologies_fail_with_one_line_naming_the_problem_and_leave_nothing() {
         assert!(!out.exists(), "{file}: a failed run left its folder");
         assert_clean(&bus);
     }
+    // A file named from the working folder, without a folder in its name.
+    let out = dir.join("out-relative");
+    let child = std::process::Command::new(DRIVELAB)
+        .current_dir(&dir)
+        .args(["run", "--clock", "lockstep", "--bus", &bus, "--out"])
+        .arg(&out)
+        .args(["--topology", "prio.toml"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let o = wait(child, std::time::Duration::from_secs(300), "drivelab run");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("priority = 120 must be in 1..=99") && err.lines().count() == 1,
+        "{err}"
+    );
+    assert!(!out.exists());
+    assert_clean(&bus);
     let o = drivelab(&["run", "--bus", &bus, "--topology", "three-process"]);
     assert_eq!(o.status.code(), Some(1));
     let err = String::from_utf8_lossy(&o.stderr);

@@ -346,7 +346,7 @@ fn run_case(c: &CampaignFile, case: &Case, a: &CampaignArgs, out: &Path) -> Case
             case: case.clone(),
             status: "error",
             out: dir,
-            error: Some(format!("{e:#}")),
+            error: Some(drivelab_runtime::text::readable_numbers(&format!("{e:#}")).into_owned()),
             expectations: Vec::new(),
             figures: serde_json::Map::new(),
             wall_s,

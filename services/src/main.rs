@@ -514,7 +514,10 @@ fn main() -> ExitCode {
                 // What failed was printed on its own lines.
                 return ExitCode::from(r.0);
             }
-            drivelab_services::errln!("drivelab: error: {e:#}");
+            drivelab_services::errln!(
+                "drivelab: error: {}",
+                drivelab_runtime::text::readable_numbers(&format!("{e:#}"))
+            );
             // A malformed expectation is a usage error, like a bad option.
             if e.downcast_ref::<drivelab_services::expect::UsageError>()
                 .is_some()

@@ -658,7 +658,10 @@ fn absolute_execs(
     procs: &mut [drivelab_runtime::topology::ProcessSpec],
     file: &Path,
 ) -> Result<()> {
-    let base = std::path::absolute(file.parent().unwrap_or(Path::new(".")))?;
+    // `Path::new("topology.toml").parent()` is `Some("")`: the working folder.
+    let dir = file.parent().filter(|d| !d.as_os_str().is_empty());
+    let base = std::path::absolute(dir.unwrap_or(Path::new(".")))
+        .with_context(|| format!("the folder of {}", file.display()))?;
     for p in procs.iter_mut() {
         if let Some(e) = drivelab_runtime::topology::exec_path(p, &base) {
             p.exec = Some(e.display().to_string());
@@ -1266,6 +1269,15 @@ mod tests {
         assert_eq!(procs[0].exec.as_deref(), Some("/etc/drivelab/bin/stage"));
         assert_eq!(procs[1].exec.as_deref(), Some("/opt/stage"));
         assert_eq!(procs[2].exec, None);
+        // A file named without a folder (`--topology my.toml`): the working folder.
+        let mut procs = sc.topology();
+        procs[0].exec = Some("bin/stage".into());
+        absolute_execs(&mut procs, Path::new("topology.toml")).unwrap();
+        let cwd = std::env::current_dir().unwrap();
+        assert_eq!(
+            procs[0].exec,
+            Some(cwd.join("bin/stage").display().to_string())
+        );
     }
 
     #[test]

@@ -57,6 +57,7 @@ pub mod service;
 pub mod stage;
 pub mod stages;
 pub mod telemetry;
+pub mod text;
 pub mod timing;
 pub mod topology;
 pub mod trace;

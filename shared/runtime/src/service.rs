@@ -198,7 +198,10 @@ pub fn host_main(user: &[(&'static str, StageFactory)]) -> std::process::ExitCod
     let args = HostArgs::parse();
     let name = args.process.clone().unwrap_or_else(|| "host".into());
     if let Err(e) = install_signal_handlers().and_then(|_| run_host(args, user)) {
-        crate::errln!("{name}: error: {e:#}");
+        crate::errln!(
+            "{name}: error: {}",
+            crate::text::readable_numbers(&format!("{e:#}"))
+        );
         return std::process::ExitCode::from(1);
     }
     std::process::ExitCode::SUCCESS

@@ -1,0 +1,100 @@
+//! Text for people: error lines that stay readable whatever number the user typed.
+
+use std::borrow::Cow;
+
+/// A number written with more digits than this is rewritten in exponent form. No identifier
+/// that an error line names is that long: a `u64` (seed, sample index) has at most 20
+/// digits and a bus id at most 24 characters, so only an out-of-range float is touched.
+const MAX_DIGITS: usize = 24;
+
+/// Rewrites every number in `text` that is written with more than 24 digits in exponent
+/// form: `duration_s = 1000…000 must be in (0, 3600]` (Rust prints `1e300` as 301 digits,
+/// and serde's "invalid type: floating point" does the same) becomes `duration_s = 1e300
+/// must be in (0, 3600]`. A number is a run of digits with an optional fraction and sign,
+/// not touching a letter, `_` or another digit; its value is kept (`f64`'s shortest exact
+/// form). Text without such a number is returned as it is.
+pub fn readable_numbers(text: &str) -> Cow<'_, str> {
+    let b = text.as_bytes();
+    let word = |c: u8| c.is_ascii_alphanumeric() || c == b'_';
+    let mut out = String::new();
+    let (mut done, mut i) = (0, 0);
+    while i < b.len() {
+        if !b[i].is_ascii_digit() || (i > 0 && (word(b[i - 1]) || b[i - 1] == b'.')) {
+            i += 1;
+            continue;
+        }
+        let start = if i > 0 && b[i - 1] == b'-' { i - 1 } else { i };
+        let mut end = i;
+        while end < b.len() && b[end].is_ascii_digit() {
+            end += 1;
+        }
+        if end + 1 < b.len() && b[end] == b'.' && b[end + 1].is_ascii_digit() {
+            end += 1;
+            while end < b.len() && b[end].is_ascii_digit() {
+                end += 1;
+            }
+        }
+        let digits = b[i..end].iter().filter(|c| c.is_ascii_digit()).count();
+        let ends_word = end < b.len() && word(b[end]);
+        if digits > MAX_DIGITS && !ends_word {
+            if let Ok(x) = text[start..end].parse::<f64>() {
+                out.push_str(&text[done..start]);
+                out.push_str(&format!("{x:e}"));
+                done = end;
+            }
+        }
+        i = end;
+    }
+    if done == 0 {
+        return Cow::Borrowed(text);
+    }
+    out.push_str(&text[done..]);
+    Cow::Owned(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::readable_numbers;
+
+    #[test]
+    fn a_huge_or_tiny_float_is_written_with_an_exponent_and_keeps_its_value() {
+        let huge = format!("duration_s = {} must be in (0, 3600]", 1e300);
+        assert!(huge.len() > 300);
+        assert_eq!(
+            readable_numbers(&huge),
+            "duration_s = 1e300 must be in (0, 3600]"
+        );
+        let line = format!("v = {} and {} V, f = {} Hz", -2.5e40, 1.25e-30, 3e30);
+        assert_eq!(
+            readable_numbers(&line),
+            "v = -2.5e40 and 1.25e-30 V, f = 3e30 Hz"
+        );
+        let serde = format!("invalid type: floating point `{}`, expected u64", 1e300);
+        assert_eq!(
+            readable_numbers(&serde),
+            "invalid type: floating point `1e300`, expected u64"
+        );
+    }
+
+    #[test]
+    fn ordinary_numbers_identifiers_and_words_are_left_alone() {
+        for s in [
+            "duration_s = 2.5 must be in (0, 3600]",
+            "seed 18446744073709551615 and sample 199999999",
+            "bus 999999999999999999999999 is in use",
+            "bus ab1000000000000000000000000 and x_1000000000000000000000000",
+            "1000000000000000000000000abc",
+            "no digits at all",
+        ] {
+            assert!(
+                matches!(readable_numbers(s), std::borrow::Cow::Borrowed(_)),
+                "{s}"
+            );
+        }
+        // 25 digits is past every identifier: rewritten.
+        assert_eq!(
+            readable_numbers("t = 1000000000000000000000000 s"),
+            "t = 1e24 s"
+        );
+    }
+}
