@@ -583,3 +583,69 @@ fn a_drive_whose_output_nobody_reads_any_more_still_finishes_and_cleans_up() {
     assert_clean(&bus);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn an_unprivileged_user_runs_the_drive_with_warnings_and_rt_strict_refuses_it() {
+    let _serial = serial();
+    let setpriv = "/usr/bin/setpriv";
+    assert!(
+        std::path::Path::new(setpriv).exists(),
+        "{setpriv} (util-linux) is needed to drop root"
+    );
+    // Nobody (uid 65534): no CAP_SYS_NICE, RLIMIT_RTPRIO 0, an 8 MiB RLIMIT_MEMLOCK, no
+    // access to /dev/cpu_dma_latency. Its run folder must be writable by it.
+    let dir = scratch("nopriv");
+    let open = dir.join("open");
+    std::fs::create_dir_all(&open).unwrap();
+    std::os::unix::fs::chown(&open, Some(65534), Some(65534)).unwrap();
+    let bus = bus_id("nopriv");
+    let as_nobody = |out: &std::path::Path, extra: &[&str]| {
+        let child = Command::new(setpriv)
+            .args(["--reuid", "65534", "--regid", "65534", "--clear-groups"])
+            .arg(DRIVELAB)
+            .args(["run", "--bus", &bus, "--no-plots", "--duration", "0.2"])
+            .arg("--out")
+            .arg(out)
+            .args(extra)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        wait(child, Duration::from_secs(120), "drivelab run as nobody")
+    };
+    let out = open.join("run");
+    let o = as_nobody(&out, &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(0), "{err}");
+    assert!(
+        err.contains("drivelab: warning: cannot hold a CPU wake-up latency request of 0 µs"),
+        "{err}"
+    );
+    assert!(
+        err.contains("plant: cpu 1, SCHED_OTHER, memory not locked; WARNING:")
+            && err.contains("SCHED_FIFO priority 70 refused"),
+        "{err}"
+    );
+    let s = summary(&out);
+    assert_eq!(s["samples_missing"], 0, "{}", s["missing_samples"]);
+    assert!(
+        s["timing"]["cpu_latency_request_error"]
+            .as_str()
+            .is_some_and(|e| e.contains("Permission denied")),
+        "{}",
+        s["timing"]
+    );
+    assert_clean(&bus);
+    // --rt-strict: the first refusal is the error, before anything starts.
+    let strict = open.join("strict");
+    let o = as_nobody(&strict, &["--rt-strict"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert_eq!(
+        err.trim_end(),
+        "drivelab: error: --rt-strict: cannot hold a CPU wake-up latency request of 0 µs \
+         (/dev/cpu_dma_latency: Permission denied (os error 13))"
+    );
+    assert!(!strict.exists(), "a refused run left its folder");
+    assert_clean(&bus);
+}

@@ -71,13 +71,10 @@ pub fn parse(spec: &str) -> Result<FaultSpec> {
         "hog" => hog::parse(spec).map(FaultSpec::Hog),
         "encoder-stuck" | "current-offset" => sensor::parse(spec).map(FaultSpec::Sensor),
         "random" => {
-            let n: u32 = rest
-                .parse()
-                .map_err(|_| anyhow!("fault '{spec}': N must be a whole number"))?;
-            if n == 0 || n > 10_000 {
-                bail!("fault '{spec}': N must be in 1..=10000");
+            match rest.parse::<u32>() {
+                Ok(n @ 1..=10_000) => Ok(FaultSpec::Random(n)),
+                _ => bail!("fault '{spec}': N must be a whole number in 1..=10000"),
             }
-            Ok(FaultSpec::Random(n))
         }
         "kill" | "stop" => {
             let (svc, when) = rest.split_once('@').ok_or_else(|| {
@@ -438,7 +435,13 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("unknown fault kind"));
-        assert!(parse("random:0").is_err());
+        for bad in ["0", "10001", "99999999999999999999999", "abc", "1e3"] {
+            let e = parse(&format!("random:{bad}")).unwrap_err().to_string();
+            assert_eq!(
+                e,
+                format!("fault 'random:{bad}': N must be a whole number in 1..=10000")
+            );
+        }
         for huge in ["1e20", "61", "0.0005"] {
             let e = parse(&format!("stop:observer@0.05:{huge}")).unwrap_err();
             assert!(

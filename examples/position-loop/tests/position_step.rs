@@ -89,6 +89,27 @@ fn run(name: &str) -> PathBuf {
 
 /// As [`run`], with `extra` arguments.
 fn run_with(name: &str, extra: &[&str]) -> PathBuf {
+    let (o, out, bus) = launch(name, extra);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        o.status.success(),
+        "drivelab run {extra:?} failed: {stderr}"
+    );
+    assert_clean(&bus);
+    out
+}
+
+/// Asserts that no process and no file of `bus` is left.
+fn assert_clean(bus: &str) {
+    let procs = processes_on_bus(bus);
+    assert!(procs.is_empty(), "processes left: {procs:?}");
+    let files = drivelab_runtime::bus::leftovers(bus);
+    assert!(files.is_empty(), "bus files left: {files:?}");
+}
+
+/// `drivelab run` of the scenario into `<scratch>/run` with `extra` arguments, under a
+/// watchdog; its output, the run folder and the bus id.
+fn launch(name: &str, extra: &[&str]) -> (std::process::Output, PathBuf, String) {
     let exe = drivelab_exe();
     let dir = scratch(name);
     let sc = scenario_copy(&dir);
@@ -123,14 +144,7 @@ fn run_with(name: &str, extra: &[&str]) -> PathBuf {
         }
         std::thread::sleep(Duration::from_millis(20));
     }
-    let o = child.wait_with_output().unwrap();
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "drivelab {args:?} failed: {stderr}");
-    let procs = processes_on_bus(&bus);
-    assert!(procs.is_empty(), "processes left: {procs:?}");
-    let files = drivelab_runtime::bus::leftovers(&bus);
-    assert!(files.is_empty(), "bus files left: {files:?}");
-    out
+    (child.wait_with_output().unwrap(), out, bus)
 }
 
 /// trace.csv as named columns.
@@ -257,5 +271,20 @@ fn a_killed_user_stage_is_restarted_and_the_speed_loop_stops_following_it() {
         .unwrap();
     assert!(lost > 0, "{}", s["counters"]["speed-loop"]);
     assert!(s["processes"]["position-loop"]["stages"] == serde_json::json!(["position-loop"]));
+    remove_scratch(&out);
+}
+
+#[test]
+fn in_process_a_user_stage_is_refused_before_anything_is_made() {
+    let (o, out, bus) = launch("inprocess", &["--clock", "inprocess"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert_eq!(
+        err.trim_end(),
+        "drivelab: error: --clock inprocess runs the built-in stages only; process \
+         'position-loop' hosts user stages (position-loop): use --clock lockstep"
+    );
+    assert!(!out.exists(), "a refused run left its folder");
+    assert_clean(&bus);
     remove_scratch(&out);
 }

@@ -806,6 +806,18 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         }
         None => None,
     };
+    if o.clock == Clock::Inprocess {
+        if let Some(p) = topo.processes.iter().find(|p| p.exec.is_some()) {
+            bail!(
+                "--clock inprocess runs the built-in stages only; process '{}' hosts user stages ({}): use --clock lockstep",
+                p.name,
+                p.stages.join(", ")
+            );
+        }
+    }
+    // A real-time drive holds the CPU wake-up latency request while it runs (released when
+    // this value drops, or by the kernel if the launcher dies).
+    let (latency_request, latency_error) = cpu_latency_request(&sc, o)?;
     let out = o.out.clone().unwrap_or_else(|| default_out(&sc, o.clock));
     std::fs::create_dir_all(&out)
         .with_context(|| format!("cannot create run folder {}", out.display()))?;
@@ -814,9 +826,6 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     std::fs::write(&sc_path, toml::to_string(&sc)?)
         .with_context(|| format!("write {}", sc_path.display()))?;
     std::fs::write(out.join("topology.json"), serde_json::to_vec_pretty(&topo)?)?;
-    // A real-time drive holds the CPU wake-up latency request while it runs (released when
-    // this value drops, or by the kernel if the launcher dies).
-    let (latency_request, latency_error) = cpu_latency_request(&sc, o)?;
     let sinks = sinks::Sinks::new(
         Some(crate::trace_mcap::McapTrace::create(
             &out.join("trace.mcap"),
@@ -835,26 +844,17 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         hog_latency,
         bridge,
     } = match o.clock {
-        Clock::Inprocess => {
-            if let Some(p) = topo.processes.iter().find(|p| p.exec.is_some()) {
-                bail!(
-                    "--clock inprocess runs the built-in stages only; process '{}' hosts user stages ({}): use --clock lockstep",
-                    p.name,
-                    p.stages.join(", ")
-                );
-            }
-            BusRun {
-                rows: drivelab_runtime::stages::try_run_inprocess(&sc)?,
-                gaps: Vec::new(),
-                stats: None,
-                processes: json!({}),
-                info: json!({ "deadline_misses": 0 }),
-                events: Vec::new(),
-                failure: None,
-                hog_latency: Vec::new(),
-                bridge: None,
-            }
-        }
+        Clock::Inprocess => BusRun {
+            rows: drivelab_runtime::stages::try_run_inprocess(&sc)?,
+            gaps: Vec::new(),
+            stats: None,
+            processes: json!({}),
+            info: json!({ "deadline_misses": 0 }),
+            events: Vec::new(),
+            failure: None,
+            hog_latency: Vec::new(),
+            bridge: None,
+        },
         Clock::Lockstep | Clock::Realtime => {
             let clock = if o.clock == Clock::Lockstep {
                 BusClock::Lockstep

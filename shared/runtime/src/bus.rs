@@ -136,11 +136,15 @@ pub fn prepare_root(id: &str) -> Result<()> {
             ));
         }
     } else {
-        std::fs::DirBuilder::new()
-            .recursive(true)
-            .mode(0o755)
-            .create(parent)
-            .with_context(|| format!("cannot create {}", parent.display()))?;
+        // Shared by every user's buses, as /tmp is: anyone may make a folder in it, only its
+        // owner may remove it (sticky). The umask would narrow the mode given at creation.
+        match std::fs::create_dir(parent) {
+            Ok(()) => std::fs::set_permissions(parent, std::fs::Permissions::from_mode(0o1777))
+                .with_context(|| format!("cannot set the mode of {}", parent.display()))?,
+            // Made by another drive in the meantime.
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
+            Err(e) => return Err(anyhow!("cannot create {}: {e}", parent.display())),
+        }
     }
     if check_folder(root)? {
         // Ours: make sure nobody else can enter it.
@@ -150,7 +154,18 @@ pub fn prepare_root(id: &str) -> Result<()> {
         std::fs::DirBuilder::new()
             .mode(0o700)
             .create(root)
-            .with_context(|| format!("cannot create bus folder {}", root.display()))?;
+            .map_err(|e| {
+                let shared = if e.kind() == std::io::ErrorKind::PermissionDenied {
+                    format!(
+                        " ({} is not open to this user: its owner can open it to every user with `chmod 1777 {}`)",
+                        parent.display(),
+                        parent.display()
+                    )
+                } else {
+                    String::new()
+                };
+                anyhow!("cannot create bus folder {}: {e}{shared}", root.display())
+            })?;
         check_folder(root)?;
     }
     Ok(())
