@@ -544,6 +544,18 @@ fn bench_rounds_interleave_the_variants_and_merge_their_samples() {
         .unwrap();
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("--variants: unknown variant 'ice'"));
+    for bad in ["NaN", "-1", "inf"] {
+        let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
+            .args(["bench", &format!("--spin-us={bad}")])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{bad}: {err}");
+        assert!(
+            err.contains("--spin-us must be a number of µs >= 0") && err.lines().count() == 1,
+            "{bad}: {err}"
+        );
+    }
     let _ = std::fs::remove_dir_all(&out);
 }
 

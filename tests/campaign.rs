@@ -321,7 +321,7 @@ fn a_bad_campaign_is_a_one_line_error_before_any_run() {
         (
             "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nexpect = [\"peak <= 1\"]\n",
             2,
-            "unknown figure 'peak'",
+            "c.toml: expect: expectation 'peak <= 1': unknown figure 'peak'",
         ),
         (
             "name = \"x\"\nscenarios = [\"kyslan-pi\"]\n[sweep]\nkinds = [\"melt\"]\nstages = [\"plant\"]\nat_s = [0.1]\n",

@@ -1089,6 +1089,13 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     if !(1..=100).contains(&rounds) {
         return Err(anyhow!("--rounds must be in 1..=100, got {rounds}"));
     }
+    // Capped at T_s/4 per rate later; 0 skips the variant.
+    if !(a.spin_us.is_finite() && a.spin_us >= 0.0) {
+        return Err(anyhow!(
+            "--spin-us must be a number of µs >= 0 (0 skips the spin variant), got {}",
+            a.spin_us
+        ));
+    }
     let cyclictest = match drivelab_bench::cyclictest::locate(&a.cyclictest) {
         Ok(p) => Some(p),
         Err(why) => {

@@ -245,8 +245,11 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
     for spec in sets.iter().flatten() {
         crate::faults::parse(spec).map_err(|e| anyhow!("campaign {}: {e}", file.display()))?;
     }
-    crate::expect::collect(&[], &c.expect)
-        .map_err(|UsageError(m)| UsageError(format!("campaign {}: {m}", file.display())))?;
+    for e in &c.expect {
+        crate::expect::parse(e).map_err(|UsageError(m)| {
+            UsageError(format!("campaign {}: expect: {m}", file.display()))
+        })?;
+    }
     let base = file.parent().unwrap_or(Path::new("."));
     let mut scenarios = Vec::new();
     for s in &c.scenarios {
