@@ -240,6 +240,14 @@ impl StageHists {
     }
 }
 
+/// What the source saw at one deadline, in real time: its wake-up's lateness, ns, and the
+/// previous command (its index, its sample instant, when it was published, None: not there).
+#[derive(Clone, Copy)]
+struct Deadline {
+    wake_ns: Option<i64>,
+    cmd: Option<(u64, u64, Option<u64>)>,
+}
+
 /// Where a stage's input comes from in this topology.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Origin {
@@ -767,6 +775,17 @@ impl<T: Transport> Host<T> {
             while now_ns() < until {
                 std::hint::spin_loop();
             }
+        }
+    }
+
+    /// Source: records what a deadline showed (see [`Deadline`]).
+    fn account_deadline(&mut self, seen: Deadline) {
+        if let Some(w) = seen.wake_ns {
+            self.stages[0].hists.wake.record_ns(w);
+        }
+        if let Some((kc, t_k, avail)) = seen.cmd {
+            self.cycle.at_deadline(t_k, avail);
+            self.observe_cycle(kc, t_k, avail, true);
         }
     }
 
@@ -1304,21 +1323,24 @@ impl<T: Transport> Host<T> {
                     sleep_until_ns(deadline);
                 }
                 t_woken = now_ns();
-                self.stages[0]
-                    .hists
-                    .wake
-                    .record_ns(t_woken as i64 - deadline as i64);
                 self.drain_external(None, Some(k))?;
             } else if k > 0 && !self.wait_inputs(0, k)? {
                 break;
             }
-            if realtime && (k > k_start || (k > 0 && !self.cfg.rejoin)) {
-                if let Some(t) = cmd_topic {
-                    let avail = self.store.get(t, k - 1).map(|m| m.hdr().t_pub_ns);
-                    self.cycle.at_deadline(deadline - ts_ns, avail);
-                    self.observe_cycle(k - 1, deadline - ts_ns, avail, true);
-                }
-            }
+            // What this deadline showed (the wake-up's lateness, whether command k − 1 was
+            // there) is taken now and recorded once this sample's outputs are out: the
+            // histograms stay off the critical path (docs/architecture.md, "Where the
+            // microseconds go").
+            let seen = Deadline {
+                wake_ns: realtime.then(|| t_woken as i64 - deadline as i64),
+                cmd: match cmd_topic {
+                    Some(t) if realtime && (k > k_start || (k > 0 && !self.cfg.rejoin)) => {
+                        let avail = self.store.get(t, k - 1).map(|m| m.hdr().t_pub_ns);
+                        Some((k - 1, deadline - ts_ns, avail))
+                    }
+                    _ => None,
+                },
+            };
             if k == k_start {
                 loop_start = now_ns();
             }
@@ -1330,6 +1352,7 @@ impl<T: Transport> Host<T> {
                     ..Default::default()
                 };
                 self.forward_marker(0, hdr)?;
+                self.account_deadline(seen);
                 break;
             }
             // The source's execution starts when it wakes: taking its inputs is part of it.
@@ -1349,7 +1372,7 @@ impl<T: Transport> Host<T> {
             self.stages[0].counters.stale_inputs += stale;
             let mut out = Outbox::default();
             self.stages[0].stage.step(k, &ib, &mut out);
-            self.stages[0].hists.stepped(t_in, now_ns());
+            let t_end = now_ns();
             if realtime {
                 self.delay(0, k);
             }
@@ -1376,6 +1399,8 @@ impl<T: Transport> Host<T> {
                     self.transport.poke(t)?;
                 }
             }
+            self.stages[0].hists.stepped(t_in, t_end);
+            self.account_deadline(seen);
             self.stages[0].counters.samples += 1;
             self.stages[0].last_k = Some(k);
             // The rest of this process's chain, in order, on the source's outputs.
@@ -1526,10 +1551,12 @@ impl<T: Transport> Host<T> {
                 }
                 let t_in = now_ns();
                 let t_notify = self.transport.notified_ns(topic);
+                let more = self.run_chain(0, hdr.k, t_in)?;
+                // Recorded once the chain's outputs are out, off the critical path.
                 self.stages[0]
                     .hists
                     .input(t_in, hdr.t_pub_ns, t_notify, hdr.t_sample_ns);
-                if !self.run_chain(0, hdr.k, t_in)? {
+                if !more {
                     break 'outer;
                 }
             }
