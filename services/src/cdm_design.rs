@@ -208,7 +208,8 @@ pub fn render(motor: &str, d: &CdmDesign) -> String {
     let _ = writeln!(
         o,
         "operating point asked: V_ao = {} V, δ_o = {:.6}°; after the limits {:.4} V ≤ |V_ao| ≤ {:.4} V and |δ_o| ≤ 0.9·90° = 81°: V_ao = {} V, δ_o = {:.6}°, cos δ_o = {:.6}",
-        d.v_ao_in_v,
+        // Any value is clamped to the limits; a huge one is shown as typed (1e300).
+        drivelab_runtime::text::readable_numbers(&d.v_ao_in_v.to_string()),
         d.delta_o_in_rad.to_degrees(),
         cdm::V_AO_MIN_FRAC * d.v_amax_v,
         d.v_amax_v,
