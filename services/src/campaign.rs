@@ -349,7 +349,7 @@ fn run_case(c: &CampaignFile, case: &Case, a: &CampaignArgs, out: &Path) -> Case
             case: case.clone(),
             status: "error",
             out: dir,
-            error: Some(drivelab_runtime::text::readable_numbers(&format!("{e:#}")).into_owned()),
+            error: Some(drivelab_runtime::text::error_text(&e)),
             expectations: Vec::new(),
             figures: serde_json::Map::new(),
             wall_s,

@@ -516,7 +516,7 @@ fn main() -> ExitCode {
             }
             drivelab_services::errln!(
                 "drivelab: error: {}",
-                drivelab_runtime::text::readable_numbers(&format!("{e:#}"))
+                drivelab_runtime::text::error_text(&e)
             );
             // A malformed expectation is a usage error, like a bad option.
             if e.downcast_ref::<drivelab_services::expect::UsageError>()

@@ -198,10 +198,7 @@ pub fn host_main(user: &[(&'static str, StageFactory)]) -> std::process::ExitCod
     let args = HostArgs::parse();
     let name = args.process.clone().unwrap_or_else(|| "host".into());
     if let Err(e) = install_signal_handlers().and_then(|_| run_host(args, user)) {
-        crate::errln!(
-            "{name}: error: {}",
-            crate::text::readable_numbers(&format!("{e:#}"))
-        );
+        crate::errln!("{name}: error: {}", crate::text::error_text(&e));
         return std::process::ExitCode::from(1);
     }
     std::process::ExitCode::SUCCESS

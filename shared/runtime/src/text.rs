@@ -52,6 +52,12 @@ pub fn readable_numbers(text: &str) -> Cow<'_, str> {
     Cow::Owned(out)
 }
 
+/// An error and its causes on one line (`{e:#}`), its numbers readable: what every error line
+/// of drivelab and its stage hosts prints, and what a campaign records for a run that failed.
+pub fn error_text(e: &anyhow::Error) -> String {
+    readable_numbers(&format!("{e:#}")).into_owned()
+}
+
 #[cfg(test)]
 mod tests {
     use super::readable_numbers;
