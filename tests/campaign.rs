@@ -323,6 +323,17 @@ fn a_bad_campaign_is_a_one_line_error_before_any_run() {
             2,
             "c.toml: expect: expectation 'peak <= 1': unknown figure 'peak'",
         ),
+        // Checked against each scenario before the first run, not as a failed run.
+        (
+            "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nfaults = [[], [\"kill:plant@500\"]]\n",
+            1,
+            "kyslan-pi [kill:plant@500] seed 1: fault kill:plant@500 is at or after the end of the run (0.1 s)",
+        ),
+        (
+            "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nseeds = [1, 2]\nfaults = [[\"stop:nobody@0.05:0.01\"]]\n",
+            1,
+            "unknown stage 'nobody' (this drive's stages: plant, observer, current-loop, speed-loop)",
+        ),
         (
             "name = \"x\"\nscenarios = [\"kyslan-pi\"]\n[sweep]\nkinds = [\"melt\"]\nstages = [\"plant\"]\nat_s = [0.1]\n",
             1,

@@ -290,7 +290,58 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
             }
         }
     }
+    // Each scenario × fault set is checked as its run would be (faults against the
+    // scenario's stages and duration, topology, expectations); seeds only move random kills.
+    for case in cases.iter().step_by(c.seeds.len()) {
+        launcher::check(&options(&c, case, true, false, None)?).map_err(|e| {
+            anyhow!(
+                "campaign {}: {}: {}",
+                file.display(),
+                case.title(),
+                drivelab_runtime::text::error_text(&e)
+            )
+        })?;
+    }
     Ok((c, cases))
+}
+
+/// The drive options of one case: its folder `dir` and bus (None: a check only, see
+/// [`launcher::check`]).
+fn options(
+    c: &CampaignFile,
+    case: &Case,
+    no_rt: bool,
+    plots: bool,
+    dir: Option<PathBuf>,
+) -> Result<RunOptions> {
+    let faults = case
+        .faults
+        .iter()
+        .map(|f| crate::faults::parse(f))
+        .collect::<Result<Vec<_>>>()?;
+    Ok(RunOptions {
+        scenario: case.scenario.clone(),
+        clock: c.clock,
+        duration_s: c.duration_s,
+        // Unique per campaign process and run, so that campaigns can run side by side.
+        bus: dir
+            .as_ref()
+            .map(|_| format!("c{}_{}", std::process::id(), case.number)),
+        out: dir,
+        rt_strict: false,
+        no_rt,
+        no_plots: !plots,
+        verbose: false,
+        faults,
+        restart: c.restart,
+        fault_seed: case.seed,
+        lockstep_restart_ms: drivelab_runtime::inject::RESTART_DEFAULT_MS,
+        topology: c.topology.clone(),
+        expect: c.expect.clone(),
+        runner: None,
+        zenoh: None,
+        foxglove: None,
+    })
 }
 
 /// Runs one case.
@@ -298,32 +349,7 @@ fn run_case(c: &CampaignFile, case: &Case, a: &CampaignArgs, out: &Path) -> Case
     let dir = out.join("runs").join(format!("{:03}", case.number));
     let started = Instant::now();
     let result = (|| -> Result<Value> {
-        let faults = case
-            .faults
-            .iter()
-            .map(|f| crate::faults::parse(f))
-            .collect::<Result<Vec<_>>>()?;
-        let o = RunOptions {
-            scenario: case.scenario.clone(),
-            clock: c.clock,
-            duration_s: c.duration_s,
-            out: Some(dir.clone()),
-            // Unique per campaign process and run, so that campaigns can run side by side.
-            bus: Some(format!("c{}_{}", std::process::id(), case.number)),
-            rt_strict: false,
-            no_rt: a.no_rt,
-            no_plots: !a.plots,
-            verbose: false,
-            faults,
-            restart: c.restart,
-            fault_seed: case.seed,
-            lockstep_restart_ms: drivelab_runtime::inject::RESTART_DEFAULT_MS,
-            topology: c.topology.clone(),
-            expect: c.expect.clone(),
-            runner: None,
-            zenoh: None,
-            foxglove: None,
-        };
+        let o = options(c, case, a.no_rt, a.plots, Some(dir.clone()))?;
         Ok(launcher::run(&o)?.summary)
     })();
     let wall_s = started.elapsed().as_secs_f64();

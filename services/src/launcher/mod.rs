@@ -702,10 +702,25 @@ fn describe(
         .with_context(|| format!("{exe} --describe: not a stage list"))
 }
 
-/// Runs a scenario end to end and writes the run folder.
-pub fn run(o: &RunOptions) -> Result<RunResult> {
-    // The launcher stops on SIGINT/SIGTERM the same way the services do.
-    crate::common::install_signal_handlers()?;
+/// A run's options checked and resolved, before anything is created.
+struct Prepared {
+    sc: Scenario,
+    topo: TopologyPlan,
+    plan: Vec<crate::faults::Fault>,
+    hogs: Vec<crate::faults::hog::Hog>,
+    expectations: Vec<crate::expect::Expectation>,
+}
+
+/// Checks a run's options the way [`run`] does before it creates anything (scenario,
+/// duration, topology, faults against the run's stages and duration, expectations), without
+/// creating anything or touching a bus. A campaign checks every run with it before the first
+/// one starts.
+pub fn check(o: &RunOptions) -> Result<()> {
+    prepare(o).map(|_| ())
+}
+
+/// Everything [`run`] checks and resolves before the run folder is made.
+fn prepare(o: &RunOptions) -> Result<Prepared> {
     if o.zenoh.is_some() && o.clock == Clock::Inprocess {
         let flag = if o.zenoh.as_ref().is_some_and(|z| z.connect) {
             "--zenoh-connect"
@@ -787,6 +802,35 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     }
     // Simulated kills and stops, from the plan or a scenario's own [[inject]] tables.
     crate::faults::check_simulated(&sc.inject, simulated)?;
+    if o.clock == Clock::Inprocess {
+        if let Some(p) = topo.processes.iter().find(|p| p.exec.is_some()) {
+            bail!(
+                "--clock inprocess runs the built-in stages only; process '{}' hosts user stages ({}): use --clock lockstep",
+                p.name,
+                p.stages.join(", ")
+            );
+        }
+    }
+    Ok(Prepared {
+        sc,
+        topo,
+        plan,
+        hogs,
+        expectations,
+    })
+}
+
+/// Runs a scenario end to end and writes the run folder.
+pub fn run(o: &RunOptions) -> Result<RunResult> {
+    // The launcher stops on SIGINT/SIGTERM the same way the services do.
+    crate::common::install_signal_handlers()?;
+    let Prepared {
+        sc,
+        topo,
+        plan,
+        hogs,
+        expectations,
+    } = prepare(o)?;
     // The live stream's address is taken before anything is created: an address in use
     // leaves nothing behind.
     let live = match o.foxglove {
@@ -806,15 +850,6 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         }
         None => None,
     };
-    if o.clock == Clock::Inprocess {
-        if let Some(p) = topo.processes.iter().find(|p| p.exec.is_some()) {
-            bail!(
-                "--clock inprocess runs the built-in stages only; process '{}' hosts user stages ({}): use --clock lockstep",
-                p.name,
-                p.stages.join(", ")
-            );
-        }
-    }
     // A real-time drive holds the CPU wake-up latency request while it runs (released when
     // this value drops, or by the kernel if the launcher dies).
     let (latency_request, latency_error) = cpu_latency_request(&sc, o)?;
