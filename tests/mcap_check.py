@@ -7,7 +7,7 @@ write) and checks it against the run's trace.csv, summary.json and scenario.toml
 - with --wall: every recorded sample has its wall time, never decreasing;
 - one /log message per supervisor event and per fault report, at its sample;
 - with --services: per stage one /services message per second of the run, each covering
-  a second of samples; with --cycle (real time) the plant's with its cycle latency;
+  a second of samples, the last (part) second included; with --cycle (real time) the plant's with its cycle latency;
 - the metadata records `scenario` and `summary` equal scenario.toml and summary.json.
 
 Usage: mcap_check.py RUNDIR [--wall] [--services] [--cycle]. Prints one line; exit 1 on a mismatch.
@@ -89,15 +89,21 @@ def main():
         fail(f"/log times {[t for t, _ in logs]} are not those of the events and faults {want}")
     if "--services" in args:
         stages = [s for p in summary["processes"].values() for s in p["stages"]]
-        whole = int(summary["samples"] // fs)
+        # Every second, the last one too, whole or not (it ends with the stage's last status).
+        n_secs = math.ceil(summary["samples"] / fs)
         for st in stages:
             secs = seconds.get(st, [])
-            # The last second may end with the run, before its closing status.
-            if not whole - 1 <= len(secs) <= whole:
-                fail(f"{st}: {len(secs)} /services messages for a run of {whole} s")
-            ends = [int(m["k_to"] // fs) for _, m in secs]
-            if ends != sorted(set(ends)):
-                fail(f"{st}: not one message per second: seconds {ends}")
+            if len(secs) != n_secs:
+                fail(f"{st}: {len(secs)} /services messages for a run of {summary['samples'] / fs} s")
+            if st == "plant" and secs[-1][1]["k_to"] != summary["samples"] - 1:
+                fail(f"plant: the last /services message ends at sample {secs[-1][1]['k_to']}")
+            # In real time every second has a rate, the first one too.
+            if "--cycle" in args and any(not m["rate_hz"] > 0 for _, m in secs):
+                fail(f"{st}: rates {[m['rate_hz'] for _, m in secs]}")
+            # A second opens at (or just past) its first sample.
+            starts = [int(m["k_from"] // fs) for _, m in secs]
+            if starts != list(range(n_secs)):
+                fail(f"{st}: not one message per second: seconds {starts}")
             for t, m in secs:
                 if m["k_to"] <= m["k_from"] or t != ns(m["t_s"]) or m["samples"] <= 0:
                     fail(f"{st}: a second of samples {m['k_from']}..{m['k_to']} at {t}")

@@ -227,7 +227,19 @@ impl Hub {
 
     /// Publishes the final view (END flag) and waits up to `wait` for the monitors to let go
     /// of the bus, so that its files can be removed.
+    /// Before that, takes the stages' last statuses and reports each one's last (part)
+    /// second.
     pub fn finish(&mut self, k_now: u64, tail: &TraceTail, wait: Duration) -> Result<()> {
+        self.poll(&[], k_now, tail)?;
+        for i in 0..self.view.stages() {
+            let s = &self.view.services[i];
+            if s.has_status == 0 {
+                continue;
+            }
+            if let Some(sec) = self.per_second.close(&self.stages[i], &s.status) {
+                self.sinks.second(&sec)?;
+            }
+        }
         self.publish(k_now, tail, FLAG_END)?;
         let t = Instant::now();
         while self.view_topic.dynamic_config().number_of_subscribers() > 0 && t.elapsed() < wait {

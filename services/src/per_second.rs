@@ -105,6 +105,12 @@ impl PerSecond {
         let slot = self.open.get_mut(st.service as usize)?;
         let before = match slot {
             Some(b) if b.pid == st.pid && st.samples >= b.samples => *b,
+            // A first status on a whole second (a drive's first, at sample 0) opens that
+            // second itself, with its wall time: the second's rate is known.
+            _ if st.hdr.k.is_multiple_of(self.samples_per_second) => {
+                *slot = Some(*st);
+                return None;
+            }
             // A first status or a restarted process: its counters start at zero, its
             // second at the sample it had reached (rounded down to a whole second).
             _ => ServiceStatus {
@@ -125,9 +131,23 @@ impl PerSecond {
             return None;
         }
         *slot = Some(*st);
+        Some(self.second(name, &before, st))
+    }
+
+    /// Closes stage `name`'s open second at its last status `st` (the run ended inside it):
+    /// the part second up to `st`, if `st` is newer than the status that opened it.
+    pub fn close(&mut self, name: &str, st: &ServiceStatus) -> Option<ServiceSecond> {
+        let slot = self.open.get_mut(st.service as usize)?;
+        let before = slot.filter(|b| b.pid == st.pid && st.hdr.k > b.hdr.k)?;
+        *slot = Some(*st);
+        Some(self.second(name, &before, st))
+    }
+
+    /// The figures between two statuses of one process.
+    fn second(&self, name: &str, before: &ServiceStatus, st: &ServiceStatus) -> ServiceSecond {
         let dt_s = st.hdr.t_pub_ns.saturating_sub(before.hdr.t_pub_ns) as f64 * 1e-9;
-        let samples = st.samples - before.samples;
-        Some(ServiceSecond {
+        let samples = st.samples.saturating_sub(before.samples);
+        ServiceSecond {
             service: name.to_string(),
             k_from: before.hdr.k,
             k_to: st.hdr.k,
@@ -144,7 +164,7 @@ impl PerSecond {
             wake_us: diff(&st.wake, &before.wake),
             exec_us: diff(&st.exec, &before.exec),
             cycle_us: diff(&st.cycle, &before.cycle),
-        })
+        }
     }
 }
 
@@ -227,5 +247,31 @@ mod tests {
         let mut s = status(5000, 9, 5.0, &[]);
         s.service = 2;
         assert!(p.offer("x", &s).is_none());
+    }
+
+    #[test]
+    fn a_first_status_at_sample_0_gives_the_first_second_its_rate_and_the_end_closes_the_last() {
+        let mut p = PerSecond::new(1, 1000.0);
+        assert!(p.offer("plant", &status(0, 7, 0.25, &[10_000])).is_none());
+        let sec = p
+            .offer("plant", &status(1000, 7, 1.25, &[10_000; 3]))
+            .unwrap();
+        assert_eq!((sec.k_from, sec.k_to, sec.samples), (0, 1000, 1000));
+        assert_eq!(sec.rate_hz, 1000.0, "the opening status has its wall time");
+        assert_eq!(
+            sec.exec_us.unwrap().count,
+            2,
+            "the second after sample 0's status"
+        );
+        // The run ends at sample 1499: its last status closes the part second.
+        let last = status(1499, 7, 1.75, &[10_000; 5]);
+        assert!(p.offer("plant", &last).is_none(), "not a whole second");
+        let sec = p.close("plant", &last).unwrap();
+        assert_eq!((sec.k_from, sec.k_to, sec.samples), (1000, 1499, 499));
+        assert_eq!(sec.rate_hz, 998.0);
+        assert_eq!(sec.exec_us.unwrap().count, 2);
+        // Nothing newer: nothing more to close; another process's status closes nothing.
+        assert!(p.close("plant", &last).is_none());
+        assert!(p.close("plant", &status(1600, 8, 1.9, &[])).is_none());
     }
 }

@@ -94,6 +94,18 @@ pub trait Transport {
     ) -> Result<()> {
         Ok(())
     }
+    /// The last status of stage `i`, at its last sample k, whether or not k is on the tenth
+    /// of a second (after the loop: the figures of the run's last part second).
+    fn final_status(
+        &mut self,
+        _i: usize,
+        _k: u64,
+        _c: &Counters,
+        _h: &StageHists,
+        _cycle: Option<&CycleMonitor>,
+    ) -> Result<()> {
+        Ok(())
+    }
 }
 
 /// A transport with no other process: outputs are kept for the caller.
@@ -816,13 +828,24 @@ impl<T: Transport> Host<T> {
         self.stages.first().is_some_and(|h| h.trigger().is_none())
     }
 
-    /// Runs until the end marker, a stop request or an error.
+    /// Runs until the end marker, a stop request or an error; then sends each stage's last
+    /// status, so that the run's last second is reported too.
     pub fn run(&mut self) -> Result<()> {
         if self.is_source() {
-            self.run_source()
+            self.run_source()?;
         } else {
-            self.run_triggered()
+            self.run_triggered()?;
         }
+        for i in 0..self.stages.len() {
+            let Some(k) = self.stages[i].last_k else {
+                continue;
+            };
+            let cyc = (i == 0 && self.is_source()).then_some(&self.cycle);
+            let h = &self.stages[i];
+            self.transport
+                .final_status(i, k, &h.counters, &h.hists, cyc)?;
+        }
+        Ok(())
     }
 
     // ---------------------------------------------------------------- inputs

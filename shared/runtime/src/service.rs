@@ -964,6 +964,27 @@ impl Transport for BusTransport {
             None => Ok(()),
         }
     }
+
+    fn final_status(
+        &mut self,
+        i: usize,
+        k: u64,
+        c: &Counters,
+        h: &StageHists,
+        cycle: Option<&CycleMonitor>,
+    ) -> Result<()> {
+        if self.shadow.is_some() {
+            return Ok(());
+        }
+        match self.status.get_mut(i) {
+            Some(s) => {
+                // Due now, whatever the tenth of a second.
+                s.next_k = 0;
+                s.tick(k, c, h, cycle)
+            }
+            None => Ok(()),
+        }
+    }
 }
 
 // ------------------------------------------------------------------ status and statistics
