@@ -51,48 +51,134 @@ fn none_rewritten(rewritten: impl IntoIterator<Item = Option<PathBuf>>) {
     );
 }
 
+/// Every subcommand, as `drivelab --help` lists them.
+const COMMANDS: [&str; 16] = [
+    "run",
+    "campaign",
+    "bench",
+    "fault",
+    "clean",
+    "monitor",
+    "plot",
+    "plant",
+    "scenarios",
+    "design",
+    "compare",
+    "doctor",
+    "observer-error",
+    "cdm-design",
+    "record",
+    "export",
+];
+
 #[test]
 fn help_texts() {
     let mut rewritten = vec![snapshot("help", &["--help"])];
-    for cmd in [
-        "run",
-        "campaign",
-        "bench",
-        "fault",
-        "clean",
-        "monitor",
-        "plot",
-        "plant",
-        "scenarios",
-        "design",
-        "compare",
-        "doctor",
-        "observer-error",
-        "cdm-design",
-        "record",
-        "export",
-    ] {
+    for cmd in COMMANDS {
         rewritten.push(snapshot(&format!("help-{cmd}"), &[cmd, "--help"]));
     }
     none_rewritten(rewritten);
 }
 
+/// Option values that are not physical quantities (names, paths, counts, choices).
+const NOT_A_QUANTITY: &[&str] = &[
+    "DIR",
+    "FILE",
+    "BUS",
+    "MOTOR",
+    "ENDPOINT",
+    "SCENARIO",
+    "NAME",
+    "NAME,...",
+    "NAME|FILE",
+    "NAME|FILE,...",
+    "CMD",
+    "SPEC",
+    "RESTART",
+    "IN.csv",
+    "OUT.csv",
+    "EXPR",
+    "COLSxROWS",
+    "CLOCK",
+    "LIST",
+    "FAULT_SEED",
+    "N",
+];
+/// Option values whose name is their unit.
+const A_UNIT: &[&str] = &[
+    "SECONDS",
+    "MS",
+    "MICROSECONDS",
+    "HZ,...",
+    "VOLTS",
+    "AMPERES",
+    "RPM",
+    "RAD_PER_S",
+    "DEGREES",
+];
+
 #[test]
-fn every_help_has_an_example_and_units() {
-    for cmd in [
-        "run", "bench", "fault", "clean", "monitor", "plot", "plant", "design", "compare",
-        "doctor", "record",
-    ] {
+fn every_help_has_an_example_and_every_quantity_a_unit() {
+    // Any other value must name its unit in its help text.
+    let names_a_unit = |help: &str| {
+        help.split_whitespace()
+            .map(|w| w.trim_matches(|c: char| ",;:()[].'\"`".contains(c)))
+            .any(|w| {
+                w.ends_with('%')
+                    || [
+                        "s", "ms", "us", "µs", "second", "seconds", "Hz", "A", "V", "rad/s", "rpm",
+                        "degree", "degrees", "N·m",
+                    ]
+                    .contains(&w)
+            })
+    };
+    // `  -x, --name <VALUE>` or `  --name <VALUE>`: the option and its value.
+    let option = |line: &str| -> Option<(String, String)> {
+        let l = line.trim_start();
+        let l = l
+            .strip_prefix('-')
+            .and_then(|r| r.get(3..))
+            .filter(|_| !l.starts_with("--"))
+            .unwrap_or(l);
+        let (name, rest) = l.strip_prefix("--")?.split_once(' ')?;
+        let value = rest.strip_prefix('<')?.split_once('>')?.0;
+        Some((format!("--{name}"), value.to_string()))
+    };
+    let mut without = Vec::new();
+    for cmd in COMMANDS {
         let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
             .args([cmd, "--help"])
             .output()
             .unwrap();
+        assert!(o.status.success(), "drivelab {cmd} --help: {:?}", o.status);
         let t = String::from_utf8(o.stdout).unwrap();
         assert!(
             t.contains("Example"),
             "drivelab {cmd} --help has no example:\n{t}"
         );
+        let lines: Vec<&str> = t.lines().collect();
+        for (i, line) in lines.iter().enumerate() {
+            let Some((name, value)) = option(line) else {
+                continue;
+            };
+            if NOT_A_QUANTITY.contains(&value.as_str()) || A_UNIT.contains(&value.as_str()) {
+                continue;
+            }
+            // The option's help: the lines after it, up to the next blank one.
+            let help: Vec<&str> = lines[i + 1..]
+                .iter()
+                .take_while(|l| !l.trim().is_empty())
+                .copied()
+                .collect();
+            if !names_a_unit(&help.join(" ")) {
+                without.push(format!("drivelab {cmd} {name} <{value}>"));
+            }
+        }
     }
+    assert!(
+        without.is_empty(),
+        "options whose value names no unit (name it, or list the value as not a quantity): {without:?}"
+    );
 }
 
 #[test]

@@ -51,10 +51,10 @@ pub struct CdmArgs {
     )]
     pub i_q_a: f64,
     /// Section III: real part of the phase loop's poles, rad/s.
-    #[arg(long = "sigma-delta", value_name = "RAD_PER_S", default_value_t = polar::SIGMA_DELTA_RAD_S, allow_hyphen_values = true)]
+    #[arg(long = "sigma-delta-rad-s", alias = "sigma-delta", value_name = "RAD_PER_S", default_value_t = polar::SIGMA_DELTA_RAD_S, allow_hyphen_values = true)]
     pub sigma_delta: f64,
     /// Section III: real part of the amplitude loop's poles, rad/s.
-    #[arg(long = "sigma-v", value_name = "RAD_PER_S", default_value_t = polar::SIGMA_V_RAD_S, allow_hyphen_values = true)]
+    #[arg(long = "sigma-v-rad-s", alias = "sigma-v", value_name = "RAD_PER_S", default_value_t = polar::SIGMA_V_RAD_S, allow_hyphen_values = true)]
     pub sigma_v: f64,
     /// Print the design as JSON (SI units) instead of text.
     #[arg(long)]
@@ -101,7 +101,7 @@ pub fn run(a: &CdmArgs) -> Result<()> {
             let bad = |v: f64| !v.is_finite() || v >= 0.0;
             if !rpm.is_finite() || !a.i_q_a.is_finite() || bad(a.sigma_delta) || bad(a.sigma_v) {
                 bail!(
-                    "--speed-rpm and --i-q-a must be finite, --sigma-delta and --sigma-v negative"
+                    "--speed-rpm and --i-q-a must be finite, --sigma-delta-rad-s and --sigma-v-rad-s negative"
                 );
             }
             // The laws run mirrored to ω_e ≥ 0 (polar.rs, reading 7).

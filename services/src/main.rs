@@ -84,7 +84,7 @@ enum Cmd {
         /// only), drop:TOPIC@SECONDS:N (N messages not published), corrupt:TOPIC@SECONDS:N (N
         /// messages with NaN and 1e30), encoder-stuck@SECONDS:DURATION (the encoder reading
         /// frozen), current-offset:PHASE@SECONDS:AMPS (phase a, b or c measured with an offset
-        /// in A, to the end of the run). SECONDS are simulated time.
+        /// in A, to the end of the run). SECONDS and DURATION are seconds of simulated time (in real time the run's own clock).
         #[arg(long = "fault", value_name = "SPEC")]
         faults: Vec<String>,
         /// What the supervisor does when a process dies.
@@ -314,7 +314,8 @@ enum Cmd {
     /// Run the plant model alone, open loop, from rest, on recorded voltages.
     ///
     /// IN.csv has columns t,u_d,u_q,t_load (s, V, V, N·m), each row held from its t on.
-    /// OUT.csv gets t,u_d,u_q,t_load,i_d,i_q,omega_m,theta_e at the input rows' times.
+    /// OUT.csv gets t,u_d,u_q,t_load,i_d,i_q,omega_m,theta_e at the input rows' times
+    /// (i_d, i_q in A; omega_m in mechanical rad/s; theta_e in electrical rad).
     ///
     /// Example:
     ///   drivelab plant --replay volts.csv --out states.csv --motor kyslan2015
@@ -330,7 +331,12 @@ enum Cmd {
         #[arg(long, default_value = "kyslan2015")]
         motor: String,
         /// Largest RK4 step, seconds.
-        #[arg(long, default_value_t = 1e-5, value_name = "SECONDS")]
+        #[arg(
+            long = "max-step-s",
+            alias = "max-step",
+            default_value_t = 1e-5,
+            value_name = "SECONDS"
+        )]
         max_step: f64,
     },
     /// List the shipped scenarios with their purpose and the paper figure they reproduce.
@@ -801,13 +807,32 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                     );
                 }
                 if let Some(g) = s["missing_samples"].as_array().filter(|g| !g.is_empty()) {
-                    let n: u64 = g
-                        .iter()
-                        .map(|x| {
-                            x["to"].as_u64().unwrap_or(0) + 1 - x["from"].as_u64().unwrap_or(0)
-                        })
-                        .sum();
-                    drivelab_services::outln!("missing: {n} sample parts in {} ranges, each with its cause in summary.json → missing_samples", g.len());
+                    let count = |part: &str| -> u64 {
+                        g.iter()
+                            .filter(|x| x["part"] == part)
+                            .map(|x| {
+                                x["to"].as_u64().unwrap_or(0) + 1 - x["from"].as_u64().unwrap_or(0)
+                            })
+                            .sum()
+                    };
+                    let parts: Vec<String> =
+                        [("measurement", "measurements"), ("command", "commands")]
+                            .iter()
+                            .map(|&(one, many)| (count(one), one, many))
+                            .filter(|&(n, ..)| n > 0)
+                            .map(|(n, one, many)| {
+                                format!("{n} {}", if n == 1 { one } else { many })
+                            })
+                            .collect();
+                    drivelab_services::outln!(
+                        "missing from the trace: {} ({} {}); each cause in summary.json → missing_samples",
+                        parts.join(", "),
+                        g.len(),
+                        if g.len() == 1 { "range" } else { "ranges" }
+                    );
+                }
+                if let Some(w) = launcher::rate_warning(s, o.clock == Clock::Realtime) {
+                    drivelab_services::errln!("drivelab: warning: {w}");
                 }
                 if let Some(f) = s["faults"].as_array().filter(|f| !f.is_empty()) {
                     drivelab_services::outln!(
@@ -831,7 +856,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             max_step,
         } => {
             if !(max_step.is_finite() && max_step > 0.0) {
-                anyhow::bail!("--max-step must be a positive number of seconds, got {max_step}");
+                anyhow::bail!("--max-step-s must be a positive number of seconds, got {max_step}");
             }
             let m = drivelab_services::replay::resolve_motor(&motor)?;
             let n = drivelab_services::replay::replay(&replay, &out, &m, max_step)?;

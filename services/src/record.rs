@@ -249,7 +249,7 @@ fn percentiles_us(v: &mut [u64]) -> serde_json::Value {
     }
     v.sort_unstable();
     let at = |q: f64| v[((q * v.len() as f64).ceil() as usize).clamp(1, v.len()) - 1] as f64 / 1e3;
-    json!({ "p50": at(0.5), "p99": at(0.99), "p99_9": at(0.999), "max": at(1.0) })
+    json!({ "p50": at(0.5), "p99": at(0.99), "p999": at(0.999), "max": at(1.0) })
 }
 
 /// The drive's own missing samples from its summary: (from, to, part, cause).

@@ -702,6 +702,22 @@ fn describe(
         .with_context(|| format!("{exe} --describe: not a stage list"))
 }
 
+/// The warning for a real-time run that missed most of its deadlines without a fault: the
+/// chain does not hold its rate on this machine (a drive split over a network whose round
+/// trip is longer than a sample, a rate too high for the CPU). Faults miss deadlines by
+/// design, so a run with faults gets none.
+pub fn rate_warning(summary: &serde_json::Value, realtime: bool) -> Option<String> {
+    let misses = summary["deadline_misses"].as_u64()?;
+    let samples = summary["samples"].as_u64()?;
+    let faulted = summary["faults"].as_array().is_some_and(|f| !f.is_empty());
+    (realtime && !faulted && samples > 0 && misses * 2 > samples).then(|| {
+        format!(
+            "{misses} of {samples} deadlines missed: this chain does not hold {} kHz here (cycle latency in summary.json → latency_us.cycle)",
+            summary["rate_hz"].as_f64().unwrap_or(0.0) / 1000.0
+        )
+    })
+}
+
 /// A run's options checked and resolved, before anything is created.
 struct Prepared {
     sc: Scenario,
@@ -1192,6 +1208,27 @@ mod tests {
             part,
             cause: "fault".into(),
         }
+    }
+
+    #[test]
+    fn only_a_real_time_run_missing_most_deadlines_without_a_fault_is_warned_about() {
+        let run = |misses: u64, faults: serde_json::Value| json!({ "deadline_misses": misses, "samples": 1000, "rate_hz": 10000.0, "faults": faults });
+        assert_eq!(
+            rate_warning(&run(1000, json!([])), true).as_deref(),
+            Some("1000 of 1000 deadlines missed: this chain does not hold 10 kHz here (cycle latency in summary.json → latency_us.cycle)")
+        );
+        assert!(rate_warning(&run(501, json!([])), true).is_some());
+        // Half or fewer, lockstep (no deadlines), or misses that faults caused: no warning.
+        assert_eq!(rate_warning(&run(500, json!([])), true), None);
+        assert_eq!(rate_warning(&run(1000, json!([])), false), None);
+        assert_eq!(
+            rate_warning(&run(1000, json!([{ "fault": "kill:plant@0.1" }])), true),
+            None
+        );
+        assert_eq!(
+            rate_warning(&json!({ "samples": 0, "deadline_misses": 0 }), true),
+            None
+        );
     }
 
     #[test]
