@@ -135,6 +135,10 @@ pub fn prepare_root(id: &str) -> Result<()> {
                 parent.display()
             ));
         }
+        use std::os::unix::fs::MetadataExt;
+        // SAFETY: geteuid has no preconditions and cannot fail.
+        let me = unsafe { libc::geteuid() };
+        check_shared_owner(parent, m.uid(), me)?;
     } else {
         // Shared by every user's buses, as /tmp is: anyone may make a folder in it, only its
         // owner may remove it (sticky). The umask would narrow the mode given at creation.
@@ -169,6 +173,20 @@ pub fn prepare_root(id: &str) -> Result<()> {
         check_folder(root)?;
     }
     Ok(())
+}
+
+/// The shared parent of the bus folders must belong to root or to this user (`me`): the
+/// owner of a sticky folder may rename or remove any folder in it, so another user who owns
+/// it could swap a bus folder for one of theirs.
+fn check_shared_owner(parent: &std::path::Path, owner: u32, me: u32) -> Result<()> {
+    if owner == 0 || owner == me {
+        return Ok(());
+    }
+    Err(anyhow!(
+        "{} belongs to uid {owner}, neither root nor this user (uid {me}): its owner could replace this user's bus folders; as root, remove it (drivelab makes it again) or `chown root {}`",
+        parent.display(),
+        parent.display()
+    ))
 }
 
 /// Names of the live iceoryx2 nodes of bus `id` (none when the bus has no folder).
@@ -695,6 +713,20 @@ pub fn reap_dead_nodes(id: &str) -> Result<Vec<String>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_shared_folder_must_be_roots_or_this_users() {
+        let p = std::path::Path::new("/tmp/iceoryx2");
+        assert!(check_shared_owner(p, 0, 1000).is_ok());
+        assert!(check_shared_owner(p, 1000, 1000).is_ok());
+        assert!(check_shared_owner(p, 0, 0).is_ok());
+        let e = check_shared_owner(p, 65534, 0).unwrap_err().to_string();
+        assert_eq!(
+            e,
+            "/tmp/iceoryx2 belongs to uid 65534, neither root nor this user (uid 0): its owner could replace this user's bus folders; as root, remove it (drivelab makes it again) or `chown root /tmp/iceoryx2`"
+        );
+        assert!(check_shared_owner(p, 1001, 1000).is_err());
+    }
 
     #[test]
     fn bus_files_are_told_apart_by_id() {
