@@ -222,6 +222,33 @@ fn the_smoke_campaign_reports_every_run_in_json_markdown_and_junit() {
     // The exit code follows the runs: 3 when an expectation failed, 0 when all passed.
     let expected = if status.contains(&"fail") { 3 } else { 0 };
     assert_eq!(o.status.code(), Some(expected), "{status:?}");
+    // What must pass whatever the machine's load: the run without a fault (it has no fault
+    // figure, and its current is the drive's own), and in every run the current bound, which
+    // the restart's duration does not move (kill:current-loop 2.73 A, kill:speed-loop
+    // 2.26-2.36 A, kill:observer 1.93 A with a simulated restart of 40 ms to 2 s, lockstep).
+    // Tolerated: the `faults.*` expectations of the faulted runs, which are wall-clock
+    // figures of this real-time campaign (the speed recovery includes the killed process's
+    // restart, 0.8 s seen on a loaded machine; the detection is a scheduling latency); a
+    // failure there must still be counted and reported consistently (checked below).
+    assert_eq!(runs[0]["faults"], serde_json::json!([]), "{}", runs[0]);
+    assert_eq!(runs[0]["status"], "pass", "{}", runs[0]);
+    for r in runs {
+        let e = r["expectations"].as_array().unwrap();
+        let current = e
+            .iter()
+            .find(|x| x["expect"] == "peak_current_a <= 3.2")
+            .unwrap_or_else(|| panic!("no current expectation: {r}"));
+        assert_eq!(current["pass"], true, "{r}");
+        // Each fault expectation was evaluated on the run's one fault, not on nothing.
+        let n_faults = r["faults"].as_array().unwrap().len();
+        for x in e.iter().filter(|x| {
+            x["expect"]
+                .as_str()
+                .is_some_and(|s| s.starts_with("faults.*."))
+        }) {
+            assert_eq!(x["values"].as_array().unwrap().len(), n_faults, "{x}");
+        }
+    }
     let (_, cases) = junit(&out.join("junit.xml"));
     assert_eq!(cases.len(), 4);
     for (r, case) in runs.iter().zip(&cases) {

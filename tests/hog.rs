@@ -42,10 +42,22 @@ fn a_hog_above_the_drive_on_its_core_costs_deadlines_and_is_gone_at_the_end() {
     for side in ["before", "during"] {
         assert!(w["cycle_p99_us"][side].as_f64().is_some(), "{w}");
     }
-    // Back on schedule after the hog, or null when that was not seen: a figure either way.
-    assert!(w.get("cycle_recovered_ms").is_some(), "{w}");
-    // Safe state reached or not: a figure either way.
-    assert!(f.get("safe_state_ms").is_some(), "{f}");
+    // Back on schedule after the hog's end, in ms from its start: at least its 0.1 s, and
+    // within the latencies the recorder keeps (to 0.2 s + 5 × DUR past its end: 0.8 s from
+    // its start, less the 10 ms on schedule it takes); null, as documented, when it was not
+    // seen within them.
+    let recovered = &w["cycle_recovered_ms"];
+    assert!(
+        recovered.is_null()
+            || recovered
+                .as_f64()
+                .is_some_and(|ms| (100.0..=800.0).contains(&ms)),
+        "{w}"
+    );
+    // A plant starved by a hog above it sleeps through its deadlines and catches up with
+    // every command there (docs/architecture.md, the hog fault): no stale command reaches
+    // the simulated inverter, so no safe state.
+    assert!(f["safe_state_ms"].is_null(), "{f}");
     let throttling = &s["timing"]["rt_throttling"];
     assert!(
         throttling["sched_rt_runtime_us"].as_i64().is_some(),
@@ -74,10 +86,10 @@ fn a_hog_above_the_drive_on_its_core_costs_deadlines_and_is_gone_at_the_end() {
 fn without_the_privilege_for_sched_fifo_a_hog_is_a_one_line_error() {
     let _serial = serial();
     let setpriv = "/usr/bin/setpriv";
-    if !std::path::Path::new(setpriv).exists() {
-        eprintln!("skipped: no {setpriv} to drop root");
-        return;
-    }
+    assert!(
+        std::path::Path::new(setpriv).exists(),
+        "{setpriv} (util-linux) is needed to drop root"
+    );
     let bus = bus_id("hog-nopriv");
     // As user nobody (no CAP_SYS_NICE, RLIMIT_RTPRIO 0): refused before the drive starts.
     let o = std::process::Command::new(setpriv)

@@ -469,8 +469,23 @@ fn observer_converges_from_90_degrees_at_1200_rpm_to_the_truncation_bias() {
     // The summary's figure is the trace's; the error is the truncation's, as predicted for
     // this operating point (checked in steady_state).
     assert!((ss - ss_trace).abs() < 1e-9);
-    // It converges (the time is reported; no bound is derived for it from 90° away).
-    assert!(conv > 0.0, "convergence {conv} ms");
+    // It converges and stays converged: from the reported time to the end of the run the
+    // error keeps within the band the figure is defined with (±1° of the steady state), not
+    // only for the figure's 20 ms. No bound on the time itself: the error pole (τ_o = 1 ms)
+    // is not the only mode of this start. ω̂ starts at 0 and settles through the Bessel
+    // speed filter (group delay 2 ms: poles at −750 ± j433 rad/s, slower than 1/τ_o), and
+    // it schedules the observer's model and gains; so the time is only reported.
+    use drivelab_runtime::wiring::observer_sensorless::CONVERGED_BAND_DEG;
+    let converged: Vec<&TraceRow> = rows.iter().filter(|x| x.t * 1e3 >= conv - 1e-9).collect();
+    assert!(converged.len() > 1, "converged at {conv} ms, the run's end");
+    for x in converged {
+        let e = angle_error_deg(x);
+        assert!(
+            (e - ss).abs() <= CONVERGED_BAND_DEG,
+            "t = {} s: angle error {e}° left the ±{CONVERGED_BAND_DEG}° band around {ss}° after converging at {conv} ms",
+            x.t
+        );
+    }
     // The speed is held by the dynamometer and the current control is sensored throughout.
     assert!(rows.iter().all(|x| (x.omega_m - 1200.0 * RPM).abs() < 1e-9));
 

@@ -349,6 +349,13 @@ fn flux_weakening_with_the_papers_poles() {
     );
     let id_max = prop.trace().iter().map(|x| x.i_d).fold(f64::MIN, f64::max);
     eprintln!("q rise: conventional {rc:.0} µs, proposed {rp:.0} µs (ratio {:.2}); proposed max i_d {id_max:.3} A", rp / rc);
+    // Claim 1 is not reproduced on the proposed side: docs/paper-departures.md gives 6.0 ms
+    // against 7.5 ms (ratio 1.25), the proposed method slower than the ±20 % accepted.
+    assert!(
+        rp > 1.2 * rc,
+        "docs/paper-departures.md says the proposed q rise is more than 1.2× the conventional one; now {rp} µs against {rc} µs (ratio {})",
+        rp / rc
+    );
     assert!(
         id_max > 0.01,
         "the README says the claim is not reproduced; it now is: {id_max} A"

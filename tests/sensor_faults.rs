@@ -224,15 +224,18 @@ fn bad_sensor_faults_are_one_line_errors() {
 #[test]
 fn a_plant_restarted_inside_a_freeze_keeps_the_frozen_encoder_then_reads_true() {
     let _serial = serial();
-    // Real time: the encoder freezes at 0.1 s for 0.4 s, the plant is killed at 0.2 s and
-    // restarted by the supervisor (no timing is asserted, only what the controllers saw).
+    // Real time: the encoder freezes at 0.1 s for 4.9 s, the plant is killed at 0.2 s and
+    // restarted by the supervisor. The freeze is long enough that the restart lands inside
+    // it whatever the machine's load (a restart on a loaded machine has taken 0.8 s; this
+    // leaves 4.7 s); only what the controllers saw is asserted, never how fast it was.
+    let (k_freeze, k_thaw) = (1000u64, 50_000u64);
     let (out, s) = run_ok(
         "stuck-restart",
         &[
             "--duration",
-            "1",
+            "5.5",
             "--fault",
-            "encoder-stuck@0.1:0.4",
+            "encoder-stuck@0.1:4.9",
             "--fault",
             "kill:plant@0.2",
         ],
@@ -252,24 +255,35 @@ fn a_plant_restarted_inside_a_freeze_keeps_the_frozen_encoder_then_reads_true() 
         .map(|r| r.k + 1)
         .max()
         .expect("a plant downtime");
-    assert!(
-        resumed + 100 < 4900,
-        "the plant resumed after the freeze: {resumed}"
-    );
-    // The controllers' angle is the frozen reading of sample 1000 on every sample with a
-    // command up to the freeze's end, after the restart too: a restarted plant that froze
-    // anew, or read true, would show another angle.
-    let frozen = rows[1000].theta_hat;
-    assert_eq!(frozen, rows[1000].theta_e);
+    // The controllers' angle is the frozen reading of the freeze's first sample on every
+    // sample with a command up to the freeze's end, after the restart too: a restarted plant
+    // that froze anew, or read true, would show another angle.
+    let frozen = rows[k_freeze as usize].theta_hat;
+    assert_eq!(frozen, rows[k_freeze as usize].theta_e);
     let seen: Vec<&TraceRow> = rows
         .iter()
-        .filter(|r| (1000..5000).contains(&r.k) && r.plant_flags & 64 == 0)
+        .filter(|r| (k_freeze..k_thaw).contains(&r.k) && r.plant_flags & 64 == 0)
         .filter(|r| r.theta_hat.is_finite())
         .collect();
-    assert!(seen.iter().filter(|r| r.k > resumed).count() > 1000);
+    // At least 0.1 s of the restarted plant's samples inside the freeze, so the check below
+    // covers it. Failing here is a watchdog, not a latency figure: the restart took about
+    // 4.7 s or more.
+    let after_restart = seen.iter().filter(|r| r.k > resumed).count();
+    assert!(
+        after_restart >= 1000,
+        "watchdog: the plant resumed at sample {resumed}, {after_restart} commanded samples before the freeze's end at {k_thaw}"
+    );
     for r in seen {
         assert_eq!(r.theta_hat, frozen, "sample {} (resumed at {resumed})", r.k);
     }
-    let after = max_abs(&rows, 5500..6000, angle_error);
+    // Reading true again: 50 ms after the freeze's end the angle is right (over the samples
+    // with a command; a window without one would check nothing).
+    let thawed = k_thaw + 500..k_thaw + 1000;
+    let commanded = rows
+        .iter()
+        .filter(|r| thawed.contains(&r.k) && r.theta_hat.is_finite())
+        .count();
+    assert!(commanded > 0, "no command in samples {thawed:?}");
+    let after = max_abs(&rows, thawed, angle_error);
     assert!(after < 0.5, "angle error {after} rad after the freeze");
 }

@@ -5,8 +5,8 @@ use common::*;
 
 #[test]
 fn an_overcurrent_trips_the_inverter_latches_its_safe_state_and_is_reported_as_a_fault() {
-    // kyslan-pi drives i_q* to its 1.6 A limit on the speed step; a 1.2 A trip level (peak
-    // phase current) is crossed during that step.
+    // kyslan-pi's i_d* step to −1.6 A at 20 ms crosses a 1.2 A trip level (peak phase
+    // current); its speed step before that does not (i_q* peaks at 0.67 A).
     let sc = variant(
         "trip",
         "kyslan-pi",
@@ -16,14 +16,41 @@ fn an_overcurrent_trips_the_inverter_latches_its_safe_state_and_is_reported_as_a
     let rows = r.trace();
     const TRIPPED: u32 = 128;
     const SAFE: u32 = 4;
+    const I_TRIP_A: f64 = 1.2;
+    // The trip's comparator: the largest true phase current at t_k, from the row's true
+    // i_d, i_q and θ_e (the values the plant compared, bit for bit through the CSV).
+    let peak_phase = |x: &drivelab_runtime::trace::TraceRow| {
+        let dq = drivelab_control::transforms::Dq { d: x.i_d, q: x.i_q };
+        let (a, b, c) = drivelab_control::transforms::inverse_clarke(
+            drivelab_control::transforms::inverse_park(dq, x.theta_e),
+        );
+        a.abs().max(b.abs()).max(c.abs())
+    };
     let first = rows
         .iter()
         .position(|r| r.plant_flags & TRIPPED != 0)
-        .expect("the 1.2 A trip level must be crossed on the speed step");
-    // Before the trip every phase current (true, no noise in kyslan-pi's currents at the
-    // trip's comparator) stayed at or below the level at some sample; from it on the
-    // inverter is latched safe to the end of the run although every command arrived.
+        .expect("the 1.2 A trip level must be crossed on the i_d* step");
     assert!(first > 0);
+    assert_eq!(rows[first].i_d_ref, -1.6, "k = {}", rows[first].k);
+    // Before the trip every phase current stayed at or below the level; at the first
+    // tripped sample one is above it: the trip fired on the sample that crossed it, neither
+    // early nor late.
+    for x in &rows[..first] {
+        let i = peak_phase(x);
+        assert!(
+            i <= I_TRIP_A,
+            "k = {}: peak phase current {i} A untripped",
+            x.k
+        );
+    }
+    let at_trip = peak_phase(&rows[first]);
+    assert!(
+        at_trip > I_TRIP_A,
+        "k = {}: tripped at {at_trip} A",
+        rows[first].k
+    );
+    // From the trip on the inverter is latched safe to the end of the run although every
+    // command arrived.
     for r in &rows[first..] {
         assert_eq!(
             r.plant_flags & (TRIPPED | SAFE),
@@ -33,7 +60,6 @@ fn an_overcurrent_trips_the_inverter_latches_its_safe_state_and_is_reported_as_a
         );
         assert_eq!(r.miss, 0, "k = {}", r.k);
     }
-    assert!(rows[..first].iter().all(|r| r.plant_flags & TRIPPED == 0));
     // Reported like a fault, from the first tripped sample, with no recovery.
     let faults = r.summary["faults"].as_array().unwrap();
     assert_eq!(faults.len(), 1, "{faults:?}");

@@ -200,7 +200,10 @@ fn position_step_settles_within_one_percent() {
     // Bound from the design: slewing at ω_max = 100 rad/s takes 2π/100 = 63 ms at most, then
     // the P loop decays as exp(−K_p·t) with K_p = 1/(4·8 ms) = 31.25 /s: from at most the
     // whole step to 1 % takes ln(100)/K_p = 147 ms; plus the speed loop's 8 ms rise: 218 ms.
-    assert!(settle < 0.218 + 0.01, "settling time {settle} s");
+    // No slack on top: the bound counts the whole step twice (the slewing ends once
+    // K_p·error < ω_max, 3.2 rad before the target, and the decay starts from there), which
+    // covers the chain's sample delays (the 1 kHz position and speed loops' 1 ms each).
+    assert!(settle < 0.218, "settling time {settle} s");
     assert!((fin - target).abs() < tol, "final θ_m = {fin}");
     remove_scratch(&out);
 }

@@ -185,6 +185,14 @@ fn fill(ib: &mut Inbox, v: &[f64], ks: &[u64], fresh: &[bool]) {
 }
 
 /// Runs `stage` of `scenario` for the given steps of garbage and checks its outputs.
+///
+/// What each stage must publish (stages.rs): the plant a measurement at every step; the
+/// observer an estimate and the current loop a command whenever the measurement is fresh;
+/// the speed loop a current reference whenever the estimate is fresh and its index a speed
+/// sample (k mod speed_divider = 0). On other steps the speed loop may hold its last output,
+/// and the observer's estimate is only required to come without a panic. The first step of
+/// every case has a fresh measurement and a fresh estimate of a speed sample, so each stage
+/// publishes at least once and every case checks at least one output of its stage.
 fn steer(
     scenario: &str,
     stage: &str,
@@ -194,12 +202,32 @@ fn steer(
     let mut s = drivelab_runtime::stages::builtin(stage, &sc).unwrap();
     let u_max = sc.u_max();
     let i_max = sc.i_q_max();
+    let divider = u64::from(sc.rates.speed_divider);
+    let (mut checked, mut published) = (0usize, 0usize);
     for (k, (v, ks, fresh)) in steps.iter().enumerate() {
+        let (mut ks, mut fresh) = (ks.clone(), fresh.clone());
+        if k == 0 {
+            fresh[0] = true;
+            fresh[1] = true;
+            ks[1] -= ks[1] % divider;
+        }
         let mut ib = Inbox::default();
-        fill(&mut ib, v, ks, fresh);
+        fill(&mut ib, v, &ks, &fresh);
         let mut out = Outbox::default();
         s.step(k as u64 + 1, &ib, &mut out);
         s.after_publish();
+        let (topic, must) = match stage {
+            "plant" => (TopicId::Meas, true),
+            "observer" => (TopicId::Est, fresh[0]),
+            "current-loop" => (TopicId::Cmd, fresh[0]),
+            "speed-loop" => (TopicId::Iref, fresh[1] && ks[1] % divider == 0),
+            _ => unreachable!("{stage}"),
+        };
+        prop_assert!(
+            !must || out.get(topic).is_some(),
+            "{stage} of {scenario} published no {topic:?} at step {k}"
+        );
+        published += usize::from(out.get(topic).is_some());
         if let Some(Msg::Cmd(c)) = out.get(TopicId::Cmd) {
             // The voltage a controller commands stays finite and within V_dc/√3.
             let u = c.u_ab[0].hypot(c.u_ab[1]);
@@ -207,6 +235,7 @@ fn steer(
                 u.is_finite() && u <= u_max * (1.0 + 1e-9),
                 "{stage} of {scenario}: |u_ab| = {u} V > {u_max} V"
             );
+            checked += 1;
         }
         if let Some(Msg::Iref(r)) = out.get(TopicId::Iref) {
             prop_assert!(
@@ -214,6 +243,7 @@ fn steer(
                 "{stage} of {scenario}: i_q* = {} A, limit {i_max} A",
                 r.i_q_ref
             );
+            checked += 1;
         }
         if let Some(Msg::Meas(m)) = out.get(TopicId::Meas) {
             let u = m.u_ab_applied[0].hypot(m.u_ab_applied[1]);
@@ -221,7 +251,13 @@ fn steer(
                 u.is_finite() && u <= u_max * (1.0 + 1e-9),
                 "plant of {scenario}: applied |u_ab| = {u} V > {u_max} V"
             );
+            checked += 1;
         }
+    }
+    // Every case published; the stages that steer the plant had a bound checked.
+    prop_assert!(published > 0, "{stage} of {scenario} published nothing");
+    if stage != "observer" {
+        prop_assert!(checked > 0, "{stage} of {scenario}: no output checked");
     }
     Ok(())
 }
