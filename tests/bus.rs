@@ -11,7 +11,7 @@ use std::time::Duration;
 /// The pid that `drivelab fault` named as its own in the supervisor's answer.
 fn o_pid(o: &std::process::Output) -> u32 {
     let e = stderr(o);
-    let at = e.find("monitor pid ").expect("a pid in the answer") + "monitor pid ".len();
+    let at = e.find("requested by pid ").expect("a pid in the answer") + "requested by pid ".len();
     e[at..]
         .trim_end_matches(|c: char| !c.is_ascii_digit())
         .parse()
@@ -28,7 +28,7 @@ fn a_second_drive_on_a_busy_bus_is_refused_and_the_first_is_unharmed() {
     let dir = scratch("busy");
     let bus = bus_id("busy");
     let out = dir.join("first");
-    let first = start_drive(&bus, &out, &["--duration", "2"]);
+    let first = Drive::start(&bus, &out, &["--duration", "2"]);
     wait_for_services(&bus);
     let second = dir.join("second");
     let o = drivelab(&[
@@ -115,7 +115,7 @@ fn a_run_folder_lets_iceoryx2_tools_list_the_drives_services() {
     let dir = scratch("iox2cfg");
     let bus = bus_id("iox2cfg");
     let out = dir.join("run");
-    let drive = start_drive(&bus, &out, &["--clock", "lockstep", "--duration", "60"]);
+    let drive = Drive::start(&bus, &out, &["--clock", "lockstep", "--duration", "60"]);
     wait_for_services(&bus);
     let file = out.join("config/iceoryx2.toml");
     let printed = drivelab(&["bus-config", "--bus", &bus]);
@@ -144,7 +144,8 @@ fn a_run_folder_lets_iceoryx2_tools_list_the_drives_services() {
         CallbackProgression::Continue
     })
     .unwrap();
-    // Stop the drive before asserting, so that a failure leaves nothing running.
+    // Stop the drive (SIGINT: it cleans up after itself) before the checks of what was
+    // listed. A failure before this point is cleaned up by the drive's guard.
     let pid = drive.id().to_string();
     let _ = std::process::Command::new("kill")
         .args(["-INT", &pid])
@@ -168,10 +169,11 @@ fn drivelab_fault_goes_through_the_supervisor_and_cannot_hit_an_impostor() {
     let dir = scratch("impostor");
     let bus = bus_id("impostor");
     let out = dir.join("run");
-    let drive = start_drive(&bus, &out, &["--duration", "3"]);
+    let drive = Drive::start(&bus, &out, &["--duration", "3"]);
     wait_for_progress(&bus, 1000);
-    // A process that looks like the observer's host to anyone reading command lines.
-    let mut impostor = std::process::Command::new("python3")
+    // A process that looks like the observer's host to anyone reading command lines
+    // (killed by its guard if the test fails before it kills it).
+    let mut impostor: Drive = std::process::Command::new("python3")
         .args(["-c", "import time; time.sleep(60)"])
         .args([
             "--bus",
@@ -182,7 +184,8 @@ fn drivelab_fault_goes_through_the_supervisor_and_cannot_hit_an_impostor() {
             "observer",
         ])
         .spawn()
-        .expect("python3");
+        .expect("python3")
+        .into();
     // Bad requests fail before anything is sent.
     for (args, says) in [
         (
@@ -210,7 +213,7 @@ fn drivelab_fault_goes_through_the_supervisor_and_cannot_hit_an_impostor() {
     let d = wait(drive, Duration::from_secs(60), "the drive");
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(
-        stderr(&o).contains("inject observer: kill (from monitor pid"),
+        stderr(&o).contains("inject observer: kill (requested by pid"),
         "{}",
         stderr(&o)
     );
@@ -221,5 +224,5 @@ fn drivelab_fault_goes_through_the_supervisor_and_cannot_hit_an_impostor() {
     let s: Value = serde_json::from_slice(&read(&out.join("summary.json"))).unwrap();
     let f = &s["faults"][0];
     assert_eq!(f["service"], "observer");
-    assert_eq!(f["fault"], format!("kill (from monitor pid {})", o_pid(&o)));
+    assert_eq!(f["fault"], format!("kill (requested by pid {})", o_pid(&o)));
 }

@@ -174,6 +174,21 @@ fn lockstep_inprocess_and_clean_realtime_traces_are_bit_identical() {
         (200, false),
         "a lockstep run has no stale input"
     );
+    // What a real-time run must match at the least: the closed loop's response to the speed
+    // step, up to the sample at which the speed first reaches its reference (the rise, as
+    // the lockstep run has it). By then every stage has stepped on the others' messages
+    // many times round the loop and every state (currents, speed, the controllers'
+    // integrators) has moved far from its start; a shorter identity compares a start where
+    // most values are still zero, and one disturbed at its first row compares nothing.
+    // Disturbances are rare (a stage preempted by more than a sample), so three attempts
+    // give each its chance.
+    let rise = drivelab_runtime::trace::read_csv(&ls.join("trace.csv"))
+        .unwrap()
+        .iter()
+        .position(|r| r.omega_m >= r.omega_ref && r.omega_ref > 0.0)
+        .expect("the lockstep run reaches its speed reference");
+    let at_least = rise + 1;
+    let mut best = 0;
     let mut clean = false;
     for attempt in 0..3 {
         let (rt, s) = run_ok(
@@ -195,13 +210,21 @@ fn lockstep_inprocess_and_clean_realtime_traces_are_bit_identical() {
         eprintln!(
             "realtime attempt {attempt}: identical for {rows} of 200 rows (stale inputs {stale})"
         );
+        best = best.max(rows);
         if !disturbed {
             clean = true;
             break;
         }
     }
+    assert!(
+        best >= at_least,
+        "no real-time run was identical to lockstep up to the rise (sample {rise}): at most \
+         {best} rows, each disturbed by a stale input"
+    );
     if !clean {
-        eprintln!("NOTE: every real-time run had a flagged row; identity was checked up to it");
+        eprintln!(
+            "NOTE: every real-time run had a flagged row; the best was identical for {best} rows"
+        );
     }
 }
 
@@ -277,23 +300,13 @@ fn stopped_by(sig: libc::c_int, name: &str) {
     let dir = scratch(name);
     let bus = bus_id(name);
     let out = dir.join("run");
-    let mut child = start_drive(&bus, &out, &["--duration", "30"]);
+    let child = Drive::start(&bus, &out, &["--duration", "30"]);
     wait_for_progress(&bus, 1);
     // SAFETY: signalling a child process we spawned.
     unsafe { libc::kill(child.id() as i32, sig) };
-    let t = Instant::now();
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        assert!(
-            t.elapsed() < Duration::from_secs(30),
-            "watchdog: drivelab did not stop after {name}"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    };
-    let err = String::from_utf8_lossy(&child.wait_with_output().unwrap().stderr).into_owned();
-    assert_eq!(status.code(), Some(1), "{err}");
+    let o = child.wait_for_exit(Duration::from_secs(30), &format!("drivelab after {name}"));
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(err.contains("interrupted"), "{err}");
     assert_clean(&bus);
     // Nothing recorded is lost: the trace and the summary are written, the failure is in
@@ -506,7 +519,7 @@ fn the_launcher_keeps_off_the_stages_cores_and_an_unpinned_stage_starts_where_it
     );
     let bus = bus_id("offcores");
     let out = scratch("offcores");
-    let child = start_drive(
+    let child = Drive::start(
         &bus,
         &out,
         &["--duration", "3", "--scenario", sc.to_str().unwrap()],
@@ -557,22 +570,12 @@ fn a_drive_whose_output_nobody_reads_any_more_still_finishes_and_cleans_up() {
     let dir = scratch("closedpipe");
     let bus = bus_id("closedpipe");
     let out = dir.join("run");
-    let mut child = start_drive(&bus, &out, &["--duration", "0.5"]);
+    let mut child = Drive::start(&bus, &out, &["--duration", "0.5"]);
     // Both pipes closed at once: nobody reads stdout or stderr from here on.
     drop(child.stdout.take());
     drop(child.stderr.take());
-    let t = Instant::now();
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        assert!(
-            t.elapsed() < Duration::from_secs(60),
-            "watchdog: drivelab did not finish"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    };
-    assert_eq!(status.code(), Some(0));
+    let o = child.wait_for_exit(Duration::from_secs(60), "drivelab");
+    assert_eq!(o.status.code(), Some(0));
     let s: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     assert_eq!(
@@ -599,6 +602,17 @@ fn an_unprivileged_user_runs_the_drive_with_warnings_and_rt_strict_refuses_it() 
     std::fs::create_dir_all(&open).unwrap();
     std::os::unix::fs::chown(&open, Some(65534), Some(65534)).unwrap();
     let bus = bus_id("nopriv");
+    // The buses' shared parent folder belongs to root, as wherever root ran a drive first:
+    // made by nobody here, root's drives would refuse it afterwards (its owner could swap
+    // their bus folders).
+    let root = drivelab_runtime::bus::root_path(&bus);
+    let parent = std::path::Path::new(root.trim_end_matches('/'))
+        .parent()
+        .unwrap();
+    if std::fs::create_dir(parent).is_ok() {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(parent, std::fs::Permissions::from_mode(0o1777)).unwrap();
+    }
     let as_nobody = |out: &std::path::Path, extra: &[&str]| {
         let child = Command::new(setpriv)
             .args(["--reuid", "65534", "--regid", "65534", "--clear-groups"])

@@ -377,21 +377,54 @@ fn with_restart_never_a_killed_loop_stays_dead_and_the_drive_runs_degraded() {
         "i_q* not held after k = {}",
         d[0].k
     );
-    // The current loop runs on the clock, woken by every measurement, and its commands
-    // reach the plant in time: the inverter neither holds nor goes to its safe state
-    // (before it was woken in time, 84 % of the samples after an observer kill held a
-    // stale command and 73 % were in the safe state). A tenth allows for a loaded machine.
-    let k0 = f["injected_k"].as_u64().unwrap();
-    let after: Vec<_> = rows.iter().filter(|r| r.k > k0 + 10).collect();
-    let stale = after.iter().filter(|r| r.miss != 0).count();
-    let on_encoder = after
-        .iter()
-        .filter(|r| r.ctrl_flags & drivelab_runtime::messages::FLAG_STALE_INPUT != 0)
-        .count();
+    // Whether its encoder commands reach the plant before the plant's deadlines depends, in
+    // real time, on how the machine schedules the current loop: the real-time run checks
+    // only what its trace shows whatever the timing (above, and that every sample is in the
+    // trace or listed with its cause). What the fallback does is checked in lockstep, where
+    // the same kill is simulated at its sample (restart 10 s: not within the run, as with
+    // --restart never) and gives one exact trace: from the kill's sample on, the current
+    // loop makes every sample's command without an estimate (its encoder fallback), flagged
+    // as made from a stale input; so no command is missing, the inverter never holds one
+    // and never goes to its safe state; and the speed loop, without estimates, holds i_q*.
+    let (out, s) = run_ok(
+        "neverobs-ls",
+        &[
+            "--clock",
+            "lockstep",
+            "--duration",
+            "0.4",
+            "--fault",
+            "kill:observer@0.2",
+            "--lockstep-restart-ms",
+            "10000",
+        ],
+    );
+    let f = &s["faults"][0];
+    assert_eq!(f["service"], "observer", "{f}");
+    // kyslan-pi at 10 kHz: 4000 samples, the kill at 0.2 s.
+    let (k0, n) = (2000, 4000);
+    assert_eq!(f["injected_k"].as_u64(), Some(k0), "{f}");
+    let rows = drivelab_runtime::trace::read_csv(&out.join("trace.csv")).unwrap();
+    assert_eq!(rows.len() as u64, n);
+    use drivelab_runtime::messages::{
+        FLAG_MISSING, FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT,
+    };
+    let none = std::collections::BTreeSet::new();
+    let no_command = samples(&rows, |r| r.ctrl_flags & FLAG_MISSING != 0);
+    assert_eq!(no_command, none, "samples without a command");
+    let held_or_safe = samples(&rows, |r| {
+        r.miss != 0 || r.plant_flags & (FLAG_STALE_CMD | FLAG_SAFE_STATE) != 0
+    });
+    assert_eq!(
+        held_or_safe, none,
+        "the inverter held a command or was safe"
+    );
+    let stale_input = samples(&rows, |r| r.ctrl_flags & FLAG_STALE_INPUT != 0);
+    assert_eq!(stale_input, ks(k0..n), "commands made from a stale input");
+    let held = rows[k0 as usize].i_q_ref;
     assert!(
-        stale * 10 <= after.len() && on_encoder * 10 >= 9 * (after.len() - stale),
-        "{stale} of {} samples after the kill held a stale command, {on_encoder} ran on the encoder",
-        after.len()
+        rows[k0 as usize..].iter().all(|r| r.i_q_ref == held),
+        "i_q* not held from the kill on"
     );
 }
 
@@ -420,7 +453,7 @@ fn killing_every_child_stops_the_drive_and_cleans_up() {
     let dir = scratch("killall");
     let bus = bus_id("killall");
     let out = dir.join("run");
-    let child = start_drive(&bus, &out, &["--duration", "30", "--restart", "never"]);
+    let child = Drive::start(&bus, &out, &["--duration", "30", "--restart", "never"]);
     wait_for_progress(&bus, 1);
     // The stage hosts of the default (four-process) topology.
     let services: Vec<String> = processes_on_bus(&bus)
@@ -485,7 +518,7 @@ fn a_foreign_publisher_is_refused_and_the_drive_never_sees_its_messages() {
     let dir = scratch("badin");
     let bus = bus_id("badin");
     let out = dir.join("run");
-    let child = start_drive(&bus, &out, &["--duration", "1.5"]);
+    let child = Drive::start(&bus, &out, &["--duration", "1.5"]);
     wait_for_progress(&bus, 1);
     // Another process on the same account tries to publish NaN and reversed estimates: the
     // estimate topic has its one publisher (the observer), so the bus refuses the second.
@@ -516,7 +549,7 @@ fn a_sigkilled_launchers_services_die_with_it_and_clean_removes_their_files() {
     let dir = scratch("clean");
     let bus = bus_id("clean");
     let out = dir.join("run");
-    let child = start_drive(&bus, &out, &["--duration", "30"]);
+    let mut child = Drive::start(&bus, &out, &["--duration", "30"]);
     wait_for_services(&bus);
     // While the drive runs, clean refuses and names who uses the bus.
     let o = drivelab(&["clean", "--bus", &bus]);
@@ -536,7 +569,7 @@ fn a_sigkilled_launchers_services_die_with_it_and_clean_removes_their_files() {
             unsafe { libc::kill(pid, libc::SIGSTOP) };
         }
     }
-    kill_launcher_and_assert_no_orphans(child, &bus);
+    child.kill_and_assert_no_orphans();
     assert!(
         !drivelab_runtime::bus::leftovers(&bus).is_empty(),
         "a SIGKILLed drive should have left its files"
@@ -555,7 +588,7 @@ fn in_lockstep_a_service_that_dies_without_a_fault_ends_the_run_with_one_line() 
     let dir = scratch("lsdead");
     let bus = bus_id("lsdead");
     let out = dir.join("run");
-    let child = start_drive(&bus, &out, &["--clock", "lockstep", "--duration", "600"]);
+    let child = Drive::start(&bus, &out, &["--clock", "lockstep", "--duration", "600"]);
     wait_for_progress(&bus, 1000);
     // A crash, not an injected fault: SIGKILL from outside the supervisor.
     let observer = processes_on_bus(&bus)

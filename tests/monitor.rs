@@ -156,7 +156,7 @@ fn monitor_shows_a_lockstep_drive_refuses_faults_and_restores_the_terminal() {
     let out = scratch("lock").join("run");
     // 10 s of drive (10^5 samples) after the first statuses: far more than the moment the
     // test takes to hold it.
-    let drive = start_drive(&bus, &out, &["--clock", "lockstep", "--duration", "10"]);
+    let drive = Drive::start(&bus, &out, &["--clock", "lockstep", "--duration", "10"]);
     let held = Held::once_all_report(&bus);
     let printed = wait_attachable(&bus);
     assert!(
@@ -231,7 +231,7 @@ fn a_fault_from_the_monitor_is_confirmed_injected_logged_and_reported() {
     let out = scratch("rt").join("run");
     // Longer than the test needs: it ends the drive itself (SIGTERM) once the fault is
     // through; the duration only bounds a test that hangs.
-    let drive = start_drive(&bus, &out, &["--duration", "60"]);
+    let drive = Drive::start(&bus, &out, &["--duration", "60"]);
     wait_attachable(&bus);
     let tmux = Tmux::start(&bus, &monitor_cmd(&bus));
     tmux.wait_for(&["realtime", "speed-loop"], Duration::from_secs(30));
@@ -251,7 +251,7 @@ fn a_fault_from_the_monitor_is_confirmed_injected_logged_and_reported() {
     tmux.keys("y");
     let s = tmux.wait_for(
         &[
-            "inject current-loop: kill (from monitor",
+            "inject current-loop: kill (requested by pid",
             "exited current-loop",
             "restarted current-loop",
         ],
@@ -287,7 +287,7 @@ fn a_fault_from_the_monitor_is_confirmed_injected_logged_and_reported() {
         faults[0]["fault"]
             .as_str()
             .unwrap()
-            .starts_with("kill (from monitor"),
+            .starts_with("kill (requested by pid"),
         "{faults:?}"
     );
     assert!(

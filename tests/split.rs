@@ -107,8 +107,8 @@ impl Sides {
         }
     }
 
-    /// `drivelab ARGS` on side `i` (0 listens, 1 joins), output piped.
-    fn start(&self, i: usize, args: &[&str]) -> std::process::Child {
+    /// `drivelab ARGS` on side `i` (0 listens, 1 joins), a drive on `bus`, output piped.
+    fn start(&self, i: usize, bus: &str, args: &[&str]) -> Drive {
         let mut cmd = match &self.wire {
             Some(w) => {
                 let mut c = Command::new("ip");
@@ -117,11 +117,14 @@ impl Sides {
             }
             None => Command::new(DRIVELAB),
         };
-        cmd.args(args)
+        // `ip netns exec` execs drivelab in place: the child is the launcher.
+        let child = cmd
+            .args(args)
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
-            .expect("start drivelab")
+            .expect("start drivelab");
+        Drive::on_bus(child, bus)
     }
 }
 
@@ -159,8 +162,8 @@ fn run_split(tag: &str, name: &str, extra: &[&str]) -> (PathBuf, PathBuf, Sides)
     a.extend(["--zenoh-listen", &ep]);
     let mut b = common;
     b.extend(["--zenoh-connect", &ep]);
-    let sim = sides.start(0, &side_args(&bus_a, &out_a, "simulator", &a));
-    let board = sides.start(1, &side_args(&bus_b, &out_b, "board", &b));
+    let sim = sides.start(0, &bus_a, &side_args(&bus_a, &out_a, "simulator", &a));
+    let board = sides.start(1, &bus_b, &side_args(&bus_b, &out_b, "board", &b));
     let ob = wait(board, Duration::from_secs(240), "the board's side");
     let oa = wait(sim, Duration::from_secs(240), "the simulator's side");
     ok(&oa, "the simulator's side");
@@ -260,8 +263,8 @@ fn a_real_time_split_drive_keeps_every_sample_on_both_machines() {
 
 /// The two sides of a real-time split drive, started: their launchers, buses and run folders.
 struct Running {
-    sim: std::process::Child,
-    board: std::process::Child,
+    sim: Drive,
+    board: Drive,
     buses: (String, String),
     outs: (PathBuf, PathBuf),
 }
@@ -291,8 +294,8 @@ fn start_real_time(sides: &Sides, name: &str, seconds: &str) -> Running {
         &ep,
     ];
     Running {
-        sim: sides.start(0, &side_args(&buses.0, &outs.0, "simulator", &a)),
-        board: sides.start(1, &side_args(&buses.1, &outs.1, "board", &b)),
+        sim: sides.start(0, &buses.0, &side_args(&buses.0, &outs.0, "simulator", &a)),
+        board: sides.start(1, &buses.1, &side_args(&buses.1, &outs.1, "board", &b)),
         buses,
         outs,
     }
@@ -311,9 +314,9 @@ fn when_a_machine_leaves_the_board_stops_at_once_and_the_simulator_goes_on_safe(
     let sides = Sides::new("k");
     // The simulator's machine goes: the board has nothing to control and stops in one line
     // (not at its watchdog, long after).
-    let r = start_real_time(&sides, "sim-leaves", "60");
+    let mut r = start_real_time(&sides, "sim-leaves", "60");
     wait_for_progress(&r.buses.1, 5000);
-    kill_launcher_and_assert_no_orphans(r.sim, &r.buses.0);
+    r.sim.kill_and_assert_no_orphans();
     let o = wait(r.board, Duration::from_secs(30), "the board's side");
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
@@ -325,9 +328,9 @@ fn when_a_machine_leaves_the_board_stops_at_once_and_the_simulator_goes_on_safe(
     clean_after_kill(&r.buses.0);
     // The board's machine goes: the plant keeps its schedule without commands, holds, then
     // applies its safe state to the end, and every sample is in the trace.
-    let r = start_real_time(&sides, "board-leaves", "3");
+    let mut r = start_real_time(&sides, "board-leaves", "3");
     wait_for_progress(&r.buses.0, 5000);
-    kill_launcher_and_assert_no_orphans(r.board, &r.buses.1);
+    r.board.kill_and_assert_no_orphans();
     let o = wait(r.sim, Duration::from_secs(60), "the simulator's side");
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
@@ -386,7 +389,7 @@ fn the_two_sides_must_run_the_same_scenario_and_clock_and_a_side_alone_gives_up(
         "--zenoh-wait",
         "20",
     ];
-    let sim = sides.start(0, &side_args(&bus_a, &out_a, "simulator", &a));
+    let sim = sides.start(0, &bus_a, &side_args(&bus_a, &out_a, "simulator", &a));
     for (n, (extra, needle)) in [
         (
             vec!["--clock", "lockstep", "--duration", "0.3"],

@@ -49,15 +49,16 @@ fn a_remote_monitor_sees_the_drive_and_a_remote_recorder_writes_its_trace() {
     let ep = endpoint(free_port());
     // The recorder first: it waits for the drive's bridge.
     let rec_dir = dir.join("remote");
-    let recorder = Command::new(DRIVELAB)
+    let recorder: Drive = Command::new(DRIVELAB)
         .args(["record", "--connect", &ep, "--wait", "60", "--out"])
         .arg(&rec_dir)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
-        .unwrap();
+        .unwrap()
+        .into();
     let local = dir.join("run");
-    let drive = start_drive(&bus, &local, &["--duration", "1.5", "--zenoh-listen", &ep]);
+    let drive = Drive::start(&bus, &local, &["--duration", "1.5", "--zenoh-listen", &ep]);
     wait_for_progress(&bus, 2000);
     // The monitor's screen over the network, as a local one shows it.
     let o = until_ok(&["monitor", "--connect", &ep, "--print"]);
@@ -149,7 +150,7 @@ fn a_remote_fault_needs_allow_remote_faults_on_the_drive() {
             extra.push("--allow-remote-faults");
         }
         let out = dir.join(&name);
-        let drive = start_drive(&bus, &out, &extra);
+        let drive = Drive::start(&bus, &out, &extra);
         wait_for_progress(&bus, 3000);
         let o = drivelab(&["fault", "kill", "observer", "--connect", &ep]);
         let err = String::from_utf8_lossy(&o.stderr).into_owned();
@@ -296,6 +297,7 @@ fn tls_with_access_control_lets_the_operator_fault_and_the_viewer_only_watch() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
+    let drive = Drive::on_bus(drive, &bus);
     wait_for_progress(&bus, 3000);
     let at = |args: &[&str], who: &str| {
         let mut c = Command::new(DRIVELAB);
@@ -326,8 +328,15 @@ fn tls_with_access_control_lets_the_operator_fault_and_the_viewer_only_watch() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
     assert!(err.contains("supervisor: inject observer: kill"), "{err}");
+    // Plain TCP to the TLS port: refused with the one-line error of a failed connection.
     let o = at(&["monitor", "--connect", &tcp, "--print"], "");
-    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+    assert!(
+        err.starts_with(&format!("drivelab: error: cannot connect to {tcp}")),
+        "{err}"
+    );
     std::fs::write(
         dir.join("nocert.json5"),
         r#"{transport:{link:{tls:{root_ca_certificate:"certs/ca.pem"}}}}"#,

@@ -910,13 +910,16 @@ mod tests {
         }
     }
 
-    /// In a `bench-node uds` trampoline process (see the end-to-end test) this runs the node;
-    /// in a normal test run it does nothing.
+    /// Not a test: the entry point of a `bench-node uds` node process that [`fake_drivelab`]
+    /// starts (this test binary, run with `--ignored --exact` on this name). Ignored, so that
+    /// it is never counted as a passing test; run without the node's arguments it fails.
     #[test]
+    #[ignore = "the node process of the process-chain tests (fake_drivelab runs it), not a test"]
     fn node_trampoline() {
-        let Ok(a) = std::env::var("DRIVELAB_BENCH_UDS_NODE_ARGS") else {
-            return;
-        };
+        let a = std::env::var("DRIVELAB_BENCH_UDS_NODE_ARGS").expect(
+            "node_trampoline runs only as a node process started by fake_drivelab \
+             (DRIVELAB_BENCH_UDS_NODE_ARGS is not set)",
+        );
         let v: Vec<&str> = a.lines().collect();
         let mut args = UdsNodeArgs {
             role: String::new(),
@@ -998,7 +1001,7 @@ mod tests {
             format!(
                 "#!/bin/sh\n[ \"$1\" = bench-node ] && [ \"$2\" = uds ] || {{ echo \"bad args: $*\" >&2; exit 2; }}\n\
                  shift 2\nDRIVELAB_BENCH_UDS_NODE_ARGS=$(printf '%s\\n' \"$@\")\nexport DRIVELAB_BENCH_UDS_NODE_ARGS\n\
-                 exec '{}' --exact uds::tests::node_trampoline --nocapture --test-threads=1 -q\n",
+                 exec '{}' --ignored --exact uds::tests::node_trampoline --nocapture --test-threads=1 -q\n",
                 me.display()
             ),
         )
@@ -1090,16 +1093,29 @@ mod tests {
             }
             c.spawn().unwrap()
         };
-        let mut kids: Vec<(&str, Child)> = ["observer", "current-loop", "speed-loop", "plant"]
-            .into_iter()
-            .map(|r| (r, spawn(r)))
-            .collect();
-        let term_and_wait = |c: &mut Child| {
+        // In their guard: any node still running when the test ends, or fails, is stopped
+        // and reaped.
+        let mut kids = Kids::default();
+        for role in [
+            Role::Observer,
+            Role::CurrentLoop,
+            Role::SpeedLoop,
+            Role::Plant,
+        ] {
+            kids.0.push(Kid {
+                role,
+                child: spawn(role.name()),
+                log: PathBuf::new(),
+                status: None,
+            });
+        }
+        let term_and_wait = |k: &mut Kid| {
             // SAFETY: kill(2) on our own unreaped child.
-            unsafe { libc::kill(c.id() as libc::pid_t, libc::SIGTERM) };
+            unsafe { libc::kill(k.child.id() as libc::pid_t, libc::SIGTERM) };
             let t = Instant::now();
             loop {
-                if let Some(s) = c.try_wait().unwrap() {
+                if let Some(s) = k.child.try_wait().unwrap() {
+                    k.status = Some(s);
                     return (s, t.elapsed());
                 }
                 assert!(
@@ -1115,7 +1131,7 @@ mod tests {
         // times per window; before it, the plant's connect retries (1 ms apart) make at most
         // 50 per window, and its 50 warm-up round trips end within one. A plain count (200)
         // was reached by connect retries alone when the peers started slowly.
-        let plant_pid = kids[3].1.id();
+        let plant_pid = kids.0[3].child.id();
         let switches = || -> u64 {
             // Over every thread of the process.
             std::fs::read_dir(format!("/proc/{plant_pid}/task"))
@@ -1146,13 +1162,18 @@ mod tests {
             };
             last = now;
         }
-        for (_, c) in &mut kids {
-            assert!(c.try_wait().unwrap().is_none(), "a node ended early");
+        for k in &mut kids.0 {
+            assert!(
+                k.child.try_wait().unwrap().is_none(),
+                "a node ended early: {}",
+                k.role.name()
+            );
         }
         // A downstream node first, then the plant, then the rest.
         for i in [0usize, 3, 1, 2] {
-            let (role, c) = &mut kids[i];
-            let (s, dt) = term_and_wait(c);
+            let k = &mut kids.0[i];
+            let role = k.role.name();
+            let (s, dt) = term_and_wait(k);
             assert!(s.success(), "{role}: {s}");
             eprintln!("{role} stopped {dt:?} after SIGTERM");
             if i == 0 {

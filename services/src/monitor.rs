@@ -235,7 +235,7 @@ pub fn request_fault(target: &Target, kind: u32, stage: &str, stop_ms: u32) -> R
         stop_ms,
         pid: me,
     })?;
-    let mine = format!("(from monitor pid {me})");
+    let mine = format!("(requested by pid {me})");
     let t = Instant::now();
     while t.elapsed() < answer_within {
         while let Some(e) = a.try_event()? {

@@ -5,7 +5,7 @@
 
 use serde_json::Value;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
+use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 /// The CLI under test.
@@ -159,17 +159,10 @@ pub fn run_ok(name: &str, extra: &[&str]) -> (PathBuf, Value) {
     (out, s)
 }
 
-/// Waits for a spawned child with a watchdog against hangs; kills it (and fails) on expiry.
-pub fn wait(mut child: std::process::Child, watchdog: Duration, what: &str) -> Output {
-    let t = Instant::now();
-    while child.try_wait().unwrap().is_none() {
-        if t.elapsed() > watchdog {
-            let _ = child.kill();
-            panic!("watchdog: {what} still running after {watchdog:?}");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    child.wait_with_output().unwrap()
+/// Waits for a spawned child (a bare [`Child`] or a [`Drive`]) with a watchdog against
+/// hangs; kills it (and fails) on expiry.
+pub fn wait(child: impl Into<Drive>, watchdog: Duration, what: &str) -> Output {
+    child.into().wait_for_exit(watchdog, what)
 }
 
 /// `run --bus BUS --out OUT --no-plots`: the start of every test drive's command line.
@@ -189,8 +182,10 @@ pub fn summary(dir: &Path) -> Value {
     serde_json::from_slice(&read(&dir.join("summary.json"))).unwrap()
 }
 
-/// Starts `drivelab run --bus BUS --out OUT --no-plots EXTRA` (stdout and stderr piped).
-pub fn start_drive(bus: &str, out: &Path, extra: &[&str]) -> std::process::Child {
+/// Starts `drivelab run --bus BUS --out OUT --no-plots EXTRA` (stdout and stderr piped) as a
+/// bare child, which nothing stops if the test fails: [`Drive::start`] is the same drive
+/// behind a guard.
+pub fn start_drive(bus: &str, out: &Path, extra: &[&str]) -> Child {
     Command::new(DRIVELAB)
         .args(run_args(bus, out))
         .args(extra)
@@ -198,6 +193,129 @@ pub fn start_drive(bus: &str, out: &Path, extra: &[&str]) -> std::process::Child
         .stderr(Stdio::piped())
         .spawn()
         .expect("start drivelab run")
+}
+
+/// A process this test started, stopped however the test ends: a drive's launcher (with its
+/// bus), or a helper process (no bus). It gives access to its [`Child`] (to signal it, take
+/// its pipes, poll it); [`Drive::wait_for_exit`] waits for it.
+///
+/// When dropped while the process still runs (the test failed before stopping it, or left
+/// it running), the process is SIGKILLed and reaped. For a drive, the stage hosts then die
+/// with their launcher (the launcher spawns each with SIGKILL as its parent-death signal),
+/// so none is left; any process of the bus still there after 10 s is SIGKILLed. After such
+/// a kill, or when the test is failing, the bus's files are removed too, so that a failed
+/// test leaves nothing behind. A test that passes with its drive ended keeps its own
+/// checks: its bus is left as the drive left it (see [`assert_clean`]).
+pub struct Drive {
+    child: Option<Child>,
+    bus: Option<String>,
+}
+
+impl Drive {
+    /// [`start_drive`] behind a guard.
+    pub fn start(bus: &str, out: &Path, extra: &[&str]) -> Self {
+        Self::on_bus(start_drive(bus, out, extra), bus)
+    }
+
+    /// Guards `child`, the launcher of a drive on `bus` started otherwise.
+    pub fn on_bus(child: Child, bus: &str) -> Self {
+        Self {
+            child: Some(child),
+            bus: Some(bus.to_string()),
+        }
+    }
+
+    /// Waits for the process to exit with a watchdog against hangs (on expiry the test
+    /// fails, and the guard kills it); returns its status and what it printed.
+    pub fn wait_for_exit(mut self, watchdog: Duration, what: &str) -> Output {
+        let t = Instant::now();
+        while self.try_wait().unwrap().is_none() {
+            assert!(
+                t.elapsed() <= watchdog,
+                "watchdog: {what} still running after {watchdog:?}"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        // It has exited and is reaped: the guard has nothing left to stop.
+        self.child.take().unwrap().wait_with_output().unwrap()
+    }
+
+    /// SIGKILLs the launcher (nobody cleans up) and asserts that the kernel ends every other
+    /// process of the drive's bus with it within 10 s; those left are killed before the
+    /// assertion fails. The bus's files stay (the test may check them) unless the test
+    /// fails later.
+    pub fn kill_and_assert_no_orphans(&mut self) {
+        let bus = self.bus.clone().expect("a drive on a bus");
+        let child = self.child.as_mut().expect("a running launcher");
+        // SAFETY: SIGKILL to this test's own launcher, not reaped yet (its pid is its own).
+        unsafe { libc::kill(child.id() as i32, libc::SIGKILL) };
+        let _ = child.wait();
+        let orphans = end_processes_on_bus(&bus, Duration::from_secs(10));
+        assert!(
+            orphans.is_empty(),
+            "processes outlived their launcher by 10 s: {orphans:?}"
+        );
+    }
+}
+
+/// A helper process of a test (no bus): killed and reaped on drop if it still runs.
+impl From<Child> for Drive {
+    fn from(child: Child) -> Self {
+        Self {
+            child: Some(child),
+            bus: None,
+        }
+    }
+}
+
+impl std::ops::Deref for Drive {
+    type Target = Child;
+    fn deref(&self) -> &Child {
+        self.child.as_ref().expect("the process was waited for")
+    }
+}
+
+impl std::ops::DerefMut for Drive {
+    fn deref_mut(&mut self) -> &mut Child {
+        self.child.as_mut().expect("the process was waited for")
+    }
+}
+
+impl Drop for Drive {
+    fn drop(&mut self) {
+        let mut killed = false;
+        if let Some(child) = self.child.as_mut() {
+            if matches!(child.try_wait(), Ok(None)) {
+                let _ = child.kill();
+                let _ = child.wait();
+                killed = true;
+            }
+        }
+        if let Some(bus) = &self.bus {
+            if killed || std::thread::panicking() {
+                end_processes_on_bus(bus, Duration::from_secs(10));
+                if let Err(e) = drivelab_runtime::bus::cleanup(bus) {
+                    eprintln!("bus {bus}: files not removed: {e:#}");
+                }
+            }
+        }
+    }
+}
+
+/// Waits up to `grace` for the processes of `bus` to end (a drive's stage hosts after their
+/// launcher died), then SIGKILLs those left; returns them.
+fn end_processes_on_bus(bus: &str, grace: Duration) -> Vec<String> {
+    let t = Instant::now();
+    while !processes_on_bus(bus).is_empty() && t.elapsed() < grace {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let left = processes_on_bus(bus);
+    for line in &left {
+        let pid: i32 = line.split(' ').next().unwrap().parse().unwrap();
+        // SAFETY: SIGKILL to a process of this test's own bus.
+        unsafe { libc::kill(pid, libc::SIGKILL) };
+    }
+    left
 }
 
 /// Waits until the launcher and its four services are running on `bus` (watchdog 60 s).
@@ -298,27 +416,15 @@ pub fn processes_on_bus(bus: &str) -> Vec<String> {
     v
 }
 
-/// SIGKILLs the launcher `child` (nobody cleans up) and asserts that the kernel ends every
-/// other process of `bus` with it (their parent-death signal) within 10 s; those left are
-/// killed before the assertion fails.
-pub fn kill_launcher_and_assert_no_orphans(mut child: std::process::Child, bus: &str) {
-    // SAFETY: SIGKILL to this test's own launcher.
-    unsafe { libc::kill(child.id() as i32, libc::SIGKILL) };
-    let _ = child.wait();
-    let t = Instant::now();
-    while !processes_on_bus(bus).is_empty() && t.elapsed() < Duration::from_secs(10) {
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    let orphans = processes_on_bus(bus);
-    for line in &orphans {
-        let pid: i32 = line.split(' ').next().unwrap().parse().unwrap();
-        // SAFETY: SIGKILL to a process of this test's own drive.
-        unsafe { libc::kill(pid, libc::SIGKILL) };
-    }
-    assert!(
-        orphans.is_empty(),
-        "processes outlived their launcher by 10 s: {orphans:?}"
-    );
+/// SIGKILLs the launcher `child` (a bare [`Child`] or a [`Drive`]; nobody cleans up) and
+/// asserts that the kernel ends every other process of `bus` with it (their parent-death
+/// signal) within 10 s; those left are killed before the assertion fails.
+/// [`Drive::kill_and_assert_no_orphans`] does the same and keeps the guard.
+pub fn kill_launcher_and_assert_no_orphans(child: impl Into<Drive>, bus: &str) {
+    let mut drive = child.into();
+    let on = drive.bus.get_or_insert_with(|| bus.to_string());
+    assert_eq!(on, bus, "the drive runs on another bus");
+    drive.kill_and_assert_no_orphans();
 }
 
 /// No process and no bus file of `bus` is left.

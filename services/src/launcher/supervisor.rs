@@ -131,7 +131,7 @@ impl EventKind {
                     s += &format!(" for {duration_s} s");
                 }
                 if let Some(pid) = monitor_pid {
-                    s += &format!(" (from monitor pid {pid})");
+                    s += &format!(" (requested by pid {pid})");
                 }
                 s
             }
@@ -868,7 +868,7 @@ mod tests {
         assert_eq!(p.safe_state_ms, None);
         assert_eq!(p.republished_ms, Some(5.0));
         assert_eq!(p.speed_recovered_ms, Some(5.0));
-        assert_eq!(o.fault, "stop for 0.02 s (from monitor pid 4242)");
+        assert_eq!(o.fault, "stop for 0.02 s (requested by pid 4242)");
         assert_eq!((o.service.as_str(), o.injected_k), ("observer", 40));
         assert_eq!(o.detected_data_path_ms, Some(2.0));
         assert_eq!(o.detected_by.as_deref(), Some("current-loop"));
@@ -877,7 +877,7 @@ mod tests {
         assert_eq!(windows[0], (0.01, 0.015, "kill plant".to_string()));
         assert_eq!(
             windows[1].2,
-            "stop for 0.02 s (from monitor pid 4242) observer"
+            "stop for 0.02 s (requested by pid 4242) observer"
         );
     }
 

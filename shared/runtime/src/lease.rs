@@ -293,12 +293,65 @@ fn check(r: i32, what: &str) -> Result<()> {
 mod tests {
     use super::*;
 
+    /// Unlinks the test's segment of bus `id` when dropped, also when an assertion fails.
+    /// Only in the process that made the guard: a forked child shares the memory and never
+    /// returns from its loop, but must not remove the segment whatever happens to it.
+    struct Segment {
+        name: std::ffi::CString,
+        owner: libc::pid_t,
+    }
+
+    impl Segment {
+        fn of(id: &str) -> Self {
+            Self {
+                name: std::ffi::CString::new(format!("/{}", name(id))).unwrap(),
+                // SAFETY: getpid(2) only reads the caller's pid.
+                owner: unsafe { libc::getpid() },
+            }
+        }
+    }
+
+    impl Drop for Segment {
+        fn drop(&mut self) {
+            // SAFETY: getpid(2) only reads the caller's pid.
+            if unsafe { libc::getpid() } == self.owner {
+                // SAFETY: shm_unlink(3) of the test's own segment by its NUL-terminated name;
+                // an error (not made yet, or already removed) changes nothing.
+                unsafe { libc::shm_unlink(self.name.as_ptr()) };
+            }
+        }
+    }
+
+    /// A forked child of the test, SIGKILLed and reaped when dropped (also when an assertion
+    /// fails) unless [`Forked::kill`] did that already.
+    struct Forked(Option<libc::pid_t>);
+
+    impl Forked {
+        fn kill(&mut self) {
+            if let Some(pid) = self.0.take() {
+                // SAFETY: kill(2) and waitpid(2) on our own child, not reaped before (its pid
+                // still names it); waitpid writes no status (null pointer).
+                unsafe {
+                    libc::kill(pid, libc::SIGKILL);
+                    libc::waitpid(pid, std::ptr::null_mut(), 0);
+                }
+            }
+        }
+    }
+
+    impl Drop for Forked {
+        fn drop(&mut self) {
+            self.kill();
+        }
+    }
+
     /// A child process takes process 1's lease and is SIGKILLed: process 1 reads up while
     /// the child lives and down after its death, and the twin, which could not take the lease
     /// while the child lived, takes it at its next attempt.
     #[test]
     fn a_killed_holder_reads_down_and_its_twin_takes_the_lease_then_and_not_before() {
         let bus = format!("life{}", std::process::id());
+        let _segment = Segment::of(&bus);
         let creator = Life::create(&bus, 2).unwrap();
         let life = Life::open(&bus, 2).unwrap();
         assert!(!life.up(0) && !life.up(1), "up before anyone took a lease");
@@ -308,6 +361,9 @@ mod tests {
         let mut fds = [0; 2];
         // SAFETY: pipe(2) into a two-element array.
         assert_eq!(unsafe { libc::pipe(fds.as_mut_ptr()) }, 0);
+        use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
+        // SAFETY: pipe(2) just made these two descriptors; nothing else owns or closes them.
+        let (rx, tx) = unsafe { (OwnedFd::from_raw_fd(fds[0]), OwnedFd::from_raw_fd(fds[1])) };
         // SAFETY: fork in a test: the child takes the lease, writes one byte to the pipe
         // and pauses until it is killed; it allocates nothing and touches only the mapping.
         let pid = unsafe { libc::fork() };
@@ -316,28 +372,24 @@ mod tests {
             let code = if holder.try_take() { 0 } else { 1u8 };
             // SAFETY: write(2) of one byte from a live buffer, then pause(2) until killed.
             unsafe {
-                libc::write(fds[1], (&code as *const u8).cast(), 1);
+                libc::write(tx.as_raw_fd(), (&code as *const u8).cast(), 1);
                 loop {
                     libc::pause();
                 }
             }
         }
+        let mut child = Forked(Some(pid));
         let mut byte = 9u8;
         // SAFETY: read(2) of one byte into a live buffer (the child writes it at once).
-        let n = unsafe { libc::read(fds[0], (&mut byte as *mut u8).cast(), 1) };
+        let n = unsafe { libc::read(rx.as_raw_fd(), (&mut byte as *mut u8).cast(), 1) };
         assert_eq!((n, byte), (1, 0), "the child could not take the lease");
         assert!(life.up(1) && !life.up(0), "process 1 up, process 0 down");
         for _ in 0..1000 {
             assert!(!twin.try_take(), "taken while its holder lives");
         }
         assert!(!twin.held());
-        // SAFETY: kill and reap our own child; close our pipe.
-        unsafe {
-            libc::kill(pid, libc::SIGKILL);
-            libc::waitpid(pid, std::ptr::null_mut(), 0);
-            libc::close(fds[0]);
-            libc::close(fds[1]);
-        }
+        child.kill();
+        drop((rx, tx));
         assert!(!life.up(1), "a dead holder reads up");
         // A live standby keeps the process up.
         let mut standby = life.lease(1, Role::Standby).unwrap();
@@ -349,21 +401,16 @@ mod tests {
         assert!(!standby.held() && !life.held_by_live(1, Role::Standby));
         assert!(life.up(1));
         let _ = (holder, twin, life, creator);
-        let name = std::ffi::CString::new(format!("/{}", name(&bus))).unwrap();
-        // SAFETY: removes the test's own segment.
-        unsafe { libc::shm_unlink(name.as_ptr()) };
     }
 
     #[test]
     fn opening_a_segment_made_for_fewer_processes_is_an_error() {
         let bus = format!("lifesz{}", std::process::id());
+        let _segment = Segment::of(&bus);
         let _creator = Life::create(&bus, 2).unwrap();
         // 2 processes need 256 bytes, rounded to a page: 64 processes do not fit.
         let e = Life::open(&bus, 64).unwrap_err().to_string();
         assert!(e.contains("expected for 64 processes"), "{e}");
         assert!(Life::open(&bus, 2).unwrap().lease(2, Role::Active).is_err());
-        let name = std::ffi::CString::new(format!("/{}", name(&bus))).unwrap();
-        // SAFETY: removes the test's own segment.
-        unsafe { libc::shm_unlink(name.as_ptr()) };
     }
 }
