@@ -225,10 +225,9 @@ impl Hub {
         self.view_tx.send(v)
     }
 
-    /// Publishes the final view (END flag) and waits up to `wait` for the monitors to let go
+    /// Takes the stages' last statuses and reports each one's last (part) second, then
+    /// publishes the final view (END flag) and waits up to `wait` for the monitors to let go
     /// of the bus, so that its files can be removed.
-    /// Before that, takes the stages' last statuses and reports each one's last (part)
-    /// second.
     pub fn finish(&mut self, k_now: u64, tail: &TraceTail, wait: Duration) -> Result<()> {
         self.poll(&[], k_now, tail)?;
         for i in 0..self.view.stages() {

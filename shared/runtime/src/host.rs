@@ -83,7 +83,8 @@ pub trait Transport {
     fn wait_recorder(&mut self, _timeout: Duration) -> Result<()> {
         Ok(())
     }
-    /// Live status of stage `i` at sample k (ten times per simulated second).
+    /// Live status of stage `i` at sample k (ten times per simulated second; `last`: now,
+    /// whatever the tenth of a second, after the loop for the run's last part second).
     fn status(
         &mut self,
         _i: usize,
@@ -91,18 +92,7 @@ pub trait Transport {
         _c: &Counters,
         _h: &StageHists,
         _cycle: Option<&CycleMonitor>,
-    ) -> Result<()> {
-        Ok(())
-    }
-    /// The last status of stage `i`, at its last sample k, whether or not k is on the tenth
-    /// of a second (after the loop: the figures of the run's last part second).
-    fn final_status(
-        &mut self,
-        _i: usize,
-        _k: u64,
-        _c: &Counters,
-        _h: &StageHists,
-        _cycle: Option<&CycleMonitor>,
+        _last: bool,
     ) -> Result<()> {
         Ok(())
     }
@@ -836,16 +826,7 @@ impl<T: Transport> Host<T> {
         } else {
             self.run_triggered()?;
         }
-        for i in 0..self.stages.len() {
-            let Some(k) = self.stages[i].last_k else {
-                continue;
-            };
-            let cyc = (i == 0 && self.is_source()).then_some(&self.cycle);
-            let h = &self.stages[i];
-            self.transport
-                .final_status(i, k, &h.counters, &h.hists, cyc)?;
-        }
-        Ok(())
+        self.status(true)
     }
 
     // ---------------------------------------------------------------- inputs
@@ -1238,14 +1219,16 @@ impl<T: Transport> Host<T> {
         Ok(())
     }
 
-    fn status(&mut self) -> Result<()> {
+    /// Each stage's status when due (`last`: now).
+    fn status(&mut self, last: bool) -> Result<()> {
         for i in 0..self.stages.len() {
             let Some(k) = self.stages[i].last_k else {
                 continue;
             };
             let cyc = (i == 0 && self.is_source()).then_some(&self.cycle);
             let h = &self.stages[i];
-            self.transport.status(i, k, &h.counters, &h.hists, cyc)?;
+            self.transport
+                .status(i, k, &h.counters, &h.hists, cyc, last)?;
         }
         Ok(())
     }
@@ -1433,7 +1416,7 @@ impl<T: Transport> Host<T> {
             for h in self.stages.iter_mut() {
                 h.stage.after_publish();
             }
-            self.status()?;
+            self.status(false)?;
             if !realtime {
                 // Flow control: never run more than half a recorder buffer ahead.
                 let started = Instant::now();
@@ -1490,7 +1473,7 @@ impl<T: Transport> Host<T> {
         };
         // ---- real-time loop: no allocation, no locks, no logging ----
         'outer: while !self.stopping() {
-            self.status()?;
+            self.status(false)?;
             let in_fallback = self.stages.iter().any(|h| h.in_fallback);
             if in_fallback && realtime {
                 self.transport.wait(fallback_topic, fallback_wait)?;

@@ -955,33 +955,13 @@ impl Transport for BusTransport {
         c: &Counters,
         h: &StageHists,
         cycle: Option<&CycleMonitor>,
+        last: bool,
     ) -> Result<()> {
         if self.shadow.is_some() {
             return Ok(());
         }
         match self.status.get_mut(i) {
-            Some(s) => s.tick(k, c, h, cycle),
-            None => Ok(()),
-        }
-    }
-
-    fn final_status(
-        &mut self,
-        i: usize,
-        k: u64,
-        c: &Counters,
-        h: &StageHists,
-        cycle: Option<&CycleMonitor>,
-    ) -> Result<()> {
-        if self.shadow.is_some() {
-            return Ok(());
-        }
-        match self.status.get_mut(i) {
-            Some(s) => {
-                // Due now, whatever the tenth of a second.
-                s.next_k = 0;
-                s.tick(k, c, h, cycle)
-            }
+            Some(s) => s.tick(k, c, h, cycle, last),
             None => Ok(()),
         }
     }
@@ -1027,7 +1007,8 @@ impl StatusPublisher {
         })
     }
 
-    /// Publishes a status if sample `k` has reached the next tenth of a simulated second.
+    /// Publishes a status if sample `k` has reached the next tenth of a simulated second,
+    /// or `now`.
     #[inline]
     pub fn tick(
         &mut self,
@@ -1035,8 +1016,9 @@ impl StatusPublisher {
         c: &Counters,
         h: &StageHists,
         cycle: Option<&CycleMonitor>,
+        now: bool,
     ) -> Result<()> {
-        if k < self.next_k || self.st.service == u32::MAX {
+        if (k < self.next_k && !now) || self.st.service == u32::MAX {
             return Ok(());
         }
         self.next_k = (k / self.every + 1) * self.every;
