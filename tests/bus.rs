@@ -189,10 +189,11 @@ fn drivelab_fault_goes_through_the_supervisor_and_cannot_hit_an_impostor() {
     // Bad requests fail before anything is sent.
     for (args, says) in [
         (
-            vec!["stop", "observer", "--duration", "1e20"],
+            vec!["stop", "observer", "--duration-s", "1e20"],
             "a stop lasts 0.001 to 60 s",
         ),
         (
+            // The option's old name, kept as an alias.
             vec!["stop", "observer", "--duration", "NaN"],
             "a stop lasts 0.001 to 60 s",
         ),

@@ -87,7 +87,7 @@ fn kyslan_pi_lockstep_meets_the_papers_rise_time() {
             "load_recovery_ms",
             recovery.expect("recovered within the run"),
         ),
-        ("steady_state_error", sse),
+        ("steady_state_error_rad_s", sse),
     ] {
         let got = m[key]
             .as_f64()

@@ -21,10 +21,10 @@ fn start(
     bus: &str,
     out: &std::path::Path,
     extra: &[&str],
-) -> (std::process::Child, String, mpsc::Receiver<String>) {
+) -> (Drive, String, mpsc::Receiver<String>) {
     let mut args = vec!["--foxglove", "127.0.0.1:0"];
     args.extend_from_slice(extra);
-    let mut child = start_drive(bus, out, &args);
+    let mut child = Drive::start(bus, out, &args);
     let stderr = child.stderr.take().unwrap();
     let (tx, rx) = mpsc::channel();
     std::thread::spawn(move || {

@@ -158,7 +158,7 @@ fn a_hog_dies_with_a_sigkilled_launcher() {
     let dir = scratch("hog-orphan");
     let bus = bus_id("hog-orphan");
     // Below the drive's priorities, so the drive runs on while the hog spins.
-    let child = start_drive(
+    let child = Drive::start(
         &bus,
         &dir.join("run"),
         &["--duration", "20", "--fault", "hog:1@0.2:15:10"],

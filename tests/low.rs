@@ -558,7 +558,7 @@ fn sensorless_drive_reaches_1200_rpm_and_holds_it_under_2_nm() {
     let want = (2.0 + 1e-3 * mean(hold.iter().map(|x| x.omega_m)) + 2e-3 * accel) / k_t();
     assert!((i_q - want).abs() < SETTLED_TOL, "i_q {i_q} vs {want}");
     // Back at 300 rpm: the mean speed error of the run's last 10 % (the summary's
-    // steady_state_error) is within the same envelope, taken from where the speed came
+    // steady_state_error_rad_s) is within the same envelope, taken from where the speed came
     // within 1 % of 300 rpm to where that window starts.
     let w300 = 300.0 * RPM;
     let back = rows
@@ -568,7 +568,7 @@ fn sensorless_drive_reaches_1200_rpm_and_holds_it_under_2_nm() {
         .t;
     let t_tail = 0.9 * rows.last().unwrap().t;
     let envelope = 0.01 * w300 * (-sigma * (t_tail - back)).exp();
-    let sse = r.metric("steady_state_error");
+    let sse = r.metric("steady_state_error_rad_s");
     eprintln!("300 rpm: steady-state error {sse:.2e} rad/s, envelope {envelope:.2e} rad/s");
     assert!(sse.abs() <= envelope, "{sse} vs {envelope}");
 }

@@ -88,7 +88,7 @@ pub fn table(runs: &[LoadedRun]) -> String {
         ("load recovery (ms)", |m| fmt(m.load_recovery_ms, 1)),
         ("i_d tracking error (A)", |m| fmt(m.id_tracking_error_a, 5)),
         ("steady-state error (rad/s)", |m| {
-            fmt(m.steady_state_error, 4)
+            fmt(m.steady_state_error_rad_s, 4)
         }),
     ];
     let w0 = rows.iter().map(|r| r.0.len()).max().unwrap_or(0);

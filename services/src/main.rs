@@ -241,11 +241,11 @@ enum Cmd {
     ///
     /// Examples:
     ///   drivelab fault kill current-loop --bus 4242
-    ///   drivelab fault stop observer --bus 4242 --duration 0.05
+    ///   drivelab fault stop observer --bus 4242 --duration-s 0.05
     ///   drivelab fault kill observer --connect tcp/192.168.1.20:7447
     #[command(verbatim_doc_comment)]
     Fault {
-        /// kill (SIGKILL) or stop (SIGSTOP, then SIGCONT after --duration).
+        /// kill (SIGKILL) or stop (SIGSTOP, then SIGCONT after --duration-s).
         #[arg(value_parser = ["kill", "stop"])]
         kind: String,
         /// The stage (plant, observer, current-loop, speed-loop or a user stage); its whole
@@ -255,8 +255,13 @@ enum Cmd {
         #[command(flatten)]
         drive: DriveArgs,
         /// For stop: seconds before SIGCONT (0.001 to 60).
-        #[arg(long, default_value_t = 0.05, value_name = "SECONDS")]
-        duration: f64,
+        #[arg(
+            long,
+            alias = "duration",
+            default_value_t = 0.05,
+            value_name = "SECONDS"
+        )]
+        duration_s: f64,
     },
     /// Watch a running drive live in the terminal: per-stage state, rate, wake-up
     /// lateness, execution time and deadline misses; speed against its reference and i_d,
@@ -796,7 +801,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                     fmt_opt(&m["overshoot_pct"], "%"),
                     fmt_opt(&m["load_dip_rad_s"], "rad/s"),
                     fmt_opt(&m["load_recovery_ms"], "ms"),
-                    fmt_opt(&m["steady_state_error"], "rad/s")
+                    fmt_opt(&m["steady_state_error_rad_s"], "rad/s")
                 );
                 if m["iq_rise_time_us"].as_f64().is_some() || m["id_max_a"].as_f64().is_some() {
                     drivelab_services::outln!(
@@ -871,7 +876,10 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                     drivelab_runtime::config::scenarios_dir().display()
                 );
             }
-            drivelab_services::outln!("{:<24} {:<40} purpose", "name", "reproduces");
+            // Name and reproduced figure on one line, the purpose indented below it: the
+            // purposes are too long for a third column.
+            let w = list.iter().map(|(n, _)| n.len()).max().unwrap_or(0);
+            drivelab_services::outln!("{:<w$}  reproduces\n    purpose\n", "name");
             for (name, path) in list {
                 let text = std::fs::read_to_string(&path)?;
                 match drivelab_runtime::config::Scenario::from_toml(
@@ -879,9 +887,9 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                     &path.display().to_string(),
                 ) {
                     Ok(s) => {
-                        drivelab_services::outln!("{:<24} {:<40} {}", name, s.reproduces, s.purpose)
+                        drivelab_services::outln!("{name:<w$}  {}\n    {}", s.reproduces, s.purpose)
                     }
-                    Err(e) => drivelab_services::outln!("{name:<24} INVALID: {e}"),
+                    Err(e) => drivelab_services::outln!("{name:<w$}  INVALID: {e}"),
                 }
             }
             Ok(())
@@ -1002,20 +1010,22 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             kind,
             service,
             drive,
-            duration,
+            duration_s,
         } => {
             let target = target(drive)?;
             // Bounded before anything is sent, as in the monitor.
             use drivelab_services::faults::{STOP_MAX_S, STOP_MIN_S};
-            if !(STOP_MIN_S..=STOP_MAX_S).contains(&duration) {
-                anyhow::bail!("--duration {duration}: a stop lasts {STOP_MIN_S} to {STOP_MAX_S} s");
+            if !(STOP_MIN_S..=STOP_MAX_S).contains(&duration_s) {
+                anyhow::bail!(
+                    "--duration-s {duration_s}: a stop lasts {STOP_MIN_S} to {STOP_MAX_S} s"
+                );
             }
             let kind = if kind == "kill" {
                 drivelab_runtime::telemetry::FAULT_KILL
             } else {
                 drivelab_runtime::telemetry::FAULT_STOP
             };
-            let stop_ms = (duration * 1000.0).round() as u32;
+            let stop_ms = (duration_s * 1000.0).round() as u32;
             let done = drivelab_services::monitor::request_fault(&target, kind, &service, stop_ms)?;
             drivelab_services::errln!("supervisor: {done}");
             Ok(())

@@ -182,19 +182,6 @@ pub fn summary(dir: &Path) -> Value {
     serde_json::from_slice(&read(&dir.join("summary.json"))).unwrap()
 }
 
-/// Starts `drivelab run --bus BUS --out OUT --no-plots EXTRA` (stdout and stderr piped) as a
-/// bare child, which nothing stops if the test fails: [`Drive::start`] is the same drive
-/// behind a guard.
-pub fn start_drive(bus: &str, out: &Path, extra: &[&str]) -> Child {
-    Command::new(DRIVELAB)
-        .args(run_args(bus, out))
-        .args(extra)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("start drivelab run")
-}
-
 /// A process this test started, stopped however the test ends: a drive's launcher (with its
 /// bus), or a helper process (no bus). It gives access to its [`Child`] (to signal it, take
 /// its pipes, poll it); [`Drive::wait_for_exit`] waits for it.
@@ -212,9 +199,17 @@ pub struct Drive {
 }
 
 impl Drive {
-    /// [`start_drive`] behind a guard.
+    /// Starts `drivelab run --bus BUS --out OUT --no-plots EXTRA` (stdout and stderr piped)
+    /// behind a guard.
     pub fn start(bus: &str, out: &Path, extra: &[&str]) -> Self {
-        Self::on_bus(start_drive(bus, out, extra), bus)
+        let child = Command::new(DRIVELAB)
+            .args(run_args(bus, out))
+            .args(extra)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("start drivelab run");
+        Self::on_bus(child, bus)
     }
 
     /// Guards `child`, the launcher of a drive on `bus` started otherwise.

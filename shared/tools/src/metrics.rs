@@ -12,7 +12,7 @@ pub struct SpeedMetrics {
     /// Peak beyond the set-point relative to the step size, % (before the next event).
     pub overshoot_pct: Option<f64>,
     /// Mean (ω_ref − ω_m) over the last 10 % of the run, rad/s.
-    pub steady_state_error: Option<f64>,
+    pub steady_state_error_rad_s: Option<f64>,
     /// Largest speed drop below the reference after the first load step, rad/s.
     pub load_dip_rad_s: Option<f64>,
     /// Time from the first load step until ω_m stays within ±2 % of the reference, ms.
@@ -107,7 +107,7 @@ pub fn speed_metrics(sc: &Scenario, rows: &[TraceRow]) -> SpeedMetrics {
     // No speed reference (a current-reference study at a prescribed speed): no speed error.
     let speed_study = !refs.is_empty() || sc.reference.i_q_a.is_empty();
     if !tail.is_empty() && speed_study {
-        out.steady_state_error = Some(tail.iter().sum::<f64>() / tail.len() as f64);
+        out.steady_state_error_rad_s = Some(tail.iter().sum::<f64>() / tail.len() as f64);
     }
     if let Some(tl) = loads.iter().find(|s| s.value != 0.0) {
         let t0 = tl.t_s;
@@ -300,7 +300,7 @@ torque_nm = [{ t_s = 0.05, value = 0.1 }]
         assert!((m.overshoot_pct.unwrap() - 10.0).abs() < 0.2);
         assert!((m.load_dip_rad_s.unwrap() - 5.0).abs() < 1e-9);
         assert!((m.load_recovery_ms.unwrap() - 10.0).abs() < 0.11);
-        assert!(m.steady_state_error.unwrap().abs() < 1e-9);
+        assert!(m.steady_state_error_rad_s.unwrap().abs() < 1e-9);
         // Window 25 ms..99.9 ms: 150 samples at 0, 600 at 0.1 A → RMS 0.1·√(600/750).
         let e = m.id_tracking_error_a.unwrap();
         assert!((e - 0.1 * (600.0f64 / 750.0).sqrt()).abs() < 1e-9, "{e}");

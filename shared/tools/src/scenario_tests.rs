@@ -71,7 +71,10 @@ fn kyslan_nl_inprocess_meets_the_rise_time_and_tracks_i_d() {
         let r = m.rise_time_ms.unwrap();
         assert!((r - 8.0).abs() <= 0.8, "{name}: rise {r} ms");
         assert!(m.id_tracking_error_a.unwrap() < 0.01, "{name}: {m:?}");
-        assert!(m.steady_state_error.unwrap().abs() < 0.2, "{name}: {m:?}");
+        assert!(
+            m.steady_state_error_rad_s.unwrap().abs() < 0.2,
+            "{name}: {m:?}"
+        );
         // The trace's i_q_ref is w2 of eq. (30)-(31): i_q settles on it.
         let last = rows.last().unwrap();
         assert!((last.i_q - last.i_q_ref).abs() < 0.01, "{last:?}");
