@@ -26,11 +26,11 @@ pub struct BenchArgs {
     #[arg(long, value_name = "SECONDS")]
     pub seconds: Option<f64>,
     /// Sample rates to measure, Hz (comma-separated; default 5000,10000,20000).
-    #[arg(long, value_delimiter = ',', default_values_t = vec![5000.0, 10000.0, 20000.0], hide_default_value = true, value_name = "HZ,...")]
+    #[arg(long, value_delimiter = ',', value_name = "HZ,...")]
     pub rates: Vec<f64>,
     /// Placements to measure (comma-separated; default all three): one-core, two-plus-two,
     /// alternating.
-    #[arg(long, value_delimiter = ',', hide_default_value = true, value_name = "NAME,...", default_values_t = vec!["one-core".to_string(), "two-plus-two".to_string(), "alternating".to_string()])]
+    #[arg(long, value_delimiter = ',', value_name = "NAME,...")]
     pub placements: Vec<String>,
     /// Output folder (default runs/bench-<unix time>).
     #[arg(long, value_name = "DIR")]
@@ -1060,24 +1060,41 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     if !(seconds.is_finite() && seconds > 0.0 && seconds <= 3600.0) {
         return Err(anyhow!("--seconds must be in (0, 3600], got {seconds}"));
     }
-    let rates: Vec<f64> = if a.quick {
-        vec![10_000.0]
-    } else {
-        a.rates.clone()
-    };
-    for &r in &rates {
+    for &r in &a.rates {
         if !(r.is_finite() && (100.0..=100_000.0).contains(&r)) {
             return Err(anyhow!("--rates: {r} Hz must be in [100, 100000]"));
         }
     }
+    for p in &a.placements {
+        placement(p).map_err(|e| anyhow!("--placements: {e}"))?;
+    }
+    // --quick fixes both; one given beside it would be ignored.
+    for (given, flag) in [
+        (!a.rates.is_empty(), "--rates"),
+        (!a.placements.is_empty(), "--placements"),
+    ] {
+        if a.quick && given {
+            return Err(anyhow!(
+                "{flag} cannot be used with --quick (10000 Hz, one-core placement only)"
+            ));
+        }
+    }
+    let rates: Vec<f64> = if a.quick {
+        vec![10_000.0]
+    } else if a.rates.is_empty() {
+        vec![5_000.0, 10_000.0, 20_000.0]
+    } else {
+        a.rates.clone()
+    };
     let placements: Vec<String> = if a.quick {
         vec!["one-core".into()]
+    } else if a.placements.is_empty() {
+        ["one-core", "two-plus-two", "alternating"]
+            .map(String::from)
+            .to_vec()
     } else {
         a.placements.clone()
     };
-    for p in &placements {
-        placement(p)?;
-    }
     let mut topo_paths: BTreeMap<String, String> = Default::default();
     for t in &a.topologies {
         drivelab_runtime::topology::load(t).map_err(|e| anyhow!("--topologies: {e}"))?;
@@ -1095,6 +1112,25 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         return Err(anyhow!(
             "--spin-us must be a number of µs >= 0 (0 skips the spin variant), got {}",
             a.spin_us
+        ));
+    }
+    // The variants of every rate, each measured in `rounds` interleaved slices so that the
+    // machine's slow changes (a VM's noisy minutes) reach all of them alike.
+    const VARIANTS: [&str; 9] = [
+        "floor",
+        "cyclictest",
+        "hop",
+        "bare-chain",
+        "inprocess",
+        "uds",
+        "iceoryx2",
+        "iceoryx2+spin",
+        "topology",
+    ];
+    if let Some(v) = a.variants.iter().find(|v| !VARIANTS.contains(&v.as_str())) {
+        return Err(anyhow!(
+            "--variants: unknown variant '{v}' (known: {})",
+            VARIANTS.join(", ")
         ));
     }
     let cyclictest = match drivelab_bench::cyclictest::locate(&a.cyclictest) {
@@ -1119,25 +1155,6 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         held: None,
         failed: false,
     };
-    // The variants of every rate, each measured in `rounds` interleaved slices so that the
-    // machine's slow changes (a VM's noisy minutes) reach all of them alike.
-    const VARIANTS: [&str; 9] = [
-        "floor",
-        "cyclictest",
-        "hop",
-        "bare-chain",
-        "inprocess",
-        "uds",
-        "iceoryx2",
-        "iceoryx2+spin",
-        "topology",
-    ];
-    if let Some(v) = a.variants.iter().find(|v| !VARIANTS.contains(&v.as_str())) {
-        return Err(anyhow!(
-            "--variants: unknown variant '{v}' (known: {})",
-            VARIANTS.join(", ")
-        ));
-    }
     let mut jobs = jobs(a, &placements, cyclictest.is_some());
     if !a.variants.is_empty() {
         jobs.retain(|j| j.variant == "floor" || a.variants.iter().any(|v| v == j.variant));

@@ -198,16 +198,35 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
         .with_context(|| format!("cannot read campaign {}", file.display()))?;
     let c: CampaignFile = toml::from_str(&text).map_err(|e| {
         anyhow!(
-            "campaign {}: {}",
-            file.display(),
-            e.to_string().lines().collect::<Vec<_>>().join(" ")
+            "campaign {}",
+            drivelab_runtime::config::toml_error(&text, &file.display().to_string(), &e)
         )
     })?;
-    if c.name.is_empty() || c.scenarios.is_empty() || c.seeds.is_empty() {
-        bail!(
-            "campaign {}: name, scenarios and seeds must not be empty",
-            file.display()
-        );
+    let bad = |m: String| anyhow!("campaign {}: {m}", file.display());
+    if !drivelab_runtime::config::name_ok(&c.name) {
+        return Err(bad(format!(
+            "name = {:?} must be 1..=64 characters of a-z, A-Z, 0-9, -, _ or . (it names the report folder), not starting with .",
+            c.name
+        )));
+    }
+    if c.scenarios.is_empty() {
+        return Err(bad("scenarios = [] names no scenario to run".into()));
+    }
+    if c.seeds.is_empty() {
+        return Err(bad(
+            "seeds = [] gives no seed: every run needs one (leave seeds out for [1])".into(),
+        ));
+    }
+    // The same run twice is a copy-and-paste slip, not a repetition (seeds move random
+    // kills; give another seed to repeat a run).
+    if let Some(d) = duplicate(&c.scenarios) {
+        return Err(bad(format!("scenarios: '{d}' is listed twice")));
+    }
+    if let Some(d) = duplicate(&c.seeds) {
+        return Err(bad(format!("seeds: {d} is listed twice")));
+    }
+    if let Some(d) = duplicate(&c.expect) {
+        return Err(bad(format!("expect: '{d}' is listed twice")));
     }
     if c.clock == Clock::Inprocess {
         bail!(
@@ -217,6 +236,17 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
     }
     let mut sets = c.faults.clone();
     if let Some(s) = &c.sweep {
+        for (field, empty) in [
+            ("kinds", s.kinds.is_empty()),
+            ("stages", s.stages.is_empty()),
+            ("at_s", s.at_s.is_empty()),
+        ] {
+            if empty {
+                return Err(bad(format!(
+                    "[sweep] {field} = [] makes no fault set (give at least one, or leave [sweep] out)"
+                )));
+            }
+        }
         if !(s.stop_duration_s.is_finite() && s.stop_duration_s > 0.0) {
             bail!(
                 "campaign {}: [sweep] stop_duration_s must be a positive number of seconds",
@@ -240,6 +270,12 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
     }
     if sets.is_empty() {
         sets.push(Vec::new());
+    }
+    if let Some(d) = duplicate(&sets) {
+        return Err(bad(format!(
+            "faults: the fault set [{}] is listed twice (in faults or made again by [sweep])",
+            d.join(", ")
+        )));
     }
     // Every spec and expectation is checked before the first run starts.
     for spec in sets.iter().flatten() {
@@ -267,7 +303,8 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
                 anyhow!("campaign {}: duration_s = {d} for {s}: {e}", file.display())
             })?;
         }
-        crate::expect::collect(&sc.expect, &[])?;
+        crate::expect::collect(&sc.expect, &s, &[])
+            .map_err(|UsageError(m)| UsageError(format!("campaign {}: {m}", file.display())))?;
         scenarios.push(s);
     }
     let n = scenarios.len() * sets.len() * c.seeds.len();
@@ -303,6 +340,15 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
         })?;
     }
     Ok((c, cases))
+}
+
+/// The first value `items` holds twice, if any.
+fn duplicate<T: PartialEq + Clone>(items: &[T]) -> Option<T> {
+    items
+        .iter()
+        .enumerate()
+        .find(|(i, x)| items[..*i].contains(x))
+        .map(|(_, x)| x.clone())
 }
 
 /// The drive options of one case: its folder `dir` and bus (None: a check only, see

@@ -47,14 +47,15 @@ pub struct CdmArgs {
         long = "i-q-a",
         value_name = "AMPERES",
         default_value_t = 0.0,
-        allow_hyphen_values = true
+        allow_hyphen_values = true,
+        requires = "speed_rpm"
     )]
     pub i_q_a: f64,
     /// Section III: real part of the phase loop's poles, rad/s.
-    #[arg(long = "sigma-delta-rad-s", alias = "sigma-delta", value_name = "RAD_PER_S", default_value_t = polar::SIGMA_DELTA_RAD_S, allow_hyphen_values = true)]
+    #[arg(long = "sigma-delta-rad-s", alias = "sigma-delta", value_name = "RAD_PER_S", default_value_t = polar::SIGMA_DELTA_RAD_S, allow_hyphen_values = true, requires = "speed_rpm")]
     pub sigma_delta: f64,
     /// Section III: real part of the amplitude loop's poles, rad/s.
-    #[arg(long = "sigma-v-rad-s", alias = "sigma-v", value_name = "RAD_PER_S", default_value_t = polar::SIGMA_V_RAD_S, allow_hyphen_values = true)]
+    #[arg(long = "sigma-v-rad-s", alias = "sigma-v", value_name = "RAD_PER_S", default_value_t = polar::SIGMA_V_RAD_S, allow_hyphen_values = true, requires = "speed_rpm")]
     pub sigma_v: f64,
     /// Print the design as JSON (SI units) instead of text.
     #[arg(long)]
@@ -63,29 +64,12 @@ pub struct CdmArgs {
 
 /// Runs the command.
 pub fn run(a: &CdmArgs) -> Result<()> {
+    check(a)?;
     let m = crate::replay::resolve_motor(&a.motor)?;
-    let finite_pos = |v: f64| v.is_finite() && v > 0.0;
-    if !finite_pos(a.tu_us) {
-        bail!(
-            "--tu-us must be a positive number of microseconds, got {}",
-            a.tu_us
-        );
-    }
     let v_amax = match a.v_amax_v {
         Some(v) => v,
         None => a.v_dc_v / 3f64.sqrt(),
     };
-    if !finite_pos(v_amax) {
-        bail!("V_amax must be a positive number of volts, got {v_amax} (--v-amax-v or --v-dc-v)");
-    }
-    if !a.v_ao_v.is_finite() || !a.delta_o_deg.is_finite() {
-        bail!("--v-ao-v and --delta-o-deg must be finite numbers");
-    }
-    if let Some(t) = a.tau12_us {
-        if !finite_pos(t) {
-            bail!("--tau12-us must be a positive number of microseconds, got {t}");
-        }
-    }
     let l = 0.5 * (m.l_d_h + m.l_q_h);
     let d = CdmDesign::new(
         m.r_ohm,
@@ -98,12 +82,6 @@ pub fn run(a: &CdmArgs) -> Result<()> {
     );
     let fw = match a.speed_rpm {
         Some(rpm) => {
-            let bad = |v: f64| !v.is_finite() || v >= 0.0;
-            if !rpm.is_finite() || !a.i_q_a.is_finite() || bad(a.sigma_delta) || bad(a.sigma_v) {
-                bail!(
-                    "--speed-rpm and --i-q-a must be finite, --sigma-delta-rad-s and --sigma-v-rad-s negative"
-                );
-            }
             // The laws run mirrored to ω_e ≥ 0 (polar.rs, reading 7).
             let w = (m.p() * rpm * std::f64::consts::PI / 30.0).abs();
             Some(FwDesign::new(
@@ -133,6 +111,53 @@ pub fn run(a: &CdmArgs) -> Result<()> {
         crate::out!("{}", render(&a.motor, &d));
         if let Some(f) = &fw {
             crate::out!("{}", render_fw(f));
+        }
+    }
+    Ok(())
+}
+
+/// Checks every number given, one option at a time: a one-line error naming the option, its
+/// value and the range with its unit. The operating point (--v-ao-v, --delta-o-deg) is only
+/// required to be finite: the design clamps it to the limits and shows it as typed.
+fn check(a: &CdmArgs) -> Result<()> {
+    // (option, value, lowest, lowest allowed itself, highest, unit)
+    let mut ranges = vec![
+        ("--tu-us", a.tu_us, 1.0, true, 100_000.0, "µs"),
+        ("--v-dc-v", a.v_dc_v, 0.0, false, 100_000.0, "V"),
+        ("--i-q-a", a.i_q_a, -10_000.0, true, 10_000.0, "A"),
+    ];
+    if let Some(v) = a.v_amax_v {
+        ranges.push(("--v-amax-v", v, 0.0, false, 100_000.0, "V"));
+    }
+    if let Some(t) = a.tau12_us {
+        ranges.push(("--tau12-us", t, 1.0, true, 10_000_000.0, "µs"));
+    }
+    if let Some(r) = a.speed_rpm {
+        ranges.push(("--speed-rpm", r, -100_000.0, true, 100_000.0, "rpm"));
+    }
+    for (flag, v, lo, closed, hi, unit) in ranges {
+        let low_ok = if closed { v >= lo } else { v > lo };
+        if !(v.is_finite() && low_ok && v <= hi) {
+            if closed {
+                bail!("{flag} {v}: must be between {lo} and {hi} {unit}");
+            }
+            bail!("{flag} {v}: must be more than {lo} and at most {hi} {unit}");
+        }
+    }
+    for (flag, v, unit) in [
+        ("--v-ao-v", a.v_ao_v, "volts"),
+        ("--delta-o-deg", a.delta_o_deg, "degrees"),
+    ] {
+        if !v.is_finite() {
+            bail!("{flag} {v}: must be a finite number of {unit}");
+        }
+    }
+    for (flag, v) in [
+        ("--sigma-delta-rad-s", a.sigma_delta),
+        ("--sigma-v-rad-s", a.sigma_v),
+    ] {
+        if !(v.is_finite() && (-1e6..0.0).contains(&v)) {
+            bail!("{flag} {v}: must be negative, from -1000000 rad/s up to (not including) 0");
         }
     }
     Ok(())

@@ -131,33 +131,58 @@ pub struct Expectation {
     pub note: String,
 }
 
+/// The largest limit in magnitude: no figure of a run comes near it (every service rejects
+/// values beyond 10^12), so a larger one is a typo.
+pub const MAX_LIMIT: f64 = 1e12;
+
+/// The operators, as the errors list them.
+const OPERATORS: &str = "<=, <, >=, >, == or in A..B";
+
 fn limit(v: &str, text: &str) -> Result<f64, UsageError> {
-    let x: f64 = v.trim().parse().map_err(|_| {
-        UsageError(format!(
-            "expectation '{text}': limit '{}' is not a number",
-            v.trim()
-        ))
-    })?;
-    if !x.is_finite() {
+    let v = v.trim();
+    if v.starts_with(['<', '>', '=', '!']) {
+        return Err(bad_operator(text));
+    }
+    let x: f64 = v
+        .parse()
+        .map_err(|_| UsageError(format!("expectation '{text}': limit '{v}' is not a number")))?;
+    if !(x.is_finite() && x.abs() <= MAX_LIMIT) {
         return Err(UsageError(format!(
-            "expectation '{text}': limit '{}' must be a finite number",
-            v.trim()
+            "expectation '{text}': limit '{v}' must be a finite number within ±1e12"
         )));
     }
     Ok(x)
+}
+
+fn bad_operator(text: &str) -> UsageError {
+    UsageError(format!(
+        "expectation '{text}': unknown operator (the operators are {OPERATORS})"
+    ))
 }
 
 /// Parses `FIGURE OP LIMIT` (see the module documentation).
 pub fn parse(text: &str) -> Result<Expectation, UsageError> {
     let form = "expected FIGURE OP LIMIT, e.g. 'peak_current_a <= 8' or 'metrics.rise_time_ms in 7.2..8.8'";
     let t = text.trim();
+    // An operator that is not one (`!=`, `=<`, `=>`, `≤`, `≥`, `≠`, `=`) is named as such,
+    // not read as a figure path or a limit.
+    if t.contains(['≤', '≥', '≠']) || t.contains("!=") || t.contains("=<") || t.contains("=>")
+    {
+        return Err(bad_operator(t));
+    }
     // Two-character operators first, so that `<=` is not read as `<`.
     let ops = ["<=", ">=", "==", "<", ">", " in "];
-    let (at, op) = ops
+    let Some((at, op)) = ops
         .iter()
         .filter_map(|op| t.find(op).map(|i| (i, *op)))
         .min_by_key(|&(i, op)| (i, std::cmp::Reverse(op.len())))
-        .ok_or_else(|| UsageError(format!("expectation '{t}': {form}")))?;
+    else {
+        return Err(if t.contains('=') {
+            bad_operator(t)
+        } else {
+            UsageError(format!("expectation '{t}': {form}"))
+        });
+    };
     let (figure, rhs) = (t[..at].trim(), &t[at + op.len()..]);
     let op = match op {
         "<=" => Op::Le(limit(rhs, t)?),
@@ -343,16 +368,17 @@ impl Expectation {
     }
 }
 
-/// Parses the scenario's `[[expect]]` tables and the command line's `--expect` values, in
-/// that order.
+/// Parses the scenario's `[[expect]]` tables (of file `origin`) and the command line's
+/// `--expect` values, in that order.
 pub fn collect(
     scenario: &[drivelab_runtime::config::ExpectSpec],
+    origin: &str,
     cli: &[String],
 ) -> Result<Vec<Expectation>, UsageError> {
     let mut v = Vec::new();
-    for e in scenario {
-        let mut x =
-            parse(&e.check).map_err(|UsageError(m)| UsageError(format!("[[expect]]: {m}")))?;
+    for (i, e) in scenario.iter().enumerate() {
+        let mut x = parse(&e.check)
+            .map_err(|UsageError(m)| UsageError(format!("{origin}: [[expect]] #{}: {m}", i + 1)))?;
         x.note = e.note.clone();
         v.push(x);
     }
@@ -467,10 +493,61 @@ mod tests {
             ("<= 8", "is not a figure path"),
             ("metrics.rise_time_ms in 8", "needs a range A..B"),
             ("metrics.rise_time_ms in 9..8", "is empty"),
+            (
+                "peak_current_a =< 8",
+                "unknown operator (the operators are <=, <, >=, >, ==",
+            ),
+            ("peak_current_a => 8", "unknown operator"),
+            ("peak_current_a != 8", "unknown operator"),
+            ("peak_current_a = 8", "unknown operator"),
+            ("peak_current_a <== 8", "unknown operator"),
+            ("peak_current_a < = 8", "unknown operator"),
+            ("peak_current_a ≤ 8", "unknown operator"),
+            (
+                "peak_current_a <= 1e13",
+                "must be a finite number within ±1e12",
+            ),
+            (
+                "peak_current_a >= -1e300",
+                "must be a finite number within ±1e12",
+            ),
+            (
+                "metrics.rise_time_ms in 1..nan",
+                "limit 'nan' must be a finite number",
+            ),
         ] {
             let e = parse(text).unwrap_err().to_string();
             assert!(e.contains(says), "{text}: {e}");
             assert!(!e.contains('\n'), "{e}");
         }
+        assert_eq!(parse("samples <= 1e12").unwrap().op, Op::Le(1e12));
+    }
+
+    #[test]
+    fn a_scenarios_bad_expectation_names_its_file_and_table() {
+        let spec = |c: &str| drivelab_runtime::config::ExpectSpec {
+            check: c.into(),
+            note: String::new(),
+        };
+        let e = collect(
+            &[spec("peak_current_a <= 8"), spec("peak_current_a =< 8")],
+            "s.toml",
+            &[],
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.starts_with(
+                "s.toml: [[expect]] #2: expectation 'peak_current_a =< 8': unknown operator"
+            ),
+            "{e}"
+        );
+        let e = collect(&[], "s.toml", &["bogus <= 1".into()])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("--expect: expectation 'bogus <= 1': unknown figure"),
+            "{e}"
+        );
     }
 }

@@ -174,11 +174,20 @@ pub fn parse_addr(s: &str) -> Result<SocketAddr> {
     } else {
         s.to_string()
     };
+    let bad = |why: String| anyhow!("--foxglove '{s}': not HOST:PORT (e.g. {DEFAULT_ADDR}): {why}");
+    let Some((host, port)) = with_host.rsplit_once(':') else {
+        return Err(bad("no port".into()));
+    };
+    if port.parse::<u16>().is_err() {
+        return Err(bad(format!(
+            "port '{port}' is not a number from 0 to 65535"
+        )));
+    }
     with_host
         .to_socket_addrs()
         .ok()
         .and_then(|mut a| a.next())
-        .ok_or_else(|| anyhow!("--foxglove '{s}': not HOST:PORT (e.g. {DEFAULT_ADDR})"))
+        .ok_or_else(|| bad(format!("cannot resolve host '{host}'")))
 }
 
 impl Live {

@@ -1,6 +1,6 @@
 //! `drivelab`: the launcher and supervisor CLI.
 
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 use drivelab_services::launcher::{self, Clock, RunOptions};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -28,7 +28,7 @@ struct DriveArgs {
     #[arg(long, value_name = "ENDPOINT")]
     connect: Option<String>,
     /// With --connect: a Zenoh configuration file (JSON5) for TLS.
-    #[arg(long, value_name = "FILE", requires = "connect")]
+    #[arg(long, value_name = "FILE", requires = "connect", value_parser = existing_file)]
     zenoh_config: Option<PathBuf>,
 }
 
@@ -53,7 +53,7 @@ enum Cmd {
         #[arg(long, value_enum, default_value_t = Clock::Realtime)]
         clock: Clock,
         /// Override the scenario's duration, seconds.
-        #[arg(long, value_name = "SECONDS")]
+        #[arg(long, value_name = "SECONDS", value_parser = duration_s)]
         duration: Option<f64>,
         /// Run folder (default: runs/<scenario>-<clock>-<unix time>).
         #[arg(long, value_name = "DIR")]
@@ -62,7 +62,7 @@ enum Cmd {
         #[arg(long)]
         bus: Option<String>,
         /// Fail when a core, SCHED_FIFO priority or mlock is refused (default: warn and run).
-        #[arg(long)]
+        #[arg(long, conflicts_with = "no_rt")]
         rt_strict: bool,
         /// Do not pin, raise priority or lock memory.
         #[arg(long)]
@@ -95,7 +95,7 @@ enum Cmd {
         #[arg(long, value_name = "MS", default_value_t = drivelab_runtime::inject::RESTART_DEFAULT_MS, value_parser = drivelab_services::faults::restart_ms)]
         lockstep_restart_ms: f64,
         /// Seed of random:N fault plans.
-        #[arg(long, default_value_t = 1)]
+        #[arg(long, default_value_t = 1, value_parser = seed)]
         fault_seed: u64,
         /// Topology: which stages share a process, on which core, at which priority. A
         /// shipped one (four-process, two-process, one-process, four-process-standby, split-hil) or a TOML file with
@@ -131,7 +131,7 @@ enum Cmd {
         zenoh_topics: Option<String>,
         /// With --zenoh-listen or --zenoh-connect: a Zenoh configuration file (JSON5) for TLS
         /// and access control; its mode and endpoints are replaced by drivelab's.
-        #[arg(long, value_name = "FILE")]
+        #[arg(long, value_name = "FILE", value_parser = existing_file)]
         zenoh_config: Option<PathBuf>,
         /// Run only machine NAME's processes of a split topology (one whose processes name
         /// a `machine`); the other machine runs the rest, joined over Zenoh: one side with
@@ -198,7 +198,7 @@ enum Cmd {
         #[arg(long, default_value_t = 0.0, value_name = "SECONDS")]
         wait: f64,
         /// Zenoh configuration file (JSON5) for TLS.
-        #[arg(long, value_name = "FILE")]
+        #[arg(long, value_name = "FILE", value_parser = existing_file)]
         zenoh_config: Option<PathBuf>,
     },
     /// Internal: the Zenoh bridge of a drive (started by `drivelab run --zenoh-listen`).
@@ -281,16 +281,21 @@ enum Cmd {
         #[command(flatten)]
         drive: DriveArgs,
         /// Screen refresh period, ms.
-        #[arg(long, default_value_t = 100, value_name = "MS")]
+        #[arg(long, default_value_t = 100, value_name = "MS", value_parser = refresh_ms)]
         refresh_ms: u64,
         /// Freeze time of the `s` (stop) fault, ms (1..60000).
-        #[arg(long, default_value_t = 200, value_name = "MS")]
+        #[arg(long, default_value_t = 200, value_name = "MS", value_parser = stop_ms)]
         stop_ms: u32,
         /// Print one frame as text on stdout and exit (for logs and scripts).
         #[arg(long)]
         print: bool,
         /// Size of the --print frame, COLUMNSxROWS.
-        #[arg(long, default_value = "140x40", value_name = "COLSxROWS")]
+        #[arg(
+            long,
+            default_value = "140x40",
+            value_name = "COLSxROWS",
+            requires = "print"
+        )]
         print_size: String,
     },
     /// Remove the shared-memory files of a bus whose drive is gone (e.g. after the
@@ -366,7 +371,7 @@ enum Cmd {
         #[arg(long)]
         motor: Option<String>,
         /// Target speed rise time (0 to 100 %, time to first reach the set-point), ms.
-        #[arg(long, value_name = "MS")]
+        #[arg(long, value_name = "MS", value_parser = rise_time_ms)]
         rise_time_ms: Option<f64>,
     },
     /// Plot several runs on one set of axes (speed, i_q, i_d) and print their metrics side
@@ -517,7 +522,10 @@ enum BenchNodeKind {
 }
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let cli = match parse_cli() {
+        Ok(cli) => cli,
+        Err(code) => return code,
+    };
     match real_main(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
@@ -525,10 +533,14 @@ fn main() -> ExitCode {
                 // What failed was printed on its own lines.
                 return ExitCode::from(r.0);
             }
-            drivelab_services::errln!(
-                "drivelab: error: {}",
-                drivelab_runtime::text::error_text(&e)
-            );
+            // One line, whatever the error's source put in it (a parser's caret diagram).
+            let text = drivelab_runtime::text::error_text(&e);
+            let line: Vec<&str> = text
+                .lines()
+                .map(str::trim)
+                .filter(|l| !l.is_empty())
+                .collect();
+            drivelab_services::errln!("drivelab: error: {}", line.join(" "));
             // A malformed expectation is a usage error, like a bad option.
             if e.downcast_ref::<drivelab_services::expect::UsageError>()
                 .is_some()
@@ -538,6 +550,112 @@ fn main() -> ExitCode {
                 ExitCode::from(1)
             }
         }
+    }
+}
+
+/// Parses the command line. Help and version are printed as clap prints them; any other
+/// problem is one line on stderr, exit code 2.
+fn parse_cli() -> Result<Cli, ExitCode> {
+    negative_values(Cli::command())
+        .try_get_matches()
+        .and_then(|m| Cli::from_arg_matches(&m))
+        .map_err(|e| {
+            use clap::error::ErrorKind;
+            match e.kind() {
+                ErrorKind::DisplayHelp
+                | ErrorKind::DisplayVersion
+                | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => e.exit(),
+                _ => {
+                    drivelab_services::errln!("drivelab: error: {}", clap_line(&e));
+                    ExitCode::from(2)
+                }
+            }
+        })
+}
+
+/// Lets every value start with '-' when it is a number, so that `--duration -1` is refused
+/// by its range instead of being taken for a flag.
+fn negative_values(c: clap::Command) -> clap::Command {
+    c.mut_args(|a| {
+        if a.get_action().takes_values() {
+            a.allow_negative_numbers(true)
+        } else {
+            a
+        }
+    })
+    .mut_subcommands(negative_values)
+}
+
+/// A clap error on one line: what is wrong, its possible values and tip, without the usage.
+fn clap_line(e: &clap::Error) -> String {
+    let text = e.render().to_string();
+    let mut line = String::new();
+    for l in text
+        .lines()
+        .map(str::trim)
+        .take_while(|l| !l.starts_with("Usage:") && !l.starts_with("For more information"))
+        .filter(|l| !l.is_empty())
+    {
+        if !line.is_empty() {
+            line.push_str(if l.starts_with("tip:") { "; " } else { " " });
+        }
+        line.push_str(l);
+    }
+    line.strip_prefix("error: ").unwrap_or(&line).to_string()
+}
+
+/// A finite number above `min` and at most `max` of `unit`, or the reason, which clap
+/// prints after the option and the value.
+fn number_in(v: &str, min: f64, max: f64, unit: &str) -> Result<f64, String> {
+    let range = format!("must be more than {min} and at most {max} {unit}");
+    match v.trim().parse::<f64>() {
+        Ok(x) if x.is_finite() && x > min && x <= max => Ok(x),
+        Ok(_) => Err(range),
+        Err(_) => Err(format!("not a number ({range})")),
+    }
+}
+
+/// A whole number within `min..=max` of `unit`, or the reason.
+fn whole_in(v: &str, min: u64, max: u64, unit: &str) -> Result<u64, String> {
+    v.trim()
+        .parse::<u64>()
+        .ok()
+        .filter(|x| (min..=max).contains(x))
+        .ok_or_else(|| format!("must be a whole number from {min} to {max}{unit}"))
+}
+
+/// `run --fault-seed`: any 64-bit seed.
+fn seed(v: &str) -> Result<u64, String> {
+    whole_in(v, 0, u64::MAX, "")
+}
+
+/// `monitor --refresh-ms`.
+fn refresh_ms(v: &str) -> Result<u64, String> {
+    whole_in(v, 10, 10_000, " ms")
+}
+
+/// `monitor --stop-ms`: the bounds of a stop fault.
+fn stop_ms(v: &str) -> Result<u32, String> {
+    whole_in(v, 1, 60_000, " ms").map(|x| x as u32)
+}
+
+/// `run --duration`: the scenario's own bounds on its duration.
+fn duration_s(v: &str) -> Result<f64, String> {
+    number_in(v, 0.0, 3600.0, "s")
+}
+
+/// `design --rise-time-ms`: the scenario's own bounds on the speed rise time.
+fn rise_time_ms(v: &str) -> Result<f64, String> {
+    number_in(v, 0.0, 10_000.0, "ms")
+}
+
+/// A file that exists (checked before anything starts).
+fn existing_file(v: &str) -> Result<PathBuf, String> {
+    let p = PathBuf::from(v);
+    match std::fs::metadata(&p) {
+        Ok(m) if m.is_file() => Ok(p),
+        Ok(_) => Err("not a file".into()),
+        Err(e) => Err(format!("cannot read it: {e}")),
     }
 }
 
@@ -860,10 +978,14 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             motor,
             max_step,
         } => {
-            if !(max_step.is_finite() && max_step > 0.0) {
-                anyhow::bail!("--max-step-s must be a positive number of seconds, got {max_step}");
-            }
             let m = drivelab_services::replay::resolve_motor(&motor)?;
+            // Longer RK4 steps than the electrical time constant give numbers, not the model.
+            let tau = m.l_d_h.min(m.l_q_h) / m.r_ohm;
+            if !(max_step.is_finite() && max_step > 0.0 && max_step <= tau) {
+                anyhow::bail!(
+                    "--max-step-s {max_step}: must be more than 0 and at most the motor's electrical time constant min(L_d, L_q)/R = {tau:.3e} s"
+                );
+            }
             let n = drivelab_services::replay::replay(&replay, &out, &m, max_step)?;
             drivelab_services::errln!("wrote {n} rows to {}", out.display());
             Ok(())
@@ -944,9 +1066,6 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             } else {
                 None
             };
-            if !(10..=10_000).contains(&refresh_ms) {
-                anyhow::bail!("--refresh-ms {refresh_ms} is out of range (10..10000 ms)");
-            }
             drivelab_services::monitor::run(&drivelab_services::monitor::MonitorOptions {
                 target: target(drive)?,
                 refresh: std::time::Duration::from_millis(refresh_ms),

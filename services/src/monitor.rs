@@ -174,6 +174,19 @@ fn attach_local(bus: &str) -> Result<LocalPorts> {
     let exists =
         ipc::Service::does_exist(&name, &cfg, MessagingPattern::PublishSubscribe).unwrap_or(false);
     if !exists {
+        // Another user's drive is invisible, not absent: say so.
+        let root = drivelab_runtime::bus::root_path(bus);
+        if let Err(e) = std::fs::read_dir(&root) {
+            if e.kind() == std::io::ErrorKind::PermissionDenied {
+                use std::os::unix::fs::MetadataExt;
+                let owner = std::fs::metadata(&root)
+                    .map(|m| format!("uid {}", m.uid()))
+                    .unwrap_or_else(|_| "another user".into());
+                bail!(
+                    "bus '{bus}': permission denied: its files ({root}) belong to {owner}; run as that user or as root"
+                );
+            }
+        }
         bail!("no drive on bus '{bus}': start one with `drivelab run --bus {bus}`");
     }
     let node = drivelab_runtime::bus::node(bus, "monitor")?;

@@ -33,7 +33,10 @@ fn parse_window(w: &str) -> Result<(f64, f64)> {
         .trim()
         .parse()
         .map_err(|_| anyhow!("--window '{w}': END is not a number of seconds"))?;
-    if !(a.is_finite() && b.is_finite() && a < b) {
+    if !(a.is_finite() && b.is_finite()) {
+        bail!("--window '{w}': START and END must be finite numbers of seconds");
+    }
+    if a >= b {
         bail!("--window '{w}': START must be before END");
     }
     Ok((a, b))
@@ -41,6 +44,8 @@ fn parse_window(w: &str) -> Result<(f64, f64)> {
 
 /// Redraws the figures; returns the files written.
 pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
+    // Checked before any file is read.
+    let window_s = a.window.as_deref().map(parse_window).transpose()?;
     let (rows, seconds) = if a.from_mcap {
         let m = crate::trace_mcap::read(&a.run.join("trace.mcap"))?;
         (m.rows, m.seconds)
@@ -51,6 +56,19 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
         }
         (drivelab_runtime::trace::read_csv(&trace)?, Vec::new())
     };
+    if rows.is_empty() {
+        bail!("{}: the trace has no samples", a.run.display());
+    }
+    if let (Some((t0, t1)), Some(first), Some(last)) = (window_s, rows.first(), rows.last()) {
+        if !rows.iter().any(|r| (t0..=t1).contains(&r.t)) {
+            bail!(
+                "--window '{}': no sample inside; the run covers {} to {} s",
+                a.window.as_deref().unwrap_or_default(),
+                first.t,
+                last.t
+            );
+        }
+    }
     let summary: serde_json::Value = std::fs::read(a.run.join("summary.json"))
         .ok()
         .and_then(|b| serde_json::from_slice(&b).ok())
@@ -81,7 +99,7 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
         })
         .unwrap_or_default();
     let opts = drivelab_tools::plot::TraceFigureOptions {
-        window_s: a.window.as_deref().map(parse_window).transpose()?,
+        window_s,
         current_limit_a: scenario.as_ref().map(|s| s.i_q_max()),
         voltage_limit_v: scenario.as_ref().map(|s| s.u_max()),
         shaded_windows: windows,

@@ -78,15 +78,43 @@ fn drain<T: Wire>(
     Ok((ended, n))
 }
 
+/// Creates folder `out` with its missing parents; returns the folders it made, outermost
+/// first.
+fn make_folder(out: &std::path::Path) -> Result<Vec<PathBuf>> {
+    let mut made = Vec::new();
+    let mut d = Some(out);
+    while let Some(p) = d.filter(|p| !p.as_os_str().is_empty() && !p.exists()) {
+        made.push(p.to_path_buf());
+        d = p.parent();
+    }
+    made.reverse();
+    std::fs::create_dir_all(out)
+        .with_context(|| format!("--out {}: cannot create the run folder", out.display()))?;
+    Ok(made)
+}
+
 /// Records the remote drive into `o.out`.
 pub fn record(o: &RecordOptions) -> Result<Recorded> {
     crate::common::install_signal_handlers()?;
-    let remote = Remote::connect(&o.endpoint, o.bus.as_deref(), o.config.as_deref(), o.wait)?;
-    let toml_text = remote.scenario_toml()?;
-    let sc = Scenario::from_toml(&toml_text, "the remote drive's scenario")
-        .map_err(|e| anyhow!("the remote drive's scenario: {e}"))?;
-    std::fs::create_dir_all(&o.out)
-        .with_context(|| format!("cannot create run folder {}", o.out.display()))?;
+    // The run folder first: a bad --out fails at once, not after connecting (which may
+    // wait for --wait seconds); when nothing is recorded, the folders made are removed.
+    let made = make_folder(&o.out)?;
+    let connected = (|| -> Result<_> {
+        let remote = Remote::connect(&o.endpoint, o.bus.as_deref(), o.config.as_deref(), o.wait)?;
+        let toml_text = remote.scenario_toml()?;
+        let sc = Scenario::from_toml(&toml_text, "the remote drive's scenario")
+            .map_err(|e| anyhow!("the remote drive's scenario: {e}"))?;
+        Ok((remote, toml_text, sc))
+    })();
+    let (remote, toml_text, sc) = match connected {
+        Ok(c) => c,
+        Err(e) => {
+            for d in made.iter().rev() {
+                let _ = std::fs::remove_dir(d);
+            }
+            return Err(e);
+        }
+    };
     std::fs::write(o.out.join("scenario.toml"), &toml_text)?;
     // Subscribe, then fetch the history: nothing falls in between.
     let truth = remote.feed::<PlantTruth>()?;

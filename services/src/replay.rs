@@ -73,6 +73,22 @@ fn replay_within(
     if !(max_step_s.is_finite() && max_step_s > 0.0) {
         bail!("the largest step must be a positive number of seconds, got {max_step_s}");
     }
+    if !input.is_file() {
+        bail!(
+            "--replay {}: not a file (a CSV with columns t,u_d,u_q,t_load)",
+            input.display()
+        );
+    }
+    // The rows are read before the output is written, but the input would be lost.
+    if output
+        .canonicalize()
+        .is_ok_and(|o| input.canonicalize().is_ok_and(|i| i == o))
+    {
+        bail!(
+            "--out {}: the same file as --replay; give another",
+            output.display()
+        );
+    }
     let mut rd = csv::Reader::from_path(input)
         .with_context(|| format!("cannot read {}", input.display()))?;
     let mut rows = Vec::new();
@@ -119,9 +135,22 @@ fn replay_within(
             rows[rows.len() - 1].t
         );
     }
+    let states = simulate(&rows, m, max_step_s);
+    let finite = |r: &OutRow| {
+        [r.i_d, r.i_q, r.omega_m, r.theta_e]
+            .iter()
+            .all(|v| v.is_finite())
+    };
+    if let Some(r) = states.iter().find(|r| !finite(r)) {
+        bail!(
+            "{}: the model's state is not a finite number from t = {} s on (inputs too large for the motor, or --max-step-s too long)",
+            input.display(),
+            r.t
+        );
+    }
     let mut w = csv::Writer::from_path(output)
         .with_context(|| format!("cannot write {}", output.display()))?;
-    for r in simulate(&rows, m, max_step_s) {
+    for r in states {
         w.serialize(r)?;
     }
     w.flush()?;

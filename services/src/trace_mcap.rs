@@ -294,14 +294,31 @@ pub fn export(dir: &Path) -> Result<std::path::PathBuf> {
         .filter(|f| *f > 0.0)
         .ok_or_else(|| anyhow!("{}: no rate_hz", dir.join("summary.json").display()))?;
     let out = dir.join("trace.mcap");
-    let mut m = McapTrace::create(&out)?;
-    let mut r = csv::Reader::from_path(&csv_path)
-        .map_err(|e| anyhow!("cannot read {}: {e}", csv_path.display()))?;
-    for rec in r.deserialize::<TraceRow>() {
-        let row = rec.map_err(|e| anyhow!("{}: {e}", csv_path.display()))?;
-        m.row(&row, None)?;
+    // Written beside it and renamed when complete: a failed export leaves no partial file
+    // and does not replace a trace.mcap that is there.
+    let part = dir.join("trace.mcap.part");
+    let written = (|| -> Result<()> {
+        let mut m = McapTrace::create(&part)?;
+        let mut r = csv::Reader::from_path(&csv_path)
+            .map_err(|e| anyhow!("cannot read {}: {e}", csv_path.display()))?;
+        let mut rows = 0usize;
+        for rec in r.deserialize::<TraceRow>() {
+            let row = rec.map_err(|e| anyhow!("{}: {e}", csv_path.display()))?;
+            m.row(&row, None)?;
+            rows += 1;
+        }
+        if rows == 0 {
+            bail!("{} has no samples", csv_path.display());
+        }
+        m.finish(&scenario_toml, &summary, fs)
+    })();
+    let renamed = written.and_then(|()| {
+        std::fs::rename(&part, &out).with_context(|| format!("cannot write {}", out.display()))
+    });
+    if let Err(e) = renamed {
+        let _ = std::fs::remove_file(&part);
+        return Err(e);
     }
-    m.finish(&scenario_toml, &summary, fs)?;
     Ok(out)
 }
 

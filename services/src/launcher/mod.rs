@@ -603,8 +603,10 @@ fn cpu_latency_request(
 }
 
 /// Applies `--topology`, resolves the scenario's topology against the stages' declarations
-/// (a user's executable is asked with `--describe`) and makes `exec` paths absolute.
+/// (a user's executable is asked with `--describe`) and makes `exec` paths absolute. An error
+/// names the file that gives the topology (the `--topology` file or the scenario).
 pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Result<TopologyPlan> {
+    let mut origin = sc_src.display().to_string();
     if let Some(t) = &o.topology {
         let (file, path) =
             drivelab_runtime::topology::load(t).map_err(|e| anyhow!("--topology: {e}"))?;
@@ -612,13 +614,23 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
         absolute_execs(&mut sc.process, &path)?;
         sc.placement = drivelab_runtime::config::Placement::default();
         sc.validate().map_err(|e| anyhow!("--topology {t}: {e}"))?;
+        origin = format!("--topology: {}", path.display());
     }
     let mut procs = sc.topology();
     absolute_execs(&mut procs, sc_src)?;
+    let runner = runner_of(o)?;
+    // Every `exec` of this machine's processes is checked before anything starts, also one
+    // that hosts built-in stages only (it is asked nothing, but it is started).
+    let here = o.zenoh.as_ref().and_then(|z| z.machine.as_deref());
+    for p in &procs {
+        if let (Some(exe), true) = (&p.exec, here.is_none() || p.machine.as_deref() == here) {
+            check_exec(exe, runner.is_some())
+                .map_err(|e| anyhow!("{origin}: process '{}': {e}", p.name))?;
+        }
+    }
     let mut described: BTreeMap<String, Vec<StageInfo>> = BTreeMap::new();
     let scr: &Scenario = sc;
     let sc_text = toml::to_string(scr)?;
-    let runner = runner_of(o)?;
     let resolved = drivelab_runtime::topology::resolve(&procs, &mut |p, stage| {
         if let Some(i) = drivelab_runtime::topology::builtin_info(scr, stage) {
             return Ok(i);
@@ -645,10 +657,40 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
                 )
             })
     })
-    .map_err(|e| anyhow!(e))?;
+    .map_err(|e| anyhow!("{origin}: {e}"))?;
+    // A `[stages.NAME]` table for a stage no process hosts is a typo or a leftover: its
+    // parameters would be ignored.
+    let hosted = resolved.stage_names();
+    if let Some(name) = sc.stages.keys().find(|n| !hosted.contains(n)) {
+        bail!(
+            "{}: [stages.{name}]: no process hosts a stage '{name}' (the topology's stages: {})",
+            sc_src.display(),
+            hosted.join(", ")
+        );
+    }
     sc.process = resolved.processes.iter().map(|(p, _)| p.clone()).collect();
     sc.placement = drivelab_runtime::config::Placement::default();
     Ok(TopologyPlan::from_resolved(&resolved))
+}
+
+/// Checks that `exe` (absolute) is a file that can be run: it exists, is a regular file and,
+/// unless a runner starts it (qemu-user reads it), has an execute permission.
+fn check_exec(exe: &str, through_runner: bool) -> Result<()> {
+    use std::os::unix::fs::PermissionsExt;
+    let md = match std::fs::metadata(exe) {
+        Ok(m) => m,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            bail!("exec {exe} not found (build it first: cargo build --release --workspace)")
+        }
+        Err(e) => bail!("exec {exe}: {e}"),
+    };
+    if !md.is_file() {
+        bail!("exec {exe} is not a file (it must name the executable that hosts the process's stages)");
+    }
+    if !through_runner && md.permissions().mode() & 0o111 == 0 {
+        bail!("exec {exe} is not executable (no execute permission: chmod +x it)");
+    }
+    Ok(())
 }
 
 /// Makes every `exec` of `procs` absolute, relative paths taken from the folder of `file`
@@ -670,36 +712,126 @@ fn absolute_execs(
     Ok(())
 }
 
-/// Asks a user's stage executable which stages it hosts.
+/// How long a user's stage executable may take to answer `--describe`.
+const DESCRIBE_TIMEOUT: Duration = Duration::from_secs(10);
+/// The most output of `--describe` read (a stage list is a few kB).
+const DESCRIBE_MAX_BYTES: u64 = 1 << 20;
+
+/// Asks a user's stage executable which stages it hosts. It runs in a process group of its
+/// own and must exit within [`DESCRIBE_TIMEOUT`] with at most [`DESCRIBE_MAX_BYTES`] of
+/// output; then its whole group is killed, so that nothing it started is left behind.
 fn describe(
     exe: &str,
     sc_text: &str,
     runner: Option<&drivelab_runtime::runner::Runner>,
 ) -> Result<Vec<StageInfo>> {
-    if !Path::new(exe).is_file() {
-        bail!("executable {exe} not found (build it first: cargo build --release --workspace)");
-    }
+    use std::io::Read;
+    use std::os::unix::process::CommandExt;
+    check_exec(exe, runner.is_some())?;
     let dir = std::env::temp_dir().join(format!("drivelab-describe-{}", std::process::id()));
     std::fs::create_dir_all(&dir)?;
     let f = dir.join("scenario.toml");
     std::fs::write(&f, sc_text)?;
-    let out = drivelab_runtime::runner::command(runner, exe)
+    let mut cmd = drivelab_runtime::runner::command(runner, exe);
+    // Gone with the launcher, however it ends (a Ctrl-C reaches our process group only).
+    die_with_launcher(&mut cmd);
+    let spawned = cmd
         .arg("--describe")
         .arg("--scenario")
         .arg(&f)
         .stdin(Stdio::null())
-        .output()
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .process_group(0)
+        .spawn()
         .with_context(|| format!("cannot run {exe} --describe"));
+    let mut child = match spawned {
+        Ok(c) => c,
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&dir);
+            return Err(e);
+        }
+    };
+    let pid = child.id() as libc::pid_t;
+    let read = |pipe: Option<Box<dyn Read + Send>>| {
+        std::thread::spawn(move || {
+            let mut buf = Vec::new();
+            if let Some(p) = pipe {
+                let _ = p.take(DESCRIBE_MAX_BYTES + 1).read_to_end(&mut buf);
+            }
+            buf
+        })
+    };
+    let out = read(
+        child
+            .stdout
+            .take()
+            .map(|p| Box::new(p) as Box<dyn Read + Send>),
+    );
+    let err = read(
+        child
+            .stderr
+            .take()
+            .map(|p| Box::new(p) as Box<dyn Read + Send>),
+    );
+    // Whether the child has exited, without reaping it: until it is reaped its pid, the
+    // group's id, cannot be reused, so the group kill below hits only what it started.
+    let exited = || {
+        // SAFETY: siginfo_t is plain data; all zeroes is a valid value.
+        let mut info: libc::siginfo_t = unsafe { std::mem::zeroed() };
+        // SAFETY: waitid on our own unreaped child with a valid siginfo_t pointer; WNOWAIT
+        // leaves it waitable, WNOHANG returns at once.
+        let r = unsafe {
+            libc::waitid(
+                libc::P_PID,
+                pid as libc::id_t,
+                &mut info,
+                libc::WEXITED | libc::WNOHANG | libc::WNOWAIT,
+            )
+        };
+        // SAFETY: waitid filled in (or left zero) the si_pid field of a child's state change.
+        r != 0 || unsafe { info.si_pid() } != 0
+    };
+    let started = Instant::now();
+    let mut in_time = true;
+    while !exited() {
+        if started.elapsed() >= DESCRIBE_TIMEOUT {
+            in_time = false;
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    // SAFETY: signals the process group of our own child, which is not reaped yet (its id
+    // is still taken); ESRCH when the group is empty is ignored.
+    unsafe { libc::kill(-pid, libc::SIGKILL) };
+    let status = child.wait();
     let _ = std::fs::remove_dir_all(&dir);
-    let out = out?;
-    if !out.status.success() {
+    let stdout = out.join().unwrap_or_default();
+    let stderr = err.join().unwrap_or_default();
+    if !in_time {
         bail!(
-            "{exe} --describe failed: {}",
-            String::from_utf8_lossy(&out.stderr).trim()
+            "{exe} --describe did not answer within {} s (killed)",
+            DESCRIBE_TIMEOUT.as_secs()
         );
     }
-    serde_json::from_slice(&out.stdout)
-        .with_context(|| format!("{exe} --describe: not a stage list"))
+    let status = status.with_context(|| format!("{exe} --describe"))?;
+    if !status.success() {
+        let text = String::from_utf8_lossy(&stderr);
+        let lines: Vec<&str> = text
+            .lines()
+            .map(str::trim)
+            .filter(|l| !l.is_empty())
+            .collect();
+        bail!(
+            "{exe} --describe failed ({status}){}{}",
+            if lines.is_empty() { "" } else { ": " },
+            lines.join(" / ")
+        );
+    }
+    if stdout.len() as u64 > DESCRIBE_MAX_BYTES {
+        bail!("{exe} --describe: more than {DESCRIBE_MAX_BYTES} bytes of output, not a stage list");
+    }
+    serde_json::from_slice(&stdout).map_err(|e| anyhow!("{exe} --describe: not a stage list ({e})"))
 }
 
 /// The warning for a real-time run that missed most of its deadlines without a fault: the
@@ -758,7 +890,8 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
         sc.duration_s = d;
         sc.validate().map_err(|e| anyhow!("--duration {d}: {e}"))?;
     }
-    let expectations = crate::expect::collect(&sc.expect, &o.expect)?;
+    let expectations =
+        crate::expect::collect(&sc.expect, &sc_src.display().to_string(), &o.expect)?;
     // Sensor faults go into the resolved scenario: every plant applies them.
     crate::faults::sensor::add_to_scenario(&o.faults, &mut sc)?;
     let mut topo = resolve_topology(&mut sc, &sc_src, o)?;

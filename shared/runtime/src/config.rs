@@ -224,7 +224,7 @@ fn check_drift(name: &str, points: &[DriftPoint], dur: f64) -> Result<(), String
     for (i, s) in points.iter().enumerate() {
         check(s.t_s.is_finite() && s.t_s >= 0.0 && s.t_s <= dur, || {
             format!(
-                "{name}[{i}].t_s = {} must be within [0, duration_s = {dur}]",
+                "{name}[{i}].t_s = {} must be within [0, duration_s = {dur}] s",
                 s.t_s
             )
         })?;
@@ -396,9 +396,43 @@ impl MotorSpec {
             omega_rated_rad_s: self.omega_rated_rad_s.unwrap_or(base.omega_rated_rad_s),
             t_rated_nm: self.t_rated_nm.unwrap_or(base.t_rated_nm),
         };
+        check_motor(&m)?;
         m.validate()?;
         Ok(m)
     }
+}
+
+/// The range of each motor parameter, with its unit: `(name, value, lowest allowed (None:
+/// above 0), highest, unit)`. Far beyond any motor a drive of this kind runs, so that only
+/// nonsense (a typo, a unit slip, a huge number) is refused.
+fn motor_ranges(m: &MotorParams) -> [(&'static str, f64, Option<f64>, f64, &'static str); 9] {
+    [
+        ("r_ohm", m.r_ohm, None, 1e3, "Ω"),
+        ("l_d_h", m.l_d_h, None, 10.0, "H"),
+        ("l_q_h", m.l_q_h, None, 10.0, "H"),
+        ("psi_pm_wb", m.psi_pm_wb, None, 100.0, "Wb"),
+        // Generous: a rotor held still (a locked-rotor test) is modelled by a huge inertia.
+        ("j_kgm2", m.j_kgm2, None, 1e9, "kg·m²"),
+        ("b_nms", m.b_nms, Some(0.0), 1e3, "N·m·s/rad"),
+        ("i_max_a", m.i_max_a, None, 1e5, "A"),
+        ("omega_rated_rad_s", m.omega_rated_rad_s, None, 1e5, "rad/s"),
+        ("t_rated_nm", m.t_rated_nm, None, 1e6, "N·m"),
+    ]
+}
+
+/// Checks the resolved motor parameters against [`motor_ranges`]: a one-line error naming the
+/// field, its range and unit.
+fn check_motor(m: &MotorParams) -> Result<(), String> {
+    for (name, v, lo, hi, unit) in motor_ranges(m) {
+        let ok = v.is_finite() && v <= hi && lo.map_or(v > 0.0, |lo| v >= lo);
+        check(ok, || {
+            let open = lo.map_or("(0".to_string(), |lo| format!("[{lo}"));
+            format!("motor.{name} = {v} must be in {open}, {hi}] {unit}")
+        })?;
+    }
+    check((1..=64).contains(&m.pole_pairs), || {
+        format!("motor.pole_pairs = {} must be in 1..=64", m.pole_pairs)
+    })
 }
 
 /// What the inverter does once a stale command has been held for `hold_samples`.
@@ -1010,8 +1044,139 @@ impl Placement {
     }
 }
 
+/// A name that may name a folder: 1..=64 characters of a-z, A-Z, 0-9, `-`, `_` or `.`, not
+/// starting with `.` (scenario and campaign names make the default run folders' names).
+pub fn name_ok(name: &str) -> bool {
+    (1..=64).contains(&name.len())
+        && !name.starts_with('.')
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+}
+
 /// The four service names, in chain order.
 pub const SERVICES: [&str; 4] = ["plant", "observer", "current-loop", "speed-loop"];
+
+/// One line for a TOML error of file `origin` with text `text`: `ORIGIN:LINE: FIELD: MESSAGE`,
+/// where FIELD is the dotted path of the key or table the error is at (`motor.r_ohm`,
+/// `process[1].cpu`), left out when the error is at none (a syntax error, a missing field
+/// of the top level, which names itself).
+pub fn toml_error(text: &str, origin: &str, e: &toml::de::Error) -> String {
+    let msg = e.message().trim().replace('\n', " ");
+    let Some(span) = e.span() else {
+        return format!("{origin}: {msg}");
+    };
+    let at = span.start.min(text.len());
+    let line = text[..at].matches('\n').count() + 1;
+    match toml_field_at(text, at) {
+        Some(f) => format!("{origin}:{line}: {f}: {msg}"),
+        None => format!("{origin}:{line}: {msg}"),
+    }
+}
+
+/// A `[table]` or `[[array]]` header line of TOML: its name and whether it is an array's.
+fn toml_header(l: &str) -> Option<(String, bool)> {
+    let t = l.split('#').next().unwrap_or_default().trim();
+    let (inner, array) = match t.strip_prefix("[[").and_then(|x| x.strip_suffix("]]")) {
+        Some(x) => (x, true),
+        None => (t.strip_prefix('[')?.strip_suffix(']')?, false),
+    };
+    let inner = inner.trim();
+    (!inner.is_empty()
+        && inner
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "_-. ".contains(c)))
+    .then(|| (inner.replace(' ', ""), array))
+}
+
+/// The dotted path of the key or table header at byte offset `at` of TOML `text`: the key
+/// of that line, or of the multi-line value (an array) the line is inside, with its table
+/// (`name[i]` for the i-th `[[name]]`). A light scan of the text (bare, dotted and
+/// double-quoted keys), enough to name the field of a type or range error.
+fn toml_field_at(text: &str, at: usize) -> Option<String> {
+    let lines: Vec<&str> = text.lines().collect();
+    let n = text[..at].matches('\n').count();
+    let here = *lines.get(n)?;
+    // The table a line belongs to: the nearest header at or above it.
+    let table = |from: usize| -> Option<String> {
+        let i = (0..=from)
+            .rev()
+            .find(|&i| toml_header(lines[i]).is_some())?;
+        let (name, array) = toml_header(lines[i])?;
+        Some(if array {
+            let k = lines[..=i]
+                .iter()
+                .filter(|x| toml_header(x).is_some_and(|(h, a)| a && h == name))
+                .count();
+            format!("{name}[{}]", k - 1)
+        } else {
+            name
+        })
+    };
+    if toml_header(here).is_some() {
+        return table(n);
+    }
+    // An error at offset 0 is about the whole file (a missing field of the top level), not
+    // about the key the first line happens to hold.
+    let key = match toml_key(here.trim_start()) {
+        Some(k) => (at != 0).then_some((k, n)),
+        None => (0..n).rev().find_map(|j| {
+            if toml_header(lines[j]).is_some() {
+                return Some(None);
+            }
+            let k = toml_key(lines[j].trim_start())?;
+            let first = lines[j].split_once('=').map_or("", |(_, v)| v);
+            let depth = bracket_depth(first)
+                + lines[j + 1..n]
+                    .iter()
+                    .map(|l| bracket_depth(l))
+                    .sum::<i64>();
+            Some((depth > 0).then_some((k, j)))
+        })?,
+    };
+    let (k, j) = key?;
+    Some(match table(j) {
+        Some(t) => format!("{t}.{k}"),
+        None => k,
+    })
+}
+
+/// `[` and `{` opened minus closed on a line of TOML, outside strings and comments.
+fn bracket_depth(l: &str) -> i64 {
+    let (mut depth, mut quote) = (0, None);
+    for c in l.chars() {
+        match (quote, c) {
+            (Some(q), c) if c == q => quote = None,
+            (Some(_), _) => {}
+            (None, '"' | '\'') => quote = Some(c),
+            (None, '#') => break,
+            (None, '[' | '{') => depth += 1,
+            (None, ']' | '}') => depth -= 1,
+            _ => {}
+        }
+    }
+    depth
+}
+
+/// The key of a `key = value` line (bare, dotted or double-quoted), if it is one.
+fn toml_key(t: &str) -> Option<String> {
+    let (k, rest) = if let Some(q) = t.strip_prefix('"') {
+        let end = q.find('"')?;
+        (q[..end].to_string(), &q[end + 1..])
+    } else {
+        let end = t
+            .find(|c: char| !(c.is_ascii_alphanumeric() || c == '_' || c == '-' || c == '.'))
+            .unwrap_or(t.len());
+        (t[..end].to_string(), &t[end..])
+    };
+    (!k.is_empty() && rest.trim_start().starts_with('=')).then_some(k)
+}
+
+/// `x` to 6 significant digits, for limits computed from other fields (`3665.19`, not
+/// `3665.1914291880917`).
+fn sig(x: f64) -> f64 {
+    format!("{x:.5e}").parse().unwrap_or(x)
+}
 
 fn check(cond: bool, msg: impl FnOnce() -> String) -> Result<(), String> {
     if cond {
@@ -1021,12 +1186,18 @@ fn check(cond: bool, msg: impl FnOnce() -> String) -> Result<(), String> {
     }
 }
 
-fn check_steps(name: &str, steps: &[Step], dur: f64, abs_max: f64) -> Result<(), String> {
+fn check_steps(
+    name: &str,
+    steps: &[Step],
+    dur: f64,
+    abs_max: f64,
+    unit: &str,
+) -> Result<(), String> {
     let mut last = f64::NEG_INFINITY;
     for (i, s) in steps.iter().enumerate() {
         check(s.t_s.is_finite() && s.t_s >= 0.0 && s.t_s <= dur, || {
             format!(
-                "{name}[{i}].t_s = {} must be within [0, duration_s = {dur}]",
+                "{name}[{i}].t_s = {} must be within [0, duration_s = {dur}] s",
                 s.t_s
             )
         })?;
@@ -1038,8 +1209,9 @@ fn check_steps(name: &str, steps: &[Step], dur: f64, abs_max: f64) -> Result<(),
         })?;
         check(s.value.is_finite() && s.value.abs() <= abs_max, || {
             format!(
-                "{name}[{i}].value = {} must be finite and within ±{abs_max}",
-                s.value
+                "{name}[{i}].value = {} must be finite and within ±{} {unit}",
+                s.value,
+                sig(abs_max)
             )
         })?;
         last = s.t_s;
@@ -1050,16 +1222,7 @@ fn check_steps(name: &str, steps: &[Step], dur: f64, abs_max: f64) -> Result<(),
 impl Scenario {
     /// Parses and validates a scenario from TOML text; `origin` names the source in errors.
     pub fn from_toml(text: &str, origin: &str) -> Result<Self, String> {
-        let s: Scenario = toml::from_str(text).map_err(|e| {
-            let msg = e.message().trim().to_string();
-            match e.span() {
-                Some(span) => {
-                    let line = text[..span.start.min(text.len())].lines().count().max(1);
-                    format!("{origin}:{line}: {msg}")
-                }
-                None => format!("{origin}: {msg}"),
-            }
-        })?;
+        let s: Scenario = toml::from_str(text).map_err(|e| toml_error(text, origin, &e))?;
         s.validate().map_err(|e| format!("{origin}: {e}"))?;
         Ok(s)
     }
@@ -1168,12 +1331,15 @@ impl Scenario {
 
     /// Checks ranges; the error names the field and the rule.
     pub fn validate(&self) -> Result<(), String> {
-        check(!self.name.is_empty() && self.name.len() <= 64, || {
-            "name must be 1..=64 characters".into()
+        check(name_ok(&self.name), || {
+            format!(
+                "name = {:?} must be 1..=64 characters of a-z, A-Z, 0-9, -, _ or . (it names the run folder), not starting with .",
+                self.name
+            )
         })?;
         check(
             self.duration_s.is_finite() && self.duration_s > 0.0 && self.duration_s <= 3600.0,
-            || format!("duration_s = {} must be in (0, 3600]", self.duration_s),
+            || format!("duration_s = {} must be in (0, 3600] s", self.duration_s),
         )?;
         let m = self.motor.resolve()?;
         self.model.apply(&m)?;
@@ -1235,7 +1401,10 @@ impl Scenario {
             check(
                 w.is_finite() && w.abs() <= 10.0 * m.omega_rated_rad_s,
                 || {
-                    format!("mechanics.prescribed_speed_rad_s = {w} must be finite and within ±10× rated speed")
+                    format!(
+                        "mechanics.prescribed_speed_rad_s = {w} must be finite and within ±10 × motor.omega_rated_rad_s = ±{} rad/s",
+                        sig(10.0 * m.omega_rated_rad_s)
+                    )
                 },
             )?;
         }
@@ -1245,7 +1414,10 @@ impl Scenario {
                     && w.abs() <= 10.0 * m.omega_rated_rad_s
                     && self.mechanics.prescribed_speed_rad_s.is_none(),
                 || {
-                    format!("mechanics.initial_speed_rad_s = {w} must be finite, within ±10× rated speed, and not set together with prescribed_speed_rad_s")
+                    format!(
+                        "mechanics.initial_speed_rad_s = {w} must be finite, within ±10 × motor.omega_rated_rad_s = ±{} rad/s, and not set together with prescribed_speed_rad_s",
+                        sig(10.0 * m.omega_rated_rad_s)
+                    )
                 },
             )?;
         }
@@ -1260,13 +1432,22 @@ impl Scenario {
         let s = &self.sensors;
         s.check_errors(r.ts(), m.i_max_a)?;
         check(
+            s.encoder_counts_per_rev == 0 || s.encoder_counts_per_rev >= 4,
+            || {
+                format!(
+                    "sensors.encoder_counts_per_rev = {} must be 0 (an ideal encoder) or at least 4 counts per revolution",
+                    s.encoder_counts_per_rev
+                )
+            },
+        )?;
+        check(
             s.current_noise_a.is_finite()
                 && s.current_noise_a >= 0.0
                 && s.current_noise_a <= m.i_max_a,
             || {
                 format!(
-                    "sensors.current_noise_a = {} must be in [0, motor.i_max_a]",
-                    s.current_noise_a
+                    "sensors.current_noise_a = {} must be in [0, motor.i_max_a = {}] A",
+                    s.current_noise_a, m.i_max_a
                 )
             },
         )?;
@@ -1342,7 +1523,10 @@ impl Scenario {
         )?;
         if let Some(i) = sl.i_q_max_a {
             check(i.is_finite() && i > 0.0 && i <= 10.0 * m.i_max_a, || {
-                format!("speed_loop.i_q_max_a = {i} must be in (0, 10 × motor.i_max_a]")
+                format!(
+                    "speed_loop.i_q_max_a = {i} must be in (0, 10 × motor.i_max_a = {}] A",
+                    sig(10.0 * m.i_max_a)
+                )
             })?;
         }
         check_steps(
@@ -1350,24 +1534,28 @@ impl Scenario {
             &self.reference.speed_rad_s,
             self.duration_s,
             10.0 * m.omega_rated_rad_s,
+            "rad/s (10 × motor.omega_rated_rad_s)",
         )?;
         check_steps(
             "reference.i_d_a",
             &self.reference.i_d_a,
             self.duration_s,
             10.0 * m.i_max_a,
+            "A (10 × motor.i_max_a)",
         )?;
         check_steps(
             "reference.i_q_a",
             &self.reference.i_q_a,
             self.duration_s,
             10.0 * m.i_max_a,
+            "A (10 × motor.i_max_a)",
         )?;
         check_steps(
             "load.torque_nm",
             &self.load.torque_nm,
             self.duration_s,
             100.0 * m.t_rated_nm,
+            "N·m (100 × motor.t_rated_nm)",
         )?;
         for (name, v) in [
             ("load.smooth_sign_rad_s", self.load.smooth_sign_rad_s),
@@ -1397,7 +1585,7 @@ impl Scenario {
             if let Some(core) = p.core {
                 check(core < 1024, || {
                     format!(
-                        "placement.{}.core = {core} is not a CPU number",
+                        "placement.{}.core = {core} is not a CPU number (0..=1023)",
                         svc.replace('-', "_")
                     )
                 })?;
@@ -1567,7 +1755,12 @@ preset = "kyslan2015"
         };
         let steps = |field: &str, v: &str| format!("[reference]\n{field} = [{v}]");
         let cases: Vec<(String, &str)> = vec![
-            (swap("name = \"t\"", "name = \"\""), "name must be 1..=64"),
+            (swap("name = \"t\"", "name = \"\""), "name = \"\" must be 1..=64"),
+            (
+                swap("name = \"t\"", "name = \"../../etc\""),
+                "name = \"../../etc\" must be 1..=64 characters of a-z",
+            ),
+            (swap("name = \"t\"", "name = \"a\\nb\""), "name = \"a\\nb\" must"),
             (swap("duration_s = 0.01", "duration_s = 0.0"), "duration_s = 0 must"),
             (tail("[rates]\nsample_hz = 50.0"), "rates.sample_hz = 50 must"),
             (tail("[rates]\nspeed_divider = 0"), "rates.speed_divider = 0 must"),
@@ -1698,15 +1891,113 @@ preset = "kyslan2015"
                 swap("preset = \"kyslan2015\"", "r_ohm = 1.0"),
                 "motor.l_d_h is required",
             ),
-            (tail("r_ohm = -1.0"), "motor.r_ohm must be a finite number > 0, got -1"),
-            (tail("b_nms = -1.0"), "motor.b_nms must be a finite number >= 0, got -1"),
-            (tail("pole_pairs = 0"), "motor.pole_pairs must be in 1..=64, got 0"),
+            (tail("r_ohm = -1.0"), "motor.r_ohm = -1 must be in (0, 1000] Ω"),
+            (tail("b_nms = -1.0"), "motor.b_nms = -1 must be in [0, 1000] N·m·s/rad"),
+            (tail("pole_pairs = 0"), "motor.pole_pairs = 0 must be in 1..=64"),
+            // Physically nonsense values, each the only change.
+            (tail("r_ohm = 1e300"), "motor.r_ohm = 1e300 must be in (0, 1000] Ω"),
+            (tail("l_d_h = nan"), "motor.l_d_h = NaN must be in (0, 10] H"),
+            (tail("l_q_h = -0.004"), "motor.l_q_h = -0.004 must be in (0, 10] H"),
+            (tail("psi_pm_wb = inf"), "motor.psi_pm_wb = inf must be in (0, 100] Wb"),
+            (tail("j_kgm2 = 0.0"), "motor.j_kgm2 = 0 must be in (0, 1000000000] kg·m²"),
+            (tail("b_nms = 1e300"), "motor.b_nms = 1e300 must be in [0, 1000] N·m·s/rad"),
+            (tail("i_max_a = 1e300"), "motor.i_max_a = 1e300 must be in (0, 100000] A"),
+            (
+                tail("omega_rated_rad_s = 1e300"),
+                "motor.omega_rated_rad_s = 1e300 must be in (0, 100000] rad/s",
+            ),
+            (tail("t_rated_nm = -1.0"), "motor.t_rated_nm = -1 must be in (0, 1000000] N·m"),
+            (
+                tail("[sensors]\nencoder_counts_per_rev = 1"),
+                "sensors.encoder_counts_per_rev = 1 must be 0 (an ideal encoder) or at least 4",
+            ),
+            (
+                tail(&steps("speed_rad_s", "{t_s = -0.001, value = 1.0}")),
+                "reference.speed_rad_s[0].t_s = -0.001 must be within [0, duration_s = 0.01] s",
+            ),
+            (
+                tail(&steps("i_d_a", "{t_s = nan, value = 1.0}")),
+                "reference.i_d_a[0].t_s = NaN must be within",
+            ),
+            (
+                tail("[speed_loop]\ni_q_max_a = 1e300"),
+                "speed_loop.i_q_max_a = 1e300 must be in (0, 10 × motor.i_max_a = 16] A",
+            ),
+            // Type errors name the field by its path (and its line).
+            (tail("[rates]\nsample_hz = \"fast\""), "x:7: rates.sample_hz: invalid type"),
+            (tail("[rates]\nspeed_divider = nan"), "x:7: rates.speed_divider: invalid type"),
+            (
+                tail("[inverter]\nv_dc_v = { a = 1 }"),
+                "x:7: inverter.v_dc_v: invalid type: map",
+            ),
+            (
+                tail("[[process]]\nname = \"a\"\nstages = [\"plant\"]\ncpu = -1"),
+                "x:9: process[0].cpu: invalid value: integer `-1`",
+            ),
+            (
+                tail("[reference]\nspeed_rad_s = [\n  { t_s = 0.0, value = 1.0 },\n  { t_s = \"x\", value = 2.0 },\n]"),
+                "x:9: reference.speed_rad_s: invalid type: string",
+            ),
         ];
         for (text, needle) in cases {
             match Scenario::from_toml(&text, "x") {
                 Ok(_) => panic!("accepted:\n{text}"),
-                Err(e) => assert!(e.contains(needle), "'{needle}' not in '{e}' for\n{text}"),
+                Err(e) => {
+                    // As drivelab prints it (1e300 in exponent form).
+                    let e = crate::text::readable_numbers(&e);
+                    assert!(e.contains(needle), "'{needle}' not in '{e}' for\n{text}");
+                    assert!(e.starts_with("x:"), "the file is not named: {e}");
+                    assert!(!e.contains('\n'), "not one line: {e}");
+                }
             }
+        }
+    }
+
+    #[test]
+    fn toml_errors_name_the_line_and_the_field_path() {
+        let err = |text: &str| Scenario::from_toml(text, "f.toml").unwrap_err();
+        // The line of a key at the start of its line is that line (not the one before).
+        let e = err(&format!("{MIN}[rates]\nsample_hzz = 5\n"));
+        assert!(
+            e.starts_with("f.toml:7: rates.sample_hzz: unknown field"),
+            "{e}"
+        );
+        // A missing field of the top level names no key; one of a table names the table.
+        let e = err("duration_s = 0.1\n[motor]\npreset = \"kyslan2015\"\n");
+        assert!(e.starts_with("f.toml:1: missing field `name`"), "{e}");
+        let e = err(&format!("{MIN}[[expect]]\nnote = \"x\"\n"));
+        assert!(
+            e.starts_with("f.toml:6: expect[0]: missing field `check`"),
+            "{e}"
+        );
+        // A syntax error is not pinned on the key above it.
+        let e = err(&format!("{MIN}[rates\n"));
+        assert!(e.starts_with("f.toml:6: unclosed table"), "{e}");
+        // The n-th array table is counted.
+        let two = "[[process]]\nname = \"a\"\nstages = [\"plant\"]\n";
+        let e = err(&format!("{MIN}{two}{two}priority = 1000\n"));
+        assert!(
+            e.starts_with("f.toml:12: process[1].priority: invalid value"),
+            "{e}"
+        );
+        // Brackets inside strings and comments do not count.
+        let e = err(&format!(
+            "{MIN}[reference]\nspeed_rad_s = [ # ] [\n {{ t_s = 0.0, value = \"]\" }},\n]\n"
+        ));
+        assert!(
+            e.starts_with("f.toml:8: reference.speed_rad_s: invalid type"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn the_shipped_scenarios_and_presets_are_within_the_ranges() {
+        for (name, path) in list_scenarios() {
+            let text = std::fs::read_to_string(&path).unwrap();
+            Scenario::from_toml(&text, &name).unwrap_or_else(|e| panic!("{e}"));
+        }
+        for preset in MotorParams::PRESETS {
+            check_motor(&MotorParams::preset(preset).unwrap()).unwrap();
         }
     }
 

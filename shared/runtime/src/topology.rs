@@ -132,7 +132,8 @@ pub fn list_topologies() -> Vec<String> {
     v
 }
 
-/// Loads a topology by shipped name or file path.
+/// Loads a topology by shipped name or file path and checks what needs no stage declarations
+/// ([`check_specs`]); an error names the file.
 pub fn load(name_or_path: &str) -> Result<(TopologyFile, PathBuf), String> {
     let path = if name_or_path.ends_with(".toml") || name_or_path.contains('/') {
         PathBuf::from(name_or_path)
@@ -148,8 +149,10 @@ pub fn load(name_or_path: &str) -> Result<(TopologyFile, PathBuf), String> {
     };
     let text = std::fs::read_to_string(&path)
         .map_err(|e| format!("cannot read topology {}: {e}", path.display()))?;
+    let origin = path.display().to_string();
     let t: TopologyFile =
-        toml::from_str(&text).map_err(|e| format!("{}: {}", path.display(), e.message().trim()))?;
+        toml::from_str(&text).map_err(|e| crate::config::toml_error(&text, &origin, &e))?;
+    check_specs(&t.process).map_err(|e| format!("{origin}: {e}"))?;
     Ok((t, path))
 }
 
@@ -190,10 +193,16 @@ pub fn check_specs(procs: &[ProcessSpec]) -> Result<(), String> {
         if let Some(c) = p.cpu {
             if c >= 1024 {
                 return Err(format!(
-                    "process '{}': cpu = {c} is not a CPU number",
+                    "process '{}': cpu = {c} is not a CPU number (0..=1023)",
                     p.name
                 ));
             }
+        }
+        if p.exec.as_deref().is_some_and(|e| e.trim().is_empty()) {
+            return Err(format!(
+                "process '{}': exec = \"\" names no executable (leave exec out for the built-in host)",
+                p.name
+            ));
         }
         if p.standby && p.stages.iter().any(|s| s == "plant") {
             return Err(format!(

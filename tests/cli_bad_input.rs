@@ -1,0 +1,531 @@
+//! Bad command-line input to every `drivelab` command: each case must fail with its exit code
+//! (1 an error, 2 a usage error found by clap), exactly one stderr line that names the
+//! problem, no panic, and nothing left behind (no process or file of its bus, no folder it
+//! was asked to write).
+
+mod common;
+
+use common::{assert_clean, bus_id, drivelab, run_ok, scratch, serial, wait_for_services, Drive};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+fn stderr(o: &std::process::Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// One bad command line and what it must produce.
+struct Case {
+    args: Vec<String>,
+    code: i32,
+    /// In the one line of stderr.
+    needle: &'static str,
+    /// The bus the command names, checked clean afterwards.
+    bus: Option<String>,
+    /// A path the command must not create.
+    absent: Option<PathBuf>,
+}
+
+/// A case whose arguments are `args` with `{bus}` replaced by a bus id of its own (made
+/// from `name`) and `{dir}` by the test's scratch folder.
+fn case(name: &str, dir: &Path, args: &[&str], code: i32, needle: &'static str) -> Case {
+    let bus = args
+        .iter()
+        .any(|a| a.contains("{bus}"))
+        .then(|| bus_id(name));
+    let args = args
+        .iter()
+        .map(|a| {
+            let a = a.replace("{dir}", dir.to_str().unwrap());
+            match &bus {
+                Some(b) => a.replace("{bus}", b),
+                None => a,
+            }
+        })
+        .collect();
+    Case {
+        args,
+        code,
+        needle,
+        bus,
+        absent: None,
+    }
+}
+
+impl Case {
+    fn leaves_no(mut self, p: PathBuf) -> Self {
+        self.absent = Some(p);
+        self
+    }
+
+    fn check(&self) {
+        let args: Vec<&str> = self.args.iter().map(String::as_str).collect();
+        let o = drivelab(&args);
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(self.code), "{args:?}: {err}");
+        assert!(!err.contains("panicked"), "{args:?}: {err}");
+        assert_eq!(err.lines().count(), 1, "{args:?}: not one line: {err}");
+        assert!(
+            err.starts_with("drivelab: error: "),
+            "{args:?}: not an error line: {err}"
+        );
+        assert!(
+            err.contains(self.needle),
+            "{args:?}: no '{}' in {err}",
+            self.needle
+        );
+        if let Some(bus) = &self.bus {
+            assert_clean(bus);
+        }
+        if let Some(p) = &self.absent {
+            assert!(!p.exists(), "{args:?}: {} was made", p.display());
+        }
+    }
+}
+
+#[test]
+fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
+    let d = scratch("bad");
+    let dir = d.as_path();
+    let out = d.join("out");
+    // A finished run to point plot, export and compare at, and plant input files.
+    let (run, _) = run_ok("good", &["--clock", "lockstep", "--duration", "0.05"]);
+    let run = run.to_str().unwrap().to_string();
+    let csv = |name: &str, text: &str| {
+        let p = d.join(name);
+        std::fs::write(&p, text).unwrap();
+        p.to_str().unwrap().to_string()
+    };
+    let volts = csv("volts.csv", "t,u_d,u_q,t_load\n0,0,10,0\n0.01,0,10,0\n");
+    let huge = csv("huge.csv", "t,u_d,u_q,t_load\n0,1e300,10,0\n0.001,0,0,0\n");
+    // A run folder whose trace has a header and no sample.
+    let empty = d.join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    for f in ["scenario.toml", "summary.json"] {
+        std::fs::copy(Path::new(&run).join(f), empty.join(f)).unwrap();
+    }
+    std::fs::write(empty.join("trace.csv"), "k,t,omega_ref\n").unwrap();
+    let empty = empty.to_str().unwrap().to_string();
+    let o = out.to_str().unwrap();
+    let lockstep = ["--clock", "lockstep", "--no-plots"];
+    let run_case = |name: &str, extra: &[&str], code: i32, needle: &'static str| {
+        let mut a = vec!["run", "--bus", "{bus}", "--out", o];
+        a.extend_from_slice(&lockstep);
+        a.extend_from_slice(extra);
+        case(name, dir, &a, code, needle).leaves_no(out.clone())
+    };
+    let mut cases = vec![
+        // run
+        run_case(
+            "dur-nan",
+            &["--duration", "NaN"],
+            2,
+            "invalid value 'NaN' for '--duration <SECONDS>': must be more than 0 and at most 3600 s",
+        ),
+        run_case("dur-neg", &["--duration", "-1"], 2, "'-1' for '--duration <SECONDS>'"),
+        run_case("dur-huge", &["--duration", "1e300"], 2, "at most 3600 s"),
+        run_case(
+            "dur-int",
+            &["--duration", "99999999999999999999"],
+            2,
+            "at most 3600 s",
+        ),
+        run_case("dur-empty", &["--duration", ""], 2, "not a number"),
+        run_case("scenario", &["--scenario", "nosuch"], 1, "unknown scenario 'nosuch'"),
+        case(
+            "clock",
+            dir,
+            &["run", "--bus", "{bus}", "--clock", "nosuch"],
+            2,
+            "[possible values: realtime, lockstep, inprocess]",
+        ),
+        run_case(
+            "rt",
+            &["--rt-strict", "--no-rt"],
+            2,
+            "'--rt-strict' cannot be used with '--no-rt'",
+        ),
+        run_case(
+            "restart-ms",
+            &["--lockstep-restart-ms", "-1"],
+            2,
+            "lasts 1 to 10000 ms",
+        ),
+        run_case(
+            "seed",
+            &["--fault-seed", "-1"],
+            2,
+            "'--fault-seed <FAULT_SEED>': must be a whole number from 0 to",
+        ),
+        run_case("topology", &["--topology", "nosuch"], 1, "unknown topology 'nosuch'"),
+        run_case(
+            "fault",
+            &["--fault", "kill:plant@nan"],
+            1,
+            "time must be a finite number",
+        ),
+        run_case(
+            "fox",
+            &["--foxglove", "127.0.0.1:99999"],
+            1,
+            "port '99999' is not a number from 0 to 65535",
+        ),
+        case(
+            "out",
+            dir,
+            &["run", "--bus", "{bus}", "--clock", "lockstep", "--out", "/proc/x"],
+            1,
+            "cannot create run folder /proc/x",
+        ),
+        case("busid", dir, &["run", "--bus", "bad-id"], 1, "bus id 'bad-id'"),
+        // plant
+        case(
+            "plant-step",
+            dir,
+            &["plant", "--replay", &volts, "--out", o, "--max-step-s", "1"],
+            1,
+            "--max-step-s 1: must be more than 0 and at most the motor's electrical time constant",
+        ),
+        case(
+            "plant-nan",
+            dir,
+            &["plant", "--replay", &volts, "--out", o, "--max-step-s", "NaN"],
+            1,
+            "--max-step-s NaN: must be more than 0",
+        ),
+        case(
+            "plant-dir",
+            dir,
+            &["plant", "--replay", dir.to_str().unwrap(), "--out", o],
+            1,
+            "not a file",
+        ),
+        case(
+            "plant-same",
+            dir,
+            &["plant", "--replay", &volts, "--out", &volts],
+            1,
+            "the same file as --replay",
+        ),
+        case(
+            "plant-huge",
+            dir,
+            &["plant", "--replay", &huge, "--out", o],
+            1,
+            "the model's state is not a finite number from t = 0.001 s",
+        ),
+        case(
+            "plant-motor",
+            dir,
+            &["plant", "--replay", &volts, "--out", o, "--motor", "nosuch"],
+            1,
+            "unknown motor 'nosuch'",
+        ),
+        // design
+        case(
+            "design-rise",
+            dir,
+            &["design", "--rise-time-ms", "0"],
+            2,
+            "'--rise-time-ms <MS>': must be more than 0 and at most 10000 ms",
+        ),
+        case(
+            "design-motor",
+            dir,
+            &["design", "--motor", "nosuch"],
+            1,
+            "unknown motor 'nosuch'",
+        ),
+        // monitor, fault, clean, bus-config on a bus with no drive
+        case(
+            "mon-none",
+            dir,
+            &["monitor", "--bus", "{bus}", "--print"],
+            1,
+            "no drive on bus",
+        ),
+        case(
+            "mon-refresh",
+            dir,
+            &["monitor", "--bus", "{bus}", "--refresh-ms", "-1"],
+            2,
+            "'-1' for '--refresh-ms <MS>': must be a whole number from 10 to 10000 ms",
+        ),
+        case(
+            "mon-size",
+            dir,
+            &["monitor", "--bus", "{bus}", "--print-size", "100x50"],
+            2,
+            "not provided: --print",
+        ),
+        case(
+            "fault-kind",
+            dir,
+            &["fault", "nokind", "plant", "--bus", "{bus}"],
+            2,
+            "[possible values: kill, stop]",
+        ),
+        case(
+            "fault-stop",
+            dir,
+            &["fault", "stop", "plant", "--bus", "{bus}", "--duration-s", "-1"],
+            1,
+            "--duration-s -1: a stop lasts 0.001 to 60 s",
+        ),
+        case("clean", dir, &["clean", "--bus", ""], 1, "bus id ''"),
+        case(
+            "bus-config",
+            dir,
+            &["bus-config", "--bus", "x/y"],
+            1,
+            "bus id 'x/y'",
+        ),
+        // files and folders
+        case(
+            "export",
+            dir,
+            &["export", "/nonexistent", "--mcap"],
+            1,
+            "no trace.csv",
+        ),
+        case("export-empty", dir, &["export", &empty, "--mcap"], 1, "has no samples")
+            .leaves_no(Path::new(&empty).join("trace.mcap")),
+        case(
+            "compare",
+            dir,
+            &["compare", "/nonexistent", &run],
+            1,
+            "/nonexistent: no such run folder",
+        ),
+        case(
+            "plot-nan",
+            dir,
+            &["plot", &run, "--window", "nan:1", "--out", o],
+            1,
+            "--window 'nan:1': START and END must be finite numbers of seconds",
+        ),
+        case(
+            "plot-outside",
+            dir,
+            &["plot", &run, "--window", "5:6", "--out", o],
+            1,
+            "--window '5:6': no sample inside",
+        )
+        .leaves_no(out.clone()),
+        case(
+            "campaign",
+            dir,
+            &["campaign", "/nonexistent.toml", "--out", o],
+            1,
+            "cannot read campaign /nonexistent.toml",
+        ),
+        // observer-error, cdm-design
+        case(
+            "oe-ts",
+            dir,
+            &["observer-error", "--no-plots", "--out", o, "--ts", "1e-300s"],
+            1,
+            "must be between 1 µs and 100 ms",
+        ),
+        case(
+            "oe-step",
+            dir,
+            &["observer-error", "--no-plots", "--out", o, "--step-rpm", "1e300"],
+            1,
+            "--step-rpm 1e300: must be at most the sweep's highest speed",
+        ),
+        case(
+            "oe-tau",
+            dir,
+            &["observer-error", "--no-plots", "--out", o, "--pole-tau-ms", "-1"],
+            1,
+            "--pole-tau-ms -1: must be more than 0 and at most 1000 ms",
+        ),
+        case(
+            "cdm-tu",
+            dir,
+            &["cdm-design", "--v-ao-v", "5", "--tu-us", "1e300"],
+            1,
+            "--tu-us 1e300: must be between 1 and 100000 µs",
+        ),
+        case(
+            "cdm-vao",
+            dir,
+            &["cdm-design", "--v-ao-v", "NaN"],
+            1,
+            "--v-ao-v NaN: must be a finite number of volts",
+        ),
+        case(
+            "cdm-sigma",
+            dir,
+            &[
+                "cdm-design",
+                "--v-ao-v",
+                "5",
+                "--speed-rpm",
+                "800",
+                "--sigma-v-rad-s",
+                "5",
+            ],
+            1,
+            "--sigma-v-rad-s 5: must be negative",
+        ),
+        case(
+            "cdm-iq",
+            dir,
+            &["cdm-design", "--v-ao-v", "5", "--i-q-a", "3"],
+            2,
+            "not provided: --speed-rpm",
+        ),
+        // bench: refused before anything is measured or written
+        case(
+            "bench-quick",
+            dir,
+            &["bench", "--quick", "--rates", "5000", "--out", o],
+            1,
+            "--rates cannot be used with --quick",
+        )
+        .leaves_no(out.clone()),
+        case(
+            "bench-rates",
+            dir,
+            &["bench", "--rates", "NaN", "--out", o],
+            1,
+            "--rates: NaN Hz must be in [100, 100000]",
+        )
+        .leaves_no(out.clone()),
+        case(
+            "bench-variant",
+            dir,
+            &["bench", "--variants", "nosuch", "--out", o],
+            1,
+            "--variants: unknown variant 'nosuch'",
+        )
+        .leaves_no(out.clone()),
+        case(
+            "bench-seconds",
+            dir,
+            &["bench", "--quick", "--seconds", "1e300", "--out", o],
+            1,
+            "--seconds must be in (0, 3600]",
+        )
+        .leaves_no(out.clone()),
+        // usage
+        case(
+            "scenarios",
+            dir,
+            &["scenarios", "extra"],
+            2,
+            "unexpected argument 'extra'",
+        ),
+        case("doctor", dir, &["doctor", "--nosuch"], 2, "'--nosuch'"),
+        case("command", dir, &["nosuch"], 2, "unrecognized subcommand 'nosuch'"),
+    ];
+    if cfg!(feature = "zenoh") {
+        cases.extend([
+            run_case(
+                "zenoh-config",
+                &["--zenoh-listen", "--zenoh-config", "/nonexistent"],
+                2,
+                "'--zenoh-config <FILE>': cannot read it",
+            ),
+            run_case(
+                "zenoh-wait",
+                &["--machine", "a", "--zenoh-listen", "--zenoh-wait", "-1"],
+                2,
+                "--zenoh-wait -1: 1 to 3600 seconds",
+            ),
+            case(
+                "rec-wait",
+                dir,
+                &[
+                    "record",
+                    "--connect",
+                    "tcp/127.0.0.1:1",
+                    "--out",
+                    o,
+                    "--wait",
+                    "-1",
+                ],
+                2,
+                "--wait -1: 0 to 3600 seconds",
+            )
+            .leaves_no(out.clone()),
+            case(
+                "rec-out",
+                dir,
+                &["record", "--connect", "tcp/127.0.0.1:1", "--out", "/proc/x"],
+                1,
+                "--out /proc/x: cannot create the run folder",
+            ),
+            // Nothing recorded: the folders made for it are gone.
+            case(
+                "rec-refused",
+                dir,
+                &[
+                    "record",
+                    "--connect",
+                    "tcp/127.0.0.1:1",
+                    "--out",
+                    &format!("{o}/a/b"),
+                ],
+                1,
+                "cannot connect to tcp/127.0.0.1:1",
+            )
+            .leaves_no(out.clone()),
+            case(
+                "rec-config",
+                dir,
+                &[
+                    "record",
+                    "--connect",
+                    "tcp/127.0.0.1:1",
+                    "--out",
+                    o,
+                    "--zenoh-config",
+                    dir.to_str().unwrap(),
+                ],
+                2,
+                "'--zenoh-config <FILE>': not a file",
+            ),
+        ]);
+    }
+    for c in &cases {
+        c.check();
+    }
+}
+
+#[test]
+fn a_bus_in_use_is_refused_and_left_to_its_drive() {
+    let _s = serial();
+    let d = scratch("busy");
+    let bus = bus_id("busy");
+    let drive = Drive::start(&bus, &d.join("drive"), &["--duration", "2"]);
+    wait_for_services(&bus);
+    let second = d.join("second");
+    for args in [
+        vec![
+            "run",
+            "--bus",
+            &bus,
+            "--clock",
+            "lockstep",
+            "--out",
+            second.to_str().unwrap(),
+        ],
+        vec!["clean", "--bus", &bus],
+    ] {
+        let o = drivelab(&args);
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(1), "{args:?}: {err}");
+        assert_eq!(err.lines().count(), 1, "{args:?}: {err}");
+        assert!(
+            err.contains(&format!("bus {bus} is in use by pid")),
+            "{err}"
+        );
+        assert!(!second.exists(), "the refused run made its folder");
+    }
+    // The drive itself was not disturbed.
+    let o = drive.wait_for_exit(Duration::from_secs(60), "the drive");
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_clean(&bus);
+}

@@ -1,0 +1,561 @@
+//! Bad input files: scenario TOML, topology files, campaign files and expectations, each
+//! mutated one field at a time. Every case must be refused before anything starts with its
+//! exit code and one stderr line that names the file, the field and the problem: no panic,
+//! no run folder, no process and no bus file left behind.
+
+mod common;
+
+use common::*;
+use std::path::{Path, PathBuf};
+use std::process::Output;
+
+/// What a refused command printed and left, checked: exit code `code`, one line (after any
+/// `warning:` line) containing every one of `needles`, no panic.
+fn assert_refused(what: &str, o: &Output, code: i32, needles: &[&str]) {
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!err.contains("panicked"), "{what}: a panic: {err}");
+    assert_eq!(o.status.code(), Some(code), "{what}: {err}");
+    let lines: Vec<&str> = err.lines().filter(|l| !l.contains("warning:")).collect();
+    assert_eq!(lines.len(), 1, "{what}: not one line: {err}");
+    for n in needles {
+        assert!(lines[0].contains(n), "{what}: '{n}' not in: {}", lines[0]);
+    }
+}
+
+/// `drivelab run --clock lockstep` with its own bus and folder and `extra`; asserts it is
+/// refused as [`assert_refused`] says and left nothing.
+fn run_refused(name: &str, extra: &[&str], code: i32, needles: &[&str]) {
+    let bus = bus_id(name);
+    let out = scratch(name).join("run");
+    let mut args = run_args(&bus, &out).to_vec();
+    args.extend_from_slice(&["--clock", "lockstep"]);
+    args.extend_from_slice(extra);
+    let o = drivelab(&args);
+    assert_refused(name, &o, code, needles);
+    assert!(!out.exists(), "{name}: a refused run made its folder");
+    assert_clean(&bus);
+}
+
+/// The shipped kyslan-pi scenario with text `edits`, written as `<scratch>/<tag>.toml`.
+fn scenario(tag: &str, edits: &[(&str, &str)]) -> PathBuf {
+    variant(tag, "kyslan-pi", edits)
+}
+
+#[test]
+fn a_bad_scenario_field_is_one_line_naming_file_field_range_and_unit() {
+    let motor = |line: &str| {
+        (
+            "preset = \"kyslan2015\"",
+            format!("preset = \"kyslan2015\"\n{line}"),
+        )
+    };
+    // (case, edit of kyslan-pi.toml, exit code, what the line says)
+    let cases: Vec<(&str, (&str, String), i32, &str)> = vec![
+        (
+            "duration-nan",
+            ("duration_s = 0.1", "duration_s = nan".into()),
+            1,
+            "duration_s = NaN must be in (0, 3600] s",
+        ),
+        (
+            "r-negative",
+            motor("r_ohm = -7.0"),
+            1,
+            "motor.r_ohm = -7 must be in (0, 1000] Ω",
+        ),
+        (
+            "r-huge",
+            motor("r_ohm = 1e300"),
+            1,
+            "motor.r_ohm = 1e300 must be in (0, 1000] Ω",
+        ),
+        (
+            "l-negative",
+            motor("l_d_h = -0.01"),
+            1,
+            "motor.l_d_h = -0.01 must be in (0, 10] H",
+        ),
+        (
+            "j-zero",
+            motor("j_kgm2 = 0.0"),
+            1,
+            "motor.j_kgm2 = 0 must be in (0, 1000000000] kg·m²",
+        ),
+        (
+            "imax-huge",
+            motor("i_max_a = 1e300"),
+            1,
+            "motor.i_max_a = 1e300 must be in (0, 100000] A",
+        ),
+        (
+            "l-string",
+            motor("l_d_h = \"x\""),
+            1,
+            "motor.l_d_h: invalid type: string \"x\", expected f64",
+        ),
+        (
+            "pole-pairs-table",
+            motor("pole_pairs = { a = 1 }"),
+            1,
+            "motor.pole_pairs: invalid type: map",
+        ),
+        (
+            "motor-unknown-key",
+            motor("r_ohms = 7.0"),
+            1,
+            "motor.r_ohms: unknown field `r_ohms`",
+        ),
+        (
+            "preset-unknown",
+            ("preset = \"kyslan2015\"", "preset = \"kyslan2016\"".into()),
+            1,
+            "motor.preset: unknown motor 'kyslan2016'",
+        ),
+        (
+            "motor-missing",
+            ("[motor]\npreset = \"kyslan2015\"", String::new()),
+            1,
+            "missing field `motor`",
+        ),
+        (
+            "rate-1hz",
+            ("sample_hz = 10000.0", "sample_hz = 1.0".into()),
+            1,
+            "rates.sample_hz = 1 must be in [100, 100000] Hz",
+        ),
+        (
+            "rate-1ghz",
+            ("sample_hz = 10000.0", "sample_hz = 1e9".into()),
+            1,
+            "rates.sample_hz = 1000000000 must be in [100, 100000] Hz",
+        ),
+        (
+            "divider-0",
+            ("speed_divider = 10", "speed_divider = 0".into()),
+            1,
+            "rates.speed_divider = 0 must be in 1..=1000",
+        ),
+        (
+            "divider-nan",
+            ("speed_divider = 10", "speed_divider = nan".into()),
+            1,
+            "rates.speed_divider: invalid type: floating point `NaN`",
+        ),
+        (
+            "hold-huge",
+            (
+                "hold_samples = 3",
+                "hold_samples = 99999999999999999999".into(),
+            ),
+            1,
+            "inverter.hold_samples: invalid type: integer",
+        ),
+        (
+            "controller-unknown",
+            (
+                "controller = \"pi\"\ntau_c_s",
+                "controller = \"pid\"\ntau_c_s".into(),
+            ),
+            1,
+            "current_loop.controller: unknown variant `pid`",
+        ),
+        (
+            "observer-unknown",
+            ("[observer]\n", "[observer]\nmode = \"kalman\"\n".into()),
+            1,
+            "observer.mode: unknown variant `kalman`",
+        ),
+        (
+            "step-negative-time",
+            (
+                "{ t_s = 0.0, value = 70.0 }",
+                "{ t_s = -1.0, value = 70.0 }".into(),
+            ),
+            1,
+            "reference.speed_rad_s[0].t_s = -1 must be within [0, duration_s = 0.1] s",
+        ),
+        (
+            "step-nan-time",
+            (
+                "{ t_s = 0.0, value = 70.0 }",
+                "{ t_s = nan, value = 70.0 }".into(),
+            ),
+            1,
+            "reference.speed_rad_s[0].t_s = NaN must be within",
+        ),
+        (
+            "step-table",
+            (
+                "[{ t_s = 0.0, value = 70.0 }]",
+                "{ t_s = 0.0, value = 70.0 }".into(),
+            ),
+            1,
+            "reference.speed_rad_s: invalid type: map, expected a sequence",
+        ),
+        (
+            "step-huge",
+            (
+                "{ t_s = 0.0, value = 70.0 }",
+                "{ t_s = 0.0, value = 1e300 }".into(),
+            ),
+            1,
+            "reference.speed_rad_s[0].value = 1e300 must be finite and within ±3665.19 rad/s",
+        ),
+        (
+            "iq-limit-huge",
+            ("i_q_max_a = 1.6", "i_q_max_a = 1e300".into()),
+            1,
+            "speed_loop.i_q_max_a = 1e300 must be in (0, 10 × motor.i_max_a = 16] A",
+        ),
+        (
+            "unknown-key",
+            ("[rates]\n", "[rates]\nsample_hzz = 1.0\n".into()),
+            1,
+            "rates.sample_hzz: unknown field `sample_hzz`",
+        ),
+        (
+            "name-escapes",
+            ("name = \"kyslan-pi\"", "name = \"../escape\"".into()),
+            1,
+            "name = \"../escape\" must be 1..=64 characters",
+        ),
+        (
+            "priority-100",
+            (
+                "[load]",
+                "[placement.plant]\ncore = 1\npriority = 100\n\n[load]".into(),
+            ),
+            1,
+            "placement.plant.priority = 100 must be in 1..=99",
+        ),
+        (
+            "encoder-1-count",
+            (
+                "[load]",
+                "[sensors]\nencoder_counts_per_rev = 1\n\n[load]".into(),
+            ),
+            1,
+            "sensors.encoder_counts_per_rev = 1 must be 0",
+        ),
+        (
+            "stage-table-unhosted",
+            (
+                "[load]",
+                "[stages.bogus]\nrate_hz = 1000.0\n\n[load]".into(),
+            ),
+            1,
+            "[stages.bogus]: no process hosts a stage 'bogus'",
+        ),
+        (
+            "expect-bad-operator",
+            (
+                "[motor]",
+                "[[expect]]\ncheck = \"peak_current_a =< 3\"\n\n[motor]".into(),
+            ),
+            2,
+            "[[expect]] #1: expectation 'peak_current_a =< 3': unknown operator",
+        ),
+        (
+            "expect-nan-limit",
+            (
+                "[motor]",
+                "[[expect]]\ncheck = \"peak_current_a <= nan\"\n\n[motor]".into(),
+            ),
+            2,
+            "limit 'nan' must be a finite number",
+        ),
+    ];
+    for (case, (from, to), code, needle) in cases {
+        let name = format!("sc-{case}");
+        let f = scenario(&name, &[(from, &to)]);
+        let path = f.to_str().unwrap();
+        run_refused(&name, &["--scenario", path], code, &[path, needle]);
+    }
+}
+
+/// A process table for a topology file.
+fn process(name: &str, stages: &[&str], extra: &str) -> String {
+    let list: Vec<String> = stages.iter().map(|s| format!("\"{s}\"")).collect();
+    format!(
+        "[[process]]\nname = \"{name}\"\nstages = [{}]\ncpu = 1\npriority = 70\n{extra}\n",
+        list.join(", ")
+    )
+}
+
+/// A script in `dir` with `body`, executable or not.
+fn script(dir: &Path, name: &str, body: &str, executable: bool) -> String {
+    use std::os::unix::fs::PermissionsExt;
+    let p = dir.join(name);
+    std::fs::write(&p, format!("#!/bin/sh\n{body}\n")).unwrap();
+    let mode = if executable { 0o755 } else { 0o644 };
+    std::fs::set_permissions(&p, std::fs::Permissions::from_mode(mode)).unwrap();
+    p.display().to_string()
+}
+
+/// The processes whose command line holds `marker`.
+fn processes_with(marker: &str) -> Vec<String> {
+    std::fs::read_dir("/proc")
+        .unwrap()
+        .flatten()
+        .filter_map(|e| std::fs::read(e.path().join("cmdline")).ok())
+        .map(|c| String::from_utf8_lossy(&c).replace('\0', " "))
+        .filter(|c| c.contains(marker))
+        .collect()
+}
+
+#[test]
+fn a_bad_topology_file_is_one_line_naming_file_process_and_field() {
+    let dir = scratch("topo-files");
+    let all = ["plant", "observer", "current-loop", "speed-loop"];
+    // A user process beside the built-in stages, hosted by `exec`.
+    let user = |exec: &str| {
+        process("p", &all, "") + &process("u", &["pos"], &format!("exec = \"{exec}\""))
+    };
+    // A describe that never answers, through a child of its own: both must be gone after.
+    let marker = format!("86399.{}", std::process::id());
+    let hang = script(&dir, "hang.sh", &format!("sleep {marker} &\nwait"), true);
+    let two_lines = script(
+        &dir,
+        "fails.sh",
+        "echo 'line one' >&2\necho 'line two' >&2\nexit 3",
+        true,
+    );
+    let not_exec = script(&dir, "not-exec.sh", "exit 0", false);
+    let cases: Vec<(&str, String, &str)> = vec![
+        (
+            "twice",
+            process("a", &["plant", "observer"], "")
+                + &process("b", &["observer", "current-loop", "speed-loop"], ""),
+            "stage 'observer' is hosted twice",
+        ),
+        (
+            "not-hosted",
+            process("a", &["plant", "observer", "current-loop"], ""),
+            "stage 'speed-loop' is not hosted by any process",
+        ),
+        (
+            "unknown-stage",
+            process(
+                "a",
+                &["plant", "observer", "current_loop", "speed-loop"],
+                "",
+            ),
+            "unknown stage 'current_loop'",
+        ),
+        (
+            "cpu-9999",
+            process("a", &all, "").replace("cpu = 1", "cpu = 9999"),
+            "process 'a': cpu = 9999 is not a CPU number (0..=1023)",
+        ),
+        (
+            "priority-0",
+            process("a", &all, "").replace("priority = 70", "priority = 0"),
+            "process 'a': priority = 0 must be in 1..=99",
+        ),
+        (
+            "priority-1000",
+            process("a", &all, "").replace("priority = 70", "priority = 1000"),
+            ":5: process[0].priority: invalid value: integer `1000`, expected u8",
+        ),
+        (
+            "cpu-nan",
+            process("a", &all, "").replace("cpu = 1", "cpu = nan"),
+            ":4: process[0].cpu: invalid type: floating point `NaN`",
+        ),
+        (
+            "unknown-key",
+            process("a", &all, "core = 1"),
+            "process[0].core: unknown field `core`",
+        ),
+        (
+            "no-process",
+            "process = []\n".into(),
+            "the topology has no [[process]]",
+        ),
+        (
+            "exec-missing",
+            user("/nonexistent/drivelab-stage"),
+            "process 'u': exec /nonexistent/drivelab-stage not found",
+        ),
+        (
+            "exec-empty",
+            user(""),
+            "process 'u': exec = \"\" names no executable",
+        ),
+        (
+            "exec-directory",
+            user("/tmp"),
+            "process 'u': exec /tmp is not a file",
+        ),
+        // Not executable, hosting built-in stages only: refused before the start, not when
+        // the launcher spawns it after the other processes.
+        (
+            "exec-not-executable",
+            process("p", &["plant"], "")
+                + &process(
+                    "c",
+                    &["observer", "current-loop", "speed-loop"],
+                    &format!("exec = \"{not_exec}\""),
+                ),
+            "process 'c': exec",
+        ),
+        (
+            "describe-two-lines",
+            user(&two_lines),
+            "--describe failed (exit status: 3): line one / line two",
+        ),
+        (
+            "describe-hangs",
+            user(&hang),
+            "--describe did not answer within 10 s (killed)",
+        ),
+    ];
+    for (case, text, needle) in cases {
+        let f = dir.join(format!("{case}.toml"));
+        std::fs::write(&f, text).unwrap();
+        let path = f.to_str().unwrap();
+        run_refused(
+            &format!("topo-{case}"),
+            &["--topology", path],
+            1,
+            &[path, needle],
+        );
+    }
+    assert!(
+        processes_with(&marker).is_empty(),
+        "the describe's child was left running"
+    );
+}
+
+#[test]
+fn a_bad_expectation_is_a_usage_error_of_one_line() {
+    for (case, expr, needle) in [
+        (
+            "op",
+            "peak_current_a =< 8",
+            "unknown operator (the operators are <=, <, >=, >, == or in A..B)",
+        ),
+        ("ne", "peak_current_a != 8", "unknown operator"),
+        (
+            "nan",
+            "peak_current_a <= nan",
+            "limit 'nan' must be a finite number within ±1e12",
+        ),
+        (
+            "huge",
+            "peak_current_a <= 1e300",
+            "limit '1e300' must be a finite number within ±1e12",
+        ),
+        (
+            "figure",
+            "peak_currnt_a <= 8",
+            "unknown figure 'peak_currnt_a'",
+        ),
+        (
+            "range",
+            "metrics.rise_time_ms in 9..8",
+            "the range 9..8 is empty",
+        ),
+    ] {
+        run_refused(
+            &format!("expect-{case}"),
+            &["--expect", expr],
+            2,
+            &["--expect: expectation", needle],
+        );
+    }
+}
+
+#[test]
+fn a_bad_campaign_is_one_line_naming_file_and_field_before_any_run() {
+    let dir = scratch("campaigns");
+    let head = "name = \"c\"\nclock = \"lockstep\"\nduration_s = 0.05\n";
+    let one = "scenarios = [\"kyslan-pi\"]\n";
+    let cases: Vec<(&str, String, i32, &str)> = vec![
+        (
+            "no-scenarios",
+            format!("{head}scenarios = []\n"),
+            1,
+            "scenarios = [] names no scenario to run",
+        ),
+        (
+            "dup-scenario",
+            format!("{head}scenarios = [\"kyslan-pi\", \"kyslan-pi\"]\n"),
+            1,
+            "scenarios: 'kyslan-pi' is listed twice",
+        ),
+        (
+            "dup-seed",
+            format!("{head}{one}seeds = [1, 1]\n"),
+            1,
+            "seeds: 1 is listed twice",
+        ),
+        (
+            "dup-fault-set",
+            format!("{head}{one}faults = [[\"kill:observer@0.02\"], [\"kill:observer@0.02\"]]\n"),
+            1,
+            "the fault set [kill:observer@0.02] is listed twice",
+        ),
+        (
+            "seeds-empty",
+            format!("{head}{one}seeds = []\n"),
+            1,
+            "seeds = [] gives no seed",
+        ),
+        (
+            "seeds-string",
+            format!("{head}{one}seeds = [\"1\"]\n"),
+            1,
+            ":5: seeds: invalid type: string \"1\", expected u64",
+        ),
+        (
+            "unknown-fault",
+            format!("{head}{one}faults = [[\"explode:observer@0.02\"]]\n"),
+            1,
+            "unknown fault kind 'explode'",
+        ),
+        (
+            "unknown-key",
+            format!("{head}{one}seed = [1]\n"),
+            1,
+            ":5: seed: unknown field `seed`",
+        ),
+        (
+            "name-escapes",
+            format!("{head}{one}").replace("name = \"c\"", "name = \"../x\""),
+            1,
+            "name = \"../x\" must be 1..=64 characters",
+        ),
+        (
+            "sweep-empty",
+            format!("{head}{one}[sweep]\nkinds = []\nstages = [\"observer\"]\nat_s = [0.02]\n"),
+            1,
+            "[sweep] kinds = [] makes no fault set",
+        ),
+        (
+            "duration-nan",
+            format!("{head}{one}").replace("duration_s = 0.05", "duration_s = nan"),
+            1,
+            "duration_s = NaN must be in (0, 3600] s",
+        ),
+        (
+            "expect-operator",
+            format!("{head}{one}expect = [\"peak_current_a =< 3\"]\n"),
+            2,
+            "expect: expectation 'peak_current_a =< 3': unknown operator",
+        ),
+    ];
+    for (case, text, code, needle) in cases {
+        let f = dir.join(format!("{case}.toml"));
+        std::fs::write(&f, text).unwrap();
+        let out = dir.join(format!("out-{case}"));
+        let o = drivelab(&[
+            "campaign",
+            f.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        assert_refused(case, &o, code, &[f.to_str().unwrap(), needle]);
+        assert!(!out.exists(), "{case}: the campaign started");
+    }
+}
