@@ -177,6 +177,7 @@ pub fn parse(text: &str, ts_ns: u64) -> Result<VariantResult> {
         samples,
         misses,
         cpu_run_ns: None,
+        deadline_lateness: Vec::new(),
     })
 }
 

@@ -218,6 +218,7 @@ pub fn run(
             samples: n,
             misses,
             cpu_run_ns: None,
+            deadline_lateness: Vec::new(),
         })
     })();
     // Whatever happened, no receiver outlives the run.

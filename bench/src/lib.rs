@@ -26,6 +26,7 @@ use drivelab_runtime::rt::{
 };
 use drivelab_runtime::timing::{CycleMonitor, LatencyHist, MissCounter};
 
+pub mod catch_up;
 pub mod cyclictest;
 pub mod hop;
 pub mod idle;
@@ -50,6 +51,10 @@ pub struct VariantResult {
     /// The floor: the measuring thread's time on the CPU over all its wake-ups (the kernel's
     /// timer path included), ns.
     pub cpu_run_ns: Option<u64>,
+    /// The floor: its lateness at every deadline, one list per round (empty for the other
+    /// variants, and for a round longer than [`MAX_DEADLINES_KEPT`]), for
+    /// [`catch_up::misses`].
+    pub deadline_lateness: Vec<catch_up::DeadlineLateness>,
 }
 
 impl VariantResult {
@@ -65,6 +70,8 @@ impl VariantResult {
             (Some(a), Some(b)) => Some(a + b),
             _ => None,
         };
+        self.deadline_lateness
+            .extend(other.deadline_lateness.iter().cloned());
         Ok(())
     }
 }
@@ -95,6 +102,10 @@ pub struct ChainSpec {
     /// Speed loop.
     pub speed_loop: NodeSpec,
 }
+
+/// The floor keeps its lateness at each deadline for rounds of up to this many deadlines
+/// (16 MB: 200 s at 20 kHz).
+pub const MAX_DEADLINES_KEPT: u64 = 1 << 22;
 
 /// Stack bytes touched before a loop starts.
 const PREFAULT_STACK: usize = 256 * 1024;
@@ -166,6 +177,12 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
         let mut late = LatencyHist::new("lateness");
         let mut cycle = LatencyHist::new("cycle");
         let mut misses = MissCounter::default();
+        let mut by_deadline =
+            catch_up::DeadlineLateness::with_capacity(if n <= MAX_DEADLINES_KEPT {
+                n as usize
+            } else {
+                0
+            });
         // Like cyclictest: memory locked (process-wide, as the drive's hosts do).
         apply_rt("floor", &node, true)?;
         let t0 = now_ns() + 2_000_000;
@@ -178,7 +195,14 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
             sleep_until_ns(deadline);
             let now = now_ns();
             late.record_ns(now as i64 - deadline as i64);
-            k = wake_up_covers(k, now, t0, ts_ns, n, &mut cycle, &mut misses);
+            k = wake_up_covers(
+                k,
+                now,
+                (t0, ts_ns, n),
+                &mut cycle,
+                &mut misses,
+                &mut by_deadline,
+            );
         }
         // ---- end of the real-time loop ----
         let cpu_run_ns = Some(thread_cpu_ns().saturating_sub(cpu0));
@@ -188,6 +212,11 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
             samples: n,
             misses,
             cpu_run_ns,
+            deadline_lateness: if by_deadline.len() as u64 == n {
+                vec![by_deadline]
+            } else {
+                Vec::new()
+            },
         })
     })
 }
@@ -198,20 +227,24 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
 /// deadline from `k` up to the next one ahead is handled by this wake-up, as a chain that
 /// cost nothing would handle it: its lateness `now − t_j` goes into `cycle`, and it is a miss
 /// when `now` is after the deadline that follows it (the chain's rule: command j later than
-/// t_{j+1}). Returns the next deadline's index, at most `n`.
+/// t_{j+1}). The lateness also goes into `by_deadline` while it has room (it never grows).
+/// Returns the next deadline's index, at most `n`.
 fn wake_up_covers(
     k: u64,
     now: u64,
-    t0: u64,
-    ts_ns: u64,
-    n: u64,
+    (t0, ts_ns, n): (u64, u64, u64),
     cycle: &mut LatencyHist,
     misses: &mut MissCounter,
+    by_deadline: &mut catch_up::DeadlineLateness,
 ) -> u64 {
     let next = ((now.saturating_sub(t0) / ts_ns) + 1).clamp(k + 1, n.max(k + 1));
     for j in k..next {
-        cycle.record_ns(now as i64 - (t0 + j * ts_ns) as i64);
+        let late_ns = now as i64 - (t0 + j * ts_ns) as i64;
+        cycle.record_ns(late_ns);
         misses.record(now > t0 + (j + 1) * ts_ns);
+        if by_deadline.len() < by_deadline.capacity() {
+            by_deadline.push(late_ns.clamp(0, u32::MAX as i64) as u32);
+        }
     }
     next
 }
@@ -251,6 +284,7 @@ pub fn run_inprocess(spec: &ChainSpec) -> Result<VariantResult> {
             samples: n,
             misses: mon.misses,
             cpu_run_ns: None,
+            deadline_lateness: Vec::new(),
         })
     })
 }
@@ -302,9 +336,11 @@ mod tests {
         let (t0, ts) = (1_000_000_000, 100_000);
         let mut m = MissCounter::default();
         let mut c = LatencyHist::new("cycle");
+        let mut d = Vec::with_capacity(10);
+        let at = (t0, ts, 10);
         // On time: the next deadline, no miss.
         assert_eq!(
-            wake_up_covers(0, t0 + 30_000, t0, ts, 10, &mut c, &mut m),
+            wake_up_covers(0, t0 + 30_000, at, &mut c, &mut m, &mut d),
             1
         );
         assert_eq!((m.misses, m.longest_run, c.len()), (0, 0, 1));
@@ -313,20 +349,22 @@ mod tests {
         // 4 did not (its command is due at t_5 = t0 + 500 µs). Each is in the cycle
         // histogram with its own lateness: 350, 250, 150, 50 µs.
         assert_eq!(
-            wake_up_covers(1, t0 + 450_000, t0, ts, 10, &mut c, &mut m),
+            wake_up_covers(1, t0 + 450_000, at, &mut c, &mut m, &mut d),
             5
         );
         assert_eq!((m.misses, m.longest_run, c.len()), (3, 3, 5));
+        // The same lateness per deadline, in order, for the catch-up model.
+        assert_eq!(d, [30_000, 350_000, 250_000, 150_000, 50_000]);
         assert_eq!(
             (c.quantile_ns(1.0) / 1000, c.quantile_ns(0.0) / 1000),
             (350, 30)
         );
         // Exactly at the next deadline is not after it; the end of the run caps the skip.
         let mut m = MissCounter::default();
-        assert_eq!(wake_up_covers(0, t0 + ts, t0, ts, 10, &mut c, &mut m), 2);
+        assert_eq!(wake_up_covers(0, t0 + ts, at, &mut c, &mut m, &mut d), 2);
         assert_eq!(m.misses, 0);
         assert_eq!(
-            wake_up_covers(8, t0 + 50 * ts, t0, ts, 10, &mut c, &mut m),
+            wake_up_covers(8, t0 + 50 * ts, at, &mut c, &mut m, &mut d),
             10
         );
         assert_eq!(m.misses, 2);

@@ -262,6 +262,7 @@ pub(crate) fn run_role(ctx: &RoleCtx) -> Result<Option<PlantOutcome>> {
             samples: c.samples,
             misses: cycle.misses,
             cpu_run_ns: None,
+            deadline_lateness: Vec::new(),
         },
         counters: c,
         trace,
@@ -541,6 +542,7 @@ fn read_plant_file(out: &Path) -> Result<VariantResult> {
         samples: f.samples,
         misses,
         cpu_run_ns: None,
+        deadline_lateness: Vec::new(),
     })
 }
 

@@ -166,6 +166,10 @@ pub struct Row {
     /// histogram's resolution). What this machine's timer tail alone gives a chain that
     /// costs d µs per sample and has no tail of its own.
     pub misses_pm_if_sooner_us: Option<Vec<f64>>,
+    /// The floor: its lateness at every deadline, per round (not written to bench.json), for
+    /// [`Targets::misses_floor_predicts_catching_up`].
+    #[serde(skip)]
+    pub deadline_lateness: Vec<drivelab_bench::catch_up::DeadlineLateness>,
 }
 
 /// The largest shift of [`Row::misses_pm_if_sooner_us`], µs.
@@ -275,6 +279,7 @@ fn row(job: &Job, hz: f64, m: &VariantResult, hgrm: &Path) -> Row {
             .map(|ns| ns as f64 * 1e-3 / m.lateness.len().max(1) as f64),
         misses_pm_if_sooner_us: (job.variant == "floor")
             .then(|| misses_pm_if_sooner(&m.cycle, (1e9 / hz).round() as u64)),
+        deadline_lateness: m.deadline_lateness.clone(),
     }
 }
 
@@ -388,6 +393,7 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
             samples: r.summary["samples"].as_u64().unwrap_or(0),
             misses,
             cpu_run_ns: None,
+            deadline_lateness: Vec::new(),
         },
         cpu_s: cpu.values().map(|c| c.0).sum(),
         switches: cpu.values().map(|c| c.1).sum(),
@@ -663,6 +669,12 @@ pub struct Targets {
     /// lateness above T_s − that cost): how many of the chain's misses this machine's timer
     /// tail accounts for. `None` when the floor's curve was not measured.
     pub misses_floor_predicts: Option<f64>,
+    /// The same, with the chain catching up after each late wake-up: the floor's own
+    /// wake-ups replayed with a chain that publishes its command its p50 above the floor's
+    /// after each wake-up and, when it is behind, runs its samples back to back at its CPU
+    /// time per sample less the timer's (`drivelab_bench::catch_up`). `None` without the
+    /// chain's CPU time or the floor's lateness per deadline.
+    pub misses_floor_predicts_catching_up: Option<CatchUp>,
     /// The same targets round by round, each round's chain against that round's floor (two
     /// or more rounds): how much of a verdict the machine's noise decides.
     pub by_round: Option<TargetRounds>,
@@ -671,6 +683,58 @@ pub struct Targets {
     /// work): what this machine's wake-ups take of the distance to the floor, and what the
     /// chain adds to them. `None` when it was not measured, and for topologies.
     pub bare_chain: Option<BareChain>,
+}
+
+/// [`Targets::misses_floor_predicts_catching_up`].
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CatchUp {
+    /// The chain's command after the plant's wake-up (its p50 − the floor's), µs.
+    pub after_wake_up_us: f64,
+    /// The chain's time per sample when it runs samples back to back: the CPU time of its
+    /// processes per sample less the floor's per wake-up, µs.
+    pub per_sample_us: f64,
+    /// The modelled chain's misses per million.
+    pub misses_per_million: f64,
+}
+
+impl CatchUp {
+    /// `chain` (with its CPU time) modelled on `floor`'s deadlines; `None` when either
+    /// figure is missing.
+    fn of(chain: &Row, floor: &Row) -> Option<Self> {
+        let ts_us = 1e6 / chain.rate_hz;
+        Self::model(
+            &floor.deadline_lateness,
+            ts_us,
+            chain.p50_minus_floor_us?,
+            chain.cpu_s_per_s? * ts_us - floor.cpu_per_wakeup_us?,
+        )
+    }
+
+    /// The chain's command `after_us` after each of the floor's wake-ups and `per_us` a
+    /// sample when behind (both at least 0), over the floor's `rounds` (each its own
+    /// start), at a sample time of `ts_us`; `None` without rounds.
+    fn model(
+        rounds: &[drivelab_bench::catch_up::DeadlineLateness],
+        ts_us: f64,
+        after_us: f64,
+        per_us: f64,
+    ) -> Option<Self> {
+        if rounds.is_empty() {
+            return None;
+        }
+        let (after_us, per_us) = (after_us.max(0.0), per_us.max(0.0));
+        let ns = |us: f64| (us * 1e3).round() as u64;
+        let (mut misses, mut n) = (0, 0);
+        for round in rounds {
+            misses += drivelab_bench::catch_up::misses(round, ns(ts_us), ns(after_us), ns(per_us));
+            n += round.len() as u64;
+        }
+        Some(Self {
+            after_wake_up_us: after_us,
+            per_sample_us: per_us,
+            misses_per_million: per_million(misses, n),
+        })
+    }
 }
 
 /// The bare chain against the floor, and the chain against the bare chain.
@@ -828,6 +892,7 @@ fn goal(chain_label: String, chain: &Row, floor: &Row, others: Others) -> Option
             .misses_pm_if_sooner_us
             .as_deref()
             .and_then(|c| at_shift(c, d50)),
+        misses_floor_predicts_catching_up: CatchUp::of(chain, floor),
         by_round: target_rounds(&chain.rounds, &floor.rounds),
         bare_chain: others.bare.map(|b| BareChain::of(chain, b, floor)),
     })
@@ -907,6 +972,13 @@ fn targets_line(t: &Targets) -> String {
         ),
         None => String::new(),
     };
+    let catching_up = match &t.misses_floor_predicts_catching_up {
+        Some(c) => format!(
+            ", {:.0}/M when it also catches up after each late wake-up at {:.1} µs a sample (its CPU per sample less the timer's)",
+            c.misses_per_million, c.per_sample_us
+        ),
+        None => String::new(),
+    };
     let by_round = match &t.by_round {
         Some(r) => {
             let n = r.p50_minus_floor_us.len();
@@ -947,7 +1019,7 @@ fn targets_line(t: &Targets) -> String {
         None => String::new(),
     };
     format!(
-        "Targets at {} kHz ({} against the floor, {}): p50 {:+.1} µs (≤ +{TARGET_P50_US}: {}); p99 {:+.1} µs (≤ +{TARGET_P99_US}: {}); misses {:.0}/M (≤ 2 × floor + 10 = {:.0}: {}{predicted}){uds}.{by_round}{bare}",
+        "Targets at {} kHz ({} against the floor, {}): p50 {:+.1} µs (≤ +{TARGET_P50_US}: {}); p99 {:+.1} µs (≤ +{TARGET_P99_US}: {}); misses {:.0}/M (≤ 2 × floor + 10 = {:.0}: {}{predicted}{catching_up}){uds}.{by_round}{bare}",
         t.rate_hz / 1000.0,
         t.chain,
         if t.cpu_latency_request { "request held" } else { "no request" },
@@ -1708,6 +1780,29 @@ mod tests {
         assert_eq!(at_shift(&c, -3.0), Some(5_000.0));
         assert_eq!(at_shift(&c, 99.0), Some(10_000.0));
         assert_eq!(at_shift(&[], 1.0), None);
+    }
+
+    #[test]
+    fn the_catch_up_model_runs_each_round_of_the_floor_on_its_own() {
+        // Two rounds of 10 deadlines at 10 kHz (lateness in ns); the first ends inside a 250
+        // µs stall, the second starts on time: no lag carries over from one to the other.
+        let stall = vec![
+            10_000, 10_000, 10_000, 10_000, 10_000, 10_000, 10_000, 250_000, 150_000, 50_000,
+        ];
+        let calm = vec![10_000; 10];
+        let rounds = [stall, calm];
+        // Without cost: the floor's own two misses (250 and 150 µs) in 20 deadlines.
+        let m = CatchUp::model(&rounds, 100.0, 0.0, 0.0).unwrap();
+        assert_eq!(m.misses_per_million, 100_000.0);
+        // 10 µs after each wake-up and 50 µs a sample when behind: 260, 210, 160 µs late:
+        // three misses, and the calm round none although it follows a late end.
+        let m = CatchUp::model(&rounds, 100.0, 10.0, 50.0).unwrap();
+        assert_eq!(m.misses_per_million, 150_000.0);
+        assert_eq!((m.after_wake_up_us, m.per_sample_us), (10.0, 50.0));
+        // A chain faster than the floor (sleep-then-spin) costs nothing after the wake-up.
+        let m = CatchUp::model(&rounds, 100.0, -5.0, 0.0).unwrap();
+        assert_eq!((m.after_wake_up_us, m.misses_per_million), (0.0, 100_000.0));
+        assert_eq!(CatchUp::model(&[], 100.0, 10.0, 50.0), None);
     }
 
     #[test]
