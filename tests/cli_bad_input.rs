@@ -131,6 +131,19 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
         ),
         run_case("dur-empty", &["--duration", ""], 2, "not a number"),
         run_case("scenario", &["--scenario", "nosuch"], 1, "unknown scenario 'nosuch'"),
+        run_case(
+            "scenario-dir",
+            &["--scenario", "/tmp"],
+            1,
+            "scenario /tmp is a folder, not a scenario file",
+        ),
+        // Above 0 s, below one sample.
+        run_case(
+            "dur-tiny",
+            &["--duration", "1e-9"],
+            1,
+            "0.000000001 s × 10000 Hz = 0 samples must be in 1..=2e8",
+        ),
         case(
             "clock",
             dir,

@@ -1377,7 +1377,9 @@ impl Scenario {
         })?;
         check(self.samples() >= 1 && self.samples() <= 200_000_000, || {
             format!(
-                "duration_s × rates.sample_hz = {} samples must be in 1..=2e8",
+                "duration_s × rates.sample_hz = {} s × {} Hz = {} samples must be in 1..=2e8",
+                self.duration_s,
+                self.rates.sample_hz,
                 self.samples()
             )
         })?;
@@ -1646,6 +1648,10 @@ fn resolve_scenario_path(name_or_path: &str) -> Result<PathBuf, String> {
     if name_or_path.ends_with(".toml") || name_or_path.contains('/') {
         return if p.is_file() {
             Ok(p.to_path_buf())
+        } else if p.is_dir() {
+            Err(format!(
+                "scenario {name_or_path} is a folder, not a scenario file (a run folder's scenario is RUNDIR/scenario.toml)"
+            ))
         } else {
             Err(format!("scenario file {name_or_path} does not exist"))
         };
@@ -1770,7 +1776,7 @@ preset = "kyslan2015"
                     "{}[rates]\nsample_hz = 100000.0\n",
                     swap("duration_s = 0.01", "duration_s = 3600.0")
                 ),
-                "duration_s × rates.sample_hz = 360000000 samples",
+                "duration_s × rates.sample_hz = 3600 s × 100000 Hz = 360000000 samples",
             ),
             (tail("[inverter]\nv_dc_v = 0.0"), "inverter.v_dc_v = 0 must"),
             (tail("[inverter]\nhold_samples = 100001"), "inverter.hold_samples = 100001"),
