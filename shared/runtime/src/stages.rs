@@ -202,6 +202,43 @@ impl CurrentLoopStage {
     }
 }
 
+impl CurrentLoopStage {
+    /// Takes a fresh current reference, or holds the last one (a stale input: flagged, once
+    /// one came; before the first, the zero reference stands as at the start) and, when
+    /// `ramp`, after 2 speed periods without a fresh one ramps i_q* to zero. Returns the
+    /// command's flags.
+    fn reference(&mut self, inputs: &Inbox, ramp: bool) -> u32 {
+        let mut flags = 0;
+        match (inputs.slot(TopicId::Iref).fresh, inputs.iref()) {
+            (true, Some(r)) => {
+                self.active_ref = *r;
+                self.stale_ref_samples = 0;
+                // A reference the speed loop made from a stale input (its held output) makes
+                // this command one too.
+                flags |= r.hdr.flags & FLAG_STALE_INPUT;
+            }
+            // Nothing expected yet (before the first speed sample): zero references.
+            (true, None) => {}
+            (false, _) => {
+                if inputs.newest_iref().is_some() {
+                    flags |= FLAG_STALE_INPUT;
+                }
+                if !ramp {
+                    return flags;
+                }
+                self.stale_ref_samples += 1;
+                if self.stale_ref_samples > 2 * self.divider {
+                    flags |= FLAG_STALE_INPUT;
+                    self.ramp_samples += 1;
+                    let q = self.active_ref.i_q_ref;
+                    self.active_ref.i_q_ref = q - q.signum() * self.iq_ramp_per_sample.min(q.abs());
+                }
+            }
+        }
+        flags
+    }
+}
+
 impl Stage for CurrentLoopStage {
     fn name(&self) -> &'static str {
         "current-loop"
@@ -214,47 +251,20 @@ impl Stage for CurrentLoopStage {
     }
     fn step(&mut self, _k: u64, inputs: &Inbox, out: &mut Outbox) {
         let Some(meas) = inputs.meas() else { return };
-        let mut flags = 0;
+        // The reference first. On the encoder fallback (no estimate) a stale reference is
+        // held as it stands, neither ramped (the speed loop, without estimates, holds its
+        // output) nor reset to the last one received (which would undo a ramp under way).
+        let mut flags = self.reference(inputs, inputs.est().is_some());
         let cmd = match inputs.est() {
             Some(e) => {
-                match (inputs.slot(TopicId::Iref).fresh, inputs.iref()) {
-                    (true, Some(r)) => {
-                        self.active_ref = *r;
-                        self.stale_ref_samples = 0;
-                        // A reference the speed loop made from a stale input (its held
-                        // output) makes this command one too.
-                        flags |= r.hdr.flags & FLAG_STALE_INPUT;
-                    }
-                    // Nothing expected yet (before the first speed sample): zero references.
-                    (true, None) => {}
-                    (false, _) => {
-                        // Hold the last reference (a stale input: flagged, once one came;
-                        // before the first, the zero reference stands as at the start);
-                        // after 2 speed periods without a fresh one, ramp i_q* to zero.
-                        if inputs.newest_iref().is_some() {
-                            flags |= FLAG_STALE_INPUT;
-                        }
-                        self.stale_ref_samples += 1;
-                        if self.stale_ref_samples > 2 * self.divider {
-                            flags |= FLAG_STALE_INPUT;
-                            self.ramp_samples += 1;
-                            let q = self.active_ref.i_q_ref;
-                            self.active_ref.i_q_ref =
-                                q - q.signum() * self.iq_ramp_per_sample.min(q.abs());
-                        }
-                    }
-                }
                 self.last_est = *e;
                 self.ctrl.step(meas, e, &self.active_ref)
             }
             None => {
                 // No estimate: the encoder angle of this measurement, the last speed estimate
-                // and the newest reference.
+                // and the reference as above.
                 self.fallback_samples += 1;
                 flags |= FLAG_STALE_INPUT;
-                if let Some(r) = inputs.newest_iref() {
-                    self.active_ref = *r;
-                }
                 let e = Estimate {
                     hdr: Header {
                         k: meas.hdr.k,
