@@ -533,14 +533,10 @@ fn main() -> ExitCode {
                 // What failed was printed on its own lines.
                 return ExitCode::from(r.0);
             }
-            // One line, whatever the error's source put in it (a parser's caret diagram).
-            let text = drivelab_runtime::text::error_text(&e);
-            let line: Vec<&str> = text
-                .lines()
-                .map(str::trim)
-                .filter(|l| !l.is_empty())
-                .collect();
-            drivelab_services::errln!("drivelab: error: {}", line.join(" "));
+            drivelab_services::errln!(
+                "drivelab: error: {}",
+                drivelab_runtime::text::error_text(&e)
+            );
             // A malformed expectation is a usage error, like a bad option.
             if e.downcast_ref::<drivelab_services::expect::UsageError>()
                 .is_some()

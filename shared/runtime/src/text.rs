@@ -55,7 +55,18 @@ pub fn readable_numbers(text: &str) -> Cow<'_, str> {
 /// An error and its causes on one line (`{e:#}`), its numbers readable: what every error line
 /// of drivelab and its stage hosts prints, and what a campaign records for a run that failed.
 pub fn error_text(e: &anyhow::Error) -> String {
-    readable_numbers(&format!("{e:#}")).into_owned()
+    one_line(&readable_numbers(&format!("{e:#}")))
+}
+
+/// `text`'s non-empty lines, trimmed, joined by spaces (a source's multi-line message, such as
+/// a parser's caret diagram, on one line).
+pub fn one_line(text: &str) -> String {
+    let lines: Vec<&str> = text
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty())
+        .collect();
+    lines.join(" ")
 }
 
 #[cfg(test)]
