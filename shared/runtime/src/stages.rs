@@ -720,19 +720,38 @@ mod tests {
         let c = step(&mut s, 3 + 2 * n, false);
         assert!((c.i_dq_ref[1] - (1.0 - 2.0 * ramp)).abs() < 1e-12, "{c:?}");
         assert_eq!(s.ramp_samples, 2);
+        // A sample on the encoder fallback (no estimate) during the ramp holds i_q* where
+        // the ramp left it: neither ramped further nor put back to the last reference
+        // received (the dead speed loop's 1.0).
+        let mut ib = Inbox::default();
+        ib.put(Msg::Meas(meas(4 + 2 * n, 0.0)));
+        ib.put(Msg::Est(est(3 + 2 * n, 0.0)));
+        ib.set_stale(TopicId::Est, 1);
+        ib.put(Msg::Iref(iref(0, 1.0)));
+        ib.set_stale(TopicId::Iref, 1);
+        let mut out = Outbox::default();
+        s.step(4 + 2 * n, &ib, &mut out);
+        let c = cmd_of(&out);
+        assert!((c.i_dq_ref[1] - (1.0 - 2.0 * ramp)).abs() < 1e-12, "{c:?}");
+        assert_ne!(c.hdr.flags & FLAG_STALE_INPUT, 0);
+        assert_eq!((s.ramp_samples, s.fallback_samples), (2, 1));
+        // With the estimate back the ramp goes on from there.
+        let c = step(&mut s, 5 + 2 * n, false);
+        assert!((c.i_dq_ref[1] - (1.0 - 3.0 * ramp)).abs() < 1e-12, "{c:?}");
+        assert_eq!(s.ramp_samples, 3);
         // A fresh reference ends it, unflagged.
-        let c = step(&mut s, 4 + 2 * n, true);
+        let c = step(&mut s, 6 + 2 * n, true);
         assert_eq!(c.i_dq_ref[1], 1.0);
         assert_eq!(c.hdr.flags & FLAG_STALE_INPUT, 0);
         // A fresh reference the speed loop held (flagged) flags the command.
         let mut ib = Inbox::default();
-        ib.put(Msg::Meas(meas(5 + 2 * n, 0.0)));
-        ib.put(Msg::Est(est(5 + 2 * n, 0.0)));
+        ib.put(Msg::Meas(meas(7 + 2 * n, 0.0)));
+        ib.put(Msg::Est(est(7 + 2 * n, 0.0)));
         let mut held = iref(0, 1.0);
         held.hdr.flags = FLAG_STALE_INPUT;
         ib.put(Msg::Iref(held));
         let mut out = Outbox::default();
-        s.step(5 + 2 * n, &ib, &mut out);
+        s.step(7 + 2 * n, &ib, &mut out);
         assert_ne!(cmd_of(&out).hdr.flags & FLAG_STALE_INPUT, 0);
     }
 
