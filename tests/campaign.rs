@@ -335,6 +335,45 @@ fn a_campaign_whose_expectations_fail_exits_3_and_junit_counts_each_failure() {
 }
 
 #[test]
+fn a_campaigns_topology_file_is_read_beside_the_campaign_not_from_the_working_folder() {
+    let dir = scratch("topobeside");
+    let shipped = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../scenarios/topologies/two-process.toml"
+    );
+    let text = std::fs::read_to_string(shipped).unwrap();
+    assert!(text.contains("name = \"controller\""));
+    // A process name that only this copy has, so that the run shows which file it used.
+    std::fs::write(
+        dir.join("beside.toml"),
+        text.replace("name = \"controller\"", "name = \"beside-controller\""),
+    )
+    .unwrap();
+    let f = campaign_file(
+        &dir,
+        "name = \"beside\"\nscenarios = [\"kyslan-pi\"]\nclock = \"lockstep\"\n\
+         duration_s = 0.05\ntopology = \"beside.toml\"\n",
+    );
+    let out = dir.join("c");
+    // The test's working folder is the crate's, which has no beside.toml.
+    assert!(!Path::new("beside.toml").exists());
+    let o = drivelab(&[
+        "campaign",
+        f.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let report: Value = serde_json::from_slice(&read(&out.join("campaign.json"))).unwrap();
+    let run = PathBuf::from(report["runs"][0]["out"].as_str().unwrap());
+    let s = summary(&run);
+    let mut procs: Vec<&String> = s["processes"].as_object().unwrap().keys().collect();
+    procs.sort();
+    assert_eq!(procs, ["beside-controller", "plant"]);
+    assert_clean(s["bus"].as_str().unwrap());
+}
+
+#[test]
 fn a_bad_campaign_is_a_one_line_error_before_any_run() {
     let dir = scratch("badcampaign");
     for (text, code, says) in [

@@ -284,6 +284,13 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             1,
             "--duration-s -1: a stop lasts 0.001 to 60 s",
         ),
+        case(
+            "fault-kill-duration",
+            dir,
+            &["fault", "kill", "plant", "--bus", "{bus}", "--duration-s", "1"],
+            1,
+            "--duration-s 1: only a stop has a duration",
+        ),
         case("clean", dir, &["clean", "--bus", ""], 1, "bus id ''"),
         case(
             "bus-config",
@@ -540,5 +547,38 @@ fn a_bus_in_use_is_refused_and_left_to_its_drive() {
     // The drive itself was not disturbed.
     let o = drive.wait_for_exit(Duration::from_secs(60), "the drive");
     assert!(o.status.success(), "{}", stderr(&o));
+    assert_clean(&bus);
+}
+
+#[test]
+#[cfg(feature = "zenoh")]
+fn a_zenoh_port_in_use_is_refused_before_the_run_folder_is_made() {
+    let d = scratch("zenohbusy");
+    let bus = bus_id("zenohbusy");
+    // The port is held by this test: whatever listens there, the drive cannot.
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let ep = format!("tcp/127.0.0.1:{}", taken.local_addr().unwrap().port());
+    let out = d.join("run");
+    let o = drivelab(&[
+        "run",
+        "--bus",
+        &bus,
+        "--clock",
+        "lockstep",
+        "--duration",
+        "0.05",
+        "--zenoh-listen",
+        &ep,
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert_eq!(err.lines().count(), 1, "{err}");
+    assert!(
+        err.contains(&format!("--zenoh-listen: endpoint '{ep}'")) && err.contains("is in use"),
+        "{err}"
+    );
+    assert!(!out.exists(), "the refused run made its folder");
     assert_clean(&bus);
 }

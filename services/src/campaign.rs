@@ -50,7 +50,8 @@ struct CampaignFile {
     clock: Clock,
     /// Override of every scenario's duration, s.
     duration_s: Option<f64>,
-    /// Topology override for every run (a shipped name or a file).
+    /// Topology override for every run (a shipped name or a file relative to the campaign
+    /// file).
     topology: Option<String>,
     /// Fault seeds; every run is repeated once per seed.
     #[serde(default = "one_seed")]
@@ -196,7 +197,7 @@ fn figures(summary: &Value) -> serde_json::Map<String, Value> {
 fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
     let text = std::fs::read_to_string(file)
         .with_context(|| format!("cannot read campaign {}", file.display()))?;
-    let c: CampaignFile = toml::from_str(&text).map_err(|e| {
+    let mut c: CampaignFile = toml::from_str(&text).map_err(|e| {
         anyhow!(
             "campaign {}",
             drivelab_runtime::config::toml_error(&text, &file.display().to_string(), &e)
@@ -286,15 +287,20 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
             UsageError(format!("campaign {}: expect: {m}", file.display()))
         })?;
     }
+    // A file is taken relative to the campaign file (a name is a shipped one), so that a
+    // campaign runs the same from any working folder.
     let base = file.parent().unwrap_or(Path::new("."));
-    let mut scenarios = Vec::new();
-    for s in &c.scenarios {
-        // A file is taken relative to the campaign file; a name is a shipped scenario.
-        let s = if s.ends_with(".toml") || s.contains('/') {
+    let beside = |s: &String| {
+        if s.ends_with(".toml") || s.contains('/') {
             base.join(s).display().to_string()
         } else {
             s.clone()
-        };
+        }
+    };
+    c.topology = c.topology.as_ref().map(beside);
+    let mut scenarios = Vec::new();
+    for s in &c.scenarios {
+        let s = beside(s);
         let mut sc = launcher::load_scenario(&s, None)
             .map_err(|e| anyhow!("campaign {}: {e:#}", file.display()))?;
         if let Some(d) = c.duration_s {

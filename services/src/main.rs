@@ -254,14 +254,10 @@ enum Cmd {
         /// The drive (a remote one must run with --allow-remote-faults).
         #[command(flatten)]
         drive: DriveArgs,
-        /// For stop: seconds before SIGCONT (0.001 to 60).
-        #[arg(
-            long,
-            alias = "duration",
-            default_value_t = 0.05,
-            value_name = "SECONDS"
-        )]
-        duration_s: f64,
+        /// For stop: seconds before SIGCONT (0.001 to 60; default 0.05). A kill takes
+        /// none: the stage stays dead until the supervisor restarts it.
+        #[arg(long, alias = "duration", value_name = "SECONDS")]
+        duration_s: Option<f64>,
     },
     /// Watch a running drive live in the terminal: per-stage state, rate, wake-up
     /// lateness, execution time and deadline misses; speed against its reference and i_d,
@@ -672,6 +668,20 @@ fn endpoint_arg(flag: &str, ep: &str, listen: bool) -> anyhow::Result<String> {
     drivelab_bridge::link::check_endpoint(ep, listen).map_err(|e| usage(format!("{flag}: {e}")))
 }
 
+/// `--zenoh-listen`'s endpoint, checked and found free before the drive makes anything: a
+/// port in use leaves no run folder behind.
+#[cfg(feature = "zenoh")]
+fn listen_arg(ep: &str) -> anyhow::Result<String> {
+    let ep = endpoint_arg("--zenoh-listen", ep, true)?;
+    drivelab_bridge::link::check_free(&ep).map_err(|e| anyhow::anyhow!("--zenoh-listen: {e}"))?;
+    Ok(ep)
+}
+
+#[cfg(not(feature = "zenoh"))]
+fn listen_arg(ep: &str) -> anyhow::Result<String> {
+    endpoint_arg("--zenoh-listen", ep, true)
+}
+
 #[cfg(not(feature = "zenoh"))]
 fn endpoint_arg(flag: &str, _: &str, _: bool) -> anyhow::Result<String> {
     Err(usage(format!(
@@ -843,7 +853,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 )));
             }
             let endpoint = match (zenoh_listen, zenoh_connect) {
-                (Some(ep), _) => Some((endpoint_arg("--zenoh-listen", &ep, true)?, false)),
+                (Some(ep), _) => Some((listen_arg(&ep)?, false)),
                 (None, Some(ep)) => Some((endpoint_arg("--zenoh-connect", &ep, false)?, true)),
                 (None, None) => None,
             };
@@ -1130,6 +1140,14 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             let target = target(drive)?;
             // Bounded before anything is sent, as in the monitor.
             use drivelab_services::faults::{STOP_MAX_S, STOP_MIN_S};
+            if kind == "kill" {
+                if let Some(d) = duration_s {
+                    anyhow::bail!(
+                        "--duration-s {d}: only a stop has a duration; a kill lasts until the supervisor restarts the stage"
+                    );
+                }
+            }
+            let duration_s = duration_s.unwrap_or(0.05);
             if !(STOP_MIN_S..=STOP_MAX_S).contains(&duration_s) {
                 anyhow::bail!(
                     "--duration-s {duration_s}: a stop lasts {STOP_MIN_S} to {STOP_MAX_S} s"

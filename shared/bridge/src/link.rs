@@ -51,6 +51,40 @@ pub fn check_endpoint(ep: &str, listen: bool) -> Result<String, String> {
     Ok(ep.to_string())
 }
 
+/// Checks, before a drive creates anything, that a listener endpoint (already checked by
+/// [`check_endpoint`]) can be had: its address is this machine's and its port is free. It
+/// binds the port and lets it go at once, so another program may still take it before the
+/// bridge does; then the bridge's own error says so. Port 0 (any free port) and a host name
+/// that does not resolve are left to the bridge.
+pub fn check_free(ep: &str) -> Result<(), String> {
+    use std::net::{TcpListener, ToSocketAddrs};
+    let Some(addr) = ep.split_once('/').map(|(_, a)| a) else {
+        return Ok(());
+    };
+    let bracketless = addr.replace(['[', ']'], "");
+    let Ok(addrs) = addr
+        .to_socket_addrs()
+        .or_else(|_| bracketless.to_socket_addrs())
+    else {
+        return Ok(());
+    };
+    for a in addrs.filter(|a| a.port() != 0) {
+        match TcpListener::bind(a) {
+            Ok(_) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::AddrInUse => {
+                return Err(format!(
+                    "endpoint '{ep}': {a} is in use (another drive's bridge or a Zenoh router?); choose another port"
+                ))
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::AddrNotAvailable => {
+                return Err(format!("endpoint '{ep}': {a} is not an address of this machine"))
+            }
+            Err(e) => return Err(format!("endpoint '{ep}': cannot listen on {a}: {e}")),
+        }
+    }
+    Ok(())
+}
+
 /// Which side of a link a session is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Side {
@@ -177,6 +211,25 @@ mod tests {
         for e in ["", "tcp/", "tcp/:7447"] {
             assert!(!err(e, true).contains('\n'), "{e}");
         }
+    }
+
+    #[test]
+    fn a_listener_port_in_use_or_an_address_elsewhere_is_refused() {
+        let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = taken.local_addr().unwrap().port();
+        let ep = format!("tcp/127.0.0.1:{port}");
+        assert_eq!(
+            check_free(&ep).unwrap_err(),
+            format!("endpoint '{ep}': 127.0.0.1:{port} is in use (another drive's bridge or a Zenoh router?); choose another port")
+        );
+        drop(taken);
+        assert_eq!(check_free(&ep), Ok(()));
+        // TEST-NET-1 (RFC 5737) is no machine's own address.
+        assert_eq!(
+            check_free("tcp/192.0.2.1:7447").unwrap_err(),
+            "endpoint 'tcp/192.0.2.1:7447': 192.0.2.1:7447 is not an address of this machine"
+        );
+        assert_eq!(check_free("tcp/127.0.0.1:0"), Ok(()));
     }
 
     #[test]
