@@ -506,14 +506,19 @@ fn apply_placement(process: &str, p: &ProcessSpec, args: &HostArgs) -> Result<Rt
         RtRequest {
             core: p.cpu,
             // The twin runs right after the active instance on its core (docs/architecture.md,
-            // "Standby twins").
-            fifo_priority: p.priority.map(|pr| {
-                if args.standby {
-                    pr.saturating_sub(1).max(1)
-                } else {
-                    pr
-                }
-            }),
+            // "Standby twins"). Lockstep has no deadline to keep: its processes keep their
+            // cores but run as normal tasks, so that a long simulation does not hold a core
+            // at real-time priority for minutes (docs/architecture.md, "Clocks").
+            fifo_priority: p
+                .priority
+                .filter(|_| args.clock == BusClock::Realtime)
+                .map(|pr| {
+                    if args.standby {
+                        pr.saturating_sub(1).max(1)
+                    } else {
+                        pr
+                    }
+                }),
             lock_memory: true,
             prefault_stack_bytes: 256 * 1024,
         }
