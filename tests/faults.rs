@@ -684,3 +684,53 @@ fn a_passive_load_never_drives_the_motor_backwards_when_the_speed_loop_dies() {
         "passive load: lowest {passive} rad/s, below the motor's own reach {motor_alone} rad/s"
     );
 }
+
+#[test]
+fn a_fault_planned_after_the_drive_stopped_is_named_not_dropped() {
+    let _serial = serial();
+    // With --restart never a killed plant stops the drive (no plant, no drive); the kill of
+    // the observer planned after it can no longer be made, and the run says so.
+    let dir = scratch("latefault");
+    let bus = bus_id("latefault");
+    let out = dir.join("run");
+    let o = drivelab(&[
+        "run",
+        "--bus",
+        &bus,
+        "--duration",
+        "0.6",
+        "--restart",
+        "never",
+        "--fault",
+        "kill:plant@0.1",
+        "--fault",
+        "kill:observer@0.4",
+        "--out",
+        out.to_str().unwrap(),
+        "--no-plots",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert_clean(&bus);
+    let s = summary(&out);
+    let refused: Vec<&str> = s["supervisor_events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["event"] == "inject-refused")
+        .map(|e| e["detail"].as_str().unwrap())
+        .collect();
+    assert_eq!(refused.len(), 1, "{s}");
+    assert!(
+        refused[0].starts_with("kill:observer@0.4: not injected: the drive ended at sample ")
+            && refused[0].ends_with(", before the fault's sample 4000"),
+        "{}",
+        refused[0]
+    );
+    assert!(
+        err.lines()
+            .any(|l| l == format!("drivelab: warning: fault not made: {}", refused[0])),
+        "{err}"
+    );
+    assert_eq!(s["faults"].as_array().unwrap().len(), 1, "{s}");
+}

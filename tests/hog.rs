@@ -19,7 +19,8 @@ fn a_hog_above_the_drive_on_its_core_costs_deadlines_and_is_gone_at_the_end() {
         &["--duration", "2", "--fault", "hog:1@0.5:0.1:99"],
     );
     let faults = s["faults"].as_array().expect("faults");
-    assert_eq!(faults.len(), 1, "{faults:?}");
+    // (A hog that was refused or never became due is named in the events.)
+    assert_eq!(faults.len(), 1, "{faults:?} {}", s["supervisor_events"]);
     let f = &faults[0];
     assert!(
         f["fault"]

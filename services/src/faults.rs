@@ -21,6 +21,16 @@ pub struct Fault {
     pub duration_s: f64,
 }
 
+impl Fault {
+    /// The fault as `--fault` gives it.
+    pub fn spec(&self) -> String {
+        match self.kind {
+            FaultKind::Kill => format!("kill:{}@{}", self.service, self.at_s),
+            FaultKind::Stop => format!("stop:{}@{}:{}", self.service, self.at_s, self.duration_s),
+        }
+    }
+}
+
 /// Kinds of fault.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]

@@ -963,6 +963,15 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 if let Some(w) = launcher::rate_warning(s, o.clock == Clock::Realtime) {
                     drivelab_services::errln!("drivelab: warning: {w}");
                 }
+                // A fault asked for and not made (refused, or the drive ended first).
+                for e in s["supervisor_events"].as_array().into_iter().flatten() {
+                    if e["event"] == "inject-refused" {
+                        drivelab_services::errln!(
+                            "drivelab: warning: fault not made: {}",
+                            e["detail"].as_str().unwrap_or("")
+                        );
+                    }
+                }
                 if let Some(f) = s["faults"].as_array().filter(|f| !f.is_empty()) {
                     drivelab_services::outln!(
                         "faults: {} injected; report in summary.json → faults",

@@ -293,7 +293,7 @@ pub(super) fn supervise(
             process: process.into(),
         });
     };
-    loop {
+    'run: loop {
         if crate::common::stop_requested() {
             return Ok(Some("interrupted (SIGINT/SIGTERM): drive stopped".into()));
         }
@@ -444,7 +444,7 @@ pub(super) fn supervise(
             }
             match c.life.exited(st.success(), &policy, now) {
                 Some(Decision::FailRun) => return Ok(Some(format!("process {n} failed ({st})"))),
-                Some(Decision::StopDrive) => return Ok(None),
+                Some(Decision::StopDrive) => break 'run,
                 Some(d) if promote => {
                     let mut twin = c.standby.take().expect("alive above");
                     twin.standby = false;
@@ -511,7 +511,7 @@ pub(super) fn supervise(
         }
         match run_state(children.iter().map(|c| &c.life)) {
             RunState::Going => {}
-            RunState::Over => return Ok(None),
+            RunState::Over => break 'run,
             RunState::PlantFinished => {
                 // Anyone not done within 2 s is stopped by the caller.
                 let t = Instant::now();
@@ -524,11 +524,26 @@ pub(super) fn supervise(
                     }
                     std::thread::sleep(Duration::from_millis(5));
                 }
-                return Ok(None);
+                break 'run;
             }
         }
         std::thread::sleep(Duration::from_millis(1));
     }
+    // The drive ended before some planned faults were due (it stopped early, or the
+    // recorder, whose progress times them, was behind): each is named, not dropped.
+    let k_end = progress.next_k.load(Ordering::Relaxed);
+    let late = plan[next_fault..]
+        .iter()
+        .map(|f| (f.spec(), f.at_s))
+        .chain(hogs[next_hog..].iter().map(|h| (h.spec(), h.at_s)));
+    for (spec, at_s) in late {
+        let reason = format!(
+            "{spec}: not injected: the drive ended at sample {k_end}, before the fault's sample {}",
+            (at_s * fs).round() as u64
+        );
+        log(events, EventKind::InjectRefused { reason }, "-", "-");
+    }
+    Ok(None)
 }
 
 /// The sample the real-time plant is at now: the newest one the recorder has read, plus the
