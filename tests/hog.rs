@@ -84,6 +84,45 @@ fn a_hog_above_the_drive_on_its_core_costs_deadlines_and_is_gone_at_the_end() {
 }
 
 #[test]
+fn a_plant_killed_while_a_hog_holds_it_back_has_all_its_downtime_in_its_report() {
+    let _serial = serial();
+    // The hog starves the plant from 0.25 s; the kill at 0.3 s finds it hundreds of samples
+    // behind its schedule, so the sample the signal is estimated at lies far past the
+    // plant's last one. The kill's report still holds every rebuilt downtime sample, and
+    // the hog's report none of them.
+    let (out, s) = run_ok(
+        "hog-kill",
+        &[
+            "--duration",
+            "1",
+            "--fault",
+            "hog:1@0.25:0.1:99",
+            "--fault",
+            "kill:plant@0.3",
+        ],
+    );
+    let faults = s["faults"].as_array().expect("faults");
+    assert_eq!(faults.len(), 2, "{faults:?} {}", s["supervisor_events"]);
+    let (hog, kill) = (&faults[0], &faults[1]);
+    assert_eq!(kill["fault"], "kill", "{kill}");
+    let rows = drivelab_runtime::trace::read_csv(&out.join("trace.csv")).unwrap();
+    let down: Vec<u64> = rows
+        .iter()
+        .filter(|r| r.plant_flags & drivelab_runtime::messages::FLAG_PLANT_DOWN != 0)
+        .map(|r| r.k)
+        .collect();
+    assert!(!down.is_empty());
+    assert_eq!(kill["injected_k"].as_u64(), Some(down[0]), "{kill}");
+    assert_eq!(
+        kill["plant_down"]["samples"].as_u64(),
+        Some(down.len() as u64),
+        "{kill}"
+    );
+    assert_eq!(s["plant_down_samples"].as_u64(), Some(down.len() as u64));
+    assert!(hog["plant_down"].is_null(), "{hog}");
+}
+
+#[test]
 fn without_the_privilege_for_sched_fifo_a_hog_is_a_one_line_error() {
     let _serial = serial();
     let setpriv = "/usr/bin/setpriv";

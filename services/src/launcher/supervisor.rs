@@ -564,7 +564,8 @@ pub struct FaultReport {
     pub service: String,
     /// The process that was signalled (it hosts the stage, perhaps with others).
     pub process: String,
-    /// Injection: sample index and simulated time, s.
+    /// Injection: sample index and simulated time, s (the sample the signal went out at; for
+    /// a plant killed while it ran behind its schedule, its first rebuilt downtime sample).
     pub injected_k: u64,
     /// Injection time, s (sample time).
     pub injected_t_s: f64,
@@ -652,9 +653,26 @@ pub fn fault_reports(
         .iter()
         .filter(|e| matches!(e.kind, EventKind::Inject { .. } | EventKind::Hog { .. }))
         .collect();
+    // Where each fault begins. The signal's sample is an estimate (the recorder's progress, or
+    // the sample whose deadline had passed). A plant killed while it ran late had produced
+    // fewer: its rebuilt downtime samples then begin before the estimate, and the fault
+    // begins with them (after the previous fault's estimated sample).
+    let mut starts: Vec<u64> = Vec::with_capacity(injects.len());
     for (n, inj) in injects.iter().enumerate() {
-        let k0 = inj.k;
-        let k_end_window = injects.get(n + 1).map(|e| e.k).unwrap_or(u64::MAX);
+        let k_prev = n.checked_sub(1).map_or(0, |p| injects[p].k + 1);
+        let mut k0 = inj.k;
+        while k0 > k_prev
+            && by_k
+                .get(&(k0 - 1))
+                .is_some_and(|r| r.plant_flags & FLAG_PLANT_DOWN != 0)
+        {
+            k0 -= 1;
+        }
+        starts.push(k0);
+    }
+    for (n, inj) in injects.iter().enumerate() {
+        let k0 = starts[n];
+        let k_end_window = starts.get(n + 1).copied().unwrap_or(u64::MAX);
         let after = || by_k.range(k0..k_end_window).map(|(_, r)| *r);
         // Data-path detection: the first stale flag, or the first sample the plant did not produce.
         let mut det = None;
@@ -912,6 +930,50 @@ mod tests {
         assert_eq!(f.detected_data_path_ms, Some(1.0));
         assert_eq!(f.republished_ms, Some(3.0));
         assert_eq!(f.safe_state_ms, None, "{f:?}");
+    }
+
+    #[test]
+    fn a_plant_killed_while_late_begins_with_its_first_rebuilt_sample() {
+        use drivelab_runtime::messages::FLAG_PLANT_DOWN;
+        let sc = scenario();
+        let mut tr = rows(0..100);
+        // The plant died after sample 9 (it was behind its schedule); the signal was
+        // estimated at sample 12. Down from 10 to 19, safe from 13; back from 20.
+        at(&mut tr, 10..=19, |r| {
+            r.plant_flags = FLAG_PLANT_DOWN | FLAG_STALE_CMD;
+            r.i_q = 0.5;
+        });
+        at(&mut tr, 13..=19, |r| r.plant_flags |= FLAG_SAFE_STATE);
+        let (reports, _) = fault_reports(&sc, &tr, &[ev(1.0, 12, kill(), "plant", "plant")]);
+        let f = &reports[0];
+        assert_eq!(f.injected_k, 10);
+        let pd = f.plant_down.as_ref().expect("plant down");
+        assert_eq!(pd.samples, 10);
+        assert_eq!(f.safe_state_ms, Some(3.0));
+        assert_eq!(f.detected_data_path_ms, Some(0.0));
+        assert_eq!(f.republished_ms, Some(10.0));
+        // A second fault right after the first does not take the first one's samples.
+        let (reports, _) = fault_reports(
+            &sc,
+            &tr,
+            &[
+                ev(1.0, 12, kill(), "plant", "plant"),
+                ev(1.1, 15, kill(), "plant", "plant"),
+            ],
+        );
+        assert_eq!((reports[0].injected_k, reports[1].injected_k), (10, 13));
+        // A fault before the plant's kill ends where the kill's samples begin: the plant's
+        // downtime is not reported twice.
+        let (reports, _) = fault_reports(
+            &sc,
+            &tr,
+            &[
+                ev(0.9, 2, kill(), "observer", "observer"),
+                ev(1.0, 12, kill(), "plant", "plant"),
+            ],
+        );
+        assert!(reports[0].plant_down.is_none(), "{:?}", reports[0]);
+        assert_eq!(reports[1].plant_down.as_ref().map(|p| p.samples), Some(10));
     }
 
     #[test]
