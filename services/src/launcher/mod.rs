@@ -816,16 +816,10 @@ fn describe(
     }
     let status = status.with_context(|| format!("{exe} --describe"))?;
     if !status.success() {
-        let text = String::from_utf8_lossy(&stderr);
-        let lines: Vec<&str> = text
-            .lines()
-            .map(str::trim)
-            .filter(|l| !l.is_empty())
-            .collect();
+        let said = drivelab_runtime::text::join_lines(&String::from_utf8_lossy(&stderr), " / ");
         bail!(
-            "{exe} --describe failed ({status}){}{}",
-            if lines.is_empty() { "" } else { ": " },
-            lines.join(" / ")
+            "{exe} --describe failed ({status}){}{said}",
+            if said.is_empty() { "" } else { ": " },
         );
     }
     if stdout.len() as u64 > DESCRIBE_MAX_BYTES {

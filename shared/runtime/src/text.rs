@@ -61,12 +61,18 @@ pub fn error_text(e: &anyhow::Error) -> String {
 /// `text`'s non-empty lines, trimmed, joined by spaces (a source's multi-line message, such as
 /// a parser's caret diagram, on one line).
 pub fn one_line(text: &str) -> String {
+    join_lines(text, " ")
+}
+
+/// The non-empty lines of `text`, trimmed, joined with `sep` (e.g. " / " where the lines
+/// are separate messages, such as a child's stderr).
+pub fn join_lines(text: &str, sep: &str) -> String {
     let lines: Vec<&str> = text
         .lines()
         .map(str::trim)
         .filter(|l| !l.is_empty())
         .collect();
-    lines.join(" ")
+    lines.join(sep)
 }
 
 #[cfg(test)]
