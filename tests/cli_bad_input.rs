@@ -549,36 +549,3 @@ fn a_bus_in_use_is_refused_and_left_to_its_drive() {
     assert!(o.status.success(), "{}", stderr(&o));
     assert_clean(&bus);
 }
-
-#[test]
-#[cfg(feature = "zenoh")]
-fn a_zenoh_port_in_use_is_refused_before_the_run_folder_is_made() {
-    let d = scratch("zenohbusy");
-    let bus = bus_id("zenohbusy");
-    // The port is held by this test: whatever listens there, the drive cannot.
-    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    let ep = format!("tcp/127.0.0.1:{}", taken.local_addr().unwrap().port());
-    let out = d.join("run");
-    let o = drivelab(&[
-        "run",
-        "--bus",
-        &bus,
-        "--clock",
-        "lockstep",
-        "--duration",
-        "0.05",
-        "--zenoh-listen",
-        &ep,
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    let err = stderr(&o);
-    assert_eq!(o.status.code(), Some(1), "{err}");
-    assert_eq!(err.lines().count(), 1, "{err}");
-    assert!(
-        err.contains(&format!("--zenoh-listen: endpoint '{ep}'")) && err.contains("is in use"),
-        "{err}"
-    );
-    assert!(!out.exists(), "the refused run made its folder");
-    assert_clean(&bus);
-}

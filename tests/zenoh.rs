@@ -245,7 +245,13 @@ fn bad_endpoints_a_busy_port_and_no_drive_are_one_line_errors() {
         "--zenoh-listen",
         &busy,
     ]);
-    one_line(&o, 1, &format!("zenoh bridge: cannot listen on {busy}"));
+    one_line(
+        &o,
+        1,
+        &format!("--zenoh-listen: endpoint '{busy}': 127.0.0.1:"),
+    );
+    assert!(String::from_utf8_lossy(&o.stderr).contains("is in use"));
+    assert!(!out.exists(), "a refused run makes no folder");
     assert_clean(&bus);
 }
 
