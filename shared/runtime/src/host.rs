@@ -2108,6 +2108,17 @@ mod tests {
             tr.queues[TopicId::Meas.index()].push_back(meas(k, 0.2));
         }
         tr.on_wait.push((4, end(TopicId::Est, 100)));
+        // The speed loop's reference of sample 0, which commands 1 and 5 are due to use.
+        tr.queues[TopicId::Iref.index()].push_back(Msg::Iref(CurrentRef {
+            hdr: Header {
+                k: 0,
+                t_sample_ns: 1_000_000,
+                ..Default::default()
+            },
+            omega_ref: 50.0,
+            i_d_ref: 0.0,
+            i_q_ref: 0.5,
+        }));
         let host = run_current_loop(&sc, tr);
         let cmds: Vec<VoltageCommand> = host
             .transport

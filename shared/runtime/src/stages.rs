@@ -203,8 +203,8 @@ impl CurrentLoopStage {
 }
 
 impl CurrentLoopStage {
-    /// Takes a fresh current reference, or holds the last one (a stale input: flagged, once
-    /// one came; before the first, the zero reference stands as at the start) and, when
+    /// Takes a fresh current reference, or holds the last one (a stale input: flagged; before
+    /// the first came, the zero reference stands as at the start, flagged too) and, when
     /// `ramp`, after 2 speed periods without a fresh one ramps i_q* to zero. Returns the
     /// command's flags.
     fn reference(&mut self, inputs: &Inbox, ramp: bool) -> u32 {
@@ -220,9 +220,7 @@ impl CurrentLoopStage {
             // Nothing expected yet (before the first speed sample): zero references.
             (true, None) => {}
             (false, _) => {
-                if inputs.newest_iref().is_some() {
-                    flags |= FLAG_STALE_INPUT;
-                }
+                flags |= FLAG_STALE_INPUT;
                 if !ramp {
                     return flags;
                 }
@@ -696,13 +694,24 @@ mod tests {
             s.step(k, &ib, &mut out);
             cmd_of(&out)
         };
-        // Before any reference came there is none to hold: the zero reference, unflagged.
+        // A reference that was due and has not come, before any came: the zero reference
+        // stands, flagged (the command differs from one made with the reference).
         let mut ib = Inbox::default();
         ib.put(Msg::Meas(meas(1, 0.0)));
         ib.put(Msg::Est(est(1, 0.0)));
         ib.set_stale(TopicId::Iref, 1);
         let mut out = Outbox::default();
         CurrentLoopStage::new(&sc).step(1, &ib, &mut out);
+        assert_eq!(cmd_of(&out).i_dq_ref[1], 0.0);
+        assert_ne!(cmd_of(&out).hdr.flags & FLAG_STALE_INPUT, 0);
+        // Not yet due (before the speed loop's first sample): the zero reference, unflagged.
+        let mut ib = Inbox::default();
+        ib.put(Msg::Meas(meas(0, 0.0)));
+        ib.put(Msg::Est(est(0, 0.0)));
+        // (What the host gives when nothing is expected yet: fresh, with no value.)
+        ib.slots[TopicId::Iref.index()].fresh = true;
+        let mut out = Outbox::default();
+        CurrentLoopStage::new(&sc).step(0, &ib, &mut out);
         assert_eq!(cmd_of(&out).i_dq_ref[1], 0.0);
         assert_eq!(cmd_of(&out).hdr.flags & FLAG_STALE_INPUT, 0);
         assert_eq!(step(&mut s, 1, true).i_dq_ref[1], 1.0);
