@@ -291,7 +291,7 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
     // campaign runs the same from any working folder.
     let base = file.parent().unwrap_or(Path::new("."));
     let beside = |s: &String| {
-        if s.ends_with(".toml") || s.contains('/') {
+        if drivelab_runtime::config::names_a_file(s) {
             base.join(s).display().to_string()
         } else {
             s.clone()

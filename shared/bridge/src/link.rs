@@ -61,11 +61,7 @@ pub fn check_free(ep: &str) -> Result<(), String> {
     let Some(addr) = ep.split_once('/').map(|(_, a)| a) else {
         return Ok(());
     };
-    let bracketless = addr.replace(['[', ']'], "");
-    let Ok(addrs) = addr
-        .to_socket_addrs()
-        .or_else(|_| bracketless.to_socket_addrs())
-    else {
+    let Ok(addrs) = addr.to_socket_addrs() else {
         return Ok(());
     };
     for a in addrs.filter(|a| a.port() != 0) {

@@ -1643,9 +1643,15 @@ pub fn list_scenarios() -> Vec<(String, PathBuf)> {
     v
 }
 
+/// Whether a scenario or topology argument names a file (it ends in `.toml` or holds a `/`)
+/// rather than a shipped one.
+pub fn names_a_file(name_or_path: &str) -> bool {
+    name_or_path.ends_with(".toml") || name_or_path.contains('/')
+}
+
 fn resolve_scenario_path(name_or_path: &str) -> Result<PathBuf, String> {
     let p = Path::new(name_or_path);
-    if name_or_path.ends_with(".toml") || name_or_path.contains('/') {
+    if names_a_file(name_or_path) {
         return if p.is_file() {
             Ok(p.to_path_buf())
         } else if p.is_dir() {

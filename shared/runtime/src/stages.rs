@@ -200,9 +200,7 @@ impl CurrentLoopStage {
             ramp_samples: 0,
         }
     }
-}
 
-impl CurrentLoopStage {
     /// Takes a fresh current reference, or holds the last one (a stale input: flagged; before
     /// the first came, the zero reference stands as at the start, flagged too) and, when
     /// `ramp`, after 2 speed periods without a fresh one ramps i_q* to zero. Returns the
@@ -226,7 +224,6 @@ impl CurrentLoopStage {
                 }
                 self.stale_ref_samples += 1;
                 if self.stale_ref_samples > 2 * self.divider {
-                    flags |= FLAG_STALE_INPUT;
                     self.ramp_samples += 1;
                     let q = self.active_ref.i_q_ref;
                     self.active_ref.i_q_ref = q - q.signum() * self.iq_ramp_per_sample.min(q.abs());

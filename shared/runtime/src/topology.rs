@@ -135,7 +135,7 @@ pub fn list_topologies() -> Vec<String> {
 /// Loads a topology by shipped name or file path and checks what needs no stage declarations
 /// ([`check_specs`]); an error names the file.
 pub fn load(name_or_path: &str) -> Result<(TopologyFile, PathBuf), String> {
-    let path = if name_or_path.ends_with(".toml") || name_or_path.contains('/') {
+    let path = if crate::config::names_a_file(name_or_path) {
         PathBuf::from(name_or_path)
     } else {
         let f = topologies_dir().join(format!("{name_or_path}.toml"));
