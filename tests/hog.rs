@@ -87,9 +87,9 @@ fn a_hog_above_the_drive_on_its_core_costs_deadlines_and_is_gone_at_the_end() {
 fn a_plant_killed_while_a_hog_holds_it_back_has_all_its_downtime_in_its_report() {
     let _serial = serial();
     // The hog starves the plant from 0.25 s; the kill at 0.3 s finds it hundreds of samples
-    // behind its schedule, so the sample the signal is estimated at lies far past the
-    // plant's last one. The kill's report still holds every rebuilt downtime sample, and
-    // the hog's report none of them.
+    // behind its schedule, so the schedule would date the signal far past the plant's last
+    // sample. The kill's report holds every rebuilt downtime sample, and the hog's report
+    // none of them.
     let (out, s) = run_ok(
         "hog-kill",
         &[
@@ -120,6 +120,61 @@ fn a_plant_killed_while_a_hog_holds_it_back_has_all_its_downtime_in_its_report()
     );
     assert_eq!(s["plant_down_samples"].as_u64(), Some(down.len() as u64));
     assert!(hog["plant_down"].is_null(), "{hog}");
+}
+
+#[test]
+fn a_controller_killed_while_a_hog_holds_the_plant_back_is_dated_at_the_plants_own_sample() {
+    let _serial = serial();
+    // As above, with the current loop killed: its report begins at the plant's next sample
+    // when the signal went out, counted from the plant's publishes, and so just before the
+    // first stale command. Dated by the schedule, it began hundreds of samples after it.
+    let (out, s) = run_ok(
+        "hog-kill-cl",
+        &[
+            "--duration",
+            "1",
+            "--fault",
+            "hog:1@0.25:0.1:99",
+            "--fault",
+            "kill:current-loop@0.3",
+        ],
+    );
+    let events = s["supervisor_events"].as_array().unwrap();
+    let at = |name: &str| {
+        let e = events
+            .iter()
+            .find(|e| e["event"] == name)
+            .unwrap_or_else(|| panic!("no {name} event: {events:?}"));
+        (e["k"].as_u64().unwrap(), e["t_wall_s"].as_f64().unwrap())
+    };
+    // The premise: the plant was behind its schedule when the current loop died (the hog
+    // held it for 1 000 samples; it gains them back a fraction of a sample per period). An
+    // exit event's k is the recorder's progress, which lags the plant by a few samples.
+    let ((k_hog, t_hog), (k_exit, t_exit)) = (at("hog"), at("exited"));
+    let behind = (t_exit - t_hog) * 10_000.0 - (k_exit - k_hog) as f64;
+    assert!(
+        behind > 200.0,
+        "the plant was only {behind:.0} samples behind: {events:?}"
+    );
+    let kill = s["faults"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|f| f["service"] == "current-loop")
+        .unwrap_or_else(|| panic!("no report for the kill: {}", s["faults"]));
+    let k0 = kill["injected_k"].as_u64().unwrap();
+    assert!(k0 >= 3000, "before its planned sample: {kill}");
+    let rows = drivelab_runtime::trace::read_csv(&out.join("trace.csv")).unwrap();
+    let first_stale = rows
+        .iter()
+        .find(|r| r.k >= 3000 && r.plant_flags & drivelab_runtime::messages::FLAG_STALE_CMD != 0)
+        .map(|r| r.k)
+        .expect("the plant never held a stale command after the kill");
+    assert!(
+        k0 <= first_stale && first_stale - k0 <= 10,
+        "dated at {k0}, the first stale command at {first_stale}: {kill}"
+    );
+    assert_eq!(kill["detected_by"], "plant", "{kill}");
 }
 
 #[test]

@@ -41,6 +41,28 @@ pub(super) struct Progress {
     pub tail: crate::hub::TraceTail,
     /// Cycle latencies around each hog's window (`crate::faults::hog`).
     pub hog_latency: std::sync::Mutex<Vec<crate::faults::hog::WindowLatency>>,
+    /// The plant's truth messages counted by their wake word (futex wake-ups only), and the
+    /// count at the recorder's newest read with the newest sample it read: the supervisor's
+    /// view of the plant's real progress (`supervisor::plant_sample_now`).
+    pub truth_count: std::sync::OnceLock<bus::PublishCount>,
+    pub truth_mark: std::sync::Mutex<Option<TruthMark>>,
+}
+
+/// The newest truth sample the recorder had read, and the truth topic's wake count taken
+/// as soon as the read found no more.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) struct TruthMark {
+    pub k: u64,
+    pub count: u32,
+}
+
+impl TruthMark {
+    /// The first sample the plant had not yet published when its wake count was `now`: one
+    /// message per sample since the mark. A restart that resumed at a later sample since the
+    /// mark is not seen (its next mark, within one poll, is).
+    pub fn next_sample(self, now: u32) -> u64 {
+        self.k + 1 + u64::from(now.wrapping_sub(self.count))
+    }
 }
 
 /// Command `c` as the trace takes it: an unusable one (NaN, ∞ or an absurd magnitude, e.g.
@@ -85,6 +107,9 @@ pub(super) fn run_recorder(
         let cmd_rx = topics.cmd.polled_receiver(MAX_BUFFER)?;
         let wref_rx = topics.wref.polled_receiver(MAX_BUFFER)?;
         let rec_tx = topics.rec.sender()?;
+        if let Some(c) = topics.truth.publish_count() {
+            let _ = progress.truth_count.set(c);
+        }
         Ok((node, topics, meas_rx, cmd_rx, wref_rx, rec_tx))
     })();
     let (_node, _topics, meas_rx, cmd_rx, wref_rx, rec_tx) = match setup {
@@ -116,6 +141,7 @@ pub(super) fn run_recorder(
         .unwrap_or(false);
     loop {
         let mut got = false;
+        let mut newest = None;
         while let Some(m) = meas_rx.try_recv()? {
             got = true;
             if m.hdr.is_warmup() {
@@ -144,6 +170,14 @@ pub(super) fn run_recorder(
                         *l = Some(m);
                     }
                 }
+                newest = Some(m.hdr.k);
+            }
+        }
+        // Straight after the read came up empty, the count is the read's, to within a
+        // message published in between.
+        if let (Some(k), Some(c)) = (newest, progress.truth_count.get()) {
+            if let Ok(mut mark) = progress.truth_mark.lock() {
+                *mark = Some(TruthMark { k, count: c.get() });
             }
         }
         while let Some(c) = cmd_rx.try_recv()? {
@@ -240,6 +274,19 @@ mod tests {
     use drivelab_runtime::trace::TraceRow;
 
     const TS: f64 = 1e-4;
+
+    #[test]
+    fn the_plants_next_sample_counts_its_publishes_since_the_mark_across_the_wrap() {
+        let mark = TruthMark { k: 41, count: 7 };
+        assert_eq!(mark.next_sample(7), 42);
+        assert_eq!(mark.next_sample(10), 45);
+        let wrapped = TruthMark {
+            k: 1_000,
+            count: u32::MAX - 1,
+        };
+        assert_eq!(wrapped.next_sample(3), 1_006);
+    }
+
     const LOST: &str = "measurement lost between plant and recorder (recorder buffer overflow)";
     const STOPPED: &str = "the plant stopped before this sample";
 

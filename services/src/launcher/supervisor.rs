@@ -546,13 +546,22 @@ pub(super) fn supervise(
     Ok(None)
 }
 
-/// The sample the real-time plant is at now: the newest one the recorder has read, plus the
-/// sample periods since its instant (None in lockstep, which has no schedule).
+/// The sample the real-time plant is at now: the first one it has not published yet, from
+/// its truth messages counted since the recorder's newest read. Without that count (iceoryx2
+/// wake-ups) the schedule's estimate: the newest sample the recorder has read plus the sample
+/// periods since its instant, which runs ahead of a plant that is late. None in lockstep,
+/// which has no schedule.
 fn plant_sample_now(progress: &Progress, ts_ns: u64) -> Option<u64> {
     let last = progress.last.lock().ok().and_then(|l| *l)?;
     let t = last.hdr.t_sample_ns;
-    (t > 0 && ts_ns > 0)
-        .then(|| last.hdr.k + drivelab_runtime::rt::now_ns().saturating_sub(t) / ts_ns)
+    if t == 0 || ts_ns == 0 {
+        return None;
+    }
+    let mark = progress.truth_mark.lock().ok().and_then(|m| *m);
+    Some(match (mark, progress.truth_count.get()) {
+        (Some(mark), Some(count)) => mark.next_sample(count.get()),
+        _ => last.hdr.k + drivelab_runtime::rt::now_ns().saturating_sub(t) / ts_ns,
+    })
 }
 
 /// One entry of `summary.json` → `faults`. Times are in ms from the injection.
@@ -564,8 +573,8 @@ pub struct FaultReport {
     pub service: String,
     /// The process that was signalled (it hosts the stage, perhaps with others).
     pub process: String,
-    /// Injection: sample index and simulated time, s (the sample the signal went out at; for
-    /// a plant killed while it ran behind its schedule, its first rebuilt downtime sample).
+    /// Injection: sample index (the first sample the plant had not published when the signal
+    /// went out, so also for a plant that ran behind its schedule).
     pub injected_k: u64,
     /// Injection time, s (sample time).
     pub injected_t_s: f64,
@@ -653,10 +662,11 @@ pub fn fault_reports(
         .iter()
         .filter(|e| matches!(e.kind, EventKind::Inject { .. } | EventKind::Hog { .. }))
         .collect();
-    // Where each fault begins. The signal's sample is an estimate (the recorder's progress, or
-    // the sample whose deadline had passed). A plant killed while it ran late had produced
-    // fewer: its rebuilt downtime samples then begin before the estimate, and the fault
-    // begins with them (after the previous fault's estimated sample).
+    // Where each fault begins: the plant's next sample when the signal went out, counted from
+    // its publishes (see `plant_sample_now`). Where only the schedule's estimate was there
+    // (iceoryx2 wake-ups), a plant killed while it ran late had produced fewer samples: its
+    // rebuilt downtime then begins before the estimate, and the fault begins with it (after
+    // the previous fault's sample).
     let mut starts: Vec<u64> = Vec::with_capacity(injects.len());
     for (n, inj) in injects.iter().enumerate() {
         let k_prev = n.checked_sub(1).map_or(0, |p| injects[p].k + 1);

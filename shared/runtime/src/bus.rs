@@ -390,6 +390,18 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
         })
     }
 
+    /// How many wake-ups this topic has had: its futex wake word, which every
+    /// [`Sender::send_waking`] (markers included) and every poke bumps once, wrapping at
+    /// 2^32. None with iceoryx2 events, which keep no count. The launcher reads the plant's count to
+    /// know how far the plant really is, where its schedule would only say how far it
+    /// should be.
+    pub fn publish_count(&self) -> Option<PublishCount> {
+        match &self.wake {
+            Wake::Futex(seg, i) => Some(PublishCount(seg.clone(), *i)),
+            Wake::Event(_) => None,
+        }
+    }
+
     /// A receiver that is only polled (the sender does not wake it).
     pub fn polled_receiver(&self, buffer: usize) -> Result<Receiver<T>> {
         Ok(Receiver {
@@ -404,6 +416,17 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
             .buffer_size(buffer.min(MAX_BUFFER))
             .create()
             .map_err(|e| anyhow!("subscriber: {e:?}"))
+    }
+}
+
+/// A topic's wake count (see [`Topic::publish_count`]).
+#[derive(Debug, Clone)]
+pub struct PublishCount(Arc<WakeSegment>, usize);
+
+impl PublishCount {
+    /// The count now (one atomic load).
+    pub fn get(&self) -> u32 {
+        self.0.seq(self.1)
     }
 }
 
