@@ -963,6 +963,9 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
     })
 }
 
+/// Why a run that SIGINT or SIGTERM stopped ended early.
+pub(super) const INTERRUPTED: &str = "interrupted (SIGINT/SIGTERM): drive stopped";
+
 /// Runs a scenario end to end and writes the run folder.
 pub fn run(o: &RunOptions) -> Result<RunResult> {
     // The launcher stops on SIGINT/SIGTERM the same way the services do.
@@ -1022,17 +1025,35 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         hog_latency,
         bridge,
     } = match o.clock {
-        Clock::Inprocess => BusRun {
-            rows: drivelab_runtime::stages::try_run_inprocess(&sc)?,
-            gaps: Vec::new(),
-            stats: None,
-            processes: json!({}),
-            info: json!({ "deadline_misses": 0 }),
-            events: Vec::new(),
-            failure: None,
-            hog_latency: Vec::new(),
-            bridge: None,
-        },
+        Clock::Inprocess => {
+            let stop = drivelab_runtime::service::stop_flag();
+            let rows = drivelab_runtime::stages::try_run_inprocess_until(&sc, move || {
+                stop.load(Ordering::SeqCst)
+            })?;
+            // Interrupted: the samples not done are one gap to the end (named below).
+            let done = rows.len() as u64;
+            let interrupted = done < sc.samples();
+            BusRun {
+                rows,
+                gaps: if interrupted {
+                    vec![Gap {
+                        from: done,
+                        to: sc.samples() - 1,
+                        part: "measurement",
+                        cause: String::new(),
+                    }]
+                } else {
+                    Vec::new()
+                },
+                stats: None,
+                processes: json!({}),
+                info: json!({ "deadline_misses": 0 }),
+                events: Vec::new(),
+                failure: interrupted.then(|| INTERRUPTED.to_string()),
+                hog_latency: Vec::new(),
+                bridge: None,
+            }
+        }
         Clock::Lockstep | Clock::Realtime => {
             let clock = if o.clock == Clock::Lockstep {
                 BusClock::Lockstep

@@ -295,7 +295,7 @@ pub(super) fn supervise(
     };
     'run: loop {
         if crate::common::stop_requested() {
-            return Ok(Some("interrupted (SIGINT/SIGTERM): drive stopped".into()));
+            return Ok(Some(super::INTERRUPTED.into()));
         }
         // A split drive whose other machine is gone (see `Bridge::lost`).
         if let Some(why) = link() {

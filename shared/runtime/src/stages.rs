@@ -468,11 +468,20 @@ pub fn run_inprocess(sc: &Scenario) -> Vec<crate::trace::TraceRow> {
 
 /// [`run_inprocess`], with an error where the run cannot be done (no memory for its trace).
 pub fn try_run_inprocess(sc: &Scenario) -> anyhow::Result<Vec<crate::trace::TraceRow>> {
+    try_run_inprocess_until(sc, || false)
+}
+
+/// [`try_run_inprocess`] that ends early, with the samples done so far, once `stop` says so
+/// (asked once per sample; the launcher passes its SIGINT/SIGTERM flag).
+pub fn try_run_inprocess_until(
+    sc: &Scenario,
+    stop: impl Fn() -> bool + Send + 'static,
+) -> anyhow::Result<Vec<crate::trace::TraceRow>> {
     let stages: Vec<Box<dyn Stage>> = BUILTIN
         .iter()
         .map(|n| builtin(n, sc).ok_or_else(|| anyhow::anyhow!("no built-in stage {n}")))
         .collect::<anyhow::Result<_>>()?;
-    run_stages_inprocess(sc, stages)
+    run_stages_until(sc, stages, stop)
 }
 
 /// An empty vector with room for `n` entries, or an error naming `what` and the size when
@@ -493,6 +502,15 @@ fn fallible_vec<T>(n: usize, what: &str) -> anyhow::Result<Vec<T>> {
 pub fn run_stages_inprocess(
     sc: &Scenario,
     stages: Vec<Box<dyn Stage>>,
+) -> anyhow::Result<Vec<crate::trace::TraceRow>> {
+    run_stages_until(sc, stages, || false)
+}
+
+/// [`run_stages_inprocess`] until `stop` says so: the trace of the samples done.
+fn run_stages_until(
+    sc: &Scenario,
+    stages: Vec<Box<dyn Stage>>,
+    stop: impl Fn() -> bool + Send + 'static,
 ) -> anyhow::Result<Vec<crate::trace::TraceRow>> {
     use crate::host::{Host, HostConfig, Local, Pacing};
     let producers: Vec<(TopicId, u64, bool)> = stages
@@ -517,6 +535,7 @@ pub fn run_stages_inprocess(
         },
     );
     host.arm_spares(|name| builtin(name, sc))?;
+    host.stop_when(stop);
     host.run()?;
     let ts = sc.rates.ts();
     let mut truth: Vec<Option<PlantTruth>> = fallible_vec(n as usize, "the in-process trace")?;
