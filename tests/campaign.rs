@@ -386,7 +386,7 @@ fn a_bad_campaign_is_a_one_line_error_before_any_run() {
         ),
         (
             "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nexpect = [\"peak <= 1\"]\n",
-            2,
+            1,
             "c.toml: expect: expectation 'peak <= 1': unknown figure 'peak'",
         ),
         // Checked against each scenario before the first run, not as a failed run.
@@ -415,4 +415,50 @@ fn a_bad_campaign_is_a_one_line_error_before_any_run() {
         assert!(err.contains(says), "{text}: {err}");
         assert!(!out.exists(), "{text}: the campaign started");
     }
+}
+
+#[test]
+fn a_malformed_expectation_in_a_campaign_is_a_file_error_with_exit_code_1() {
+    let dir = scratch("campexpect");
+    // A scenario file of the campaign with a malformed [[expect]] table.
+    let sc = variant(
+        "campexpect",
+        "kyslan-pi",
+        &[(
+            "[motor]",
+            "[[expect]]\ncheck = \"peak_current_a =< 8\"\n\n[motor]",
+        )],
+    );
+    let sc_line = format!("name = \"x\"\nscenarios = [{:?}]\n", sc.to_str().unwrap());
+    for (text, says) in [
+        (
+            "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nexpect = [\"garbage\"]\n",
+            "c.toml: expect: expectation 'garbage': expected FIGURE OP LIMIT",
+        ),
+        (
+            "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nexpect = [\"peak_current_a <= NaN\"]\n",
+            "c.toml: expect: expectation 'peak_current_a <= NaN': limit 'NaN' must be a finite number",
+        ),
+        (
+            sc_line.as_str(),
+            "[[expect]] #1: expectation 'peak_current_a =< 8': unknown operator",
+        ),
+    ] {
+        let f = campaign_file(&dir, text);
+        let out = dir.join("c");
+        let o = drivelab(&["campaign", f.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(1), "{text}: {err}");
+        assert_eq!(err.trim().lines().count(), 1, "{err}");
+        assert!(err.starts_with("drivelab: error: campaign "), "{text}: {err}");
+        assert!(err.contains(says), "{text}: {err}");
+        assert!(!out.exists(), "{text}: the campaign started");
+    }
+    // The same expectation on the command line stays a usage error.
+    let out = dir.join("run");
+    let o = inprocess(&out, &["--expect", "garbage"]);
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+    assert!(!out.exists(), "a run folder was made for a bad expectation");
 }

@@ -549,3 +549,118 @@ fn a_bus_in_use_is_refused_and_left_to_its_drive() {
     assert!(o.status.success(), "{}", stderr(&o));
     assert_clean(&bus);
 }
+
+#[test]
+fn cdm_design_refuses_an_operating_point_beyond_its_physical_range() {
+    let d = scratch("cdm-op");
+    let dir = d.as_path();
+    for c in [
+        case(
+            "cdm-vao-huge",
+            dir,
+            &["cdm-design", "--v-ao-v", "1e300"],
+            1,
+            "--v-ao-v 1e300: must be between -100000 and 100000 V",
+        ),
+        case(
+            "cdm-vao-2e64",
+            dir,
+            &["cdm-design", "--v-ao-v", "18446744073709551616"],
+            1,
+            ": must be between -100000 and 100000 V",
+        ),
+        case(
+            "cdm-vao-neg",
+            dir,
+            &["cdm-design", "--v-ao-v", "-100001"],
+            1,
+            "--v-ao-v -100001: must be between -100000 and 100000 V",
+        ),
+        case(
+            "cdm-delta-huge",
+            dir,
+            &["cdm-design", "--v-ao-v", "5", "--delta-o-deg", "1e300"],
+            1,
+            "--delta-o-deg 1e300: must be between -90 and 90 degrees",
+        ),
+        case(
+            "cdm-delta-neg",
+            dir,
+            &["cdm-design", "--v-ao-v", "5", "--delta-o-deg", "-90.5"],
+            1,
+            "--delta-o-deg -90.5: must be between -90 and 90 degrees",
+        ),
+    ] {
+        c.check();
+    }
+    // The ends of the ranges are designed, clamped to the paper's limits as before.
+    let o = drivelab(&["cdm-design", "--v-ao-v", "-100000", "--delta-o-deg", "90"]);
+    let t = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        t.contains("V_ao = -271.3546265191241 V, δ_o = 81.000000°"),
+        "{t}"
+    );
+}
+
+#[test]
+fn plot_and_compare_refuse_a_summary_json_that_is_not_json() {
+    let _s = serial();
+    let d = scratch("badsum");
+    let (run, _) = run_ok("badsum-run", &["--clock", "lockstep", "--duration", "0.05"]);
+    // Copies of the run folder's trace and scenario, with summary.json as given.
+    let folder = |name: &str, summary: Option<&str>| {
+        let p = d.join(name);
+        std::fs::create_dir_all(&p).unwrap();
+        for f in ["trace.csv", "scenario.toml"] {
+            std::fs::copy(run.join(f), p.join(f)).unwrap();
+        }
+        if let Some(text) = summary {
+            std::fs::write(p.join("summary.json"), text).unwrap();
+        }
+        p.to_str().unwrap().to_string()
+    };
+    let corrupt = folder("corrupt-summary", Some("{not json"));
+    let array = folder("array-summary", Some("[1, 2]"));
+    let out = d.join("out");
+    let o = out.to_str().unwrap();
+    let good = run.to_str().unwrap();
+    let dir = d.as_path();
+    for c in [
+        case(
+            "plot-badsum",
+            dir,
+            &["plot", &corrupt, "--out", o],
+            1,
+            "corrupt-summary/summary.json: not JSON: key must be a string",
+        )
+        .leaves_no(out.clone()),
+        case(
+            "compare-badsum",
+            dir,
+            &["compare", good, &corrupt, "--out", o],
+            1,
+            "corrupt-summary/summary.json: not JSON: key must be a string",
+        )
+        .leaves_no(out.clone()),
+        case(
+            "plot-arraysum",
+            dir,
+            &["plot", &array, "--out", o],
+            1,
+            "array-summary/summary.json: not a run summary",
+        )
+        .leaves_no(out.clone()),
+    ] {
+        c.check();
+    }
+    // A run folder without summary.json is still drawn and compared.
+    let none = folder("no-summary", None);
+    for args in [
+        vec!["plot", none.as_str(), "--out", o],
+        vec!["compare", good, none.as_str(), "--out", o],
+    ] {
+        let r = drivelab(&args);
+        assert!(r.status.success(), "{args:?}: {}", stderr(&r));
+    }
+}

@@ -282,10 +282,12 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
     for spec in sets.iter().flatten() {
         crate::faults::parse(spec).map_err(|e| anyhow!("campaign {}: {e}", file.display()))?;
     }
+    // A malformed expectation here is an error in a file, exit code 1 like every other one
+    // of the campaign: the message of expect::UsageError (exit code 2, for `run --expect`)
+    // is kept, not its type.
     for e in &c.expect {
-        crate::expect::parse(e).map_err(|UsageError(m)| {
-            UsageError(format!("campaign {}: expect: {m}", file.display()))
-        })?;
+        crate::expect::parse(e)
+            .map_err(|UsageError(m)| anyhow!("campaign {}: expect: {m}", file.display()))?;
     }
     // A file is taken relative to the campaign file (a name is a shipped one), so that a
     // campaign runs the same from any working folder.
@@ -310,7 +312,7 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
             })?;
         }
         crate::expect::collect(&sc.expect, &s, &[])
-            .map_err(|UsageError(m)| UsageError(format!("campaign {}: {m}", file.display())))?;
+            .map_err(|UsageError(m)| anyhow!("campaign {}: {m}", file.display()))?;
         scenarios.push(s);
     }
     let n = scenarios.len() * sets.len() * c.seeds.len();

@@ -117,8 +117,9 @@ pub fn run(a: &CdmArgs) -> Result<()> {
 }
 
 /// Checks every number given, one option at a time: a one-line error naming the option, its
-/// value and the range with its unit. The operating point (--v-ao-v, --delta-o-deg) is only
-/// required to be finite: the design clamps it to the limits and shows it as typed.
+/// value and the range with its unit. The operating point (--v-ao-v, --delta-o-deg) may lie
+/// beyond the paper's limits, which the design clamps it to and shows beside it as typed,
+/// but not beyond a physical range (below).
 fn check(a: &CdmArgs) -> Result<()> {
     // (option, value, lowest, lowest allowed itself, highest, unit)
     let mut ranges = vec![
@@ -144,12 +145,30 @@ fn check(a: &CdmArgs) -> Result<()> {
             bail!("{flag} {v}: must be more than {lo} and at most {hi} {unit}");
         }
     }
-    for (flag, v, unit) in [
-        ("--v-ao-v", a.v_ao_v, "volts"),
-        ("--delta-o-deg", a.delta_o_deg, "degrees"),
+    // The operating point: V_ao is a signed amplitude, so its range is symmetric, with the
+    // bound of the other voltage options (--v-dc-v, --v-amax-v ≤ 100000 V); |V_ao| above
+    // V_amax is clamped to V_amax (cdm::limit_operating_point) and shown so. δ_o is the
+    // voltage phase from the q axis (v_q = V_a cos δ, eq. 1): the law's phase output is
+    // limited to ±90° (polar::DELTA_MAX), eqs (28)–(31) divide by cos δ_o, and the design
+    // clamps δ_o to ±0.9·90° = ±81° (cdm::DELTA_O_MAX). A δ_o in 81°..90° is a point the
+    // drive can reach and is clamped visibly; beyond ±90° cos δ_o changes sign and the clamp
+    // would design a point unlike the one asked, so it is refused.
+    for (flag, v, lo, hi, unit, units) in [
+        ("--v-ao-v", a.v_ao_v, -100_000.0, 100_000.0, "V", "volts"),
+        (
+            "--delta-o-deg",
+            a.delta_o_deg,
+            -90.0,
+            90.0,
+            "degrees",
+            "degrees",
+        ),
     ] {
         if !v.is_finite() {
-            bail!("{flag} {v}: must be a finite number of {unit}");
+            bail!("{flag} {v}: must be a finite number of {units}");
+        }
+        if !(lo..=hi).contains(&v) {
+            bail!("{flag} {v}: must be between {lo} and {hi} {unit}");
         }
     }
     for (flag, v) in [
@@ -233,7 +252,7 @@ pub fn render(motor: &str, d: &CdmDesign) -> String {
     let _ = writeln!(
         o,
         "operating point asked: V_ao = {} V, δ_o = {:.6}°; after the limits {:.4} V ≤ |V_ao| ≤ {:.4} V and |δ_o| ≤ 0.9·90° = 81°: V_ao = {} V, δ_o = {:.6}°, cos δ_o = {:.6}",
-        // Any value is clamped to the limits; a huge one is shown as typed (1e300).
+        // A value beyond the limits is clamped to them and shown as typed beside it.
         drivelab_runtime::text::readable_numbers(&d.v_ao_in_v.to_string()),
         d.delta_o_in_rad.to_degrees(),
         cdm::V_AO_MIN_FRAC * d.v_amax_v,

@@ -58,6 +58,10 @@ pub fn load_run(dir: &Path) -> Result<LoadedRun> {
     })?;
     let scenario =
         Scenario::from_toml(&text, &sc_path.display().to_string()).map_err(|e| anyhow!(e))?;
+    // The metrics are recomputed from the trace, not read from summary.json; but a
+    // summary.json that is there and damaged says the folder is, so it is refused as
+    // `drivelab plot` and `drivelab export` refuse it (a folder without one is fine).
+    crate::plotcmd::summary_if_any(dir)?;
     let rows = drivelab_runtime::trace::read_csv(&trace)?;
     if rows.is_empty() {
         bail!("{}: trace.csv has no samples", dir.display());

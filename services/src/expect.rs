@@ -39,7 +39,8 @@ pub const FIGURES: &[&str] = &[
 ];
 
 /// Bad input that is the user's wording (an expectation that cannot be read): `drivelab`
-/// exits with code 2 for it, as for a command-line usage error.
+/// exits with code 2 for it, as for a command-line usage error. `drivelab campaign` turns it
+/// into a plain error (exit code 1): there it is a mistake in the campaign's files.
 #[derive(Debug)]
 pub struct UsageError(pub String);
 

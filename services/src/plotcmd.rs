@@ -2,7 +2,7 @@
 //! latency percentiles, fault windows), optionally for a time window.
 
 use anyhow::{anyhow, bail, Context, Result};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Arguments of `drivelab plot`.
 #[derive(Debug, clap::Args)]
@@ -42,6 +42,26 @@ fn parse_window(w: &str) -> Result<(f64, f64)> {
     Ok((a, b))
 }
 
+/// The summary.json of run folder `run`, or `Null` when the folder has none (plot and
+/// compare work from trace.csv and do without it). One that is there but cannot be read, is
+/// not JSON or is not a JSON object is an error naming the file, as in `drivelab export`.
+pub fn summary_if_any(run: &Path) -> Result<serde_json::Value> {
+    let path = run.join("summary.json");
+    let bytes = match std::fs::read(&path) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(serde_json::Value::Null),
+        r => r.with_context(|| format!("cannot read {}", path.display()))?,
+    };
+    let v: serde_json::Value =
+        serde_json::from_slice(&bytes).with_context(|| format!("{}: not JSON", path.display()))?;
+    if !v.is_object() {
+        bail!(
+            "{}: not a run summary (a JSON object of figures)",
+            path.display()
+        );
+    }
+    Ok(v)
+}
+
 /// Redraws the figures; returns the files written.
 pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
     // Checked before any file is read.
@@ -69,10 +89,8 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
             );
         }
     }
-    let summary: serde_json::Value = std::fs::read(a.run.join("summary.json"))
-        .ok()
-        .and_then(|b| serde_json::from_slice(&b).ok())
-        .unwrap_or_default();
+    // Before the output folder is made: a refused run folder leaves nothing behind.
+    let summary = summary_if_any(&a.run)?;
     let scenario = std::fs::read_to_string(a.run.join("scenario.toml"))
         .ok()
         .and_then(|t| drivelab_runtime::config::Scenario::from_toml(&t, "scenario.toml").ok());
