@@ -1,5 +1,5 @@
 //! The bus belongs to one drive: a second drive on a busy bus is refused and the first goes
-//! on unharmed, a bus folder that is a symbolic link is refused by `run` and `clean`, and a
+//! on unharmed, of two started at once exactly one runs, a bus folder that is a symbolic link is refused by `run` and `clean`, and a
 //! run folder's `config/iceoryx2.toml` lets iceoryx2's own tools see the drive.
 
 mod common;
@@ -60,6 +60,44 @@ fn a_second_drive_on_a_busy_bus_is_refused_and_the_first_is_unharmed() {
     assert_eq!(s["samples_missing"], 0);
     assert_eq!(s["supervisor_events"].as_array().map(Vec::len), Some(0));
     assert_clean(&bus);
+}
+
+#[test]
+fn of_two_drives_started_at_once_on_one_bus_exactly_one_runs() {
+    let _one = serial();
+    // Each saw the other's command line in the busy-bus check, and both were refused in
+    // about one try of three; the bus's claim lets one of them through.
+    for attempt in 0..5 {
+        let dir = scratch(&format!("race{attempt}"));
+        let bus = bus_id(&format!("race{attempt}"));
+        let outs = [dir.join("a"), dir.join("b")];
+        let drives: Vec<Drive> = outs
+            .iter()
+            .map(|out| Drive::start(&bus, out, &["--duration", "1"]))
+            .collect();
+        let results: Vec<std::process::Output> = drives
+            .into_iter()
+            .map(|d| d.wait_for_exit(Duration::from_secs(120), "a racing drive"))
+            .collect();
+        let ran: Vec<usize> = (0..2).filter(|&i| results[i].status.success()).collect();
+        assert_eq!(
+            ran.len(),
+            1,
+            "attempt {attempt}: {:?} / {:?}",
+            stderr(&results[0]),
+            stderr(&results[1])
+        );
+        let refused = 1 - ran[0];
+        let err = stderr(&results[refused]);
+        assert_eq!(results[refused].status.code(), Some(1), "{err}");
+        assert_eq!(err.trim().lines().count(), 1, "{err}");
+        assert!(
+            err.contains(&format!("bus {bus} is in use by pid")),
+            "{err}"
+        );
+        assert!(!outs[refused].exists(), "the refused run made its folder");
+        assert_clean(&bus);
+    }
 }
 
 #[test]

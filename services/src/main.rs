@@ -1126,7 +1126,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
         }),
         Cmd::Clean { bus } => {
             drivelab_runtime::bus::check_bus_id(&bus)?;
-            launcher::refuse_busy_bus(&bus)?;
+            launcher::refuse_busy_bus(&bus, false)?;
             let files = drivelab_runtime::bus::leftovers(&bus);
             drivelab_runtime::bus::cleanup(&bus)?;
             if files.is_empty() {

@@ -187,13 +187,10 @@ fn run_bus(
     let off = (clock == BusClock::Realtime && !o.no_rt).then(|| {
         drivelab_runtime::rt::off_rt_cores(drivelab_runtime::topology::cores(&plan_topo.processes))
     });
-    let bus_id = o
-        .bus
-        .clone()
-        .unwrap_or_else(|| format!("{}", std::process::id()));
+    let bus_id = bus_id_of(o);
     bus::check_bus_id(&bus_id)?;
-    // Another drive (or any process) on this bus would be wrecked by the clean-up below.
-    refuse_busy_bus(&bus_id)?;
+    // Another drive (or any process) on this bus would be wrecked by the clean-up below:
+    // `run` holds the bus (claim_bus) from before the run folder is made.
     // Leftovers of an earlier crashed run with the same id would confuse this one.
     bus::cleanup(&bus_id)?;
     // iceoryx2's own tools (`iox2`) find the drive from the run folder with this file.
@@ -535,14 +532,69 @@ fn unreceived(gaps: &mut [Gap], produced: u64, samples: u64, recorded: u64) -> O
     })
 }
 
-/// Fails with a one-line error naming a process when bus `id` is in use: a drive's launcher
-/// (`drivelab run --bus ID`) or stage host, or a live iceoryx2 node of the bus (an attached
-/// monitor has one; a monitor still waiting for its drive does not count).
-pub fn refuse_busy_bus(id: &str) -> Result<()> {
-    let hosts = crate::faults::find_services(id);
-    let users: Vec<(u32, String)> = crate::faults::bus_users(id)
+/// The run's bus: `--bus`, or this process's id.
+fn bus_id_of(o: &RunOptions) -> String {
+    o.bus
+        .clone()
+        .unwrap_or_else(|| format!("{}", std::process::id()))
+}
+
+/// A launcher's hold on its bus for as long as it runs: an abstract Unix socket named after
+/// the bus, which only one process can bind and which the kernel releases when that process
+/// ends, however it ends (no file). Two drives started at the same instant on one bus: one
+/// gets it, the other is refused (each saw the other's command line before).
+#[derive(Debug)]
+pub struct BusClaim {
+    _socket: std::os::unix::net::UnixListener,
+}
+
+fn claim_address(id: &str) -> Result<std::os::unix::net::SocketAddr> {
+    use std::os::linux::net::SocketAddrExt;
+    std::os::unix::net::SocketAddr::from_abstract_name(format!("drivelab-bus-{id}"))
+        .map_err(|e| anyhow!("bus {id}: {e}"))
+}
+
+/// Takes bus `id` for this launcher, or fails in one line naming who has it; then checks
+/// the bus as [`refuse_busy_bus`] does.
+pub fn claim_bus(id: &str) -> Result<BusClaim> {
+    match std::os::unix::net::UnixListener::bind_addr(&claim_address(id)?) {
+        Ok(l) => {
+            let claim = BusClaim { _socket: l };
+            refuse_busy_bus(id, true)?;
+            Ok(claim)
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::AddrInUse => Err(held_by(id)),
+        Err(e) => bail!("bus {id}: cannot claim it for this drive: {e}"),
+    }
+}
+
+/// The error for a bus another launcher holds, naming it when it can be found.
+fn held_by(id: &str) -> anyhow::Error {
+    let me = std::process::id();
+    let by = crate::faults::bus_users(id)
         .into_iter()
-        .filter(|(pid, what)| what.ends_with(" run") || hosts.iter().any(|h| h.2 == *pid))
+        .find(|(pid, what)| *pid != me && what.ends_with(" run"))
+        .map(|(pid, what)| format!("pid {pid} ({what})"))
+        .unwrap_or_else(|| "another drive".into());
+    anyhow!("bus {id} is in use by {by}; choose another --bus or stop it first")
+}
+
+/// Fails with a one-line error naming a process when bus `id` is in use: a drive's launcher
+/// holds it (unless `claimed`: this process does), a drive's stage host runs on it, or it has
+/// a live iceoryx2 node (an attached monitor has one; a monitor still waiting for its drive
+/// does not count).
+pub fn refuse_busy_bus(id: &str, claimed: bool) -> Result<()> {
+    if !claimed
+        && std::os::unix::net::UnixListener::bind_addr(&claim_address(id)?)
+            .is_err_and(|e| e.kind() == std::io::ErrorKind::AddrInUse)
+    {
+        return Err(held_by(id));
+    }
+    let me = std::process::id();
+    let users: Vec<(u32, String)> = crate::faults::find_services(id)
+        .into_iter()
+        .filter(|h| h.2 != me)
+        .map(|(_, process, pid)| (pid, format!("the stage host of process {process}")))
         .collect();
     if let Some((pid, what)) = users.first() {
         bail!(
@@ -877,7 +929,7 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
     if let Some(b) = &o.bus {
         bus::check_bus_id(b)?;
         // Before the run folder is made: a busy bus leaves nothing behind.
-        refuse_busy_bus(b)?;
+        refuse_busy_bus(b, false)?;
     }
     let (mut sc, sc_src) = Scenario::load(&o.scenario).map_err(|e| anyhow!(e))?;
     if let Some(d) = o.duration_s {
@@ -977,6 +1029,12 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         hogs,
         expectations,
     } = prepare(o)?;
+    // The bus is this drive's until it returns (two launchers that passed the check above at
+    // the same time: one of them gets it).
+    let _claim = match o.clock {
+        Clock::Inprocess => None,
+        Clock::Lockstep | Clock::Realtime => Some(claim_bus(&bus_id_of(o))?),
+    };
     // The live stream's address is taken before anything is created: an address in use
     // leaves nothing behind.
     let live = match o.foxglove {
