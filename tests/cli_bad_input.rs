@@ -137,6 +137,19 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             1,
             "scenario /tmp is a folder, not a scenario file",
         ),
+        run_case(
+            "scenario-dev",
+            &["--scenario", "/dev/null"],
+            1,
+            "scenario /dev/null is not a regular file",
+        ),
+        case(
+            "bus-digits",
+            dir,
+            &["clean", "--bus", "1234567890123456789012345"],
+            1,
+            "bus id '1234567890123456789012345' must be 1-24 characters",
+        ),
         // Above 0 s, below one sample.
         run_case(
             "dur-tiny",

@@ -44,11 +44,14 @@ pub fn resolve_motor(spec: &str) -> Result<MotorParams> {
     struct Wrapped {
         motor: MotorSpec,
     }
-    let ms = match toml::from_str::<Wrapped>(&text) {
-        Ok(w) => w.motor,
-        Err(_) => {
-            toml::from_str::<MotorSpec>(&text).map_err(|e| anyhow!("{spec}: {}", e.message()))?
-        }
+    // The error of the form the file is in: a `[motor]` table, or its fields alone.
+    let wrapped = toml::from_str::<toml::Table>(&text).is_ok_and(|t| t.contains_key("motor"));
+    let ms = if wrapped {
+        toml::from_str::<Wrapped>(&text)
+            .map(|w| w.motor)
+            .map_err(|e| anyhow!("{spec}: {}", e.message()))?
+    } else {
+        toml::from_str::<MotorSpec>(&text).map_err(|e| anyhow!("{spec}: {}", e.message()))?
     };
     ms.resolve().map_err(|e| anyhow!("{spec}: {e}"))
 }
@@ -283,7 +286,14 @@ mod tests {
         assert_eq!(resolve_motor(&wrapped).unwrap(), want);
         assert_eq!(resolve_motor(&bare).unwrap(), want);
         let e = resolve_motor(&bad).unwrap_err().to_string();
-        assert!(e.starts_with(&bad) && !e.contains('\n'), "{e}");
+        // The unknown key is named, in a `[motor]` table and in a bare file alike.
+        assert!(
+            e.starts_with(&bad) && !e.contains('\n') && e.contains("`r_ohms`"),
+            "{e}"
+        );
+        let bad_bare = f("y.toml", "preset = \"low1998\"\nr_ohms = 3.0\n");
+        let e = resolve_motor(&bad_bare).unwrap_err().to_string();
+        assert!(e.contains("`r_ohms`"), "{e}");
         let e = resolve_motor("no-such-motor").unwrap_err().to_string();
         assert!(
             e.contains("unknown motor 'no-such-motor': not a preset (") && e.contains("low1998"),

@@ -1658,6 +1658,10 @@ fn resolve_scenario_path(name_or_path: &str) -> Result<PathBuf, String> {
             Err(format!(
                 "scenario {name_or_path} is a folder, not a scenario file (a run folder's scenario is RUNDIR/scenario.toml)"
             ))
+        } else if p.exists() {
+            Err(format!(
+                "scenario {name_or_path} is not a regular file (a scenario is a .toml file)"
+            ))
         } else {
             Err(format!("scenario file {name_or_path} does not exist"))
         };

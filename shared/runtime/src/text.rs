@@ -12,7 +12,8 @@ const MAX_DIGITS: usize = 24;
 /// and serde's "invalid type: floating point" does the same) becomes `duration_s = 1e300
 /// must be in (0, 3600]`. A number is a run of digits with an optional fraction and sign,
 /// not touching a letter, `_` or another digit; its value is kept (`f64`'s shortest exact
-/// form). Text without such a number is returned as it is.
+/// form). A number that is a whole value in single quotes ('…', what the user typed) is
+/// kept. Text without such a number is returned as it is.
 pub fn readable_numbers(text: &str) -> Cow<'_, str> {
     let b = text.as_bytes();
     let word = |c: u8| c.is_ascii_alphanumeric() || c == b'_';
@@ -36,7 +37,10 @@ pub fn readable_numbers(text: &str) -> Cow<'_, str> {
         }
         let digits = b[i..end].iter().filter(|c| c.is_ascii_digit()).count();
         let ends_word = end < b.len() && word(b[end]);
-        if digits > MAX_DIGITS && !ends_word {
+        // A whole value in single quotes is text the user typed (a bus id, a flag's value):
+        // quoted as typed.
+        let quoted = start > 0 && b[start - 1] == b'\'' && end < b.len() && b[end] == b'\'';
+        if digits > MAX_DIGITS && !ends_word && !quoted {
             if let Ok(x) = text[start..end].parse::<f64>() {
                 out.push_str(&text[done..start]);
                 out.push_str(&format!("{x:e}"));
@@ -107,6 +111,7 @@ mod tests {
             "bus 999999999999999999999999 is in use",
             "bus ab1000000000000000000000000 and x_1000000000000000000000000",
             "1000000000000000000000000abc",
+            "bus id '1234567890123456789012345' must be 1-24 characters",
             "no digits at all",
         ] {
             assert!(
