@@ -148,9 +148,36 @@ fn a_bad_runner_is_one_line_and_leaves_nothing() {
     assert_eq!(o.status.code(), Some(1));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
-        err.contains("through the runner '/nonexistent/runner --flag'"),
+        err.contains(
+            "the runner '/nonexistent/runner --flag' cannot be started: /nonexistent/runner is not an executable file"
+        ) && err.trim().lines().count() == 1,
         "{err}"
     );
+    // Refused before the run: no folder.
+    assert!(!out.exists(), "the refused run made its folder");
+    assert_clean(&bus);
+    // A runner that starts but runs nothing: every process exits at once, and the error says
+    // how, in words.
+    let o = drivelab(&[
+        "run",
+        "--clock",
+        "lockstep",
+        "--no-rt",
+        "--no-plots",
+        "--bus",
+        &bus,
+        "--out",
+        out.to_str().unwrap(),
+        "--runner",
+        "false",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("exited during start-up (exit status: 1)") && !err.contains("ExitStatus("),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&out);
     assert_clean(&bus);
 }
 

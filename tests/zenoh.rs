@@ -253,6 +253,30 @@ fn bad_endpoints_a_busy_port_and_no_drive_are_one_line_errors() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("is in use"));
     assert!(!out.exists(), "a refused run makes no folder");
     assert_clean(&bus);
+    // A configuration file that is not JSON5: refused before the run, with Zenoh's reason
+    // and without the source location its error carries.
+    let bad = dir.join("bad.json5");
+    std::fs::write(&bad, "this is {{{ not json5").unwrap();
+    let o = drivelab(&[
+        "run",
+        "--bus",
+        &bus,
+        "--out",
+        out.to_str().unwrap(),
+        "--no-plots",
+        "--zenoh-listen",
+        &endpoint(free_port()),
+        "--zenoh-config",
+        bad.to_str().unwrap(),
+    ]);
+    one_line(&o, 1, &format!("zenoh config {}: ", bad.display()));
+    assert!(
+        !String::from_utf8_lossy(&o.stderr).contains(".rs:"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(!out.exists(), "a refused run makes no folder");
+    assert_clean(&bus);
 }
 
 /// The documented secure set-up, as docs/remote.md gives it: certificates from

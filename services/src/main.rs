@@ -677,6 +677,21 @@ fn listen_arg(ep: &str) -> anyhow::Result<String> {
     Ok(ep)
 }
 
+/// `--zenoh-config` of a run, read before the drive makes anything: a bad file leaves no run
+/// folder behind.
+#[cfg(feature = "zenoh")]
+fn zenoh_config_arg(file: Option<PathBuf>) -> anyhow::Result<Option<PathBuf>> {
+    if let Some(f) = &file {
+        drivelab_bridge::link::check_config(f)?;
+    }
+    Ok(file)
+}
+
+#[cfg(not(feature = "zenoh"))]
+fn zenoh_config_arg(file: Option<PathBuf>) -> anyhow::Result<Option<PathBuf>> {
+    Ok(file)
+}
+
 #[cfg(not(feature = "zenoh"))]
 fn listen_arg(ep: &str) -> anyhow::Result<String> {
     endpoint_arg("--zenoh-listen", ep, true)
@@ -862,7 +877,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                     |(endpoint, connect)| -> anyhow::Result<launcher::ZenohListen> {
                         Ok(launcher::ZenohListen {
                             endpoint,
-                            config: zenoh_config,
+                            config: zenoh_config_arg(zenoh_config)?,
                             allow_remote_faults,
                             topics: match zenoh_topics {
                                 Some(t) => zenoh_topics_arg(&t)?,

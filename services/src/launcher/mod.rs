@@ -958,6 +958,28 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
             .filter(|&i| topo.processes[i].machine.as_deref() != Some(m))
             .collect();
     }
+    // A runner that cannot start anything fails every process: refused before the run.
+    if o.clock != Clock::Inprocess {
+        if let Some(r) = spawn::runner_of(o)? {
+            r.check().map_err(|e| anyhow!(e))?;
+        }
+    }
+    // With --rt-strict a process pinned to a CPU this launcher may not use would fail its
+    // start (without it, it warns and runs unpinned): refused before anything is created.
+    if o.rt_strict && o.clock == Clock::Realtime {
+        let cpus = crate::faults::hog::allowed_cpus();
+        let here = (0..topo.processes.len()).filter(|i| !topo.away.contains(i));
+        for p in here.map(|i| &topo.processes[i]) {
+            if let Some(c) = p.cpu.filter(|c| !cpus.contains(c)) {
+                let names: Vec<String> = cpus.iter().map(|c| c.to_string()).collect();
+                bail!(
+                    "--rt-strict: process {} is pinned to CPU {c}, which this drive may not use (CPUs: {})",
+                    p.name,
+                    names.join(", ")
+                );
+            }
+        }
+    }
     // Faults are checked before anything is created: a bad plan leaves nothing behind.
     // Lockstep and in process simulate kills and stops at their sample.
     let simulated = o.clock != Clock::Realtime;

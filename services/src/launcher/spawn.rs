@@ -309,8 +309,10 @@ pub(super) fn wait_ready(children: &mut [ChildProc]) -> Result<Option<String>> {
                     }
                 }
                 Err(mpsc::RecvTimeoutError::Disconnected) => {
-                    let st = c.child.wait().ok();
-                    return Ok(Some(format!("{} exited during start-up ({st:?})", c.name)));
+                    return Ok(Some(match c.child.wait() {
+                        Ok(st) => format!("{} exited during start-up ({st})", c.name),
+                        Err(_) => format!("{} exited during start-up", c.name),
+                    }));
                 }
             }
         }

@@ -95,9 +95,8 @@ pub enum Side {
 /// endpoint and no scouting.
 pub fn config(side: Side, endpoint: &str, file: Option<&Path>) -> Result<zenoh::Config> {
     let mut c = match file {
-        Some(p) => {
-            zenoh::Config::from_file(p).map_err(|e| anyhow!("zenoh config {}: {e}", p.display()))?
-        }
+        Some(p) => zenoh::Config::from_file(p)
+            .map_err(|e| anyhow!("zenoh config {}: {}", p.display(), tidy(&e.to_string())))?,
         None => zenoh::Config::default(),
     };
     let set = |c: &mut zenoh::Config, key: &str, value: &str| {
@@ -120,6 +119,12 @@ pub fn config(side: Side, endpoint: &str, file: Option<&Path>) -> Result<zenoh::
     set(&mut c, "scouting/multicast/enabled", "false")?;
     set(&mut c, "scouting/gossip/enabled", "false")?;
     Ok(c)
+}
+
+/// Reads Zenoh configuration file `file` as [`config`] will, so that a run can refuse a bad
+/// one before it makes anything.
+pub fn check_config(file: &Path) -> Result<()> {
+    config(Side::Listen, "tcp/127.0.0.1:7447", Some(file)).map(|_| ())
 }
 
 /// Opens a session; the error names the endpoint and Zenoh's reason on one line.
@@ -260,5 +265,16 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.starts_with("zenoh config /no/such.json5:"), "{e}");
+        // A malformed file: Zenoh's reason, without its source location.
+        let bad = std::env::temp_dir().join(format!("drivelab-zcfg-{}.json5", std::process::id()));
+        std::fs::write(&bad, "this is {{{ not json5").unwrap();
+        let e = check_config(&bad).unwrap_err().to_string();
+        let _ = std::fs::remove_file(&bad);
+        assert!(
+            e.starts_with(&format!("zenoh config {}:", bad.display()))
+                && !e.contains(".rs:")
+                && !e.contains('\n'),
+            "{e}"
+        );
     }
 }

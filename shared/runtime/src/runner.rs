@@ -47,6 +47,37 @@ impl Runner {
         }
     }
 
+    /// Whether the runner's program can be started: an executable file when it is a path
+    /// (it holds a `/`), else an executable file of that name on `PATH`. A one-line error
+    /// otherwise, so that a run can refuse it before it makes anything.
+    pub fn check(&self) -> Result<(), String> {
+        use std::os::unix::fs::PermissionsExt;
+        let runnable = |p: &std::path::Path| {
+            std::fs::metadata(p).is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o111 != 0)
+        };
+        let found = if self.program.contains('/') {
+            runnable(std::path::Path::new(&self.program))
+        } else {
+            std::env::var_os("PATH").is_some_and(|path| {
+                std::env::split_paths(&path).any(|d| runnable(&d.join(&self.program)))
+            })
+        };
+        if found {
+            Ok(())
+        } else {
+            Err(format!(
+                "the runner '{}' cannot be started: {} is not an executable file{}",
+                self.display(),
+                self.program,
+                if self.program.contains('/') {
+                    ""
+                } else {
+                    " on PATH"
+                }
+            ))
+        }
+    }
+
     /// The runner's words, to show in messages.
     pub fn display(&self) -> String {
         std::iter::once(self.program.as_str())
@@ -77,6 +108,28 @@ pub fn env_command(program: impl AsRef<OsStr>) -> Result<Command, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_runner_that_cannot_be_started_is_named_before_the_run() {
+        for ok in ["sh -c", "/bin/sh -c"] {
+            assert_eq!(Runner::parse(ok).unwrap().check(), Ok(()), "{ok}");
+        }
+        let e = Runner::parse("/nonexistent/qemu -L x")
+            .unwrap()
+            .check()
+            .unwrap_err();
+        assert_eq!(
+            e,
+            "the runner '/nonexistent/qemu -L x' cannot be started: /nonexistent/qemu is not an executable file"
+        );
+        let e = Runner::parse("no-such-runner-xyz")
+            .unwrap()
+            .check()
+            .unwrap_err();
+        assert!(e.ends_with("is not an executable file on PATH"), "{e}");
+        // A folder is not a program.
+        assert!(Runner::parse("/tmp").unwrap().check().is_err());
+    }
 
     #[test]
     fn a_runner_goes_in_front_of_the_program() {

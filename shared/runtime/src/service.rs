@@ -198,7 +198,11 @@ pub fn host_main(user: &[(&'static str, StageFactory)]) -> std::process::ExitCod
     let args = HostArgs::parse();
     let name = args.process.clone().unwrap_or_else(|| "host".into());
     if let Err(e) = install_signal_handlers().and_then(|_| run_host(args, user)) {
-        crate::errln!("{name}: error: {}", crate::text::error_text(&e));
+        // A host told to stop (SIGTERM from a launcher whose start failed elsewhere, or
+        // Ctrl-C) fails in whatever it was doing; the launcher says why, once.
+        if !stop_requested() {
+            crate::errln!("{name}: error: {}", crate::text::error_text(&e));
+        }
         return std::process::ExitCode::from(1);
     }
     std::process::ExitCode::SUCCESS
