@@ -541,7 +541,7 @@ fn a_bad_campaign_is_one_line_naming_file_and_field_before_any_run() {
         (
             "expect-operator",
             format!("{head}{one}expect = [\"peak_current_a =< 3\"]\n"),
-            2,
+            1,
             "expect: expectation 'peak_current_a =< 3': unknown operator",
         ),
     ];

@@ -178,8 +178,8 @@ enum Cmd {
         mcap: bool,
     },
     /// Record a remote drive (one started with --zenoh-listen) into a local run folder:
-    /// scenario.toml, trace.csv and summary.json with the missing samples and their causes,
-    /// as a local run's.
+    /// scenario.toml, trace.csv, trace.mcap and summary.json with the missing samples and
+    /// their causes, as a local run's.
     ///
     /// Example:
     ///   drivelab record --connect tcp/192.168.1.20:7447 --out runs/board --wait 30

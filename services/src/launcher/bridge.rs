@@ -136,7 +136,12 @@ impl Bridge {
                 }
                 if verbose {
                     crate::errln!(
-                        "drivelab: zenoh bridge listening on {} ({placed}); remote faults {}",
+                        "drivelab: zenoh bridge {} {} ({placed}); remote faults {}",
+                        if z.connect {
+                            "connected to"
+                        } else {
+                            "listening on"
+                        },
                         z.endpoint,
                         if z.allow_remote_faults {
                             "allowed"
