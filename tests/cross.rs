@@ -132,19 +132,22 @@ fn a_bad_runner_is_one_line_and_leaves_nothing() {
 
     let bus = bus_id("bad-runner");
     let out = dir.join("run");
-    let o = drivelab(&[
-        "run",
-        "--clock",
-        "lockstep",
-        "--no-rt",
-        "--no-plots",
-        "--bus",
-        &bus,
-        "--out",
-        out.to_str().unwrap(),
-        "--runner",
-        "/nonexistent/runner --flag",
-    ]);
+    let with_runner = |runner: &str| {
+        drivelab(&[
+            "run",
+            "--clock",
+            "lockstep",
+            "--no-rt",
+            "--no-plots",
+            "--bus",
+            &bus,
+            "--out",
+            out.to_str().unwrap(),
+            "--runner",
+            runner,
+        ])
+    };
+    let o = with_runner("/nonexistent/runner --flag");
     assert_eq!(o.status.code(), Some(1));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
@@ -158,19 +161,7 @@ fn a_bad_runner_is_one_line_and_leaves_nothing() {
     assert_clean(&bus);
     // A runner that starts but runs nothing: every process exits at once, and the error says
     // how, in words.
-    let o = drivelab(&[
-        "run",
-        "--clock",
-        "lockstep",
-        "--no-rt",
-        "--no-plots",
-        "--bus",
-        &bus,
-        "--out",
-        out.to_str().unwrap(),
-        "--runner",
-        "false",
-    ]);
+    let o = with_runner("false");
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(

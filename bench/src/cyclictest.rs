@@ -29,29 +29,13 @@ pub const HIST_MAX_US: u64 = 10_000;
 /// The cyclictest to run: `cmd` as given if it contains a '/', else found on PATH. Err says
 /// why it cannot be used (for the bench's one-line skip message).
 pub fn locate(cmd: &str) -> std::result::Result<PathBuf, String> {
-    let usable = |p: &Path| {
-        std::fs::metadata(p).is_ok_and(|m| {
-            use std::os::unix::fs::PermissionsExt;
-            m.is_file() && m.permissions().mode() & 0o111 != 0
-        })
-    };
-    if cmd.contains('/') {
-        let p = PathBuf::from(cmd);
-        return if usable(&p) {
-            Ok(p)
-        } else {
-            Err(format!("{cmd} is not an executable file"))
-        };
-    }
-    std::env::var_os("PATH")
-        .and_then(|path| {
-            std::env::split_paths(&path)
-                .map(|d| d.join(cmd))
-                .find(|p| usable(p))
-        })
-        .ok_or_else(|| {
-            format!("{cmd} is not on PATH (Debian: apt-get install rt-tests; scripts/setup.sh installs it)")
-        })
+    use drivelab_runtime::runner::Missing;
+    drivelab_runtime::runner::locate(cmd).map_err(|m| match m {
+        Missing::NotExecutable => format!("{cmd} is not an executable file"),
+        Missing::NotOnPath => format!(
+            "{cmd} is not on PATH (Debian: apt-get install rt-tests; scripts/setup.sh installs it)"
+        ),
+    })
 }
 
 /// Runs `exe` (cyclictest) for round(seconds × hz) wake-ups on `node`'s core at its

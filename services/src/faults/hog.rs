@@ -81,6 +81,14 @@ pub fn parse(spec: &str) -> Result<Hog> {
     })
 }
 
+/// CPU numbers for a message: "0, 1".
+pub fn cpu_list(cpus: &[usize]) -> String {
+    cpus.iter()
+        .map(|c| c.to_string())
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
 /// The CPUs this process may run on (its affinity mask; every online CPU when it cannot
 /// be read).
 pub fn allowed_cpus() -> Vec<usize> {
@@ -109,11 +117,10 @@ pub fn plan(
             bail!("fault {spec}: fault injection needs --clock realtime");
         }
         if !cpus.contains(&h.cpu) {
-            let names: Vec<String> = cpus.iter().map(|c| c.to_string()).collect();
             bail!(
                 "fault {spec}: there is no CPU {} here (CPUs: {})",
                 h.cpu,
-                names.join(", ")
+                cpu_list(cpus)
             );
         }
         if h.at_s >= duration_s {

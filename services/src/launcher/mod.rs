@@ -971,11 +971,10 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
         let here = (0..topo.processes.len()).filter(|i| !topo.away.contains(i));
         for p in here.map(|i| &topo.processes[i]) {
             if let Some(c) = p.cpu.filter(|c| !cpus.contains(c)) {
-                let names: Vec<String> = cpus.iter().map(|c| c.to_string()).collect();
                 bail!(
                     "--rt-strict: process {} is pinned to CPU {c}, which this drive may not use (CPUs: {})",
                     p.name,
-                    names.join(", ")
+                    crate::faults::hog::cpu_list(&cpus)
                 );
             }
         }
@@ -1106,10 +1105,10 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         bridge,
     } = match o.clock {
         Clock::Inprocess => {
-            let stop = drivelab_runtime::service::stop_flag();
-            let rows = drivelab_runtime::stages::try_run_inprocess_until(&sc, move || {
-                stop.load(Ordering::SeqCst)
-            })?;
+            let rows = drivelab_runtime::stages::try_run_inprocess_until(
+                &sc,
+                drivelab_runtime::service::stop_requested,
+            )?;
             // Interrupted: the samples not done are one gap to the end (named below).
             let done = rows.len() as u64;
             let interrupted = done < sc.samples();

@@ -392,9 +392,9 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
 
     /// How many wake-ups this topic has had: its futex wake word, which every
     /// [`Sender::send_waking`] (markers included) and every poke bumps once, wrapping at
-    /// 2^32. None with iceoryx2 events, which keep no count. The launcher reads the plant's count to
-    /// know how far the plant really is, where its schedule would only say how far it
-    /// should be.
+    /// 2^32. None with iceoryx2 events, which keep no count. The launcher reads the plant's
+    /// count to know how far the plant really is, where its schedule would only say how far
+    /// it should be.
     pub fn publish_count(&self) -> Option<PublishCount> {
         match &self.wake {
             Wake::Futex(seg, i) => Some(PublishCount(seg.clone(), *i)),

@@ -47,35 +47,19 @@ impl Runner {
         }
     }
 
-    /// Whether the runner's program can be started: an executable file when it is a path
-    /// (it holds a `/`), else an executable file of that name on `PATH`. A one-line error
+    /// Whether the runner's program can be started (see [`locate`]). A one-line error
     /// otherwise, so that a run can refuse it before it makes anything.
     pub fn check(&self) -> Result<(), String> {
-        use std::os::unix::fs::PermissionsExt;
-        let runnable = |p: &std::path::Path| {
-            std::fs::metadata(p).is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o111 != 0)
+        let missing = match locate(&self.program) {
+            Ok(_) => return Ok(()),
+            Err(Missing::NotExecutable) => "",
+            Err(Missing::NotOnPath) => " on PATH",
         };
-        let found = if self.program.contains('/') {
-            runnable(std::path::Path::new(&self.program))
-        } else {
-            std::env::var_os("PATH").is_some_and(|path| {
-                std::env::split_paths(&path).any(|d| runnable(&d.join(&self.program)))
-            })
-        };
-        if found {
-            Ok(())
-        } else {
-            Err(format!(
-                "the runner '{}' cannot be started: {} is not an executable file{}",
-                self.display(),
-                self.program,
-                if self.program.contains('/') {
-                    ""
-                } else {
-                    " on PATH"
-                }
-            ))
-        }
+        Err(format!(
+            "the runner '{}' cannot be started: {} is not an executable file{missing}",
+            self.display(),
+            self.program
+        ))
     }
 
     /// The runner's words, to show in messages.
@@ -85,6 +69,39 @@ impl Runner {
             .collect::<Vec<_>>()
             .join(" ")
     }
+}
+
+/// Why [`locate`] found no program.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Missing {
+    /// A path (it holds a `/`) that is not an executable file.
+    NotExecutable,
+    /// A name that no executable file on `PATH` has.
+    NotOnPath,
+}
+
+/// The program `cmd` names: `cmd` itself when it holds a `/` and is an executable file, else
+/// the first executable file of that name on `PATH`.
+pub fn locate(cmd: &str) -> Result<std::path::PathBuf, Missing> {
+    use std::os::unix::fs::PermissionsExt;
+    let runnable = |p: &std::path::Path| {
+        std::fs::metadata(p).is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o111 != 0)
+    };
+    if cmd.contains('/') {
+        let p = std::path::PathBuf::from(cmd);
+        return if runnable(&p) {
+            Ok(p)
+        } else {
+            Err(Missing::NotExecutable)
+        };
+    }
+    std::env::var_os("PATH")
+        .and_then(|path| {
+            std::env::split_paths(&path)
+                .map(|d| d.join(cmd))
+                .find(|p| runnable(p))
+        })
+        .ok_or(Missing::NotOnPath)
 }
 
 /// A command that starts `program`, through `runner` when there is one.
