@@ -663,20 +663,27 @@ pub fn fault_reports(
         .filter(|e| matches!(e.kind, EventKind::Inject { .. } | EventKind::Hog { .. }))
         .collect();
     // Where each fault begins: the plant's next sample when the signal went out, counted from
-    // its publishes (see `plant_sample_now`). Where only the schedule's estimate was there
-    // (iceoryx2 wake-ups), a plant killed while it ran late had produced fewer samples: its
-    // rebuilt downtime then begins before the estimate, and the fault begins with it (after
-    // the previous fault's sample).
+    // its publishes (see `plant_sample_now`). A killed plant's rebuilt downtime says exactly
+    // where it stopped, and the fault begins with it:
+    // - Where only the schedule's estimate was there (iceoryx2 wake-ups), a plant killed while
+    //   it ran late had produced fewer samples: its downtime begins before the estimate (but
+    //   after the previous fault's sample).
+    // - The count is exact to one message: a publish is a send and then a bump of the count,
+    //   and the recorder's mark or the signal can fall between the two. A plant whose
+    //   downtime begins one sample after the count's estimate published that sample.
+    let down = |k: u64| {
+        by_k.get(&k)
+            .is_some_and(|r| r.plant_flags & FLAG_PLANT_DOWN != 0)
+    };
     let mut starts: Vec<u64> = Vec::with_capacity(injects.len());
     for (n, inj) in injects.iter().enumerate() {
         let k_prev = n.checked_sub(1).map_or(0, |p| injects[p].k + 1);
         let mut k0 = inj.k;
-        while k0 > k_prev
-            && by_k
-                .get(&(k0 - 1))
-                .is_some_and(|r| r.plant_flags & FLAG_PLANT_DOWN != 0)
-        {
+        while k0 > k_prev && down(k0 - 1) {
             k0 -= 1;
+        }
+        if !down(k0) && down(k0 + 1) {
+            k0 += 1;
         }
         starts.push(k0);
     }
@@ -984,6 +991,14 @@ mod tests {
         );
         assert!(reports[0].plant_down.is_none(), "{:?}", reports[0]);
         assert_eq!(reports[1].plant_down.as_ref().map(|p| p.samples), Some(10));
+        // Dated by the count one sample before the plant stopped (it published sample 9
+        // while the signal was under way): the fault begins with its downtime all the same.
+        let (reports, _) = fault_reports(&sc, &tr, &[ev(1.0, 9, kill(), "plant", "plant")]);
+        assert_eq!(reports[0].injected_k, 10, "{:?}", reports[0]);
+        assert_eq!(reports[0].plant_down.as_ref().map(|p| p.samples), Some(10));
+        // Two samples early is more than the count's uncertainty: the dating stands.
+        let (reports, _) = fault_reports(&sc, &tr, &[ev(1.0, 8, kill(), "plant", "plant")]);
+        assert_eq!(reports[0].injected_k, 8, "{:?}", reports[0]);
     }
 
     #[test]
