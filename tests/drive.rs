@@ -677,4 +677,53 @@ fn an_unprivileged_user_runs_the_drive_with_warnings_and_rt_strict_refuses_it() 
     );
     assert!(!strict.exists(), "a refused run left its folder");
     assert_clean(&bus);
+    // Without the request, the next refusal is the placement's: one line from a check of
+    // the plant's executable, not one from each stage host after the drive started.
+    let text = std::fs::read_to_string(format!("{SCENARIOS}/kyslan-pi.toml")).unwrap();
+    let no_request = open.join("no-request.toml");
+    std::fs::write(
+        &no_request,
+        format!("{text}\n[timing]\ncpu_latency_us = \"none\"\n"),
+    )
+    .unwrap();
+    let scenario = no_request.to_str().unwrap();
+    let o = as_nobody(&strict, &["--rt-strict", "--scenario", scenario]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert_eq!(
+        err.trim_end(),
+        "drivelab: error: --rt-strict: process plant: SCHED_FIFO priority 70 refused: \
+         Operation not permitted (needs root or CAP_SYS_NICE / RLIMIT_RTPRIO; RLIMIT_RTPRIO is 0)"
+    );
+    assert!(!strict.exists(), "a refused run left its folder");
+    assert_clean(&bus);
+}
+
+#[test]
+fn as_root_rt_strict_passes_its_placement_checks_and_runs_every_process_as_placed() {
+    let _serial = serial();
+    // The check before the start asks each process's executable for its placement: as
+    // root it is granted, and the hosts get what the topology gives them.
+    let (_, s) = run_ok("strict-root", &["--duration", "0.2", "--rt-strict"]);
+    assert_eq!(s["samples_missing"], 0, "{}", s["missing_samples"]);
+    let procs = s["processes"].as_object().expect("processes");
+    let want = [
+        ("plant", 70),
+        ("observer", 72),
+        ("current-loop", 76),
+        ("speed-loop", 74),
+    ];
+    for (name, prio) in want {
+        let p = &procs[name];
+        assert_eq!(
+            (&p["policy"], &p["priority"], &p["cpu"], &p["memory_locked"]),
+            (
+                &serde_json::json!("SCHED_FIFO"),
+                &serde_json::json!(prio),
+                &serde_json::json!(1),
+                &serde_json::json!(true)
+            ),
+            "{name}: {p}"
+        );
+    }
 }

@@ -654,6 +654,21 @@ fn cpu_latency_request(
     }
 }
 
+/// With `--rt-strict`, each of this machine's processes has its executable ask for its
+/// placement (memory lock, CPU, SCHED_FIFO priority) and exit: a missing privilege is one
+/// line, before the run folder is made. Through a runner the executable may not run here as
+/// it is; its hosts report then.
+fn check_placements(o: &RunOptions, topo: &TopologyPlan) -> Result<()> {
+    if !o.rt_strict || o.no_rt || o.clock != Clock::Realtime || runner_of(o)?.is_some() {
+        return Ok(());
+    }
+    let here = (0..topo.processes.len()).filter(|i| !topo.away.contains(i));
+    for p in here.map(|i| &topo.processes[i]) {
+        spawn::check_rt(p, &process_binary(p, Path::new("/"))?)?;
+    }
+    Ok(())
+}
+
 /// Applies `--topology`, resolves the scenario's topology against the stages' declarations
 /// (a user's executable is asked with `--describe`) and makes `exec` paths absolute. An error
 /// names the file that gives the topology (the `--topology` file or the scenario).
@@ -1078,6 +1093,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     // A real-time drive holds the CPU wake-up latency request while it runs (released when
     // this value drops, or by the kernel if the launcher dies).
     let (latency_request, latency_error) = cpu_latency_request(&sc, o)?;
+    check_placements(o, &topo)?;
     let out = o.out.clone().unwrap_or_else(|| default_out(&sc, o.clock));
     std::fs::create_dir_all(&out)
         .with_context(|| format!("cannot create run folder {}", out.display()))?;

@@ -45,6 +45,45 @@ pub(super) fn process_binary(p: &ProcessSpec, base: &Path) -> Result<PathBuf> {
     }
 }
 
+/// Asks `exe` for process `p`'s real-time placement as `--rt-strict` would
+/// (`drivelab-host --check-rt`), in a process of its own that exits at once: a refusal is one
+/// line before the drive starts instead of one per host after. It locks the memory of a
+/// process without a bus; a host that opened its bus locks more (18-28 MiB in the default
+/// drive), so a finite RLIMIT_MEMLOCK that lets the check pass may still refuse the host.
+pub(super) fn check_rt(p: &ProcessSpec, exe: &Path) -> Result<()> {
+    let mut cmd = Command::new(exe);
+    cmd.arg("--check-rt");
+    if let Some(c) = p.cpu {
+        cmd.arg("--cpu").arg(c.to_string());
+    }
+    if let Some(pr) = p.priority {
+        cmd.arg("--priority").arg(pr.to_string());
+    }
+    cmd.stdin(Stdio::null()).stdout(Stdio::null());
+    die_with_launcher(&mut cmd);
+    let out = cmd
+        .output()
+        .with_context(|| format!("cannot start process {} ({})", p.name, exe.display()))?;
+    if !out.status.success() {
+        let err = String::from_utf8_lossy(&out.stderr);
+        let line = err.lines().rfind(|l| !l.trim().is_empty()).unwrap_or("");
+        bail!(
+            "--rt-strict: process {}: {}",
+            p.name,
+            if line.is_empty() {
+                format!(
+                    "the real-time check of {} failed ({})",
+                    exe.display(),
+                    out.status
+                )
+            } else {
+                line.trim().trim_start_matches("error: ").to_string()
+            }
+        );
+    }
+    Ok(())
+}
+
 fn service_binary(name: &str) -> Result<PathBuf> {
     let exe = std::env::current_exe().context("cannot locate the drivelab executable")?;
     let p = exe

@@ -37,20 +37,20 @@ pub enum BusClock {
 #[command(about = "drivelab stage host: runs the stages of one process of a drive's topology")]
 pub struct HostArgs {
     /// Resolved scenario file (TOML), as written by `drivelab run` into the run folder.
-    #[arg(long)]
-    pub scenario: PathBuf,
+    #[arg(long, required_unless_present = "check_rt")]
+    pub scenario: Option<PathBuf>,
     /// Resolved topology (JSON), as written by `drivelab run` into the run folder.
-    #[arg(long, required_unless_present = "describe")]
+    #[arg(long, required_unless_present_any = ["describe", "check_rt"])]
     pub topology: Option<PathBuf>,
     /// Name of the process of the topology that this host runs.
-    #[arg(long, required_unless_present = "describe")]
+    #[arg(long, required_unless_present_any = ["describe", "check_rt"])]
     pub process: Option<String>,
     /// The stages this process hosts, comma-separated (as the topology says; lets tools such
     /// as `drivelab fault` find a stage's process from its command line).
     #[arg(long, value_name = "STAGES")]
     pub hosts: Option<String>,
     /// Bus id: isolates this drive's shared memory (1-24 characters of A-Z, a-z, 0-9, _).
-    #[arg(long, required_unless_present = "describe")]
+    #[arg(long, required_unless_present_any = ["describe", "check_rt"])]
     pub bus: Option<String>,
     /// Pacing of the cycle.
     #[arg(long, value_enum, default_value_t = BusClock::Realtime)]
@@ -82,6 +82,18 @@ pub struct HostArgs {
     /// over when the active instance dies (see docs/architecture.md, "Standby twins").
     #[arg(long)]
     pub standby: bool,
+    /// Ask for a real-time placement as --rt-strict would (memory lock, and --cpu and
+    /// --priority when given), then exit: 0 if every part was granted, else 1 with the
+    /// refusal in one line. `drivelab run --rt-strict` asks each process's executable before
+    /// the drive starts.
+    #[arg(long, conflicts_with_all = ["describe", "topology", "process", "bus"])]
+    pub check_rt: bool,
+    /// With --check-rt: the CPU to pin to.
+    #[arg(long, requires = "check_rt", value_name = "CPU")]
+    pub cpu: Option<usize>,
+    /// With --check-rt: the SCHED_FIFO priority (1-99).
+    #[arg(long, requires = "check_rt", value_name = "PRIORITY")]
+    pub priority: Option<u8>,
 }
 
 /// A resolved topology as the launcher hands it to the hosts.
@@ -196,6 +208,9 @@ pub fn make_stage(
 /// exits 1 on failure.
 pub fn host_main(user: &[(&'static str, StageFactory)]) -> std::process::ExitCode {
     let args = HostArgs::parse();
+    if args.check_rt {
+        return check_rt(&args);
+    }
     let name = args.process.clone().unwrap_or_else(|| "host".into());
     if let Err(e) = install_signal_handlers().and_then(|_| run_host(args, user)) {
         // A host told to stop (SIGTERM from a launcher whose start failed elsewhere, or
@@ -206,6 +221,24 @@ pub fn host_main(user: &[(&'static str, StageFactory)]) -> std::process::ExitCod
         return std::process::ExitCode::from(1);
     }
     std::process::ExitCode::SUCCESS
+}
+
+/// `--check-rt`: the placement a real-time host asks for, strictly; the process exits
+/// straight after, and the kernel drops all of it.
+fn check_rt(args: &HostArgs) -> std::process::ExitCode {
+    let req = RtRequest {
+        core: args.cpu,
+        fifo_priority: args.priority,
+        lock_memory: true,
+        prefault_stack_bytes: 0,
+    };
+    match setup_rt(&req, RtPolicy::Strict) {
+        Ok(_) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            crate::errln!("{}", crate::text::error_text(&e));
+            std::process::ExitCode::from(1)
+        }
+    }
 }
 
 fn load_scenario(path: &std::path::Path) -> Result<Scenario> {
@@ -223,7 +256,7 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
         startup.push((name, (now - phase_start).as_secs_f64() * 1e3));
         phase_start = now;
     };
-    let sc = load_scenario(&args.scenario)?;
+    let sc = load_scenario(args.scenario.as_deref().expect("required by clap"))?;
     phase("scenario");
     if args.describe {
         let mut infos = Vec::new();
