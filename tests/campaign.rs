@@ -109,7 +109,7 @@ fn all_expectations_met_exit_0_and_a_scenarios_own_are_checked_first() {
 }
 
 #[test]
-fn malformed_expectations_are_usage_errors_before_anything_runs() {
+fn malformed_expectations_are_refused_before_anything_runs() {
     let dir = scratch("expect2");
     let out = dir.join("run");
     for (expr, says) in [
@@ -124,7 +124,8 @@ fn malformed_expectations_are_usage_errors_before_anything_runs() {
         assert!(err.contains(says), "{expr}: {err}");
         assert!(!out.exists(), "a run folder was made for a bad expectation");
     }
-    // In a scenario's [[expect]] table too.
+    // In a scenario's [[expect]] table it is a mistake in the file: exit code 1, as for
+    // any other bad key of a scenario (and as in a campaign).
     let sc = variant(
         "expect2",
         "kyslan-pi",
@@ -140,8 +141,9 @@ fn malformed_expectations_are_usage_errors_before_anything_runs() {
         "--scenario",
         sc.to_str().unwrap(),
     ]);
-    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
-    assert!(stderr(&o).contains("[[expect]]"), "{}", stderr(&o));
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert_eq!(stderr(&o).trim().lines().count(), 1, "{}", stderr(&o));
+    assert!(stderr(&o).contains("[[expect]] #1"), "{}", stderr(&o));
 }
 
 /// Writes a campaign file into `dir`.

@@ -252,7 +252,7 @@ fn a_bad_scenario_field_is_one_line_naming_file_field_range_and_unit() {
                 "[motor]",
                 "[[expect]]\ncheck = \"peak_current_a =< 3\"\n\n[motor]".into(),
             ),
-            2,
+            1,
             "[[expect]] #1: expectation 'peak_current_a =< 3': unknown operator",
         ),
         (
@@ -261,7 +261,7 @@ fn a_bad_scenario_field_is_one_line_naming_file_field_range_and_unit() {
                 "[motor]",
                 "[[expect]]\ncheck = \"peak_current_a <= nan\"\n\n[motor]".into(),
             ),
-            2,
+            1,
             "limit 'nan' must be a finite number",
         ),
     ];

@@ -312,7 +312,7 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
             })?;
         }
         crate::expect::collect(&sc.expect, &s, &[])
-            .map_err(|UsageError(m)| anyhow!("campaign {}: {m}", file.display()))?;
+            .map_err(|e| anyhow!("campaign {}: {e}", file.display()))?;
         scenarios.push(s);
     }
     let n = scenarios.len() * sets.len() * c.seeds.len();

@@ -38,9 +38,9 @@ pub const FIGURES: &[&str] = &[
     "speed_loop_hz",
 ];
 
-/// Bad input that is the user's wording (an expectation that cannot be read): `drivelab`
-/// exits with code 2 for it, as for a command-line usage error. `drivelab campaign` turns it
-/// into a plain error (exit code 1): there it is a mistake in the campaign's files.
+/// Bad input that is the user's wording (an `--expect` that cannot be read): `drivelab`
+/// exits with code 2 for it, as for a command-line usage error. In a scenario's or a
+/// campaign's file it is a plain error (exit code 1), as any other mistake in a file.
 #[derive(Debug)]
 pub struct UsageError(pub String);
 
@@ -370,16 +370,17 @@ impl Expectation {
 }
 
 /// Parses the scenario's `[[expect]]` tables (of file `origin`) and the command line's
-/// `--expect` values, in that order.
+/// `--expect` values, in that order. A bad table is an error in the scenario file (exit code
+/// 1, as for any other bad key); a bad `--expect` is a [`UsageError`] (exit code 2).
 pub fn collect(
     scenario: &[drivelab_runtime::config::ExpectSpec],
     origin: &str,
     cli: &[String],
-) -> Result<Vec<Expectation>, UsageError> {
+) -> anyhow::Result<Vec<Expectation>> {
     let mut v = Vec::new();
     for (i, e) in scenario.iter().enumerate() {
         let mut x = parse(&e.check)
-            .map_err(|UsageError(m)| UsageError(format!("{origin}: [[expect]] #{}: {m}", i + 1)))?;
+            .map_err(|UsageError(m)| anyhow::anyhow!("{origin}: [[expect]] #{}: {m}", i + 1))?;
         x.note = e.note.clone();
         v.push(x);
     }
