@@ -617,7 +617,7 @@ fn cdm_design_refuses_an_operating_point_beyond_its_physical_range() {
 }
 
 #[test]
-fn plot_and_compare_refuse_a_summary_json_that_is_not_json() {
+fn plot_and_compare_refuse_a_summary_json_or_scenario_that_is_not_one() {
     let _s = serial();
     let d = scratch("badsum");
     let (run, _) = run_ok("badsum-run", &["--clock", "lockstep", "--duration", "0.05"]);
@@ -634,6 +634,9 @@ fn plot_and_compare_refuse_a_summary_json_that_is_not_json() {
         p.to_str().unwrap().to_string()
     };
     let corrupt = folder("corrupt-summary", Some("{not json"));
+    // A scenario.toml that is not a scenario: the figures' limit lines come from it.
+    let bad_scenario = folder("corrupt-scenario", None);
+    std::fs::write(format!("{bad_scenario}/scenario.toml"), "name = [").unwrap();
     let array = folder("array-summary", Some("[1, 2]"));
     let out = d.join("out");
     let o = out.to_str().unwrap();
@@ -664,14 +667,26 @@ fn plot_and_compare_refuse_a_summary_json_that_is_not_json() {
             "array-summary/summary.json: not a run summary",
         )
         .leaves_no(out.clone()),
+        case(
+            "plot-badscenario",
+            dir,
+            &["plot", &bad_scenario, "--out", o],
+            1,
+            "corrupt-scenario/scenario.toml:1:",
+        )
+        .leaves_no(out.clone()),
     ] {
         c.check();
     }
-    // A run folder without summary.json is still drawn and compared.
+    // A run folder without summary.json is still drawn and compared, and one without
+    // scenario.toml is drawn (without limit lines).
     let none = folder("no-summary", None);
+    let no_scenario = folder("no-scenario", None);
+    std::fs::remove_file(format!("{no_scenario}/scenario.toml")).unwrap();
     for args in [
         vec!["plot", none.as_str(), "--out", o],
         vec!["compare", good, none.as_str(), "--out", o],
+        vec!["plot", no_scenario.as_str(), "--out", o],
     ] {
         let r = drivelab(&args);
         assert!(r.status.success(), "{args:?}: {}", stderr(&r));

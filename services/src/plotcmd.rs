@@ -62,6 +62,21 @@ pub fn summary_if_any(run: &Path) -> Result<serde_json::Value> {
     Ok(v)
 }
 
+/// The scenario.toml of run folder `run` (the figures' current and voltage limit lines), or
+/// `None` when the folder has none. One that is there but cannot be read or is not a
+/// scenario is an error naming the file: drawn without it, the limits would be missing
+/// without a word.
+fn scenario_if_any(run: &Path) -> Result<Option<drivelab_runtime::config::Scenario>> {
+    let path = run.join("scenario.toml");
+    let text = match std::fs::read_to_string(&path) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        r => r.with_context(|| format!("cannot read {}", path.display()))?,
+    };
+    drivelab_runtime::config::Scenario::from_toml(&text, &path.display().to_string())
+        .map(Some)
+        .map_err(|e| anyhow::anyhow!(e))
+}
+
 /// Redraws the figures; returns the files written.
 pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
     // Checked before any file is read.
@@ -91,9 +106,7 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
     }
     // Before the output folder is made: a refused run folder leaves nothing behind.
     let summary = summary_if_any(&a.run)?;
-    let scenario = std::fs::read_to_string(a.run.join("scenario.toml"))
-        .ok()
-        .and_then(|t| drivelab_runtime::config::Scenario::from_toml(&t, "scenario.toml").ok());
+    let scenario = scenario_if_any(&a.run)?;
     let out = a.out.clone().unwrap_or_else(|| a.run.clone());
     std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
     let windows = summary["faults"]
