@@ -668,13 +668,12 @@ fn endpoint_arg(flag: &str, ep: &str, listen: bool) -> anyhow::Result<String> {
     drivelab_bridge::link::check_endpoint(ep, listen).map_err(|e| usage(format!("{flag}: {e}")))
 }
 
-/// `--zenoh-listen`'s endpoint, checked and found free before the drive makes anything: a
-/// port in use leaves no run folder behind.
+/// `--zenoh-listen`'s endpoint, checked and found free before the drive makes anything (a
+/// port in use leaves no run folder behind), with port 0 replaced by a free port.
 #[cfg(feature = "zenoh")]
 fn listen_arg(ep: &str) -> anyhow::Result<String> {
     let ep = endpoint_arg("--zenoh-listen", ep, true)?;
-    drivelab_bridge::link::check_free(&ep).map_err(|e| anyhow::anyhow!("--zenoh-listen: {e}"))?;
-    Ok(ep)
+    drivelab_bridge::link::check_free(&ep).map_err(|e| anyhow::anyhow!("--zenoh-listen: {e}"))
 }
 
 /// `--zenoh-config` of a run, read before the drive makes anything: a bad file leaves no run

@@ -52,21 +52,38 @@ pub fn check_endpoint(ep: &str, listen: bool) -> Result<String, String> {
 }
 
 /// Checks, before a drive creates anything, that a listener endpoint (already checked by
-/// [`check_endpoint`]) can be had: its address is this machine's and its port is free. It
-/// binds the port and lets it go at once, so another program may still take it before the
-/// bridge does; then the bridge's own error says so. Port 0 (any free port) and a host name
-/// that does not resolve are left to the bridge.
-pub fn check_free(ep: &str) -> Result<(), String> {
+/// [`check_endpoint`]) can be had: its address is this machine's and its port is free; returns
+/// the endpoint to listen on. Port 0 (any free port) is replaced by a port that is free now,
+/// so that the drive reports the port its bridge listens on, which the other side needs. The
+/// check binds the port and lets it go at once, so another program may still take it before
+/// the bridge does; then the bridge's own error says so. A host name that does not resolve
+/// is left to the bridge.
+pub fn check_free(ep: &str) -> Result<String, String> {
     use std::net::{TcpListener, ToSocketAddrs};
-    let Some(addr) = ep.split_once('/').map(|(_, a)| a) else {
-        return Ok(());
+    let Some((proto, addr)) = ep.split_once('/') else {
+        return Ok(ep.to_string());
     };
     let Ok(addrs) = addr.to_socket_addrs() else {
-        return Ok(());
+        return Ok(ep.to_string());
     };
-    for a in addrs.filter(|a| a.port() != 0) {
+    let mut port = None;
+    let mut out = ep.to_string();
+    for mut a in addrs {
+        if let Some(p) = port {
+            a.set_port(p);
+        }
         match TcpListener::bind(a) {
-            Ok(_) => {}
+            Ok(l) => {
+                if a.port() == 0 {
+                    let p = l
+                        .local_addr()
+                        .map_err(|e| format!("endpoint '{ep}': cannot listen on {a}: {e}"))?
+                        .port();
+                    port = Some(p);
+                    let host = addr.rsplit_once(':').map_or(addr, |(h, _)| h);
+                    out = format!("{proto}/{host}:{p}");
+                }
+            }
             Err(e) if e.kind() == std::io::ErrorKind::AddrInUse => {
                 return Err(format!(
                     "endpoint '{ep}': {a} is in use (another drive's bridge or a Zenoh router?); choose another port"
@@ -78,7 +95,7 @@ pub fn check_free(ep: &str) -> Result<(), String> {
             Err(e) => return Err(format!("endpoint '{ep}': cannot listen on {a}: {e}")),
         }
     }
-    Ok(())
+    Ok(out)
 }
 
 /// Which side of a link a session is.
@@ -224,13 +241,26 @@ mod tests {
             format!("endpoint '{ep}': 127.0.0.1:{port} is in use (another drive's bridge or a Zenoh router?); choose another port")
         );
         drop(taken);
-        assert_eq!(check_free(&ep), Ok(()));
+        assert_eq!(check_free(&ep), Ok(ep.clone()));
         // TEST-NET-1 (RFC 5737) is no machine's own address.
         assert_eq!(
             check_free("tcp/192.0.2.1:7447").unwrap_err(),
             "endpoint 'tcp/192.0.2.1:7447': 192.0.2.1:7447 is not an address of this machine"
         );
-        assert_eq!(check_free("tcp/127.0.0.1:0"), Ok(()));
+        // Port 0: a port that was free, which the drive then reports.
+        let any = check_free("tcp/127.0.0.1:0").unwrap();
+        let port: u16 = any
+            .strip_prefix("tcp/127.0.0.1:")
+            .and_then(|p| p.parse().ok())
+            .unwrap_or_else(|| panic!("{any}"));
+        assert_ne!(port, 0);
+        std::net::TcpListener::bind(("127.0.0.1", port)).expect("the port it chose is free");
+        // The host stays as given.
+        let named = check_free("tcp/localhost:0").unwrap();
+        assert!(
+            named.starts_with("tcp/localhost:") && !named.ends_with(":0"),
+            "{named}"
+        );
     }
 
     #[test]
