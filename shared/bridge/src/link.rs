@@ -66,24 +66,20 @@ pub fn check_free(ep: &str) -> Result<String, String> {
     let Ok(addrs) = addr.to_socket_addrs() else {
         return Ok(ep.to_string());
     };
-    let mut port = None;
-    let mut out = ep.to_string();
+    // Port 0: the port the first address got, for every address.
+    let mut taken = None;
     for mut a in addrs {
-        if let Some(p) = port {
+        if let Some(p) = taken {
             a.set_port(p);
         }
         match TcpListener::bind(a) {
-            Ok(l) => {
-                if a.port() == 0 {
-                    let p = l
-                        .local_addr()
-                        .map_err(|e| format!("endpoint '{ep}': cannot listen on {a}: {e}"))?
-                        .port();
-                    port = Some(p);
-                    let host = addr.rsplit_once(':').map_or(addr, |(h, _)| h);
-                    out = format!("{proto}/{host}:{p}");
-                }
+            Ok(l) if a.port() == 0 => {
+                let got = l
+                    .local_addr()
+                    .map_err(|e| format!("endpoint '{ep}': cannot listen on {a}: {e}"))?;
+                taken = Some(got.port());
             }
+            Ok(_) => {}
             Err(e) if e.kind() == std::io::ErrorKind::AddrInUse => {
                 return Err(format!(
                     "endpoint '{ep}': {a} is in use (another drive's bridge or a Zenoh router?); choose another port"
@@ -95,7 +91,13 @@ pub fn check_free(ep: &str) -> Result<String, String> {
             Err(e) => return Err(format!("endpoint '{ep}': cannot listen on {a}: {e}")),
         }
     }
-    Ok(out)
+    Ok(match taken {
+        Some(p) => {
+            let host = addr.rsplit_once(':').map_or(addr, |(h, _)| h);
+            format!("{proto}/{host}:{p}")
+        }
+        None => ep.to_string(),
+    })
 }
 
 /// Which side of a link a session is.
