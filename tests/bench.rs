@@ -292,6 +292,7 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     assert_eq!(t["cpu_latency_request"], can_request);
     // One round: nothing to compare round by round.
     assert!(t["by_round"].is_null(), "{t}");
+    assert!(t["uds_by_round"].is_null(), "{t}");
     for (k, limit) in [("p50_minus_floor_us", 10.0), ("p99_minus_floor_us", 15.0)] {
         let d = chain[k].as_f64().unwrap();
         assert_eq!(t[k].as_f64(), Some(d), "{k}");
@@ -524,6 +525,34 @@ fn bench_rounds_interleave_the_variants_and_merge_their_samples() {
         let got = b[field].as_f64().unwrap();
         assert!((got - want).abs() < 1e-9, "{field}: {b}");
     }
+    // The Unix-socket target round by round: round i of the chain over round i of the
+    // Unix-socket chain (same placement), which ran in the same pass.
+    let uds: Vec<f64> = rows
+        .iter()
+        .find(|x| x["variant"] == "uds" && x["placement"] == "one-core")
+        .unwrap()["rounds"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["p99_us"].as_f64().unwrap())
+        .collect();
+    let u = &t["uds_by_round"];
+    let ratios = floats(&u["p99_ratio"]);
+    assert_eq!(ratios, [chain[0] / uds[0], chain[1] / uds[1]], "{u}");
+    let met = ratios.iter().filter(|r| **r <= 0.8).count() as u64;
+    assert_eq!(u["met"].as_u64(), Some(met), "{u}");
+    let median = u["p99_ratio_median"].as_f64().unwrap();
+    assert!(
+        (median - (ratios[0] + ratios[1]) / 2.0).abs() < 1e-12,
+        "{u}"
+    );
+    let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
+    assert!(
+        md.contains(&format!(
+            " Against the Unix-socket chain round by round (2): p99 ratio median {median:.3}, met in {met}."
+        )),
+        "{md}"
+    );
     // Each chain ran once per round, in its own folder.
     for v in ["iceoryx2-one-core-10000hz", "uds-one-core-10000hz"] {
         for r in ["round1", "round2"] {

@@ -678,6 +678,9 @@ pub struct Targets {
     /// The same targets round by round, each round's chain against that round's floor (two
     /// or more rounds): how much of a verdict the machine's noise decides.
     pub by_round: Option<TargetRounds>,
+    /// The Unix-socket target round by round, each round's chain against that round's
+    /// Unix-socket chain. `None` without the Unix-socket chain or with a single round.
+    pub uds_by_round: Option<UdsRounds>,
     /// The default chain's critical path bare, measured in the same run (the `bare-chain`
     /// variant: the timer and the same two futex wake-ups, no bus, no messages, no stage
     /// work): what this machine's wake-ups take of the distance to the floor, and what the
@@ -792,6 +795,30 @@ pub struct TargetRounds {
     pub misses_met: usize,
 }
 
+/// [`Targets::uds_by_round`]: round i's chain against round i's Unix-socket chain, which ran
+/// in the same interleaved pass.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct UdsRounds {
+    /// Cycle p99 / the Unix-socket chain's cycle p99, of each round.
+    pub p99_ratio: Vec<f64>,
+    /// Median over the rounds of `p99_ratio`: unlike the merged figure, not decided by the
+    /// one or two rounds that met a stall.
+    pub p99_ratio_median: f64,
+    /// Rounds within [`TARGET_UDS_RATIO`].
+    pub met: usize,
+}
+
+impl UdsRounds {
+    fn of(chain: &[RoundFigures], uds: &[RoundFigures]) -> Option<Self> {
+        let r = round_pairs(chain, uds, |c, u| c.p99_us / u.p99_us)?;
+        Some(Self {
+            met: r.iter().filter(|x| **x <= TARGET_UDS_RATIO).count(),
+            p99_ratio_median: median(&r),
+            p99_ratio: r,
+        })
+    }
+}
+
 /// Largest cycle p50 above the floor's that meets the target, µs.
 pub const TARGET_P50_US: f64 = 10.0;
 /// Largest cycle p99 above the floor's that meets the target, µs.
@@ -894,6 +921,9 @@ fn goal(chain_label: String, chain: &Row, floor: &Row, others: Others) -> Option
             .and_then(|c| at_shift(c, d50)),
         misses_floor_predicts_catching_up: CatchUp::of(chain, floor),
         by_round: target_rounds(&chain.rounds, &floor.rounds),
+        uds_by_round: others
+            .uds
+            .and_then(|u| UdsRounds::of(&chain.rounds, &u.rounds)),
         bare_chain: others.bare.map(|b| BareChain::of(chain, b, floor)),
     })
 }
@@ -925,12 +955,17 @@ fn round_diffs(
     b: &[RoundFigures],
     figure: fn(&RoundFigures) -> f64,
 ) -> Option<Vec<f64>> {
-    (a.len() >= 2 && a.len() == b.len()).then(|| {
-        a.iter()
-            .zip(b)
-            .map(|(x, y)| figure(x) - figure(y))
-            .collect()
-    })
+    round_pairs(a, b, |x, y| figure(x) - figure(y))
+}
+
+/// `op` of round i of `a` and round i of `b`, for two or more rounds that pair up; `None`
+/// otherwise.
+fn round_pairs(
+    a: &[RoundFigures],
+    b: &[RoundFigures],
+    op: impl Fn(&RoundFigures, &RoundFigures) -> f64,
+) -> Option<Vec<f64>> {
+    (a.len() >= 2 && a.len() == b.len()).then(|| a.iter().zip(b).map(|(x, y)| op(x, y)).collect())
 }
 
 /// The most misses per million a chain may have against a floor with `floor_pm`: twice the
@@ -964,6 +999,15 @@ fn targets_line(t: &Targets) -> String {
             met(ok)
         ),
         _ => "; the Unix-socket chain was not measured".into(),
+    };
+    let uds_rounds = match &t.uds_by_round {
+        Some(r) => format!(
+            " Against the Unix-socket chain round by round ({}): p99 ratio median {:.3}, met in {}.",
+            r.p99_ratio.len(),
+            r.p99_ratio_median,
+            r.met
+        ),
+        None => String::new(),
     };
     let predicted = match t.misses_floor_predicts {
         Some(p) => format!(
@@ -1019,7 +1063,7 @@ fn targets_line(t: &Targets) -> String {
         None => String::new(),
     };
     format!(
-        "Targets at {} kHz ({} against the floor, {}): p50 {:+.1} µs (≤ +{TARGET_P50_US}: {}); p99 {:+.1} µs (≤ +{TARGET_P99_US}: {}); misses {:.0}/M (≤ 2 × floor + 10 = {:.0}: {}{predicted}{catching_up}){uds}.{by_round}{bare}",
+        "Targets at {} kHz ({} against the floor, {}): p50 {:+.1} µs (≤ +{TARGET_P50_US}: {}); p99 {:+.1} µs (≤ +{TARGET_P99_US}: {}); misses {:.0}/M (≤ 2 × floor + 10 = {:.0}: {}{predicted}{catching_up}){uds}.{by_round}{uds_rounds}{bare}",
         t.rate_hz / 1000.0,
         t.chain,
         if t.cpu_latency_request { "request held" } else { "no request" },
@@ -1731,6 +1775,29 @@ mod tests {
         // One round, or rounds that do not pair up: nothing to say round by round.
         assert_eq!(target_rounds(&chain[..1], &floor[..1]), None);
         assert_eq!(target_rounds(&chain, &floor[..1]), None);
+    }
+
+    #[test]
+    fn each_round_of_a_chain_is_judged_against_the_unix_socket_chain_of_the_same_round() {
+        // Round 2 met a stall in the iceoryx2 chain only: the merged p99 would be decided
+        // by it, the median of the rounds is not.
+        let uds = [
+            round(30.0, 50.0, 0.0),
+            round(30.0, 40.0, 0.0),
+            round(30.0, 60.0, 0.0),
+        ];
+        let chain = [
+            round(28.0, 40.0, 0.0),
+            round(28.0, 80.0, 0.0),
+            round(28.0, 45.0, 0.0),
+        ];
+        let r = UdsRounds::of(&chain, &uds).unwrap();
+        assert_eq!(r.p99_ratio, [0.8, 2.0, 0.75]);
+        assert_eq!(r.p99_ratio_median, 0.8);
+        // At the limit (0.8): met.
+        assert_eq!(r.met, 2);
+        assert_eq!(UdsRounds::of(&chain[..1], &uds[..1]), None);
+        assert_eq!(UdsRounds::of(&chain, &uds[..2]), None);
     }
 
     #[test]
