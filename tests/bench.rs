@@ -432,6 +432,28 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         md.contains("Sleep-then-spin at 10 kHz (25 µs) against the same chain without it: p50 "),
         "bench.md has no spin line"
     );
+    // The cache probes before and after the rounds, on the plant's core, and their sentence.
+    let probes = &report["machine"]["cache_after_sleep"];
+    let clause = |p: &serde_json::Value| {
+        assert_eq!(p["cpu"].as_u64(), Some(1), "{p}");
+        assert_eq!(p["lines"].as_u64(), Some(64), "{p}");
+        assert_eq!(p["wakeups"].as_u64(), Some(2000), "{p}");
+        let (a, w) = (
+            p["after_sleep_ns"].as_u64().unwrap(),
+            p["warm_ns"].as_u64().unwrap(),
+        );
+        format!(
+            "{a} ns against {w} ns warm ({:+.1} ns a line)",
+            (a as f64 - w as f64) / 64.0
+        )
+    };
+    let line = format!(
+        "Caches after a sleep: a timer on core 1 woke every 100 µs and read 64 lines on as many \
+         pages, then read them again (p50 of 2000 wake-ups): before the rounds {}, after them {}.",
+        clause(&probes["before"]),
+        clause(&probes["after"])
+    );
+    assert!(md.contains(&line), "bench.md lacks {line:?}: {md}");
     let _ = std::fs::remove_dir_all(&out);
 }
 

@@ -7,6 +7,8 @@
 //!   same kind of timer;
 //! * [`cyclictest::run`]: cyclictest (rt-tests), when installed, as a cross-check of the
 //!   floor;
+//! * [`cache::after_sleep`]: how cold the plant's core leaves a task's memory over one
+//!   sample's sleep (the host's share of every stage's step after its wake-up);
 //! * [`idle::settle`]: before a variant measured without the CPU wake-up latency request, lets
 //!   the core's idle governor stop the polling that the request left behind;
 //! * [`hop::run`]: one process-to-process futex wake-up with nothing else in it (the
@@ -26,6 +28,7 @@ use drivelab_runtime::rt::{
 };
 use drivelab_runtime::timing::{CycleMonitor, LatencyHist, MissCounter};
 
+pub mod cache;
 pub mod catch_up;
 pub mod cyclictest;
 pub mod hop;

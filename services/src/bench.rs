@@ -4,6 +4,7 @@
 
 use crate::launcher::{self, Clock, RunOptions};
 use anyhow::{anyhow, Context, Result};
+use drivelab_bench::cache::CacheProbe;
 use drivelab_bench::hop::Measure;
 use drivelab_bench::idle::Settle;
 use drivelab_bench::{ChainSpec, NodeSpec, VariantResult};
@@ -1293,6 +1294,12 @@ pub fn run(a: &BenchArgs) -> Result<()> {
             .core
             .and_then(|c| drivelab_bench::cyclictest::main_thread_core(exe, c))
     });
+    // How cold the plant's core leaves a task's memory over a sleep, before and after the
+    // rounds, under the request the chains run with: says which state of the host the rows
+    // were measured in.
+    let probe_node = node(placement("one-core")?.plant);
+    request.set(!a.no_cpu_latency_request);
+    let cache_before = drivelab_bench::cache::after_sleep(&probe_node)?;
     for &hz in &rates {
         let one = placement("one-core")?;
         let slice = seconds / rounds as f64;
@@ -1484,6 +1491,8 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         curves_by_rate.push((hz, curves));
         rows.extend(measured);
     }
+    request.set(!a.no_cpu_latency_request);
+    let cache_after = drivelab_bench::cache::after_sleep(&probe_node)?;
     // The speed measurements below are not real time: no request.
     request.set(false);
     // Simulation speed: lockstep (four processes) and in-process, kyslan-pi.
@@ -1548,12 +1557,16 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         "floor_vs_cyclictest": checks,
         "targets": goals,
         "spin": spins,
-        "machine": { "cpus": drivelab_runtime::rt::online_cpus(), "doctor": doctor },
+        "machine": {
+            "cpus": drivelab_runtime::rt::online_cpus(),
+            "cache_after_sleep": { "before": cache_before, "after": cache_after },
+            "doctor": doctor,
+        },
         "rows": rows,
         "speed": speed,
     });
     std::fs::write(out.join("bench.json"), serde_json::to_vec_pretty(&report)?)?;
-    let md = markdown(
+    let mut md = markdown(
         &rows,
         &checks,
         &goals,
@@ -1561,6 +1574,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         &speed,
         (seconds, rounds, a.spin_us),
     );
+    md.push_str(&cache_paragraph(&cache_before, &cache_after));
     std::fs::write(out.join("bench.md"), &md)?;
     // A build without figures (the cross build) writes the tables and .hgrm files only.
     for (hz, curves) in curves_by_rate
@@ -1586,6 +1600,25 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         crate::outln!("\nwritten: {}", out.display());
     }
     Ok(())
+}
+
+/// The bench.md paragraph of the cache probes before and after the rounds.
+fn cache_paragraph(before: &CacheProbe, after: &CacheProbe) -> String {
+    let core = before
+        .cpu
+        .map_or_else(|| "the plant's core".to_string(), |c| format!("core {c}"));
+    format!(
+        "\nCaches after a sleep: a timer on {core} woke every {} µs and read {} lines on as \
+         many pages, then read them again (p50 of {} wake-ups): before the rounds {}, after them \
+         {}. A few ns a line means the lines came from memory: the host cleared the core's caches \
+         while it slept, and each stage then reads its own memory from there after its wake-up \
+         (docs/measurements.md, \"The same VM three hours later\").\n",
+        drivelab_bench::cache::PERIOD_NS / 1000,
+        before.lines,
+        before.wakeups,
+        before.clause(),
+        after.clause()
+    )
 }
 
 fn fmt_opt(v: Option<f64>, prec: usize) -> String {

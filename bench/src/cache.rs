@@ -1,0 +1,142 @@
+//! How cold a core's caches are when a task wakes on it: the host's share of a stage's step.
+//!
+//! A stage's step right after its wake-up reads its state, its inputs and its code from the
+//! caches it left behind a sample earlier. Whether they are still there is up to the machine:
+//! on a shared host another tenant may run on the same physical core while this one sleeps,
+//! and every step then starts on cold caches (on a 2-vCPU VM the same build's steps ran 2.5–3.7
+//! times slower in such hours; docs/measurements.md, "The same VM three hours later").
+//!
+//! [`after_sleep`] measures that directly: a periodic SCHED_FIFO timer on the plant's core
+//! wakes every [`PERIOD_NS`], reads one byte on each of [`LINES`] pages (one cache line per
+//! page), timed, and reads the same lines again at once (warm). The difference per line is
+//! what the sleep cost the caches. A few ns per line means the core's caches were cleared
+//! while it slept; a fraction of a ns means they held.
+
+use anyhow::Result;
+use drivelab_runtime::rt::{now_ns, sleep_until_ns};
+use serde::Serialize;
+
+use crate::{apply_rt, in_fresh_thread, NodeSpec};
+
+/// Lines read after each wake-up, one per page.
+pub const LINES: usize = 64;
+/// Distance between two lines read: a page and a line, so that they fall into different
+/// cache sets as well as different pages.
+const STRIDE: usize = 4096 + 64;
+/// The timer's period, ns (a sample at 10 kHz).
+pub const PERIOD_NS: u64 = 100_000;
+/// Wake-ups per probe (0.2 s).
+pub const WAKEUPS: usize = 2_000;
+
+/// What [`after_sleep`] found, ns for all [`LINES`] lines at the median wake-up.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct CacheProbe {
+    /// The core measured.
+    pub cpu: Option<usize>,
+    /// Lines read per wake-up.
+    pub lines: usize,
+    /// Wake-ups measured.
+    pub wakeups: usize,
+    /// The first read after each sleep, p50, ns.
+    pub after_sleep_ns: u64,
+    /// The second read straight after it, p50, ns.
+    pub warm_ns: u64,
+}
+
+impl CacheProbe {
+    /// What the sleep added per line read, ns (negative within the clock's resolution).
+    pub fn extra_ns_per_line(&self) -> f64 {
+        (self.after_sleep_ns as f64 - self.warm_ns as f64) / self.lines as f64
+    }
+
+    /// One clause for the report, e.g. "41 ns against 30 ns warm (+0.2 ns a line)".
+    pub fn clause(&self) -> String {
+        format!(
+            "{} ns against {} ns warm ({:+.1} ns a line)",
+            self.after_sleep_ns,
+            self.warm_ns,
+            self.extra_ns_per_line()
+        )
+    }
+}
+
+/// The probe on `node`'s core at its SCHED_FIFO priority, memory locked, in a fresh thread
+/// of this process (it restores nothing: the thread ends). Holds no CPU wake-up latency
+/// request of its own: it measures under whatever the caller holds.
+pub fn after_sleep(node: &NodeSpec) -> Result<CacheProbe> {
+    let node = *node;
+    in_fresh_thread("bench-cache", move || {
+        let mut buf = vec![1u8; LINES * STRIDE];
+        let mut after = vec![0u64; WAKEUPS];
+        let mut warm = vec![0u64; WAKEUPS];
+        apply_rt("cache probe", &node, true)?;
+        let base = buf.as_mut_ptr();
+        let read_all = || {
+            let mut sum = 0u8;
+            for j in 0..LINES {
+                // SAFETY: j * STRIDE < LINES * STRIDE = buf's length, and `buf` outlives
+                // the closure; a volatile read so that every line is really read.
+                sum = sum.wrapping_add(unsafe { std::ptr::read_volatile(base.add(j * STRIDE)) });
+            }
+            sum
+        };
+        let t0 = now_ns() + 1_000_000;
+        let mut sum = 0u8;
+        for i in 0..WAKEUPS {
+            sleep_until_ns(t0 + i as u64 * PERIOD_NS);
+            let a = now_ns();
+            sum = sum.wrapping_add(read_all());
+            let b = now_ns();
+            sum = sum.wrapping_add(read_all());
+            let c = now_ns();
+            after[i] = b - a;
+            warm[i] = c - b;
+        }
+        std::hint::black_box(sum);
+        after.sort_unstable();
+        warm.sort_unstable();
+        Ok(CacheProbe {
+            cpu: node.core,
+            lines: LINES,
+            wakeups: WAKEUPS,
+            after_sleep_ns: after[WAKEUPS / 2],
+            warm_ns: warm[WAKEUPS / 2],
+        })
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_clause_gives_both_reads_and_the_difference_per_line() {
+        let p = CacheProbe {
+            cpu: Some(1),
+            lines: 64,
+            wakeups: 2000,
+            after_sleep_ns: 326,
+            warm_ns: 32,
+        };
+        assert_eq!(p.extra_ns_per_line(), 294.0 / 64.0);
+        assert_eq!(p.clause(), "326 ns against 32 ns warm (+4.6 ns a line)");
+        let warm = CacheProbe {
+            after_sleep_ns: 30,
+            warm_ns: 33,
+            ..p
+        };
+        assert_eq!(warm.clause(), "30 ns against 33 ns warm (-0.0 ns a line)");
+    }
+
+    #[test]
+    fn the_probe_measures_every_wake_up_without_real_time_settings() {
+        // No core, no priority: it runs anywhere as a normal thread. What it measures is
+        // the machine's (no time is asserted); only what it reports on is checked here.
+        let p = after_sleep(&NodeSpec {
+            core: None,
+            priority: None,
+        })
+        .unwrap();
+        assert_eq!((p.cpu, p.lines, p.wakeups), (None, LINES, WAKEUPS));
+    }
+}
