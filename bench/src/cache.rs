@@ -66,11 +66,11 @@ impl CacheProbe {
 pub fn after_sleep(node: &NodeSpec) -> Result<CacheProbe> {
     let node = *node;
     in_fresh_thread("bench-cache", move || {
-        let mut buf = vec![1u8; LINES * STRIDE];
+        let buf = vec![1u8; LINES * STRIDE];
         let mut after = vec![0u64; WAKEUPS];
         let mut warm = vec![0u64; WAKEUPS];
         apply_rt("cache probe", &node, true)?;
-        let base = buf.as_mut_ptr();
+        let base = buf.as_ptr();
         let read_all = || {
             let mut sum = 0u8;
             for j in 0..LINES {
