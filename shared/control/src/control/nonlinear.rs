@@ -401,10 +401,13 @@ impl NlSpeedLaw {
         let i = (self.v1 - self.r11 * x1) / (self.g_ss * k.value);
         let i_q_ref = i.clamp(-self.i_q_max, self.i_q_max);
         let e = w1 - x1;
-        // Anti-windup: no integration further into the limit (k.value > 0, g > 0).
+        // Anti-windup: no integration further into the limit (k.value > 0, g > 0). An
+        // integration that would overflow (an absurd but finite reference or speed) is not
+        // taken either: an infinite v1 would meet an infinite r11·x1 later and make i_q* NaN.
         let winding = (i > self.i_q_max && e > 0.0) || (i < -self.i_q_max && e < 0.0);
-        if !winding {
-            self.v1 += self.k1 * self.tw * e;
+        let v1 = self.v1 + self.k1 * self.tw * e;
+        if !winding && v1.is_finite() {
+            self.v1 = v1;
         }
         NlSpeedOut {
             i_q_ref,
@@ -1738,5 +1741,30 @@ mod tests {
         // Reversing the error leaves the limit within two speed samples.
         sp.step(-100.0, 0.0, -1.6);
         assert!(sp.step(-100.0, 0.0, -1.6).i_q_ref < 1.6);
+    }
+
+    #[test]
+    fn absurd_but_finite_speeds_keep_the_current_reference_finite_and_limited() {
+        // An outer loop's reference of f64::MAX, then a speed estimate of f64::MAX (the
+        // case a property test found): the integration of the first would overflow, and
+        // the infinite integrator against the infinite r11·x1 of the second was NaN.
+        let m = MotorParams::kyslan2015();
+        let g = gains_for(2000.0, 300.0, DAMPING);
+        let mut sp = NlSpeedLaw::new(&m, &g, 1e-3, 1.6);
+        for (w1, x1) in [
+            (f64::MAX, 0.0),
+            (0.0, f64::MAX),
+            (-f64::MAX, f64::MAX),
+            (f64::MAX, -f64::MAX),
+            (0.0, 0.0),
+        ] {
+            let o = sp.step(w1, x1, 0.0);
+            assert!(
+                o.i_q_ref.is_finite() && o.i_q_ref.abs() <= 1.6,
+                "w1 {w1}, x1 {x1}: i_q* {}",
+                o.i_q_ref
+            );
+            assert!(sp.v1.is_finite(), "w1 {w1}, x1 {x1}: v1 {}", sp.v1);
+        }
     }
 }
