@@ -105,6 +105,11 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
     }
     std::fs::write(empty.join("trace.csv"), "k,t,omega_ref\n").unwrap();
     let empty = empty.to_str().unwrap().to_string();
+    // A folder of other files: a run must not write into it.
+    let foreign = d.join("foreign");
+    std::fs::create_dir_all(&foreign).unwrap();
+    std::fs::write(foreign.join("notes.txt"), "mine\n").unwrap();
+    let foreign_s = foreign.to_str().unwrap().to_string();
     let o = out.to_str().unwrap();
     let lockstep = ["--clock", "lockstep", "--no-plots"];
     let run_case = |name: &str, extra: &[&str], code: i32, needle: &'static str| {
@@ -203,6 +208,20 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             "cannot create run folder /proc/x",
         ),
         case("busid", dir, &["run", "--bus", "bad-id"], 1, "bus id 'bad-id'"),
+        run_case(
+            "fault-sample0",
+            &["--fault", "kill:plant@0"],
+            1,
+            "fault kill:plant@0 falls on sample 0: a kill or stop must come after the drive's first sample",
+        ),
+        case(
+            "foreign",
+            dir,
+            &["run", "--bus", "{bus}", "--clock", "lockstep", "--out", &foreign_s],
+            1,
+            "not empty and not a run folder (no scenario.toml)",
+        )
+        .leaves_no(foreign.join("scenario.toml")),
         // plant
         case(
             "plant-step",
@@ -525,6 +544,13 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
     for c in &cases {
         c.check();
     }
+    let left: Vec<_> = std::fs::read_dir(&foreign).unwrap().flatten().collect();
+    assert_eq!(
+        left.len(),
+        1,
+        "the refused run wrote into {}",
+        foreign.display()
+    );
 }
 
 #[test]

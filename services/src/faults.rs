@@ -141,12 +141,13 @@ pub enum FaultSpec {
     Sensor(drivelab_runtime::sensor_faults::SensorFault),
 }
 
-/// Expands the specs into a time-ordered plan against the run's `stages`. Random kills of
-/// one of `stages` are spread over [10 %, 90 %] of the run with a seeded generator, at least
-/// `min_gap_s` apart so that each fault's recovery can be measured.
+/// Expands the specs into a time-ordered plan against the run's `stages` at `sample_hz`.
+/// Random kills of one of `stages` are spread over [10 %, 90 %] of the run with a seeded
+/// generator, at least `min_gap_s` apart so that each fault's recovery can be measured.
 pub fn plan(
     specs: &[FaultSpec],
     duration_s: f64,
+    sample_hz: f64,
     seed: u64,
     min_gap_s: f64,
     stages: &[String],
@@ -172,6 +173,17 @@ pub fn plan(
                         kind_name(f.kind),
                         f.service,
                         f.at_s
+                    );
+                }
+                // A fault lands on sample round(t·f_s) (as `[[inject]]` does). On sample 0
+                // it would hit a drive that has no sample yet to resume from or to hold.
+                if (f.at_s * sample_hz).round() < 1.0 {
+                    bail!(
+                        "fault {}:{}@{} falls on sample 0: a kill or stop must come after the drive's first sample (at or after {} s at {sample_hz} Hz)",
+                        kind_name(f.kind),
+                        f.service,
+                        f.at_s,
+                        1.0 / sample_hz
                     );
                 }
                 out.push(f.clone());
@@ -205,6 +217,18 @@ pub fn plan(
     }
     out.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
     Ok(out)
+}
+
+/// How long the stops among `specs` hold their processes in total, s: a stopped plant
+/// stops the drive's clock, so a real-time run lasts that much longer.
+pub fn stopped_s(specs: &[FaultSpec]) -> f64 {
+    specs
+        .iter()
+        .map(|s| match s {
+            FaultSpec::One(f) if f.kind == FaultKind::Stop => f.duration_s,
+            _ => 0.0,
+        })
+        .sum()
 }
 
 /// Lockstep and in process (docs/architecture.md, "Fault model"): the kills and stops of
@@ -421,13 +445,54 @@ mod tests {
     }
 
     #[test]
+    fn a_kill_or_stop_on_sample_0_is_refused_and_one_on_sample_1_planned() {
+        let stages: Vec<String> = SERVICES.iter().map(|s| s.to_string()).collect();
+        // At 10 kHz, t rounds to sample 0 below 50 µs.
+        for at in ["0", "-0", "1e-320", "0.0000499"] {
+            for spec in [
+                format!("kill:plant@{at}"),
+                format!("stop:observer@{at}:0.01"),
+            ] {
+                let e = plan(&[parse(&spec).unwrap()], 1.0, 1e4, 1, 0.3, &stages)
+                    .unwrap_err()
+                    .to_string();
+                assert!(e.contains("falls on sample 0"), "{spec}: {e}");
+                assert!(
+                    e.contains("at or after 0.0001 s at 10000 Hz"),
+                    "{spec}: {e}"
+                );
+            }
+        }
+        let p = plan(
+            &[parse("kill:plant@0.00005").unwrap()],
+            1.0,
+            1e4,
+            1,
+            0.3,
+            &stages,
+        );
+        assert_eq!(p.unwrap().len(), 1);
+        // Two stops hold 0.3 s in all; kills and random kills hold nothing.
+        let specs: Vec<FaultSpec> = [
+            "stop:plant@0.1:0.2",
+            "kill:observer@0.2",
+            "stop:observer@0.5:0.1",
+            "random:2",
+        ]
+        .iter()
+        .map(|s| parse(s).unwrap())
+        .collect();
+        assert!((stopped_s(&specs) - 0.3).abs() < 1e-12);
+    }
+
+    #[test]
     fn bad_specs_are_clear_errors() {
         assert!(parse("kill:Pump@1")
             .unwrap_err()
             .to_string()
             .contains("unknown stage 'Pump'"));
         let stages: Vec<String> = SERVICES.iter().map(|s| s.to_string()).collect();
-        let e = plan(&[parse("kill:pump@1").unwrap()], 2.0, 1, 0.3, &stages).unwrap_err();
+        let e = plan(&[parse("kill:pump@1").unwrap()], 2.0, 1e4, 1, 0.3, &stages).unwrap_err();
         assert!(e.to_string().contains("unknown stage 'pump'"), "{e}");
         assert!(parse("kill:plant")
             .unwrap_err()
@@ -471,7 +536,7 @@ mod tests {
             parse("stop:speed-loop@0.06:0.02").unwrap(),
         ];
         let stages: Vec<String> = SERVICES.iter().map(|s| s.to_string()).collect();
-        let p = plan(&specs, 0.1, 1, 0.3, &stages).unwrap();
+        let p = plan(&specs, 0.1, 1e4, 1, 0.3, &stages).unwrap();
         schedule_simulated(&p, 25.0, &mut sc).unwrap();
         let specs: Vec<(String, f64)> =
             sc.inject.iter().map(|i| (i.spec(), i.duration_s)).collect();
@@ -500,14 +565,14 @@ mod tests {
     #[test]
     fn random_plan_is_seeded_sorted_and_spaced() {
         let stages: Vec<String> = SERVICES.iter().map(|s| s.to_string()).collect();
-        let a = plan(&[FaultSpec::Random(10)], 20.0, 7, 1.0, &stages).unwrap();
-        let b = plan(&[FaultSpec::Random(10)], 20.0, 7, 1.0, &stages).unwrap();
+        let a = plan(&[FaultSpec::Random(10)], 20.0, 1e4, 7, 1.0, &stages).unwrap();
+        let b = plan(&[FaultSpec::Random(10)], 20.0, 1e4, 7, 1.0, &stages).unwrap();
         assert_eq!(a, b);
         assert_eq!(a.len(), 10);
         for w in a.windows(2) {
             assert!(w[1].at_s - w[0].at_s >= 0.79, "{w:?}");
         }
-        assert!(plan(&[FaultSpec::Random(10)], 2.0, 7, 1.0, &stages)
+        assert!(plan(&[FaultSpec::Random(10)], 2.0, 1e4, 7, 1.0, &stages)
             .unwrap_err()
             .to_string()
             .contains("--duration"));

@@ -141,6 +141,21 @@ fn default_out(sc: &Scenario, clock: Clock) -> PathBuf {
     PathBuf::from("runs").join(format!("{}-{:?}-{}", sc.name, clock, secs).to_lowercase())
 }
 
+/// A run writes some forty files into its folder: it may be new, empty or an earlier run's
+/// (it has `scenario.toml`), never a folder of other files (`--out /`, `--out ~`).
+pub(crate) fn refuse_foreign_folder(out: &Path) -> Result<()> {
+    let Ok(mut entries) = std::fs::read_dir(out) else {
+        return Ok(()); // absent (made next), or not a folder (refused when made)
+    };
+    if entries.next().is_some() && !out.join("scenario.toml").is_file() {
+        bail!(
+            "run folder {}: not empty and not a run folder (no scenario.toml): give a new or empty folder, or an earlier run's",
+            out.display()
+        );
+    }
+    Ok(())
+}
+
 /// What a run on the bus produced.
 struct BusRun {
     /// The trace's rows kept for the analyses (every row unless `stats` says otherwise).
@@ -343,7 +358,10 @@ fn run_bus(
         // Supervise until the services finish.
         let started = Instant::now();
         let limit = match clock {
-            BusClock::Realtime => Duration::from_secs_f64(sc.duration_s * 1.5 + 20.0),
+            // A stopped plant stops the clock: the run lasts the stops longer.
+            BusClock::Realtime => Duration::from_secs_f64(
+                sc.duration_s * 1.5 + 20.0 + crate::faults::stopped_s(&o.faults),
+            ),
             BusClock::Lockstep => Duration::from_secs_f64(sc.duration_s * 2000.0 + 120.0),
         };
         // Progress on a terminal only (indicatif draws nothing when stderr is not a tty).
@@ -1007,7 +1025,14 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
         })
         .map(|s| s.name.clone())
         .collect();
-    let mut plan = crate::faults::plan(&o.faults, sc.duration_s, o.fault_seed, 0.3, &stage_names)?;
+    let mut plan = crate::faults::plan(
+        &o.faults,
+        sc.duration_s,
+        sc.rates.sample_hz,
+        o.fault_seed,
+        0.3,
+        &stage_names,
+    )?;
     if simulated {
         crate::faults::schedule_simulated(&plan, o.lockstep_restart_ms, &mut sc)?;
         plan.clear();
@@ -1095,6 +1120,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     let (latency_request, latency_error) = cpu_latency_request(&sc, o)?;
     check_placements(o, &topo)?;
     let out = o.out.clone().unwrap_or_else(|| default_out(&sc, o.clock));
+    refuse_foreign_folder(&out)?;
     std::fs::create_dir_all(&out)
         .with_context(|| format!("cannot create run folder {}", out.display()))?;
     let out = out.canonicalize()?;

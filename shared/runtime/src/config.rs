@@ -641,10 +641,13 @@ pub struct Sensors {
     /// Seed of the noise generator (runs are reproducible).
     pub seed: u64,
     /// Gain of each phase's current sensor (a, b, c): measured = gain·i + offset.
-    #[serde(skip_serializing_if = "is_unit_gain")]
+    #[serde(
+        skip_serializing_if = "is_unit_gain",
+        deserialize_with = "one_per_phase"
+    )]
     pub current_gain: [f64; 3],
     /// Offset of each phase's current sensor (a, b, c), A.
-    #[serde(skip_serializing_if = "is_zero3")]
+    #[serde(skip_serializing_if = "is_zero3", deserialize_with = "one_per_phase")]
     pub current_offset_a: [f64; 3],
     /// ADC resolution, bits (1–24), with `adc_range_a`; none: no quantisation.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -675,6 +678,15 @@ impl Default for Sensors {
             encoder_delay_us: 0.0,
         }
     }
+}
+
+/// Exactly three values, one per phase: the `toml` crate gives serde's fixed-size arrays the
+/// first three elements of a longer array and drops the rest without a word.
+fn one_per_phase<'de, D: serde::Deserializer<'de>>(d: D) -> Result<[f64; 3], D::Error> {
+    let v = Vec::<f64>::deserialize(d)?;
+    <[f64; 3]>::try_from(v.as_slice()).map_err(|_| {
+        serde::de::Error::invalid_length(v.len(), &"three values, one per phase (a, b, c)")
+    })
 }
 
 fn is_unit_gain(g: &[f64; 3]) -> bool {
@@ -1849,6 +1861,42 @@ preset = "kyslan2015"
             (
                 tail("[current_loop]\ncontroller = \"polar\""),
                 "current_loop.controller = \"polar\" is the surface-PMSM law",
+            ),
+            (
+                tail("[current_loop]\ncontroller = \"polar\"\ncdm_setpoint_weight = nan"),
+                "current_loop.cdm_setpoint_weight = NaN must be in [0, 1]",
+            ),
+            (
+                tail("[current_loop]\ncontroller = \"polar\"\ncdm_tau21_samples = -5.0"),
+                "current_loop.cdm_tau21_samples = -5 must be in [1, 10000] samples",
+            ),
+            (
+                tail("[current_loop]\ncontroller = \"polar-fw\"\npolar_sigma_v_rad_s = 5.0"),
+                "current_loop.polar_sigma_v_rad_s = 5 must be negative",
+            ),
+            (
+                tail("[current_loop]\ncontroller = \"voltage-phase\"\npolar_sigma_delta_rad_s = -1e300"),
+                "current_loop.polar_sigma_delta_rad_s = -1e300 must be negative",
+            ),
+            (
+                tail("[current_loop]\ncdm_setpoint_weight = 0.5"),
+                "current_loop.cdm_setpoint_weight is set but current_loop.controller is not \"polar\"",
+            ),
+            (
+                tail("[current_loop]\ncontroller = \"polar\"\npolar_sigma_v_rad_s = -300.0"),
+                "current_loop.polar_sigma_v_rad_s is set but current_loop.controller is not \"polar-fw\"",
+            ),
+            (
+                tail("[sensors]\ncurrent_gain = [1.0, 1.0, 1.0, 1.0]"),
+                "invalid length 4, expected three values, one per phase (a, b, c)",
+            ),
+            (
+                tail("[sensors]\ncurrent_offset_a = [0.0, 0.0]"),
+                "invalid length 2, expected three values, one per phase (a, b, c)",
+            ),
+            (
+                tail("[current_loop]\ncdm_delay = \"predict\""),
+                "current_loop.cdm_delay is set but current_loop.controller is not \"polar\"",
             ),
             (tail("[current_loop]\ntau_c_s = 0.0"), "current_loop.tau_c_s = 0 must"),
             (

@@ -97,6 +97,7 @@ pub mod rst {
 pub mod polar {
     use super::Scenario;
     use crate::config::{CurrentController, SpeedController};
+    use drivelab_control::control::cdm::CdmDelay;
     use drivelab_control::control::polar::{
         PolarCurrentController, PolarMode, PolarSpec, SpmsmModel,
     };
@@ -154,7 +155,76 @@ pub mod polar {
                     .into(),
             );
         }
-        if let Some(mode) = mode_of(sc) {
+        let cl = &sc.current_loop;
+        let mode = mode_of(sc);
+        // Each setting belongs to the laws that read it: set for another law it would be
+        // ignored, so it is refused, as are values no sampled design can use.
+        let sigma_laws = [PolarMode::VoltagePhase, PolarMode::PolarFw];
+        let settings = [
+            (
+                "polar_sigma_delta_rad_s",
+                cl.polar_sigma_delta_rad_s,
+                &sigma_laws[..],
+                "\"voltage-phase\" or \"polar-fw\"",
+            ),
+            (
+                "polar_sigma_v_rad_s",
+                cl.polar_sigma_v_rad_s,
+                &[PolarMode::PolarFw][..],
+                "\"polar-fw\"",
+            ),
+            (
+                "cdm_tau21_samples",
+                cl.cdm_tau21_samples,
+                &[PolarMode::Polar][..],
+                "\"polar\"",
+            ),
+            (
+                "cdm_setpoint_weight",
+                cl.cdm_setpoint_weight,
+                &[PolarMode::Polar][..],
+                "\"polar\"",
+            ),
+        ];
+        for (field, value, laws, names) in settings {
+            if value.is_some() && !mode.is_some_and(|m| laws.contains(&m)) {
+                return Err(format!(
+                    "current_loop.{field} is set but current_loop.controller is not {names}"
+                ));
+            }
+        }
+        if cl.cdm_delay != CdmDelay::Paper && mode != Some(PolarMode::Polar) {
+            return Err(
+                "current_loop.cdm_delay is set but current_loop.controller is not \"polar\"".into(),
+            );
+        }
+        for (field, value) in [
+            ("polar_sigma_delta_rad_s", cl.polar_sigma_delta_rad_s),
+            ("polar_sigma_v_rad_s", cl.polar_sigma_v_rad_s),
+        ] {
+            if let Some(v) = value.filter(|v| !(v.is_finite() && (-1e6..0.0).contains(v))) {
+                return Err(format!(
+                    "current_loop.{field} = {v} must be negative, from -1000000 rad/s up to (not including) 0"
+                ));
+            }
+        }
+        if let Some(v) = cl
+            .cdm_tau21_samples
+            .filter(|v| !(v.is_finite() && (1.0..=10_000.0).contains(v)))
+        {
+            return Err(format!(
+                "current_loop.cdm_tau21_samples = {v} must be in [1, 10000] samples (τ_21 of eq. 36; the paper's is 10)"
+            ));
+        }
+        if let Some(v) = cl
+            .cdm_setpoint_weight
+            .filter(|v| !(v.is_finite() && (0.0..=1.0).contains(v)))
+        {
+            return Err(format!(
+                "current_loop.cdm_setpoint_weight = {v} must be in [0, 1] (the weight of i_q* in C_21's proportional term)"
+            ));
+        }
+        if let Some(mode) = mode {
             let m = sc.motor.resolve()?;
             if (m.l_d_h - m.l_q_h).abs() > 0.01 * m.l_d_h.max(m.l_q_h) {
                 return Err(format!(
