@@ -192,6 +192,11 @@ pub fn parse(text: &str) -> Result<Expectation, UsageError> {
         "<" => Op::Lt(limit(rhs, t)?),
         ">" => Op::Gt(limit(rhs, t)?),
         _ => {
+            if rhs.contains("...") {
+                return Err(UsageError(format!(
+                    "expectation '{t}': a range is A..B with two dots, e.g. in 7.2..8.8"
+                )));
+            }
             let (a, b) = rhs.split_once("..").ok_or_else(|| {
                 UsageError(format!(
                     "expectation '{t}': 'in' needs a range A..B, e.g. in 7.2..8.8"
@@ -495,6 +500,7 @@ mod tests {
             ("<= 8", "is not a figure path"),
             ("metrics.rise_time_ms in 8", "needs a range A..B"),
             ("metrics.rise_time_ms in 9..8", "is empty"),
+            ("peak_current_a in 1...2", "a range is A..B with two dots"),
             (
                 "peak_current_a =< 8",
                 "unknown operator (the operators are <=, <, >=, >, ==",

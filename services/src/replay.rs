@@ -132,7 +132,7 @@ fn replay_within(
     }
     if total > max_steps as f64 {
         bail!(
-            "{}: t from {} to {} s at steps of at most {max_step_s} s needs {total:.3e} RK4 steps, more than {max_steps}; raise --max-step or shorten the input",
+            "{}: t from {} to {} s at steps of at most {max_step_s} s needs {total:.3e} RK4 steps, more than {max_steps}; raise --max-step-s or shorten the input",
             input.display(),
             rows[0].t,
             rows[rows.len() - 1].t

@@ -1486,6 +1486,12 @@ impl Scenario {
             crate::topology::check_specs(&self.process)?;
         }
         for (name, t) in &self.stages {
+            // The built-in stages read their own tables; here their settings would be ignored.
+            check(!SERVICES.contains(&name.as_str()), || {
+                format!(
+                    "[stages.{name}] is for user stages: the built-in {name} takes its settings from [rates], [observer], [current_loop], [speed_loop] and the plant's tables"
+                )
+            })?;
             if let Some(v) = t.get("rate_hz") {
                 let hz = v.as_float().or_else(|| v.as_integer().map(|i| i as f64));
                 let ok = hz.is_some_and(|hz| {
@@ -1838,6 +1844,10 @@ preset = "kyslan2015"
                 "either in [placement] or in [[process]]",
             ),
             (tail("[stages.pos]\nrate_hz = 3.0"), "stages.pos.rate_hz = 3.0 must divide"),
+            (
+                tail("[stages.observer]\nfoo = 1"),
+                "[stages.observer] is for user stages: the built-in observer takes its settings from",
+            ),
             (
                 tail("[current_loop]\nitae_omega_rad_s = 100.0"),
                 "current_loop.itae_omega_rad_s is set but current_loop.controller is not",

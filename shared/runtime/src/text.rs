@@ -59,7 +59,27 @@ pub fn readable_numbers(text: &str) -> Cow<'_, str> {
 /// An error and its causes on one line (`{e:#}`), its numbers readable: what every error line
 /// of drivelab and its stage hosts prints, and what a campaign records for a run that failed.
 pub fn error_text(e: &anyhow::Error) -> String {
-    one_line(&readable_numbers(&format!("{e:#}")))
+    shortened(
+        one_line(&readable_numbers(&format!("{e:#}"))),
+        ERROR_LINE_MAX_CHARS,
+    )
+}
+
+/// The longest error line drivelab prints, in characters: an input that echoes a huge value
+/// (a megabyte-long name) is cut in the middle, so the line still names the field and the rule.
+pub const ERROR_LINE_MAX_CHARS: usize = 1000;
+
+/// `text` itself when it has at most `max` characters; otherwise its first and last
+/// characters with how many were cut between them.
+pub fn shortened(text: String, max: usize) -> String {
+    let n = text.chars().count();
+    if n <= max {
+        return text;
+    }
+    let (head, tail) = (max * 2 / 3, max / 3);
+    let start: String = text.chars().take(head).collect();
+    let end: String = text.chars().skip(n - tail).collect();
+    format!("{start} …({} characters cut)… {end}", n - head - tail)
 }
 
 /// `text`'s non-empty lines, trimmed, joined by spaces (a source's multi-line message, such as
@@ -81,7 +101,18 @@ pub fn join_lines(text: &str, sep: &str) -> String {
 
 #[cfg(test)]
 mod tests {
-    use super::readable_numbers;
+    use super::{readable_numbers, shortened};
+
+    #[test]
+    fn a_long_line_is_cut_in_the_middle_and_says_how_much() {
+        assert_eq!(shortened("short".into(), 10), "short");
+        let long = format!("name = \"{}\" must be 1..=64 characters", "é".repeat(5000));
+        let s = shortened(long.clone(), 90);
+        assert!(s.starts_with("name = \"ééé"), "{s}");
+        assert!(s.ends_with("ééé\" must be 1..=64 characters"), "{s}");
+        let cut = long.chars().count() - 60 - 30;
+        assert!(s.contains(&format!(" …({cut} characters cut)… ")), "{s}");
+    }
 
     #[test]
     fn a_huge_or_tiny_float_is_written_with_an_exponent_and_keeps_its_value() {
