@@ -256,26 +256,31 @@ fn bad_topologies_fail_with_one_line_naming_the_problem_and_leave_nothing() {
     )
     .unwrap();
     let out = dir.join("out-cpu99");
-    let o = drivelab(&[
-        "run",
-        "--rt-strict",
-        "--bus",
-        &bus,
-        "--out",
-        out.to_str().unwrap(),
-        "--topology",
-        f.to_str().unwrap(),
-    ]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(1), "{err}");
-    assert!(
-        err.contains(
-            "--rt-strict: process a is pinned to CPU 99, which this drive may not use (CPUs: "
-        ) && err.trim().lines().count() == 1,
-        "{err}"
-    );
-    assert!(!out.exists(), "the refused run made its folder");
-    assert_clean(&bus);
+    // Lockstep keeps the cores (not the priorities): refused the same way.
+    for clock in ["realtime", "lockstep"] {
+        let o = drivelab(&[
+            "run",
+            "--rt-strict",
+            "--clock",
+            clock,
+            "--bus",
+            &bus,
+            "--out",
+            out.to_str().unwrap(),
+            "--topology",
+            f.to_str().unwrap(),
+        ]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{clock}: {err}");
+        assert!(
+            err.contains(
+                "--rt-strict: process a is pinned to CPU 99, which this drive may not use (CPUs: "
+            ) && err.trim().lines().count() == 1,
+            "{clock}: {err}"
+        );
+        assert!(!out.exists(), "{clock}: the refused run made its folder");
+        assert_clean(&bus);
+    }
     // A scenario that places its services in [placement] and in [[process]] tables.
     let both = dir.join("both.toml");
     std::fs::write(

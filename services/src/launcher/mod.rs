@@ -677,12 +677,17 @@ fn cpu_latency_request(
 /// line, before the run folder is made. Through a runner the executable may not run here as
 /// it is; its hosts report then.
 fn check_placements(o: &RunOptions, topo: &TopologyPlan) -> Result<()> {
-    if !o.rt_strict || o.no_rt || o.clock != Clock::Realtime || runner_of(o)?.is_some() {
+    if !o.rt_strict || o.no_rt || o.clock == Clock::Inprocess || runner_of(o)?.is_some() {
         return Ok(());
     }
     let here = (0..topo.processes.len()).filter(|i| !topo.away.contains(i));
     for p in here.map(|i| &topo.processes[i]) {
-        spawn::check_rt(p, &process_binary(p, Path::new("/"))?)?;
+        // Lockstep keeps the cores and the locked memory but not the priorities.
+        let mut p = p.clone();
+        if o.clock == Clock::Lockstep {
+            p.priority = None;
+        }
+        spawn::check_rt(&p, &process_binary(&p, Path::new("/"))?)?;
     }
     Ok(())
 }
@@ -999,7 +1004,7 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
     }
     // With --rt-strict a process pinned to a CPU this launcher may not use would fail its
     // start (without it, it warns and runs unpinned): refused before anything is created.
-    if o.rt_strict && o.clock == Clock::Realtime {
+    if o.rt_strict && o.clock != Clock::Inprocess {
         let cpus = crate::faults::hog::allowed_cpus();
         let here = (0..topo.processes.len()).filter(|i| !topo.away.contains(i));
         for p in here.map(|i| &topo.processes[i]) {
