@@ -49,6 +49,12 @@ fn kyslan_pi_lockstep_meets_the_papers_rise_time() {
         (rise - predicted).abs() <= 0.1 + 1e-9,
         "rise time {rise} ms, design model {predicted} ms"
     );
+    // ... and the design reached the paper's 8 ms on that model (else it says why).
+    assert!(
+        (predicted - 8.0).abs() <= 0.1,
+        "design model {predicted} ms"
+    );
+    assert!(s["design"]["speed"]["warning"].is_null(), "{}", s["design"]);
     assert_eq!(s["samples"], 1000);
     assert_eq!(s["deadline_misses"], 0);
     assert_eq!(s["scenario"], "kyslan-pi");

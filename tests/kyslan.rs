@@ -33,6 +33,12 @@ fn pi_and_nonlinear_designs_meet_the_rise_time_in_lockstep() {
             (rise - predicted).abs() <= 0.1 + 1e-9,
             "{name}: rise time {rise} ms, design model {predicted} ms"
         );
+        // ... and the design reached the paper's 8 ms on that model (else it says why).
+        assert!(
+            (predicted - 8.0).abs() <= 0.1,
+            "{name}: design model {predicted} ms"
+        );
+        assert!(design["warning"].is_null(), "{name}: {design}");
         assert_eq!(r.summary["deadline_misses"], 0);
         assert_eq!(
             r.summary["design"]["controller"],

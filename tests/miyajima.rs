@@ -386,12 +386,13 @@ fn near_the_uncontrollable_point_v_a_0_the_controller_stays_bounded() {
     let rows = r.trace();
     assert_eq!(rows.len(), 2000);
     let v_dc = 470.0;
-    // Bounded: no NaN, δ within ±δ_max and V_a within ±M_max (the limiters of section IV-C).
-    // The phase itself is not quiet: with V_a ≈ 0 it does not act on the currents and the
-    // noise moves it (the oscillation Miyajima et al. report from their experiment at 0 rpm,
-    // Fig. 9).
-    let m_max = drivelab_tools::plot_polar::m_max();
+    // Bounded: no NaN, and the currents stay small. (δ and M of the applied voltage are
+    // within ±90° and M_max whatever the law does: the plant folds and clamps them, so they
+    // are reported, not asserted.) The phase itself is not quiet: with V_a ≈ 0 it does not
+    // act on the currents and the noise moves it (the oscillation Miyajima et al. report
+    // from their experiment at 0 rpm, Fig. 9).
     let (mut run_at_limit, mut longest, mut m_peak, mut i_peak) = (0usize, 0usize, 0.0f64, 0.0f64);
+    let mut near_zero = 0usize;
     for x in &rows {
         assert!(
             x.u_d.is_finite() && x.u_q.is_finite() && x.i_d.is_finite() && x.i_q.is_finite(),
@@ -399,8 +400,9 @@ fn near_the_uncontrollable_point_v_a_0_the_controller_stays_bounded() {
             x.t
         );
         let (m, d) = drivelab_tools::plot_polar::modulation_and_phase(x, v_dc);
-        assert!(d.abs() <= std::f64::consts::FRAC_PI_2 + 1e-12, "δ = {d}");
-        assert!(m.abs() <= m_max + 1e-12, "M = {m} at t = {}", x.t);
+        if m.abs() < 0.01 {
+            near_zero += 1;
+        }
         m_peak = m_peak.max(m.abs());
         i_peak = i_peak.max(x.i_d.abs()).max(x.i_q.abs());
         if d.abs() > 0.99 * std::f64::consts::FRAC_PI_2 {
@@ -417,6 +419,15 @@ fn near_the_uncontrollable_point_v_a_0_the_controller_stays_bounded() {
         d.abs() > 0.99 * std::f64::consts::FRAC_PI_2
     });
     assert!(!late_at_limit, "δ stuck at its limit");
+    // The run is where the test says: V_a below 1 % of its range in most samples ...
+    assert!(
+        near_zero > rows.len() / 2,
+        "V_a < 1 % in {near_zero} samples only"
+    );
+    // ... and no runaway: the noise alone moves the currents by a fraction of the 2 A step
+    // this scenario commands otherwise (0.16 A measured with this seed); a loop that winds up
+    // at V_a ≈ 0 drives them to that and beyond.
+    assert!(i_peak < 0.5, "peak |i| {i_peak} A with zero references");
     eprintln!("V_a ≈ 0 with 20 mA noise: longest run of δ at its limit {longest} samples, peak M {m_peak:.3}, peak |i| {i_peak:.3} A");
 }
 

@@ -2652,11 +2652,28 @@ mod tests {
     }
 
     #[test]
-    fn dev_shm_live() {
+    fn dev_shm_live_and_missing() {
+        // The drive's buses live in /dev/shm (every test of the drive needs it): read.
+        assert!(Path::new("/dev/shm").is_dir());
         let c = dev_shm_check(&Fs {
             root: Path::new("/"),
         });
-        // /dev/shm exists on any normal Linux box; just make sure the value is sane.
-        assert!(c.value.starts_with("size ") || c.value.starts_with("not usable"));
+        assert!(
+            c.value.starts_with("size ") && c.value.contains(", free "),
+            "{}",
+            c.value
+        );
+        // A root without dev/shm: not usable, a Bad check with advice.
+        let root =
+            std::env::temp_dir().join(format!("drivelab-doctor-noshm-{}", std::process::id()));
+        std::fs::create_dir_all(&root).unwrap();
+        let c = dev_shm_check(&Fs { root: &root });
+        std::fs::remove_dir_all(&root).unwrap();
+        assert!(c.value.starts_with("not usable: "), "{}", c.value);
+        assert_eq!(c.status, Status::Bad);
+        assert_eq!(
+            c.advice.as_deref(),
+            Some("iceoryx2 needs a tmpfs mounted on /dev/shm")
+        );
     }
 }
