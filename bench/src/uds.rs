@@ -889,27 +889,40 @@ mod tests {
     #[test]
     fn thread_chain_matches_the_inprocess_trace() {
         let sc = kyslan(2000.0);
-        let p = run_chain_threads(&sc, 0.05, true).unwrap();
-        assert_eq!(p.result.samples, 100);
-        // One wake-up per sample plus the one that takes the last command.
-        assert_eq!(p.result.lateness.len(), 101);
-        assert!(!p.result.cycle.is_empty());
-        assert_eq!(p.counters.samples, 100);
-        // Determinism across transports: every row up to the first miss (all of them when
-        // nothing missed) is bit-identical to the in-process chain's.
         let mut d = InProcessDrive::new(&sc);
         let reference: Vec<TraceRow> = (0..100).map(|k| d.cycle(k)).collect();
-        eprintln!(
-            "uds threads: {} misses, {} stale-input commands, {} rows compared, cycle {:?}",
-            p.result.misses.misses,
-            p.counters.stale_input_commands,
-            p.trace.len(),
-            p.result.cycle.percentiles()
-        );
-        assert_eq!(p.trace[..], reference[..p.trace.len()]);
-        if p.result.misses.misses == 0 && p.counters.stale_input_commands == 0 {
-            assert_eq!(p.trace.len(), 100);
+        // Determinism across transports: every row up to the first miss (all of them when
+        // nothing missed) is bit-identical to the in-process chain's. A miss is rare (a
+        // thread preempted for more than a 500 µs sample), so up to three runs are made
+        // until one compares at least half the run.
+        let mut compared = 0;
+        for _ in 0..3 {
+            let p = run_chain_threads(&sc, 0.05, true).unwrap();
+            assert_eq!(p.result.samples, 100);
+            // One wake-up per sample plus the one that takes the last command.
+            assert_eq!(p.result.lateness.len(), 101);
+            assert!(!p.result.cycle.is_empty());
+            assert_eq!(p.counters.samples, 100);
+            eprintln!(
+                "uds threads: {} misses, {} stale-input commands, {} rows compared, cycle {:?}",
+                p.result.misses.misses,
+                p.counters.stale_input_commands,
+                p.trace.len(),
+                p.result.cycle.percentiles()
+            );
+            assert_eq!(p.trace[..], reference[..p.trace.len()]);
+            if p.result.misses.misses == 0 && p.counters.stale_input_commands == 0 {
+                assert_eq!(p.trace.len(), 100);
+            }
+            compared = compared.max(p.trace.len());
+            if compared >= 50 {
+                break;
+            }
         }
+        assert!(
+            compared >= 50,
+            "three runs compared {compared} rows at most"
+        );
     }
 
     /// Not a test: the entry point of a `bench-node uds` node process that [`fake_drivelab`]
