@@ -41,6 +41,18 @@ fn lines(p: &Path) -> Vec<String> {
         .collect()
 }
 
+/// The processes the runner started (`lines` of its log), without the one question the
+/// launcher asks the built-in host through it before the run (`--describe`), which must
+/// come exactly once.
+fn hosts_started(log: &Path) -> Vec<String> {
+    let (asked, started): (Vec<String>, Vec<String>) = lines(log)
+        .into_iter()
+        .partition(|l| l.contains("--describe"));
+    assert_eq!(asked.len(), 1, "{asked:?}");
+    assert!(asked[0].contains("drivelab-host"), "{asked:?}");
+    started
+}
+
 #[test]
 fn the_runner_prefixes_every_stage_host_and_changes_no_sample() {
     let _g = serial();
@@ -52,7 +64,7 @@ fn the_runner_prefixes_every_stage_host_and_changes_no_sample() {
         &["--clock", "lockstep", "--no-rt", "--runner", &runner],
     );
     // One line per process of the default topology, each the stage host with its process.
-    let started = lines(&log);
+    let started = hosts_started(&log);
     let procs: Vec<&str> = summary["processes"]
         .as_object()
         .expect("processes")
@@ -93,7 +105,7 @@ fn the_runner_prefixes_every_stage_host_and_changes_no_sample() {
     );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert_clean(&bus);
-    assert_eq!(lines(&log).len(), 1, "{:?}", lines(&log));
+    assert_eq!(hosts_started(&log).len(), 1, "{:?}", lines(&log));
 }
 
 #[test]
@@ -113,7 +125,7 @@ fn a_restarted_process_goes_through_the_runner_too() {
             &runner,
         ],
     );
-    let started = lines(&log);
+    let started = hosts_started(&log);
     let rejoined: Vec<_> = started.iter().filter(|l| l.contains("--rejoin")).collect();
     assert_eq!(rejoined.len(), 1, "{started:?}");
     assert!(rejoined[0].contains("--process observer "), "{started:?}");
@@ -159,17 +171,27 @@ fn a_bad_runner_is_one_line_and_leaves_nothing() {
     // Refused before the run: no folder.
     assert!(!out.exists(), "the refused run made its folder");
     assert_clean(&bus);
-    // A runner that starts but runs nothing: every process exits at once, and the error says
-    // how, in words.
-    let o = with_runner("false");
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(1), "{err}");
-    assert!(
-        err.contains("exited during start-up (exit status: 1)") && !err.contains("ExitStatus("),
-        "{err}"
-    );
-    let _ = std::fs::remove_dir_all(&out);
-    assert_clean(&bus);
+    // A runner that starts but runs nothing (or not a stage host): the built-in host does
+    // not answer through it when asked before the run, and the error says so in words,
+    // in one line, with nothing made.
+    for (runner, why) in [
+        ("false", "--describe failed (exit status: 1)"),
+        ("true", "--describe: not a stage list"),
+    ] {
+        let o = with_runner(runner);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{err}");
+        assert!(
+            err.contains(&format!(
+                "process 'plant' (started through the runner '{runner}'): "
+            )) && err.contains(why)
+                && !err.contains("ExitStatus(")
+                && err.trim().lines().count() == 1,
+            "{err}"
+        );
+        assert!(!out.exists(), "{runner}: the refused run made its folder");
+        assert_clean(&bus);
+    }
 }
 
 /// The aarch64 binaries, built once per test binary; Err(why) when the toolchain is absent

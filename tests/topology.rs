@@ -181,6 +181,14 @@ fn bad_topologies_fail_with_one_line_naming_the_problem_and_leave_nothing() {
             "no-such-binary not found",
         ),
         (
+            "notahost.toml",
+            p(
+                "a",
+                "\"plant\", \"observer\", \"current-loop\", \"speed-loop\"",
+            ) + "exec = \"/bin/true\"\n",
+            "process 'a': /bin/true --describe: not a stage list",
+        ),
+        (
             "standby.toml",
             p("a", "\"plant\", \"observer\"")
                 + "standby = true\n"

@@ -748,6 +748,35 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
             })
     })
     .map_err(|e| anyhow!("{origin}: {e}"))?;
+    // An `exec` that hosts built-in stages only was asked nothing above, nor was the built-in
+    // host under a `--runner`: each must still answer as a stage host (`/bin/true` would
+    // fail its start after the run folder exists).
+    let runner = runner.filter(|_| o.clock != Clock::Inprocess);
+    if let Some(r) = &runner {
+        r.check().map_err(|e| anyhow!(e))?;
+    }
+    for p in procs
+        .iter()
+        .filter(|p| here.is_none() || p.machine.as_deref() == here)
+    {
+        let exe = match (&p.exec, &runner) {
+            (Some(exe), _) => exe.clone(),
+            (None, Some(_)) => spawn::process_binary(p, Path::new("/"))?
+                .display()
+                .to_string(),
+            (None, None) => continue,
+        };
+        if let std::collections::btree_map::Entry::Vacant(slot) = described.entry(exe) {
+            let info = describe(slot.key(), &sc_text, runner.as_ref()).map_err(|e| {
+                let through = runner
+                    .as_ref()
+                    .map(|r| format!(" (started through the runner '{}')", r.display()))
+                    .unwrap_or_default();
+                anyhow!("{origin}: process '{}'{through}: {e:#}", p.name)
+            })?;
+            slot.insert(info);
+        }
+    }
     // A `[stages.NAME]` table for a stage no process hosts is a typo or a leftover: its
     // parameters would be ignored.
     let hosted = resolved.stage_names();
