@@ -333,8 +333,13 @@ struct DriveRun {
 /// Runs the iceoryx2 chain through the real launcher (in `topology`, if given) and reads
 /// its histograms and its processes' CPU time back.
 fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) -> Result<DriveRun> {
-    std::fs::create_dir_all(out)?;
-    let file = out.join("scenario.in.toml");
+    // The scenario goes beside the run folder: a run refuses a folder of other files.
+    let name = out
+        .file_name()
+        .ok_or_else(|| anyhow!("{}: not a folder name", out.display()))?;
+    let dir = out.parent().unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir)?;
+    let file = dir.join(format!("{}.scenario.in.toml", name.to_string_lossy()));
     std::fs::write(&file, toml::to_string(sc)?)?;
     let o = RunOptions {
         scenario: file.display().to_string(),
