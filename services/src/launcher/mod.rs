@@ -751,6 +751,7 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
     // An `exec` that hosts built-in stages only was asked nothing above, nor was the built-in
     // host under a `--runner`: each must still answer as a stage host (`/bin/true` would
     // fail its start after the run folder exists).
+    // A runner that cannot start anything fails every process: refused before the run.
     let runner = runner.filter(|_| o.clock != Clock::Inprocess);
     if let Some(r) = &runner {
         r.check().map_err(|e| anyhow!(e))?;
@@ -1024,12 +1025,6 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
         topo.away = (0..topo.processes.len())
             .filter(|&i| topo.processes[i].machine.as_deref() != Some(m))
             .collect();
-    }
-    // A runner that cannot start anything fails every process: refused before the run.
-    if o.clock != Clock::Inprocess {
-        if let Some(r) = spawn::runner_of(o)? {
-            r.check().map_err(|e| anyhow!(e))?;
-        }
     }
     // With --rt-strict a process pinned to a CPU this launcher may not use would fail its
     // start (without it, it warns and runs unpinned): refused before anything is created.
