@@ -292,13 +292,14 @@ fn events_of(s: &serde_json::Value, svc: &str) -> Vec<String> {
 }
 
 /// The rows with a command from the last one the current loop made from fresh inputs on (the
-/// stage killed for good never comes back, so they are the run's degraded tail). The
-/// injection's `k0` is the recorder's progress when the signal was sent, which can lag the
-/// plant: the tail may start before it, but must reach past it.
+/// stage killed for good never comes back, so they are the run's degraded tail), and the
+/// first sample after that last fresh one (the tail's first row when no command is missing
+/// between them). The injection's `k0` is the recorder's progress when the signal was sent,
+/// which can lag the plant: the tail may start before it, but must reach past it.
 fn degraded_rows(
     rows: &[drivelab_runtime::trace::TraceRow],
     k0: u64,
-) -> Vec<drivelab_runtime::trace::TraceRow> {
+) -> (u64, Vec<drivelab_runtime::trace::TraceRow>) {
     use drivelab_runtime::messages::{FLAG_MISSING, FLAG_STALE_INPUT};
     let with_cmd: Vec<_> = rows
         .iter()
@@ -314,7 +315,8 @@ fn degraded_rows(
         degraded.last().is_some_and(|r| r.k > k0),
         "no degraded tail after the injection at {k0}"
     );
-    degraded
+    let first_stale_k = first.checked_sub(1).map_or(0, |i| with_cmd[i].k + 1);
+    (first_stale_k, degraded)
 }
 
 #[test]
@@ -336,14 +338,20 @@ fn with_restart_never_a_killed_loop_stays_dead_and_the_drive_runs_degraded() {
         "{f}"
     );
     let rows = drivelab_runtime::trace::read_csv(&out.join("trace.csv")).unwrap();
-    let d = degraded_rows(&rows, f["injected_k"].as_u64().unwrap());
+    let (k_stale, d) = degraded_rows(&rows, f["injected_k"].as_u64().unwrap());
     let n = 10; // kyslan-pi: speed_divider
     let ramp = 1.6 * 1e-4 / 0.02;
     let held = d[0].i_q_ref;
+    assert!(
+        d[0].k < k_stale + 2 * n,
+        "first degraded row {} after the hold",
+        d[0].k
+    );
     assert!(held.abs() > ramp, "i_q* {held} A at the kill");
     for (i, r) in d.iter().enumerate() {
-        // Samples are consecutive here (no command missing) or the index says how many.
-        let steps = (r.k - d[0].k) as f64;
+        // The hold and the ramp run in samples since the last fresh reference, also over
+        // samples whose command is missing (the loop skipped them).
+        let steps = (r.k - k_stale) as f64;
         let want = if steps < 2.0 * n as f64 {
             held
         } else {
@@ -370,7 +378,7 @@ fn with_restart_never_a_killed_loop_stays_dead_and_the_drive_runs_degraded() {
     assert_eq!(events_of(&s, "observer"), ["inject", "exited"], "{s}");
     let f = &s["faults"][0];
     let rows = drivelab_runtime::trace::read_csv(&out.join("trace.csv")).unwrap();
-    let d = degraded_rows(&rows, f["injected_k"].as_u64().unwrap());
+    let (_, d) = degraded_rows(&rows, f["injected_k"].as_u64().unwrap());
     let last = d.last().unwrap();
     assert!(
         d.iter().all(|r| r.i_q_ref == last.i_q_ref),

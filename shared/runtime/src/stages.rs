@@ -168,6 +168,9 @@ pub struct CurrentLoopStage {
     active_ref: CurrentRef,
     last_est: Estimate,
     stale_ref_samples: u64,
+    /// The sample of the last step: a sample the loop skipped (late, caught up) still counts
+    /// toward the hold and the ramp, which are in time, not in steps.
+    last_k: Option<u64>,
     /// Samples run on the encoder fallback.
     pub fallback_samples: u64,
     /// Samples with the i_q* ramp active.
@@ -196,6 +199,7 @@ impl CurrentLoopStage {
             active_ref: CurrentRef::default(),
             last_est: Estimate::default(),
             stale_ref_samples: 0,
+            last_k: None,
             fallback_samples: 0,
             ramp_samples: 0,
         }
@@ -203,9 +207,10 @@ impl CurrentLoopStage {
 
     /// Takes a fresh current reference, or holds the last one (a stale input: flagged; before
     /// the first came, the zero reference stands as at the start, flagged too) and, when
-    /// `ramp`, after 2 speed periods without a fresh one ramps i_q* to zero. Returns the
+    /// `ramp`, after 2 speed periods without a fresh one ramps i_q* to zero. `elapsed` is the
+    /// number of samples since the last step (1, or more after skipped samples). Returns the
     /// command's flags.
-    fn reference(&mut self, inputs: &Inbox, ramp: bool) -> u32 {
+    fn reference(&mut self, inputs: &Inbox, ramp: bool, elapsed: u64) -> u32 {
         let mut flags = 0;
         match (inputs.slot(TopicId::Iref).fresh, inputs.iref()) {
             (true, Some(r)) => {
@@ -222,11 +227,16 @@ impl CurrentLoopStage {
                 if !ramp {
                     return flags;
                 }
-                self.stale_ref_samples += 1;
-                if self.stale_ref_samples > 2 * self.divider {
-                    self.ramp_samples += 1;
+                // The ramp's samples among the ones elapsed: those past 2 speed periods.
+                let hold = 2 * self.divider;
+                let before = self.stale_ref_samples;
+                self.stale_ref_samples = before.saturating_add(elapsed);
+                let steps = self.stale_ref_samples.saturating_sub(before.max(hold));
+                if steps > 0 {
+                    self.ramp_samples += steps;
                     let q = self.active_ref.i_q_ref;
-                    self.active_ref.i_q_ref = q - q.signum() * self.iq_ramp_per_sample.min(q.abs());
+                    let down = self.iq_ramp_per_sample * steps as f64;
+                    self.active_ref.i_q_ref = q - q.signum() * down.min(q.abs());
                 }
             }
         }
@@ -244,12 +254,14 @@ impl Stage for CurrentLoopStage {
     fn outputs(&self) -> &'static [TopicId] {
         &[TopicId::Cmd]
     }
-    fn step(&mut self, _k: u64, inputs: &Inbox, out: &mut Outbox) {
+    fn step(&mut self, k: u64, inputs: &Inbox, out: &mut Outbox) {
         let Some(meas) = inputs.meas() else { return };
+        let elapsed = self.last_k.map_or(1, |last| k.saturating_sub(last).max(1));
+        self.last_k = Some(k);
         // The reference first. On the encoder fallback (no estimate) a stale reference is
         // held as it stands, neither ramped (the speed loop, without estimates, holds its
         // output) nor reset to the last one received (which would undo a ramp under way).
-        let mut flags = self.reference(inputs, inputs.est().is_some());
+        let mut flags = self.reference(inputs, inputs.est().is_some(), elapsed);
         let cmd = match inputs.est() {
             Some(e) => {
                 self.last_est = *e;
@@ -764,19 +776,23 @@ mod tests {
         let c = step(&mut s, 5 + 2 * n, false);
         assert!((c.i_dq_ref[1] - (1.0 - 3.0 * ramp)).abs() < 1e-12, "{c:?}");
         assert_eq!(s.ramp_samples, 3);
+        // Two samples the loop skipped (late, caught up) count: the ramp is in time.
+        let c = step(&mut s, 8 + 2 * n, false);
+        assert!((c.i_dq_ref[1] - (1.0 - 6.0 * ramp)).abs() < 1e-12, "{c:?}");
+        assert_eq!(s.ramp_samples, 6);
         // A fresh reference ends it, unflagged.
-        let c = step(&mut s, 6 + 2 * n, true);
+        let c = step(&mut s, 9 + 2 * n, true);
         assert_eq!(c.i_dq_ref[1], 1.0);
         assert_eq!(c.hdr.flags & FLAG_STALE_INPUT, 0);
         // A fresh reference the speed loop held (flagged) flags the command.
         let mut ib = Inbox::default();
-        ib.put(Msg::Meas(meas(7 + 2 * n, 0.0)));
-        ib.put(Msg::Est(est(7 + 2 * n, 0.0)));
+        ib.put(Msg::Meas(meas(10 + 2 * n, 0.0)));
+        ib.put(Msg::Est(est(10 + 2 * n, 0.0)));
         let mut held = iref(0, 1.0);
         held.hdr.flags = FLAG_STALE_INPUT;
         ib.put(Msg::Iref(held));
         let mut out = Outbox::default();
-        s.step(7 + 2 * n, &ib, &mut out);
+        s.step(10 + 2 * n, &ib, &mut out);
         assert_ne!(cmd_of(&out).hdr.flags & FLAG_STALE_INPUT, 0);
     }
 
