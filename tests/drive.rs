@@ -461,6 +461,74 @@ fn plot_redraws_valid_png_and_svg_for_a_recorded_run() {
 }
 
 #[test]
+fn a_run_into_an_earlier_runs_folder_replaces_its_outputs_and_keeps_other_files() {
+    let _serial = serial();
+    let dir = scratch("reuse");
+    let out = dir.join("run");
+    let o = out.to_str().unwrap();
+    let bus = bus_id("reuse");
+    let first = ["run", "--bus", &bus, "--out", o, "--clock", "lockstep"];
+    let o1 = drivelab(
+        &[&first[..], &["--duration", "0.05"]].concat(),
+        Duration::from_secs(120),
+    );
+    assert!(
+        o1.status.success(),
+        "{}",
+        String::from_utf8_lossy(&o1.stderr)
+    );
+    for f in [
+        "speed.png",
+        "plant.exec.hdr",
+        "observer.stats.json",
+        "config/iceoryx2.toml",
+    ] {
+        assert!(out.join(f).is_file(), "the first run wrote no {f}");
+    }
+    std::fs::write(out.join("notes.txt"), "bench conditions").unwrap();
+    // The second run: in one process, without plots or the bus.
+    let second = [
+        "run",
+        "--out",
+        o,
+        "--clock",
+        "inprocess",
+        "--no-plots",
+        "--duration",
+        "0.045",
+    ];
+    let o2 = drivelab(&second, Duration::from_secs(120));
+    assert!(
+        o2.status.success(),
+        "{}",
+        String::from_utf8_lossy(&o2.stderr)
+    );
+    let mut left: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    left.sort();
+    assert_eq!(
+        left,
+        [
+            "notes.txt",
+            "scenario.toml",
+            "summary.json",
+            "topology.json",
+            "trace.csv",
+            "trace.mcap"
+        ],
+        "the earlier run's outputs are gone, the user's file is kept"
+    );
+    assert_eq!(
+        summary(&out)["samples"],
+        450,
+        "the summary is the second run's"
+    );
+    assert_clean(&bus);
+}
+
+#[test]
 fn a_realtime_drive_reports_its_cpu_latency_request() {
     let _serial = serial();
     // Default: a request of 0 µs while the drive runs: held when this user may open the

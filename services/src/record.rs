@@ -81,7 +81,7 @@ fn drain<T: Wire>(
 /// Creates folder `out` with its missing parents; returns the folders it made, outermost
 /// first.
 fn make_folder(out: &std::path::Path) -> Result<Vec<PathBuf>> {
-    crate::launcher::refuse_foreign_folder(out)?;
+    crate::launcher::prepare_run_folder(out)?;
     let mut made = Vec::new();
     let mut d = Some(out);
     while let Some(p) = d.filter(|p| !p.as_os_str().is_empty() && !p.exists()) {

@@ -142,18 +142,57 @@ fn default_out(sc: &Scenario, clock: Clock) -> PathBuf {
 }
 
 /// A run writes some forty files into its folder: it may be new, empty or an earlier run's
-/// (it has `scenario.toml`), never a folder of other files (`--out /`, `--out ~`).
-pub(crate) fn refuse_foreign_folder(out: &Path) -> Result<()> {
-    let Ok(mut entries) = std::fs::read_dir(out) else {
+/// (it has `scenario.toml`), never a folder of other files (`--out /`, `--out ~`). An earlier
+/// run's outputs are removed first, so that none of them (plots after `--no-plots`, a stage
+/// the new topology lacks) passes for the new run's; other files in it are kept.
+pub(crate) fn prepare_run_folder(out: &Path) -> Result<()> {
+    let Ok(entries) = std::fs::read_dir(out) else {
         return Ok(()); // absent (made next), or not a folder (refused when made)
     };
-    if entries.next().is_some() && !out.join("scenario.toml").is_file() {
+    let names: Vec<std::ffi::OsString> = entries.flatten().map(|e| e.file_name()).collect();
+    if names.is_empty() {
+        return Ok(());
+    }
+    if !out.join("scenario.toml").is_file() {
         bail!(
             "run folder {}: not empty and not a run folder (no scenario.toml): give a new or empty folder, or an earlier run's",
             out.display()
         );
     }
+    let earlier = names
+        .iter()
+        .filter_map(|n| n.to_str())
+        .filter(|n| is_run_output(n))
+        .map(|n| out.join(n))
+        .chain([out.join("config").join("iceoryx2.toml")]);
+    for path in earlier.filter(|p| p.is_file()) {
+        std::fs::remove_file(&path).with_context(|| {
+            format!(
+                "run folder {}: cannot remove the earlier run's {}",
+                out.display(),
+                path.display()
+            )
+        })?;
+    }
+    // Its bus configuration's folder, when that leaves it empty (a run on the bus makes it).
+    let _ = std::fs::remove_dir(out.join("config"));
     Ok(())
+}
+
+/// Whether `name` is a file a run writes at the top of its folder.
+fn is_run_output(name: &str) -> bool {
+    const NAMES: &[&str] = &[
+        "scenario.toml",
+        "topology.json",
+        "summary.json",
+        "trace.csv",
+        "trace.mcap",
+        "trace.mcap.part",
+    ];
+    const ENDINGS: &[&str] = &[".hdr", ".hgrm", ".stats.json", ".png", ".svg"];
+    NAMES.contains(&name)
+        || ENDINGS.iter().any(|e| name.ends_with(e))
+        || (name.starts_with("rejoin-") && name.ends_with(".json"))
 }
 
 /// What a run on the bus produced.
@@ -1149,7 +1188,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     let (latency_request, latency_error) = cpu_latency_request(&sc, o)?;
     check_placements(o, &topo)?;
     let out = o.out.clone().unwrap_or_else(|| default_out(&sc, o.clock));
-    refuse_foreign_folder(&out)?;
+    prepare_run_folder(&out)?;
     std::fs::create_dir_all(&out)
         .with_context(|| format!("cannot create run folder {}", out.display()))?;
     let out = out.canonicalize()?;
