@@ -664,6 +664,16 @@ fn plot_and_compare_refuse_a_summary_json_or_scenario_that_is_not_one() {
     let bad_scenario = folder("corrupt-scenario", None);
     std::fs::write(format!("{bad_scenario}/scenario.toml"), "name = [").unwrap();
     let array = folder("array-summary", Some("[1, 2]"));
+    // Figures plot reads, of the wrong type or out of range.
+    let typed = folder("typed-summary", Some(r#"{"rate_hz": "fast"}"#));
+    let faults = folder("faults-summary", Some(r#"{"faults": {"kill": 1}}"#));
+    let rate = folder("rate-summary", Some(r#"{"rate_hz": -10000}"#));
+    // A trace whose rows 2 and 3 are swapped: time runs backwards.
+    let backwards = folder("backwards", None);
+    let text = std::fs::read_to_string(run.join("trace.csv")).unwrap();
+    let mut lines: Vec<&str> = text.lines().collect();
+    lines.swap(2, 3);
+    std::fs::write(format!("{backwards}/trace.csv"), lines.join("\n") + "\n").unwrap();
     let out = d.join("out");
     let o = out.to_str().unwrap();
     let good = run.to_str().unwrap();
@@ -691,6 +701,46 @@ fn plot_and_compare_refuse_a_summary_json_or_scenario_that_is_not_one() {
             &["plot", &array, "--out", o],
             1,
             "array-summary/summary.json: not a run summary",
+        )
+        .leaves_no(out.clone()),
+        case(
+            "plot-typedsum",
+            dir,
+            &["plot", &typed, "--out", o],
+            1,
+            "typed-summary/summary.json: not a run summary: invalid type: string \"fast\", expected f64",
+        )
+        .leaves_no(out.clone()),
+        case(
+            "compare-faultssum",
+            dir,
+            &["compare", good, &faults, "--out", o],
+            1,
+            "faults-summary/summary.json: not a run summary: invalid type: map, expected a sequence",
+        )
+        .leaves_no(out.clone()),
+        case(
+            "plot-ratesum",
+            dir,
+            &["plot", &rate, "--out", o],
+            1,
+            "rate-summary/summary.json: not a run summary: rate_hz = -10000 is not a rate in Hz",
+        )
+        .leaves_no(out.clone()),
+        case(
+            "plot-backwards",
+            dir,
+            &["plot", &backwards, "--out", o],
+            1,
+            "backwards/trace.csv: row 3 (k = 1, t = 0.0001 s) does not come after the row before it (k = 2, t = 0.0002 s): a trace runs forward",
+        )
+        .leaves_no(out.clone()),
+        case(
+            "compare-backwards",
+            dir,
+            &["compare", good, &backwards, "--out", o],
+            1,
+            "a trace runs forward",
         )
         .leaves_no(out.clone()),
         case(

@@ -42,13 +42,41 @@ fn parse_window(w: &str) -> Result<(f64, f64)> {
     Ok((a, b))
 }
 
-/// The summary.json of run folder `run`, or `Null` when the folder has none (plot and
-/// compare work from trace.csv and do without it). One that is there but cannot be read, is
-/// not JSON or is not a JSON object is an error naming the file, as in `drivelab export`.
-pub fn summary_if_any(run: &Path) -> Result<serde_json::Value> {
+/// The figures of a run's `summary.json` that plot reads: each may be absent or null (a run
+/// exported or recorded before it existed), but one that is there has its type.
+#[derive(Debug, Default, serde::Deserialize)]
+pub struct SummaryView {
+    scenario: Option<String>,
+    clock: Option<String>,
+    rate_hz: Option<f64>,
+    faults: Option<Vec<FaultView>>,
+}
+
+/// One entry of `summary.json` → `faults`, as plot shades it.
+#[derive(Debug, serde::Deserialize)]
+struct FaultView {
+    injected_t_s: Option<f64>,
+    speed_recovered_ms: Option<f64>,
+    republished_ms: Option<f64>,
+    fault: Option<String>,
+    service: Option<String>,
+}
+
+impl SummaryView {
+    /// The sample time in µs (10 kHz when the summary does not say).
+    fn ts_us(&self) -> f64 {
+        1e6 / self.rate_hz.unwrap_or(10_000.0)
+    }
+}
+
+/// The summary.json of run folder `run`, or the empty view when the folder has none (plot
+/// and compare work from trace.csv and do without it). One that is there but cannot be read,
+/// is not JSON, is not a JSON object, or has a figure plot reads of the wrong type or out of
+/// range is an error naming the file, as in `drivelab export`.
+pub fn summary_if_any(run: &Path) -> Result<SummaryView> {
     let path = run.join("summary.json");
     let bytes = match std::fs::read(&path) {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(serde_json::Value::Null),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(SummaryView::default()),
         r => r.with_context(|| format!("cannot read {}", path.display()))?,
     };
     let v: serde_json::Value =
@@ -59,7 +87,15 @@ pub fn summary_if_any(run: &Path) -> Result<serde_json::Value> {
             path.display()
         );
     }
-    Ok(v)
+    let view: SummaryView = serde_json::from_value(v)
+        .with_context(|| format!("{}: not a run summary", path.display()))?;
+    if let Some(hz) = view.rate_hz.filter(|hz| !(hz.is_finite() && *hz > 0.0)) {
+        bail!(
+            "{}: not a run summary: rate_hz = {hz} is not a rate in Hz",
+            path.display()
+        );
+    }
+    Ok(view)
 }
 
 /// The scenario.toml of run folder `run` (the figures' current and voltage limit lines), or
@@ -109,26 +145,20 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
     let scenario = scenario_if_any(&a.run)?;
     let out = a.out.clone().unwrap_or_else(|| a.run.clone());
     std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
-    let windows = summary["faults"]
-        .as_array()
-        .map(|f| {
-            f.iter()
-                .filter_map(|x| {
-                    let t0 = x["injected_t_s"].as_f64()?;
-                    let dur = x["speed_recovered_ms"]
-                        .as_f64()
-                        .or(x["republished_ms"].as_f64())
-                        .unwrap_or(200.0)
-                        * 1e-3;
-                    Some((
-                        t0,
-                        t0 + dur,
-                        format!("{} {}", x["fault"].as_str()?, x["service"].as_str()?),
-                    ))
-                })
-                .collect()
+    let windows = summary
+        .faults
+        .iter()
+        .flatten()
+        .filter_map(|x| {
+            let t0 = x.injected_t_s?;
+            let dur = x.speed_recovered_ms.or(x.republished_ms).unwrap_or(200.0) * 1e-3;
+            Some((
+                t0,
+                t0 + dur,
+                format!("{} {}", x.fault.as_deref()?, x.service.as_deref()?),
+            ))
         })
-        .unwrap_or_default();
+        .collect();
     let opts = drivelab_tools::plot::TraceFigureOptions {
         window_s,
         current_limit_a: scenario.as_ref().map(|s| s.i_q_max()),
@@ -136,8 +166,8 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
         shaded_windows: windows,
         title: format!(
             "{} ({})",
-            summary["scenario"].as_str().unwrap_or("run"),
-            summary["clock"].as_str().unwrap_or("?")
+            summary.scenario.as_deref().unwrap_or("run"),
+            summary.clock.as_deref().unwrap_or("?")
         ),
     };
     let mut files = drivelab_tools::plot::plot_trace(&rows, &out, &opts)?;
@@ -165,8 +195,7 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
         }
     }
     if !curves.is_empty() {
-        let rate = summary["rate_hz"].as_f64().unwrap_or(10_000.0);
-        let ts_us = 1e6 / rate;
+        let ts_us = summary.ts_us();
         files.extend(drivelab_tools::plot::plot_percentiles(
             &curves,
             "latency percentiles",
@@ -181,7 +210,7 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
 /// The plant's cycle latency second by second (`/services` of `trace.mcap`).
 fn latency_per_second(
     seconds: &[serde_json::Value],
-    summary: &serde_json::Value,
+    summary: &SummaryView,
     out: &std::path::Path,
 ) -> Result<Vec<PathBuf>> {
     let plant = seconds.iter().filter(|s| s["service"] == "plant");
@@ -204,7 +233,7 @@ fn latency_per_second(
         // No cycle latency (lockstep or an exported run): no figure.
         return Ok(Vec::new());
     }
-    let ts_us = 1e6 / summary["rate_hz"].as_f64().unwrap_or(10_000.0);
+    let ts_us = summary.ts_us();
     drivelab_tools::plot::plot_lines(
         &series,
         "cycle latency of each second (trace.mcap, /services)",

@@ -97,9 +97,31 @@ impl CsvTrace {
 pub fn read_csv(path: &std::path::Path) -> anyhow::Result<Vec<TraceRow>> {
     let mut r = csv::Reader::from_path(path)
         .map_err(|e| anyhow::anyhow!("cannot read {}: {e}", path.display()))?;
-    let mut rows = Vec::new();
-    for rec in r.deserialize() {
-        rows.push(rec.map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?);
+    let mut rows: Vec<TraceRow> = Vec::new();
+    for (i, rec) in r.deserialize().enumerate() {
+        let row: TraceRow = rec.map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        // A trace runs forward: each row a later sample at a later time (gaps allowed).
+        if !row.t.is_finite() {
+            anyhow::bail!(
+                "{}: row {} (k = {}): time t = {} is not a number of seconds",
+                path.display(),
+                i + 1,
+                row.k,
+                row.t
+            );
+        }
+        if let Some(prev) = rows.last().filter(|p| row.k <= p.k || row.t <= p.t) {
+            anyhow::bail!(
+                "{}: row {} (k = {}, t = {} s) does not come after the row before it (k = {}, t = {} s): a trace runs forward",
+                path.display(),
+                i + 1,
+                row.k,
+                row.t,
+                prev.k,
+                prev.t
+            );
+        }
+        rows.push(row);
     }
     Ok(rows)
 }
