@@ -802,7 +802,12 @@ pub fn run_uds_chain(spec: &ChainSpec, exe: &Path, workdir: &Path) -> Result<Var
     read_plant_file(&out)
 }
 
-/// Runs the four roles as threads of this process over the same sockets (tests; no RT).
+/// SCHED_FIFO priority of the threads of [`run_chain_threads`].
+#[cfg(test)]
+const THREAD_CHAIN_PRIORITY: u8 = 50;
+
+/// Runs the four roles as threads of this process over the same sockets (tests; SCHED_FIFO
+/// where allowed, not pinned).
 #[cfg(test)]
 pub(crate) fn run_chain_threads(
     sc: &Scenario,
@@ -812,12 +817,19 @@ pub(crate) fn run_chain_threads(
     let sock = SockDir::create("drivelab-udst")?;
     // The hosts' stop condition must outlive them: one flag per run, leaked (tests only).
     let stop: &'static AtomicBool = Box::leak(Box::new(AtomicBool::new(false)));
+    // SCHED_FIFO where this user may have it (a warning where not): the chain's rows compare
+    // only up to its first miss, and threads that a busy machine (a parallel build, the other
+    // tests) preempts for a sample time miss early.
+    let node = NodeSpec {
+        core: None,
+        priority: Some(THREAD_CHAIN_PRIORITY),
+    };
     let ctx = |role| RoleCtx {
         role,
         dir: &sock.path,
         sc,
         seconds,
-        node: NodeSpec::default(),
+        node,
         lock_memory: false,
         stop,
         announce: false,
