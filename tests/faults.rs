@@ -629,6 +629,62 @@ fn in_lockstep_a_service_that_dies_without_a_fault_ends_the_run_with_one_line() 
 }
 
 #[test]
+fn in_real_time_a_process_that_dies_without_a_fault_is_restarted_and_counted_as_a_crash() {
+    let _serial = serial();
+    let dir = scratch("rtcrash");
+    let bus = bus_id("rtcrash");
+    let out = dir.join("run");
+    let child = Drive::start(
+        &bus,
+        &out,
+        &["--duration", "1", "--fault", "kill:speed-loop@0.8"],
+    );
+    wait_for_progress(&bus, 2000);
+    // A crash, not an injected fault: SIGKILL from outside the supervisor.
+    let pid = process_pid(&bus, "observer");
+    // SAFETY: SIGKILL to a process of this test's own drive.
+    unsafe { libc::kill(pid, libc::SIGKILL) };
+    let o = wait(child, Duration::from_secs(60), "the real-time drive");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(0), "{err}");
+    assert_clean(&bus);
+    let s = summary(&out);
+    // The crash is counted, the injected kill is not; both processes were restarted.
+    assert_eq!(s["crashes"], 1, "{}", s["supervisor_events"]);
+    assert_eq!(
+        events_of(&s, "observer"),
+        ["exited", "restarted", "ready"],
+        "{s}"
+    );
+    let warning: Vec<&str> = err
+        .lines()
+        .filter(|l| l.contains("without an injected fault"))
+        .collect();
+    assert_eq!(
+        warning,
+        ["drivelab: warning: 1 process exit without an injected fault (observer); see summary.json → supervisor_events"],
+        "{err}"
+    );
+    let o = drivelab(&[
+        "run",
+        "--bus",
+        &bus,
+        "--out",
+        out.to_str().unwrap(),
+        "--no-plots",
+        "--duration",
+        "0.3",
+        "--fault",
+        "kill:observer@0.1",
+        "--expect",
+        "crashes == 0",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(summary(&out)["crashes"], 0);
+    assert_clean(&bus);
+}
+
+#[test]
 fn a_passive_load_never_drives_the_motor_backwards_when_the_speed_loop_dies() {
     let _serial = serial();
     // Lowest speed after the speed loop died (the current loop then ramps i_q* to zero).

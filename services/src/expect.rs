@@ -27,6 +27,7 @@ pub const FIGURES: &[&str] = &[
     "samples_missing",
     "metrics",
     "faults",
+    "crashes",
     "latency_us",
     "budget",
     "counters",

@@ -977,6 +977,28 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 if let Some(w) = launcher::rate_warning(s, o.clock == Clock::Realtime) {
                     drivelab_services::errln!("drivelab: warning: {w}");
                 }
+                // A process that died without an injected kill, even if restarted.
+                if let Some(n) = s["crashes"].as_u64().filter(|&n| n > 0) {
+                    let mut who: Vec<&str> = s["supervisor_events"]
+                        .as_array()
+                        .into_iter()
+                        .flatten()
+                        .filter(|e| {
+                            e["event"] == "exited"
+                                && e["detail"]
+                                    .as_str()
+                                    .is_some_and(|d| d.ends_with("not injected"))
+                        })
+                        .filter_map(|e| e["process"].as_str())
+                        .collect();
+                    who.sort_unstable();
+                    who.dedup();
+                    drivelab_services::errln!(
+                        "drivelab: warning: {n} process {} without an injected fault ({}); see summary.json → supervisor_events",
+                        if n == 1 { "exit" } else { "exits" },
+                        who.join(", ")
+                    );
+                }
                 // A fault asked for and not made (refused, or the drive ended first).
                 for e in s["supervisor_events"].as_array().into_iter().flatten() {
                     if e["event"] == "inject-refused" {

@@ -1330,6 +1330,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         "metrics": metrics,
         "missing_samples": gaps,
         "faults": faults,
+        // Process exits that were not an injected kill's: zero in a sound drive, whatever the
+        // restarts made of them (`--expect "crashes == 0"`).
+        "crashes": supervisor::crashes(&events),
         "supervisor_events": events,
         "design": design,
         "wall_time_s": wall_s,

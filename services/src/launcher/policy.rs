@@ -300,6 +300,11 @@ impl Life {
         Some(d)
     }
 
+    /// A kill was injected and its death not yet handled: the next exit is that death.
+    pub fn kill_pending(&self) -> bool {
+        self.kill_pending
+    }
+
     /// Its restart is due at `now` (its time included).
     pub fn restart_due(&self, now: Instant) -> bool {
         matches!(self.state, State::RestartPending { at } if now >= at)

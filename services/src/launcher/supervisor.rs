@@ -50,6 +50,8 @@ pub enum EventKind {
     Exited {
         /// Its exit status.
         status: ExitStatus,
+        /// Not the death of an injected kill: a crash (`summary.json` → `crashes`).
+        crash: bool,
     },
     /// The stale resources of dead iceoryx2 nodes were removed.
     Reaped {
@@ -139,7 +141,9 @@ impl EventKind {
             Self::InjectSkipped => "its process is not running".into(),
             Self::Simulated { spec } => format!("{spec}, simulated at its sample"),
             Self::Resume => "SIGCONT".into(),
-            Self::Exited { status } => format!("{status}"),
+            Self::Exited { status, crash } => {
+                format!("{status}{}", if *crash { ", not injected" } else { "" })
+            }
             Self::Reaped { nodes } => {
                 format!("dead iceoryx2 nodes cleaned: {}", nodes.join(", "))
             }
@@ -166,6 +170,14 @@ pub struct SupEvent {
     pub service: String,
     /// The process concerned; "-" for the bus.
     pub process: String,
+}
+
+/// Process exits in `events` that were not the death of an injected kill: crashes.
+pub fn crashes(events: &[SupEvent]) -> usize {
+    events
+        .iter()
+        .filter(|e| matches!(e.kind, EventKind::Exited { crash: true, .. }))
+        .count()
 }
 
 /// A [`SupEvent`] as written to `summary.json` → `supervisor_events`.
@@ -428,7 +440,8 @@ pub(super) fn supervise(
             any_dead |= !st.success();
             let n = c.proc.name.clone();
             if !st.success() {
-                log(events, EventKind::Exited { status: st }, &n, &n);
+                let crash = !c.life.kill_pending();
+                log(events, EventKind::Exited { status: st, crash }, &n, &n);
             }
             // A ready twin has taken over already (it watches the dead one's lease): it is
             // the process now, and a new twin is started when the policy would restart. A
@@ -849,6 +862,7 @@ mod tests {
                 13,
                 EventKind::Exited {
                     status: ExitStatus::from_raw(9),
+                    crash: false,
                 },
                 cl,
                 cl,
@@ -898,6 +912,7 @@ mod tests {
         };
         let exited = EventKind::Exited {
             status: ExitStatus::from_raw(9),
+            crash: false,
         };
         let events = [
             ev(1.0, 10, kill(), "plant", "plant"),
@@ -1035,9 +1050,18 @@ mod tests {
             (
                 EventKind::Exited {
                     status: ExitStatus::from_raw(9),
+                    crash: false,
                 },
                 "exited",
                 "signal: 9 (SIGKILL)",
+            ),
+            (
+                EventKind::Exited {
+                    status: ExitStatus::from_raw(11),
+                    crash: true,
+                },
+                "exited",
+                "signal: 11 (SIGSEGV), not injected",
             ),
             (
                 EventKind::Reaped {
