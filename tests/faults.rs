@@ -665,20 +665,15 @@ fn in_real_time_a_process_that_dies_without_a_fault_is_restarted_and_counted_as_
         ["drivelab: warning: 1 process exit without an injected fault (observer); see summary.json → supervisor_events"],
         "{err}"
     );
-    let o = drivelab(&[
-        "run",
-        "--bus",
-        &bus,
-        "--out",
-        out.to_str().unwrap(),
-        "--no-plots",
+    let again = [
         "--duration",
         "0.3",
         "--fault",
         "kill:observer@0.1",
         "--expect",
         "crashes == 0",
-    ]);
+    ];
+    let o = drivelab(&[&run_args(&bus, &out)[..], &again].concat());
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert_eq!(summary(&out)["crashes"], 0);
     assert_clean(&bus);
