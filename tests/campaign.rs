@@ -241,6 +241,9 @@ fn the_smoke_campaign_reports_every_run_in_json_markdown_and_junit() {
             .find(|x| x["expect"] == "peak_current_a <= 3.2")
             .unwrap_or_else(|| panic!("no current expectation: {r}"));
         assert_eq!(current["pass"], true, "{r}");
+        // No process died but by the injected kill, whatever the load.
+        let crashes = e.iter().find(|x| x["expect"] == "crashes == 0");
+        assert_eq!(crashes.map(|x| &x["pass"]), Some(&Value::Bool(true)), "{r}");
         // Each fault expectation was evaluated on the run's one fault, not on nothing.
         let n_faults = r["faults"].as_array().unwrap().len();
         for x in e.iter().filter(|x| {
@@ -260,7 +263,7 @@ fn the_smoke_campaign_reports_every_run_in_json_markdown_and_junit() {
         // The run's own summary says the same as the campaign: each expectation's verdict,
         // re-counted here from its values.
         let e = s["expectations"].as_array().unwrap();
-        assert_eq!(e.len(), 3, "the campaign's three expectations");
+        assert_eq!(e.len(), 4, "the campaign's four expectations");
         let failed = e.iter().filter(|x| x["pass"] == false).count();
         for x in e {
             let values = x["values"].as_array().unwrap();
