@@ -987,7 +987,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                             e["event"] == "exited"
                                 && e["detail"]
                                     .as_str()
-                                    .is_some_and(|d| d.ends_with("not injected"))
+                                    .is_some_and(|d| d.ends_with(launcher::NOT_INJECTED))
                         })
                         .filter_map(|e| e["process"].as_str())
                         .collect();

@@ -17,7 +17,9 @@ mod trip;
 pub use bridge::ZenohListen;
 pub use recorder::Gap;
 pub(crate) use spawn::die_with_launcher;
-pub use supervisor::{fault_reports, speed_recovered, EventKind, FaultReport, PlantDown, SupEvent};
+pub use supervisor::{
+    fault_reports, speed_recovered, EventKind, FaultReport, PlantDown, SupEvent, NOT_INJECTED,
+};
 
 use crate::common::BusClock;
 use anyhow::{anyhow, bail, Context, Result};

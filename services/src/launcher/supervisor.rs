@@ -142,7 +142,7 @@ impl EventKind {
             Self::Simulated { spec } => format!("{spec}, simulated at its sample"),
             Self::Resume => "SIGCONT".into(),
             Self::Exited { status, crash } => {
-                format!("{status}{}", if *crash { ", not injected" } else { "" })
+                format!("{status}{}", if *crash { NOT_INJECTED } else { "" })
             }
             Self::Reaped { nodes } => {
                 format!("dead iceoryx2 nodes cleaned: {}", nodes.join(", "))
@@ -171,6 +171,9 @@ pub struct SupEvent {
     /// The process concerned; "-" for the bus.
     pub process: String,
 }
+
+/// How the detail of an `exited` event that was a crash ends.
+pub const NOT_INJECTED: &str = ", not injected";
 
 /// Process exits in `events` that were not the death of an injected kill: crashes.
 pub fn crashes(events: &[SupEvent]) -> usize {
