@@ -346,4 +346,8 @@ fn a_delay_is_accepted_in_lockstep_and_changes_nothing_in_the_trace() {
         f["deadline_misses"].is_null() && f["cycle_latency_max_us"].is_null(),
         "{f}"
     );
+    // Nothing saw it: no detection, and the outputs were never interrupted.
+    assert!(f["detected_data_path_ms"].is_null(), "{f}");
+    assert_eq!(f["republished_ms"], 0.0, "{f}");
+    assert_eq!(f["stale_command_samples"], 0, "{f}");
 }

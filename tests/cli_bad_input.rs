@@ -313,8 +313,8 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             "fault-stop",
             dir,
             &["fault", "stop", "plant", "--bus", "{bus}", "--duration-s", "-1"],
-            1,
-            "--duration-s -1: a stop lasts 0.001 to 60 s",
+            2,
+            "invalid value '-1' for '--duration-s <SECONDS>': a stop lasts 0.001 to 60 s",
         ),
         case(
             "fault-kill-duration",

@@ -45,6 +45,16 @@ fn a_killed_current_loop_is_absent_for_the_restart_then_rejoins_the_same_every_t
         command_loss(&rows),
         [ks(500..900), ks(501..901), ks(504..901)]
     );
+    // The commands the trace lacks are listed, with the fault as their cause.
+    let gaps = s["missing_samples"].as_array().unwrap();
+    assert_eq!(gaps.len(), 1, "{gaps:?}");
+    assert_eq!(
+        (gaps[0]["from"].as_u64(), gaps[0]["to"].as_u64()),
+        (Some(500), Some(899))
+    );
+    assert_eq!(gaps[0]["part"], "command");
+    let cause = gaps[0]["cause"].as_str().unwrap();
+    assert!(cause.contains("kill:current-loop@0.05"), "{cause}");
     let f = &s["faults"][0];
     assert_eq!(f["fault"], "kill:current-loop@0.05", "{f}");
     assert_eq!(f["service"], "current-loop", "{f}");

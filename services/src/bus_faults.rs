@@ -179,6 +179,7 @@ pub fn reports(
     let producer =
         |t: drivelab_runtime::stage::TopicId| topo.producers.iter().find(|p| p.topic == t);
     let divider = |t| producer(t).map_or(1, |p| p.divider);
+    let slowest = topo.producers.iter().map(|p| p.divider).max().unwrap_or(1);
     let mut out = Vec::new();
     let mut windows = Vec::new();
     for (n, i) in sc.inject.iter().enumerate() {
@@ -197,31 +198,24 @@ pub fn reports(
             r.plant_flags & (FLAG_STALE_CMD | FLAG_SAFE_STATE) != 0
                 || r.ctrl_flags & (FLAG_STALE_INPUT | FLAG_MISSING) != 0
         };
-        let det = after.iter().find(|r| disturbed(r)).map(|r| {
-            let by = if r.plant_flags & (FLAG_STALE_CMD | FLAG_SAFE_STATE) != 0 {
-                "plant"
-            } else if r.ctrl_flags & FLAG_MISSING != 0 {
-                "recorder (no usable command)"
-            } else {
-                "current-loop"
-            };
-            (r.k, by.to_string())
-        });
-        // Fresh again: the first undisturbed sample after the window and the detection.
-        let k_det = det.as_ref().map_or(a.from_k, |d| d.0);
-        let fresh = after
+        // A fault shows within its window, or within a slow producer's period or two after
+        // it (a lost message of a stage that steps every N-th sample); a disturbance after
+        // that belongs to something else.
+        let shows_by = a.to_k + 2 * slowest + 2;
+        let det = after
             .iter()
-            .find(|r| r.k >= a.to_k && r.k > k_det && !disturbed(r))
-            .map(|r| r.k);
-        let tail: Vec<&TraceRow> = after
-            .iter()
-            .filter(|r| fresh.is_some_and(|f| r.k >= f))
-            .collect();
-        let rec = crate::launcher::speed_recovered(sc, &tail);
-        let k_end = rec.or(fresh).unwrap_or(a.to_k + (0.2 * fs) as u64);
-        windows.push((a.from_k as f64 / fs, k_end as f64 / fs, i.spec()));
-        let span: Vec<&TraceRow> = after.iter().take_while(|r| r.k <= k_end).collect();
-        let count = |f: &dyn Fn(&TraceRow) -> bool| span.iter().filter(|r| f(r)).count() as u64;
+            .take_while(|r| r.k < shows_by)
+            .find(|r| disturbed(r))
+            .map(|r| {
+                let by = if r.plant_flags & (FLAG_STALE_CMD | FLAG_SAFE_STATE) != 0 {
+                    "plant"
+                } else if r.ctrl_flags & FLAG_MISSING != 0 {
+                    "recorder (no usable command)"
+                } else {
+                    "current-loop"
+                };
+                (r.k, by.to_string())
+            });
         let obs = |field: &str| -> Vec<(String, u64)> {
             counters
                 .and_then(|c| c.as_object())
@@ -234,15 +228,39 @@ pub fn reports(
                 })
                 .unwrap_or_default()
         };
-        let rejected: Vec<(String, u64)> = obs("rejected");
         let plant = |field: &str| {
             obs(field)
                 .into_iter()
                 .find(|(st, _)| st == "plant")
                 .map(|x| x.1)
         };
-        // Only a real-time plant waits for commands at deadlines.
+        // Only a real-time plant waits for commands at deadlines; it counts a late one as a
+        // miss even when the command is there by the time it wakes (no trace row shows it).
         let realtime_delay = i.kind == InjectKind::Delay && plant("cycles").is_some_and(|c| c > 0);
+        let late = realtime_delay && plant("misses").is_some_and(|m| m > 0);
+        // Fresh again: the first undisturbed sample after the window and the detection; a
+        // fault nothing saw (a delay in lockstep, a lost message a stage did not need) never
+        // interrupted the outputs: fresh from its first sample (0 ms).
+        let fresh = match &det {
+            None if !late => after.first().map(|r| r.k),
+            _ => {
+                let k_det = det.as_ref().map_or(a.from_k, |d| d.0);
+                after
+                    .iter()
+                    .find(|r| r.k >= a.to_k && r.k > k_det && !disturbed(r))
+                    .map(|r| r.k)
+            }
+        };
+        let tail: Vec<&TraceRow> = after
+            .iter()
+            .filter(|r| fresh.is_some_and(|f| r.k >= f))
+            .collect();
+        let rec = crate::launcher::speed_recovered(sc, &tail);
+        let k_end = rec.or(fresh).unwrap_or(a.to_k + (0.2 * fs) as u64);
+        windows.push((a.from_k as f64 / fs, k_end as f64 / fs, i.spec()));
+        let span: Vec<&TraceRow> = after.iter().take_while(|r| r.k <= k_end).collect();
+        let count = |f: &dyn Fn(&TraceRow) -> bool| span.iter().filter(|r| f(r)).count() as u64;
+        let rejected: Vec<(String, u64)> = obs("rejected");
         out.push(FaultReport {
             fault: i.spec(),
             service: stage,
@@ -464,6 +482,28 @@ mod tests {
             (Some(7), Some(250.0))
         );
         assert_eq!(b.rejected_inputs, None);
+        // A fault nothing saw never interrupted the outputs (0 ms), and a disturbance well
+        // after its window (here 100 samples later) is not its detection.
+        let quiet: Vec<TraceRow> = (0..200)
+            .map(|k| TraceRow {
+                k,
+                t: k as f64 * 1e-4,
+                omega_m: 70.0,
+                plant_flags: if (120..123).contains(&k) {
+                    FLAG_STALE_CMD
+                } else {
+                    0
+                },
+                ..Default::default()
+            })
+            .collect();
+        let (r, _) = reports(&sc, &topo, &quiet, None);
+        for f in &r {
+            assert_eq!(f.detected_data_path_ms, None, "{f:?}");
+            assert_eq!(f.republished_ms, Some(0.0), "{f:?}");
+            let b = f.bus.as_ref().unwrap();
+            assert_eq!(b.stale_command_samples, 0, "{f:?}");
+        }
         // In process: no counters, no counts from them.
         let (r, _) = reports(&sc, &topo, &rows, None);
         let b = r[0].bus.as_ref().unwrap();

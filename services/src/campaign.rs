@@ -26,7 +26,10 @@ pub struct CampaignArgs {
     /// Draw each run's plots (slower; off by default).
     #[arg(long)]
     pub plots: bool,
-    /// Do not pin, raise priority or lock memory in the runs.
+    /// Do not pin, raise priority or lock memory in the runs: for a machine without the
+    /// privilege. Real-time runs then compete with every other task and can miss most of
+    /// their deadlines, so expectations on currents or misses may fail; lockstep runs are
+    /// unaffected.
     #[arg(long)]
     pub no_rt: bool,
     /// Print the campaign report as JSON on stdout instead of the table.

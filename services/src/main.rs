@@ -80,8 +80,8 @@ enum Cmd {
         /// simulate them at their sample (see --lockstep-restart-ms).
         /// hog:CPU@SECONDS:DURATION:PRIO (a SCHED_FIFO busy loop pinned to CPU): realtime only.
         /// Applied by sample index in every clock: delay:STAGE@SECONDS:DURATION:LATENCY (the
-        /// stage's outputs published LATENCY late, e.g. 200us or 0.3ms; felt in real time
-        /// only), drop:TOPIC@SECONDS:N (N messages not published), corrupt:TOPIC@SECONDS:N (N
+        /// stage's every step in the window takes LATENCY longer, e.g. 200us or 0.3ms; felt in
+        /// real time only, and a LATENCY above the sample time makes the stage fall behind), drop:TOPIC@SECONDS:N (N messages not published), corrupt:TOPIC@SECONDS:N (N
         /// messages with NaN and 1e30), encoder-stuck@SECONDS:DURATION (the encoder reading
         /// frozen), current-offset:PHASE@SECONDS:AMPS (phase a, b or c measured with an offset
         /// in A, to the end of the run). SECONDS and DURATION are seconds of simulated time (in real time the run's own clock).
@@ -232,7 +232,7 @@ enum Cmd {
     ///
     /// Examples:
     ///   drivelab campaign campaigns/smoke.toml --out runs/smoke
-    ///   drivelab campaign campaigns/thorough.toml --no-rt
+    ///   drivelab campaign campaigns/thorough.toml --out runs/thorough   # 123 runs, ~2.5 min
     #[command(verbatim_doc_comment)]
     Campaign(drivelab_services::campaign::CampaignArgs),
     /// Inject a fault into a drive that is already running (found by its bus id). The
@@ -256,7 +256,7 @@ enum Cmd {
         drive: DriveArgs,
         /// For stop: seconds before SIGCONT (0.001 to 60; default 0.05). A kill takes
         /// none: the stage stays dead until the supervisor restarts it.
-        #[arg(long, alias = "duration", value_name = "SECONDS")]
+        #[arg(long, alias = "duration", value_name = "SECONDS", value_parser = stop_s)]
         duration_s: Option<f64>,
     },
     /// Watch a running drive live in the terminal: per-stage state, rate, wake-up
@@ -629,6 +629,15 @@ fn refresh_ms(v: &str) -> Result<u64, String> {
 /// `monitor --stop-ms`: the bounds of a stop fault.
 fn stop_ms(v: &str) -> Result<u32, String> {
     whole_in(v, 1, 60_000, " ms").map(|x| x as u32)
+}
+
+/// `fault stop --duration-s`: the bounds of a stop, both included.
+fn stop_s(v: &str) -> Result<f64, String> {
+    use drivelab_services::faults::{STOP_MAX_S, STOP_MIN_S};
+    match v.trim().parse::<f64>() {
+        Ok(x) if (STOP_MIN_S..=STOP_MAX_S).contains(&x) => Ok(x),
+        _ => Err(format!("a stop lasts {STOP_MIN_S} to {STOP_MAX_S} s")),
+    }
 }
 
 /// `run --duration`: the scenario's own bounds on its duration.
@@ -1183,8 +1192,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             duration_s,
         } => {
             let target = target(drive)?;
-            // Bounded before anything is sent, as in the monitor.
-            use drivelab_services::faults::{STOP_MAX_S, STOP_MIN_S};
+            // Bounded before anything is sent (`stop_s`), as in the monitor.
             if kind == "kill" {
                 if let Some(d) = duration_s {
                     anyhow::bail!(
@@ -1193,11 +1201,6 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 }
             }
             let duration_s = duration_s.unwrap_or(0.05);
-            if !(STOP_MIN_S..=STOP_MAX_S).contains(&duration_s) {
-                anyhow::bail!(
-                    "--duration-s {duration_s}: a stop lasts {STOP_MIN_S} to {STOP_MAX_S} s"
-                );
-            }
             let kind = if kind == "kill" {
                 drivelab_runtime::telemetry::FAULT_KILL
             } else {

@@ -588,7 +588,7 @@ pub fn same_trace_in_every_run(tag: &str, extra: &[&str]) -> (PathBuf, Value) {
     };
     let (a, sa) = run_ok(&format!("{tag}a"), &args("lockstep"));
     let (b, _) = run_ok(&format!("{tag}b"), &args("lockstep"));
-    let (p, _) = run_ok(&format!("{tag}p"), &args("inprocess"));
+    let (p, sp) = run_ok(&format!("{tag}p"), &args("inprocess"));
     let ta = read(&a.join("trace.csv"));
     assert!(
         ta == read(&b.join("trace.csv")),
@@ -597,6 +597,11 @@ pub fn same_trace_in_every_run(tag: &str, extra: &[&str]) -> (PathBuf, Value) {
     assert!(
         ta == read(&p.join("trace.csv")),
         "{extra:?}: lockstep and in-process differ"
+    );
+    // The same rows are missing the same parts for the same reasons in both clocks.
+    assert_eq!(
+        sa["missing_samples"], sp["missing_samples"],
+        "{extra:?}: lockstep and in-process list different missing samples"
     );
     (a, sa)
 }

@@ -114,7 +114,10 @@ pub fn plan(
     for h in &hogs {
         let spec = h.spec();
         if !realtime {
-            bail!("fault {spec}: fault injection needs --clock realtime");
+            bail!(
+                "fault {spec}: a CPU hog needs --clock realtime (it loads a real core; the \
+                 other faults work in every clock)"
+            );
         }
         if !cpus.contains(&h.cpu) {
             bail!(

@@ -1221,21 +1221,22 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
                 &sc,
                 drivelab_runtime::service::stop_requested,
             )?;
-            // Interrupted: the samples not done are one gap to the end (named below).
+            // Rows without a command are listed as the recorder lists them in the other
+            // clocks; interrupted, the samples not done are one gap to the end (named below).
+            let mut gaps = recorder::command_gaps(&rows);
             let done = rows.len() as u64;
             let interrupted = done < sc.samples();
+            if interrupted {
+                gaps.push(Gap {
+                    from: done,
+                    to: sc.samples() - 1,
+                    part: "measurement",
+                    cause: String::new(),
+                });
+            }
             BusRun {
                 rows,
-                gaps: if interrupted {
-                    vec![Gap {
-                        from: done,
-                        to: sc.samples() - 1,
-                        part: "measurement",
-                        cause: String::new(),
-                    }]
-                } else {
-                    Vec::new()
-                },
+                gaps,
                 stats: None,
                 processes: json!({}),
                 info: json!({ "deadline_misses": 0 }),

@@ -28,6 +28,44 @@ pub struct Gap {
     pub cause: String,
 }
 
+/// Adds sample k to `gaps`: it extends the last gap when that one ends at k − 1 with the same
+/// part and cause, else it opens a new one (samples come in order).
+pub(super) fn push_gap(gaps: &mut Vec<Gap>, k: u64, part: &'static str, cause: &str) {
+    if let Some(g) = gaps.last_mut() {
+        if g.part == part && g.to + 1 == k && g.cause == cause {
+            g.to = k;
+            return;
+        }
+    }
+    gaps.push(Gap {
+        from: k,
+        to: k,
+        part,
+        cause: cause.into(),
+    });
+}
+
+/// Why a sample's row has no command (NaN in its command columns, `ctrl_flags` 32).
+pub(super) fn missing_command_cause(plant_down: bool) -> &'static str {
+    if plant_down {
+        "none reached the inverter: the plant was down (sample rebuilt, plant_flags 64)"
+    } else {
+        "current-loop produced no command for this sample"
+    }
+}
+
+/// The command gaps of a finished trace: its rows without a command, each with its cause, as
+/// the recorder lists them while it streams (the in-process drive has no recorder).
+pub(super) fn command_gaps(rows: &[drivelab_runtime::trace::TraceRow]) -> Vec<Gap> {
+    use drivelab_runtime::messages::{FLAG_MISSING, FLAG_PLANT_DOWN};
+    let mut gaps = Vec::new();
+    for r in rows.iter().filter(|r| r.ctrl_flags & FLAG_MISSING != 0) {
+        let down = r.plant_flags & FLAG_PLANT_DOWN != 0;
+        push_gap(&mut gaps, r.k, "command", missing_command_cause(down));
+    }
+    gaps
+}
+
 /// What the recorder shares with the supervisor while the drive runs.
 #[derive(Default)]
 pub(super) struct Progress {
@@ -434,6 +472,29 @@ mod tests {
                 gap(6, 7, "measurement", STOPPED),
             ]
         );
+    }
+
+    #[test]
+    fn a_finished_traces_command_gaps_are_the_ones_the_stream_listed() {
+        // Commands missing at 1-2, 5 and 7, measurements at 3-4 (no row: no command gap).
+        let (rows, gaps) = assemble(
+            TS,
+            &recording(
+                &[true, true, true, false, false, true, true, true],
+                &[true, false, false, true, true, false, true, false],
+            ),
+        );
+        let streamed: Vec<Gap> = gaps.into_iter().filter(|g| g.part == "command").collect();
+        assert_eq!(streamed.len(), 3, "{streamed:?}");
+        assert_eq!(command_gaps(&rows), streamed);
+        // A rebuilt sample (the plant was down) has its own cause.
+        let mut down = rows.clone();
+        let r7 = down.iter_mut().find(|r| r.k == 7).unwrap();
+        r7.plant_flags |= drivelab_runtime::messages::FLAG_PLANT_DOWN;
+        let g = command_gaps(&down);
+        assert_eq!(g.len(), 3, "{g:?}");
+        assert_eq!(g[2].cause, missing_command_cause(true));
+        assert_eq!(command_gaps(&[]), []);
     }
 
     fn report(

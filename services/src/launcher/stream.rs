@@ -5,7 +5,7 @@
 //! plots) every row around each disturbance and reference step and every d-th row between
 //! them, and says so in its summary.
 
-use super::recorder::Gap;
+use super::recorder::{missing_command_cause, push_gap, Gap};
 use anyhow::Result;
 use drivelab_runtime::config::Scenario;
 use drivelab_runtime::drive::trace_row;
@@ -412,11 +412,7 @@ impl TraceStream {
             Some(c) => trace_row(self.ts, m, c),
             None => {
                 let c = drivelab_runtime::drive::missing_command(k);
-                let cause = if m.hdr.flags & FLAG_PLANT_DOWN != 0 {
-                    "none reached the inverter: the plant was down (sample rebuilt, plant_flags 64)"
-                } else {
-                    "current-loop produced no command for this sample"
-                };
+                let cause = missing_command_cause(m.hdr.flags & FLAG_PLANT_DOWN != 0);
                 self.gap(k, "command", cause);
                 trace_row(self.ts, m, &c)
             }
@@ -434,18 +430,7 @@ impl TraceStream {
     }
 
     fn gap(&mut self, k: u64, part: &'static str, cause: &str) {
-        if let Some(g) = self.gaps.last_mut() {
-            if g.part == part && g.to + 1 == k && g.cause == cause {
-                g.to = k;
-                return;
-            }
-        }
-        self.gaps.push(Gap {
-            from: k,
-            to: k,
-            part,
-            cause: cause.into(),
-        });
+        push_gap(&mut self.gaps, k, part, cause);
     }
 }
 
