@@ -7,6 +7,7 @@ mod common;
 
 use common::{assert_clean, bus_id, drivelab, run_ok, scratch, serial, wait_for_services, Drive};
 use std::path::{Path, PathBuf};
+use std::process::Command;
 use std::time::Duration;
 
 fn stderr(o: &std::process::Output) -> String {
@@ -110,6 +111,13 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
     std::fs::create_dir_all(&foreign).unwrap();
     std::fs::write(foreign.join("notes.txt"), "mine\n").unwrap();
     let foreign_s = foreign.to_str().unwrap().to_string();
+    // Configuration files that are not: a FIFO (opening it would wait for a writer for
+    // ever), a device without end, a regular file too large to be one.
+    let fifo = d.join("fifo.toml");
+    let made = Command::new("mkfifo").arg(&fifo).status().unwrap();
+    assert!(made.success());
+    let fifo = fifo.to_str().unwrap().to_string();
+    let big = csv("big.toml", &"#\n".repeat(600_000));
     let o = out.to_str().unwrap();
     let lockstep = ["--clock", "lockstep", "--no-plots"];
     let run_case = |name: &str, extra: &[&str], code: i32, needle: &'static str| {
@@ -188,6 +196,24 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             "'--fault-seed <FAULT_SEED>': must be a whole number from 0 to",
         ),
         run_case("topology", &["--topology", "nosuch"], 1, "unknown topology 'nosuch'"),
+        run_case(
+            "topology-device",
+            &["--topology", "/dev/zero"],
+            1,
+            "topology /dev/zero is not a regular file",
+        ),
+        run_case(
+            "topology-fifo",
+            &["--topology", &fifo],
+            1,
+            "fifo.toml is not a regular file",
+        ),
+        run_case(
+            "scenario-big",
+            &["--scenario", &big],
+            1,
+            "big.toml is larger than 1048576 bytes: not a scenario file",
+        ),
         run_case(
             "fault",
             &["--fault", "kill:plant@nan"],
@@ -369,6 +395,27 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             &["campaign", "/nonexistent.toml", "--out", o],
             1,
             "cannot read campaign /nonexistent.toml",
+        ),
+        case(
+            "campaign-fifo",
+            dir,
+            &["campaign", &fifo, "--out", o],
+            1,
+            "fifo.toml is not a regular file (a campaign is a .toml file)",
+        ),
+        case(
+            "campaign-device",
+            dir,
+            &["campaign", "/dev/zero", "--out", o],
+            1,
+            "campaign /dev/zero is not a regular file (a campaign is a .toml file)",
+        ),
+        case(
+            "campaign-big",
+            dir,
+            &["campaign", &big, "--out", o],
+            1,
+            "is larger than 1048576 bytes: not a campaign file",
         ),
         // observer-error, cdm-design
         case(

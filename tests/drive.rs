@@ -296,9 +296,14 @@ fn malformed_scenario_fails_with_a_clear_message_and_leaves_nothing() {
 }
 
 #[test]
-fn sigint_and_sigterm_stop_the_whole_drive_keep_the_trace_and_clean_up() {
+fn sigint_sigterm_and_sighup_stop_the_whole_drive_keep_the_trace_and_clean_up() {
     let _serial = serial();
-    for (sig, name) in [(libc::SIGINT, "sigint"), (libc::SIGTERM, "sigterm")] {
+    // SIGHUP: the terminal that ran the drive was closed.
+    for (sig, name) in [
+        (libc::SIGINT, "sigint"),
+        (libc::SIGTERM, "sigterm"),
+        (libc::SIGHUP, "sighup"),
+    ] {
         stopped_by(sig, name, "realtime", 30);
     }
     // The in-process clock has no bus, and ran to its end through both signals.
@@ -324,14 +329,17 @@ fn stopped_by(sig: libc::c_int, name: &str, clock: &str, seconds: u64) {
     let o = child.wait_for_exit(Duration::from_secs(30), &format!("drivelab after {name}"));
     let err = String::from_utf8_lossy(&o.stderr).into_owned();
     assert_eq!(o.status.code(), Some(1), "{err}");
-    assert!(err.contains("interrupted"), "{err}");
+    // The signal is named (each test name starts with the signal's name in lower case).
+    let signal = name.split('-').next().unwrap().to_uppercase();
+    let why = format!("interrupted ({signal}): drive stopped");
+    assert!(err.contains(&why), "{err}");
     assert_clean(&bus);
     // Nothing recorded is lost: the trace and the summary are written, the failure is in
     // the summary, and every sample of the run is either in the trace or listed as missing
     // with the reason.
     let s: serde_json::Value = serde_json::from_slice(&read(&out.join("summary.json"))).unwrap();
     assert!(
-        s["failure"].as_str().unwrap().contains("interrupted"),
+        s["failure"].as_str().unwrap().contains(&why),
         "{}",
         s["failure"]
     );

@@ -198,8 +198,8 @@ fn figures(summary: &Value) -> serde_json::Map<String, Value> {
 
 /// Reads the campaign file and expands its matrix.
 fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
-    let text = std::fs::read_to_string(file)
-        .with_context(|| format!("cannot read campaign {}", file.display()))?;
+    let text =
+        drivelab_runtime::config::read_config_file(file, "campaign").map_err(|e| anyhow!(e))?;
     let mut c: CampaignFile = toml::from_str(&text).map_err(|e| {
         anyhow!(
             "campaign {}",

@@ -518,6 +518,7 @@ enum BenchNodeKind {
 }
 
 fn main() -> ExitCode {
+    drivelab_runtime::bus::quiet_iceoryx2_log();
     let cli = match parse_cli() {
         Ok(cli) => cli,
         Err(code) => return code,

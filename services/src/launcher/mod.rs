@@ -1146,12 +1146,18 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
     })
 }
 
-/// Why a run that SIGINT or SIGTERM stopped ended early.
-pub(super) const INTERRUPTED: &str = "interrupted (SIGINT/SIGTERM): drive stopped";
+/// Why a run that a stop signal (SIGINT, SIGTERM, SIGHUP …) stopped ended early.
+pub(super) fn interrupted() -> String {
+    format!(
+        "interrupted ({}): drive stopped",
+        drivelab_runtime::service::stop_signal_name()
+    )
+}
 
 /// Runs a scenario end to end and writes the run folder.
 pub fn run(o: &RunOptions) -> Result<RunResult> {
-    // The launcher stops on SIGINT/SIGTERM the same way the services do.
+    // The launcher stops on a stop signal (SIGINT, SIGTERM, SIGHUP …) the same way the
+    // services do.
     crate::common::install_signal_handlers()?;
     let Prepared {
         sc,
@@ -1225,8 +1231,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             // clocks; interrupted, the samples not done are one gap to the end (named below).
             let mut gaps = recorder::command_gaps(&rows);
             let done = rows.len() as u64;
-            let interrupted = done < sc.samples();
-            if interrupted {
+            let cut_short = done < sc.samples();
+            if cut_short {
                 gaps.push(Gap {
                     from: done,
                     to: sc.samples() - 1,
@@ -1241,7 +1247,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
                 processes: json!({}),
                 info: json!({ "deadline_misses": 0 }),
                 events: Vec::new(),
-                failure: interrupted.then(|| INTERRUPTED.to_string()),
+                failure: cut_short.then(interrupted),
                 hog_latency: Vec::new(),
                 bridge: None,
             }
@@ -1638,17 +1644,13 @@ mod tests {
             gap(50, 99, "measurement"),
             gap(98, 98, "command"),
         ];
-        ended_early(
-            &mut gaps,
-            100,
-            "interrupted (SIGINT/SIGTERM): drive stopped",
-        );
+        ended_early(&mut gaps, 100, "interrupted (SIGTERM): drive stopped");
         let causes: Vec<&str> = gaps.iter().map(|g| g.cause.as_str()).collect();
         assert_eq!(
             causes,
             [
                 "fault",
-                "the run ended early: interrupted (SIGINT/SIGTERM): drive stopped",
+                "the run ended early: interrupted (SIGTERM): drive stopped",
                 "fault"
             ]
         );

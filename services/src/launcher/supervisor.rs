@@ -310,7 +310,7 @@ pub(super) fn supervise(
     };
     'run: loop {
         if crate::common::stop_requested() {
-            return Ok(Some(super::INTERRUPTED.into()));
+            return Ok(Some(super::interrupted()));
         }
         // A split drive whose other machine is gone (see `Bridge::lost`).
         if let Some(why) = link() {

@@ -43,6 +43,15 @@ const MAX_SUBSCRIBERS: usize = 8;
 /// Nodes per topic: the hosts, their twins, the launcher and the tools that attach.
 const MAX_NODES: usize = 16;
 
+/// Sets iceoryx2's own log to errors only, or to the level `IOX2_LOG_LEVEL` names (trace,
+/// debug, info, warn, error, fatal) for debugging. Its warnings are details drivelab reports
+/// in its own words, or noise: when two processes leave the bus at the same moment, one may
+/// see the other's node half removed and say that it found no config file. The level is
+/// process-wide; every `main` that uses the bus calls this first.
+pub fn quiet_iceoryx2_log() {
+    iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Error);
+}
+
 /// Validates a bus id: 1–24 characters of [A-Za-z0-9_].
 pub fn check_bus_id(id: &str) -> Result<()> {
     if id.is_empty() || id.len() > 24 || !id.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')

@@ -1242,8 +1242,7 @@ impl Scenario {
     /// Loads a scenario by name (from the scenarios folder) or by file path.
     pub fn load(name_or_path: &str) -> Result<(Self, PathBuf), String> {
         let path = resolve_scenario_path(name_or_path)?;
-        let text = std::fs::read_to_string(&path)
-            .map_err(|e| format!("cannot read scenario {}: {e}", path.display()))?;
+        let text = read_config_file(&path, "scenario")?;
         Ok((Self::from_toml(&text, &path.display().to_string())?, path))
     }
 
@@ -1665,6 +1664,39 @@ pub fn list_scenarios() -> Vec<(String, PathBuf)> {
 /// rather than a shipped one.
 pub fn names_a_file(name_or_path: &str) -> bool {
     name_or_path.ends_with(".toml") || name_or_path.contains('/')
+}
+
+/// The largest configuration file drivelab reads (a scenario, a topology, a campaign), bytes.
+pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
+
+/// Reads configuration file `path` (`what`: "scenario", "topology", "campaign"). It must be a
+/// regular file of at most [`MAX_CONFIG_BYTES`]: a device, a FIFO or a huge file is one line
+/// instead of a read without end or without a bound.
+pub fn read_config_file(path: &Path, what: &str) -> Result<String, String> {
+    use std::io::Read;
+    let shown = path.display();
+    let meta = std::fs::metadata(path).map_err(|e| format!("cannot read {what} {shown}: {e}"))?;
+    if meta.is_dir() {
+        return Err(format!("{what} {shown} is a folder, not a {what} file"));
+    }
+    if !meta.is_file() {
+        return Err(format!(
+            "{what} {shown} is not a regular file (a {what} is a .toml file)"
+        ));
+    }
+    let too_large =
+        || format!("{what} {shown} is larger than {MAX_CONFIG_BYTES} bytes: not a {what} file");
+    if meta.len() > MAX_CONFIG_BYTES {
+        return Err(too_large());
+    }
+    let mut text = String::new();
+    std::fs::File::open(path)
+        .and_then(|f| f.take(MAX_CONFIG_BYTES + 1).read_to_string(&mut text))
+        .map_err(|e| format!("cannot read {what} {shown}: {e}"))?;
+    if text.len() as u64 > MAX_CONFIG_BYTES {
+        return Err(too_large());
+    }
+    Ok(text)
 }
 
 fn resolve_scenario_path(name_or_path: &str) -> Result<PathBuf, String> {

@@ -652,7 +652,7 @@ impl<T: Transport> Host<T> {
         down
     }
 
-    /// Sets the function that says a stop was requested (SIGINT/SIGTERM).
+    /// Sets the function that says a stop was requested (SIGINT, SIGTERM, SIGHUP …).
     pub fn stop_when(&mut self, f: impl Fn() -> bool + Send + 'static) {
         self.stop = Box::new(f);
     }

@@ -139,14 +139,30 @@ impl TopologyPlan {
 pub type StageFactory = fn(&Scenario) -> Result<Box<dyn Stage>>;
 
 static STOP: AtomicBool = AtomicBool::new(false);
+static STOP_SIGNAL: std::sync::atomic::AtomicI32 = std::sync::atomic::AtomicI32::new(0);
 
-extern "C" fn on_signal(_sig: libc::c_int) {
+/// The signals that stop a drive cleanly (its trace and summary written, its bus removed):
+/// Ctrl-C, a stop request, a closed terminal, Ctrl-\ and the two user signals, whose default
+/// would end the process on the spot.
+pub const STOP_SIGNALS: [(libc::c_int, &str); 6] = [
+    (libc::SIGINT, "SIGINT"),
+    (libc::SIGTERM, "SIGTERM"),
+    (libc::SIGHUP, "SIGHUP"),
+    (libc::SIGQUIT, "SIGQUIT"),
+    (libc::SIGUSR1, "SIGUSR1"),
+    (libc::SIGUSR2, "SIGUSR2"),
+];
+
+extern "C" fn on_signal(sig: libc::c_int) {
+    // The first signal names the stop.
+    let _ = STOP_SIGNAL.compare_exchange(0, sig, Ordering::SeqCst, Ordering::SeqCst);
     STOP.store(true, Ordering::SeqCst);
 }
 
-/// Installs SIGINT/SIGTERM handlers that set the stop flag (iceoryx2's own handling is off).
+/// Installs handlers of the [`STOP_SIGNALS`] that set the stop flag (iceoryx2's own handling
+/// is off).
 pub fn install_signal_handlers() -> Result<()> {
-    for sig in [libc::SIGINT, libc::SIGTERM] {
+    for (sig, _) in STOP_SIGNALS {
         // SAFETY: `sigaction` is given a zero-initialised struct whose handler is an
         // `extern "C"` function that only stores to an atomic, which is async-signal-safe.
         let rc = unsafe {
@@ -171,9 +187,19 @@ pub fn stop_flag() -> &'static AtomicBool {
     &STOP
 }
 
-/// True once SIGINT or SIGTERM arrived.
+/// True once one of the [`STOP_SIGNALS`] arrived.
 pub fn stop_requested() -> bool {
     STOP.load(Ordering::Relaxed)
+}
+
+/// The name of the first stop signal that arrived ("SIGINT" …), or "a stop signal" before
+/// any.
+pub fn stop_signal_name() -> &'static str {
+    let sig = STOP_SIGNAL.load(Ordering::Relaxed);
+    STOP_SIGNALS
+        .iter()
+        .find(|(s, _)| *s == sig)
+        .map_or("a stop signal", |(_, n)| n)
 }
 
 /// Writes one protocol line to stdout (to the launcher) and flushes it.
@@ -207,6 +233,7 @@ pub fn make_stage(
 /// The `main` of a stage host: the built-in stages plus `user`. Prints a one-line error and
 /// exits 1 on failure.
 pub fn host_main(user: &[(&'static str, StageFactory)]) -> std::process::ExitCode {
+    crate::bus::quiet_iceoryx2_log();
     let args = HostArgs::parse();
     if args.check_rt {
         return check_rt(&args);

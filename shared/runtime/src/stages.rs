@@ -484,7 +484,7 @@ pub fn try_run_inprocess(sc: &Scenario) -> anyhow::Result<Vec<crate::trace::Trac
 }
 
 /// [`try_run_inprocess`] that ends early, with the samples done so far, once `stop` says so
-/// (asked once per sample; the launcher passes its SIGINT/SIGTERM flag).
+/// (asked once per sample; the launcher passes its stop-signal flag).
 pub fn try_run_inprocess_until(
     sc: &Scenario,
     stop: impl Fn() -> bool + Send + 'static,

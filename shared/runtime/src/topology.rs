@@ -147,8 +147,7 @@ pub fn load(name_or_path: &str) -> Result<(TopologyFile, PathBuf), String> {
         }
         f
     };
-    let text = std::fs::read_to_string(&path)
-        .map_err(|e| format!("cannot read topology {}: {e}", path.display()))?;
+    let text = crate::config::read_config_file(&path, "topology")?;
     let origin = path.display().to_string();
     let t: TopologyFile =
         toml::from_str(&text).map_err(|e| crate::config::toml_error(&text, &origin, &e))?;
