@@ -554,7 +554,7 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
                 dir,
                 &["record", "--connect", "tcp/127.0.0.1:1", "--out", "/proc/x"],
                 1,
-                "--out /proc/x: cannot create the run folder",
+                "--out /proc/x: cannot create run folder /proc/x",
             ),
             // Nothing recorded: the folders made for it are gone.
             case(

@@ -537,6 +537,82 @@ fn a_run_into_an_earlier_runs_folder_replaces_its_outputs_and_keeps_other_files(
 }
 
 #[test]
+fn a_folder_another_drive_writes_into_is_refused_and_one_it_cannot_replace_is_left_whole() {
+    let _serial = serial();
+    let dir = scratch("busyfolder");
+    let out = dir.join("run");
+    let bus = bus_id("busyfolder");
+    let first = Drive::start(&bus, &out, &["--duration", "2"]);
+    wait_for_progress(&bus, 1000);
+    // A second drive into the same folder while the first writes it: refused in one line,
+    // before it touches anything there.
+    let second = bus_id("busyfolder2");
+    let o = drivelab(
+        &[
+            "run",
+            "--bus",
+            &second,
+            "--clock",
+            "lockstep",
+            "--no-plots",
+            "--duration",
+            "0.05",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        Duration::from_secs(120),
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert_eq!(err.lines().count(), 1, "{err}");
+    assert!(
+        err.contains("another drive is writing into it now; give another --out"),
+        "{err}"
+    );
+    assert_clean(&second);
+    let o = first.wait_for_exit(Duration::from_secs(120), "the first drive");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(summary(&out)["samples"], 20_000);
+    let rows = std::fs::read_to_string(out.join("trace.csv")).unwrap();
+    assert_eq!(
+        rows.lines().count(),
+        20_001,
+        "the first drive's trace is whole"
+    );
+    assert_clean(&bus);
+    // Nobody may write the folder but not its config/ (root's): replacing the earlier run
+    // would fail half-way, so nothing of it is removed.
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(&out, std::fs::Permissions::from_mode(0o777)).unwrap();
+    let before: Vec<_> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    let o = Command::new("/usr/bin/setpriv")
+        .args(["--reuid", "65534", "--regid", "65534", "--clear-groups"])
+        .arg(DRIVELAB)
+        .args(["run", "--bus", &second, "--clock", "lockstep", "--no-plots"])
+        .args(["--duration", "0.05", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("cannot replace the earlier run's files in")
+            && err.contains("config (not writable by this user)"),
+        "{err}"
+    );
+    let after: Vec<_> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert_eq!(before, after, "the earlier run is whole");
+    assert_eq!(summary(&out)["samples"], 20_000);
+    assert_clean(&second);
+}
+
+#[test]
 fn a_realtime_drive_reports_its_cpu_latency_request() {
     let _serial = serial();
     // Default: a request of 0 µs while the drive runs: held when this user may open the

@@ -78,10 +78,10 @@ fn drain<T: Wire>(
     Ok((ended, n))
 }
 
-/// Creates folder `out` with its missing parents; returns the folders it made, outermost
-/// first.
-fn make_folder(out: &std::path::Path) -> Result<Vec<PathBuf>> {
-    crate::launcher::prepare_run_folder(out)?;
+/// Creates folder `out` with its missing parents and claims it
+/// ([`crate::launcher::claim_run_folder`]); returns the folders it made, outermost first, and
+/// the folder's lock.
+fn make_folder(out: &std::path::Path) -> Result<(Vec<PathBuf>, crate::launcher::RunFolderLock)> {
     let mut made = Vec::new();
     let mut d = Some(out);
     while let Some(p) = d.filter(|p| !p.as_os_str().is_empty() && !p.exists()) {
@@ -89,9 +89,9 @@ fn make_folder(out: &std::path::Path) -> Result<Vec<PathBuf>> {
         d = p.parent();
     }
     made.reverse();
-    std::fs::create_dir_all(out)
-        .with_context(|| format!("--out {}: cannot create the run folder", out.display()))?;
-    Ok(made)
+    let lock = crate::launcher::claim_run_folder(out)
+        .with_context(|| format!("--out {}", out.display()))?;
+    Ok((made, lock))
 }
 
 /// Records the remote drive into `o.out`.
@@ -99,7 +99,7 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
     crate::common::install_signal_handlers()?;
     // The run folder first: a bad --out fails at once, not after connecting (which may
     // wait for --wait seconds); when nothing is recorded, the folders made are removed.
-    let made = make_folder(&o.out)?;
+    let (made, _folder) = make_folder(&o.out)?;
     let connected = (|| -> Result<_> {
         let remote = Remote::connect(&o.endpoint, o.bus.as_deref(), o.config.as_deref(), o.wait)?;
         let toml_text = remote.scenario_toml()?;

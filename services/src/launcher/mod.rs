@@ -143,32 +143,49 @@ fn default_out(sc: &Scenario, clock: Clock) -> PathBuf {
     PathBuf::from("runs").join(format!("{}-{:?}-{}", sc.name, clock, secs).to_lowercase())
 }
 
-/// A run writes some forty files into its folder: it may be new, empty or an earlier run's
-/// (it has `scenario.toml`), never a folder of other files (`--out /`, `--out ~`). An earlier
-/// run's outputs are removed first, so that none of them (plots after `--no-plots`, a stage
-/// the new topology lacks) passes for the new run's; other files in it are kept.
-pub(crate) fn prepare_run_folder(out: &Path) -> Result<()> {
-    let Ok(entries) = std::fs::read_dir(out) else {
-        return Ok(()); // absent (made next), or not a folder (refused when made)
-    };
-    let names: Vec<std::ffi::OsString> = entries.flatten().map(|e| e.file_name()).collect();
-    if names.is_empty() {
-        return Ok(());
+/// A run folder this process writes into: an advisory `flock` on the folder, which the kernel
+/// drops when this value drops or the process ends, so that two drives never write into one
+/// folder at the same time (the later one is refused).
+pub(crate) struct RunFolderLock {
+    _dir: std::fs::File,
+}
+
+/// Makes run folder `out` for a run: it may be new, empty or an earlier run's (it has
+/// `scenario.toml`), never a folder of other files (`--out /`, `--out ~`) nor one another
+/// drive is writing into. An earlier run's outputs are removed first, so that none of them
+/// (plots after `--no-plots`, a stage the new topology lacks) passes for the new run's; other
+/// files in it are kept. Nothing is removed unless all of them can be.
+pub(crate) fn claim_run_folder(out: &Path) -> Result<RunFolderLock> {
+    earlier_outputs(out)?;
+    std::fs::create_dir_all(out)
+        .with_context(|| format!("cannot create run folder {}", out.display()))?;
+    let dir = std::fs::File::open(out)
+        .with_context(|| format!("cannot open run folder {}", out.display()))?;
+    use std::os::fd::AsRawFd;
+    // SAFETY: flock on a descriptor this function owns; no memory is passed.
+    if unsafe { libc::flock(dir.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } != 0 {
+        let e = std::io::Error::last_os_error();
+        if e.raw_os_error() == Some(libc::EWOULDBLOCK) {
+            bail!(
+                "run folder {}: another drive is writing into it now; give another --out",
+                out.display()
+            );
+        }
+        bail!("run folder {}: cannot lock it: {e}", out.display());
     }
-    if !out.join("scenario.toml").is_file() {
-        bail!(
-            "run folder {}: not empty and not a run folder (no scenario.toml): give a new or empty folder, or an earlier run's",
-            out.display()
-        );
+    let earlier = earlier_outputs(out)?;
+    // Every folder a removal changes must be writable, or nothing is removed.
+    for folder in [out.to_path_buf(), out.join("config")] {
+        if earlier.iter().any(|p| p.parent() == Some(folder.as_path())) && !writable(&folder) {
+            bail!(
+                "run folder {}: cannot replace the earlier run's files in {} (not writable by this user)",
+                out.display(),
+                folder.display()
+            );
+        }
     }
-    let earlier = names
-        .iter()
-        .filter_map(|n| n.to_str())
-        .filter(|n| is_run_output(n))
-        .map(|n| out.join(n))
-        .chain([out.join("config").join("iceoryx2.toml")]);
-    for path in earlier.filter(|p| p.is_file()) {
-        std::fs::remove_file(&path).with_context(|| {
+    for path in &earlier {
+        std::fs::remove_file(path).with_context(|| {
             format!(
                 "run folder {}: cannot remove the earlier run's {}",
                 out.display(),
@@ -178,7 +195,43 @@ pub(crate) fn prepare_run_folder(out: &Path) -> Result<()> {
     }
     // Its bus configuration's folder, when that leaves it empty (a run on the bus makes it).
     let _ = std::fs::remove_dir(out.join("config"));
-    Ok(())
+    Ok(RunFolderLock { _dir: dir })
+}
+
+/// The earlier run's outputs in `out` (none when it is absent or empty); an error when it is
+/// a folder of other files.
+fn earlier_outputs(out: &Path) -> Result<Vec<PathBuf>> {
+    let Ok(entries) = std::fs::read_dir(out) else {
+        return Ok(Vec::new()); // absent (made next), or not a folder (refused when made)
+    };
+    let names: Vec<std::ffi::OsString> = entries.flatten().map(|e| e.file_name()).collect();
+    if names.is_empty() {
+        return Ok(Vec::new());
+    }
+    if !out.join("scenario.toml").is_file() {
+        bail!(
+            "run folder {}: not empty and not a run folder (no scenario.toml): give a new or empty folder, or an earlier run's",
+            out.display()
+        );
+    }
+    Ok(names
+        .iter()
+        .filter_map(|n| n.to_str())
+        .filter(|n| is_run_output(n))
+        .map(|n| out.join(n))
+        .chain([out.join("config").join("iceoryx2.toml")])
+        .filter(|p| p.is_file())
+        .collect())
+}
+
+/// Whether this process may add and remove entries of folder `p`.
+fn writable(p: &Path) -> bool {
+    use std::os::unix::ffi::OsStrExt;
+    let Ok(c) = std::ffi::CString::new(p.as_os_str().as_bytes()) else {
+        return false;
+    };
+    // SAFETY: `c` is a valid NUL-terminated path that outlives the call.
+    unsafe { libc::access(c.as_ptr(), libc::W_OK | libc::X_OK) == 0 }
 }
 
 /// Whether `name` is a file a run writes at the top of its folder.
@@ -1196,9 +1249,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     let (latency_request, latency_error) = cpu_latency_request(&sc, o)?;
     check_placements(o, &topo)?;
     let out = o.out.clone().unwrap_or_else(|| default_out(&sc, o.clock));
-    prepare_run_folder(&out)?;
-    std::fs::create_dir_all(&out)
-        .with_context(|| format!("cannot create run folder {}", out.display()))?;
+    let _folder = claim_run_folder(&out)?;
     let out = out.canonicalize()?;
     let sc_path = out.join("scenario.toml");
     std::fs::write(&sc_path, toml::to_string(&sc)?)
