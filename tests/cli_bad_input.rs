@@ -715,8 +715,9 @@ fn plot_and_compare_refuse_a_summary_json_or_scenario_that_is_not_one() {
     let typed = folder("typed-summary", Some(r#"{"rate_hz": "fast"}"#));
     let faults = folder("faults-summary", Some(r#"{"faults": {"kill": 1}}"#));
     let rate = folder("rate-summary", Some(r#"{"rate_hz": -10000}"#));
-    // A trace whose rows 2 and 3 are swapped: time runs backwards.
-    let backwards = folder("backwards", None);
+    // A trace whose rows 2 and 3 are swapped: time runs backwards (the run's own summary).
+    let summary_text = std::fs::read_to_string(run.join("summary.json")).unwrap();
+    let backwards = folder("backwards", Some(&summary_text));
     let text = std::fs::read_to_string(run.join("trace.csv")).unwrap();
     let mut lines: Vec<&str> = text.lines().collect();
     lines.swap(2, 3);
@@ -790,6 +791,14 @@ fn plot_and_compare_refuse_a_summary_json_or_scenario_that_is_not_one() {
             "a trace runs forward",
         )
         .leaves_no(out.clone()),
+        case(
+            "export-backwards",
+            dir,
+            &["export", &backwards, "--mcap"],
+            1,
+            "row 3 (k = 1, t = 0.0001 s) does not come after the row before it",
+        )
+        .leaves_no(Path::new(&backwards).join("trace.mcap")),
         case(
             "plot-badscenario",
             dir,

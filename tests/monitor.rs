@@ -311,7 +311,8 @@ fn monitor_without_a_drive_is_a_one_line_error_and_leaves_nothing() {
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("bus id 'bad-id!'"));
     let o = drivelab(&["monitor", "--bus", &bus, "--print", "--print-size", "10x5"]);
-    assert_eq!(o.status.code(), Some(1));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("--print-size '10x5'"));
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr)
+        .contains("invalid value '10x5' for '--print-size <COLSxROWS>': must be COLSxROWS"));
     assert_clean(&bus);
 }

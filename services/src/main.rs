@@ -285,14 +285,15 @@ enum Cmd {
         /// Print one frame as text on stdout and exit (for logs and scripts).
         #[arg(long)]
         print: bool,
-        /// Size of the --print frame, COLUMNSxROWS.
+        /// Size of the --print frame, COLUMNSxROWS (40-1000 columns, 20-1000 rows).
         #[arg(
             long,
             default_value = "140x40",
             value_name = "COLSxROWS",
-            requires = "print"
+            requires = "print",
+            value_parser = print_size
         )]
-        print_size: String,
+        print_size: (u16, u16),
     },
     /// Remove the shared-memory files of a bus whose drive is gone (e.g. after the
     /// launcher itself was SIGKILLed). Refuses while any process still uses the bus.
@@ -630,6 +631,14 @@ fn refresh_ms(v: &str) -> Result<u64, String> {
 /// `monitor --stop-ms`: the bounds of a stop fault.
 fn stop_ms(v: &str) -> Result<u32, String> {
     whole_in(v, 1, 60_000, " ms").map(|x| x as u32)
+}
+
+/// `monitor --print-size`: COLSxROWS with 40-1000 columns and 20-1000 rows.
+fn print_size(v: &str) -> Result<(u16, u16), String> {
+    v.split_once('x')
+        .and_then(|(w, h)| Some((w.parse::<u16>().ok()?, h.parse::<u16>().ok()?)))
+        .filter(|&(w, h)| (40..=1000).contains(&w) && (20..=1000).contains(&h))
+        .ok_or_else(|| "must be COLSxROWS with 40-1000 columns and 20-1000 rows".to_string())
 }
 
 /// `fault stop --duration-s`: the bounds of a stop, both included.
@@ -1113,20 +1122,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             print,
             print_size,
         } => {
-            let size = if print {
-                let (w, h) = print_size
-                    .split_once('x')
-                    .and_then(|(w, h)| Some((w.parse::<u16>().ok()?, h.parse::<u16>().ok()?)))
-                    .filter(|&(w, h)| (40..=1000).contains(&w) && (20..=1000).contains(&h))
-                    .ok_or_else(|| {
-                        anyhow::anyhow!(
-                            "--print-size '{print_size}' must be COLSxROWS with 40-1000 columns and 20-1000 rows"
-                        )
-                    })?;
-                Some((w, h))
-            } else {
-                None
-            };
+            let size = print.then_some(print_size);
             drivelab_services::monitor::run(&drivelab_services::monitor::MonitorOptions {
                 target: target(drive)?,
                 refresh: std::time::Duration::from_millis(refresh_ms),

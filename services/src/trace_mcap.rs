@@ -299,14 +299,8 @@ pub fn export(dir: &Path) -> Result<std::path::PathBuf> {
     let part = dir.join("trace.mcap.part");
     let written = (|| -> Result<()> {
         let mut m = McapTrace::create(&part)?;
-        let mut r = csv::Reader::from_path(&csv_path)
-            .map_err(|e| anyhow!("cannot read {}: {e}", csv_path.display()))?;
-        let mut rows = 0usize;
-        for rec in r.deserialize::<TraceRow>() {
-            let row = rec.map_err(|e| anyhow!("{}: {e}", csv_path.display()))?;
-            m.row(&row, None)?;
-            rows += 1;
-        }
+        // Checked as plot and compare check it: a trace that runs backwards is refused.
+        let rows = drivelab_runtime::trace::for_each_csv_row(&csv_path, |row| m.row(&row, None))?;
         if rows == 0 {
             bail!("{} has no samples", csv_path.display());
         }

@@ -120,7 +120,9 @@ fn check_folder(path: &std::path::Path) -> Result<bool> {
     let me = unsafe { libc::geteuid() };
     if m.uid() != me {
         return Err(anyhow!(
-            "bus folder {} belongs to uid {}, not to this user (uid {me}); refusing to use it",
+            "bus folder {} belongs to uid {}, not to this user (uid {me}); refusing to use it: \
+             that user's drive owns this bus (give another --bus, or as that user, once its \
+             drive is gone, `drivelab clean`)",
             path.display(),
             m.uid()
         ));

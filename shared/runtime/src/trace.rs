@@ -95,9 +95,24 @@ impl CsvTrace {
 
 /// Reads a trace written by [`write_csv`].
 pub fn read_csv(path: &std::path::Path) -> anyhow::Result<Vec<TraceRow>> {
+    let mut rows: Vec<TraceRow> = Vec::new();
+    for_each_csv_row(path, |row| {
+        rows.push(row);
+        Ok(())
+    })?;
+    Ok(rows)
+}
+
+/// Reads `trace.csv` at `path` row by row into `each`, checked as [`read_csv`] checks it,
+/// without keeping the rows; the number of rows.
+pub fn for_each_csv_row(
+    path: &std::path::Path,
+    mut each: impl FnMut(TraceRow) -> anyhow::Result<()>,
+) -> anyhow::Result<usize> {
     let mut r = csv::Reader::from_path(path)
         .map_err(|e| anyhow::anyhow!("cannot read {}: {e}", path.display()))?;
-    let mut rows: Vec<TraceRow> = Vec::new();
+    let mut prev: Option<TraceRow> = None;
+    let mut n = 0;
     for (i, rec) in r.deserialize().enumerate() {
         let row: TraceRow = rec.map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
         // A trace runs forward: each row a later sample at a later time (gaps allowed).
@@ -110,18 +125,20 @@ pub fn read_csv(path: &std::path::Path) -> anyhow::Result<Vec<TraceRow>> {
                 row.t
             );
         }
-        if let Some(prev) = rows.last().filter(|p| row.k <= p.k || row.t <= p.t) {
+        if let Some(p) = prev.filter(|p| row.k <= p.k || row.t <= p.t) {
             anyhow::bail!(
                 "{}: row {} (k = {}, t = {} s) does not come after the row before it (k = {}, t = {} s): a trace runs forward",
                 path.display(),
                 i + 1,
                 row.k,
                 row.t,
-                prev.k,
-                prev.t
+                p.k,
+                p.t
             );
         }
-        rows.push(row);
+        prev = Some(row);
+        n += 1;
+        each(row)?;
     }
-    Ok(rows)
+    Ok(n)
 }
