@@ -793,3 +793,114 @@ fn a_fault_planned_after_the_drive_stopped_is_named_not_dropped() {
     );
     assert_eq!(s["faults"].as_array().unwrap().len(), 1, "{s}");
 }
+
+/// Sends `sig` to `pid`, a process of this test's own drive (a negative pid: its group).
+fn send(pid: i32, sig: i32) {
+    // SAFETY: kill(2) on a process (group) this test started; no memory is touched.
+    assert_eq!(unsafe { libc::kill(pid, sig) }, 0, "kill({pid}, {sig})");
+}
+
+#[test]
+fn a_stop_signal_from_outside_ends_one_stage_host_as_a_crash_and_the_drive_recovers() {
+    let _serial = serial();
+    for (svc, sig, name) in [
+        ("observer", libc::SIGTERM, "SIGTERM"),
+        ("plant", libc::SIGINT, "SIGINT"),
+    ] {
+        let tag = format!("outside-{svc}");
+        let dir = scratch(&tag);
+        let bus = bus_id(&tag);
+        let out = dir.join("run");
+        let child = Drive::start(&bus, &out, &["--duration", "1"]);
+        wait_for_progress(&bus, 2000);
+        send(process_pid(&bus, svc), sig);
+        let o = wait(child, Duration::from_secs(60), "the real-time drive");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(0), "{svc}: {err}");
+        assert_clean(&bus);
+        let s = summary(&out);
+        // Counted as a crash and restarted: the process, not the drive, was stopped (a
+        // plant that forwarded the end of the run would have ended it early).
+        assert_eq!(s["crashes"], 1, "{svc}: {}", s["supervisor_events"]);
+        assert_eq!(events_of(&s, svc), ["exited", "restarted", "ready"], "{s}");
+        let exited = s["supervisor_events"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|e| e["event"] == "exited")
+            .unwrap();
+        assert_eq!(
+            exited["detail"],
+            format!(
+                "exit status: {} ({name} from another process than the launcher), not injected",
+                128 + sig
+            ),
+            "{svc}"
+        );
+        assert_eq!(s["samples"], 10_000, "{svc}: the drive ran to its end");
+        assert!(s["failure"].is_null(), "{svc}: {}", s["failure"]);
+    }
+}
+
+#[test]
+fn a_stop_signal_to_the_whole_process_group_stops_the_drive_without_crashes() {
+    use std::os::unix::process::CommandExt;
+    use std::process::{Command, Stdio};
+    let _serial = serial();
+    let dir = scratch("groupstop");
+    let bus = bus_id("groupstop");
+    let out = dir.join("run");
+    // Its own process group, as under `timeout` or a service manager's stop.
+    let child = Command::new(DRIVELAB)
+        .args(run_args(&bus, &out))
+        .args(["--duration", "30"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .process_group(0)
+        .spawn()
+        .expect("start drivelab run");
+    let pgid = child.id() as i32;
+    let child = Drive::on_bus(child, &bus);
+    wait_for_progress(&bus, 2000);
+    send(-pgid, libc::SIGTERM);
+    let o = wait(child, Duration::from_secs(60), "the real-time drive");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("interrupted (SIGTERM): drive stopped"),
+        "{err}"
+    );
+    assert_clean(&bus);
+    let s = summary(&out);
+    assert_eq!(s["crashes"], 0, "{}", s["supervisor_events"]);
+    assert!(
+        !s["supervisor_events"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|e| e["event"] == "exited" || e["event"] == "restarted"),
+        "{}",
+        s["supervisor_events"]
+    );
+}
+
+#[test]
+fn in_lockstep_a_stop_signal_from_outside_fails_the_run_and_names_the_signal() {
+    let _serial = serial();
+    let dir = scratch("lsterm");
+    let bus = bus_id("lsterm");
+    let out = dir.join("run");
+    let child = Drive::start(&bus, &out, &["--clock", "lockstep", "--duration", "600"]);
+    wait_for_progress(&bus, 1000);
+    send(process_pid(&bus, "observer"), libc::SIGTERM);
+    let o = wait(child, Duration::from_secs(60), "the lockstep drive");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    let errors: Vec<&str> = err.lines().filter(|l| l.contains("error")).collect();
+    assert_eq!(errors.len(), 1, "{err}");
+    assert!(
+        errors[0].contains("process observer failed (exit status: 143)"),
+        "{err}"
+    );
+    assert_clean(&bus);
+}

@@ -142,7 +142,10 @@ impl EventKind {
             Self::Simulated { spec } => format!("{spec}, simulated at its sample"),
             Self::Resume => "SIGCONT".into(),
             Self::Exited { status, crash } => {
-                format!("{status}{}", if *crash { NOT_INJECTED } else { "" })
+                let how = outside_stop(*status)
+                    .map(|sig| format!(" ({sig} from another process than the launcher)"))
+                    .unwrap_or_default();
+                format!("{status}{how}{}", if *crash { NOT_INJECTED } else { "" })
             }
             Self::Reaped { nodes } => {
                 format!("dead iceoryx2 nodes cleaned: {}", nodes.join(", "))
@@ -174,6 +177,34 @@ pub struct SupEvent {
 
 /// How the detail of an `exited` event that was a crash ends.
 pub const NOT_INJECTED: &str = ", not injected";
+
+/// The stop signal that ended a stage host from outside its drive, if that is how it ended
+/// (its exit status is then 128 + the signal).
+pub fn outside_stop(st: ExitStatus) -> Option<&'static str> {
+    let code = st.code()?;
+    drivelab_runtime::service::STOP_SIGNALS
+        .iter()
+        .find(|(sig, _)| i32::from(drivelab_runtime::service::outside_stop_status(*sig)) == code)
+        .map(|(_, name)| *name)
+}
+
+/// A stage host that a stop signal from another process ended: the same sender may be
+/// stopping the whole drive (`timeout`, `kill -- -PGID` and service managers signal every
+/// process at once), the launcher a moment later. True when the launcher's own stop comes
+/// within 50 ms: the exit is the drive's stop, not a crash.
+fn stopping_with_the_drive(st: ExitStatus) -> bool {
+    if outside_stop(st).is_none() {
+        return false;
+    }
+    let t = Instant::now();
+    while t.elapsed() < Duration::from_millis(50) {
+        if crate::common::stop_requested() {
+            return true;
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    crate::common::stop_requested()
+}
 
 /// Process exits in `events` that were not the death of an injected kill: crashes.
 pub fn crashes(events: &[SupEvent]) -> usize {
@@ -422,6 +453,9 @@ pub(super) fn supervise(
             }
             // A twin that ended with the drive stays listed (the summary names it).
             if let Some(st) = t.child.try_wait()?.filter(|st| !st.success()) {
+                if stopping_with_the_drive(st) {
+                    return Ok(Some(super::interrupted()));
+                }
                 c.standby = None;
                 any_dead = true;
                 log(events, EventKind::StandbyExited { status: st }, &n, &n);
@@ -440,6 +474,9 @@ pub(super) fn supervise(
             let Some(st) = c.proc.child.try_wait()? else {
                 continue;
             };
+            if !st.success() && stopping_with_the_drive(st) {
+                return Ok(Some(super::interrupted()));
+            }
             any_dead |= !st.success();
             let n = c.proc.name.clone();
             if !st.success() {

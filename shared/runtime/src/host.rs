@@ -495,6 +495,7 @@ pub struct Host<T: Transport> {
     /// Source only: cycle latency and deadline misses.
     pub cycle: CycleMonitor,
     stop: Box<dyn Fn() -> bool + Send>,
+    stop_without_end: Box<dyn Fn() -> bool + Send>,
     /// The external inputs to drain, each topic once, with the stage that owns its counts
     /// (the first one that reads it).
     drains: Vec<(usize, Bound)>,
@@ -593,6 +594,7 @@ impl<T: Transport> Host<T> {
             cycle: CycleMonitor::new(cfg.ts_ns),
             cfg,
             stop: Box::new(|| false),
+            stop_without_end: Box::new(|| false),
             drains,
         }
     }
@@ -655,6 +657,12 @@ impl<T: Transport> Host<T> {
     /// Sets the function that says a stop was requested (SIGINT, SIGTERM, SIGHUP …).
     pub fn stop_when(&mut self, f: impl Fn() -> bool + Send + 'static) {
         self.stop = Box::new(f);
+    }
+
+    /// Sets the function that says a stop ends this process only, not the drive: a source
+    /// then forwards no END marker, and the rest of the drive sees it go as it sees a crash.
+    pub fn stop_without_end_when(&mut self, f: impl Fn() -> bool + Send + 'static) {
+        self.stop_without_end = Box::new(f);
     }
 
     fn stopping(&self) -> bool {
@@ -1349,6 +1357,9 @@ impl<T: Transport> Host<T> {
             };
             if k == k_start {
                 loop_start = now_ns();
+            }
+            if self.stopping() && k < n && (self.stop_without_end)() {
+                break;
             }
             if self.stopping() || k == n {
                 let hdr = Header {

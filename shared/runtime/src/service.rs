@@ -153,9 +153,27 @@ pub const STOP_SIGNALS: [(libc::c_int, &str); 6] = [
     (libc::SIGUSR2, "SIGUSR2"),
 ];
 
-extern "C" fn on_signal(sig: libc::c_int) {
-    // The first signal names the stop.
-    let _ = STOP_SIGNAL.compare_exchange(0, sig, Ordering::SeqCst, Ordering::SeqCst);
+/// The pid of the process that sent the first stop signal when that was neither this
+/// process's parent (its launcher) nor the kernel (a terminal's Ctrl-C or hang-up); else 0.
+static STOP_SENDER_OUTSIDE: std::sync::atomic::AtomicI32 = std::sync::atomic::AtomicI32::new(0);
+
+extern "C" fn on_signal(sig: libc::c_int, info: *mut libc::siginfo_t, _: *mut libc::c_void) {
+    // SAFETY: the kernel hands an SA_SIGINFO handler a valid siginfo_t (checked for null
+    // all the same); si_code and si_pid are plain reads. getppid(2) is async-signal-safe.
+    let outside = unsafe {
+        match info.as_ref() {
+            // si_code ≤ 0: sent by a process (kill, sigqueue, tgkill), which si_pid names.
+            Some(i) if i.si_code <= 0 && i.si_pid() != libc::getppid() => i.si_pid(),
+            _ => 0,
+        }
+    };
+    // The first signal names the stop (stored before the flag, which the loops read).
+    if STOP_SIGNAL
+        .compare_exchange(0, sig, Ordering::SeqCst, Ordering::SeqCst)
+        .is_ok()
+    {
+        STOP_SENDER_OUTSIDE.store(outside, Ordering::SeqCst);
+    }
     STOP.store(true, Ordering::SeqCst);
 }
 
@@ -168,6 +186,7 @@ pub fn install_signal_handlers() -> Result<()> {
         let rc = unsafe {
             let mut sa: libc::sigaction = std::mem::zeroed();
             sa.sa_sigaction = on_signal as *const () as libc::sighandler_t;
+            sa.sa_flags = libc::SA_SIGINFO;
             libc::sigemptyset(&mut sa.sa_mask);
             libc::sigaction(sig, &sa, std::ptr::null_mut())
         };
@@ -200,6 +219,22 @@ pub fn stop_signal_name() -> &'static str {
         .iter()
         .find(|(s, _)| *s == sig)
         .map_or("a stop signal", |(_, n)| n)
+}
+
+/// The first stop signal and its sender, when a process other than this one's parent sent
+/// it: for a stage host, a stop that is not its launcher's (`kill PID` from a shell).
+pub fn stopped_from_outside() -> Option<(libc::c_int, libc::pid_t)> {
+    let pid = STOP_SENDER_OUTSIDE.load(Ordering::SeqCst);
+    (pid != 0 && pid != std::process::id() as libc::pid_t)
+        .then(|| (STOP_SIGNAL.load(Ordering::SeqCst), pid))
+}
+
+/// The exit status of a stage host that a stop signal from outside its drive ended: 128 +
+/// the signal, as a shell reports a process that the signal killed. The launcher counts it
+/// as a crash unless it is stopping the drive too (`timeout`, `kill -- -PGID` and service
+/// managers signal every process of a drive at once).
+pub fn outside_stop_status(sig: libc::c_int) -> u8 {
+    u8::try_from(128 + sig).unwrap_or(1)
 }
 
 /// Writes one protocol line to stdout (to the launcher) and flushes it.
@@ -239,7 +274,15 @@ pub fn host_main(user: &[(&'static str, StageFactory)]) -> std::process::ExitCod
         return check_rt(&args);
     }
     let name = args.process.clone().unwrap_or_else(|| "host".into());
-    if let Err(e) = install_signal_handlers().and_then(|_| run_host(args, user)) {
+    let result = install_signal_handlers().and_then(|_| run_host(args, user));
+    // A stop signal that another process sent (not the launcher, not the terminal) ends
+    // the process, not the drive: the source forwards no end of the run, and the exit
+    // status says which signal it was (the launcher names it; docs/architecture.md,
+    // "Stopping a drive").
+    if let Some((sig, _)) = stopped_from_outside() {
+        return std::process::ExitCode::from(outside_stop_status(sig));
+    }
+    if let Err(e) = result {
         // A host told to stop (SIGTERM from a launcher whose start failed elsewhere, or
         // Ctrl-C) fails in whatever it was doing; the launcher says why, once.
         if !stop_requested() {
@@ -512,6 +555,7 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     );
     host.arm_spares(|name| make_stage(name, &sc, user).ok())?;
     host.stop_when(stop_requested);
+    host.stop_without_end_when(|| stopped_from_outside().is_some());
     // Last: everything above (designs, histograms, ports) is set-up work, not real-time.
     let label = if args.standby {
         format!("{pname} (standby)")
