@@ -769,6 +769,124 @@ fn a_drive_whose_output_nobody_reads_any_more_still_finishes_and_cleans_up() {
 }
 
 #[test]
+fn a_trace_that_cannot_be_written_stops_the_drive_at_once_with_one_line() {
+    // A full disk: the run folder on a 256 KiB tmpfs, mounted in a mount namespace of the
+    // drive's own (gone with it). Before, the stages waited 10 s for the reader that was
+    // gone, and each said so.
+    let _serial = serial();
+    let dir = scratch("diskfull");
+    let bus = bus_id("diskfull");
+    let script = "mount -t tmpfs -o size=256k drivelab-test \"$1\" && \
+                  exec \"$2\" run --bus \"$3\" --out \"$1/run\" --no-plots --clock lockstep --duration 60";
+    let child = Command::new("unshare")
+        .args([
+            "--mount",
+            "--propagation",
+            "private",
+            "sh",
+            "-c",
+            script,
+            "sh",
+        ])
+        .arg(&dir)
+        .arg(DRIVELAB)
+        .arg(&bus)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("unshare (util-linux)");
+    let o = wait(
+        Drive::on_bus(child, &bus),
+        Duration::from_secs(60),
+        "the drive",
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    let errors: Vec<&str> = err.lines().filter(|l| l.contains("error")).collect();
+    assert_eq!(errors.len(), 1, "{err}");
+    assert!(
+        errors[0].starts_with("drivelab: error: cannot write ")
+            && errors[0].contains("No space left on device"),
+        "{err}"
+    );
+    assert_clean(&bus);
+    // A file size limit (`ulimit -f`, 32 MiB: above the bus's segments): SIGXFSZ killed the
+    // launcher on the spot, which left its bus behind.
+    let out = dir.join("run");
+    let mut cmd = Command::new(DRIVELAB);
+    cmd.args(run_args(&bus, &out))
+        .args(["--clock", "lockstep", "--duration", "100"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    // SAFETY: the closure runs in the forked child before exec and calls only setrlimit(2)
+    // with a limit on its own stack (lowering a limit needs no privilege).
+    unsafe {
+        use std::os::unix::process::CommandExt;
+        cmd.pre_exec(|| {
+            let limit = libc::rlimit {
+                rlim_cur: 32 << 20,
+                rlim_max: 32 << 20,
+            };
+            if libc::setrlimit(libc::RLIMIT_FSIZE, &limit) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    let child = Drive::on_bus(cmd.spawn().expect("start drivelab run"), &bus);
+    let o = wait(child, Duration::from_secs(120), "the drive");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    let errors: Vec<&str> = err.lines().filter(|l| l.contains("error")).collect();
+    assert_eq!(
+        errors,
+        [format!(
+            "drivelab: error: cannot write {}: File too large (os error 27)",
+            out.join("trace.csv").display()
+        )],
+        "{err}"
+    );
+    assert_clean(&bus);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_symbolic_link_among_an_earlier_runs_outputs_is_replaced_not_written_through() {
+    let _serial = serial();
+    let dir = scratch("symlink");
+    let out = dir.join("run");
+    std::fs::create_dir_all(&out).unwrap();
+    // An earlier run's folder in which someone put links where the outputs go: one to a
+    // file that does not exist yet (it would be made), one to a file of the user's.
+    std::fs::write(out.join("scenario.toml"), "").unwrap();
+    let made = dir.join("made-through-the-link.csv");
+    let kept = dir.join("kept.json");
+    std::fs::write(&kept, "the user's").unwrap();
+    std::os::unix::fs::symlink(&made, out.join("trace.csv")).unwrap();
+    std::os::unix::fs::symlink(&kept, out.join("summary.json")).unwrap();
+    let args = [
+        "run",
+        "--out",
+        out.to_str().unwrap(),
+        "--clock",
+        "inprocess",
+        "--no-plots",
+        "--duration",
+        "0.045",
+    ];
+    let o = drivelab(&args, Duration::from_secs(60));
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(!made.exists(), "the trace was written through the link");
+    assert_eq!(std::fs::read_to_string(&kept).unwrap(), "the user's");
+    for f in ["trace.csv", "summary.json"] {
+        let m = out.join(f).symlink_metadata().unwrap();
+        assert!(m.is_file(), "{f} is not a file of its own: {m:?}");
+    }
+    assert_eq!(summary(&out)["samples"], 450);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn an_unprivileged_user_runs_the_drive_with_warnings_and_rt_strict_refuses_it() {
     let _serial = serial();
     let setpriv = "/usr/bin/setpriv";

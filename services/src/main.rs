@@ -520,6 +520,7 @@ enum BenchNodeKind {
 
 fn main() -> ExitCode {
     drivelab_runtime::bus::quiet_iceoryx2_log();
+    drivelab_runtime::service::file_size_limit_as_error();
     let cli = match parse_cli() {
         Ok(cli) => cli,
         Err(code) => return code,

@@ -127,6 +127,16 @@ pub struct McapTrace {
     seq: u32,
 }
 
+/// "cannot write PATH: WHY" with the innermost cause (the system's, "No space left on
+/// device", rather than the MCAP writer's "I/O error from writing").
+fn cannot_write(path: &Path, e: mcap::McapError) -> anyhow::Error {
+    let mut why: &dyn std::error::Error = &e;
+    while let Some(inner) = why.source() {
+        why = inner;
+    }
+    anyhow!("cannot write {}: {why}", path.display())
+}
+
 impl McapTrace {
     /// Creates (truncates) the file with its three channels.
     pub fn create(path: &Path) -> Result<Self> {
@@ -139,7 +149,7 @@ impl McapTrace {
             .chunk_size(Some(CHUNK_BYTES))
             .library(format!("drivelab {}", env!("CARGO_PKG_VERSION")))
             .create(BufWriter::new(file))
-            .map_err(|e| anyhow!("cannot write {}: {e}", path.display()))?;
+            .map_err(|e| cannot_write(path, e))?;
         let mut channel = |schema: &str, name: &str, topic: &str| -> Result<u16> {
             let s = w.add_schema(name, "jsonschema", schema.as_bytes())?;
             Ok(w.add_channel(s, topic, "json", &BTreeMap::new())?)
@@ -167,7 +177,7 @@ impl McapTrace {
         };
         self.w
             .write_to_known_channel(&header, data)
-            .map_err(|e| anyhow!("cannot write {}: {e}", self.path.display()))
+            .map_err(|e| cannot_write(&self.path, e))
     }
 
     /// Appends one trace row; `t_wall_unix_ns`: when the plant published it.
@@ -214,11 +224,9 @@ impl McapTrace {
         ] {
             self.w
                 .write_metadata(&m)
-                .map_err(|e| anyhow!("cannot write {}: {e}", self.path.display()))?;
+                .map_err(|e| cannot_write(&self.path, e))?;
         }
-        self.w
-            .finish()
-            .map_err(|e| anyhow!("cannot write {}: {e}", self.path.display()))?;
+        self.w.finish().map_err(|e| cannot_write(&self.path, e))?;
         Ok(())
     }
 }

@@ -220,7 +220,9 @@ fn earlier_outputs(out: &Path) -> Result<Vec<PathBuf>> {
         .filter(|n| is_run_output(n))
         .map(|n| out.join(n))
         .chain([out.join("config").join("iceoryx2.toml")])
-        .filter(|p| p.is_file())
+        // A symbolic link is removed, not followed: a trace written through one planted in
+        // the folder would land wherever it points.
+        .filter(|p| p.symlink_metadata().is_ok_and(|m| !m.is_dir()))
         .collect())
 }
 
@@ -356,7 +358,9 @@ fn run_bus(
                     let _ =
                         drivelab_runtime::rt::set_scheduler(libc::SCHED_FIFO, RECORDER_PRIORITY);
                 }
-                run_recorder(b, sc, trace, s, pr, ready_tx, publishers)
+                let r = run_recorder(b, sc, trace, s, pr.clone(), ready_tx, publishers);
+                pr.failed.store(r.is_err(), Ordering::SeqCst);
+                r
             })?
     };
     let topo_path = out.join("topology.json");
@@ -480,6 +484,9 @@ fn run_bus(
         // plant's machine does (nothing comes any more).
         let plant_here = !plan_topo.away.contains(&0);
         let mut link = || -> Option<String> {
+            if progress.failed.load(Ordering::SeqCst) {
+                return Some(RECORDER_FAILED.into());
+            }
             let why = bridge.as_mut()?.lost()?;
             // At the end the machines leave one after the other: that is no news.
             if progress.next_k.load(Ordering::Relaxed) >= n {
@@ -550,6 +557,8 @@ fn run_bus(
     // summary and the exit code); only a recorder that failed itself has nothing to give.
     let rec = match (rec, &failure) {
         (Ok(r), _) => r,
+        // The recorder's own error is the whole story.
+        (Err(e), Some(f)) if f == RECORDER_FAILED || *f == format!("{e:#}") => return Err(e),
         (Err(e), Some(f)) => bail!("{f}; and the recorder failed: {e:#}"),
         (Err(e), None) => return Err(e),
     };
@@ -1198,6 +1207,9 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
         expectations,
     })
 }
+
+/// Why a drive stopped when its recorder failed (its error follows).
+const RECORDER_FAILED: &str = "the recorder failed";
 
 /// Why a run that a stop signal (SIGINT, SIGTERM, SIGHUP …) stopped ended early.
 pub(super) fn interrupted() -> String {

@@ -84,6 +84,9 @@ pub(super) struct Progress {
     /// view of the plant's real progress (`supervisor::plant_sample_now`).
     pub truth_count: std::sync::OnceLock<bus::PublishCount>,
     pub truth_mark: std::sync::Mutex<Option<TruthMark>>,
+    /// The recorder stopped on an error (a trace it cannot write): the drive stops at once,
+    /// instead of waiting for a reader that is gone.
+    pub failed: std::sync::atomic::AtomicBool,
 }
 
 /// The newest truth sample the recorder had read, and the truth topic's wake count taken

@@ -343,7 +343,7 @@ pub(super) fn supervise(
         if crate::common::stop_requested() {
             return Ok(Some(super::interrupted()));
         }
-        // A split drive whose other machine is gone (see `Bridge::lost`).
+        // A recorder that failed, or a split drive whose other machine is gone (`Bridge::lost`).
         if let Some(why) = link() {
             return Ok(Some(why));
         }

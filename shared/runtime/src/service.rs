@@ -221,6 +221,16 @@ pub fn stop_signal_name() -> &'static str {
         .map_or("a stop signal", |(_, n)| n)
 }
 
+/// A file size limit (`ulimit -f`) then makes the write that passes it fail with EFBIG,
+/// which the writer reports in one line, instead of killing the process with SIGXFSZ on the
+/// spot (a launcher killed so leaves its bus behind). Every `main` calls this first.
+pub fn file_size_limit_as_error() {
+    // SAFETY: signal(2) with SIG_IGN changes only this process's disposition of SIGXFSZ.
+    unsafe {
+        libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
+    }
+}
+
 /// The first stop signal and its sender, when a process other than this one's parent sent
 /// it: for a stage host, a stop that is not its launcher's (`kill PID` from a shell).
 pub fn stopped_from_outside() -> Option<(libc::c_int, libc::pid_t)> {
@@ -269,6 +279,7 @@ pub fn make_stage(
 /// exits 1 on failure.
 pub fn host_main(user: &[(&'static str, StageFactory)]) -> std::process::ExitCode {
     crate::bus::quiet_iceoryx2_log();
+    file_size_limit_as_error();
     let args = HostArgs::parse();
     if args.check_rt {
         return check_rt(&args);
