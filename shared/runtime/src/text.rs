@@ -13,7 +13,8 @@ const MAX_DIGITS: usize = 24;
 /// must be in (0, 3600]`. A number is a run of digits with an optional fraction and sign,
 /// not touching a letter, `_` or another digit; its value is kept (`f64`'s shortest exact
 /// form). A number that is a whole value in single quotes ('…', what the user typed) is
-/// kept. Text without such a number is returned as it is.
+/// kept. A number beyond `f64` is written as its first six digits and its length. Text
+/// without such a number is returned as it is.
 pub fn readable_numbers(text: &str) -> Cow<'_, str> {
     let b = text.as_bytes();
     let word = |c: u8| c.is_ascii_alphanumeric() || c == b'_';
@@ -43,7 +44,13 @@ pub fn readable_numbers(text: &str) -> Cow<'_, str> {
         if digits > MAX_DIGITS && !ends_word && !quoted {
             if let Ok(x) = text[start..end].parse::<f64>() {
                 out.push_str(&text[done..start]);
-                out.push_str(&format!("{x:e}"));
+                if x.is_finite() {
+                    out.push_str(&format!("{x:e}"));
+                } else {
+                    // Beyond f64 (about 1.8e308): its first digits and how many there are.
+                    let head = &text[start..(i + 6).min(end)];
+                    out.push_str(&format!("{head}…({digits} digits)"));
+                }
                 done = end;
             }
         }
@@ -132,6 +139,17 @@ mod tests {
             readable_numbers(&serde),
             "invalid type: floating point `1e300`, expected u64"
         );
+    }
+
+    #[test]
+    fn a_number_beyond_every_float_says_how_many_digits_it_has() {
+        let line = format!("expectation 'crashes <= {}': limit", "9".repeat(400));
+        assert_eq!(
+            readable_numbers(&line),
+            "expectation 'crashes <= 999999…(400 digits)': limit"
+        );
+        let neg = format!("x = -{} V", "12".repeat(200));
+        assert_eq!(readable_numbers(&neg), "x = -121212…(400 digits) V");
     }
 
     #[test]
