@@ -810,43 +810,55 @@ fn a_trace_that_cannot_be_written_stops_the_drive_at_once_with_one_line() {
         "{err}"
     );
     assert_clean(&bus);
-    // A file size limit (`ulimit -f`, 32 MiB: above the bus's segments): SIGXFSZ killed the
-    // launcher on the spot, which left its bus behind.
+    // A file size limit (`ulimit -f`): 32 MiB is above the bus's segments, and SIGXFSZ
+    // killed the launcher on the spot, which left its bus behind; 1 MiB is below them.
     let out = dir.join("run");
-    let mut cmd = Command::new(DRIVELAB);
-    cmd.args(run_args(&bus, &out))
-        .args(["--clock", "lockstep", "--duration", "100"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped());
-    // SAFETY: the closure runs in the forked child before exec and calls only setrlimit(2)
-    // with a limit on its own stack (lowering a limit needs no privilege).
-    unsafe {
-        use std::os::unix::process::CommandExt;
-        cmd.pre_exec(|| {
-            let limit = libc::rlimit {
-                rlim_cur: 32 << 20,
-                rlim_max: 32 << 20,
-            };
-            if libc::setrlimit(libc::RLIMIT_FSIZE, &limit) != 0 {
-                return Err(std::io::Error::last_os_error());
-            }
-            Ok(())
-        });
-    }
-    let child = Drive::on_bus(cmd.spawn().expect("start drivelab run"), &bus);
-    let o = wait(child, Duration::from_secs(120), "the drive");
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(1), "{err}");
-    let errors: Vec<&str> = err.lines().filter(|l| l.contains("error")).collect();
+    let limited = |bytes: libc::rlim_t| {
+        let mut cmd = Command::new(DRIVELAB);
+        cmd.args(run_args(&bus, &out))
+            .args(["--clock", "lockstep", "--duration", "100"])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped());
+        // SAFETY: the closure runs in the forked child before exec and calls only
+        // setrlimit(2) with a limit on its own stack (lowering a limit needs no privilege).
+        unsafe {
+            use std::os::unix::process::CommandExt;
+            cmd.pre_exec(move || {
+                let limit = libc::rlimit {
+                    rlim_cur: bytes,
+                    rlim_max: bytes,
+                };
+                if libc::setrlimit(libc::RLIMIT_FSIZE, &limit) != 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+                Ok(())
+            });
+        }
+        let child = Drive::on_bus(cmd.spawn().expect("start drivelab run"), &bus);
+        let o = wait(child, Duration::from_secs(120), "the drive");
+        let err = String::from_utf8_lossy(&o.stderr).into_owned();
+        assert_eq!(o.status.code(), Some(1), "{err}");
+        assert_clean(&bus);
+        let errors: Vec<String> = err
+            .lines()
+            .filter(|l| l.contains("error"))
+            .map(String::from)
+            .collect();
+        errors
+    };
     assert_eq!(
-        errors,
+        limited(32 << 20),
         [format!(
             "drivelab: error: cannot write {}: File too large (os error 27)",
             out.join("trace.csv").display()
-        )],
-        "{err}"
+        )]
     );
-    assert_clean(&bus);
+    let errors = limited(1 << 20);
+    assert_eq!(errors.len(), 1, "{errors:?}");
+    assert!(
+        errors[0].contains("cannot make its data segment in /dev/shm (the file size limit, ulimit -f, is 1024 KiB: raise it)"),
+        "{errors:?}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 

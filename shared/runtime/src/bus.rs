@@ -52,6 +52,31 @@ pub fn quiet_iceoryx2_log() {
     iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Error);
 }
 
+/// What may keep a shared-memory segment from being made: a file size limit (`ulimit -f`)
+/// or the free space of /dev/shm.
+fn segment_limit() -> String {
+    let mut lim = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit(2) writes only into `lim`, which outlives the call.
+    let rc = unsafe { libc::getrlimit(libc::RLIMIT_FSIZE, &mut lim) };
+    if rc == 0 && lim.rlim_cur != libc::RLIM_INFINITY {
+        return format!(
+            "the file size limit, ulimit -f, is {} KiB: raise it",
+            lim.rlim_cur / 1024
+        );
+    }
+    // SAFETY: an all-zero statvfs is a valid value for statvfs(2) to overwrite.
+    let mut st: libc::statvfs = unsafe { std::mem::zeroed() };
+    // SAFETY: the path is a NUL-terminated literal; statvfs(2) writes only into `st`.
+    if unsafe { libc::statvfs(c"/dev/shm".as_ptr(), &mut st) } == 0 {
+        let free = st.f_bavail as u64 * st.f_frsize as u64;
+        return format!("{} MiB free there", free >> 20);
+    }
+    "full, or not writable".into()
+}
+
 /// Validates a bus id: 1–24 characters of [A-Za-z0-9_].
 pub fn check_bus_id(id: &str) -> Result<()> {
     if id.is_empty() || id.len() > 24 || !id.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
@@ -345,6 +370,11 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Topic<T> {
                     iceoryx2::port::publisher::PublisherCreateError::ExceedsMaxSupportedPublishers => anyhow!(
                         "topic {} already has its one publisher (another process owns it)",
                         self.pubsub.name()
+                    ),
+                    iceoryx2::port::publisher::PublisherCreateError::UnableToCreateDataSegment => anyhow!(
+                        "topic {}: cannot make its data segment in /dev/shm ({})",
+                        self.pubsub.name(),
+                        segment_limit()
                     ),
                     e => anyhow!("publisher: {e:?}"),
                 })?,
