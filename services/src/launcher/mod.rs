@@ -161,17 +161,16 @@ pub(crate) fn claim_run_folder(out: &Path) -> Result<RunFolderLock> {
         .with_context(|| format!("cannot create run folder {}", out.display()))?;
     let dir = std::fs::File::open(out)
         .with_context(|| format!("cannot open run folder {}", out.display()))?;
-    use std::os::fd::AsRawFd;
-    // SAFETY: flock on a descriptor this function owns; no memory is passed.
-    if unsafe { libc::flock(dir.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } != 0 {
-        let e = std::io::Error::last_os_error();
-        if e.raw_os_error() == Some(libc::EWOULDBLOCK) {
-            bail!(
-                "run folder {}: another drive is writing into it now; give another --out",
-                out.display()
-            );
+    // flock(LOCK_EX | LOCK_NB) on Linux.
+    match dir.try_lock() {
+        Ok(()) => {}
+        Err(std::fs::TryLockError::WouldBlock) => bail!(
+            "run folder {}: another drive is writing into it now; give another --out",
+            out.display()
+        ),
+        Err(std::fs::TryLockError::Error(e)) => {
+            bail!("run folder {}: cannot lock it: {e}", out.display())
         }
-        bail!("run folder {}: cannot lock it: {e}", out.display());
     }
     let earlier = earlier_outputs(out)?;
     // Every folder a removal changes must be writable, or nothing is removed.
