@@ -7,7 +7,7 @@ mod common;
 
 use common::*;
 use std::path::{Path, PathBuf};
-use std::process::Output;
+use std::process::{Command, Output, Stdio};
 
 /// What a refused command printed and left, checked: exit code `code`, one line (after any
 /// `warning:` line) containing every one of `needles`, no panic.
@@ -321,6 +321,7 @@ fn a_bad_topology_file_is_one_line_naming_file_process_and_field() {
         true,
     );
     let not_exec = script(&dir, "not-exec.sh", "exit 0", false);
+    let floods = script(&dir, "floods.sh", "exec yes '[]'", true);
     let cases: Vec<(&str, String, &str)> = vec![
         (
             "twice",
@@ -405,6 +406,11 @@ fn a_bad_topology_file_is_one_line_naming_file_process_and_field() {
             "--describe failed (exit status: 3): line one / line two",
         ),
         (
+            "describe-floods",
+            user(&floods),
+            "--describe: more than 1048576 bytes of output, not a stage list",
+        ),
+        (
             "describe-hangs",
             user(&hang),
             "--describe did not answer within 10 s (killed)",
@@ -425,6 +431,66 @@ fn a_bad_topology_file_is_one_line_naming_file_process_and_field() {
         processes_with(&marker).is_empty(),
         "the describe's child was left running"
     );
+}
+
+/// The scenario a user's stage is asked `--describe` with goes into a folder of the temp folder
+/// that nobody else can have made: not through a link another user planted there (as root, the
+/// drive would write the scenario over whatever the link names).
+#[test]
+fn the_describe_scenario_is_not_written_through_a_link_planted_in_the_temp_folder() {
+    let dir = scratch("describe-tmp");
+    let tmp = dir.join("tmp");
+    std::fs::create_dir_all(&tmp).unwrap();
+    let victim = dir.join("victim.txt");
+    std::fs::write(&victim, "a file of another user\n").unwrap();
+    let all = ["plant", "observer", "current-loop", "speed-loop"];
+    let fails = script(&dir, "fails.sh", "echo 'no stages here' >&2\nexit 3", true);
+    let topo = dir.join("user.toml");
+    std::fs::write(
+        &topo,
+        process("p", &all, "") + &process("u", &["pos"], &format!("exec = \"{fails}\"")),
+    )
+    .unwrap();
+    let bus = bus_id("describe-tmp");
+    let out = dir.join("run");
+    // The shell plants the folder under the name the launcher's pid gives (its own pid, kept
+    // by exec) with a link to the victim, as another user could before the drive starts.
+    let plant = format!(
+        "mkdir \"$TMPDIR/drivelab-describe-$$\" && ln -s '{}' \"$TMPDIR/drivelab-describe-$$/scenario.toml\" && exec \"$0\" \"$@\"",
+        victim.display()
+    );
+    let o = Command::new("sh")
+        .env("TMPDIR", &tmp)
+        .args(["-c", &plant, DRIVELAB])
+        .args(run_args(&bus, &out))
+        .args(["--clock", "lockstep", "--topology", topo.to_str().unwrap()])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .output()
+        .unwrap();
+    assert_refused(
+        "describe-tmp",
+        &o,
+        1,
+        &["--describe failed (exit status: 3): no stages here"],
+    );
+    assert_eq!(
+        std::fs::read_to_string(&victim).unwrap(),
+        "a file of another user\n",
+        "the scenario was written through the planted link"
+    );
+    // The planted folder and its link are left as they were; the drive's own scratch folder
+    // is gone.
+    let left: Vec<String> = std::fs::read_dir(&tmp)
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(left.len(), 1, "{left:?}");
+    assert!(left[0].starts_with("drivelab-describe-"), "{left:?}");
+    assert!(tmp.join(&left[0]).join("scenario.toml").is_symlink());
+    assert!(!out.exists(), "a refused run made its folder");
+    assert_clean(&bus);
 }
 
 #[test]

@@ -950,9 +950,14 @@ fn describe(
     use std::io::Read;
     use std::os::unix::process::CommandExt;
     check_exec(exe, runner.is_some())?;
-    let dir = std::env::temp_dir().join(format!("drivelab-describe-{}", std::process::id()));
-    std::fs::create_dir_all(&dir)?;
-    let f = dir.join("scenario.toml");
+    // A folder of a fresh random name that only this user can enter, gone when `dir` drops:
+    // in a temp folder that anyone can write, a name known in advance could be made first by
+    // another user, with a link in it that the scenario would be written through.
+    let dir = tempfile::Builder::new()
+        .prefix("drivelab-describe-")
+        .tempdir()
+        .context("cannot make a scratch folder in the temp folder for --describe")?;
+    let f = dir.path().join("scenario.toml");
     std::fs::write(&f, sc_text)?;
     let mut cmd = drivelab_runtime::runner::command(runner, exe);
     // Gone with the launcher, however it ends (a Ctrl-C reaches our process group only).
@@ -967,13 +972,7 @@ fn describe(
         .process_group(0)
         .spawn()
         .with_context(|| format!("cannot run {exe} --describe"));
-    let mut child = match spawned {
-        Ok(c) => c,
-        Err(e) => {
-            let _ = std::fs::remove_dir_all(&dir);
-            return Err(e);
-        }
-    };
+    let mut child = spawned?;
     let pid = child.id() as libc::pid_t;
     let read = |pipe: Option<Box<dyn Read + Send>>| {
         std::thread::spawn(move || {
@@ -1027,7 +1026,7 @@ fn describe(
     // is still taken); ESRCH when the group is empty is ignored.
     unsafe { libc::kill(-pid, libc::SIGKILL) };
     let status = child.wait();
-    let _ = std::fs::remove_dir_all(&dir);
+    let _ = dir.close();
     let stdout = out.join().unwrap_or_default();
     let stderr = err.join().unwrap_or_default();
     if !in_time {
@@ -1036,6 +1035,11 @@ fn describe(
             DESCRIBE_TIMEOUT.as_secs()
         );
     }
+    // Before the exit status: past the limit its output pipe was closed, so a program that
+    // kept writing died of SIGPIPE, which is not what went wrong.
+    if stdout.len() as u64 > DESCRIBE_MAX_BYTES {
+        bail!("{exe} --describe: more than {DESCRIBE_MAX_BYTES} bytes of output, not a stage list");
+    }
     let status = status.with_context(|| format!("{exe} --describe"))?;
     if !status.success() {
         let said = drivelab_runtime::text::join_lines(&String::from_utf8_lossy(&stderr), " / ");
@@ -1043,9 +1047,6 @@ fn describe(
             "{exe} --describe failed ({status}){}{said}",
             if said.is_empty() { "" } else { ": " },
         );
-    }
-    if stdout.len() as u64 > DESCRIBE_MAX_BYTES {
-        bail!("{exe} --describe: more than {DESCRIBE_MAX_BYTES} bytes of output, not a stage list");
     }
     serde_json::from_slice(&stdout).map_err(|e| anyhow!("{exe} --describe: not a stage list ({e})"))
 }
