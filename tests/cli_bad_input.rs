@@ -591,6 +591,27 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
     for c in &cases {
         c.check();
     }
+    if cfg!(feature = "zenoh") {
+        // An earlier run's folder as --out: a remote drive that does not answer leaves it
+        // whole (its outputs are replaced only once there is something to record).
+        let earlier = dir.join("earlier-run");
+        std::fs::create_dir_all(&earlier).unwrap();
+        for f in ["scenario.toml", "trace.csv", "summary.json"] {
+            std::fs::write(earlier.join(f), format!("the earlier run's {f}")).unwrap();
+        }
+        let e = earlier.to_str().unwrap();
+        let o = drivelab(&["record", "--connect", "tcp/127.0.0.1:1", "--out", e]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{err}");
+        assert!(err.contains("cannot connect to tcp/127.0.0.1:1"), "{err}");
+        for f in ["scenario.toml", "trace.csv", "summary.json"] {
+            assert_eq!(
+                std::fs::read_to_string(earlier.join(f)).ok(),
+                Some(format!("the earlier run's {f}")),
+                "a failed record removed the earlier run's {f}"
+            );
+        }
+    }
     let left: Vec<_> = std::fs::read_dir(&foreign).unwrap().flatten().collect();
     assert_eq!(
         left.len(),

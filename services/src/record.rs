@@ -78,9 +78,9 @@ fn drain<T: Wire>(
     Ok((ended, n))
 }
 
-/// Creates folder `out` with its missing parents and claims it
-/// ([`crate::launcher::claim_run_folder`]); returns the folders it made, outermost first, and
-/// the folder's lock.
+/// Creates folder `out` with its missing parents and locks it
+/// ([`crate::launcher::lock_run_folder`]: an earlier run's outputs stay until the remote
+/// drive answers); returns the folders it made, outermost first, and the folder's lock.
 fn make_folder(out: &std::path::Path) -> Result<(Vec<PathBuf>, crate::launcher::RunFolderLock)> {
     let mut made = Vec::new();
     let mut d = Some(out);
@@ -89,7 +89,7 @@ fn make_folder(out: &std::path::Path) -> Result<(Vec<PathBuf>, crate::launcher::
         d = p.parent();
     }
     made.reverse();
-    let lock = crate::launcher::claim_run_folder(out)
+    let lock = crate::launcher::lock_run_folder(out)
         .with_context(|| format!("--out {}", out.display()))?;
     Ok((made, lock))
 }
@@ -98,8 +98,9 @@ fn make_folder(out: &std::path::Path) -> Result<(Vec<PathBuf>, crate::launcher::
 pub fn record(o: &RecordOptions) -> Result<Recorded> {
     crate::common::install_signal_handlers()?;
     // The run folder first: a bad --out fails at once, not after connecting (which may
-    // wait for --wait seconds); when nothing is recorded, the folders made are removed.
-    let (made, _folder) = make_folder(&o.out)?;
+    // wait for --wait seconds); when nothing is recorded, the folders made are removed and
+    // an earlier run in it is left as it was.
+    let (made, folder) = make_folder(&o.out)?;
     let connected = (|| -> Result<_> {
         let remote = Remote::connect(&o.endpoint, o.bus.as_deref(), o.config.as_deref(), o.wait)?;
         let toml_text = remote.scenario_toml()?;
@@ -116,6 +117,7 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
             return Err(e);
         }
     };
+    folder.remove_earlier_outputs()?;
     std::fs::write(o.out.join("scenario.toml"), &toml_text)?;
     // Subscribe, then fetch the history: nothing falls in between.
     let truth = remote.feed::<PlantTruth>()?;

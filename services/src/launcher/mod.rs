@@ -148,6 +148,7 @@ fn default_out(sc: &Scenario, clock: Clock) -> PathBuf {
 /// folder at the same time (the later one is refused).
 pub(crate) struct RunFolderLock {
     _dir: std::fs::File,
+    out: PathBuf,
 }
 
 /// Makes run folder `out` for a run: it may be new, empty or an earlier run's (it has
@@ -156,6 +157,15 @@ pub(crate) struct RunFolderLock {
 /// (plots after `--no-plots`, a stage the new topology lacks) passes for the new run's; other
 /// files in it are kept. Nothing is removed unless all of them can be.
 pub(crate) fn claim_run_folder(out: &Path) -> Result<RunFolderLock> {
+    let lock = lock_run_folder(out)?;
+    lock.remove_earlier_outputs()?;
+    Ok(lock)
+}
+
+/// The checks and the lock of [`claim_run_folder`], with the earlier run's outputs still in
+/// place: for a command that may yet fail before it has anything to write (`record`, whose
+/// remote drive may not answer), so that a failure leaves the earlier run whole.
+pub(crate) fn lock_run_folder(out: &Path) -> Result<RunFolderLock> {
     earlier_outputs(out)?;
     std::fs::create_dir_all(out)
         .with_context(|| format!("cannot create run folder {}", out.display()))?;
@@ -183,18 +193,29 @@ pub(crate) fn claim_run_folder(out: &Path) -> Result<RunFolderLock> {
             );
         }
     }
-    for path in &earlier {
-        std::fs::remove_file(path).with_context(|| {
-            format!(
-                "run folder {}: cannot remove the earlier run's {}",
-                out.display(),
-                path.display()
-            )
-        })?;
+    Ok(RunFolderLock {
+        _dir: dir,
+        out: out.to_path_buf(),
+    })
+}
+
+impl RunFolderLock {
+    /// Removes the earlier run's outputs from the locked folder (see [`claim_run_folder`]).
+    pub(crate) fn remove_earlier_outputs(&self) -> Result<()> {
+        let out = &self.out;
+        for path in &earlier_outputs(out)? {
+            std::fs::remove_file(path).with_context(|| {
+                format!(
+                    "run folder {}: cannot remove the earlier run's {}",
+                    out.display(),
+                    path.display()
+                )
+            })?;
+        }
+        // Its bus configuration's folder, when that leaves it empty (a run on the bus makes it).
+        let _ = std::fs::remove_dir(out.join("config"));
+        Ok(())
     }
-    // Its bus configuration's folder, when that leaves it empty (a run on the bus makes it).
-    let _ = std::fs::remove_dir(out.join("config"));
-    Ok(RunFolderLock { _dir: dir })
 }
 
 /// The earlier run's outputs in `out` (none when it is absent or empty); an error when it is
