@@ -292,17 +292,6 @@ fn script(dir: &Path, name: &str, body: &str, executable: bool) -> String {
     p.display().to_string()
 }
 
-/// The processes whose command line holds `marker`.
-fn processes_with(marker: &str) -> Vec<String> {
-    std::fs::read_dir("/proc")
-        .unwrap()
-        .flatten()
-        .filter_map(|e| std::fs::read(e.path().join("cmdline")).ok())
-        .map(|c| String::from_utf8_lossy(&c).replace('\0', " "))
-        .filter(|c| c.contains(marker))
-        .collect()
-}
-
 #[test]
 fn a_bad_topology_file_is_one_line_naming_file_process_and_field() {
     let dir = scratch("topo-files");
@@ -430,6 +419,49 @@ fn a_bad_topology_file_is_one_line_naming_file_process_and_field() {
     assert!(
         processes_with(&marker).is_empty(),
         "the describe's child was left running"
+    );
+}
+
+/// `--rt-strict` asks each process's executable `--check-rt` before the drive: one that does not
+/// answer is killed after 10 s, with what it started, and named in one line (it hung the
+/// launcher before).
+#[test]
+fn an_executable_that_does_not_answer_the_real_time_check_is_named_after_10_s() {
+    let dir = scratch("check-rt-hangs");
+    let marker = format!("86398.{}", std::process::id());
+    // The stage host for every other question (`--describe`), a hang for this one.
+    let host = Path::new(DRIVELAB).with_file_name("drivelab-host");
+    let hangs = script(
+        &dir,
+        "hangs.sh",
+        &format!(
+            "for a in \"$@\"; do [ \"$a\" = --check-rt ] && {{ sleep {marker} & wait; }}; done\nexec '{}' \"$@\"",
+            host.display()
+        ),
+        true,
+    );
+    let topo = dir.join("hangs.toml");
+    std::fs::write(
+        &topo,
+        process("p", &["plant"], "")
+            + &process(
+                "c",
+                &["observer", "current-loop", "speed-loop"],
+                &format!("exec = \"{hangs}\""),
+            ),
+    )
+    .unwrap();
+    run_refused(
+        "check-rt-hangs-run",
+        &["--rt-strict", "--topology", topo.to_str().unwrap()],
+        1,
+        &[&format!(
+            "--rt-strict: process c: {hangs} --check-rt did not answer within 10 s (killed)"
+        )],
+    );
+    assert!(
+        processes_with(&marker).is_empty(),
+        "the check's child was left running"
     );
 }
 

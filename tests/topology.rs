@@ -5,6 +5,8 @@
 
 mod common;
 use common::*;
+use std::process::{Command, Stdio};
+use std::time::Duration;
 
 /// The shipped topologies. In lockstep `four-process-standby` starts no twin (a simulated
 /// kill rejoins), so it gives the trace of the others; `split-hil` without `--machine`
@@ -351,4 +353,94 @@ fn a_fault_on_a_stage_takes_down_its_whole_process_which_is_restarted() {
     let trace = std::fs::read_to_string(out.join("trace.csv")).unwrap();
     let last = trace.lines().last().unwrap();
     assert!(!last.contains("NaN"), "no command at the end: {last}");
+}
+
+/// A process whose `exec` is a script that starts a helper and then the host: the helper is
+/// killed when the drive ends (named in one warning line), not left running. The same
+/// script floods stdout, which the launcher reads only up to READY: the launcher's memory
+/// stays bounded (it kept every line before).
+#[test]
+fn what_a_stage_process_leaves_running_is_killed_and_its_chatter_is_not_kept() {
+    let _serial = serial();
+    let dir = scratch("strays");
+    let marker = format!("86399.{}", std::process::id());
+    let host = std::path::Path::new(DRIVELAB).with_file_name("drivelab-host");
+    let wrapper = dir.join("wrapper.sh");
+    std::fs::write(
+        &wrapper,
+        format!(
+            "#!/bin/sh\nsleep {marker} >/dev/null 2>&1 </dev/null &\n\
+             (sleep 0.3; yes 'a chatty stage prints this line at every sample' | head -c 300000000) &\n\
+             exec '{}' \"$@\"\n",
+            host.display()
+        ),
+    )
+    .unwrap();
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(&wrapper, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let topo = dir.join("topology.toml");
+    std::fs::write(
+        &topo,
+        format!(
+            "[[process]]\nname = \"p\"\nstages = [\"plant\"]\ncpu = 1\npriority = 70\n\n\
+             [[process]]\nname = \"c\"\nstages = [\"observer\", \"current-loop\", \"speed-loop\"]\n\
+             cpu = 1\npriority = 72\nexec = \"{}\"\n",
+            wrapper.display()
+        ),
+    )
+    .unwrap();
+    let bus = bus_id("strays");
+    let out = dir.join("run");
+    let mut child = Command::new(DRIVELAB)
+        .args(run_args(&bus, &out))
+        .args(["--duration", "2", "--topology", topo.to_str().unwrap()])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The launcher's peak memory, read until it exits.
+    let pid = child.id();
+    let mut peak_kib = 0u64;
+    let t = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        assert!(
+            t.elapsed() < Duration::from_secs(120),
+            "watchdog: the drive hangs"
+        );
+        if let Ok(status) = std::fs::read_to_string(format!("/proc/{pid}/status")) {
+            if let Some(kib) = status
+                .lines()
+                .find_map(|l| l.strip_prefix("VmHWM:"))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+            {
+                peak_kib = kib;
+            }
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let o = wait(child, Duration::from_secs(10), "the drive");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(0), "{err}");
+    let warning = err
+        .lines()
+        .find(|l| l.contains("left running"))
+        .unwrap_or_else(|| panic!("no warning about the helper: {err}"));
+    assert!(
+        warning.starts_with(
+            "drivelab: warning: killed what the stage hosts left running after the drive: "
+        ) && warning.ends_with(" (sleep)"),
+        "{warning}"
+    );
+    assert!(
+        processes_with(&marker).is_empty(),
+        "the stage's helper was left running"
+    );
+    // 300 MB went through the host's stdout; the launcher keeps a bounded queue of lines.
+    assert!(peak_kib > 0, "never read the launcher's memory");
+    assert!(
+        peak_kib < 150 * 1024,
+        "the launcher's peak memory {peak_kib} kB: it kept the stage's stdout"
+    );
+    assert_eq!(summary(&out)["samples_missing"], 0);
+    assert_clean(&bus);
 }

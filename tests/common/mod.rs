@@ -605,3 +605,14 @@ pub fn same_trace_in_every_run(tag: &str, extra: &[&str]) -> (PathBuf, Value) {
     );
     (a, sa)
 }
+
+/// The processes whose command line holds `marker`.
+pub fn processes_with(marker: &str) -> Vec<String> {
+    std::fs::read_dir("/proc")
+        .unwrap()
+        .flatten()
+        .filter_map(|e| std::fs::read(e.path().join("cmdline")).ok())
+        .map(|c| String::from_utf8_lossy(&c).replace('\0', " "))
+        .filter(|c| c.contains(marker))
+        .collect()
+}

@@ -36,7 +36,6 @@ use serde_json::json;
 use spawn::{process_binary, runner_of, spawn_service, terminate, ChildProc, Spawn};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::Stdio;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc;
 use std::sync::Arc;
@@ -320,6 +319,7 @@ fn run_bus(
     });
     let bus_id = bus_id_of(o);
     bus::check_bus_id(&bus_id)?;
+    spawn::adopt_orphans();
     // Another drive (or any process) on this bus would be wrecked by the clean-up below:
     // `run` holds the bus (claim_bus) from before the run folder is made.
     // Leftovers of an earlier crashed run with the same id would confuse this one.
@@ -555,6 +555,13 @@ fn run_bus(
         Err(e) => (Vec::new(), Some(format!("{e:#}"))),
     };
     terminate(&mut children);
+    let strays = spawn::end_strays(&bus_id);
+    if !strays.is_empty() {
+        crate::errln!(
+            "drivelab: warning: killed what the stage hosts left running after the drive: {}",
+            strays.join(", ")
+        );
+    }
     stop.store(true, Ordering::SeqCst);
     let rec = rec
         .join()
@@ -960,16 +967,13 @@ const DESCRIBE_TIMEOUT: Duration = Duration::from_secs(10);
 /// The most output of `--describe` read (a stage list is a few kB).
 const DESCRIBE_MAX_BYTES: u64 = 1 << 20;
 
-/// Asks a user's stage executable which stages it hosts. It runs in a process group of its
-/// own and must exit within [`DESCRIBE_TIMEOUT`] with at most [`DESCRIBE_MAX_BYTES`] of
-/// output; then its whole group is killed, so that nothing it started is left behind.
+/// Asks a user's stage executable which stages it hosts ([`spawn::ask`]): it must exit within
+/// [`DESCRIBE_TIMEOUT`] with at most [`DESCRIBE_MAX_BYTES`] of output.
 fn describe(
     exe: &str,
     sc_text: &str,
     runner: Option<&drivelab_runtime::runner::Runner>,
 ) -> Result<Vec<StageInfo>> {
-    use std::io::Read;
-    use std::os::unix::process::CommandExt;
     check_exec(exe, runner.is_some())?;
     // A folder of a fresh random name that only this user can enter, gone when `dir` drops:
     // in a temp folder that anyone can write, a name known in advance could be made first by
@@ -981,75 +985,16 @@ fn describe(
     let f = dir.path().join("scenario.toml");
     std::fs::write(&f, sc_text)?;
     let mut cmd = drivelab_runtime::runner::command(runner, exe);
-    // Gone with the launcher, however it ends (a Ctrl-C reaches our process group only).
-    die_with_launcher(&mut cmd);
-    let spawned = cmd
-        .arg("--describe")
-        .arg("--scenario")
-        .arg(&f)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .process_group(0)
-        .spawn()
-        .with_context(|| format!("cannot run {exe} --describe"));
-    let mut child = spawned?;
-    let pid = child.id() as libc::pid_t;
-    let read = |pipe: Option<Box<dyn Read + Send>>| {
-        std::thread::spawn(move || {
-            let mut buf = Vec::new();
-            if let Some(p) = pipe {
-                let _ = p.take(DESCRIBE_MAX_BYTES + 1).read_to_end(&mut buf);
-            }
-            buf
-        })
-    };
-    let out = read(
-        child
-            .stdout
-            .take()
-            .map(|p| Box::new(p) as Box<dyn Read + Send>),
-    );
-    let err = read(
-        child
-            .stderr
-            .take()
-            .map(|p| Box::new(p) as Box<dyn Read + Send>),
-    );
-    // Whether the child has exited, without reaping it: until it is reaped its pid, the
-    // group's id, cannot be reused, so the group kill below hits only what it started.
-    let exited = || {
-        // SAFETY: siginfo_t is plain data; all zeroes is a valid value.
-        let mut info: libc::siginfo_t = unsafe { std::mem::zeroed() };
-        // SAFETY: waitid on our own unreaped child with a valid siginfo_t pointer; WNOWAIT
-        // leaves it waitable, WNOHANG returns at once.
-        let r = unsafe {
-            libc::waitid(
-                libc::P_PID,
-                pid as libc::id_t,
-                &mut info,
-                libc::WEXITED | libc::WNOHANG | libc::WNOWAIT,
-            )
-        };
-        // SAFETY: waitid filled in (or left zero) the si_pid field of a child's state change.
-        r != 0 || unsafe { info.si_pid() } != 0
-    };
-    let started = Instant::now();
-    let mut in_time = true;
-    while !exited() {
-        if started.elapsed() >= DESCRIBE_TIMEOUT {
-            in_time = false;
-            break;
-        }
-        std::thread::sleep(Duration::from_millis(5));
-    }
-    // SAFETY: signals the process group of our own child, which is not reaped yet (its id
-    // is still taken); ESRCH when the group is empty is ignored.
-    unsafe { libc::kill(-pid, libc::SIGKILL) };
-    let status = child.wait();
+    cmd.arg("--describe").arg("--scenario").arg(&f);
+    let answer = spawn::ask(cmd, DESCRIBE_TIMEOUT, DESCRIBE_MAX_BYTES)
+        .with_context(|| format!("cannot run {exe} --describe"))?;
     let _ = dir.close();
-    let stdout = out.join().unwrap_or_default();
-    let stderr = err.join().unwrap_or_default();
+    let spawn::Answer {
+        status,
+        stdout,
+        stderr,
+        in_time,
+    } = answer;
     if !in_time {
         bail!(
             "{exe} --describe did not answer within {} s (killed)",

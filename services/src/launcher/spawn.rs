@@ -45,6 +45,99 @@ pub(super) fn process_binary(p: &ProcessSpec, base: &Path) -> Result<PathBuf> {
     }
 }
 
+/// What a program asked a question ([`ask`]) answered.
+pub(super) struct Answer {
+    /// Its exit status (SIGKILL when it did not answer in time).
+    pub status: std::io::Result<std::process::ExitStatus>,
+    /// Its stdout, cut one byte past the limit.
+    pub stdout: Vec<u8>,
+    /// Its stderr, cut one byte past the limit.
+    pub stderr: Vec<u8>,
+    /// Whether it exited within the time given.
+    pub in_time: bool,
+}
+
+/// Runs `cmd` (a question such as `--describe`, answered on stdout, or `--check-rt`) in a
+/// process group of its own and reads up to `max_bytes` of each of its outputs; after
+/// `timeout`, or as soon as it exits, its whole group is killed, so that nothing it started
+/// is left behind.
+pub(super) fn ask(mut cmd: Command, timeout: Duration, max_bytes: u64) -> Result<Answer> {
+    use std::io::Read;
+    use std::os::unix::process::CommandExt;
+    // Gone with the launcher, however it ends (a Ctrl-C reaches our process group only).
+    die_with_launcher(&mut cmd);
+    let mut child = cmd
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .process_group(0)
+        .spawn()?;
+    let pid = child.id() as libc::pid_t;
+    let read = |pipe: Option<Box<dyn Read + Send>>| {
+        std::thread::spawn(move || {
+            let mut buf = Vec::new();
+            if let Some(p) = pipe {
+                let _ = p.take(max_bytes + 1).read_to_end(&mut buf);
+            }
+            buf
+        })
+    };
+    let out = read(
+        child
+            .stdout
+            .take()
+            .map(|p| Box::new(p) as Box<dyn Read + Send>),
+    );
+    let err = read(
+        child
+            .stderr
+            .take()
+            .map(|p| Box::new(p) as Box<dyn Read + Send>),
+    );
+    // Whether the child has exited, without reaping it: until it is reaped its pid, the
+    // group's id, cannot be reused, so the group kill below hits only what it started.
+    let exited = || {
+        // SAFETY: siginfo_t is plain data; all zeroes is a valid value.
+        let mut info: libc::siginfo_t = unsafe { std::mem::zeroed() };
+        // SAFETY: waitid on our own unreaped child with a valid siginfo_t pointer; WNOWAIT
+        // leaves it waitable, WNOHANG returns at once.
+        let r = unsafe {
+            libc::waitid(
+                libc::P_PID,
+                pid as libc::id_t,
+                &mut info,
+                libc::WEXITED | libc::WNOHANG | libc::WNOWAIT,
+            )
+        };
+        // SAFETY: waitid filled in (or left zero) the si_pid field of a child's state change.
+        r != 0 || unsafe { info.si_pid() } != 0
+    };
+    let started = Instant::now();
+    let mut in_time = true;
+    while !exited() {
+        if started.elapsed() >= timeout {
+            in_time = false;
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    // SAFETY: signals the process group of our own child, which is not reaped yet (its id
+    // is still taken); ESRCH when the group is empty is ignored.
+    unsafe { libc::kill(-pid, libc::SIGKILL) };
+    let status = child.wait();
+    Ok(Answer {
+        status,
+        stdout: out.join().unwrap_or_default(),
+        stderr: err.join().unwrap_or_default(),
+        in_time,
+    })
+}
+
+/// How long a process's executable may take to answer `--check-rt`.
+const CHECK_RT_TIMEOUT: Duration = Duration::from_secs(10);
+/// The most of its output read (its answer is one line).
+const CHECK_RT_MAX_BYTES: u64 = 64 << 10;
+
 /// Asks `exe` for process `p`'s real-time placement as `--rt-strict` would
 /// (`drivelab-host --check-rt`), in a process of its own that exits at once: a refusal is one
 /// line before the drive starts instead of one per host after. It locks the memory of a
@@ -59,12 +152,20 @@ pub(super) fn check_rt(p: &ProcessSpec, exe: &Path) -> Result<()> {
     if let Some(pr) = p.priority {
         cmd.arg("--priority").arg(pr.to_string());
     }
-    cmd.stdin(Stdio::null()).stdout(Stdio::null());
-    die_with_launcher(&mut cmd);
-    let out = cmd
-        .output()
+    let out = ask(cmd, CHECK_RT_TIMEOUT, CHECK_RT_MAX_BYTES)
         .with_context(|| format!("cannot start process {} ({})", p.name, exe.display()))?;
-    if !out.status.success() {
+    if !out.in_time {
+        bail!(
+            "--rt-strict: process {}: {} --check-rt did not answer within {} s (killed)",
+            p.name,
+            exe.display(),
+            CHECK_RT_TIMEOUT.as_secs()
+        );
+    }
+    let status = out
+        .status
+        .with_context(|| format!("{} --check-rt", exe.display()))?;
+    if !status.success() {
         let err = String::from_utf8_lossy(&out.stderr);
         let line = err.lines().rfind(|l| !l.trim().is_empty()).unwrap_or("");
         bail!(
@@ -74,7 +175,7 @@ pub(super) fn check_rt(p: &ProcessSpec, exe: &Path) -> Result<()> {
                 format!(
                     "the real-time check of {} failed ({})",
                     exe.display(),
-                    out.status
+                    status
                 )
             } else {
                 line.trim().trim_start_matches("error: ").to_string()
@@ -163,6 +264,8 @@ pub(super) fn spawn_service(
     cmd.stdin(Stdio::piped())
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit());
+    // Inherited by whatever the host starts: how [`end_strays`] knows its leftovers.
+    cmd.env(HOST_OF_BUS, sp.bus_id);
     die_with_launcher(&mut cmd);
     if let Some(set) = sp.cpus {
         start_on(&mut cmd, set);
@@ -181,10 +284,13 @@ pub(super) fn spawn_service(
     })?;
     let stdout = child.stdout.take().expect("piped");
     let stdin = child.stdin.take();
-    let (tx, rx) = mpsc::channel();
+    // Its stdout says RT and READY; nobody reads what a host writes there afterwards (a
+    // user's stage printing as it steps): lines that find the queue full are dropped, so
+    // that such a stage neither grows the launcher's memory nor blocks on a full pipe.
+    let (tx, rx) = mpsc::sync_channel(STDOUT_LINES_KEPT);
     std::thread::spawn(move || {
         for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
+            if let Err(mpsc::TrySendError::Disconnected(_)) = tx.try_send(line) {
                 break;
             }
         }
@@ -201,6 +307,60 @@ pub(super) fn spawn_service(
         rt: None,
         standby,
     })
+}
+
+/// The lines of a stage host's stdout that wait for the launcher to read them.
+const STDOUT_LINES_KEPT: usize = 1024;
+
+/// The environment variable that marks a stage host of a bus, and every process it starts.
+const HOST_OF_BUS: &str = "DRIVELAB_HOST_OF_BUS";
+
+/// Makes this launcher the reaper of its stage hosts' orphans: a process that a host started
+/// and left running (a helper, or the real host under a wrapper script that did not `exec`
+/// it) becomes the launcher's child when its parent ends, instead of init's, so that
+/// [`end_strays`] finds it after the drive.
+pub(super) fn adopt_orphans() {
+    // SAFETY: prctl(2) with integer arguments only; no memory is involved.
+    unsafe { libc::prctl(libc::PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) };
+}
+
+/// Kills and reaps the processes that the stage hosts of bus `bus_id` started and left
+/// behind (children of this launcher through [`adopt_orphans`], marked by [`HOST_OF_BUS`]);
+/// the hosts themselves must have been reaped. Returns them as `pid (name)`.
+pub(super) fn end_strays(bus_id: &str) -> Vec<String> {
+    let me = std::process::id();
+    let mark = format!("{HOST_OF_BUS}={bus_id}");
+    let mut ended = Vec::new();
+    for e in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
+        let Some(pid) = e.file_name().to_str().and_then(|s| s.parse::<u32>().ok()) else {
+            continue;
+        };
+        let Ok(stat) = std::fs::read_to_string(e.path().join("stat")) else {
+            continue;
+        };
+        // "pid (comm) state ppid …", where comm may hold spaces and parentheses.
+        let Some((head, tail)) = stat.rsplit_once(')') else {
+            continue;
+        };
+        if tail.split_whitespace().nth(1) != Some(me.to_string().as_str()) {
+            continue;
+        }
+        let marked = std::fs::read(e.path().join("environ"))
+            .is_ok_and(|env| env.split(|b| *b == 0).any(|v| v == mark.as_bytes()));
+        if !marked {
+            continue;
+        }
+        // SAFETY: kill(2) and waitpid(2) on a child of this process that no `Child` handle
+        // owns (it was adopted); unreaped, its pid cannot be reused. No memory is passed but
+        // a null status pointer, which waitpid accepts.
+        unsafe {
+            libc::kill(pid as libc::pid_t, libc::SIGKILL);
+            libc::waitpid(pid as libc::pid_t, std::ptr::null_mut(), 0);
+        }
+        let name = head.split_once('(').map_or("?", |(_, c)| c);
+        ended.push(format!("{pid} ({name})"));
+    }
+    ended
 }
 
 /// The child gets SIGKILL when the launcher dies, however it dies (a SIGKILLed launcher
