@@ -308,6 +308,9 @@ fn sigint_sigterm_and_sighup_stop_the_whole_drive_keep_the_trace_and_clean_up() 
     }
     // The in-process clock has no bus, and ran to its end through both signals.
     stopped_by(libc::SIGINT, "sigint-inprocess", "inprocess", 300);
+    // A timer's signal, whose default ends a process on the spot: the same clean stop (it
+    // left the bus's files and no summary before).
+    stopped_by(libc::SIGALRM, "sigalrm-lockstep", "lockstep", 30);
 }
 
 /// A drive of `seconds` on `clock` stopped by signal `sig` (Ctrl-C is SIGINT) once it runs.

@@ -142,15 +142,24 @@ static STOP: AtomicBool = AtomicBool::new(false);
 static STOP_SIGNAL: std::sync::atomic::AtomicI32 = std::sync::atomic::AtomicI32::new(0);
 
 /// The signals that stop a drive cleanly (its trace and summary written, its bus removed):
-/// Ctrl-C, a stop request, a closed terminal, Ctrl-\ and the two user signals, whose default
-/// would end the process on the spot.
-pub const STOP_SIGNALS: [(libc::c_int, &str); 6] = [
+/// Ctrl-C, a stop request, a closed terminal, Ctrl-\, the two user signals, and every other
+/// standard signal whose default would end the process on the spot (timers, a CPU time
+/// limit, power failure, I/O readiness). SIGPIPE and SIGXFSZ are ignored instead (a failed
+/// write says why); real-time signals (SIGRTMIN…) are not handled.
+pub const STOP_SIGNALS: [(libc::c_int, &str); 13] = [
     (libc::SIGINT, "SIGINT"),
     (libc::SIGTERM, "SIGTERM"),
     (libc::SIGHUP, "SIGHUP"),
     (libc::SIGQUIT, "SIGQUIT"),
     (libc::SIGUSR1, "SIGUSR1"),
     (libc::SIGUSR2, "SIGUSR2"),
+    (libc::SIGALRM, "SIGALRM"),
+    (libc::SIGVTALRM, "SIGVTALRM"),
+    (libc::SIGPROF, "SIGPROF"),
+    (libc::SIGXCPU, "SIGXCPU"),
+    (libc::SIGPWR, "SIGPWR"),
+    (libc::SIGIO, "SIGIO"),
+    (libc::SIGSTKFLT, "SIGSTKFLT"),
 ];
 
 /// The pid of the process that sent the first stop signal when that was neither this
