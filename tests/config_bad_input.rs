@@ -657,3 +657,81 @@ fn a_bad_campaign_is_one_line_naming_file_and_field_before_any_run() {
         assert!(!out.exists(), "{case}: the campaign started");
     }
 }
+
+/// Starts `drivelab campaign` (stdout and stderr piped) on a campaign file `<tag>.toml` in
+/// its own scratch folder: one kyslan-pi scenario and a `[sweep]` of `kinds` × `stages` ×
+/// `at_s`. Returns the file, the report folder asked for and the process.
+fn sweep_campaign(
+    tag: &str,
+    kinds: &str,
+    stages: &str,
+    at_s: &[String],
+) -> (PathBuf, PathBuf, std::process::Child) {
+    let dir = scratch(tag);
+    let f = dir.join(format!("{tag}.toml"));
+    std::fs::write(
+        &f,
+        format!(
+            "name = \"c\"\nclock = \"lockstep\"\nscenarios = [\"kyslan-pi\"]\n[sweep]\nkinds = [{kinds}]\nstages = [{stages}]\nat_s = [{}]\n",
+            at_s.join(", ")
+        ),
+    )
+    .unwrap();
+    let out = dir.join("out");
+    let child = Command::new(DRIVELAB)
+        .args([
+            "campaign",
+            f.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    (f, out, child)
+}
+
+#[test]
+fn a_campaign_of_too_many_runs_is_refused_before_its_runs_are_built() {
+    // 30 000 injection times × 2 kinds × 4 stages: 240 000 fault sets from a 270 KB file,
+    // far more runs than a campaign may hold. Comparing every pair of those sets took
+    // minutes.
+    let at_s: Vec<String> = (1..=30_000)
+        .map(|i| format!("{}", i as f64 * 1e-5))
+        .collect();
+    let (f, out, child) = sweep_campaign(
+        "campaign-huge",
+        "\"kill\", \"stop\"",
+        "\"plant\", \"observer\", \"current-loop\", \"speed-loop\"",
+        &at_s,
+    );
+    // A watchdog against a hang only.
+    let o = wait(child, std::time::Duration::from_secs(60), "campaign huge");
+    assert_refused(
+        "huge",
+        &o,
+        1,
+        &[
+            f.to_str().unwrap(),
+            "240000 runs is more than 10000; split it",
+        ],
+    );
+    assert!(!out.exists(), "the campaign started");
+}
+
+#[test]
+fn a_campaign_being_checked_stops_on_sigint_with_one_line() {
+    // 10 000 kills, each checked against the scenario before the first run: minutes on a
+    // busy machine, which Ctrl-C must be able to cut short.
+    let at_s: Vec<String> = (0..10_000)
+        .map(|i| format!("{:.6}", 0.0002 + f64::from(i) * 0.9e-5))
+        .collect();
+    let (_, _, child) = sweep_campaign("campaign-checks", "\"kill\"", "\"observer\"", &at_s);
+    std::thread::sleep(std::time::Duration::from_secs(1));
+    // SAFETY: signalling a child process we spawned.
+    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
+    // A watchdog against a hang only.
+    let o = wait(child, std::time::Duration::from_secs(60), "campaign checks");
+    assert_refused("checks", &o, 1, &["campaign", "interrupted (SIGINT)"]);
+}

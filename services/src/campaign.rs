@@ -221,6 +221,26 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
             "seeds = [] gives no seed: every run needs one (leave seeds out for [1])".into(),
         ));
     }
+    // The size of the matrix is known from the lengths of its lists alone: a file that
+    // asks for too many runs is refused before anything whose time grows with the runs
+    // (building the fault sets, looking for repeats, checking each run).
+    let sweep_sets = c.sweep.as_ref().map_or(0, |s| {
+        s.kinds
+            .len()
+            .saturating_mul(s.stages.len())
+            .saturating_mul(s.at_s.len())
+    });
+    let n = c
+        .scenarios
+        .len()
+        .saturating_mul(c.faults.len().saturating_add(sweep_sets).max(1))
+        .saturating_mul(c.seeds.len());
+    if n > MAX_RUNS {
+        bail!(
+            "campaign {}: {n} runs is more than {MAX_RUNS}; split it",
+            file.display()
+        );
+    }
     // The same run twice is a copy-and-paste slip, not a repetition (seeds move random
     // kills; give another seed to repeat a run).
     if let Some(d) = duplicate(&c.scenarios) {
@@ -318,13 +338,6 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
             .map_err(|e| anyhow!("campaign {}: {e}", file.display()))?;
         scenarios.push(s);
     }
-    let n = scenarios.len() * sets.len() * c.seeds.len();
-    if n > MAX_RUNS {
-        bail!(
-            "campaign {}: {n} runs is more than {MAX_RUNS}; split it",
-            file.display()
-        );
-    }
     let mut cases = Vec::with_capacity(n);
     for sc in &scenarios {
         for set in &sets {
@@ -340,7 +353,16 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
     }
     // Each scenario × fault set is checked as its run would be (faults against the
     // scenario's stages and duration, topology, expectations); seeds only move random kills.
+    // Thousands of checks take minutes on a busy machine: a stop signal ends them.
     for case in cases.iter().step_by(c.seeds.len()) {
+        if drivelab_runtime::service::stop_requested() {
+            bail!(
+                "campaign {}: interrupted ({}) while checking run {} of {n}, before any run started",
+                file.display(),
+                drivelab_runtime::service::stop_signal_name(),
+                case.number
+            );
+        }
         launcher::check(&options(&c, case, true, false, None)?).map_err(|e| {
             anyhow!(
                 "campaign {}: {}: {}",
@@ -353,13 +375,12 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
     Ok((c, cases))
 }
 
-/// The first value `items` holds twice, if any.
-fn duplicate<T: PartialEq + Clone>(items: &[T]) -> Option<T> {
-    items
-        .iter()
-        .enumerate()
-        .find(|(i, x)| items[..*i].contains(x))
-        .map(|(_, x)| x.clone())
+/// The first value `items` holds twice, if any (the first one whose earlier copy exists).
+/// One pass with a set of the values seen: a sweep can make thousands of fault sets, and
+/// comparing every pair of them would take minutes.
+fn duplicate<T: Eq + std::hash::Hash + Clone>(items: &[T]) -> Option<T> {
+    let mut seen = std::collections::HashSet::with_capacity(items.len());
+    items.iter().find(|x| !seen.insert(*x)).cloned()
 }
 
 /// The drive options of one case: its folder `dir` and bus (None: a check only, see
