@@ -467,3 +467,51 @@ fn a_malformed_expectation_in_a_campaign_is_a_file_error_with_exit_code_1() {
     assert_eq!(err.trim().lines().count(), 1, "{err}");
     assert!(!out.exists(), "a run folder was made for a bad expectation");
 }
+
+#[test]
+fn a_campaign_stopped_by_sigint_says_so_in_one_line_and_reports_the_rest_skipped() {
+    let _one = serial();
+    let dir = scratch("campsigint");
+    let f = campaign_file(
+        &dir,
+        "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nduration_s = 30\nseeds = [1, 2, 3]\n",
+    );
+    let out = dir.join("c");
+    let child = std::process::Command::new(DRIVELAB)
+        .args([
+            "campaign",
+            f.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .arg("--no-rt")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The bus of the campaign's first run (see campaign::options).
+    let bus = format!("c{}_1", child.id());
+    let pid = child.id() as i32;
+    let drive = Drive::on_bus(child, &bus);
+    wait_for_progress(&bus, 1);
+    // SAFETY: signalling a child process we spawned.
+    unsafe { libc::kill(pid, libc::SIGINT) };
+    let o = drive.wait_for_exit(std::time::Duration::from_secs(60), "campaign after SIGINT");
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    let lines: Vec<&str> = err.lines().filter(|l| l.starts_with("drivelab:")).collect();
+    assert_eq!(lines.len(), 1, "{err}");
+    for says in [
+        "drivelab: error: campaign interrupted (SIGINT) during run 1 of 3: ",
+        "interrupted (SIGINT): drive stopped",
+        "2 of 3 runs skipped",
+    ] {
+        assert!(lines[0].contains(says), "'{says}' not in: {}", lines[0]);
+    }
+    assert_clean(&bus);
+    // The reports are still written: the stopped run is an error, the others skipped.
+    let (suite, cases) = junit(&out.join("junit.xml"));
+    assert_eq!(cases.len(), 3);
+    assert_eq!(cases[0].2, 1, "run 1 is not an error");
+    assert_eq!(suite.attribute("skipped"), Some("2"));
+}

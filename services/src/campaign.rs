@@ -632,6 +632,8 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
     );
     let mut results = Vec::with_capacity(cases.len());
     let stop = drivelab_runtime::service::stop_flag();
+    // Where a stop signal cut the campaign short, for its error line.
+    let mut interrupted: Option<String> = None;
     for case in &cases {
         if stop.load(std::sync::atomic::Ordering::Relaxed) {
             results.push(CaseResult {
@@ -647,6 +649,19 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
         }
         bar.set_message(case.title());
         let r = run_case(&c, case, a, &out);
+        if let Some(e) = r
+            .error
+            .as_ref()
+            .filter(|_| interrupted.is_none() && stop.load(std::sync::atomic::Ordering::Relaxed))
+        {
+            // The signal came during this run and stopped it (its error says how).
+            interrupted = Some(format!(
+                "during run {} of {}: {}",
+                case.number,
+                cases.len(),
+                e.lines().next().unwrap_or("")
+            ));
+        }
         if r.status != "pass" {
             bar.println(format!(
                 "run {}: {} — {}",
@@ -683,6 +698,27 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
         );
     }
     let any = |s: &str| results.iter().any(|r| r.status == s);
+    // The reason is in the table and junit.xml; stderr says in one line that the campaign
+    // did not finish, as `run` does for a drive stopped by a signal. A signal that came as
+    // the last run ended cut nothing short: no line then.
+    let skipped = results.iter().filter(|r| r.status == "skipped").count();
+    let at = interrupted.or_else(|| {
+        (skipped > 0).then(|| {
+            format!(
+                "before run {} of {}",
+                cases.len() - skipped + 1,
+                cases.len()
+            )
+        })
+    });
+    if let Some(at) = at {
+        crate::errln!(
+            "drivelab: error: campaign interrupted ({}) {at}; {skipped} of {} runs skipped (reports: {})",
+            drivelab_runtime::service::stop_signal_name(),
+            cases.len(),
+            out.display()
+        );
+    }
     Ok(if any("error") || any("skipped") {
         1
     } else if any("fail") {
