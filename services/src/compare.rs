@@ -195,6 +195,44 @@ pub fn plot(runs: &[LoadedRun], out: &Path) -> Result<Vec<PathBuf>> {
     Ok(files)
 }
 
+/// Legend labels: each run's scenario name, and where names repeat (e.g. two clocks of one
+/// scenario), the name followed by the shortest tail of its folder's path that tells it from
+/// every other run of that name: `kyslan-pi (a/run)`, `kyslan-pi (b/run)`. A folder given
+/// twice gets its position on the command line as well (`(run, #2)`), so every label is
+/// unique and names one run.
+pub fn labels(names: &[String], folders: &[PathBuf]) -> Vec<String> {
+    let parts = |p: &PathBuf| -> Vec<String> {
+        p.components()
+            .filter(|c| matches!(c, std::path::Component::Normal(_)))
+            .map(|c| c.as_os_str().to_string_lossy().into_owned())
+            .collect()
+    };
+    let tail = |p: &[String], n: usize| p[p.len().saturating_sub(n)..].join("/");
+    let all: Vec<Vec<String>> = folders.iter().map(parts).collect();
+    (0..names.len())
+        .map(|i| {
+            let twins: Vec<usize> = (0..names.len())
+                .filter(|&j| j != i && names[j] == names[i])
+                .collect();
+            if twins.is_empty() {
+                return names[i].clone();
+            }
+            let longest = all[i].len().max(1);
+            let n = (1..=longest)
+                .find(|&n| twins.iter().all(|&j| tail(&all[j], n) != tail(&all[i], n)))
+                .unwrap_or(longest);
+            let mut folder = tail(&all[i], n);
+            if folder.is_empty() {
+                folder = folders[i].display().to_string();
+            }
+            if twins.iter().any(|&j| all[j] == all[i]) {
+                folder = format!("{folder}, #{}", i + 1);
+            }
+            format!("{} ({folder})", names[i])
+        })
+        .collect()
+}
+
 /// Runs the comparison: loads the runs, prints the table, writes the plots and
 /// comparison.json.
 pub fn run(args: &CompareArgs) -> Result<()> {
@@ -203,15 +241,9 @@ pub fn run(args: &CompareArgs) -> Result<()> {
         .iter()
         .map(|d| load_run(d))
         .collect::<Result<Vec<_>>>()?;
-    // Repeated scenario names (e.g. two clocks of one scenario): label by folder instead.
-    for i in 0..runs.len() {
-        if runs.iter().filter(|r| r.label == runs[i].label).count() > 1 {
-            let folder = args.runs[i]
-                .file_name()
-                .map(|f| f.to_string_lossy().into_owned())
-                .unwrap_or_else(|| args.runs[i].display().to_string());
-            runs[i].label = format!("{} ({folder})", runs[i].scenario.name);
-        }
+    let names: Vec<String> = runs.iter().map(|r| r.scenario.name.clone()).collect();
+    for (run, label) in runs.iter_mut().zip(labels(&names, &args.runs)) {
+        run.label = label;
     }
     let out = match &args.out {
         Some(o) => o.clone(),
@@ -240,4 +272,64 @@ pub fn run(args: &CompareArgs) -> Result<()> {
     )?;
     crate::outln!("plots and comparison.json in {}", out.display());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn label_of(runs: &[(&str, &str)]) -> Vec<String> {
+        let names: Vec<String> = runs.iter().map(|(n, _)| n.to_string()).collect();
+        let folders: Vec<PathBuf> = runs.iter().map(|(_, f)| PathBuf::from(f)).collect();
+        labels(&names, &folders)
+    }
+
+    #[test]
+    fn labels_are_the_scenario_names_when_they_differ() {
+        assert_eq!(
+            label_of(&[("kyslan-pi", "runs/a"), ("kyslan-nl", "runs/b")]),
+            ["kyslan-pi", "kyslan-nl"]
+        );
+    }
+
+    #[test]
+    fn every_run_of_a_repeated_name_is_labelled_by_its_folder() {
+        // Three runs of one scenario: all three get their folder, not only the first two.
+        assert_eq!(
+            label_of(&[
+                ("kyslan-pi", "runs/rt"),
+                ("kyslan-pi", "runs/ls"),
+                ("kyslan-pi", "runs/x"),
+                ("low-rst", "runs/y"),
+            ]),
+            [
+                "kyslan-pi (rt)",
+                "kyslan-pi (ls)",
+                "kyslan-pi (x)",
+                "low-rst"
+            ]
+        );
+    }
+
+    #[test]
+    fn equal_folder_names_are_told_apart_by_their_parents() {
+        assert_eq!(
+            label_of(&[
+                ("kyslan-pi", "/tmp/a/run"),
+                ("kyslan-pi", "/tmp/b/run"),
+                ("kyslan-pi", "/tmp/b/other"),
+            ]),
+            [
+                "kyslan-pi (a/run)",
+                "kyslan-pi (b/run)",
+                "kyslan-pi (other)"
+            ]
+        );
+    }
+
+    #[test]
+    fn a_folder_given_twice_gets_its_position() {
+        let l = label_of(&[("kyslan-pi", "runs/rt"), ("kyslan-pi", "runs/rt")]);
+        assert_eq!(l, ["kyslan-pi (runs/rt, #1)", "kyslan-pi (runs/rt, #2)"]);
+    }
 }
