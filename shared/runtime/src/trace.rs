@@ -93,7 +93,23 @@ impl CsvTrace {
     }
 }
 
-/// Reads a trace written by [`write_csv`].
+/// True when the file at `path` is not empty and its last byte is not a newline.
+fn ends_without_newline(path: &std::path::Path) -> anyhow::Result<bool> {
+    use std::io::{Read, Seek, SeekFrom};
+    let mut f = std::fs::File::open(path)
+        .map_err(|e| anyhow::anyhow!("cannot read {}: {e}", path.display()))?;
+    if f.metadata().map(|m| m.len()).unwrap_or(0) == 0 {
+        return Ok(false);
+    }
+    let mut last = [0u8; 1];
+    f.seek(SeekFrom::End(-1))
+        .and_then(|_| f.read_exact(&mut last))
+        .map_err(|e| anyhow::anyhow!("cannot read {}: {e}", path.display()))?;
+    Ok(last[0] != b'\n')
+}
+
+/// Reads a trace written by [`write_csv`]. A last line cut short (a writer killed in the
+/// middle of it) is left out with a warning on stderr; any other bad row is an error.
 pub fn read_csv(path: &std::path::Path) -> anyhow::Result<Vec<TraceRow>> {
     let mut rows: Vec<TraceRow> = Vec::new();
     for_each_csv_row(path, |row| {
@@ -111,10 +127,25 @@ pub fn for_each_csv_row(
 ) -> anyhow::Result<usize> {
     let mut r = csv::Reader::from_path(path)
         .map_err(|e| anyhow::anyhow!("cannot read {}: {e}", path.display()))?;
+    // A launcher killed with SIGKILL (or a machine that lost power) leaves the file cut
+    // wherever its last buffered write ended: the rows before the cut are whole.
+    let cut = ends_without_newline(path)?;
     let mut prev: Option<TraceRow> = None;
     let mut n = 0;
-    for (i, rec) in r.deserialize().enumerate() {
-        let row: TraceRow = rec.map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    let mut records = r.deserialize().enumerate().peekable();
+    while let Some((i, rec)) = records.next() {
+        let row: TraceRow = match rec {
+            Ok(row) => row,
+            Err(e) if cut && records.peek().is_none() => {
+                crate::errln!(
+                    "drivelab: warning: {}: its last line (row {}) is cut short, as a killed writer leaves it, and is left out ({e}); {n} rows read",
+                    path.display(),
+                    i + 1
+                );
+                break;
+            }
+            Err(e) => anyhow::bail!("{}: {e}", path.display()),
+        };
         // A trace runs forward: each row a later sample at a later time (gaps allowed).
         if !row.t.is_finite() {
             anyhow::bail!(
@@ -141,4 +172,71 @@ pub fn for_each_csv_row(
         each(row)?;
     }
     Ok(n)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rows(n: u64) -> Vec<TraceRow> {
+        (0..n)
+            .map(|k| TraceRow {
+                k,
+                t: k as f64 * 1e-4,
+                omega_m: 0.123_456_789 * k as f64,
+                ..TraceRow::default()
+            })
+            .collect()
+    }
+
+    /// A trace of 5 rows whose text is then cut to `keep` bytes, or given `tail` after them.
+    fn damaged(name: &str, edit: impl FnOnce(Vec<u8>) -> Vec<u8>) -> std::path::PathBuf {
+        let path =
+            std::env::temp_dir().join(format!("drivelab-trace-{}-{name}.csv", std::process::id()));
+        write_csv(&path, &rows(5)).unwrap();
+        let text = std::fs::read(&path).unwrap();
+        std::fs::write(&path, edit(text)).unwrap();
+        path
+    }
+
+    #[test]
+    fn a_last_row_cut_short_is_left_out_and_the_rows_before_it_are_read() {
+        // Cut in the middle of the last row's numbers, as a killed writer leaves the file.
+        let path = damaged("cut", |mut t| {
+            let last_row = t[..t.len() - 1].iter().rposition(|&b| b == b'\n').unwrap();
+            t.truncate(last_row + 9);
+            t
+        });
+        let read = read_csv(&path);
+        std::fs::remove_file(&path).unwrap();
+        assert_eq!(read.unwrap(), rows(4));
+    }
+
+    #[test]
+    fn a_bad_last_row_that_ends_with_a_newline_is_an_error() {
+        // Whole lines: nothing was cut, the row is wrong.
+        let path = damaged("bad-last", |mut t| {
+            t.extend_from_slice(b"5,0.0005,oops\n");
+            t
+        });
+        let read = read_csv(&path);
+        std::fs::remove_file(&path).unwrap();
+        let e = read.unwrap_err().to_string();
+        assert!(e.contains("bad-last.csv"), "{e}");
+    }
+
+    #[test]
+    fn a_bad_row_before_the_cut_one_is_an_error() {
+        let path = damaged("bad-middle", |t| {
+            let text = String::from_utf8(t).unwrap();
+            let mut lines: Vec<&str> = text.lines().collect();
+            lines[2] = "1,0.0001,broken";
+            let mut out = lines.join("\n");
+            out.truncate(out.len() - 3);
+            out.into_bytes()
+        });
+        let read = read_csv(&path);
+        std::fs::remove_file(&path).unwrap();
+        assert!(read.is_err());
+    }
 }
