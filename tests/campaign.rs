@@ -515,3 +515,73 @@ fn a_campaign_stopped_by_sigint_says_so_in_one_line_and_reports_the_rest_skipped
     assert_eq!(cases[0].2, 1, "run 1 is not an error");
     assert_eq!(suite.attribute("skipped"), Some("2"));
 }
+
+#[test]
+fn a_campaign_writes_only_into_a_new_empty_or_earlier_campaign_folder_and_replaces_its_runs() {
+    let dir = scratch("campout");
+    let three = campaign_file(
+        &dir,
+        "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nclock = \"lockstep\"\nduration_s = 0.05\nseeds = [1, 2, 3]\n",
+    );
+    // A folder of other files (a home folder, a source tree) is refused, untouched.
+    let other = dir.join("other");
+    std::fs::create_dir_all(&other).unwrap();
+    std::fs::write(other.join("keep.txt"), "mine").unwrap();
+    let o = drivelab(&[
+        "campaign",
+        three.to_str().unwrap(),
+        "--out",
+        other.to_str().unwrap(),
+    ]);
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+    assert!(
+        err.contains("not empty and not a campaign's (no campaign.json)"),
+        "{err}"
+    );
+    let names: Vec<_> = std::fs::read_dir(&other)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert_eq!(names, ["keep.txt"]);
+    // An earlier campaign's folder is reused: its runs that the new campaign does not repeat
+    // are gone, a file of the user's stays.
+    let out = dir.join("c");
+    let o = drivelab(&[
+        "campaign",
+        three.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    for n in ["001", "002", "003"] {
+        assert!(out.join("runs").join(n).join("trace.csv").is_file(), "{n}");
+    }
+    std::fs::write(out.join("notes.txt"), "mine").unwrap();
+    let one = dir.join("one.toml");
+    std::fs::write(
+        &one,
+        "name = \"y\"\nscenarios = [\"kyslan-pi\"]\nclock = \"lockstep\"\nduration_s = 0.05\nseeds = [1]\n",
+    )
+    .unwrap();
+    let o = drivelab(&[
+        "campaign",
+        one.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let runs: Vec<_> = std::fs::read_dir(out.join("runs"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert_eq!(runs, ["001"]);
+    let report: Value =
+        serde_json::from_slice(&std::fs::read(out.join("campaign.json")).unwrap()).unwrap();
+    assert_eq!(report["name"], "y");
+    assert_eq!(
+        std::fs::read_to_string(out.join("notes.txt")).unwrap(),
+        "mine"
+    );
+}

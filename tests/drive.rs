@@ -311,6 +311,8 @@ fn sigint_sigterm_and_sighup_stop_the_whole_drive_keep_the_trace_and_clean_up() 
     // A timer's signal, whose default ends a process on the spot: the same clean stop (it
     // left the bus's files and no summary before).
     stopped_by(libc::SIGALRM, "sigalrm-lockstep", "lockstep", 30);
+    // A real-time signal (the same default) too.
+    stopped_by(libc::SIGRTMIN() + 3, "sigrtmin+3-lockstep", "lockstep", 30);
 }
 
 /// A drive of `seconds` on `clock` stopped by signal `sig` (Ctrl-C is SIGINT) once it runs.

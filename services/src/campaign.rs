@@ -604,6 +604,54 @@ pub fn junit(name: &str, results: &[CaseResult]) -> Result<String> {
     Ok(s)
 }
 
+/// The reports a campaign writes at the top of its folder.
+const REPORTS: [&str; 3] = ["campaign.json", "campaign.md", "junit.xml"];
+
+/// Makes campaign folder `out`: new, empty or an earlier campaign's (it has
+/// `campaign.json`), never a folder of other files nor one another campaign is writing
+/// into (an advisory lock held until the returned file drops). An earlier campaign's
+/// reports and its runs' outputs are removed first, so that none of them passes for this
+/// campaign's (a run it does not repeat); other files are kept.
+fn claim_campaign_folder(out: &Path) -> Result<std::fs::File> {
+    let not_empty = std::fs::read_dir(out).is_ok_and(|mut d| d.next().is_some());
+    if not_empty && !out.join("campaign.json").is_file() {
+        bail!(
+            "campaign folder {}: not empty and not a campaign's (no campaign.json): give a new or empty folder, or an earlier campaign's",
+            out.display()
+        );
+    }
+    let dir = crate::launcher::make_and_lock_folder(out, "campaign folder", "campaign")?;
+    let runs = out.join("runs");
+    if let Ok(entries) = std::fs::read_dir(&runs) {
+        for e in entries.flatten() {
+            let run = e.path();
+            let numbered = e
+                .file_name()
+                .to_str()
+                .is_some_and(|n| n.len() >= 3 && n.bytes().all(|b| b.is_ascii_digit()));
+            // Only folders (not links to them) that an earlier run wrote.
+            let folder = e.file_type().is_ok_and(|t| t.is_dir());
+            if numbered && folder && run.join("scenario.toml").is_file() {
+                drop(crate::launcher::claim_run_folder(&run)?);
+                let _ = std::fs::remove_dir(&run);
+            }
+        }
+        let _ = std::fs::remove_dir(&runs);
+    }
+    for name in REPORTS {
+        let path = out.join(name);
+        if path.symlink_metadata().is_ok_and(|m| !m.is_dir()) {
+            std::fs::remove_file(&path).with_context(|| {
+                format!(
+                    "campaign folder {}: cannot remove the earlier campaign's {name}",
+                    out.display()
+                )
+            })?;
+        }
+    }
+    Ok(dir)
+}
+
 /// Runs a campaign and writes its reports; returns the exit code: 0 all passed,
 /// [`EXIT_EXPECTATION_FAILED`] when an expectation failed, 1 when a run did not complete or
 /// the campaign was interrupted.
@@ -617,8 +665,7 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
             .unwrap_or(0);
         PathBuf::from("runs").join(format!("campaign-{}-{secs}", c.name))
     });
-    std::fs::create_dir_all(&out)
-        .with_context(|| format!("cannot create campaign folder {}", out.display()))?;
+    let _lock = claim_campaign_folder(&out)?;
     let bar = if a.json {
         indicatif::ProgressBar::hidden()
     } else {

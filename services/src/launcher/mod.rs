@@ -166,21 +166,7 @@ pub(crate) fn claim_run_folder(out: &Path) -> Result<RunFolderLock> {
 /// remote drive may not answer), so that a failure leaves the earlier run whole.
 pub(crate) fn lock_run_folder(out: &Path) -> Result<RunFolderLock> {
     earlier_outputs(out)?;
-    std::fs::create_dir_all(out)
-        .with_context(|| format!("cannot create run folder {}", out.display()))?;
-    let dir = std::fs::File::open(out)
-        .with_context(|| format!("cannot open run folder {}", out.display()))?;
-    // flock(LOCK_EX | LOCK_NB) on Linux.
-    match dir.try_lock() {
-        Ok(()) => {}
-        Err(std::fs::TryLockError::WouldBlock) => bail!(
-            "run folder {}: another drive is writing into it now; give another --out",
-            out.display()
-        ),
-        Err(std::fs::TryLockError::Error(e)) => {
-            bail!("run folder {}: cannot lock it: {e}", out.display())
-        }
-    }
+    let dir = make_and_lock_folder(out, "run folder", "drive")?;
     let earlier = earlier_outputs(out)?;
     // Every folder a removal changes must be writable, or nothing is removed.
     for folder in [out.to_path_buf(), out.join("config")] {
@@ -196,6 +182,26 @@ pub(crate) fn lock_run_folder(out: &Path) -> Result<RunFolderLock> {
         _dir: dir,
         out: out.to_path_buf(),
     })
+}
+
+/// Makes folder `out` (a "run folder", …) and takes its advisory lock (`flock(LOCK_EX |
+/// LOCK_NB)`), held until the returned file drops; refused when another `who` (a drive, …)
+/// holds it.
+pub(crate) fn make_and_lock_folder(out: &Path, what: &str, who: &str) -> Result<std::fs::File> {
+    std::fs::create_dir_all(out)
+        .with_context(|| format!("cannot create {what} {}", out.display()))?;
+    let dir = std::fs::File::open(out)
+        .with_context(|| format!("cannot open {what} {}", out.display()))?;
+    match dir.try_lock() {
+        Ok(()) => Ok(dir),
+        Err(std::fs::TryLockError::WouldBlock) => bail!(
+            "{what} {}: another {who} is writing into it now; give another --out",
+            out.display()
+        ),
+        Err(std::fs::TryLockError::Error(e)) => {
+            bail!("{what} {}: cannot lock it: {e}", out.display())
+        }
+    }
 }
 
 impl RunFolderLock {
@@ -606,7 +612,7 @@ fn run_bus(
         }
         processes.insert(
             c.name.clone(),
-            json!({ "stages": c.stages, "executable": c.exe, "pid": c.child.id(), "cpu": rt.get("cpu"), "policy": rt.get("policy"), "priority": rt.get("priority"), "memory_locked": rt.get("memory_locked") }),
+            json!({ "stages": c.stages, "executable": c.exe, "pid": c.host_pid(), "cpu": rt.get("cpu"), "policy": rt.get("policy"), "priority": rt.get("priority"), "memory_locked": rt.get("memory_locked") }),
         );
         for st in &c.stages {
             let stats_path = out.join(format!("{st}.stats.json"));

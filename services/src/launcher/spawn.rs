@@ -27,6 +27,9 @@ pub(super) struct ChildProc {
     lines: mpsc::Receiver<String>,
     /// Its RT setup as it reported it (`RT {json}`).
     pub rt: Option<serde_json::Value>,
+    /// The stage host's own pid as it reported it (`PID n`): the child's, unless the
+    /// topology's `exec` is a wrapper that started the host without `exec`ing it.
+    host_pid: Option<u32>,
     /// A standby twin that has not taken over.
     pub standby: bool,
 }
@@ -305,6 +308,7 @@ pub(super) fn spawn_service(
         stdin,
         lines: rx,
         rt: None,
+        host_pid: None,
         standby,
     })
 }
@@ -446,15 +450,37 @@ impl ChildProc {
         self.child.id()
     }
 
-    /// Takes one line of its stdout: records an `RT` report; true for `READY`.
+    /// The pid that signals meant for its stage host go to (faults, SIGCONT): the host's
+    /// own once it said it, else the child's.
+    pub fn host_pid(&self) -> u32 {
+        self.host_pid.unwrap_or_else(|| self.child.id())
+    }
+
+    /// Takes one line of its stdout: records an `RT` report and the host's `PID`; true for
+    /// `READY`.
     fn take_line(&mut self, l: &str) -> bool {
         if l == "READY" {
             return true;
         }
         if let Some(j) = l.strip_prefix("RT ") {
             self.rt = serde_json::from_str(j).ok();
+        } else if let Some(pid) = l.strip_prefix("PID ") {
+            self.host_pid = pid.parse().ok();
         }
         false
+    }
+
+    /// One line when its `exec` did not become the stage host but started it as a child:
+    /// signals then go to the host, but the launcher can only wait for the wrapper.
+    fn wrapper_warning(&self) -> Option<String> {
+        let (child, host) = (self.child.id(), self.host_pid?);
+        (host != child).then(|| {
+            format!(
+                "drivelab: warning: process {}: {} started its stage host as a child (pid {host} under pid {child}) instead of becoming it; faults are sent to the host, but end the script with `exec` so that the process the launcher started is the host",
+                self.name,
+                self.exe.display()
+            )
+        })
     }
 
     /// Reads what it has written so far without waiting; true once it said `READY`.
@@ -496,6 +522,9 @@ pub(super) fn wait_ready(children: &mut [ChildProc]) -> Result<Option<String>> {
             match c.lines.recv_timeout(Duration::from_millis(50)) {
                 Ok(l) => {
                     if c.take_line(&l) {
+                        if let Some(w) = c.wrapper_warning() {
+                            crate::errln!("{w}");
+                        }
                         break;
                     }
                 }
@@ -519,15 +548,24 @@ pub(super) fn wait_ready(children: &mut [ChildProc]) -> Result<Option<String>> {
     Ok(None)
 }
 
-/// SIGTERM to every child still running, then SIGKILL to those not gone within 3 s.
+/// SIGTERM to every child still running, then SIGKILL (named in a warning) to those not
+/// gone within 3 s. The
+/// source's stdin is closed after the signal: a source stopped before its `GO` is waiting
+/// for that line, and ends at once when it reads the end of its input instead.
 pub(super) fn terminate(children: &mut [ChildProc]) {
     for c in children.iter_mut() {
         if let Ok(None) = c.child.try_wait() {
-            // SAFETY: kill(2) on a pid we spawned and have not reaped; no memory is touched.
+            // SAFETY: kill(2) on a pid we spawned and have not reaped (and on the host under
+            // it, which a wrapper that ends first leaves to this launcher, its subreaper, to
+            // reap); no memory is touched.
             unsafe {
                 libc::kill(c.child.id() as libc::pid_t, libc::SIGTERM);
+                if c.host_pid() != c.child.id() {
+                    libc::kill(c.host_pid() as libc::pid_t, libc::SIGTERM);
+                }
             }
         }
+        c.stdin = None;
     }
     let t = Instant::now();
     for c in children.iter_mut() {
@@ -537,6 +575,10 @@ pub(super) fn terminate(children: &mut [ChildProc]) {
                 Ok(None) if t.elapsed() > Duration::from_secs(3) => {
                     let _ = c.child.kill();
                     let _ = c.child.wait();
+                    crate::errln!(
+                        "drivelab: warning: process {} did not end within 3 s of SIGTERM; killed (SIGKILL)",
+                        c.name
+                    );
                     break;
                 }
                 Ok(None) => std::thread::sleep(Duration::from_millis(5)),

@@ -182,10 +182,9 @@ pub const NOT_INJECTED: &str = ", not injected";
 /// (its exit status is then 128 + the signal).
 pub fn outside_stop(st: ExitStatus) -> Option<&'static str> {
     let code = st.code()?;
-    drivelab_runtime::service::STOP_SIGNALS
-        .iter()
+    drivelab_runtime::service::stop_signals()
         .find(|(sig, _)| i32::from(drivelab_runtime::service::outside_stop_status(*sig)) == code)
-        .map(|(_, name)| *name)
+        .map(|(_, name)| name)
 }
 
 /// A stage host that a stop signal from another process ended: the same sender may be
@@ -419,7 +418,7 @@ pub(super) fn supervise(
                 },
                 Injection::Skipped => EventKind::InjectSkipped,
                 Injection::Signal(sig) => {
-                    signal(c.proc.pid(), sig)?;
+                    signal(c.proc.host_pid(), sig)?;
                     EventKind::Inject {
                         fault: f.kind,
                         duration_s: f.duration_s,
@@ -435,7 +434,7 @@ pub(super) fn supervise(
         }
         for c in children.iter_mut() {
             if c.life.resume_due(now) {
-                let _ = signal(c.proc.pid(), libc::SIGCONT);
+                let _ = signal(c.proc.host_pid(), libc::SIGCONT);
                 log(events, EventKind::Resume, &c.proc.name, &c.proc.name);
             }
         }
@@ -468,7 +467,9 @@ pub(super) fn supervise(
             }
             if c.life.state.awaiting_ready() && c.proc.poll_ready() {
                 c.life.ready();
-                let kind = EventKind::Ready { pid: c.proc.pid() };
+                let kind = EventKind::Ready {
+                    pid: c.proc.host_pid(),
+                };
                 log(events, kind, &c.proc.name, &c.proc.name);
             }
             let Some(st) = c.proc.child.try_wait()? else {
@@ -552,14 +553,14 @@ pub(super) fn supervise(
             c.proc = c.proc.respawn(sp, &rejoin_file)?;
             let kind = EventKind::Restarted {
                 restart: c.life.restarted(),
-                pid: c.proc.pid(),
+                pid: c.proc.host_pid(),
             };
             log(events, kind, &name, &name);
         }
         for c in children.iter() {
             let state = c.life.state.proc_state();
             for st in &c.proc.stages {
-                hub.set_process(st, state, c.proc.pid(), c.life.history.restarts);
+                hub.set_process(st, state, c.proc.host_pid(), c.life.history.restarts);
             }
         }
         match run_state(children.iter().map(|c| &c.life)) {

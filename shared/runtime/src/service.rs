@@ -145,7 +145,7 @@ static STOP_SIGNAL: std::sync::atomic::AtomicI32 = std::sync::atomic::AtomicI32:
 /// Ctrl-C, a stop request, a closed terminal, Ctrl-\, the two user signals, and every other
 /// standard signal whose default would end the process on the spot (timers, a CPU time
 /// limit, power failure, I/O readiness). SIGPIPE and SIGXFSZ are ignored instead (a failed
-/// write says why); real-time signals (SIGRTMIN…) are not handled.
+/// write says why). [`stop_signals`] adds the real-time signals.
 pub const STOP_SIGNALS: [(libc::c_int, &str); 13] = [
     (libc::SIGINT, "SIGINT"),
     (libc::SIGTERM, "SIGTERM"),
@@ -161,6 +161,52 @@ pub const STOP_SIGNALS: [(libc::c_int, &str); 13] = [
     (libc::SIGIO, "SIGIO"),
     (libc::SIGSTKFLT, "SIGSTKFLT"),
 ];
+
+/// Names of the real-time signals from SIGRTMIN up (the C library keeps the kernel's first
+/// two or three for itself; at most 33 remain).
+const RT_SIGNAL_NAMES: [&str; 33] = [
+    "SIGRTMIN",
+    "SIGRTMIN+1",
+    "SIGRTMIN+2",
+    "SIGRTMIN+3",
+    "SIGRTMIN+4",
+    "SIGRTMIN+5",
+    "SIGRTMIN+6",
+    "SIGRTMIN+7",
+    "SIGRTMIN+8",
+    "SIGRTMIN+9",
+    "SIGRTMIN+10",
+    "SIGRTMIN+11",
+    "SIGRTMIN+12",
+    "SIGRTMIN+13",
+    "SIGRTMIN+14",
+    "SIGRTMIN+15",
+    "SIGRTMIN+16",
+    "SIGRTMIN+17",
+    "SIGRTMIN+18",
+    "SIGRTMIN+19",
+    "SIGRTMIN+20",
+    "SIGRTMIN+21",
+    "SIGRTMIN+22",
+    "SIGRTMIN+23",
+    "SIGRTMIN+24",
+    "SIGRTMIN+25",
+    "SIGRTMIN+26",
+    "SIGRTMIN+27",
+    "SIGRTMIN+28",
+    "SIGRTMIN+29",
+    "SIGRTMIN+30",
+    "SIGRTMIN+31",
+    "SIGRTMIN+32",
+];
+
+/// Every signal that stops a drive cleanly: the [`STOP_SIGNALS`] and the real-time signals
+/// (SIGRTMIN … SIGRTMAX), whose default also ends a process on the spot.
+pub fn stop_signals() -> impl Iterator<Item = (libc::c_int, &'static str)> {
+    STOP_SIGNALS
+        .into_iter()
+        .chain((libc::SIGRTMIN()..=libc::SIGRTMAX()).zip(RT_SIGNAL_NAMES))
+}
 
 /// The pid of the process that sent the first stop signal when that was neither this
 /// process's parent (its launcher) nor the kernel (a terminal's Ctrl-C or hang-up); else 0.
@@ -186,10 +232,10 @@ extern "C" fn on_signal(sig: libc::c_int, info: *mut libc::siginfo_t, _: *mut li
     STOP.store(true, Ordering::SeqCst);
 }
 
-/// Installs handlers of the [`STOP_SIGNALS`] that set the stop flag (iceoryx2's own handling
+/// Installs handlers of the [`stop_signals`] that set the stop flag (iceoryx2's own handling
 /// is off).
 pub fn install_signal_handlers() -> Result<()> {
-    for (sig, _) in STOP_SIGNALS {
+    for (sig, _) in stop_signals() {
         // SAFETY: `sigaction` is given a zero-initialised struct whose handler is an
         // `extern "C"` function that only stores to an atomic, which is async-signal-safe.
         let rc = unsafe {
@@ -215,7 +261,7 @@ pub fn stop_flag() -> &'static AtomicBool {
     &STOP
 }
 
-/// True once one of the [`STOP_SIGNALS`] arrived.
+/// True once one of the [`stop_signals`] arrived.
 pub fn stop_requested() -> bool {
     STOP.load(Ordering::Relaxed)
 }
@@ -224,8 +270,7 @@ pub fn stop_requested() -> bool {
 /// any.
 pub fn stop_signal_name() -> &'static str {
     let sig = STOP_SIGNAL.load(Ordering::Relaxed);
-    STOP_SIGNALS
-        .iter()
+    stop_signals()
         .find(|(s, _)| *s == sig)
         .map_or("a stop signal", |(_, n)| n)
 }
@@ -584,11 +629,19 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     };
     let report = apply_placement(&label, &proc, &args)?;
     phase("rt");
+    // The launcher signals this pid (faults): it is its child's unless a wrapper script
+    // started this host without `exec`.
+    protocol_line(&format!("PID {}", std::process::id()))?;
     protocol_line("READY")?;
     if source && !args.rejoin {
         // Wait for the launcher's GO (everyone is subscribed by then).
         let mut line = String::new();
         std::io::stdin().lock().read_line(&mut line)?;
+        if line.is_empty() && stop_requested() {
+            // Stopped during the start-up: the launcher closed our stdin after its signal.
+            // The drive never ran; there is nothing to report.
+            return Ok(());
+        }
         if line.trim() != "GO" {
             bail!(
                 "launcher did not say GO (got {:?}); not starting",
