@@ -1,6 +1,10 @@
 //! `drivelab bench --quick` end to end. It checks the report's structure and verdict logic,
 //! never a latency figure (those belong to the bench's own output).
 
+mod common;
+
+use common::{assert_clean, processes_with, scratch, wait};
+use std::path::Path;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
@@ -732,4 +736,195 @@ fn bench_compares_topologies_with_their_cpu_time() {
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("unknown topology 'nine-process'"));
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// The files in /dev/shm and /tmp/iceoryx2 of every bus that the bench with pid `pid` made
+/// (its bus ids are `b<pid>` and a letter: `b<pid>r0j2`, `b<pid>ls`).
+fn bench_bus_files(pid: u32) -> Vec<String> {
+    let mine = |dir: &str, prefix: String| -> Vec<String> {
+        std::fs::read_dir(dir)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .filter(|n| {
+                n.strip_prefix(&prefix)
+                    .is_some_and(|rest| rest.starts_with(|c: char| c.is_ascii_alphabetic()))
+            })
+            .map(|n| format!("{dir}/{n}"))
+            .collect()
+    };
+    let mut v = mine("/dev/shm", format!("iox2_dlb{pid}"));
+    v.extend(mine("/tmp/iceoryx2", format!("dlb{pid}")));
+    v
+}
+
+/// The `--bus` argument of a command line ("PROGRAM ARG ARG ...").
+fn bus_of(cmdline: &str) -> Option<String> {
+    let args: Vec<&str> = cmdline.split(' ').collect();
+    args.windows(2)
+        .find(|w| w[0] == "--bus")
+        .map(|w| w[1].to_string())
+}
+
+/// Whether a thread named `name` runs in process `pid`.
+fn has_thread(pid: u32, name: &str) -> bool {
+    std::fs::read_dir(format!("/proc/{pid}/task"))
+        .into_iter()
+        .flatten()
+        .flatten()
+        .any(|t| std::fs::read_to_string(t.path().join("comm")).is_ok_and(|c| c.trim() == name))
+}
+
+/// Starts `drivelab bench` measuring only `variant` (and the floor, which always runs first)
+/// in 3 s slices, waits until `running` (given the bench's pid and its output folder) says
+/// the phase is under way, sends `sig` and checks that the bench says in one line where it
+/// was stopped, exits with 1 and leaves no process, bus file or socket folder behind.
+/// Returns that line.
+fn interrupt_bench(
+    name: &str,
+    variant: &str,
+    sig: libc::c_int,
+    running: impl Fn(u32, &Path) -> bool,
+) -> String {
+    let out = scratch(name).join("bench");
+    let child = Command::new(env!("CARGO_BIN_EXE_drivelab"))
+        .args(["bench", "--quick", "--seconds", "300", "--rounds", "100"])
+        .args(["--no-cpu-latency-request", "--variants", variant, "--out"])
+        .arg(&out)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let pid = child.id();
+    // In a guard from here on: killed if the test fails before it exits.
+    let child = common::Drive::from(child);
+    let t = Instant::now();
+    while !running(pid, &out) {
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "watchdog: the {variant} phase did not start within 60 s"
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    // The buses the phase uses, while it runs.
+    let buses: Vec<String> = processes_with(out.to_str().unwrap())
+        .iter()
+        .filter_map(|c| bus_of(c))
+        .collect();
+    // SAFETY: a signal to the bench this test started, not yet reaped.
+    unsafe { libc::kill(pid as i32, sig) };
+    let o = wait(child, Duration::from_secs(60), "the bench after its signal");
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert_eq!(o.status.code(), Some(1), "{variant}: {err}");
+    let lines: Vec<&str> = err
+        .lines()
+        .filter(|l| l.starts_with("drivelab: error:"))
+        .collect();
+    assert_eq!(lines.len(), 1, "{variant}: {err}");
+    let left = processes_with(out.to_str().unwrap());
+    assert!(left.is_empty(), "{variant}: processes left: {left:?}");
+    for bus in &buses {
+        assert_clean(bus);
+    }
+    let files = bench_bus_files(pid);
+    assert!(files.is_empty(), "{variant}: bus files left: {files:?}");
+    let socks: Vec<String> = [std::env::temp_dir(), "/tmp".into()]
+        .iter()
+        .flat_map(|d| std::fs::read_dir(d).into_iter().flatten().flatten())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with(&format!("drivelab-uds-{pid}-")))
+        .collect();
+    assert!(
+        socks.is_empty(),
+        "{variant}: socket folders left: {socks:?}"
+    );
+    assert!(
+        !out.join("bench.json").exists(),
+        "{variant}: a report was written"
+    );
+    lines[0].to_string()
+}
+
+#[test]
+fn a_bench_stopped_by_a_signal_says_where_in_one_line_and_leaves_nothing_behind() {
+    // A process of the phase, with the bench's output folder on its command line.
+    let child_with = |marker: &'static str| {
+        move |_: u32, out: &Path| {
+            processes_with(out.to_str().unwrap())
+                .iter()
+                .any(|c| c.contains(marker))
+        }
+    };
+    // The hop and the bare chain: their receivers were left running and their wake segment
+    // in /dev/shm before.
+    for (variant, sig, signal) in [
+        ("hop", libc::SIGINT, "SIGINT"),
+        ("bare-chain", libc::SIGTERM, "SIGTERM"),
+    ] {
+        let line = interrupt_bench(
+            &format!("stop-{variant}"),
+            variant,
+            sig,
+            child_with("bench-node hop"),
+        );
+        let want = format!(
+            "drivelab: error: bench interrupted ({signal}) during {variant} without request at 10000 Hz, round 1 of 100; no report written (bench.json, bench.md); the measurements so far are in "
+        );
+        assert!(line.starts_with(&want), "{line}");
+    }
+    // The Unix-socket chain's four nodes.
+    let line = interrupt_bench(
+        "stop-uds",
+        "uds",
+        libc::SIGHUP,
+        child_with("bench-node uds"),
+    );
+    assert!(
+        line.contains("bench interrupted (SIGHUP) during uds one-core without request at 10000 Hz, round 1 of 100; no report written"),
+        "{line}"
+    );
+    // cyclictest, where it is installed.
+    if on_path("cyclictest") {
+        let line = interrupt_bench(
+            "stop-cyclictest",
+            "cyclictest",
+            libc::SIGINT,
+            child_with("--histfile="),
+        );
+        assert!(
+            line.contains("bench interrupted (SIGINT) during cyclictest without request at 10000 Hz, round 1 of 100; no report written"),
+            "{line}"
+        );
+    }
+    // The floor, in the bench's own thread: nothing was written, and the output folder the
+    // bench made is gone.
+    let line = interrupt_bench("stop-floor", "floor", libc::SIGINT, |pid, _| {
+        has_thread(pid, "bench-floor")
+    });
+    assert!(
+        line.ends_with(
+            "bench interrupted (SIGINT) during floor without request at 10000 Hz, round 1 of 100; nothing written"
+        ),
+        "{line}"
+    );
+    // A drive, once it samples: the launcher stops it and says what it recorded.
+    let line = interrupt_bench("stop-iceoryx2", "iceoryx2", libc::SIGTERM, |_, out| {
+        let plant = processes_with(out.to_str().unwrap())
+            .into_iter()
+            .find(|c| c.contains("--process plant"));
+        match plant.as_deref().and_then(bus_of) {
+            Some(bus) => {
+                common::wait_for_progress(&bus, 1);
+                true
+            }
+            None => false,
+        }
+    });
+    for says in [
+        "bench interrupted (SIGTERM) during iceoryx2 one-core without request at 10000 Hz, round 1 of 100: interrupted (SIGTERM): drive stopped",
+        "; no report written",
+    ] {
+        assert!(line.contains(says), "'{says}' not in: {line}");
+    }
 }

@@ -17,11 +17,13 @@
 //! recorded at its middle (+0.5 µs). Wake-ups beyond the histogram's range
 //! ([`HIST_MAX_US`]) are recorded at that range, so the maximum is a lower bound then.
 
+use crate::children::{log_tail, Kids};
 use crate::{schedule, NodeSpec, VariantResult};
 use anyhow::{anyhow, bail, Context, Result};
 use drivelab_runtime::timing::{LatencyHist, MissCounter};
 use std::path::{Path, PathBuf};
 use std::process::Command;
+use std::time::Duration;
 
 /// Range of cyclictest's histogram, µs.
 pub const HIST_MAX_US: u64 = 10_000;
@@ -41,8 +43,9 @@ pub fn locate(cmd: &str) -> std::result::Result<PathBuf, String> {
 /// Runs `exe` (cyclictest) for round(seconds × hz) wake-ups on `node`'s core at its
 /// SCHED_FIFO priority, memory locked, with its CPU wake-up latency request at 0 µs when
 /// `latency_request` (cyclictest's default) or without one (`--default-system`), its main
-/// thread on `main_core` when given (see [`main_thread_core`]). The histogram file goes to
-/// `work`.
+/// thread on `main_core` when given (see [`main_thread_core`]). The histogram file and its
+/// output (`cyclictest.log`) go to `work`. A stop signal stops it and ends the run with
+/// [`crate::Interrupted`].
 pub fn run(
     exe: &Path,
     hz: f64,
@@ -76,17 +79,17 @@ pub fn run(
     if !latency_request {
         c.arg("--default-system");
     }
-    let out = c
-        .output()
-        .with_context(|| format!("cannot run {}", exe.display()))?;
-    if !out.status.success() {
-        let err = String::from_utf8_lossy(&out.stderr);
-        bail!(
-            "{} failed ({}): {}",
-            exe.display(),
-            out.status,
-            err.lines().last().unwrap_or("").trim()
-        );
+    // In its guard: a stop signal (or any error) stops it; it is reaped on every path.
+    let mut kids = Kids::default();
+    kids.spawn((), &mut c, work.join("cyclictest.log"), "the cross-check")?;
+    // Polled every 20 ms: few wake-ups of this process beside the measured thread.
+    while !kids.poll() {
+        crate::check_stop()?;
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let k = &kids.0[0];
+    if let Some(s) = k.status.filter(|s| !s.success()) {
+        bail!("{} failed ({s}): {}", exe.display(), log_tail(&k.log));
     }
     let text = std::fs::read_to_string(&hist)
         .with_context(|| format!("cyclictest wrote no histogram at {}", hist.display()))?;

@@ -12,14 +12,13 @@
 //!   chain's cycle without the bus, the messages and the stages' work, so it says how much of
 //!   the chain's distance to the floor the machine's wake-ups take and how much is drivelab's.
 
-use crate::uds::log_tail;
-use crate::{apply_rt, in_fresh_thread, schedule, NodeSpec, VariantResult};
+use crate::children::{log_tail, Kids};
+use crate::{apply_rt, in_fresh_thread, schedule, stopping, Interrupted, NodeSpec, VariantResult};
 use anyhow::{anyhow, bail, Context, Result};
 use drivelab_runtime::futex::WakeSegment;
 use drivelab_runtime::rt::{now_ns, sleep_until_ns};
 use drivelab_runtime::timing::{CycleMonitor, LatencyHist, MissCounter};
 use std::path::Path;
-use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 /// Wake word of the samples (the first receiver's input).
@@ -79,7 +78,8 @@ fn input_word(position: usize) -> usize {
 /// Runs round(seconds × hz) samples: this process sends from a fresh thread placed at
 /// `sender`; `exe bench-node hop` receives, once per entry of `receivers` (1 to
 /// [`MAX_RECEIVERS`]), each placed there. The wake segment is bus `bus`'s and is removed
-/// afterwards. The result's cycle is what `measure` says; its lateness is the sender's.
+/// afterwards. The result's cycle is what `measure` says; its lateness is the sender's. A
+/// stop signal ends it with [`Interrupted`], its receivers stopped and its bus files removed.
 #[allow(clippy::too_many_arguments)]
 pub fn run(
     exe: &Path,
@@ -103,8 +103,10 @@ pub fn run(
     let _ = std::fs::remove_file(&out);
     let _ = std::fs::remove_file(misses_file(&out));
     let seg = WakeSegment::open(bus)?;
-    let mut children = Vec::new();
     let result = (|| {
+        // Dropped at the end of this closure, whatever ends it: no receiver outlives the run
+        // (and each is gone before the bus files are removed below).
+        let mut kids = Kids::default();
         let hops = receivers.len();
         for (i, node) in receivers.iter().enumerate() {
             let position = i + 1;
@@ -133,28 +135,20 @@ pub fn run(
                 cmd.arg("--priority").arg(p.to_string());
             }
             let log = work.join(format!("hop-receiver-{position}.log"));
-            let f = std::fs::File::create(&log)?;
-            let child = cmd
-                .stdin(Stdio::null())
-                .stdout(f.try_clone()?)
-                .stderr(f)
-                .spawn()
-                .with_context(|| {
-                    format!("cannot start {} for hop receiver {position}", exe.display())
-                })?;
-            children.push((child, log));
+            kids.spawn(position, &mut cmd, log, &format!("hop receiver {position}"))?;
         }
         let watchdog = Duration::from_secs_f64(seconds * 3.0 + 10.0);
         let started = Instant::now();
         while (seg.seq(READY) as usize) < hops {
-            for (child, log) in children.iter_mut() {
-                if child.try_wait()?.is_some() {
-                    bail!(
-                        "a hop receiver exited before it was ready: {}",
-                        log_tail(log)
-                    );
-                }
+            kids.poll();
+            if let Some(k) = kids.0.iter().find(|k| k.status.is_some()) {
+                bail!(
+                    "hop receiver {} exited before it was ready: {}",
+                    k.what,
+                    log_tail(&k.log)
+                );
             }
+            crate::check_stop()?;
             if started.elapsed() > watchdog {
                 bail!("the hop receivers did not get ready within {watchdog:?}");
             }
@@ -168,7 +162,8 @@ pub fn run(
             apply_rt("hop sender", &node, true)?;
             let t0 = now_ns() + 2_000_000;
             // ---- real-time loop: no allocation, no locks, no logging ----
-            for k in 0..n {
+            let mut k = 0;
+            while k < n && !stopping() {
                 let deadline = t0 + k * ts_ns;
                 sleep_until_ns(deadline);
                 let t = now_ns();
@@ -178,24 +173,36 @@ pub fn run(
                     Measure::Cycle => deadline,
                 };
                 seg.notify_stamped(SAMPLE, stamp);
+                k += 1;
             }
             // ---- end of the real-time loop ----
             seg.notify_stamped(SAMPLE, END);
+            if k < n {
+                return Err(Interrupted.into());
+            }
             Ok(late)
         })?;
-        for (child, log) in children.iter_mut() {
-            loop {
-                if let Some(s) = child.try_wait()? {
-                    if !s.success() {
-                        bail!("a hop receiver exited with {s}: {}", log_tail(log));
-                    }
-                    break;
-                }
-                if started.elapsed() > watchdog {
-                    bail!("a hop receiver was still running after {watchdog:?}");
-                }
-                std::thread::sleep(Duration::from_millis(5));
+        loop {
+            let all = kids.poll();
+            let failed = kids
+                .0
+                .iter()
+                .find_map(|k| k.status.filter(|s| !s.success()).map(|s| (k, s)));
+            if let Some((k, s)) = failed {
+                bail!(
+                    "hop receiver {} exited with {s}: {}",
+                    k.what,
+                    log_tail(&k.log)
+                );
             }
+            if all {
+                break;
+            }
+            crate::check_stop()?;
+            if started.elapsed() > watchdog {
+                bail!("a hop receiver was still running after {watchdog:?}");
+            }
+            std::thread::sleep(Duration::from_millis(5));
         }
         let cycle = LatencyHist::read_v2("cycle", &out)?;
         let misses = match measure {
@@ -221,13 +228,6 @@ pub fn run(
             deadline_lateness: Vec::new(),
         })
     })();
-    // Whatever happened, no receiver outlives the run.
-    for (mut child, _) in children {
-        if child.try_wait().ok().flatten().is_none() {
-            let _ = child.kill();
-            let _ = child.wait();
-        }
-    }
     drop(seg);
     drivelab_runtime::bus::cleanup(bus)?;
     result

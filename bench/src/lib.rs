@@ -19,6 +19,11 @@
 //!   (see [`uds`]).
 //!
 //! Every real-time loop preallocates its histograms and never allocates, locks or logs.
+//!
+//! A stop signal (`drivelab_runtime::service::STOP_SIGNALS`, once the caller has installed
+//! their handlers) ends every measurement early with [`Interrupted`]: the loops read the stop
+//! flag (an atomic load per sample), the processes a measurement started are stopped and
+//! reaped, and the bus files it made are removed.
 
 use anyhow::{anyhow, bail, Result};
 use drivelab_runtime::config::Scenario;
@@ -30,6 +35,7 @@ use drivelab_runtime::timing::{CycleMonitor, LatencyHist, MissCounter};
 
 pub mod cache;
 pub mod catch_up;
+mod children;
 pub mod cyclictest;
 pub mod hop;
 pub mod idle;
@@ -37,6 +43,38 @@ pub mod uds;
 pub mod wire;
 
 pub use uds::{run_uds_chain, run_uds_node, UdsNodeArgs};
+
+/// The error of a measurement that a stop signal cut short (its processes stopped, its bus
+/// files removed). Displays as "interrupted (SIGINT)", naming the first stop signal.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Interrupted;
+
+impl std::fmt::Display for Interrupted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "interrupted ({})",
+            drivelab_runtime::service::stop_signal_name()
+        )
+    }
+}
+
+impl std::error::Error for Interrupted {}
+
+/// Whether a stop signal has arrived (one atomic load: real-time loops may ask every sample).
+#[inline]
+pub(crate) fn stopping() -> bool {
+    drivelab_runtime::service::stop_requested()
+}
+
+/// Err([`Interrupted`]) once a stop signal has arrived.
+pub fn check_stop() -> Result<()> {
+    if stopping() {
+        Err(Interrupted.into())
+    } else {
+        Ok(())
+    }
+}
 
 /// Result of one measured variant.
 #[derive(Debug, Clone)]
@@ -193,7 +231,7 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
         let cpu0 = thread_cpu_ns();
         // ---- real-time loop: no allocation, no locks, no logging ----
         let mut k = 0;
-        while k < n {
+        while k < n && !stopping() {
             let deadline = t0 + k * ts_ns;
             sleep_until_ns(deadline);
             let now = now_ns();
@@ -208,6 +246,9 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
             );
         }
         // ---- end of the real-time loop ----
+        if k < n {
+            return Err(Interrupted.into());
+        }
         let cpu_run_ns = Some(thread_cpu_ns().saturating_sub(cpu0));
         Ok(VariantResult {
             cycle,
@@ -273,14 +314,19 @@ pub fn run_inprocess(spec: &ChainSpec) -> Result<VariantResult> {
         let mut late = LatencyHist::new("lateness");
         let t0 = now_ns() + 2_000_000;
         // ---- real-time loop: no allocation, no locks, no logging ----
-        for k in 0..n {
+        let mut k = 0;
+        while k < n && !stopping() {
             let deadline = t0 + k * ts_ns;
             wait_deadline(deadline, spin_ns);
             late.record_ns(now_ns() as i64 - deadline as i64);
             std::hint::black_box(drive.cycle(k));
             mon.at_deadline(deadline, Some(now_ns()));
+            k += 1;
         }
         // ---- end of the real-time loop ----
+        if k < n {
+            return Err(Interrupted.into());
+        }
         Ok(VariantResult {
             cycle: mon.cycle,
             lateness: late,

@@ -24,6 +24,7 @@
 //! forwards before it exits. SIGTERM/SIGINT stop a node (the plant still sends the end marker
 //! and writes its results).
 
+use crate::children::{log_tail, Kids};
 use crate::wire::{Recv, Rx, Sent, Tx, Wire};
 use crate::{apply_rt, schedule, NodeSpec};
 use crate::{ChainSpec, VariantResult};
@@ -41,7 +42,6 @@ use drivelab_runtime::timing::{LatencyHist, MissCounter};
 use drivelab_runtime::trace::TraceRow;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
-use std::process::{Child, ExitStatus, Stdio};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
@@ -61,8 +61,6 @@ const CONNECT_TIMEOUT: Duration = Duration::from_secs(10);
 const CONTROL_TIMEOUT: Duration = Duration::from_secs(1);
 /// After the plant has exited, how long the other nodes get to finish before they are killed.
 const STRAGGLER_GRACE: Duration = Duration::from_secs(5);
-/// How long a node gets to exit after SIGTERM before SIGKILL.
-const TERM_GRACE: Duration = Duration::from_secs(2);
 
 /// The four roles.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -624,83 +622,13 @@ impl Drop for SockDir {
     }
 }
 
-/// One node process.
-struct Kid {
-    role: Role,
-    child: Child,
-    log: PathBuf,
-    status: Option<ExitStatus>,
-}
-
-/// The node processes; on drop every one still running gets SIGTERM, then SIGKILL after
-/// [`TERM_GRACE`], and is reaped — on every path, errors and panics included.
-#[derive(Default)]
-struct Kids(Vec<Kid>);
-
-impl Kids {
-    /// Reaps whatever has exited; true when all have.
-    fn poll(&mut self) -> bool {
-        let mut all = true;
-        for k in &mut self.0 {
-            if k.status.is_none() {
-                k.status = k.child.try_wait().ok().flatten();
-            }
-            all &= k.status.is_some();
-        }
-        all
-    }
-
-    fn terminate(&mut self) {
-        for k in &mut self.0 {
-            if k.status.is_none() {
-                // The child has not been reaped, so its pid still names it (at worst a zombie).
-                if let Ok(pid) = libc::pid_t::try_from(k.child.id()) {
-                    // SAFETY: kill(2) on our own unreaped child; no pointers.
-                    unsafe { libc::kill(pid, libc::SIGTERM) };
-                }
-            }
-        }
-        let started = Instant::now();
-        while !self.poll() && started.elapsed() < TERM_GRACE {
-            std::thread::sleep(Duration::from_millis(10));
-        }
-        for k in &mut self.0 {
-            if k.status.is_none() {
-                let _ = k.child.kill();
-                k.status = k.child.wait().ok();
-            }
-        }
-    }
-}
-
-impl Drop for Kids {
-    fn drop(&mut self) {
-        self.terminate();
-    }
-}
-
-/// The last few lines of a node's log, for error messages.
-pub(crate) fn log_tail(log: &Path) -> String {
-    let text = std::fs::read_to_string(log).unwrap_or_default();
-    let lines: Vec<&str> = text
-        .lines()
-        .map(str::trim)
-        .filter(|l| !l.is_empty() && *l != "READY")
-        .collect();
-    let tail = &lines[lines.len().saturating_sub(3)..];
-    if tail.is_empty() {
-        format!("(no output; log {})", log.display())
-    } else {
-        format!("{} (log {})", tail.join(" | "), log.display())
-    }
-}
-
 /// Unix-socket chain: the same four roles as four processes exchanging the same message
 /// structs over Unix domain datagram sockets in a private temp dir (removed afterwards). The
 /// processes are started as `exe bench-node uds --role <role> --dir <sockdir> --scenario
 /// <file> --seconds S [--core C] [--priority P] [--out <file>]`; the scenario file, the
 /// plant's result files and one log per node (`uds-<role>.log`, stdout and stderr) go to
-/// `workdir`. Watchdog: seconds × 3 + 20 s; no process is left behind on any path.
+/// `workdir`. Watchdog: seconds × 3 + 20 s; a stop signal ends it with [`crate::Interrupted`];
+/// no process is left behind on any path.
 pub fn run_uds_chain(spec: &ChainSpec, exe: &Path, workdir: &Path) -> Result<VariantResult> {
     schedule(spec.scenario.rates.sample_hz, spec.seconds)?;
     std::fs::create_dir_all(workdir)
@@ -727,8 +655,6 @@ pub fn run_uds_chain(spec: &ChainSpec, exe: &Path, workdir: &Path) -> Result<Var
         (Role::Plant, spec.plant),
     ] {
         let log = workdir.join(format!("uds-{}.log", role.name()));
-        let f = std::fs::File::create(&log)
-            .with_context(|| format!("cannot create {}", log.display()))?;
         // Through DRIVELAB_RUNNER when set (an aarch64 build under qemu-user).
         let mut cmd = drivelab_runtime::runner::env_command(exe).map_err(|e| anyhow!(e))?;
         cmd.args(["bench-node", "uds", "--role", role.name(), "--dir"])
@@ -746,16 +672,7 @@ pub fn run_uds_chain(spec: &ChainSpec, exe: &Path, workdir: &Path) -> Result<Var
         if role == Role::Plant {
             cmd.arg("--out").arg(&out);
         }
-        cmd.stdin(Stdio::null()).stdout(f.try_clone()?).stderr(f);
-        let child = cmd
-            .spawn()
-            .with_context(|| format!("cannot start {} for the {}", exe.display(), role.name()))?;
-        kids.0.push(Kid {
-            role,
-            child,
-            log,
-            status: None,
-        });
+        kids.spawn(role, &mut cmd, log, &format!("the {}", role.name()))?;
     }
     let watchdog = Duration::from_secs_f64(spec.seconds * 3.0 + 20.0);
     let started = Instant::now();
@@ -767,15 +684,17 @@ pub fn run_uds_chain(spec: &ChainSpec, exe: &Path, workdir: &Path) -> Result<Var
                 if !s.success() {
                     bail!(
                         "UDS chain: {} exited with {s}: {}",
-                        k.role.name(),
+                        k.what.name(),
                         log_tail(&k.log)
                     );
                 }
-                if k.role == Role::Plant && plant_done.is_none() {
+                if k.what == Role::Plant && plant_done.is_none() {
                     plant_done = Some(Instant::now());
                 }
             }
         }
+        // A stop signal: the guard stops the nodes.
+        crate::check_stop()?;
         if all {
             break;
         }
@@ -787,7 +706,7 @@ pub fn run_uds_chain(spec: &ChainSpec, exe: &Path, workdir: &Path) -> Result<Var
                 .0
                 .iter()
                 .filter(|k| k.status.is_none())
-                .map(|k| k.role.name())
+                .map(|k| k.what.name())
                 .collect();
             bail!(
                 "UDS chain watchdog: {} still running after {watchdog:?}; killed",
@@ -869,9 +788,10 @@ pub(crate) fn run_chain_threads(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::children::Kid;
     use crate::testutil::kyslan;
     use drivelab_runtime::drive::InProcessDrive;
-    use std::process::Command;
+    use std::process::{Command, Stdio};
 
     #[test]
     fn unknown_role_is_a_one_line_error() {
@@ -1130,13 +1050,13 @@ mod tests {
             Role::Plant,
         ] {
             kids.0.push(Kid {
-                role,
+                what: role,
                 child: spawn(role.name()),
                 log: PathBuf::new(),
                 status: None,
             });
         }
-        let term_and_wait = |k: &mut Kid| {
+        let term_and_wait = |k: &mut Kid<Role>| {
             // SAFETY: kill(2) on our own unreaped child.
             unsafe { libc::kill(k.child.id() as libc::pid_t, libc::SIGTERM) };
             let t = Instant::now();
@@ -1193,13 +1113,13 @@ mod tests {
             assert!(
                 k.child.try_wait().unwrap().is_none(),
                 "a node ended early: {}",
-                k.role.name()
+                k.what.name()
             );
         }
         // A downstream node first, then the plant, then the rest.
         for i in [0usize, 3, 1, 2] {
             let k = &mut kids.0[i];
-            let role = k.role.name();
+            let role = k.what.name();
             let (s, dt) = term_and_wait(k);
             assert!(s.success(), "{role}: {s}");
             eprintln!("{role} stopped {dt:?} after SIGTERM");

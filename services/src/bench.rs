@@ -1176,8 +1176,80 @@ fn absorb(acc: &mut Acc, m: VariantResult) -> Result<()> {
     }
 }
 
+/// Where the bench is, for the one line that says where a stop signal cut it short.
+#[derive(Default)]
+struct Place {
+    /// What it is doing, e.g. "hop at 10000 Hz, round 1 of 5".
+    step: String,
+    /// The output folder once it exists, and whether the bench made it.
+    out: Option<(PathBuf, bool)>,
+    /// The progress bar, cleared before an error line.
+    bar: Option<indicatif::ProgressBar>,
+}
+
+impl Place {
+    /// Ends the current step and starts `step`; Err([`Interrupted`](drivelab_bench::Interrupted))
+    /// instead when a stop signal arrived during the current one.
+    fn enter(&mut self, step: impl Into<String>) -> Result<()> {
+        drivelab_bench::check_stop()?;
+        self.step = step.into();
+        Ok(())
+    }
+
+    /// The error of a bench that a stop signal cut short during the current step, `e` being
+    /// what that step returned: it says where and what was written. An output folder that
+    /// the bench made and left empty is removed.
+    fn interrupted(&self, e: &anyhow::Error) -> anyhow::Error {
+        // A measurement's own stop needs no words; a drive's says what it recorded.
+        let how = if e.downcast_ref::<drivelab_bench::Interrupted>().is_some() {
+            String::new()
+        } else {
+            format!(": {}", drivelab_runtime::text::error_text(e))
+        };
+        let written = match &self.out {
+            Some((dir, made)) if dir.read_dir().is_ok_and(|mut d| d.next().is_none()) => {
+                if *made {
+                    let _ = std::fs::remove_dir(dir);
+                }
+                "nothing written".to_string()
+            }
+            Some((dir, _)) => format!(
+                "no report written (bench.json, bench.md); the measurements so far are in {}",
+                dir.display()
+            ),
+            None => "nothing written".to_string(),
+        };
+        anyhow!(
+            "bench interrupted ({}) during {}{how}; {written}",
+            drivelab_runtime::service::stop_signal_name(),
+            self.step
+        )
+    }
+}
+
 /// Runs the whole bench and writes bench.json, bench.md, .hgrm files and percentile plots.
+/// A stop signal (SIGINT, SIGTERM, SIGHUP …) ends it at once with one error that says where:
+/// every process it started is stopped and every bus it made is removed.
 pub fn run(a: &BenchArgs) -> Result<()> {
+    drivelab_runtime::service::install_signal_handlers()?;
+    let mut at = Place {
+        step: "the set-up".into(),
+        ..Place::default()
+    };
+    measure_and_report(a, &mut at).map_err(|e| {
+        if let Some(b) = &at.bar {
+            b.finish_and_clear();
+        }
+        if drivelab_runtime::service::stop_requested() {
+            at.interrupted(&e)
+        } else {
+            e
+        }
+    })
+}
+
+/// [`run`], keeping `at` up to date.
+fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
     let seconds = a.seconds.unwrap_or(if a.quick { 0.2 } else { 10.0 });
     if !(seconds.is_finite() && seconds > 0.0 && seconds <= 3600.0) {
         return Err(anyhow!("--seconds must be in (0, 3600], got {seconds}"));
@@ -1269,8 +1341,10 @@ pub fn run(a: &BenchArgs) -> Result<()> {
             .unwrap_or(0);
         PathBuf::from("runs").join(format!("bench-{secs}"))
     });
+    let made = !out.exists();
     std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
     let out = out.canonicalize()?;
+    at.out = Some((out.clone(), made));
     let exe = std::env::current_exe()?;
     let (base, _) = Scenario::load("kyslan-pi").map_err(|e| anyhow!(e))?;
     let mut request = RequestHolder {
@@ -1289,6 +1363,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         )
         .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
+    at.bar = Some(bar.clone());
     let mut rows: Vec<Row> = Vec::new();
     let mut checks: Vec<CrossCheck> = Vec::new();
     let mut curves_by_rate: Vec<(f64, Vec<drivelab_tools::plot::PercentileSeries>)> = Vec::new();
@@ -1304,6 +1379,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     // were measured in.
     let probe_node = node(placement("one-core")?.plant);
     request.set(!a.no_cpu_latency_request);
+    at.enter("the cache probe before the rounds")?;
     let cache_before = drivelab_bench::cache::after_sleep(&probe_node)?;
     for &hz in &rates {
         let one = placement("one-core")?;
@@ -1328,6 +1404,15 @@ pub fn run(a: &BenchArgs) -> Result<()> {
                     "{hz} Hz {} {}{req_tag}{round_tag}",
                     job.variant, job.placement
                 ));
+                let place = match job.placement.as_str() {
+                    "-" => String::new(),
+                    p => format!(" {p}"),
+                };
+                at.enter(format!(
+                    "{}{place}{req_tag} at {hz} Hz, round {} of {rounds}",
+                    job.variant,
+                    round + 1
+                ))?;
                 held[i] = request.set(job.request);
                 if !held[i] {
                     // The request just released may leave the core polling when idle
@@ -1497,11 +1582,13 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         rows.extend(measured);
     }
     request.set(!a.no_cpu_latency_request);
+    at.enter("the cache probe after the rounds")?;
     let cache_after = drivelab_bench::cache::after_sleep(&probe_node)?;
     // The speed measurements below are not real time: no request.
     request.set(false);
     // Simulation speed: lockstep (four processes) and in-process, kyslan-pi.
     bar.set_message("lockstep speed");
+    at.enter("the lockstep speed run")?;
     let sim_s = if a.quick { 0.2 } else { 2.0 };
     let ls_out = out.join("lockstep-speed");
     let ls = launcher::run(&RunOptions {
@@ -1526,6 +1613,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     })?;
     bar.inc(1);
     bar.set_message("in-process speed");
+    at.enter("the in-process speed run")?;
     let mut ip_sc = base.clone();
     ip_sc.duration_s = if a.quick { 1.0 } else { 20.0 };
     // Time the cycles only (the controller design at construction is set-up, not simulation).
@@ -1534,11 +1622,16 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     let mut rows_ip = Vec::with_capacity(n as usize);
     let t = Instant::now();
     for k in 0..n {
+        if drivelab_runtime::service::stop_requested() {
+            break;
+        }
         rows_ip.push(drive.cycle(k));
     }
     let ip_speed = ip_sc.duration_s / t.elapsed().as_secs_f64();
     std::hint::black_box(rows_ip.len());
     bar.inc(1);
+    // The measurements are done: a stop signal from here on cuts nothing short.
+    at.enter("writing the report")?;
     bar.finish_and_clear();
 
     let speed = serde_json::json!({
