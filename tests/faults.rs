@@ -267,7 +267,7 @@ fn sigkill_of_each_service_is_detected_made_safe_restarted_and_recovered() {
             assert_eq!(safe_row.k, rows[first_stale].k + hold as u64, "{f}");
             assert!(safe_row.plant_flags & FLAG_SAFE_STATE != 0, "{f}");
             let safe = f["safe_state_ms"].as_f64().expect("safe state");
-            let fs = 10_000.0;
+            let fs = s["rate_hz"].as_f64().unwrap();
             assert!(
                 (safe - (safe_row.k - k0) as f64 / fs * 1e3).abs() < 1e-9,
                 "{f}"

@@ -20,7 +20,7 @@
 //!
 //! Every real-time loop preallocates its histograms and never allocates, locks or logs.
 //!
-//! A stop signal (`drivelab_runtime::service::STOP_SIGNALS`, once the caller has installed
+//! A stop signal (`drivelab_runtime::service::stop_signals`, once the caller has installed
 //! their handlers) ends every measurement early with [`Interrupted`]: the loops read the stop
 //! flag (an atomic load per sample), the processes a measurement started are stopped and
 //! reaped, and the bus files it made are removed.
