@@ -118,6 +118,15 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
     assert!(made.success());
     let fifo = fifo.to_str().unwrap().to_string();
     let big = csv("big.toml", &"#\n".repeat(600_000));
+    let tiny_j = common::variant(
+        "tiny-j",
+        "kyslan-nl",
+        &[(
+            "preset = \"kyslan2015\"",
+            "preset = \"kyslan2015\"\nj_kgm2 = 1e-12",
+        )],
+    );
+    let tiny_j = tiny_j.to_str().unwrap().to_string();
     let o = out.to_str().unwrap();
     let lockstep = ["--clock", "lockstep", "--no-plots"];
     let run_case = |name: &str, extra: &[&str], code: i32, needle: &'static str| {
@@ -305,6 +314,14 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             &["design", "--motor", "nosuch"],
             1,
             "unknown motor 'nosuch'",
+        ),
+        // An inertia no motor has: the design's step response was not finite ("NaN").
+        case(
+            "design-tiny-j",
+            dir,
+            &["design", "--scenario", &tiny_j],
+            1,
+            "motor.j_kgm2 = 0.000000000001 must be in [0.0000000001, 1000000000] kg·m²",
         ),
         // monitor, fault, clean, bus-config on a bus with no drive
         case(

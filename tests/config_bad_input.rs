@@ -79,7 +79,13 @@ fn a_bad_scenario_field_is_one_line_naming_file_field_range_and_unit() {
             "j-zero",
             motor("j_kgm2 = 0.0"),
             1,
-            "motor.j_kgm2 = 0 must be in (0, 1000000000] kg·m²",
+            "motor.j_kgm2 = 0 must be in [0.0000000001, 1000000000] kg·m²",
+        ),
+        (
+            "j-tiny",
+            motor("j_kgm2 = 1e-12"),
+            1,
+            "motor.j_kgm2 = 0.000000000001 must be in [0.0000000001, 1000000000] kg·m²",
         ),
         (
             "imax-huge",

@@ -2,7 +2,7 @@
 //! Both controllers are designed for the scenario's motor and rise-time target: the PI cascade
 //! (symmetrical optimum) and Kyslan's nonlinear controller (pole placement).
 
-use drivelab_control::control::nonlinear::KyslanModel;
+use drivelab_control::control::nonlinear::{KyslanModel, StepFigures};
 use drivelab_runtime::config::Scenario;
 use drivelab_runtime::drive::DriveDesign;
 use std::fmt::Write;
@@ -191,24 +191,60 @@ fn render_nonlinear(o: &mut String, sc: &Scenario, d: &DriveDesign) {
     );
     let _ = writeln!(
         o,
-        "  design model (drive's discrete law, sampled, 1-sample delay, speed law every {} samples): rise time {:.2} ms (target {:.2} ms), overshoot {:.1} %",
+        "  design model (drive's discrete law, sampled, 1-sample delay, speed law every {} samples): {}",
         sc.rates.speed_divider,
-        n.predicted_rise_time_s * 1e3,
-        sc.speed_loop.rise_time_s * 1e3,
-        n.predicted_overshoot_pct
+        response(&n.predicted(), Some(sc.speed_loop.rise_time_s))
     );
     let _ = writeln!(
         o,
-        "  {} on the continuous dummy system (26)-(27): rise time {:.2} ms, overshoot {:.1} %",
+        "  {} on the continuous dummy system (26)-(27): {}",
         if n.sampled.is_some() {
             "the continuous placement at the same ω_0"
         } else {
             "same gains"
         },
-        n.continuous_rise_time_s * 1e3,
-        n.continuous_overshoot_pct
+        response(&n.continuous(), None)
     );
     if let Some(w) = &n.warning {
         let _ = writeln!(o, "  WARNING: {w}");
+    }
+}
+
+/// "rise time 8.00 ms (target 8.00 ms), overshoot 12.3 %" of a design's step response, or
+/// what it did instead: "did not reach the set-point within 20.00 ms (target 0.20 ms)",
+/// "diverged: not finite within 2.00 ms".
+fn response(f: &StepFigures, target_s: Option<f64>) -> String {
+    let target = target_s.map_or(String::new(), |t| format!(" (target {:.2} ms)", t * 1e3));
+    match (f.rise_s, f.overshoot_pct, f.failure()) {
+        (Some(r), Some(os), _) => {
+            format!("rise time {:.2} ms{target}, overshoot {os:.1} %", r * 1e3)
+        }
+        (Some(r), None, why) => format!(
+            "rise time {:.2} ms{target}, then {}",
+            r * 1e3,
+            why.unwrap_or_default()
+        ),
+        (None, _, why) => format!("{}{target}", why.unwrap_or_default()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_rise_time_the_loops_cannot_meet_prints_what_they_give_not_nan() {
+        // 0.2 ms: the nonlinear design's speed pair at ω_0 = ω_i rises well after 10 × the
+        // target; its figures and the warning are read off the whole response.
+        let mut sc = crate::launcher::load_scenario("kyslan-nl", None).unwrap();
+        sc.speed_loop.rise_time_s = 0.2e-3;
+        let t = render(&sc);
+        assert!(!t.contains("NaN"), "{t}");
+        let line = t
+            .lines()
+            .find(|l| l.contains("design model (drive's discrete law"))
+            .unwrap();
+        assert!(line.contains("(target 0.20 ms), overshoot "), "{line}");
+        assert!(t.contains("(ω_0 = ω_i gives "), "{t}");
     }
 }

@@ -411,8 +411,10 @@ fn motor_ranges(m: &MotorParams) -> [(&'static str, f64, Option<f64>, f64, &'sta
         ("l_d_h", m.l_d_h, None, 10.0, "H"),
         ("l_q_h", m.l_q_h, None, 10.0, "H"),
         ("psi_pm_wb", m.psi_pm_wb, None, 100.0, "Wb"),
-        // Generous: a rotor held still (a locked-rotor test) is modelled by a huge inertia.
-        ("j_kgm2", m.j_kgm2, None, 1e9, "kg·m²"),
+        // Generous: a rotor held still (a locked-rotor test) is modelled by a huge inertia;
+        // 1e-10 kg·m² (0.001 g·cm²) is about the rotor of the smallest micro-motors, so
+        // what is below is a slip (a unit, an exponent), not a motor.
+        ("j_kgm2", m.j_kgm2, Some(1e-10), 1e9, "kg·m²"),
         ("b_nms", m.b_nms, Some(0.0), 1e3, "N·m·s/rad"),
         ("i_max_a", m.i_max_a, None, 1e5, "A"),
         ("omega_rated_rad_s", m.omega_rated_rad_s, None, 1e5, "rad/s"),
@@ -2005,7 +2007,11 @@ preset = "kyslan2015"
             (tail("l_d_h = nan"), "motor.l_d_h = NaN must be in (0, 10] H"),
             (tail("l_q_h = -0.004"), "motor.l_q_h = -0.004 must be in (0, 10] H"),
             (tail("psi_pm_wb = inf"), "motor.psi_pm_wb = inf must be in (0, 100] Wb"),
-            (tail("j_kgm2 = 0.0"), "motor.j_kgm2 = 0 must be in (0, 1000000000] kg·m²"),
+            (tail("j_kgm2 = 0.0"), "motor.j_kgm2 = 0 must be in [0.0000000001, 1000000000] kg·m²"),
+            (
+                tail("j_kgm2 = 1e-12"),
+                "motor.j_kgm2 = 0.000000000001 must be in [0.0000000001, 1000000000] kg·m²",
+            ),
             (tail("b_nms = 1e300"), "motor.b_nms = 1e300 must be in [0, 1000] N·m·s/rad"),
             (tail("i_max_a = 1e300"), "motor.i_max_a = 1e300 must be in (0, 100000] A"),
             (

@@ -526,8 +526,9 @@ pub struct NlLoopModel {
 }
 
 impl NlLoopModel {
-    /// Response to a small speed step (linear range): (time to first reach, overshoot %).
-    pub fn step_response(&self, m: &MotorParams, g: &NlGains, t_end: f64) -> (f64, f64) {
+    /// Response to a small speed step (linear range) over `t_end`: time to first reach the
+    /// set-point and overshoot.
+    pub fn step_response(&self, m: &MotorParams, g: &NlGains, t_end: f64) -> StepFigures {
         let n = u64::from(self.n.max(1));
         let tw = self.ts * n as f64;
         let mut sp = NlSpeedLaw::new(m, g, tw, f64::INFINITY);
@@ -538,7 +539,7 @@ impl NlLoopModel {
         let mut x = MotorState::default();
         let mut i_q_ref = 0.0;
         let mut u_prev = [0.0; 2];
-        let (mut rise, mut peak) = (f64::NAN, 0.0f64);
+        let mut f = StepFigures::new(t_end);
         let steps = (t_end / self.ts).ceil() as u64;
         for k in 0..steps {
             let est = obs.step(x.theta_m);
@@ -566,13 +567,11 @@ impl NlLoopModel {
                 self.ts,
             );
             u_prev = [out.u_d, out.u_q];
-            let t = (k + 1) as f64 * self.ts;
-            if rise.is_nan() && x.omega_m >= step {
-                rise = t;
+            if !f.sample((k + 1) as f64 * self.ts, x.omega_m / step) {
+                break;
             }
-            peak = peak.max(x.omega_m);
         }
-        (rise, (peak / step - 1.0).max(0.0) * 100.0)
+        f
     }
 }
 
@@ -982,14 +981,19 @@ pub struct NlDesign {
     pub gains: NlGains,
     /// Steady-state gain g = 1 + r12 + d12·r2 (scales i_q* on the bus).
     pub g_ss: f64,
-    /// Rise time of the sampled design model, s.
-    pub predicted_rise_time_s: f64,
-    /// Overshoot of the sampled design model, %.
-    pub predicted_overshoot_pct: f64,
-    /// Rise time of the continuous dummy system (26)–(27), s (the paper's design model).
-    pub continuous_rise_time_s: f64,
-    /// Overshoot of the continuous dummy system, %.
-    pub continuous_overshoot_pct: f64,
+    /// Rise time of the sampled design model, s (None: it did not reach the set-point
+    /// within `response_window_s`, or diverged first).
+    pub predicted_rise_time_s: Option<f64>,
+    /// Overshoot of the sampled design model, % (None: the response diverged).
+    pub predicted_overshoot_pct: Option<f64>,
+    /// Rise time of the continuous dummy system (26)–(27), s (the paper's design model;
+    /// None as for the sampled model).
+    pub continuous_rise_time_s: Option<f64>,
+    /// Overshoot of the continuous dummy system, % (None: the response diverged).
+    pub continuous_overshoot_pct: Option<f64>,
+    /// How long both step responses were simulated, s ([`response_window`]).
+    #[serde(default)]
+    pub response_window_s: f64,
     /// i_d of eq. (15), A (None: non-salient).
     pub i_d_singular_a: Option<f64>,
     /// Set when the rise-time target could not be met; says why.
@@ -999,9 +1003,72 @@ pub struct NlDesign {
     pub sampled: Option<NlSampledPlacement>,
 }
 
-/// Unit-step response of the continuous dummy system (26)–(27), (31): the all-pole closed
-/// loop K2·K1/P(s) of [`place_speed_poles`]. Returns (time to first reach 1, overshoot %).
-pub fn continuous_step_response(g: &NlGains, t_end: f64) -> (f64, f64) {
+/// What the design reads off a unit-step response simulated over `window_s`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepFigures {
+    /// Time to first reach the set-point, s; None when it did not within the window (or
+    /// the response diverged first).
+    pub rise_s: Option<f64>,
+    /// Overshoot over the window, %; None when the response stopped being finite (the loop
+    /// diverges, or the model is not sound at its sample time).
+    pub overshoot_pct: Option<f64>,
+    /// Simulated time, s.
+    pub window_s: f64,
+}
+
+impl StepFigures {
+    /// Nothing seen yet of a response simulated over `window_s`.
+    fn new(window_s: f64) -> Self {
+        Self {
+            rise_s: None,
+            overshoot_pct: Some(0.0),
+            window_s,
+        }
+    }
+
+    /// Takes the response `y` (1: the set-point) at time `t`; false once it is not finite
+    /// (the simulation stops there).
+    fn sample(&mut self, t: f64, y: f64) -> bool {
+        if !y.is_finite() {
+            self.overshoot_pct = None;
+            return false;
+        }
+        if self.rise_s.is_none() && y >= 1.0 {
+            self.rise_s = Some(t);
+        }
+        self.overshoot_pct = self.overshoot_pct.map(|os| os.max((y - 1.0) * 100.0));
+        true
+    }
+
+    /// Why a figure is missing, in words: "diverged: not finite within 2.00 ms", "did not
+    /// reach the set-point within 20.00 ms"; None when the response rose and stayed finite.
+    pub fn failure(&self) -> Option<String> {
+        let within = self.window_s * 1e3;
+        match (self.rise_s, self.overshoot_pct) {
+            (_, None) => Some(format!("diverged: not finite within {within:.2} ms")),
+            (None, Some(_)) => Some(format!("did not reach the set-point within {within:.2} ms")),
+            (Some(_), Some(_)) => None,
+        }
+    }
+}
+
+/// Longest step response the nonlinear design simulates, in loop samples (it bounds the
+/// cost of a design whose speed pair is very slow).
+pub const RESPONSE_SAMPLES_MAX: f64 = 1e6;
+
+/// How long the nonlinear design simulates a step response of its speed pair at `w0`
+/// (rad/s): 10 × the rise-time target, or 20/(ζ·ω_0) when that is longer (about 8 × the
+/// pair's own rise time at ζ = 0.7: the rise and the overshoot of a pair slower than the
+/// target are seen), but at most [`RESPONSE_SAMPLES_MAX`] samples of `ts`.
+pub fn response_window(spec: &NlSpec, w0: f64, ts: f64) -> f64 {
+    let pair = 20.0 / (spec.zeta * w0);
+    (10.0 * spec.rise_time_s).max(pair.min(RESPONSE_SAMPLES_MAX * ts))
+}
+
+/// Unit-step response of the continuous dummy system (26)–(27), (31) over `t_end`: the
+/// all-pole closed loop K2·K1/P(s) of [`place_speed_poles`]. Returns the time to first reach
+/// 1 and the overshoot.
+pub fn continuous_step_response(g: &NlGains, t_end: f64) -> StepFigures {
     let f = |s: [f64; 4]| -> [f64; 4] {
         let [x1, x2, v2, v1] = s;
         let w_r2 = v1 - g.r11 * x1 - g.r12 * x2 - g.d12 * v2;
@@ -1010,7 +1077,7 @@ pub fn continuous_step_response(g: &NlGains, t_end: f64) -> (f64, f64) {
     let fastest = g.r2.max(g.k2.sqrt()).max(1.0 / t_end);
     let h = 0.02 / fastest;
     let (mut s, mut t) = ([0.0; 4], 0.0);
-    let (mut rise, mut peak) = (f64::NAN, 0.0f64);
+    let mut fig = StepFigures::new(t_end);
     let add = |a: [f64; 4], b: [f64; 4], c: f64| {
         [
             a[0] + c * b[0],
@@ -1028,12 +1095,11 @@ pub fn continuous_step_response(g: &NlGains, t_end: f64) -> (f64, f64) {
             s[j] += h / 6.0 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j]);
         }
         t += h;
-        if rise.is_nan() && s[0] >= 1.0 {
-            rise = t;
+        if !fig.sample(t, s[0]) {
+            break;
         }
-        peak = peak.max(s[0]);
     }
-    (rise, (peak - 1.0).max(0.0) * 100.0)
+    fig
 }
 
 /// Designs the nonlinear controller: inner loops at (ω_i, ζ), the speed subsystem's
@@ -1044,45 +1110,70 @@ pub fn design_nonlinear(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel) -> 
         return design_nonlinear_sampled(m, spec, model);
     }
     let target = spec.rise_time_s;
+    // Whether ω_0 is fast enough: a response that has not risen by the target is too slow,
+    // however long it takes after it.
     let t_end = 10.0 * target;
-    let rise = |w0: f64| {
+    let meets = |w0: f64| {
         model
             .step_response(m, &gains_for(spec.omega_i_rad_s, w0, spec.zeta), t_end)
-            .0
+            .rise_s
+            .is_some_and(|r| r <= target)
     };
     // A second-order pair alone reaches the set-point at (π − acos ζ)/(ω√(1 − ζ²)).
     let w_nominal = (std::f64::consts::PI - libm::acos(spec.zeta))
         / (1.0 - spec.zeta * spec.zeta).sqrt()
         / target;
     let (mut lo, mut hi) = (0.2 * w_nominal, spec.omega_i_rad_s);
-    let mut warning = None;
-    let r_hi = rise(hi);
-    // NaN (never reaches) counts as too slow.
-    if r_hi.is_nan() || r_hi > target {
-        warning = Some(format!(
-            "speed rise time {:.2} ms is not reachable with inner loops at ω_i = {:.0} rad/s (ω_0 = ω_i gives {:.2} ms)",
-            target * 1e3,
-            spec.omega_i_rad_s,
-            r_hi * 1e3
-        ));
-        lo = hi;
-    } else {
+    let reachable = meets(hi);
+    if reachable {
         for _ in 0..50 {
             let mid = 0.5 * (lo + hi);
-            // NaN (never reaches) counts as too slow.
-            if rise(mid) <= target {
+            if meets(mid) {
                 hi = mid;
             } else {
                 lo = mid;
             }
         }
+    } else {
+        lo = hi;
     }
     let w0 = hi.max(lo);
     let g = gains_for(spec.omega_i_rad_s, w0, spec.zeta);
-    NlDesign::evaluate(m, spec, model, w0, g, warning)
+    let mut d = NlDesign::evaluate(m, spec, model, w0, g, None);
+    if !reachable {
+        // The design's response over its whole window, not only up to 10 × the target.
+        let p = d.predicted();
+        let got = p
+            .failure()
+            .unwrap_or_else(|| format!("gives {:.2} ms", p.rise_s.unwrap_or(f64::NAN) * 1e3));
+        d.warning = Some(format!(
+            "speed rise time {:.2} ms is not reachable with inner loops at ω_i = {:.0} rad/s (ω_0 = ω_i {got})",
+            target * 1e3,
+            spec.omega_i_rad_s,
+        ));
+    }
+    d
 }
 
 impl NlDesign {
+    /// The sampled design model's step response, as [`Self::evaluate`] found it.
+    pub fn predicted(&self) -> StepFigures {
+        StepFigures {
+            rise_s: self.predicted_rise_time_s,
+            overshoot_pct: self.predicted_overshoot_pct,
+            window_s: self.response_window_s,
+        }
+    }
+
+    /// The continuous dummy system's step response, as [`Self::evaluate`] found it.
+    pub fn continuous(&self) -> StepFigures {
+        StepFigures {
+            rise_s: self.continuous_rise_time_s,
+            overshoot_pct: self.continuous_overshoot_pct,
+            window_s: self.response_window_s,
+        }
+    }
+
     /// The design record of gains `g` (speed pair at ω_0 = `w0`): the sampled model's and the
     /// continuous dummy system's step responses (the latter with the continuous design at
     /// the same ω_0).
@@ -1094,20 +1185,20 @@ impl NlDesign {
         g: NlGains,
         warning: Option<String>,
     ) -> Self {
-        let t_end = 10.0 * spec.rise_time_s;
-        let (r, os) = model.step_response(m, &g, t_end);
-        let (rc, osc) =
-            continuous_step_response(&gains_for(spec.omega_i_rad_s, w0, spec.zeta), t_end);
+        let t_end = response_window(spec, w0, model.ts);
+        let p = model.step_response(m, &g, t_end);
+        let c = continuous_step_response(&gains_for(spec.omega_i_rad_s, w0, spec.zeta), t_end);
         Self {
             zeta: spec.zeta,
             omega_i_rad_s: spec.omega_i_rad_s,
             omega_0_rad_s: w0,
             gains: g,
             g_ss: g.g_ss(),
-            predicted_rise_time_s: r,
-            predicted_overshoot_pct: os,
-            continuous_rise_time_s: rc,
-            continuous_overshoot_pct: osc,
+            predicted_rise_time_s: p.rise_s,
+            predicted_overshoot_pct: p.overshoot_pct,
+            continuous_rise_time_s: c.rise_s,
+            continuous_overshoot_pct: c.overshoot_pct,
+            response_window_s: t_end,
             i_d_singular_a: KyslanModel::new(m).singular_i_d(),
             warning,
             sampled: None,
@@ -1121,7 +1212,6 @@ impl NlDesign {
 /// first reaches the set-point by the target, else the fastest-rising one with a warning.
 fn design_nonlinear_sampled(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel) -> NlDesign {
     let (w_i, zeta, target) = (spec.omega_i_rad_s, spec.zeta, spec.rise_time_s);
-    let t_end = 10.0 * target;
     let w_nominal = (std::f64::consts::PI - libm::acos(zeta)) / (1.0 - zeta * zeta).sqrt() / target;
     let step = w_i / 200.0;
     let first = (w_nominal / step).floor().max(1.0) as u32;
@@ -1137,8 +1227,10 @@ fn design_nonlinear_sampled(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel)
             continue;
         };
         start = Some(g);
-        let (r, os) = model.step_response(m, &g, t_end);
-        searched.push((w0, r, os));
+        let f = model.step_response(m, &g, response_window(spec, w0, model.ts));
+        // NaN: not reached within the window (or the response diverged).
+        let r = f.rise_s.unwrap_or(f64::NAN);
+        searched.push((w0, r, f.overshoot_pct.unwrap_or(f64::NAN)));
         placed.push((w0, g, rho));
         if r <= target {
             meets = Some(placed.len() - 1);
@@ -1160,9 +1252,12 @@ fn design_nonlinear_sampled(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel)
             },
             model,
         );
-        d.warning = Some(
-            "no placement on the sampled loop succeeded: the continuous design is used".into(),
-        );
+        d.warning = Some(if placed.is_empty() {
+            "no placement on the sampled loop succeeded: the continuous design is used".into()
+        } else {
+            "no placement on the sampled loop reached the set-point: the continuous design is used"
+                .into()
+        });
         return d;
     };
     let (w0, g, rho) = placed[i];
@@ -1485,8 +1580,12 @@ mod tests {
             n: 1,
             tau_f_s: 2e-6,
         };
-        let (r_s, os_s) = fine.step_response(&m, &g, 0.04);
-        let (r_c, os_c) = continuous_step_response(&g, 0.04);
+        let (s, c) = (
+            fine.step_response(&m, &g, 0.04),
+            continuous_step_response(&g, 0.04),
+        );
+        let (r_s, os_s) = (s.rise_s.unwrap(), s.overshoot_pct.unwrap());
+        let (r_c, os_c) = (c.rise_s.unwrap(), c.overshoot_pct.unwrap());
         assert!((r_s - r_c).abs() < 0.02 * r_c, "{r_s} vs {r_c}");
         assert!((os_s - os_c).abs() < 1.0, "{os_s} vs {os_c}");
     }
@@ -1511,7 +1610,7 @@ mod tests {
             );
             assert!(d.warning.is_none(), "{d:?}");
             assert!(
-                (d.predicted_rise_time_s - 8e-3).abs() <= model.ts + 1e-12,
+                (d.predicted_rise_time_s.unwrap() - 8e-3).abs() <= model.ts + 1e-12,
                 "{d:?}"
             );
             assert!(d.omega_0_rad_s < d.omega_i_rad_s);
@@ -1528,6 +1627,70 @@ mod tests {
             &model,
         );
         assert!(d.warning.unwrap().contains("not reachable"));
+    }
+
+    #[test]
+    fn a_target_the_inner_loops_cannot_meet_still_reports_the_rise_time_they_give() {
+        // 0.2 ms: even ω_0 = ω_i first reaches the set-point long after 10 × the target
+        // (2 ms); the design reports when it does, and its overshoot, instead of NaN.
+        let model = NlLoopModel {
+            ts: 1e-4,
+            n: 10,
+            tau_f_s: 1e-4,
+        };
+        for placement in [NlPlacement::Continuous, NlPlacement::Sampled] {
+            let spec = NlSpec {
+                rise_time_s: 0.2e-3,
+                omega_i_rad_s: 2000.0,
+                zeta: DAMPING,
+                placement,
+            };
+            let d = design_nonlinear(&MotorParams::kyslan2015(), &spec, &model);
+            let w = d.warning.clone().unwrap();
+            assert!(!w.contains("NaN"), "{placement:?}: {w}");
+            for f in [d.predicted(), d.continuous()] {
+                assert_eq!(f.failure(), None, "{placement:?}: {d:?}");
+                let r = f.rise_s.unwrap();
+                assert!(
+                    r > 10.0 * spec.rise_time_s && r < f.window_s,
+                    "{placement:?}: {f:?}"
+                );
+                assert!(f.overshoot_pct.unwrap().is_finite(), "{placement:?}: {f:?}");
+            }
+            let r = d.predicted_rise_time_s.unwrap();
+            if placement == NlPlacement::Continuous {
+                assert!(
+                    w.contains(&format!("(ω_0 = ω_i gives {:.2} ms)", r * 1e3)),
+                    "{w}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_response_that_does_not_rise_or_diverges_says_so_instead_of_a_figure() {
+        let mut slow = StepFigures::new(0.02);
+        for k in 1..=200 {
+            assert!(slow.sample(f64::from(k) * 1e-4, 0.5));
+        }
+        assert_eq!((slow.rise_s, slow.overshoot_pct), (None, Some(0.0)));
+        assert_eq!(
+            slow.failure().unwrap(),
+            "did not reach the set-point within 20.00 ms"
+        );
+        let mut wild = StepFigures::new(0.002);
+        assert!(wild.sample(1e-4, 3.0));
+        assert!(!wild.sample(2e-4, f64::NAN));
+        assert_eq!((wild.rise_s, wild.overshoot_pct), (Some(1e-4), None));
+        assert_eq!(
+            wild.failure().unwrap(),
+            "diverged: not finite within 2.00 ms"
+        );
+        let mut fine = StepFigures::new(0.01);
+        assert!(fine.sample(1e-3, 0.9) && fine.sample(2e-3, 1.1) && fine.sample(3e-3, 1.0));
+        assert_eq!(fine.rise_s, Some(2e-3));
+        assert!((fine.overshoot_pct.unwrap() - 10.0).abs() < 1e-9);
+        assert_eq!(fine.failure(), None);
     }
 
     /// The loop the drive runs, written out by hand as a linear map per current-loop sample
@@ -1688,7 +1851,7 @@ mod tests {
                 assert!(zeta_of(s) >= DAMPING, "{s} less damped than {DAMPING}");
             }
             assert!(
-                (d.predicted_rise_time_s - 8e-3).abs() <= model.ts + 1e-12,
+                (d.predicted_rise_time_s.unwrap() - 8e-3).abs() <= model.ts + 1e-12,
                 "{d:?}"
             );
         }
