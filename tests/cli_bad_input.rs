@@ -22,8 +22,8 @@ struct Case {
     needle: &'static str,
     /// The bus the command names, checked clean afterwards.
     bus: Option<String>,
-    /// A path the command must not create.
-    absent: Option<PathBuf>,
+    /// Paths the command must not create.
+    absent: Vec<PathBuf>,
 }
 
 /// A case whose arguments are `args` with `{bus}` replaced by a bus id of its own (made
@@ -48,14 +48,21 @@ fn case(name: &str, dir: &Path, args: &[&str], code: i32, needle: &'static str) 
         code,
         needle,
         bus,
-        absent: None,
+        absent: Vec::new(),
     }
 }
 
 impl Case {
     fn leaves_no(mut self, p: PathBuf) -> Self {
-        self.absent = Some(p);
+        self.absent.push(p);
         self
+    }
+
+    /// An export that must leave neither trace.mcap nor its partial file in `run`.
+    fn leaves_no_mcap(self, run: &str) -> Self {
+        let run = Path::new(run);
+        self.leaves_no(run.join("trace.mcap"))
+            .leaves_no(run.join("trace.mcap.part"))
     }
 
     fn check(&self) {
@@ -77,7 +84,7 @@ impl Case {
         if let Some(bus) = &self.bus {
             assert_clean(bus);
         }
-        if let Some(p) = &self.absent {
+        for p in &self.absent {
             assert!(!p.exists(), "{args:?}: {} was made", p.display());
         }
     }
@@ -728,7 +735,7 @@ fn cdm_design_refuses_an_operating_point_beyond_its_physical_range() {
 }
 
 #[test]
-fn plot_and_compare_refuse_a_summary_json_or_scenario_that_is_not_one() {
+fn plot_compare_and_export_refuse_a_summary_json_or_scenario_that_is_not_one() {
     let _s = serial();
     let d = scratch("badsum");
     let (run, _) = run_ok("badsum-run", &["--clock", "lockstep", "--duration", "0.05"]);
@@ -745,6 +752,7 @@ fn plot_and_compare_refuse_a_summary_json_or_scenario_that_is_not_one() {
         p.to_str().unwrap().to_string()
     };
     let corrupt = folder("corrupt-summary", Some("{not json"));
+    let no_summary = folder("no-summary", None);
     // A scenario.toml that is not a scenario: the figures' limit lines come from it.
     let bad_scenario = folder("corrupt-scenario", None);
     std::fs::write(format!("{bad_scenario}/scenario.toml"), "name = [").unwrap();
@@ -753,6 +761,13 @@ fn plot_and_compare_refuse_a_summary_json_or_scenario_that_is_not_one() {
     let typed = folder("typed-summary", Some(r#"{"rate_hz": "fast"}"#));
     let faults = folder("faults-summary", Some(r#"{"faults": {"kill": 1}}"#));
     let rate = folder("rate-summary", Some(r#"{"rate_hz": -10000}"#));
+    // What export logs, of the wrong type; and a summary without the sample rate, which
+    // export needs (the samples of the log entries).
+    let events = folder(
+        "events-summary",
+        Some(r#"{"rate_hz": 10000, "supervisor_events": [{"k": "soon"}]}"#),
+    );
+    let no_rate = folder("norate-summary", Some(r#"{"clock": "lockstep"}"#));
     // A trace whose rows 2 and 3 are swapped: time runs backwards (the run's own summary).
     let summary_text = std::fs::read_to_string(run.join("summary.json")).unwrap();
     let backwards = folder("backwards", Some(&summary_text));
@@ -845,12 +860,85 @@ fn plot_and_compare_refuse_a_summary_json_or_scenario_that_is_not_one() {
             "corrupt-scenario/scenario.toml:1:",
         )
         .leaves_no(out.clone()),
+        // export refuses each damaged folder as plot and compare do, before it writes.
+        case(
+            "export-badsum",
+            dir,
+            &["export", &corrupt, "--mcap"],
+            1,
+            "corrupt-summary/summary.json: not JSON: key must be a string",
+        )
+        .leaves_no_mcap(&corrupt),
+        case(
+            "export-arraysum",
+            dir,
+            &["export", &array, "--mcap"],
+            1,
+            "array-summary/summary.json: not a run summary",
+        )
+        .leaves_no_mcap(&array),
+        case(
+            "export-typedsum",
+            dir,
+            &["export", &typed, "--mcap"],
+            1,
+            "typed-summary/summary.json: not a run summary: invalid type: string \"fast\", expected f64",
+        )
+        .leaves_no_mcap(&typed),
+        case(
+            "export-faultssum",
+            dir,
+            &["export", &faults, "--mcap"],
+            1,
+            "faults-summary/summary.json: not a run summary: invalid type: map, expected a sequence",
+        )
+        .leaves_no_mcap(&faults),
+        case(
+            "export-ratesum",
+            dir,
+            &["export", &rate, "--mcap"],
+            1,
+            "rate-summary/summary.json: not a run summary: rate_hz = -10000 is not a rate in Hz",
+        )
+        .leaves_no_mcap(&rate),
+        case(
+            "export-eventssum",
+            dir,
+            &["export", &events, "--mcap"],
+            1,
+            "events-summary/summary.json: not a run summary: invalid type: string \"soon\", expected u64",
+        )
+        .leaves_no_mcap(&events),
+        case(
+            "export-noratesum",
+            dir,
+            &["export", &no_rate, "--mcap"],
+            1,
+            "norate-summary/summary.json: not a run summary: no rate_hz",
+        )
+        .leaves_no_mcap(&no_rate),
+        case(
+            "export-badscenario",
+            dir,
+            &["export", &bad_scenario, "--mcap"],
+            1,
+            "corrupt-scenario/scenario.toml:1:",
+        )
+        .leaves_no_mcap(&bad_scenario),
+        case(
+            "export-nosummary",
+            dir,
+            &["export", &no_summary, "--mcap"],
+            1,
+            "no-summary has no summary.json: not a run folder",
+        )
+        .leaves_no_mcap(&no_summary),
     ] {
         c.check();
     }
     // A run folder without summary.json is still drawn and compared, and one without
     // scenario.toml is drawn (without limit lines).
-    let none = folder("no-summary", None);
+    let none = no_summary;
     let no_scenario = folder("no-scenario", None);
     std::fs::remove_file(format!("{no_scenario}/scenario.toml")).unwrap();
     for args in [

@@ -42,24 +42,43 @@ fn parse_window(w: &str) -> Result<(f64, f64)> {
     Ok((a, b))
 }
 
-/// The figures of a run's `summary.json` that plot reads: each may be absent or null (a run
-/// exported or recorded before it existed), but one that is there has its type.
+/// The figures of a run's `summary.json` that plot and export read: each may be absent or
+/// null (a run exported or recorded before it existed), but one that is there has its type.
 #[derive(Debug, Default, serde::Deserialize)]
 pub struct SummaryView {
     scenario: Option<String>,
     clock: Option<String>,
     rate_hz: Option<f64>,
+    samples: Option<u64>,
     faults: Option<Vec<FaultView>>,
+    /// Export logs them (read there from the JSON; only checked here).
+    #[allow(dead_code)]
+    supervisor_events: Option<Vec<EventView>>,
 }
 
-/// One entry of `summary.json` → `faults`, as plot shades it.
+/// One entry of `summary.json` → `faults`, as plot shades it and export logs it.
 #[derive(Debug, serde::Deserialize)]
 struct FaultView {
     injected_t_s: Option<f64>,
+    /// Export logs the fault at this sample (read there from the JSON; only checked here).
+    #[allow(dead_code)]
+    injected_k: Option<u64>,
     speed_recovered_ms: Option<f64>,
     republished_ms: Option<f64>,
     fault: Option<String>,
     service: Option<String>,
+}
+
+/// One entry of `summary.json` → `supervisor_events`, as export logs it (read there from the
+/// JSON; only checked here).
+#[derive(Debug, serde::Deserialize)]
+#[allow(dead_code)]
+struct EventView {
+    k: Option<u64>,
+    event: Option<String>,
+    service: Option<String>,
+    process: Option<String>,
+    detail: Option<String>,
 }
 
 impl SummaryView {
@@ -67,17 +86,44 @@ impl SummaryView {
     fn ts_us(&self) -> f64 {
         1e6 / self.rate_hz.unwrap_or(10_000.0)
     }
+
+    /// The sample rate, Hz, when the summary says (finite and above 0).
+    pub fn rate_hz(&self) -> Option<f64> {
+        self.rate_hz
+    }
+
+    /// The number of samples the run recorded (the rows of its trace.csv), when it says.
+    pub fn samples(&self) -> Option<u64> {
+        self.samples
+    }
+}
+
+/// A file of a run folder read by `read`, or `None` when the folder has none.
+fn file_if_any<T>(path: &Path, read: fn(&Path) -> std::io::Result<T>) -> Result<Option<T>> {
+    match read(path) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        r => r
+            .map(Some)
+            .with_context(|| format!("cannot read {}", path.display())),
+    }
 }
 
 /// The summary.json of run folder `run`, or the empty view when the folder has none (plot
 /// and compare work from trace.csv and do without it). One that is there but cannot be read,
-/// is not JSON, is not a JSON object, or has a figure plot reads of the wrong type or out of
-/// range is an error naming the file, as in `drivelab export`.
+/// is not JSON, is not a JSON object, or has a figure plot or export reads of the wrong type
+/// or out of range is an error naming the file.
 pub fn summary_if_any(run: &Path) -> Result<SummaryView> {
+    Ok(summary_json_if_any(run)?
+        .map(|(view, _)| view)
+        .unwrap_or_default())
+}
+
+/// The summary.json of run folder `run` checked as [`summary_if_any`] checks it: its view
+/// and the whole JSON, or `None` when the folder has none.
+pub fn summary_json_if_any(run: &Path) -> Result<Option<(SummaryView, serde_json::Value)>> {
     let path = run.join("summary.json");
-    let bytes = match std::fs::read(&path) {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(SummaryView::default()),
-        r => r.with_context(|| format!("cannot read {}", path.display()))?,
+    let Some(bytes) = file_if_any(&path, |p| std::fs::read(p))? else {
+        return Ok(None);
     };
     let v: serde_json::Value =
         serde_json::from_slice(&bytes).with_context(|| format!("{}: not JSON", path.display()))?;
@@ -87,7 +133,7 @@ pub fn summary_if_any(run: &Path) -> Result<SummaryView> {
             path.display()
         );
     }
-    let view: SummaryView = serde_json::from_value(v)
+    let view = <SummaryView as serde::Deserialize>::deserialize(&v)
         .with_context(|| format!("{}: not a run summary", path.display()))?;
     if let Some(hz) = view.rate_hz.filter(|hz| !(hz.is_finite() && *hz > 0.0)) {
         bail!(
@@ -95,22 +141,21 @@ pub fn summary_if_any(run: &Path) -> Result<SummaryView> {
             path.display()
         );
     }
-    Ok(view)
+    Ok(Some((view, v)))
 }
 
-/// The scenario.toml of run folder `run` (the figures' current and voltage limit lines), or
-/// `None` when the folder has none. One that is there but cannot be read or is not a
-/// scenario is an error naming the file: drawn without it, the limits would be missing
-/// without a word.
-fn scenario_if_any(run: &Path) -> Result<Option<drivelab_runtime::config::Scenario>> {
+/// The scenario.toml of run folder `run` (for plot, the figures' current and voltage limit
+/// lines) and its text, or `None` when the folder has none. One that is there but cannot be
+/// read or is not a scenario is an error naming the file: drawn without it, the limits would
+/// be missing without a word.
+pub fn scenario_if_any(run: &Path) -> Result<Option<(drivelab_runtime::config::Scenario, String)>> {
     let path = run.join("scenario.toml");
-    let text = match std::fs::read_to_string(&path) {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-        r => r.with_context(|| format!("cannot read {}", path.display()))?,
+    let Some(text) = file_if_any(&path, |p| std::fs::read_to_string(p))? else {
+        return Ok(None);
     };
-    drivelab_runtime::config::Scenario::from_toml(&text, &path.display().to_string())
-        .map(Some)
-        .map_err(|e| anyhow::anyhow!(e))
+    let sc = drivelab_runtime::config::Scenario::from_toml(&text, &path.display().to_string())
+        .map_err(|e| anyhow!(e))?;
+    Ok(Some((sc, text)))
 }
 
 /// Redraws the figures; returns the files written.
@@ -142,7 +187,7 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
     }
     // Before the output folder is made: a refused run folder leaves nothing behind.
     let summary = summary_if_any(&a.run)?;
-    let scenario = scenario_if_any(&a.run)?;
+    let scenario = scenario_if_any(&a.run)?.map(|(sc, _)| sc);
     let out = a.out.clone().unwrap_or_else(|| a.run.clone());
     std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
     let windows = summary

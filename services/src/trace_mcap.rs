@@ -285,22 +285,25 @@ impl WallClock {
 /// `drivelab export RUNDIR --mcap`: writes `RUNDIR/trace.mcap` from its `trace.csv` (read
 /// row by row), `scenario.toml` and `summary.json`. An older run has no per-second service
 /// figures and no wall time per sample: `/services` stays empty, `t_wall_unix_ns` null.
+///
+/// The run folder is checked as `drivelab plot` and `drivelab compare` check it (the
+/// scenario parsed, the summary's figures of their types) before anything is written.
 pub fn export(dir: &Path) -> Result<std::path::PathBuf> {
     let csv_path = dir.join("trace.csv");
     if !csv_path.is_file() {
         bail!("{} has no trace.csv: not a run folder", dir.display());
     }
-    let read = |name: &str| {
-        std::fs::read_to_string(dir.join(name))
-            .with_context(|| format!("cannot read {}", dir.join(name).display()))
-    };
-    let scenario_toml = read("scenario.toml")?;
-    let summary: serde_json::Value = serde_json::from_str(&read("summary.json")?)
-        .with_context(|| format!("{}: not JSON", dir.join("summary.json").display()))?;
-    let fs = summary["rate_hz"]
-        .as_f64()
-        .filter(|f| *f > 0.0)
-        .ok_or_else(|| anyhow!("{}: no rate_hz", dir.join("summary.json").display()))?;
+    let missing = |name: &str| anyhow!("{} has no {name}: not a run folder", dir.display());
+    let (_, scenario_toml) =
+        crate::plotcmd::scenario_if_any(dir)?.ok_or_else(|| missing("scenario.toml"))?;
+    let (view, summary) =
+        crate::plotcmd::summary_json_if_any(dir)?.ok_or_else(|| missing("summary.json"))?;
+    let fs = view.rate_hz().ok_or_else(|| {
+        anyhow!(
+            "{}: not a run summary: no rate_hz (the sample rate, Hz)",
+            dir.join("summary.json").display()
+        )
+    })?;
     let out = dir.join("trace.mcap");
     // Written beside it and renamed when complete: a failed export leaves no partial file
     // and does not replace a trace.mcap that is there.
