@@ -97,3 +97,125 @@ fn export_of_a_folder_without_trace_csv_is_a_one_line_error() {
     assert_eq!(err.lines().count(), 1, "{err}");
     assert!(!dir.join("trace.mcap").exists());
 }
+
+/// A run folder `tag` with the scenario and summary of a short lockstep run and a synthetic
+/// `trace.csv` of `rows` samples (its first row's values, k and t counting up), long enough
+/// that reading it takes a while; its summary says `rows` samples.
+fn big_run_folder(tag: &str, rows: u64) -> PathBuf {
+    let (run, mut summary) = run_ok(tag, &["--clock", "lockstep", "--duration", "0.05"]);
+    let dir = scratch(&format!("{tag}-big"));
+    std::fs::copy(run.join("scenario.toml"), dir.join("scenario.toml")).unwrap();
+    summary["samples"] = rows.into();
+    std::fs::write(dir.join("summary.json"), summary.to_string()).unwrap();
+    let text = std::fs::read_to_string(run.join("trace.csv")).unwrap();
+    let mut lines = text.lines();
+    let header = lines.next().unwrap();
+    let first: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let cols: Vec<&str> = header.split(',').collect();
+    let (ik, it) = (
+        cols.iter().position(|c| *c == "k").unwrap(),
+        cols.iter().position(|c| *c == "t").unwrap(),
+    );
+    let mut w = std::io::BufWriter::new(std::fs::File::create(dir.join("trace.csv")).unwrap());
+    use std::io::Write;
+    writeln!(w, "{header}").unwrap();
+    let mut row = first.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+    for k in 0..rows {
+        row[ik] = k.to_string();
+        row[it] = format!("{}", k as f64 * 1e-4);
+        writeln!(w, "{}", row.join(",")).unwrap();
+    }
+    w.into_inner().unwrap().sync_all().unwrap();
+    dir
+}
+
+/// Starts `drivelab ARGS`, waits until `ready` holds (watchdog 60 s; fails if it ends
+/// first), sends it SIGINT and returns what it printed.
+fn interrupted_when(args: &[&str], ready: impl Fn(u32) -> bool) -> std::process::Output {
+    let mut child: Drive = Command::new(DRIVELAB)
+        .args(args)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap()
+        .into();
+    let pid = child.id();
+    let t = std::time::Instant::now();
+    while !ready(pid) {
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "drivelab {args:?} ended before it could be interrupted"
+        );
+        assert!(
+            t.elapsed() < std::time::Duration::from_secs(60),
+            "watchdog: drivelab {args:?} never got ready"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    // SAFETY: signalling a child process this test spawned (not yet reaped).
+    unsafe { libc::kill(pid as i32, libc::SIGINT) };
+    child.wait_for_exit(std::time::Duration::from_secs(60), "drivelab after SIGINT")
+}
+
+/// The one stderr line of an interrupted command: exit code 1, no panic.
+fn one_error_line(o: &std::process::Output) -> String {
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert_eq!(o.status.code(), Some(1), "{:?}: {err}", o.status);
+    assert!(!err.contains("panicked"), "{err}");
+    assert_eq!(err.lines().count(), 1, "not one line: {err}");
+    err
+}
+
+#[test]
+fn an_export_stopped_by_sigint_says_how_far_it_got_and_leaves_no_file() {
+    let _g = serial();
+    let rows = 1_500_000;
+    let dir = big_run_folder("export-sigint", rows);
+    let part = dir.join("trace.mcap.part");
+    let o = interrupted_when(&["export", dir.to_str().unwrap(), "--mcap"], |_| {
+        part.exists()
+    });
+    let err = one_error_line(&o);
+    assert!(
+        err.starts_with("drivelab: error: export interrupted (SIGINT) after "),
+        "{err}"
+    );
+    assert!(
+        err.contains(&format!(" of {rows} rows of ")) && err.contains("; nothing written"),
+        "{err}"
+    );
+    assert!(!part.exists(), "{} left", part.display());
+    assert!(!dir.join("trace.mcap").exists(), "trace.mcap written");
+}
+
+#[test]
+fn a_plot_stopped_by_sigint_says_so_in_one_line_and_draws_nothing() {
+    let _g = serial();
+    let dir = big_run_folder("plot-sigint", 1_500_000);
+    let out = dir.join("figures");
+    let trace = dir.join("trace.csv");
+    // Once plot holds trace.csv open, it is reading it.
+    let reading = |pid: u32| {
+        std::fs::read_dir(format!("/proc/{pid}/fd"))
+            .into_iter()
+            .flatten()
+            .flatten()
+            .any(|fd| std::fs::read_link(fd.path()).is_ok_and(|p| p == trace))
+    };
+    let o = interrupted_when(
+        &[
+            "plot",
+            dir.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ],
+        reading,
+    );
+    let err = one_error_line(&o);
+    assert!(
+        err.starts_with("drivelab: error: plot interrupted (SIGINT) after reading "),
+        "{err}"
+    );
+    assert!(err.contains("; nothing written"), "{err}");
+    assert!(!out.exists(), "{} made", out.display());
+}

@@ -158,19 +158,66 @@ pub fn scenario_if_any(run: &Path) -> Result<Option<(drivelab_runtime::config::S
     Ok(Some((sc, text)))
 }
 
-/// Redraws the figures; returns the files written.
+/// The error of a plot that a stop signal (SIGINT, SIGTERM …) ended: how far it got.
+fn interrupted(how_far: &str) -> anyhow::Error {
+    anyhow!(
+        "plot interrupted ({}) {how_far}",
+        drivelab_runtime::service::stop_signal_name()
+    )
+}
+
+/// Stops the plot when a stop signal arrived, after `files` were written to `out`.
+fn check_stop(files: &[PathBuf], out: &Path) -> Result<()> {
+    if !drivelab_runtime::service::stop_requested() {
+        return Ok(());
+    }
+    Err(interrupted(&if files.is_empty() {
+        "before any figure was drawn; nothing written".to_string()
+    } else {
+        format!(
+            "after writing {} files to {}; the others not drawn",
+            files.len(),
+            out.display()
+        )
+    }))
+}
+
+/// Redraws the figures; returns the files written. A stop signal (SIGINT, SIGTERM …) ends
+/// it while the trace is read (nothing written) or between two figures (each file written
+/// is whole), with an error that says how far it got.
 pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
+    drivelab_runtime::service::install_signal_handlers()?;
+    let stop = drivelab_runtime::service::stop_requested;
     // Checked before any file is read.
     let window_s = a.window.as_deref().map(parse_window).transpose()?;
     let (rows, seconds) = if a.from_mcap {
-        let m = crate::trace_mcap::read(&a.run.join("trace.mcap"))?;
+        let path = a.run.join("trace.mcap");
+        let m = crate::trace_mcap::read(&path).map_err(|e| {
+            if stop() {
+                interrupted(&format!("reading {}; nothing written", path.display()))
+            } else {
+                e
+            }
+        })?;
         (m.rows, m.seconds)
     } else {
         let trace = a.run.join("trace.csv");
         if !trace.is_file() {
             bail!("{} has no trace.csv (not a run folder)", a.run.display());
         }
-        (drivelab_runtime::trace::read_csv(&trace)?, Vec::new())
+        let mut rows = Vec::new();
+        drivelab_runtime::trace::for_each_csv_row(&trace, |row| {
+            if stop() {
+                return Err(interrupted(&format!(
+                    "after reading {} rows of {}; nothing written",
+                    rows.len(),
+                    trace.display()
+                )));
+            }
+            rows.push(row);
+            Ok(())
+        })?;
+        (rows, Vec::new())
     };
     if rows.is_empty() {
         bail!("{}: the trace has no samples", a.run.display());
@@ -189,6 +236,7 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
     let summary = summary_if_any(&a.run)?;
     let scenario = scenario_if_any(&a.run)?.map(|(sc, _)| sc);
     let out = a.out.clone().unwrap_or_else(|| a.run.clone());
+    check_stop(&[], &out)?;
     std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
     let windows = summary
         .faults
@@ -216,8 +264,10 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
         ),
     };
     let mut files = drivelab_tools::plot::plot_trace(&rows, &out, &opts)?;
+    check_stop(&files, &out)?;
     if !seconds.is_empty() {
         files.extend(latency_per_second(&seconds, &summary, &out)?);
+        check_stop(&files, &out)?;
     }
     let mut curves = Vec::new();
     let mut hdrs: Vec<PathBuf> = std::fs::read_dir(&a.run)?
@@ -240,6 +290,7 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
         }
     }
     if !curves.is_empty() {
+        check_stop(&files, &out)?;
         let ts_us = summary.ts_us();
         files.extend(drivelab_tools::plot::plot_percentiles(
             &curves,

@@ -287,8 +287,11 @@ impl WallClock {
 /// figures and no wall time per sample: `/services` stays empty, `t_wall_unix_ns` null.
 ///
 /// The run folder is checked as `drivelab plot` and `drivelab compare` check it (the
-/// scenario parsed, the summary's figures of their types) before anything is written.
+/// scenario parsed, the summary's figures of their types) before anything is written. A stop
+/// signal (SIGINT, SIGTERM …) ends the export between two rows: nothing is written, and the
+/// error says how far it got.
 pub fn export(dir: &Path) -> Result<std::path::PathBuf> {
+    drivelab_runtime::service::install_signal_handlers()?;
     let csv_path = dir.join("trace.csv");
     if !csv_path.is_file() {
         bail!("{} has no trace.csv: not a run folder", dir.display());
@@ -308,14 +311,38 @@ pub fn export(dir: &Path) -> Result<std::path::PathBuf> {
     // Written beside it and renamed when complete: a failed export leaves no partial file
     // and does not replace a trace.mcap that is there.
     let part = dir.join("trace.mcap.part");
+    let mut done = 0u64;
+    let interrupted = |done: u64| {
+        let of = view
+            .samples()
+            .filter(|m| *m >= done)
+            .map_or(String::new(), |m| format!(" of {m}"));
+        anyhow!(
+            "export interrupted ({}) after {done}{of} rows of {}; nothing written",
+            drivelab_runtime::service::stop_signal_name(),
+            csv_path.display()
+        )
+    };
     let written = (|| -> Result<()> {
         let mut m = McapTrace::create(&part)?;
         // Checked as plot and compare check it: a trace that runs backwards is refused.
-        let rows = drivelab_runtime::trace::for_each_csv_row(&csv_path, |row| m.row(&row, None))?;
+        let rows = drivelab_runtime::trace::for_each_csv_row(&csv_path, |row| {
+            if drivelab_runtime::service::stop_requested() {
+                return Err(interrupted(done));
+            }
+            m.row(&row, None)?;
+            done += 1;
+            Ok(())
+        })?;
         if rows == 0 {
             bail!("{} has no samples", csv_path.display());
         }
-        m.finish(&scenario_toml, &summary, fs)
+        m.finish(&scenario_toml, &summary, fs)?;
+        // A signal during the last rows or the chunk index still stops it.
+        if drivelab_runtime::service::stop_requested() {
+            return Err(interrupted(done));
+        }
+        Ok(())
     })();
     let renamed = written.and_then(|()| {
         std::fs::rename(&part, &out).with_context(|| format!("cannot write {}", out.display()))
@@ -372,6 +399,13 @@ pub fn read(path: &Path) -> Result<ReadBack> {
     for m in mcap::MessageStream::new(&bytes)
         .map_err(|e| anyhow!("{}: not an MCAP file: {e}", path.display()))?
     {
+        if drivelab_runtime::service::stop_requested() {
+            bail!(
+                "{}: reading stopped by {}",
+                path.display(),
+                drivelab_runtime::service::stop_signal_name()
+            );
+        }
         let m = m.map_err(|e| anyhow!("{}: {e}", path.display()))?;
         let v: serde_json::Value = serde_json::from_slice(&m.data)
             .with_context(|| format!("{}: a message that is not JSON", path.display()))?;
