@@ -129,6 +129,15 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
             .find(|x| x["variant"] == v && x["cpu_latency_request"] == r)
             .unwrap()
     };
+    // Both transports' chains say what they cost the machine: CPU time and waits.
+    for v in ["uds", "iceoryx2"] {
+        let c = chain_of(v);
+        assert!(c["cpu_s_per_s"].as_f64().is_some_and(|c| c > 0.0), "{c}");
+        assert!(
+            c["waits_per_sample"].as_f64().is_some_and(|w| w > 0.0),
+            "{c}"
+        );
+    }
     let (spin, plain) = (chain_of("iceoryx2+spin"), chain_of("iceoryx2"));
     let spins = report["spin"].as_array().unwrap();
     assert_eq!(spins.len(), 1, "{spins:?}");
@@ -927,4 +936,52 @@ fn a_bench_stopped_by_a_signal_says_where_in_one_line_and_leaves_nothing_behind(
     ] {
         assert!(line.contains(says), "'{says}' not in: {line}");
     }
+}
+
+#[test]
+fn the_hop_receivers_of_a_sigkilled_bench_end_and_remove_its_wake_segment() {
+    // SIGKILL leaves the bench no chance to clean up: its hop receivers must notice that it
+    // is gone, end, and take the wake segment with them.
+    let out = scratch("kill-hop").join("bench");
+    let child = Command::new(env!("CARGO_BIN_EXE_drivelab"))
+        .args(["bench", "--quick", "--seconds", "300", "--rounds", "100"])
+        .args(["--no-cpu-latency-request", "--variants", "hop", "--out"])
+        .arg(&out)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let pid = child.id();
+    let child = common::Drive::from(child);
+    let receivers = || {
+        processes_with(out.to_str().unwrap())
+            .into_iter()
+            .filter(|c| c.contains("bench-node hop"))
+            .collect::<Vec<_>>()
+    };
+    let t = Instant::now();
+    while receivers().is_empty() || bench_bus_files(pid).is_empty() {
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "watchdog: the hop phase did not start within 60 s"
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    // SAFETY: a signal to the bench this test started, not yet reaped.
+    unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+    let o = wait(child, Duration::from_secs(10), "the bench after SIGKILL");
+    assert_eq!(o.status.code(), None, "the bench was not killed");
+    // The kernel's parent-death signal ends them (and without it they give up after 5 s
+    // without a notify); 30 s is a watchdog against hangs.
+    let t = Instant::now();
+    while !receivers().is_empty() {
+        assert!(
+            t.elapsed() < Duration::from_secs(30),
+            "watchdog: hop receivers still run 30 s after their bench was killed: {:?}",
+            receivers()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let files = bench_bus_files(pid);
+    assert!(files.is_empty(), "bus files left: {files:?}");
 }

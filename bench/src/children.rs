@@ -32,10 +32,34 @@ impl<T> Default for Kids<T> {
 
 impl<T> Kids<T> {
     /// Starts `cmd` (`name` says what for, in the error) with no stdin and its stdout and
-    /// stderr in a new file `log`, and keeps it as `what`.
+    /// stderr in a new file `log`, and keeps it as `what`. The process gets SIGTERM from the
+    /// kernel when the thread that started it ends (a bench killed with SIGKILL can stop
+    /// nobody itself); every measurement starts its processes from the bench's main thread.
     pub fn spawn(&mut self, what: T, cmd: &mut Command, log: PathBuf, name: &str) -> Result<()> {
         let f = std::fs::File::create(&log)
             .with_context(|| format!("cannot create {}", log.display()))?;
+        let parent = std::process::id();
+        // SAFETY: the closure runs in the child between fork and exec; it calls only prctl(2)
+        // and getppid(2), which are async-signal-safe, and allocates nothing.
+        unsafe {
+            std::os::unix::process::CommandExt::pre_exec(cmd, move || {
+                if libc::prctl(
+                    libc::PR_SET_PDEATHSIG,
+                    libc::SIGTERM as libc::c_ulong,
+                    0,
+                    0,
+                    0,
+                ) != 0
+                {
+                    return Err(std::io::Error::last_os_error());
+                }
+                // The bench died before the request was made: do not start at all.
+                if u32::try_from(libc::getppid()).ok() != Some(parent) {
+                    return Err(std::io::Error::from_raw_os_error(libc::ESRCH));
+                }
+                Ok(())
+            });
+        }
         let child = cmd
             .stdin(Stdio::null())
             .stdout(f.try_clone()?)

@@ -304,6 +304,9 @@ pub fn receive(
     let mut mon = CycleMonitor::new(period_ns);
     let mut counted = 0u64;
     let mut prev_deadline: Option<u64> = None;
+    // A stop signal (the bench's parent-death SIGTERM among them) is seen at the next wait
+    // that times out: notifies no longer come once the bench is gone.
+    drivelab_runtime::service::install_signal_handlers()?;
     let seg = WakeSegment::open(bus)?;
     let input = input_word(position);
     let next = (position < hops).then(|| input_word(position + 1));
@@ -315,11 +318,23 @@ pub fn receive(
     loop {
         let now = seg.wait(input, seen, Duration::from_millis(100));
         if now == seen {
-            // The sender is gone (its bench was killed): do not outlive it.
-            if now_ns().saturating_sub(last_ns) > SENDER_GONE.as_nanos() as u64 {
-                return Err(anyhow!(
-                    "hop receiver {position}: no notify for {SENDER_GONE:?}"
-                ));
+            // The sender is gone (its bench was killed: the kernel's parent-death SIGTERM, or
+            // no notify for a while): do not outlive it, and do not leave its wake segment
+            // behind either (a bench that was SIGKILLed cannot remove it).
+            let why = if drivelab_runtime::service::stop_requested() {
+                Some(drivelab_runtime::service::stop_signal_name().to_string())
+            } else if now_ns().saturating_sub(last_ns) > SENDER_GONE.as_nanos() as u64 {
+                Some(format!("no notify for {SENDER_GONE:?}"))
+            } else {
+                None
+            };
+            if let Some(why) = why {
+                let removed = match WakeSegment::remove(bus) {
+                    Ok(true) => "; removed its wake segment".to_string(),
+                    Ok(false) => String::new(),
+                    Err(e) => format!("; its wake segment stays: {e}"),
+                };
+                return Err(anyhow!("hop receiver {position} stopped ({why}){removed}"));
             }
             continue;
         }

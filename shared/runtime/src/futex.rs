@@ -78,6 +78,22 @@ impl WakeSegment {
         }
     }
 
+    /// Removes the wake segment of bus `id` from `/dev/shm` (the mappings that are open stay
+    /// valid). Returns whether there was one. For a process that outlived the one that made
+    /// the segment and would otherwise leave it behind.
+    pub fn remove(id: &str) -> Result<bool> {
+        crate::bus::check_bus_id(id)?;
+        let name = std::ffi::CString::new(format!("/{}wake", crate::bus::shm_prefix(id)))?;
+        // SAFETY: shm_unlink(3) with a valid NUL-terminated name; it touches no memory of ours.
+        if unsafe { libc::shm_unlink(name.as_ptr()) } == 0 {
+            return Ok(true);
+        }
+        match std::io::Error::last_os_error() {
+            e if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
+            e => Err(anyhow!("shm_unlink {name:?}: {e}")),
+        }
+    }
+
     fn word(&self, i: usize) -> &Word {
         assert!(i < WORDS, "wake word {i} out of range");
         // SAFETY: the mapping is SEG_BYTES long, zero-filled by ftruncate, page aligned, and
