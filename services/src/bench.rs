@@ -148,11 +148,11 @@ pub struct Row {
     pub p99_ratio_to_uds: Option<f64>,
     /// Histogram file (.hgrm) of the cycle latency.
     pub hgrm: String,
-    /// CPU time (user + system) of the drive's processes per simulated second, s/s
-    /// (iceoryx2 variants).
+    /// CPU time (user + system) of the drive's processes per simulated second, s/s, set-up
+    /// and shutdown included (iceoryx2 variants and the Unix-socket chain).
     pub cpu_s_per_s: Option<f64>,
     /// Voluntary context switches (waits, so wake-ups) of the drive's processes per sample,
-    /// set-up and shutdown included (iceoryx2 variants).
+    /// set-up and shutdown included (iceoryx2 variants and the Unix-socket chain).
     pub waits_per_sample: Option<f64>,
     /// The floor: its thread's time on the CPU per wake-up, µs (the kernel's timer path
     /// included): what the timer alone costs the chain's core every sample.
@@ -1495,11 +1495,16 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
                     }
                     "uds" => {
                         std::fs::create_dir_all(&dir)?;
+                        // Its four processes are the only children that end meanwhile.
+                        let (cpu0, sw0) = drivelab_runtime::service::usage(libc::RUSAGE_CHILDREN);
                         let m = drivelab_bench::run_uds_chain(
                             &chain(placement(&job.placement)?)?,
                             &exe,
                             &dir,
                         )?;
+                        let (cpu1, sw1) = drivelab_runtime::service::usage(libc::RUSAGE_CHILDREN);
+                        cpu[i] += cpu1 - cpu0;
+                        switches[i] += sw1.voluntary.saturating_sub(sw0.voluntary);
                         absorb(&mut acc[i], m)?;
                         None
                     }

@@ -1317,7 +1317,6 @@ fn write_stats<T: Transport>(
     Ok(())
 }
 
-/// CPU time (user + system) this process has used, s.
 /// Context switches of a process (getrusage).
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct ContextSwitches {
@@ -1329,10 +1328,18 @@ pub struct ContextSwitches {
 
 /// CPU time (user + system, s) and context switches of this process so far.
 fn process_usage() -> (f64, ContextSwitches) {
-    // SAFETY: getrusage writes into the zero-initialised struct we pass; RUSAGE_SELF is valid.
+    usage(libc::RUSAGE_SELF)
+}
+
+/// CPU time (user + system, s) and context switches so far of this process (`who` =
+/// `libc::RUSAGE_SELF`) or of all its children that have ended and been reaped
+/// (`libc::RUSAGE_CHILDREN`).
+pub fn usage(who: libc::c_int) -> (f64, ContextSwitches) {
+    // SAFETY: getrusage writes into the zero-initialised struct we pass; an invalid `who`
+    // makes it fail with EINVAL and leave the struct zero.
     let ru = unsafe {
         let mut ru: libc::rusage = std::mem::zeroed();
-        libc::getrusage(libc::RUSAGE_SELF, &mut ru);
+        libc::getrusage(who, &mut ru);
         ru
     };
     let tv = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
