@@ -75,8 +75,10 @@ pub fn load_run(dir: &Path) -> Result<LoadedRun> {
     })
 }
 
+/// A metric with `digits` decimals; one too big to write out (a diverged run's trace can hold
+/// 1e308) in exponent form, as `drivelab_runtime::text::readable_numbers` writes it.
 fn fmt(v: Option<f64>, digits: usize) -> String {
-    v.map(|x| format!("{x:.digits$}"))
+    v.map(|x| drivelab_runtime::text::readable_numbers(&format!("{x:.digits$}")).into_owned())
         .unwrap_or_else(|| "n/a".into())
 }
 
@@ -282,6 +284,16 @@ mod tests {
         let names: Vec<String> = runs.iter().map(|(n, _)| n.to_string()).collect();
         let folders: Vec<PathBuf> = runs.iter().map(|(_, f)| PathBuf::from(f)).collect();
         labels(&names, &folders)
+    }
+
+    #[test]
+    fn a_metric_too_big_to_write_out_is_printed_in_exponent_form() {
+        // A diverged run's trace can hold 1e308: its overshoot was printed as 311 digits.
+        assert_eq!(fmt(Some(1e308), 1), "1e308");
+        assert_eq!(fmt(Some(-2.5e300), 2), "-2.5e300");
+        assert_eq!(fmt(Some(12.345), 1), "12.3");
+        assert_eq!(fmt(Some(f64::NAN), 1), "NaN");
+        assert_eq!(fmt(None, 1), "n/a");
     }
 
     #[test]

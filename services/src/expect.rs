@@ -274,7 +274,11 @@ impl Outcome {
             .iter()
             .take(3)
             .map(|c| match c.value {
-                Some(v) => format!("{} = {v}", c.figure),
+                Some(v) => format!(
+                    "{} = {}",
+                    c.figure,
+                    drivelab_runtime::text::readable_numbers(&v.to_string())
+                ),
                 None => format!("{} is not a number", c.figure),
             })
             .collect();
@@ -417,6 +421,17 @@ mod tests {
 
     fn check(text: &str) -> Outcome {
         parse(text).unwrap().evaluate(&summary())
+    }
+
+    #[test]
+    fn a_huge_figure_is_named_in_exponent_form() {
+        let o = parse("peak_current_a <= 8")
+            .unwrap()
+            .evaluate(&json!({ "peak_current_a": 1e308 }));
+        assert_eq!(
+            o.violation(),
+            "expectation failed: peak_current_a <= 8: peak_current_a = 1e308"
+        );
     }
 
     #[test]

@@ -673,7 +673,7 @@ fn existing_file(v: &str) -> Result<PathBuf, String> {
 
 fn fmt_opt(v: &serde_json::Value, unit: &str) -> String {
     v.as_f64()
-        .map(|x| format!("{x:.3} {unit}"))
+        .map(|x| drivelab_runtime::text::readable_numbers(&format!("{x:.3} {unit}")).into_owned())
         .unwrap_or_else(|| "n/a".into())
 }
 
