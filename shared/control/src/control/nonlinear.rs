@@ -1143,9 +1143,13 @@ pub fn design_nonlinear(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel) -> 
     if !reachable {
         // The design's response over its whole window, not only up to 10 × the target.
         let p = d.predicted();
-        let got = p
-            .failure()
-            .unwrap_or_else(|| format!("gives {:.2} ms", p.rise_s.unwrap_or(f64::NAN) * 1e3));
+        let got = p.failure().unwrap_or_else(|| {
+            format!(
+                "gives {:.2} ms{}",
+                p.rise_s.unwrap_or(f64::NAN) * 1e3,
+                overshoot_note(p.overshoot_pct)
+            )
+        });
         d.warning = Some(format!(
             "speed rise time {:.2} ms is not reachable with inner loops at ω_i = {:.0} rad/s (ω_0 = ω_i {got})",
             target * 1e3,
@@ -1206,6 +1210,18 @@ impl NlDesign {
     }
 }
 
+/// What a warning adds about a design's overshoot: its figure, and that a response which
+/// overshoots by more than the step itself is no speed loop to run.
+fn overshoot_note(overshoot_pct: Option<f64>) -> String {
+    match overshoot_pct {
+        Some(o) if o > 100.0 => format!(
+            " with an overshoot of {o:.1} %, more than the step itself: do not run it, ask for a slower rise"
+        ),
+        Some(o) => format!(" with an overshoot of {o:.1} %"),
+        None => String::new(),
+    }
+}
+
 /// [`NlPlacement::Sampled`]: for ω_0 on a grid of ω_i/200 steps from the second-order
 /// estimate (π − acos ζ)/(ω_0√(1 − ζ²)) = t_r up to ω_i/2, each placement started from the
 /// previous one ([`place_on_sampled_loop`]); the slowest ω_0 whose sampled step response
@@ -1252,11 +1268,15 @@ fn design_nonlinear_sampled(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel)
             },
             model,
         );
-        d.warning = Some(if placed.is_empty() {
-            "no placement on the sampled loop succeeded: the continuous design is used".into()
+        let why = if placed.is_empty() {
+            "no placement on the sampled loop succeeded: the continuous design is used"
         } else {
             "no placement on the sampled loop reached the set-point: the continuous design is used"
-                .into()
+        };
+        // The continuous design's own warning (a target it cannot reach) still holds.
+        d.warning = Some(match d.warning.take() {
+            Some(w) => format!("{why}; {w}"),
+            None => why.to_string(),
         });
         return d;
     };
@@ -1264,9 +1284,10 @@ fn design_nonlinear_sampled(m: &MotorParams, spec: &NlSpec, model: &NlLoopModel)
     let tw = model.ts * f64::from(model.n.max(1));
     let mut warning = meets.is_none().then(|| {
         format!(
-            "speed rise time {:.2} ms is not reachable with the sampled loop's dominant pair at damping {zeta}: the fastest placed design (ω_0 = {w0:.0} rad/s) first reaches the set-point at {:.2} ms",
+            "speed rise time {:.2} ms is not reachable with the sampled loop's dominant pair at damping {zeta}: the fastest placed design (ω_0 = {w0:.0} rad/s) first reaches the set-point at {:.2} ms{}",
             target * 1e3,
-            searched[i].1 * 1e3
+            searched[i].1 * 1e3,
+            overshoot_note(Some(searched[i].2).filter(|o| o.is_finite()))
         )
     });
     let z0 = pair_z(model, zeta, w0);
@@ -1648,6 +1669,7 @@ mod tests {
             let d = design_nonlinear(&MotorParams::kyslan2015(), &spec, &model);
             let w = d.warning.clone().unwrap();
             assert!(!w.contains("NaN"), "{placement:?}: {w}");
+            assert!(w.contains("with an overshoot of "), "{placement:?}: {w}");
             for f in [d.predicted(), d.continuous()] {
                 assert_eq!(f.failure(), None, "{placement:?}: {d:?}");
                 let r = f.rise_s.unwrap();
@@ -1660,7 +1682,11 @@ mod tests {
             let r = d.predicted_rise_time_s.unwrap();
             if placement == NlPlacement::Continuous {
                 assert!(
-                    w.contains(&format!("(ω_0 = ω_i gives {:.2} ms)", r * 1e3)),
+                    w.contains(&format!(
+                        "(ω_0 = ω_i gives {:.2} ms with an overshoot of {:.1} %",
+                        r * 1e3,
+                        d.predicted_overshoot_pct.unwrap()
+                    )),
                     "{w}"
                 );
             }
