@@ -820,16 +820,19 @@ mod tests {
 
     #[test]
     fn thread_chain_matches_the_inprocess_trace() {
-        let sc = kyslan(2000.0);
+        // 1 kHz: the threads run unpinned at SCHED_FIFO 50, below the drives that other
+        // tests run at the same time, which hold a core for milliseconds at a time; at 2 kHz
+        // that made 18–33 misses in 100 samples in three runs of a debug build in a row.
+        let sc = kyslan(1000.0);
         let mut d = InProcessDrive::new(&sc);
         let reference: Vec<TraceRow> = (0..100).map(|k| d.cycle(k)).collect();
         // Determinism across transports: every row up to the first miss (all of them when
         // nothing missed) is bit-identical to the in-process chain's. A miss is rare (a
-        // thread preempted for more than a 500 µs sample), so up to three runs are made
-        // until one compares at least half the run.
+        // thread preempted for more than a 1 ms sample), so up to five runs are made until
+        // one compares at least half the run.
         let mut compared = 0;
-        for _ in 0..3 {
-            let p = run_chain_threads(&sc, 0.05, true).unwrap();
+        for _ in 0..5 {
+            let p = run_chain_threads(&sc, 0.1, true).unwrap();
             assert_eq!(p.result.samples, 100);
             // One wake-up per sample plus the one that takes the last command.
             assert_eq!(p.result.lateness.len(), 101);
@@ -851,10 +854,7 @@ mod tests {
                 break;
             }
         }
-        assert!(
-            compared >= 50,
-            "three runs compared {compared} rows at most"
-        );
+        assert!(compared >= 50, "five runs compared {compared} rows at most");
     }
 
     /// Not a test: the entry point of a `bench-node uds` node process that [`fake_drivelab`]
