@@ -304,8 +304,9 @@ pub fn receive(
     let mut mon = CycleMonitor::new(period_ns);
     let mut counted = 0u64;
     let mut prev_deadline: Option<u64> = None;
-    // A stop signal (the bench's parent-death SIGTERM among them) is seen at the next wait
-    // that times out: notifies no longer come once the bench is gone.
+    // A stop signal (the bench's parent-death SIGTERM among them) ends the futex wait at
+    // once (the handlers do not restart it), and notifies no longer come once the bench is
+    // gone, so the loop below sees it without a notify.
     drivelab_runtime::service::install_signal_handlers()?;
     let seg = WakeSegment::open(bus)?;
     let input = input_word(position);
