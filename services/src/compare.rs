@@ -42,13 +42,7 @@ pub fn load_run(dir: &Path) -> Result<LoadedRun> {
     if !dir.is_dir() {
         bail!("{}: no such run folder", dir.display());
     }
-    let trace = dir.join("trace.csv");
-    if !trace.is_file() {
-        bail!(
-            "{}: no trace.csv in this folder (not a drivelab run folder?)",
-            dir.display()
-        );
-    }
+    let trace = crate::plotcmd::trace_csv_of(dir)?;
     let sc_path = dir.join("scenario.toml");
     let text = std::fs::read_to_string(&sc_path).with_context(|| {
         format!(

@@ -98,6 +98,24 @@ impl SummaryView {
     }
 }
 
+/// The trace.csv of run folder `run`. The error names the folder when it has none, and says
+/// what is wrong when the path is there but is no regular file, `run` is no folder, or the
+/// file cannot be looked at (no permission): each was "has no trace.csv" before.
+pub fn trace_csv_of(run: &Path) -> Result<PathBuf> {
+    let path = run.join("trace.csv");
+    match std::fs::metadata(&path) {
+        Ok(m) if m.is_file() => Ok(path),
+        Ok(_) => bail!("{} is not a file (a run's trace is one)", path.display()),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            bail!("{} has no trace.csv (not a run folder)", run.display())
+        }
+        Err(e) if e.raw_os_error() == Some(libc::ENOTDIR) => {
+            bail!("{} is not a folder (not a run folder)", run.display())
+        }
+        Err(e) => bail!("cannot read {}: {e}", path.display()),
+    }
+}
+
 /// A file of a run folder read by `read`, or `None` when the folder has none.
 fn file_if_any<T>(path: &Path, read: fn(&Path) -> std::io::Result<T>) -> Result<Option<T>> {
     match read(path) {
@@ -201,10 +219,7 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
         })?;
         (m.rows, m.seconds)
     } else {
-        let trace = a.run.join("trace.csv");
-        if !trace.is_file() {
-            bail!("{} has no trace.csv (not a run folder)", a.run.display());
-        }
+        let trace = trace_csv_of(&a.run)?;
         let mut rows = Vec::new();
         drivelab_runtime::trace::for_each_csv_row(&trace, |row| {
             if stop() {
@@ -338,4 +353,38 @@ fn latency_per_second(
         &[(ts_us, format!("T_s = {ts_us:.0} µs"))],
         &out.join("latency-per-second"),
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_trace_that_is_not_there_or_not_a_file_is_named_for_what_it_is() {
+        let dir = std::env::temp_dir().join(format!("drivelab-trace-of-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(dir.join("a/trace.csv")).unwrap();
+        std::fs::create_dir_all(dir.join("b")).unwrap();
+        std::fs::write(dir.join("b/trace.csv"), "").unwrap();
+        std::fs::write(dir.join("c"), "").unwrap();
+        let err = |p: &str| format!("{:#}", trace_csv_of(&dir.join(p)).unwrap_err());
+        let d = dir.display();
+        assert_eq!(
+            err("a"),
+            format!("{d}/a/trace.csv is not a file (a run's trace is one)")
+        );
+        assert_eq!(
+            trace_csv_of(&dir.join("b")).unwrap(),
+            dir.join("b/trace.csv")
+        );
+        assert_eq!(
+            err("c"),
+            format!("{d}/c is not a folder (not a run folder)")
+        );
+        assert_eq!(
+            err("missing"),
+            format!("{d}/missing has no trace.csv (not a run folder)")
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }

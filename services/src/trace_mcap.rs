@@ -292,10 +292,7 @@ impl WallClock {
 /// error says how far it got.
 pub fn export(dir: &Path) -> Result<std::path::PathBuf> {
     drivelab_runtime::service::install_signal_handlers()?;
-    let csv_path = dir.join("trace.csv");
-    if !csv_path.is_file() {
-        bail!("{} has no trace.csv: not a run folder", dir.display());
-    }
+    let csv_path = crate::plotcmd::trace_csv_of(dir)?;
     let missing = |name: &str| anyhow!("{} has no {name}: not a run folder", dir.display());
     let (_, scenario_toml) =
         crate::plotcmd::scenario_if_any(dir)?.ok_or_else(|| missing("scenario.toml"))?;
