@@ -463,25 +463,6 @@ pub struct UdsNodeArgs {
     pub out: Option<PathBuf>,
 }
 
-/// Asks the kernel to send SIGTERM when the parent (the bench runner) dies, so that a node is
-/// never left behind; stops at once if the parent is already gone.
-fn stop_with_parent() {
-    // SAFETY: prctl(PR_SET_PDEATHSIG) takes a signal number, no pointers.
-    unsafe {
-        libc::prctl(
-            libc::PR_SET_PDEATHSIG,
-            libc::SIGTERM as libc::c_ulong,
-            0,
-            0,
-            0,
-        )
-    };
-    // SAFETY: getppid has no arguments and cannot fail.
-    if unsafe { libc::getppid() } == 1 {
-        stop_flag().store(true, Ordering::SeqCst);
-    }
-}
-
 /// The plant's result file.
 #[derive(Debug, Serialize, Deserialize)]
 struct PlantFile {
@@ -553,7 +534,6 @@ pub fn run_uds_node(args: &UdsNodeArgs) -> Result<()> {
         bail!("--seconds must be a positive number, got {}", args.seconds);
     }
     install_signal_handlers()?;
-    stop_with_parent();
     let text = std::fs::read_to_string(&args.scenario)
         .with_context(|| format!("cannot read scenario {}", args.scenario.display()))?;
     let sc =

@@ -549,9 +549,9 @@ pub(super) fn wait_ready(children: &mut [ChildProc]) -> Result<Option<String>> {
 }
 
 /// SIGTERM to every child still running, then SIGKILL (named in a warning) to those not
-/// gone within 3 s. The
-/// source's stdin is closed after the signal: a source stopped before its `GO` is waiting
-/// for that line, and ends at once when it reads the end of its input instead.
+/// gone within 3 s. The source's stdin is closed after the signal: a source stopped before
+/// its `GO` is waiting for that line, and ends at once when it reads the end of its input
+/// instead.
 pub(super) fn terminate(children: &mut [ChildProc]) {
     for c in children.iter_mut() {
         if let Ok(None) = c.child.try_wait() {

@@ -39,10 +39,18 @@ unsafe impl Send for WakeSegment {}
 unsafe impl Sync for WakeSegment {}
 
 impl WakeSegment {
+    /// The shared-memory name of bus `id`'s wake segment.
+    fn name(id: &str) -> Result<std::ffi::CString> {
+        crate::bus::check_bus_id(id)?;
+        Ok(std::ffi::CString::new(format!(
+            "/{}wake",
+            crate::bus::shm_prefix(id)
+        ))?)
+    }
+
     /// Opens (creating if needed) the wake segment of bus `id`.
     pub fn open(id: &str) -> Result<Self> {
-        crate::bus::check_bus_id(id)?;
-        let name = std::ffi::CString::new(format!("/{}wake", crate::bus::shm_prefix(id)))?;
+        let name = Self::name(id)?;
         // SAFETY: plain libc calls with a valid NUL-terminated name; every return value is
         // checked and the fd is closed after mmap (the mapping keeps the object alive).
         unsafe {
@@ -82,8 +90,7 @@ impl WakeSegment {
     /// valid). Returns whether there was one. For a process that outlived the one that made
     /// the segment and would otherwise leave it behind.
     pub fn remove(id: &str) -> Result<bool> {
-        crate::bus::check_bus_id(id)?;
-        let name = std::ffi::CString::new(format!("/{}wake", crate::bus::shm_prefix(id)))?;
+        let name = Self::name(id)?;
         // SAFETY: shm_unlink(3) with a valid NUL-terminated name; it touches no memory of ours.
         if unsafe { libc::shm_unlink(name.as_ptr()) } == 0 {
             return Ok(true);

@@ -1274,7 +1274,7 @@ fn write_stats<T: Transport>(
 ) -> Result<()> {
     let Some(dir) = &args.out else { return Ok(()) };
     let diags = host.diagnostics();
-    let (process_cpu_s, process_context_switches) = process_usage();
+    let (process_cpu_s, process_context_switches) = usage(libc::RUSAGE_SELF);
     for (i, h) in host.stages.iter().enumerate() {
         let name = h.stage.name();
         let source = i == 0 && host.is_source();
@@ -1324,11 +1324,6 @@ pub struct ContextSwitches {
     pub voluntary: u64,
     /// It was preempted.
     pub involuntary: u64,
-}
-
-/// CPU time (user + system, s) and context switches of this process so far.
-fn process_usage() -> (f64, ContextSwitches) {
-    usage(libc::RUSAGE_SELF)
 }
 
 /// CPU time (user + system, s) and context switches so far of this process (`who` =

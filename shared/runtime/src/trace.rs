@@ -189,7 +189,7 @@ mod tests {
             .collect()
     }
 
-    /// A trace of 5 rows whose text is then cut to `keep` bytes, or given `tail` after them.
+    /// A trace of 5 rows whose text `edit` then changes (cuts it short, adds a bad row …).
     fn damaged(name: &str, edit: impl FnOnce(Vec<u8>) -> Vec<u8>) -> std::path::PathBuf {
         let path =
             std::env::temp_dir().join(format!("drivelab-trace-{}-{name}.csv", std::process::id()));
