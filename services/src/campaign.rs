@@ -353,7 +353,8 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
     }
     // Each scenario × fault set is checked as its run would be (faults against the
     // scenario's stages and duration, topology, expectations); seeds only move random kills.
-    // Thousands of checks take minutes on a busy machine: a stop signal ends them.
+    // Ten thousand checks take about 0.6 s (no stage is built for them: see
+    // `stages::declaration`); a stop signal still ends them.
     for case in cases.iter().step_by(c.seeds.len()) {
         if drivelab_runtime::service::stop_requested() {
             bail!(

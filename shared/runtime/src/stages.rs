@@ -31,6 +31,23 @@ pub fn builtin(name: &str, sc: &Scenario) -> Option<Box<dyn Stage>> {
     })
 }
 
+/// What built-in stage `name` declares for scenario `sc` (its inputs, outputs and rate
+/// divider) without building it: every run and every campaign case resolves its topology
+/// first, and building the speed loop designs its controller (a search over step responses,
+/// milliseconds). A unit test holds these equal to what the built stages declare.
+pub fn declaration(
+    name: &str,
+    sc: &Scenario,
+) -> Option<(&'static [InputSpec], &'static [TopicId], u64)> {
+    Some(match name {
+        "plant" => (PLANT_IN, PLANT_OUT, 1),
+        "observer" => (OBSERVER_IN, OBSERVER_OUT, 1),
+        "current-loop" => (CURRENT_IN, CURRENT_OUT, 1),
+        "speed-loop" => (SPEED_IN, SPEED_OUT, u64::from(sc.rates.speed_divider)),
+        _ => return None,
+    })
+}
+
 // ------------------------------------------------------------------------------ plant
 
 /// The plant: timing master. At k it applies command k−1 (held for `inverter.hold_samples`
@@ -44,6 +61,7 @@ pub struct PlantStage {
 }
 
 const PLANT_IN: &[InputSpec] = &[InputSpec::latest(TopicId::Cmd, 1, 0, OnStale::Fallback)];
+const PLANT_OUT: &[TopicId] = &[TopicId::Meas, TopicId::Truth];
 
 impl PlantStage {
     /// The plant of `sc`.
@@ -63,7 +81,7 @@ impl Stage for PlantStage {
         PLANT_IN
     }
     fn outputs(&self) -> &'static [TopicId] {
-        &[TopicId::Meas, TopicId::Truth]
+        PLANT_OUT
     }
     fn step(&mut self, k: u64, inputs: &Inbox, out: &mut Outbox) {
         // A missing command (None) is held, then replaced by the safe state (Plant::sample).
@@ -97,6 +115,7 @@ pub struct ObserverStage {
 }
 
 const OBSERVER_IN: &[InputSpec] = &[InputSpec::trigger(TopicId::Meas, 1, OnStale::Required)];
+const OBSERVER_OUT: &[TopicId] = &[TopicId::Est];
 
 impl ObserverStage {
     /// The observer of `sc`.
@@ -117,7 +136,7 @@ impl Stage for ObserverStage {
         OBSERVER_IN
     }
     fn outputs(&self) -> &'static [TopicId] {
-        &[TopicId::Est]
+        OBSERVER_OUT
     }
     fn steps_every_sample(&self) -> bool {
         true
@@ -185,6 +204,7 @@ const CURRENT_IN: &[InputSpec] = &[
     InputSpec::latest(TopicId::Meas, 0, 0, OnStale::Required),
     InputSpec::latest(TopicId::Iref, 1, 0, OnStale::Fallback),
 ];
+const CURRENT_OUT: &[TopicId] = &[TopicId::Cmd];
 
 impl CurrentLoopStage {
     /// The current loop of `sc`.
@@ -252,7 +272,7 @@ impl Stage for CurrentLoopStage {
         CURRENT_IN
     }
     fn outputs(&self) -> &'static [TopicId] {
-        &[TopicId::Cmd]
+        CURRENT_OUT
     }
     fn step(&mut self, k: u64, inputs: &Inbox, out: &mut Outbox) {
         let Some(meas) = inputs.meas() else { return };
@@ -369,6 +389,7 @@ const SPEED_IN: &[InputSpec] = &[
     InputSpec::latest(TopicId::Wref, 1, 0, OnStale::Fallback),
     InputSpec::rejoin(TopicId::Cmd),
 ];
+const SPEED_OUT: &[TopicId] = &[TopicId::Iref];
 
 impl SpeedLoopStage {
     /// The speed loop of `sc`.
@@ -396,7 +417,7 @@ impl Stage for SpeedLoopStage {
         SPEED_IN
     }
     fn outputs(&self) -> &'static [TopicId] {
-        &[TopicId::Iref]
+        SPEED_OUT
     }
     fn divider(&self) -> u64 {
         self.divider
@@ -601,6 +622,46 @@ mod tests {
     fn direct(sc: &Scenario) -> Vec<crate::trace::TraceRow> {
         let mut d = InProcessDrive::new(sc);
         (0..sc.samples()).map(|k| d.cycle(k)).collect()
+    }
+
+    #[test]
+    fn a_declaration_is_what_the_built_stage_declares() {
+        // Every shipped scenario, and one with another speed divider.
+        let dir = format!("{}/../../scenarios", env!("CARGO_MANIFEST_DIR"));
+        let mut scenarios: Vec<Scenario> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|x| x == "toml"))
+            .map(|p| {
+                let text = std::fs::read_to_string(&p).unwrap();
+                Scenario::from_toml(&text, &p.display().to_string()).unwrap()
+            })
+            .collect();
+        assert!(
+            scenarios.len() >= 10,
+            "{} scenarios in {dir}",
+            scenarios.len()
+        );
+        let mut other = scenario("kyslan-pi");
+        other.rates.speed_divider = 4;
+        scenarios.push(other);
+        for sc in &scenarios {
+            for name in BUILTIN {
+                let s = builtin(name, sc).unwrap();
+                let (inputs, outputs, divider) = declaration(name, sc).unwrap();
+                assert_eq!(s.name(), name);
+                assert_eq!(s.inputs(), inputs, "{name} in {}", sc.name);
+                assert_eq!(s.outputs(), outputs, "{name} in {}", sc.name);
+                assert_eq!(s.divider(), divider, "{name} in {}", sc.name);
+            }
+        }
+        assert!(
+            declaration("speed-loop", scenarios.last().unwrap())
+                .unwrap()
+                .2
+                == 4
+        );
+        assert!(declaration("no-such-stage", &scenarios[0]).is_none());
     }
 
     #[test]

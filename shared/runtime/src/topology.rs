@@ -462,12 +462,12 @@ pub fn resolve(
 /// The built-in stages' declarations for scenario `sc` (the launcher asks a user's
 /// executable for its own with `--describe`).
 pub fn builtin_info(sc: &crate::config::Scenario, name: &str) -> Option<StageInfo> {
-    let s = crate::stages::builtin(name, sc)?;
+    let (inputs, outputs, divider) = crate::stages::declaration(name, sc)?;
     Some(StageInfo {
-        name: s.name().to_string(),
-        inputs: s.inputs().to_vec(),
-        outputs: s.outputs().to_vec(),
-        divider: s.divider(),
+        name: name.to_string(),
+        inputs: inputs.to_vec(),
+        outputs: outputs.to_vec(),
+        divider,
     })
 }
 
