@@ -973,14 +973,49 @@ const DESCRIBE_TIMEOUT: Duration = Duration::from_secs(10);
 /// The most output of `--describe` read (a stage list is a few kB).
 const DESCRIBE_MAX_BYTES: u64 = 1 << 20;
 
+/// What an executable's answer to `--describe` depends on: its path, modification time and
+/// size, the runner it is started through, and the scenario's text.
+type DescribeKey = (String, Option<std::time::SystemTime>, u64, String, String);
+
+/// The answers given so far in this process: a campaign checks thousands of cases against one
+/// topology, and each answer costs a process start (about 6 ms). A rebuilt executable (another
+/// modification time or size) is asked again.
+static DESCRIBED: std::sync::Mutex<BTreeMap<DescribeKey, Vec<StageInfo>>> =
+    std::sync::Mutex::new(BTreeMap::new());
+
 /// Asks a user's stage executable which stages it hosts ([`spawn::ask`]): it must exit within
-/// [`DESCRIBE_TIMEOUT`] with at most [`DESCRIBE_MAX_BYTES`] of output.
+/// [`DESCRIBE_TIMEOUT`] with at most [`DESCRIBE_MAX_BYTES`] of output. An answer is asked for
+/// once per [`DescribeKey`].
 fn describe(
     exe: &str,
     sc_text: &str,
     runner: Option<&drivelab_runtime::runner::Runner>,
 ) -> Result<Vec<StageInfo>> {
     check_exec(exe, runner.is_some())?;
+    let md = std::fs::metadata(exe).with_context(|| format!("exec {exe}"))?;
+    let key = (
+        exe.to_string(),
+        md.modified().ok(),
+        md.len(),
+        format!("{runner:?}"),
+        sc_text.to_string(),
+    );
+    // A panic elsewhere while the lock was held leaves the map as it was: still usable.
+    let answers = || DESCRIBED.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some(info) = answers().get(&key) {
+        return Ok(info.clone());
+    }
+    let info = ask_describe(exe, sc_text, runner)?;
+    answers().insert(key, info.clone());
+    Ok(info)
+}
+
+/// [`describe`] without the memory of earlier answers.
+fn ask_describe(
+    exe: &str,
+    sc_text: &str,
+    runner: Option<&drivelab_runtime::runner::Runner>,
+) -> Result<Vec<StageInfo>> {
     // A folder of a fresh random name that only this user can enter, gone when `dir` drops:
     // in a temp folder that anyone can write, a name known in advance could be made first by
     // another user, with a link in it that the scenario would be written through.
@@ -1584,6 +1619,43 @@ pub fn counters(summary: &serde_json::Value) -> BTreeMap<String, serde_json::Val
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_executable_is_asked_to_describe_once_per_scenario_until_it_changes() {
+        let dir = tempfile::tempdir().unwrap();
+        let exe = dir.path().join("stages.sh");
+        let asked = dir.path().join("asked");
+        // A script that counts its questions in `asked` and hosts no stage, run through `sh`
+        // (executing a file just written can fail with ETXTBSY while another test forks).
+        let sh = drivelab_runtime::runner::Runner::parse("sh").unwrap();
+        let write = |extra: &str| {
+            let text = format!("echo x >> {}\n{extra}echo '[]'\n", asked.display());
+            std::fs::write(&exe, text).unwrap();
+        };
+        let questions = || {
+            std::fs::read_to_string(&asked)
+                .unwrap_or_default()
+                .lines()
+                .count()
+        };
+        let e = exe.to_str().unwrap();
+        write("");
+        assert!(describe(e, "a = 1", Some(&sh)).unwrap().is_empty());
+        assert!(describe(e, "a = 1", Some(&sh)).unwrap().is_empty());
+        assert_eq!(questions(), 1);
+        // Another scenario is another question.
+        describe(e, "a = 2", Some(&sh)).unwrap();
+        assert_eq!(questions(), 2);
+        // A rebuilt executable (here: another size) is asked again.
+        write(": rebuilt\n");
+        describe(e, "a = 1", Some(&sh)).unwrap();
+        assert_eq!(questions(), 3);
+        // A failing answer is not kept: asked again, failing again.
+        write("exit 3\n");
+        assert!(describe(e, "a = 1", Some(&sh)).is_err());
+        assert!(describe(e, "a = 1", Some(&sh)).is_err());
+        assert_eq!(questions(), 5);
+    }
 
     fn gap(from: u64, to: u64, part: &'static str) -> Gap {
         Gap {
