@@ -221,8 +221,21 @@ impl Drive {
     }
 
     /// Waits for the process to exit with a watchdog against hangs (on expiry the test
-    /// fails, and the guard kills it); returns its status and what it printed.
+    /// fails, and the guard kills it); returns its status and what it printed. Its piped
+    /// output is read while it runs: a process that prints more than a pipe holds (64 KiB)
+    /// would otherwise block in its write and never exit.
     pub fn wait_for_exit(mut self, watchdog: Duration, what: &str) -> Output {
+        let drain = |pipe: Option<Box<dyn std::io::Read + Send>>| {
+            std::thread::spawn(move || {
+                let mut v = Vec::new();
+                if let Some(mut p) = pipe {
+                    let _ = p.read_to_end(&mut v);
+                }
+                v
+            })
+        };
+        let out = drain(self.stdout.take().map(|p| Box::new(p) as _));
+        let err = drain(self.stderr.take().map(|p| Box::new(p) as _));
         let t = Instant::now();
         while self.try_wait().unwrap().is_none() {
             assert!(
@@ -231,8 +244,14 @@ impl Drive {
             );
             std::thread::sleep(Duration::from_millis(20));
         }
-        // It has exited and is reaped: the guard has nothing left to stop.
-        self.child.take().unwrap().wait_with_output().unwrap()
+        // It has exited and is reaped: the guard has nothing left to stop. Its pipes end
+        // when the last process holding them (it, or a child it left) closes them.
+        let status = self.child.take().unwrap().wait().unwrap();
+        Output {
+            status,
+            stdout: out.join().unwrap(),
+            stderr: err.join().unwrap(),
+        }
     }
 
     /// SIGKILLs the launcher (nobody cleans up) and asserts that the kernel ends every other
