@@ -965,7 +965,9 @@ fn the_hop_receivers_of_a_sigkilled_bench_end_and_remove_its_wake_segment() {
             t.elapsed() < Duration::from_secs(60),
             "watchdog: the hop phase did not start within 60 s"
         );
-        std::thread::sleep(Duration::from_millis(10));
+        // Polled often, so that the kill often comes right after a receiver started, before
+        // its handlers are in place (it starts with SIGTERM blocked for that).
+        std::thread::sleep(Duration::from_micros(200));
     }
     // SAFETY: a signal to the bench this test started, not yet reaped.
     unsafe { libc::kill(pid as i32, libc::SIGKILL) };

@@ -36,13 +36,48 @@ impl<T> Kids<T> {
     /// kernel when the thread that started it ends (a bench killed with SIGKILL can stop
     /// nobody itself); every measurement starts its processes from the bench's main thread.
     pub fn spawn(&mut self, what: T, cmd: &mut Command, log: PathBuf, name: &str) -> Result<()> {
+        self.start(what, cmd, log, name, false)
+    }
+
+    /// [`Kids::spawn`] for a drivelab process that installs its stop-signal handlers first
+    /// (`drivelab_runtime::service::install_signal_handlers`, which unblocks them) and
+    /// cleans up when one arrives: it starts with SIGTERM blocked, so a parent-death SIGTERM
+    /// sent before its handlers are in place waits for them instead of killing it first.
+    pub fn spawn_holding_term(
+        &mut self,
+        what: T,
+        cmd: &mut Command,
+        log: PathBuf,
+        name: &str,
+    ) -> Result<()> {
+        self.start(what, cmd, log, name, true)
+    }
+
+    fn start(
+        &mut self,
+        what: T,
+        cmd: &mut Command,
+        log: PathBuf,
+        name: &str,
+        hold_term: bool,
+    ) -> Result<()> {
         let f = std::fs::File::create(&log)
             .with_context(|| format!("cannot create {}", log.display()))?;
         let parent = std::process::id();
-        // SAFETY: the closure runs in the child between fork and exec; it calls only prctl(2)
-        // and getppid(2), which are async-signal-safe, and allocates nothing.
+        // SAFETY: the closure runs in the child between fork and exec; it calls only
+        // sigemptyset(3), sigaddset(3), sigprocmask(2), prctl(2) and getppid(2), which are
+        // async-signal-safe, on a sigset_t on its own stack, and allocates nothing. The
+        // blocked mask is kept across exec (std resets the mask before the closure runs).
         unsafe {
             std::os::unix::process::CommandExt::pre_exec(cmd, move || {
+                if hold_term {
+                    let mut set: libc::sigset_t = std::mem::zeroed();
+                    libc::sigemptyset(&mut set);
+                    libc::sigaddset(&mut set, libc::SIGTERM);
+                    if libc::sigprocmask(libc::SIG_BLOCK, &set, std::ptr::null_mut()) != 0 {
+                        return Err(std::io::Error::last_os_error());
+                    }
+                }
                 if libc::prctl(
                     libc::PR_SET_PDEATHSIG,
                     libc::SIGTERM as libc::c_ulong,

@@ -135,7 +135,7 @@ pub fn run(
                 cmd.arg("--priority").arg(p.to_string());
             }
             let log = work.join(format!("hop-receiver-{position}.log"));
-            kids.spawn(position, &mut cmd, log, &format!("hop receiver {position}"))?;
+            kids.spawn_holding_term(position, &mut cmd, log, &format!("hop receiver {position}"))?;
         }
         let watchdog = Duration::from_secs_f64(seconds * 3.0 + 10.0);
         let started = Instant::now();

@@ -252,6 +252,25 @@ pub fn install_signal_handlers() -> Result<()> {
             ));
         }
     }
+    // A process may start with some of them blocked, so that one sent before its handlers
+    // were in place waits for them (a bench's hop receiver: its parent-death SIGTERM); now
+    // they can come.
+    // SAFETY: a zero-initialised sigset_t filled by sigemptyset/sigaddset, passed by valid
+    // pointer; the old mask is not asked for (null).
+    let rc = unsafe {
+        let mut set: libc::sigset_t = std::mem::zeroed();
+        libc::sigemptyset(&mut set);
+        for (sig, _) in stop_signals() {
+            libc::sigaddset(&mut set, sig);
+        }
+        libc::pthread_sigmask(libc::SIG_UNBLOCK, &set, std::ptr::null_mut())
+    };
+    if rc != 0 {
+        return Err(anyhow!(
+            "cannot unblock the stop signals: {}",
+            std::io::Error::from_raw_os_error(rc)
+        ));
+    }
     Ok(())
 }
 
