@@ -930,8 +930,9 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
 }
 
 /// Checks that `exe` (absolute) is a file that can be run: it exists, is a regular file and,
-/// unless a runner starts it (qemu-user reads it), has an execute permission.
-fn check_exec(exe: &str, through_runner: bool) -> Result<()> {
+/// unless a runner starts it (qemu-user reads it), has an execute permission. Returns its
+/// metadata.
+fn check_exec(exe: &str, through_runner: bool) -> Result<std::fs::Metadata> {
     use std::os::unix::fs::PermissionsExt;
     let md = match std::fs::metadata(exe) {
         Ok(m) => m,
@@ -946,7 +947,7 @@ fn check_exec(exe: &str, through_runner: bool) -> Result<()> {
     if !through_runner && md.permissions().mode() & 0o111 == 0 {
         bail!("exec {exe} is not executable (no execute permission: chmod +x it)");
     }
-    Ok(())
+    Ok(md)
 }
 
 /// Makes every `exec` of `procs` absolute, relative paths taken from the folder of `file`
@@ -991,8 +992,7 @@ fn describe(
     sc_text: &str,
     runner: Option<&drivelab_runtime::runner::Runner>,
 ) -> Result<Vec<StageInfo>> {
-    check_exec(exe, runner.is_some())?;
-    let md = std::fs::metadata(exe).with_context(|| format!("exec {exe}"))?;
+    let md = check_exec(exe, runner.is_some())?;
     let key = (
         exe.to_string(),
         md.modified().ok(),

@@ -655,12 +655,8 @@ mod tests {
                 assert_eq!(s.divider(), divider, "{name} in {}", sc.name);
             }
         }
-        assert!(
-            declaration("speed-loop", scenarios.last().unwrap())
-                .unwrap()
-                .2
-                == 4
-        );
+        let (_, _, divider) = declaration("speed-loop", scenarios.last().unwrap()).unwrap();
+        assert_eq!(divider, 4);
         assert!(declaration("no-such-stage", &scenarios[0]).is_none());
     }
 
