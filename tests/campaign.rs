@@ -509,6 +509,17 @@ fn a_campaign_stopped_by_sigint_says_so_in_one_line_and_reports_the_rest_skipped
         assert!(lines[0].contains(says), "'{says}' not in: {}", lines[0]);
     }
     assert_clean(&bus);
+    // The table on stdout gives the runs that never started one row.
+    let table = String::from_utf8_lossy(&o.stdout);
+    let skipped: Vec<&str> = table.lines().filter(|l| l.contains("skipped")).collect();
+    assert_eq!(
+        skipped,
+        [
+            "3 runs: 0 passed, 0 failed, 1 errors, 2 skipped.",
+            "| 2–3 | 2 runs | – | – | skipped | – | – | – | – | never started |"
+        ],
+        "{table}"
+    );
     // The reports are still written: the stopped run is an error, the others skipped.
     let (suite, cases) = junit(&out.join("junit.xml"));
     assert_eq!(cases.len(), 3);

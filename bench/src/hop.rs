@@ -102,7 +102,6 @@ pub fn run(
     let out = work.join(format!("hop-{}.hdr", measure.name()));
     let _ = std::fs::remove_file(&out);
     let _ = std::fs::remove_file(misses_file(&out));
-    let seg = WakeSegment::open(bus)?;
     let result = (|| {
         // Dropped at the end of this closure, whatever ends it: no receiver outlives the run
         // (and each is gone before the bus files are removed below).
@@ -137,6 +136,9 @@ pub fn run(
             let log = work.join(format!("hop-receiver-{position}.log"));
             kids.spawn_holding_term(position, &mut cmd, log, &format!("hop receiver {position}"))?;
         }
+        // Made only now that the receivers run: a bench killed from here on leaves receivers
+        // that remove the segment (they may make it themselves if they open it first).
+        let seg = WakeSegment::open(bus)?;
         let watchdog = Duration::from_secs_f64(seconds * 3.0 + 10.0);
         let started = Instant::now();
         while (seg.seq(READY) as usize) < hops {
@@ -154,7 +156,6 @@ pub fn run(
             }
             std::thread::sleep(Duration::from_millis(1));
         }
-        let seg = WakeSegment::open(bus)?;
         let node = *sender;
         let lateness = in_fresh_thread("bench-hop", move || {
             // Allocated before the memory lock populates it (as the floor does).
@@ -228,7 +229,6 @@ pub fn run(
             deadline_lateness: Vec::new(),
         })
     })();
-    drop(seg);
     drivelab_runtime::bus::cleanup(bus)?;
     result
 }

@@ -490,7 +490,21 @@ pub fn markdown(name: &str, purpose: &str, results: &[CaseResult]) -> String {
     );
     md.push_str("| # | scenario | faults | seed | result | peak \\|i\\| A | misses /M | worst republish ms | worst speed recovery ms | failed expectations |\n");
     md.push_str("|---|---|---|---|---|---|---|---|---|---|\n");
-    for r in results {
+    let mut rows = results.iter().peekable();
+    while let Some(r) = rows.next() {
+        if r.status == "skipped" && rows.peek().is_some_and(|n| n.status == "skipped") {
+            // Runs that never started follow one another to the end of an interrupted
+            // campaign: one row for all of them (campaign.json and junit.xml list each).
+            let (mut last, mut count) = (r, 1);
+            while let Some(n) = rows.next_if(|n| n.status == "skipped") {
+                (last, count) = (n, count + 1);
+            }
+            md.push_str(&format!(
+                "| {}–{} | {count} runs | – | – | skipped | – | – | – | – | never started |\n",
+                r.case.number, last.case.number
+            ));
+            continue;
+        }
         let failed: Vec<String> = r
             .expectations
             .iter()
