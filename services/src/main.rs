@@ -806,7 +806,9 @@ fn record(
     unreachable!("endpoint_arg refuses --connect without zenoh")
 }
 
-/// The internal `drivelab bridge` command's options, as the launcher passes them.
+/// The internal `drivelab bridge` command's options, as the launcher passes them (read only
+/// by a build with Zenoh).
+#[cfg_attr(not(feature = "zenoh"), allow(dead_code))]
 struct BridgeArgs {
     bus: String,
     listen: String,
