@@ -950,3 +950,51 @@ fn plot_compare_and_export_refuse_a_summary_json_or_scenario_that_is_not_one() {
         assert!(r.status.success(), "{args:?}: {}", stderr(&r));
     }
 }
+
+#[test]
+fn a_link_planted_where_a_command_writes_is_refused_and_its_target_kept() {
+    // Whoever can write into a run folder could put a link there named like a file that a
+    // command writes into it; the command must refuse it rather than write where it points.
+    let _s = serial();
+    let d = scratch("planted-link");
+    let (run, _) = run_ok(
+        "planted-link-run",
+        &["--clock", "lockstep", "--duration", "0.05"],
+    );
+    let victim = d.join("victim");
+    let r = run.to_str().unwrap();
+    for (file, args) in [
+        ("speed.png", vec!["plot", r]),
+        ("latency.svg", vec!["plot", r]),
+        ("trace.mcap.part", vec!["export", r, "--mcap"]),
+    ] {
+        std::fs::write(&victim, "keep me").unwrap();
+        let link = run.join(file);
+        let _ = std::fs::remove_file(&link);
+        std::os::unix::fs::symlink(&victim, &link).unwrap();
+        let o = drivelab(&args);
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(1), "{args:?}: {err}");
+        assert_eq!(err.lines().count(), 1, "{args:?}: not one line: {err}");
+        assert!(
+            err.contains(&format!(
+                "{} is a symbolic link: refused (drivelab never writes through one; remove it)",
+                link.display()
+            )),
+            "{args:?}: {err}"
+        );
+        assert_eq!(
+            std::fs::read_to_string(&victim).unwrap(),
+            "keep me",
+            "{args:?}"
+        );
+        assert!(link.symlink_metadata().unwrap().file_type().is_symlink());
+        std::fs::remove_file(&link).unwrap();
+    }
+    // Without the links both commands write their files.
+    for args in [vec!["plot", r], vec!["export", r, "--mcap"]] {
+        let o = drivelab(&args);
+        assert!(o.status.success(), "{args:?}: {}", stderr(&o));
+    }
+    assert!(run.join("speed.png").is_file() && run.join("trace.mcap").is_file());
+}

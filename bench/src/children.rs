@@ -61,7 +61,7 @@ impl<T> Kids<T> {
         name: &str,
         hold_term: bool,
     ) -> Result<()> {
-        let f = std::fs::File::create(&log)
+        let f = drivelab_runtime::files::create(&log)
             .with_context(|| format!("cannot create {}", log.display()))?;
         let parent = std::process::id();
         // SAFETY: the closure runs in the child between fork and exec; it calls only

@@ -107,6 +107,12 @@ pub fn run(
         // (and each is gone before the bus files are removed below).
         let mut kids = Kids::default();
         let hops = receivers.len();
+        // A segment of this name can only be a dead bench's (the name carries the bench's
+        // pid, which the kernel reuses): its READY count would start this run before its
+        // receivers are there.
+        if WakeSegment::remove(bus)? {
+            eprintln!("hop: removed a stale wake segment of bus {bus} (a bench that died)");
+        }
         for (i, node) in receivers.iter().enumerate() {
             let position = i + 1;
             // Through DRIVELAB_RUNNER when set (an aarch64 build under qemu-user).
@@ -371,7 +377,7 @@ pub fn receive(
         mon.cycle.write_v2(out)?;
         if measure == Measure::Cycle {
             let path = misses_file(out);
-            std::fs::write(
+            drivelab_runtime::files::write(
                 &path,
                 format!(
                     "{} {} {counted}\n",
@@ -387,6 +393,39 @@ pub fn receive(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_dead_benchs_wake_segment_does_not_start_the_sender_before_its_receivers() {
+        // What a bench and its receivers, all SIGKILLed, would leave on a bus name that a
+        // later bench gets again (the name carries the pid): two receivers counted ready.
+        let bus = format!("hopstale{}", std::process::id());
+        let stale = WakeSegment::open(&bus).unwrap();
+        stale.notify(READY);
+        stale.notify(READY);
+        drop(stale);
+        let work = std::env::temp_dir().join(format!("drivelab-hop-stale-{}", std::process::id()));
+        // Receivers that never get ready: the sender must wait for them, not for the count
+        // the dead bench left (it would send its samples and report how they exited).
+        let e = run(
+            Path::new("/bin/false"),
+            1000.0,
+            0.1,
+            &NodeSpec::default(),
+            &[NodeSpec::default(), NodeSpec::default()],
+            Measure::Wakeup,
+            &bus,
+            &work,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.starts_with("hop receiver "), "{e}");
+        assert!(e.contains(" exited before it was ready"), "{e}");
+        assert!(
+            !WakeSegment::remove(&bus).unwrap(),
+            "the run left its segment"
+        );
+        std::fs::remove_dir_all(&work).unwrap();
+    }
 
     #[test]
     fn the_bare_chain_counts_skipped_and_late_samples_as_misses_in_order() {

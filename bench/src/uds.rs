@@ -499,7 +499,7 @@ fn write_plant_file(out: &Path, p: &PlantOutcome) -> Result<()> {
         lateness_hdr,
         rt: p.rt.clone(),
     };
-    std::fs::write(out, serde_json::to_vec_pretty(&f)?)
+    drivelab_runtime::files::write(out, serde_json::to_vec_pretty(&f)?)
         .with_context(|| format!("write {}", out.display()))
 }
 
@@ -614,7 +614,7 @@ pub fn run_uds_chain(spec: &ChainSpec, exe: &Path, workdir: &Path) -> Result<Var
     std::fs::create_dir_all(workdir)
         .with_context(|| format!("cannot create {}", workdir.display()))?;
     let scenario = workdir.join("uds-scenario.toml");
-    std::fs::write(&scenario, toml::to_string(&spec.scenario)?)
+    drivelab_runtime::files::write(&scenario, toml::to_string(&spec.scenario)?)
         .with_context(|| format!("write {}", scenario.display()))?;
     let out = workdir.join("uds-plant.json");
     for p in [

@@ -340,7 +340,7 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
     let dir = out.parent().unwrap_or(Path::new("."));
     std::fs::create_dir_all(dir)?;
     let file = dir.join(format!("{}.scenario.in.toml", name.to_string_lossy()));
-    std::fs::write(&file, toml::to_string(sc)?)?;
+    drivelab_runtime::files::write(&file, toml::to_string(sc)?)?;
     let o = RunOptions {
         scenario: file.display().to_string(),
         clock: Clock::Realtime,
@@ -1554,7 +1554,7 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
             let m = total
                 .ok_or_else(|| anyhow!("{} {}: no measurement", job.variant, job.placement))?;
             let h = out.join(format!("{}.hgrm", job.tag(hz)));
-            std::fs::write(&h, m.cycle.hgrm())?;
+            drivelab_runtime::files::write(&h, m.cycle.hgrm())?;
             let mut r = row(job, hz, &m, &h);
             r.rounds = by_round;
             // What was held, not what was wanted (a refused request leaves it off).
@@ -1668,7 +1668,7 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
         "rows": rows,
         "speed": speed,
     });
-    std::fs::write(out.join("bench.json"), serde_json::to_vec_pretty(&report)?)?;
+    drivelab_runtime::files::write(out.join("bench.json"), serde_json::to_vec_pretty(&report)?)?;
     let mut md = markdown(
         &rows,
         &checks,
@@ -1678,7 +1678,7 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
         (seconds, rounds, a.spin_us),
     );
     md.push_str(&cache_paragraph(&cache_before, &cache_after));
-    std::fs::write(out.join("bench.md"), &md)?;
+    drivelab_runtime::files::write(out.join("bench.md"), &md)?;
     // A build without figures (the cross build) writes the tables and .hgrm files only.
     for (hz, curves) in curves_by_rate
         .iter()

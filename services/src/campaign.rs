@@ -737,8 +737,8 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
     }
     bar.finish_and_clear();
     let md = markdown(&c.name, &c.purpose, &results);
-    std::fs::write(out.join("campaign.md"), &md)?;
-    std::fs::write(out.join("junit.xml"), junit(&c.name, &results)?)?;
+    drivelab_runtime::files::write(out.join("campaign.md"), &md)?;
+    drivelab_runtime::files::write(out.join("junit.xml"), junit(&c.name, &results)?)?;
     let report = json!({
         "name": c.name,
         "purpose": c.purpose,
@@ -746,7 +746,7 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
         "clock": c.clock,
         "runs": results,
     });
-    std::fs::write(
+    drivelab_runtime::files::write(
         out.join("campaign.json"),
         serde_json::to_vec_pretty(&report)?,
     )?;

@@ -262,7 +262,7 @@ pub fn run(args: &CompareArgs) -> Result<()> {
         })).collect::<Vec<_>>(),
         "plots": files.iter().map(|f| f.file_name().unwrap_or_default().to_string_lossy().into_owned()).collect::<Vec<_>>(),
     });
-    std::fs::write(
+    drivelab_runtime::files::write(
         out.join("comparison.json"),
         serde_json::to_vec_pretty(&summary)?,
     )?;

@@ -183,7 +183,7 @@ pub fn run(a: &ObserverErrorArgs) -> Result<()> {
         "speed_rpm": rpm,
         "sweeps": sweeps,
     });
-    std::fs::write(
+    drivelab_runtime::files::write(
         a.out.join("observer_error.json"),
         serde_json::to_vec_pretty(&report)?,
     )?;

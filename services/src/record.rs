@@ -118,7 +118,7 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
         }
     };
     folder.remove_earlier_outputs()?;
-    std::fs::write(o.out.join("scenario.toml"), &toml_text)?;
+    drivelab_runtime::files::write(o.out.join("scenario.toml"), &toml_text)?;
     // Subscribe, then fetch the history: nothing falls in between.
     let truth = remote.feed::<PlantTruth>()?;
     let cmd = remote.feed::<VoltageCommand>()?;
@@ -256,7 +256,7 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
         "live_samples": hop_ns.len(),
         "published_to_recorded_us": percentiles_us(&mut hop_ns),
     });
-    std::fs::write(o.out.join("summary.json"), serde_json::to_vec_pretty(&s)?)?;
+    drivelab_runtime::files::write(o.out.join("summary.json"), serde_json::to_vec_pretty(&s)?)?;
     if let Some(m) = sinks.take_mcap() {
         m.finish(&toml_text, &s, sc.rates.sample_hz)?;
     }

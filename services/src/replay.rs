@@ -151,8 +151,10 @@ fn replay_within(
             r.t
         );
     }
-    let mut w = csv::Writer::from_path(output)
-        .with_context(|| format!("cannot write {}", output.display()))?;
+    let mut w = csv::Writer::from_writer(
+        drivelab_runtime::files::create(output)
+            .with_context(|| format!("cannot write {}", output.display()))?,
+    );
     for r in states {
         w.serialize(r)?;
     }

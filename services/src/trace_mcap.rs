@@ -140,7 +140,7 @@ fn cannot_write(path: &Path, e: mcap::McapError) -> anyhow::Error {
 impl McapTrace {
     /// Creates (truncates) the file with its three channels.
     pub fn create(path: &Path) -> Result<Self> {
-        let file = std::fs::File::create(path)
+        let file = drivelab_runtime::files::create(path)
             .with_context(|| format!("cannot create {}", path.display()))?;
         let mut w = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
@@ -345,7 +345,10 @@ pub fn export(dir: &Path) -> Result<std::path::PathBuf> {
         std::fs::rename(&part, &out).with_context(|| format!("cannot write {}", out.display()))
     });
     if let Err(e) = renamed {
-        let _ = std::fs::remove_file(&part);
+        // Its partial file (a link in its place was refused and is not ours to remove).
+        if part.symlink_metadata().is_ok_and(|m| m.is_file()) {
+            let _ = std::fs::remove_file(&part);
+        }
         return Err(e);
     }
     Ok(out)

@@ -332,7 +332,7 @@ fn run_bus(
     bus::cleanup(&bus_id)?;
     // iceoryx2's own tools (`iox2`) find the drive from the run folder with this file.
     std::fs::create_dir_all(out.join("config"))?;
-    std::fs::write(out.join("config/iceoryx2.toml"), bus::config_toml(&bus_id)?)?;
+    drivelab_runtime::files::write(out.join("config/iceoryx2.toml"), bus::config_toml(&bus_id)?)?;
     let n = sc.samples();
     let stop = Arc::new(AtomicBool::new(false));
     let progress = Arc::new(Progress {
@@ -1024,7 +1024,7 @@ fn ask_describe(
         .tempdir()
         .context("cannot make a scratch folder in the temp folder for --describe")?;
     let f = dir.path().join("scenario.toml");
-    std::fs::write(&f, sc_text)?;
+    drivelab_runtime::files::write(&f, sc_text)?;
     let mut cmd = drivelab_runtime::runner::command(runner, exe);
     cmd.arg("--describe").arg("--scenario").arg(&f);
     let answer = spawn::ask(cmd, DESCRIBE_TIMEOUT, DESCRIBE_MAX_BYTES)
@@ -1271,9 +1271,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     let _folder = claim_run_folder(&out)?;
     let out = out.canonicalize()?;
     let sc_path = out.join("scenario.toml");
-    std::fs::write(&sc_path, toml::to_string(&sc)?)
+    drivelab_runtime::files::write(&sc_path, toml::to_string(&sc)?)
         .with_context(|| format!("write {}", sc_path.display()))?;
-    std::fs::write(out.join("topology.json"), serde_json::to_vec_pretty(&topo)?)?;
+    drivelab_runtime::files::write(out.join("topology.json"), serde_json::to_vec_pretty(&topo)?)?;
     let sinks = sinks::Sinks::new(
         Some(crate::trace_mcap::McapTrace::create(
             &out.join("trace.mcap"),
@@ -1505,7 +1505,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     }
     let outcomes: Vec<_> = expectations.iter().map(|e| e.evaluate(&summary)).collect();
     summary["expectations"] = serde_json::to_value(&outcomes)?;
-    std::fs::write(
+    drivelab_runtime::files::write(
         out.join("summary.json"),
         serde_json::to_vec_pretty(&summary)?,
     )?;
@@ -1599,7 +1599,7 @@ fn collect_histograms(
             .to_string_lossy()
             .into_owned();
         let h = drivelab_runtime::timing::LatencyHist::read_v2("hist", &f)?;
-        std::fs::write(f.with_extension("hgrm"), h.hgrm())?;
+        drivelab_runtime::files::write(f.with_extension("hgrm"), h.hgrm())?;
         lat.insert(key.clone(), h.percentiles());
         if key == "cycle" || key.ends_with(".wake") || key.ends_with(".lateness") {
             curves.push((key, h.curve()));

@@ -548,7 +548,7 @@ pub(super) fn supervise(
                 if let Ok(mut r) = progress.rejoins.lock() {
                     r.push(given);
                 }
-                std::fs::write(&rejoin_file, &text)?;
+                drivelab_runtime::files::write(&rejoin_file, &text)?;
             }
             c.proc = c.proc.respawn(sp, &rejoin_file)?;
             let kind = EventKind::Restarted {

@@ -44,6 +44,7 @@ mod alloc_count;
 pub mod bus;
 pub mod config;
 pub mod drive;
+pub mod files;
 pub mod futex;
 pub mod host;
 pub mod inject;

@@ -1330,7 +1330,7 @@ fn write_stats<T: Transport>(
             startup_ms,
         };
         let p = dir.join(format!("{name}.stats.json"));
-        std::fs::write(&p, serde_json::to_vec_pretty(&stats)?)
+        crate::files::write(&p, serde_json::to_vec_pretty(&stats)?)
             .with_context(|| format!("write {}", p.display()))?;
     }
     Ok(())

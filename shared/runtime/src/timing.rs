@@ -156,7 +156,7 @@ impl LatencyHist {
         V2Serializer::new()
             .serialize(&self.h, &mut buf)
             .map_err(|e| anyhow::anyhow!("serialise {}: {e:?}", self.name))?;
-        std::fs::write(path, buf).map_err(|e| anyhow::anyhow!("write {}: {e}", path.display()))
+        crate::files::write(path, buf).map_err(|e| anyhow::anyhow!("write {}: {e}", path.display()))
     }
 
     /// Reads a histogram written by [`LatencyHist::write_v2`].

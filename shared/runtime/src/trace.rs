@@ -70,8 +70,10 @@ pub struct CsvTrace {
 impl CsvTrace {
     /// Creates (truncates) the file.
     pub fn create(path: &std::path::Path) -> anyhow::Result<Self> {
-        let w = csv::Writer::from_path(path)
-            .map_err(|e| anyhow::anyhow!("cannot create {}: {e}", path.display()))?;
+        let w = csv::Writer::from_writer(
+            crate::files::create(path)
+                .map_err(|e| anyhow::anyhow!("cannot create {}: {e}", path.display()))?,
+        );
         Ok(Self {
             w,
             path: path.to_path_buf(),

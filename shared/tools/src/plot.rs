@@ -916,28 +916,67 @@ fn render(fig: &Figure, stem: &Path) -> Result<Vec<PathBuf>> {
     }
     let png = with_suffix(stem, "png");
     let svg = with_suffix(stem, "svg");
-    let result = render_on(BitMapBackend::new(&png, FIGURE_SIZE), fig)
-        .with_context(|| format!("writing {}", png.display()))
-        .and_then(|()| {
-            render_on(SVGBackend::new(&svg, FIGURE_SIZE), fig)
-                .with_context(|| format!("writing {}", svg.display()))
-        });
-    match result {
-        Ok(()) => Ok(vec![png, svg]),
-        Err(e) => {
-            // The backends save on drop even after a failed draw; don't leave half figures.
-            let _ = std::fs::remove_file(&png);
-            let _ = std::fs::remove_file(&svg);
-            Err(e)
-        }
-    }
+    let (rgb, svg_text) = in_memory(
+        FIGURE_SIZE,
+        |root| draw_figure(root, fig),
+        |root| draw_figure(root, fig),
+    )
+    .with_context(|| format!("drawing {}", png.display()))?;
+    save(&png, &rgb, FIGURE_SIZE, &svg, &svg_text)?;
+    Ok(vec![png, svg])
 }
 
-/// Draws `fig` on a fresh backend and saves it.
-fn render_on<DB: DrawingBackend>(backend: DB, fig: &Figure) -> Result<()> {
-    let root = backend.into_drawing_area();
-    draw_figure(&root, fig)?;
-    root.present().plot_err("saving the figure")
+/// A figure of `size` pixels drawn twice in memory, by `bitmap` as RGB bytes and by `vector`
+/// as SVG text: the backends' own saving would follow a symbolic link planted in place of
+/// the file, so [`save`] writes them instead.
+pub(crate) fn in_memory(
+    size: (u32, u32),
+    bitmap: impl FnOnce(&DrawingArea<BitMapBackend, Shift>) -> Result<()>,
+    vector: impl FnOnce(&DrawingArea<SVGBackend, Shift>) -> Result<()>,
+) -> Result<(Vec<u8>, String)> {
+    let mut rgb = vec![0u8; size.0 as usize * size.1 as usize * 3];
+    let mut svg = String::new();
+    {
+        let root = BitMapBackend::with_buffer(&mut rgb, size).into_drawing_area();
+        bitmap(&root)?;
+        root.present().plot_err("finishing the bitmap")?;
+    }
+    {
+        let root = SVGBackend::with_string(&mut svg, size).into_drawing_area();
+        vector(&root)?;
+        root.present().plot_err("finishing the SVG")?;
+    }
+    Ok((rgb, svg))
+}
+
+/// Writes `rgb` (`size` pixels) as PNG file `png` and `svg_text` as file `svg`, each through
+/// [`drivelab_runtime::files::write`] (a symbolic link in place of either is refused). On
+/// failure neither is left half written.
+pub(crate) fn save(
+    png: &Path,
+    rgb: &[u8],
+    size: (u32, u32),
+    svg: &Path,
+    svg_text: &str,
+) -> Result<()> {
+    use image::ImageEncoder;
+    let mut png_bytes = Vec::new();
+    image::codecs::png::PngEncoder::new(&mut png_bytes)
+        .write_image(rgb, size.0, size.1, image::ColorType::Rgb8)
+        .with_context(|| format!("encoding {}", png.display()))?;
+    for (path, bytes) in [(png, png_bytes.as_slice()), (svg, svg_text.as_bytes())] {
+        if let Err(e) = drivelab_runtime::files::write(path, bytes) {
+            // The files this call began go (a refused link is not one of them: it stays).
+            let began: &[&Path] = if path == png { &[png] } else { &[png, svg] };
+            for p in began {
+                if p.symlink_metadata().is_ok_and(|m| m.is_file()) {
+                    let _ = std::fs::remove_file(p);
+                }
+            }
+            return Err(anyhow!("writing {}: {e}", path.display()));
+        }
+    }
+    Ok(())
 }
 
 fn draw_figure<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, fig: &Figure) -> Result<()> {

@@ -177,20 +177,13 @@ pub fn plot_polar_panels(
     );
     let png = out_dir.join("polar_panels.png");
     let svg = out_dir.join("polar_panels.svg");
-    draw(
-        &BitMapBackend::new(&png, SIZE).into_drawing_area(),
-        title,
-        &panels,
-        x_range,
+    let (rgb, svg_text) = crate::plot::in_memory(
+        SIZE,
+        |root| draw(root, title, &panels, x_range),
+        |root| draw(root, title, &panels, x_range),
     )
-    .with_context(|| format!("writing {}", png.display()))?;
-    draw(
-        &SVGBackend::new(&svg, SIZE).into_drawing_area(),
-        title,
-        &panels,
-        x_range,
-    )
-    .with_context(|| format!("writing {}", svg.display()))?;
+    .with_context(|| format!("drawing {}", png.display()))?;
+    crate::plot::save(&png, &rgb, SIZE, &svg, &svg_text)?;
     Ok(vec![png, svg])
 }
 
