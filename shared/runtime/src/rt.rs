@@ -506,6 +506,63 @@ fn locked_memory_kib() -> Option<u64> {
         .and_then(|v| v.parse().ok())
 }
 
+/// How much memory a stage host of the default drive may hold locked once its bus is open
+/// (its code, heap and histograms, its own and its peers' bus segments: 18–28 MiB
+/// measured), which `--check-rt` makes sure this process could lock.
+pub const HOST_LOCKED_BYTES: usize = 32 << 20;
+
+/// `mlock2`'s flag that locks pages as they are first touched instead of populating them
+/// (Linux ≥ 4.4, the same value on every architecture; the libc crate does not export it).
+const MLOCK_ONFAULT: libc::c_uint = 1;
+
+/// Whether this process, with nothing locked yet, may lock `total` bytes: it maps that
+/// much (anonymous, never touched), locks it on fault (`mlock2(MLOCK_ONFAULT)`, so nothing
+/// is populated) and unmaps it again. The kernel checks `RLIMIT_MEMLOCK` against the whole
+/// length when the lock is asked for, so a limit that a host would run into once it maps
+/// its bus is refused here, while nothing has started, and whatever this executable's own
+/// size.
+pub fn check_lock_headroom(total: usize) -> anyhow::Result<()> {
+    // SAFETY: a fresh anonymous private mapping that nothing else refers to; the result is
+    // checked, and the memory is never accessed.
+    let p = unsafe {
+        libc::mmap(
+            std::ptr::null_mut(),
+            total,
+            libc::PROT_READ | libc::PROT_WRITE,
+            libc::MAP_PRIVATE | libc::MAP_ANONYMOUS | libc::MAP_NORESERVE,
+            -1,
+            0,
+        )
+    };
+    if p == libc::MAP_FAILED {
+        let e = io::Error::last_os_error();
+        bail!(
+            "memory lock: cannot map {} MiB to try locking it: {}",
+            total >> 20,
+            os_error_text(&e)
+        );
+    }
+    // SAFETY: `p` is the mapping of `total` bytes made above; mlock2 only changes its
+    // locking, and with MLOCK_ONFAULT touches none of it.
+    let rc = unsafe { libc::mlock2(p, total, MLOCK_ONFAULT) };
+    let e = io::Error::last_os_error();
+    // SAFETY: `p` is the mapping of `total` bytes made above, referred to nowhere else;
+    // unmapping it also drops its lock.
+    unsafe { libc::munmap(p, total) };
+    if rc != 0 {
+        bail!(
+            "memory lock: a stage host holds up to about {} MiB locked once its bus is open, \
+             and this process could not lock that much: {} (needs root or CAP_IPC_LOCK, or \
+             RLIMIT_MEMLOCK of at least {} MiB; RLIMIT_MEMLOCK is {})",
+            total >> 20,
+            os_error_text(&e),
+            total >> 20,
+            fmt_rlimit_bytes(get_rlimit(libc::RLIMIT_MEMLOCK).0)
+        );
+    }
+    Ok(())
+}
+
 /// The PM QoS CPU latency device.
 pub const CPU_DMA_LATENCY: &str = "/dev/cpu_dma_latency";
 

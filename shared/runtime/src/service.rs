@@ -380,13 +380,24 @@ pub fn host_main(user: &[(&'static str, StageFactory)]) -> std::process::ExitCod
 /// `--check-rt`: the placement a real-time host asks for, strictly; the process exits
 /// straight after, and the kernel drops all of it.
 fn check_rt(args: &HostArgs) -> std::process::ExitCode {
-    let req = RtRequest {
+    let placement = RtRequest {
         core: args.cpu,
+        fifo_priority: args.priority,
+        lock_memory: false,
+        prefault_stack_bytes: 0,
+    };
+    let lock = RtRequest {
+        core: None,
         fifo_priority: args.priority,
         lock_memory: true,
         prefault_stack_bytes: 0,
     };
-    match setup_rt(&req, RtPolicy::Strict) {
+    // The core and the priority, then whether the memory lock's limit leaves room for what
+    // a host locks once its bus is open (far more than this process), then the lock itself.
+    let checked = setup_rt(&placement, RtPolicy::Strict)
+        .and_then(|_| crate::rt::check_lock_headroom(crate::rt::HOST_LOCKED_BYTES))
+        .and_then(|_| setup_rt(&lock, RtPolicy::Strict));
+    match checked {
         Ok(_) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             crate::errln!("{}", crate::text::error_text(&e));
