@@ -911,8 +911,9 @@ fn an_unprivileged_user_runs_the_drive_with_warnings_and_rt_strict_refuses_it() 
         std::path::Path::new(setpriv).exists(),
         "{setpriv} (util-linux) is needed to drop root"
     );
-    // Nobody (uid 65534): no CAP_SYS_NICE, RLIMIT_RTPRIO 0, an 8 MiB RLIMIT_MEMLOCK, no
-    // access to /dev/cpu_dma_latency. Its run folder must be writable by it.
+    // Nobody (uid 65534): no CAP_SYS_NICE unless `caps` grant it, RLIMIT_RTPRIO 0, an 8 MiB
+    // RLIMIT_MEMLOCK (set here, whatever root's is), no access to /dev/cpu_dma_latency. Its
+    // run folder must be writable by it.
     let dir = scratch("nopriv");
     let open = dir.join("open");
     std::fs::create_dir_all(&open).unwrap();
@@ -929,9 +930,12 @@ fn an_unprivileged_user_runs_the_drive_with_warnings_and_rt_strict_refuses_it() 
         use std::os::unix::fs::PermissionsExt;
         std::fs::set_permissions(parent, std::fs::Permissions::from_mode(0o1777)).unwrap();
     }
-    let as_nobody = |out: &std::path::Path, extra: &[&str]| {
-        let child = Command::new(setpriv)
+    let as_nobody = |out: &std::path::Path, caps: &[&str], extra: &[&str]| {
+        let child = Command::new("/usr/bin/prlimit")
+            .arg("--memlock=8388608:8388608")
+            .arg(setpriv)
             .args(["--reuid", "65534", "--regid", "65534", "--clear-groups"])
+            .args(caps)
             .arg(DRIVELAB)
             .args(["run", "--bus", &bus, "--no-plots", "--duration", "0.2"])
             .arg("--out")
@@ -944,7 +948,7 @@ fn an_unprivileged_user_runs_the_drive_with_warnings_and_rt_strict_refuses_it() 
         wait(child, Duration::from_secs(120), "drivelab run as nobody")
     };
     let out = open.join("run");
-    let o = as_nobody(&out, &[]);
+    let o = as_nobody(&out, &[], &[]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(0), "{err}");
     assert!(
@@ -968,7 +972,7 @@ fn an_unprivileged_user_runs_the_drive_with_warnings_and_rt_strict_refuses_it() 
     assert_clean(&bus);
     // --rt-strict: the first refusal is the error, before anything starts.
     let strict = open.join("strict");
-    let o = as_nobody(&strict, &["--rt-strict"]);
+    let o = as_nobody(&strict, &[], &["--rt-strict"]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert_eq!(
@@ -988,7 +992,7 @@ fn an_unprivileged_user_runs_the_drive_with_warnings_and_rt_strict_refuses_it() 
     )
     .unwrap();
     let scenario = no_request.to_str().unwrap();
-    let o = as_nobody(&strict, &["--rt-strict", "--scenario", scenario]);
+    let o = as_nobody(&strict, &[], &["--rt-strict", "--scenario", scenario]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
     // The check asks for the priority before it tries the memory lock.
@@ -1004,23 +1008,10 @@ fn an_unprivileged_user_runs_the_drive_with_warnings_and_rt_strict_refuses_it() 
     // build's check process fits in and a stage host with its bus open does not. The check
     // must refuse that limit, in one line and before the run folder exists, rather than let
     // every host fail to lock its memory after the drive started.
-    let child = Command::new("/usr/bin/prlimit")
-        .arg("--memlock=8388608:8388608")
-        .arg(setpriv)
-        .args(["--reuid", "65534", "--regid", "65534", "--clear-groups"])
-        .args(["--inh-caps", "+sys_nice", "--ambient-caps", "+sys_nice"])
-        .arg(DRIVELAB)
-        .args(["run", "--bus", &bus, "--no-plots", "--duration", "0.2"])
-        .args(["--rt-strict", "--scenario", scenario, "--out"])
-        .arg(&strict)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let o = wait(
-        child,
-        Duration::from_secs(120),
-        "drivelab run with CAP_SYS_NICE",
+    let o = as_nobody(
+        &strict,
+        &["--inh-caps", "+sys_nice", "--ambient-caps", "+sys_nice"],
+        &["--rt-strict", "--scenario", scenario],
     );
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");

@@ -386,11 +386,11 @@ fn check_rt(args: &HostArgs) -> std::process::ExitCode {
         lock_memory: false,
         prefault_stack_bytes: 0,
     };
+    // The priority again: a request without one would move the thread back to SCHED_OTHER.
     let lock = RtRequest {
         core: None,
-        fifo_priority: args.priority,
         lock_memory: true,
-        prefault_stack_bytes: 0,
+        ..placement
     };
     // The core and the priority, then whether the memory lock's limit leaves room for what
     // a host locks once its bus is open (far more than this process), then the lock itself.
