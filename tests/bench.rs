@@ -129,7 +129,10 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
             .find(|x| x["variant"] == v && x["cpu_latency_request"] == r)
             .unwrap()
     };
-    // Both transports' chains say what they cost the machine: CPU time and waits.
+    // Both transports' chains say what they cost the machine: CPU time, waits and system
+    // calls. A socket chain makes one call per message sent or received; the futex chain
+    // one per sleep and one per wake of a sleeping receiver, so fewer.
+    let calls = |row: &serde_json::Value| row["syscalls_per_sample"].as_f64();
     for v in ["uds", "iceoryx2"] {
         let c = chain_of(v);
         assert!(c["cpu_s_per_s"].as_f64().is_some_and(|c| c > 0.0), "{c}");
@@ -137,7 +140,24 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
             c["waits_per_sample"].as_f64().is_some_and(|w| w > 0.0),
             "{c}"
         );
+        assert!(calls(c).is_some_and(|n| n > 1.0), "{c}");
     }
+    assert!(
+        calls(chain_of("uds")) > calls(chain_of("iceoryx2")),
+        "syscalls per sample: uds {:?}, iceoryx2 {:?}",
+        calls(chain_of("uds")),
+        calls(chain_of("iceoryx2"))
+    );
+    // The floor sleeps at most once per deadline (a passed one costs no call).
+    let floor_calls = calls(
+        rows.iter()
+            .find(|x| x["variant"] == "floor" && x["cpu_latency_request"] == r)
+            .unwrap(),
+    );
+    assert!(
+        floor_calls.is_some_and(|n| n > 0.0 && n <= 1.0),
+        "{floor_calls:?}"
+    );
     let (spin, plain) = (chain_of("iceoryx2+spin"), chain_of("iceoryx2"));
     let spins = report["spin"].as_array().unwrap();
     assert_eq!(spins.len(), 1, "{spins:?}");

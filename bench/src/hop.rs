@@ -233,6 +233,7 @@ pub fn run(
             misses,
             cpu_run_ns: None,
             deadline_lateness: Vec::new(),
+            syscalls: None,
         })
     })();
     drivelab_runtime::bus::cleanup(bus)?;

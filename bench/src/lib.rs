@@ -96,6 +96,10 @@ pub struct VariantResult {
     /// variants, and for a round longer than [`MAX_DEADLINES_KEPT`]), for
     /// [`catch_up::misses`].
     pub deadline_lateness: Vec<catch_up::DeadlineLateness>,
+    /// The system calls the variant's loops made at drivelab's own call sites
+    /// (`drivelab_runtime::rt::syscalls`: sleeps, futex waits and wakes, socket sends and
+    /// receives), all its processes together; None where they are not counted.
+    pub syscalls: Option<u64>,
 }
 
 impl VariantResult {
@@ -113,6 +117,10 @@ impl VariantResult {
         };
         self.deadline_lateness
             .extend(other.deadline_lateness.iter().cloned());
+        self.syscalls = match (self.syscalls, other.syscalls) {
+            (Some(a), Some(b)) => Some(a + b),
+            _ => None,
+        };
         Ok(())
     }
 }
@@ -229,6 +237,7 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
         let t0 = now_ns() + 2_000_000;
         sleep_until_ns(t0 - ts_ns);
         let cpu0 = thread_cpu_ns();
+        let calls0 = drivelab_runtime::rt::syscalls();
         // ---- real-time loop: no allocation, no locks, no logging ----
         let mut k = 0;
         while k < n && !stopping() {
@@ -261,6 +270,7 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
             } else {
                 Vec::new()
             },
+            syscalls: Some(drivelab_runtime::rt::syscalls() - calls0),
         })
     })
 }
@@ -313,6 +323,7 @@ pub fn run_inprocess(spec: &ChainSpec) -> Result<VariantResult> {
         let mut mon = CycleMonitor::new(ts_ns);
         let mut late = LatencyHist::new("lateness");
         let t0 = now_ns() + 2_000_000;
+        let calls0 = drivelab_runtime::rt::syscalls();
         // ---- real-time loop: no allocation, no locks, no logging ----
         let mut k = 0;
         while k < n && !stopping() {
@@ -334,6 +345,7 @@ pub fn run_inprocess(spec: &ChainSpec) -> Result<VariantResult> {
             misses: mon.misses,
             cpu_run_ns: None,
             deadline_lateness: Vec::new(),
+            syscalls: Some(drivelab_runtime::rt::syscalls() - calls0),
         })
     })
 }

@@ -71,6 +71,14 @@ pub(crate) enum Role {
     SpeedLoop,
 }
 
+/// Every role, in start order (downstream first; the plant waits for its peers' sockets).
+const ROLES: [Role; 4] = [
+    Role::Observer,
+    Role::CurrentLoop,
+    Role::SpeedLoop,
+    Role::Plant,
+];
+
 impl Role {
     /// Command-line name.
     pub(crate) fn name(self) -> &'static str {
@@ -261,6 +269,8 @@ pub(crate) fn run_role(ctx: &RoleCtx) -> Result<Option<PlantOutcome>> {
             misses: cycle.misses,
             cpu_run_ns: None,
             deadline_lateness: Vec::new(),
+            // This role's own calls; the chain runner adds the other roles'.
+            syscalls: Some(drivelab_runtime::rt::syscalls()),
         },
         counters: c,
         trace,
@@ -458,8 +468,8 @@ pub struct UdsNodeArgs {
     pub core: Option<usize>,
     /// SCHED_FIFO priority.
     pub priority: Option<u8>,
-    /// Plant: result file (JSON; histograms beside it as `<out>.cycle.hdr`,
-    /// `<out>.lateness.hdr`).
+    /// Result file (JSON). The plant's: its measurements, with its histograms beside it as
+    /// `<out>.cycle.hdr`, `<out>.lateness.hdr`; another role's: its system-call count.
     pub out: Option<PathBuf>,
 }
 
@@ -475,6 +485,16 @@ struct PlantFile {
     cycle_hdr: PathBuf,
     lateness_hdr: PathBuf,
     rt: String,
+    /// The plant's system calls at drivelab's call sites (`rt::syscalls`).
+    syscalls: u64,
+}
+
+/// The result file of a role other than the plant.
+#[derive(Debug, Serialize, Deserialize)]
+struct NodeFile {
+    role: String,
+    /// Its system calls at drivelab's call sites (`rt::syscalls`).
+    syscalls: u64,
 }
 
 fn sibling(out: &Path, suffix: &str) -> PathBuf {
@@ -498,6 +518,7 @@ fn write_plant_file(out: &Path, p: &PlantOutcome) -> Result<()> {
         cycle_hdr,
         lateness_hdr,
         rt: p.rt.clone(),
+        syscalls: p.result.syscalls.unwrap_or(0),
     };
     drivelab_runtime::files::write(out, serde_json::to_vec_pretty(&f)?)
         .with_context(|| format!("write {}", out.display()))
@@ -522,7 +543,15 @@ fn read_plant_file(out: &Path) -> Result<VariantResult> {
         misses,
         cpu_run_ns: None,
         deadline_lateness: Vec::new(),
+        syscalls: Some(f.syscalls),
     })
+}
+
+/// The system calls a role other than the plant counted, from its result file; None when it
+/// wrote none (killed as a straggler).
+fn read_node_syscalls(out: &Path) -> Option<u64> {
+    let f: NodeFile = serde_json::from_slice(&std::fs::read(out).ok()?).ok()?;
+    Some(f.syscalls)
 }
 
 /// Entry point for `drivelab bench-node uds ...`: runs one role of the Unix-socket chain in
@@ -553,8 +582,17 @@ pub fn run_uds_node(args: &UdsNodeArgs) -> Result<()> {
         keep_trace: false,
     };
     let out = run_role(&ctx).with_context(|| format!("bench-node uds {}", role.name()))?;
-    if let (Some(p), Some(path)) = (out, &args.out) {
-        write_plant_file(path, &p)?;
+    match (out, &args.out) {
+        (Some(p), Some(path)) => write_plant_file(path, &p)?,
+        (None, Some(path)) => {
+            let f = NodeFile {
+                role: role.name().into(),
+                syscalls: drivelab_runtime::rt::syscalls(),
+            };
+            drivelab_runtime::files::write(path, serde_json::to_vec_pretty(&f)?)
+                .with_context(|| format!("write {}", path.display()))?;
+        }
+        (_, None) => {}
     }
     Ok(())
 }
@@ -605,9 +643,9 @@ impl Drop for SockDir {
 /// Unix-socket chain: the same four roles as four processes exchanging the same message
 /// structs over Unix domain datagram sockets in a private temp dir (removed afterwards). The
 /// processes are started as `exe bench-node uds --role <role> --dir <sockdir> --scenario
-/// <file> --seconds S [--core C] [--priority P] [--out <file>]`; the scenario file, the
-/// plant's result files and one log per node (`uds-<role>.log`, stdout and stderr) go to
-/// `workdir`. Watchdog: seconds × 3 + 20 s; a stop signal ends it with [`crate::Interrupted`];
+/// <file> --seconds S [--core C] [--priority P] --out <file>`; the scenario file, each
+/// node's result file (`uds-<role>.json`: the plant's measurements, the others' system-call
+/// counts) and one log per node (`uds-<role>.log`, stdout and stderr) go to `workdir`. Watchdog: seconds × 3 + 20 s; a stop signal ends it with [`crate::Interrupted`];
 /// no process is left behind on any path.
 pub fn run_uds_chain(spec: &ChainSpec, exe: &Path, workdir: &Path) -> Result<VariantResult> {
     schedule(spec.scenario.rates.sample_hz, spec.seconds)?;
@@ -616,12 +654,12 @@ pub fn run_uds_chain(spec: &ChainSpec, exe: &Path, workdir: &Path) -> Result<Var
     let scenario = workdir.join("uds-scenario.toml");
     drivelab_runtime::files::write(&scenario, toml::to_string(&spec.scenario)?)
         .with_context(|| format!("write {}", scenario.display()))?;
-    let out = workdir.join("uds-plant.json");
-    for p in [
-        out.clone(),
-        sibling(&out, ".cycle.hdr"),
-        sibling(&out, ".lateness.hdr"),
-    ] {
+    let out_of = |role: Role| workdir.join(format!("uds-{}.json", role.name()));
+    let out = out_of(Role::Plant);
+    for p in [sibling(&out, ".cycle.hdr"), sibling(&out, ".lateness.hdr")]
+        .into_iter()
+        .chain(ROLES.iter().map(|r| out_of(*r)))
+    {
         let _ = std::fs::remove_file(p);
     }
     // Declared before the processes so that it is dropped (removed) after they are reaped.
@@ -649,9 +687,7 @@ pub fn run_uds_chain(spec: &ChainSpec, exe: &Path, workdir: &Path) -> Result<Var
         if let Some(p) = node.priority {
             cmd.arg("--priority").arg(p.to_string());
         }
-        if role == Role::Plant {
-            cmd.arg("--out").arg(&out);
-        }
+        cmd.arg("--out").arg(out_of(role));
         kids.spawn(role, &mut cmd, log, &format!("the {}", role.name()))?;
     }
     let watchdog = Duration::from_secs_f64(spec.seconds * 3.0 + 20.0);
@@ -698,7 +734,15 @@ pub fn run_uds_chain(spec: &ChainSpec, exe: &Path, workdir: &Path) -> Result<Var
     kids.terminate();
     drop(kids);
     drop(sock);
-    read_plant_file(&out)
+    let mut r = read_plant_file(&out)?;
+    // Every role's calls, or none when one of them wrote no count.
+    for role in ROLES.iter().filter(|r| **r != Role::Plant) {
+        r.syscalls = r
+            .syscalls
+            .zip(read_node_syscalls(&out_of(*role)))
+            .map(|(a, b)| a + b);
+    }
+    Ok(r)
 }
 
 /// SCHED_FIFO priority of the threads of [`run_chain_threads`].

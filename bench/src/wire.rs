@@ -173,6 +173,7 @@ impl Rx {
             extra: [0; 8],
         };
         let flags = if block { 0 } else { libc::MSG_DONTWAIT };
+        drivelab_runtime::rt::count_syscall();
         // SAFETY: the buffer pointer and length describe `buf`, which is writable and lives
         // across the call; any bytes the kernel writes form a valid `T` (`T: Wire`).
         let n = unsafe {
@@ -288,6 +289,7 @@ impl Tx {
     #[inline]
     pub fn send<T: Wire>(&self, m: &T) -> Sent {
         let b = as_bytes(m);
+        drivelab_runtime::rt::count_syscall();
         // SAFETY: `b` is a valid readable slice for the call; MSG_NOSIGNAL avoids SIGPIPE.
         let n = unsafe {
             libc::send(

@@ -154,6 +154,10 @@ pub struct Row {
     /// Voluntary context switches (waits, so wake-ups) of the drive's processes per sample,
     /// set-up and shutdown included (iceoryx2 variants and the Unix-socket chain).
     pub waits_per_sample: Option<f64>,
+    /// System calls per sample that the variant's loops made at drivelab's own call sites:
+    /// sleeps, futex waits and wakes, socket sends and receives (not the calls iceoryx2
+    /// makes itself; none counted for cyclictest and the hop), set-up and shutdown included.
+    pub syscalls_per_sample: Option<f64>,
     /// The floor: its thread's time on the CPU per wake-up, µs (the kernel's timer path
     /// included): what the timer alone costs the chain's core every sample.
     pub cpu_per_wakeup_us: Option<f64>,
@@ -275,6 +279,7 @@ fn row(job: &Job, hz: f64, m: &VariantResult, hgrm: &Path) -> Row {
         budget: None,
         rounds: Vec::new(),
         waits_per_sample: None,
+        syscalls_per_sample: m.syscalls.map(|c| c as f64 / m.samples.max(1) as f64),
         cpu_per_wakeup_us: m
             .cpu_run_ns
             .map(|ns| ns as f64 * 1e-3 / m.lateness.len().max(1) as f64),
@@ -378,7 +383,7 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
                 let sw = v["process_context_switches"]["voluntary"]
                     .as_u64()
                     .unwrap_or(0);
-                cpu.insert(pr.to_string(), (c, sw));
+                cpu.insert(pr.to_string(), (c, sw, v["process_syscalls"].as_u64()));
             }
         } else if let Some(key) = name.strip_suffix(".hdr") {
             hists.insert(key.to_string(), LatencyHist::read_v2("hist", &p)?);
@@ -400,6 +405,8 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
             misses,
             cpu_run_ns: None,
             deadline_lateness: Vec::new(),
+            // Every process's, or none when one did not say.
+            syscalls: cpu.values().map(|c| c.2).sum(),
         },
         cpu_s: cpu.values().map(|c| c.0).sum(),
         switches: cpu.values().map(|c| c.1).sum(),
@@ -1755,10 +1762,10 @@ pub fn markdown(
 ) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "Cycle latency from t_k to command k available at the plant, µs ({seconds} s per variant in {rounds} interleaved round(s); floor = a bare timer loop's lateness at every deadline (deadlines that passed while it was late are handled by its next wake-up, as a chain that cost nothing would handle them), cyclictest = its wake-ups' lateness; request = CPU wake-up latency request of 0 µs held (none: before each such round the core idled in 2 ms sleeps until its idle governor stopped the polling a released request leaves behind); each chain is compared with the floor measured under the same request).\n");
-    let _ = writeln!(s, "| rate | variant | placement | request | p50 | p99 | p99.9 | max | misses/M | longest run | p50 − floor | p99 − floor | p99 / floor | p99 / uds | CPU s/s | waits/sample | budget |");
+    let _ = writeln!(s, "| rate | variant | placement | request | p50 | p99 | p99.9 | max | misses/M | longest run | p50 − floor | p99 − floor | p99 / floor | p99 / uds | CPU s/s | waits/sample | syscalls/sample | budget |");
     let _ = writeln!(
         s,
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for r in rows {
         let verdict = match r.holds_budget {
@@ -1768,7 +1775,7 @@ pub fn markdown(
         };
         let _ = writeln!(
             s,
-            "| {} kHz | {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.0} | {:.0} | {} | {} | {} | {} | {} | {} | {} | {} |",
+            "| {} kHz | {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.0} | {:.0} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
             r.rate_hz / 1000.0,
             r.variant,
             r.placement,
@@ -1785,6 +1792,7 @@ pub fn markdown(
             fmt_opt(r.p99_ratio_to_uds, 2),
             fmt_opt(r.cpu_s_per_s, 3),
             fmt_opt(r.waits_per_sample, 2),
+            fmt_opt(r.syscalls_per_sample, 2),
             verdict
         );
     }

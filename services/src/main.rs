@@ -484,7 +484,7 @@ enum BenchNodeKind {
         /// SCHED_FIFO priority.
         #[arg(long)]
         priority: Option<u8>,
-        /// Result file (plant).
+        /// Result file: the plant's measurements, another role's system-call count.
         #[arg(long)]
         out: Option<PathBuf>,
     },

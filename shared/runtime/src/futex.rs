@@ -136,6 +136,7 @@ impl WakeSegment {
         let w = self.word(i);
         w.seq.fetch_add(1, Ordering::SeqCst);
         if w.sleepers.load(Ordering::SeqCst) > 0 {
+            crate::rt::count_syscall();
             // SAFETY: FUTEX_WAKE on a valid, aligned u32 in a shared mapping.
             unsafe {
                 libc::syscall(
@@ -164,6 +165,7 @@ impl WakeSegment {
         let w = self.word(i);
         w.sleepers.fetch_add(1, Ordering::SeqCst);
         if w.seq.load(Ordering::SeqCst) == seen {
+            crate::rt::count_syscall();
             let ts = libc::timespec {
                 tv_sec: timeout.as_secs() as libc::time_t,
                 tv_nsec: timeout.subsec_nanos() as libc::c_long,
@@ -207,14 +209,56 @@ mod tests {
         let id = format!("fx{}", std::process::id());
         let seg = Arc::new(WakeSegment::open(&id).unwrap());
         let s0 = seg.seq(3);
+        let counted = crate::rt::syscalls();
         // Timeout path: nothing notifies.
         assert_eq!(seg.wait(3, s0, Duration::from_millis(5)), s0);
+        assert_eq!(
+            crate::rt::syscalls() - counted,
+            1,
+            "a wait is one FUTEX_WAIT"
+        );
+        // Nobody sleeps on the word: a notify is an atomic add, no system call.
+        seg.notify(5);
+        assert_eq!(
+            crate::rt::syscalls() - counted,
+            1,
+            "a notify nobody waits for"
+        );
+        // A wait on a value that is already stale returns without sleeping.
+        let s5 = seg.seq(5);
+        assert_eq!(seg.wait(5, s5.wrapping_sub(1), Duration::from_secs(10)), s5);
+        assert_eq!(
+            crate::rt::syscalls() - counted,
+            1,
+            "a wait on a stale value"
+        );
         let s2 = seg.clone();
-        let t = std::thread::spawn(move || s2.wait(3, s0, Duration::from_secs(10)));
-        std::thread::sleep(Duration::from_millis(20));
+        let (tid_tx, tid_rx) = std::sync::mpsc::channel();
+        let t = std::thread::spawn(move || {
+            // SAFETY: gettid(2) has no arguments and cannot fail.
+            tid_tx.send(unsafe { libc::gettid() }).unwrap();
+            let got = s2.wait(3, s0, Duration::from_secs(10));
+            (got, crate::rt::syscalls())
+        });
+        // Notify once the thread sleeps in futex(2) (the kernel's view of it), not merely
+        // once it counts as a sleeper: then both sides make their call.
+        let tid = tid_rx.recv().unwrap();
+        let in_futex = || {
+            std::fs::read_to_string(format!("/proc/self/task/{tid}/syscall"))
+                .is_ok_and(|s| s.split(' ').next() == Some(&libc::SYS_futex.to_string()))
+        };
+        while !in_futex() {
+            std::thread::sleep(Duration::from_millis(1));
+        }
         seg.notify(3);
-        let got = t.join().unwrap();
+        let (got, waits) = t.join().unwrap();
         assert_eq!(got, s0.wrapping_add(1));
+        assert_eq!(waits, 1, "the woken thread made one FUTEX_WAIT");
+        assert_eq!(
+            crate::rt::syscalls() - counted,
+            2,
+            "a notify with a sleeper"
+        );
         // A stamped notify wakes like a plain one and leaves its stamp on its own word only.
         assert_eq!(seg.stamp(4), 0);
         seg.notify_stamped(4, 123_456);

@@ -20,6 +20,7 @@
 //! from the kernel later in the sequence returns `Err` immediately; the parts applied before
 //! it stay applied (the service is expected to exit).
 
+use std::cell::Cell;
 use std::io;
 
 use anyhow::bail;
@@ -637,6 +638,27 @@ pub fn sleep_until_ns(deadline_ns: u64) {
     })
 }
 
+thread_local! {
+    /// See [`syscalls`]. Per thread, so that a count belongs to one loop (a test's threads
+    /// do not add to each other's).
+    static SYSCALLS: Cell<u64> = const { Cell::new(0) };
+}
+
+/// Counts one system call made at a call site named in [`syscalls`]: a thread-local add, no
+/// lock, no allocation, no system call.
+#[inline]
+pub fn count_syscall() {
+    SYSCALLS.with(|c| c.set(c.get() + 1));
+}
+
+/// The system calls the calling thread has made so far at drivelab's own blocking and waking
+/// call sites: `clock_nanosleep` in [`sleep_until_ns`], `FUTEX_WAIT` and `FUTEX_WAKE` on the
+/// bus's wake words, and the bench's Unix-socket sends and receives. Not counted: what
+/// iceoryx2 calls itself (its event service, set-up) and everything outside these sites.
+pub fn syscalls() -> u64 {
+    SYSCALLS.with(Cell::get)
+}
+
 /// [`sleep_until_ns`] with its clock and its `clock_nanosleep` passed in (`nanosleep` returns
 /// the error number, as `clock_nanosleep` does).
 fn sleep_until_with(
@@ -652,7 +674,12 @@ fn sleep_until_with(
         tv_nsec: (deadline_ns % 1_000_000_000) as libc::c_long,
     };
     // clock_nanosleep returns the error number directly (it does not set errno).
-    while nanosleep(&ts) == libc::EINTR {}
+    loop {
+        count_syscall();
+        if nanosleep(&ts) != libc::EINTR {
+            break;
+        }
+    }
 }
 
 /// Number of online CPUs (`sysconf(_SC_NPROCESSORS_ONLN)`, at least 1).
@@ -1062,6 +1089,7 @@ mod tests {
     /// that has passed or is now; a future one is slept to, restarted after each signal.
     #[test]
     fn only_a_future_deadline_reaches_clock_nanosleep() {
+        let counted = syscalls();
         let mut calls = Vec::new();
         for deadline in [0, 4_999_999_999, 5_000_000_000] {
             sleep_until_with(
@@ -1077,6 +1105,7 @@ mod tests {
             calls.is_empty(),
             "past deadlines reached clock_nanosleep: {calls:?}"
         );
+        assert_eq!(syscalls(), counted, "a past deadline counted a system call");
         let mut seen = Vec::new();
         let mut rc = [libc::EINTR, libc::EINTR, 0].into_iter();
         sleep_until_with(
@@ -1088,6 +1117,8 @@ mod tests {
             },
         );
         assert_eq!(seen, vec![(6, 250_000_001); 3]);
+        // Each restart after a signal is a system call of its own.
+        assert_eq!(syscalls() - counted, 3);
     }
 
     #[test]

@@ -1278,6 +1278,9 @@ pub struct StageStats<'a> {
     /// Context switches of the whole process at its end: voluntary (it waited) and
     /// involuntary (it was preempted), the scheduler's view of its wake-ups.
     pub process_context_switches: ContextSwitches,
+    /// The system calls the process's loop made at drivelab's own call sites, from its start
+    /// to its end (`rt::syscalls`: its sleeps, futex waits and wakes; not iceoryx2's own).
+    pub process_syscalls: u64,
     /// Counters.
     pub counters: Counters,
     /// The stage's own diagnostics.
@@ -1334,6 +1337,7 @@ fn write_stats<T: Transport>(
             rt,
             process_cpu_s,
             process_context_switches,
+            process_syscalls: crate::rt::syscalls(),
             counters,
             diagnostics: diags[i].1.iter().copied().collect(),
             inject: h.inject.clone(),
