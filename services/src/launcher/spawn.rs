@@ -143,12 +143,15 @@ const CHECK_RT_MAX_BYTES: u64 = 64 << 10;
 
 /// Asks `exe` for process `p`'s real-time placement as `--rt-strict` would
 /// (`drivelab-host --check-rt`), in a process of its own that exits at once: a refusal is one
-/// line before the drive starts instead of one per host after. It locks the memory of a
-/// process without a bus; a host that opened its bus locks more (18-28 MiB in the default
-/// drive), so a finite RLIMIT_MEMLOCK that lets the check pass may still refuse the host.
+/// line before the drive starts instead of one per host after. A host that opened its bus
+/// locks more than the check's process (18-28 MiB in the default drive), so the check also
+/// makes sure that RLIMIT_MEMLOCK leaves room for what a host of the process's stages
+/// locks (`rt::host_locked_bytes`).
 pub(super) fn check_rt(p: &ProcessSpec, exe: &Path) -> Result<()> {
     let mut cmd = Command::new(exe);
-    cmd.arg("--check-rt");
+    cmd.arg("--check-rt")
+        .arg("--stages")
+        .arg(p.stages.len().clamp(1, 1024).to_string());
     if let Some(c) = p.cpu {
         cmd.arg("--cpu").arg(c.to_string());
     }

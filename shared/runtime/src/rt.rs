@@ -507,10 +507,17 @@ fn locked_memory_kib() -> Option<u64> {
         .and_then(|v| v.parse().ok())
 }
 
-/// How much memory a stage host of the default drive may hold locked once its bus is open
-/// (its code, heap and histograms, its own and its peers' bus segments: 18–28 MiB
-/// measured), which `--check-rt` makes sure this process could lock.
+/// How much memory a one-stage host may hold locked once its bus is open (its code, heap
+/// and histograms, its own and its peers' bus segments: 18–28 MiB measured in the default
+/// drive), which `--check-rt` makes sure this process could lock.
 pub const HOST_LOCKED_BYTES: usize = 32 << 20;
+
+/// What a host of `stages` stages may hold locked: [`HOST_LOCKED_BYTES`] and 8 MiB for each
+/// stage after the first (the one-process topology's host, four stages, locked 35.2 MiB:
+/// 8.7 MiB more than the largest one-stage host, about 3 MiB a stage).
+pub fn host_locked_bytes(stages: usize) -> usize {
+    HOST_LOCKED_BYTES.saturating_add(stages.saturating_sub(1).saturating_mul(8 << 20))
+}
 
 /// `mlock2`'s flag that locks pages as they are first touched instead of populating them
 /// (Linux ≥ 4.4, the same value on every architecture; the libc crate does not export it).

@@ -94,6 +94,11 @@ pub struct HostArgs {
     /// With --check-rt: the SCHED_FIFO priority (1-99).
     #[arg(long, requires = "check_rt", value_name = "PRIORITY")]
     pub priority: Option<u8>,
+    /// With --check-rt: how many stages the process will host (what it locks grows with
+    /// them).
+    #[arg(long, requires = "check_rt", value_name = "N", default_value_t = 1,
+          value_parser = clap::value_parser!(u16).range(1..=1024))]
+    pub stages: u16,
 }
 
 /// A resolved topology as the launcher hands it to the hosts.
@@ -395,7 +400,9 @@ fn check_rt(args: &HostArgs) -> std::process::ExitCode {
     // The core and the priority, then whether the memory lock's limit leaves room for what
     // a host locks once its bus is open (far more than this process), then the lock itself.
     let checked = setup_rt(&placement, RtPolicy::Strict)
-        .and_then(|_| crate::rt::check_lock_headroom(crate::rt::HOST_LOCKED_BYTES))
+        .and_then(|_| {
+            crate::rt::check_lock_headroom(crate::rt::host_locked_bytes(args.stages.into()))
+        })
         .and_then(|_| setup_rt(&lock, RtPolicy::Strict));
     match checked {
         Ok(_) => std::process::ExitCode::SUCCESS,
