@@ -1046,9 +1046,29 @@ fn as_root_rt_strict_passes_its_placement_checks_and_runs_every_process_as_place
     let _serial = serial();
     // The check before the start asks each process's executable for its placement: as
     // root it is granted, and the hosts get what the topology gives them.
-    let (_, s) = run_ok("strict-root", &["--duration", "0.2", "--rt-strict"]);
+    let (out, s) = run_ok("strict-root", &["--duration", "0.2", "--rt-strict"]);
     assert_eq!(s["samples_missing"], 0, "{}", s["missing_samples"]);
     let procs = s["processes"].as_object().expect("processes");
+    // Each process says what it cost: its host's own figures. Every host slept or waited
+    // on its bus (how often depends on the machine's timing: not asserted).
+    for (name, p) in procs {
+        let stats: serde_json::Value = serde_json::from_slice(
+            &std::fs::read(out.join(format!("{}.stats.json", p["stages"][0].as_str().unwrap())))
+                .unwrap(),
+        )
+        .unwrap();
+        assert_eq!(p["cpu_s"], stats["process_cpu_s"], "{name}");
+        assert_eq!(
+            p["context_switches"], stats["process_context_switches"],
+            "{name}"
+        );
+        assert_eq!(p["syscalls"], stats["process_syscalls"], "{name}");
+        assert!(p["cpu_s"].as_f64().is_some_and(|c| c > 0.0), "{name}: {p}");
+        assert!(
+            p["syscalls"].as_u64().is_some_and(|n| n >= 200),
+            "{name}: {p}"
+        );
+    }
     let want = [
         ("plant", 70),
         ("observer", 72),

@@ -610,10 +610,18 @@ fn run_bus(
             }
             continue;
         }
-        processes.insert(
-            c.name.clone(),
-            json!({ "stages": c.stages, "executable": c.exe, "pid": c.host_pid(), "cpu": rt.get("cpu"), "policy": rt.get("policy"), "priority": rt.get("priority"), "memory_locked": rt.get("memory_locked") }),
-        );
+        let mut entry = json!({ "stages": c.stages, "executable": c.exe, "pid": c.host_pid(), "cpu": rt.get("cpu"), "policy": rt.get("policy"), "priority": rt.get("priority"), "memory_locked": rt.get("memory_locked") });
+        // What the process cost (its last incarnation's, from its first stage's statistics:
+        // every stage of a process carries the same figures).
+        if let Some(v) = c.stages.first().and_then(|st| {
+            let text = std::fs::read_to_string(out.join(format!("{st}.stats.json"))).ok()?;
+            serde_json::from_str::<serde_json::Value>(&text).ok()
+        }) {
+            entry["cpu_s"] = v["process_cpu_s"].clone();
+            entry["context_switches"] = v["process_context_switches"].clone();
+            entry["syscalls"] = v["process_syscalls"].clone();
+        }
+        processes.insert(c.name.clone(), entry);
         for st in &c.stages {
             let stats_path = out.join(format!("{st}.stats.json"));
             if let Ok(text) = std::fs::read_to_string(&stats_path) {
