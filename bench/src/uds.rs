@@ -645,8 +645,9 @@ impl Drop for SockDir {
 /// processes are started as `exe bench-node uds --role <role> --dir <sockdir> --scenario
 /// <file> --seconds S [--core C] [--priority P] --out <file>`; the scenario file, each
 /// node's result file (`uds-<role>.json`: the plant's measurements, the others' system-call
-/// counts) and one log per node (`uds-<role>.log`, stdout and stderr) go to `workdir`. Watchdog: seconds × 3 + 20 s; a stop signal ends it with [`crate::Interrupted`];
-/// no process is left behind on any path.
+/// counts) and one log per node (`uds-<role>.log`, stdout and stderr) go to `workdir`.
+/// Watchdog: seconds × 3 + 20 s; a stop signal ends it with [`crate::Interrupted`]; no
+/// process is left behind on any path.
 pub fn run_uds_chain(spec: &ChainSpec, exe: &Path, workdir: &Path) -> Result<VariantResult> {
     schedule(spec.scenario.rates.sample_hz, spec.seconds)?;
     std::fs::create_dir_all(workdir)
@@ -658,20 +659,20 @@ pub fn run_uds_chain(spec: &ChainSpec, exe: &Path, workdir: &Path) -> Result<Var
     let out = out_of(Role::Plant);
     for p in [sibling(&out, ".cycle.hdr"), sibling(&out, ".lateness.hdr")]
         .into_iter()
-        .chain(ROLES.iter().map(|r| out_of(*r)))
+        .chain(ROLES.map(out_of))
     {
         let _ = std::fs::remove_file(p);
     }
     // Declared before the processes so that it is dropped (removed) after they are reaped.
     let sock = SockDir::create("drivelab-uds")?;
     let mut kids = Kids::default();
-    // Downstream first; the plant waits for its peers' sockets anyway.
-    for (role, node) in [
-        (Role::Observer, spec.observer),
-        (Role::CurrentLoop, spec.current_loop),
-        (Role::SpeedLoop, spec.speed_loop),
-        (Role::Plant, spec.plant),
-    ] {
+    for role in ROLES {
+        let node = match role {
+            Role::Plant => spec.plant,
+            Role::Observer => spec.observer,
+            Role::CurrentLoop => spec.current_loop,
+            Role::SpeedLoop => spec.speed_loop,
+        };
         let log = workdir.join(format!("uds-{}.log", role.name()));
         // Through DRIVELAB_RUNNER when set (an aarch64 build under qemu-user).
         let mut cmd = drivelab_runtime::runner::env_command(exe).map_err(|e| anyhow!(e))?;
@@ -736,10 +737,10 @@ pub fn run_uds_chain(spec: &ChainSpec, exe: &Path, workdir: &Path) -> Result<Var
     drop(sock);
     let mut r = read_plant_file(&out)?;
     // Every role's calls, or none when one of them wrote no count.
-    for role in ROLES.iter().filter(|r| **r != Role::Plant) {
+    for role in ROLES.into_iter().filter(|r| *r != Role::Plant) {
         r.syscalls = r
             .syscalls
-            .zip(read_node_syscalls(&out_of(*role)))
+            .zip(read_node_syscalls(&out_of(role)))
             .map(|(a, b)| a + b);
     }
     Ok(r)
