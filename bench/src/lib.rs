@@ -117,10 +117,7 @@ impl VariantResult {
         };
         self.deadline_lateness
             .extend(other.deadline_lateness.iter().cloned());
-        self.syscalls = match (self.syscalls, other.syscalls) {
-            (Some(a), Some(b)) => Some(a + b),
-            _ => None,
-        };
+        self.syscalls = self.syscalls.zip(other.syscalls).map(|(a, b)| a + b);
         Ok(())
     }
 }

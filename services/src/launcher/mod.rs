@@ -611,21 +611,17 @@ fn run_bus(
             continue;
         }
         let mut entry = json!({ "stages": c.stages, "executable": c.exe, "pid": c.host_pid(), "cpu": rt.get("cpu"), "policy": rt.get("policy"), "priority": rt.get("priority"), "memory_locked": rt.get("memory_locked") });
-        // What the process cost (its last incarnation's, from its first stage's statistics:
-        // every stage of a process carries the same figures).
-        if let Some(v) = c.stages.first().and_then(|st| {
-            let text = std::fs::read_to_string(out.join(format!("{st}.stats.json"))).ok()?;
-            serde_json::from_str::<serde_json::Value>(&text).ok()
-        }) {
-            entry["cpu_s"] = v["process_cpu_s"].clone();
-            entry["context_switches"] = v["process_context_switches"].clone();
-            entry["syscalls"] = v["process_syscalls"].clone();
-        }
-        processes.insert(c.name.clone(), entry);
         for st in &c.stages {
             let stats_path = out.join(format!("{st}.stats.json"));
             if let Ok(text) = std::fs::read_to_string(&stats_path) {
                 let v: serde_json::Value = serde_json::from_str(&text).unwrap_or_default();
+                // What the process cost (its last incarnation's; every stage of a process
+                // carries the same figures, taken from the first that has them).
+                if entry.get("cpu_s").is_none() && v.is_object() {
+                    entry["cpu_s"] = v["process_cpu_s"].clone();
+                    entry["context_switches"] = v["process_context_switches"].clone();
+                    entry["syscalls"] = v["process_syscalls"].clone();
+                }
                 let mut cv = v.get("counters").cloned().unwrap_or_default();
                 if let Some(d) = v.get("diagnostics") {
                     cv["diagnostics"] = d.clone();
@@ -636,6 +632,7 @@ fn run_bus(
                 counters.insert(st.clone(), cv);
             }
         }
+        processes.insert(c.name.clone(), entry);
     }
     let mut info = json!({ "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "recorder_late": rec.late, "plan": plan, "plant_down_samples": rec.rebuilt });
     if let Some(b) = bridge_stats {
