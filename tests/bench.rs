@@ -114,6 +114,7 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         );
     }
     expect.extend([
+        ("floor-repeat", r),
         ("hop", r),
         ("bare-chain", r),
         ("inprocess", r),
@@ -191,7 +192,10 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         let floor = floor_of(r["cpu_latency_request"].as_bool().unwrap());
         // The verdict follows its definition: cycle p99.9 < Ts and misses/M ≤ 2 × floor + 10,
         // against the floor measured under the same request.
-        if !["floor", "cyclictest", "hop"].contains(&r["variant"].as_str().unwrap()) {
+        if ["floor", "floor-repeat", "cyclictest", "hop"].contains(&r["variant"].as_str().unwrap())
+        {
+            assert!(r["holds_budget"].is_null(), "not a chain: {r}");
+        } else {
             let floor_pm = floor["misses_per_million"].as_f64().unwrap();
             let expect = r["cycle_us"]["p999"].as_f64().unwrap() < 100.0
                 && r["misses_per_million"].as_f64().unwrap() <= 2.0 * floor_pm + 10.0;
@@ -278,6 +282,46 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         assert_eq!(main.is_some(), can, "{c}");
         assert_ne!(main, Some(1), "{c}");
     }
+    // The floor against its own repeat: the same figures as against cyclictest, on the
+    // wake-ups' lateness, and each one's misses; one line of bench.md says it.
+    let repeats = report["floor_vs_repeat"].as_array().unwrap();
+    assert_eq!(repeats.len(), 1, "{repeats:?}");
+    let f = &repeats[0];
+    let repeat = rows
+        .iter()
+        .find(|x| x["variant"] == "floor-repeat")
+        .unwrap();
+    assert_eq!(repeat["samples"], 2000, "{repeat}");
+    assert_eq!(f["cpu_latency_request"], r);
+    let late = |row: &serde_json::Value, q: &str| row["lateness_us"][q].as_f64().unwrap();
+    let (d50, d99) = (
+        late(floor_of(r), "p50") - late(repeat, "p50"),
+        late(floor_of(r), "p99") - late(repeat, "p99"),
+    );
+    assert!(
+        (f["p50_diff_us"].as_f64().unwrap() - d50).abs() < 2e-3,
+        "{f}"
+    );
+    assert!(
+        (f["p99_diff_us"].as_f64().unwrap() - d99).abs() < 2e-3,
+        "{f}"
+    );
+    assert_eq!(
+        f["within_agreement"].as_bool(),
+        Some(d50.abs() <= 3.0 && d99.abs() <= 3.0),
+        "{f}"
+    );
+    assert_eq!(f["misses_per_million"], floor_of(r)["misses_per_million"]);
+    assert_eq!(f["repeat_misses_per_million"], repeat["misses_per_million"]);
+    assert!(f["by_round"].is_null(), "one round, nothing to pair: {f}");
+    let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
+    let line = format!(
+        "Floor − floor-repeat at 10 kHz ({}), wake-up lateness: p50 {:+.1} µs, p99 {:+.1} µs",
+        if r { "request held" } else { "no request" },
+        f["p50_diff_us"].as_f64().unwrap(),
+        f["p99_diff_us"].as_f64().unwrap()
+    );
+    assert!(md.contains(&line), "bench.md lacks {line:?}: {md}");
     let ice: Vec<&serde_json::Value> = rows.iter().filter(|x| x["variant"] == "iceoryx2").collect();
     for r in &ice {
         assert!(r["p99_ratio_to_uds"].as_f64().is_some());
@@ -538,23 +582,27 @@ fn bench_rounds_interleave_the_variants_and_merge_their_samples() {
     assert_eq!(change, [spin[0] - plain[0], spin[1] - plain[1]], "{e}");
     let median = e["p99_median_change_us"].as_f64().unwrap();
     assert!((median - (change[0] + change[1]) / 2.0).abs() < 1e-9, "{e}");
-    // The floor against cyclictest, round by round on the wake-ups: round i of each.
+    // The floor against cyclictest and against its own repeat, round by round on the
+    // wake-ups: round i of each.
     let checks = report["floor_vs_cyclictest"].as_array().unwrap();
     assert_eq!(checks.len(), if on_path("cyclictest") { 2 } else { 0 });
-    for c in checks {
+    let repeats = report["floor_vs_repeat"].as_array().unwrap();
+    assert_eq!(repeats.len(), 1, "{repeats:?}");
+    let pairs = checks.iter().map(|c| (c, "cyclictest"));
+    for (c, other) in pairs.chain(repeats.iter().map(|c| (c, "floor-repeat"))) {
         let req = &c["cpu_latency_request"];
         for (q, field) in [
             ("wake_p50_us", "p50_diff_us"),
             ("wake_p99_us", "p99_diff_us"),
         ] {
-            let (f, ct) = (
+            let (f, o) = (
                 by_round(rows, "floor", req, q),
-                by_round(rows, "cyclictest", req, q),
+                by_round(rows, other, req, q),
             );
             assert_eq!(
                 floats(&c["by_round"][field]),
-                [f[0] - ct[0], f[1] - ct[1]],
-                "{field}: {c}"
+                [f[0] - o[0], f[1] - o[1]],
+                "{other} {field}: {c}"
             );
         }
     }

@@ -64,9 +64,10 @@ pub struct BenchArgs {
     /// path. When it is missing, that variant is skipped with one line saying why.
     #[arg(long, default_value = "cyclictest", value_name = "CMD")]
     pub cyclictest: String,
-    /// Measure only these variants (comma-separated: floor, cyclictest, hop, bare-chain,
-    /// inprocess, uds, iceoryx2, iceoryx2+spin, topology); default all. The floor always
-    /// runs: every comparison is against it.
+    /// Measure only these variants (comma-separated: floor, floor-repeat, cyclictest, hop,
+    /// bare-chain, inprocess, uds, iceoryx2, iceoryx2+spin, topology); default all. The floor
+    /// always runs: every comparison is against it. floor-repeat is the same timer measured
+    /// a second time in every round: how far two measurements of one thing differ here.
     #[arg(long, value_delimiter = ',', value_name = "NAME,...")]
     pub variants: Vec<String>,
     /// Print bench.json on stdout instead of the Markdown table.
@@ -111,7 +112,8 @@ fn node(p: ServicePlacement) -> NodeSpec {
 /// One row of the report.
 #[derive(Debug, Clone, Serialize)]
 pub struct Row {
-    /// floor, cyclictest, hop, bare-chain, inprocess, uds, iceoryx2, iceoryx2+spin, topology.
+    /// floor, floor-repeat, cyclictest, hop, bare-chain, inprocess, uds, iceoryx2, iceoryx2+spin,
+    /// topology.
     pub variant: String,
     /// Placement name ("-" for the single-thread variants, which run on the plant's core).
     pub placement: String,
@@ -312,7 +314,7 @@ impl Job {
     /// File and folder tag at `hz`.
     fn tag(&self, hz: f64) -> String {
         let p = match self.variant {
-            "floor" | "cyclictest" | "inprocess" | "hop" | "bare-chain" => "core1",
+            "floor" | "floor-repeat" | "cyclictest" | "inprocess" | "hop" | "bare-chain" => "core1",
             _ => &self.placement,
         };
         let req = if self.request { "" } else { "-norequest" };
@@ -490,6 +492,9 @@ fn jobs(a: &BenchArgs, placements: &[String], cyclictest: bool) -> Vec<Job> {
     if cyclictest {
         jobs.extend(both("cyclictest", "-"));
     }
+    // The floor again, after a variant without the request as cyclictest is: the same
+    // timer twice in the same rounds, the run's resolution (FloorRepeat).
+    jobs.push(Job::new("floor-repeat", "-", req));
     jobs.push(Job::new("hop", "-", req));
     jobs.push(Job::new("bare-chain", "-", req));
     jobs.push(Job::new("inprocess", "-", req));
@@ -573,6 +578,82 @@ impl CrossRounds {
 /// How close the floor must be to cyclictest at p50 and p99, µs.
 pub const CYCLICTEST_AGREEMENT_US: f64 = 3.0;
 
+/// The floor against its own repeat (`floor-repeat`: the same timer, the same core, the same
+/// request, measured again in every round): two measurements of one thing, so whatever they
+/// differ by is this machine's noise in this run. A difference between two variants (the
+/// floor and cyclictest, a chain and its target) no larger than this one cannot be told
+/// from that noise.
+#[derive(Debug, Clone, Serialize)]
+pub struct FloorRepeat {
+    /// Sample rate, Hz.
+    pub rate_hz: f64,
+    /// Both measured under the CPU wake-up latency request.
+    pub cpu_latency_request: bool,
+    /// floor p50 − repeat p50 of the wake-ups' lateness, µs.
+    pub p50_diff_us: f64,
+    /// floor p99 − repeat p99 of the wake-ups' lateness, µs.
+    pub p99_diff_us: f64,
+    /// The floor's deadline misses per million.
+    pub misses_per_million: f64,
+    /// The repeat's deadline misses per million.
+    pub repeat_misses_per_million: f64,
+    /// Both differences within [`CYCLICTEST_AGREEMENT_US`]: whether this run could resolve
+    /// the floor's agreement with cyclictest at all.
+    pub within_agreement: bool,
+    /// The same differences round by round (at least two rounds).
+    pub by_round: Option<CrossRounds>,
+}
+
+/// [`FloorRepeat`] for every rate and request at which both were measured.
+fn floor_repeats(rows: &[Row]) -> Vec<FloorRepeat> {
+    rows.iter()
+        .filter(|r| r.variant == "floor-repeat")
+        .filter_map(|rep| {
+            let floor = rows.iter().find(|f| {
+                f.variant == "floor"
+                    && f.rate_hz == rep.rate_hz
+                    && f.cpu_latency_request == rep.cpu_latency_request
+            })?;
+            let (d50, d99) = (
+                floor.lateness_us.p50 - rep.lateness_us.p50,
+                floor.lateness_us.p99 - rep.lateness_us.p99,
+            );
+            Some(FloorRepeat {
+                rate_hz: rep.rate_hz,
+                cpu_latency_request: rep.cpu_latency_request,
+                p50_diff_us: d50,
+                p99_diff_us: d99,
+                misses_per_million: floor.misses_per_million,
+                repeat_misses_per_million: rep.misses_per_million,
+                within_agreement: d50.abs() <= CYCLICTEST_AGREEMENT_US
+                    && d99.abs() <= CYCLICTEST_AGREEMENT_US,
+                by_round: CrossRounds::of(&floor.rounds, &rep.rounds),
+            })
+        })
+        .collect()
+}
+
+/// One line of the report: the floor against its repeat.
+fn floor_repeat_line(f: &FloorRepeat) -> String {
+    format!(
+        "Floor − floor-repeat at {} kHz ({}), wake-up lateness: p50 {:+.1} µs, p99 {:+.1} µs ({} ±{CYCLICTEST_AGREEMENT_US} µs); misses {:.0} against {:.0} per million{}. The same timer measured twice in the same rounds: differences between variants of this size are this run's noise.",
+        f.rate_hz / 1000.0,
+        if f.cpu_latency_request { "request held" } else { "no request" },
+        f.p50_diff_us,
+        f.p99_diff_us,
+        if f.within_agreement { "within" } else { "NOT within" },
+        f.misses_per_million,
+        f.repeat_misses_per_million,
+        f.by_round.as_ref().map_or(String::new(), |b| format!(
+            "; round by round ({}): p50 median {:+.1} µs, p99 median {:+.1} µs, both within ±{CYCLICTEST_AGREEMENT_US} µs in {} of them",
+            b.p50_diff_us.len(),
+            b.p50_median_us,
+            b.p99_median_us,
+            b.rounds_agreeing
+        )),
+    )
+}
+
 /// Verdicts and ratios of one rate's rows against the floor (measured under the same CPU
 /// latency request) and the Unix-socket chain (same placement) of the same run; the floor
 /// against cyclictest.
@@ -609,7 +690,7 @@ fn compare(rows: &mut [Row], hz: f64, cyclictest_main_core: Option<usize>) -> Ve
             continue;
         };
         let r = &mut rows[i];
-        if r.variant == "floor" || r.variant == "hop" {
+        if matches!(r.variant.as_str(), "floor" | "floor-repeat" | "hop") {
             continue;
         }
         if r.variant == "cyclictest" {
@@ -1317,8 +1398,9 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
     }
     // The variants of every rate, each measured in `rounds` interleaved slices so that the
     // machine's slow changes (a VM's noisy minutes) reach all of them alike.
-    const VARIANTS: [&str; 9] = [
+    const VARIANTS: [&str; 10] = [
         "floor",
+        "floor-repeat",
         "cyclictest",
         "hop",
         "bare-chain",
@@ -1448,7 +1530,7 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
                 let drive = match job.variant {
                     // The floor, cyclictest and the in-process chain run on the plant's core
                     // at its priority.
-                    "floor" => {
+                    "floor" | "floor-repeat" => {
                         absorb(
                             &mut acc[i],
                             drivelab_bench::run_floor(hz, slice, &node(one.plant))?,
@@ -1658,6 +1740,7 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
     let doctor = drivelab_tools::doctor::run_checks();
     let goals = targets(&rows);
     let spins = spin_effects(&rows, a.spin_us);
+    let repeats = floor_repeats(&rows);
     let report = serde_json::json!({
         "seconds_per_variant": seconds,
         "rounds": rounds,
@@ -1665,6 +1748,7 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
         "cpu_latency_request_us": if a.no_cpu_latency_request { None } else { Some(0) },
         "cpu_latency_request_failed": request.failed,
         "floor_vs_cyclictest": checks,
+        "floor_vs_repeat": repeats,
         "targets": goals,
         "spin": spins,
         "machine": {
@@ -1679,6 +1763,7 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
     let mut md = markdown(
         &rows,
         &checks,
+        &repeats,
         &goals,
         &spins,
         &speed,
@@ -1755,13 +1840,14 @@ fn request_cell(r: &Row) -> String {
 pub fn markdown(
     rows: &[Row],
     checks: &[CrossCheck],
+    repeats: &[FloorRepeat],
     goals: &[Targets],
     spins: &[SpinEffect],
     speed: &serde_json::Value,
     (seconds, rounds, spin_arg): (f64, usize, f64),
 ) -> String {
     let mut s = String::new();
-    let _ = writeln!(s, "Cycle latency from t_k to command k available at the plant, µs ({seconds} s per variant in {rounds} interleaved round(s); floor = a bare timer loop's lateness at every deadline (deadlines that passed while it was late are handled by its next wake-up, as a chain that cost nothing would handle them), cyclictest = its wake-ups' lateness; request = CPU wake-up latency request of 0 µs held (none: before each such round the core idled in 2 ms sleeps until its idle governor stopped the polling a released request leaves behind); each chain is compared with the floor measured under the same request).\n");
+    let _ = writeln!(s, "Cycle latency from t_k to command k available at the plant, µs ({seconds} s per variant in {rounds} interleaved round(s); floor = a bare timer loop's lateness at every deadline (deadlines that passed while it was late are handled by its next wake-up, as a chain that cost nothing would handle them), floor-repeat = the same floor measured again in every round; cyclictest = its wake-ups' lateness; request = CPU wake-up latency request of 0 µs held (none: before each such round the core idled in 2 ms sleeps until its idle governor stopped the polling a released request leaves behind); each chain is compared with the floor measured under the same request).\n");
     let _ = writeln!(s, "| rate | variant | placement | request | p50 | p99 | p99.9 | max | misses/M | longest run | p50 − floor | p99 − floor | p99 / floor | p99 / uds | CPU s/s | waits/sample | syscalls/sample | budget |");
     let _ = writeln!(
         s,
@@ -1820,6 +1906,9 @@ pub fn markdown(
                 None => "cyclictest's main thread on the measured core".to_string(),
             }
         );
+    }
+    for f in repeats {
+        let _ = writeln!(s, "\n{}", floor_repeat_line(f));
     }
     for r in rows.iter().filter(|r| r.variant == "floor") {
         if let Some(c) = r.cpu_per_wakeup_us {
