@@ -314,12 +314,26 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     assert_eq!(f["misses_per_million"], floor_of(r)["misses_per_million"]);
     assert_eq!(f["repeat_misses_per_million"], repeat["misses_per_million"]);
     assert!(f["by_round"].is_null(), "one round, nothing to pair: {f}");
+    // And at every deadline, which the chains' targets compare with.
+    let cycle = |row: &serde_json::Value, q: &str| row["cycle_us"][q].as_f64().unwrap();
+    for q in ["p50", "p99"] {
+        let d = cycle(floor_of(r), q) - cycle(repeat, q);
+        let got = f[format!("deadline_{q}_diff_us")].as_f64().unwrap();
+        assert!((got - d).abs() < 2e-3, "{q}: {f}");
+    }
+    assert!(f["deadline_p99_median_round_diff_us"].is_null(), "{f}");
     let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
     let line = format!(
         "Floor − floor-repeat at 10 kHz ({}), wake-up lateness: p50 {:+.1} µs, p99 {:+.1} µs",
         if r { "request held" } else { "no request" },
         f["p50_diff_us"].as_f64().unwrap(),
         f["p99_diff_us"].as_f64().unwrap()
+    );
+    assert!(md.contains(&line), "bench.md lacks {line:?}: {md}");
+    let line = format!(
+        "; at every deadline (what the chains' targets compare with): p50 {:+.1} µs, p99 {:+.1} µs; misses",
+        f["deadline_p50_diff_us"].as_f64().unwrap(),
+        f["deadline_p99_diff_us"].as_f64().unwrap()
     );
     assert!(md.contains(&line), "bench.md lacks {line:?}: {md}");
     let ice: Vec<&serde_json::Value> = rows.iter().filter(|x| x["variant"] == "iceoryx2").collect();
@@ -606,6 +620,17 @@ fn bench_rounds_interleave_the_variants_and_merge_their_samples() {
             );
         }
     }
+    // At every deadline the repeat's p99 median round is the mean of the two rounds' diffs.
+    let f = &repeats[0];
+    let (a, b) = (
+        by_round(rows, "floor", &f["cpu_latency_request"], "p99_us"),
+        by_round(rows, "floor-repeat", &f["cpu_latency_request"], "p99_us"),
+    );
+    let got = f["deadline_p99_median_round_diff_us"].as_f64().unwrap();
+    assert!(
+        (got - ((a[0] - b[0]) + (a[1] - b[1])) / 2.0).abs() < 1e-9,
+        "{f}"
+    );
     // The bare chain round by round: round i of it against round i of the floor, and round
     // i of the default chain against round i of it (two rounds: the median is the mean).
     let t = &report["targets"][0];

@@ -593,6 +593,14 @@ pub struct FloorRepeat {
     pub p50_diff_us: f64,
     /// floor p99 − repeat p99 of the wake-ups' lateness, µs.
     pub p99_diff_us: f64,
+    /// floor p50 − repeat p50 of the lateness at every deadline (what the chains' targets
+    /// compare with), µs.
+    pub deadline_p50_diff_us: f64,
+    /// floor p99 − repeat p99 of the lateness at every deadline, µs.
+    pub deadline_p99_diff_us: f64,
+    /// Median over the rounds of floor p99 − repeat p99 at every deadline, µs (at least two
+    /// rounds): what the chains' round-by-round p99 targets compare with.
+    pub deadline_p99_median_round_diff_us: Option<f64>,
     /// The floor's deadline misses per million.
     pub misses_per_million: f64,
     /// The repeat's deadline misses per million.
@@ -623,6 +631,12 @@ fn floor_repeats(rows: &[Row]) -> Vec<FloorRepeat> {
                 cpu_latency_request: rep.cpu_latency_request,
                 p50_diff_us: d50,
                 p99_diff_us: d99,
+                deadline_p50_diff_us: floor.cycle_us.p50 - rep.cycle_us.p50,
+                deadline_p99_diff_us: floor.cycle_us.p99 - rep.cycle_us.p99,
+                deadline_p99_median_round_diff_us: round_diffs(&floor.rounds, &rep.rounds, |r| {
+                    r.p99_us
+                })
+                .map(|d| median(&d)),
                 misses_per_million: floor.misses_per_million,
                 repeat_misses_per_million: rep.misses_per_million,
                 within_agreement: d50.abs() <= CYCLICTEST_AGREEMENT_US
@@ -636,14 +650,12 @@ fn floor_repeats(rows: &[Row]) -> Vec<FloorRepeat> {
 /// One line of the report: the floor against its repeat.
 fn floor_repeat_line(f: &FloorRepeat) -> String {
     format!(
-        "Floor − floor-repeat at {} kHz ({}), wake-up lateness: p50 {:+.1} µs, p99 {:+.1} µs ({} ±{CYCLICTEST_AGREEMENT_US} µs); misses {:.0} against {:.0} per million{}. The same timer measured twice in the same rounds: differences between variants of this size are this run's noise.",
+        "Floor − floor-repeat at {} kHz ({}), wake-up lateness: p50 {:+.1} µs, p99 {:+.1} µs ({} ±{CYCLICTEST_AGREEMENT_US} µs){}; at every deadline (what the chains' targets compare with): p50 {:+.1} µs, p99 {:+.1} µs{}; misses {:.0} against {:.0} per million. The same timer measured twice in the same rounds: differences between variants of this size are this run's noise.",
         f.rate_hz / 1000.0,
         if f.cpu_latency_request { "request held" } else { "no request" },
         f.p50_diff_us,
         f.p99_diff_us,
         if f.within_agreement { "within" } else { "NOT within" },
-        f.misses_per_million,
-        f.repeat_misses_per_million,
         f.by_round.as_ref().map_or(String::new(), |b| format!(
             "; round by round ({}): p50 median {:+.1} µs, p99 median {:+.1} µs, both within ±{CYCLICTEST_AGREEMENT_US} µs in {} of them",
             b.p50_diff_us.len(),
@@ -651,6 +663,12 @@ fn floor_repeat_line(f: &FloorRepeat) -> String {
             b.p99_median_us,
             b.rounds_agreeing
         )),
+        f.deadline_p50_diff_us,
+        f.deadline_p99_diff_us,
+        f.deadline_p99_median_round_diff_us
+            .map_or(String::new(), |d| format!(" (median round {d:+.1})")),
+        f.misses_per_million,
+        f.repeat_misses_per_million,
     )
 }
 
