@@ -366,9 +366,10 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         );
     }
     // The default chain's targets, from its row (one core, under the request when it could
-    // be held) and the floor's under the same request.
+    // be held) and the floor's under the same request; then the control's, the floor's
+    // repeat held to the same targets.
     let targets = report["targets"].as_array().unwrap();
-    assert_eq!(targets.len(), 1, "{targets:?}");
+    assert_eq!(targets.len(), 2, "{targets:?}");
     let t = &targets[0];
     let chain = rows
         .iter()
@@ -380,20 +381,53 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     // One round: nothing to compare round by round.
     assert!(t["by_round"].is_null(), "{t}");
     assert!(t["uds_by_round"].is_null(), "{t}");
-    for (k, limit) in [("p50_minus_floor_us", 10.0), ("p99_minus_floor_us", 15.0)] {
-        let d = chain[k].as_f64().unwrap();
-        assert_eq!(t[k].as_f64(), Some(d), "{k}");
-        let met = k.replace("minus_floor_us", "met");
-        assert_eq!(t[&met].as_bool(), Some(d <= limit), "{met}: {t}");
-    }
     let bound = 2.0
         * floor_of(can_request)["misses_per_million"]
             .as_f64()
             .unwrap()
         + 10.0;
-    assert_eq!(t["misses_bound"].as_f64(), Some(bound));
-    let pm = chain["misses_per_million"].as_f64().unwrap();
-    assert_eq!(t["misses_met"].as_bool(), Some(pm <= bound));
+    let control = &targets[1];
+    for (t, row) in [(t, chain), (control, repeat)] {
+        let cycle = |q: &str| row["cycle_us"][q].as_f64().unwrap();
+        let floor_cycle = |q: &str| floor_of(can_request)["cycle_us"][q].as_f64().unwrap();
+        for (q, limit) in [("p50", 10.0), ("p99", 15.0)] {
+            let k = format!("{q}_minus_floor_us");
+            let d = row[&k].as_f64().unwrap();
+            assert!((d - (cycle(q) - floor_cycle(q))).abs() < 2e-3, "{k}: {row}");
+            assert_eq!(t[&k].as_f64(), Some(d), "{k}");
+            assert_eq!(
+                t[format!("{q}_met")].as_bool(),
+                Some(d <= limit),
+                "{q}: {t}"
+            );
+        }
+        assert_eq!(t["misses_bound"].as_f64(), Some(bound));
+        let pm = row["misses_per_million"].as_f64().unwrap();
+        assert_eq!(t["misses_met"].as_bool(), Some(pm <= bound));
+    }
+    assert_eq!(control["chain"], "floor-repeat (control)");
+    assert_eq!(control["cpu_latency_request"], can_request);
+    for k in [
+        "p99_ratio_to_uds",
+        "misses_floor_predicts_catching_up",
+        "bare_chain",
+    ] {
+        assert!(
+            control[k].is_null(),
+            "the control is the floor: no {k}: {control}"
+        );
+    }
+    let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
+    let line = md
+        .lines()
+        .find(|l| l.starts_with("Targets at 10 kHz (floor-repeat (control) against the floor"))
+        .unwrap_or_else(|| panic!("no control targets line: {md}"));
+    assert!(
+        line.ends_with(
+            " A control: the floor measured again, so what it misses this run's noise decides, for the chains too."
+        ) && !line.contains("Unix-socket"),
+        "{line}"
+    );
     let uds = chain["p99_ratio_to_uds"].as_f64().unwrap();
     assert_eq!(t["p99_ratio_to_uds"].as_f64(), Some(uds));
     assert_eq!(t["uds_met"].as_bool(), Some(uds <= 0.8));
