@@ -331,9 +331,11 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     );
     assert!(md.contains(&line), "bench.md lacks {line:?}: {md}");
     let line = format!(
-        "; at every deadline (what the chains' targets compare with): p50 {:+.1} µs, p99 {:+.1} µs; misses",
+        "; at every deadline (what the chains' targets compare with): p50 {:+.1} µs, p99 {:+.1} µs; misses per million {:.0} (floor) against {:.0} (repeat).",
         f["deadline_p50_diff_us"].as_f64().unwrap(),
-        f["deadline_p99_diff_us"].as_f64().unwrap()
+        f["deadline_p99_diff_us"].as_f64().unwrap(),
+        f["misses_per_million"].as_f64().unwrap(),
+        f["repeat_misses_per_million"].as_f64().unwrap()
     );
     assert!(md.contains(&line), "bench.md lacks {line:?}: {md}");
     let ice: Vec<&serde_json::Value> = rows.iter().filter(|x| x["variant"] == "iceoryx2").collect();

@@ -650,7 +650,7 @@ fn floor_repeats(rows: &[Row]) -> Vec<FloorRepeat> {
 /// One line of the report: the floor against its repeat.
 fn floor_repeat_line(f: &FloorRepeat) -> String {
     format!(
-        "Floor − floor-repeat at {} kHz ({}), wake-up lateness: p50 {:+.1} µs, p99 {:+.1} µs ({} ±{CYCLICTEST_AGREEMENT_US} µs){}; at every deadline (what the chains' targets compare with): p50 {:+.1} µs, p99 {:+.1} µs{}; misses {:.0} against {:.0} per million. The same timer measured twice in the same rounds: differences between variants of this size are this run's noise.",
+        "Floor − floor-repeat at {} kHz ({}), wake-up lateness: p50 {:+.1} µs, p99 {:+.1} µs ({} ±{CYCLICTEST_AGREEMENT_US} µs){}; at every deadline (what the chains' targets compare with): p50 {:+.1} µs, p99 {:+.1} µs{}; misses per million {:.0} (floor) against {:.0} (repeat). The same timer measured twice in the same rounds: differences between variants of this size are this run's noise.",
         f.rate_hz / 1000.0,
         if f.cpu_latency_request { "request held" } else { "no request" },
         f.p50_diff_us,
