@@ -779,28 +779,33 @@ fn bench_compares_topologies_with_their_cpu_time() {
         ("topology", "four-process"),
         ("topology", "two-process"),
         ("topology", "one-process"),
+        ("floor-repeat", "-"),
     ]
     .iter()
     .map(|(a, b)| (a.to_string(), b.to_string()))
     .collect();
     assert_eq!(got, want);
-    for r in &rows[1..] {
+    for r in &rows[1..4] {
         // Both rounds of 0.1 s at 10 kHz count: 2000 samples (the plant's own count).
         assert_eq!(r["samples"].as_u64(), Some(2000), "{r}");
         assert!(r["cpu_s_per_s"].as_f64().is_some_and(|c| c > 0.0), "{r}");
         assert!(r["p99_ratio_to_floor"].as_f64().is_some(), "{r}");
     }
     // Every topology gets the targets against the floor, overall and round by round: round
-    // i of the topology against round i of the floor.
+    // i of the topology against round i of the floor; and so does the control, the floor's
+    // repeat.
     let num = |v: &serde_json::Value| v.as_f64().unwrap();
     let floor_rounds = rows[0]["rounds"].as_array().unwrap();
     assert_eq!(floor_rounds.len(), 2, "{}", rows[0]);
     let targets = report["targets"].as_array().unwrap();
-    assert_eq!(targets.len(), 3, "{targets:?}");
+    assert_eq!(targets.len(), 4, "{targets:?}");
     let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
     for (t, r) in targets.iter().zip(&rows[1..]) {
-        let name = r["placement"].as_str().unwrap();
-        assert_eq!(t["chain"], format!("topology {name}"));
+        let name = match r["variant"].as_str().unwrap() {
+            "topology" => format!("topology {}", r["placement"].as_str().unwrap()),
+            _ => "floor-repeat (control)".to_string(),
+        };
+        assert_eq!(t["chain"], name);
         assert_eq!(t["p99_minus_floor_us"], r["p99_minus_floor_us"], "{name}");
         assert!(t["p99_ratio_to_uds"].is_null(), "{t}");
         // The bare chain mirrors the default chain's critical path, not a topology's.
@@ -844,11 +849,7 @@ fn bench_compares_topologies_with_their_cpu_time() {
         assert_eq!(by["misses_met"], misses_met, "{name}");
         let line = md
             .lines()
-            .find(|l| {
-                l.starts_with(&format!(
-                    "Targets at 10 kHz (topology {name} against the floor"
-                ))
-            })
+            .find(|l| l.starts_with(&format!("Targets at 10 kHz ({name} against the floor")))
             .unwrap_or_else(|| panic!("bench.md has no targets line for {name}"));
         assert!(
             line.contains("Round by round (2, each against its own floor): p50 median "),

@@ -48,7 +48,8 @@ pub struct BenchArgs {
     #[arg(long, value_name = "N")]
     pub rounds: Option<usize>,
     /// Compare topologies instead of placements (comma-separated shipped names or files):
-    /// the iceoryx2 chain in each topology, interleaved with the floor, e.g.
+    /// the iceoryx2 chain in each topology, interleaved with the floor and its repeat (the
+    /// control), e.g.
     /// `--topologies four-process,two-process,one-process --rates 10000`. Reports each
     /// topology's cycle latency, misses, the CPU time its processes used, where its
     /// microseconds go and its targets against the floor.
@@ -479,13 +480,15 @@ fn jobs(a: &BenchArgs, placements: &[String], cyclictest: bool) -> Vec<Job> {
         j
     };
     if !a.topologies.is_empty() {
-        // Topologies compare with each other and the floor, all under the same request.
+        // Topologies compare with each other and the floor, all under the same request; the
+        // floor's repeat last, the control of their targets.
         let mut jobs = vec![Job::new("floor", "-", req)];
         jobs.extend(
             a.topologies
                 .iter()
                 .map(|t| Job::new("topology", &topology_name(t), req)),
         );
+        jobs.push(Job::new("floor-repeat", "-", req));
         return jobs;
     }
     let mut jobs = both("floor", "-");
