@@ -270,6 +270,26 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
             "{c}"
         );
         assert!(c["by_round"].is_null(), "one round, nothing to pair: {c}");
+        // Its bench.md line ends with the floor against its own repeat when the repeat ran
+        // under the same request (it runs under the request the bench holds).
+        let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
+        let label = if req { "request held" } else { "no request" };
+        let line = md
+            .lines()
+            .find(|l| l.starts_with(&format!("Floor − cyclictest at 10 kHz ({label})")))
+            .unwrap_or_else(|| panic!("no cross-check line for {label}: {md}"));
+        let repeat = &report["floor_vs_repeat"][0];
+        let tail = (repeat["cpu_latency_request"] == req).then(|| {
+            format!(
+                " The floor against its own repeat in the same rounds: p50 {:+.1} µs, p99 {:+.1} µs.",
+                repeat["p50_diff_us"].as_f64().unwrap(),
+                repeat["p99_diff_us"].as_f64().unwrap()
+            )
+        });
+        match tail {
+            Some(t) => assert!(line.ends_with(&t), "{line}"),
+            None => assert!(!line.contains("its own repeat"), "{line}"),
+        }
         // cyclictest's main thread runs off the measured core (1), as the floor's process does,
         // when this cyclictest can place it (rt-tests 2.0 and later).
         let help = std::process::Command::new("cyclictest")

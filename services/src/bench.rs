@@ -1932,7 +1932,7 @@ pub fn markdown(
     for c in checks {
         let _ = writeln!(
             s,
-            "\nFloor − cyclictest at {} kHz ({}), wake-up lateness: p50 {:+.1} µs, p99 {:+.1} µs: {} (target: both within ±{CYCLICTEST_AGREEMENT_US} µs){} ({}).",
+            "\nFloor − cyclictest at {} kHz ({}), wake-up lateness: p50 {:+.1} µs, p99 {:+.1} µs: {} (target: both within ±{CYCLICTEST_AGREEMENT_US} µs){} ({}).{}",
             c.rate_hz / 1000.0,
             if c.cpu_latency_request { "request held" } else { "no request" },
             c.p50_diff_us,
@@ -1948,7 +1948,15 @@ pub fn markdown(
             match c.cyclictest_main_thread_core {
                 Some(core) => format!("cyclictest's main thread on CPU {core}"),
                 None => "cyclictest's main thread on the measured core".to_string(),
-            }
+            },
+            // The same comparison of the floor with itself, the scale to read this one by.
+            repeats
+                .iter()
+                .find(|f| f.rate_hz == c.rate_hz && f.cpu_latency_request == c.cpu_latency_request)
+                .map_or(String::new(), |f| format!(
+                    " The floor against its own repeat in the same rounds: p50 {:+.1} µs, p99 {:+.1} µs.",
+                    f.p50_diff_us, f.p99_diff_us
+                ))
         );
     }
     for f in repeats {
