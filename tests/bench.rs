@@ -84,6 +84,7 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     let report: serde_json::Value =
         serde_json::from_slice(&o.stdout).expect("bench --json prints JSON");
     let rows = report["rows"].as_array().unwrap();
+    let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
     let variants: Vec<(&str, bool)> = rows
         .iter()
         .map(|r| {
@@ -272,7 +273,6 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         assert!(c["by_round"].is_null(), "one round, nothing to pair: {c}");
         // Its bench.md line ends with the floor against its own repeat when the repeat ran
         // under the same request (it runs under the request the bench holds).
-        let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
         let label = if req { "request held" } else { "no request" };
         let line = md
             .lines()
@@ -342,7 +342,6 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         assert!((got - d).abs() < 2e-3, "{q}: {f}");
     }
     assert!(f["deadline_p99_median_round_diff_us"].is_null(), "{f}");
-    let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
     let line = format!(
         "Floor − floor-repeat at 10 kHz ({}), wake-up lateness: p50 {:+.1} µs, p99 {:+.1} µs",
         if r { "request held" } else { "no request" },
@@ -439,7 +438,6 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
             "the control is the floor: no {k}: {control}"
         );
     }
-    let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
     let line = md
         .lines()
         .find(|l| l.starts_with("Targets at 10 kHz (floor-repeat (control) against the floor"))
@@ -535,7 +533,6 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     ] {
         assert!(out.join(f).is_file(), "{f} missing");
     }
-    let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
     assert!(md.contains("| 10 kHz | iceoryx2 | one-core |"), "{md}");
     assert!(
         md.contains("Where the microseconds go, iceoryx2 one-core at 10 kHz"),

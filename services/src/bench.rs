@@ -560,6 +560,17 @@ pub struct CrossRounds {
 }
 
 impl CrossRounds {
+    /// The report's clause for these rounds, after a floor − other comparison.
+    fn clause(&self) -> String {
+        format!(
+            "; round by round ({}): p50 median {:+.1} µs, p99 median {:+.1} µs, both within ±{CYCLICTEST_AGREEMENT_US} µs in {} of them",
+            self.p50_diff_us.len(),
+            self.p50_median_us,
+            self.p99_median_us,
+            self.rounds_agreeing
+        )
+    }
+
     fn of(floor: &[RoundFigures], cyclictest: &[RoundFigures]) -> Option<Self> {
         let p50 = round_diffs(floor, cyclictest, |r| r.wake_p50_us)?;
         let p99 = round_diffs(floor, cyclictest, |r| r.wake_p99_us)?;
@@ -655,17 +666,11 @@ fn floor_repeat_line(f: &FloorRepeat) -> String {
     format!(
         "Floor − floor-repeat at {} kHz ({}), wake-up lateness: p50 {:+.1} µs, p99 {:+.1} µs ({} ±{CYCLICTEST_AGREEMENT_US} µs){}; at every deadline (what the chains' targets compare with): p50 {:+.1} µs, p99 {:+.1} µs{}; misses per million {:.0} (floor) against {:.0} (repeat). The same timer measured twice in the same rounds: differences between variants of this size are this run's noise.",
         f.rate_hz / 1000.0,
-        if f.cpu_latency_request { "request held" } else { "no request" },
+        request_words(f.cpu_latency_request),
         f.p50_diff_us,
         f.p99_diff_us,
         if f.within_agreement { "within" } else { "NOT within" },
-        f.by_round.as_ref().map_or(String::new(), |b| format!(
-            "; round by round ({}): p50 median {:+.1} µs, p99 median {:+.1} µs, both within ±{CYCLICTEST_AGREEMENT_US} µs in {} of them",
-            b.p50_diff_us.len(),
-            b.p50_median_us,
-            b.p99_median_us,
-            b.rounds_agreeing
-        )),
+        f.by_round.as_ref().map_or(String::new(), CrossRounds::clause),
         f.deadline_p50_diff_us,
         f.deadline_p99_diff_us,
         f.deadline_p99_median_round_diff_us
@@ -1204,7 +1209,7 @@ fn targets_line(t: &Targets) -> String {
         "Targets at {} kHz ({} against the floor, {}): p50 {:+.1} µs (≤ +{TARGET_P50_US}: {}); p99 {:+.1} µs (≤ +{TARGET_P99_US}: {}); misses {:.0}/M (≤ 2 × floor + 10 = {:.0}: {}{predicted}{catching_up}){uds}.{by_round}{uds_rounds}{bare}{control}",
         t.rate_hz / 1000.0,
         t.chain,
-        if t.cpu_latency_request { "request held" } else { "no request" },
+        request_words(t.cpu_latency_request),
         t.p50_minus_floor_us,
         met(t.p50_met),
         t.p99_minus_floor_us,
@@ -1871,6 +1876,15 @@ pub fn spin_us(requested_us: f64, hz: f64) -> f64 {
     requested_us.min(0.25e6 / hz)
 }
 
+/// How the report's lines say whether the CPU wake-up latency request was held.
+fn request_words(held: bool) -> &'static str {
+    if held {
+        "request held"
+    } else {
+        "no request"
+    }
+}
+
 /// The report's request column: what was held, and a round that measured a request after all.
 fn request_cell(r: &Row) -> String {
     match (r.cpu_latency_request, r.idle_still_polling_rounds) {
@@ -1934,17 +1948,11 @@ pub fn markdown(
             s,
             "\nFloor − cyclictest at {} kHz ({}), wake-up lateness: p50 {:+.1} µs, p99 {:+.1} µs: {} (target: both within ±{CYCLICTEST_AGREEMENT_US} µs){} ({}).{}",
             c.rate_hz / 1000.0,
-            if c.cpu_latency_request { "request held" } else { "no request" },
+            request_words(c.cpu_latency_request),
             c.p50_diff_us,
             c.p99_diff_us,
             if c.agrees { "agrees" } else { "DISAGREES" },
-            c.by_round.as_ref().map_or(String::new(), |b| format!(
-                "; round by round ({}): p50 median {:+.1} µs, p99 median {:+.1} µs, both within ±{CYCLICTEST_AGREEMENT_US} µs in {} of them",
-                b.p50_diff_us.len(),
-                b.p50_median_us,
-                b.p99_median_us,
-                b.rounds_agreeing
-            )),
+            c.by_round.as_ref().map_or(String::new(), CrossRounds::clause),
             match c.cyclictest_main_thread_core {
                 Some(core) => format!("cyclictest's main thread on CPU {core}"),
                 None => "cyclictest's main thread on the measured core".to_string(),
@@ -1968,7 +1976,7 @@ pub fn markdown(
                 s,
                 "\nfloor at {} kHz ({}): each timer wake-up costs its thread {c:.1} µs on the CPU, {:.0} % of the core at this rate before any stage runs.",
                 r.rate_hz / 1000.0,
-                if r.cpu_latency_request { "request held" } else { "no request" },
+                request_words(r.cpu_latency_request),
                 c * r.rate_hz * 1e-4
             );
         }
