@@ -150,6 +150,38 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         calls(chain_of("uds")),
         calls(chain_of("iceoryx2"))
     );
+    // The iceoryx2 chain says what each of its four processes costs the CPU per sample; the
+    // parts add up to its CPU per simulated second, and each stage's wake-up preempts the
+    // one that woke it (all on one core, priorities rising along the chain).
+    let c = chain_of("iceoryx2");
+    let by = c["cpu_us_per_sample_by_process"].as_object().unwrap();
+    let names: Vec<&str> = by.keys().map(String::as_str).collect();
+    assert_eq!(
+        names,
+        ["current-loop", "observer", "plant", "speed-loop"],
+        "{c}"
+    );
+    assert!(
+        by.values().all(|us| us.as_f64().is_some_and(|u| u > 0.0)),
+        "{c}"
+    );
+    // µs per sample × samples per simulated second (10 kHz) = s per simulated second.
+    let sum = by.values().filter_map(|v| v.as_f64()).sum::<f64>() * 1e-6 * 10_000.0;
+    let whole = c["cpu_s_per_s"].as_f64().unwrap();
+    assert!(
+        (sum / whole - 1.0).abs() < 0.05,
+        "{sum} s/s by process, {whole} in all: {c}"
+    );
+    assert!(
+        c["preemptions_per_sample"]
+            .as_f64()
+            .is_some_and(|p| p > 0.5),
+        "{c}"
+    );
+    assert!(
+        md.contains("CPU per sample, iceoryx2 one-core at 10 kHz: current-loop "),
+        "bench.md has no CPU-per-sample line: {md}"
+    );
     let (spin, plain) = (chain_of("iceoryx2+spin"), chain_of("iceoryx2"));
     let spins = report["spin"].as_array().unwrap();
     assert_eq!(spins.len(), 1, "{spins:?}");

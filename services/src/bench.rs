@@ -157,6 +157,14 @@ pub struct Row {
     /// Voluntary context switches (waits, so wake-ups) of the drive's processes per sample,
     /// set-up and shutdown included (iceoryx2 variants and the Unix-socket chain).
     pub waits_per_sample: Option<f64>,
+    /// Each process's CPU time (user + system) per sample, µs, by process name (iceoryx2
+    /// variants), set-up and shutdown included: beside the stages' own execution, what the
+    /// kernel's wake-ups and context switches cost it on this machine.
+    #[serde(skip_serializing_if = "BTreeMap::is_empty")]
+    pub cpu_us_per_sample_by_process: BTreeMap<String, f64>,
+    /// Involuntary context switches (preemptions) of the drive's processes per sample
+    /// (iceoryx2 variants): a stage preempted by the next one it woke is switched back in.
+    pub preemptions_per_sample: Option<f64>,
     /// System calls per sample that the variant's loops made at drivelab's own call sites:
     /// sleeps, futex waits and wakes, socket sends and receives (not the calls iceoryx2
     /// makes itself; none counted for cyclictest and the hop), set-up and shutdown included.
@@ -282,6 +290,8 @@ fn row(job: &Job, hz: f64, m: &VariantResult, hgrm: &Path) -> Row {
         budget: None,
         rounds: Vec::new(),
         waits_per_sample: None,
+        cpu_us_per_sample_by_process: BTreeMap::new(),
+        preemptions_per_sample: None,
         syscalls_per_sample: m.syscalls.map(|c| c as f64 / m.samples.max(1) as f64),
         cpu_per_wakeup_us: m
             .cpu_run_ns
@@ -290,6 +300,33 @@ fn row(job: &Job, hz: f64, m: &VariantResult, hgrm: &Path) -> Row {
             .then(|| misses_pm_if_sooner(&m.cycle, (1e9 / hz).round() as u64)),
         deadline_lateness: m.deadline_lateness.clone(),
     }
+}
+
+/// What each process of a chain costs the CPU per sample, against the sample period: the
+/// data that says why a chain that needs most of its core cannot catch up after a stall.
+fn cpu_per_sample_line(r: &Row) -> Option<String> {
+    if r.cpu_us_per_sample_by_process.is_empty() {
+        return None;
+    }
+    let parts: Vec<String> = r
+        .cpu_us_per_sample_by_process
+        .iter()
+        .map(|(p, us)| format!("{p} {us:.1} µs"))
+        .collect();
+    let total: f64 = r.cpu_us_per_sample_by_process.values().sum();
+    let ts_us = 1e6 / r.rate_hz;
+    Some(format!(
+        "CPU per sample, {} {} at {} kHz: {}; {:.1} µs of the {:.1} µs sample period ({:.0} %), with {:.2} waits and {:.2} preemptions a sample (user and kernel time, set-up and shutdown included: beside the stages' execution, each wake-up and context switch costs kernel time; what is left of the core is what the chain has to catch up after a stall).",
+        r.variant,
+        r.placement,
+        r.rate_hz / 1000.0,
+        parts.join(", "),
+        total,
+        ts_us,
+        100.0 * total / ts_us,
+        r.waits_per_sample.unwrap_or(0.0),
+        r.preemptions_per_sample.unwrap_or(0.0),
+    ))
 }
 
 /// One variant of the bench.
@@ -334,6 +371,8 @@ struct DriveRun {
     cpu_s: f64,
     /// Voluntary context switches (waits) of the drive's processes.
     switches: u64,
+    /// Each process's CPU time, s, and involuntary context switches, by process name.
+    by_process: BTreeMap<String, (f64, u64)>,
     hists: BTreeMap<String, LatencyHist>,
     topology: TopologyPlan,
 }
@@ -383,10 +422,16 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
         if name.ends_with(".stats.json") {
             let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&p)?)?;
             if let (Some(pr), Some(c)) = (v["process"].as_str(), v["process_cpu_s"].as_f64()) {
-                let sw = v["process_context_switches"]["voluntary"]
-                    .as_u64()
-                    .unwrap_or(0);
-                cpu.insert(pr.to_string(), (c, sw, v["process_syscalls"].as_u64()));
+                let sw = &v["process_context_switches"];
+                cpu.insert(
+                    pr.to_string(),
+                    (
+                        c,
+                        sw["voluntary"].as_u64().unwrap_or(0),
+                        v["process_syscalls"].as_u64(),
+                        sw["involuntary"].as_u64().unwrap_or(0),
+                    ),
+                );
             }
         } else if let Some(key) = name.strip_suffix(".hdr") {
             hists.insert(key.to_string(), LatencyHist::read_v2("hist", &p)?);
@@ -413,6 +458,7 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
         },
         cpu_s: cpu.values().map(|c| c.0).sum(),
         switches: cpu.values().map(|c| c.1).sum(),
+        by_process: cpu.iter().map(|(p, c)| (p.clone(), (c.0, c.3))).collect(),
         hists,
         topology,
     })
@@ -1525,6 +1571,8 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
         let mut acc: Vec<Acc> = jobs.iter().map(|_| Acc::default()).collect();
         let mut cpu: Vec<f64> = vec![0.0; jobs.len()];
         let mut switches: Vec<u64> = vec![0; jobs.len()];
+        let mut by_process: Vec<BTreeMap<String, (f64, u64)>> =
+            jobs.iter().map(|_| BTreeMap::new()).collect();
         let mut stage_hists: Vec<BTreeMap<String, LatencyHist>> =
             jobs.iter().map(|_| BTreeMap::new()).collect();
         let mut topologies: Vec<Option<TopologyPlan>> = jobs.iter().map(|_| None).collect();
@@ -1669,6 +1717,11 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
                     absorb(&mut acc[i], d.result)?;
                     cpu[i] += d.cpu_s;
                     switches[i] += d.switches;
+                    for (p, (c, pre)) in d.by_process {
+                        let e = by_process[i].entry(p).or_insert((0.0, 0));
+                        e.0 += c;
+                        e.1 += pre;
+                    }
                     for (k, h) in d.hists {
                         match stage_hists[i].get_mut(&k) {
                             Some(total) => total.add(&h)?,
@@ -1702,6 +1755,15 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
                 // Per simulated second: the rounds add up to `seconds` of drive.
                 r.cpu_s_per_s = Some(cpu[i] / seconds);
                 r.waits_per_sample = Some(switches[i] as f64 / r.samples.max(1) as f64);
+            }
+            if !by_process[i].is_empty() {
+                let n = r.samples.max(1) as f64;
+                r.cpu_us_per_sample_by_process = by_process[i]
+                    .iter()
+                    .map(|(p, (c, _))| (p.clone(), c * 1e6 / n))
+                    .collect();
+                r.preemptions_per_sample =
+                    Some(by_process[i].values().map(|(_, pre)| *pre).sum::<u64>() as f64 / n);
             }
             if let Some(t) = &topologies[i] {
                 let lat = stage_hists[i]
@@ -2004,6 +2066,9 @@ pub fn markdown(
                 b.path.join(" → "),
                 crate::budget::markdown(b)
             );
+        }
+        if let Some(line) = cpu_per_sample_line(r) {
+            let _ = writeln!(s, "\n{line}");
         }
     }
     if rows.iter().any(|r| r.variant == "iceoryx2+spin") {
