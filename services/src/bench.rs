@@ -157,13 +157,14 @@ pub struct Row {
     /// Voluntary context switches (waits, so wake-ups) of the drive's processes per sample,
     /// set-up and shutdown included (iceoryx2 variants and the Unix-socket chain).
     pub waits_per_sample: Option<f64>,
-    /// Each process's CPU time (user + system) per sample, µs, by process name (iceoryx2
-    /// variants), set-up and shutdown included: beside the stages' own execution, what the
-    /// kernel's wake-ups and context switches cost it on this machine.
+    /// Each process's CPU time (user + system) per sample over its run, µs, by process name
+    /// (iceoryx2 variants; set-up left out, warm-up included): beside the stages' own
+    /// execution, what the kernel's wake-ups and context switches cost it on this machine.
     #[serde(skip_serializing_if = "BTreeMap::is_empty")]
     pub cpu_us_per_sample_by_process: BTreeMap<String, f64>,
-    /// Involuntary context switches (preemptions) of the drive's processes per sample
-    /// (iceoryx2 variants): a stage preempted by the next one it woke is switched back in.
+    /// Involuntary context switches (preemptions) of the drive's processes per sample over
+    /// their runs (iceoryx2 variants): a stage preempted by the next one it woke is switched
+    /// back in.
     pub preemptions_per_sample: Option<f64>,
     /// System calls per sample that the variant's loops made at drivelab's own call sites:
     /// sleeps, futex waits and wakes, socket sends and receives (not the calls iceoryx2
@@ -316,7 +317,7 @@ fn cpu_per_sample_line(r: &Row) -> Option<String> {
     let total: f64 = r.cpu_us_per_sample_by_process.values().sum();
     let ts_us = 1e6 / r.rate_hz;
     Some(format!(
-        "CPU per sample, {} {} at {} kHz: {}; {:.1} µs of the {:.1} µs sample period ({:.0} %), with {:.2} waits and {:.2} preemptions a sample (user and kernel time, set-up and shutdown included: beside the stages' execution, each wake-up and context switch costs kernel time; what is left of the core is what the chain has to catch up after a stall).",
+        "CPU per sample, {} {} at {} kHz: {}; {:.1} µs of the {:.1} µs sample period ({:.0} %), with {:.2} preemptions a sample (user and kernel time from each process's run start, set-up left out, warm-up in: beside the stages' execution, each wake-up and context switch costs kernel time; what is left of the core is what the chain has to catch up after a stall).",
         r.variant,
         r.placement,
         r.rate_hz / 1000.0,
@@ -324,7 +325,6 @@ fn cpu_per_sample_line(r: &Row) -> Option<String> {
         total,
         ts_us,
         100.0 * total / ts_us,
-        r.waits_per_sample.unwrap_or(0.0),
         r.preemptions_per_sample.unwrap_or(0.0),
     ))
 }
@@ -371,7 +371,8 @@ struct DriveRun {
     cpu_s: f64,
     /// Voluntary context switches (waits) of the drive's processes.
     switches: u64,
-    /// Each process's CPU time, s, and involuntary context switches, by process name.
+    /// Each process's CPU time, s, and involuntary context switches over its run (set-up
+    /// left out), by process name.
     by_process: BTreeMap<String, (f64, u64)>,
     hists: BTreeMap<String, LatencyHist>,
     topology: TopologyPlan,
@@ -429,7 +430,10 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
                         c,
                         sw["voluntary"].as_u64().unwrap_or(0),
                         v["process_syscalls"].as_u64(),
-                        sw["involuntary"].as_u64().unwrap_or(0),
+                        v["run_cpu_s"].as_f64().unwrap_or(0.0),
+                        v["run_context_switches"]["involuntary"]
+                            .as_u64()
+                            .unwrap_or(0),
                     ),
                 );
             }
@@ -458,7 +462,7 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
         },
         cpu_s: cpu.values().map(|c| c.0).sum(),
         switches: cpu.values().map(|c| c.1).sum(),
-        by_process: cpu.iter().map(|(p, c)| (p.clone(), (c.0, c.3))).collect(),
+        by_process: cpu.iter().map(|(p, c)| (p.clone(), (c.3, c.4))).collect(),
         hists,
         topology,
     })

@@ -686,6 +686,8 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
             );
         }
     }
+    // What the set-up cost is not the run's: its figures start here.
+    let at_run = usage(libc::RUSAGE_SELF);
     host.run()?;
     if host.transport.shadow.is_some() {
         // A twin that never took over: the active instance's statistics are the process's.
@@ -696,7 +698,7 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
             crate::errln!("{}: warning: {w}", h.stage.name());
         }
     }
-    write_stats(&args, &pname, &report, &host, &startup)
+    write_stats(&args, &pname, &report, &host, &startup, at_run)
 }
 
 /// Publishers per drive topic: 1, or 2 when a process of a real-time drive has a standby
@@ -1285,6 +1287,11 @@ pub struct StageStats<'a> {
     /// Context switches of the whole process at its end: voluntary (it waited) and
     /// involuntary (it was preempted), the scheduler's view of its wake-ups.
     pub process_context_switches: ContextSwitches,
+    /// CPU time (user + system) of the whole process from the start of its run (after its
+    /// set-up and the launcher's GO) to its end, s.
+    pub run_cpu_s: f64,
+    /// Context switches of the whole process over the same span.
+    pub run_context_switches: ContextSwitches,
     /// The system calls the process's loop made at drivelab's own call sites, from its start
     /// to its end (`rt::syscalls`: its sleeps, futex waits and wakes; not iceoryx2's own).
     pub process_syscalls: u64,
@@ -1311,10 +1318,19 @@ fn write_stats<T: Transport>(
     rt: &RtReport,
     host: &Host<T>,
     startup_ms: &[(&'static str, f64)],
+    at_run: (f64, ContextSwitches),
 ) -> Result<()> {
     let Some(dir) = &args.out else { return Ok(()) };
     let diags = host.diagnostics();
     let (process_cpu_s, process_context_switches) = usage(libc::RUSAGE_SELF);
+    let run_context_switches = ContextSwitches {
+        voluntary: process_context_switches
+            .voluntary
+            .saturating_sub(at_run.1.voluntary),
+        involuntary: process_context_switches
+            .involuntary
+            .saturating_sub(at_run.1.involuntary),
+    };
     for (i, h) in host.stages.iter().enumerate() {
         let name = h.stage.name();
         let source = i == 0 && host.is_source();
@@ -1344,6 +1360,8 @@ fn write_stats<T: Transport>(
             rt,
             process_cpu_s,
             process_context_switches,
+            run_cpu_s: (process_cpu_s - at_run.0).max(0.0),
+            run_context_switches,
             process_syscalls: crate::rt::syscalls(),
             counters,
             diagnostics: diags[i].1.iter().copied().collect(),
