@@ -154,9 +154,10 @@ fn monitor_shows_a_lockstep_drive_refuses_faults_and_restores_the_terminal() {
     let _serial = serial();
     let bus = bus_id("lock");
     let out = scratch("lock").join("run");
-    // 10 s of drive (10^5 samples) after the first statuses: far more than the moment the
-    // test takes to hold it.
-    let drive = Drive::start(&bus, &out, &["--clock", "lockstep", "--duration", "10"]);
+    // 30 s of drive (3·10^5 samples, 10–15 s in lockstep on a 2-core VM) after the first
+    // statuses: far more than the moment the test takes to hold it. (With 10 s, once in a
+    // CI run, the drive had run to its end before the hold.)
+    let drive = Drive::start(&bus, &out, &["--clock", "lockstep", "--duration", "30"]);
     let held = Held::once_all_report(&bus);
     let printed = wait_attachable(&bus);
     assert!(
