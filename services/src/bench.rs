@@ -373,9 +373,27 @@ struct DriveRun {
     switches: u64,
     /// Each process's CPU time, s, and involuntary context switches over its run (set-up
     /// left out), by process name.
-    by_process: BTreeMap<String, (f64, u64)>,
+    by_process: BTreeMap<String, RunUsage>,
     hists: BTreeMap<String, LatencyHist>,
     topology: TopologyPlan,
+}
+
+/// A process's CPU time, s, and its preemptions over its run (`run_*` in its stats.json).
+#[derive(Debug, Clone, Copy, Default)]
+struct RunUsage {
+    cpu_s: f64,
+    preemptions: u64,
+}
+
+/// What a process's stats.json says of its cost (each process counted once).
+struct ProcessUsage {
+    /// CPU time from its start, s.
+    cpu_s: f64,
+    /// Voluntary context switches (waits) from its start.
+    waits: u64,
+    /// System calls at drivelab's own call sites, if it counted them.
+    syscalls: Option<u64>,
+    run: RunUsage,
 }
 
 /// Runs the iceoryx2 chain through the real launcher (in `topology`, if given) and reads
@@ -423,18 +441,21 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
         if name.ends_with(".stats.json") {
             let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&p)?)?;
             if let (Some(pr), Some(c)) = (v["process"].as_str(), v["process_cpu_s"].as_f64()) {
-                let sw = &v["process_context_switches"];
                 cpu.insert(
                     pr.to_string(),
-                    (
-                        c,
-                        sw["voluntary"].as_u64().unwrap_or(0),
-                        v["process_syscalls"].as_u64(),
-                        v["run_cpu_s"].as_f64().unwrap_or(0.0),
-                        v["run_context_switches"]["involuntary"]
+                    ProcessUsage {
+                        cpu_s: c,
+                        waits: v["process_context_switches"]["voluntary"]
                             .as_u64()
                             .unwrap_or(0),
-                    ),
+                        syscalls: v["process_syscalls"].as_u64(),
+                        run: RunUsage {
+                            cpu_s: v["run_cpu_s"].as_f64().unwrap_or(0.0),
+                            preemptions: v["run_context_switches"]["involuntary"]
+                                .as_u64()
+                                .unwrap_or(0),
+                        },
+                    },
                 );
             }
         } else if let Some(key) = name.strip_suffix(".hdr") {
@@ -458,11 +479,11 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
             cpu_run_ns: None,
             deadline_lateness: Vec::new(),
             // Every process's, or none when one did not say.
-            syscalls: cpu.values().map(|c| c.2).sum(),
+            syscalls: cpu.values().map(|c| c.syscalls).sum(),
         },
-        cpu_s: cpu.values().map(|c| c.0).sum(),
-        switches: cpu.values().map(|c| c.1).sum(),
-        by_process: cpu.iter().map(|(p, c)| (p.clone(), (c.3, c.4))).collect(),
+        cpu_s: cpu.values().map(|c| c.cpu_s).sum(),
+        switches: cpu.values().map(|c| c.waits).sum(),
+        by_process: cpu.into_iter().map(|(p, c)| (p, c.run)).collect(),
         hists,
         topology,
     })
@@ -1575,7 +1596,7 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
         let mut acc: Vec<Acc> = jobs.iter().map(|_| Acc::default()).collect();
         let mut cpu: Vec<f64> = vec![0.0; jobs.len()];
         let mut switches: Vec<u64> = vec![0; jobs.len()];
-        let mut by_process: Vec<BTreeMap<String, (f64, u64)>> =
+        let mut by_process: Vec<BTreeMap<String, RunUsage>> =
             jobs.iter().map(|_| BTreeMap::new()).collect();
         let mut stage_hists: Vec<BTreeMap<String, LatencyHist>> =
             jobs.iter().map(|_| BTreeMap::new()).collect();
@@ -1721,10 +1742,10 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
                     absorb(&mut acc[i], d.result)?;
                     cpu[i] += d.cpu_s;
                     switches[i] += d.switches;
-                    for (p, (c, pre)) in d.by_process {
-                        let e = by_process[i].entry(p).or_insert((0.0, 0));
-                        e.0 += c;
-                        e.1 += pre;
+                    for (p, u) in d.by_process {
+                        let e = by_process[i].entry(p).or_default();
+                        e.cpu_s += u.cpu_s;
+                        e.preemptions += u.preemptions;
                     }
                     for (k, h) in d.hists {
                         match stage_hists[i].get_mut(&k) {
@@ -1764,10 +1785,10 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
                 let n = r.samples.max(1) as f64;
                 r.cpu_us_per_sample_by_process = by_process[i]
                     .iter()
-                    .map(|(p, (c, _))| (p.clone(), c * 1e6 / n))
+                    .map(|(p, u)| (p.clone(), u.cpu_s * 1e6 / n))
                     .collect();
                 r.preemptions_per_sample =
-                    Some(by_process[i].values().map(|(_, pre)| *pre).sum::<u64>() as f64 / n);
+                    Some(by_process[i].values().map(|u| u.preemptions).sum::<u64>() as f64 / n);
             }
             if let Some(t) = &topologies[i] {
                 let lat = stage_hists[i]

@@ -776,6 +776,17 @@ pub fn leftovers(id: &str) -> Vec<String> {
     v
 }
 
+/// Removes bus `id`'s files when dropped, also when a test fails (tests only).
+#[cfg(test)]
+pub(crate) struct CleanupOnDrop(pub String);
+
+#[cfg(test)]
+impl Drop for CleanupOnDrop {
+    fn drop(&mut self) {
+        let _ = cleanup(&self.0);
+    }
+}
+
 /// Supervisor helper: lists the nodes of bus `id` through iceoryx2's node liveness, removes
 /// the stale resources of every dead one, and returns the dead nodes' names.
 pub fn reap_dead_nodes(id: &str) -> Result<Vec<String>> {
@@ -821,14 +832,8 @@ mod tests {
     /// (a standby twin's takeover), every message arrives once and in order.
     #[test]
     fn a_sender_holding_its_next_sample_delivers_every_message_once_in_order() {
-        struct Gone(String);
-        impl Drop for Gone {
-            fn drop(&mut self) {
-                let _ = cleanup(&self.0);
-            }
-        }
         let bus = format!("bsp{}", std::process::id());
-        let _gone = Gone(bus.clone());
+        let _cleanup = CleanupOnDrop(bus.clone());
         let node = node(&bus, "spare").unwrap();
         let topics = DriveTopics::open_with(&node, WakeKind::Futex, &bus).unwrap();
         let rx = topics.est.receiver(4).unwrap();

@@ -1323,14 +1323,8 @@ fn write_stats<T: Transport>(
     let Some(dir) = &args.out else { return Ok(()) };
     let diags = host.diagnostics();
     let (process_cpu_s, process_context_switches) = usage(libc::RUSAGE_SELF);
-    let run_context_switches = ContextSwitches {
-        voluntary: process_context_switches
-            .voluntary
-            .saturating_sub(at_run.1.voluntary),
-        involuntary: process_context_switches
-            .involuntary
-            .saturating_sub(at_run.1.involuntary),
-    };
+    let run_cpu_s = (process_cpu_s - at_run.0).max(0.0);
+    let run_context_switches = process_context_switches.since(at_run.1);
     for (i, h) in host.stages.iter().enumerate() {
         let name = h.stage.name();
         let source = i == 0 && host.is_source();
@@ -1360,7 +1354,7 @@ fn write_stats<T: Transport>(
             rt,
             process_cpu_s,
             process_context_switches,
-            run_cpu_s: (process_cpu_s - at_run.0).max(0.0),
+            run_cpu_s,
             run_context_switches,
             process_syscalls: crate::rt::syscalls(),
             counters,
@@ -1383,6 +1377,16 @@ pub struct ContextSwitches {
     pub voluntary: u64,
     /// It was preempted.
     pub involuntary: u64,
+}
+
+impl ContextSwitches {
+    /// The switches since `earlier` (a reading of the same process).
+    fn since(self, earlier: Self) -> Self {
+        Self {
+            voluntary: self.voluntary.saturating_sub(earlier.voluntary),
+            involuntary: self.involuntary.saturating_sub(earlier.involuntary),
+        }
+    }
 }
 
 /// CPU time (user + system, s) and context switches so far of this process (`who` =
@@ -1479,14 +1483,8 @@ mod tests {
     /// loop's divider): without it the speed loop would sleep through sample 10.
     #[test]
     fn a_twin_that_takes_over_wakes_the_readers_its_dead_predecessor_did_not() {
-        struct Cleanup(String);
-        impl Drop for Cleanup {
-            fn drop(&mut self) {
-                let _ = bus::cleanup(&self.0);
-            }
-        }
         let bus = format!("svtw{}", std::process::id());
-        let _cleanup = Cleanup(bus.clone());
+        let _cleanup = bus::CleanupOnDrop(bus.clone());
         let life = std::sync::Arc::new(Life::create(&bus, 1).unwrap());
         let node = bus::node(&bus, "twin").unwrap();
         let topics = DriveTopics::open_for(&node, bus::WakeKind::Futex, &bus, 2).unwrap();
