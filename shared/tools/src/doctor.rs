@@ -106,6 +106,7 @@ pub fn run_checks_in(root: &Path) -> Vec<Check> {
         mlock_check(&caps),
         timer_slack_check(&fs),
         clocksource_check(&fs),
+        address_space_check(&fs),
         dev_shm_check(&fs),
         cpuidle_check(&fs),
         cpu_latency_request_check(&fs),
@@ -1355,6 +1356,69 @@ fn clocksource_check(fs: &Fs) -> Check {
     )
 }
 
+/// Whether a switch between two processes on a CPU keeps their TLB entries. x86 tags them
+/// with a process-context ID when the CPU offers one (`pcid` in `/proc/cpuinfo`, which the
+/// kernel clears when it does not use it); without it every switch to another address space
+/// drops the user entries, and a stage woken in another process walks the page tables again
+/// for every page it touches (docs/architecture.md, "Where the microseconds go"). ARM cores
+/// tag them with address-space IDs.
+fn address_space_check(fs: &Fs) -> Check {
+    const NAME: &str = "address spaces";
+    let Some(cpuinfo) = fs.read("/proc/cpuinfo") else {
+        return Check::new(NAME, "unknown (/proc/cpuinfo not readable)", Status::Unknown, None);
+    };
+    let field = |key: &str| {
+        cpuinfo.lines().find_map(|l| {
+            let (k, v) = l.split_once(':')?;
+            (k.trim() == key).then(|| v.split_whitespace().collect::<Vec<_>>())
+        })
+    };
+    if let Some(flags) = field("flags") {
+        let vm = if flags.contains(&"hypervisor") {
+            " (a VM: each walk also goes through the host's tables)"
+        } else {
+            ""
+        };
+        if flags.contains(&"pcid") {
+            return Check::new(
+                NAME,
+                "PCID: a switch between processes keeps each one's TLB entries",
+                Status::Ok,
+                None,
+            );
+        }
+        return Check::new(
+            NAME,
+            format!(
+                "no PCID: every switch between two processes on a cpu empties the TLB of user \
+                 pages{vm}"
+            ),
+            Status::Warn,
+            Some(
+                "a stage woken in another process walks the page tables again for every page \
+                 it touches (bench/c/tlb_after_switch.c measures what a page costs here); fewer \
+                 of the drive's processes on a cpu mean fewer such switches: the two-process \
+                 and one-process topologies (drivelab run --topology)"
+                    .into(),
+            ),
+        );
+    }
+    if field("Features").is_some() || field("CPU architecture").is_some() {
+        return Check::new(
+            NAME,
+            "ARM address-space IDs: a switch between processes keeps each one's TLB entries",
+            Status::Ok,
+            None,
+        );
+    }
+    Check::new(
+        NAME,
+        "unknown (no x86 flags or ARM features in /proc/cpuinfo)",
+        Status::Unknown,
+        None,
+    )
+}
+
 /// How long [`other_load_check`] watches the machine.
 const BUSY_WINDOW: std::time::Duration = std::time::Duration::from_millis(300);
 
@@ -1880,6 +1944,49 @@ mod tests {
                 "unlimited (CAP_IPC_LOCK; RLIMIT_MEMLOCK 8 MiB/8 MiB)"
             )
         );
+    }
+
+    #[test]
+    fn address_space_switches_are_judged_by_pcid_or_arm_asids() {
+        let root = FakeRoot::new();
+        let x86 = |flags: &str| {
+            format!("processor\t: 0\nmodel name\t: AMD EPYC\nflags\t\t: fpu pse {flags} sse2\n\nprocessor\t: 1\n")
+        };
+        root.write("/proc/cpuinfo", &x86("pge hypervisor"));
+        let c = address_space_check(&root.fs());
+        assert_eq!(c.status, Status::Warn);
+        assert_eq!(
+            c.value,
+            "no PCID: every switch between two processes on a cpu empties the TLB of user \
+             pages (a VM: each walk also goes through the host's tables)"
+        );
+        assert!(c.advice.as_deref().unwrap().contains("--topology"));
+
+        root.write("/proc/cpuinfo", &x86("pge"));
+        let c = address_space_check(&root.fs());
+        assert_eq!(c.status, Status::Warn);
+        assert!(!c.value.contains("VM"), "{}", c.value);
+
+        // "pcid" as a whole flag, not as a part of "invpcid" alone
+        root.write("/proc/cpuinfo", &x86("invpcid hypervisor"));
+        assert_eq!(address_space_check(&root.fs()).status, Status::Warn);
+        root.write("/proc/cpuinfo", &x86("pcid invpcid hypervisor"));
+        let c = address_space_check(&root.fs());
+        assert_eq!(c.status, Status::Ok);
+        assert!(c.value.starts_with("PCID"), "{}", c.value);
+
+        root.write(
+            "/proc/cpuinfo",
+            "processor\t: 0\nBogoMIPS\t: 108.00\nFeatures\t: fp asimd evtstrm crc32\nCPU architecture: 8\n",
+        );
+        let c = address_space_check(&root.fs());
+        assert_eq!(c.status, Status::Ok);
+        assert!(c.value.starts_with("ARM address-space IDs"), "{}", c.value);
+
+        root.write("/proc/cpuinfo", "processor\t: 0\n");
+        assert_eq!(address_space_check(&root.fs()).status, Status::Unknown);
+        let empty = FakeRoot::new();
+        assert_eq!(address_space_check(&empty.fs()).status, Status::Unknown);
     }
 
     #[test]
