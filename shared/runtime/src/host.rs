@@ -1476,6 +1476,13 @@ impl<T: Transport> Host<T> {
             for h in self.stages.iter_mut() {
                 h.stage.after_publish();
             }
+            // Take what the next sample reads if it is here already: on one core the chain
+            // has published command k before the source runs again, and a read at the next
+            // deadline would put the bus call on the critical path. What has not come yet is
+            // read at the deadline as before, so the inputs and their counts do not change.
+            if realtime && k < n {
+                self.drain_external(None, Some(k + 1), Some(k + 1))?;
+            }
             self.status(false)?;
             if !realtime {
                 // Flow control: never run more than half a recorder buffer ahead.
@@ -1730,7 +1737,7 @@ mod tests {
     use super::*;
     use crate::config::Scenario;
     use crate::messages::*;
-    use crate::stages::{CurrentLoopStage, ObserverStage, SpeedLoopStage};
+    use crate::stages::{CurrentLoopStage, ObserverStage, PlantStage, SpeedLoopStage};
     use std::collections::VecDeque;
 
     fn scenario() -> Scenario {
@@ -2171,6 +2178,102 @@ mod tests {
         // One more read of each at the end marker, which takes whatever waits.
         assert_eq!(reads[TopicId::Meas.index()], 25 + 1, "{reads:?}");
         assert_eq!(reads[TopicId::Iref.index()], 3 + 1, "{reads:?}");
+    }
+
+    /// A real-time source takes the command its next sample reads as soon as the chain has
+    /// published it, after its own sample's work and before it sleeps to the next deadline,
+    /// not after that deadline: the transport answers measurement k with command k at once
+    /// (a chain on the source's core), and every command is read once, before the source's
+    /// status report of the sample that made it. (A source that read its command only at
+    /// the deadline read command k after that report.) Every sample but the first is made
+    /// from its fresh command and none counts as late.
+    #[test]
+    fn a_source_takes_its_next_command_before_it_sleeps() {
+        #[derive(Debug, PartialEq)]
+        enum Event {
+            Read(u64),
+            Status(u64),
+        }
+        #[derive(Default)]
+        struct Chain {
+            cmds: VecDeque<Msg>,
+            events: Vec<Event>,
+        }
+        impl Transport for Chain {
+            fn send(&mut self, msg: &Msg) -> Result<()> {
+                if let Msg::Meas(m) = msg {
+                    if !m.hdr.is_end() {
+                        self.cmds.push_back(Msg::Cmd(VoltageCommand {
+                            hdr: header(m.hdr.k, m.hdr.t_sample_ns),
+                            ..Default::default()
+                        }));
+                    }
+                }
+                Ok(())
+            }
+            fn try_recv(&mut self, topic: TopicId) -> Result<Option<Msg>> {
+                assert_eq!(topic, TopicId::Cmd, "the plant reads only commands");
+                let m = self.cmds.pop_front();
+                if let Some(m) = &m {
+                    self.events.push(Event::Read(m.hdr().k));
+                }
+                Ok(m)
+            }
+            fn pending(&mut self, _topic: TopicId) -> Result<bool> {
+                Ok(!self.cmds.is_empty())
+            }
+            fn wait(&mut self, _topic: TopicId, _timeout: Duration) -> Result<()> {
+                panic!("a real-time source sleeps to its deadlines, it does not wait")
+            }
+            fn status(
+                &mut self,
+                _i: usize,
+                k: u64,
+                _c: &Counters,
+                _h: &StageHists,
+                _cycle: Option<&CycleMonitor>,
+                last: bool,
+            ) -> Result<()> {
+                if !last {
+                    self.events.push(Event::Status(k));
+                }
+                Ok(())
+            }
+        }
+        let sc = scenario();
+        let n = 40;
+        let stages: Vec<Box<dyn Stage>> = vec![Box::new(PlantStage::new(&sc))];
+        let producers = [
+            (TopicId::Cmd, 1, false),
+            (TopicId::Meas, 1, true),
+            (TopicId::Truth, 1, true),
+        ];
+        let cfg = HostConfig {
+            samples: n,
+            ..config(&sc)
+        };
+        let mut host = Host::new(stages, &producers, Chain::default(), cfg);
+        host.run().unwrap();
+        let events = &host.transport.events;
+        let at = |e: Event| {
+            events
+                .iter()
+                .position(|x| *x == e)
+                .unwrap_or_else(|| panic!("no {e:?} in {events:?}"))
+        };
+        for k in 0..n - 1 {
+            assert!(
+                at(Event::Read(k)) < at(Event::Status(k)),
+                "command {k} read after the report of sample {k}: {events:?}"
+            );
+        }
+        let reads = events
+            .iter()
+            .filter(|e| matches!(e, Event::Read(_)))
+            .count();
+        assert_eq!(reads as u64, n, "each command once: {events:?}");
+        let c = &host.stages[0].counters;
+        assert_eq!((c.samples, c.late_commands, c.stale_inputs), (n, 0, 0));
     }
 
     /// The speed loop's reference of sample 0 is the one the current loop expects up to
