@@ -1480,7 +1480,7 @@ impl<T: Transport> Host<T> {
             // has published command k before the source runs again, and a read at the next
             // deadline would put the bus call on the critical path. What has not come yet is
             // read at the deadline as before, so the inputs and their counts do not change.
-            if realtime && k < n {
+            if realtime {
                 self.drain_external(None, Some(k + 1), Some(k + 1))?;
             }
             self.status(false)?;

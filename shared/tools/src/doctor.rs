@@ -1365,7 +1365,12 @@ fn clocksource_check(fs: &Fs) -> Check {
 fn address_space_check(fs: &Fs) -> Check {
     const NAME: &str = "address spaces";
     let Some(cpuinfo) = fs.read("/proc/cpuinfo") else {
-        return Check::new(NAME, "unknown (/proc/cpuinfo not readable)", Status::Unknown, None);
+        return Check::new(
+            NAME,
+            "unknown (/proc/cpuinfo not readable)",
+            Status::Unknown,
+            None,
+        );
     };
     let field = |key: &str| {
         cpuinfo.lines().find_map(|l| {
