@@ -16,9 +16,17 @@
 # features; it builds ring (C) with the same cross compiler. drivelab-host never links it.
 #
 # The linker and the qemu runner of each target are in .cargo/config.toml.
+#
+#   scripts/cross.sh --tools-only aarch64-unknown-linux-gnu   # install only, build nothing
+#                                                             # (scripts/setup.sh does this)
 set -euo pipefail
 cd "$(dirname "$0")/.."
-usage="usage: scripts/cross.sh aarch64-unknown-linux-gnu|armv7-unknown-linux-gnueabihf [CARGO BUILD ARGS...]"
+usage="usage: scripts/cross.sh [--tools-only] aarch64-unknown-linux-gnu|armv7-unknown-linux-gnueabihf [CARGO BUILD ARGS...]"
+tools_only=0
+if [ "${1:-}" = "--tools-only" ]; then
+  tools_only=1
+  shift
+fi
 [ $# -ge 1 ] || { echo "$usage" >&2; exit 2; }
 target=$1
 shift
@@ -47,6 +55,7 @@ if [ ${#need[@]} -gt 0 ]; then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends \
     "${need[@]}" >/dev/null
 fi
+[ "$tools_only" -eq 0 ] || exit 0
 
 cargo build --release --target "$target" --no-default-features \
   -p drivelab-runtime --bin drivelab-host -p drivelab-services --bin drivelab "$@"

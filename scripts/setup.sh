@@ -4,7 +4,8 @@
 # (the monitor's terminal test runs it), rt-tests (cyclictest: `drivelab bench`
 # cross-checks its floor against it), openssl (the Zenoh TLS test's certificates) and a
 # project-local Python environment, .venv/ (git-ignored), with the `mcap` package from PyPI
-# (the test that reads trace.mcap with a reader drivelab did not write).
+# (the test that reads trace.mcap with a reader drivelab did not write); and, if it can,
+# what the aarch64 and armv7 cross builds need (scripts/cross.sh --tools-only).
 # Idempotent; changes no kernel setting.
 set -euo pipefail
 need=()
@@ -44,3 +45,12 @@ if ! .venv/bin/python -c "import importlib.metadata as m, sys; sys.exit(m.versio
   echo "setup: installing mcap==$MCAP_PY into .venv" >&2
   .venv/bin/python -m pip install --quiet --disable-pip-version-check "mcap==$MCAP_PY"
 fi
+# The ARM builds that tests/cross.rs makes and runs under qemu-user (their lockstep traces
+# must equal the x86_64 ones): the Rust targets from rustup, Debian's cross compilers and
+# qemu-user, through scripts/cross.sh. Best effort: where one cannot be installed (rustup's
+# server out of reach, say) this says so in one line, and so does each test that needs it.
+for target in aarch64-unknown-linux-gnu armv7-unknown-linux-gnueabihf; do
+  if ! timeout 600 bash scripts/cross.sh --tools-only "$target"; then
+    echo "setup: the $target cross build's tools could not be installed; tests/cross.rs will say it did not run it" >&2
+  fi
+done

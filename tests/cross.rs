@@ -1,13 +1,13 @@
-//! The embedded target: the runner that prefixes every process the launcher starts, and an
-//! aarch64 build (`scripts/cross.sh aarch64-unknown-linux-gnu`) run under qemu-user, whose
-//! lockstep traces must equal the x86_64 ones byte for byte and whose doctor must read this
-//! machine's files without failing.
+//! The embedded target: the runner that prefixes every process the launcher starts, and the
+//! aarch64 and armv7 builds (`scripts/cross.sh TRIPLE`) run under qemu-user, whose lockstep
+//! traces must equal the x86_64 ones byte for byte and whose doctor must read this machine's
+//! files without failing.
 //!
-//! The aarch64 tests need the Rust target, Debian's `aarch64-linux-gnu-gcc` and
-//! `qemu-aarch64` (all installed by `scripts/cross.sh`). Without them each says in one line
-//! why it did not run, and passes. With them it builds the two aarch64 binaries (release,
-//! `--no-default-features`, into `target/aarch64-unknown-linux-gnu/release`, as the script
-//! does; a no-op when they are up to date).
+//! Those tests need the target's Rust standard library, Debian's cross compiler and
+//! qemu-user (`scripts/setup.sh` installs them where it can, through `scripts/cross.sh
+//! --tools-only`). Without them each says in one line what is missing and does not run.
+//! With them it builds the two binaries (release, `--no-default-features`, into
+//! `target/TRIPLE/release`, as the script does; a no-op when they are up to date).
 
 mod common;
 
@@ -16,10 +16,6 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::sync::OnceLock;
 use std::time::Duration;
-
-const TARGET: &str = "aarch64-unknown-linux-gnu";
-/// The runner of the aarch64 binaries on this machine (no binfmt handler is registered).
-const QEMU: &str = "qemu-aarch64 -L /usr/aarch64-linux-gnu";
 
 /// A script that logs its arguments to the file named first and then execs the rest.
 fn logging_runner(dir: &Path) -> (String, PathBuf) {
@@ -194,99 +190,139 @@ fn a_bad_runner_is_one_line_and_leaves_nothing() {
     }
 }
 
-/// The aarch64 binaries, built once per test binary; Err(why) when the toolchain is absent
-/// or the build failed (then the reason says which).
-fn aarch64_build() -> &'static Result<PathBuf, String> {
-    static BUILT: OnceLock<Result<PathBuf, String>> = OnceLock::new();
-    BUILT.get_or_init(|| {
-        let on_path = |c: &str| {
-            Command::new("sh")
-                .args(["-c", &format!("command -v {c}")])
-                .output()
-                .is_ok_and(|o| o.status.success())
-        };
-        let sysroot = Command::new("rustc")
-            .args(["--print", "sysroot"])
-            .output()
-            .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
-            .unwrap_or_default();
-        let missing: Vec<&str> = [
-            (
-                Path::new(&sysroot)
-                    .join("lib/rustlib")
-                    .join(TARGET)
-                    .is_dir(),
-                "the Rust target",
-            ),
-            (on_path("aarch64-linux-gnu-gcc"), "aarch64-linux-gnu-gcc"),
-            (on_path("qemu-aarch64"), "qemu-aarch64"),
-            (
-                Path::new("/usr/aarch64-linux-gnu/lib").is_dir(),
-                "/usr/aarch64-linux-gnu",
-            ),
-        ]
-        .into_iter()
-        .filter(|(ok, _)| !ok)
-        .map(|(_, what)| what)
-        .collect();
-        if !missing.is_empty() {
-            return Err(format!(
-                "not run: {} missing (scripts/cross.sh {TARGET} installs them)",
-                missing.join(", ")
-            ));
-        }
-        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-        let o = Command::new(cargo)
-            .current_dir(&root)
-            .args([
-                "build",
-                "--release",
-                "--target",
-                TARGET,
-                "--no-default-features",
-            ])
-            .args(["-p", "drivelab-runtime", "--bin", "drivelab-host"])
-            .args(["-p", "drivelab-services", "--bin", "drivelab"])
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .output()
-            .map_err(|e| format!("cannot run cargo: {e}"))?;
-        if !o.status.success() {
-            // A toolchain that is there but does not build is a failure, not a skip.
-            panic!(
-                "the aarch64 build failed:\n{}",
-                String::from_utf8_lossy(&o.stderr)
-            );
-        }
-        Ok(root.join("target").join(TARGET).join("release"))
-    })
+/// An ARM target this test builds for and runs under qemu-user (no binfmt handler is
+/// registered, so every process is started through its runner).
+struct Arm {
+    triple: &'static str,
+    /// Debian's cross compiler (the linker in .cargo/config.toml).
+    gcc: &'static str,
+    qemu: &'static str,
+    /// The target's C library tree, qemu's `-L`.
+    root: &'static str,
+    /// What the guest's uname says: the kernel line of its doctor.
+    machine: &'static str,
+    built: OnceLock<Result<PathBuf, String>>,
 }
 
-/// The aarch64 build's directory, or None after printing why the test does not run.
-fn aarch64_or_skip(test: &str) -> Option<PathBuf> {
-    match aarch64_build() {
-        Ok(d) => Some(d.clone()),
-        Err(why) => {
-            eprintln!("{test}: {why}");
-            None
+impl Arm {
+    /// `qemu-… -L /usr/…`: the runner of every process the launcher starts.
+    fn runner(&self) -> String {
+        format!("{} -L {}", self.qemu, self.root)
+    }
+
+    /// The release binaries, built once per test binary; Err(why) when the toolchain is
+    /// absent (then the reason says what is missing).
+    fn build(&self) -> &Result<PathBuf, String> {
+        self.built.get_or_init(|| {
+            let on_path = |c: &str| {
+                Command::new("sh")
+                    .args(["-c", &format!("command -v {c}")])
+                    .output()
+                    .is_ok_and(|o| o.status.success())
+            };
+            let sysroot = Command::new("rustc")
+                .args(["--print", "sysroot"])
+                .output()
+                .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
+                .unwrap_or_default();
+            let missing: Vec<&str> = [
+                (
+                    Path::new(&sysroot)
+                        .join("lib/rustlib")
+                        .join(self.triple)
+                        .is_dir(),
+                    "the Rust target",
+                ),
+                (on_path(self.gcc), self.gcc),
+                (on_path(self.qemu), self.qemu),
+                (Path::new(self.root).join("lib").is_dir(), self.root),
+            ]
+            .into_iter()
+            .filter(|(ok, _)| !ok)
+            .map(|(_, what)| what)
+            .collect();
+            if !missing.is_empty() {
+                return Err(format!(
+                    "not run: {} missing (scripts/cross.sh {} installs them)",
+                    missing.join(", "),
+                    self.triple
+                ));
+            }
+            let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+            let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+            let o = Command::new(cargo)
+                .current_dir(&root)
+                .args([
+                    "build",
+                    "--release",
+                    "--target",
+                    self.triple,
+                    "--no-default-features",
+                ])
+                .args(["-p", "drivelab-runtime", "--bin", "drivelab-host"])
+                .args(["-p", "drivelab-services", "--bin", "drivelab"])
+                .stdout(Stdio::null())
+                .stderr(Stdio::piped())
+                .output()
+                .map_err(|e| format!("cannot run cargo: {e}"))?;
+            if !o.status.success() {
+                // A toolchain that is there but does not build is a failure, not a skip.
+                panic!(
+                    "the {} build failed:\n{}",
+                    self.triple,
+                    String::from_utf8_lossy(&o.stderr)
+                );
+            }
+            Ok(root.join("target").join(self.triple).join("release"))
+        })
+    }
+
+    /// The build's directory, or None after printing why the test does not run.
+    fn build_or_skip(&self, test: &str) -> Option<PathBuf> {
+        match self.build() {
+            Ok(d) => Some(d.clone()),
+            Err(why) => {
+                eprintln!("{test} ({}): {why}", self.triple);
+                None
+            }
         }
+    }
+
+    /// `drivelab` of this build under qemu-user, with a watchdog.
+    fn drivelab(&self, bin: &Path, args: &[&str], watchdog: Duration) -> Output {
+        let child = Command::new(self.qemu)
+            .args(["-L", self.root])
+            .arg(bin.join("drivelab"))
+            .args(args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap_or_else(|e| panic!("start {}: {e}", self.qemu));
+        wait(
+            child,
+            watchdog,
+            &format!("{} drivelab {args:?}", self.triple),
+        )
     }
 }
 
-/// `drivelab` of the aarch64 build under qemu-user, with a watchdog.
-fn aarch64_drivelab(bin: &Path, args: &[&str], watchdog: Duration) -> Output {
-    let mut words = QEMU.split_whitespace();
-    let child = Command::new(words.next().unwrap())
-        .args(words)
-        .arg(bin.join("drivelab"))
-        .args(args)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("start qemu-aarch64");
-    wait(child, watchdog, &format!("aarch64 drivelab {args:?}"))
-}
+static AARCH64: Arm = Arm {
+    triple: "aarch64-unknown-linux-gnu",
+    gcc: "aarch64-linux-gnu-gcc",
+    qemu: "qemu-aarch64",
+    root: "/usr/aarch64-linux-gnu",
+    machine: "aarch64",
+    built: OnceLock::new(),
+};
+
+static ARMV7: Arm = Arm {
+    triple: "armv7-unknown-linux-gnueabihf",
+    gcc: "arm-linux-gnueabihf-gcc",
+    qemu: "qemu-arm",
+    root: "/usr/arm-linux-gnueabihf",
+    machine: "armv7l",
+    built: OnceLock::new(),
+};
 
 /// Where two traces first differ: "line N, column NAME: A vs B".
 fn first_difference(a: &str, b: &str) -> String {
@@ -309,22 +345,24 @@ fn first_difference(a: &str, b: &str) -> String {
     )
 }
 
-#[test]
-fn an_aarch64_lockstep_trace_equals_the_x86_64_one_byte_for_byte() {
-    const TEST: &str = "an_aarch64_lockstep_trace_equals_the_x86_64_one_byte_for_byte";
-    let Some(bin) = aarch64_or_skip(TEST) else {
+/// Each shipped scenario of the three papers in lockstep on `arm` under qemu-user: its
+/// trace must equal the x86_64 one byte for byte (the maths is IEEE-754 arithmetic and the
+/// pure-Rust libm, not the platform's).
+fn lockstep_traces_equal_the_x86_64_ones(arm: &Arm, test: &str) {
+    let Some(bin) = arm.build_or_skip(test) else {
         return;
     };
     let _g = serial();
+    let runner = arm.runner();
     for sc in ["kyslan-pi", "low-rst-sensorless", "miyajima-polar-400rpm"] {
         let (x86, _) = run_ok(
             &format!("x86-{sc}"),
             &["--clock", "lockstep", "--scenario", sc],
         );
-        let dir = scratch(&format!("arm-{sc}"));
-        let bus = bus_id(&format!("arm-{sc}"));
+        let dir = scratch(&format!("{}-{sc}", arm.machine));
+        let bus = bus_id(&format!("{}-{sc}", arm.machine));
         let out = dir.join("run");
-        let o = aarch64_drivelab(
+        let o = arm.drivelab(
             &bin,
             &[
                 "run",
@@ -338,13 +376,14 @@ fn an_aarch64_lockstep_trace_equals_the_x86_64_one_byte_for_byte() {
                 "--out",
                 out.to_str().unwrap(),
                 "--runner",
-                QEMU,
+                &runner,
             ],
             Duration::from_secs(300),
         );
         assert!(
             o.status.success(),
-            "{sc} under qemu: {}",
+            "{sc} under {}: {}",
+            arm.qemu,
             String::from_utf8_lossy(&o.stderr)
         );
         assert_clean(&bus);
@@ -353,19 +392,36 @@ fn an_aarch64_lockstep_trace_equals_the_x86_64_one_byte_for_byte() {
         assert!(a.lines().count() > 100, "{sc}: a short trace");
         assert!(
             a == b,
-            "{sc}: the aarch64 trace differs from the x86_64 one at {}",
+            "{sc}: the {} trace differs from the x86_64 one at {}",
+            arm.triple,
             first_difference(&a, &b)
         );
     }
 }
 
 #[test]
-fn doctor_runs_under_qemu_and_reads_the_arm_checks() {
-    const TEST: &str = "doctor_runs_under_qemu_and_reads_the_arm_checks";
-    let Some(bin) = aarch64_or_skip(TEST) else {
+fn an_aarch64_lockstep_trace_equals_the_x86_64_one_byte_for_byte() {
+    lockstep_traces_equal_the_x86_64_ones(
+        &AARCH64,
+        "an_aarch64_lockstep_trace_equals_the_x86_64_one_byte_for_byte",
+    );
+}
+
+#[test]
+fn an_armv7_lockstep_trace_equals_the_x86_64_one_byte_for_byte() {
+    lockstep_traces_equal_the_x86_64_ones(
+        &ARMV7,
+        "an_armv7_lockstep_trace_equals_the_x86_64_one_byte_for_byte",
+    );
+}
+
+/// `drivelab doctor` of the `arm` build under qemu-user reads this machine's files without
+/// failing, lists the checks a board needs, and its kernel line is the guest's.
+fn doctor_runs_under_qemu(arm: &Arm, test: &str) {
+    let Some(bin) = arm.build_or_skip(test) else {
         return;
     };
-    let o = aarch64_drivelab(&bin, &["doctor", "--json"], Duration::from_secs(60));
+    let o = arm.drivelab(&bin, &["doctor", "--json"], Duration::from_secs(60));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
     assert!(!err.contains("panicked"), "{err}");
@@ -386,7 +442,6 @@ fn doctor_runs_under_qemu_and_reads_the_arm_checks() {
     ] {
         assert!(names.contains(&want), "no '{want}' in {names:?}");
     }
-    // The kernel is this machine's: the guest's uname says aarch64.
     let kernel = checks
         .as_array()
         .unwrap()
@@ -394,7 +449,20 @@ fn doctor_runs_under_qemu_and_reads_the_arm_checks() {
         .find(|c| c["name"] == "kernel")
         .expect("kernel check");
     assert!(
-        kernel["value"].as_str().unwrap_or("").contains("aarch64"),
+        kernel["value"]
+            .as_str()
+            .unwrap_or("")
+            .contains(&format!("({})", arm.machine)),
         "{kernel}"
     );
+}
+
+#[test]
+fn doctor_runs_under_qemu_and_reads_the_arm_checks() {
+    doctor_runs_under_qemu(&AARCH64, "doctor_runs_under_qemu_and_reads_the_arm_checks");
+}
+
+#[test]
+fn the_armv7_doctor_runs_under_qemu_arm() {
+    doctor_runs_under_qemu(&ARMV7, "the_armv7_doctor_runs_under_qemu_arm");
 }
