@@ -667,6 +667,44 @@ fn a_realtime_drive_reports_its_cpu_latency_request() {
     );
 }
 
+#[test]
+fn a_frozen_plant_is_one_stall_in_the_summary_with_its_length() {
+    let _serial = serial();
+    // The plant stopped for 30 ms: its next wake-up comes about 30 ms late, and the 300
+    // samples it then catches up on, each late too, are the same stall, not 300 more.
+    let (dir, s) = run_ok(
+        "stall",
+        &["--duration", "0.5", "--fault", "stop:plant@0.2:0.03"],
+    );
+    let st = &s["timing"]["stalls"];
+    let count = st["count"].as_u64().expect("timing.stalls.count");
+    let longest = st["longest_ms"].as_f64().unwrap();
+    // A VM's host may add a stall or two of its own in half a second.
+    assert!((1..=20).contains(&count), "{st}");
+    assert!((29.0..1000.0).contains(&longest), "{st}");
+    assert!(
+        st["line"]
+            .as_str()
+            .is_some_and(|l| l.starts_with("stalls of 0.5 ms or more at the plant's wake-up: ")),
+        "{st}"
+    );
+    let plant: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("plant.stats.json")).unwrap())
+            .unwrap();
+    let log = plant["stalls"]["log"]
+        .as_array()
+        .expect("plant's stall log");
+    assert_eq!(log.len() as u64, count, "{}", plant["stalls"]);
+    let frozen: Vec<_> = log
+        .iter()
+        .filter(|e| e[1].as_u64().unwrap() >= 29_000_000)
+        .collect();
+    assert_eq!(frozen.len(), 1, "{}", plant["stalls"]);
+    // Lockstep has no wall clock: no stalls to report.
+    let (_, s) = run_ok("stallls", &["--duration", "0.05", "--clock", "lockstep"]);
+    assert!(s["timing"].get("stalls").is_none(), "{}", s["timing"]);
+}
+
 /// The CPUs in a `/proc/.../status` file's `Cpus_allowed_list` (e.g. "0-1,3").
 fn allowed_cpus(status: &std::path::Path) -> Vec<usize> {
     let text = std::fs::read_to_string(status).unwrap();

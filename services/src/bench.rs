@@ -175,6 +175,11 @@ pub struct Row {
     pub cpu_per_wakeup_us: Option<f64>,
     /// Where the cycle's microseconds go (iceoryx2 variants, all rounds merged).
     pub budget: Option<crate::budget::Budget>,
+    /// The plant's stalls, wake-ups half a millisecond late or later, over all rounds
+    /// (iceoryx2 variants), and how many consecutive ones (within a round) end on a host's
+    /// 100 ms throttling grid (docs/architecture.md, "Stalls that are the host's").
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stalls: Option<drivelab_runtime::timing::StallReport>,
     /// Each interleaved round's own figures, in the order the rounds ran (the percentiles
     /// above are of all rounds merged).
     pub rounds: Vec<RoundFigures>,
@@ -289,6 +294,7 @@ fn row(job: &Job, hz: f64, m: &VariantResult, hgrm: &Path) -> Row {
             .into_owned(),
         cpu_s_per_s: None,
         budget: None,
+        stalls: None,
         rounds: Vec::new(),
         waits_per_sample: None,
         cpu_us_per_sample_by_process: BTreeMap::new(),
@@ -376,6 +382,8 @@ struct DriveRun {
     by_process: BTreeMap<String, RunUsage>,
     hists: BTreeMap<String, LatencyHist>,
     topology: TopologyPlan,
+    /// The plant's stalls (`summary.json → timing.stalls`).
+    stalls: Option<drivelab_runtime::timing::StallReport>,
 }
 
 /// A process's CPU time, s, and its preemptions over its run (`run_*` in its stats.json).
@@ -486,6 +494,7 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
         by_process: cpu.into_iter().map(|(p, c)| (p, c.run)).collect(),
         hists,
         topology,
+        stalls: serde_json::from_value(r.summary["timing"]["stalls"].clone()).ok(),
     })
 }
 
@@ -1601,6 +1610,8 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
         let mut stage_hists: Vec<BTreeMap<String, LatencyHist>> =
             jobs.iter().map(|_| BTreeMap::new()).collect();
         let mut topologies: Vec<Option<TopologyPlan>> = jobs.iter().map(|_| None).collect();
+        let mut stalls: Vec<Option<drivelab_runtime::timing::StallReport>> =
+            jobs.iter().map(|_| None).collect();
         let mut held: Vec<bool> = jobs.iter().map(|j| j.request).collect();
         let mut still_polling: Vec<u32> = vec![0; jobs.len()];
         for round in 0..rounds {
@@ -1756,6 +1767,12 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
                         }
                     }
                     topologies[i] = Some(d.topology);
+                    if let Some(st) = d.stalls {
+                        stalls[i] = Some(match stalls[i].take() {
+                            Some(total) => total.merged(&st),
+                            None => st,
+                        });
+                    }
                 }
                 bar.inc(1);
             }
@@ -1790,6 +1807,7 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
                 r.preemptions_per_sample =
                     Some(by_process[i].values().map(|u| u.preemptions).sum::<u64>() as f64 / n);
             }
+            r.stalls = stalls[i].take();
             if let Some(t) = &topologies[i] {
                 let lat = stage_hists[i]
                     .iter()
@@ -2094,6 +2112,15 @@ pub fn markdown(
         }
         if let Some(line) = cpu_per_sample_line(r) {
             let _ = writeln!(s, "\n{line}");
+        }
+        if let Some(line) = r.stalls.as_ref().and_then(|st| st.line()) {
+            let _ = writeln!(
+                s,
+                "\n{} {} at {} kHz, over its rounds: {line}.",
+                r.variant,
+                r.placement,
+                r.rate_hz / 1000.0
+            );
         }
     }
     if rows.iter().any(|r| r.variant == "iceoryx2+spin") {

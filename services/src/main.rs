@@ -955,6 +955,9 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                     s["wall_time_s"].as_f64().unwrap_or(0.0),
                     s["simulated_s_per_wall_s"].as_f64().unwrap_or(0.0)
                 );
+                if let Some(l) = s["timing"]["stalls"]["line"].as_str() {
+                    drivelab_services::outln!("{l}");
+                }
                 drivelab_services::outln!(
                     "rise {}, overshoot {}, load dip {}, load recovery {}, steady-state error {}",
                     fmt_opt(&m["rise_time_ms"], "ms"),

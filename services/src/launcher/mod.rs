@@ -626,6 +626,9 @@ fn run_bus(
                 if let Some(d) = v.get("diagnostics") {
                     cv["diagnostics"] = d.clone();
                 }
+                if let Some(d) = v.get("stalls") {
+                    cv["stalls"] = d.clone();
+                }
                 if let Some(d) = v.get("inject") {
                     cv["inject"] = d.clone();
                 }
@@ -646,6 +649,9 @@ fn run_bus(
     if let Some(p) = counters.get("plant") {
         info["deadline_misses"] = p["deadline_misses"].clone();
         info["longest_miss_run"] = p["longest_miss_run"].clone();
+        if let Some(st) = p.get("stalls") {
+            info["stalls"] = stall_report(st);
+        }
     }
     let mut gaps = rec.gaps;
     let produced = counters
@@ -1454,6 +1460,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     if let Some(c) = info.get("launcher_cpus") {
         summary["timing"]["launcher_cpus"] = c.clone();
     }
+    if let Some(st) = info.get("stalls") {
+        summary["timing"]["stalls"] = st.clone();
+    }
     if let Some(r) = info.get("recorder_rejected") {
         // Messages the recorder could not place (an index beyond the run's samples).
         summary["recorder_rejected"] = r.clone();
@@ -1579,6 +1588,20 @@ fn headline(trace: &TraceStats, gaps: &[Gap], deadline_misses: u64, samples: u64
         peak_current_a: trace.peak_current_a,
         peak_speed_rad_s: trace.peak_speed_rad_s,
     }
+}
+
+/// `summary.json → timing.stalls` from the source's `stats.json → stalls` (its last
+/// incarnation's, after a restart): how many wake-ups came half a millisecond late or later,
+/// and whether their ends fall on a host's 100 ms throttling grid
+/// (docs/architecture.md, "Stalls that are the host's").
+fn stall_report(st: &serde_json::Value) -> serde_json::Value {
+    let log: Vec<(u64, u64)> = serde_json::from_value(st["log"].clone()).unwrap_or_default();
+    let count = st["count"].as_u64().unwrap_or(log.len() as u64);
+    let r = drivelab_runtime::timing::StallReport::new(&log, count);
+    let mut v = serde_json::to_value(&r).unwrap_or_default();
+    v["host_throttled"] = json!(r.host_throttled());
+    v["line"] = json!(r.line());
+    v
 }
 
 /// Reads every `<key>.hdr` histogram the services wrote, writes `<key>.hgrm` beside it and

@@ -246,6 +246,7 @@ impl StageHists {
 /// previous command (its index, its sample instant, when it was published, None: not there).
 #[derive(Clone, Copy)]
 struct Deadline {
+    deadline: u64,
     wake_ns: Option<i64>,
     cmd: Option<(u64, u64, Option<u64>)>,
 }
@@ -508,6 +509,8 @@ pub struct Host<T: Transport> {
     store: Store,
     /// Source only: cycle latency and deadline misses.
     pub cycle: CycleMonitor,
+    /// Source only, real time: its wake-ups that came half a millisecond late or later.
+    pub stalls: crate::timing::StallLog,
     stop: Box<dyn Fn() -> bool + Send>,
     stop_without_end: Box<dyn Fn() -> bool + Send>,
     /// The external inputs to drain, each topic once.
@@ -615,6 +618,7 @@ impl<T: Transport> Host<T> {
             transport,
             store: Store::new(divider),
             cycle: CycleMonitor::new(cfg.ts_ns),
+            stalls: crate::timing::StallLog::default(),
             cfg,
             stop: Box::new(|| false),
             stop_without_end: Box::new(|| false),
@@ -815,6 +819,7 @@ impl<T: Transport> Host<T> {
     fn account_deadline(&mut self, seen: Deadline) {
         if let Some(w) = seen.wake_ns {
             self.stages[0].hists.wake.record_ns(w);
+            self.stalls.record(seen.deadline, w);
         }
         if let Some((kc, t_k, avail)) = seen.cmd {
             self.cycle.at_deadline(t_k, avail);
@@ -1395,6 +1400,7 @@ impl<T: Transport> Host<T> {
             // histograms stay off the critical path (docs/architecture.md, "Where the
             // microseconds go").
             let seen = Deadline {
+                deadline,
                 wake_ns: realtime.then(|| t_woken as i64 - deadline as i64),
                 cmd: match cmd_topic {
                     Some(t) if realtime && (k > k_start || (k > 0 && !self.cfg.rejoin)) => {

@@ -1305,9 +1305,23 @@ pub struct StageStats<'a> {
     pub inject: Vec<crate::inject::InjectObs>,
     /// Tail summary of each histogram, µs, keyed `<stage>.<metric>` (and `cycle`).
     pub latency_us: std::collections::BTreeMap<String, crate::timing::Percentiles>,
+    /// Source only, real time: its wake-ups at least half a millisecond late, as
+    /// [deadline, lateness] in ns on CLOCK_MONOTONIC (the first 4096), and how many there
+    /// were in all (`timing::StallLog`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stalls: Option<Stalls<'a>>,
     /// The process's start-up, ms per phase in order (scenario, stages, node, topics,
     /// ports, connect, rt), from its `main` to READY.
     pub startup_ms: &'a [(&'static str, f64)],
+}
+
+/// The source's stalls in its `stats.json`.
+#[derive(Debug, Serialize)]
+pub struct Stalls<'a> {
+    /// Every stall.
+    pub count: u64,
+    /// The first of them, [deadline, lateness] ns.
+    pub log: &'a [(u64, u64)],
 }
 
 /// Writes `<out>/<stage>.stats.json` and one `<key>.hdr` per non-empty histogram for every
@@ -1361,6 +1375,10 @@ fn write_stats<T: Transport>(
             diagnostics: diags[i].1.iter().copied().collect(),
             inject: h.inject.clone(),
             latency_us,
+            stalls: (source && args.clock == BusClock::Realtime).then(|| Stalls {
+                count: host.stalls.count,
+                log: host.stalls.entries(),
+            }),
             startup_ms,
         };
         let p = dir.join(format!("{name}.stats.json"));

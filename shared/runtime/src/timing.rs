@@ -203,6 +203,143 @@ impl MissCounter {
     }
 }
 
+/// A wake-up this late or later is a stall: longer than any scheduling delay of an idle
+/// core, and at 2 kHz and above it costs the drive at least one sample.
+pub const STALL_NS: u64 = 500_000;
+/// Stalls the source keeps, with their times (the count goes on past it).
+pub const STALL_LOG: usize = 4096;
+/// The period of the grid on which a host's CPU bandwidth limit ends its stalls: the Linux
+/// CFS bandwidth period (`cpu.cfs_period_us`, `cpu.max`), 100 ms unless the host changed it.
+pub const HOST_GRID_NS: u64 = 100_000_000;
+/// How close to the grid a stall's end must fall: guest and host clocks drift apart by a few
+/// µs a second, so consecutive stalls, about a second apart, stay well inside it.
+pub const HOST_GRID_TOL_NS: u64 = 500_000;
+
+/// The source's stalls, as (deadline, lateness) in ns of the wake-up that starts each, the
+/// first [`STALL_LOG`] of them. A stall starts with a wake-up at least [`STALL_NS`] late and
+/// lasts while the wake-ups after it (the samples it caught up on) are that late too.
+/// Preallocated: recording never allocates.
+#[derive(Debug, Clone)]
+pub struct StallLog {
+    log: Box<[(u64, u64)]>,
+    len: usize,
+    in_stall: bool,
+    /// Every stall, also those beyond the log.
+    pub count: u64,
+}
+
+impl Default for StallLog {
+    fn default() -> Self {
+        Self {
+            log: vec![(0, 0); STALL_LOG].into_boxed_slice(),
+            len: 0,
+            in_stall: false,
+            count: 0,
+        }
+    }
+}
+
+impl StallLog {
+    /// A wake-up `late_ns` after `deadline_ns`: kept if it starts a stall.
+    #[inline]
+    pub fn record(&mut self, deadline_ns: u64, late_ns: i64) {
+        let stalled = late_ns >= STALL_NS as i64;
+        let starts = stalled && !self.in_stall;
+        self.in_stall = stalled;
+        if !starts {
+            return;
+        }
+        self.count += 1;
+        if self.len < self.log.len() {
+            self.log[self.len] = (deadline_ns, late_ns as u64);
+            self.len += 1;
+        }
+    }
+
+    /// The stalls kept, in order.
+    pub fn entries(&self) -> &[(u64, u64)] {
+        &self.log[..self.len]
+    }
+}
+
+/// What the stalls of a run say about the machine (`summary.json → timing.stalls`).
+#[derive(Debug, Clone, Serialize, serde::Deserialize, PartialEq)]
+pub struct StallReport {
+    /// Wake-ups at least [`STALL_NS`] late.
+    pub count: u64,
+    /// The longest, ms.
+    pub longest_ms: f64,
+    /// Consecutive stalls compared (of those kept).
+    pub pairs: usize,
+    /// Pairs whose ends lie one or more whole [`HOST_GRID_NS`] apart, within
+    /// [`HOST_GRID_TOL_NS`]. By chance that is 2 × tolerance / period (1 %) of them; far
+    /// more means something outside this machine's scheduler ends them on a common clock:
+    /// a host's CPU bandwidth limit releasing a throttled VM.
+    pub on_host_grid: usize,
+}
+
+impl StallReport {
+    /// The report of `stalls` ((deadline, lateness) ns in order; `count` of them in all).
+    pub fn new(stalls: &[(u64, u64)], count: u64) -> Self {
+        let ends: Vec<u64> = stalls.iter().map(|&(d, l)| d + l).collect();
+        let on_host_grid = ends
+            .windows(2)
+            .filter(|w| {
+                let d = w[1].abs_diff(w[0]);
+                let r = d % HOST_GRID_NS;
+                d >= HOST_GRID_NS / 2 && r.min(HOST_GRID_NS - r) <= HOST_GRID_TOL_NS
+            })
+            .count();
+        Self {
+            count,
+            longest_ms: stalls.iter().map(|&(_, l)| l).max().unwrap_or(0) as f64 / 1e6,
+            pairs: ends.len().saturating_sub(1),
+            on_host_grid,
+        }
+    }
+
+    /// Two runs' stalls together (pairs are only ever taken within a run).
+    pub fn merged(&self, other: &Self) -> Self {
+        Self {
+            count: self.count + other.count,
+            longest_ms: self.longest_ms.max(other.longest_ms),
+            pairs: self.pairs + other.pairs,
+            on_host_grid: self.on_host_grid + other.on_host_grid,
+        }
+    }
+
+    /// Whether the stalls are the host's: at least three, and most consecutive ones end on
+    /// the grid (half of the pairs, 50 times what chance gives).
+    pub fn host_throttled(&self) -> bool {
+        self.pairs >= 2 && 2 * self.on_host_grid >= self.pairs
+    }
+
+    /// One line for the run's report, or None without stalls.
+    pub fn line(&self) -> Option<String> {
+        if self.count == 0 {
+            return None;
+        }
+        let mut l = format!(
+            "stalls of {} ms or more at the plant's wake-up: {} (longest {:.1} ms)",
+            STALL_NS as f64 / 1e6,
+            self.count,
+            self.longest_ms
+        );
+        if self.pairs > 0 {
+            l += &format!(
+                "; {} of {} consecutive ones end a multiple of {} ms apart",
+                self.on_host_grid,
+                self.pairs,
+                HOST_GRID_NS / 1_000_000
+            );
+        }
+        if self.host_throttled() {
+            l += ": the host throttles this VM's CPU time (a CFS bandwidth limit), not the drive";
+        }
+        Some(l)
+    }
+}
+
 /// Cycle bookkeeping of the plant against a clock (real or synthetic): for each sample the
 /// command's availability time is compared with t_k + Ts.
 #[derive(Debug, Clone)]
@@ -282,6 +419,92 @@ mod tests {
         h.record_ns(i64::MAX);
         assert_eq!(h.len(), 2);
         assert_eq!(h.clamped, 1);
+    }
+
+    #[test]
+    fn stalls_are_kept_with_their_times_and_counted_beyond_the_log() {
+        let mut log = StallLog::default();
+        log.record(1_000, STALL_NS as i64 - 1); // not a stall
+        log.record(2_000, -5);
+        log.record(3_000, STALL_NS as i64);
+        // The samples the stall caught up on are late too: the same stall.
+        log.record(4_000, 2 * STALL_NS as i64);
+        log.record(5_000, STALL_NS as i64);
+        assert_eq!(log.entries(), &[(3_000, STALL_NS)]);
+        log.record(6_000, 1_000);
+        log.record(7_000, 3_000_000);
+        assert_eq!(log.entries(), &[(3_000, STALL_NS), (7_000, 3_000_000)]);
+        let ((), allocations) = crate::alloc_count::allocations_during(|| {
+            for i in 0..(STALL_LOG as u64 + 10) {
+                log.record(2 * i, 1_000);
+                log.record(2 * i + 1, 1_000_000);
+            }
+        });
+        assert_eq!(allocations, 0);
+        assert_eq!(log.entries().len(), STALL_LOG);
+        assert_eq!(log.count, STALL_LOG as u64 + 12);
+    }
+
+    #[test]
+    fn stalls_that_end_on_a_100_ms_grid_are_the_hosts_and_scattered_ones_are_not() {
+        // Ends at 40.5 ms past each 100 ms boundary (with a few µs of drift), the lengths as
+        // measured on a throttled VM: 0.6 to 24.7 ms.
+        let lens = [
+            600_000u64, 2_640_000, 1_570_000, 24_670_000, 720_000, 1_820_000,
+        ];
+        let grid: Vec<(u64, u64)> = lens
+            .iter()
+            .enumerate()
+            .map(|(i, &l)| {
+                let end = 7_000_000_000
+                    + (i as u64 * 13 + 3) * HOST_GRID_NS
+                    + 40_500_000
+                    + i as u64 * 9_000;
+                (end - l, l)
+            })
+            .collect();
+        let r = StallReport::new(&grid, 6);
+        assert_eq!((r.pairs, r.on_host_grid), (5, 5));
+        assert!(r.host_throttled());
+        assert!((r.longest_ms - 24.67).abs() < 1e-9);
+        assert!(
+            r.line().unwrap().contains("the host throttles"),
+            "{:?}",
+            r.line()
+        );
+        // The same stalls, each ending 7–60 ms off the grid of the one before: not the host.
+        let offs = [
+            0u64, 7_000_000, 31_000_000, 12_000_000, 60_000_000, 45_000_000,
+        ];
+        let scattered: Vec<(u64, u64)> = grid
+            .iter()
+            .zip(offs)
+            .map(|(&(d, l), o)| (d + o, l))
+            .collect();
+        let r = StallReport::new(&scattered, 6);
+        assert_eq!(r.on_host_grid, 0);
+        assert!(!r.host_throttled());
+        assert!(!r.line().unwrap().contains("host"), "{:?}", r.line());
+        // One pair on the grid of five is chance, and two stalls are too few to tell.
+        let mut one = scattered.clone();
+        one[1] = (grid[1].0 - grid[0].0 + scattered[0].0, grid[1].1);
+        let r = StallReport::new(&one, 6);
+        assert_eq!(r.on_host_grid, 1);
+        assert!(!r.host_throttled());
+        assert!(!StallReport::new(&grid[..2], 2).host_throttled());
+        // Stalls closer together than half a period are never on the grid, however close.
+        let close = [
+            (1_000_000_000, 600_000),
+            (1_000_700_000, 600_000),
+            (1_001_400_000, 600_000),
+        ];
+        assert_eq!(StallReport::new(&close, 3).on_host_grid, 0);
+        // Rounds add up; the longest is the longest of any.
+        let m = StallReport::new(&grid, 6).merged(&StallReport::new(&scattered, 6));
+        assert_eq!((m.count, m.pairs, m.on_host_grid), (12, 10, 5));
+        assert!(m.host_throttled());
+        assert!((m.longest_ms - 24.67).abs() < 1e-9);
+        assert_eq!(StallReport::new(&[], 0).line(), None);
     }
 
     #[test]
