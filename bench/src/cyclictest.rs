@@ -167,6 +167,7 @@ pub fn parse(text: &str, ts_ns: u64) -> Result<VariantResult> {
         deadline_lateness: Vec::new(),
         // cyclictest is not ours: its calls are not counted.
         syscalls: None,
+        stalls: None,
     })
 }
 

@@ -234,6 +234,7 @@ pub fn run(
             cpu_run_ns: None,
             deadline_lateness: Vec::new(),
             syscalls: None,
+            stalls: None,
         })
     })();
     drivelab_runtime::bus::cleanup(bus)?;

@@ -100,6 +100,10 @@ pub struct VariantResult {
     /// (`drivelab_runtime::rt::syscalls`: sleeps, futex waits and wakes, socket sends and
     /// receives), all its processes together; None where they are not counted.
     pub syscalls: Option<u64>,
+    /// The floor: its stalls, wake-ups half a millisecond late or later, and how many
+    /// consecutive ones end on a host's 100 ms throttling grid (None for the other
+    /// variants; the drive's chains report theirs in their summaries).
+    pub stalls: Option<drivelab_runtime::timing::StallReport>,
 }
 
 impl VariantResult {
@@ -118,6 +122,10 @@ impl VariantResult {
         self.deadline_lateness
             .extend(other.deadline_lateness.iter().cloned());
         self.syscalls = self.syscalls.zip(other.syscalls).map(|(a, b)| a + b);
+        self.stalls = match (self.stalls.take(), &other.stalls) {
+            (Some(a), Some(b)) => Some(a.merged(b)),
+            (a, b) => a.or_else(|| b.clone()),
+        };
         Ok(())
     }
 }
@@ -223,6 +231,7 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
         let mut late = LatencyHist::new("lateness");
         let mut cycle = LatencyHist::new("cycle");
         let mut misses = MissCounter::default();
+        let mut stalls = drivelab_runtime::timing::StallLog::default();
         let mut by_deadline =
             catch_up::DeadlineLateness::with_capacity(if n <= MAX_DEADLINES_KEPT {
                 n as usize
@@ -242,6 +251,7 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
             sleep_until_ns(deadline);
             let now = now_ns();
             late.record_ns(now as i64 - deadline as i64);
+            stalls.record(deadline, now as i64 - deadline as i64);
             k = wake_up_covers(
                 k,
                 now,
@@ -268,6 +278,10 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
                 Vec::new()
             },
             syscalls: Some(drivelab_runtime::rt::syscalls() - calls0),
+            stalls: Some(drivelab_runtime::timing::StallReport::new(
+                stalls.entries(),
+                stalls.count,
+            )),
         })
     })
 }
@@ -343,6 +357,7 @@ pub fn run_inprocess(spec: &ChainSpec) -> Result<VariantResult> {
             cpu_run_ns: None,
             deadline_lateness: Vec::new(),
             syscalls: Some(drivelab_runtime::rt::syscalls() - calls0),
+            stalls: None,
         })
     })
 }

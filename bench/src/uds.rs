@@ -271,6 +271,7 @@ pub(crate) fn run_role(ctx: &RoleCtx) -> Result<Option<PlantOutcome>> {
             deadline_lateness: Vec::new(),
             // This role's own calls; the chain runner adds the other roles'.
             syscalls: Some(drivelab_runtime::rt::syscalls()),
+            stalls: None,
         },
         counters: c,
         trace,
@@ -544,6 +545,7 @@ fn read_plant_file(out: &Path) -> Result<VariantResult> {
         cpu_run_ns: None,
         deadline_lateness: Vec::new(),
         syscalls: Some(f.syscalls),
+        stalls: None,
     })
 }
 

@@ -294,7 +294,7 @@ fn row(job: &Job, hz: f64, m: &VariantResult, hgrm: &Path) -> Row {
             .into_owned(),
         cpu_s_per_s: None,
         budget: None,
-        stalls: None,
+        stalls: m.stalls.clone(),
         rounds: Vec::new(),
         waits_per_sample: None,
         cpu_us_per_sample_by_process: BTreeMap::new(),
@@ -488,6 +488,7 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
             deadline_lateness: Vec::new(),
             // Every process's, or none when one did not say.
             syscalls: cpu.values().map(|c| c.syscalls).sum(),
+            stalls: None,
         },
         cpu_s: cpu.values().map(|c| c.cpu_s).sum(),
         switches: cpu.values().map(|c| c.waits).sum(),
@@ -1807,7 +1808,9 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
                 r.preemptions_per_sample =
                     Some(by_process[i].values().map(|u| u.preemptions).sum::<u64>() as f64 / n);
             }
-            r.stalls = stalls[i].take();
+            if let Some(st) = stalls[i].take() {
+                r.stalls = Some(st);
+            }
             if let Some(t) = &topologies[i] {
                 let lat = stage_hists[i]
                     .iter()
@@ -2076,6 +2079,14 @@ pub fn markdown(
         let _ = writeln!(s, "\n{}", floor_repeat_line(f));
     }
     for r in rows.iter().filter(|r| r.variant == "floor") {
+        if let Some(line) = r.stalls.as_ref().and_then(|st| st.line_of("the floor's")) {
+            let _ = writeln!(
+                s,
+                "\nfloor at {} kHz ({}), over its rounds: {line}.",
+                r.rate_hz / 1000.0,
+                request_words(r.cpu_latency_request)
+            );
+        }
         if let Some(c) = r.cpu_per_wakeup_us {
             let _ = writeln!(
                 s,

@@ -316,11 +316,16 @@ impl StallReport {
 
     /// One line for the run's report, or None without stalls.
     pub fn line(&self) -> Option<String> {
+        self.line_of("the plant's")
+    }
+
+    /// The same line for the wake-ups of `whose` ("the floor's").
+    pub fn line_of(&self, whose: &str) -> Option<String> {
         if self.count == 0 {
             return None;
         }
         let mut l = format!(
-            "stalls of {} ms or more at the plant's wake-up: {} (longest {:.1} ms)",
+            "stalls of {} ms or more at {whose} wake-up: {} (longest {:.1} ms)",
             STALL_NS as f64 / 1e6,
             self.count,
             self.longest_ms
