@@ -100,9 +100,9 @@ pub struct VariantResult {
     /// (`drivelab_runtime::rt::syscalls`: sleeps, futex waits and wakes, socket sends and
     /// receives), all its processes together; None where they are not counted.
     pub syscalls: Option<u64>,
-    /// The floor: its stalls, wake-ups half a millisecond late or later, and how many
-    /// consecutive ones end on a host's 100 ms throttling grid (None for the other
-    /// variants; the drive's chains report theirs in their summaries).
+    /// The floor's stalls, wake-ups half a millisecond late or later, and how many
+    /// consecutive ones end on a host's 100 ms throttling grid; for a drive's chain, its
+    /// plant's (`summary.json → timing.stalls`). None for the other variants.
     pub stalls: Option<drivelab_runtime::timing::StallReport>,
 }
 

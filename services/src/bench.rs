@@ -175,8 +175,8 @@ pub struct Row {
     pub cpu_per_wakeup_us: Option<f64>,
     /// Where the cycle's microseconds go (iceoryx2 variants, all rounds merged).
     pub budget: Option<crate::budget::Budget>,
-    /// The plant's stalls, wake-ups half a millisecond late or later, over all rounds
-    /// (iceoryx2 variants), and how many consecutive ones (within a round) end on a host's
+    /// The stalls of the floor's or the plant's wake-ups, half a millisecond late or later,
+    /// over all rounds (the floor and the iceoryx2 variants), and how many consecutive ones (within a round) end on a host's
     /// 100 ms throttling grid (docs/architecture.md, "Stalls that are the host's").
     #[serde(skip_serializing_if = "Option::is_none")]
     pub stalls: Option<drivelab_runtime::timing::StallReport>,
@@ -382,8 +382,6 @@ struct DriveRun {
     by_process: BTreeMap<String, RunUsage>,
     hists: BTreeMap<String, LatencyHist>,
     topology: TopologyPlan,
-    /// The plant's stalls (`summary.json → timing.stalls`).
-    stalls: Option<drivelab_runtime::timing::StallReport>,
 }
 
 /// A process's CPU time, s, and its preemptions over its run (`run_*` in its stats.json).
@@ -488,14 +486,13 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
             deadline_lateness: Vec::new(),
             // Every process's, or none when one did not say.
             syscalls: cpu.values().map(|c| c.syscalls).sum(),
-            stalls: None,
+            stalls: serde_json::from_value(r.summary["timing"]["stalls"].clone()).ok(),
         },
         cpu_s: cpu.values().map(|c| c.cpu_s).sum(),
         switches: cpu.values().map(|c| c.waits).sum(),
         by_process: cpu.into_iter().map(|(p, c)| (p, c.run)).collect(),
         hists,
         topology,
-        stalls: serde_json::from_value(r.summary["timing"]["stalls"].clone()).ok(),
     })
 }
 
@@ -1611,8 +1608,6 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
         let mut stage_hists: Vec<BTreeMap<String, LatencyHist>> =
             jobs.iter().map(|_| BTreeMap::new()).collect();
         let mut topologies: Vec<Option<TopologyPlan>> = jobs.iter().map(|_| None).collect();
-        let mut stalls: Vec<Option<drivelab_runtime::timing::StallReport>> =
-            jobs.iter().map(|_| None).collect();
         let mut held: Vec<bool> = jobs.iter().map(|j| j.request).collect();
         let mut still_polling: Vec<u32> = vec![0; jobs.len()];
         for round in 0..rounds {
@@ -1768,12 +1763,6 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
                         }
                     }
                     topologies[i] = Some(d.topology);
-                    if let Some(st) = d.stalls {
-                        stalls[i] = Some(match stalls[i].take() {
-                            Some(total) => total.merged(&st),
-                            None => st,
-                        });
-                    }
                 }
                 bar.inc(1);
             }
@@ -1807,9 +1796,6 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
                     .collect();
                 r.preemptions_per_sample =
                     Some(by_process[i].values().map(|u| u.preemptions).sum::<u64>() as f64 / n);
-            }
-            if let Some(st) = stalls[i].take() {
-                r.stalls = Some(st);
             }
             if let Some(t) = &topologies[i] {
                 let lat = stage_hists[i]
