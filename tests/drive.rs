@@ -700,6 +700,22 @@ fn a_frozen_plant_is_one_stall_in_the_summary_with_its_length() {
         .filter(|e| e[1].as_u64().unwrap() >= 29_000_000)
         .collect();
     assert_eq!(frozen.len(), 1, "{}", plant["stalls"]);
+    // The commands of the ~300 samples the plant caught up on came after their deadlines:
+    // misses, decided while it was still 0.5 ms or more late, so the stall's. Those of its
+    // last few late samples, and any of the host's, are outside it.
+    let misses = s["deadline_misses"].as_u64().expect("deadline_misses");
+    let in_stalls = st["misses"].as_u64().expect("timing.stalls.misses");
+    assert!(
+        in_stalls >= 250 && in_stalls <= misses,
+        "{misses} misses; {st}"
+    );
+    assert_eq!(plant["stalls"]["misses"].as_u64(), Some(in_stalls));
+    assert!(
+        st["line"]
+            .as_str()
+            .is_some_and(|l| l.contains(&format!("; {in_stalls} deadline misses in them"))),
+        "{st}"
+    );
     // Lockstep has no wall clock: no stalls to report.
     let (_, s) = run_ok("stallls", &["--duration", "0.05", "--clock", "lockstep"]);
     assert!(s["timing"].get("stalls").is_none(), "{}", s["timing"]);

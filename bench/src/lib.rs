@@ -231,7 +231,8 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
         let mut late = LatencyHist::new("lateness");
         let mut cycle = LatencyHist::new("cycle");
         let mut misses = MissCounter::default();
-        let mut stalls = drivelab_runtime::timing::StallLog::default();
+        let mut stalls =
+            drivelab_runtime::timing::StallLog::new(drivelab_runtime::timing::STALL_LOG, ts_ns);
         let mut by_deadline =
             catch_up::DeadlineLateness::with_capacity(if n <= MAX_DEADLINES_KEPT {
                 n as usize
@@ -252,6 +253,7 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
             let now = now_ns();
             late.record_ns(now as i64 - deadline as i64);
             stalls.record(deadline, now as i64 - deadline as i64);
+            let missed = misses.misses;
             k = wake_up_covers(
                 k,
                 now,
@@ -260,6 +262,7 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
                 &mut misses,
                 &mut by_deadline,
             );
+            stalls.misses_in_stall(misses.misses - missed);
         }
         // ---- end of the real-time loop ----
         if k < n {
@@ -278,10 +281,7 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
                 Vec::new()
             },
             syscalls: Some(drivelab_runtime::rt::syscalls() - calls0),
-            stalls: Some(drivelab_runtime::timing::StallReport::new(
-                stalls.entries(),
-                stalls.count,
-            )),
+            stalls: Some(drivelab_runtime::timing::StallReport::of(&stalls)),
         })
     })
 }

@@ -139,6 +139,10 @@ pub struct Row {
     pub longest_miss_run: u64,
     /// Misses per million samples.
     pub misses_per_million: f64,
+    /// Misses per million that were not decided inside a stall (see [`Row::stalls`]): the
+    /// misses of the machine running, a frozen one's left out. The floor and the iceoryx2
+    /// variants; `None` for the others.
+    pub misses_outside_stalls_per_million: Option<f64>,
     /// Budget verdict (chains only): cycle p99.9 < Ts and misses/M ≤ 2 × floor/M + 10.
     pub holds_budget: Option<bool>,
     /// cycle p99 / floor p99.
@@ -226,6 +230,8 @@ pub struct RoundFigures {
     pub p99_us: f64,
     /// Misses per million samples of this round.
     pub misses_per_million: f64,
+    /// Of them, those not decided inside a stall (the floor and the iceoryx2 variants).
+    pub misses_outside_stalls_per_million: Option<f64>,
     /// The plant's (floor: the timer thread's) wake-up lateness p50, µs.
     pub wake_p50_us: f64,
     /// Its p99, µs.
@@ -239,10 +245,20 @@ impl RoundFigures {
             p50_us: p.p50,
             p99_us: p.p99,
             misses_per_million: per_million(m.misses.misses, m.samples),
+            misses_outside_stalls_per_million: outside_stalls_pm(m),
             wake_p50_us: w.p50,
             wake_p99_us: w.p99,
         }
     }
+}
+
+/// Misses per million of `m` not decided inside a stall; `None` where stalls are not logged.
+fn outside_stalls_pm(m: &VariantResult) -> Option<f64> {
+    let st = m.stalls.as_ref()?;
+    Some(per_million(
+        m.misses.misses.saturating_sub(st.misses),
+        m.samples,
+    ))
 }
 
 fn per_million(n: u64, of: u64) -> f64 {
@@ -282,6 +298,7 @@ fn row(job: &Job, hz: f64, m: &VariantResult, hgrm: &Path) -> Row {
         misses: m.misses.misses,
         longest_miss_run: m.misses.longest_run,
         misses_per_million: per_million(m.misses.misses, m.samples),
+        misses_outside_stalls_per_million: outside_stalls_pm(m),
         holds_budget: None,
         p99_ratio_to_floor: None,
         p99_minus_floor_us: None,
@@ -888,6 +905,59 @@ pub struct Targets {
     /// work): what this machine's wake-ups take of the distance to the floor, and what the
     /// chain adds to them. `None` when it was not measured, and for topologies.
     pub bare_chain: Option<BareChain>,
+    /// The misses target with the stalls left out, the chain's and the floor's (see
+    /// [`Row::misses_outside_stalls_per_million`]): whether the drive keeps its deadlines
+    /// while the machine runs. Reported beside the target, which counts every miss. `None`
+    /// where either was measured without a stall log.
+    pub outside_stalls: Option<OutsideStalls>,
+}
+
+/// [`Targets::outside_stalls`].
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct OutsideStalls {
+    /// The chain's misses per million outside its stalls.
+    pub misses_per_million: f64,
+    /// Twice the floor's outside its own stalls + 10.
+    pub misses_bound: f64,
+    /// Within the bound.
+    pub misses_met: bool,
+    /// Rounds within their own floor's bound (two or more rounds that pair up).
+    pub rounds_met: Option<usize>,
+    /// Rounds in all.
+    pub rounds: usize,
+}
+
+impl OutsideStalls {
+    /// The chain's and the floor's misses per million outside their stalls, each with its
+    /// rounds.
+    fn of(
+        (chain_pm, c): (Option<f64>, &[RoundFigures]),
+        (floor_pm, f): (Option<f64>, &[RoundFigures]),
+    ) -> Option<Self> {
+        let pm = chain_pm?;
+        let bound = misses_bound(floor_pm?);
+        let rounds_met = (c.len() >= 2 && c.len() == f.len()).then(|| {
+            c.iter()
+                .zip(f)
+                .filter(|(c, f)| {
+                    match (
+                        c.misses_outside_stalls_per_million,
+                        f.misses_outside_stalls_per_million,
+                    ) {
+                        (Some(c), Some(f)) => c <= misses_bound(f),
+                        _ => false,
+                    }
+                })
+                .count()
+        });
+        Some(Self {
+            misses_per_million: pm,
+            misses_bound: bound,
+            misses_met: pm <= bound,
+            rounds_met,
+            rounds: c.len(),
+        })
+    }
 }
 
 /// [`Targets::misses_floor_predicts_catching_up`].
@@ -1139,6 +1209,10 @@ fn goal(chain_label: String, chain: &Row, floor: &Row, others: Others) -> Option
             .uds
             .and_then(|u| UdsRounds::of(&chain.rounds, &u.rounds)),
         bare_chain: others.bare.map(|b| BareChain::of(chain, b, floor)),
+        outside_stalls: OutsideStalls::of(
+            (chain.misses_outside_stalls_per_million, &chain.rounds),
+            (floor.misses_outside_stalls_per_million, &floor.rounds),
+        ),
     })
 }
 
@@ -1278,13 +1352,27 @@ fn targets_line(t: &Targets) -> String {
         }
         None => String::new(),
     };
+    let outside = match &t.outside_stalls {
+        Some(o) => format!(
+            " Outside the stalls of {} ms or more (the machine frozen; see the stalls lines): misses {:.0}/M (≤ 2 × the floor's outside its stalls + 10 = {:.0}: {}{}).",
+            drivelab_runtime::timing::STALL_NS as f64 / 1e6,
+            o.misses_per_million,
+            o.misses_bound,
+            met(o.misses_met),
+            match o.rounds_met {
+                Some(n) => format!("; met in {n} of {} rounds", o.rounds),
+                None => String::new(),
+            }
+        ),
+        None => String::new(),
+    };
     let control = if t.chain == CONTROL {
         " A control: the floor measured again, so what it misses this run's noise decides, for the chains too."
     } else {
         ""
     };
     format!(
-        "Targets at {} kHz ({} against the floor, {}): p50 {:+.1} µs (≤ +{TARGET_P50_US}: {}); p99 {:+.1} µs (≤ +{TARGET_P99_US}: {}); misses {:.0}/M (≤ 2 × floor + 10 = {:.0}: {}{predicted}{catching_up}){uds}.{by_round}{uds_rounds}{bare}{control}",
+        "Targets at {} kHz ({} against the floor, {}): p50 {:+.1} µs (≤ +{TARGET_P50_US}: {}); p99 {:+.1} µs (≤ +{TARGET_P99_US}: {}); misses {:.0}/M (≤ 2 × floor + 10 = {:.0}: {}{predicted}{catching_up}){uds}.{by_round}{uds_rounds}{outside}{bare}{control}",
         t.rate_hz / 1000.0,
         t.chain,
         request_words(t.cpu_latency_request),
@@ -2159,6 +2247,7 @@ mod tests {
             p50_us,
             p99_us,
             misses_per_million,
+            misses_outside_stalls_per_million: None,
             wake_p50_us: p50_us,
             wake_p99_us: p99_us,
         }
@@ -2287,6 +2376,35 @@ mod tests {
         assert!((32.0_f64 / 39.0 - 0.82).abs() < 0.01);
         assert_eq!(above_floor_ratio(32.0, 20.0, 20.0), None);
         assert_eq!(above_floor_ratio(32.0, 18.0, 20.0), None);
+    }
+
+    #[test]
+    fn the_misses_outside_the_stalls_are_judged_against_the_floors_outside_its_own() {
+        let outside = |total: f64, outside: f64| RoundFigures {
+            misses_outside_stalls_per_million: Some(outside),
+            ..round(20.0, 40.0, total)
+        };
+        // Round 1: a stall gave the chain 3 000/M, 40 of them outside it, against the
+        // floor's 20 outside its own (bound 50): met. Round 2: 90 outside, bound 30: missed.
+        let chain = [outside(3_040.0, 40.0), outside(90.0, 90.0)];
+        let floor = [outside(20.0, 20.0), outside(10.0, 10.0)];
+        let o = OutsideStalls::of((Some(65.0), &chain), (Some(15.0), &floor)).unwrap();
+        assert_eq!((o.misses_bound, o.misses_met), (40.0, false));
+        assert_eq!((o.rounds_met, o.rounds), (Some(1), 2));
+        let o = OutsideStalls::of((Some(40.0), &chain), (Some(15.0), &floor)).unwrap();
+        assert!(o.misses_met, "at the bound: met");
+        // A round without a stall log counts as not met; one round has no round verdict.
+        let bare = [round(20.0, 40.0, 0.0), outside(0.0, 0.0)];
+        let o = OutsideStalls::of((Some(0.0), &bare), (Some(15.0), &floor)).unwrap();
+        assert_eq!(o.rounds_met, Some(1));
+        let o = OutsideStalls::of((Some(0.0), &chain[..1]), (Some(15.0), &floor[..1])).unwrap();
+        assert_eq!(o.rounds_met, None);
+        // Either side without a stall log: nothing to say.
+        assert_eq!(
+            OutsideStalls::of((None, &chain), (Some(15.0), &floor)),
+            None
+        );
+        assert_eq!(OutsideStalls::of((Some(0.0), &chain), (None, &floor)), None);
     }
 
     #[test]

@@ -1597,7 +1597,8 @@ fn headline(trace: &TraceStats, gaps: &[Gap], deadline_misses: u64, samples: u64
 fn stall_report(st: &serde_json::Value) -> serde_json::Value {
     let log: Vec<(u64, u64)> = serde_json::from_value(st["log"].clone()).unwrap_or_default();
     let count = st["count"].as_u64().unwrap_or(log.len() as u64);
-    let r = drivelab_runtime::timing::StallReport::new(&log, count);
+    let mut r = drivelab_runtime::timing::StallReport::new(&log, count);
+    r.misses = st["misses"].as_u64().unwrap_or(0);
     let mut v = serde_json::to_value(&r).unwrap_or_default();
     v["host_throttled"] = json!(r.host_throttled());
     v["line"] = json!(r.line());

@@ -577,6 +577,7 @@ impl<T: Transport> Host<T> {
                 }
             })
             .collect::<Vec<Hosted>>();
+        let source_first = hosted.first().is_some_and(|h| h.trigger().is_none());
         let mut drains: Vec<Drain> = Vec::new();
         for (si, h) in hosted.iter().enumerate() {
             for b in &h.inputs {
@@ -618,7 +619,15 @@ impl<T: Transport> Host<T> {
             transport,
             store: Store::new(divider),
             cycle: CycleMonitor::new(cfg.ts_ns),
-            stalls: crate::timing::StallLog::default(),
+            // Only the source logs its stalls (the others' logs stay empty).
+            stalls: crate::timing::StallLog::new(
+                if source_first {
+                    crate::timing::STALL_LOG
+                } else {
+                    0
+                },
+                cfg.ts_ns,
+            ),
             cfg,
             stop: Box::new(|| false),
             stop_without_end: Box::new(|| false),
@@ -822,7 +831,10 @@ impl<T: Transport> Host<T> {
             self.stalls.record(seen.deadline, w);
         }
         if let Some((kc, t_k, avail)) = seen.cmd {
+            let before = self.cycle.misses.misses;
             self.cycle.at_deadline(t_k, avail);
+            self.stalls
+                .misses_in_stall(self.cycle.misses.misses - before);
             self.observe_cycle(kc, t_k, avail, true);
         }
     }

@@ -1322,6 +1322,8 @@ pub struct Stalls<'a> {
     pub count: u64,
     /// The first of them, [deadline, lateness] ns.
     pub log: &'a [(u64, u64)],
+    /// Deadline misses decided at a wake-up inside a stall.
+    pub misses: u64,
 }
 
 /// Writes `<out>/<stage>.stats.json` and one `<key>.hdr` per non-empty histogram for every
@@ -1378,6 +1380,7 @@ fn write_stats<T: Transport>(
             stalls: (source && args.clock == BusClock::Realtime).then(|| Stalls {
                 count: host.stalls.count,
                 log: host.stalls.entries(),
+                misses: host.stalls.misses,
             }),
             startup_ms,
         };

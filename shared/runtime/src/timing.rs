@@ -217,35 +217,51 @@ pub const HOST_GRID_TOL_NS: u64 = 500_000;
 
 /// The source's stalls, as (deadline, lateness) in ns of the wake-up that starts each, the
 /// first [`STALL_LOG`] of them. A stall starts with a wake-up at least [`STALL_NS`] late and
-/// lasts while the wake-ups after it (the samples it caught up on) are that late too.
+/// lasts while the wake-ups after it (the samples it catches up on) are later than a sample
+/// time (or than [`STALL_NS`], if that is shorter): until the source is back on time.
 /// Preallocated: recording never allocates.
 #[derive(Debug, Clone)]
 pub struct StallLog {
     log: Box<[(u64, u64)]>,
     len: usize,
     in_stall: bool,
+    /// A wake-up this late inside a stall is still catching up.
+    behind_ns: u64,
     /// Every stall, also those beyond the log.
     pub count: u64,
-}
-
-impl Default for StallLog {
-    fn default() -> Self {
-        Self {
-            log: vec![(0, 0); STALL_LOG].into_boxed_slice(),
-            len: 0,
-            in_stall: false,
-            count: 0,
-        }
-    }
+    /// Deadline misses decided at a wake-up inside a stall (see [`StallLog::misses_in_stall`]).
+    pub misses: u64,
 }
 
 impl StallLog {
+    /// A log for sample time `ts_ns` that keeps the first `room` stalls ([`STALL_LOG`]; 0
+    /// for a host that is not the source: it still counts, and allocates nothing).
+    pub fn new(room: usize, ts_ns: u64) -> Self {
+        Self {
+            log: vec![(0, 0); room].into_boxed_slice(),
+            len: 0,
+            in_stall: false,
+            behind_ns: ts_ns.min(STALL_NS),
+            count: 0,
+            misses: 0,
+        }
+    }
+
+    /// `n` deadline misses were decided at the wake-up recorded last: they are the stall's
+    /// when that wake-up was in one, so that a run's misses split into those of the stalls
+    /// (a frozen machine) and the rest (the drive's own lateness).
+    #[inline]
+    pub fn misses_in_stall(&mut self, n: u64) {
+        if self.in_stall {
+            self.misses += n;
+        }
+    }
+
     /// A wake-up `late_ns` after `deadline_ns`: kept if it starts a stall.
     #[inline]
     pub fn record(&mut self, deadline_ns: u64, late_ns: i64) {
-        let stalled = late_ns >= STALL_NS as i64;
-        let starts = stalled && !self.in_stall;
-        self.in_stall = stalled;
+        let starts = late_ns >= STALL_NS as i64 && !self.in_stall;
+        self.in_stall = starts || (self.in_stall && late_ns >= self.behind_ns as i64);
         if !starts {
             return;
         }
@@ -276,6 +292,11 @@ pub struct StallReport {
     /// more means something outside this machine's scheduler ends them on a common clock:
     /// a host's CPU bandwidth limit releasing a throttled VM.
     pub on_host_grid: usize,
+    /// Deadline misses decided at a wake-up inside a stall: the command not there when the
+    /// plant woke late (for the floor: its own wake-ups later than a sample time). The run's
+    /// other misses happened while the machine ran.
+    #[serde(default)]
+    pub misses: u64,
 }
 
 impl StallReport {
@@ -295,6 +316,15 @@ impl StallReport {
             longest_ms: stalls.iter().map(|&(_, l)| l).max().unwrap_or(0) as f64 / 1e6,
             pairs: ends.len().saturating_sub(1),
             on_host_grid,
+            misses: 0,
+        }
+    }
+
+    /// The report of a log: its stalls and the misses in them.
+    pub fn of(log: &StallLog) -> Self {
+        Self {
+            misses: log.misses,
+            ..Self::new(log.entries(), log.count)
         }
     }
 
@@ -305,6 +335,7 @@ impl StallReport {
             longest_ms: self.longest_ms.max(other.longest_ms),
             pairs: self.pairs + other.pairs,
             on_host_grid: self.on_host_grid + other.on_host_grid,
+            misses: self.misses + other.misses,
         }
     }
 
@@ -330,6 +361,9 @@ impl StallReport {
             self.count,
             self.longest_ms
         );
+        if self.misses > 0 {
+            l += &format!("; {} deadline misses in them", self.misses);
+        }
         if self.pairs > 0 {
             l += &format!(
                 "; {} of {} consecutive ones end a multiple of {} ms apart",
@@ -428,7 +462,7 @@ mod tests {
 
     #[test]
     fn stalls_are_kept_with_their_times_and_counted_beyond_the_log() {
-        let mut log = StallLog::default();
+        let mut log = StallLog::new(STALL_LOG, 100_000);
         log.record(1_000, STALL_NS as i64 - 1); // not a stall
         log.record(2_000, -5);
         log.record(3_000, STALL_NS as i64);
@@ -448,6 +482,39 @@ mod tests {
         assert_eq!(allocations, 0);
         assert_eq!(log.entries().len(), STALL_LOG);
         assert_eq!(log.count, STALL_LOG as u64 + 12);
+    }
+
+    #[test]
+    fn misses_decided_at_a_wake_up_inside_a_stall_are_the_stalls() {
+        // 10 kHz: a wake-up later than 100 µs inside a stall is still catching up.
+        let mut log = StallLog::new(STALL_LOG, 100_000);
+        log.record(1_000, 200_000); // late, not a stall
+        log.misses_in_stall(1);
+        log.record(2_000, STALL_NS as i64);
+        log.misses_in_stall(3);
+        log.record(3_000, 420_000); // caught up on: the same stall
+        log.misses_in_stall(1);
+        log.record(4_000, 100_000); // the last sample it catches up on
+        log.misses_in_stall(1);
+        log.record(5_000, 99_999); // back on time, out of it
+        log.misses_in_stall(2);
+        log.record(6_000, 200_000); // late again: no stall
+        log.misses_in_stall(1);
+        assert_eq!((log.count, log.misses), (1, 5));
+        let r = StallReport::of(&log);
+        assert_eq!((r.count, r.misses), (1, 5));
+        assert!(r.line().unwrap().contains("; 5 deadline misses in them"));
+        assert_eq!(r.merged(&r).misses, 10);
+        // At 1 kHz a stall ends at the first wake-up under 0.5 ms late.
+        let mut slow = StallLog::new(STALL_LOG, 1_000_000);
+        slow.record(1_000, 2_000_000);
+        slow.record(2_000, STALL_NS as i64 - 1);
+        slow.misses_in_stall(1);
+        assert_eq!(slow.misses, 0);
+        // A host that is not the source keeps no log but still counts.
+        let mut none = StallLog::new(0, 100_000);
+        none.record(1_000, STALL_NS as i64);
+        assert_eq!((none.count, none.entries().len()), (1, 0));
     }
 
     #[test]
