@@ -701,8 +701,8 @@ fn a_frozen_plant_is_one_stall_in_the_summary_with_its_length() {
         .collect();
     assert_eq!(frozen.len(), 1, "{}", plant["stalls"]);
     // The commands of the ~300 samples the plant caught up on came after their deadlines:
-    // misses, decided while it was still 0.5 ms or more late, so the stall's. Those of its
-    // last few late samples, and any of the host's, are outside it.
+    // misses, decided while it was still more than a sample time late, so the stall's. Any
+    // the drive or the host adds elsewhere are outside it.
     let misses = s["deadline_misses"].as_u64().expect("deadline_misses");
     let in_stalls = st["misses"].as_u64().expect("timing.stalls.misses");
     assert!(

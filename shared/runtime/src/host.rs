@@ -577,7 +577,6 @@ impl<T: Transport> Host<T> {
                 }
             })
             .collect::<Vec<Hosted>>();
-        let source_first = hosted.first().is_some_and(|h| h.trigger().is_none());
         let mut drains: Vec<Drain> = Vec::new();
         for (si, h) in hosted.iter().enumerate() {
             for b in &h.inputs {
@@ -610,7 +609,7 @@ impl<T: Transport> Host<T> {
             .iter()
             .map(|i| Armed::bind(i, cfg.sample_hz, &names, |t| divider[t.index()]))
             .collect();
-        Self {
+        let mut host = Self {
             spares: armed.iter().map(|_| None).collect(),
             swapped: vec![false; armed.len()],
             armed,
@@ -619,20 +618,17 @@ impl<T: Transport> Host<T> {
             transport,
             store: Store::new(divider),
             cycle: CycleMonitor::new(cfg.ts_ns),
-            // Only the source logs its stalls (the others' logs stay empty).
-            stalls: crate::timing::StallLog::new(
-                if source_first {
-                    crate::timing::STALL_LOG
-                } else {
-                    0
-                },
-                cfg.ts_ns,
-            ),
+            // Empty, allocating nothing: only the source keeps its stalls (below).
+            stalls: crate::timing::StallLog::new(0, cfg.ts_ns),
             cfg,
             stop: Box::new(|| false),
             stop_without_end: Box::new(|| false),
             drains,
+        };
+        if host.is_source() {
+            host.stalls = crate::timing::StallLog::new(crate::timing::STALL_LOG, host.cfg.ts_ns);
         }
+        host
     }
 
     /// Lockstep kills (docs/architecture.md, "Fault model"): builds, with `build` (a stage
