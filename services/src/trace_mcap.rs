@@ -144,6 +144,9 @@ impl McapTrace {
             .with_context(|| format!("cannot create {}", path.display()))?;
         let mut w = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
+            // zstd's fastest level: the recorder compresses every chunk on the launcher's
+            // core as the drive runs (docs/architecture.md, "The recorder's cost").
+            .compression_level(1)
             // One thread: the recorder's, on the launcher's core.
             .compression_threads(0)
             .chunk_size(Some(CHUNK_BYTES))

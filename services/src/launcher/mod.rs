@@ -370,7 +370,8 @@ fn run_bus(
     // stage and above a split drive's link, so that no normal task on its core (a build, the
     // OS) can keep it from draining its buffers (4096 samples) for long enough to lose one.
     // Refused without the privilege: it runs as before.
-    let recorder_fifo = clock == BusClock::Realtime && !o.no_rt;
+    let realtime = clock == BusClock::Realtime;
+    let recorder_fifo = realtime && !o.no_rt;
     let rt_cores = drivelab_runtime::topology::cores(&plan_topo.processes);
     let rec = {
         let (b, s, sc, pr) = (bus_id.clone(), stop.clone(), sc.clone(), progress.clone());
@@ -384,7 +385,7 @@ fn run_bus(
                     let _ =
                         drivelab_runtime::rt::set_scheduler(libc::SCHED_FIFO, RECORDER_PRIORITY);
                 }
-                let r = run_recorder(b, sc, trace, s, pr.clone(), ready_tx, publishers);
+                let r = run_recorder(b, sc, trace, s, pr.clone(), ready_tx, publishers, realtime);
                 pr.failed.store(r.is_err(), Ordering::SeqCst);
                 r
             })?

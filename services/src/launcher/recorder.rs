@@ -136,7 +136,17 @@ pub(super) fn run_recorder(
     progress: Arc<Progress>,
     ready: mpsc::Sender<Result<()>>,
     publishers: usize,
+    realtime: bool,
 ) -> Result<TraceStream> {
+    // How long the recorder sleeps when it found nothing. In real time a millisecond: each
+    // wake-up costs a context switch, and 10–20 samples a wake-up are well within the
+    // buffers (docs/architecture.md, "The recorder's cost"). In lockstep the source waits
+    // for the recorder's progress, so it polls as every polled receiver does.
+    let idle = if realtime {
+        Duration::from_millis(1)
+    } else {
+        bus::POLL_SLEEP
+    };
     let wake = sc.timing.wake;
     let n = sc.samples();
     let setup = (|| -> Result<_> {
@@ -270,7 +280,7 @@ pub(super) fn run_recorder(
             return trace.finish();
         }
         if !got {
-            meas_rx.wait(Duration::from_millis(1))?;
+            std::thread::sleep(idle);
         }
     }
 }
