@@ -63,8 +63,8 @@ fn a_killed_process_is_replaced_by_its_twin_within_three_samples_and_again_by_th
             "kill:observer@0.6",
             // The current loop's first twin, now the process, is killed in turn: the twin
             // started after the first takeover takes over from it. That twin must be ready
-            // by then (checked below); a second is ample for its start-up, some 50 ms here
-            // and 130 ms with the cores saturated by busy loops.
+            // by then (checked below); a second is ample: it was ready 50–80 ms after the
+            // takeover on the development VM, 90–140 ms with both cores saturated.
             "--fault",
             "kill:current-loop@1.4",
         ],
