@@ -20,52 +20,21 @@
 #include <time.h>
 #include <unistd.h>
 
-#define STRIDE 16 /* one 64-byte line per word */
+#include "rt_helpers.h"
 
 static int n_tasks;
 static long rounds;
 static uint32_t *words;
-
-static int64_t now_ns(void)
-{
-	struct timespec t;
-	clock_gettime(CLOCK_MONOTONIC, &t);
-	return t.tv_sec * 1000000000LL + t.tv_nsec;
-}
 
 static uint32_t *word(long i)
 {
 	return &words[(i % n_tasks) * STRIDE];
 }
 
-static void wait_token(uint32_t *w)
-{
-	while (__atomic_load_n(w, __ATOMIC_ACQUIRE) == 0)
-		syscall(SYS_futex, w, FUTEX_WAIT, 0, NULL, NULL, 0);
-	__atomic_store_n(w, 0, __ATOMIC_RELEASE);
-}
-
-static void pass_token(uint32_t *w)
-{
-	__atomic_store_n(w, 1, __ATOMIC_RELEASE);
-	syscall(SYS_futex, w, FUTEX_WAKE, 1, NULL, NULL, 0);
-}
-
-static void on_cpu1_fifo70(void)
-{
-	cpu_set_t s;
-	CPU_ZERO(&s);
-	CPU_SET(1, &s);
-	sched_setaffinity(0, sizeof s, &s);
-	struct sched_param p = { .sched_priority = 70 };
-	if (sched_setscheduler(0, SCHED_FIFO, &p) != 0)
-		perror("sched_setscheduler");
-}
-
 static void *task(void *arg)
 {
 	long i = (long)arg;
-	on_cpu1_fifo70();
+	on_cpu_fifo(1, 70);
 	for (long r = 0; r < rounds; r++) {
 		wait_token(word(i));
 		pass_token(word(i + 1));
@@ -103,7 +72,7 @@ int main(int argc, char **argv)
 			_exit(0);
 		}
 	}
-	on_cpu1_fifo70();
+	on_cpu_fifo(1, 70);
 	usleep(100000);
 	int64_t t0 = now_ns();
 	for (long r = 0; r < rounds; r++) {

@@ -26,7 +26,8 @@
 #include <time.h>
 #include <unistd.h>
 
-#define STRIDE 16 /* one 64-byte line per word */
+#include "rt_helpers.h"
+
 #define BUCKETS 100000 /* 0.1 µs each: 0 .. 10 ms */
 
 struct shared {
@@ -41,41 +42,9 @@ static struct shared *s;
 static int k_receivers;
 static long work_ns;
 
-static int64_t now_ns(void)
-{
-	struct timespec t;
-	clock_gettime(CLOCK_MONOTONIC, &t);
-	return t.tv_sec * 1000000000LL + t.tv_nsec;
-}
-
-static void on_cpu1_fifo(int prio)
-{
-	cpu_set_t c;
-	CPU_ZERO(&c);
-	CPU_SET(1, &c);
-	sched_setaffinity(0, sizeof c, &c);
-	struct sched_param p = { .sched_priority = prio };
-	if (sched_setscheduler(0, SCHED_FIFO, &p) != 0)
-		perror("sched_setscheduler");
-}
-
-static void wait_token(uint32_t *w)
-{
-	while (__atomic_load_n(w, __ATOMIC_ACQUIRE) == 0)
-		syscall(SYS_futex, w, FUTEX_WAIT, 0, NULL, NULL, 0);
-	__atomic_store_n(w, 0, __ATOMIC_RELEASE);
-}
-
-static void pass_token(uint32_t *w)
-{
-	__atomic_store_n(w, 1, __ATOMIC_RELEASE);
-	syscall(SYS_futex, w, FUTEX_WAKE, 1, NULL, NULL, 0);
-}
-
 static void record(uint64_t *h, int64_t ns)
 {
-	int64_t b = ns < 0 ? 0 : ns / 100;
-	h[b < BUCKETS ? b : BUCKETS - 1]++;
+	hist_record(h, BUCKETS, 100, ns);
 }
 
 static void spin(void)
@@ -90,7 +59,7 @@ static void spin(void)
 static void *receiver(void *arg)
 {
 	long i = (long)arg;
-	on_cpu1_fifo(70 + 2 * i);
+	on_cpu_fifo(1, 70 + 2 * i);
 	for (;;) {
 		wait_token(&s->words[i * STRIDE]);
 		if (s->stop)
@@ -106,15 +75,7 @@ static void *receiver(void *arg)
 
 static double percentile(const uint64_t *h, double q)
 {
-	uint64_t n = 0, c = 0;
-	for (int b = 0; b < BUCKETS; b++)
-		n += h[b];
-	for (int b = 0; b < BUCKETS; b++) {
-		c += h[b];
-		if (c >= q * n)
-			return b / 10.0;
-	}
-	return -1;
+	return hist_percentile_us(h, BUCKETS, 100, q);
 }
 
 int main(int argc, char **argv)
@@ -152,7 +113,7 @@ int main(int argc, char **argv)
 			_exit(0);
 		}
 	}
-	on_cpu1_fifo(70);
+	on_cpu_fifo(1, 70);
 	usleep(100000);
 	int64_t period = 1000000000LL / rate, t0 = now_ns() + period;
 	for (long k = 0; k < samples; k++) {

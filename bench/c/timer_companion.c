@@ -17,41 +17,24 @@
 #include <sys/mman.h>
 #include <time.h>
 
+#include "rt_helpers.h"
+
 #define BUCKETS 100000 /* 0.1 µs each: 0 .. 10 ms */
 
 static uint64_t hist[BUCKETS];
 static long rate_hz, samples;
 static volatile int done;
 
-static int64_t now_ns(void)
-{
-	struct timespec t;
-	clock_gettime(CLOCK_MONOTONIC, &t);
-	return t.tv_sec * 1000000000LL + t.tv_nsec;
-}
-
-static void pin_to(int cpu)
-{
-	cpu_set_t s;
-	CPU_ZERO(&s);
-	CPU_SET(cpu, &s);
-	sched_setaffinity(0, sizeof s, &s);
-}
-
 static void *timer_thread(void *unused)
 {
 	(void)unused;
-	pin_to(1);
-	struct sched_param p = { .sched_priority = 70 };
-	if (sched_setscheduler(0, SCHED_FIFO, &p) != 0)
-		perror("sched_setscheduler");
+	on_cpu_fifo(1, 70);
 	int64_t ts = 1000000000LL / rate_hz, t0 = now_ns() + ts;
 	for (long k = 0; k < samples; k++) {
 		int64_t tk = t0 + k * ts;
 		struct timespec d = { tk / 1000000000LL, tk % 1000000000LL };
 		clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &d, NULL);
-		int64_t b = (now_ns() - tk) / 100;
-		hist[b < BUCKETS ? b : BUCKETS - 1]++;
+		hist_record(hist, BUCKETS, 100, now_ns() - tk);
 	}
 	done = 1;
 	return NULL;
@@ -80,15 +63,7 @@ int main(int argc, char **argv)
 		clock_nanosleep(CLOCK_REALTIME, 0, &d, NULL);
 	}
 	pthread_join(t, NULL);
-	double p50 = -1, p99 = -1;
-	uint64_t c = 0;
-	for (long i = 0; i < BUCKETS && p99 < 0; i++) {
-		c += hist[i];
-		if (p50 < 0 && c * 2 >= (uint64_t)samples)
-			p50 = i / 10.0;
-		if (c * 100 >= (uint64_t)samples * 99)
-			p99 = i / 10.0;
-	}
-	printf("companion %ld ms: p50 %.1f us, p99 %.1f us\n", companion_ms, p50, p99);
+	printf("companion %ld ms: p50 %.1f us, p99 %.1f us\n", companion_ms,
+	       hist_percentile_us(hist, BUCKETS, 100, .5), hist_percentile_us(hist, BUCKETS, 100, .99));
 	return 0;
 }

@@ -38,6 +38,8 @@
 #include <time.h>
 #include <unistd.h>
 
+#include "rt_helpers.h"
+
 #define BUCKETS 100000 /* 10 ns each: 0 .. 1 ms */
 #define HUGE (2UL << 20)
 
@@ -68,45 +70,15 @@ FN8(1) FN8(2) FN8(3) FN8(4) FN8(5) FN8(6) FN8(7) FN8(8)
 #define P8(a) f##a##0, f##a##1, f##a##2, f##a##3, f##a##4, f##a##5, f##a##6, f##a##7
 static uint64_t (*const fns[64])(uint64_t) = { P8(1), P8(2), P8(3), P8(4), P8(5), P8(6), P8(7), P8(8) };
 
-static int64_t now_ns(void)
-{
-	struct timespec t;
-	clock_gettime(CLOCK_MONOTONIC, &t);
-	return t.tv_sec * 1000000000LL + t.tv_nsec;
-}
-
-static void on_cpu1_fifo(int prio)
-{
-	cpu_set_t c;
-	CPU_ZERO(&c);
-	CPU_SET(1, &c);
-	sched_setaffinity(0, sizeof c, &c);
-	struct sched_param p = { .sched_priority = prio };
-	if (sched_setscheduler(0, SCHED_FIFO, &p) != 0)
-		perror("sched_setscheduler");
-}
-
 static void record(uint64_t *h, int64_t ns)
 {
-	int64_t b = ns / 10;
-	if (b < 0)
-		b = 0;
-	if (b >= BUCKETS)
-		b = BUCKETS - 1;
-	h[b]++;
+	hist_record(h, BUCKETS, 10, ns);
 }
 
+/* ns */
 static double pct(const uint64_t *h, double q)
 {
-	uint64_t n = 0, acc = 0;
-	for (int i = 0; i < BUCKETS; i++)
-		n += h[i];
-	for (int i = 0; i < BUCKETS; i++) {
-		acc += h[i];
-		if (acc >= (uint64_t)(q * n))
-			return i * 10.0;
-	}
-	return -1;
+	return hist_percentile_us(h, BUCKETS, 10, q) * 1000.0;
 }
 
 /* The receiver's memory: PAGES pages, one line read on each, at offsets that spread the
@@ -157,7 +129,7 @@ static uint64_t pass(volatile uint64_t *a)
 static void *receiver(void *arg)
 {
 	(void)arg;
-	on_cpu1_fifo(72);
+	on_cpu_fifo(1, 72);
 	volatile uint64_t *a = region();
 	uint64_t sink = 0;
 	for (;;) {
@@ -219,7 +191,7 @@ int main(int argc, char **argv)
 			_exit(0);
 		}
 	}
-	on_cpu1_fifo(70);
+	on_cpu_fifo(1, 70);
 	usleep(200000);
 	memset(s->first, 0, sizeof s->first);
 	memset(s->second, 0, sizeof s->second);
