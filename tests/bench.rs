@@ -1165,3 +1165,66 @@ fn the_hop_receivers_of_a_sigkilled_bench_end_and_remove_its_wake_segment() {
     let files = bench_bus_files(pid);
     assert!(files.is_empty(), "bus files left: {files:?}");
 }
+
+/// `scripts/under-stalls.sh` (the tests under simulated host stalls): its command runs beside
+/// one stall task per CPU, its exit status is the command's, and no stall task outlives it,
+/// also when the command fails. Without SCHED_FIFO it refuses in one line instead.
+#[test]
+fn under_stalls_runs_the_command_beside_two_stall_tasks_and_leaves_none() {
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/../scripts/under-stalls.sh");
+    let dir = scratch("under-stalls");
+    let (pids_file, err_file) = (dir.join("pids"), dir.join("stderr"));
+    // The command lists its siblings named `stalls` (the script is their parent and its).
+    // Files, not pipes: a stall task that outlived the script would hold a pipe open.
+    let cmd = format!("pgrep -P $PPID -x stalls > {}; exit 7", pids_file.display());
+    let mut child = Command::new("bash")
+        .args([script, "sh", "-c", &cmd])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::fs::File::create(&err_file).unwrap())
+        .spawn()
+        .unwrap();
+    let t = Instant::now();
+    let status = loop {
+        if let Some(st) = child.try_wait().unwrap() {
+            break st;
+        }
+        if t.elapsed() > Duration::from_secs(60) {
+            // The script's children first (its stall tasks), then the script.
+            let _ = Command::new("pkill")
+                .args(["-P", &child.id().to_string()])
+                .status();
+            let _ = child.kill();
+            panic!("watchdog: scripts/under-stalls.sh hangs");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let err = std::fs::read_to_string(&err_file).unwrap();
+    let root = Command::new("id").arg("-u").output().unwrap().stdout == b"0\n";
+    if !root {
+        assert_eq!(status.code(), Some(1), "{err}");
+        assert!(err.contains("a stall task did not start (root?)"), "{err}");
+        return;
+    }
+    let pids: Vec<String> = std::fs::read_to_string(&pids_file)
+        .unwrap_or_default()
+        .split_whitespace()
+        .map(String::from)
+        .collect();
+    let alive: Vec<&String> = pids
+        .iter()
+        .filter(|p| Path::new(&format!("/proc/{p}")).exists())
+        .collect();
+    for p in &alive {
+        let _ = Command::new("kill").arg(p.as_str()).status();
+    }
+    assert_eq!(status.code(), Some(7), "{err}");
+    assert_eq!(
+        pids.len(),
+        2,
+        "stall tasks beside the command: {pids:?}; {err}"
+    );
+    assert!(
+        alive.is_empty(),
+        "stall tasks {alive:?} outlived the script"
+    );
+}
