@@ -35,13 +35,17 @@ static inline void pin_to(int cpu)
 		perror("sched_setaffinity");
 }
 
-/* Pins the calling task to `cpu` and runs it at SCHED_FIFO `prio` (says so where refused). */
-static inline void on_cpu_fifo(int cpu, int prio)
+/* Pins the calling task to `cpu` and runs it at SCHED_FIFO `prio`; where that is refused
+ * it says so and returns -1 (the measurements go on without it), else 0. */
+static inline int on_cpu_fifo(int cpu, int prio)
 {
 	pin_to(cpu);
 	struct sched_param p = { .sched_priority = prio };
-	if (sched_setscheduler(0, SCHED_FIFO, &p) != 0)
-		perror("sched_setscheduler");
+	if (sched_setscheduler(0, SCHED_FIFO, &p) != 0) {
+		perror("sched_setscheduler (SCHED_FIFO needs root or CAP_SYS_NICE)");
+		return -1;
+	}
+	return 0;
 }
 
 /* Sleeps on the futex word until another task has passed the token, then takes it. */

@@ -27,12 +27,8 @@ int main(int argc, char **argv)
 		fprintf(stderr, "CPU must be >= 0, MAX_MS >= 1 and EVERY_MS >= 100\n");
 		return 2;
 	}
-	pin_to(cpu);
-	struct sched_param p = { .sched_priority = 99 };
-	if (sched_setscheduler(0, SCHED_FIFO, &p) != 0) {
-		perror("stalls: SCHED_FIFO 99 (needs root)");
+	if (on_cpu_fifo(cpu, 99) != 0)
 		return 1;
-	}
 	srand(seed);
 	for (;;) {
 		long gap_ms = 100 + rand() % (every_ms - 99);
