@@ -159,6 +159,20 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             "at most 3600 s",
         ),
         run_case("dur-empty", &["--duration", ""], 2, "not a number"),
+        run_case(
+            "timing-lockstep",
+            &["--timing-csv"],
+            1,
+            "--timing-csv needs the realtime clock: the lockstep clock has no sample instants to time against",
+        ),
+        case(
+            "timing-inprocess",
+            dir,
+            &["run", "--bus", "{bus}", "--out", o, "--clock", "inprocess", "--timing-csv"],
+            1,
+            "--timing-csv needs the realtime clock: the inprocess clock has no sample instants",
+        )
+        .leaves_no(out.clone()),
         run_case("scenario", &["--scenario", "nosuch"], 1, "unknown scenario 'nosuch'"),
         run_case(
             "scenario-dir",

@@ -617,6 +617,23 @@ fn a_folder_another_drive_writes_into_is_refused_and_one_it_cannot_replace_is_le
     assert_clean(&second);
 }
 
+/// The summary of a 0.05 s real-time run of kyslan-pi with `line` in its `[timing]` table.
+fn short_run_with_timing(tag: &str, line: &str) -> serde_json::Value {
+    let sc = variant(
+        tag,
+        "kyslan-pi",
+        &[(
+            "# 200 W at 3500 rpm",
+            &format!("# 200 W at 3500 rpm\n\n[timing]\n{line}"),
+        )],
+    );
+    run_ok(
+        tag,
+        &["--duration", "0.05", "--scenario", sc.to_str().unwrap()],
+    )
+    .1
+}
+
 #[test]
 fn a_realtime_drive_reports_its_cpu_latency_request() {
     let _serial = serial();
@@ -640,18 +657,7 @@ fn a_realtime_drive_reports_its_cpu_latency_request() {
         );
     }
     // Turned off in the scenario: no request.
-    let sc = variant(
-        "pmqosoff",
-        "kyslan-pi",
-        &[(
-            "# 200 W at 3500 rpm",
-            "# 200 W at 3500 rpm\n\n[timing]\ncpu_latency_us = \"none\"",
-        )],
-    );
-    let (_, s) = run_ok(
-        "pmqosoff",
-        &["--duration", "0.05", "--scenario", sc.to_str().unwrap()],
-    );
+    let s = short_run_with_timing("pmqosoff", "cpu_latency_us = \"none\"");
     assert!(
         s["timing"]["cpu_latency_us_requested"].is_null(),
         "{}",
@@ -668,6 +674,69 @@ fn a_realtime_drive_reports_its_cpu_latency_request() {
 }
 
 #[test]
+fn timing_csv_has_every_samples_publish_times_in_causal_order_and_the_cycles_median() {
+    let (out, s) = run_ok("timingcsv", &["--duration", "0.3", "--timing-csv"]);
+    let timing = std::fs::read_to_string(out.join("timing.csv")).unwrap();
+    let trace = std::fs::read_to_string(out.join("trace.csv")).unwrap();
+    let mut lines = timing.lines();
+    assert_eq!(
+        lines.next(),
+        Some("k,plant_published_us,command_published_us")
+    );
+    let rows: Vec<(u64, Option<f64>, Option<f64>)> = lines
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            assert_eq!(f.len(), 3, "{l}");
+            let us = |x: &str| (!x.is_empty()).then(|| x.parse::<f64>().unwrap());
+            (f[0].parse().unwrap(), us(f[1]), us(f[2]))
+        })
+        .collect();
+    // One row per row of the trace, in its order.
+    let trace_ks: Vec<u64> = trace
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').next().unwrap().parse().unwrap())
+        .collect();
+    let ks: Vec<u64> = rows.iter().map(|r| r.0).collect();
+    assert_eq!(ks, trace_ks);
+    assert_eq!(ks.len(), 3000);
+    // The plant publishes sample k after t_k (it sleeps until then), and command k is
+    // computed from measurement k, so it is published after it.
+    let mut commands = Vec::new();
+    for &(k, plant, cmd) in &rows {
+        let plant = plant.unwrap_or_else(|| panic!("sample {k} has no plant publish time"));
+        assert!(plant > 0.0, "sample {k} published {plant} µs before t_k");
+        if let Some(c) = cmd {
+            assert!(
+                c > plant,
+                "command {k} published at {c} µs, its measurement at {plant} µs"
+            );
+            commands.push(c);
+        }
+    }
+    // Command published − t_k is the cycle latency: its median is the summary's cycle p50
+    // (an HDR histogram of the same stamps, to its resolution).
+    assert!(commands.len() > 2900, "{} commands", commands.len());
+    commands.sort_by(f64::total_cmp);
+    let median = commands[commands.len() / 2];
+    let p50 = s["latency_us"]["cycle"]["p50"].as_f64().unwrap();
+    assert!(
+        (median - p50).abs() <= 0.01 * p50,
+        "timing.csv's median command time {median} µs, the cycle histogram's p50 {p50} µs"
+    );
+    // By default the plant's schedule starts on a whole millisecond, the tick's grid.
+    let t = &s["timing"];
+    assert_eq!(t["tick_aligned"], true, "{t}");
+    assert_eq!(t["schedule_start_us_past_ms"].as_f64(), Some(0.0), "{t}");
+    // Not aligned: it starts wherever the launcher's clock was, and says where.
+    let s = short_run_with_timing("timingcsvoff", "tick_aligned = false");
+    let t = &s["timing"];
+    assert_eq!(t["tick_aligned"], false, "{t}");
+    let past = t["schedule_start_us_past_ms"].as_f64().unwrap();
+    assert!((0.0..1000.0).contains(&past), "{t}");
+}
+
+#[test]
 fn a_frozen_plant_is_one_stall_in_the_summary_with_its_length() {
     let _serial = serial();
     // The plant stopped for 30 ms: its next wake-up comes about 30 ms late, and the 300
@@ -679,8 +748,9 @@ fn a_frozen_plant_is_one_stall_in_the_summary_with_its_length() {
     let st = &s["timing"]["stalls"];
     let count = st["count"].as_u64().expect("timing.stalls.count");
     let longest = st["longest_ms"].as_f64().unwrap();
-    // A VM's host may add a stall or two of its own in half a second.
-    assert!((1..=20).contains(&count), "{st}");
+    // The machine may add stalls of its own, as many as it likes (a contended host: dozens
+    // in half a second); the frozen plant's are told apart by their deadlines below.
+    assert!(count >= 1, "{st}");
     assert!((29.0..1000.0).contains(&longest), "{st}");
     assert!(
         st["line"]
@@ -695,11 +765,25 @@ fn a_frozen_plant_is_one_stall_in_the_summary_with_its_length() {
         .as_array()
         .expect("plant's stall log");
     assert_eq!(log.len() as u64, count, "{}", plant["stalls"]);
+    // One stall as long as the freeze, also when the machine's own stall was under way as
+    // the plant was stopped (then the freeze is that stall's latest wake-up).
     let frozen: Vec<_> = log
         .iter()
         .filter(|e| e[1].as_u64().unwrap() >= 29_000_000)
         .collect();
     assert_eq!(frozen.len(), 1, "{}", plant["stalls"]);
+    // Every sample the plant caught up on has its deadline inside the freeze: none of them
+    // starts a stall of its own (a stall the machine adds later starts after the catch-up,
+    // with a later deadline).
+    let (d0, late0) = (
+        frozen[0][0].as_u64().unwrap(),
+        frozen[0][1].as_u64().unwrap(),
+    );
+    let inside: Vec<_> = log
+        .iter()
+        .filter(|e| (d0 + 1..=d0 + late0).contains(&e[0].as_u64().unwrap()))
+        .collect();
+    assert!(inside.is_empty(), "stalls inside the freeze: {inside:?}");
     // The commands of the ~300 samples the plant caught up on came after their deadlines:
     // misses, decided while it was still more than a sample time late, so the stall's. Any
     // the drive or the host adds elsewhere are outside it.
@@ -719,6 +803,52 @@ fn a_frozen_plant_is_one_stall_in_the_summary_with_its_length() {
     // Lockstep has no wall clock: no stalls to report.
     let (_, s) = run_ok("stallls", &["--duration", "0.05", "--clock", "lockstep"]);
     assert!(s["timing"].get("stalls").is_none(), "{}", s["timing"]);
+}
+
+#[test]
+fn a_freeze_before_the_plant_caught_up_is_the_same_stall_as_long_as_the_freeze() {
+    let _serial = serial();
+    // Stopped 40 ms, then again for 80 ms 10 ms of samples later: after the first stop it
+    // has ~500 samples to catch up on (10 ms or more of wall time), and reaches the second
+    // stop's sample within the first 100 of them (2-3 ms), before it is back on time. (The
+    // second stop's sample must come after the first's signal, which lands a few samples
+    // late: a stop due while the process is stopped is skipped.)
+    let (dir, s) = run_ok(
+        "stall2",
+        &[
+            "--duration",
+            "0.5",
+            "--fault",
+            "stop:plant@0.2:0.04",
+            "--fault",
+            "stop:plant@0.21:0.08",
+        ],
+    );
+    let events = &s["supervisor_events"];
+    let stops = events
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["event"] == "inject")
+        .count();
+    assert_eq!(stops, 2, "both stops sent: {events}");
+    let plant: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("plant.stats.json")).unwrap())
+            .unwrap();
+    let log = plant["stalls"]["log"]
+        .as_array()
+        .expect("plant's stall log");
+    // The machine may add short stalls of its own; the two stops are one stall, reported by
+    // its latest wake-up: about 80 ms late (plus what was left to catch up), not 40.
+    let long: Vec<u64> = log
+        .iter()
+        .map(|e| e[1].as_u64().unwrap())
+        .filter(|&l| l >= 30_000_000)
+        .collect();
+    assert_eq!(long.len(), 1, "{}", plant["stalls"]);
+    assert!(long[0] >= 79_000_000, "{}", plant["stalls"]);
+    let longest = s["timing"]["stalls"]["longest_ms"].as_f64().unwrap();
+    assert!(longest >= 79.0, "{}", s["timing"]["stalls"]);
 }
 
 /// The CPUs in a `/proc/.../status` file's `Cpus_allowed_list` (e.g. "0-1,3").

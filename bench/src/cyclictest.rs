@@ -43,9 +43,11 @@ pub fn locate(cmd: &str) -> std::result::Result<PathBuf, String> {
 /// Runs `exe` (cyclictest) for round(seconds × hz) wake-ups on `node`'s core at its
 /// SCHED_FIFO priority, memory locked, with its CPU wake-up latency request at 0 µs when
 /// `latency_request` (cyclictest's default) or without one (`--default-system`), its main
-/// thread on `main_core` when given (see [`main_thread_core`]). The histogram file and its
-/// output (`cyclictest.log`) go to `work`. A stop signal stops it and ends the run with
-/// [`crate::Interrupted`].
+/// thread on `main_core` when given (see [`main_thread_core`]), its wake-ups from the next
+/// full second on when `tick_aligned` (`--secaligned`: on the scheduler tick's grid, as the
+/// floor's schedule then starts). The histogram file and its output (`cyclictest.log`) go to
+/// `work`. A stop signal stops it and ends the run with [`crate::Interrupted`].
+#[allow(clippy::too_many_arguments)]
 pub fn run(
     exe: &Path,
     hz: f64,
@@ -53,6 +55,7 @@ pub fn run(
     node: &NodeSpec,
     main_core: Option<usize>,
     latency_request: bool,
+    tick_aligned: bool,
     work: &Path,
 ) -> Result<VariantResult> {
     let (n, ts_ns) = schedule(hz, seconds)?;
@@ -78,6 +81,9 @@ pub fn run(
     }
     if !latency_request {
         c.arg("--default-system");
+    }
+    if tick_aligned {
+        c.arg("--secaligned");
     }
     // In its guard: a stop signal (or any error) stops it; it is reaped on every path.
     let mut kids = Kids::default();

@@ -78,13 +78,16 @@ fn input_word(position: usize) -> usize {
 /// Runs round(seconds × hz) samples: this process sends from a fresh thread placed at
 /// `sender`; `exe bench-node hop` receives, once per entry of `receivers` (1 to
 /// [`MAX_RECEIVERS`]), each placed there. The wake segment is bus `bus`'s and is removed
-/// afterwards. The result's cycle is what `measure` says; its lateness is the sender's. A
-/// stop signal ends it with [`Interrupted`], its receivers stopped and its bus files removed.
+/// afterwards. The sender's schedule starts on the scheduler tick's grid when
+/// `tick_aligned`, as the drive's plant does. The result's cycle is what `measure` says; its
+/// lateness is the sender's. A stop signal ends it with [`Interrupted`], its receivers
+/// stopped and its bus files removed.
 #[allow(clippy::too_many_arguments)]
 pub fn run(
     exe: &Path,
     hz: f64,
     seconds: f64,
+    tick_aligned: bool,
     sender: &NodeSpec,
     receivers: &[NodeSpec],
     measure: Measure,
@@ -167,7 +170,7 @@ pub fn run(
             // Allocated before the memory lock populates it (as the floor does).
             let mut late = LatencyHist::new("lateness");
             apply_rt("hop sender", &node, true)?;
-            let t0 = now_ns() + 2_000_000;
+            let t0 = drivelab_runtime::rt::schedule_start_ns(tick_aligned);
             // ---- real-time loop: no allocation, no locks, no logging ----
             let mut k = 0;
             while k < n && !stopping() {
@@ -412,6 +415,7 @@ mod tests {
             Path::new("/bin/false"),
             1000.0,
             0.1,
+            true,
             &NodeSpec::default(),
             &[NodeSpec::default(), NodeSpec::default()],
             Measure::Wakeup,

@@ -220,8 +220,14 @@ pub(crate) fn in_fresh_thread<T: Send + 'static>(
 
 /// The floor: a bare periodic clock_nanosleep(TIMER_ABSTIME) loop at `hz` for `seconds`, on
 /// `node`'s core and SCHED_FIFO priority, in a fresh thread of this process (restore nothing:
-/// the thread ends). Records lateness.
-pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult> {
+/// the thread ends), its schedule started as the chains' is (`tick_aligned`). Records
+/// lateness.
+pub fn run_floor(
+    hz: f64,
+    seconds: f64,
+    node: &NodeSpec,
+    tick_aligned: bool,
+) -> Result<VariantResult> {
     let (n, ts_ns) = schedule(hz, seconds)?;
     let node = *node;
     in_fresh_thread("bench-floor", move || {
@@ -241,7 +247,7 @@ pub fn run_floor(hz: f64, seconds: f64, node: &NodeSpec) -> Result<VariantResult
             });
         // Like cyclictest: memory locked (process-wide, as the drive's hosts do).
         apply_rt("floor", &node, true)?;
-        let t0 = now_ns() + 2_000_000;
+        let t0 = drivelab_runtime::rt::schedule_start_ns(tick_aligned);
         sleep_until_ns(t0 - ts_ns);
         let cpu0 = thread_cpu_ns();
         let calls0 = drivelab_runtime::rt::syscalls();
@@ -333,7 +339,7 @@ pub fn run_inprocess(spec: &ChainSpec) -> Result<VariantResult> {
         apply_rt("inprocess", &node, false)?;
         let mut mon = CycleMonitor::new(ts_ns);
         let mut late = LatencyHist::new("lateness");
-        let t0 = now_ns() + 2_000_000;
+        let t0 = drivelab_runtime::rt::schedule_start_ns(sc.timing.tick_aligned);
         let calls0 = drivelab_runtime::rt::syscalls();
         // ---- real-time loop: no allocation, no locks, no logging ----
         let mut k = 0;
@@ -389,7 +395,7 @@ mod tests {
 
     #[test]
     fn floor_runs_the_expected_samples() {
-        let r = run_floor(2000.0, 0.05, &NodeSpec::default()).unwrap();
+        let r = run_floor(2000.0, 0.05, &NodeSpec::default(), true).unwrap();
         assert_eq!(r.samples, 100);
         // One lateness per wake-up (100 on time, fewer after a late one); one cycle entry
         // per deadline.
@@ -462,8 +468,8 @@ mod tests {
 
     #[test]
     fn bad_rates_and_durations_are_refused() {
-        assert!(run_floor(0.0, 1.0, &NodeSpec::default()).is_err());
-        assert!(run_floor(1000.0, f64::NAN, &NodeSpec::default()).is_err());
-        assert!(run_floor(1000.0, -1.0, &NodeSpec::default()).is_err());
+        assert!(run_floor(0.0, 1.0, &NodeSpec::default(), true).is_err());
+        assert!(run_floor(1000.0, f64::NAN, &NodeSpec::default(), true).is_err());
+        assert!(run_floor(1000.0, -1.0, &NodeSpec::default(), true).is_err());
     }
 }

@@ -449,6 +449,7 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
         runner: None,
         zenoh: None,
         foxglove: None,
+        timing_csv: false,
     };
     let r = launcher::run(&o)?;
     // CPU time: every stage's statistics carry its process's total; count each process once.
@@ -1750,7 +1751,12 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
                     "floor" | "floor-repeat" => {
                         absorb(
                             &mut acc[i],
-                            drivelab_bench::run_floor(hz, slice, &node(one.plant))?,
+                            drivelab_bench::run_floor(
+                                hz,
+                                slice,
+                                &node(one.plant),
+                                base.timing.tick_aligned,
+                            )?,
                         )?;
                         None
                     }
@@ -1765,6 +1771,7 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
                             &node(one.plant),
                             cyclictest_main_core,
                             job.request,
+                            base.timing.tick_aligned,
                             &dir,
                         )?;
                         absorb(&mut acc[i], m)?;
@@ -1790,6 +1797,7 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
                             &exe,
                             hz,
                             slice,
+                            base.timing.tick_aligned,
                             &node(one.plant),
                             &receivers,
                             measure,
@@ -1935,6 +1943,7 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
         runner: None,
         zenoh: None,
         foxglove: None,
+        timing_csv: false,
     })?;
     bar.inc(1);
     bar.set_message("in-process speed");
@@ -2035,15 +2044,15 @@ fn cache_paragraph(before: &CacheProbe, after: &CacheProbe) -> String {
         .map_or_else(|| "the plant's core".to_string(), |c| format!("core {c}"));
     format!(
         "\nCaches after a sleep: a timer on {core} woke every {} µs and read {} lines on as \
-         many pages, then read them again (p50 of {} wake-ups): before the rounds {}, after them \
-         {}. A few ns a line means the lines came from memory: the host cleared the core's caches \
-         while it slept, and each stage then reads its own memory from there after its wake-up \
-         (docs/measurements.md, \"The same VM three hours later\").\n",
+         many pages, then read them again (p50 of {} wake-ups): before the rounds {}: {}; after \
+         them {}: {} (docs/measurements.md, \"The same VM three hours later\").\n",
         drivelab_bench::cache::PERIOD_NS / 1000,
         before.lines,
         before.wakeups,
         before.clause(),
-        after.clause()
+        before.state().words(),
+        after.clause(),
+        after.state().words()
     )
 }
 

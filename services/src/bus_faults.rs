@@ -410,6 +410,7 @@ mod tests {
             runner: None,
             zenoh: None,
             foxglove: None,
+            timing_csv: false,
         };
         let topo = crate::launcher::resolve_topology(
             &mut sc,

@@ -420,6 +420,7 @@ fn options(
         runner: None,
         zenoh: None,
         foxglove: None,
+        timing_csv: false,
     })
 }
 

@@ -70,6 +70,10 @@ enum Cmd {
         /// Do not draw PNG/SVG plots.
         #[arg(long)]
         no_plots: bool,
+        /// Also write timing.csv: per sample, when the plant published it and when its
+        /// command was published, µs after the sample's instant t_k (realtime clock only).
+        #[arg(long)]
+        timing_csv: bool,
         /// Print the summary as JSON on stdout instead of the human summary.
         #[arg(long)]
         json: bool,
@@ -853,6 +857,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             rt_strict,
             no_rt,
             no_plots,
+            timing_csv,
             json,
             faults,
             restart,
@@ -938,6 +943,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 runner,
                 zenoh,
                 foxglove,
+                timing_csv,
             };
             let r = launcher::run(&o)?;
             let failed = drivelab_services::expect::failed(&r.summary);

@@ -98,6 +98,8 @@ pub struct RunOptions {
     /// Serve the Foxglove WebSocket protocol on this address while the drive runs
     /// (`--foxglove`; docs/foxglove.md).
     pub foxglove: Option<std::net::SocketAddr>,
+    /// Also write `timing.csv`, each sample's publish times (`--timing-csv`; real time only).
+    pub timing_csv: bool,
 }
 
 /// What the supervisor does when a service dies.
@@ -352,7 +354,12 @@ fn run_bus(
             &out.join("trace.csv"),
         )?),
     )?
-    .with_sinks(sinks.clone());
+    .with_sinks(sinks.clone())
+    .with_timing(if o.timing_csv {
+        Some(stream::TimingCsv::create(&out.join("timing.csv"))?)
+    } else {
+        None
+    });
     // Real time: the liveness segment (every process's lease, and its twin's), made before
     // anyone starts; the processes with a standby twin.
     let lockstep = clock == BusClock::Lockstep;
@@ -638,7 +645,7 @@ fn run_bus(
         }
         processes.insert(c.name.clone(), entry);
     }
-    let mut info = json!({ "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "recorder_late": rec.late, "plan": plan, "plant_down_samples": rec.rebuilt });
+    let mut info = json!({ "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "recorder_late": rec.late, "plan": plan, "plant_down_samples": rec.rebuilt, "schedule_start_ns": rec.t0_ns });
     if let Some(b) = bridge_stats {
         info["bridge"] = b;
     }
@@ -1243,6 +1250,12 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     // The launcher stops on a stop signal (SIGINT, SIGTERM, SIGHUP …) the same way the
     // services do.
     crate::common::install_signal_handlers()?;
+    if o.timing_csv && o.clock != Clock::Realtime {
+        bail!(
+            "--timing-csv needs the realtime clock: the {} clock has no sample instants to time against",
+            clap::ValueEnum::to_possible_value(&o.clock).map_or_else(String::new, |v| v.get_name().to_string())
+        );
+    }
     let Prepared {
         sc,
         topo,
@@ -1395,6 +1408,13 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         "cpu_latency_request_error": latency_error,
         "plant_spin_us": sc.timing.plant_spin_us,
         "wake": sc.timing.wake,
+        "tick_aligned": sc.timing.tick_aligned,
+        // Where the plant's schedule started past a whole millisecond, µs (0: on the tick's
+        // grid; docs/architecture.md, "The tick and the samples"); real time only.
+        "schedule_start_us_past_ms": info
+            .get("schedule_start_ns")
+            .and_then(|v| v.as_u64())
+            .map(|t| (t % drivelab_runtime::rt::TICK_GRID_NS) as f64 * 1e-3),
     });
     drop(latency_request);
     let deadline_misses = info

@@ -33,6 +33,59 @@ const KEEP_BEFORE_S: f64 = 0.1;
 /// … to this long after it, s.
 const KEEP_AFTER_S: f64 = 1.0;
 
+/// `timing.csv` (`drivelab run --timing-csv`): per sample, when the plant published it and
+/// when its command was published, µs after the sample's instant t_k. The cycle latency
+/// sample by sample, split at the plant's publish: what the `cycle` histogram merges, so that
+/// a slow sample's parts can be seen together. Written as the trace is.
+pub struct TimingCsv {
+    w: csv::Writer<std::fs::File>,
+    path: std::path::PathBuf,
+}
+
+/// The header of `timing.csv`.
+pub const TIMING_COLUMNS: [&str; 3] = ["k", "plant_published_us", "command_published_us"];
+
+impl TimingCsv {
+    /// Creates (truncates) the file and writes its header.
+    pub fn create(path: &std::path::Path) -> Result<Self> {
+        let file = drivelab_runtime::files::create(path)
+            .map_err(|e| anyhow::anyhow!("cannot create {}: {e}", path.display()))?;
+        let mut t = Self {
+            w: csv::Writer::from_writer(file),
+            path: path.to_path_buf(),
+        };
+        t.record(TIMING_COLUMNS.map(String::from))?;
+        Ok(t)
+    }
+
+    fn record(&mut self, fields: [String; 3]) -> Result<()> {
+        self.w
+            .write_record(&fields)
+            .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", self.path.display()))
+    }
+
+    /// Sample k's row: each time after t_k, µs, empty where there is none (a command that
+    /// never came; a sample rebuilt while the plant was down, which nobody published).
+    fn row(&mut self, m: &PlantTruth, c: Option<&VoltageCommand>) -> Result<()> {
+        let t_k = m.hdr.t_sample_ns;
+        let after = |t_ns: u64| {
+            if t_k == 0 || t_ns == 0 {
+                String::new()
+            } else {
+                format!("{:.3}", (t_ns as i64 - t_k as i64) as f64 * 1e-3)
+            }
+        };
+        let cmd = c.map_or_else(String::new, |c| after(c.hdr.t_pub_ns));
+        self.record([m.hdr.k.to_string(), after(m.hdr.t_pub_ns), cmd])
+    }
+
+    fn finish(mut self) -> Result<()> {
+        self.w
+            .flush()
+            .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", self.path.display()))
+    }
+}
+
 /// What a run's trace holds and what its analyses saw.
 #[derive(Debug, Clone, Copy, Serialize, PartialEq)]
 pub struct TraceStats {
@@ -166,6 +219,8 @@ pub struct TraceStream {
     wref: std::collections::VecDeque<(u64, f64)>,
     theta_ref: Option<f64>,
     out: Option<CsvTrace>,
+    /// `timing.csv`, when asked for.
+    timing: Option<TimingCsv>,
     /// `trace.mcap` and the live stream.
     sinks: super::sinks::Sinks,
     keep: Keep,
@@ -181,6 +236,9 @@ pub struct TraceStream {
     pub late: u64,
     /// Messages with an index beyond the run (malformed).
     pub rejected: u64,
+    /// Real time: the instant of the plant's sample 0 on its schedule (CLOCK_MONOTONIC ns),
+    /// from the first measurement that carried one.
+    pub t0_ns: Option<u64>,
 }
 
 impl TraceStream {
@@ -221,6 +279,7 @@ impl TraceStream {
             wref: Default::default(),
             theta_ref: None,
             out,
+            timing: None,
             sinks: super::sinks::Sinks::none(),
             kept,
             gaps: Vec::new(),
@@ -236,7 +295,14 @@ impl TraceStream {
             rebuilt: 0,
             late: 0,
             rejected: 0,
+            t0_ns: None,
         })
+    }
+
+    /// Writes every row's timing to `timing` too.
+    pub fn with_timing(mut self, timing: Option<TimingCsv>) -> Self {
+        self.timing = timing;
+        self
     }
 
     /// Sends every row to `sinks` too (`trace.mcap`, the live stream).
@@ -327,6 +393,9 @@ impl TraceStream {
         if let Some(out) = self.out.take() {
             out.finish()?;
         }
+        if let Some(t) = self.timing.take() {
+            t.finish()?;
+        }
         self.stats.rows_analysed = self.kept.len() as u64;
         self.stats.window_rows_dropped = self.keep.dropped;
         Ok(self)
@@ -405,6 +474,9 @@ impl TraceStream {
     /// columns).
     fn row(&mut self, m: &PlantTruth, c: Option<&VoltageCommand>) -> Result<()> {
         let k = m.hdr.k;
+        if self.t0_ns.is_none() && m.hdr.t_sample_ns != 0 {
+            self.t0_ns = m.hdr.t_sample_ns.checked_sub(k * self.sc.rates.ts_ns());
+        }
         while self.wref.front().is_some_and(|w| w.0 < k) {
             self.theta_ref = self.wref.pop_front().map(|w| w.1);
         }
@@ -420,6 +492,9 @@ impl TraceStream {
         row.theta_m_ref = self.theta_ref;
         if let Some(out) = self.out.as_mut() {
             out.push(&row)?;
+        }
+        if let Some(t) = self.timing.as_mut() {
+            t.row(m, c)?;
         }
         self.sinks.row(&row, m.hdr.t_pub_ns)?;
         self.stats.count(&row);

@@ -275,6 +275,13 @@ pub struct Timing {
     /// on /dev/cpu_dma_latency, as cyclictest makes; the kernel drops it when the launcher
     /// exits), or "none". Default 0: idle CPUs do not enter deep idle states.
     pub cpu_latency_us: CpuLatency,
+    /// Start the real-time schedule on a whole millisecond of CLOCK_MONOTONIC, where the
+    /// kernel's scheduler tick expires (CONFIG_HZ 100, 250 or 1000): at a rate whose period
+    /// divides a millisecond, every tick then expires with a deadline and is served in the
+    /// plant's own timer interrupt, instead of interrupting a sample on its own (on the
+    /// measured VM that cost the sample 16 µs). Default true; false starts anywhere, as
+    /// cyclictest does (docs/architecture.md, "The tick and the samples").
+    pub tick_aligned: bool,
 }
 
 impl Default for Timing {
@@ -283,6 +290,7 @@ impl Default for Timing {
             plant_spin_us: 0.0,
             wake: crate::bus::WakeKind::Futex,
             cpu_latency_us: CpuLatency::Us(0),
+            tick_aligned: true,
         }
     }
 }
@@ -1772,6 +1780,25 @@ preset = "kyslan2015"
         let sc = with("\"none\"").unwrap();
         let back = Scenario::from_toml(&toml::to_string(&sc).unwrap(), "x").unwrap();
         assert_eq!(back.timing.cpu_latency_us, CpuLatency::None);
+    }
+
+    #[test]
+    fn the_schedule_starts_on_the_tick_grid_unless_told_not_to() {
+        let with = |v: &str| {
+            Scenario::from_toml(&format!("{MIN}[timing]\ntick_aligned = {v}\n"), "t.toml")
+        };
+        assert!(
+            Scenario::from_toml(MIN, "t.toml")
+                .unwrap()
+                .timing
+                .tick_aligned
+        );
+        assert!(!with("false").unwrap().timing.tick_aligned);
+        let e = with("\"no\"").unwrap_err();
+        assert!(e.contains("tick_aligned"), "{e}");
+        let sc = with("false").unwrap();
+        let back = Scenario::from_toml(&toml::to_string(&sc).unwrap(), "x").unwrap();
+        assert!(!back.timing.tick_aligned);
     }
 
     #[test]

@@ -339,6 +339,9 @@ pub struct HostConfig {
     pub ts_ns: u64,
     /// Source only, real time: sleep to this long before each deadline, then spin, ns.
     pub spin_ns: u64,
+    /// Source only, real time: start the schedule on the scheduler tick's grid
+    /// ([`crate::rt::on_tick_grid`]).
+    pub tick_aligned: bool,
     /// Restarted: take over a running drive.
     pub rejoin: bool,
     /// Source only, rejoining: its own last output as the recorder saw it.
@@ -369,6 +372,7 @@ impl HostConfig {
             samples,
             ts_ns: sc.rates.ts_ns(),
             spin_ns: (sc.timing.plant_spin_us * 1e3).round() as u64,
+            tick_aligned: sc.timing.tick_aligned,
             rejoin: false,
             rejoin_from: None,
             warm_up: true,
@@ -1074,13 +1078,17 @@ impl<T: Transport> Host<T> {
         if self.cfg.pacing == Pacing::Realtime {
             self.delay(si, k);
         }
+        // One instant for all of the sample's outputs, its first publish's: the first can
+        // wake a stage of higher priority that preempts this one before the next publish (the
+        // plant's truth would carry the time the plant got the core back, after the chain).
+        let t_pub = now_ns();
         for mut m in out.drain() {
             any = true;
             let hd = m.hdr_mut();
             if fallback {
                 hd.flags |= FLAG_STALE_INPUT;
             }
-            hd.t_pub_ns = now_ns();
+            hd.t_pub_ns = t_pub;
             self.publish(m)?;
         }
         let h = &mut self.stages[si];
@@ -1374,7 +1382,10 @@ impl<T: Transport> Host<T> {
             if self.cfg.warm_up {
                 self.warm_up()?;
             }
-            (now_ns() + 2_000_000, 0)
+            (
+                crate::rt::schedule_start_ns(realtime && self.cfg.tick_aligned),
+                0,
+            )
         };
         let mut recorder_done = 0u64;
         let mut loop_start = 0u64;
@@ -1456,11 +1467,14 @@ impl<T: Transport> Host<T> {
             if realtime {
                 self.delay(0, k);
             }
+            // One instant for the sample's outputs, as a stage's (the truth after the
+            // measurement would carry the time the plant got the core back from the chain).
+            let t_pub = now_ns();
             for mut m in out.drain() {
                 let t = m.topic();
                 let hd = m.hdr_mut();
                 hd.t_sample_ns = if realtime { deadline } else { 0 };
-                hd.t_pub_ns = now_ns();
+                hd.t_pub_ns = t_pub;
                 if down {
                     if t != TopicId::Truth {
                         self.absent(t, k)?;

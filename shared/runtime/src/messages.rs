@@ -42,7 +42,8 @@ pub struct Header {
     pub k: u64,
     /// Ideal sample instant t_k (plant's schedule), ns; 0 in lockstep.
     pub t_sample_ns: u64,
-    /// When the producer published the message, ns.
+    /// When the producer published the sample's outputs, ns: the first one's publish (a
+    /// stage's later outputs of the same sample carry the same instant).
     pub t_pub_ns: u64,
     /// `FLAG_*` bits.
     pub flags: u32,

@@ -623,6 +623,29 @@ fn clock_ns(clock: libc::clockid_t) -> u64 {
     (ts.tv_sec as u64) * 1_000_000_000 + ts.tv_nsec as u64
 }
 
+/// `[timing] tick_aligned`'s grid: the kernel's scheduler tick expires on whole multiples of
+/// its period in CLOCK_MONOTONIC, and with CONFIG_HZ 100, 250 or 1000 those all fall on
+/// whole milliseconds (docs/architecture.md, "The tick and the samples").
+pub const TICK_GRID_NS: u64 = 1_000_000;
+
+/// The first whole millisecond of CLOCK_MONOTONIC at or after `earliest_ns`: a schedule that
+/// starts there, at a period that divides a millisecond, has a deadline at every expiry of
+/// the scheduler tick, which its own timer interrupt then serves.
+pub fn on_tick_grid(earliest_ns: u64) -> u64 {
+    earliest_ns.div_ceil(TICK_GRID_NS) * TICK_GRID_NS
+}
+
+/// Where a real-time schedule starts: 2 ms from now, on the tick's grid when `tick_aligned`
+/// ([`on_tick_grid`]).
+pub fn schedule_start_ns(tick_aligned: bool) -> u64 {
+    let start = now_ns() + 2_000_000;
+    if tick_aligned {
+        on_tick_grid(start)
+    } else {
+        start
+    }
+}
+
 /// Sleeps until the absolute `CLOCK_MONOTONIC` deadline `deadline_ns` (ns), with
 /// `clock_nanosleep(TIMER_ABSTIME)`; restarts after signals (`EINTR`) — with an absolute
 /// deadline a restart never accumulates drift. A deadline that has passed returns at once,
@@ -1152,6 +1175,21 @@ mod tests {
 #[cfg(test)]
 mod latency_request_tests {
     use super::*;
+
+    #[test]
+    fn the_tick_grid_is_the_next_whole_millisecond() {
+        assert_eq!(on_tick_grid(0), 0);
+        assert_eq!(on_tick_grid(1), 1_000_000);
+        assert_eq!(on_tick_grid(1_000_000), 1_000_000);
+        assert_eq!(on_tick_grid(4_597_988_000_001), 4_597_989_000_000);
+        // A 10 kHz and a 20 kHz schedule from there have a deadline on every millisecond,
+        // so on every tick of CONFIG_HZ 1000, 250 or 100.
+        let t0 = on_tick_grid(now_ns());
+        for ts in [100_000u64, 50_000] {
+            let per_ms = 1_000_000 / ts;
+            assert!((0..40).all(|m| (t0 + m * per_ms * ts).is_multiple_of(TICK_GRID_NS)));
+        }
+    }
 
     fn open_fds_to(path: &std::path::Path) -> usize {
         std::fs::read_dir("/proc/self/fd")

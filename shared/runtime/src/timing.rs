@@ -215,10 +215,12 @@ pub const HOST_GRID_NS: u64 = 100_000_000;
 /// µs a second, so consecutive stalls, about a second apart, stay well inside it.
 pub const HOST_GRID_TOL_NS: u64 = 500_000;
 
-/// The source's stalls, as (deadline, lateness) in ns of the wake-up that starts each, the
+/// The source's stalls, as (deadline, lateness) in ns of each one's latest wake-up, the
 /// first [`STALL_LOG`] of them. A stall starts with a wake-up at least [`STALL_NS`] late and
 /// lasts while the wake-ups after it (the samples it catches up on) are later than a sample
-/// time (or than [`STALL_NS`], if that is shorter): until the source is back on time.
+/// time (or than [`STALL_NS`], if that is shorter): until the source is back on time. Its
+/// latest wake-up is the first unless the machine stopped again before it caught up (a
+/// freeze during a stall): then the stall is that later, longer one's, and ends when it does.
 /// Preallocated: recording never allocates.
 #[derive(Debug, Clone)]
 pub struct StallLog {
@@ -257,11 +259,23 @@ impl StallLog {
         }
     }
 
-    /// A wake-up `late_ns` after `deadline_ns`: kept if it starts a stall.
+    /// A wake-up `late_ns` after `deadline_ns`: kept if it starts a stall, or if it is the
+    /// latest wake-up yet of the stall under way.
     #[inline]
     pub fn record(&mut self, deadline_ns: u64, late_ns: i64) {
         let starts = late_ns >= STALL_NS as i64 && !self.in_stall;
-        self.in_stall = starts || (self.in_stall && late_ns >= self.behind_ns as i64);
+        let goes_on = !starts && self.in_stall && late_ns >= self.behind_ns as i64;
+        self.in_stall = starts || goes_on;
+        if goes_on {
+            // The stall under way is the last entry when every stall so far was kept.
+            if self.count == self.len as u64 {
+                let last = &mut self.log[self.len - 1];
+                if late_ns as u64 > last.1 {
+                    *last = (deadline_ns, late_ns as u64);
+                }
+            }
+            return;
+        }
         if !starts {
             return;
         }
@@ -465,14 +479,19 @@ mod tests {
         let mut log = StallLog::new(STALL_LOG, 100_000);
         log.record(1_000, STALL_NS as i64 - 1); // not a stall
         log.record(2_000, -5);
-        log.record(3_000, STALL_NS as i64);
+        log.record(3_000, 2 * STALL_NS as i64);
         // The samples the stall caught up on are late too: the same stall.
-        log.record(4_000, 2 * STALL_NS as i64);
-        log.record(5_000, STALL_NS as i64);
-        assert_eq!(log.entries(), &[(3_000, STALL_NS)]);
-        log.record(6_000, 1_000);
-        log.record(7_000, 3_000_000);
-        assert_eq!(log.entries(), &[(3_000, STALL_NS), (7_000, 3_000_000)]);
+        log.record(4_000, STALL_NS as i64);
+        log.record(5_000, 200_000);
+        assert_eq!(log.entries(), &[(3_000, 2 * STALL_NS)]);
+        // Stopped again before it caught up: still the same stall, as long as the later stop.
+        log.record(6_000, 4 * STALL_NS as i64);
+        log.record(7_000, 3 * STALL_NS as i64);
+        assert_eq!(log.entries(), &[(6_000, 4 * STALL_NS)]);
+        assert_eq!(log.count, 1);
+        log.record(8_000, 1_000);
+        log.record(9_000, 3_000_000);
+        assert_eq!(log.entries(), &[(6_000, 4 * STALL_NS), (9_000, 3_000_000)]);
         let ((), allocations) = crate::alloc_count::allocations_during(|| {
             for i in 0..(STALL_LOG as u64 + 10) {
                 log.record(2 * i, 1_000);
@@ -482,6 +501,10 @@ mod tests {
         assert_eq!(allocations, 0);
         assert_eq!(log.entries().len(), STALL_LOG);
         assert_eq!(log.count, STALL_LOG as u64 + 12);
+        // A stall beyond the log changes no kept one.
+        let kept = log.entries().last().copied();
+        log.record(u64::MAX - 1, 9_000_000);
+        assert_eq!(log.entries().last().copied(), kept);
     }
 
     #[test]
