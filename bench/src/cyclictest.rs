@@ -65,26 +65,15 @@ pub fn run(
     std::fs::create_dir_all(work)?;
     let hist = work.join("cyclictest.hist");
     let mut c = Command::new(exe);
-    c.args(["-m", "-q", "-t", "1"])
-        .arg(format!("--interval={}", ts_ns / 1000))
-        .arg(format!("--loops={n}"))
-        .arg(format!("--histogram={HIST_MAX_US}"))
-        .arg(format!("--histfile={}", hist.display()));
-    if let Some(cpu) = node.core {
-        c.arg(format!("--affinity={cpu}"));
-    }
-    if let Some(other) = main_core {
-        c.arg(format!("--mainaffinity={other}"));
-    }
-    if let Some(p) = node.priority {
-        c.arg(format!("--priority={p}"));
-    }
-    if !latency_request {
-        c.arg("--default-system");
-    }
-    if tick_aligned {
-        c.arg("--secaligned");
-    }
+    c.args(arguments(
+        ts_ns,
+        n,
+        node,
+        main_core,
+        latency_request,
+        tick_aligned,
+        &hist,
+    ));
     // In its guard: a stop signal (or any error) stops it; it is reaped on every path.
     let mut kids = Kids::default();
     kids.spawn((), &mut c, work.join("cyclictest.log"), "the cross-check")?;
@@ -107,6 +96,40 @@ pub fn run(
         );
     }
     Ok(r)
+}
+
+/// cyclictest's arguments for [`run`]: one thread, memory locked, quiet, `n` wake-ups every
+/// `ts_ns`, its histogram in µs to `hist`.
+fn arguments(
+    ts_ns: u64,
+    n: u64,
+    node: &NodeSpec,
+    main_core: Option<usize>,
+    latency_request: bool,
+    tick_aligned: bool,
+    hist: &Path,
+) -> Vec<String> {
+    let mut a: Vec<String> = ["-m", "-q", "-t", "1"].map(String::from).to_vec();
+    a.push(format!("--interval={}", ts_ns / 1000));
+    a.push(format!("--loops={n}"));
+    a.push(format!("--histogram={HIST_MAX_US}"));
+    a.push(format!("--histfile={}", hist.display()));
+    if let Some(cpu) = node.core {
+        a.push(format!("--affinity={cpu}"));
+    }
+    if let Some(other) = main_core {
+        a.push(format!("--mainaffinity={other}"));
+    }
+    if let Some(p) = node.priority {
+        a.push(format!("--priority={p}"));
+    }
+    if !latency_request {
+        a.push("--default-system".into());
+    }
+    if tick_aligned {
+        a.push("--secaligned".into());
+    }
+    a
 }
 
 /// The core for cyclictest's main thread when its timer thread runs on `timer_core`: the
@@ -189,6 +212,46 @@ mod tests {
     use super::*;
 
     const HIST: &str = "# Histogram\n000014 000002\n000015 000005\n000100 000001\n000250 000002\n# Total: 000000010\n# Min Latencies: 00014\n# Histogram Overflows: 00001\n# Histogram Overflow at cycle number:\n# Thread 0: 00007\n";
+
+    #[test]
+    fn its_arguments_follow_the_floor_request_and_alignment() {
+        let node = NodeSpec {
+            core: Some(1),
+            priority: Some(70),
+        };
+        let hist = Path::new("/w/cyclictest.hist");
+        let a = arguments(100_000, 300_000, &node, Some(0), true, true, hist);
+        assert_eq!(
+            a,
+            [
+                "-m",
+                "-q",
+                "-t",
+                "1",
+                "--interval=100",
+                "--loops=300000",
+                "--histogram=10000",
+                "--histfile=/w/cyclictest.hist",
+                "--affinity=1",
+                "--mainaffinity=0",
+                "--priority=70",
+                "--secaligned",
+            ]
+        );
+        // Without the request it runs as the system is (its default holds one at 0 µs), and a
+        // schedule that starts anywhere is not second-aligned; no node: no pinning or priority.
+        let b = arguments(50_000, 10, &NodeSpec::default(), None, false, false, hist);
+        assert_eq!(
+            &b[4..],
+            [
+                "--interval=50",
+                "--loops=10",
+                "--histogram=10000",
+                "--histfile=/w/cyclictest.hist",
+                "--default-system"
+            ]
+        );
+    }
 
     #[test]
     fn buckets_are_recorded_at_their_middle_and_overflows_at_the_range() {

@@ -110,6 +110,7 @@ pub fn run_checks_in(root: &Path) -> Vec<Check> {
         dev_shm_check(&fs),
         cpuidle_check(&fs),
         cpu_latency_request_check(&fs),
+        tick_check(&fs, uts.as_ref().map(|u| u.release.as_str())),
         other_load_check(&fs, BUSY_WINDOW),
         kernel_runs_check(&fs, &online),
     ]
@@ -227,6 +228,140 @@ fn cpu_latency_request_check(fs: &Fs) -> Check {
             Status::Warn,
             Some("without this device (or as a user without access to it) a drive cannot hold a CPU wake-up latency request; idle CPUs may wake late".into()),
         ),
+    }
+}
+
+/// The scheduler tick: its period (CONFIG_HZ) and where it falls within a millisecond on each
+/// CPU (its next expiry in `/proc/timer_list`, which only root can read). A tick-aligned
+/// schedule (`[timing] tick_aligned`) starts on a whole millisecond so that every tick expires
+/// with a deadline (docs/architecture.md, "The tick and the samples"); that holds only where
+/// the tick's period is whole milliseconds and the tick falls on them.
+fn tick_check(fs: &Fs, release: Option<&str>) -> Check {
+    const NAME: &str = "kernel tick";
+    let hz = kernel_config(fs, release).and_then(|c| config_hz(&c));
+    let period = match hz {
+        Some(hz) => format!("CONFIG_HZ {hz}, every {}", fmt_ms(1_000_000_000 / hz)),
+        None => "CONFIG_HZ unknown".to_string(),
+    };
+    let skew = if fs.cmdline_param("skew_tick").is_some_and(|v| v != "0") {
+        " (skew_tick on the kernel command line offsets the tick per CPU)"
+    } else {
+        ""
+    };
+    let Some(text) = fs.read("/proc/timer_list") else {
+        return Check::new(
+            NAME,
+            format!("{period}; its phase unknown: /proc/timer_list unreadable (root reads it)"),
+            Status::Unknown,
+            None,
+        );
+    };
+    let ticks = tick_expiries(&text);
+    let stopped: Vec<usize> = ticks
+        .iter()
+        .filter(|(_, e)| e.is_none())
+        .map(|(c, _)| *c)
+        .collect();
+    // (phase past the millisecond in ns, the CPUs whose next tick has it)
+    let mut phases: Vec<(u64, Vec<usize>)> = Vec::new();
+    for (cpu, e) in &ticks {
+        if let Some(e) = e {
+            let ph = e % rt::TICK_GRID_NS;
+            match phases.iter_mut().find(|(p, _)| *p == ph) {
+                Some((_, cpus)) => cpus.push(*cpu),
+                None => phases.push((ph, vec![*cpu])),
+            }
+        }
+    }
+    let mut where_ = phases
+        .iter()
+        .map(|(ph, cpus)| match ph {
+            0 => format!("on whole milliseconds on cpu{}", fmt_cpu_list(cpus)),
+            _ => format!(
+                "{} past the millisecond on cpu{}",
+                fmt_ms(*ph),
+                fmt_cpu_list(cpus)
+            ),
+        })
+        .collect::<Vec<_>>();
+    if !stopped.is_empty() {
+        where_.push(format!("stopped on idle cpu{}", fmt_cpu_list(&stopped)));
+    }
+    if where_.is_empty() {
+        where_.push("no tick timer found in /proc/timer_list".to_string());
+    }
+    let value = format!("{period}; {}{skew}", where_.join(", "));
+    let whole_ms = hz.map(|hz| (1_000_000_000 / hz).is_multiple_of(rt::TICK_GRID_NS));
+    if whole_ms == Some(false) {
+        return Check::new(
+            NAME,
+            value,
+            Status::Warn,
+            Some("the tick's period is not whole milliseconds, so a tick-aligned schedule ([timing] tick_aligned) meets it at a deadline only now and then, and at other ticks the tick interrupts a sample part-way: compare runs with tick_aligned = false".into()),
+        );
+    }
+    if phases.iter().any(|(ph, _)| *ph != 0) {
+        return Check::new(
+            NAME,
+            value,
+            Status::Warn,
+            Some("a tick-aligned schedule ([timing] tick_aligned, default true) has its deadlines on whole milliseconds, so here every tick interrupts a sample part-way instead of expiring with a deadline: compare runs with tick_aligned = false".into()),
+        );
+    }
+    let status = if phases.is_empty() || hz.is_none() {
+        Status::Unknown
+    } else {
+        Status::Ok
+    };
+    Check::new(NAME, value, status, None)
+}
+
+/// `CONFIG_HZ=N` in a kernel configuration's text.
+fn config_hz(config: &str) -> Option<u64> {
+    config
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("CONFIG_HZ="))
+        .and_then(|v| v.parse().ok())
+        .filter(|hz| *hz > 0)
+}
+
+/// Each CPU's next tick expiry (ns of CLOCK_MONOTONIC) in `/proc/timer_list`'s text, `None`
+/// where the CPU has no tick timer armed (stopped while idle): the first `tick_nohz_handler`
+/// (`tick_sched_timer` before Linux 6.8) after the CPU's `cpu: N` line, and its `# expires at
+/// SOFT-HARD nsecs` line.
+fn tick_expiries(text: &str) -> Vec<(usize, Option<u64>)> {
+    let mut out: Vec<(usize, Option<u64>)> = Vec::new();
+    let mut tick_next = false;
+    for line in text.lines() {
+        let l = line.trim();
+        if let Some(cpu) = l.strip_prefix("cpu: ").and_then(|c| c.trim().parse().ok()) {
+            out.push((cpu, None));
+            tick_next = false;
+        } else if l.contains(", tick_nohz_handler,") || l.contains(", tick_sched_timer,") {
+            tick_next = out.last().is_some_and(|(_, e)| e.is_none());
+        } else if tick_next {
+            tick_next = false;
+            let soft = l
+                .strip_prefix("# expires at ")
+                .and_then(|r| r.split('-').next())
+                .and_then(|v| v.trim().parse().ok());
+            if let (Some(last), Some(ns)) = (out.last_mut(), soft) {
+                last.1 = Some(ns);
+            }
+        } else if l.starts_with("Tick Device:") {
+            // The per-CPU clock event sections follow; they repeat "cpu: N".
+            break;
+        }
+    }
+    out
+}
+
+/// `ns` as milliseconds with µs resolution, e.g. "4 ms", "3.333 ms", "0.500 ms".
+fn fmt_ms(ns: u64) -> String {
+    if ns.is_multiple_of(1_000_000) {
+        format!("{} ms", ns / 1_000_000)
+    } else {
+        format!("{:.3} ms", ns as f64 / 1e6)
     }
 }
 
@@ -549,6 +684,11 @@ fn preemption_check(fs: &Fs, uname_version: Option<&str>, release: Option<&str>)
 /// from `/proc/config.gz` or else `/boot/config-<release>`: the mode a PREEMPT_DYNAMIC
 /// kernel starts in when no `preempt=` on its command line says otherwise.
 fn built_preempt_mode(fs: &Fs, release: Option<&str>) -> Option<&'static str> {
+    config_preempt_mode(&kernel_config(fs, release)?)
+}
+
+/// The running kernel's configuration: `/proc/config.gz`, or else `/boot/config-<release>`.
+fn kernel_config(fs: &Fs, release: Option<&str>) -> Option<String> {
     let gz = std::fs::File::open(fs.path("/proc/config.gz"))
         .ok()
         .and_then(|f| {
@@ -557,8 +697,7 @@ fn built_preempt_mode(fs: &Fs, release: Option<&str>) -> Option<&'static str> {
                 .ok()
                 .map(|_| text)
         });
-    let text = gz.or_else(|| release.and_then(|r| fs.read(&format!("/boot/config-{r}"))))?;
-    config_preempt_mode(&text)
+    gz.or_else(|| release.and_then(|r| fs.read(&format!("/boot/config-{r}"))))
 }
 
 /// The preemption model chosen in a kernel configuration's text.
@@ -1913,6 +2052,113 @@ mod tests {
             .iter()
             .find(|c| c.name == name)
             .unwrap_or_else(|| panic!("no check named {name:?}"))
+    }
+
+    /// `/proc/timer_list` as Linux 6.18 writes it, cut down: CPU 0's tick armed at `cpu0`
+    /// (with another timer before it), CPU 1's at `cpu1` or not armed (`None`: idle).
+    fn timer_list(cpu0: u64, cpu1: Option<u64>) -> String {
+        let mut t = String::from(
+            "Timer List Version: v0.10\nHRTIMER_MAX_CLOCK_BASES: 8\nnow at 98577976528 nsecs\n\n\
+             cpu: 0\n clock 0:\n  .index:      0\nactive timers:\n \
+             #0: <00000000aa>, hrtimer_wakeup, S:01\n \
+             # expires at 98570000000-98570050000 nsecs [in 1 to 2 nsecs]\n",
+        );
+        t += &format!(
+            " #1: <000000000c>, tick_nohz_handler, S:01\n # expires at {cpu0}-{cpu0} nsecs [in 2023472 to 2023472 nsecs]\n"
+        );
+        t += " #2: <000000004a>, watchdog_timer_fn, S:01\n # expires at 100240535679-100240535679 nsecs [in 1 to 1 nsecs]\n\n";
+        t += "cpu: 1\n clock 0:\nactive timers:\n";
+        if let Some(e) = cpu1 {
+            t += &format!(" #0: <000000001b>, tick_nohz_handler, S:01\n # expires at {e}-{e} nsecs [in 1 to 1 nsecs]\n");
+        }
+        t += " #1: <0000000055>, dl_task_timer, S:01\n # expires at 99514017905-99514017905 nsecs [in 1 to 1 nsecs]\n\n";
+        // The clock event devices repeat "cpu: N" lines; they are not ticks.
+        t += "Tick Device: mode:     1\nPer CPU device: 0\nClock Event Device: lapic-deadline\n \
+              next_event:     98580000000 nsecs\n\ncpu: 0\n #0: <01>, tick_nohz_handler, S:01\n \
+              # expires at 1-1 nsecs\n";
+        t
+    }
+
+    #[test]
+    fn each_cpus_next_tick_is_read_from_the_timer_list() {
+        assert_eq!(
+            tick_expiries(&timer_list(98_580_000_000, Some(98_584_500_000))),
+            vec![(0, Some(98_580_000_000)), (1, Some(98_584_500_000))]
+        );
+        assert_eq!(
+            tick_expiries(&timer_list(98_580_000_000, None)),
+            vec![(0, Some(98_580_000_000)), (1, None)]
+        );
+        // Before Linux 6.8 the tick's handler was tick_sched_timer.
+        let old = timer_list(4_000_000, None).replace("tick_nohz_handler", "tick_sched_timer");
+        assert_eq!(tick_expiries(&old), vec![(0, Some(4_000_000)), (1, None)]);
+        assert_eq!(config_hz("CONFIG_HZ_250=y\nCONFIG_HZ=250\n"), Some(250));
+        assert_eq!(config_hz("# CONFIG_HZ is not set\n"), None);
+        assert_eq!(config_hz("CONFIG_HZ=0\n"), None);
+    }
+
+    #[test]
+    fn the_tick_is_judged_by_whether_it_falls_on_whole_milliseconds() {
+        let root = FakeRoot::new();
+        let rel = Some("6.18.0");
+        root.write("/boot/config-6.18.0", "CONFIG_HZ_250=y\nCONFIG_HZ=250\n");
+        root.write("/proc/cmdline", "console=ttyS0 quiet\n");
+        // Without the timer list (a user other than root cannot read it): the period only.
+        let c = tick_check(&root.fs(), rel);
+        assert_eq!(c.status, Status::Unknown);
+        assert_eq!(
+            c.value,
+            "CONFIG_HZ 250, every 4 ms; its phase unknown: /proc/timer_list unreadable (root \
+             reads it)"
+        );
+        // On whole milliseconds, as on the measured VMs, with CPU 1 idle.
+        root.write("/proc/timer_list", &timer_list(98_580_000_000, None));
+        let c = tick_check(&root.fs(), rel);
+        assert_eq!(c.status, Status::Ok, "{c:?}");
+        assert_eq!(
+            c.value,
+            "CONFIG_HZ 250, every 4 ms; on whole milliseconds on cpu0, stopped on idle cpu1"
+        );
+        root.write(
+            "/proc/timer_list",
+            &timer_list(98_580_000_000, Some(98_584_000_000)),
+        );
+        assert_eq!(tick_check(&root.fs(), rel).status, Status::Ok);
+        // skew_tick=1 offsets each CPU's tick by half a period over the number of CPUs (0.5
+        // ms for CPU 1 of 4 at 250 Hz): every tick then falls inside a sample.
+        root.write("/proc/cmdline", "console=ttyS0 skew_tick=1 quiet\n");
+        root.write(
+            "/proc/timer_list",
+            &timer_list(98_580_000_000, Some(98_582_500_000)),
+        );
+        let c = tick_check(&root.fs(), rel);
+        assert_eq!(c.status, Status::Warn);
+        assert_eq!(
+            c.value,
+            "CONFIG_HZ 250, every 4 ms; on whole milliseconds on cpu0, 0.500 ms past the \
+             millisecond on cpu1 (skew_tick on the kernel command line offsets the tick per CPU)"
+        );
+        assert!(c.advice.unwrap().contains("tick_aligned = false"));
+        // A period that is not whole milliseconds cannot be aligned with, wherever it is now.
+        root.write("/proc/cmdline", "console=ttyS0\n");
+        root.write("/boot/config-6.18.0", "CONFIG_HZ=300\n");
+        root.write("/proc/timer_list", &timer_list(3_000_000_000, None));
+        let c = tick_check(&root.fs(), rel);
+        assert_eq!(c.status, Status::Warn);
+        assert!(
+            c.value.starts_with("CONFIG_HZ 300, every 3.333 ms; "),
+            "{}",
+            c.value
+        );
+        assert!(c.advice.unwrap().contains("not whole milliseconds"));
+        // No configuration: the phase is reported, the verdict is unknown.
+        let bare = FakeRoot::new();
+        bare.write("/proc/timer_list", &timer_list(98_580_000_000, None));
+        let c = tick_check(&bare.fs(), rel);
+        assert_eq!(c.status, Status::Unknown);
+        assert!(c
+            .value
+            .starts_with("CONFIG_HZ unknown; on whole milliseconds"));
     }
 
     #[test]
