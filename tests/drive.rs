@@ -728,6 +728,20 @@ fn timing_csv_has_every_samples_publish_times_in_causal_order_and_the_cycles_med
     let t = &s["timing"];
     assert_eq!(t["tick_aligned"], true, "{t}");
     assert_eq!(t["schedule_start_us_past_ms"].as_f64(), Some(0.0), "{t}");
+    // And the kernel's tick as the doctor reads it: its period, then where it falls (or why
+    // that is unknown).
+    let tick = &t["kernel_tick"];
+    assert_eq!(tick["name"], "kernel tick", "{t}");
+    assert!(
+        tick["value"]
+            .as_str()
+            .is_some_and(|v| v.starts_with("CONFIG_HZ ") && v.contains("; ")),
+        "{t}"
+    );
+    assert!(
+        ["Ok", "Warn", "Unknown"].contains(&tick["status"].as_str().unwrap_or("")),
+        "{t}"
+    );
     // Not aligned: it starts wherever the launcher's clock was, and says where.
     let s = short_run_with_timing("timingcsvoff", "tick_aligned = false");
     let t = &s["timing"];

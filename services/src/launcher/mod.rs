@@ -1415,6 +1415,10 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             .get("schedule_start_ns")
             .and_then(|v| v.as_u64())
             .map(|t| (t % drivelab_runtime::rt::TICK_GRID_NS) as f64 * 1e-3),
+        // The kernel's tick as `drivelab doctor` reads it (its period and where it falls
+        // within a millisecond on each CPU), so that a run says whether its tick-aligned
+        // schedule could meet the tick; real time only.
+        "kernel_tick": (o.clock == Clock::Realtime).then(drivelab_tools::doctor::kernel_tick),
     });
     drop(latency_request);
     let deadline_misses = info

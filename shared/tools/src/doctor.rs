@@ -116,6 +116,17 @@ pub fn run_checks_in(root: &Path) -> Vec<Check> {
     ]
 }
 
+/// The "kernel tick" check alone, on the real machine: what a drive's summary records of the
+/// tick its schedule was aligned with.
+pub fn kernel_tick() -> Check {
+    tick_check(
+        &Fs {
+            root: Path::new("/"),
+        },
+        uname().as_ref().map(|u| u.release.as_str()),
+    )
+}
+
 /// The idle driver and the states (exit latency, µs) of every CPU, grouped by CPUs with the
 /// same states (the clusters of an ARM board may differ): an idle CPU that must leave a
 /// state with a long exit latency wakes late.
