@@ -790,20 +790,16 @@ fn a_frozen_plant_is_one_stall_in_the_summary_with_its_length() {
             .is_some_and(|l| l.starts_with("stalls of 0.5 ms or more at the plant's wake-up: ")),
         "{st}"
     );
-    let plant: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("plant.stats.json")).unwrap())
-            .unwrap();
-    let log = plant["stalls"]["log"]
-        .as_array()
-        .expect("plant's stall log");
-    assert_eq!(log.len() as u64, count, "{}", plant["stalls"]);
+    let stalls = plant_stalls(&dir);
+    let log = stalls["log"].as_array().expect("plant's stall log");
+    assert_eq!(log.len() as u64, count, "{}", stalls);
     // One stall as long as the freeze, also when the machine's own stall was under way as
     // the plant was stopped (then the freeze is that stall's latest wake-up).
     let frozen: Vec<_> = log
         .iter()
         .filter(|e| e[1].as_u64().unwrap() >= 29_000_000)
         .collect();
-    assert_eq!(frozen.len(), 1, "{}", plant["stalls"]);
+    assert_eq!(frozen.len(), 1, "{}", stalls);
     // Every sample the plant caught up on has its deadline inside the freeze: none of them
     // starts a stall of its own (a stall the machine adds later starts after the catch-up,
     // with a later deadline).
@@ -825,7 +821,7 @@ fn a_frozen_plant_is_one_stall_in_the_summary_with_its_length() {
         in_stalls >= 250 && in_stalls <= misses,
         "{misses} misses; {st}"
     );
-    assert_eq!(plant["stalls"]["misses"].as_u64(), Some(in_stalls));
+    assert_eq!(stalls["misses"].as_u64(), Some(in_stalls));
     assert!(
         st["line"]
             .as_str()
@@ -864,12 +860,8 @@ fn a_freeze_before_the_plant_caught_up_is_the_same_stall_as_long_as_the_freeze()
         .filter(|e| e["event"] == "inject")
         .count();
     assert_eq!(stops, 2, "both stops sent: {events}");
-    let plant: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("plant.stats.json")).unwrap())
-            .unwrap();
-    let log = plant["stalls"]["log"]
-        .as_array()
-        .expect("plant's stall log");
+    let stalls = plant_stalls(&dir);
+    let log = stalls["log"].as_array().expect("plant's stall log");
     // The machine may add short stalls of its own; the two stops are one stall, reported by
     // its latest wake-up: about 80 ms late (plus what was left to catch up), not 40.
     let long: Vec<u64> = log
@@ -877,10 +869,17 @@ fn a_freeze_before_the_plant_caught_up_is_the_same_stall_as_long_as_the_freeze()
         .map(|e| e[1].as_u64().unwrap())
         .filter(|&l| l >= 30_000_000)
         .collect();
-    assert_eq!(long.len(), 1, "{}", plant["stalls"]);
-    assert!(long[0] >= 79_000_000, "{}", plant["stalls"]);
+    assert_eq!(long.len(), 1, "{}", stalls);
+    assert!(long[0] >= 79_000_000, "{}", stalls);
     let longest = s["timing"]["stalls"]["longest_ms"].as_f64().unwrap();
     assert!(longest >= 79.0, "{}", s["timing"]["stalls"]);
+}
+
+/// The plant's stall statistics in a run folder (`plant.stats.json → stalls`).
+fn plant_stalls(dir: &std::path::Path) -> serde_json::Value {
+    let text = std::fs::read_to_string(dir.join("plant.stats.json")).unwrap();
+    let plant: serde_json::Value = serde_json::from_str(&text).unwrap();
+    plant["stalls"].clone()
 }
 
 /// The CPUs in a `/proc/.../status` file's `Cpus_allowed_list` (e.g. "0-1,3").

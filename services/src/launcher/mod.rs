@@ -55,6 +55,17 @@ pub enum Clock {
     Inprocess,
 }
 
+impl Clock {
+    /// Its name on the command line and in run folders.
+    pub fn name(self) -> &'static str {
+        match self {
+            Clock::Realtime => "realtime",
+            Clock::Lockstep => "lockstep",
+            Clock::Inprocess => "inprocess",
+        }
+    }
+}
+
 /// Options of one run.
 #[derive(Debug, Clone)]
 pub struct RunOptions {
@@ -141,7 +152,7 @@ fn default_out(sc: &Scenario, clock: Clock) -> PathBuf {
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_secs())
         .unwrap_or(0);
-    PathBuf::from("runs").join(format!("{}-{:?}-{}", sc.name, clock, secs).to_lowercase())
+    PathBuf::from("runs").join(format!("{}-{}-{}", sc.name, clock.name(), secs).to_lowercase())
 }
 
 /// A run folder this process writes into: an advisory `flock` on the folder, which the kernel
@@ -1253,7 +1264,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     if o.timing_csv && o.clock != Clock::Realtime {
         bail!(
             "--timing-csv needs the realtime clock: the {} clock has no sample instants to time against",
-            clap::ValueEnum::to_possible_value(&o.clock).map_or_else(String::new, |v| v.get_name().to_string())
+            o.clock.name()
         );
     }
     let Prepared {
@@ -1519,7 +1530,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         let opts = drivelab_tools::plot::TraceFigureOptions {
             current_limit_a: Some(sc.i_q_max()),
             voltage_limit_v: Some(sc.u_max()),
-            title: format!("{} ({:?})", sc.name, o.clock).to_lowercase(),
+            title: format!("{} ({})", sc.name, o.clock.name()).to_lowercase(),
             shaded_windows: windows.clone(),
             ..Default::default()
         };
