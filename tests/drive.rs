@@ -742,10 +742,28 @@ fn timing_csv_has_every_samples_publish_times_in_causal_order_and_the_cycles_med
         "the cycle histogram's p50 {p50} µs, timing.csv's commands of its rank {lo}..{hi} µs \
          ({unseen} not in the histogram)"
     );
-    // By default the plant's schedule starts on a whole millisecond, the tick's grid.
+    // By default the plant's schedule starts on its core's tick: as far past a whole
+    // millisecond as that tick falls (read here as the drive read it, root only; a whole
+    // millisecond where it cannot be read).
     let t = &s["timing"];
     assert_eq!(t["tick_aligned"], true, "{t}");
-    assert_eq!(t["schedule_start_us_past_ms"].as_f64(), Some(0.0), "{t}");
+    let topo: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("topology.json")).unwrap()).unwrap();
+    let plant_cpu = topo["processes"][0]["cpu"].as_u64().map(|c| c as usize);
+    assert!(plant_cpu.is_some(), "the default plant is pinned: {topo}");
+    let phase_us = plant_cpu
+        .and_then(|c| drivelab_runtime::tick::phase_of(c).ok())
+        .map(|ns| ns as f64 * 1e-3);
+    assert_eq!(
+        t["schedule_start_us_past_ms"].as_f64(),
+        Some(phase_us.unwrap_or(0.0)),
+        "{t}"
+    );
+    if phase_us.is_some() {
+        assert_eq!(t["schedule_start_us_past_tick"].as_f64(), Some(0.0), "{t}");
+    } else {
+        assert!(t["schedule_start_us_past_tick"].is_null(), "{t}");
+    }
     // And the kernel's tick as the doctor reads it: its period, then where it falls (or why
     // that is unknown).
     let tick = &t["kernel_tick"];
@@ -766,6 +784,11 @@ fn timing_csv_has_every_samples_publish_times_in_causal_order_and_the_cycles_med
     assert_eq!(t["tick_aligned"], false, "{t}");
     let past = t["schedule_start_us_past_ms"].as_f64().unwrap();
     assert!((0.0..1000.0).contains(&past), "{t}");
+    if let Some(phase) = phase_us {
+        let past_tick = t["schedule_start_us_past_tick"].as_f64().unwrap();
+        let want = (past - phase).rem_euclid(1000.0);
+        assert!((past_tick - want).abs() < 1e-6, "{t}");
+    }
 }
 
 #[test]

@@ -44,8 +44,9 @@ pub fn locate(cmd: &str) -> std::result::Result<PathBuf, String> {
 /// SCHED_FIFO priority, memory locked, with its CPU wake-up latency request at 0 µs when
 /// `latency_request` (cyclictest's default) or without one (`--default-system`), its main
 /// thread on `main_core` when given (see [`main_thread_core`]), its wake-ups from the next
-/// full second on when `tick_aligned` (`--secaligned`: on the scheduler tick's grid, as the
-/// floor's schedule then starts). The histogram file and its output (`cyclictest.log`) go to
+/// full second on when `tick_aligned`, offset by where the tick of `node`'s core falls past
+/// the millisecond (`--secaligned[=µs]`: on that tick, as the floor's schedule then starts;
+/// on whole milliseconds where the tick cannot be read). The histogram file and its output (`cyclictest.log`) go to
 /// `work`. A stop signal stops it and ends the run with [`crate::Interrupted`].
 #[allow(clippy::too_many_arguments)]
 pub fn run(
@@ -71,7 +72,7 @@ pub fn run(
         node,
         main_core,
         latency_request,
-        tick_aligned,
+        tick_aligned.then(|| tick_phase_us(node.core)),
         &hist,
     ));
     // In its guard: a stop signal (or any error) stops it; it is reaped on every path.
@@ -98,15 +99,24 @@ pub fn run(
     Ok(r)
 }
 
+/// Where the tick of `core` falls past a whole millisecond, in the whole µs cyclictest takes
+/// (0 where it cannot be read or no core is given: whole milliseconds, as the floor assumes
+/// there too).
+fn tick_phase_us(core: Option<usize>) -> u64 {
+    core.and_then(|c| drivelab_runtime::tick::phase_of(c).ok())
+        .map_or(0, |ns| (ns + 500) / 1000)
+}
+
 /// cyclictest's arguments for [`run`]: one thread, memory locked, quiet, `n` wake-ups every
-/// `ts_ns`, its histogram in µs to `hist`.
+/// `ts_ns`, its histogram in µs to `hist`; its wake-ups from a full second on, offset by
+/// `secaligned_us` when given.
 fn arguments(
     ts_ns: u64,
     n: u64,
     node: &NodeSpec,
     main_core: Option<usize>,
     latency_request: bool,
-    tick_aligned: bool,
+    secaligned_us: Option<u64>,
     hist: &Path,
 ) -> Vec<String> {
     let mut a: Vec<String> = ["-m", "-q", "-t", "1"].map(String::from).to_vec();
@@ -126,8 +136,10 @@ fn arguments(
     if !latency_request {
         a.push("--default-system".into());
     }
-    if tick_aligned {
-        a.push("--secaligned".into());
+    match secaligned_us {
+        Some(0) => a.push("--secaligned".into()),
+        Some(us) => a.push(format!("--secaligned={us}")),
+        None => {}
     }
     a
 }
@@ -220,7 +232,7 @@ mod tests {
             priority: Some(70),
         };
         let hist = Path::new("/w/cyclictest.hist");
-        let a = arguments(100_000, 300_000, &node, Some(0), true, true, hist);
+        let a = arguments(100_000, 300_000, &node, Some(0), true, Some(0), hist);
         assert_eq!(
             a,
             [
@@ -238,9 +250,12 @@ mod tests {
                 "--secaligned",
             ]
         );
+        // A core whose tick falls 125 µs past the millisecond: a full second plus that.
+        let c = arguments(100_000, 300_000, &node, Some(0), true, Some(125), hist);
+        assert_eq!(c.last().map(String::as_str), Some("--secaligned=125"));
         // Without the request it runs as the system is (its default holds one at 0 µs), and a
         // schedule that starts anywhere is not second-aligned; no node: no pinning or priority.
-        let b = arguments(50_000, 10, &NodeSpec::default(), None, false, false, hist);
+        let b = arguments(50_000, 10, &NodeSpec::default(), None, false, None, hist);
         assert_eq!(
             &b[4..],
             [

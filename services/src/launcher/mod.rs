@@ -27,6 +27,7 @@ use drivelab_runtime::bus;
 use drivelab_runtime::config::Scenario;
 use drivelab_runtime::drive::DriveDesign;
 use drivelab_runtime::service::TopologyPlan;
+use drivelab_runtime::tick;
 use drivelab_runtime::topology::StageInfo;
 use drivelab_runtime::trace::TraceRow;
 use drivelab_tools::metrics::speed_metrics;
@@ -1410,6 +1411,14 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     };
     let metrics = speed_metrics(&sc, &rows);
     let design = DriveDesign::from_scenario(&sc.controller_view()); // the design that runs ([model])
+    let schedule_start = info.get("schedule_start_ns").and_then(|v| v.as_u64());
+    // The plant is the first process (the topology's order starts at the source).
+    let plant_tick_phase = topo
+        .processes
+        .first()
+        .and_then(|p| p.cpu)
+        .filter(|_| o.clock == Clock::Realtime)
+        .and_then(|cpu| tick::phase_of(cpu).ok());
     let timing = json!({
         "cpu_latency_us_requested": match sc.timing.cpu_latency_us {
             drivelab_runtime::config::CpuLatency::Us(v) if o.clock == Clock::Realtime && !o.no_rt => Some(v),
@@ -1422,10 +1431,12 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         "tick_aligned": sc.timing.tick_aligned,
         // Where the plant's schedule started past a whole millisecond, µs (0: on the tick's
         // grid; docs/architecture.md, "The tick and the samples"); real time only.
-        "schedule_start_us_past_ms": info
-            .get("schedule_start_ns")
-            .and_then(|v| v.as_u64())
-            .map(|t| (t % drivelab_runtime::rt::TICK_GRID_NS) as f64 * 1e-3),
+        "schedule_start_us_past_ms": schedule_start.map(|t| (t % tick::GRID_NS) as f64 * 1e-3),
+        // And past the last tick of the plant's core (0: on it, as a tick-aligned schedule
+        // starts), µs; null where the plant is not pinned or the tick cannot be read.
+        "schedule_start_us_past_tick": schedule_start.zip(plant_tick_phase).map(|(t, ph)| {
+            ((t % tick::GRID_NS + tick::GRID_NS - ph) % tick::GRID_NS) as f64 * 1e-3
+        }),
         // The kernel's tick as `drivelab doctor` reads it (its period and where it falls
         // within a millisecond on each CPU), so that a run says whether its tick-aligned
         // schedule could meet the tick; real time only.

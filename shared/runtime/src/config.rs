@@ -275,9 +275,11 @@ pub struct Timing {
     /// on /dev/cpu_dma_latency, as cyclictest makes; the kernel drops it when the launcher
     /// exits), or "none". Default 0: idle CPUs do not enter deep idle states.
     pub cpu_latency_us: CpuLatency,
-    /// Start the real-time schedule on a whole millisecond of CLOCK_MONOTONIC, where the
-    /// kernel's scheduler tick expires (CONFIG_HZ 100, 250 or 1000): at a rate whose period
-    /// divides a millisecond, every tick then expires with a deadline and is served in the
+    /// Start the real-time schedule on the plant's CPU's scheduler tick: as far past a whole
+    /// millisecond of CLOCK_MONOTONIC as that tick (read from /proc/timer_list; on a whole
+    /// millisecond where it cannot be read, where the tick falls on most kernels). At a rate
+    /// whose period divides a millisecond and a tick period of whole milliseconds (CONFIG_HZ
+    /// 100, 250 or 1000), every tick then expires with a deadline and is served in the
     /// plant's own timer interrupt, instead of interrupting a sample on its own (on the
     /// measured VM that cost the sample 16 µs). Default true; false starts anywhere, as
     /// cyclictest does (docs/architecture.md, "The tick and the samples").

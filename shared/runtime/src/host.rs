@@ -340,7 +340,7 @@ pub struct HostConfig {
     /// Source only, real time: sleep to this long before each deadline, then spin, ns.
     pub spin_ns: u64,
     /// Source only, real time: start the schedule on the scheduler tick's grid
-    /// ([`crate::rt::on_tick_grid`]).
+    /// of its own CPU ([`crate::rt::schedule_start_ns`]).
     pub tick_aligned: bool,
     /// Restarted: take over a running drive.
     pub rejoin: bool,

@@ -59,6 +59,7 @@ pub mod stage;
 pub mod stages;
 pub mod telemetry;
 pub mod text;
+pub mod tick;
 pub mod timing;
 pub mod topology;
 pub mod trace;

@@ -623,24 +623,19 @@ fn clock_ns(clock: libc::clockid_t) -> u64 {
     (ts.tv_sec as u64) * 1_000_000_000 + ts.tv_nsec as u64
 }
 
-/// `[timing] tick_aligned`'s grid: the kernel's scheduler tick expires on whole multiples of
-/// its period in CLOCK_MONOTONIC, and with CONFIG_HZ 100, 250 or 1000 those all fall on
-/// whole milliseconds (docs/architecture.md, "The tick and the samples").
-pub const TICK_GRID_NS: u64 = 1_000_000;
-
-/// The first whole millisecond of CLOCK_MONOTONIC at or after `earliest_ns`: a schedule that
-/// starts there, at a period that divides a millisecond, has a deadline at every expiry of
-/// the scheduler tick, which its own timer interrupt then serves.
-pub fn on_tick_grid(earliest_ns: u64) -> u64 {
-    earliest_ns.div_ceil(TICK_GRID_NS) * TICK_GRID_NS
-}
-
-/// Where a real-time schedule starts: 2 ms from now, on the tick's grid when `tick_aligned`
-/// ([`on_tick_grid`]).
+/// Where a real-time schedule starts: 2 ms from now, and when `tick_aligned` on the tick of
+/// the CPU the caller runs on (its own, once pinned): the first instant from there that is
+/// as far past a whole millisecond as that CPU's tick ([`crate::tick::on_grid`]). Where the
+/// tick cannot be read (`/proc/timer_list` is root's) the schedule starts on a whole
+/// millisecond, where the tick falls on most kernels (docs/architecture.md, "The tick and
+/// the samples"). Called once, before a loop: it reads a file.
 pub fn schedule_start_ns(tick_aligned: bool) -> u64 {
     let start = now_ns() + 2_000_000;
     if tick_aligned {
-        on_tick_grid(start)
+        let phase = crate::tick::this_cpu()
+            .and_then(|cpu| crate::tick::phase_of(cpu).ok())
+            .unwrap_or(0);
+        crate::tick::on_grid(start, phase)
     } else {
         start
     }
@@ -1177,18 +1172,23 @@ mod latency_request_tests {
     use super::*;
 
     #[test]
-    fn the_tick_grid_is_the_next_whole_millisecond() {
-        assert_eq!(on_tick_grid(0), 0);
-        assert_eq!(on_tick_grid(1), 1_000_000);
-        assert_eq!(on_tick_grid(1_000_000), 1_000_000);
-        assert_eq!(on_tick_grid(4_597_988_000_001), 4_597_989_000_000);
-        // A 10 kHz and a 20 kHz schedule from there have a deadline on every millisecond,
-        // so on every tick of CONFIG_HZ 1000, 250 or 100.
-        let t0 = on_tick_grid(now_ns());
-        for ts in [100_000u64, 50_000] {
-            let per_ms = 1_000_000 / ts;
-            assert!((0..40).all(|m| (t0 + m * per_ms * ts).is_multiple_of(TICK_GRID_NS)));
-        }
+    fn a_tick_aligned_schedule_starts_on_this_cpus_tick() {
+        // Pinned, so that the CPU whose tick is read is the one the schedule runs on.
+        let cpu = crate::tick::this_cpu().unwrap();
+        set_affinity_single(cpu).unwrap();
+        let before = now_ns();
+        let t0 = schedule_start_ns(true);
+        let after = now_ns();
+        // 2 ms from the call, moved on by less than a millisecond to the grid.
+        assert!(
+            t0 >= before + 2_000_000 && t0 < after + 3_000_000,
+            "{t0} from {before}"
+        );
+        // Where root can read the tick, on it; elsewhere on a whole millisecond.
+        let phase = crate::tick::phase_of(cpu).unwrap_or(0);
+        assert_eq!(t0 % crate::tick::GRID_NS, phase, "cpu{cpu}");
+        let t1 = schedule_start_ns(false);
+        assert!(t1 >= before + 2_000_000 && t1 < now_ns() + 2_000_000);
     }
 
     fn open_fds_to(path: &std::path::Path) -> usize {

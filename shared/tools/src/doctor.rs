@@ -23,7 +23,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
-use drivelab_runtime::rt;
+use drivelab_runtime::{rt, tick};
 
 /// One line of the doctor report.
 #[derive(Debug, Clone, Serialize)]
@@ -243,10 +243,11 @@ fn cpu_latency_request_check(fs: &Fs) -> Check {
 }
 
 /// The scheduler tick: its period (CONFIG_HZ) and where it falls within a millisecond on each
-/// CPU (its next expiry in `/proc/timer_list`, which only root can read). A tick-aligned
-/// schedule (`[timing] tick_aligned`) starts on a whole millisecond so that every tick expires
-/// with a deadline (docs/architecture.md, "The tick and the samples"); that holds only where
-/// the tick's period is whole milliseconds and the tick falls on them.
+/// CPU (from `/proc/timer_list`, which only root can read). A tick-aligned schedule (`[timing]
+/// tick_aligned`) starts on its own CPU's tick so that every tick there expires with a
+/// deadline (docs/architecture.md, "The tick and the samples"); that holds only where the
+/// tick's period is whole milliseconds, and for the stages on other CPUs only where their
+/// ticks fall at the same point of a millisecond.
 fn tick_check(fs: &Fs, release: Option<&str>) -> Check {
     const NAME: &str = "kernel tick";
     let hz = kernel_config(fs, release).and_then(|c| config_hz(&c));
@@ -259,7 +260,7 @@ fn tick_check(fs: &Fs, release: Option<&str>) -> Check {
     } else {
         ""
     };
-    let Some(text) = fs.read("/proc/timer_list") else {
+    let Some(text) = fs.read(tick::TIMER_LIST) else {
         return Check::new(
             NAME,
             format!("{period}; its phase unknown: /proc/timer_list unreadable (root reads it)"),
@@ -267,21 +268,23 @@ fn tick_check(fs: &Fs, release: Option<&str>) -> Check {
             None,
         );
     };
-    let ticks = tick_expiries(&text);
+    let ticks = tick::parse(&text);
     let stopped: Vec<usize> = ticks
         .iter()
-        .filter(|(_, e)| e.is_none())
-        .map(|(c, _)| *c)
+        .filter(|t| t.next_ns.is_none())
+        .map(|t| t.cpu)
         .collect();
-    // (phase past the millisecond in ns, the CPUs whose next tick has it)
+    // (phase past the millisecond in ns, the CPUs whose tick has it); a stopped tick restarts
+    // on its grid, so its last expiry gives its phase.
     let mut phases: Vec<(u64, Vec<usize>)> = Vec::new();
-    for (cpu, e) in &ticks {
-        if let Some(e) = e {
-            let ph = e % rt::TICK_GRID_NS;
-            match phases.iter_mut().find(|(p, _)| *p == ph) {
-                Some((_, cpus)) => cpus.push(*cpu),
-                None => phases.push((ph, vec![*cpu])),
-            }
+    let mut unknown = Vec::new();
+    for t in &ticks {
+        match t.phase_ns() {
+            Some(ph) => match phases.iter_mut().find(|(p, _)| *p == ph) {
+                Some((_, cpus)) => cpus.push(t.cpu),
+                None => phases.push((ph, vec![t.cpu])),
+            },
+            None => unknown.push(t.cpu),
         }
     }
     let mut where_ = phases
@@ -298,11 +301,14 @@ fn tick_check(fs: &Fs, release: Option<&str>) -> Check {
     if !stopped.is_empty() {
         where_.push(format!("stopped on idle cpu{}", fmt_cpu_list(&stopped)));
     }
+    if !unknown.is_empty() {
+        where_.push(format!("no phase shown for cpu{}", fmt_cpu_list(&unknown)));
+    }
     if where_.is_empty() {
         where_.push("no tick timer found in /proc/timer_list".to_string());
     }
     let value = format!("{period}; {}{skew}", where_.join(", "));
-    let whole_ms = hz.map(|hz| (1_000_000_000 / hz).is_multiple_of(rt::TICK_GRID_NS));
+    let whole_ms = hz.map(|hz| (1_000_000_000 / hz).is_multiple_of(tick::GRID_NS));
     if whole_ms == Some(false) {
         return Check::new(
             NAME,
@@ -311,12 +317,12 @@ fn tick_check(fs: &Fs, release: Option<&str>) -> Check {
             Some("the tick's period is not whole milliseconds, so a tick-aligned schedule ([timing] tick_aligned) meets it at a deadline only now and then, and at other ticks the tick interrupts a sample part-way: compare runs with tick_aligned = false".into()),
         );
     }
-    if phases.iter().any(|(ph, _)| *ph != 0) {
+    if phases.len() > 1 {
         return Check::new(
             NAME,
             value,
             Status::Warn,
-            Some("a tick-aligned schedule ([timing] tick_aligned, default true) has its deadlines on whole milliseconds, so here every tick interrupts a sample part-way instead of expiring with a deadline: compare runs with tick_aligned = false".into()),
+            Some("the CPUs' ticks fall at different points of a millisecond: a tick-aligned schedule ([timing] tick_aligned, default true) starts on the plant's CPU's tick, so stages on another CPU meet theirs part-way through a sample; keep the chain on one core, or compare runs with tick_aligned = false".into()),
         );
     }
     let status = if phases.is_empty() || hz.is_none() {
@@ -334,37 +340,6 @@ fn config_hz(config: &str) -> Option<u64> {
         .find_map(|l| l.trim().strip_prefix("CONFIG_HZ="))
         .and_then(|v| v.parse().ok())
         .filter(|hz| *hz > 0)
-}
-
-/// Each CPU's next tick expiry (ns of CLOCK_MONOTONIC) in `/proc/timer_list`'s text, `None`
-/// where the CPU has no tick timer armed (stopped while idle): the first `tick_nohz_handler`
-/// (`tick_sched_timer` before Linux 6.8) after the CPU's `cpu: N` line, and its `# expires at
-/// SOFT-HARD nsecs` line.
-fn tick_expiries(text: &str) -> Vec<(usize, Option<u64>)> {
-    let mut out: Vec<(usize, Option<u64>)> = Vec::new();
-    let mut tick_next = false;
-    for line in text.lines() {
-        let l = line.trim();
-        if let Some(cpu) = l.strip_prefix("cpu: ").and_then(|c| c.trim().parse().ok()) {
-            out.push((cpu, None));
-            tick_next = false;
-        } else if l.contains(", tick_nohz_handler,") || l.contains(", tick_sched_timer,") {
-            tick_next = out.last().is_some_and(|(_, e)| e.is_none());
-        } else if tick_next {
-            tick_next = false;
-            let soft = l
-                .strip_prefix("# expires at ")
-                .and_then(|r| r.split('-').next())
-                .and_then(|v| v.trim().parse().ok());
-            if let (Some(last), Some(ns)) = (out.last_mut(), soft) {
-                last.1 = Some(ns);
-            }
-        } else if l.starts_with("Tick Device:") {
-            // The per-CPU clock event sections follow; they repeat "cpu: N".
-            break;
-        }
-    }
-    out
 }
 
 /// `ns` as milliseconds with µs resolution, e.g. "4 ms", "3.333 ms", "0.500 ms".
@@ -2065,51 +2040,30 @@ mod tests {
             .unwrap_or_else(|| panic!("no check named {name:?}"))
     }
 
-    /// `/proc/timer_list` as Linux 6.18 writes it, cut down: CPU 0's tick armed at `cpu0`
-    /// (with another timer before it), CPU 1's at `cpu1` or not armed (`None`: idle).
-    fn timer_list(cpu0: u64, cpu1: Option<u64>) -> String {
-        let mut t = String::from(
-            "Timer List Version: v0.10\nHRTIMER_MAX_CLOCK_BASES: 8\nnow at 98577976528 nsecs\n\n\
-             cpu: 0\n clock 0:\n  .index:      0\nactive timers:\n \
-             #0: <00000000aa>, hrtimer_wakeup, S:01\n \
-             # expires at 98570000000-98570050000 nsecs [in 1 to 2 nsecs]\n",
+    /// `/proc/timer_list` cut down to what the tick check reads (the full text is parsed in
+    /// drivelab_runtime::tick's tests): CPU 0's tick armed at `cpu0`, CPU 1's at `cpu1` or
+    /// stopped while idle (`None`), its last tick at `last1` (0: not shown).
+    fn timer_list(cpu0: u64, cpu1: Option<u64>, last1: u64) -> String {
+        let mut t = format!(
+            "now at 98577976528 nsecs\n\ncpu: 0\nactive timers:\n \
+             #0: <0c>, tick_nohz_handler, S:01\n # expires at {cpu0}-{cpu0} nsecs\n\
+             \x20 .last_tick      : 98576000000 nsecs\n\ncpu: 1\nactive timers:\n"
         );
-        t += &format!(
-            " #1: <000000000c>, tick_nohz_handler, S:01\n # expires at {cpu0}-{cpu0} nsecs [in 2023472 to 2023472 nsecs]\n"
-        );
-        t += " #2: <000000004a>, watchdog_timer_fn, S:01\n # expires at 100240535679-100240535679 nsecs [in 1 to 1 nsecs]\n\n";
-        t += "cpu: 1\n clock 0:\nactive timers:\n";
         if let Some(e) = cpu1 {
-            t += &format!(" #0: <000000001b>, tick_nohz_handler, S:01\n # expires at {e}-{e} nsecs [in 1 to 1 nsecs]\n");
+            t += &format!(" #0: <1b>, tick_nohz_handler, S:01\n # expires at {e}-{e} nsecs\n");
         }
-        t += " #1: <0000000055>, dl_task_timer, S:01\n # expires at 99514017905-99514017905 nsecs [in 1 to 1 nsecs]\n\n";
-        // The clock event devices repeat "cpu: N" lines; they are not ticks.
-        t += "Tick Device: mode:     1\nPer CPU device: 0\nClock Event Device: lapic-deadline\n \
-              next_event:     98580000000 nsecs\n\ncpu: 0\n #0: <01>, tick_nohz_handler, S:01\n \
-              # expires at 1-1 nsecs\n";
-        t
+        t + &format!("  .last_tick      : {last1} nsecs\n\nTick Device: mode:     1\n")
     }
 
     #[test]
-    fn each_cpus_next_tick_is_read_from_the_timer_list() {
-        assert_eq!(
-            tick_expiries(&timer_list(98_580_000_000, Some(98_584_500_000))),
-            vec![(0, Some(98_580_000_000)), (1, Some(98_584_500_000))]
-        );
-        assert_eq!(
-            tick_expiries(&timer_list(98_580_000_000, None)),
-            vec![(0, Some(98_580_000_000)), (1, None)]
-        );
-        // Before Linux 6.8 the tick's handler was tick_sched_timer.
-        let old = timer_list(4_000_000, None).replace("tick_nohz_handler", "tick_sched_timer");
-        assert_eq!(tick_expiries(&old), vec![(0, Some(4_000_000)), (1, None)]);
+    fn the_tick_period_is_read_from_the_kernels_configuration() {
         assert_eq!(config_hz("CONFIG_HZ_250=y\nCONFIG_HZ=250\n"), Some(250));
         assert_eq!(config_hz("# CONFIG_HZ is not set\n"), None);
         assert_eq!(config_hz("CONFIG_HZ=0\n"), None);
     }
 
     #[test]
-    fn the_tick_is_judged_by_whether_it_falls_on_whole_milliseconds() {
+    fn the_tick_is_judged_by_its_period_and_whether_the_cpus_share_its_phase() {
         let root = FakeRoot::new();
         let rel = Some("6.18.0");
         root.write("/boot/config-6.18.0", "CONFIG_HZ_250=y\nCONFIG_HZ=250\n");
@@ -2122,25 +2076,51 @@ mod tests {
             "CONFIG_HZ 250, every 4 ms; its phase unknown: /proc/timer_list unreadable (root \
              reads it)"
         );
-        // On whole milliseconds, as on the measured VMs, with CPU 1 idle.
-        root.write("/proc/timer_list", &timer_list(98_580_000_000, None));
+        // On whole milliseconds, as on the measured VMs, with CPU 1 idle: its last tick says
+        // where its tick restarts.
+        root.write(
+            "/proc/timer_list",
+            &timer_list(98_580_000_000, None, 98_000_000_000),
+        );
         let c = tick_check(&root.fs(), rel);
         assert_eq!(c.status, Status::Ok, "{c:?}");
         assert_eq!(
             c.value,
-            "CONFIG_HZ 250, every 4 ms; on whole milliseconds on cpu0, stopped on idle cpu1"
+            "CONFIG_HZ 250, every 4 ms; on whole milliseconds on cpu0-1, stopped on idle cpu1"
+        );
+        root.write("/proc/timer_list", &timer_list(98_580_000_000, None, 0));
+        let c = tick_check(&root.fs(), rel);
+        assert_eq!(
+            c.value,
+            "CONFIG_HZ 250, every 4 ms; on whole milliseconds on cpu0, stopped on idle cpu1, \
+             no phase shown for cpu1"
         );
         root.write(
             "/proc/timer_list",
-            &timer_list(98_580_000_000, Some(98_584_000_000)),
+            &timer_list(98_580_000_000, Some(98_584_000_000), 0),
         );
         assert_eq!(tick_check(&root.fs(), rel).status, Status::Ok);
+        // All CPUs at one phase off the millisecond: a tick-aligned schedule starts on it.
+        root.write(
+            "/proc/timer_list",
+            &timer_list(98_580_250_000, Some(98_584_250_000), 0).replace(
+                ".last_tick      : 98576000000",
+                ".last_tick      : 98576250000",
+            ),
+        );
+        let c = tick_check(&root.fs(), rel);
+        assert_eq!(c.status, Status::Ok, "{c:?}");
+        assert_eq!(
+            c.value,
+            "CONFIG_HZ 250, every 4 ms; 0.250 ms past the millisecond on cpu0-1"
+        );
         // skew_tick=1 offsets each CPU's tick by half a period over the number of CPUs (0.5
-        // ms for CPU 1 of 4 at 250 Hz): every tick then falls inside a sample.
+        // ms for CPU 1 of 4 at 250 Hz): the stages on a CPU other than the plant's meet
+        // their tick part-way through a sample.
         root.write("/proc/cmdline", "console=ttyS0 skew_tick=1 quiet\n");
         root.write(
             "/proc/timer_list",
-            &timer_list(98_580_000_000, Some(98_582_500_000)),
+            &timer_list(98_580_000_000, Some(98_582_500_000), 0),
         );
         let c = tick_check(&root.fs(), rel);
         assert_eq!(c.status, Status::Warn);
@@ -2149,11 +2129,11 @@ mod tests {
             "CONFIG_HZ 250, every 4 ms; on whole milliseconds on cpu0, 0.500 ms past the \
              millisecond on cpu1 (skew_tick on the kernel command line offsets the tick per CPU)"
         );
-        assert!(c.advice.unwrap().contains("tick_aligned = false"));
+        assert!(c.advice.unwrap().contains("keep the chain on one core"));
         // A period that is not whole milliseconds cannot be aligned with, wherever it is now.
         root.write("/proc/cmdline", "console=ttyS0\n");
         root.write("/boot/config-6.18.0", "CONFIG_HZ=300\n");
-        root.write("/proc/timer_list", &timer_list(3_000_000_000, None));
+        root.write("/proc/timer_list", &timer_list(3_000_000_000, None, 0));
         let c = tick_check(&root.fs(), rel);
         assert_eq!(c.status, Status::Warn);
         assert!(
@@ -2164,7 +2144,7 @@ mod tests {
         assert!(c.advice.unwrap().contains("not whole milliseconds"));
         // No configuration: the phase is reported, the verdict is unknown.
         let bare = FakeRoot::new();
-        bare.write("/proc/timer_list", &timer_list(98_580_000_000, None));
+        bare.write("/proc/timer_list", &timer_list(98_580_000_000, None, 0));
         let c = tick_check(&bare.fs(), rel);
         assert_eq!(c.status, Status::Unknown);
         assert!(c
