@@ -681,14 +681,22 @@ fn timing_csv_has_every_samples_publish_times_in_causal_order_and_the_cycles_med
     let mut lines = timing.lines();
     assert_eq!(
         lines.next(),
-        Some("k,plant_published_us,command_published_us")
+        Some(
+            "k,plant_published_us,estimate_published_us,current_ref_published_us,\
+             command_published_us"
+        )
     );
-    let rows: Vec<(u64, Option<f64>, Option<f64>)> = lines
+    // (k, then µs after t_k: plant, estimate, current reference, command)
+    type Row = (u64, [Option<f64>; 4]);
+    let rows: Vec<Row> = lines
         .map(|l| {
             let f: Vec<&str> = l.split(',').collect();
-            assert_eq!(f.len(), 3, "{l}");
+            assert_eq!(f.len(), 5, "{l}");
             let us = |x: &str| (!x.is_empty()).then(|| x.parse::<f64>().unwrap());
-            (f[0].parse().unwrap(), us(f[1]), us(f[2]))
+            (
+                f[0].parse().unwrap(),
+                [us(f[1]), us(f[2]), us(f[3]), us(f[4])],
+            )
         })
         .collect();
     // One row per row of the trace, in its order.
@@ -700,20 +708,42 @@ fn timing_csv_has_every_samples_publish_times_in_causal_order_and_the_cycles_med
     let ks: Vec<u64> = rows.iter().map(|r| r.0).collect();
     assert_eq!(ks, trace_ks);
     assert_eq!(ks.len(), 3000);
-    // The plant publishes sample k after t_k (it sleeps until then), and command k is
-    // computed from measurement k, so it is published after it.
+    // The plant publishes sample k after t_k (it sleeps until then); the observer's estimate
+    // k is computed from measurement k, and command k from estimate k, so each is published
+    // after the one before. The speed loop steps every 10th sample (kyslan-pi's divider)
+    // from estimate k; on the default priorities the current loop runs first, so its
+    // reference comes after the estimate but not necessarily before the command.
     let mut commands = Vec::new();
-    for &(k, plant, cmd) in &rows {
+    let (mut estimates, mut refs) = (0, 0);
+    for &(k, [plant, est, iref, cmd]) in &rows {
         let plant = plant.unwrap_or_else(|| panic!("sample {k} has no plant publish time"));
         assert!(plant > 0.0, "sample {k} published {plant} µs before t_k");
+        if let Some(e) = est {
+            assert!(
+                e > plant,
+                "estimate {k} at {e} µs, its measurement at {plant} µs"
+            );
+            estimates += 1;
+        }
+        if let Some(r) = iref {
+            assert_eq!(k % 10, 0, "a current reference at sample {k}");
+            let e = est.unwrap_or_else(|| panic!("reference {k} without its estimate"));
+            assert!(r > e, "reference {k} at {r} µs, its estimate at {e} µs");
+            refs += 1;
+        }
         if let Some(c) = cmd {
             assert!(
-                c > plant,
-                "command {k} published at {c} µs, its measurement at {plant} µs"
+                c > est.unwrap_or(plant),
+                "command {k} published at {c} µs, its measurement at {plant} µs, its \
+                 estimate at {est:?} µs"
             );
             commands.push(c);
         }
     }
+    // A sample superseded while the chain caught up after a stall has no estimate; a
+    // loaded machine has a few.
+    assert!(estimates > 2900, "{estimates} estimates");
+    assert!(refs > 290, "{refs} current references");
     // Command published − t_k is the cycle latency: the summary's cycle p50 is the same
     // stamps' median in an HDR histogram (3 significant digits). HdrHistogram's p50 of N
     // values is the one of rank ceil(N / 2), raised to the top of its bucket (under 0.1 %);

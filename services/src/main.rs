@@ -70,8 +70,9 @@ enum Cmd {
         /// Do not draw PNG/SVG plots.
         #[arg(long)]
         no_plots: bool,
-        /// Also write timing.csv: per sample, when the plant published it and when its
-        /// command was published, µs after the sample's instant t_k (realtime clock only).
+        /// Also write timing.csv: per sample, when the plant, the observer, the speed loop and
+        /// the current loop published their outputs for it, µs after the sample's instant t_k
+        /// (realtime clock only).
         #[arg(long)]
         timing_csv: bool,
         /// Print the summary as JSON on stdout instead of the human summary.

@@ -3,7 +3,7 @@
 //! shares its progress with the supervisor; and [`attribute_gaps`], which names the fault
 //! behind each missing sample.
 
-use super::stream::TraceStream;
+use super::stream::{Middle, TraceStream};
 use super::supervisor::FaultReport;
 use anyhow::{anyhow, Result};
 use drivelab_runtime::bus::{self, DriveTopics, MAX_BUFFER};
@@ -161,9 +161,19 @@ pub(super) fn run_recorder(
         if let Some(c) = topics.truth.publish_count() {
             let _ = progress.truth_count.set(c);
         }
-        Ok((node, topics, meas_rx, cmd_rx, wref_rx, rec_tx))
+        // The chain's middle outputs only for timing.csv: each subscriber costs its publisher
+        // a delivery per sample.
+        let mid_rx = if trace.times_the_chain() {
+            Some((
+                topics.est.polled_receiver(MAX_BUFFER)?,
+                topics.iref.polled_receiver(MAX_BUFFER)?,
+            ))
+        } else {
+            None
+        };
+        Ok((node, topics, meas_rx, cmd_rx, wref_rx, rec_tx, mid_rx))
     })();
-    let (_node, _topics, meas_rx, cmd_rx, wref_rx, rec_tx) = match setup {
+    let (_node, _topics, meas_rx, cmd_rx, wref_rx, rec_tx, mid_rx) = match setup {
         Ok(v) => {
             let _ = ready.send(Ok(()));
             v
@@ -249,6 +259,18 @@ pub(super) fn run_recorder(
                         let ns = c.hdr.t_pub_ns as i64 - c.hdr.t_sample_ns as i64;
                         lat.iter_mut().for_each(|w| w.record(c.hdr.k, ns));
                     }
+                }
+            }
+        }
+        if let Some((est_rx, iref_rx)) = &mid_rx {
+            while let Some(e) = est_rx.try_recv()? {
+                if !e.hdr.is_warmup() && !e.hdr.is_end() && !e.hdr.is_absent() {
+                    trace.middle(Middle::Estimate, e.hdr.k, e.hdr.t_pub_ns);
+                }
+            }
+            while let Some(r) = iref_rx.try_recv()? {
+                if !r.hdr.is_warmup() && !r.hdr.is_end() && !r.hdr.is_absent() {
+                    trace.middle(Middle::CurrentRef, r.hdr.k, r.hdr.t_pub_ns);
                 }
             }
         }

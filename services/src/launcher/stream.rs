@@ -33,17 +33,38 @@ const KEEP_BEFORE_S: f64 = 0.1;
 /// … to this long after it, s.
 const KEEP_AFTER_S: f64 = 1.0;
 
-/// `timing.csv` (`drivelab run --timing-csv`): per sample, when the plant published it and
-/// when its command was published, µs after the sample's instant t_k. The cycle latency
-/// sample by sample, split at the plant's publish: what the `cycle` histogram merges, so that
-/// a slow sample's parts can be seen together. Written as the trace is.
+/// `timing.csv` (`drivelab run --timing-csv`): per sample, when each stage of the chain
+/// published its output for it, µs after the sample's instant t_k: the plant, the observer's
+/// estimate, the speed loop's current reference (on its samples only) and the current loop's
+/// command. The cycle latency sample by sample, split at each hop: what the `cycle`
+/// histogram merges, so that a slow sample's parts can be seen together. Written as the
+/// trace is; the estimates and references are read as they come and held by sample until
+/// their row leaves the window.
 pub struct TimingCsv {
     w: csv::Writer<std::fs::File>,
     path: std::path::PathBuf,
+    /// Publish instants of the chain's middle outputs by slot: (k, t_pub_ns) of the
+    /// estimate and of the current reference.
+    mid: Vec<[(u64, u64); 2]>,
 }
 
 /// The header of `timing.csv`.
-pub const TIMING_COLUMNS: [&str; 3] = ["k", "plant_published_us", "command_published_us"];
+pub const TIMING_COLUMNS: [&str; 5] = [
+    "k",
+    "plant_published_us",
+    "estimate_published_us",
+    "current_ref_published_us",
+    "command_published_us",
+];
+
+/// An output of the chain between the plant's and the command, as `timing.csv` times it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Middle {
+    /// The observer's estimate.
+    Estimate = 0,
+    /// The speed loop's current reference.
+    CurrentRef = 1,
+}
 
 impl TimingCsv {
     /// Creates (truncates) the file and writes its header.
@@ -53,21 +74,29 @@ impl TimingCsv {
         let mut t = Self {
             w: csv::Writer::from_writer(file),
             path: path.to_path_buf(),
+            // (u64::MAX, _): nothing yet.
+            mid: vec![[(u64::MAX, 0); 2]; WINDOW as usize],
         };
         t.record(TIMING_COLUMNS.map(String::from))?;
         Ok(t)
     }
 
-    fn record(&mut self, fields: [String; 3]) -> Result<()> {
+    fn record(&mut self, fields: [String; 5]) -> Result<()> {
         self.w
             .write_record(&fields)
             .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", self.path.display()))
     }
 
+    /// Output `which` of sample k was published at `t_pub_ns`.
+    fn middle(&mut self, which: Middle, k: u64, t_pub_ns: u64) {
+        self.mid[(k % WINDOW) as usize][which as usize] = (k, t_pub_ns);
+    }
+
     /// Sample k's row: each time after t_k, µs, empty where there is none (a command that
-    /// never came; a sample rebuilt while the plant was down, which nobody published).
+    /// never came; a sample rebuilt while the plant was down, which nobody published; a
+    /// sample without a speed-loop step).
     fn row(&mut self, m: &PlantTruth, c: Option<&VoltageCommand>) -> Result<()> {
-        let t_k = m.hdr.t_sample_ns;
+        let (k, t_k) = (m.hdr.k, m.hdr.t_sample_ns);
         let after = |t_ns: u64| {
             if t_k == 0 || t_ns == 0 {
                 String::new()
@@ -75,8 +104,12 @@ impl TimingCsv {
                 format!("{:.3}", (t_ns as i64 - t_k as i64) as f64 * 1e-3)
             }
         };
+        let mid =
+            self.mid[(k % WINDOW) as usize]
+                .map(|(mk, t)| if mk == k { after(t) } else { String::new() });
         let cmd = c.map_or_else(String::new, |c| after(c.hdr.t_pub_ns));
-        self.record([m.hdr.k.to_string(), after(m.hdr.t_pub_ns), cmd])
+        let [est, iref] = mid;
+        self.record([k.to_string(), after(m.hdr.t_pub_ns), est, iref, cmd])
     }
 
     fn finish(mut self) -> Result<()> {
@@ -303,6 +336,21 @@ impl TraceStream {
     pub fn with_timing(mut self, timing: Option<TimingCsv>) -> Self {
         self.timing = timing;
         self
+    }
+
+    /// True when it writes `timing.csv`, which wants the chain's middle outputs too.
+    pub fn times_the_chain(&self) -> bool {
+        self.timing.is_some()
+    }
+
+    /// Output `which` of sample k was published at `t_pub_ns` (for `timing.csv`; one that
+    /// comes after its sample left the window is not timed).
+    pub fn middle(&mut self, which: Middle, k: u64, t_pub_ns: u64) {
+        if let Some(t) = self.timing.as_mut() {
+            if k >= self.next && k < self.n && k < self.next + WINDOW {
+                t.middle(which, k, t_pub_ns);
+            }
+        }
     }
 
     /// Sends every row to `sinks` too (`trace.mcap`, the live stream).
@@ -624,6 +672,67 @@ mod tests {
         std::fs::remove_dir_all(&dir).unwrap();
         assert_eq!(back, t.kept);
         assert_eq!(t.stats.peak_speed_rad_s, (n - 1) as f64);
+    }
+
+    #[test]
+    fn timing_csv_times_the_middle_outputs_of_their_own_sample_while_it_is_in_the_window() {
+        let dir = std::env::temp_dir().join(format!("drivelab-timing-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("timing.csv");
+        let n = 3 * WINDOW;
+        let mut t = TraceStream::new(&scenario(n), None)
+            .unwrap()
+            .with_timing(Some(TimingCsv::create(&path).unwrap()));
+        assert!(t.times_the_chain());
+        // Sample k at t_k = 1 ms + k × 100 µs, published 10 µs after it; its estimate 3 µs
+        // later, its command 6 µs later; a current reference at 0 and 10.
+        let t_k = |k: u64| 1_000_000 + k * 100_000;
+        let stamped = |mut h: Header, after_ns: u64| {
+            h.t_sample_ns = t_k(h.k);
+            h.t_pub_ns = t_k(h.k) + after_ns;
+            h
+        };
+        for k in 0..=WINDOW + 3 {
+            let mut m = truth(k, 0);
+            m.hdr = stamped(m.hdr, 10_000);
+            t.meas(m, Vec::new).unwrap();
+            // None for the sample a window after sample 2, in sample 2's slot.
+            if k != WINDOW + 2 {
+                t.middle(Middle::Estimate, k, t_k(k) + 13_000);
+            }
+            if k % 10 == 0 {
+                t.middle(Middle::CurrentRef, k, t_k(k) + 20_000);
+            }
+            let mut c = cmd(k);
+            c.hdr = stamped(c.hdr, 16_000);
+            t.cmd(c).unwrap();
+            t.advance().unwrap();
+        }
+        // Sample 1 has left the window: an estimate for it now is not timed (it would be
+        // sample 1 + WINDOW's slot's, and that sample is not in the run's window yet).
+        t.middle(Middle::Estimate, 1, t_k(1));
+        t.finish().unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[0], TIMING_COLUMNS.join(","));
+        assert_eq!(lines[1], "0,10.000,13.000,20.000,16.000");
+        assert_eq!(lines[2], "1,10.000,13.000,,16.000");
+        assert_eq!(lines[3], "2,10.000,13.000,,16.000");
+        assert_eq!(lines[11], "10,10.000,13.000,20.000,16.000");
+        // Sample WINDOW + 1's slot is sample 1's: it holds sample WINDOW + 1's estimate, not
+        // the late one for sample 1; WINDOW + 2's holds sample 2's, which is not its own.
+        let row = |k: u64| lines[k as usize + 1];
+        assert_eq!(
+            row(WINDOW + 1),
+            format!("{},10.000,13.000,,16.000", WINDOW + 1)
+        );
+        assert_eq!(row(WINDOW + 2), format!("{},10.000,,,16.000", WINDOW + 2));
+        assert_eq!(
+            row(WINDOW + 3),
+            format!("{},10.000,13.000,,16.000", WINDOW + 3)
+        );
+        assert_eq!(lines.len() as u64, WINDOW + 5);
     }
 
     #[test]
