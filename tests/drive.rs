@@ -744,6 +744,22 @@ fn timing_csv_has_every_samples_publish_times_in_causal_order_and_the_cycles_med
     // loaded machine has a few.
     assert!(estimates > 2900, "{estimates} estimates");
     assert!(refs > 290, "{refs} current references");
+    // The summary's tail by part is read from these rows: the samples timed whole, and
+    // the slowest 1 % of them (fewer where samples tie with the p99's bucket).
+    let whole = rows
+        .iter()
+        .filter(|(_, [_, e, _, c])| e.is_some() && c.is_some())
+        .count();
+    let tail = &s["timing"]["tail_by_part"];
+    assert_eq!(tail["samples_timed"].as_u64(), Some(whole as u64), "{tail}");
+    let in_tail = tail["tail_samples"].as_u64().unwrap();
+    assert!(in_tail > 0 && in_tail <= whole as u64 / 100, "{tail}");
+    assert!(
+        tail["line"]
+            .as_str()
+            .is_some_and(|l| l.starts_with("slowest 1 % of cycles (above ")),
+        "{tail}"
+    );
     // Command published − t_k is the cycle latency: the summary's cycle p50 is the same
     // stamps' median in an HDR histogram (3 significant digits). HdrHistogram's p50 of N
     // values is the one of rank ceil(N / 2), raised to the top of its bucket (under 0.1 %);
@@ -812,6 +828,7 @@ fn timing_csv_has_every_samples_publish_times_in_causal_order_and_the_cycles_med
     let s = short_run_with_timing("timingcsvoff", "tick_aligned = false");
     let t = &s["timing"];
     assert_eq!(t["tick_aligned"], false, "{t}");
+    assert!(t["tail_by_part"].is_null(), "without --timing-csv: {t}");
     let past = t["schedule_start_us_past_ms"].as_f64().unwrap();
     assert!((0.0..1000.0).contains(&past), "{t}");
     if let Some(phase) = phase_us {

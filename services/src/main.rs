@@ -965,6 +965,9 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 if let Some(l) = s["timing"]["stalls"]["line"].as_str() {
                     drivelab_services::outln!("{l}");
                 }
+                if let Some(l) = s["timing"]["tail_by_part"]["line"].as_str() {
+                    drivelab_services::outln!("{l}");
+                }
                 drivelab_services::outln!(
                     "rise {}, overshoot {}, load dip {}, load recovery {}, steady-state error {}",
                     fmt_opt(&m["rise_time_ms"], "ms"),

@@ -12,6 +12,7 @@ pub mod sinks;
 mod spawn;
 pub(crate) mod stream;
 mod supervisor;
+pub mod tail;
 mod trip;
 
 pub use bridge::ZenohListen;
@@ -1411,6 +1412,11 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     };
     let metrics = speed_metrics(&sc, &rows);
     let design = DriveDesign::from_scenario(&sc.controller_view()); // the design that runs ([model])
+    let tail_by_part = if o.timing_csv {
+        tail::of(&out.join("timing.csv"))?
+    } else {
+        None
+    };
     let schedule_start = info.get("schedule_start_ns").and_then(|v| v.as_u64());
     // The plant is the first process (the topology's order starts at the source).
     let plant_tick_phase = topo
@@ -1441,6 +1447,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         // within a millisecond on each CPU), so that a run says whether its tick-aligned
         // schedule could meet the tick; real time only.
         "kernel_tick": (o.clock == Clock::Realtime).then(drivelab_tools::doctor::kernel_tick),
+        // What the slowest 1 % of cycles were made of, part by part (with --timing-csv).
+        "tail_by_part": tail_by_part,
     });
     drop(latency_request);
     let deadline_misses = info
