@@ -3,7 +3,7 @@
 //! of the chain took in them against its median over every sample (docs/architecture.md,
 //! "Where the microseconds go").
 
-use anyhow::{anyhow, Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use drivelab_runtime::timing::LatencyHist;
 use serde::Serialize;
 use std::path::Path;
@@ -57,10 +57,28 @@ fn rows(path: &Path, mut each: impl FnMut(Row)) -> Result<()> {
             .map_err(|_| anyhow!("{}: '{s}' is not a time in µs", path.display()))?;
         Ok(Some((us * 1e3).round() as i64))
     };
+    // The columns by their names in the header.
+    let header = r
+        .headers()
+        .with_context(|| format!("cannot read {}", path.display()))?
+        .clone();
+    let [a_at, e_at, c_at] = [
+        "plant_published_us",
+        "estimate_published_us",
+        "command_published_us",
+    ]
+    .map(|name| header.iter().position(|h| h == name));
+    let (Some(a_at), Some(e_at), Some(c_at)) = (a_at, e_at, c_at) else {
+        bail!(
+            "{}: the header lacks plant_published_us, estimate_published_us or \
+             command_published_us",
+            path.display()
+        );
+    };
     for rec in r.records() {
         let rec = rec.with_context(|| format!("cannot read {}", path.display()))?;
         let col = |i: usize| rec.get(i).unwrap_or("");
-        if let (Some(a), Some(e), Some(c)) = (ns(col(1))?, ns(col(2))?, ns(col(4))?) {
+        if let (Some(a), Some(e), Some(c)) = (ns(col(a_at))?, ns(col(e_at))?, ns(col(c_at))?) {
             each([a, e - a, c - e]);
         }
     }
@@ -218,7 +236,21 @@ mod tests {
         )
         .unwrap();
         let e = format!("{:#}", of(&p).unwrap_err());
-        std::fs::remove_dir_all(p.parent().unwrap()).unwrap();
         assert!(e.ends_with("timing.csv: 'x' is not a time in µs"), "{e}");
+        // An older file, without the estimate's column.
+        std::fs::write(
+            &p,
+            "k,plant_published_us,command_published_us\n0,15.000,20.000\n",
+        )
+        .unwrap();
+        let e = format!("{:#}", of(&p).unwrap_err());
+        std::fs::remove_dir_all(p.parent().unwrap()).unwrap();
+        assert!(
+            e.ends_with(
+                "timing.csv: the header lacks plant_published_us, estimate_published_us or \
+                 command_published_us"
+            ),
+            "{e}"
+        );
     }
 }
