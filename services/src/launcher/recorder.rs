@@ -263,15 +263,17 @@ pub(super) fn run_recorder(
             }
         }
         if let Some((est_rx, iref_rx)) = &mid_rx {
-            while let Some(e) = est_rx.try_recv()? {
-                if !e.hdr.is_warmup() && !e.hdr.is_end() && !e.hdr.is_absent() {
-                    trace.middle(Middle::Estimate, e.hdr.k, e.hdr.t_pub_ns);
+            // A sample's own output: not a warm-up, end or absence marker.
+            let mut time = |which, h: &drivelab_runtime::messages::Header| {
+                if !h.is_warmup() && !h.is_end() && !h.is_absent() {
+                    trace.middle(which, h.k, h.t_pub_ns);
                 }
+            };
+            while let Some(e) = est_rx.try_recv()? {
+                time(Middle::Estimate, &e.hdr);
             }
             while let Some(r) = iref_rx.try_recv()? {
-                if !r.hdr.is_warmup() && !r.hdr.is_end() && !r.hdr.is_absent() {
-                    trace.middle(Middle::CurrentRef, r.hdr.k, r.hdr.t_pub_ns);
-                }
+                time(Middle::CurrentRef, &r.hdr);
             }
         }
         while let Some(w) = wref_rx.try_recv()? {

@@ -104,11 +104,10 @@ impl TimingCsv {
                 format!("{:.3}", (t_ns as i64 - t_k as i64) as f64 * 1e-3)
             }
         };
-        let mid =
+        let [est, iref] =
             self.mid[(k % WINDOW) as usize]
                 .map(|(mk, t)| if mk == k { after(t) } else { String::new() });
         let cmd = c.map_or_else(String::new, |c| after(c.hdr.t_pub_ns));
-        let [est, iref] = mid;
         self.record([k.to_string(), after(m.hdr.t_pub_ns), est, iref, cmd])
     }
 

@@ -85,15 +85,30 @@ fn rows(path: &Path, mut each: impl FnMut(Row)) -> Result<()> {
     Ok(())
 }
 
+/// One histogram per part, in `Row`'s order.
+fn part_hists() -> [LatencyHist; 3] {
+    [
+        LatencyHist::new("plant"),
+        LatencyHist::new("to estimate"),
+        LatencyHist::new("to command"),
+    ]
+}
+
+/// Each part's median, µs.
+fn medians(h: &[LatencyHist; 3]) -> Parts {
+    let median = |h: &LatencyHist| h.quantile_ns(0.5) as f64 * 1e-3;
+    Parts {
+        plant_us: median(&h[0]),
+        to_estimate_us: median(&h[1]),
+        to_command_us: median(&h[2]),
+    }
+}
+
 /// The tail of the run whose `timing.csv` is at `path` (two passes over the file: the
 /// percentiles, then the tail's parts); None where no sample was timed whole.
 pub fn of(path: &Path) -> Result<Option<TailByPart>> {
     let mut cycle = LatencyHist::new("cycle");
-    let mut parts = [
-        LatencyHist::new("plant"),
-        LatencyHist::new("to estimate"),
-        LatencyHist::new("to command"),
-    ];
+    let mut parts = part_hists();
     rows(path, |r| {
         cycle.record_ns(r.iter().sum());
         for (h, v) in parts.iter_mut().zip(r) {
@@ -105,11 +120,7 @@ pub fn of(path: &Path) -> Result<Option<TailByPart>> {
     }
     let p99 = cycle.quantile_ns(0.99) as i64;
     let plant_p99 = parts[0].quantile_ns(0.99) as i64;
-    let mut tail = [
-        LatencyHist::new("plant"),
-        LatencyHist::new("to estimate"),
-        LatencyHist::new("to command"),
-    ];
+    let mut tail = part_hists();
     let mut slow_plant = 0u64;
     rows(path, |r| {
         if r.iter().sum::<i64>() > p99 {
@@ -120,22 +131,12 @@ pub fn of(path: &Path) -> Result<Option<TailByPart>> {
         }
     })?;
     let n = tail[0].len();
-    let us = |ns: f64| ns * 1e-3;
-    let median = |h: &LatencyHist| us(h.quantile_ns(0.5) as f64);
-    let t = TailByPart {
+    let mut t = TailByPart {
         samples_timed: cycle.len(),
-        cycle_p99_us: us(p99 as f64),
+        cycle_p99_us: p99 as f64 * 1e-3,
         tail_samples: n,
-        median: Parts {
-            plant_us: median(&parts[0]),
-            to_estimate_us: median(&parts[1]),
-            to_command_us: median(&parts[2]),
-        },
-        tail_median: Parts {
-            plant_us: median(&tail[0]),
-            to_estimate_us: median(&tail[1]),
-            to_command_us: median(&tail[2]),
-        },
+        median: medians(&parts),
+        tail_median: medians(&tail),
         tail_with_slow_plant_pct: if n == 0 {
             0.0
         } else {
@@ -143,23 +144,21 @@ pub fn of(path: &Path) -> Result<Option<TailByPart>> {
         },
         line: String::new(),
     };
-    Ok(Some(TailByPart {
-        line: format!(
-            "slowest 1 % of cycles (above {:.1} µs, {} samples), their medians (every \
+    t.line = format!(
+        "slowest 1 % of cycles (above {:.1} µs, {} samples), their medians (every \
              sample's): plant published at {:.1} µs ({:.1}), estimate {:.1} µs later ({:.1}), \
              command {:.1} µs later ({:.1}); {:.0} % of them had the plant above its own p99",
-            t.cycle_p99_us,
-            t.tail_samples,
-            t.tail_median.plant_us,
-            t.median.plant_us,
-            t.tail_median.to_estimate_us,
-            t.median.to_estimate_us,
-            t.tail_median.to_command_us,
-            t.median.to_command_us,
-            t.tail_with_slow_plant_pct
-        ),
-        ..t
-    }))
+        t.cycle_p99_us,
+        t.tail_samples,
+        t.tail_median.plant_us,
+        t.median.plant_us,
+        t.tail_median.to_estimate_us,
+        t.median.to_estimate_us,
+        t.tail_median.to_command_us,
+        t.median.to_command_us,
+        t.tail_with_slow_plant_pct
+    );
+    Ok(Some(t))
 }
 
 #[cfg(test)]
