@@ -783,13 +783,13 @@ fn bench_rounds_interleave_the_variants_and_merge_their_samples() {
         .args(["bench", "--rounds", "0"])
         .output()
         .unwrap();
-    assert_eq!(o.status.code(), Some(1));
+    assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("--rounds must be in 1..=100"));
     let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
         .args(["bench", "--variants", "floor,ice"])
         .output()
         .unwrap();
-    assert_eq!(o.status.code(), Some(1));
+    assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("--variants: unknown variant 'ice'"));
     for bad in ["NaN", "-1", "inf"] {
         let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
@@ -797,7 +797,7 @@ fn bench_rounds_interleave_the_variants_and_merge_their_samples() {
             .output()
             .unwrap();
         let err = String::from_utf8_lossy(&o.stderr);
-        assert_eq!(o.status.code(), Some(1), "{bad}: {err}");
+        assert_eq!(o.status.code(), Some(2), "{bad}: {err}");
         assert!(
             err.contains("--spin-us must be a number of µs >= 0") && err.lines().count() == 1,
             "{bad}: {err}"

@@ -466,7 +466,7 @@ fn plot_redraws_valid_png_and_svg_for_a_recorded_run() {
         &["plot", out.to_str().unwrap(), "--window", "0.07:0.03"],
         Duration::from_secs(60),
     );
-    assert_eq!(o.status.code(), Some(1));
+    assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("START must be before END"));
     let o = drivelab(&["plot", "/nonexistent-run"], Duration::from_secs(60));
     assert_eq!(o.status.code(), Some(1));

@@ -176,8 +176,8 @@ fn an_address_in_use_or_malformed_is_a_one_line_error() {
     let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let addr = taken.local_addr().unwrap().to_string();
     assert_run_refused(&bus, &["--foxglove", &addr], "cannot listen");
-    assert_run_refused(&bus, &["--foxglove", "nowhere:x"], "not HOST:PORT");
-    assert_run_refused(
+    assert_run_usage_error(&bus, &["--foxglove", "nowhere:x"], "not HOST:PORT");
+    assert_run_usage_error(
         &bus,
         &["--clock", "inprocess", "--foxglove"],
         "needs a drive on a bus",

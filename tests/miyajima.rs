@@ -171,9 +171,9 @@ fn cdm_printout_gives_the_gains_of_eqs_28_to_31() {
             && t.contains("V_ao = 271.3546265191241 V"),
         "{t}"
     );
-    // A bad flag: one clear line, exit code 1.
+    // A value out of its range: one clear line, exit code 2 (a usage error).
     let o = drivelab(&["cdm-design", "--v-ao-v", "5", "--tu-us", "0"]);
-    assert_eq!(o.status.code(), Some(1));
+    assert_eq!(o.status.code(), Some(2));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("--tu-us"), "{err}");
 }

@@ -216,7 +216,7 @@ fn bad_endpoints_a_busy_port_and_no_drive_are_one_line_errors() {
         "inprocess",
         "--zenoh-listen",
     ]);
-    one_line(&o, 1, "--zenoh-listen needs a drive on a bus");
+    one_line(&o, 2, "--zenoh-listen needs a drive on a bus");
     assert!(!out.exists());
     let o = drivelab(&["monitor", "--connect", "127.0.0.1:7447", "--print"]);
     one_line(

@@ -2,6 +2,7 @@
 //! the same chain in one thread, the same four processes over Unix sockets, and the product
 //! (iceoryx2), at several rates and placements, under identical conditions in one invocation.
 
+use crate::expect::usage;
 use crate::launcher::{self, Clock, RunOptions};
 use anyhow::{anyhow, Context, Result};
 use drivelab_bench::cache::CacheProbe;
@@ -1556,15 +1557,17 @@ pub fn run(a: &BenchArgs) -> Result<()> {
 fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
     let seconds = a.seconds.unwrap_or(if a.quick { 0.2 } else { 10.0 });
     if !(seconds.is_finite() && seconds > 0.0 && seconds <= 3600.0) {
-        return Err(anyhow!("--seconds must be in (0, 3600], got {seconds}"));
+        return Err(usage(format!(
+            "--seconds must be in (0, 3600], got {seconds}"
+        )));
     }
     for &r in &a.rates {
         if !(r.is_finite() && (100.0..=100_000.0).contains(&r)) {
-            return Err(anyhow!("--rates: {r} Hz must be in [100, 100000]"));
+            return Err(usage(format!("--rates: {r} Hz must be in [100, 100000]")));
         }
     }
     for p in &a.placements {
-        placement(p).map_err(|e| anyhow!("--placements: {e}"))?;
+        placement(p).map_err(|e| usage(format!("--placements: {e}")))?;
     }
     // --quick fixes both; one given beside it would be ignored.
     for (given, flag) in [
@@ -1572,9 +1575,9 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
         (!a.placements.is_empty(), "--placements"),
     ] {
         if a.quick && given {
-            return Err(anyhow!(
+            return Err(usage(format!(
                 "{flag} cannot be used with --quick (10000 Hz, one-core placement only)"
-            ));
+            )));
         }
     }
     let rates: Vec<f64> = if a.quick {
@@ -1598,19 +1601,19 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
         drivelab_runtime::topology::load(t).map_err(|e| anyhow!("--topologies: {e}"))?;
         let name = topology_name(t);
         if topo_paths.insert(name.clone(), t.clone()).is_some() {
-            return Err(anyhow!("--topologies: '{name}' is listed twice"));
+            return Err(usage(format!("--topologies: '{name}' is listed twice")));
         }
     }
     let rounds = a.rounds.unwrap_or(if a.quick { 1 } else { 5 });
     if !(1..=100).contains(&rounds) {
-        return Err(anyhow!("--rounds must be in 1..=100, got {rounds}"));
+        return Err(usage(format!("--rounds must be in 1..=100, got {rounds}")));
     }
     // Capped at T_s/4 per rate later; 0 skips the variant.
     if !(a.spin_us.is_finite() && a.spin_us >= 0.0) {
-        return Err(anyhow!(
+        return Err(usage(format!(
             "--spin-us must be a number of µs >= 0 (0 skips the spin variant), got {}",
             a.spin_us
-        ));
+        )));
     }
     // The variants of every rate, each measured in `rounds` interleaved slices so that the
     // machine's slow changes (a VM's noisy minutes) reach all of them alike.
@@ -1627,10 +1630,10 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
         "topology",
     ];
     if let Some(v) = a.variants.iter().find(|v| !VARIANTS.contains(&v.as_str())) {
-        return Err(anyhow!(
+        return Err(usage(format!(
             "--variants: unknown variant '{v}' (known: {})",
             VARIANTS.join(", ")
-        ));
+        )));
     }
     let cyclictest = match drivelab_bench::cyclictest::locate(&a.cyclictest) {
         Ok(p) => Some(p),

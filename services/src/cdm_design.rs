@@ -2,7 +2,8 @@
 //! Miyajima et al. (eqs 26–37) at one operating point, printed so that eqs (28)–(31) can be
 //! checked by hand.
 
-use anyhow::{bail, Result};
+use crate::expect::usage;
+use anyhow::Result;
 use drivelab_control::control::cdm::{self, CdmDesign};
 use drivelab_control::control::polar::{self, FwDesign, SpmsmModel};
 use std::fmt::Write;
@@ -139,10 +140,11 @@ fn check(a: &CdmArgs) -> Result<()> {
     for (flag, v, lo, closed, hi, unit) in ranges {
         let low_ok = if closed { v >= lo } else { v > lo };
         if !(v.is_finite() && low_ok && v <= hi) {
-            if closed {
-                bail!("{flag} {v}: must be between {lo} and {hi} {unit}");
-            }
-            bail!("{flag} {v}: must be more than {lo} and at most {hi} {unit}");
+            return Err(usage(if closed {
+                format!("{flag} {v}: must be between {lo} and {hi} {unit}")
+            } else {
+                format!("{flag} {v}: must be more than {lo} and at most {hi} {unit}")
+            }));
         }
     }
     // The operating point: V_ao is a signed amplitude, so its range is symmetric, with the
@@ -165,10 +167,14 @@ fn check(a: &CdmArgs) -> Result<()> {
         ),
     ] {
         if !v.is_finite() {
-            bail!("{flag} {v}: must be a finite number of {units}");
+            return Err(usage(format!(
+                "{flag} {v}: must be a finite number of {units}"
+            )));
         }
         if !(lo..=hi).contains(&v) {
-            bail!("{flag} {v}: must be between {lo} and {hi} {unit}");
+            return Err(usage(format!(
+                "{flag} {v}: must be between {lo} and {hi} {unit}"
+            )));
         }
     }
     for (flag, v) in [
@@ -176,7 +182,9 @@ fn check(a: &CdmArgs) -> Result<()> {
         ("--sigma-v-rad-s", a.sigma_v),
     ] {
         if !(v.is_finite() && (-1e6..0.0).contains(&v)) {
-            bail!("{flag} {v}: must be negative, from -1000000 rad/s up to (not including) 0");
+            return Err(usage(format!(
+                "{flag} {v}: must be negative, from -1000000 rad/s up to (not including) 0"
+            )));
         }
     }
     Ok(())

@@ -39,11 +39,18 @@ pub const FIGURES: &[&str] = &[
     "speed_loop_hz",
 ];
 
-/// Bad input that is the user's wording (an `--expect` that cannot be read): `drivelab`
-/// exits with code 2 for it, as for a command-line usage error. In a scenario's or a
-/// campaign's file it is a plain error (exit code 1), as any other mistake in a file.
+/// A command line that is wrong in itself: an option's value that is not of its kind, out
+/// of its range or not one of its choices, options that cannot go together, an `--expect`
+/// that cannot be read. `drivelab` exits with code 2 for it, as for an option clap refuses.
+/// The same mistake in a scenario's or a campaign's file is a plain error (exit code 1), as
+/// is a name looked up among files (a scenario, a topology) that is not there.
 #[derive(Debug)]
 pub struct UsageError(pub String);
+
+/// A [`UsageError`] as an error to return: `drivelab` exits with code 2.
+pub fn usage(text: String) -> anyhow::Error {
+    UsageError(text).into()
+}
 
 impl fmt::Display for UsageError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {

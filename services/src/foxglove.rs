@@ -9,7 +9,7 @@
 //! and reads. Channels: `/speed`, `/currents`, `/voltages`, `/angle` (every
 //! [`Live::decimation`]-th sample), `/services` (per stage, once per second), `/log`.
 
-use anyhow::{anyhow, bail, Result};
+use anyhow::{anyhow, Result};
 use serde::Serialize;
 use std::collections::HashMap;
 use std::f64::consts::PI;
@@ -174,7 +174,11 @@ pub fn parse_addr(s: &str) -> Result<SocketAddr> {
     } else {
         s.to_string()
     };
-    let bad = |why: String| anyhow!("--foxglove '{s}': not HOST:PORT (e.g. {DEFAULT_ADDR}): {why}");
+    let bad = |why: String| {
+        crate::expect::usage(format!(
+            "--foxglove '{s}': not HOST:PORT (e.g. {DEFAULT_ADDR}): {why}"
+        ))
+    };
     let Some((host, port)) = with_host.rsplit_once(':') else {
         return Err(bad("no port".into()));
     };
@@ -537,7 +541,9 @@ fn handle_request(
 /// Refuses `--foxglove` with a clock that has no bus.
 pub fn check_clock(inprocess: bool) -> Result<()> {
     if inprocess {
-        bail!("--foxglove needs a drive on a bus: use --clock realtime or lockstep");
+        return Err(crate::expect::usage(
+            "--foxglove needs a drive on a bus: use --clock realtime or lockstep".into(),
+        ));
     }
     Ok(())
 }

@@ -1,14 +1,17 @@
 //! `drivelab`: the launcher and supervisor CLI.
 
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
+use drivelab_services::expect::usage;
 use drivelab_services::launcher::{self, Clock, RunOptions};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 /// drivelab: a real-time PMSM drive of stages in processes on iceoryx2 shared memory.
 ///
-/// Exit codes: 0 success, 1 error (bad input, a service failed, interrupted), 2 usage error
-/// (also a malformed expectation), 3 an expectation failed (the run itself completed).
+/// Exit codes: 0 success, 1 error (a bad file or name, a service failed, interrupted), 2 usage
+/// error (an option's value not of its kind, out of its range or not one of its choices,
+/// options that cannot go together, a malformed expectation), 3 an expectation failed (the run
+/// itself completed).
 #[derive(Debug, Parser)]
 #[command(name = "drivelab", version, long_about = None)]
 struct Cli {
@@ -541,7 +544,8 @@ fn main() -> ExitCode {
                 "drivelab: error: {}",
                 drivelab_runtime::text::error_text(&e)
             );
-            // A malformed expectation is a usage error, like a bad option.
+            // A value the command line itself gets wrong (out of range, a malformed
+            // expectation, options that cannot go together) is a usage error, as clap's are.
             if e.downcast_ref::<drivelab_services::expect::UsageError>()
                 .is_some()
             {
@@ -680,11 +684,6 @@ fn fmt_opt(v: &serde_json::Value, unit: &str) -> String {
     v.as_f64()
         .map(|x| drivelab_runtime::text::readable_numbers(&format!("{x:.3} {unit}")).into_owned())
         .unwrap_or_else(|| "n/a".into())
-}
-
-/// A usage error: one line, exit code 2.
-fn usage(text: String) -> anyhow::Error {
-    drivelab_services::expect::UsageError(text).into()
 }
 
 /// Checks a Zenoh endpoint given to `flag` (a usage error names the problem).
@@ -1068,9 +1067,9 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             // Longer RK4 steps than the electrical time constant give numbers, not the model.
             let tau = m.l_d_h.min(m.l_q_h) / m.r_ohm;
             if !(max_step.is_finite() && max_step > 0.0 && max_step <= tau) {
-                anyhow::bail!(
+                return Err(usage(format!(
                     "--max-step-s {max_step}: must be more than 0 and at most the motor's electrical time constant min(L_d, L_q)/R = {tau:.3e} s"
-                );
+                )));
             }
             let n = drivelab_services::replay::replay(&replay, &out, &m, max_step)?;
             drivelab_services::errln!("wrote {n} rows to {}", out.display());
@@ -1208,9 +1207,9 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             // Bounded before anything is sent (`stop_s`), as in the monitor.
             if kind == "kill" {
                 if let Some(d) = duration_s {
-                    anyhow::bail!(
+                    return Err(usage(format!(
                         "--duration-s {d}: only a stop has a duration; a kill lasts until the supervisor restarts the stage"
-                    );
+                    )));
                 }
             }
             let duration_s = duration_s.unwrap_or(0.05);

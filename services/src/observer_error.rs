@@ -3,7 +3,8 @@
 //! the steady-state angle error the minimal-order observer settles to with the truncated model
 //! of eq. (13), beside the exact discretisation.
 
-use anyhow::{anyhow, bail, Context, Result};
+use crate::expect::usage;
+use anyhow::{Context, Result};
 use drivelab_control::motor::MotorParams;
 use drivelab_control::observer_sensorless::{
     predicted_angle_error, truncation_error, Discretisation,
@@ -53,16 +54,20 @@ pub fn parse_duration(text: &str) -> Result<f64> {
     } else if let Some(n) = t.strip_suffix('s') {
         (n, 1.0)
     } else {
-        bail!("--ts {t:?}: give a unit, e.g. 0.2ms, 200us or 2e-4s");
+        return Err(usage(format!(
+            "--ts {t:?}: give a unit, e.g. 0.2ms, 200us or 2e-4s"
+        )));
     };
     let v: f64 = num
         .trim()
         .parse()
-        .map_err(|_| anyhow!("--ts {t:?}: {num:?} is not a number"))?;
+        .map_err(|_| usage(format!("--ts {t:?}: {num:?} is not a number")))?;
     let s = v * scale;
     // Below a microsecond the truncation error is lost in rounding (NaN angle errors).
     if !(s.is_finite() && (1e-6..=0.1).contains(&s)) {
-        bail!("--ts {t:?}: must be between 1 µs and 100 ms");
+        return Err(usage(format!(
+            "--ts {t:?}: must be between 1 µs and 100 ms"
+        )));
     }
     Ok(s)
 }
@@ -135,7 +140,7 @@ fn ts_label(t: f64) -> String {
 pub fn run(a: &ObserverErrorArgs) -> Result<()> {
     let m = crate::replay::resolve_motor(&a.motor)?;
     if a.ts.is_empty() {
-        bail!("--ts: give at least one sample time");
+        return Err(usage("--ts: give at least one sample time".into()));
     }
     let ts: Vec<f64> =
         a.ts.iter()
@@ -145,33 +150,35 @@ pub fn run(a: &ObserverErrorArgs) -> Result<()> {
         .max_rpm
         .unwrap_or(m.omega_rated_rad_s * 30.0 / std::f64::consts::PI);
     if !(max_rpm.is_finite() && max_rpm > 0.0 && max_rpm <= 1e6) {
-        bail!("--max-rpm {max_rpm}: must be more than 0 and at most 1000000 rpm");
+        return Err(usage(format!(
+            "--max-rpm {max_rpm}: must be more than 0 and at most 1000000 rpm"
+        )));
     }
     if !(a.step_rpm.is_finite() && a.step_rpm > 0.0 && max_rpm / a.step_rpm <= 100_000.0) {
-        bail!(
+        return Err(usage(format!(
             "--step-rpm {}: must be more than 0 rpm and give at most 100000 speeds up to {max_rpm} rpm",
             a.step_rpm
-        );
+        )));
     }
     if a.step_rpm > max_rpm {
-        bail!(
+        return Err(usage(format!(
             "--step-rpm {}: must be at most the sweep's highest speed, {max_rpm} rpm (--max-rpm)",
             a.step_rpm
-        );
+        )));
     }
     if !(a.pole_tau_ms.is_finite() && a.pole_tau_ms > 0.0 && a.pole_tau_ms <= 1000.0) {
-        bail!(
+        return Err(usage(format!(
             "--pole-tau-ms {}: must be more than 0 and at most 1000 ms",
             a.pole_tau_ms
-        );
+        )));
     }
     let tau = a.pole_tau_ms * 1e-3;
     if let Some(t) = ts.iter().find(|&&t| t > tau) {
-        bail!(
+        return Err(usage(format!(
             "--ts {} is longer than the observer time constant --pole-tau-ms {} ms",
             ts_label(*t),
             a.pole_tau_ms
-        );
+        )));
     }
     let (rpm, sweeps) = sweep(&m, &ts, max_rpm, a.step_rpm, tau);
     std::fs::create_dir_all(&a.out)

@@ -1,6 +1,7 @@
 //! `drivelab plot RUNDIR`: redraws every figure of a run (traces with references and limits,
 //! latency percentiles, fault windows), optionally for a time window.
 
+use crate::expect::usage;
 use anyhow::{anyhow, bail, Context, Result};
 use std::path::{Path, PathBuf};
 
@@ -24,20 +25,22 @@ pub struct PlotArgs {
 fn parse_window(w: &str) -> Result<(f64, f64)> {
     let (a, b) = w
         .split_once(':')
-        .ok_or_else(|| anyhow!("--window '{w}': expected START:END in seconds"))?;
+        .ok_or_else(|| usage(format!("--window '{w}': expected START:END in seconds")))?;
     let a: f64 = a
         .trim()
         .parse()
-        .map_err(|_| anyhow!("--window '{w}': START is not a number of seconds"))?;
+        .map_err(|_| usage(format!("--window '{w}': START is not a number of seconds")))?;
     let b: f64 = b
         .trim()
         .parse()
-        .map_err(|_| anyhow!("--window '{w}': END is not a number of seconds"))?;
+        .map_err(|_| usage(format!("--window '{w}': END is not a number of seconds")))?;
     if !(a.is_finite() && b.is_finite()) {
-        bail!("--window '{w}': START and END must be finite numbers of seconds");
+        return Err(usage(format!(
+            "--window '{w}': START and END must be finite numbers of seconds"
+        )));
     }
     if a >= b {
-        bail!("--window '{w}': START must be before END");
+        return Err(usage(format!("--window '{w}': START must be before END")));
     }
     Ok((a, b))
 }

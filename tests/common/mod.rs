@@ -131,11 +131,20 @@ pub fn drivelab(args: &[&str]) -> Output {
 /// Runs `drivelab run --bus BUS --no-plots EXTRA` and asserts that it fails before the start
 /// with exit code 1 and a one-line error containing `needle`.
 pub fn assert_run_refused(bus: &str, extra: &[&str], needle: &str) {
+    assert_run_fails(bus, extra, 1, needle);
+}
+
+/// As [`assert_run_refused`], for a command line wrong in itself: exit code 2.
+pub fn assert_run_usage_error(bus: &str, extra: &[&str], needle: &str) {
+    assert_run_fails(bus, extra, 2, needle);
+}
+
+fn assert_run_fails(bus: &str, extra: &[&str], code: i32, needle: &str) {
     let mut args = vec!["run", "--bus", bus, "--no-plots"];
     args.extend_from_slice(extra);
     let o = drivelab(&args);
     let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(1), "{extra:?}: {err}");
+    assert_eq!(o.status.code(), Some(code), "{extra:?}: {err}");
     assert!(err.contains(needle), "{extra:?}: {err}");
     assert_eq!(err.lines().count(), 1, "{extra:?}: {err}");
 }

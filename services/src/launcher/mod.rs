@@ -1131,7 +1131,9 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
         } else {
             "--zenoh-listen"
         };
-        bail!("{flag} needs a drive on a bus: use --clock realtime or lockstep");
+        return Err(crate::expect::usage(format!(
+            "{flag} needs a drive on a bus: use --clock realtime or lockstep"
+        )));
     }
     if o.foxglove.is_some() {
         crate::foxglove::check_clock(o.clock == Clock::Inprocess)?;
@@ -1264,10 +1266,10 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     // services do.
     crate::common::install_signal_handlers()?;
     if o.timing_csv && o.clock != Clock::Realtime {
-        bail!(
+        return Err(crate::expect::usage(format!(
             "--timing-csv needs the realtime clock: the {} clock has no sample instants to time against",
             o.clock.name()
-        );
+        )));
     }
     let Prepared {
         sc,
