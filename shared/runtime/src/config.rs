@@ -1137,11 +1137,11 @@ fn toml_field_at(text: &str, at: usize) -> Option<String> {
             name
         })
     };
-    if toml_header(here).is_some() {
-        return table(n);
-    }
     // An error at offset 0 is about the whole file (a missing field of the top level), not
-    // about the key the first line happens to hold.
+    // about the table or key the first line happens to hold.
+    if toml_header(here).is_some() {
+        return (at != 0).then(|| table(n)).flatten();
+    }
     let key = match toml_key(here.trim_start()) {
         Some(k) => (at != 0).then_some((k, n)),
         None => (0..n).rev().find_map(|j| {
@@ -2105,6 +2105,8 @@ preset = "kyslan2015"
         );
         // A missing field of the top level names no key; one of a table names the table.
         let e = err("duration_s = 0.1\n[motor]\npreset = \"kyslan2015\"\n");
+        assert!(e.starts_with("f.toml:1: missing field `name`"), "{e}");
+        let e = err("[rates]\nsample_hz = 1e4\n");
         assert!(e.starts_with("f.toml:1: missing field `name`"), "{e}");
         let e = err(&format!("{MIN}[[expect]]\nnote = \"x\"\n"));
         assert!(
