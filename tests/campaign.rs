@@ -114,6 +114,11 @@ fn malformed_expectations_are_refused_before_anything_runs() {
     let out = dir.join("run");
     for (expr, says) in [
         ("peak_curent_a <= 8", "unknown figure 'peak_curent_a'"),
+        // A run without faults would hold it (nothing to check): refused by name instead.
+        (
+            "faults.*.speed_recoverd_ms <= 200",
+            "unknown fault figure 'speed_recoverd_ms'",
+        ),
         ("peak_current_a <= NaN", "must be a finite number"),
         ("peak_current_a", "expected FIGURE OP LIMIT"),
     ] {

@@ -136,7 +136,7 @@ pub fn schedule(specs: &[FaultSpec], sc: &mut Scenario, topo: &TopologyPlan) -> 
 }
 
 /// What a bus fault caused, beside the common figures of a [`FaultReport`].
-#[derive(Debug, Clone, Serialize, PartialEq)]
+#[derive(Debug, Clone, Default, Serialize, PartialEq)]
 pub struct BusFigures {
     /// The samples the fault covers: [window_from_k, window_to_k).
     pub window_from_k: u64,

@@ -12,6 +12,36 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use std::fmt;
 
+/// The figures of one entry of `summary.json → faults` (`faults.*.NAME`): checked when an
+/// expectation is read, so that a misspelt one fails also in a run without faults, where
+/// `faults.*` has nothing to check and holds.
+pub const FAULT_FIGURES: &[&str] = &[
+    "fault",
+    "service",
+    "process",
+    "injected_k",
+    "injected_t_s",
+    "detected_data_path_ms",
+    "detected_by",
+    "detected_supervisor_ms",
+    "safe_state_ms",
+    "peak_current_a",
+    "republished_ms",
+    "speed_recovered_ms",
+    "plant_down",
+    "window_from_k",
+    "window_to_k",
+    "rejected_inputs",
+    "rejected_by",
+    "stale_command_samples",
+    "safe_state_samples",
+    "missing_command_samples",
+    "stale_input_samples",
+    "deadline_misses",
+    "cycle_latency_max_us",
+    "window",
+];
+
 /// Exit code of `drivelab run` and `drivelab campaign` when an expectation failed.
 pub const EXIT_EXPECTATION_FAILED: u8 = 3;
 
@@ -237,6 +267,14 @@ pub fn parse(text: &str) -> Result<Expectation, UsageError> {
             path[0],
             FIGURES.join(", ")
         )));
+    }
+    if let ["faults", _, name, ..] = path.iter().map(String::as_str).collect::<Vec<_>>()[..] {
+        if name != "*" && !FAULT_FIGURES.contains(&name) {
+            return Err(UsageError(format!(
+                "expectation '{t}': unknown fault figure '{name}' (a fault's figures: {})",
+                FAULT_FIGURES.join(", ")
+            )));
+        }
     }
     Ok(Expectation {
         text: t.to_string(),
@@ -519,6 +557,14 @@ mod tests {
             ("peak_current_a <= NaN", "must be a finite number"),
             ("peak_current_a <= inf", "must be a finite number"),
             ("peak_curent_a <= 8", "unknown figure 'peak_curent_a'"),
+            (
+                "faults.*.speed_recoverd_ms <= 200",
+                "unknown fault figure 'speed_recoverd_ms' (a fault's figures: fault, service,",
+            ),
+            (
+                "faults.0.peak_current <= 8",
+                "unknown fault figure 'peak_current'",
+            ),
             ("metrics..rise <= 8", "is not a figure path"),
             ("<= 8", "is not a figure path"),
             ("metrics.rise_time_ms in 8", "needs a range A..B"),
@@ -552,6 +598,30 @@ mod tests {
             assert!(!e.contains('\n'), "{e}");
         }
         assert_eq!(parse("samples <= 1e12").unwrap().op, Op::Le(1e12));
+        // A fault's figure further down, or any under a `*`, is not checked by name.
+        for text in [
+            "faults.*.window.cycle_p99_us.during <= 50",
+            "faults.*.* <= 1",
+            "faults.*.rejected_by.observer >= 1",
+        ] {
+            parse(text).unwrap_or_else(|e| panic!("{text}: {e}"));
+        }
+    }
+
+    #[test]
+    fn the_fault_figures_are_the_keys_of_a_fault_report() {
+        use crate::launcher::{FaultReport, PlantDown};
+        // Every optional part present: the most keys a report can have.
+        let r = FaultReport {
+            plant_down: Some(PlantDown::default()),
+            bus: Some(crate::bus_faults::BusFigures::default()),
+            window: Some(crate::faults::window::FaultWindow::default()),
+            ..FaultReport::default()
+        };
+        let v = serde_json::to_value(&r).unwrap();
+        let keys: std::collections::BTreeSet<&str> =
+            v.as_object().unwrap().keys().map(String::as_str).collect();
+        assert_eq!(keys, FAULT_FIGURES.iter().copied().collect());
     }
 
     #[test]

@@ -10,7 +10,7 @@ use serde::Serialize;
 use std::ops::Range;
 
 /// A figure before the fault and during it.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
 pub struct Pair<T> {
     /// Over the samples before the fault.
     pub before: T,
@@ -19,7 +19,7 @@ pub struct Pair<T> {
 }
 
 /// `summary.json → faults → window`.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct FaultWindow {
     /// Samples compared before the fault: [first, end).
     pub before_k: [u64; 2],

@@ -619,7 +619,7 @@ fn plant_sample_now(progress: &Progress, ts_ns: u64) -> Option<u64> {
 }
 
 /// One entry of `summary.json` → `faults`. Times are in ms from the injection.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Default, Serialize)]
 pub struct FaultReport {
     /// kill or stop (with its duration).
     pub fault: String,
@@ -659,7 +659,7 @@ pub struct FaultReport {
 }
 
 /// The motor while the plant's process was down (see [`FaultReport::plant_down`]).
-#[derive(Debug, Clone, Copy, Serialize)]
+#[derive(Debug, Clone, Copy, Default, Serialize)]
 pub struct PlantDown {
     /// Samples rebuilt.
     pub samples: u64,
