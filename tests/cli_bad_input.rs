@@ -190,7 +190,7 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             "bus-digits",
             dir,
             &["clean", "--bus", "1234567890123456789012345"],
-            1,
+            2,
             "bus id '1234567890123456789012345' must be 1-24 characters",
         ),
         // Above 0 s, below one sample.
@@ -247,7 +247,7 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
         run_case(
             "fault",
             &["--fault", "kill:plant@nan"],
-            1,
+            2,
             "time must be a finite number",
         ),
         run_case(
@@ -263,7 +263,7 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             1,
             "cannot create run folder /proc/x",
         ),
-        case("busid", dir, &["run", "--bus", "bad-id"], 1, "bus id 'bad-id'"),
+        case("busid", dir, &["run", "--bus", "bad-id"], 2, "bus id 'bad-id'"),
         run_case(
             "fault-sample0",
             &["--fault", "kill:plant@0"],
@@ -387,12 +387,12 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             2,
             "--duration-s 1: only a stop has a duration",
         ),
-        case("clean", dir, &["clean", "--bus", ""], 1, "bus id ''"),
+        case("clean", dir, &["clean", "--bus", ""], 2, "bus id ''"),
         case(
             "bus-config",
             dir,
             &["bus-config", "--bus", "x/y"],
-            1,
+            2,
             "bus id 'x/y'",
         ),
         // files and folders

@@ -291,7 +291,7 @@ fn malformed_scenario_fails_with_a_clear_message_and_leaves_nothing() {
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("unknown scenario 'no-such-scenario'"));
     let o = drivelab(&["run", "--bus", "bad id!"], Duration::from_secs(60));
-    assert_eq!(o.status.code(), Some(1));
+    assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("bus id"));
 }
 

@@ -547,14 +547,16 @@ fn killing_every_child_stops_the_drive_and_cleans_up() {
 fn fault_cli_errors_are_clear() {
     let _serial = serial();
     let bus = bus_id("clierr");
-    for (spec, needle) in [
-        ("kill:pump@0.1", "unknown stage 'pump'"),
-        ("kill:plant", "kill:SERVICE@SECONDS"),
-        ("stop:observer@0.1", "stop:SERVICE@SECONDS:DURATION"),
-        ("random:abc", "whole number"),
+    // A spec that cannot be read is a usage error (2); one that does not fit this drive (a
+    // stage it does not have) an error (1).
+    for (spec, code, needle) in [
+        ("kill:pump@0.1", 1, "unknown stage 'pump'"),
+        ("kill:plant", 2, "kill:SERVICE@SECONDS"),
+        ("stop:observer@0.1", 2, "stop:SERVICE@SECONDS:DURATION"),
+        ("random:abc", 2, "whole number"),
     ] {
         let o = drivelab(&["run", "--bus", &bus, "--fault", spec, "--no-plots"]);
-        assert_eq!(o.status.code(), Some(1), "{spec}");
+        assert_eq!(o.status.code(), Some(code), "{spec}");
         let err = String::from_utf8_lossy(&o.stderr);
         assert!(err.contains(needle), "{spec}: {err}");
         assert_eq!(err.lines().count(), 1, "{spec}: {err}");

@@ -224,18 +224,11 @@ fn hog_errors_are_one_line() {
     let bus = bus_id("hog-cli");
     let cpus = std::thread::available_parallelism().unwrap().get();
     let nowhere = format!("hog:{}@0.05:0.01:50", cpus + 7);
+    // A spec that does not fit this drive or machine: an error (exit code 1).
     for (args, needle) in [
         (
             vec!["--fault", "hog:1@0.05:0.01:50", "--clock", "lockstep"],
             "needs --clock realtime".to_string(),
-        ),
-        (
-            vec!["--fault", "hog:1@0.05:0.01:0"],
-            "must be a SCHED_FIFO priority in 1..=99".into(),
-        ),
-        (
-            vec!["--fault", "hog:1@0.05:90:50"],
-            "a hog lasts 0.001 to 60 s".into(),
         ),
         (
             vec!["--fault", &nowhere],
@@ -243,6 +236,16 @@ fn hog_errors_are_one_line() {
         ),
     ] {
         assert_run_refused(&bus, &args, &needle);
+    }
+    // A spec that cannot be read: a usage error (exit code 2).
+    for (args, needle) in [
+        (
+            ["--fault", "hog:1@0.05:0.01:0"],
+            "must be a SCHED_FIFO priority in 1..=99",
+        ),
+        (["--fault", "hog:1@0.05:90:50"], "a hog lasts 0.001 to 60 s"),
+    ] {
+        assert_run_usage_error(&bus, &args, needle);
     }
     assert_clean(&bus);
 }

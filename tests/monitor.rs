@@ -309,7 +309,7 @@ fn monitor_without_a_drive_is_a_one_line_error_and_leaves_nothing() {
     assert_eq!(err.trim().lines().count(), 1, "{err}");
     assert!(err.contains(&format!("no drive on bus '{bus}'")), "{err}");
     let o = drivelab(&["monitor", "--bus", "bad-id!"]);
-    assert_eq!(o.status.code(), Some(1));
+    assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("bus id 'bad-id!'"));
     let o = drivelab(&["monitor", "--bus", &bus, "--print", "--print-size", "10x5"]);
     assert_eq!(o.status.code(), Some(2));

@@ -203,6 +203,7 @@ fn a_current_offset_ripples_at_the_electrical_frequency_from_its_sample_on() {
 fn bad_sensor_faults_are_one_line_errors() {
     let _serial = serial();
     let bus = bus_id("sensor-cli");
+    // A spec that cannot be read: a usage error (exit code 2).
     for (spec, needle) in [
         (
             "encoder-stuck@0.05",
@@ -211,13 +212,15 @@ fn bad_sensor_faults_are_one_line_errors() {
         ("encoder-stuck@0.05:120", "must be in 0.001..=60 s"),
         ("current-offset:x@0.05:1", "unknown phase 'x' (a, b, c)"),
         ("current-offset:a@0.05:1e9", "within ±1000 A"),
-        (
-            "current-offset:a@5:1",
-            "at or after the end of the run (0.1 s)",
-        ),
     ] {
-        assert_run_refused(&bus, &["--clock", "lockstep", "--fault", spec], needle);
+        assert_run_usage_error(&bus, &["--clock", "lockstep", "--fault", spec], needle);
     }
+    // One that does not fit this run: an error (exit code 1).
+    assert_run_refused(
+        &bus,
+        &["--clock", "lockstep", "--fault", "current-offset:a@5:1"],
+        "at or after the end of the run (0.1 s)",
+    );
     assert_clean(&bus);
 }
 

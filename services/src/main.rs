@@ -24,7 +24,7 @@ struct Cli {
 struct DriveArgs {
     /// Bus id of the running drive (printed by `drivelab run`, also in summary.json); with
     /// --connect, picks one of several drives behind the endpoint.
-    #[arg(long, required_unless_present = "connect")]
+    #[arg(long, required_unless_present = "connect", value_parser = bus_id)]
     bus: Option<String>,
     /// A remote drive instead, through its Zenoh endpoint (tcp/HOST:PORT or tls/HOST:PORT;
     /// the drive runs with --zenoh-listen).
@@ -62,7 +62,7 @@ enum Cmd {
         #[arg(long, value_name = "DIR")]
         out: Option<PathBuf>,
         /// Bus id isolating this drive's shared memory (default: the launcher's pid).
-        #[arg(long)]
+        #[arg(long, value_parser = bus_id)]
         bus: Option<String>,
         /// Fail when a core, SCHED_FIFO priority or mlock is refused (default: warn and run).
         #[arg(long, conflicts_with = "no_rt")]
@@ -200,7 +200,7 @@ enum Cmd {
         #[arg(long, value_name = "DIR")]
         out: PathBuf,
         /// Bus id of the drive (only when the endpoint serves several).
-        #[arg(long)]
+        #[arg(long, value_parser = bus_id)]
         bus: Option<String>,
         /// Seconds to keep trying to connect while the drive is not up yet (0: one try).
         #[arg(long, default_value_t = 0.0, value_name = "SECONDS")]
@@ -311,7 +311,7 @@ enum Cmd {
     #[command(verbatim_doc_comment)]
     Clean {
         /// Bus id of the dead drive.
-        #[arg(long)]
+        #[arg(long, value_parser = bus_id)]
         bus: String,
     },
     /// Print the iceoryx2 configuration of a bus (TOML). Saved as config/iceoryx2.toml in
@@ -323,7 +323,7 @@ enum Cmd {
     #[command(verbatim_doc_comment)]
     BusConfig {
         /// Bus id of the drive.
-        #[arg(long)]
+        #[arg(long, value_parser = bus_id)]
         bus: String,
     },
     /// Run the plant model alone, open loop, from rest, on recorded voltages.
@@ -670,6 +670,13 @@ fn rise_time_ms(v: &str) -> Result<f64, String> {
     number_in(v, 0.0, 10_000.0, "ms")
 }
 
+/// A bus id (1-24 characters of A-Z, a-z, 0-9 or _).
+fn bus_id(v: &str) -> Result<String, String> {
+    drivelab_runtime::bus::check_bus_id(v)
+        .map(|()| v.to_string())
+        .map_err(|e| e.to_string())
+}
+
 /// A file that exists (checked before anything starts).
 fn existing_file(v: &str) -> Result<PathBuf, String> {
     let p = PathBuf::from(v);
@@ -922,7 +929,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 .map_err(|e| anyhow::anyhow!("--runner: {e}"))?;
             let faults = faults
                 .iter()
-                .map(|f| drivelab_services::faults::parse(f))
+                .map(|f| drivelab_services::faults::parse(f).map_err(|e| usage(format!("{e:#}"))))
                 .collect::<anyhow::Result<Vec<_>>>()?;
             let o = RunOptions {
                 scenario,
