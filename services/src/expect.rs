@@ -268,8 +268,8 @@ pub fn parse(text: &str) -> Result<Expectation, UsageError> {
             FIGURES.join(", ")
         )));
     }
-    if let ["faults", _, name, ..] = path.iter().map(String::as_str).collect::<Vec<_>>()[..] {
-        if name != "*" && !FAULT_FIGURES.contains(&name) {
+    if let [top, _, name, ..] = path.as_slice() {
+        if top == "faults" && name != "*" && !FAULT_FIGURES.contains(&name.as_str()) {
             return Err(UsageError(format!(
                 "expectation '{t}': unknown fault figure '{name}' (a fault's figures: {})",
                 FAULT_FIGURES.join(", ")

@@ -9,6 +9,7 @@
 //! and reads. Channels: `/speed`, `/currents`, `/voltages`, `/angle` (every
 //! [`Live::decimation`]-th sample), `/services` (per stage, once per second), `/log`.
 
+use crate::expect::usage;
 use anyhow::{anyhow, Result};
 use serde::Serialize;
 use std::collections::HashMap;
@@ -175,7 +176,7 @@ pub fn parse_addr(s: &str) -> Result<SocketAddr> {
         s.to_string()
     };
     let bad = |why: String| {
-        crate::expect::usage(format!(
+        usage(format!(
             "--foxglove '{s}': not HOST:PORT (e.g. {DEFAULT_ADDR}): {why}"
         ))
     };
@@ -541,7 +542,7 @@ fn handle_request(
 /// Refuses `--foxglove` with a clock that has no bus.
 pub fn check_clock(inprocess: bool) -> Result<()> {
     if inprocess {
-        return Err(crate::expect::usage(
+        return Err(usage(
             "--foxglove needs a drive on a bus: use --clock realtime or lockstep".into(),
         ));
     }

@@ -767,10 +767,8 @@ fn target(d: DriveArgs) -> anyhow::Result<drivelab_services::monitor::Target> {
             bus,
             config,
         },
-        (None, Some(bus)) => {
-            drivelab_runtime::bus::check_bus_id(&bus)?;
-            Target::Bus(bus)
-        }
+        // The id was checked by `bus_id` when the command line was read.
+        (None, Some(bus)) => Target::Bus(bus),
         (None, None) => return Err(usage("give --bus ID or --connect ENDPOINT".into())),
     })
 }
@@ -1189,7 +1187,6 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             wait_s,
         }),
         Cmd::Clean { bus } => {
-            drivelab_runtime::bus::check_bus_id(&bus)?;
             launcher::refuse_busy_bus(&bus, false)?;
             let files = drivelab_runtime::bus::leftovers(&bus);
             drivelab_runtime::bus::cleanup(&bus)?;

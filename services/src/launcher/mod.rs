@@ -23,6 +23,7 @@ pub use supervisor::{
 };
 
 use crate::common::BusClock;
+use crate::expect::usage;
 use anyhow::{anyhow, bail, Context, Result};
 use drivelab_runtime::bus;
 use drivelab_runtime::config::Scenario;
@@ -1131,7 +1132,7 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
         } else {
             "--zenoh-listen"
         };
-        return Err(crate::expect::usage(format!(
+        return Err(usage(format!(
             "{flag} needs a drive on a bus: use --clock realtime or lockstep"
         )));
     }
@@ -1266,7 +1267,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     // services do.
     crate::common::install_signal_handlers()?;
     if o.timing_csv && o.clock != Clock::Realtime {
-        return Err(crate::expect::usage(format!(
+        return Err(usage(format!(
             "--timing-csv needs the realtime clock: the {} clock has no sample instants to time against",
             o.clock.name()
         )));

@@ -1118,6 +1118,11 @@ fn toml_header(l: &str) -> Option<(String, bool)> {
 /// (`name[i]` for the i-th `[[name]]`). A light scan of the text (bare, dotted and
 /// double-quoted keys), enough to name the field of a type or range error.
 fn toml_field_at(text: &str, at: usize) -> Option<String> {
+    // An error at offset 0 is about the whole file (a missing field of the top level), not
+    // about the table or key the first line happens to hold.
+    if at == 0 {
+        return None;
+    }
     let lines: Vec<&str> = text.lines().collect();
     let n = text[..at].matches('\n').count();
     let here = *lines.get(n)?;
@@ -1137,13 +1142,11 @@ fn toml_field_at(text: &str, at: usize) -> Option<String> {
             name
         })
     };
-    // An error at offset 0 is about the whole file (a missing field of the top level), not
-    // about the table or key the first line happens to hold.
     if toml_header(here).is_some() {
-        return (at != 0).then(|| table(n)).flatten();
+        return table(n);
     }
     let key = match toml_key(here.trim_start()) {
-        Some(k) => (at != 0).then_some((k, n)),
+        Some(k) => Some((k, n)),
         None => (0..n).rev().find_map(|j| {
             if toml_header(lines[j]).is_some() {
                 return Some(None);
