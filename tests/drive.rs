@@ -499,6 +499,9 @@ fn a_run_into_an_earlier_runs_folder_replaces_its_outputs_and_keeps_other_files(
         assert!(out.join(f).is_file(), "the first run wrote no {f}");
     }
     std::fs::write(out.join("notes.txt"), "bench conditions").unwrap();
+    // What an earlier run with --timing-csv left: the second run, without it, writes none,
+    // so an old one would pass for its.
+    std::fs::write(out.join("timing.csv"), "k,plant_published_us\n0,17.0\n").unwrap();
     // The second run: in one process, without plots or the bus.
     let second = [
         "run",

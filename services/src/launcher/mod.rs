@@ -286,6 +286,7 @@ fn is_run_output(name: &str) -> bool {
         "trace.csv",
         "trace.mcap",
         "trace.mcap.part",
+        "timing.csv",
     ];
     const ENDINGS: &[&str] = &[".hdr", ".hgrm", ".stats.json", ".png", ".svg"];
     NAMES.contains(&name)
