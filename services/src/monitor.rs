@@ -212,7 +212,9 @@ fn attach_local(bus: &str) -> Result<LocalPorts> {
 /// its name or pid. Returns the supervisor's event text.
 pub fn request_fault(target: &Target, kind: u32, stage: &str, stop_ms: u32) -> Result<String> {
     if kind == FAULT_STOP && !(1..=60_000).contains(&stop_ms) {
-        bail!("a stop lasts 1 ms to 60 s, not {stop_ms} ms");
+        return Err(crate::expect::usage(format!(
+            "a stop lasts 1 ms to 60 s, not {stop_ms} ms"
+        )));
     }
     let a = attach(target)?;
     let bus = a.label(target);
@@ -764,7 +766,11 @@ pub fn run(_: &MonitorOptions) -> Result<()> {
 /// Runs `drivelab monitor`.
 pub fn run(o: &MonitorOptions) -> Result<()> {
     if o.stop_ms == 0 || o.stop_ms > 60_000 {
-        bail!("--stop-ms {} is out of range (1..60000 ms)", o.stop_ms);
+        // The command line bounds it first (clap); a library caller gets the same usage error.
+        return Err(crate::expect::usage(format!(
+            "--stop-ms {} is out of range (1..60000 ms)",
+            o.stop_ms
+        )));
     }
     let attached = attach(&o.target)?;
     let mut ui = Ui::new(o);
@@ -1027,6 +1033,26 @@ mod tests {
         assert!(s.contains("cycle latency: not measured in lockstep"), "{s}");
     }
 
+    /// `e` is a usage error (exit 2) that reads `text`.
+    fn assert_usage_error(e: anyhow::Error, text: &str) {
+        assert!(
+            e.is::<crate::expect::UsageError>(),
+            "{e}: not a usage error"
+        );
+        assert_eq!(e.to_string(), text);
+    }
+
+    #[test]
+    fn a_fault_request_with_a_stop_out_of_range_is_a_usage_error_before_attaching() {
+        for stop_ms in [0, 60_001] {
+            let target = Target::Bus("no-such-bus".into());
+            assert_usage_error(
+                request_fault(&target, FAULT_STOP, "plant", stop_ms).unwrap_err(),
+                &format!("a stop lasts 1 ms to 60 s, not {stop_ms} ms"),
+            );
+        }
+    }
+
     #[test]
     fn a_stop_beyond_a_minute_or_of_nothing_is_refused_before_attaching() {
         for stop_ms in [0, 60_001] {
@@ -1036,10 +1062,9 @@ mod tests {
                 stop_ms,
                 print: None,
             };
-            let e = run(&o).unwrap_err().to_string();
-            assert_eq!(
-                e,
-                format!("--stop-ms {stop_ms} is out of range (1..60000 ms)")
+            assert_usage_error(
+                run(&o).unwrap_err(),
+                &format!("--stop-ms {stop_ms} is out of range (1..60000 ms)"),
             );
         }
     }
