@@ -79,7 +79,8 @@ pub struct HostArgs {
     #[arg(long)]
     pub describe: bool,
     /// Run as the process's standby twin: step on the same inputs, publish nothing, and take
-    /// over when the active instance dies (see docs/architecture.md, "Standby twins").
+    /// over when the active instance dies (see docs/architecture.md, "Liveness words and
+    /// standby twins").
     #[arg(long)]
     pub standby: bool,
     /// Ask for a real-time placement as --rt-strict would (memory lock, and --cpu and
@@ -726,9 +727,10 @@ fn apply_placement(process: &str, p: &ProcessSpec, args: &HostArgs) -> Result<Rt
         RtRequest {
             core: p.cpu,
             // The twin runs right after the active instance on its core (docs/architecture.md,
-            // "Standby twins"). Lockstep has no deadline to keep: its processes keep their
-            // cores but run as normal tasks, so that a long simulation does not hold a core
-            // at real-time priority for minutes (docs/architecture.md, "Clocks").
+            // "Liveness words and standby twins"). Lockstep has no deadline to keep: its
+            // processes keep their cores but run as normal tasks, so that a long simulation
+            // does not hold a core at real-time priority for minutes (docs/architecture.md,
+            // "Clocks").
             fifo_priority: p
                 .priority
                 .filter(|_| args.clock == BusClock::Realtime)

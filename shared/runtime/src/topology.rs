@@ -30,8 +30,8 @@ pub struct ProcessSpec {
     pub exec: Option<String>,
     /// Keep a warm twin of this process: started beside it on the same CPU one priority
     /// below, fed the same inputs, publishing nothing until the process dies; then it takes
-    /// over within a sample or two (docs/architecture.md, "Standby twins"). Not for the
-    /// plant's process. Real-time clock only.
+    /// over within a sample or two (docs/architecture.md, "Liveness words and standby
+    /// twins"). Not for the plant's process. Real-time clock only.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub standby: bool,
     /// The machine this process runs on, in a drive split across two machines joined by
