@@ -8,16 +8,6 @@ use common::*;
 use serde_json::Value;
 use std::time::Duration;
 
-/// The pid that `drivelab fault` named as its own in the supervisor's answer.
-fn o_pid(o: &std::process::Output) -> u32 {
-    let e = stderr(o);
-    let at = e.find("requested by pid ").expect("a pid in the answer") + "requested by pid ".len();
-    e[at..]
-        .trim_end_matches(|c: char| !c.is_ascii_digit())
-        .parse()
-        .unwrap()
-}
-
 fn stderr(o: &std::process::Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
@@ -184,11 +174,17 @@ fn a_run_folder_lets_iceoryx2_tools_list_the_drives_services() {
     .unwrap();
     // Stop the drive (SIGINT: it cleans up after itself) before the checks of what was
     // listed. A failure before this point is cleaned up by the drive's guard.
-    let pid = drive.id().to_string();
-    let _ = std::process::Command::new("kill")
-        .args(["-INT", &pid])
-        .status();
-    let _ = wait(drive, Duration::from_secs(60), "the drive");
+    // SAFETY: SIGINT to the drive's launcher, this test's child (not yet reaped).
+    assert_eq!(unsafe { libc::kill(drive.id() as i32, libc::SIGINT) }, 0);
+    let o = wait(drive, Duration::from_secs(60), "the drive");
+    // Its services are up; the signal may still find it starting.
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("interrupted (SIGINT): drive stopped")
+            || stderr(&o).contains("interrupted during start-up"),
+        "{}",
+        stderr(&o)
+    );
     assert_clean(&bus);
     for topic in [
         "drivelab/meas",
@@ -248,14 +244,24 @@ fn drivelab_fault_goes_through_the_supervisor_and_cannot_hit_an_impostor() {
         assert_eq!(stderr(&o).trim().lines().count(), 1, "{}", stderr(&o));
         assert!(stderr(&o).contains(says), "{a:?}: {}", stderr(&o));
     }
-    let o = drivelab(&["fault", "kill", "observer", "--bus", &bus]);
+    let fault = std::process::Command::new(DRIVELAB)
+        .args(["fault", "kill", "observer", "--bus", &bus])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("start drivelab fault");
+    // The requester the supervisor must name: this process, not one it read from a message.
+    let fault_pid = fault.id();
+    let o = wait(fault, Duration::from_secs(60), "drivelab fault kill");
     let alive = impostor.try_wait().unwrap().is_none();
     let _ = impostor.kill();
     let _ = impostor.wait();
     let d = wait(drive, Duration::from_secs(60), "the drive");
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(
-        stderr(&o).contains("inject observer: kill (requested by pid"),
+        stderr(&o).contains(&format!(
+            "inject observer: kill (requested by pid {fault_pid})"
+        )),
         "{}",
         stderr(&o)
     );
@@ -266,5 +272,5 @@ fn drivelab_fault_goes_through_the_supervisor_and_cannot_hit_an_impostor() {
     let s: Value = serde_json::from_slice(&read(&out.join("summary.json"))).unwrap();
     let f = &s["faults"][0];
     assert_eq!(f["service"], "observer");
-    assert_eq!(f["fault"], format!("kill (requested by pid {})", o_pid(&o)));
+    assert_eq!(f["fault"], format!("kill (requested by pid {fault_pid})"));
 }

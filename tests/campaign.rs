@@ -139,16 +139,23 @@ fn malformed_expectations_are_refused_before_anything_runs() {
             "[[expect]]\ncheck = \"peak_current_a =< 8\"\n\n[motor]",
         )],
     );
+    let out = dir.join("out-table");
     let o = drivelab(&[
         "run",
         "--clock",
         "inprocess",
         "--scenario",
         sc.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
     ]);
     assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
     assert_eq!(stderr(&o).trim().lines().count(), 1, "{}", stderr(&o));
     assert!(stderr(&o).contains("[[expect]] #1"), "{}", stderr(&o));
+    assert!(
+        !out.exists(),
+        "a run folder was made for a bad [[expect]] table"
+    );
 }
 
 /// Writes a campaign file into `dir`.

@@ -145,6 +145,7 @@ fn every_help_has_an_example_and_every_quantity_a_unit() {
         Some((format!("--{name}"), value.to_string()))
     };
     let mut without = Vec::new();
+    let mut options = 0;
     for cmd in COMMANDS {
         let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
             .args([cmd, "--help"])
@@ -161,6 +162,7 @@ fn every_help_has_an_example_and_every_quantity_a_unit() {
             let Some((name, value)) = option(line) else {
                 continue;
             };
+            options += 1;
             if NOT_A_QUANTITY.contains(&value.as_str()) || A_UNIT.contains(&value.as_str()) {
                 continue;
             }
@@ -175,6 +177,8 @@ fn every_help_has_an_example_and_every_quantity_a_unit() {
             }
         }
     }
+    // The option lines were found at all (a changed help layout would otherwise pass).
+    assert!(options >= 50, "only {options} options with a value found");
     assert!(
         without.is_empty(),
         "options whose value names no unit (name it, or list the value as not a quantity): {without:?}"

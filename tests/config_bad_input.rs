@@ -672,7 +672,7 @@ fn sweep_campaign(
     kinds: &str,
     stages: &str,
     at_s: &[String],
-) -> (PathBuf, PathBuf, std::process::Child) {
+) -> (PathBuf, PathBuf, Drive) {
     let dir = scratch(tag);
     let f = dir.join(format!("{tag}.toml"));
     std::fs::write(
@@ -695,7 +695,8 @@ fn sweep_campaign(
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    (f, out, child)
+    // Killed if the test fails before it ends.
+    (f, out, Drive::from(child))
 }
 
 #[test]

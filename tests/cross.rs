@@ -95,7 +95,7 @@ fn the_runner_prefixes_every_stage_host_and_changes_no_sample() {
         .spawn()
         .unwrap();
     let o = wait(
-        o,
+        Drive::on_bus(o, &bus),
         Duration::from_secs(120),
         "drivelab run with DRIVELAB_RUNNER",
     );
@@ -132,14 +132,21 @@ fn a_restarted_process_goes_through_the_runner_too() {
 #[test]
 fn a_bad_runner_is_one_line_and_leaves_nothing() {
     let dir = scratch("bad-runner");
-    let o = drivelab(&["run", "--runner", " ", "--clock", "lockstep"]);
+    let bus = bus_id("bad-runner");
+    let out = dir.join("run");
+    let o = drivelab(
+        &[
+            &run_args(&bus, &out)[..],
+            &["--runner", " ", "--clock", "lockstep"],
+        ]
+        .concat(),
+    );
     assert_eq!(o.status.code(), Some(1));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("--runner: the runner is empty"), "{err}");
     assert_eq!(err.trim().lines().count(), 1, "{err}");
+    assert!(!out.exists(), "an empty runner's run made its folder");
 
-    let bus = bus_id("bad-runner");
-    let out = dir.join("run");
     let with_runner = |runner: &str| {
         drivelab(&[
             "run",

@@ -2,36 +2,11 @@
 //! folder, so they can run in parallel; each checks that no process and no bus file is left.
 //! Timeouts here are watchdogs against hangs, never performance assertions.
 
-use std::process::{Command, Output, Stdio};
-use std::time::{Duration, Instant};
+use std::process::{Command, Stdio};
+use std::time::Duration;
 
 mod common;
 use common::*;
-
-/// Runs drivelab with a watchdog; kills it (and fails) if it hangs.
-fn drivelab(args: &[&str], watchdog: Duration) -> Output {
-    let mut child = Command::new(DRIVELAB)
-        .args(args)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("start drivelab");
-    let t = Instant::now();
-    loop {
-        if child.try_wait().unwrap().is_some() {
-            return child.wait_with_output().unwrap();
-        }
-        if t.elapsed() > watchdog {
-            let _ = child.kill();
-            let out = child.wait_with_output().unwrap();
-            panic!(
-                "watchdog: drivelab {args:?} still running after {watchdog:?}\nstderr: {}",
-                String::from_utf8_lossy(&out.stderr)
-            );
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
 
 #[test]
 fn kyslan_pi_lockstep_meets_the_papers_rise_time() {
@@ -255,7 +230,7 @@ fn malformed_scenario_fails_with_a_clear_message_and_leaves_nothing() {
         let p = dir.join(file);
         std::fs::write(&p, text).unwrap();
         let out = dir.join(format!("out-{file}"));
-        let o = drivelab(
+        let o = drivelab_within(
             &[
                 "run",
                 "--scenario",
@@ -284,15 +259,22 @@ fn malformed_scenario_fails_with_a_clear_message_and_leaves_nothing() {
         );
         assert_clean(&bus);
     }
-    let o = drivelab(
-        &["run", "--scenario", "no-such-scenario", "--bus", &bus],
+    let out = dir.join("out-unknown");
+    let o = drivelab_within(
+        &[
+            &run_args(&bus, &out)[..],
+            &["--scenario", "no-such-scenario"],
+        ]
+        .concat(),
         Duration::from_secs(60),
     );
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("unknown scenario 'no-such-scenario'"));
-    let o = drivelab(&["run", "--bus", "bad id!"], Duration::from_secs(60));
+    assert!(!out.exists(), "an unknown scenario's run left its folder");
+    let o = drivelab_within(&run_args("bad id!", &out), Duration::from_secs(60));
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("bus id"));
+    assert!(!out.exists(), "a bad bus id's run left its folder");
 }
 
 #[test]
@@ -389,7 +371,7 @@ fn plant_replay_matches_the_closed_form_locked_rotor_response() {
     }
     std::fs::write(&input, s).unwrap();
     let output = dir.join("out.csv");
-    let o = drivelab(
+    let o = drivelab_within(
         &[
             "plant",
             "--replay",
@@ -424,7 +406,7 @@ fn plant_replay_matches_the_closed_form_locked_rotor_response() {
     }
     // Bad input: a clear one-line error.
     std::fs::write(&input, "t,u_d\n0,1\n").unwrap();
-    let o = drivelab(
+    let o = drivelab_within(
         &[
             "plant",
             "--replay",
@@ -444,7 +426,7 @@ fn plot_redraws_valid_png_and_svg_for_a_recorded_run() {
     let _serial = serial();
     let (out, _) = run_ok("plot", &["--clock", "inprocess"]);
     let zoom = out.join("zoom");
-    let o = drivelab(
+    let o = drivelab_within(
         &[
             "plot",
             out.to_str().unwrap(),
@@ -462,13 +444,13 @@ fn plot_redraws_valid_png_and_svg_for_a_recorded_run() {
         let svg = String::from_utf8(read(&zoom.join(format!("{f}.svg")))).unwrap();
         assert!(svg.contains("<svg") && svg.contains("t [ms]"), "{f}.svg");
     }
-    let o = drivelab(
+    let o = drivelab_within(
         &["plot", out.to_str().unwrap(), "--window", "0.07:0.03"],
         Duration::from_secs(60),
     );
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("START must be before END"));
-    let o = drivelab(&["plot", "/nonexistent-run"], Duration::from_secs(60));
+    let o = drivelab_within(&["plot", "/nonexistent-run"], Duration::from_secs(60));
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("no trace.csv"));
 }
@@ -481,7 +463,7 @@ fn a_run_into_an_earlier_runs_folder_replaces_its_outputs_and_keeps_other_files(
     let o = out.to_str().unwrap();
     let bus = bus_id("reuse");
     let first = ["run", "--bus", &bus, "--out", o, "--clock", "lockstep"];
-    let o1 = drivelab(
+    let o1 = drivelab_within(
         &[&first[..], &["--duration", "0.05"]].concat(),
         Duration::from_secs(120),
     );
@@ -513,7 +495,7 @@ fn a_run_into_an_earlier_runs_folder_replaces_its_outputs_and_keeps_other_files(
         "--duration",
         "0.045",
     ];
-    let o2 = drivelab(&second, Duration::from_secs(120));
+    let o2 = drivelab_within(&second, Duration::from_secs(120));
     assert!(
         o2.status.success(),
         "{}",
@@ -555,7 +537,7 @@ fn a_folder_another_drive_writes_into_is_refused_and_one_it_cannot_replace_is_le
     // A second drive into the same folder while the first writes it: refused in one line,
     // before it touches anything there.
     let second = bus_id("busyfolder2");
-    let o = drivelab(
+    let o = drivelab_within(
         &[
             "run",
             "--bus",
@@ -678,6 +660,7 @@ fn a_realtime_drive_reports_its_cpu_latency_request() {
 
 #[test]
 fn timing_csv_has_every_samples_publish_times_in_causal_order_and_the_cycles_median() {
+    let _serial = serial();
     let (out, s) = run_ok("timingcsv", &["--duration", "0.3", "--timing-csv"]);
     let timing = std::fs::read_to_string(out.join("timing.csv")).unwrap();
     let trace = std::fs::read_to_string(out.join("trace.csv")).unwrap();
@@ -838,6 +821,8 @@ fn timing_csv_has_every_samples_publish_times_in_causal_order_and_the_cycles_med
         let past_tick = t["schedule_start_us_past_tick"].as_f64().unwrap();
         let want = (past - phase).rem_euclid(1000.0);
         assert!((past_tick - want).abs() < 1e-6, "{t}");
+    } else {
+        eprintln!("the tick's phase cannot be read here (not root?): past_tick not checked");
     }
 }
 
@@ -1179,7 +1164,7 @@ fn a_symbolic_link_among_an_earlier_runs_outputs_is_replaced_not_written_through
         "--duration",
         "0.045",
     ];
-    let o = drivelab(&args, Duration::from_secs(60));
+    let o = drivelab_within(&args, Duration::from_secs(60));
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(!made.exists(), "the trace was written through the link");
     assert_eq!(std::fs::read_to_string(&kept).unwrap(), "the user's");
@@ -1233,7 +1218,11 @@ fn an_unprivileged_user_runs_the_drive_with_warnings_and_rt_strict_refuses_it() 
             .stderr(Stdio::piped())
             .spawn()
             .unwrap();
-        wait(child, Duration::from_secs(120), "drivelab run as nobody")
+        wait(
+            Drive::on_bus(child, &bus),
+            Duration::from_secs(120),
+            "drivelab run as nobody",
+        )
     };
     let out = open.join("run");
     let o = as_nobody(&out, &[], &[]);

@@ -1,7 +1,7 @@
 //! Fault injection with real processes and real signals. Each test has its own bus
 //! id and run folder and checks that nothing is left behind. Times are watchdogs only.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 mod common;
@@ -173,6 +173,39 @@ fn assert_recovered_and_peak(out: &std::path::Path, s: &serde_json::Value, f: &s
     assert!(peak > 0.0, "{f}");
 }
 
+/// The plant counts its hold from the first command the current loop did not send after
+/// the fault: exactly hold (3) stale samples, then the safe state, and the report's figure is
+/// that row.
+fn assert_hold_then_safe_state(out: &Path, s: &serde_json::Value) {
+    let f = &s["faults"][0];
+    use drivelab_runtime::messages::{FLAG_SAFE_STATE, FLAG_STALE_CMD};
+    let rows = drivelab_runtime::trace::read_csv(&out.join("trace.csv")).unwrap();
+    let k0 = f["injected_k"].as_u64().unwrap();
+    let first_stale = rows
+        .iter()
+        .position(|r| r.k >= k0 && r.plant_flags & FLAG_STALE_CMD != 0)
+        .expect("a stale command after the fault");
+    let hold = 3;
+    let held = &rows[first_stale..first_stale + hold];
+    let safe_row = &rows[first_stale + hold];
+    assert!(
+        held.iter()
+            .enumerate()
+            .all(|(i, r)| r.k == rows[first_stale].k + i as u64
+                && r.plant_flags & FLAG_STALE_CMD != 0
+                && r.plant_flags & FLAG_SAFE_STATE == 0),
+        "{f}"
+    );
+    assert_eq!(safe_row.k, rows[first_stale].k + hold as u64, "{f}");
+    assert!(safe_row.plant_flags & FLAG_SAFE_STATE != 0, "{f}");
+    let safe = f["safe_state_ms"].as_f64().expect("safe state");
+    let fs = s["rate_hz"].as_f64().unwrap();
+    assert!(
+        (safe - (safe_row.k - k0) as f64 / fs * 1e3).abs() < 1e-9,
+        "{f}"
+    );
+}
+
 #[test]
 fn sigkill_of_each_service_is_detected_made_safe_restarted_and_recovered() {
     let _serial = serial();
@@ -199,7 +232,6 @@ fn sigkill_of_each_service_is_detected_made_safe_restarted_and_recovered() {
             0.0 <= detected && detected < republished && republished <= recovered,
             "{svc}: {f}"
         );
-        assert!(recovered <= 1700.0, "{svc}: {f}");
         assert_recovered_and_peak(&out, &s, f);
         // Who notices first: the recorder misses the plant's samples; the plant misses the
         // current loop's commands; the current loop holds a reference the speed loop no longer
@@ -246,32 +278,7 @@ fn sigkill_of_each_service_is_detected_made_safe_restarted_and_recovered() {
         // is that row. (How many samples the kernel takes to end the process after the
         // signal is the machine's, not the drive's, and is not asserted.)
         if svc == "current-loop" {
-            use drivelab_runtime::messages::{FLAG_SAFE_STATE, FLAG_STALE_CMD};
-            let rows = drivelab_runtime::trace::read_csv(&out.join("trace.csv")).unwrap();
-            let k0 = f["injected_k"].as_u64().unwrap();
-            let first_stale = rows
-                .iter()
-                .position(|r| r.k >= k0 && r.plant_flags & FLAG_STALE_CMD != 0)
-                .expect("a stale command after the kill");
-            let hold = 3;
-            let held = &rows[first_stale..first_stale + hold];
-            let safe_row = &rows[first_stale + hold];
-            assert!(
-                held.iter()
-                    .enumerate()
-                    .all(|(i, r)| r.k == rows[first_stale].k + i as u64
-                        && r.plant_flags & FLAG_STALE_CMD != 0
-                        && r.plant_flags & FLAG_SAFE_STATE == 0),
-                "{f}"
-            );
-            assert_eq!(safe_row.k, rows[first_stale].k + hold as u64, "{f}");
-            assert!(safe_row.plant_flags & FLAG_SAFE_STATE != 0, "{f}");
-            let safe = f["safe_state_ms"].as_f64().expect("safe state");
-            let fs = s["rate_hz"].as_f64().unwrap();
-            assert!(
-                (safe - (safe_row.k - k0) as f64 / fs * 1e3).abs() < 1e-9,
-                "{f}"
-            );
+            assert_hold_then_safe_state(&out, &s);
         }
         // The motor kept turning while the plant was down: its samples were rebuilt (none
         // is missing), flagged, and safe after the inverter's hold of 3 samples, as the
@@ -485,14 +492,10 @@ fn with_restart_never_a_killed_loop_stays_dead_and_the_drive_runs_degraded() {
 fn sigstop_of_the_current_loop_beyond_the_hold_time_reaches_the_safe_state() {
     let _serial = serial();
     // 20 ms stopped, hold time 3 samples = 0.3 ms.
-    let (_, s) = run_with_fault("stopcl", "stop:current-loop@0.2:0.02", "0.6");
+    let (out, s) = run_with_fault("stopcl", "stop:current-loop@0.2:0.02", "0.6");
     let f = &s["faults"][0];
     assert_eq!(f["fault"], "stop for 0.02 s");
-    let safe = f["safe_state_ms"].as_f64().expect("safe state reached");
-    assert!(
-        safe <= 1.0,
-        "safe state after {safe} ms (hold 3 samples + detection)"
-    );
+    assert_hold_then_safe_state(&out, &s);
     assert!(f["republished_ms"].as_f64().is_some(), "{f}");
     assert!(
         f["detected_supervisor_ms"].is_null(),

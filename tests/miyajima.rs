@@ -462,6 +462,7 @@ fn polar_panels_are_drawn_with_their_limits() {
 
 #[test]
 fn polar_laws_reject_salient_motors_and_i_q_profiles_need_current_reference() {
+    let out = scratch("polar-refused").join("run");
     let salient = variant(
         "salient",
         "miyajima-polar-0rpm",
@@ -473,8 +474,11 @@ fn polar_laws_reject_salient_motors_and_i_q_profiles_need_current_reference() {
         salient.to_str().unwrap(),
         "--clock",
         "inprocess",
+        "--out",
+        out.to_str().unwrap(),
     ]);
     assert_eq!(o.status.code(), Some(1));
+    assert!(!out.exists(), "the refused run made its folder");
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("L_d = L_q"), "{err}");
     let profile = variant(
@@ -488,8 +492,11 @@ fn polar_laws_reject_salient_motors_and_i_q_profiles_need_current_reference() {
         profile.to_str().unwrap(),
         "--clock",
         "inprocess",
+        "--out",
+        out.to_str().unwrap(),
     ]);
     assert_eq!(o.status.code(), Some(1));
+    assert!(!out.exists(), "the refused run made its folder");
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("reference.i_q_a"), "{err}");
 }

@@ -205,7 +205,9 @@ fn twins_that_shadow_publish_nothing() {
     );
     // A twin's command, estimate or reference would reach its consumers a second time with
     // an index they have had: counted late or rejected.
-    for (stage, c) in s["counters"].as_object().unwrap() {
+    let counters = s["counters"].as_object().unwrap();
+    assert_eq!(counters.len(), 4, "{counters:?}");
+    for (stage, c) in counters {
         assert_eq!(c["late_inputs"], 0, "{stage}: {c}");
         assert_eq!(c["rejected_inputs"], 0, "{stage}: {c}");
         assert_eq!(c["late_commands"], 0, "{stage}: {c}");

@@ -235,7 +235,11 @@ fn bad_topologies_fail_with_one_line_naming_the_problem_and_leave_nothing() {
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
-    let o = wait(child, std::time::Duration::from_secs(300), "drivelab run");
+    let o = wait(
+        Drive::on_bus(child, &bus),
+        std::time::Duration::from_secs(300),
+        "drivelab run",
+    );
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(
@@ -244,8 +248,10 @@ fn bad_topologies_fail_with_one_line_naming_the_problem_and_leave_nothing() {
     );
     assert!(!out.exists());
     assert_clean(&bus);
-    let o = drivelab(&["run", "--bus", &bus, "--topology", "three-process"]);
+    let out = dir.join("out-unknown");
+    let o = drivelab(&[&run_args(&bus, &out)[..], &["--topology", "three-process"]].concat());
     assert_eq!(o.status.code(), Some(1));
+    assert!(!out.exists(), "an unknown topology's run made its folder");
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
         err.contains(
@@ -300,8 +306,16 @@ fn bad_topologies_fail_with_one_line_naming_the_problem_and_leave_nothing() {
             + &p("a", "\"plant\", \"observer\", \"current-loop\", \"speed-loop\""),
     )
     .unwrap();
-    let o = drivelab(&["run", "--bus", &bus, "--scenario", both.to_str().unwrap()]);
+    let out = dir.join("out-both");
+    let o = drivelab(
+        &[
+            &run_args(&bus, &out)[..],
+            &["--scenario", both.to_str().unwrap()],
+        ]
+        .concat(),
+    );
     assert_eq!(o.status.code(), Some(1));
+    assert!(!out.exists(), "the refused run made its folder");
     assert!(
         String::from_utf8_lossy(&o.stderr).contains("either in [placement] or in [[process]]"),
         "{}",
@@ -379,13 +393,11 @@ fn what_a_stage_process_leaves_running_is_killed_and_its_chatter_is_not_kept() {
     let topo = plant_and_controller(&dir, &wrapper);
     let bus = bus_id("strays");
     let out = dir.join("run");
-    let mut child = Command::new(DRIVELAB)
-        .args(run_args(&bus, &out))
-        .args(["--duration", "2", "--topology", topo.to_str().unwrap()])
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let mut child = start_without_stdout(
+        &bus,
+        &out,
+        &["--duration", "2", "--topology", topo.to_str().unwrap()],
+    );
     // The launcher's peak memory, read until it exits.
     let pid = child.id();
     let mut peak_kib = 0u64;
@@ -452,20 +464,18 @@ fn a_kill_reaches_a_stage_host_that_a_wrapper_script_started_without_exec() {
     let topo = plant_and_controller(&dir, &wrapper);
     let bus = bus_id("nowrapexec");
     let out = dir.join("run");
-    let child = Command::new(DRIVELAB)
-        .args(run_args(&bus, &out))
-        .args([
+    let child = start_without_stdout(
+        &bus,
+        &out,
+        &[
             "--duration",
             "2",
             "--topology",
             topo.to_str().unwrap(),
             "--fault",
             "kill:current-loop@0.5",
-        ])
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+        ],
+    );
     let o = wait(child, Duration::from_secs(120), "the drive");
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(0), "{err}");
@@ -523,13 +533,11 @@ fn a_drive_stopped_during_its_start_up_ends_every_process_without_sigkill() {
     let topo = plant_and_controller(&dir, &slow);
     let bus = bus_id("stopstart");
     let out = dir.join("run");
-    let child = Command::new(DRIVELAB)
-        .args(run_args(&bus, &out))
-        .args(["--duration", "2", "--topology", topo.to_str().unwrap()])
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let child = start_without_stdout(
+        &bus,
+        &out,
+        &["--duration", "2", "--topology", topo.to_str().unwrap()],
+    );
     // The plant waits for its GO: blocked in read(2) on its stdin (fd 0).
     let t = std::time::Instant::now();
     let waiting_for_go = || {
@@ -564,6 +572,19 @@ fn a_drive_stopped_during_its_start_up_ends_every_process_without_sigkill() {
         "the slow start was left running"
     );
     assert_clean(&bus);
+}
+
+/// Starts `drivelab run --bus BUS --out OUT --no-plots EXTRA` behind a guard, its stdout
+/// dropped and its stderr piped.
+fn start_without_stdout(bus: &str, out: &std::path::Path, extra: &[&str]) -> Drive {
+    let child = Command::new(DRIVELAB)
+        .args(run_args(bus, out))
+        .args(extra)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    Drive::on_bus(child, bus)
 }
 
 /// A topology of two processes on core 1: `p` (the plant) and `c` (observer, current loop,

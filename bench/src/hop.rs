@@ -404,11 +404,20 @@ mod tests {
         // What a bench and its receivers, all SIGKILLed, would leave on a bus name that a
         // later bench gets again (the name carries the pid): two receivers counted ready.
         let bus = format!("hopstale{}", std::process::id());
+        let work = std::env::temp_dir().join(format!("drivelab-hop-stale-{}", std::process::id()));
+        // Removes the segment and the folder also when an assertion below fails.
+        struct Leftovers<'a>(&'a str, &'a Path);
+        impl Drop for Leftovers<'_> {
+            fn drop(&mut self) {
+                let _ = WakeSegment::remove(self.0);
+                let _ = std::fs::remove_dir_all(self.1);
+            }
+        }
+        let _leftovers = Leftovers(&bus, &work);
         let stale = WakeSegment::open(&bus).unwrap();
         stale.notify(READY);
         stale.notify(READY);
         drop(stale);
-        let work = std::env::temp_dir().join(format!("drivelab-hop-stale-{}", std::process::id()));
         // Receivers that never get ready: the sender must wait for them, not for the count
         // the dead bench left (it would send its samples and report how they exited).
         let e = run(

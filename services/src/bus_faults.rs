@@ -499,6 +499,7 @@ mod tests {
             })
             .collect();
         let (r, _) = reports(&sc, &topo, &quiet, None);
+        assert!(!r.is_empty(), "no report of the faults");
         for f in &r {
             assert_eq!(f.detected_data_path_ms, None, "{f:?}");
             assert_eq!(f.republished_ms, Some(0.0), "{f:?}");

@@ -109,23 +109,26 @@ pub fn bus_id(name: &str) -> String {
     id
 }
 
-/// Runs drivelab with a watchdog; kills it (and fails) if it hangs.
+/// Runs drivelab with a watchdog of 300 s; kills it (and fails) if it hangs.
 pub fn drivelab(args: &[&str]) -> Output {
-    let mut child = Command::new(DRIVELAB)
+    drivelab_within(args, Duration::from_secs(300))
+}
+
+/// Runs drivelab with a watchdog against hangs, behind a [`Drive`] guard: on expiry the test
+/// fails, the process is killed and, when the command line names a `--bus`, that bus's
+/// processes and files are removed too.
+pub fn drivelab_within(args: &[&str], watchdog: Duration) -> Output {
+    let child = Command::new(DRIVELAB)
         .args(args)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
         .expect("start drivelab");
-    let t = Instant::now();
-    while child.try_wait().unwrap().is_none() {
-        if t.elapsed() > Duration::from_secs(300) {
-            let _ = child.kill();
-            panic!("watchdog: drivelab {args:?} still running after 300 s");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    child.wait_with_output().unwrap()
+    let guard = match args.windows(2).find(|w| w[0] == "--bus") {
+        Some(w) => Drive::on_bus(child, w[1]),
+        None => Drive::from(child),
+    };
+    guard.wait_for_exit(watchdog, &format!("drivelab {args:?}"))
 }
 
 /// Runs `drivelab run --bus BUS --no-plots EXTRA` and asserts that it fails before the start
@@ -140,13 +143,21 @@ pub fn assert_run_usage_error(bus: &str, extra: &[&str], needle: &str) {
 }
 
 fn assert_run_fails(bus: &str, extra: &[&str], code: i32, needle: &str) {
-    let mut args = vec!["run", "--bus", bus, "--no-plots"];
+    assert!(
+        !extra.contains(&"--out"),
+        "the refused run's folder is this helper's"
+    );
+    // A run folder of its own, so that a run that is not refused after all writes nothing
+    // into the repository's runs/.
+    let out = scratch(&format!("refused-{bus}")).join("run");
+    let mut args = run_args(bus, &out).to_vec();
     args.extend_from_slice(extra);
     let o = drivelab(&args);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(code), "{extra:?}: {err}");
     assert!(err.contains(needle), "{extra:?}: {err}");
     assert_eq!(err.lines().count(), 1, "{extra:?}: {err}");
+    assert!(!out.exists(), "{extra:?}: a refused run made its folder");
 }
 
 /// Runs `drivelab run --bus <own id> --out <scratch>/run --no-plots EXTRA`, asserts success

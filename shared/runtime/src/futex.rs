@@ -207,6 +207,8 @@ mod tests {
     #[test]
     fn notify_wakes_a_sleeper_and_timeouts_return() {
         let id = format!("fx{}", std::process::id());
+        // Removes the segment also when an assertion below fails (dropped last).
+        let _cleanup = crate::bus::CleanupOnDrop(id.clone());
         let seg = Arc::new(WakeSegment::open(&id).unwrap());
         let s0 = seg.seq(3);
         let counted = crate::rt::syscalls();
@@ -247,7 +249,12 @@ mod tests {
             std::fs::read_to_string(format!("/proc/self/task/{tid}/syscall"))
                 .is_ok_and(|s| s.split(' ').next() == Some(&libc::SYS_futex.to_string()))
         };
+        let t0 = std::time::Instant::now();
         while !in_futex() {
+            assert!(
+                t0.elapsed() < Duration::from_secs(10),
+                "watchdog: the thread never slept in futex(2)"
+            );
             std::thread::sleep(Duration::from_millis(1));
         }
         seg.notify(3);
