@@ -401,7 +401,7 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             dir,
             &["export", "/nonexistent", "--mcap"],
             1,
-            "no trace.csv",
+            "/nonexistent does not exist",
         ),
         case("export-empty", dir, &["export", &empty, "--mcap"], 1, "has no samples")
             .leaves_no(Path::new(&empty).join("trace.mcap")),
@@ -411,6 +411,13 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             &["compare", "/nonexistent", &run],
             1,
             "/nonexistent: no such run folder",
+        ),
+        case(
+            "compare-file",
+            dir,
+            &["compare", &format!("{run}/trace.csv"), &run],
+            1,
+            "/trace.csv is not a folder (not a run folder)",
         ),
         case(
             "plot-nan",
@@ -546,6 +553,14 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             "--seconds must be in (0, 3600]",
         )
         .leaves_no(out.clone()),
+        case(
+            "bench-cyclictest",
+            dir,
+            &["bench", "--quick", "--cyclictest", "", "--out", o],
+            2,
+            "--cyclictest is empty",
+        )
+        .leaves_no(out.clone()),
         // usage
         case(
             "scenarios",
@@ -562,8 +577,8 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             run_case(
                 "zenoh-config",
                 &["--zenoh-listen", "--zenoh-config", "/nonexistent"],
-                2,
-                "'--zenoh-config <FILE>': cannot read it",
+                1,
+                "--zenoh-config /nonexistent: cannot read it: No such file",
             ),
             run_case(
                 "zenoh-wait",
@@ -621,8 +636,8 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
                     "--zenoh-config",
                     dir.to_str().unwrap(),
                 ],
-                2,
-                "'--zenoh-config <FILE>': not a file",
+                1,
+                "-bad: not a file",
             ),
         ]);
     }

@@ -141,11 +141,31 @@ fn a_bad_runner_is_one_line_and_leaves_nothing() {
         ]
         .concat(),
     );
-    assert_eq!(o.status.code(), Some(1));
+    // A command line wrong in itself: a usage error.
+    assert_eq!(o.status.code(), Some(2));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("--runner: the runner is empty"), "{err}");
     assert_eq!(err.trim().lines().count(), 1, "{err}");
     assert!(!out.exists(), "an empty runner's run made its folder");
+    // In process there is no process to put a runner in front of: a usage error too.
+    let o = drivelab(
+        &[
+            &run_args(&bus, &out)[..],
+            &["--runner", "/usr/bin/env", "--clock", "inprocess"],
+        ]
+        .concat(),
+    );
+    assert_eq!(o.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("--runner needs a clock that starts processes (realtime or lockstep)")
+            && err.trim().lines().count() == 1,
+        "{err}"
+    );
+    assert!(
+        !out.exists(),
+        "an in-process run with a runner made its folder"
+    );
 
     let with_runner = |runner: &str| {
         drivelab(&[

@@ -452,7 +452,7 @@ fn plot_redraws_valid_png_and_svg_for_a_recorded_run() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("START must be before END"));
     let o = drivelab_within(&["plot", "/nonexistent-run"], Duration::from_secs(60));
     assert_eq!(o.status.code(), Some(1));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("no trace.csv"));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("/nonexistent-run does not exist"));
 }
 
 #[test]

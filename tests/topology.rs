@@ -297,6 +297,24 @@ fn bad_topologies_fail_with_one_line_naming_the_problem_and_leave_nothing() {
         assert!(!out.exists(), "{clock}: the refused run made its folder");
         assert_clean(&bus);
     }
+    // Without --rt-strict a real-time drive refuses a CPU the machine does not have (a
+    // placement it cannot measure), also in one line and before the run.
+    let o = drivelab(
+        &[
+            &run_args(&bus, &out)[..],
+            &["--topology", f.to_str().unwrap()],
+        ]
+        .concat(),
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("process a is pinned to CPU 99, which this machine does not have (this drive may use CPUs ")
+            && err.trim().lines().count() == 1,
+        "{err}"
+    );
+    assert!(!out.exists(), "the refused run made its folder");
+    assert_clean(&bus);
     // A scenario that places its services in [placement] and in [[process]] tables.
     let both = dir.join("both.toml");
     std::fs::write(

@@ -1561,6 +1561,11 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
             "--seconds must be in (0, 3600], got {seconds}"
         )));
     }
+    if a.cyclictest.trim().is_empty() {
+        return Err(usage(
+            "--cyclictest is empty: give a name on PATH or a path (default: cyclictest)".into(),
+        ));
+    }
     for &r in &a.rates {
         if !(r.is_finite() && (100.0..=100_000.0).contains(&r)) {
             return Err(usage(format!("--rates: {r} Hz must be in [100, 100000]")));

@@ -63,7 +63,7 @@ pub fn parse(kind: &str, rest: &str, spec: &str) -> Result<FaultSpec> {
             }
             Inject {
                 kind: InjectKind::Delay,
-                target: crate::faults::service(target)?,
+                target: crate::faults::service(target, spec)?,
                 at_s: crate::faults::seconds(at, "time", spec)?,
                 duration_s,
                 latency_us: latency_us(lat, spec)?,
@@ -132,7 +132,8 @@ pub fn schedule(specs: &[FaultSpec], sc: &mut Scenario, topo: &TopologyPlan) -> 
         }
         sc.inject.push(i.clone());
     }
-    inject::validate(&sc.inject, sc.duration_s).map_err(|e| anyhow!("--fault: {e}"))
+    inject::validate(&sc.inject, sc.duration_s)
+        .map_err(|e| anyhow!("--fault with the scenario's own [[inject]] tables: {e}"))
 }
 
 /// What a bus fault caused, beside the common figures of a [`FaultReport`].

@@ -39,8 +39,11 @@ pub struct LoadedRun {
 
 /// Loads a run folder; the error names the folder and what is missing, on one line.
 pub fn load_run(dir: &Path) -> Result<LoadedRun> {
-    if !dir.is_dir() {
+    if !dir.exists() {
         bail!("{}: no such run folder", dir.display());
+    }
+    if !dir.is_dir() {
+        bail!("{} is not a folder (not a run folder)", dir.display());
     }
     let trace = crate::plotcmd::trace_csv_of(dir)?;
     let sc_path = dir.join("scenario.toml");

@@ -41,15 +41,18 @@ pub enum FaultKind {
     Stop,
 }
 
-/// A stage name as a fault target: checked for its form here, against the run's topology
-/// by [`plan`].
-pub(crate) fn service(name: &str) -> Result<String> {
+/// A stage name as the target of fault `spec`: checked for its form here, against the run's
+/// topology by [`plan`].
+pub(crate) fn service(name: &str, spec: &str) -> Result<String> {
     if name.is_empty()
         || !name
             .chars()
             .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-')
     {
-        bail!("unknown stage '{name}' (built-in: {})", SERVICES.join(", "));
+        bail!(
+            "fault '{spec}': unknown stage '{name}' (built-in: {})",
+            SERVICES.join(", ")
+        );
     }
     Ok(name.to_string())
 }
@@ -69,6 +72,35 @@ pub(crate) fn seconds(v: &str, what: &str, spec: &str) -> Result<f64> {
 pub const STOP_MIN_S: f64 = 0.001;
 /// Longest stop, s.
 pub const STOP_MAX_S: f64 = 60.0;
+
+/// The command line's `--fault` specs against the limits of one run: at most
+/// [`MAX_INJECT`](drivelab_runtime::inject::MAX_INJECT) bus faults (drop, corrupt, delay)
+/// and
+/// [`MAX_SENSOR_FAULTS`](drivelab_runtime::sensor_faults::MAX_SENSOR_FAULTS) sensor faults. Too
+/// many is a command line wrong in itself; with a scenario's own tables the run checks the
+/// sum again.
+pub fn check_counts(specs: &[FaultSpec]) -> Result<(), String> {
+    use drivelab_runtime::{inject::MAX_INJECT, sensor_faults::MAX_SENSOR_FAULTS};
+    let bus = specs
+        .iter()
+        .filter(|s| matches!(s, FaultSpec::Bus(_)))
+        .count();
+    let sensor = specs
+        .iter()
+        .filter(|s| matches!(s, FaultSpec::Sensor(_)))
+        .count();
+    if bus > MAX_INJECT {
+        return Err(format!(
+            "--fault: {bus} bus faults (drop, corrupt, delay): at most {MAX_INJECT} in one run"
+        ));
+    }
+    if sensor > MAX_SENSOR_FAULTS {
+        return Err(format!(
+            "--fault: {sensor} sensor faults: at most {MAX_SENSOR_FAULTS} in one run"
+        ));
+    }
+    Ok(())
+}
 
 /// Parses one `--fault` value: `kill:SERVICE@SECONDS`, `stop:SERVICE@SECONDS:DURATION`,
 /// `random:N` (expanded later with the run's seed and duration), a bus fault (`delay:…`,
@@ -93,7 +125,7 @@ pub fn parse(spec: &str) -> Result<FaultSpec> {
                     if kind == "stop" { ":DURATION" } else { "" }
                 )
             })?;
-            let service = service(svc)?;
+            let service = service(svc, spec)?;
             if kind == "kill" {
                 Ok(FaultSpec::One(Fault {
                     kind: FaultKind::Kill,
@@ -420,6 +452,42 @@ pub fn inject_bad_estimates(bus: &str, kind: &str, count: u32) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn too_many_faults_of_a_kind_on_one_command_line_are_refused() {
+        use drivelab_runtime::{inject::MAX_INJECT, sensor_faults::MAX_SENSOR_FAULTS};
+        let bus = parse("drop:cmd@0.01:1").unwrap();
+        let sensor = parse("encoder-stuck@0.01:0.001").unwrap();
+        assert_eq!(check_counts(&vec![bus.clone(); MAX_INJECT]), Ok(()));
+        assert_eq!(
+            check_counts(&vec![bus; MAX_INJECT + 1]),
+            Err("--fault: 17 bus faults (drop, corrupt, delay): at most 16 in one run".into())
+        );
+        assert_eq!(
+            check_counts(&vec![sensor.clone(); MAX_SENSOR_FAULTS]),
+            Ok(())
+        );
+        assert_eq!(
+            check_counts(&vec![sensor; MAX_SENSOR_FAULTS + 1]),
+            Err("--fault: 65 sensor faults: at most 64 in one run".into())
+        );
+        // Kills and stops are not counted against either limit.
+        assert_eq!(
+            check_counts(&vec![parse("kill:plant@0.5").unwrap(); 100]),
+            Ok(())
+        );
+    }
+
+    #[test]
+    fn a_fault_without_a_stage_names_its_spec() {
+        for spec in ["kill:@0.01", "stop:@0.01:0.02", "delay:@0.1:0.1:10us"] {
+            let e = format!("{:#}", parse(spec).unwrap_err());
+            assert!(
+                e.starts_with(&format!("fault '{spec}': unknown stage ''")),
+                "{e}"
+            );
+        }
+    }
 
     #[test]
     fn parses_the_three_forms() {

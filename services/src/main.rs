@@ -31,7 +31,7 @@ struct DriveArgs {
     #[arg(long, value_name = "ENDPOINT")]
     connect: Option<String>,
     /// With --connect: a Zenoh configuration file (JSON5) for TLS.
-    #[arg(long, value_name = "FILE", requires = "connect", value_parser = existing_file)]
+    #[arg(long, value_name = "FILE", requires = "connect")]
     zenoh_config: Option<PathBuf>,
 }
 
@@ -139,7 +139,7 @@ enum Cmd {
         zenoh_topics: Option<String>,
         /// With --zenoh-listen or --zenoh-connect: a Zenoh configuration file (JSON5) for TLS
         /// and access control; its mode and endpoints are replaced by drivelab's.
-        #[arg(long, value_name = "FILE", value_parser = existing_file)]
+        #[arg(long, value_name = "FILE")]
         zenoh_config: Option<PathBuf>,
         /// Run only machine NAME's processes of a split topology (one whose processes name
         /// a `machine`); the other machine runs the rest, joined over Zenoh: one side with
@@ -206,7 +206,7 @@ enum Cmd {
         #[arg(long, default_value_t = 0.0, value_name = "SECONDS")]
         wait: f64,
         /// Zenoh configuration file (JSON5) for TLS.
-        #[arg(long, value_name = "FILE", value_parser = existing_file)]
+        #[arg(long, value_name = "FILE")]
         zenoh_config: Option<PathBuf>,
     },
     /// Internal: the Zenoh bridge of a drive (started by `drivelab run --zenoh-listen`).
@@ -677,14 +677,17 @@ fn bus_id(v: &str) -> Result<String, String> {
         .map_err(|e| e.to_string())
 }
 
-/// A file that exists (checked before anything starts).
-fn existing_file(v: &str) -> Result<PathBuf, String> {
-    let p = PathBuf::from(v);
-    match std::fs::metadata(&p) {
-        Ok(m) if m.is_file() => Ok(p),
-        Ok(_) => Err("not a file".into()),
-        Err(e) => Err(format!("cannot read it: {e}")),
+/// `--zenoh-config FILE`, checked to be a file before anything starts. A bad file is an
+/// error (exit code 1), as a bad scenario file is, not a usage error.
+fn zenoh_config_file(file: Option<PathBuf>) -> anyhow::Result<Option<PathBuf>> {
+    if let Some(p) = &file {
+        match std::fs::metadata(p) {
+            Ok(m) if m.is_file() => {}
+            Ok(_) => anyhow::bail!("--zenoh-config {}: not a file", p.display()),
+            Err(e) => anyhow::bail!("--zenoh-config {}: cannot read it: {e}", p.display()),
+        }
     }
+    Ok(file)
 }
 
 fn fmt_opt(v: &serde_json::Value, unit: &str) -> String {
@@ -760,7 +763,7 @@ fn default_zenoh_topics() -> Vec<String> {
 /// The drive of `monitor` and `fault`: a local bus or a remote endpoint.
 fn target(d: DriveArgs) -> anyhow::Result<drivelab_services::monitor::Target> {
     use drivelab_services::monitor::Target;
-    let config = d.zenoh_config;
+    let config = zenoh_config_file(d.zenoh_config)?;
     Ok(match (d.connect, d.bus) {
         (Some(ep), bus) => Target::Remote {
             endpoint: endpoint_arg("--connect", &ep, false)?,
@@ -908,7 +911,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                     |(endpoint, connect)| -> anyhow::Result<launcher::ZenohListen> {
                         Ok(launcher::ZenohListen {
                             endpoint,
-                            config: zenoh_config_arg(zenoh_config)?,
+                            config: zenoh_config_arg(zenoh_config_file(zenoh_config)?)?,
                             allow_remote_faults,
                             topics: match zenoh_topics {
                                 Some(t) => zenoh_topics_arg(&t)?,
@@ -924,11 +927,12 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             let runner = runner
                 .map(|r| drivelab_runtime::runner::Runner::parse(&r))
                 .transpose()
-                .map_err(|e| anyhow::anyhow!("--runner: {e}"))?;
+                .map_err(|e| usage(format!("--runner: {e}")))?;
             let faults = faults
                 .iter()
                 .map(|f| drivelab_services::faults::parse(f).map_err(|e| usage(format!("{e:#}"))))
                 .collect::<anyhow::Result<Vec<_>>>()?;
+            drivelab_services::faults::check_counts(&faults).map_err(usage)?;
             let o = RunOptions {
                 scenario,
                 clock,
@@ -1162,7 +1166,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             if !(0.0..=3600.0).contains(&wait) {
                 return Err(usage(format!("--wait {wait}: 0 to 3600 seconds")));
             }
-            record(endpoint, out, bus, wait, zenoh_config)
+            record(endpoint, out, bus, wait, zenoh_config_file(zenoh_config)?)
         }
         Cmd::Bridge {
             bus,

@@ -110,7 +110,10 @@ pub fn trace_csv_of(run: &Path) -> Result<PathBuf> {
         Ok(m) if m.is_file() => Ok(path),
         Ok(_) => bail!("{} is not a file (a run's trace is one)", path.display()),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            bail!("{} has no trace.csv (not a run folder)", run.display())
+            if run.is_dir() {
+                bail!("{} has no trace.csv (not a run folder)", run.display())
+            }
+            bail!("{} does not exist", run.display())
         }
         Err(e) if e.raw_os_error() == Some(libc::ENOTDIR) => {
             bail!("{} is not a folder (not a run folder)", run.display())
@@ -384,9 +387,11 @@ mod tests {
             err("c"),
             format!("{d}/c is not a folder (not a run folder)")
         );
+        assert_eq!(err("missing"), format!("{d}/missing does not exist"));
+        std::fs::create_dir_all(dir.join("empty")).unwrap();
         assert_eq!(
-            err("missing"),
-            format!("{d}/missing has no trace.csv (not a run folder)")
+            err("empty"),
+            format!("{d}/empty has no trace.csv (not a run folder)")
         );
         std::fs::remove_dir_all(&dir).unwrap();
     }

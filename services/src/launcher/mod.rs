@@ -277,6 +277,9 @@ fn writable(p: &Path) -> bool {
     unsafe { libc::access(c.as_ptr(), libc::W_OK | libc::X_OK) == 0 }
 }
 
+/// Where the kernel lists the machine's CPUs (`cpuN` for each one it has).
+const CPU_SYSFS: &str = "/sys/devices/system/cpu";
+
 /// Whether `name` is a file a run writes at the top of its folder.
 fn is_run_output(name: &str) -> bool {
     const NAMES: &[&str] = &[
@@ -1187,6 +1190,27 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
             }
         }
     }
+    // In real time the placement is the experiment: a process pinned to a CPU this machine
+    // does not have is refused (one it has but may not use only warns, as a missing
+    // privilege does). Lockstep's processes keep their cores but not their timing: there the
+    // process warns and runs unpinned, so that a target's topology still runs on a smaller
+    // machine.
+    if o.clock == Clock::Realtime && Path::new(CPU_SYSFS).is_dir() {
+        let here = (0..topo.processes.len()).filter(|i| !topo.away.contains(i));
+        for p in here.map(|i| &topo.processes[i]) {
+            if let Some(c) = p
+                .cpu
+                .filter(|c| !Path::new(&format!("{CPU_SYSFS}/cpu{c}")).exists())
+            {
+                bail!(
+                    "process {} is pinned to CPU {c}, which this machine does not have (this \
+                     drive may use CPUs {}): change its `cpu`",
+                    p.name,
+                    crate::faults::hog::cpu_list(&crate::faults::hog::allowed_cpus())
+                );
+            }
+        }
+    }
     // Faults are checked before anything is created: a bad plan leaves nothing behind.
     // Lockstep and in process simulate kills and stops at their sample.
     let simulated = o.clock != Clock::Realtime;
@@ -1272,6 +1296,13 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             "--timing-csv needs the realtime clock: the {} clock has no sample instants to time against",
             o.clock.name()
         )));
+    }
+    if o.runner.is_some() && o.clock == Clock::Inprocess {
+        return Err(usage(
+            "--runner needs a clock that starts processes (realtime or lockstep): the inprocess \
+             clock runs every stage in this process"
+                .into(),
+        ));
     }
     let Prepared {
         sc,
