@@ -12,6 +12,10 @@ use common::*;
 fn kyslan_pi_lockstep_meets_the_papers_rise_time() {
     let _serial = serial();
     let (out, s) = run_ok("risetime", &["--clock", "lockstep"]);
+    // Every message found its sample: none came after its sample left the recorder's
+    // window, none beyond the run.
+    assert_eq!(s["recorder_late"], 0, "{}", s["recorder_late"]);
+    assert_eq!(s["recorder_rejected"], 0, "{}", s["recorder_rejected"]);
     let rise = s["metrics"]["rise_time_ms"].as_f64().expect("rise time");
     // Kyslan et al.: time to first reach 70 rad/s = 8 ms. The PI design is solved for it on
     // its sampled design model; the run reaches 70 rad/s when that model says, to one

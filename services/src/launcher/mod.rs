@@ -1431,6 +1431,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     }
     let mut gaps = gaps;
     recorder::attribute_gaps(&mut gaps, &faults, sc.rates.sample_hz);
+    if let Some(p) = topo.process_of("plant") {
+        recorder::attribute_crash_gaps(&mut gaps, &events, &topo.processes[p].name);
+    }
     if let Some(f) = &failure {
         ended_early(&mut gaps, sc.samples(), f);
     }
@@ -1562,6 +1565,10 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     if let Some(r) = info.get("recorder_rejected") {
         // Messages the recorder could not place (an index beyond the run's samples).
         summary["recorder_rejected"] = r.clone();
+    }
+    if let Some(r) = info.get("recorder_late") {
+        // Messages that came after their sample had left the window (as a row or a gap).
+        summary["recorder_late"] = r.clone();
     }
     summary["failure"] = json!(failure);
     let (latency, curves) = collect_histograms(&out)?;

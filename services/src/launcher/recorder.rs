@@ -4,7 +4,7 @@
 //! behind each missing sample.
 
 use super::stream::{Middle, TraceStream};
-use super::supervisor::FaultReport;
+use super::supervisor::{EventKind, FaultReport, SupEvent};
 use anyhow::{anyhow, Result};
 use drivelab_runtime::bus::{self, DriveTopics, MAX_BUFFER};
 use drivelab_runtime::config::Scenario;
@@ -342,6 +342,58 @@ pub(super) fn attribute_gaps(gaps: &mut [Gap], faults: &[FaultReport], fs: f64) 
     }
 }
 
+/// Why a measurement before the newest one received is missing when nothing else is known:
+/// the recorder read too slowly and the bus's buffer dropped it.
+pub(super) const LOST_IN_BUFFER: &str =
+    "measurement lost between plant and recorder (recorder buffer overflow)";
+
+/// Names the crash in the measurement gaps left while the plant's process (`plant_process`)
+/// was down after a crash nobody injected, which no fault report covers: from the
+/// supervisor's `exited` event to the process's next `ready` or `taken-over` (or the run's
+/// end), each at the drive's progress then. A restarted plant's downtime is rebuilt into the
+/// trace where it can be; what is left was no buffer overflow, which is all the recorder
+/// could tell. Run after [`attribute_gaps`]: an injected fault's name stays.
+pub(super) fn attribute_crash_gaps(gaps: &mut [Gap], events: &[SupEvent], plant_process: &str) {
+    let of_plant = |e: &SupEvent| e.process == plant_process;
+    let downs: Vec<(u64, Option<u64>, String)> = events
+        .iter()
+        .enumerate()
+        .filter(|(_, e)| of_plant(e) && matches!(e.kind, EventKind::Exited { crash: true, .. }))
+        .map(|(i, e)| {
+            let back = events[i + 1..]
+                .iter()
+                .find(|n| {
+                    of_plant(n)
+                        && matches!(
+                            n.kind,
+                            EventKind::Ready { .. } | EventKind::TakenOver { .. }
+                        )
+                })
+                .map(|n| n.k);
+            let how = e.kind.detail();
+            let how = how
+                .trim_end_matches(super::supervisor::NOT_INJECTED)
+                .to_string();
+            (e.k, back, how)
+        })
+        .collect();
+    for g in gaps
+        .iter_mut()
+        .filter(|g| g.part == "measurement" && g.cause == LOST_IN_BUFFER)
+    {
+        if let Some((k, _, how)) = downs
+            .iter()
+            .rev()
+            .find(|(k, back, _)| *k <= g.from && back.is_none_or(|b| g.from <= b))
+        {
+            g.cause = format!(
+                "the plant's process '{plant_process}' crashed ({how}) at about sample {k} and was \
+                 not back yet"
+            );
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -362,7 +414,7 @@ mod tests {
         assert_eq!(wrapped.next_sample(3), 1_006);
     }
 
-    const LOST: &str = "measurement lost between plant and recorder (recorder buffer overflow)";
+    const LOST: &str = LOST_IN_BUFFER;
     const STOPPED: &str = "the plant stopped before this sample";
 
     /// Which samples were recorded: a measurement where `meas` says so and a command where
@@ -619,6 +671,69 @@ mod tests {
                 LOST
             ]
         );
+    }
+
+    #[test]
+    fn gaps_while_a_crashed_plant_was_down_name_the_crash_not_the_buffer() {
+        use std::os::unix::process::ExitStatusExt;
+        let event = |k: u64, process: &str, kind: EventKind| SupEvent {
+            t_wall_s: 0.0,
+            k,
+            kind,
+            service: process.into(),
+            process: process.into(),
+        };
+        let exited = |crash| EventKind::Exited {
+            status: std::process::ExitStatus::from_raw(11),
+            crash,
+        };
+        // The plant's process "p" crashed at about sample 50 and was ready at 80; the observer
+        // crashed at 200 (not the plant's); "p" crashed again at 300 and never came back.
+        let events = [
+            event(50, "p", exited(true)),
+            event(60, "p", EventKind::Restarted { restart: 1, pid: 7 }),
+            event(80, "p", EventKind::Ready { pid: 7 }),
+            event(200, "o", exited(true)),
+            event(300, "p", exited(true)),
+        ];
+        let mut gaps = vec![
+            gap(40, 40, "measurement", LOST),
+            gap(50, 70, "measurement", LOST),
+            gap(90, 90, "measurement", LOST),
+            gap(200, 210, "measurement", LOST),
+            gap(
+                55,
+                55,
+                "command",
+                "current-loop produced no command for this sample",
+            ),
+            gap(301, 400, "measurement", LOST),
+            gap(401, 401, "measurement", "plant kill at sample 300 (fault)"),
+        ];
+        attribute_crash_gaps(&mut gaps, &events, "p");
+        let crashed = |k: u64| {
+            format!(
+                "the plant's process 'p' crashed (signal: 11 (SIGSEGV)) at about \
+                 sample {k} and was not back yet"
+            )
+        };
+        let causes: Vec<String> = gaps.iter().map(|g| g.cause.clone()).collect();
+        assert_eq!(
+            causes,
+            [
+                LOST.to_string(),
+                crashed(50),
+                LOST.to_string(),
+                LOST.to_string(),
+                "current-loop produced no command for this sample".to_string(),
+                crashed(300),
+                "plant kill at sample 300 (fault)".to_string(),
+            ]
+        );
+        // An injected kill's exit (no crash) leaves the cause to the fault's report.
+        let mut gaps = vec![gap(50, 70, "measurement", LOST)];
+        attribute_crash_gaps(&mut gaps, &[event(50, "p", exited(false))], "p");
+        assert_eq!(gaps[0].cause, LOST);
     }
 
     #[test]

@@ -5,7 +5,7 @@
 //! plots) every row around each disturbance and reference step and every d-th row between
 //! them, and says so in its summary.
 
-use super::recorder::{missing_command_cause, push_gap, Gap};
+use super::recorder::{missing_command_cause, push_gap, Gap, LOST_IN_BUFFER};
 use anyhow::Result;
 use drivelab_runtime::config::Scenario;
 use drivelab_runtime::drive::trace_row;
@@ -505,7 +505,7 @@ impl TraceStream {
                 Some(m) => self.row(&m, c.as_ref())?,
                 None => {
                     let cause = if self.newest.is_some_and(|l| k < l) {
-                        "measurement lost between plant and recorder (recorder buffer overflow)"
+                        LOST_IN_BUFFER
                     } else {
                         "the plant stopped before this sample"
                     };
