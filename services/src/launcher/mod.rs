@@ -1571,7 +1571,20 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         summary["recorder_late"] = r.clone();
     }
     summary["failure"] = json!(failure);
-    let (latency, curves) = collect_histograms(&out)?;
+    let Histograms {
+        latency,
+        curves,
+        unreadable,
+    } = collect_histograms(&out)?;
+    // A histogram a host could not finish (killed while it wrote it at its exit) is left
+    // out and named: the trace and the rest of the summary are still written.
+    if !unreadable.is_empty() {
+        crate::errln!(
+            "drivelab: warning: histograms left out, unreadable: {}",
+            unreadable.join("; ")
+        );
+        summary["histograms_unreadable"] = json!(unreadable);
+    }
     if !latency.is_empty() {
         summary["latency_us"] = serde_json::to_value(&latency)?;
         if let Some(b) = crate::budget::budget(&topo, &latency) {
@@ -1709,15 +1722,12 @@ fn stall_report(st: &serde_json::Value) -> serde_json::Value {
 }
 
 /// Reads every `<key>.hdr` histogram the services wrote, writes `<key>.hgrm` beside it and
-/// returns the percentiles by key and the percentile curves for the plot.
-fn collect_histograms(
-    out: &Path,
-) -> Result<(
-    BTreeMap<String, drivelab_runtime::timing::Percentiles>,
-    Vec<drivelab_tools::plot::PercentileSeries>,
-)> {
+/// returns the percentiles by key and the percentile curves for the plot; a file it cannot
+/// read is named, not an error.
+fn collect_histograms(out: &Path) -> Result<Histograms> {
     let mut lat = BTreeMap::new();
     let mut curves = Vec::new();
+    let mut unreadable = Vec::new();
     let mut files: Vec<PathBuf> = std::fs::read_dir(out)?
         .flatten()
         .map(|e| e.path())
@@ -1730,14 +1740,34 @@ fn collect_histograms(
             .unwrap_or_default()
             .to_string_lossy()
             .into_owned();
-        let h = drivelab_runtime::timing::LatencyHist::read_v2("hist", &f)?;
+        let h = match drivelab_runtime::timing::LatencyHist::read_v2("hist", &f) {
+            Ok(h) => h,
+            Err(e) => {
+                unreadable.push(format!("{e:#}"));
+                continue;
+            }
+        };
         drivelab_runtime::files::write(f.with_extension("hgrm"), h.hgrm())?;
         lat.insert(key.clone(), h.percentiles());
         if key == "cycle" || key.ends_with(".wake") || key.ends_with(".lateness") {
             curves.push((key, h.curve()));
         }
     }
-    Ok((lat, curves))
+    Ok(Histograms {
+        latency: lat,
+        curves,
+        unreadable,
+    })
+}
+
+/// What [`collect_histograms`] read from a run folder's `.hdr` files.
+struct Histograms {
+    /// Percentiles by histogram name.
+    latency: BTreeMap<String, drivelab_runtime::timing::Percentiles>,
+    /// The curves of the cycle, the wake-ups and the lateness, for the latency plot.
+    curves: Vec<drivelab_tools::plot::PercentileSeries>,
+    /// The files that could not be read, each with why.
+    unreadable: Vec<String>,
 }
 
 /// Per-service statistics keyed by service name (for tests and reports).
@@ -1751,6 +1781,35 @@ pub fn counters(summary: &serde_json::Value) -> BTreeMap<String, serde_json::Val
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_histogram_cut_short_is_left_out_and_named_the_others_are_read() {
+        let dir = std::env::temp_dir().join(format!("drivelab-hists-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut h = drivelab_runtime::timing::LatencyHist::new("cycle");
+        for ns in [20_000, 25_000, 40_000] {
+            h.record_ns(ns);
+        }
+        h.write_v2(&dir.join("cycle.hdr")).unwrap();
+        // What a host killed while it wrote its histogram leaves: the start of one.
+        let whole = std::fs::read(dir.join("cycle.hdr")).unwrap();
+        std::fs::write(dir.join("observer.exec.hdr"), &whole[..whole.len() / 2]).unwrap();
+        let Histograms {
+            latency: lat,
+            curves,
+            unreadable,
+        } = collect_histograms(&dir).unwrap();
+        assert_eq!(lat.keys().collect::<Vec<_>>(), ["cycle"]);
+        assert_eq!(curves.len(), 1);
+        assert_eq!(unreadable.len(), 1, "{unreadable:?}");
+        assert!(
+            unreadable[0].contains("observer.exec.hdr: not an HdrHistogram V2 file"),
+            "{unreadable:?}"
+        );
+        assert!(dir.join("cycle.hgrm").is_file());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     #[test]
     fn an_executable_is_asked_to_describe_once_per_scenario_until_it_changes() {
