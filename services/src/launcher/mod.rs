@@ -705,6 +705,9 @@ fn run_bus(
     })
 }
 
+/// The cause of a measurement the plant published and the recorder never received.
+const UNRECEIVED: &str = "the plant published it; it never reached the recorder";
+
 /// A plant process that stepped through every one of the run's `samples` (its `produced`
 /// counter: it never restarted) published each of them, so a measurement missing from a
 /// trace of `recorded` rows never reached the recorder: its gap says so instead of "the
@@ -715,7 +718,7 @@ fn unreceived(gaps: &mut [Gap], produced: u64, samples: u64, recorded: u64) -> O
     }
     let mut any = false;
     for g in gaps.iter_mut().filter(|g| g.part == "measurement") {
-        g.cause = "the plant published it; it never reached the recorder".into();
+        g.cause = UNRECEIVED.into();
         any = true;
     }
     any.then(|| {
@@ -1671,9 +1674,13 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
 }
 
 /// The samples after the recording stopped were never produced: the gap that reaches the
-/// run's last sample (of `samples`) says the run ended early, and why (`failure`).
+/// run's last sample (of `samples`) says the run ended early, and why (`failure`). Not one
+/// the plant is known to have published ([`unreceived`]): the run reached its end there.
 fn ended_early(gaps: &mut [Gap], samples: u64, failure: &str) {
-    for g in gaps.iter_mut().filter(|g| g.to + 1 == samples) {
+    for g in gaps
+        .iter_mut()
+        .filter(|g| g.to + 1 == samples && g.cause != UNRECEIVED)
+    {
         g.cause = format!("the run ended early: {failure}");
     }
 }
@@ -1952,6 +1959,12 @@ mod tests {
                 "fault"
             ]
         );
+        // The plant published every sample: the run failed because the recorder lacks some,
+        // and the tail gap keeps saying that, not that the run ended early.
+        let mut gaps = vec![gap(900, 999, "measurement")];
+        let f = unreceived(&mut gaps, 1000, 1000, 900).unwrap();
+        ended_early(&mut gaps, 1000, &f);
+        assert_eq!(gaps[0].cause, UNRECEIVED);
     }
 
     #[test]
