@@ -42,9 +42,7 @@ pub fn load_run(dir: &Path) -> Result<LoadedRun> {
     if !dir.exists() {
         bail!("{}: no such run folder", dir.display());
     }
-    if !dir.is_dir() {
-        bail!("{} is not a folder (not a run folder)", dir.display());
-    }
+    // A path that is no folder: trace_csv_of says so.
     let trace = crate::plotcmd::trace_csv_of(dir)?;
     let sc_path = dir.join("scenario.toml");
     let text = std::fs::read_to_string(&sc_path).with_context(|| {

@@ -277,9 +277,6 @@ fn writable(p: &Path) -> bool {
     unsafe { libc::access(c.as_ptr(), libc::W_OK | libc::X_OK) == 0 }
 }
 
-/// Where the kernel lists the machine's CPUs (`cpuN` for each one it has).
-const CPU_SYSFS: &str = "/sys/devices/system/cpu";
-
 /// Whether `name` is a file a run writes at the top of its folder.
 fn is_run_output(name: &str) -> bool {
     const NAMES: &[&str] = &[
@@ -1178,38 +1175,34 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
             .filter(|&i| topo.processes[i].machine.as_deref() != Some(m))
             .collect();
     }
-    // With --rt-strict a process pinned to a CPU this launcher may not use would fail its
-    // start (without it, it warns and runs unpinned): refused before anything is created.
-    if o.rt_strict && o.clock != Clock::Inprocess {
+    // The CPUs this machine's processes are pinned to, refused before anything is created.
+    // With --rt-strict, one this launcher may not use (its process would fail its start;
+    // without it, it warns and runs unpinned). In real time, also without it, one the
+    // machine does not have (`cpuN` missing from the kernel's list): the placement is the
+    // experiment, and one the machine has but the drive may not use only warns, as a missing
+    // privilege does. Lockstep's processes keep their cores but not their timing: there a
+    // missing CPU warns and runs unpinned, so that a target's topology still runs on a
+    // smaller machine.
+    const CPU_SYSFS: &str = "/sys/devices/system/cpu";
+    let strict = o.rt_strict && o.clock != Clock::Inprocess;
+    let check_present = o.clock == Clock::Realtime && Path::new(CPU_SYSFS).is_dir();
+    if strict || check_present {
         let cpus = crate::faults::hog::allowed_cpus();
         let here = (0..topo.processes.len()).filter(|i| !topo.away.contains(i));
-        for p in here.map(|i| &topo.processes[i]) {
-            if let Some(c) = p.cpu.filter(|c| !cpus.contains(c)) {
+        for (p, c) in here.filter_map(|i| topo.processes[i].cpu.map(|c| (&topo.processes[i], c))) {
+            if strict && !cpus.contains(&c) {
                 bail!(
                     "--rt-strict: process {} is pinned to CPU {c}, which this drive may not use (CPUs: {})",
                     p.name,
                     crate::faults::hog::cpu_list(&cpus)
                 );
             }
-        }
-    }
-    // In real time the placement is the experiment: a process pinned to a CPU this machine
-    // does not have is refused (one it has but may not use only warns, as a missing
-    // privilege does). Lockstep's processes keep their cores but not their timing: there the
-    // process warns and runs unpinned, so that a target's topology still runs on a smaller
-    // machine.
-    if o.clock == Clock::Realtime && Path::new(CPU_SYSFS).is_dir() {
-        let here = (0..topo.processes.len()).filter(|i| !topo.away.contains(i));
-        for p in here.map(|i| &topo.processes[i]) {
-            if let Some(c) = p
-                .cpu
-                .filter(|c| !Path::new(&format!("{CPU_SYSFS}/cpu{c}")).exists())
-            {
+            if check_present && !Path::new(&format!("{CPU_SYSFS}/cpu{c}")).exists() {
                 bail!(
                     "process {} is pinned to CPU {c}, which this machine does not have (this \
                      drive may use CPUs {}): change its `cpu`",
                     p.name,
-                    crate::faults::hog::cpu_list(&crate::faults::hog::allowed_cpus())
+                    crate::faults::hog::cpu_list(&cpus)
                 );
             }
         }
