@@ -159,6 +159,20 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             "at most 3600 s",
         ),
         run_case("dur-empty", &["--duration", ""], 2, "not a number"),
+        // Not an unknown flag '-i': the option's range names it.
+        run_case(
+            "dur-neg-inf",
+            &["--duration", "-inf"],
+            2,
+            "invalid value '-inf' for '--duration <SECONDS>': must be more than 0",
+        ),
+        run_case("dur-neg-nan", &["--duration", "-NaN"], 2, "'-NaN' for '--duration <SECONDS>'"),
+        run_case(
+            "expect-below-number",
+            &["--expect", "peak_current_a.x <= 1"],
+            2,
+            "'peak_current_a' is a number; no figure lies below it",
+        ),
         run_case(
             "timing-lockstep",
             &["--timing-csv"],

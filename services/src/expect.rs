@@ -4,7 +4,8 @@
 //! (`peak_current_a`, `metrics.rise_time_ms`, `faults.*.speed_recovered_ms`; `*` stands for
 //! every key or element at its level) and OP is `<=`, `<`, `>=`, `>`, `==` or `in A..B`
 //! (both ends included). Every figure the path names must hold; a path that names no figure,
-//! or a figure that is not a number (a recovery that never happened is `null`), fails. A `*`
+//! or a figure that is not a number (a recovery that never happened is `null`), fails. A path
+//! that goes on below a number or stops at a group is refused when it is read. A `*`
 //! over an empty list (`faults.*.…` in a run without faults) holds: there is nothing to check.
 
 use anyhow::Result;
@@ -42,6 +43,10 @@ pub const FAULT_FIGURES: &[&str] = &[
     "window",
 ];
 
+/// The fault figures that hold figures of their own (`faults.*.window.…`); every other one
+/// is a number or a name, with nothing below it.
+pub const FAULT_GROUPS: &[&str] = &["plant_down", "rejected_by", "window"];
+
 /// Exit code of `drivelab run` and `drivelab campaign` when an expectation failed.
 pub const EXIT_EXPECTATION_FAILED: u8 = 3;
 
@@ -67,6 +72,16 @@ pub const FIGURES: &[&str] = &[
     "loop_simulated_s_per_wall_s",
     "rate_hz",
     "speed_loop_hz",
+];
+
+/// The top-level figures that hold figures of their own; every other one is a number.
+pub const GROUPS: &[&str] = &[
+    "metrics",
+    "faults",
+    "latency_us",
+    "budget",
+    "counters",
+    "timing",
 ];
 
 /// A command line that is wrong in itself: an option's value that is not of its kind, out
@@ -268,12 +283,38 @@ pub fn parse(text: &str) -> Result<Expectation, UsageError> {
             FIGURES.join(", ")
         )));
     }
-    if let [top, _, name, ..] = path.as_slice() {
-        if top == "faults" && name != "*" && !FAULT_FIGURES.contains(&name.as_str()) {
+    // A path that stops at a group or goes on below a number names no number: refused
+    // here, before the drive runs, not found out in its summary.
+    let top = path[0].as_str();
+    match path.len() {
+        1 if GROUPS.contains(&top) => {
             return Err(UsageError(format!(
-                "expectation '{t}': unknown fault figure '{name}' (a fault's figures: {})",
-                FAULT_FIGURES.join(", ")
+                "expectation '{t}': '{top}' is a group of figures, not a number; name one below it, e.g. '{top}.*'"
             )));
+        }
+        2.. if !GROUPS.contains(&top) => {
+            return Err(UsageError(format!(
+                "expectation '{t}': '{top}' is a number; no figure lies below it"
+            )));
+        }
+        _ => {}
+    }
+    if let [top, _, name, rest @ ..] = path.as_slice() {
+        if top == "faults" && name != "*" {
+            if !FAULT_FIGURES.contains(&name.as_str()) {
+                return Err(UsageError(format!(
+                    "expectation '{t}': unknown fault figure '{name}' (a fault's figures: {})",
+                    FAULT_FIGURES.join(", ")
+                )));
+            }
+            let group = FAULT_GROUPS.contains(&name.as_str());
+            if group == rest.is_empty() {
+                return Err(UsageError(if group {
+                    format!("expectation '{t}': the fault figure '{name}' is a group of figures, not a number; name one below it, e.g. 'faults.*.{name}.*'")
+                } else {
+                    format!("expectation '{t}': the fault figure '{name}' has no figure below it")
+                }));
+            }
         }
     }
     Ok(Expectation {
@@ -592,6 +633,24 @@ mod tests {
                 "metrics.rise_time_ms in 1..nan",
                 "limit 'nan' must be a finite number",
             ),
+            (
+                "peak_current_a.x <= 1",
+                "'peak_current_a' is a number; no figure lies below it",
+            ),
+            ("samples.* <= 1", "'samples' is a number"),
+            (
+                "metrics <= 1",
+                "'metrics' is a group of figures, not a number; name one below it, e.g. 'metrics.*'",
+            ),
+            ("faults == 0", "'faults' is a group of figures"),
+            (
+                "faults.*.peak_current_a.max <= 8",
+                "the fault figure 'peak_current_a' has no figure below it",
+            ),
+            (
+                "faults.0.window <= 8",
+                "the fault figure 'window' is a group of figures",
+            ),
         ] {
             let e = parse(text).unwrap_err().to_string();
             assert!(e.contains(says), "{text}: {e}");
@@ -622,6 +681,14 @@ mod tests {
         let keys: std::collections::BTreeSet<&str> =
             v.as_object().unwrap().keys().map(String::as_str).collect();
         assert_eq!(keys, FAULT_FIGURES.iter().copied().collect());
+        // The groups are the keys that hold objects; the rest are numbers, names or null.
+        for (k, x) in v.as_object().unwrap() {
+            assert_eq!(
+                x.is_object(),
+                FAULT_GROUPS.contains(&k.as_str()),
+                "{k}: {x}"
+            );
+        }
     }
 
     #[test]

@@ -561,7 +561,7 @@ fn main() -> ExitCode {
 /// problem is one line on stderr, exit code 2.
 fn parse_cli() -> Result<Cli, ExitCode> {
     negative_values(Cli::command())
-        .try_get_matches()
+        .try_get_matches_from(non_finite_values(std::env::args_os()))
         .and_then(|m| Cli::from_arg_matches(&m))
         .map_err(|e| {
             use clap::error::ErrorKind;
@@ -588,6 +588,30 @@ fn negative_values(c: clap::Command) -> clap::Command {
         }
     })
     .mut_subcommands(negative_values)
+}
+
+/// Joins `-inf`, `-infinity` and `-nan` to the long option before them (`--duration=-inf`),
+/// so that the option's own range refuses them: clap takes only digits after a '-' for a
+/// negative number and would call `-inf` an unknown flag '-i'.
+fn non_finite_values(args: impl Iterator<Item = std::ffi::OsString>) -> Vec<std::ffi::OsString> {
+    let mut out: Vec<std::ffi::OsString> = Vec::new();
+    for a in args {
+        let word = a.to_str().map(str::to_ascii_lowercase);
+        let non_finite = matches!(word.as_deref(), Some("-inf" | "-infinity" | "-nan"));
+        match out.last_mut() {
+            Some(option)
+                if non_finite
+                    && option.to_str().is_some_and(|o| {
+                        o.starts_with("--") && o.len() > 2 && !o.contains('=')
+                    }) =>
+            {
+                option.push("=");
+                option.push(&a);
+            }
+            _ => out.push(a),
+        }
+    }
+    out
 }
 
 /// A clap error on one line: what is wrong, its possible values and tip, without the usage.
