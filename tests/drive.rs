@@ -1386,3 +1386,47 @@ fn as_root_rt_strict_passes_its_placement_checks_and_runs_every_process_as_place
         );
     }
 }
+
+#[test]
+fn a_plot_that_cannot_be_drawn_leaves_the_trace_and_the_summary_whole() {
+    let (out, _) = run_ok("plotfail", &["--clock", "lockstep", "--duration", "0.05"]);
+    // A folder where a figure goes: the figure cannot be written there (an earlier run's
+    // outputs are removed, folders are not).
+    std::fs::create_dir(out.join("speed.png")).unwrap();
+    let bus = bus_id("plotfail-2");
+    let o = out.to_str().unwrap();
+    let args = [
+        "run",
+        "--bus",
+        &bus,
+        "--out",
+        o,
+        "--clock",
+        "lockstep",
+        "--duration",
+        "0.05",
+    ];
+    let r = drivelab_within(&args, Duration::from_secs(120));
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(r.status.success(), "{err}");
+    assert!(
+        err.contains("drivelab: warning: the plots were not drawn (")
+            && err.contains(&format!("`drivelab plot {o}` draws them")),
+        "{err}"
+    );
+    assert_clean(&bus);
+    let s = summary(&out);
+    assert!(
+        s["plots_error"]
+            .as_str()
+            .is_some_and(|e| e.contains("speed.png")),
+        "{}",
+        s["plots_error"]
+    );
+    assert!(s["plots"].is_null(), "{}", s["plots"]);
+    assert_eq!(s["samples"], 500);
+    assert_eq!(s["samples_missing"], 0);
+    assert!(s["failure"].is_null(), "{}", s["failure"]);
+    let rows = drivelab_runtime::trace::read_csv(&out.join("trace.csv")).unwrap();
+    assert_eq!(rows.len(), 500);
+}

@@ -608,7 +608,7 @@ fn run_bus(
         }
         None => None,
     };
-    bus::cleanup(&bus_id)?;
+    let cleaned = bus::cleanup(&bus_id);
     // Whatever ended the run, what the recorder holds is written (the failure goes into the
     // summary and the exit code); only a recorder that failed itself has nothing to give.
     let rec = match (rec, &failure) {
@@ -618,9 +618,13 @@ fn run_bus(
         (Err(e), Some(f)) => bail!("{f}; and the recorder failed: {e:#}"),
         (Err(e), None) => return Err(e),
     };
+    // Bus files that would not go fail the run, with its trace and summary written.
+    if let Err(e) = cleaned {
+        failure.get_or_insert(format!("cannot remove this drive's bus files: {e:#}"));
+    }
     let left = bus::leftovers(&bus_id);
     if !left.is_empty() {
-        bail!("bus files left behind: {}", left.join(", "));
+        failure.get_or_insert(format!("bus files left behind: {}", left.join(", ")));
     }
     let mut processes = serde_json::Map::new();
     let mut counters = serde_json::Map::new();
@@ -1589,45 +1593,64 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     }
     // A build without figures (the cross build) leaves them to `drivelab plot RUNDIR`.
     let plots = !o.no_plots && drivelab_tools::plot::AVAILABLE;
-    if plots && !curves.is_empty() {
-        let budget = Some((
-            1e6 / sc.rates.sample_hz,
-            format!("T_s = {:.0} µs", 1e6 / sc.rates.sample_hz),
-        ));
-        drivelab_tools::plot::plot_percentiles(
-            &curves,
-            &format!("{}: latency percentiles", sc.name),
-            budget,
-            true,
-            &out.join("latency"),
-        )?;
-    }
-    if plots && !rows.is_empty() {
-        let opts = drivelab_tools::plot::TraceFigureOptions {
-            current_limit_a: Some(sc.i_q_max()),
-            voltage_limit_v: Some(sc.u_max()),
-            title: format!("{} ({})", sc.name, o.clock.name()).to_lowercase(),
-            shaded_windows: windows.clone(),
-            ..Default::default()
-        };
-        let mut files = drivelab_tools::plot::plot_trace(&rows, &out, &opts)?;
-        if drivelab_runtime::wiring::polar::mode_of(&sc).is_some() || !sc.reference.i_q_a.is_empty()
-        {
-            files.extend(drivelab_tools::plot_polar::plot_polar_panels(
-                &sc,
-                &rows,
-                &out,
-                &opts.title,
-            )?);
+    // Figures are drawn from what was written: where drawing fails, the summary is still
+    // written, with the reason (`drivelab plot RUNDIR` draws them again).
+    let drawn = (|| -> Result<Vec<PathBuf>> {
+        let mut files = Vec::new();
+        if plots && !curves.is_empty() {
+            let budget = Some((
+                1e6 / sc.rates.sample_hz,
+                format!("T_s = {:.0} µs", 1e6 / sc.rates.sample_hz),
+            ));
+            drivelab_tools::plot::plot_percentiles(
+                &curves,
+                &format!("{}: latency percentiles", sc.name),
+                budget,
+                true,
+                &out.join("latency"),
+            )?;
         }
-        summary["plots"] = json!(files
-            .iter()
-            .map(|f| f
-                .file_name()
-                .unwrap_or_default()
-                .to_string_lossy()
-                .into_owned())
-            .collect::<Vec<_>>());
+        if plots && !rows.is_empty() {
+            let opts = drivelab_tools::plot::TraceFigureOptions {
+                current_limit_a: Some(sc.i_q_max()),
+                voltage_limit_v: Some(sc.u_max()),
+                title: format!("{} ({})", sc.name, o.clock.name()).to_lowercase(),
+                shaded_windows: windows.clone(),
+                ..Default::default()
+            };
+            files.extend(drivelab_tools::plot::plot_trace(&rows, &out, &opts)?);
+            if drivelab_runtime::wiring::polar::mode_of(&sc).is_some()
+                || !sc.reference.i_q_a.is_empty()
+            {
+                files.extend(drivelab_tools::plot_polar::plot_polar_panels(
+                    &sc,
+                    &rows,
+                    &out,
+                    &opts.title,
+                )?);
+            }
+        }
+        Ok(files)
+    })();
+    match drawn {
+        Ok(files) if !files.is_empty() => {
+            summary["plots"] = json!(files
+                .iter()
+                .map(|f| f
+                    .file_name()
+                    .unwrap_or_default()
+                    .to_string_lossy()
+                    .into_owned())
+                .collect::<Vec<_>>());
+        }
+        Ok(_) => {}
+        Err(e) => {
+            crate::errln!(
+                "drivelab: warning: the plots were not drawn ({e:#}); `drivelab plot {}` draws them",
+                out.display()
+            );
+            summary["plots_error"] = json!(format!("{e:#}"));
+        }
     }
     let outcomes: Vec<_> = expectations.iter().map(|e| e.evaluate(&summary)).collect();
     summary["expectations"] = serde_json::to_value(&outcomes)?;
