@@ -37,6 +37,8 @@ pub(super) struct Bridge {
     child: Child,
     stdin: Option<ChildStdin>,
     lines: mpsc::Receiver<String>,
+    /// The other machine has left (reported once by [`Bridge::lost`]).
+    left: bool,
 }
 
 /// How long the bridge may take to answer the launcher.
@@ -108,6 +110,7 @@ impl Bridge {
             stdin: child.stdin.take(),
             child,
             lines,
+            left: false,
         };
         // The joining side of a split drive retries its connection and then asks the other
         // side for its scenario.
@@ -213,10 +216,18 @@ impl Bridge {
     /// A split drive: `Some(why)` once the other machine has left the link (its bridge
     /// ended or the network failed); never blocks.
     pub fn lost(&mut self) -> Option<String> {
-        match self.lines.try_recv() {
+        let why = match self.lines.try_recv() {
             Ok(line) => line.strip_prefix("lost ").map(str::to_string),
             Err(_) => None,
-        }
+        };
+        self.left |= why.is_some();
+        why
+    }
+
+    /// A split drive: whether the other machine has left, now or before.
+    pub fn has_left(&mut self) -> bool {
+        self.lost();
+        self.left
     }
 
     /// Makes the bridge forward what is left and let go of the bus; returns its counters.

@@ -591,6 +591,13 @@ fn run_bus(
             strays.join(", ")
         );
     }
+    // After a split drive that ended well the recorder is given time to end by itself, on
+    // the end markers: the other machine's last samples may still be on the link when the
+    // hosts here have ended. (Here, every host has ended: what they published is on the
+    // bus, and the recorder takes it all when it stops.)
+    let recorder_ended = !plan_topo.away.is_empty()
+        && failure.is_none()
+        && recorder_ends_alone(&rec, bridge.as_mut());
     stop.store(true, Ordering::SeqCst);
     let rec = rec
         .join()
@@ -688,6 +695,12 @@ fn run_bus(
     if let Some(f) = unreceived(&mut gaps, produced, sc.samples(), rec.stats.rows) {
         failure.get_or_insert(f);
     }
+    if plan_topo.away.contains(&0) && failure.is_none() {
+        let end = progress.plant_end.get().copied();
+        if let Some(f) = remote_tail(&mut gaps, end, recorder_ended, sc.samples()) {
+            failure = Some(f);
+        }
+    }
     let hog_latency = progress
         .hog_latency
         .lock()
@@ -725,6 +738,71 @@ fn unreceived(gaps: &mut [Gap], produced: u64, samples: u64, recorded: u64) -> O
     any.then(|| {
         format!("the recorder received {recorded} of the {samples} samples the plant published")
     })
+}
+
+/// How long the recorder of a run that ended well may take to get the end markers.
+const END_WAIT: Duration = Duration::from_secs(5);
+
+/// How long it may still take once the other machine of a split drive has left.
+const END_GRACE: Duration = Duration::from_secs(1);
+
+/// Waits for the recorder thread `rec` to end by itself (it has both end markers), at most
+/// [`END_WAIT`], or [`END_GRACE`] once the split drive's `bridge` says the other machine
+/// has left. Whether it ended.
+fn recorder_ends_alone<T>(
+    rec: &std::thread::JoinHandle<T>,
+    mut bridge: Option<&mut bridge::Bridge>,
+) -> bool {
+    let start = Instant::now();
+    let mut limit = END_WAIT;
+    while !rec.is_finished() {
+        if bridge.as_mut().is_some_and(|b| b.has_left()) {
+            limit = limit.min(start.elapsed() + END_GRACE);
+        }
+        if start.elapsed() >= limit {
+            return false;
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    true
+}
+
+/// The measurements missing at the end of a run whose plant is on another machine, which
+/// the recorder could only label "the plant stopped" (there are no plant counters here).
+/// With the plant's end marker at the run's last sample (`end`), the plant published them
+/// and they never came: [`UNRECEIVED`]. Without an end marker, after a recorder that had
+/// to be stopped (`recorder_ended` false), it is not known whether the plant published them:
+/// the gap says that. Either fails the run with the count; None when nothing is missing at
+/// the end, or when the plant's end marker came before the end (it stopped there).
+fn remote_tail(
+    gaps: &mut [Gap],
+    end: Option<u64>,
+    recorder_ended: bool,
+    samples: u64,
+) -> Option<String> {
+    let tail = gaps.iter_mut().find(|g| {
+        g.part == "measurement" && g.to + 1 == samples && g.cause == recorder::PLANT_STOPPED
+    })?;
+    let count = tail.to + 1 - tail.from;
+    match end {
+        Some(k) if k >= samples => {
+            tail.cause = UNRECEIVED.into();
+            Some(format!(
+                "the plant's machine published samples {} to {} and they never reached the recorder",
+                tail.from, tail.to
+            ))
+        }
+        None if !recorder_ended => {
+            tail.cause = format!(
+                "not received from the plant's machine, which sent no end of the run within {} s of the run's end here",
+                END_WAIT.as_secs()
+            );
+            Some(format!(
+                "the last {count} samples did not come from the plant's machine (no end of the run from it)"
+            ))
+        }
+        _ => None,
+    }
 }
 
 /// The run's bus: `--bus`, or this process's id.
@@ -1956,6 +2034,70 @@ mod tests {
         assert_eq!(unreceived(&mut gaps, 990, 1000, 990), None);
         assert_eq!(gaps[0].cause, "fault");
         assert_eq!(unreceived(&mut [], 1000, 1000, 1000), None);
+    }
+
+    #[test]
+    fn the_missing_end_of_a_remote_plant_says_whether_it_was_published() {
+        let stopped = |from, to| Gap {
+            cause: recorder::PLANT_STOPPED.into(),
+            ..gap(from, to, "measurement")
+        };
+        // The plant's end marker at the run's end: the samples after the newest one
+        // received were published and never came.
+        let mut gaps = vec![gap(10, 19, "measurement"), stopped(990, 999)];
+        let f = remote_tail(&mut gaps, Some(1000), true, 1000).unwrap();
+        assert_eq!(
+            f,
+            "the plant's machine published samples 990 to 999 and they never reached the recorder"
+        );
+        assert_eq!(gaps[1].cause, UNRECEIVED);
+        assert_eq!(
+            gaps[0].cause, "fault",
+            "a gap before the end keeps its cause"
+        );
+        // No end marker, and the recorder had to be stopped: not known.
+        let mut gaps = vec![stopped(990, 999)];
+        let f = remote_tail(&mut gaps, None, false, 1000).unwrap();
+        assert_eq!(
+            f,
+            "the last 10 samples did not come from the plant's machine (no end of the run from it)"
+        );
+        assert_eq!(
+            gaps[0].cause,
+            "not received from the plant's machine, which sent no end of the run within 5 s of the run's end here"
+        );
+        // The plant ended before the run's end (its end marker says where): it stopped.
+        let mut gaps = vec![stopped(990, 999)];
+        assert_eq!(remote_tail(&mut gaps, Some(990), true, 1000), None);
+        assert_eq!(gaps[0].cause, recorder::PLANT_STOPPED);
+        // Nothing missing at the end, or a tail another cause already explains.
+        assert_eq!(
+            remote_tail(&mut [gap(5, 6, "measurement")], None, false, 1000),
+            None
+        );
+        assert_eq!(
+            remote_tail(&mut [gap(990, 999, "measurement")], None, false, 1000),
+            None
+        );
+        assert_eq!(remote_tail(&mut [], Some(1000), true, 1000), None);
+    }
+
+    #[test]
+    fn the_recorder_is_waited_for_until_it_ends_or_the_wait_is_over() {
+        let quick = std::thread::spawn(|| std::thread::sleep(Duration::from_millis(50)));
+        assert!(recorder_ends_alone(&quick, None));
+        // A recorder that never gets its end markers is given END_WAIT, not forever.
+        let (tx, rx) = mpsc::channel::<()>();
+        let stuck = std::thread::spawn(move || {
+            let _ = rx.recv();
+        });
+        let t = Instant::now();
+        assert!(!recorder_ends_alone(&stuck, None));
+        let waited = t.elapsed();
+        assert!(waited >= END_WAIT, "{waited:?}");
+        drop(tx);
+        stuck.join().unwrap();
+        quick.join().unwrap();
     }
 
     #[test]

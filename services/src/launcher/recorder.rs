@@ -87,6 +87,10 @@ pub(super) struct Progress {
     /// The recorder stopped on an error (a trace it cannot write): the drive stops at once,
     /// instead of waiting for a reader that is gone.
     pub failed: std::sync::atomic::AtomicBool,
+    /// The sample of the plant's end marker, once the recorder has it: the plant published
+    /// every sample before it since its last start (a plant on another machine has no
+    /// counters here to say so).
+    pub plant_end: std::sync::OnceLock<u64>,
 }
 
 /// The newest truth sample the recorder had read, and the truth topic's wake count taken
@@ -210,6 +214,7 @@ pub(super) fn run_recorder(
             }
             if m.hdr.is_end() {
                 meas_end = true;
+                let _ = progress.plant_end.set(m.hdr.k);
                 continue;
             }
             trace.meas(m, rejoins)?;
@@ -292,7 +297,9 @@ pub(super) fn run_recorder(
         if (meas_end && cmd_end) || stop.load(Ordering::SeqCst) {
             // Take what is still buffered, then stop.
             while let Some(m) = meas_rx.try_recv()? {
-                if !m.hdr.is_end() && !m.hdr.is_warmup() {
+                if m.hdr.is_end() {
+                    let _ = progress.plant_end.set(m.hdr.k);
+                } else if !m.hdr.is_warmup() {
                     trace.meas(m, rejoins)?;
                 }
             }
@@ -346,6 +353,9 @@ pub(super) fn attribute_gaps(gaps: &mut [Gap], faults: &[FaultReport], fs: f64) 
 /// the recorder read too slowly and the bus's buffer dropped it.
 pub(super) const LOST_IN_BUFFER: &str =
     "measurement lost between plant and recorder (recorder buffer overflow)";
+
+/// Why a measurement after the newest one received is missing when nothing else is known.
+pub(super) const PLANT_STOPPED: &str = "the plant stopped before this sample";
 
 /// Names the crash in the measurement gaps left while the plant's process (`plant_process`)
 /// was down after a crash nobody injected, which no fault report covers: from the
@@ -415,7 +425,7 @@ mod tests {
     }
 
     const LOST: &str = LOST_IN_BUFFER;
-    const STOPPED: &str = "the plant stopped before this sample";
+    const STOPPED: &str = PLANT_STOPPED;
 
     /// Which samples were recorded: a measurement where `meas` says so and a command where
     /// `cmd` says so.

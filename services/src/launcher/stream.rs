@@ -5,7 +5,7 @@
 //! plots) every row around each disturbance and reference step and every d-th row between
 //! them, and says so in its summary.
 
-use super::recorder::{missing_command_cause, push_gap, Gap, LOST_IN_BUFFER};
+use super::recorder::{missing_command_cause, push_gap, Gap, LOST_IN_BUFFER, PLANT_STOPPED};
 use anyhow::Result;
 use drivelab_runtime::config::Scenario;
 use drivelab_runtime::drive::trace_row;
@@ -507,7 +507,7 @@ impl TraceStream {
                     let cause = if self.newest.is_some_and(|l| k < l) {
                         LOST_IN_BUFFER
                     } else {
-                        "the plant stopped before this sample"
+                        PLANT_STOPPED
                     };
                     self.gap(k, "measurement", cause);
                 }
