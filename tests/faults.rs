@@ -299,8 +299,12 @@ fn sigkill_of_each_service_is_detected_made_safe_restarted_and_recovered() {
             assert!(!down.is_empty(), "{f}");
             assert_eq!(pd["samples"].as_u64(), Some(down.len() as u64));
             assert_eq!(s["plant_down_samples"].as_u64(), Some(down.len() as u64));
-            // One contiguous run, safe from its 4th sample on.
+            // One contiguous run, safe from its 4th sample on, where the summary says.
             assert_eq!(down.last().unwrap().k - down[0].k + 1, down.len() as u64);
+            assert_eq!(
+                s["plant_down_ranges"],
+                serde_json::json!([[down[0].k, down.last().unwrap().k]])
+            );
             assert!(down[..3]
                 .iter()
                 .all(|r| r.plant_flags & FLAG_SAFE_STATE == 0));

@@ -283,49 +283,95 @@ fn percentiles_us(v: &mut [u64]) -> serde_json::Value {
     json!({ "p50": at(0.5), "p99": at(0.99), "p999": at(0.999), "max": at(1.0) })
 }
 
-/// The drive's own missing samples from its summary: (from, to, part, cause).
+/// Why a remote recording lacks the samples of a plant downtime the drive rebuilt.
+const REBUILT_THERE: &str = "the plant was down: the drive's trace has these samples rebuilt, which were never published to send (not rebuilt here)";
+
+/// What the drive's summary says of its samples that no plant published: its own missing
+/// samples, and its rebuilt downtimes (`plant_down_ranges`, measurements): (from, to, part,
+/// cause).
 fn drive_gaps(summary: &serde_json::Value) -> Vec<(u64, u64, String, String)> {
-    summary["missing_samples"]
+    let missing = summary["missing_samples"].as_array().into_iter().flatten();
+    let missing = missing.filter_map(|g| {
+        Some((
+            g["from"].as_u64()?,
+            g["to"].as_u64()?,
+            g["part"].as_str()?.to_string(),
+            g["cause"].as_str()?.to_string(),
+        ))
+    });
+    let rebuilt = summary["plant_down_ranges"]
         .as_array()
-        .map(|a| {
-            a.iter()
-                .filter_map(|g| {
-                    Some((
-                        g["from"].as_u64()?,
-                        g["to"].as_u64()?,
-                        g["part"].as_str()?.to_string(),
-                        g["cause"].as_str()?.to_string(),
-                    ))
-                })
-                .collect()
-        })
-        .unwrap_or_default()
+        .into_iter()
+        .flatten();
+    let rebuilt = rebuilt.filter_map(|r| {
+        Some((
+            r[0].as_u64()?,
+            r[1].as_u64()?,
+            "measurement".to_string(),
+            REBUILT_THERE.to_string(),
+        ))
+    });
+    missing.chain(rebuilt).collect()
 }
 
 /// The causes of a remote recording's gaps: before its first sample, the samples were never
-/// offered to it (older than the bridge's history); a gap the drive's own trace has too
-/// keeps the drive's cause; any other was lost between the drive and this recorder (only
-/// known when the drive's summary, `have_drive`, arrived).
+/// offered to it (older than the bridge's history); the samples of a gap that the drive
+/// lacks too, or rebuilt, keep the drive's cause (a gap is split where the drive's causes
+/// change); any other was lost between the drive and this recorder (only known when the
+/// drive's summary, `have_drive`, arrived).
 fn remote_gaps(
-    mut gaps: Vec<Gap>,
+    gaps: Vec<Gap>,
     first_k: Option<u64>,
     drive: &[(u64, u64, String, String)],
     have_drive: bool,
 ) -> Vec<Gap> {
-    for g in gaps.iter_mut() {
-        let theirs = drive
-            .iter()
-            .find(|(from, to, part, _)| part == g.part && *from <= g.from && g.from <= *to);
+    let lost = "lost between the drive and the remote recorder (the bridge's bus buffer overflowed or the link dropped it)";
+    let mut out = Vec::new();
+    for g in gaps {
         if first_k.is_none_or(|f| g.to < f) {
-            g.cause = "before the remote recorder's first sample (older than the bridge's history)"
-                .into();
-        } else if let Some((.., cause)) = theirs {
-            g.cause = cause.clone();
-        } else if have_drive {
-            g.cause = "lost between the drive and the remote recorder (the bridge's bus buffer overflowed or the link dropped it)".into();
+            out.push(Gap {
+                cause:
+                    "before the remote recorder's first sample (older than the bridge's history)"
+                        .into(),
+                ..g
+            });
+            continue;
+        }
+        if !have_drive {
+            out.push(g);
+            continue;
+        }
+        // The drive's ranges of this part that overlap the gap, in order.
+        let mut theirs: Vec<_> = drive
+            .iter()
+            .filter(|(from, to, part, _)| part == g.part && *from <= g.to && g.from <= *to)
+            .collect();
+        theirs.sort_by_key(|(from, ..)| *from);
+        let mut next = g.from;
+        let mut piece = |from: u64, to: u64, cause: &str| {
+            if from <= to {
+                out.push(Gap {
+                    from,
+                    to,
+                    part: g.part,
+                    cause: cause.to_string(),
+                });
+            }
+        };
+        for (from, to, _, cause) in theirs {
+            let (a, b) = ((*from).max(next), (*to).min(g.to));
+            if a > b {
+                continue;
+            }
+            piece(next, a - 1, lost);
+            piece(a, b, cause);
+            next = b + 1;
+        }
+        if next <= g.to {
+            piece(next, g.to, lost);
         }
     }
-    gaps
+    out
 }
 
 #[cfg(test)]
@@ -369,5 +415,50 @@ mod tests {
         assert!(none[0]
             .cause
             .starts_with("before the remote recorder's first sample"));
+    }
+
+    #[test]
+    fn a_gap_is_split_where_the_drives_causes_change() {
+        let lost = "measurement lost between plant and recorder (recorder buffer overflow)";
+        let g = |from, to| Gap {
+            from,
+            to,
+            part: "measurement",
+            cause: lost.into(),
+        };
+        // The drive: its plant down and rebuilt at 500..519, then missing 520..529 (a kill
+        // it could not rebuild), a command gap that is no measurement's business.
+        let summary = json!({
+            "missing_samples": [
+                { "from": 520, "to": 529, "part": "measurement", "cause": "plant kill at sample 520" },
+                { "from": 495, "to": 540, "part": "command", "cause": "the current loop was down" },
+            ],
+            "plant_down_ranges": [[500, 519]],
+        });
+        let drive = drive_gaps(&summary);
+        assert_eq!(drive.len(), 3);
+        // The remote recording lacks 490..534: lost, rebuilt there, the drive's kill, lost.
+        let out = remote_gaps(vec![g(490, 534)], Some(0), &drive, true);
+        let pieces: Vec<_> = out
+            .iter()
+            .map(|g| (g.from, g.to, g.cause.as_str()))
+            .collect();
+        let lost_here = "lost between the drive and the remote recorder (the bridge's bus buffer overflowed or the link dropped it)";
+        assert_eq!(
+            pieces,
+            [
+                (490, 499, lost_here),
+                (500, 519, REBUILT_THERE),
+                (520, 529, "plant kill at sample 520"),
+                (530, 534, lost_here),
+            ]
+        );
+        // A gap inside one of the drive's: one piece, its cause.
+        let out = remote_gaps(vec![g(505, 510)], Some(0), &drive, true);
+        assert_eq!(out.len(), 1);
+        assert_eq!((out[0].from, out[0].to), (505, 510));
+        assert_eq!(out[0].cause, REBUILT_THERE);
+        // A summary without the ranges (an older drive): the gaps as before.
+        assert_eq!(drive_gaps(&json!({})), []);
     }
 }

@@ -671,7 +671,7 @@ fn run_bus(
         }
         processes.insert(c.name.clone(), entry);
     }
-    let mut info = json!({ "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "recorder_late": rec.late, "plan": plan, "plant_down_samples": rec.rebuilt, "schedule_start_ns": rec.t0_ns });
+    let mut info = json!({ "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "recorder_late": rec.late, "plan": plan, "plant_down_samples": rec.rebuilt, "plant_down_ranges": rec.rebuilt_ranges, "schedule_start_ns": rec.t0_ns });
     if let Some(b) = bridge_stats {
         info["bridge"] = b;
     }
@@ -1627,8 +1627,10 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         summary["bus"] = b.clone();
     }
     if let Some(r) = info.get("plant_down_samples") {
-        // Samples of the plant's downtimes, rebuilt (plant_flags bit 64).
+        // Samples of the plant's downtimes, rebuilt (plant_flags bit 64), and where: [first,
+        // last] of each downtime.
         summary["plant_down_samples"] = r.clone();
+        summary["plant_down_ranges"] = info["plant_down_ranges"].clone();
     }
     if let Some(b) = info.get("bridge") {
         // What the Zenoh bridge forwarded, refused and rejected.

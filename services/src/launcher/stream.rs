@@ -264,6 +264,8 @@ pub struct TraceStream {
     pub stats: TraceStats,
     /// Samples of the plant's downtimes rebuilt.
     pub rebuilt: u64,
+    /// The rebuilt downtimes, first and last sample of each.
+    pub rebuilt_ranges: Vec<(u64, u64)>,
     /// Messages that arrived after their sample had left the window (too late to be used).
     pub late: u64,
     /// Messages with an index beyond the run (malformed).
@@ -325,6 +327,7 @@ impl TraceStream {
             },
             keep,
             rebuilt: 0,
+            rebuilt_ranges: Vec::new(),
             late: 0,
             rejected: 0,
             t0_ns: None,
@@ -483,6 +486,9 @@ impl TraceStream {
                 for t in rebuilt.iter().filter(|t| t.hdr.k >= from) {
                     self.row(t, None)?;
                     self.rebuilt += 1;
+                }
+                if from < b {
+                    self.rebuilt_ranges.push((from, b - 1));
                 }
                 self.next = self.next.max(b);
                 return Ok(());
