@@ -740,6 +740,10 @@ fn unreceived(gaps: &mut [Gap], produced: u64, samples: u64, recorded: u64) -> O
     })
 }
 
+/// The start of the cause of a split drive's last measurements that never came and may not
+/// have been published.
+const NOT_FROM_PLANT_MACHINE: &str = "not received from the plant's machine";
+
 /// How long the recorder of a run that ended well may take to get the end markers.
 const END_WAIT: Duration = Duration::from_secs(5);
 
@@ -794,7 +798,7 @@ fn remote_tail(
         }
         None if !recorder_ended => {
             tail.cause = format!(
-                "not received from the plant's machine, which sent no end of the run within {} s of the run's end here",
+                "{NOT_FROM_PLANT_MACHINE}, which sent no end of the run within {} s of the run's end here",
                 END_WAIT.as_secs()
             );
             Some(format!(
@@ -1773,10 +1777,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
 /// run's last sample (of `samples`) says the run ended early, and why (`failure`). Not one
 /// the plant is known to have published ([`unreceived`]): the run reached its end there.
 fn ended_early(gaps: &mut [Gap], samples: u64, failure: &str) {
-    for g in gaps
-        .iter_mut()
-        .filter(|g| g.to + 1 == samples && g.cause != UNRECEIVED)
-    {
+    for g in gaps.iter_mut().filter(|g| {
+        g.to + 1 == samples && g.cause != UNRECEIVED && !g.cause.starts_with(NOT_FROM_PLANT_MACHINE)
+    }) {
         g.cause = format!("the run ended early: {failure}");
     }
 }
@@ -2125,6 +2128,18 @@ mod tests {
         let f = unreceived(&mut gaps, 1000, 1000, 900).unwrap();
         ended_early(&mut gaps, 1000, &f);
         assert_eq!(gaps[0].cause, UNRECEIVED);
+        // Nor does a split drive's tail that never came from the plant's machine.
+        let mut gaps = vec![Gap {
+            cause: recorder::PLANT_STOPPED.into(),
+            ..gap(900, 999, "measurement")
+        }];
+        let f = remote_tail(&mut gaps, None, false, 1000).unwrap();
+        ended_early(&mut gaps, 1000, &f);
+        assert!(
+            gaps[0].cause.starts_with(NOT_FROM_PLANT_MACHINE),
+            "{}",
+            gaps[0].cause
+        );
     }
 
     #[test]
