@@ -799,10 +799,11 @@ fn a_passive_load_never_drives_the_motor_backwards_when_the_speed_loop_dies() {
 }
 
 #[test]
-fn a_fault_planned_after_the_drive_stopped_is_named_not_dropped() {
+fn a_fault_planned_after_the_drive_stopped_is_named_and_fails_the_run() {
     let _serial = serial();
     // With --restart never a killed plant stops the drive (no plant, no drive); the kill of
-    // the observer planned after it can no longer be made, and the run says so.
+    // the observer planned after it can no longer be made: the run did not test what it was
+    // asked to, and fails (exit 1) with its trace and summary written.
     let dir = scratch("latefault");
     let bus = bus_id("latefault");
     let out = dir.join("run");
@@ -823,7 +824,7 @@ fn a_fault_planned_after_the_drive_stopped_is_named_not_dropped() {
         "--no-plots",
     ]);
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{err}");
+    assert_eq!(o.status.code(), Some(1), "{err}");
     assert_clean(&bus);
     let s = summary(&out);
     let refused: Vec<&str> = s["supervisor_events"]
@@ -840,12 +841,68 @@ fn a_fault_planned_after_the_drive_stopped_is_named_not_dropped() {
         "{}",
         refused[0]
     );
+    assert_eq!(s["faults_not_made"], serde_json::json!([refused[0]]));
+    let failure = format!("a planned fault was not made: {}", refused[0]);
+    assert_eq!(s["failure"], failure.as_str());
+    let last = err.lines().last().unwrap_or("");
     assert!(
-        err.lines()
-            .any(|l| l == format!("drivelab: warning: fault not made: {}", refused[0])),
+        last.starts_with(&format!(
+            "drivelab: error: {failure} (what was recorded is in "
+        )),
         "{err}"
     );
     assert_eq!(s["faults"].as_array().unwrap().len(), 1, "{s}");
+    // The drive ran to its end without its plant: its gap is the kill's, not the failure's.
+    let gaps = s["missing_samples"].as_array().unwrap();
+    assert!(
+        gaps.iter().all(|g| !g["cause"]
+            .as_str()
+            .unwrap()
+            .starts_with("the run ended early")),
+        "{s}"
+    );
+}
+
+#[test]
+fn a_planned_fault_whose_process_is_down_is_not_made_and_fails_the_run() {
+    let _serial = serial();
+    // The observer is killed and never restarted: its stop, planned later, has no process.
+    let dir = scratch("skipfault");
+    let bus = bus_id("skipfault");
+    let out = dir.join("run");
+    let o = drivelab(&[
+        "run",
+        "--bus",
+        &bus,
+        "--duration",
+        "0.5",
+        "--restart",
+        "never",
+        "--fault",
+        "kill:observer@0.1",
+        "--fault",
+        "stop:observer@0.3:0.02",
+        "--expect",
+        "faults.*.detected_data_path_ms <= 2",
+        "--out",
+        out.to_str().unwrap(),
+        "--no-plots",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert_clean(&bus);
+    let s = summary(&out);
+    let why = "stop:observer@0.3:0.02: not injected: its process is not running (process observer)";
+    assert_eq!(s["faults_not_made"], serde_json::json!([why]), "{s}");
+    assert!(
+        err.lines().last().unwrap_or("").starts_with(&format!(
+            "drivelab: error: a planned fault was not made: {why} (what was recorded is in "
+        )),
+        "{err}"
+    );
+    // The kill was made and reported, and every sample is in the trace.
+    assert_eq!(s["faults"].as_array().unwrap().len(), 1, "{s}");
+    assert_eq!(s["samples"], s["samples_expected"], "{s}");
 }
 
 /// Sends `sig` to `pid`, a process of this test's own drive (a negative pid: its group).

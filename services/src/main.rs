@@ -1066,12 +1066,16 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                         who.join(", ")
                     );
                 }
-                // A fault asked for and not made (refused, or the drive ended first).
+                // A fault a monitor asked for and not made (refused, or its process was
+                // down); a planned one not made fails the run.
                 for e in s["supervisor_events"].as_array().into_iter().flatten() {
+                    let detail = e["detail"].as_str().unwrap_or("");
                     if e["event"] == "inject-refused" {
+                        drivelab_services::errln!("drivelab: warning: fault not made: {detail}");
+                    } else if e["event"] == "inject-skipped" {
                         drivelab_services::errln!(
-                            "drivelab: warning: fault not made: {}",
-                            e["detail"].as_str().unwrap_or("")
+                            "drivelab: warning: fault not made: {}: {detail}",
+                            e["service"].as_str().unwrap_or("")
                         );
                     }
                 }

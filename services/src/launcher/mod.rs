@@ -671,7 +671,12 @@ fn run_bus(
         }
         processes.insert(c.name.clone(), entry);
     }
-    let mut info = json!({ "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "recorder_late": rec.late, "plan": plan, "plant_down_samples": rec.rebuilt, "plant_down_ranges": rec.rebuilt_ranges, "schedule_start_ns": rec.t0_ns });
+    let not_made = progress
+        .not_made
+        .lock()
+        .map(|mut v| std::mem::take(&mut *v))
+        .unwrap_or_default();
+    let mut info = json!({ "faults_not_made": not_made, "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "recorder_late": rec.late, "plan": plan, "plant_down_samples": rec.rebuilt, "plant_down_ranges": rec.rebuilt_ranges, "schedule_start_ns": rec.t0_ns });
     if let Some(b) = bridge_stats {
         info["bridge"] = b;
     }
@@ -1653,6 +1658,18 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     if let Some(r) = info.get("recorder_late") {
         // Messages that came after their sample had left the window (as a row or a gap).
         summary["recorder_late"] = r.clone();
+    }
+    // A planned fault that was not made (its process was down, the drive ended first): the
+    // run did not test what it was asked to, and fails with them (after the gaps were named:
+    // the drive itself ran to its end).
+    let mut failure = failure;
+    if let Some(list) = info["faults_not_made"].as_array().filter(|l| !l.is_empty()) {
+        summary["faults_not_made"] = json!(list);
+        let first = list[0].as_str().unwrap_or("");
+        failure.get_or_insert(match list.len() {
+            1 => format!("a planned fault was not made: {first}"),
+            n => format!("{n} planned faults were not made, the first: {first}"),
+        });
     }
     summary["failure"] = json!(failure);
     let Histograms {

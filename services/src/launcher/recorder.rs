@@ -91,6 +91,9 @@ pub(super) struct Progress {
     /// every sample before it since its last start (a plant on another machine has no
     /// counters here to say so).
     pub plant_end: std::sync::OnceLock<u64>,
+    /// The faults of the run's plan (not a monitor's requests) that were not made, each
+    /// with why: the run fails with them, as it did not test what it was asked to.
+    pub not_made: std::sync::Mutex<Vec<String>>,
 }
 
 /// The newest truth sample the recorder had read, and the truth topic's wake count taken

@@ -251,6 +251,13 @@ impl Serialize for SupEvent {
     }
 }
 
+/// Notes a fault of the run's plan that was not made, with why (`Progress::not_made`).
+fn not_made(progress: &Progress, why: String) {
+    if let Ok(mut v) = progress.not_made.lock() {
+        v.push(why);
+    }
+}
+
 /// Lockstep and in process: an `inject-simulated` event for each kill and stop of the
 /// scenario's schedule, at its sample (docs/architecture.md, "Fault model").
 pub fn simulated_events(sc: &Scenario, topo: &TopologyPlan) -> Vec<SupEvent> {
@@ -381,9 +388,11 @@ pub(super) fn supervise(
                     hog: h.clone(),
                     pid,
                 },
-                Err(e) => EventKind::InjectRefused {
-                    reason: format!("{}: {e:#}", h.describe()),
-                },
+                Err(e) => {
+                    let reason = format!("{}: {e:#}", h.describe());
+                    not_made(progress, reason.clone());
+                    EventKind::InjectRefused { reason }
+                }
             };
             log(events, kind, &format!("cpu{}", h.cpu), "hog");
             if let (Some(e), Some(k)) = (events.last_mut(), k_start) {
@@ -427,6 +436,17 @@ pub(super) fn supervise(
                 }
             };
             let injected = matches!(kind, EventKind::Inject { .. });
+            if !injected && monitor_pid.is_none() {
+                not_made(
+                    progress,
+                    format!(
+                        "{}: not injected: {} (process {})",
+                        f.spec(),
+                        kind.detail(),
+                        c.proc.name
+                    ),
+                );
+            }
             log(events, kind, &f.service, &c.proc.name);
             if let (true, Some(e), Some(k)) = (injected, events.last_mut(), k_signal) {
                 e.k = e.k.max(k);
@@ -595,6 +615,7 @@ pub(super) fn supervise(
             "{spec}: not injected: the drive ended at sample {k_end}, before the fault's sample {}",
             (at_s * fs).round() as u64
         );
+        not_made(progress, reason.clone());
         log(events, EventKind::InjectRefused { reason }, "-", "-");
     }
     Ok(None)
