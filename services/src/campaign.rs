@@ -104,8 +104,12 @@ fn stop_default() -> f64 {
 pub struct Case {
     /// 1-based number.
     pub number: usize,
-    /// Scenario name or file.
+    /// Scenario name or file (a file's path resolved from the campaign file's folder).
     pub scenario: String,
+    /// The scenario as the campaign file names it: the name in the reports, the same
+    /// wherever the campaign is started from.
+    #[serde(skip)]
+    pub label: String,
     /// Its faults (`--fault` specs).
     pub faults: Vec<String>,
     /// Fault seed.
@@ -117,7 +121,7 @@ impl Case {
     pub fn title(&self) -> String {
         format!(
             "{} [{}] seed {}",
-            self.scenario,
+            self.label,
             if self.faults.is_empty() {
                 "no fault".to_string()
             } else {
@@ -325,7 +329,7 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
     c.topology = c.topology.as_ref().map(beside);
     let mut scenarios = Vec::new();
     for s in &c.scenarios {
-        let s = beside(s);
+        let (written, s) = (s.clone(), beside(s));
         let mut sc = launcher::load_scenario(&s, None)
             .map_err(|e| anyhow!("campaign {}: {e:#}", file.display()))?;
         if let Some(d) = c.duration_s {
@@ -336,15 +340,16 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
         }
         crate::expect::collect(&sc.expect, &s, &[])
             .map_err(|e| anyhow!("campaign {}: {e}", file.display()))?;
-        scenarios.push(s);
+        scenarios.push((written, s));
     }
     let mut cases = Vec::with_capacity(n);
-    for sc in &scenarios {
+    for (label, sc) in &scenarios {
         for set in &sets {
             for &seed in &c.seeds {
                 cases.push(Case {
                     number: cases.len() + 1,
                     scenario: sc.clone(),
+                    label: label.clone(),
                     faults: set.clone(),
                     seed,
                 });
@@ -481,8 +486,13 @@ fn cell(v: Option<&Value>) -> String {
 /// The Markdown table of a campaign.
 pub fn markdown(name: &str, purpose: &str, results: &[CaseResult]) -> String {
     let count = |s: &str| results.iter().filter(|r| r.status == s).count();
+    let purpose = if purpose.trim().is_empty() {
+        String::new()
+    } else {
+        format!("{}\n\n", purpose.trim())
+    };
     let mut md = format!(
-        "# Campaign {name}\n\n{purpose}\n\n{} runs: {} passed, {} failed, {} errors, {} skipped.\n\n",
+        "# Campaign {name}\n\n{purpose}{} runs: {} passed, {} failed, {} errors, {} skipped.\n\n",
         results.len(),
         count("pass"),
         count("fail"),
@@ -520,7 +530,7 @@ pub fn markdown(name: &str, purpose: &str, results: &[CaseResult]) -> String {
         md.push_str(&format!(
             "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
             r.case.number,
-            r.case.scenario,
+            r.case.label,
             if r.case.faults.is_empty() {
                 "–".to_string()
             } else {
@@ -538,9 +548,39 @@ pub fn markdown(name: &str, purpose: &str, results: &[CaseResult]) -> String {
     md
 }
 
+/// `s` with the characters XML 1.0 cannot carry (control characters other than tab, line
+/// feed and carriage return; U+FFFE, U+FFFF) replaced by U+FFFD: a report that a CI reader
+/// cannot parse would lose every case.
+fn xml_safe(s: &str) -> std::borrow::Cow<'_, str> {
+    let bad = |c: char| {
+        (c.is_control() && !matches!(c, '\t' | '\n' | '\r') && c < ' ')
+            || matches!(c, '\u{FFFE}' | '\u{FFFF}')
+    };
+    if s.chars().any(bad) {
+        s.chars()
+            .map(|c| if bad(c) { '\u{FFFD}' } else { c })
+            .collect::<String>()
+            .into()
+    } else {
+        s.into()
+    }
+}
+
+/// A property's value: a number in full (the shortest form that reads back the same), so
+/// that it can be set beside a failed limit.
+fn property_value(v: &Value) -> String {
+    match v {
+        Value::String(s) => s.clone(),
+        other => other.to_string(),
+    }
+}
+
 /// The JUnit XML report: one test suite, one test case per run with its figures as
-/// properties, a `<failure>` per failed expectation, an `<error>` for a run that did not
-/// complete and `<skipped/>` for one that never started.
+/// properties, one `<failure>` for the failed expectations (one element: several in one
+/// case are shown, or even read, by few CI readers), an `<error>` for a run that did not
+/// complete and `<skipped/>` for one that never started. A test case's class is the
+/// campaign's name and the scenario as the campaign file names it, a `.toml` file by its
+/// stem (a reader takes dots for package separators).
 pub fn junit(name: &str, results: &[CaseResult]) -> Result<String> {
     use quick_xml::events::{BytesDecl, BytesEnd, BytesStart, BytesText, Event};
     let count = |s: &str| results.iter().filter(|r| r.status == s).count().to_string();
@@ -549,7 +589,7 @@ pub fn junit(name: &str, results: &[CaseResult]) -> Result<String> {
     w.write_event(Event::Decl(BytesDecl::new("1.0", Some("UTF-8"), None)))?;
     let totals = |tag: &str| {
         let mut e = BytesStart::new(tag.to_string());
-        e.push_attribute(("name", name));
+        e.push_attribute(("name", xml_safe(name).as_ref()));
         e.push_attribute(("tests", results.len().to_string().as_str()));
         e.push_attribute(("failures", count("fail").as_str()));
         e.push_attribute(("errors", count("error").as_str()));
@@ -561,49 +601,66 @@ pub fn junit(name: &str, results: &[CaseResult]) -> Result<String> {
     w.write_event(Event::Start(totals("testsuite")))?;
     for r in results {
         let mut tc = BytesStart::new("testcase");
-        tc.push_attribute(("classname", format!("{name}.{}", r.case.scenario).as_str()));
-        tc.push_attribute(("name", r.case.title().as_str()));
+        let label = &r.case.label;
+        let class = match label.strip_suffix(".toml") {
+            Some(_) => Path::new(label)
+                .file_stem()
+                .map_or(label.clone(), |s| s.to_string_lossy().into_owned()),
+            None => label.clone(),
+        };
+        tc.push_attribute(("classname", xml_safe(&format!("{name}.{class}")).as_ref()));
+        tc.push_attribute(("name", xml_safe(&r.case.title()).as_ref()));
         tc.push_attribute(("time", format!("{:.3}", r.wall_s).as_str()));
         w.write_event(Event::Start(tc))?;
         w.write_event(Event::Start(BytesStart::new("properties")))?;
-        let mut props: Vec<(String, String)> = vec![
-            ("run_folder".into(), r.out.display().to_string()),
-            ("seed".into(), r.case.seed.to_string()),
-        ];
+        let mut props: Vec<(String, String)> = vec![("seed".into(), r.case.seed.to_string())];
+        // A run that never made its folder has none to point to.
+        if r.out.is_dir() {
+            props.push(("run_folder".into(), r.out.display().to_string()));
+        }
         // A figure the run does not have (no fault, no rise) is left out.
         for (k, v) in r.figures.iter().filter(|(_, v)| !v.is_null()) {
-            props.push((k.clone(), cell(Some(v))));
+            props.push((k.clone(), property_value(v)));
         }
         for (k, v) in props {
             let mut p = BytesStart::new("property");
-            p.push_attribute(("name", k.as_str()));
-            p.push_attribute(("value", v.as_str()));
+            p.push_attribute(("name", xml_safe(&k).as_ref()));
+            p.push_attribute(("value", xml_safe(&v).as_ref()));
             w.write_event(Event::Empty(p))?;
         }
         w.write_event(Event::End(BytesEnd::new("properties")))?;
         let mut element = |tag: &str, kind: &str, message: &str, body: &str| -> Result<()> {
             let mut f = BytesStart::new(tag.to_string());
             f.push_attribute(("type", kind));
-            f.push_attribute(("message", message));
+            f.push_attribute(("message", xml_safe(message).as_ref()));
             w.write_event(Event::Start(f))?;
-            w.write_event(Event::Text(BytesText::new(body)))?;
+            w.write_event(Event::Text(BytesText::new(&xml_safe(body))))?;
             w.write_event(Event::End(BytesEnd::new(tag.to_string())))?;
             Ok(())
         };
-        for e in r.expectations.iter().filter(|e| !e.pass) {
-            let values: Vec<String> = e
-                .values
+        let failed: Vec<&Outcome> = r.expectations.iter().filter(|e| !e.pass).collect();
+        if !failed.is_empty() {
+            let message: Vec<String> = failed.iter().map(|e| e.violation()).collect();
+            let values: Vec<String> = failed
                 .iter()
-                .map(|c| {
-                    format!(
-                        "{} = {} ({})",
-                        c.figure,
-                        c.value.map_or("not a number".into(), |v| v.to_string()),
-                        if c.pass { "ok" } else { "violates" }
-                    )
+                .flat_map(|e| {
+                    e.values.iter().map(|c| {
+                        format!(
+                            "{}: {} = {} ({})",
+                            e.expect,
+                            c.figure,
+                            c.value.map_or("not a number".into(), |v| v.to_string()),
+                            if c.pass { "ok" } else { "violates" }
+                        )
+                    })
                 })
                 .collect();
-            element("failure", "expectation", &e.violation(), &values.join("\n"))?;
+            element(
+                "failure",
+                "expectation",
+                &message.join("; "),
+                &values.join("\n"),
+            )?;
         }
         if let Some(err) = &r.error {
             element("error", "run", err.lines().next().unwrap_or(""), err)?;
@@ -789,4 +846,98 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
     } else {
         0
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn case(label: &str, status: &'static str, out: PathBuf) -> CaseResult {
+        CaseResult {
+            case: Case {
+                number: 1,
+                scenario: format!("/somewhere/{label}"),
+                label: label.into(),
+                faults: Vec::new(),
+                seed: 1,
+            },
+            status,
+            out,
+            error: None,
+            expectations: Vec::new(),
+            figures: serde_json::Map::new(),
+            wall_s: 0.5,
+        }
+    }
+
+    #[test]
+    fn the_junit_report_reads_back_with_one_failure_per_case_and_figures_in_full() {
+        let here = std::env::temp_dir();
+        let mut failed = case("sub/my<&\"scenario\u{1}.toml", "fail", here.clone());
+        let summary = json!({ "peak_current_a": 3.24, "samples_missing": 2 });
+        failed.expectations = ["peak_current_a <= 3.2", "samples_missing == 0"]
+            .iter()
+            .map(|t| crate::expect::parse(t).unwrap().evaluate(&summary))
+            .collect();
+        failed.figures.insert("peak_current_a".into(), json!(3.24));
+        let mut error = case("kyslan-pi", "error", here.join("no-such-run-folder-here"));
+        error.error = Some("the drive did not start\u{7}".into());
+        let xml = junit("night\u{1b}ly", &[failed, error]).unwrap();
+        let doc = roxmltree::Document::parse(&xml).unwrap_or_else(|e| panic!("{e}: {xml}"));
+        let cases: Vec<_> = doc
+            .descendants()
+            .filter(|n| n.has_tag_name("testcase"))
+            .collect();
+        assert_eq!(cases.len(), 2);
+        // The class: the campaign and the scenario file's stem as the campaign names it,
+        // the characters XML cannot carry replaced.
+        assert_eq!(
+            cases[0].attribute("classname"),
+            Some("night\u{FFFD}ly.my<&\"scenario\u{FFFD}")
+        );
+        assert_eq!(
+            cases[1].attribute("classname"),
+            Some("night\u{FFFD}ly.kyslan-pi")
+        );
+        // Both failed expectations in one element.
+        let failures: Vec<_> = cases[0]
+            .children()
+            .filter(|n| n.has_tag_name("failure"))
+            .collect();
+        assert_eq!(failures.len(), 1);
+        let message = failures[0].attribute("message").unwrap();
+        assert!(
+            message.contains("peak_current_a <= 3.2") && message.contains("samples_missing == 0"),
+            "{message}"
+        );
+        let body = failures[0].text().unwrap();
+        assert_eq!(body.lines().count(), 2, "{body}");
+        let prop = |tc: roxmltree::Node, name: &str| {
+            tc.descendants()
+                .find(|p| p.has_tag_name("property") && p.attribute("name") == Some(name))
+                .and_then(|p| p.attribute("value"))
+                .map(str::to_string)
+        };
+        // A figure in full beside its limit, not rounded to 3.2.
+        assert_eq!(prop(cases[0], "peak_current_a").as_deref(), Some("3.24"));
+        assert!(prop(cases[0], "run_folder").is_some());
+        // A run that made no folder points to none.
+        assert_eq!(prop(cases[1], "run_folder"), None);
+        let err = cases[1]
+            .children()
+            .find(|n| n.has_tag_name("error"))
+            .unwrap();
+        assert_eq!(
+            err.attribute("message"),
+            Some("the drive did not start\u{FFFD}")
+        );
+    }
+
+    #[test]
+    fn an_empty_purpose_leaves_no_blank_paragraph() {
+        let md = markdown("c", "  ", &[]);
+        assert!(md.starts_with("# Campaign c\n\n0 runs:"), "{md}");
+        let md = markdown("c", "why", &[]);
+        assert!(md.starts_with("# Campaign c\n\nwhy\n\n0 runs:"), "{md}");
+    }
 }

@@ -217,6 +217,15 @@ fn bad_operator(text: &str) -> UsageError {
 /// Parses `FIGURE OP LIMIT` (see the module documentation).
 pub fn parse(text: &str) -> Result<Expectation, UsageError> {
     let form = "expected FIGURE OP LIMIT, e.g. 'peak_current_a <= 8' or 'metrics.rise_time_ms in 7.2..8.8'";
+    // A control character (a form feed, an escape) has no place in a one-line check, and
+    // would reach the reports.
+    if let Some(c) = text.chars().find(|c| c.is_control()) {
+        return Err(UsageError(format!(
+            "expectation '{}': contains the control character U+{:04X}",
+            text.escape_debug(),
+            u32::from(c)
+        )));
+    }
     let t = text.trim();
     // An operator that is not one (`!=`, `=<`, `=>`, `≤`, `≥`, `≠`, `=`) is named as such,
     // not read as a figure path or a limit.
@@ -643,6 +652,11 @@ mod tests {
                 "'metrics' is a group of figures, not a number; name one below it, e.g. 'metrics.*'",
             ),
             ("faults == 0", "'faults' is a group of figures"),
+            (
+                "peak_current_a\x0c<=\x0c0.1",
+                "expectation 'peak_current_a\\u{c}<=\\u{c}0.1': contains the control character U+000C",
+            ),
+            ("peak_current_a <= 8\n", "contains the control character U+000A"),
             (
                 "faults.*.peak_current_a.max <= 8",
                 "the fault figure 'peak_current_a' has no figure below it",
