@@ -423,7 +423,6 @@ impl Split {
 
     fn halt(&mut self) -> Result<()> {
         self.stop.store(true, Ordering::SeqCst);
-        self.token = None;
         let mut first = Ok(());
         for h in self.threads.drain(..) {
             let r = h
@@ -433,6 +432,9 @@ impl Split {
                 first = r;
             }
         }
+        // Only then is this machine gone for the other: its sending threads have sent what
+        // was left, which the other side would otherwise wait for no longer.
+        self.token = None;
         first
     }
 }
