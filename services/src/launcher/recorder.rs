@@ -197,6 +197,15 @@ pub(super) fn run_recorder(
             .map(|r| r.clone())
             .unwrap_or_default()
     };
+    // The outer reference of the samples (position control's θ_m_ref).
+    let take_wref = |trace: &mut TraceStream| -> Result<()> {
+        while let Some(w) = wref_rx.try_recv()? {
+            if !w.hdr.is_warmup() && !w.hdr.is_end() && w.theta_m_ref.is_finite() {
+                trace.wref(w.hdr.k, w.theta_m_ref);
+            }
+        }
+        Ok(())
+    };
     let (mut meas_end, mut cmd_end) = (false, false);
     // Every sample below `stored` is in the trace or waiting complete in its window.
     let mut stored = 0u64;
@@ -284,11 +293,7 @@ pub(super) fn run_recorder(
                 time(Middle::CurrentRef, &r.hdr);
             }
         }
-        while let Some(w) = wref_rx.try_recv()? {
-            if !w.hdr.is_warmup() && !w.hdr.is_end() && w.theta_m_ref.is_finite() {
-                trace.wref(w.hdr.k, w.theta_m_ref);
-            }
-        }
+        take_wref(&mut trace)?;
         while stored < n && trace.complete(stored) {
             stored += 1;
         }
@@ -311,6 +316,9 @@ pub(super) fn run_recorder(
                     trace.cmd(usable(c))?;
                 }
             }
+            // And the outer reference of the last samples (another machine's may come after
+            // the commands' end).
+            take_wref(&mut trace)?;
             return trace.finish();
         }
         if !got {
