@@ -354,11 +354,37 @@ pub fn make_stage(
     })
 }
 
+/// The user's stages must not take a built-in stage's name (the launcher would check the
+/// topology against the built-in's declaration while this host ran the user's), nor the
+/// same name twice.
+fn check_user_names(user: &[(&'static str, StageFactory)]) -> Result<()> {
+    for (i, (n, _)) in user.iter().enumerate() {
+        if crate::stages::BUILTIN.contains(n) {
+            anyhow::bail!(
+                "a user's stage may not take the name of a built-in stage: '{n}' (the built-in stages: {}); give it another name",
+                crate::stages::BUILTIN.join(", ")
+            );
+        }
+        if user[..i].iter().any(|(m, _)| m == n) {
+            anyhow::bail!("the user's stage '{n}' is registered twice");
+        }
+    }
+    Ok(())
+}
+
 /// The `main` of a stage host: the built-in stages plus `user`. Prints a one-line error and
 /// exits 1 on failure.
 pub fn host_main(user: &[(&'static str, StageFactory)]) -> std::process::ExitCode {
     crate::bus::quiet_iceoryx2_log();
     file_size_limit_as_error();
+    // A stage that panics prints its message (and, with RUST_BACKTRACE, symbolizes its
+    // backtrace: milliseconds of work) off the real-time priority, so that the stages below
+    // it on its core are not held up while it dies.
+    let report = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let _ = crate::rt::set_scheduler(libc::SCHED_OTHER, 0);
+        report(info);
+    }));
     let args = HostArgs::parse();
     if args.check_rt {
         return check_rt(&args);
@@ -429,6 +455,7 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
         startup.push((name, (now - phase_start).as_secs_f64() * 1e3));
         phase_start = now;
     };
+    check_user_names(user)?;
     let sc = load_scenario(args.scenario.as_deref().expect("required by clap"))?;
     phase("scenario");
     if args.describe {
@@ -1483,6 +1510,25 @@ pub fn truth_from_json(v: &serde_json::Value) -> Result<PlantTruth> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_users_stage_may_not_take_a_built_in_name_nor_one_twice() {
+        fn any(sc: &Scenario) -> Result<Box<dyn Stage>> {
+            crate::stages::builtin("speed-loop", sc).ok_or_else(|| anyhow!("none"))
+        }
+        check_user_names(&[("ramp-ref", any as StageFactory)]).unwrap();
+        let e = check_user_names(&[("ramp-ref", any as StageFactory), ("speed-loop", any)])
+            .unwrap_err()
+            .to_string();
+        assert_eq!(
+            e,
+            "a user's stage may not take the name of a built-in stage: 'speed-loop' (the built-in stages: plant, observer, current-loop, speed-loop); give it another name"
+        );
+        let e = check_user_names(&[("mine", any as StageFactory), ("mine", any)])
+            .unwrap_err()
+            .to_string();
+        assert_eq!(e, "the user's stage 'mine' is registered twice");
+    }
 
     fn plan(topology: &str) -> TopologyPlan {
         let text = std::fs::read_to_string(concat!(

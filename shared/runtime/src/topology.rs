@@ -5,7 +5,7 @@
 //! [`resolve`] checks a topology against the stages' declarations and orders each process's
 //! stages along the data graph; every error is one line that names the problem.
 
-use crate::stage::{InputSpec, Role, TopicId};
+use crate::stage::{InputSpec, OnStale, Role, TopicId};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -362,9 +362,19 @@ pub fn resolve(
     for (_, stages) in &processes {
         for st in stages {
             for i in &st.inputs {
-                if i.role == Role::Trigger && !producers.iter().any(|p| p.topic == i.topic) {
+                let produced = producers.iter().any(|p| p.topic == i.topic);
+                if i.role == Role::Trigger && !produced {
                     return Err(format!(
                         "stage '{}' is triggered by topic '{}', which no stage publishes",
+                        st.name,
+                        i.topic.name()
+                    ));
+                }
+                // A required input nobody makes would never be there: the stage could never
+                // run, or would run without it.
+                if i.on_stale == OnStale::Required && i.role != Role::Rejoin && !produced {
+                    return Err(format!(
+                        "stage '{}' requires topic '{}', which no stage publishes (declare it OnStale::Fallback to run without it)",
                         st.name,
                         i.topic.name()
                     ));
@@ -595,6 +605,45 @@ mod tests {
             assert!(e.contains(want), "{e} (want {want})");
             assert!(!e.contains('\n'), "{e}");
         }
+    }
+
+    #[test]
+    fn an_input_nobody_publishes_is_refused_when_it_triggers_or_is_required() {
+        let sc = sc();
+        let mut topo = procs(&[
+            ("a", &["plant", "observer", "current-loop", "speed-loop"]),
+            ("b", &["mine"]),
+        ]);
+        topo[1].exec = Some("/usr/local/bin/my-host".into());
+        // A user stage reading `wref`, which no stage of this topology publishes.
+        let with = |input: InputSpec| {
+            resolve(&topo, &mut |_, s| {
+                if s == "mine" {
+                    return Ok(StageInfo {
+                        name: "mine".into(),
+                        inputs: vec![
+                            InputSpec::trigger(TopicId::Est, 1, OnStale::Fallback),
+                            input,
+                        ],
+                        outputs: Vec::new(),
+                        divider: 1,
+                    });
+                }
+                builtin_info(&sc, s).ok_or_else(|| format!("unknown stage '{s}'"))
+            })
+        };
+        let e = with(InputSpec::latest(TopicId::Wref, 1, 2, OnStale::Required)).unwrap_err();
+        assert_eq!(
+            e,
+            "stage 'mine' requires topic 'wref', which no stage publishes (declare it OnStale::Fallback to run without it)"
+        );
+        let e = with(InputSpec::trigger(TopicId::Wref, 1, OnStale::Fallback)).unwrap_err();
+        assert_eq!(
+            e,
+            "stage 'mine' is triggered by topic 'wref', which no stage publishes"
+        );
+        // A fallback input may be absent: the stage runs without it.
+        with(InputSpec::latest(TopicId::Wref, 1, 2, OnStale::Fallback)).unwrap();
     }
 
     #[test]
