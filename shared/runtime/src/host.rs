@@ -1064,6 +1064,15 @@ impl<T: Transport> Host<T> {
         let h = &mut self.stages[si];
         h.stage.step(k, ib, &mut out);
         let t_end = now_ns();
+        // Its declared outputs, every one: the stages that read one would wait for it in
+        // lockstep (and the drive would stop on another's time-out) or see it stale.
+        if let Some(t) = h.stage.outputs().iter().find(|t| out.get(**t).is_none()) {
+            bail!(
+                "stage '{}' published no '{}' at sample {k}: a step publishes each of its declared outputs every time it runs",
+                h.stage.name(),
+                t.name()
+            );
+        }
         let t_sample = if self.cfg.pacing == Pacing::Realtime {
             ib.slots
                 .iter()
@@ -2080,6 +2089,42 @@ mod tests {
             .collect();
         assert_eq!(sent, vec![(0, false), (1, false), (100, true)]);
         assert_eq!(host.stages[0].counters.rejected_inputs, 1);
+    }
+
+    #[test]
+    fn a_stage_that_leaves_out_a_declared_output_stops_its_host_naming_it() {
+        /// The observer, but without its estimate from sample 1 on.
+        struct Forgetful(ObserverStage);
+        impl Stage for Forgetful {
+            fn name(&self) -> &'static str {
+                "forgetful"
+            }
+            fn inputs(&self) -> &'static [InputSpec] {
+                self.0.inputs()
+            }
+            fn outputs(&self) -> &'static [TopicId] {
+                self.0.outputs()
+            }
+            fn step(&mut self, k: u64, inputs: &Inbox, out: &mut Outbox) {
+                if k == 0 {
+                    self.0.step(k, inputs, out);
+                }
+            }
+        }
+        let sc = scenario();
+        let mut tr = Script::default();
+        tr.queues[TopicId::Meas.index()].push_back(meas(0, 0.0));
+        tr.on_wait.push((2, meas(1, 0.01)));
+        let stages: Vec<Box<dyn Stage>> = vec![Box::new(Forgetful(ObserverStage::new(&sc)))];
+        let producers = [(TopicId::Meas, 1, false), (TopicId::Est, 1, true)];
+        let mut host = Host::new(stages, &producers, tr, config(&sc));
+        let e = host.run().unwrap_err().to_string();
+        assert_eq!(
+            e,
+            "stage 'forgetful' published no 'est' at sample 1: a step publishes each of its declared outputs every time it runs"
+        );
+        let sent: Vec<u64> = host.transport.sent.iter().map(|m| m.hdr().k).collect();
+        assert_eq!(sent, [0]);
     }
 
     #[test]
