@@ -1000,14 +1000,20 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 if let Some(l) = s["timing"]["tail_by_part"]["line"].as_str() {
                     drivelab_services::outln!("{l}");
                 }
-                drivelab_services::outln!(
-                    "rise {}, overshoot {}, load dip {}, load recovery {}, steady-state error {}",
-                    fmt_opt(&m["rise_time_ms"], "ms"),
-                    fmt_opt(&m["overshoot_pct"], "%"),
-                    fmt_opt(&m["load_dip_rad_s"], "rad/s"),
-                    fmt_opt(&m["load_recovery_ms"], "ms"),
-                    fmt_opt(&m["steady_state_error_rad_s"], "rad/s")
-                );
+                if let Some(outer) = m["speed_reference_from"].as_str() {
+                    drivelab_services::outln!(
+                        "speed metrics left out: stage '{outer}' makes the speed reference, not the scenario's [reference]"
+                    );
+                } else {
+                    drivelab_services::outln!(
+                        "rise {}, overshoot {}, load dip {}, load recovery {}, steady-state error {}",
+                        fmt_opt(&m["rise_time_ms"], "ms"),
+                        fmt_opt(&m["overshoot_pct"], "%"),
+                        fmt_opt(&m["load_dip_rad_s"], "rad/s"),
+                        fmt_opt(&m["load_recovery_ms"], "ms"),
+                        fmt_opt(&m["steady_state_error_rad_s"], "rad/s")
+                    );
+                }
                 if m["iq_rise_time_us"].as_f64().is_some() || m["id_max_a"].as_f64().is_some() {
                     drivelab_services::outln!(
                         "i_q rise (10-90 %) {}, i_q overshoot {}, max settled i_d {}",

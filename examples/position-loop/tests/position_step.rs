@@ -205,6 +205,21 @@ fn position_step_settles_within_one_percent() {
     // covers the chain's sample delays (the 1 kHz position and speed loops' 1 ms each).
     assert!(settle < 0.218, "settling time {settle} s");
     assert!((fin - target).abs() < tol, "final θ_m = {fin}");
+    // The speed loop followed the position loop, not the scenario's speed reference: the
+    // summary leaves out the metrics measured against that, and says why.
+    let s: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    let m = &s["metrics"];
+    assert_eq!(m["speed_reference_from"], "position-loop", "{m}");
+    for f in [
+        "rise_time_ms",
+        "overshoot_pct",
+        "steady_state_error_rad_s",
+        "load_dip_rad_s",
+        "load_recovery_ms",
+    ] {
+        assert!(m[f].is_null(), "{f}: {m}");
+    }
     remove_scratch(&out);
 }
 

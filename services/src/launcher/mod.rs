@@ -1535,7 +1535,21 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             TraceStats::of(&rows)
         }
     };
-    let metrics = speed_metrics(&sc, &rows);
+    let mut metrics = speed_metrics(&sc, &rows);
+    // A stage that makes the speed reference (an outer loop): the scenario's speed steps are
+    // not what the speed loop followed.
+    if let Some(outer) = topo
+        .stages
+        .iter()
+        .find(|s| s.outputs.contains(&drivelab_runtime::stage::TopicId::Wref))
+    {
+        metrics.speed_reference_from = Some(outer.name.clone());
+        metrics.rise_time_ms = None;
+        metrics.overshoot_pct = None;
+        metrics.steady_state_error_rad_s = None;
+        metrics.load_dip_rad_s = None;
+        metrics.load_recovery_ms = None;
+    }
     let design = DriveDesign::from_scenario(&sc.controller_view()); // the design that runs ([model])
 
     // An analysis of a file the run wrote: where it fails, the run's summary is still written,

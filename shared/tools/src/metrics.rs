@@ -5,8 +5,13 @@ use drivelab_runtime::trace::TraceRow;
 use serde::Serialize;
 
 /// Speed-loop metrics (`summary.json` → `metrics`).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct SpeedMetrics {
+    /// The stage that makes the speed loop's reference (`wref`), when one does: the metrics
+    /// measured against the scenario's speed reference and load steps do not apply and are
+    /// left out.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub speed_reference_from: Option<String>,
     /// Time from the first speed step to the first sample at or beyond the set-point, ms.
     pub rise_time_ms: Option<f64>,
     /// Peak beyond the set-point relative to the step size, % (before the next event).
