@@ -144,6 +144,11 @@ fn bad_topologies_fail_with_one_line_naming_the_problem_and_leave_nothing() {
     let p = |name: &str, stages: &str| {
         format!("[[process]]\nname = \"{name}\"\nstages = [{stages}]\ncpu = 1\npriority = 70\n")
     };
+    // The built-in host, as the `exec` of a stage it does not host.
+    let host = std::path::Path::new(DRIVELAB)
+        .with_file_name("drivelab-host")
+        .display()
+        .to_string();
     let cases = [
         (
             "twice.toml",
@@ -181,6 +186,15 @@ fn bad_topologies_fail_with_one_line_naming_the_problem_and_leave_nothing() {
             ) + &p("b", "\"position-loop\"")
                 + "exec = \"no-such-binary\"\n",
             "no-such-binary not found",
+        ),
+        (
+            "notitsstage.toml",
+            p(
+                "a",
+                "\"plant\", \"observer\", \"current-loop\", \"speed-loop\"",
+            ) + &p("b", "\"torque-loop\"")
+                + &format!("exec = \"{host}\"\n"),
+            "hosts no stage 'torque-loop' (its own stages: none; and the built-in ones)",
         ),
         (
             "notahost.toml",

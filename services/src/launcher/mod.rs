@@ -1005,9 +1005,11 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
             .find(|i| i.name == stage)
             .cloned()
             .ok_or_else(|| {
+                let hosted: Vec<&str> = described[&exe].iter().map(|i| i.name.as_str()).collect();
                 format!(
-                    "process '{}': its executable {exe} hosts no stage '{stage}'",
-                    p.name
+                    "process '{}': its executable {exe} hosts no stage '{stage}' (its own stages: {}; and the built-in ones)",
+                    p.name,
+                    if hosted.is_empty() { "none".to_string() } else { hosted.join(", ") }
                 )
             })
     })
