@@ -1073,6 +1073,19 @@ impl<T: Transport> Host<T> {
                 t.name()
             );
         }
+        // And nothing else: a topic it did not declare has no publisher of its.
+        if let Some(m) = out
+            .msgs
+            .iter()
+            .flatten()
+            .find(|m| !h.stage.outputs().contains(&m.topic()))
+        {
+            bail!(
+                "stage '{}' published '{}' at sample {k}, which it does not declare among its outputs",
+                h.stage.name(),
+                m.topic().name()
+            );
+        }
         let t_sample = if self.cfg.pacing == Pacing::Realtime {
             ib.slots
                 .iter()
@@ -2122,6 +2135,43 @@ mod tests {
         assert_eq!(
             e,
             "stage 'forgetful' published no 'est' at sample 1: a step publishes each of its declared outputs every time it runs"
+        );
+        let sent: Vec<u64> = host.transport.sent.iter().map(|m| m.hdr().k).collect();
+        assert_eq!(sent, [0]);
+    }
+
+    #[test]
+    fn a_stage_that_publishes_a_topic_it_did_not_declare_stops_its_host_naming_it() {
+        /// The observer, and a speed reference of its own at sample 1.
+        struct Meddling(ObserverStage);
+        impl Stage for Meddling {
+            fn name(&self) -> &'static str {
+                "meddling"
+            }
+            fn inputs(&self) -> &'static [InputSpec] {
+                self.0.inputs()
+            }
+            fn outputs(&self) -> &'static [TopicId] {
+                self.0.outputs()
+            }
+            fn step(&mut self, k: u64, inputs: &Inbox, out: &mut Outbox) {
+                self.0.step(k, inputs, out);
+                if k == 1 {
+                    out.push(Msg::Wref(crate::messages::SpeedRef::default()));
+                }
+            }
+        }
+        let sc = scenario();
+        let mut tr = Script::default();
+        tr.queues[TopicId::Meas.index()].push_back(meas(0, 0.0));
+        tr.on_wait.push((2, meas(1, 0.01)));
+        let stages: Vec<Box<dyn Stage>> = vec![Box::new(Meddling(ObserverStage::new(&sc)))];
+        let producers = [(TopicId::Meas, 1, false), (TopicId::Est, 1, true)];
+        let mut host = Host::new(stages, &producers, tr, config(&sc));
+        let e = host.run().unwrap_err().to_string();
+        assert_eq!(
+            e,
+            "stage 'meddling' published 'wref' at sample 1, which it does not declare among its outputs"
         );
         let sent: Vec<u64> = host.transport.sent.iter().map(|m| m.hdr().k).collect();
         assert_eq!(sent, [0]);
