@@ -2104,76 +2104,70 @@ mod tests {
         assert_eq!(host.stages[0].counters.rejected_inputs, 1);
     }
 
-    #[test]
-    fn a_stage_that_leaves_out_a_declared_output_stops_its_host_naming_it() {
-        /// The observer, but without its estimate from sample 1 on.
-        struct Forgetful(ObserverStage);
-        impl Stage for Forgetful {
-            fn name(&self) -> &'static str {
-                "forgetful"
-            }
-            fn inputs(&self) -> &'static [InputSpec] {
-                self.0.inputs()
-            }
-            fn outputs(&self) -> &'static [TopicId] {
-                self.0.outputs()
-            }
-            fn step(&mut self, k: u64, inputs: &Inbox, out: &mut Outbox) {
-                if k == 0 {
-                    self.0.step(k, inputs, out);
-                }
-            }
+    /// The observer under another name, its step followed by `after` (which may change its
+    /// outputs): a stage that breaks the rules of its declaration.
+    struct Unruly {
+        observer: ObserverStage,
+        after: fn(u64, &mut Outbox),
+    }
+
+    impl Stage for Unruly {
+        fn name(&self) -> &'static str {
+            "unruly"
         }
+        fn inputs(&self) -> &'static [InputSpec] {
+            self.observer.inputs()
+        }
+        fn outputs(&self) -> &'static [TopicId] {
+            self.observer.outputs()
+        }
+        fn step(&mut self, k: u64, inputs: &Inbox, out: &mut Outbox) {
+            self.observer.step(k, inputs, out);
+            (self.after)(k, out);
+        }
+    }
+
+    /// Runs `unruly` on measurements 0 and 1; the host's error and the samples it published.
+    fn run_unruly(after: fn(u64, &mut Outbox)) -> (String, Vec<u64>) {
         let sc = scenario();
         let mut tr = Script::default();
         tr.queues[TopicId::Meas.index()].push_back(meas(0, 0.0));
         tr.on_wait.push((2, meas(1, 0.01)));
-        let stages: Vec<Box<dyn Stage>> = vec![Box::new(Forgetful(ObserverStage::new(&sc)))];
+        let observer = ObserverStage::new(&sc);
+        let stages: Vec<Box<dyn Stage>> = vec![Box::new(Unruly { observer, after })];
         let producers = [(TopicId::Meas, 1, false), (TopicId::Est, 1, true)];
         let mut host = Host::new(stages, &producers, tr, config(&sc));
         let e = host.run().unwrap_err().to_string();
+        (e, host.transport.sent.iter().map(|m| m.hdr().k).collect())
+    }
+
+    #[test]
+    fn a_stage_that_leaves_out_a_declared_output_stops_its_host_naming_it() {
+        // Its estimate dropped from sample 1 on.
+        let (e, sent) = run_unruly(|k, out| {
+            if k >= 1 {
+                out.msgs[TopicId::Est.index()] = None;
+            }
+        });
         assert_eq!(
             e,
-            "stage 'forgetful' published no 'est' at sample 1: a step publishes each of its declared outputs every time it runs"
+            "stage 'unruly' published no 'est' at sample 1: a step publishes each of its declared outputs every time it runs"
         );
-        let sent: Vec<u64> = host.transport.sent.iter().map(|m| m.hdr().k).collect();
         assert_eq!(sent, [0]);
     }
 
     #[test]
     fn a_stage_that_publishes_a_topic_it_did_not_declare_stops_its_host_naming_it() {
-        /// The observer, and a speed reference of its own at sample 1.
-        struct Meddling(ObserverStage);
-        impl Stage for Meddling {
-            fn name(&self) -> &'static str {
-                "meddling"
+        // A speed reference of its own at sample 1.
+        let (e, sent) = run_unruly(|k, out| {
+            if k == 1 {
+                out.push(Msg::Wref(crate::messages::SpeedRef::default()));
             }
-            fn inputs(&self) -> &'static [InputSpec] {
-                self.0.inputs()
-            }
-            fn outputs(&self) -> &'static [TopicId] {
-                self.0.outputs()
-            }
-            fn step(&mut self, k: u64, inputs: &Inbox, out: &mut Outbox) {
-                self.0.step(k, inputs, out);
-                if k == 1 {
-                    out.push(Msg::Wref(crate::messages::SpeedRef::default()));
-                }
-            }
-        }
-        let sc = scenario();
-        let mut tr = Script::default();
-        tr.queues[TopicId::Meas.index()].push_back(meas(0, 0.0));
-        tr.on_wait.push((2, meas(1, 0.01)));
-        let stages: Vec<Box<dyn Stage>> = vec![Box::new(Meddling(ObserverStage::new(&sc)))];
-        let producers = [(TopicId::Meas, 1, false), (TopicId::Est, 1, true)];
-        let mut host = Host::new(stages, &producers, tr, config(&sc));
-        let e = host.run().unwrap_err().to_string();
+        });
         assert_eq!(
             e,
-            "stage 'meddling' published 'wref' at sample 1, which it does not declare among its outputs"
+            "stage 'unruly' published 'wref' at sample 1, which it does not declare among its outputs"
         );
-        let sent: Vec<u64> = host.transport.sent.iter().map(|m| m.hdr().k).collect();
         assert_eq!(sent, [0]);
     }
 
