@@ -798,35 +798,60 @@ fn a_passive_load_never_drives_the_motor_backwards_when_the_speed_loop_dies() {
     );
 }
 
+/// Runs `drivelab run --restart never EXTRA` on its own bus and folder, which must fail
+/// (exit code 1) and leave nothing; its stderr and summary.
+fn run_never_restarted(name: &str, extra: &[&str]) -> (String, serde_json::Value) {
+    let dir = scratch(name);
+    let bus = bus_id(name);
+    let out = dir.join("run");
+    let mut args = vec![
+        "run",
+        "--bus",
+        &bus,
+        "--restart",
+        "never",
+        "--out",
+        out.to_str().unwrap(),
+        "--no-plots",
+    ];
+    args.extend_from_slice(extra);
+    let o = drivelab(&args);
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert_clean(&bus);
+    let s = summary(&out);
+    (err, s)
+}
+
+/// The run failed for the one planned fault that was not made, `why`: its summary lists it
+/// and its last line names it.
+fn assert_failed_for_fault_not_made(err: &str, s: &serde_json::Value, why: &str) {
+    assert_eq!(s["faults_not_made"], serde_json::json!([why]), "{s}");
+    assert!(
+        err.lines().last().unwrap_or("").starts_with(&format!(
+            "drivelab: error: a planned fault was not made: {why} (what was recorded is in "
+        )),
+        "{err}"
+    );
+}
+
 #[test]
 fn a_fault_planned_after_the_drive_stopped_is_named_and_fails_the_run() {
     let _serial = serial();
     // With --restart never a killed plant stops the drive (no plant, no drive); the kill of
     // the observer planned after it can no longer be made: the run did not test what it was
     // asked to, and fails (exit 1) with its trace and summary written.
-    let dir = scratch("latefault");
-    let bus = bus_id("latefault");
-    let out = dir.join("run");
-    let o = drivelab(&[
-        "run",
-        "--bus",
-        &bus,
-        "--duration",
-        "0.6",
-        "--restart",
-        "never",
-        "--fault",
-        "kill:plant@0.1",
-        "--fault",
-        "kill:observer@0.4",
-        "--out",
-        out.to_str().unwrap(),
-        "--no-plots",
-    ]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(1), "{err}");
-    assert_clean(&bus);
-    let s = summary(&out);
+    let (err, s) = run_never_restarted(
+        "latefault",
+        &[
+            "--duration",
+            "0.6",
+            "--fault",
+            "kill:plant@0.1",
+            "--fault",
+            "kill:observer@0.4",
+        ],
+    );
     let refused: Vec<&str> = s["supervisor_events"]
         .as_array()
         .unwrap()
@@ -841,16 +866,9 @@ fn a_fault_planned_after_the_drive_stopped_is_named_and_fails_the_run() {
         "{}",
         refused[0]
     );
-    assert_eq!(s["faults_not_made"], serde_json::json!([refused[0]]));
+    assert_failed_for_fault_not_made(&err, &s, refused[0]);
     let failure = format!("a planned fault was not made: {}", refused[0]);
     assert_eq!(s["failure"], failure.as_str());
-    let last = err.lines().last().unwrap_or("");
-    assert!(
-        last.starts_with(&format!(
-            "drivelab: error: {failure} (what was recorded is in "
-        )),
-        "{err}"
-    );
     assert_eq!(s["faults"].as_array().unwrap().len(), 1, "{s}");
     // The drive ran to its end without its plant: its gap is the kill's, not the failure's.
     let gaps = s["missing_samples"].as_array().unwrap();
@@ -867,39 +885,21 @@ fn a_fault_planned_after_the_drive_stopped_is_named_and_fails_the_run() {
 fn a_planned_fault_whose_process_is_down_is_not_made_and_fails_the_run() {
     let _serial = serial();
     // The observer is killed and never restarted: its stop, planned later, has no process.
-    let dir = scratch("skipfault");
-    let bus = bus_id("skipfault");
-    let out = dir.join("run");
-    let o = drivelab(&[
-        "run",
-        "--bus",
-        &bus,
-        "--duration",
-        "0.5",
-        "--restart",
-        "never",
-        "--fault",
-        "kill:observer@0.1",
-        "--fault",
-        "stop:observer@0.3:0.02",
-        "--expect",
-        "faults.*.detected_data_path_ms <= 2",
-        "--out",
-        out.to_str().unwrap(),
-        "--no-plots",
-    ]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(1), "{err}");
-    assert_clean(&bus);
-    let s = summary(&out);
-    let why = "stop:observer@0.3:0.02: not injected: its process is not running (process observer)";
-    assert_eq!(s["faults_not_made"], serde_json::json!([why]), "{s}");
-    assert!(
-        err.lines().last().unwrap_or("").starts_with(&format!(
-            "drivelab: error: a planned fault was not made: {why} (what was recorded is in "
-        )),
-        "{err}"
+    let (err, s) = run_never_restarted(
+        "skipfault",
+        &[
+            "--duration",
+            "0.5",
+            "--fault",
+            "kill:observer@0.1",
+            "--fault",
+            "stop:observer@0.3:0.02",
+            "--expect",
+            "faults.*.detected_data_path_ms <= 2",
+        ],
     );
+    let why = "stop:observer@0.3:0.02: not injected: its process is not running (process observer)";
+    assert_failed_for_fault_not_made(&err, &s, why);
     // The kill was made and reported, and every sample is in the trace.
     assert_eq!(s["faults"].as_array().unwrap().len(), 1, "{s}");
     assert_eq!(s["samples"], s["samples_expected"], "{s}");

@@ -602,11 +602,9 @@ pub fn junit(name: &str, results: &[CaseResult]) -> Result<String> {
     for r in results {
         let mut tc = BytesStart::new("testcase");
         let label = &r.case.label;
-        let class = match label.strip_suffix(".toml") {
-            Some(_) => Path::new(label)
-                .file_stem()
-                .map_or(label.clone(), |s| s.to_string_lossy().into_owned()),
-            None => label.clone(),
+        let class = match Path::new(label).file_stem() {
+            Some(stem) if label.ends_with(".toml") => stem.to_string_lossy().into_owned(),
+            _ => label.clone(),
         };
         tc.push_attribute(("classname", xml_safe(&format!("{name}.{class}")).as_ref()));
         tc.push_attribute(("name", xml_safe(&r.case.title()).as_ref()));
