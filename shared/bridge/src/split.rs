@@ -537,16 +537,10 @@ fn take<T: Data>(
         return Ok(());
     };
     let mut msgs: Vec<T> = Vec::with_capacity(codec::MAX_COUNT);
-    while !stop.load(Ordering::SeqCst) {
-        let Some(sample) = sub
-            .recv_timeout(WAIT_SLICE)
-            .map_err(|e| anyhow!("zenoh receive {}: {e}", T::NAME))?
-        else {
-            continue;
-        };
+    let mut put_on_bus = |sample: Sample| -> Result<()> {
         if codec::decode_into::<T>(&sample.payload().to_bytes(), &mut msgs).is_err() {
             counters.rejected.fetch_add(1, Ordering::Relaxed);
-            continue;
+            return Ok(());
         }
         for m in msgs.iter_mut() {
             // Published here now: the message is available on this machine from this
@@ -560,6 +554,23 @@ fn take<T: Data>(
             tx.send_waking(*m, decimated)?;
         }
         counters.taken[T::TOPIC.index()].fetch_add(msgs.len() as u64, Ordering::Relaxed);
+        Ok(())
+    };
+    while !stop.load(Ordering::SeqCst) {
+        if let Some(sample) = sub
+            .recv_timeout(WAIT_SLICE)
+            .map_err(|e| anyhow!("zenoh receive {}: {e}", T::NAME))?
+        {
+            put_on_bus(sample)?;
+        }
+    }
+    // What arrived before the stop is still published (and counted), as the sending threads
+    // send what was published before it.
+    while let Some(sample) = sub
+        .try_recv()
+        .map_err(|e| anyhow!("zenoh receive {}: {e}", T::NAME))?
+    {
+        put_on_bus(sample)?;
     }
     Ok(())
 }
