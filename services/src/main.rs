@@ -986,6 +986,13 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 let s = &r.summary;
                 let m = &s["metrics"];
                 drivelab_services::outln!("run folder: {}", r.out.display());
+                if let Some(r) = s["replaced_stages"].as_object().filter(|r| !r.is_empty()) {
+                    let by: Vec<String> = r
+                        .iter()
+                        .map(|(st, exe)| format!("{st} by {}", exe.as_str().unwrap_or("?")))
+                        .collect();
+                    drivelab_services::outln!("built-in stages replaced: {}", by.join(", "));
+                }
                 drivelab_services::outln!(
                     "{} samples ({} expected), deadline misses {}, wall {:.2} s ({:.1}× real time)",
                     s["samples"],

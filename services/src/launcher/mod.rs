@@ -983,16 +983,24 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
         }
     }
     let mut described: BTreeMap<String, Vec<StageInfo>> = BTreeMap::new();
+    let mut replaced: BTreeMap<String, String> = BTreeMap::new();
     let scr: &Scenario = sc;
     let sc_text = toml::to_string(scr)?;
     let resolved = drivelab_runtime::topology::resolve(&procs, &mut |p, stage| {
-        if let Some(i) = drivelab_runtime::topology::builtin_info(scr, stage) {
-            return Ok(i);
-        }
-        let exe = p
-            .exec
-            .clone()
-            .ok_or_else(|| format!("unknown stage '{stage}'"))?;
+        let builtin = drivelab_runtime::topology::builtin_info(scr, stage);
+        // A user's executable runs its own stage of a built-in's name in the built-in's place
+        // (the plant's name it may not take); a process of the other machine is asked there.
+        let ask = match (&p.exec, &builtin) {
+            (None, _) => false,
+            (Some(_), None) => true,
+            (Some(_), Some(_)) => {
+                drivelab_runtime::stages::REPLACEABLE.contains(&stage)
+                    && (here.is_none() || p.machine.as_deref() == here)
+            }
+        };
+        let Some(exe) = p.exec.clone().filter(|_| ask) else {
+            return builtin.ok_or_else(|| format!("unknown stage '{stage}'"));
+        };
         if !described.contains_key(&exe) {
             described.insert(
                 exe.clone(),
@@ -1000,18 +1008,24 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
                     .map_err(|e| format!("process '{}': {e:#}", p.name))?,
             );
         }
-        described[&exe]
-            .iter()
-            .find(|i| i.name == stage)
-            .cloned()
-            .ok_or_else(|| {
+        match (described[&exe].iter().find(|i| i.name == stage), builtin) {
+            (Some(mine), Some(b)) => {
+                drivelab_runtime::topology::check_replacement(mine, &b, &exe)
+                    .map_err(|e| format!("process '{}': {e}", p.name))?;
+                replaced.insert(stage.to_string(), exe.clone());
+                Ok(mine.clone())
+            }
+            (Some(mine), None) => Ok(mine.clone()),
+            (None, Some(b)) => Ok(b),
+            (None, None) => {
                 let hosted: Vec<&str> = described[&exe].iter().map(|i| i.name.as_str()).collect();
-                format!(
+                Err(format!(
                     "process '{}': its executable {exe} hosts no stage '{stage}' (its own stages: {}; and the built-in ones)",
                     p.name,
                     if hosted.is_empty() { "none".to_string() } else { hosted.join(", ") }
-                )
-            })
+                ))
+            }
+        }
     })
     .map_err(|e| anyhow!("{origin}: {e}"))?;
     // An `exec` that hosts built-in stages only was asked nothing above, nor was the built-in
@@ -1054,9 +1068,30 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
             hosted.join(", ")
         );
     }
+    // A built-in stage's name is a user's replacement's table; where the built-in runs (on
+    // this machine) its settings would be ignored.
+    let builtin_here = |name: &str| {
+        !replaced.contains_key(name)
+            && procs.iter().any(|p| {
+                p.stages.iter().any(|s| s == name)
+                    && (here.is_none() || p.machine.as_deref() == here)
+            })
+    };
+    if let Some(name) = sc
+        .stages
+        .keys()
+        .find(|n| drivelab_runtime::stages::BUILTIN.contains(&n.as_str()) && builtin_here(n))
+    {
+        bail!(
+            "{}: [stages.{name}] is for a user's stage that replaces the built-in {name}, and the built-in runs here: it takes its settings from [rates], [observer], [current_loop] and [speed_loop]",
+            sc_src.display()
+        );
+    }
     sc.process = resolved.processes.iter().map(|(p, _)| p.clone()).collect();
     sc.placement = drivelab_runtime::config::Placement::default();
-    Ok(TopologyPlan::from_resolved(&resolved))
+    let mut plan = TopologyPlan::from_resolved(&resolved);
+    plan.replaced = replaced;
+    Ok(plan)
 }
 
 /// Checks that `exe` (absolute) is a file that can be run: it exists, is a regular file and,
@@ -1627,6 +1662,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         "crashes": supervisor::crashes(&events),
         "supervisor_events": events,
         "design": design,
+        // Built-in stages a user's stage replaced, with the executable that ran it (`design`
+        // still gives the built-in's figures, which did not run).
+        "replaced_stages": topo.replaced,
         "wall_time_s": wall_s,
         "simulated_s_per_wall_s": sc.duration_s / wall_s.max(1e-9),
     });

@@ -1500,11 +1500,11 @@ impl Scenario {
             crate::topology::check_specs(&self.process)?;
         }
         for (name, t) in &self.stages {
-            // The built-in stages read their own tables; here their settings would be ignored.
-            check(!SERVICES.contains(&name.as_str()), || {
-                format!(
-                    "[stages.{name}] is for user stages: the built-in {name} takes its settings from [rates], [observer], [current_loop], [speed_loop] and the plant's tables"
-                )
+            // The plant reads its own tables; here its settings would be ignored. (A table of
+            // another built-in stage's name is for a user's stage that replaces it: the
+            // launcher refuses it where the built-in runs.)
+            check(name != "plant", || {
+                "[stages.plant] is for user stages, and the plant cannot be replaced: it takes its settings from [motor], [inverter], [rates] and the plant's other tables".to_string()
             })?;
             if let Some(v) = t.get("rate_hz") {
                 let hz = v.as_float().or_else(|| v.as_integer().map(|i| i as f64));
@@ -1911,8 +1911,8 @@ preset = "kyslan2015"
             ),
             (tail("[stages.pos]\nrate_hz = 3.0"), "stages.pos.rate_hz = 3.0 must divide"),
             (
-                tail("[stages.observer]\nfoo = 1"),
-                "[stages.observer] is for user stages: the built-in observer takes its settings from",
+                tail("[stages.plant]\nfoo = 1"),
+                "[stages.plant] is for user stages, and the plant cannot be replaced: it takes its settings from",
             ),
             (
                 tail("[current_loop]\nitae_omega_rad_s = 100.0"),

@@ -116,6 +116,9 @@ pub struct TopologyPlan {
     /// stands in for them, so their liveness words here are not read.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub away: Vec<usize>,
+    /// Built-in stages that a user's stage replaces, each with the executable hosting it.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub replaced: std::collections::BTreeMap<String, String>,
 }
 
 impl TopologyPlan {
@@ -130,6 +133,7 @@ impl TopologyPlan {
                 .flat_map(|(_, s)| s.iter().cloned())
                 .collect(),
             away: Vec::new(),
+            replaced: Default::default(),
         }
     }
 
@@ -354,15 +358,14 @@ pub fn make_stage(
     })
 }
 
-/// The user's stages must not take a built-in stage's name (the launcher would check the
-/// topology against the built-in's declaration while this host ran the user's), nor the
-/// same name twice.
+/// The user's stages must not take the plant's name (a built-in stage that cannot be
+/// replaced; the others can: [`crate::stages::REPLACEABLE`]), nor one name twice.
 fn check_user_names(user: &[(&'static str, StageFactory)]) -> Result<()> {
     for (i, (n, _)) in user.iter().enumerate() {
-        if crate::stages::BUILTIN.contains(n) {
+        if crate::stages::BUILTIN.contains(n) && !crate::stages::REPLACEABLE.contains(n) {
             anyhow::bail!(
-                "a user's stage may not take the name of a built-in stage: '{n}' (the built-in stages: {}); give it another name",
-                crate::stages::BUILTIN.join(", ")
+                "a user's stage may not be called '{n}': the built-in {n} cannot be replaced (a user's stage may replace {}); give it another name",
+                crate::stages::REPLACEABLE.join(", ")
             );
         }
         if user[..i].iter().any(|(m, _)| m == n) {
@@ -1512,17 +1515,19 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_users_stage_may_not_take_a_built_in_name_nor_one_twice() {
+    fn a_users_stage_may_not_take_the_plants_name_nor_one_twice() {
         fn any(sc: &Scenario) -> Result<Box<dyn Stage>> {
             crate::stages::builtin("speed-loop", sc).ok_or_else(|| anyhow!("none"))
         }
         check_user_names(&[("ramp-ref", any as StageFactory)]).unwrap();
-        let e = check_user_names(&[("ramp-ref", any as StageFactory), ("speed-loop", any)])
+        // A replacement of a built-in stage other than the plant.
+        check_user_names(&[("ramp-ref", any as StageFactory), ("speed-loop", any)]).unwrap();
+        let e = check_user_names(&[("ramp-ref", any as StageFactory), ("plant", any)])
             .unwrap_err()
             .to_string();
         assert_eq!(
             e,
-            "a user's stage may not take the name of a built-in stage: 'speed-loop' (the built-in stages: plant, observer, current-loop, speed-loop); give it another name"
+            "a user's stage may not be called 'plant': the built-in plant cannot be replaced (a user's stage may replace observer, current-loop, speed-loop); give it another name"
         );
         let e = check_user_names(&[("mine", any as StageFactory), ("mine", any)])
             .unwrap_err()

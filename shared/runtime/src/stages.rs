@@ -14,6 +14,12 @@ use std::f64::consts::{PI, TAU};
 /// Names of the built-in stages, in chain order.
 pub const BUILTIN: [&str; 4] = ["plant", "observer", "current-loop", "speed-loop"];
 
+/// The built-in stages a user's stage may replace by registering under the same name
+/// (docs/architecture.md, "Replacing a built-in stage"). Not the plant: it is the drive's
+/// clock and its motor, and the recorder, the fault reports and a restarted plant's rebuilt
+/// samples all rest on it.
+pub const REPLACEABLE: [&str; 3] = ["observer", "current-loop", "speed-loop"];
+
 /// Builds built-in stage `name` for scenario `sc`.
 /// The plant is built from the true scenario, every other stage from its
 /// [`Scenario::controller_view`] (docs/architecture.md, "Model mismatch").

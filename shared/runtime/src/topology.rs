@@ -481,6 +481,29 @@ pub fn builtin_info(sc: &crate::config::Scenario, name: &str) -> Option<StageInf
     })
 }
 
+/// Checks a user's stage `user` that takes the name of built-in stage `builtin` (from the
+/// executable `exe`): it must publish exactly the topics the built-in publishes, so that the
+/// drive's wiring, its trace and its fault reports stay as they are. Its inputs and rate are
+/// its own.
+pub fn check_replacement(user: &StageInfo, builtin: &StageInfo, exe: &str) -> Result<(), String> {
+    let names = |t: &[TopicId]| {
+        let mut v: Vec<&str> = t.iter().map(|t| t.name()).collect();
+        v.sort_unstable();
+        v
+    };
+    let (mine, theirs) = (names(&user.outputs), names(&builtin.outputs));
+    if mine != theirs {
+        return Err(format!(
+            "stage '{}' of {exe} replaces the built-in {} and must publish what it publishes: {} (it declares: {})",
+            user.name,
+            user.name,
+            theirs.join(", "),
+            if mine.is_empty() { "nothing".to_string() } else { mine.join(", ") }
+        ));
+    }
+    Ok(())
+}
+
 /// The path of a process's executable, relative paths taken from `base` (the scenario's
 /// folder).
 pub fn exec_path(p: &ProcessSpec, base: &Path) -> Option<PathBuf> {
@@ -526,6 +549,28 @@ mod tests {
         resolve(p, &mut |_, s| {
             builtin_info(&sc, s).ok_or_else(|| format!("unknown stage '{s}'"))
         })
+    }
+
+    #[test]
+    fn a_replacement_publishes_exactly_what_the_built_in_publishes() {
+        let sc = sc();
+        let b = builtin_info(&sc, "current-loop").unwrap();
+        let mine = |outputs: Vec<TopicId>| StageInfo {
+            name: "current-loop".into(),
+            // Its inputs and rate are its own.
+            inputs: vec![InputSpec::trigger(TopicId::Meas, 1, OnStale::Required)],
+            outputs,
+            divider: 2,
+        };
+        check_replacement(&mine(vec![TopicId::Cmd]), &b, "/x/mine").unwrap();
+        assert_eq!(
+            check_replacement(&mine(vec![TopicId::Cmd, TopicId::Wref]), &b, "/x/mine").unwrap_err(),
+            "stage 'current-loop' of /x/mine replaces the built-in current-loop and must publish what it publishes: cmd (it declares: cmd, wref)"
+        );
+        assert_eq!(
+            check_replacement(&mine(Vec::new()), &b, "/x/mine").unwrap_err(),
+            "stage 'current-loop' of /x/mine replaces the built-in current-loop and must publish what it publishes: cmd (it declares: nothing)"
+        );
     }
 
     #[test]

@@ -1,0 +1,400 @@
+//! A user-written stage that replaces a built-in one: a deadbeat predictive current loop in
+//! the place of the built-in `current-loop`.
+//!
+//! `Deadbeat` registers under the built-in's name, declares the built-in's inputs and its one
+//! output (topic `cmd`), and so takes its place in the chain: the plant, the observer and the
+//! speed loop stay the built-in ones, and the trace, the faults and the histograms work as
+//! for the built-in. It uses the public stage API only; its host is `src/main.rs`, one call to
+//! `drivelab_runtime::service::host_main`.
+//!
+//! The law. The plant applies command k on [t_{k+1}, t_{k+2}), so a command cannot act on the
+//! sample it was computed from. Per axis of the rotor frame (the estimated angle), with the
+//! cross-coupling and back-EMF terms c frozen over a sample, the machine is the first-order
+//! RL circuit L·di/dt = u − R·i + c, which is exact sampled as
+//!
+//! i_{k+1} = a·i_k + b·(u + c),  a = e^{−R·T_s/L},  b = (1 − a)/R,
+//!
+//! with c_d = ω_e·L_q·i_q and c_q = −ω_e·(L_d·i_d + ψ_pm). The loop first predicts i_{k+1}
+//! from i_k and the command now being applied (its own last one), then solves the model for
+//! the command that takes i_{k+2} to i_{k+1} + λ·(i* − i_{k+1}). With λ = 1 (deadbeat) a
+//! reference step is reached two samples after the loop takes it; with λ < 1 the error falls
+//! by (1 − λ) per sample after that, which trades speed for tolerance of a wrong model.
+//! The voltage vector is limited to V_dc/√3; there is no integrator, so nothing winds up.
+//! The model is the controllers' motor (`[model]`, or the plant's without one).
+
+use drivelab_control::motor::wrap_2pi;
+use drivelab_control::transforms::{clarke, inverse_park, park, Dq};
+use drivelab_runtime::config::Scenario;
+use drivelab_runtime::messages::{CurrentRef, Header, VoltageCommand, FLAG_STALE_INPUT};
+use drivelab_runtime::stage::{
+    Diagnostics, Inbox, InputSpec, Msg, OnStale, Outbox, Rejoin, Stage, TopicId,
+};
+
+/// The stage's name: the built-in stage it replaces.
+pub const NAME: &str = "current-loop";
+
+/// The parameters `[stages.current-loop]` accepts.
+pub const KEYS: [&str; 1] = ["lambda"];
+
+/// A bad `[stages.current-loop]` parameter (one line).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ParamError(pub String);
+
+impl std::fmt::Display for ParamError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for ParamError {}
+
+/// The built-in current loop's inputs: triggered by the estimate (stale after two samples:
+/// the encoder angle then), with the measurement of the same sample and the speed loop's
+/// newest current reference.
+const INPUTS: &[InputSpec] = &[
+    InputSpec::trigger(
+        TopicId::Est,
+        drivelab_runtime::stages::EST_MAX_AGE,
+        OnStale::Fallback,
+    ),
+    InputSpec::latest(TopicId::Meas, 0, 0, OnStale::Required),
+    InputSpec::latest(TopicId::Iref, 1, 0, OnStale::Fallback),
+];
+
+/// One axis of the sampled RL model: i_{k+1} = a·i_k + b·(u + c).
+#[derive(Debug, Clone, Copy)]
+struct Axis {
+    a: f64,
+    b: f64,
+}
+
+impl Axis {
+    fn new(r_ohm: f64, l_h: f64, ts: f64) -> Self {
+        let a = (-r_ohm * ts / l_h).exp();
+        Self {
+            a,
+            b: (1.0 - a) / r_ohm,
+        }
+    }
+}
+
+/// Deadbeat predictive current control in the estimated rotor frame (see the module's text).
+#[derive(Debug, Clone)]
+pub struct Deadbeat {
+    /// Fraction of the predicted current error removed per sample, 0 < λ ≤ 1.
+    pub lambda: f64,
+    d: Axis,
+    q: Axis,
+    l_d: f64,
+    l_q: f64,
+    psi: f64,
+    pole_pairs: f64,
+    ts: f64,
+    u_max: f64,
+    i_ref_max: f64,
+    /// The command being applied now (this loop's last one), d/q V.
+    u_prev: Dq,
+    reference: CurrentRef,
+    omega_m: f64,
+    saturated_samples: u64,
+    fallback_samples: u64,
+}
+
+impl Deadbeat {
+    /// From the scenario's controller model and `[stages.current-loop]` (every parameter
+    /// optional).
+    pub fn new(sc: &Scenario) -> Result<Self, ParamError> {
+        let table = sc.stages.get(NAME);
+        if let Some(k) = table.and_then(|t| t.keys().find(|k| !KEYS.contains(&k.as_str()))) {
+            return Err(ParamError(format!(
+                "stages.{NAME}.{k}: unknown parameter (known: {})",
+                KEYS.join(", ")
+            )));
+        }
+        let lambda = match table.and_then(|t| t.get("lambda")) {
+            None => 1.0,
+            Some(v) => {
+                let x = v.as_float().or_else(|| v.as_integer().map(|i| i as f64));
+                match x {
+                    Some(x) if x > 0.0 && x <= 1.0 => x,
+                    _ => {
+                        return Err(ParamError(format!(
+                            "stages.{NAME}.lambda = {v} must be a number in (0, 1] (1: deadbeat)"
+                        )))
+                    }
+                }
+            }
+        };
+        let m = sc.motor_params();
+        let ts = sc.rates.ts();
+        Ok(Self {
+            lambda,
+            d: Axis::new(m.r_ohm, m.l_d_h, ts),
+            q: Axis::new(m.r_ohm, m.l_q_h, ts),
+            l_d: m.l_d_h,
+            l_q: m.l_q_h,
+            psi: m.psi_pm_wb,
+            pole_pairs: m.p(),
+            ts,
+            u_max: sc.u_max(),
+            // A reference from the bus never asks for more than the drive's own limits.
+            i_ref_max: sc.i_q_max().max(m.i_max_a),
+            u_prev: Dq::default(),
+            reference: CurrentRef::default(),
+            omega_m: 0.0,
+            saturated_samples: 0,
+            fallback_samples: 0,
+        })
+    }
+
+    /// The frozen cross-coupling and back-EMF terms (c_d, c_q) at current `i`, V.
+    fn coupling(&self, i: Dq, omega_e: f64) -> (f64, f64) {
+        (
+            omega_e * self.l_q * i.q,
+            -omega_e * (self.l_d * i.d + self.psi),
+        )
+    }
+
+    /// The model's current one sample after current `i` under voltage `u` at electrical speed
+    /// `omega_e` (rad/s).
+    pub fn predict(&self, i: Dq, u: Dq, omega_e: f64) -> Dq {
+        let (cd, cq) = self.coupling(i, omega_e);
+        Dq {
+            d: self.d.a * i.d + self.d.b * (u.d + cd),
+            q: self.q.a * i.q + self.q.b * (u.q + cq),
+        }
+    }
+
+    /// The voltage for measured current `i` and reference `i_ref` (both in the rotor frame):
+    /// predicts the next current under the command being applied, then solves for the one
+    /// after it. Limited to the voltage limit; remembered as the command being applied next.
+    pub fn command(&mut self, i: Dq, i_ref: Dq, omega_e: f64) -> Dq {
+        let next = self.predict(i, self.u_prev, omega_e);
+        let target = Dq {
+            d: next.d + self.lambda * (i_ref.d - next.d),
+            q: next.q + self.lambda * (i_ref.q - next.q),
+        };
+        let (cd, cq) = self.coupling(next, omega_e);
+        let mut u = Dq {
+            d: (target.d - self.d.a * next.d) / self.d.b - cd,
+            q: (target.q - self.q.a * next.q) / self.q.b - cq,
+        };
+        let mag = u.d.hypot(u.q);
+        if mag > self.u_max {
+            self.saturated_samples += 1;
+            u.d *= self.u_max / mag;
+            u.q *= self.u_max / mag;
+        }
+        if !(u.d.is_finite() && u.q.is_finite()) {
+            u = Dq::default();
+        }
+        self.u_prev = u;
+        u
+    }
+
+    /// Takes a fresh current reference or holds the last one; returns the command's flags.
+    fn take_reference(&mut self, inputs: &Inbox) -> u32 {
+        let slot = inputs.slot(TopicId::Iref);
+        match (slot.fresh, inputs.iref()) {
+            (true, Some(r)) => {
+                let lim = self.i_ref_max;
+                self.reference = CurrentRef {
+                    i_d_ref: r.i_d_ref.clamp(-lim, lim),
+                    i_q_ref: r.i_q_ref.clamp(-lim, lim),
+                    ..*r
+                };
+                r.hdr.flags & FLAG_STALE_INPUT
+            }
+            // Nothing expected yet (before the speed loop's first sample): zero references.
+            (true, None) => 0,
+            (false, _) => FLAG_STALE_INPUT,
+        }
+    }
+}
+
+impl Stage for Deadbeat {
+    fn name(&self) -> &'static str {
+        NAME
+    }
+    fn inputs(&self) -> &'static [InputSpec] {
+        INPUTS
+    }
+    fn outputs(&self) -> &'static [TopicId] {
+        &[TopicId::Cmd]
+    }
+    fn step(&mut self, k: u64, inputs: &Inbox, out: &mut Outbox) {
+        let Some(meas) = inputs.meas() else { return };
+        let mut flags = self.take_reference(inputs);
+        // Without a fresh estimate: the encoder's angle and the last speed.
+        let theta = match inputs.est() {
+            Some(e) => {
+                self.omega_m = e.omega_m;
+                e.theta_e
+            }
+            None => {
+                self.fallback_samples += 1;
+                flags |= FLAG_STALE_INPUT;
+                wrap_2pi(self.pole_pairs * meas.theta_m_enc)
+            }
+        };
+        let omega_e = self.pole_pairs * self.omega_m;
+        let i = park(clarke(meas.i_abc[0], meas.i_abc[1], meas.i_abc[2]), theta);
+        let r = self.reference;
+        let u = self.command(
+            i,
+            Dq {
+                d: r.i_d_ref,
+                q: r.i_q_ref,
+            },
+            omega_e,
+        );
+        // The command acts on [t_{k+1}, t_{k+2}); the plant turns it with the angle in the
+        // middle of that interval: 1.5 samples on.
+        let u_ab = inverse_park(u, theta + 1.5 * omega_e * self.ts);
+        out.push(Msg::Cmd(VoltageCommand {
+            hdr: Header {
+                k,
+                t_sample_ns: meas.hdr.t_sample_ns,
+                flags,
+                ..Default::default()
+            },
+            u_ab: [u_ab.alpha, u_ab.beta],
+            u_dq: [u.d, u.q],
+            i_dq_ref: [r.i_d_ref, r.i_q_ref],
+            omega_ref: r.omega_ref,
+            omega_hat: self.omega_m,
+            theta_hat: wrap_2pi(theta),
+        }));
+    }
+    fn rejoin(&mut self, _k: u64, inputs: &Inbox) -> Rejoin {
+        // After a restart: the voltage the plant is applying is the command being applied,
+        // seen in the rotor frame in the middle of the sample.
+        let (Some(meas), Some(e)) = (inputs.meas(), inputs.est()) else {
+            return Rejoin::NeedMore;
+        };
+        self.omega_m = e.omega_m;
+        let mid = e.theta_e + 0.5 * self.pole_pairs * e.omega_m * self.ts;
+        let u = drivelab_control::transforms::AlphaBeta {
+            alpha: meas.u_ab_applied[0],
+            beta: meas.u_ab_applied[1],
+        };
+        self.u_prev = park(u, mid);
+        if let Some(r) = inputs.newest_iref() {
+            self.reference = *r;
+        }
+        Rejoin::Done
+    }
+    fn diagnostic_names(&self) -> Diagnostics {
+        &["voltage_limited_samples", "encoder_fallback_samples"]
+    }
+    fn diagnostics(&self, v: &mut [u64]) {
+        for (d, s) in v
+            .iter_mut()
+            .zip([self.saturated_samples, self.fallback_samples])
+        {
+            *d = s;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scenario(params: &str) -> Scenario {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/deadbeat.toml");
+        let mut sc = Scenario::from_toml(&std::fs::read_to_string(path).unwrap(), path).unwrap();
+        sc.stages
+            .insert(NAME.into(), params.parse::<toml::Table>().unwrap());
+        sc
+    }
+
+    fn dq(d: f64, q: f64) -> Dq {
+        Dq { d, q }
+    }
+
+    /// Runs the loop against its own sampled model (the plant applies each command one sample
+    /// late) from rest at electrical speed `omega_e`; the currents at samples 0..n.
+    fn against_the_model(s: &mut Deadbeat, i_ref: Dq, omega_e: f64, n: usize) -> Vec<Dq> {
+        let mut i = dq(0.0, 0.0);
+        let mut applied = dq(0.0, 0.0);
+        let mut v = vec![i];
+        for _ in 0..n {
+            let u = s.command(i, i_ref, omega_e);
+            i = s.predict(i, applied, omega_e);
+            applied = u;
+            v.push(i);
+        }
+        v
+    }
+
+    #[test]
+    fn deadbeat_reaches_a_step_two_samples_after_taking_it() {
+        let mut s = Deadbeat::new(&scenario("")).unwrap();
+        assert_eq!(s.lambda, 1.0);
+        // At speed (350 rad/s electrical: the coupling terms matter), within the voltage limit.
+        let i_ref = dq(-0.5, 1.0);
+        let i = against_the_model(&mut s, i_ref, 350.0, 6);
+        // Sample 1 still feels the command applied at the step (zero).
+        assert!((i[1].q - i_ref.q).abs() > 0.5, "{:?}", i[1]);
+        for x in &i[2..] {
+            assert!(
+                (x.d - i_ref.d).abs() < 1e-9 && (x.q - i_ref.q).abs() < 1e-9,
+                "{i:?}"
+            );
+        }
+        assert_eq!(s.saturated_samples, 0);
+    }
+
+    #[test]
+    fn lambda_removes_that_fraction_of_the_error_per_sample() {
+        let mut s = Deadbeat::new(&scenario("lambda = 0.5")).unwrap();
+        let i_ref = dq(0.0, 1.0);
+        let i = against_the_model(&mut s, i_ref, 0.0, 8);
+        // From sample 2 on, each error is half the one before.
+        for w in i[1..].windows(2) {
+            let (e0, e1) = (i_ref.q - w[0].q, i_ref.q - w[1].q);
+            assert!((e1 - 0.5 * e0).abs() < 1e-9, "{e0} -> {e1}: {i:?}");
+        }
+    }
+
+    #[test]
+    fn the_voltage_is_limited_to_the_linear_range() {
+        let mut s = Deadbeat::new(&scenario("")).unwrap();
+        let u = s.command(dq(0.0, 0.0), dq(0.0, 100.0), 0.0);
+        assert!((u.d.hypot(u.q) - s.u_max).abs() < 1e-9, "{u:?}");
+        assert_eq!(s.saturated_samples, 1);
+        let u = s.command(dq(f64::NAN, 0.0), dq(0.0, 1.0), 0.0);
+        assert_eq!((u.d, u.q), (0.0, 0.0));
+    }
+
+    #[test]
+    fn bad_parameters_are_one_line_errors() {
+        for (p, msg) in [
+            (
+                "lambda = 0",
+                "stages.current-loop.lambda = 0 must be a number in (0, 1]",
+            ),
+            (
+                "lambda = 1.5",
+                "stages.current-loop.lambda = 1.5 must be a number in (0, 1]",
+            ),
+            (
+                "lambda = nan",
+                "stages.current-loop.lambda = nan must be a number in (0, 1]",
+            ),
+            (
+                "lambda = \"x\"",
+                "stages.current-loop.lambda = \"x\" must be a number",
+            ),
+            (
+                "gain = 1.0",
+                "stages.current-loop.gain: unknown parameter (known: lambda)",
+            ),
+        ] {
+            let e = Deadbeat::new(&scenario(p)).unwrap_err().to_string();
+            assert!(e.starts_with(msg), "{p}: {e}");
+            assert!(!e.contains('\n'), "{e}");
+        }
+    }
+}
