@@ -451,15 +451,16 @@ impl Stage for SpeedLoopStage {
                 }
             }
             None => {
-                // Hold the output, integrator frozen.
-                if let Some(prev) = self.last_out {
-                    let mut r = prev;
-                    r.hdr.k = k;
-                    r.hdr.flags |= FLAG_STALE_INPUT;
-                    self.held_samples += 1;
-                    self.last_out = Some(r);
-                    out.push(Msg::Iref(r));
-                }
+                // Hold the output, integrator frozen; before the first one (a real-time
+                // start or a restart whose first estimate is late) that is the zero
+                // reference the current loop starts from. Either way the step publishes,
+                // as every step must.
+                let mut r = self.last_out.unwrap_or_default();
+                r.hdr.k = k;
+                r.hdr.flags |= FLAG_STALE_INPUT;
+                self.held_samples += 1;
+                self.last_out = Some(r);
+                out.push(Msg::Iref(r));
             }
         }
     }
@@ -885,6 +886,26 @@ mod tests {
             (held.i_q_ref, held.omega_ref),
             (first.i_q_ref, first.omega_ref)
         );
+        assert_eq!(s.held_samples, 1);
+    }
+
+    /// In real time the first estimate may come late (a loaded machine, a restart): the
+    /// step still publishes, the zero reference, flagged (a step that published nothing
+    /// stopped its host).
+    #[test]
+    fn speed_loop_without_any_estimate_yet_publishes_the_zero_reference_flagged() {
+        let sc = scenario("kyslan-pi");
+        let mut s = SpeedLoopStage::new(&sc);
+        let mut ib = Inbox::default();
+        ib.set_stale(TopicId::Est, 3);
+        let mut out = Outbox::default();
+        s.step(70, &ib, &mut out);
+        let Some(Msg::Iref(r)) = out.get(TopicId::Iref).copied() else {
+            panic!("no output")
+        };
+        assert_eq!(r.hdr.k, 70);
+        assert_eq!(r.hdr.flags, FLAG_STALE_INPUT);
+        assert_eq!((r.omega_ref, r.i_d_ref, r.i_q_ref), (0.0, 0.0, 0.0));
         assert_eq!(s.held_samples, 1);
     }
 
