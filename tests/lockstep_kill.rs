@@ -169,6 +169,46 @@ fn a_stopped_current_loop_is_absent_for_exactly_its_duration() {
     assert_eq!(s["faults"][0]["fault"], "stop:current-loop@0.05:0.01");
 }
 
+/// While a stage is down the chain keeps its pace: the speed loop, held back by the machine
+/// (SIGSTOP for 0.5 s of wall time) while the current loop is down, is waited for and loses
+/// no estimate. (The plant ran on without it; the speed loop lost the estimates its buffer
+/// could not keep and waited for them until the watchdog.) The trace is the one without the
+/// freeze.
+#[test]
+fn a_speed_loop_held_back_while_the_current_loop_is_down_is_waited_for() {
+    let _serial = serial();
+    // The current loop is down from sample 500 to 100 500 (a 10 s restart, the longest).
+    let args = [
+        "--clock",
+        "lockstep",
+        "--duration",
+        "12",
+        "--fault",
+        "kill:current-loop@0.05",
+        "--lockstep-restart-ms",
+        "10000",
+    ];
+    let (plain, _) = run_ok("heldplain", &args);
+    let bus = bus_id("held");
+    let out = scratch("held").join("run");
+    let drive = Drive::start(&bus, &out, &args);
+    wait_for_progress(&bus, 2_000);
+    let pid = process_pid(&bus, "speed-loop");
+    // SAFETY: kill(2) with a pid of this test's own drive, read from /proc just now; it
+    // touches no memory of this process.
+    assert_eq!(unsafe { libc::kill(pid, libc::SIGSTOP) }, 0);
+    std::thread::sleep(std::time::Duration::from_millis(500));
+    // SAFETY: as above.
+    assert_eq!(unsafe { libc::kill(pid, libc::SIGCONT) }, 0);
+    let o = drive.wait_for_exit(std::time::Duration::from_secs(120), "the held-back run");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_clean(&bus);
+    assert!(
+        read(&plain.join("trace.csv")) == read(&out.join("trace.csv")),
+        "the held-back run's trace differs from the plain run's"
+    );
+}
+
 #[test]
 fn random_kills_in_lockstep_are_the_same_every_time() {
     let _serial = serial();

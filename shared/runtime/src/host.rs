@@ -1137,6 +1137,14 @@ impl<T: Transport> Host<T> {
                 continue;
             }
             if self.down(si, k) {
+                // Lockstep: a stage that is down still waits for its inputs of k (unused), so
+                // the chain keeps its pace. Without it the source would run on without the
+                // stages this one waits for (the current loop down, the speed loop left
+                // behind), and one the machine holds back would lose the inputs its buffers
+                // cannot keep and wait for them until the watchdog.
+                if self.cfg.pacing == Pacing::Lockstep && !self.wait_inputs(si, k)? {
+                    return Ok(false);
+                }
                 self.absent_outputs(si, k)?;
                 self.stages[si].last_k = Some(k);
                 continue;
