@@ -144,8 +144,9 @@ fn in_process_a_user_stage_is_refused_before_anything_is_made() {
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert_eq!(
         err.trim_end(),
-        "drivelab: error: --clock inprocess runs the built-in stages only; process \
-         'position-loop' hosts user stages (position-loop): use --clock lockstep"
+        "drivelab: error: --clock inprocess runs the built-in stages only, in this process; \
+         process 'position-loop' is started from an executable of its own (exec): use --clock \
+         lockstep"
     );
     assert!(!out.exists(), "a refused run left its folder");
     assert_clean(&bus);

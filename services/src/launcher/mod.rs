@@ -1071,20 +1071,27 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
     // A built-in stage's name is a user's replacement's table; where the built-in runs (on
     // this machine) its settings would be ignored.
     let builtin_here = |name: &str| {
-        !replaced.contains_key(name)
-            && procs.iter().any(|p| {
-                p.stages.iter().any(|s| s == name)
-                    && (here.is_none() || p.machine.as_deref() == here)
-            })
+        procs.iter().find(|p| {
+            !replaced.contains_key(name)
+                && p.stages.iter().any(|s| s == name)
+                && (here.is_none() || p.machine.as_deref() == here)
+        })
     };
-    if let Some(name) = sc
-        .stages
-        .keys()
-        .find(|n| drivelab_runtime::stages::BUILTIN.contains(&n.as_str()) && builtin_here(n))
-    {
+    if let Some((name, p)) = sc.stages.keys().find_map(|n| {
+        builtin_here(n)
+            .filter(|_| drivelab_runtime::stages::BUILTIN.contains(&n.as_str()))
+            .map(|p| (n, p))
+    }) {
+        // The topology that makes the built-in run, when it is not the scenario's.
+        let of = if o.topology.is_some() {
+            format!(" of {origin}")
+        } else {
+            String::new()
+        };
         bail!(
-            "{}: [stages.{name}] is for a user's stage that replaces the built-in {name}, and the built-in runs here: it takes its settings from [rates], [observer], [current_loop] and [speed_loop]",
-            sc_src.display()
+            "{}: [stages.{name}] is for a user's stage that replaces the built-in {name}, and the built-in runs here (process '{}'{of} starts no executable that replaces it): it takes its settings from [rates], [observer], [current_loop] and [speed_loop]",
+            sc_src.display(),
+            p.name
         );
     }
     sc.process = resolved.processes.iter().map(|(p, _)| p.clone()).collect();
@@ -1384,9 +1391,8 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
     if o.clock == Clock::Inprocess {
         if let Some(p) = topo.processes.iter().find(|p| p.exec.is_some()) {
             bail!(
-                "--clock inprocess runs the built-in stages only; process '{}' hosts user stages ({}): use --clock lockstep",
-                p.name,
-                p.stages.join(", ")
+                "--clock inprocess runs the built-in stages only, in this process; process '{}' is started from an executable of its own (exec): use --clock lockstep",
+                p.name
             );
         }
     }

@@ -346,7 +346,16 @@ pub fn make_stage(
 ) -> Result<Box<dyn Stage>> {
     if let Some((_, f)) = user.iter().find(|(n, _)| *n == name) {
         // A user's stage is a controller or an observer: it sees the controller's model.
-        return f(&sc.controller_view()).with_context(|| format!("stage '{name}'"));
+        let s = f(&sc.controller_view()).with_context(|| format!("stage '{name}'"))?;
+        // The launcher knows a stage by what `--describe` says, `Stage::name`; this host
+        // builds it by the name it was registered under.
+        if s.name() != name {
+            bail!(
+                "the user's stage registered as '{name}' calls itself '{}' (Stage::name): the two must be the same",
+                s.name()
+            );
+        }
+        return Ok(s);
     }
     crate::stages::builtin(name, sc).ok_or_else(|| {
         let mut known: Vec<&str> = crate::stages::BUILTIN.to_vec();
@@ -1533,6 +1542,21 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert_eq!(e, "the user's stage 'mine' is registered twice");
+        // Registered under one name, calling itself by another: the launcher would take it
+        // for the built-in of that name (or for none).
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../scenarios/kyslan-pi.toml"
+        );
+        let sc = Scenario::from_toml(&std::fs::read_to_string(path).unwrap(), path).unwrap();
+        let e = make_stage("ramp-ref", &sc, &[("ramp-ref", any as StageFactory)])
+            .err()
+            .unwrap()
+            .to_string();
+        assert_eq!(
+            e,
+            "the user's stage registered as 'ramp-ref' calls itself 'speed-loop' (Stage::name): the two must be the same"
+        );
     }
 
     fn plan(topology: &str) -> TopologyPlan {

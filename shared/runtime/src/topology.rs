@@ -482,9 +482,9 @@ pub fn builtin_info(sc: &crate::config::Scenario, name: &str) -> Option<StageInf
 }
 
 /// Checks a user's stage `user` that takes the name of built-in stage `builtin` (from the
-/// executable `exe`): it must publish exactly the topics the built-in publishes, so that the
-/// drive's wiring, its trace and its fault reports stay as they are. Its inputs and rate are
-/// its own.
+/// executable `exe`): it must publish exactly the topics the built-in publishes, at its rate,
+/// so that the drive's wiring, its trace, its fault reports and the built-in stages that read
+/// it (which time their holds by that rate) stay as they are. Its inputs are its own.
 pub fn check_replacement(user: &StageInfo, builtin: &StageInfo, exe: &str) -> Result<(), String> {
     let names = |t: &[TopicId]| {
         let mut v: Vec<&str> = t.iter().map(|t| t.name()).collect();
@@ -499,6 +499,17 @@ pub fn check_replacement(user: &StageInfo, builtin: &StageInfo, exe: &str) -> Re
             user.name,
             theirs.join(", "),
             if mine.is_empty() { "nothing".to_string() } else { mine.join(", ") }
+        ));
+    }
+    if user.divider != builtin.divider {
+        let set_by = if user.name == "speed-loop" {
+            " ([rates] speed_divider sets it)"
+        } else {
+            ""
+        };
+        return Err(format!(
+            "stage '{}' of {exe} replaces the built-in {} and must run at its rate, every {} sample(s){set_by}, not every {}",
+            user.name, user.name, builtin.divider, user.divider
         ));
     }
     Ok(())
@@ -557,12 +568,21 @@ mod tests {
         let b = builtin_info(&sc, "current-loop").unwrap();
         let mine = |outputs: Vec<TopicId>| StageInfo {
             name: "current-loop".into(),
-            // Its inputs and rate are its own.
+            // Its inputs are its own.
             inputs: vec![InputSpec::trigger(TopicId::Meas, 1, OnStale::Required)],
             outputs,
-            divider: 2,
+            divider: 1,
         };
         check_replacement(&mine(vec![TopicId::Cmd]), &b, "/x/mine").unwrap();
+        // Its rate is the built-in's.
+        let slow = StageInfo {
+            divider: 2,
+            ..mine(vec![TopicId::Cmd])
+        };
+        assert_eq!(
+            check_replacement(&slow, &b, "/x/mine").unwrap_err(),
+            "stage 'current-loop' of /x/mine replaces the built-in current-loop and must run at its rate, every 1 sample(s), not every 2"
+        );
         assert_eq!(
             check_replacement(&mine(vec![TopicId::Cmd, TopicId::Wref]), &b, "/x/mine").unwrap_err(),
             "stage 'current-loop' of /x/mine replaces the built-in current-loop and must publish what it publishes: cmd (it declares: cmd, wref)"
