@@ -1134,7 +1134,19 @@ fn absolute_execs(
     let base = std::path::absolute(dir.unwrap_or(Path::new(".")))
         .with_context(|| format!("the folder of {}", file.display()))?;
     for p in procs.iter_mut() {
+        let relative = p
+            .exec
+            .as_deref()
+            .is_some_and(|e| Path::new(e).is_relative());
         if let Some(e) = drivelab_runtime::topology::exec_path(p, &base) {
+            // A relative path's folder as the kernel resolves it
+            // (`…/examples/x/../../target/release/h` is `…/target/release/h`), the file's own
+            // name as given; an absolute path stays as written, and a folder that does not
+            // exist is left for the exec check to name.
+            let e = match (e.parent().map(std::fs::canonicalize), e.file_name()) {
+                (Some(Ok(dir)), Some(name)) if relative => dir.join(name),
+                _ => e,
+            };
             p.exec = Some(e.display().to_string());
         }
     }
