@@ -112,6 +112,13 @@ impl Example {
         while child.try_wait().unwrap().is_none() {
             if t.elapsed() > Duration::from_secs(300) {
                 let _ = child.kill();
+                // What the killed launcher leaves: its stage hosts and its bus files.
+                for l in processes_on_bus(&bus) {
+                    if let Some(pid) = l.split(' ').next() {
+                        let _ = Command::new("kill").args(["-9", pid]).status();
+                    }
+                }
+                let _ = drivelab_runtime::bus::cleanup(&bus);
                 let o = child.wait_with_output().unwrap();
                 panic!(
                     "watchdog: drivelab {args:?} still running after 300 s\nstderr: {}",

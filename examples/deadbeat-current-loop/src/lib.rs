@@ -4,8 +4,11 @@
 //! `Deadbeat` registers under the built-in's name, declares the built-in's inputs and its one
 //! output (topic `cmd`), and so takes its place in the chain: the plant, the observer and the
 //! speed loop stay the built-in ones, and the trace, the faults and the histograms work as
-//! for the built-in. It uses the public stage API only; its host is `src/main.rs`, one call to
-//! `drivelab_runtime::service::host_main`.
+//! for the built-in. Its fallbacks are the built-in's: without an estimate the encoder's
+//! angle (sensorless: the zero voltage); without a fresh current reference the last one,
+//! flagged, with i_q* ramped to zero after two speed periods; `observer.mode = "monitor"`
+//! controls on the encoder's angle. It uses the public stage API only; its host is
+//! `src/main.rs`, one call to `drivelab_runtime::service::host_main`.
 //!
 //! The law. The plant applies command k on [t_{k+1}, t_{k+2}), so a command cannot act on the
 //! sample it was computed from. Per axis of the rotor frame (the estimated angle), with the
@@ -17,12 +20,14 @@
 //! with c_d = ω_e·L_q·i_q and c_q = −ω_e·(L_d·i_d + ψ_pm). The loop first predicts i_{k+1}
 //! from i_k and the command now being applied (its own last one), then solves the model for
 //! the command that takes i_{k+2} to i_{k+1} + λ·(i* − i_{k+1}). With λ = 1 (deadbeat) a
-//! reference step is reached two samples after the loop takes it; with λ < 1 the error falls
-//! by (1 − λ) per sample after that, which trades speed for tolerance of a wrong model.
+//! reference step is reached two samples after the loop takes it; with λ < 1 the error is
+//! multiplied by (1 − λ) each sample after that, which trades speed for tolerance of a wrong
+//! model.
 //! The voltage vector is limited to V_dc/√3; there is no integrator, so nothing winds up.
 //! The model is the controllers' motor (`[model]`, or the plant's without one).
 
 use drivelab_control::motor::wrap_2pi;
+use drivelab_control::observer_sensorless::ObserverMode;
 use drivelab_control::transforms::{clarke, inverse_park, park, Dq};
 use drivelab_runtime::config::Scenario;
 use drivelab_runtime::messages::{CurrentRef, Header, VoltageCommand, FLAG_STALE_INPUT};
@@ -92,9 +97,16 @@ pub struct Deadbeat {
     ts: f64,
     u_max: f64,
     i_ref_max: f64,
+    mode: ObserverMode,
+    /// Samples a reference may be missing before i_q* ramps: two speed periods.
+    ref_hold: u64,
+    /// The ramp's step, A a sample: the i_q* limit in 20 ms.
+    iq_ramp_per_sample: f64,
     /// The command being applied now (this loop's last one), d/q V.
     u_prev: Dq,
     reference: CurrentRef,
+    stale_ref_samples: u64,
+    last_k: Option<u64>,
     omega_m: f64,
     saturated_samples: u64,
     fallback_samples: u64,
@@ -137,10 +149,22 @@ impl Deadbeat {
             pole_pairs: m.p(),
             ts,
             u_max: sc.u_max(),
-            // A reference from the bus never asks for more than the drive's own limits.
-            i_ref_max: sc.i_q_max().max(m.i_max_a),
+            // A reference from the bus never asks for more than the drive's own limits (or
+            // the scenario's own reference steps).
+            i_ref_max: sc
+                .reference
+                .i_d_a
+                .iter()
+                .chain(&sc.reference.i_q_a)
+                .map(|s| s.value.abs())
+                .fold(sc.i_q_max().max(m.i_max_a), f64::max),
+            mode: sc.observer.mode,
+            ref_hold: 2 * u64::from(sc.rates.speed_divider),
+            iq_ramp_per_sample: sc.i_q_max() * ts / 0.02,
             u_prev: Dq::default(),
             reference: CurrentRef::default(),
+            stale_ref_samples: 0,
+            last_k: None,
             omega_m: 0.0,
             saturated_samples: 0,
             fallback_samples: 0,
@@ -192,22 +216,42 @@ impl Deadbeat {
         u
     }
 
-    /// Takes a fresh current reference or holds the last one; returns the command's flags.
-    fn take_reference(&mut self, inputs: &Inbox) -> u32 {
+    /// Reference `r` within the drive's limits.
+    fn limited(&self, r: &CurrentRef) -> CurrentRef {
+        let lim = self.i_ref_max;
+        CurrentRef {
+            i_d_ref: r.i_d_ref.clamp(-lim, lim),
+            i_q_ref: r.i_q_ref.clamp(-lim, lim),
+            ..*r
+        }
+    }
+
+    /// Takes a fresh current reference or holds the last one, `elapsed` samples after the
+    /// last step; with `ramp`, i_q* ramps to zero once the reference has been missing for
+    /// two speed periods (the built-in's policy). Returns the command's flags.
+    fn take_reference(&mut self, inputs: &Inbox, ramp: bool, elapsed: u64) -> u32 {
         let slot = inputs.slot(TopicId::Iref);
         match (slot.fresh, inputs.iref()) {
             (true, Some(r)) => {
-                let lim = self.i_ref_max;
-                self.reference = CurrentRef {
-                    i_d_ref: r.i_d_ref.clamp(-lim, lim),
-                    i_q_ref: r.i_q_ref.clamp(-lim, lim),
-                    ..*r
-                };
+                self.reference = self.limited(r);
+                self.stale_ref_samples = 0;
                 r.hdr.flags & FLAG_STALE_INPUT
             }
             // Nothing expected yet (before the speed loop's first sample): zero references.
             (true, None) => 0,
-            (false, _) => FLAG_STALE_INPUT,
+            (false, _) => {
+                let before = self.stale_ref_samples;
+                self.stale_ref_samples = before.saturating_add(elapsed);
+                let steps = self
+                    .stale_ref_samples
+                    .saturating_sub(before.max(self.ref_hold));
+                if ramp && steps > 0 {
+                    let q = self.reference.i_q_ref;
+                    let down = self.iq_ramp_per_sample * steps as f64;
+                    self.reference.i_q_ref = q - q.signum() * down.min(q.abs());
+                }
+                FLAG_STALE_INPUT
+            }
         }
     }
 }
@@ -224,30 +268,45 @@ impl Stage for Deadbeat {
     }
     fn step(&mut self, k: u64, inputs: &Inbox, out: &mut Outbox) {
         let Some(meas) = inputs.meas() else { return };
-        let mut flags = self.take_reference(inputs);
-        // Without a fresh estimate: the encoder's angle and the last speed.
+        let elapsed = self.last_k.map_or(1, |l| k.saturating_sub(l).max(1));
+        self.last_k = Some(k);
+        // On the encoder fallback a stale reference is held, not ramped (as the built-in:
+        // the speed loop, without estimates, holds its output too).
+        let mut flags = self.take_reference(inputs, inputs.est().is_some(), elapsed);
+        let encoder = wrap_2pi(self.pole_pairs * meas.theta_m_enc);
+        // Without a fresh estimate: the encoder's angle and the last speed (sensorless, no
+        // encoder to fall back on: the zero voltage). Monitor mode controls on the encoder.
         let theta = match inputs.est() {
             Some(e) => {
                 self.omega_m = e.omega_m;
-                e.theta_e
+                if self.mode == ObserverMode::Monitor {
+                    encoder
+                } else {
+                    e.theta_e
+                }
             }
             None => {
                 self.fallback_samples += 1;
                 flags |= FLAG_STALE_INPUT;
-                wrap_2pi(self.pole_pairs * meas.theta_m_enc)
+                encoder
             }
         };
         let omega_e = self.pole_pairs * self.omega_m;
         let i = park(clarke(meas.i_abc[0], meas.i_abc[1], meas.i_abc[2]), theta);
         let r = self.reference;
-        let u = self.command(
-            i,
-            Dq {
-                d: r.i_d_ref,
-                q: r.i_q_ref,
-            },
-            omega_e,
-        );
+        let u = if inputs.est().is_none() && self.mode == ObserverMode::Sensorless {
+            self.u_prev = Dq::default();
+            Dq::default()
+        } else {
+            self.command(
+                i,
+                Dq {
+                    d: r.i_d_ref,
+                    q: r.i_q_ref,
+                },
+                omega_e,
+            )
+        };
         // The command acts on [t_{k+1}, t_{k+2}); the plant turns it with the angle in the
         // middle of that interval: 1.5 samples on.
         let u_ab = inverse_park(u, theta + 1.5 * omega_e * self.ts);
@@ -280,7 +339,7 @@ impl Stage for Deadbeat {
         };
         self.u_prev = park(u, mid);
         if let Some(r) = inputs.newest_iref() {
-            self.reference = *r;
+            self.reference = self.limited(r);
         }
         Rejoin::Done
     }
@@ -366,6 +425,61 @@ mod tests {
         assert_eq!(s.saturated_samples, 1);
         let u = s.command(dq(f64::NAN, 0.0), dq(0.0, 1.0), 0.0);
         assert_eq!((u.d, u.q), (0.0, 0.0));
+    }
+
+    /// One step at k with the current reference `iref` (fresh) or none (stale), and an
+    /// estimate; the command.
+    fn step_at(s: &mut Deadbeat, k: u64, iref: Option<f64>) -> VoltageCommand {
+        use drivelab_runtime::messages::{Estimate, Measurement};
+        let hdr = Header {
+            k,
+            ..Default::default()
+        };
+        let mut ib = Inbox::default();
+        ib.put(Msg::Meas(Measurement {
+            hdr,
+            ..Default::default()
+        }));
+        ib.put(Msg::Est(Estimate {
+            hdr,
+            ..Default::default()
+        }));
+        match iref {
+            Some(q) => ib.put(Msg::Iref(CurrentRef {
+                hdr,
+                i_q_ref: q,
+                ..Default::default()
+            })),
+            None => ib.set_stale(TopicId::Iref, 1),
+        }
+        let mut out = Outbox::default();
+        s.step(k, &ib, &mut out);
+        match out.get(TopicId::Cmd) {
+            Some(Msg::Cmd(c)) => *c,
+            other => panic!("no command: {other:?}"),
+        }
+    }
+
+    #[test]
+    fn without_a_reference_i_q_is_held_two_speed_periods_then_ramped_to_zero() {
+        let mut s = Deadbeat::new(&scenario("")).unwrap();
+        assert_eq!(step_at(&mut s, 0, Some(1.0)).i_dq_ref[1], 1.0);
+        // Held, flagged, for two speed periods (20 samples at 10 kHz and 1 kHz) …
+        for k in 1..=20 {
+            let c = step_at(&mut s, k, None);
+            assert_eq!(c.i_dq_ref[1], 1.0, "{k}");
+            assert_eq!(c.hdr.flags, FLAG_STALE_INPUT);
+        }
+        // … then down by the i_q* limit (1.6 A) in 20 ms: 0.008 A a sample.
+        let c = step_at(&mut s, 21, None);
+        assert!((c.i_dq_ref[1] - (1.0 - 0.008)).abs() < 1e-12, "{c:?}");
+        let c = step_at(&mut s, 30, None);
+        assert!(
+            (c.i_dq_ref[1] - (1.0 - 10.0 * 0.008)).abs() < 1e-12,
+            "{c:?}"
+        );
+        // A fresh reference ends it.
+        assert_eq!(step_at(&mut s, 31, Some(0.5)).i_dq_ref[1], 0.5);
     }
 
     #[test]

@@ -142,7 +142,7 @@ fn a_table_for_a_built_in_stage_that_runs_is_refused_before_anything_is_made() {
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(
         err.trim_end().ends_with(
-            "deadbeat.toml: [stages.current-loop] is for a user's stage that replaces the built-in current-loop, and the built-in runs here (process 'current-loop' starts no executable that replaces it): it takes its settings from [rates], [observer], [current_loop] and [speed_loop]"
+            "deadbeat.toml: [stages.current-loop] is for a user's stage that replaces the built-in current-loop, and the built-in runs here (process 'current-loop' starts no executable that replaces it): it takes its settings from [current_loop]"
         ) && err.lines().count() == 1,
         "{err}"
     );

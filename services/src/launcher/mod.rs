@@ -989,14 +989,13 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
     let resolved = drivelab_runtime::topology::resolve(&procs, &mut |p, stage| {
         let builtin = drivelab_runtime::topology::builtin_info(scr, stage);
         // A user's executable runs its own stage of a built-in's name in the built-in's place
-        // (the plant's name it may not take); a process of the other machine is asked there.
+        // (the plant's name it may not take). Asked for every process, also those of the
+        // other machine of a split drive (as for any user stage): both machines then build
+        // the same plan, and send each other what the replacement reads.
         let ask = match (&p.exec, &builtin) {
             (None, _) => false,
             (Some(_), None) => true,
-            (Some(_), Some(_)) => {
-                drivelab_runtime::stages::REPLACEABLE.contains(&stage)
-                    && (here.is_none() || p.machine.as_deref() == here)
-            }
+            (Some(_), Some(_)) => drivelab_runtime::stages::REPLACEABLE.contains(&stage),
         };
         let Some(exe) = p.exec.clone().filter(|_| ask) else {
             return builtin.ok_or_else(|| format!("unknown stage '{stage}'"));
@@ -1083,13 +1082,17 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
             .map(|p| (n, p))
     }) {
         // The topology that makes the built-in run, when it is not the scenario's.
-        let of = if o.topology.is_some() {
-            format!(" of {origin}")
-        } else {
-            String::new()
+        let of = match &o.topology {
+            Some(t) => format!(" of the topology {t}"),
+            None => String::new(),
+        };
+        let tables = match name.as_str() {
+            "observer" => "[observer]",
+            "current-loop" => "[current_loop]",
+            _ => "[speed_loop] and [rates]",
         };
         bail!(
-            "{}: [stages.{name}] is for a user's stage that replaces the built-in {name}, and the built-in runs here (process '{}'{of} starts no executable that replaces it): it takes its settings from [rates], [observer], [current_loop] and [speed_loop]",
+            "{}: [stages.{name}] is for a user's stage that replaces the built-in {name}, and the built-in runs here (process '{}'{of} starts no executable that replaces it): it takes its settings from {tables}",
             sc_src.display(),
             p.name
         );

@@ -518,6 +518,9 @@ fn send<T: Data>(
     }
 }
 
+/// How long a receiving thread that was told to stop still publishes what its queue holds.
+const DRAIN_LIMIT: Duration = Duration::from_millis(200);
+
 /// Publishes topic `T` from the other machine on the bus until stopped.
 fn take<T: Data>(
     sub: zenoh::pubsub::Subscriber<FifoChannelHandler<Sample>>,
@@ -565,12 +568,17 @@ fn take<T: Data>(
         }
     }
     // What arrived before the stop is still published (and counted), as the sending threads
-    // send what was published before it.
-    while let Some(sample) = sub
-        .try_recv()
-        .map_err(|e| anyhow!("zenoh receive {}: {e}", T::NAME))?
-    {
-        put_on_bus(sample)?;
+    // send what was published before it; for at most DRAIN_LIMIT, against a peer that
+    // keeps sending.
+    let until = std::time::Instant::now() + DRAIN_LIMIT;
+    while std::time::Instant::now() < until {
+        match sub
+            .try_recv()
+            .map_err(|e| anyhow!("zenoh receive {}: {e}", T::NAME))?
+        {
+            Some(sample) => put_on_bus(sample)?,
+            None => break,
+        }
     }
     Ok(())
 }

@@ -465,8 +465,21 @@ impl Stage for SpeedLoopStage {
         }
     }
     fn rejoin(&mut self, _k: u64, inputs: &Inbox) -> Rejoin {
-        if let (Some(e), Some(c)) = (inputs.est(), inputs.newest_cmd()) {
-            self.ctrl.preset(e.omega_m, c.i_dq_ref[1]);
+        if let Some(c) = inputs.newest_cmd() {
+            if let Some(e) = inputs.est() {
+                self.ctrl.preset(e.omega_m, c.i_dq_ref[1]);
+            }
+            // Held while no estimate comes: the reference in force, not the zero one.
+            self.last_out = Some(CurrentRef {
+                hdr: Header {
+                    k: c.hdr.k,
+                    t_sample_ns: c.hdr.t_sample_ns,
+                    ..Default::default()
+                },
+                omega_ref: c.omega_ref,
+                i_d_ref: c.i_dq_ref[0],
+                i_q_ref: c.i_dq_ref[1],
+            });
         }
         Rejoin::Done
     }
@@ -1224,6 +1237,33 @@ mod tests {
             out_r.i_q_ref,
             r.i_q_ref
         );
+    }
+
+    /// Restarted with its first estimate late, the speed loop holds the reference in force
+    /// (the current loop's last command's), not the zero one of a cold start.
+    #[test]
+    fn a_restarted_speed_loop_without_an_estimate_holds_the_reference_in_force() {
+        let sc = scenario("kyslan-pi");
+        // After the load step at 40 ms: a torque current to hold.
+        let k = 450;
+        let (_, _, log) = run_to(&sc, k + 1);
+        let (_, _, _, c) = log[k as usize];
+        assert!(c.i_dq_ref[1].abs() > 0.1, "{c:?}");
+        let mut fresh = SpeedLoopStage::new(&sc);
+        let mut ib = Inbox::default();
+        ib.put(Msg::Cmd(c));
+        ib.set_stale(TopicId::Est, 2);
+        assert_eq!(fresh.rejoin(k, &ib), Rejoin::Done);
+        let mut out = Outbox::default();
+        fresh.step(k, &ib, &mut out);
+        let Some(Msg::Iref(r)) = out.get(TopicId::Iref).copied() else {
+            panic!("no output")
+        };
+        assert_eq!(
+            (r.i_d_ref, r.i_q_ref, r.omega_ref),
+            (c.i_dq_ref[0], c.i_dq_ref[1], c.omega_ref)
+        );
+        assert_eq!((r.hdr.k, r.hdr.flags), (k, FLAG_STALE_INPUT));
     }
 
     #[test]
