@@ -142,9 +142,7 @@ impl Example {
         assert_clean(&bus);
         out
     }
-}
 
-impl Example {
     /// A 3 s real-time run with `stage`'s process killed at 0.1 s; checks that the fault
     /// report names the stage and returns the run folder and its summary.
     pub fn run_killed(&self, stage: &str) -> (PathBuf, serde_json::Value) {

@@ -976,8 +976,12 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
     // Every `exec` of this machine's processes is checked before anything starts, also one
     // that hosts built-in stages only (it is asked nothing, but it is started).
     let here = o.zenoh.as_ref().and_then(|z| z.machine.as_deref());
+    // A process this machine runs (every one, unless the drive is split).
+    let on_this_machine = |p: &drivelab_runtime::topology::ProcessSpec| {
+        here.is_none() || p.machine.as_deref() == here
+    };
     for p in &procs {
-        if let (Some(exe), true) = (&p.exec, here.is_none() || p.machine.as_deref() == here) {
+        if let (Some(exe), true) = (&p.exec, on_this_machine(p)) {
             check_exec(exe, runner.is_some())
                 .map_err(|e| anyhow!("{origin}: process '{}': {e}", p.name))?;
         }
@@ -1035,10 +1039,7 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
     if let Some(r) = &runner {
         r.check().map_err(|e| anyhow!(e))?;
     }
-    for p in procs
-        .iter()
-        .filter(|p| here.is_none() || p.machine.as_deref() == here)
-    {
+    for p in procs.iter().filter(|p| on_this_machine(p)) {
         let exe = match (&p.exec, &runner) {
             (Some(exe), _) => exe.clone(),
             (None, Some(_)) => spawn::process_binary(p, Path::new("/"))?
@@ -1069,18 +1070,18 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
     }
     // A built-in stage's name is a user's replacement's table; where the built-in runs (on
     // this machine) its settings would be ignored.
-    let builtin_here = |name: &str| {
-        procs.iter().find(|p| {
-            !replaced.contains_key(name)
-                && p.stages.iter().any(|s| s == name)
-                && (here.is_none() || p.machine.as_deref() == here)
+    if let Some((name, p)) = sc
+        .stages
+        .keys()
+        .filter(|n| drivelab_runtime::stages::BUILTIN.contains(&n.as_str()))
+        .filter(|n| !replaced.contains_key(*n))
+        .find_map(|n| {
+            procs
+                .iter()
+                .find(|p| p.stages.contains(n) && on_this_machine(p))
+                .map(|p| (n, p))
         })
-    };
-    if let Some((name, p)) = sc.stages.keys().find_map(|n| {
-        builtin_here(n)
-            .filter(|_| drivelab_runtime::stages::BUILTIN.contains(&n.as_str()))
-            .map(|p| (n, p))
-    }) {
+    {
         // The topology that makes the built-in run, when it is not the scenario's.
         let of = match &o.topology {
             Some(t) => format!(" of the topology {t}"),

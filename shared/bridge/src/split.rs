@@ -35,7 +35,7 @@ use iceoryx2::prelude::ZeroCopySend;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{mpsc, Arc};
 use std::thread::JoinHandle;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 use zenoh::handlers::{FifoChannel, FifoChannelHandler};
 use zenoh::qos::{CongestionControl, Priority};
 use zenoh::sample::Sample;
@@ -570,8 +570,8 @@ fn take<T: Data>(
     // What arrived before the stop is still published (and counted), as the sending threads
     // send what was published before it; for at most DRAIN_LIMIT, against a peer that
     // keeps sending.
-    let until = std::time::Instant::now() + DRAIN_LIMIT;
-    while std::time::Instant::now() < until {
+    let until = Instant::now() + DRAIN_LIMIT;
+    while Instant::now() < until {
         match sub
             .try_recv()
             .map_err(|e| anyhow!("zenoh receive {}: {e}", T::NAME))?

@@ -1544,28 +1544,32 @@ mod tests {
         assert_eq!(e, "the user's stage 'mine' is registered twice");
         // Registered under one name, calling itself by another: the launcher would take it
         // for the built-in of that name (or for none).
-        let path = concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/../../scenarios/kyslan-pi.toml"
-        );
-        let sc = Scenario::from_toml(&std::fs::read_to_string(path).unwrap(), path).unwrap();
-        let e = make_stage("ramp-ref", &sc, &[("ramp-ref", any as StageFactory)])
-            .err()
-            .unwrap()
-            .to_string();
+        let e = make_stage(
+            "ramp-ref",
+            &kyslan_pi(),
+            &[("ramp-ref", any as StageFactory)],
+        )
+        .err()
+        .unwrap()
+        .to_string();
         assert_eq!(
             e,
             "the user's stage registered as 'ramp-ref' calls itself 'speed-loop' (Stage::name): the two must be the same"
         );
     }
 
-    fn plan(topology: &str) -> TopologyPlan {
+    /// The shipped kyslan-pi scenario.
+    fn kyslan_pi() -> Scenario {
         let text = std::fs::read_to_string(concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/../../scenarios/kyslan-pi.toml"
         ))
         .unwrap();
-        let sc = Scenario::from_toml(&text, "kyslan-pi.toml").unwrap();
+        Scenario::from_toml(&text, "kyslan-pi.toml").unwrap()
+    }
+
+    fn plan(topology: &str) -> TopologyPlan {
+        let sc = kyslan_pi();
         let (file, _) = crate::topology::load(topology).unwrap();
         let r = crate::topology::resolve(&file.process, &mut |_, stage| {
             crate::topology::builtin_info(&sc, stage).ok_or_else(|| stage.to_string())
