@@ -73,6 +73,12 @@ fn the_deadbeat_loop_replaces_the_built_in_and_reaches_an_i_d_step_in_two_sample
         s["replaced_stages"]
     );
     assert_eq!(s["processes"]["current-loop"]["executable"], by);
+    // The built-in PI current design did not run: it is not in the summary's design, which
+    // names it; the speed loop's is.
+    let design = &s["design"];
+    assert!(design.get("current").is_none(), "{design}");
+    assert_eq!(design["not_run"], serde_json::json!({ "current": by }));
+    assert!(design["speed"]["k_p"].is_f64(), "{design}");
     let diag = &s["counters"]["current-loop"]["diagnostics"];
     assert!(diag["voltage_limited_samples"].is_u64(), "{diag}");
     assert!(diag.get("iq_ramp_samples").is_none(), "{diag}");
@@ -96,7 +102,13 @@ fn the_deadbeat_loop_replaces_the_built_in_and_reaches_an_i_d_step_in_two_sample
     // The built-in PI loop, designed for τ_c = 250 µs (2.5 samples), is still far from the
     // step there: what ran above was not it.
     let builtin = lockstep("builtin", &[], &built_in());
-    assert_eq!(summary(&builtin)["replaced_stages"], serde_json::json!({}));
+    let sb = summary(&builtin);
+    assert_eq!(sb["replaced_stages"], serde_json::json!({}));
+    assert!(
+        sb["design"]["current"]["k_p_d"].is_f64(),
+        "{}",
+        sb["design"]
+    );
     let (k1, err_pi) = i_d_step_errors(&builtin);
     assert_eq!(k0, k1);
     assert!(err_pi[2].abs() > 0.2, "{err_pi:?}");

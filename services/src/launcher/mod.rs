@@ -1609,7 +1609,12 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         metrics.load_dip_rad_s = None;
         metrics.load_recovery_ms = None;
     }
-    let design = DriveDesign::from_scenario(&sc.controller_view()); // the design that runs ([model])
+    // The design that runs ([model]), without the built-in designs that a user's stage
+    // replaced.
+    let design = design_that_ran(
+        &DriveDesign::from_scenario(&sc.controller_view()),
+        &topo.replaced,
+    );
 
     // An analysis of a file the run wrote: where it fails, the run's summary is still written,
     // with the reason in one line.
@@ -1684,8 +1689,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         "crashes": supervisor::crashes(&events),
         "supervisor_events": events,
         "design": design,
-        // Built-in stages a user's stage replaced, with the executable that ran it (`design`
-        // still gives the built-in's figures, which did not run).
+        // Built-in stages a user's stage replaced, with the executable that ran it (their
+        // built-in designs are not in `design`).
         "replaced_stages": topo.replaced,
         "wall_time_s": wall_s,
         "simulated_s_per_wall_s": sc.duration_s / wall_s.max(1e-9),
@@ -1977,9 +1982,104 @@ pub fn counters(summary: &serde_json::Value) -> BTreeMap<String, serde_json::Val
         .unwrap_or_default()
 }
 
+/// The parts of a built-in design that each replaceable stage runs: keys of `design`, and of
+/// `design.rst` (the Low et al. RST loops).
+const DESIGN_PARTS: [(&str, &[&str], &[&str]); 3] = [
+    ("observer", &["observer"], &[]),
+    ("current-loop", &["current", "polar"], &["i_d", "i_q"]),
+    ("speed-loop", &["speed"], &["speed"]),
+];
+
+/// `design` as `summary.json` gives it: the built-in designs of the stages in `replaced`
+/// (stage → executable) left out, since none of them ran, and `not_run` naming each part left
+/// out and the executable that ran in its place. Kyslan's nonlinear design spans both loops:
+/// it goes only when both are replaced.
+fn design_that_ran(design: &DriveDesign, replaced: &BTreeMap<String, String>) -> serde_json::Value {
+    let mut v = json!(design);
+    if replaced.is_empty() {
+        return v;
+    }
+    let mut not_run = serde_json::Map::new();
+    let mut drop = |key: String, exe: &str, obj: &mut serde_json::Value| {
+        let (head, tail) = key
+            .split_once('.')
+            .map_or((key.as_str(), None), |(h, t)| (h, Some(t)));
+        let map = match tail {
+            Some(_) => obj.get_mut(head).and_then(|o| o.as_object_mut()),
+            None => obj.as_object_mut(),
+        };
+        if let Some(m) = map {
+            if m.remove(tail.unwrap_or(head)).is_some() {
+                not_run.insert(key, json!(exe));
+            }
+        }
+    };
+    for (stage, parts, rst) in DESIGN_PARTS {
+        if let Some(exe) = replaced.get(stage) {
+            for p in parts {
+                drop((*p).to_string(), exe, &mut v);
+            }
+            for p in rst {
+                drop(format!("rst.{p}"), exe, &mut v);
+            }
+        }
+    }
+    if let (Some(c), Some(s)) = (replaced.get("current-loop"), replaced.get("speed-loop")) {
+        drop("nonlinear".to_string(), &format!("{c}, {s}"), &mut v);
+    }
+    v["not_run"] = serde_json::Value::Object(not_run);
+    v
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_replaced_stages_built_in_design_is_left_out_of_the_summary_and_named() {
+        let design = |name: &str| {
+            let sc = load_scenario(name, None).unwrap();
+            DriveDesign::from_scenario(&sc.controller_view())
+        };
+        let of = |pairs: &[(&str, &str)]| -> BTreeMap<String, String> {
+            pairs
+                .iter()
+                .map(|(s, e)| (s.to_string(), e.to_string()))
+                .collect()
+        };
+        let keys = |v: &serde_json::Value| -> Vec<String> {
+            v.as_object().unwrap().keys().cloned().collect()
+        };
+        // Nothing replaced: the design as it is, without a not_run.
+        let pi = design("kyslan-pi");
+        assert_eq!(design_that_ran(&pi, &of(&[])), json!(pi));
+        // The current loop: its PI design goes, the speed loop's and the nonlinear one stay.
+        let v = design_that_ran(&pi, &of(&[("current-loop", "/x/deadbeat")]));
+        assert!(v.get("current").is_none(), "{v}");
+        assert_eq!(v["speed"], json!(pi)["speed"]);
+        assert!(v["nonlinear"].is_object());
+        assert_eq!(v["not_run"], json!({ "current": "/x/deadbeat" }));
+        // Both loops: the nonlinear design, which spans both, goes too.
+        let v = design_that_ran(&pi, &of(&[("current-loop", "/c"), ("speed-loop", "/s")]));
+        assert_eq!(keys(&v), ["controller", "not_run", "warnings"], "{v}");
+        assert_eq!(
+            v["not_run"],
+            json!({ "current": "/c", "speed": "/s", "nonlinear": "/c, /s" })
+        );
+        // Low et al.'s RST: the speed loop's RST design goes, the current loops' stay; the
+        // sensorless observer's design goes with the observer.
+        let rst = design("low-rst-sensorless");
+        let full = json!(rst);
+        assert!(full["rst"]["speed"].is_object() && full["observer"].is_object());
+        let v = design_that_ran(&rst, &of(&[("speed-loop", "/s"), ("observer", "/o")]));
+        assert_eq!(keys(&v["rst"]), ["i_d", "i_q"], "{v}");
+        assert!(v.get("observer").is_none() && v.get("speed").is_none());
+        assert_eq!(v["current"], full["current"]);
+        assert_eq!(
+            v["not_run"],
+            json!({ "observer": "/o", "speed": "/s", "rst.speed": "/s" })
+        );
+    }
 
     #[test]
     fn a_histogram_cut_short_is_left_out_and_named_the_others_are_read() {
