@@ -1067,7 +1067,7 @@ fn a_drive_whose_output_nobody_reads_any_more_still_finishes_and_cleans_up() {
 }
 
 #[test]
-fn a_trace_that_cannot_be_written_stops_the_drive_at_once_with_one_line() {
+fn a_trace_that_cannot_be_written_stops_the_drive_at_once_with_one_line_and_a_summary() {
     // A full disk: the run folder on a 256 KiB tmpfs, mounted in a mount namespace of the
     // drive's own (gone with it). Before, the stages waited 10 s for the reader that was
     // gone, and each said so.
@@ -1117,21 +1117,7 @@ fn a_trace_that_cannot_be_written_stops_the_drive_at_once_with_one_line() {
             .args(["--clock", "lockstep", "--duration", "100"])
             .stdout(Stdio::piped())
             .stderr(Stdio::piped());
-        // SAFETY: the closure runs in the forked child before exec and calls only
-        // setrlimit(2) with a limit on its own stack (lowering a limit needs no privilege).
-        unsafe {
-            use std::os::unix::process::CommandExt;
-            cmd.pre_exec(move || {
-                let limit = libc::rlimit {
-                    rlim_cur: bytes,
-                    rlim_max: bytes,
-                };
-                if libc::setrlimit(libc::RLIMIT_FSIZE, &limit) != 0 {
-                    return Err(std::io::Error::last_os_error());
-                }
-                Ok(())
-            });
-        }
+        limit_file_size(&mut cmd, bytes);
         let child = Drive::on_bus(cmd.spawn().expect("start drivelab run"), &bus);
         let o = wait(child, Duration::from_secs(120), "the drive");
         let err = String::from_utf8_lossy(&o.stderr).into_owned();
@@ -1144,13 +1130,52 @@ fn a_trace_that_cannot_be_written_stops_the_drive_at_once_with_one_line() {
             .collect();
         errors
     };
+    // The trace ends on its last whole row, and the summary is written: it lists the rows
+    // made and not written, then the samples never made because the drive stopped.
+    let errors = limited(32 << 20);
+    let trace = out.join("trace.csv");
+    let rows = drivelab_runtime::trace::read_csv(&trace).unwrap();
+    assert!(std::fs::read(&trace).unwrap().ends_with(b"\n"));
+    let k = rows.len() as u64;
+    assert!(k > 0 && rows.iter().enumerate().all(|(i, r)| r.k == i as u64));
+    let why = format!(
+        "cannot write {}: File too large (os error 27)",
+        trace.display()
+    );
     assert_eq!(
-        limited(32 << 20),
+        errors,
         [format!(
-            "drivelab: error: cannot write {}: File too large (os error 27)",
-            out.join("trace.csv").display()
+            "drivelab: error: {why}; trace.csv ends before sample {k} (what was recorded is in {}: {k} of 1000000 samples)",
+            out.display()
         )]
     );
+    let s = summary(&out);
+    assert_eq!(
+        s["failure"],
+        format!("{why}; trace.csv ends before sample {k}")
+    );
+    assert_eq!(s["samples"], k);
+    assert_eq!(s["samples_missing"], 1_000_000 - k);
+    let gaps = s["missing_samples"].as_array().unwrap();
+    assert_eq!(gaps.len(), 2, "{gaps:?}");
+    let made = gaps[0]["to"].as_u64().unwrap();
+    assert_eq!(
+        gaps[0],
+        serde_json::json!({ "from": k, "to": made, "part": "row", "cause": format!("not in trace.csv: {why}") })
+    );
+    assert_eq!(gaps[1]["from"], made + 1);
+    assert_eq!(gaps[1]["to"], 999_999);
+    assert_eq!(gaps[1]["part"], "measurement");
+    assert!(
+        gaps[1]["cause"]
+            .as_str()
+            .unwrap()
+            .starts_with("the run ended early: cannot write"),
+        "{gaps:?}"
+    );
+    // The rows not written were still made and analysed.
+    assert_eq!(s["trace"]["rows"], made + 1);
+    assert_eq!(s["trace"]["rows_not_written"], made + 1 - k);
     let errors = limited(1 << 20);
     assert_eq!(errors.len(), 1, "{errors:?}");
     assert!(

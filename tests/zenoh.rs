@@ -138,6 +138,85 @@ fn a_remote_monitor_sees_the_drive_and_a_remote_recorder_writes_its_trace() {
 }
 
 #[test]
+fn a_remote_recording_that_cannot_be_written_ends_with_its_summary_and_its_gaps() {
+    let _g = serial();
+    let dir = scratch("record-limited");
+    let bus = bus_id("record-limited");
+    let ep = endpoint(free_port());
+    let rec_dir = dir.join("remote");
+    // trace.csv takes about 2.3 MB a second at 10 kHz: a 2 MiB file size limit stops the
+    // recording within the first second of the drive's 3.
+    let mut cmd = Command::new(DRIVELAB);
+    cmd.args(["record", "--connect", &ep, "--wait", "60", "--out"])
+        .arg(&rec_dir)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    limit_file_size(&mut cmd, 2 << 20);
+    let recorder: Drive = cmd.spawn().unwrap().into();
+    let local = dir.join("run");
+    let drive = Drive::start(&bus, &local, &["--duration", "3", "--zenoh-listen", &ep]);
+    let r = wait(recorder, Duration::from_secs(60), "the recorder");
+    let err = String::from_utf8_lossy(&r.stderr).into_owned();
+    // The drive does not depend on its remote recorder.
+    let d = wait(drive, Duration::from_secs(120), "the drive");
+    assert!(d.status.success(), "{}", String::from_utf8_lossy(&d.stderr));
+    assert_clean(&bus);
+    assert_eq!(r.status.code(), Some(1), "{err}");
+    let trace = rec_dir.join("trace.csv");
+    let why = format!(
+        "cannot write {}: File too large (os error 27)",
+        trace.display()
+    );
+    let rows = drivelab_runtime::trace::read_csv(&trace).unwrap();
+    let (first, last) = (rows[0].k, rows[rows.len() - 1].k);
+    let errors: Vec<&str> = err.lines().filter(|l| l.contains("error")).collect();
+    assert_eq!(
+        errors,
+        [format!(
+            "drivelab: error: {why}; trace.csv ends before sample {} (what was recorded is in {}: {} of 30000 samples)",
+            last + 1,
+            rec_dir.display(),
+            rows.len()
+        )]
+    );
+    // Its summary lists the rows received and not written, then the samples the recording
+    // ended before.
+    let s = summary(&rec_dir);
+    assert_eq!(s["samples"], rows.len());
+    let gaps: Vec<&serde_json::Value> = s["missing_samples"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|g| g["to"].as_u64().unwrap() > last)
+        .collect();
+    // One after the other from the trace's end to the run's: rows not written (between
+    // them, on a loaded machine, measurements the link lost), then the end.
+    let mut next = last + 1;
+    for (i, g) in gaps.iter().enumerate() {
+        assert_eq!(g["from"], next, "{}", s["missing_samples"]);
+        next = g["to"].as_u64().unwrap() + 1;
+        let cause = g["cause"].as_str().unwrap();
+        if i + 1 == gaps.len() {
+            assert_eq!(g["part"], "measurement");
+            assert_eq!(
+                cause,
+                format!(
+                    "not recorded: the recording ended early: {why}; trace.csv ends before sample {}",
+                    last + 1
+                )
+            );
+        } else if g["part"] == "row" {
+            assert_eq!(cause, format!("not in trace.csv: {why}"));
+        } else {
+            assert!(cause.contains("remote recorder"), "{g}");
+        }
+    }
+    assert_eq!(next, 30_000);
+    assert_eq!(gaps[0]["part"], "row", "{}", s["missing_samples"]);
+    assert!(first < last, "{first} {last}");
+}
+
+#[test]
 fn a_remote_fault_needs_allow_remote_faults_on_the_drive() {
     let _g = serial();
     let dir = scratch("fault");

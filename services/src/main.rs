@@ -1038,15 +1038,16 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                             })
                             .sum()
                     };
-                    let parts: Vec<String> =
-                        [("measurement", "measurements"), ("command", "commands")]
-                            .iter()
-                            .map(|&(one, many)| (count(one), one, many))
-                            .filter(|&(n, ..)| n > 0)
-                            .map(|(n, one, many)| {
-                                format!("{n} {}", if n == 1 { one } else { many })
-                            })
-                            .collect();
+                    let parts: Vec<String> = [
+                        ("measurement", "measurements"),
+                        ("command", "commands"),
+                        ("row", "rows not written"),
+                    ]
+                    .iter()
+                    .map(|&(one, many)| (count(one), one, many))
+                    .filter(|&(n, ..)| n > 0)
+                    .map(|(n, one, many)| format!("{n} {}", if n == 1 { one } else { many }))
+                    .collect();
                     drivelab_services::outln!(
                         "missing from the trace: {} ({} {}); each cause in summary.json → missing_samples",
                         parts.join(", "),

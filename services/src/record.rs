@@ -195,6 +195,11 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
         truth_end |= e1;
         cmd_end |= e2;
         trace.advance()?;
+        // An output that cannot be written ends the recording (the failure is its first
+        // error; the rows not written are listed).
+        if !trace.write_errors.is_empty() {
+            break None;
+        }
         if let Some(s) = Remote::take_summary(&summary_feed) {
             break Some(s);
         }
@@ -223,12 +228,24 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
         }
     };
     let t = trace.finish()?;
+    if !t.write_errors.is_empty() {
+        failure.get_or_insert(t.write_errors.join("; "));
+    }
     let mut s: serde_json::Value = match &summary {
         Some(text) => serde_json::from_str(text)
             .map_err(|e| anyhow!("the drive's summary is not JSON: {e}"))?,
         None => json!({ "scenario": sc.name, "rate_hz": sc.rates.sample_hz }),
     };
-    let gaps = remote_gaps(t.gaps, first_k, &drive_gaps(&s), summary.is_some());
+    let mut gaps = remote_gaps(t.gaps, first_k, &drive_gaps(&s), summary.is_some());
+    // Without the drive's word, the last samples are missing because the recording ended.
+    if let (Some(f), None) = (&failure, &summary) {
+        for g in gaps
+            .iter_mut()
+            .filter(|g| g.part == "measurement" && g.to + 1 == sc.samples())
+        {
+            g.cause = format!("not recorded: the recording ended early: {f}");
+        }
+    }
     if let Some(m) = s.as_object_mut() {
         // Its plots stay in the drive's own run folder.
         m.remove("plots");
@@ -237,10 +254,10 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
     }
     let missing: u64 = gaps
         .iter()
-        .filter(|g| g.part == "measurement")
+        .filter(|g| g.part != "command")
         .map(|g| g.to + 1 - g.from)
         .sum();
-    s["samples"] = json!(t.stats.rows);
+    s["samples"] = json!(t.stats.rows - t.stats.rows_not_written);
     s["samples_expected"] = json!(sc.samples());
     s["samples_missing"] = json!(missing);
     s["trace"] = serde_json::to_value(t.stats)?;
@@ -266,7 +283,7 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
         bail!(
             "{f} (what was recorded is in {}: {} of {} samples)",
             o.out.display(),
-            t.stats.rows,
+            t.stats.rows - t.stats.rows_not_written,
             sc.samples()
         );
     }

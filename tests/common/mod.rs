@@ -185,6 +185,25 @@ pub fn wait(child: impl Into<Drive>, watchdog: Duration, what: &str) -> Output {
     child.into().wait_for_exit(watchdog, what)
 }
 
+/// Gives the process `cmd` starts a file size limit of `bytes` (`ulimit -f`).
+pub fn limit_file_size(cmd: &mut Command, bytes: libc::rlim_t) {
+    // SAFETY: the closure runs in the forked child before exec and calls only setrlimit(2)
+    // with a limit on its own stack (lowering a limit needs no privilege).
+    unsafe {
+        use std::os::unix::process::CommandExt;
+        cmd.pre_exec(move || {
+            let limit = libc::rlimit {
+                rlim_cur: bytes,
+                rlim_max: bytes,
+            };
+            if libc::setrlimit(libc::RLIMIT_FSIZE, &limit) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+}
+
 /// `run --bus BUS --out OUT --no-plots`: the start of every test drive's command line.
 pub fn run_args<'a>(bus: &'a str, out: &'a Path) -> [&'a str; 6] {
     [

@@ -408,7 +408,8 @@ fn run_bus(
                         drivelab_runtime::rt::set_scheduler(libc::SCHED_FIFO, RECORDER_PRIORITY);
                 }
                 let r = run_recorder(b, sc, trace, s, pr.clone(), ready_tx, publishers, realtime);
-                pr.failed.store(r.is_err(), Ordering::SeqCst);
+                let failed = r.as_ref().map_or(true, |t| !t.write_errors.is_empty());
+                pr.failed.store(failed, Ordering::SeqCst);
                 r
             })?
     };
@@ -625,6 +626,17 @@ fn run_bus(
         (Err(e), Some(f)) => bail!("{f}; and the recorder failed: {e:#}"),
         (Err(e), None) => return Err(e),
     };
+    // An output that could not be written stopped the run, with what it holds and the
+    // summary written (the rows missing from trace.csv are listed).
+    if !rec.write_errors.is_empty() {
+        let why = rec.write_errors.join("; ");
+        match &mut failure {
+            Some(f) if f == RECORDER_FAILED => *f = why,
+            f => {
+                f.get_or_insert(why);
+            }
+        }
+    }
     // Bus files that would not go fail the run, with its trace and summary written.
     if let Err(e) = cleaned {
         failure.get_or_insert(format!("cannot remove this drive's bus files: {e:#}"));
@@ -1671,7 +1683,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         "clock": o.clock,
         "rate_hz": sc.rates.sample_hz,
         "speed_loop_hz": sc.rates.sample_hz / f64::from(sc.rates.speed_divider),
-        "samples": stats.rows,
+        "samples": stats.rows - stats.rows_not_written,
         "trace": stats,
         "samples_expected": sc.samples(),
         "deadline_misses": deadline_misses,
@@ -1836,16 +1848,34 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     }
     let outcomes: Vec<_> = expectations.iter().map(|e| e.evaluate(&summary)).collect();
     summary["expectations"] = serde_json::to_value(&outcomes)?;
-    drivelab_runtime::files::write(
-        out.join("summary.json"),
-        serde_json::to_vec_pretty(&summary)?,
-    )?;
-    if let Some(m) = sinks.take_mcap() {
-        m.finish(
-            &std::fs::read_to_string(&sc_path)?,
-            &summary,
-            sc.rates.sample_hz,
-        )?;
+    let recorded = format!(
+        "what was recorded is in {}: {} of {} samples",
+        out.display(),
+        summary["samples"],
+        sc.samples()
+    );
+    let summary_path = out.join("summary.json");
+    let written =
+        drivelab_runtime::files::write(&summary_path, serde_json::to_vec_pretty(&summary)?)
+            .map_err(|e| {
+                // Cut short, it would not read as JSON: none rather than half of one.
+                let _ = std::fs::remove_file(&summary_path);
+                anyhow!("cannot write {}: {e}", summary_path.display())
+            })
+            .and_then(|()| match sinks.take_mcap() {
+                Some(m) => m.finish(
+                    &std::fs::read_to_string(&sc_path)?,
+                    &summary,
+                    sc.rates.sample_hz,
+                ),
+                None => Ok(()),
+            });
+    if let Err(e) = written {
+        // A full disk fails the trace first: that stays the run's reason.
+        match &failure {
+            Some(f) => bail!("{f}; and {e:#} ({recorded})"),
+            None => return Err(e),
+        }
     }
     if let Some(l) = &live {
         // Connected clients get what is queued for them, then a close.
@@ -1861,22 +1891,21 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         b.finish(&out.join("summary.json"))?;
     }
     if let Some(f) = failure {
-        bail!(
-            "{f} (what was recorded is in {}: {} of {} samples)",
-            out.display(),
-            rows.len(),
-            sc.samples()
-        );
+        bail!("{f} ({recorded})");
     }
     Ok(RunResult { out, summary })
 }
 
 /// The samples after the recording stopped were never produced: the gap that reaches the
 /// run's last sample (of `samples`) says the run ended early, and why (`failure`). Not one
-/// the plant is known to have published ([`unreceived`]): the run reached its end there.
+/// the plant is known to have published ([`unreceived`]), nor rows made and not written
+/// ([`recorder::ROW`]): the run reached its end there.
 fn ended_early(gaps: &mut [Gap], samples: u64, failure: &str) {
     for g in gaps.iter_mut().filter(|g| {
-        g.to + 1 == samples && g.cause != UNRECEIVED && !g.cause.starts_with(NOT_FROM_PLANT_MACHINE)
+        g.to + 1 == samples
+            && g.part != recorder::ROW
+            && g.cause != UNRECEIVED
+            && !g.cause.starts_with(NOT_FROM_PLANT_MACHINE)
     }) {
         g.cause = format!("the run ended early: {failure}");
     }
@@ -1900,9 +1929,10 @@ struct Headline {
 fn headline(trace: &TraceStats, gaps: &[Gap], deadline_misses: u64, samples: u64) -> Headline {
     Headline {
         deadline_misses_per_million: deadline_misses as f64 * 1e6 / samples.max(1) as f64,
+        // Samples without their row in trace.csv (a command gap's row is there).
         samples_missing: gaps
             .iter()
-            .filter(|g| g.part == "measurement")
+            .filter(|g| g.part != "command")
             .map(|g| g.to + 1 - g.from)
             .sum(),
         peak_current_a: trace.peak_current_a,

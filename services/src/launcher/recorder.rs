@@ -22,11 +22,15 @@ pub struct Gap {
     pub from: u64,
     /// Last missing k.
     pub to: u64,
-    /// Which part is missing ("measurement", "command").
+    /// Which part is missing ("measurement", "command", or the whole [`ROW`]).
     pub part: &'static str,
     /// Why.
     pub cause: String,
 }
+
+/// The part of a gap whose rows were made but are not in `trace.csv` (it could not be
+/// written).
+pub const ROW: &str = "row";
 
 /// Adds sample k to `gaps`: it extends the last gap when that one ends at k − 1 with the same
 /// part and cause, else it opens a new one (samples come in order).
@@ -302,6 +306,11 @@ pub(super) fn run_recorder(
             last_progress = stored;
         }
         trace.advance()?;
+        // An output that cannot be written stops the recording, and with it the drive, at
+        // once; what was recorded and the rows not written are listed in the summary.
+        if !trace.write_errors.is_empty() {
+            return trace.finish();
+        }
         if (meas_end && cmd_end) || stop.load(Ordering::SeqCst) {
             // Take what is still buffered, then stop.
             while let Some(m) = meas_rx.try_recv()? {

@@ -5,7 +5,7 @@
 //! plots) every row around each disturbance and reference step and every d-th row between
 //! them, and says so in its summary.
 
-use super::recorder::{missing_command_cause, push_gap, Gap, LOST_IN_BUFFER, PLANT_STOPPED};
+use super::recorder::{missing_command_cause, push_gap, Gap, LOST_IN_BUFFER, PLANT_STOPPED, ROW};
 use anyhow::Result;
 use drivelab_runtime::config::Scenario;
 use drivelab_runtime::drive::trace_row;
@@ -133,6 +133,9 @@ pub struct TraceStats {
     pub spacing: u64,
     /// Rows of windows not kept because the windows' budget was spent.
     pub window_rows_dropped: u64,
+    /// Rows made but not in `trace.csv`: it could not be written from the first of them on
+    /// (`missing_samples`, part "row"). They are still analysed.
+    pub rows_not_written: u64,
 }
 
 impl TraceStats {
@@ -145,6 +148,7 @@ impl TraceStats {
             rows_analysed: rows.len() as u64,
             spacing: 1,
             window_rows_dropped: 0,
+            rows_not_written: 0,
         };
         for r in rows {
             s.count(r);
@@ -273,6 +277,13 @@ pub struct TraceStream {
     /// Real time: the instant of the plant's sample 0 on its schedule (CLOCK_MONOTONIC ns),
     /// from the first measurement that carried one.
     pub t0_ns: Option<u64>,
+    /// Newest row made.
+    last_row: Option<u64>,
+    /// Once `trace.csv` could not be written: why its later rows are not in it.
+    unwritten: Option<String>,
+    /// Each output that could not be written (`trace.csv`, `timing.csv`, `trace.mcap`): its
+    /// error and where the file ends. The recording goes on without it.
+    pub write_errors: Vec<String>,
 }
 
 impl TraceStream {
@@ -324,6 +335,7 @@ impl TraceStream {
                 rows_analysed: 0,
                 spacing: keep.spacing,
                 window_rows_dropped: 0,
+                rows_not_written: 0,
             },
             keep,
             rebuilt: 0,
@@ -331,6 +343,9 @@ impl TraceStream {
             late: 0,
             rejected: 0,
             t0_ns: None,
+            last_row: None,
+            unwritten: None,
+            write_errors: Vec::new(),
         })
     }
 
@@ -440,12 +455,26 @@ impl TraceStream {
     /// listed as stopped (after the newest measurement) or lost (before it).
     pub fn finish(mut self) -> Result<Self> {
         self.emit_until(self.n)?;
-        if let Some(out) = self.out.take() {
-            out.finish()?;
+        if let Some(mut out) = self.out.take() {
+            if let Err(e) = out.flush() {
+                self.out = Some(out);
+                if let Some(k) = self.last_row {
+                    self.lose_trace(e, k);
+                }
+            }
         }
         if let Some(t) = self.timing.take() {
-            t.finish()?;
+            if let Err(e) = t.finish() {
+                self.write_errors
+                    .push(format!("{e:#}; timing.csv may lack its last rows"));
+            }
         }
+        self.stats.rows_not_written = self
+            .gaps
+            .iter()
+            .filter(|g| g.part == ROW)
+            .map(|g| g.to + 1 - g.from)
+            .sum();
         self.stats.rows_analysed = self.kept.len() as u64;
         self.stats.window_rows_dropped = self.keep.dropped;
         Ok(self)
@@ -535,21 +564,29 @@ impl TraceStream {
         }
         let mut row = match c {
             Some(c) => trace_row(self.ts, m, c),
-            None => {
-                let c = drivelab_runtime::drive::missing_command(k);
-                let cause = missing_command_cause(m.hdr.flags & FLAG_PLANT_DOWN != 0);
-                self.gap(k, "command", cause);
-                trace_row(self.ts, m, &c)
-            }
+            None => trace_row(self.ts, m, &drivelab_runtime::drive::missing_command(k)),
         };
         row.theta_m_ref = self.theta_ref;
-        if let Some(out) = self.out.as_mut() {
-            out.push(&row)?;
+        self.last_row = Some(k);
+        if let Some(e) = self.out.as_mut().and_then(|out| out.push(&row).err()) {
+            self.lose_trace(e, k);
+        } else if let Some(cause) = self.unwritten.clone() {
+            self.gap(k, ROW, &cause);
+        } else if c.is_none() {
+            let cause = missing_command_cause(m.hdr.flags & FLAG_PLANT_DOWN != 0);
+            self.gap(k, "command", cause);
         }
-        if let Some(t) = self.timing.as_mut() {
-            t.row(m, c)?;
+        if let Some(e) = self.timing.as_mut().and_then(|t| t.row(m, c).err()) {
+            self.timing = None;
+            self.write_errors
+                .push(format!("{e:#}; timing.csv ends before sample {k} or in it"));
         }
-        self.sinks.row(&row, m.hdr.t_pub_ns)?;
+        if let Err(e) = self.sinks.row(&row, m.hdr.t_pub_ns) {
+            drop(self.sinks.take_mcap());
+            self.write_errors.push(format!(
+                "{e:#}; trace.mcap ends before sample {k}, without its index"
+            ));
+        }
         self.stats.count(&row);
         if self.keep.keeps(k) {
             self.kept.push(row);
@@ -560,6 +597,47 @@ impl TraceStream {
     fn gap(&mut self, k: u64, part: &'static str, cause: &str) {
         push_gap(&mut self.gaps, k, part, cause);
     }
+
+    /// `trace.csv` failed (`e`) while row k was written: it is cut after its last whole row,
+    /// which it ends with, and each row after that one, up to k and from now on, is listed
+    /// missing (part "row"; a command gap among them becomes part of it).
+    fn lose_trace(&mut self, e: anyhow::Error, k: u64) {
+        let Some(out) = self.out.take() else {
+            return;
+        };
+        let (from, cut) = match out.abandon() {
+            Ok(last) => (last.map_or(0, |l| l + 1), String::new()),
+            // Where it ends is not known: every row is listed.
+            Err(c) => (0, format!(" ({c:#})")),
+        };
+        let cause = format!("not in trace.csv: {e:#}{cut}");
+        self.write_errors
+            .push(format!("{e:#}; trace.csv ends before sample {from}{cut}"));
+        list_unwritten(&mut self.gaps, from, k, &cause);
+        self.unwritten = Some(cause);
+    }
+}
+
+/// Lists samples `from..=to` of `gaps` (in order, each up to `to`) again: their measurement
+/// gaps stay (no row was made), each other sample is a row not written (part [`ROW`], for
+/// `cause`), a command gap among them included.
+fn list_unwritten(gaps: &mut Vec<Gap>, from: u64, to: u64, cause: &str) {
+    let at = gaps.partition_point(|g| g.to < from);
+    let mut tail = gaps.split_off(at);
+    if let Some(g) = tail.first_mut().filter(|g| g.from < from) {
+        gaps.push(Gap {
+            to: from - 1,
+            ..g.clone()
+        });
+        g.from = from;
+    }
+    let mut next = from;
+    for g in tail.into_iter().filter(|g| g.part == "measurement") {
+        (next..g.from).for_each(|r| push_gap(gaps, r, ROW, cause));
+        next = g.to + 1;
+        gaps.push(g);
+    }
+    (next..=to).for_each(|r| push_gap(gaps, r, ROW, cause));
 }
 
 #[cfg(test)]
@@ -611,6 +689,44 @@ mod tests {
             t.cmd(cmd(k)).unwrap();
             t.advance().unwrap();
         }
+    }
+
+    #[test]
+    fn rows_not_written_are_listed_around_the_measurements_never_made() {
+        let g = |from, to, part, cause: &str| Gap {
+            from,
+            to,
+            part,
+            cause: cause.into(),
+        };
+        // Rows 0..=20 made; measurements 8..=9 and 15 never came; rows 4..=11 and 13 have no
+        // command; the file ends after row 5.
+        let mut gaps = vec![
+            g(4, 7, "command", "c"),
+            g(8, 9, "measurement", "m"),
+            g(10, 11, "command", "c"),
+            g(13, 13, "command", "c"),
+            g(15, 15, "measurement", "m"),
+        ];
+        list_unwritten(&mut gaps, 6, 20, "w");
+        assert_eq!(
+            gaps,
+            [
+                g(4, 5, "command", "c"),
+                g(6, 7, ROW, "w"),
+                g(8, 9, "measurement", "m"),
+                g(10, 14, ROW, "w"),
+                g(15, 15, "measurement", "m"),
+                g(16, 20, ROW, "w"),
+            ]
+        );
+        // Nothing after the file's end but rows: one range; from the first row: all of it.
+        let mut gaps = vec![g(0, 2, "measurement", "m")];
+        list_unwritten(&mut gaps, 3, 9, "w");
+        assert_eq!(gaps, [g(0, 2, "measurement", "m"), g(3, 9, ROW, "w")]);
+        let mut gaps = vec![g(0, 2, "command", "c")];
+        list_unwritten(&mut gaps, 0, 4, "w");
+        assert_eq!(gaps, [g(0, 4, ROW, "w")]);
     }
 
     #[test]

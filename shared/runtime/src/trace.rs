@@ -87,12 +87,61 @@ impl CsvTrace {
             .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", self.path.display()))
     }
 
-    /// Flushes what is buffered to the file.
-    pub fn finish(mut self) -> anyhow::Result<()> {
+    /// Writes what is buffered to the file.
+    pub fn flush(&mut self) -> anyhow::Result<()> {
         self.w
             .flush()
             .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", self.path.display()))
     }
+
+    /// Writes what is buffered to the file and closes it.
+    pub fn finish(mut self) -> anyhow::Result<()> {
+        self.flush()
+    }
+
+    /// After a write failed (a full disk, the file size limit): lets go of the file, writing
+    /// what it still takes of the buffer, then cuts it after its last whole row, so that it
+    /// reads as a trace without a cut line. The sample index of that row (None: no row is
+    /// whole).
+    pub fn abandon(self) -> anyhow::Result<Option<u64>> {
+        let path = self.path;
+        // Dropping the writer writes what is buffered, ignoring a failure again.
+        drop(self.w);
+        cut_after_last_row(&path)
+    }
+}
+
+/// Cuts the trace at `path` after its last newline and reads the sample index of the row that
+/// line ends (None: only the header, or not even that, is whole).
+pub fn cut_after_last_row(path: &std::path::Path) -> anyhow::Result<Option<u64>> {
+    use std::io::{Read, Seek, SeekFrom};
+    let fail = |e: std::io::Error| anyhow::anyhow!("cannot cut {}: {e}", path.display());
+    let mut f = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(path)
+        .map_err(fail)?;
+    let len = f.metadata().map_err(fail)?.len();
+    // A row is a few hundred bytes: the last two rows are within this.
+    let from = len.saturating_sub(8192);
+    let mut tail = Vec::new();
+    f.seek(SeekFrom::Start(from)).map_err(fail)?;
+    f.read_to_end(&mut tail).map_err(fail)?;
+    let Some(end) = tail.iter().rposition(|&b| b == b'\n') else {
+        // Without a newline in its last 8 KiB, the file holds at most a cut header.
+        f.set_len(0).map_err(fail)?;
+        return Ok(None);
+    };
+    f.set_len(from + end as u64 + 1).map_err(fail)?;
+    let start = tail[..end]
+        .iter()
+        .rposition(|&b| b == b'\n')
+        .map_or(0, |i| i + 1);
+    let line = &tail[start..end];
+    let first = line.split(|&b| b == b',').next().unwrap_or_default();
+    Ok(std::str::from_utf8(first)
+        .ok()
+        .and_then(|k| k.parse::<u64>().ok()))
 }
 
 /// True when the file at `path` is not empty and its last byte is not a newline.
@@ -179,6 +228,37 @@ pub fn for_each_csv_row(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_trace_cut_after_a_failed_write_ends_on_its_last_whole_row() {
+        let dir = std::env::temp_dir().join(format!("drivelab-cut-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("trace.csv");
+        write_csv(&path, &rows(40)).unwrap();
+        let whole = std::fs::read(&path).unwrap();
+        // Cut in the middle of row 37: rows 0..=36 are whole.
+        let row_37 = whole
+            .split(|&b| b == b'\n')
+            .take(38)
+            .map(|l| l.len() + 1)
+            .sum::<usize>();
+        std::fs::write(&path, &whole[..row_37 + 5]).unwrap();
+        assert_eq!(cut_after_last_row(&path).unwrap(), Some(36));
+        let read = read_csv(&path).unwrap();
+        assert_eq!(read, rows(37));
+        // Whole already: nothing is cut.
+        assert_eq!(cut_after_last_row(&path).unwrap(), Some(36));
+        assert_eq!(std::fs::read(&path).unwrap(), whole[..row_37]);
+        // Only the header is whole; a cut header goes.
+        let header = whole.iter().position(|&b| b == b'\n').unwrap() + 1;
+        std::fs::write(&path, &whole[..header + 3]).unwrap();
+        assert_eq!(cut_after_last_row(&path).unwrap(), None);
+        assert_eq!(std::fs::read(&path).unwrap(), whole[..header]);
+        std::fs::write(&path, &whole[..header - 3]).unwrap();
+        assert_eq!(cut_after_last_row(&path).unwrap(), None);
+        assert_eq!(std::fs::read(&path).unwrap(), b"");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     fn rows(n: u64) -> Vec<TraceRow> {
         (0..n)
