@@ -1111,10 +1111,10 @@ fn a_trace_that_cannot_be_written_stops_the_drive_at_once_with_one_line_and_a_su
     // A file size limit (`ulimit -f`): 32 MiB is above the bus's segments, and SIGXFSZ
     // killed the launcher on the spot, which left its bus behind; 1 MiB is below them.
     let out = dir.join("run");
-    let limited = |bytes: libc::rlim_t| {
+    let limited = |bytes: libc::rlim_t, clock: &str, seconds: &str| {
         let mut cmd = Command::new(DRIVELAB);
         cmd.args(run_args(&bus, &out))
-            .args(["--clock", "lockstep", "--duration", "100"])
+            .args(["--clock", clock, "--duration", seconds])
             .stdout(Stdio::piped())
             .stderr(Stdio::piped());
         limit_file_size(&mut cmd, bytes);
@@ -1132,7 +1132,7 @@ fn a_trace_that_cannot_be_written_stops_the_drive_at_once_with_one_line_and_a_su
     };
     // The trace ends on its last whole row, and the summary is written: it lists the rows
     // made and not written, then the samples never made because the drive stopped.
-    let errors = limited(32 << 20);
+    let errors = limited(32 << 20, "lockstep", "100");
     let trace = out.join("trace.csv");
     let rows = drivelab_runtime::trace::read_csv(&trace).unwrap();
     assert!(std::fs::read(&trace).unwrap().ends_with(b"\n"));
@@ -1176,7 +1176,24 @@ fn a_trace_that_cannot_be_written_stops_the_drive_at_once_with_one_line_and_a_su
     // The rows not written were still made and analysed.
     assert_eq!(s["trace"]["rows"], made + 1);
     assert_eq!(s["trace"]["rows_not_written"], made + 1 - k);
-    let errors = limited(1 << 20);
+    // The in-process clock writes its trace at the end, to the same row and the same list.
+    let errors = limited(32 << 20, "inprocess", "20");
+    assert_eq!(
+        errors,
+        [format!(
+            "drivelab: error: {why}; trace.csv ends before sample {k} (what was recorded is in {}: {k} of 200000 samples)",
+            out.display()
+        )]
+    );
+    assert_eq!(drivelab_runtime::trace::read_csv(&trace).unwrap(), rows);
+    let s = summary(&out);
+    assert_eq!(s["samples"], k);
+    assert_eq!(
+        s["missing_samples"],
+        serde_json::json!([{ "from": k, "to": 199_999, "part": "row", "cause": format!("not in trace.csv: {why}") }])
+    );
+    assert_eq!(s["trace"]["rows_not_written"], 200_000 - k);
+    let errors = limited(1 << 20, "lockstep", "100");
     assert_eq!(errors.len(), 1, "{errors:?}");
     assert!(
         errors[0].contains("cannot make its data segment in /dev/shm (the file size limit, ulimit -f, is 1024 KiB: raise it)"),

@@ -1596,14 +1596,16 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         ended_early(&mut gaps, sc.samples(), f);
     }
     // A bus run wrote its trace as it went; an in-process one holds it whole.
+    let mut failure = failure;
     let stats = match stats {
         Some(s) => s,
         None => {
-            drivelab_runtime::trace::write_csv(&out.join("trace.csv"), &rows)?;
-            for r in &rows {
-                sinks.row(r, 0)?;
+            let (stats, lost) =
+                stream::write_whole(&out.join("trace.csv"), &rows, &sinks, &mut gaps)?;
+            if let Some(e) = lost {
+                failure.get_or_insert(e);
             }
-            TraceStats::of(&rows)
+            stats
         }
     };
     let mut metrics = speed_metrics(&sc, &rows);
@@ -1755,7 +1757,6 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     // A planned fault that was not made (its process was down, the drive ended first): the
     // run did not test what it was asked to, and fails with them (after the gaps were named:
     // the drive itself ran to its end).
-    let mut failure = failure;
     if let Some(list) = info["faults_not_made"].as_array().filter(|l| !l.is_empty()) {
         summary["faults_not_made"] = json!(list);
         let first = list[0].as_str().unwrap_or("");

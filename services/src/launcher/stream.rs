@@ -469,12 +469,7 @@ impl TraceStream {
                     .push(format!("{e:#}; timing.csv may lack its last rows"));
             }
         }
-        self.stats.rows_not_written = self
-            .gaps
-            .iter()
-            .filter(|g| g.part == ROW)
-            .map(|g| g.to + 1 - g.from)
-            .sum();
+        self.stats.rows_not_written = rows_not_written(&self.gaps);
         self.stats.rows_analysed = self.kept.len() as u64;
         self.stats.window_rows_dropped = self.keep.dropped;
         Ok(self)
@@ -605,17 +600,75 @@ impl TraceStream {
         let Some(out) = self.out.take() else {
             return;
         };
-        let (from, cut) = match out.abandon() {
-            Ok(last) => (last.map_or(0, |l| l + 1), String::new()),
-            // Where it ends is not known: every row is listed.
-            Err(c) => (0, format!(" ({c:#})")),
-        };
-        let cause = format!("not in trace.csv: {e:#}{cut}");
-        self.write_errors
-            .push(format!("{e:#}; trace.csv ends before sample {from}{cut}"));
-        list_unwritten(&mut self.gaps, from, k, &cause);
+        let (error, cause) = abandon_trace(out, &e, k, &mut self.gaps);
+        self.write_errors.push(error);
         self.unwritten = Some(cause);
     }
+}
+
+/// `trace.csv` (`out`) failed (`e`) while row k, the newest made, was written: it is cut after
+/// its last whole row, and the rows after that one up to k are listed in `gaps`. The error as
+/// the run's failure gives it and the rows' cause.
+fn abandon_trace(
+    out: CsvTrace,
+    e: &anyhow::Error,
+    k: u64,
+    gaps: &mut Vec<Gap>,
+) -> (String, String) {
+    let (from, cut) = match out.abandon() {
+        Ok(last) => (last.map_or(0, |l| l + 1), String::new()),
+        // Where it ends is not known: every row is listed.
+        Err(c) => (0, format!(" ({c:#})")),
+    };
+    let cause = format!("not in trace.csv: {e:#}{cut}");
+    list_unwritten(gaps, from, k, &cause);
+    (
+        format!("{e:#}; trace.csv ends before sample {from}{cut}"),
+        cause,
+    )
+}
+
+/// Rows not in `trace.csv` by `gaps`.
+fn rows_not_written(gaps: &[Gap]) -> u64 {
+    gaps.iter()
+        .filter(|g| g.part == ROW)
+        .map(|g| g.to + 1 - g.from)
+        .sum()
+}
+
+/// Writes the rows of a run held whole (every sample from 0, in order: the in-process clock)
+/// to `trace.csv` at `path` and to `sinks`. An output that fails is left as a recording leaves
+/// it ([`TraceStream`]): `trace.csv` cut after its last whole row and the rows after it listed
+/// in `gaps`. The trace's figures, and the failures joined (None: all written).
+pub fn write_whole(
+    path: &std::path::Path,
+    rows: &[TraceRow],
+    sinks: &super::sinks::Sinks,
+    gaps: &mut Vec<Gap>,
+) -> Result<(TraceStats, Option<String>)> {
+    let mut stats = TraceStats::of(rows);
+    let mut errors = Vec::new();
+    let mut csv = CsvTrace::create(path)?;
+    if let Err(e) = rows
+        .iter()
+        .try_for_each(|r| csv.push(r))
+        .and_then(|()| csv.flush())
+    {
+        let last = rows.last().map_or(0, |r| r.k);
+        errors.push(abandon_trace(csv, &e, last, gaps).0);
+        stats.rows_not_written = rows_not_written(gaps);
+    }
+    for r in rows {
+        if let Err(e) = sinks.row(r, 0) {
+            drop(sinks.take_mcap());
+            errors.push(format!(
+                "{e:#}; trace.mcap ends before sample {}, without its index",
+                r.k
+            ));
+            break;
+        }
+    }
+    Ok((stats, (!errors.is_empty()).then(|| errors.join("; "))))
 }
 
 /// Lists samples `from..=to` of `gaps` (in order, each up to `to`) again: their measurement
