@@ -34,6 +34,7 @@ use drivelab_runtime::messages::{CurrentRef, Header, VoltageCommand, FLAG_STALE_
 use drivelab_runtime::stage::{
     Diagnostics, Inbox, InputSpec, Msg, OnStale, Outbox, Rejoin, Stage, TopicId,
 };
+use drivelab_runtime::stages::ReferenceHold;
 
 /// The stage's name: the built-in stage it replaces.
 pub const NAME: &str = "current-loop";
@@ -98,14 +99,10 @@ pub struct Deadbeat {
     u_max: f64,
     i_ref_max: f64,
     mode: ObserverMode,
-    /// Samples a reference may be missing before i_q* ramps: two speed periods.
-    ref_hold: u64,
-    /// The ramp's step, A a sample: the i_q* limit in 20 ms.
-    iq_ramp_per_sample: f64,
     /// The command being applied now (this loop's last one), d/q V.
     u_prev: Dq,
-    reference: CurrentRef,
-    stale_ref_samples: u64,
+    /// The current reference in force: the built-in's hold and ramp of a missing one.
+    reference: ReferenceHold,
     last_k: Option<u64>,
     omega_m: f64,
     saturated_samples: u64,
@@ -159,11 +156,8 @@ impl Deadbeat {
                 .map(|s| s.value.abs())
                 .fold(sc.i_q_max().max(m.i_max_a), f64::max),
             mode: sc.observer.mode,
-            ref_hold: 2 * u64::from(sc.rates.speed_divider),
-            iq_ramp_per_sample: sc.i_q_max() * ts / 0.02,
             u_prev: Dq::default(),
-            reference: CurrentRef::default(),
-            stale_ref_samples: 0,
+            reference: ReferenceHold::new(sc),
             last_k: None,
             omega_m: 0.0,
             saturated_samples: 0,
@@ -225,35 +219,6 @@ impl Deadbeat {
             ..*r
         }
     }
-
-    /// Takes a fresh current reference or holds the last one, `elapsed` samples after the
-    /// last step; with `ramp`, i_q* ramps to zero once the reference has been missing for
-    /// two speed periods (the built-in's policy). Returns the command's flags.
-    fn take_reference(&mut self, inputs: &Inbox, ramp: bool, elapsed: u64) -> u32 {
-        let slot = inputs.slot(TopicId::Iref);
-        match (slot.fresh, inputs.iref()) {
-            (true, Some(r)) => {
-                self.reference = self.limited(r);
-                self.stale_ref_samples = 0;
-                r.hdr.flags & FLAG_STALE_INPUT
-            }
-            // Nothing expected yet (before the speed loop's first sample): zero references.
-            (true, None) => 0,
-            (false, _) => {
-                let before = self.stale_ref_samples;
-                self.stale_ref_samples = before.saturating_add(elapsed);
-                let steps = self
-                    .stale_ref_samples
-                    .saturating_sub(before.max(self.ref_hold));
-                if ramp && steps > 0 {
-                    let q = self.reference.i_q_ref;
-                    let down = self.iq_ramp_per_sample * steps as f64;
-                    self.reference.i_q_ref = q - q.signum() * down.min(q.abs());
-                }
-                FLAG_STALE_INPUT
-            }
-        }
-    }
 }
 
 impl Stage for Deadbeat {
@@ -272,7 +237,7 @@ impl Stage for Deadbeat {
         self.last_k = Some(k);
         // On the encoder fallback a stale reference is held, not ramped (as the built-in:
         // the speed loop, without estimates, holds its output too).
-        let mut flags = self.take_reference(inputs, inputs.est().is_some(), elapsed);
+        let mut flags = self.reference.take(inputs, inputs.est().is_some(), elapsed);
         let encoder = wrap_2pi(self.pole_pairs * meas.theta_m_enc);
         // Without a fresh estimate: the encoder's angle and the last speed (sensorless, no
         // encoder to fall back on: the zero voltage). Monitor mode controls on the encoder.
@@ -293,7 +258,7 @@ impl Stage for Deadbeat {
         };
         let omega_e = self.pole_pairs * self.omega_m;
         let i = park(clarke(meas.i_abc[0], meas.i_abc[1], meas.i_abc[2]), theta);
-        let r = self.reference;
+        let r = self.limited(self.reference.active());
         let u = if inputs.est().is_none() && self.mode == ObserverMode::Sensorless {
             self.u_prev = Dq::default();
             Dq::default()
@@ -339,7 +304,7 @@ impl Stage for Deadbeat {
         };
         self.u_prev = park(u, mid);
         if let Some(r) = inputs.newest_iref() {
-            self.reference = self.limited(r);
+            self.reference.set(*r);
         }
         Rejoin::Done
     }

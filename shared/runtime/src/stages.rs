@@ -188,18 +188,90 @@ pub struct CurrentLoopStage {
     ctrl: CurrentLoopStep,
     pole_pairs: f64,
     sensorless: bool,
-    divider: u64,
-    iq_ramp_per_sample: f64,
-    active_ref: CurrentRef,
+    reference: ReferenceHold,
     last_est: Estimate,
-    stale_ref_samples: u64,
     /// The sample of the last step: a sample the loop skipped (late, caught up) still counts
     /// toward the hold and the ramp, which are in time, not in steps.
     last_k: Option<u64>,
     /// Samples run on the encoder fallback.
     pub fallback_samples: u64,
+}
+
+/// The built-in current loop's policy for its current reference, public so that a user's
+/// current loop can follow it (docs/architecture.md, "Replacing a built-in stage"): a fresh
+/// reference is taken; a missing one is held and the command flagged `FLAG_STALE_INPUT`
+/// (before the first came, the zero reference stands, flagged too); after two speed periods
+/// without one, i_q* ramps to zero, full scale (the scenario's i_q limit) in 20 ms.
+#[derive(Debug, Clone)]
+pub struct ReferenceHold {
+    hold_samples: u64,
+    iq_ramp_per_sample: f64,
+    active: CurrentRef,
+    stale_samples: u64,
     /// Samples with the i_q* ramp active.
     pub ramp_samples: u64,
+}
+
+impl ReferenceHold {
+    /// The policy at the rates and limits of `sc`.
+    pub fn new(sc: &Scenario) -> Self {
+        Self {
+            hold_samples: 2 * u64::from(sc.rates.speed_divider),
+            iq_ramp_per_sample: sc.i_q_max() * sc.rates.ts() / 0.02,
+            active: CurrentRef::default(),
+            stale_samples: 0,
+            ramp_samples: 0,
+        }
+    }
+
+    /// The reference in force.
+    pub fn active(&self) -> &CurrentRef {
+        &self.active
+    }
+
+    /// Puts `r` in force (a rejoin: the newest reference).
+    pub fn set(&mut self, r: CurrentRef) {
+        self.active = r;
+    }
+
+    /// Takes the fresh current reference of `inputs`, or holds the one in force and, when
+    /// `ramp`, ramps its i_q* once it has been missing for two speed periods (without `ramp`,
+    /// e.g. on the encoder fallback, it is held as it stands and the time does not count).
+    /// `elapsed`: samples since the last step (1, or more after skipped samples: the hold
+    /// and the ramp are in time, not in steps). The command's flags.
+    pub fn take(&mut self, inputs: &Inbox, ramp: bool, elapsed: u64) -> u32 {
+        let mut flags = 0;
+        match (inputs.slot(TopicId::Iref).fresh, inputs.iref()) {
+            (true, Some(r)) => {
+                self.active = *r;
+                self.stale_samples = 0;
+                // A reference the speed loop made from a stale input (its held output) makes
+                // this command one too.
+                flags |= r.hdr.flags & FLAG_STALE_INPUT;
+            }
+            // Nothing expected yet (before the first speed sample): zero references.
+            (true, None) => {}
+            (false, _) => {
+                flags |= FLAG_STALE_INPUT;
+                if !ramp {
+                    return flags;
+                }
+                // The ramp's samples among the ones elapsed: those past the hold.
+                let before = self.stale_samples;
+                self.stale_samples = before.saturating_add(elapsed);
+                let steps = self
+                    .stale_samples
+                    .saturating_sub(before.max(self.hold_samples));
+                if steps > 0 {
+                    self.ramp_samples += steps;
+                    let q = self.active.i_q_ref;
+                    let down = self.iq_ramp_per_sample * steps as f64;
+                    self.active.i_q_ref = q - q.signum() * down.min(q.abs());
+                }
+            }
+        }
+        flags
+    }
 }
 
 /// Estimate stale after this many samples (one is the observer's normal lag).
@@ -215,58 +287,20 @@ const CURRENT_OUT: &[TopicId] = &[TopicId::Cmd];
 impl CurrentLoopStage {
     /// The current loop of `sc`.
     pub fn new(sc: &Scenario) -> Self {
-        let ts = sc.rates.ts();
         Self {
             ctrl: CurrentLoopStep::new(sc),
             pole_pairs: sc.motor_params().p(),
             sensorless: sc.observer.mode == ObserverMode::Sensorless,
-            divider: u64::from(sc.rates.speed_divider),
-            iq_ramp_per_sample: sc.i_q_max() * ts / 0.02,
-            active_ref: CurrentRef::default(),
+            reference: ReferenceHold::new(sc),
             last_est: Estimate::default(),
-            stale_ref_samples: 0,
             last_k: None,
             fallback_samples: 0,
-            ramp_samples: 0,
         }
     }
 
-    /// Takes a fresh current reference, or holds the last one (a stale input: flagged; before
-    /// the first came, the zero reference stands as at the start, flagged too) and, when
-    /// `ramp`, after 2 speed periods without a fresh one ramps i_q* to zero. `elapsed` is the
-    /// number of samples since the last step (1, or more after skipped samples). Returns the
-    /// command's flags.
-    fn reference(&mut self, inputs: &Inbox, ramp: bool, elapsed: u64) -> u32 {
-        let mut flags = 0;
-        match (inputs.slot(TopicId::Iref).fresh, inputs.iref()) {
-            (true, Some(r)) => {
-                self.active_ref = *r;
-                self.stale_ref_samples = 0;
-                // A reference the speed loop made from a stale input (its held output) makes
-                // this command one too.
-                flags |= r.hdr.flags & FLAG_STALE_INPUT;
-            }
-            // Nothing expected yet (before the first speed sample): zero references.
-            (true, None) => {}
-            (false, _) => {
-                flags |= FLAG_STALE_INPUT;
-                if !ramp {
-                    return flags;
-                }
-                // The ramp's samples among the ones elapsed: those past 2 speed periods.
-                let hold = 2 * self.divider;
-                let before = self.stale_ref_samples;
-                self.stale_ref_samples = before.saturating_add(elapsed);
-                let steps = self.stale_ref_samples.saturating_sub(before.max(hold));
-                if steps > 0 {
-                    self.ramp_samples += steps;
-                    let q = self.active_ref.i_q_ref;
-                    let down = self.iq_ramp_per_sample * steps as f64;
-                    self.active_ref.i_q_ref = q - q.signum() * down.min(q.abs());
-                }
-            }
-        }
-        flags
+    /// Samples with the i_q* ramp active.
+    pub fn ramp_samples(&self) -> u64 {
+        self.reference.ramp_samples
     }
 }
 
@@ -287,11 +321,11 @@ impl Stage for CurrentLoopStage {
         // The reference first. On the encoder fallback (no estimate) a stale reference is
         // held as it stands, neither ramped (the speed loop, without estimates, holds its
         // output) nor reset to the last one received (which would undo a ramp under way).
-        let mut flags = self.reference(inputs, inputs.est().is_some(), elapsed);
+        let mut flags = self.reference.take(inputs, inputs.est().is_some(), elapsed);
         let cmd = match inputs.est() {
             Some(e) => {
                 self.last_est = *e;
-                self.ctrl.step(meas, e, &self.active_ref)
+                self.ctrl.step(meas, e, self.reference.active())
             }
             None => {
                 // No estimate: the encoder angle of this measurement, the last speed estimate
@@ -310,16 +344,17 @@ impl Stage for CurrentLoopStage {
                 };
                 if self.sensorless {
                     // No position sensor to fall back on: command zero voltage.
+                    let r = self.reference.active();
                     VoltageCommand {
                         hdr: e.hdr,
-                        i_dq_ref: [self.active_ref.i_d_ref, self.active_ref.i_q_ref],
-                        omega_ref: self.active_ref.omega_ref,
+                        i_dq_ref: [r.i_d_ref, r.i_q_ref],
+                        omega_ref: r.omega_ref,
                         omega_hat: self.last_est.omega_m,
                         theta_hat: self.last_est.theta_e,
                         ..Default::default()
                     }
                 } else {
-                    self.ctrl.step(meas, &e, &self.active_ref)
+                    self.ctrl.step(meas, &e, self.reference.active())
                 }
             }
         };
@@ -332,9 +367,9 @@ impl Stage for CurrentLoopStage {
             return Rejoin::NeedMore;
         };
         if let Some(r) = inputs.newest_iref() {
-            self.active_ref = *r;
+            self.reference.set(*r);
         }
-        self.ctrl.preset(meas, e, &self.active_ref);
+        self.ctrl.preset(meas, e, self.reference.active());
         Rejoin::Done
     }
     fn diagnostic_names(&self) -> Diagnostics {
@@ -350,7 +385,7 @@ impl Stage for CurrentLoopStage {
         let (near, clamped) = self.ctrl.singularity_counts();
         for (d, s) in v.iter_mut().zip([
             self.fallback_samples,
-            self.ramp_samples,
+            self.reference.ramp_samples,
             near,
             clamped,
             self.ctrl.zeroed_commands,
@@ -826,14 +861,14 @@ mod tests {
             assert_eq!(c.i_dq_ref[1], 1.0, "k = {k}");
             assert_ne!(c.hdr.flags & FLAG_STALE_INPUT, 0, "k = {k}");
         }
-        assert_eq!(s.ramp_samples, 0);
+        assert_eq!(s.ramp_samples(), 0);
         // Then a ramp of i_max·T_s/20 ms per sample, flagged.
         let c = step(&mut s, 2 + 2 * n, false);
         assert!((c.i_dq_ref[1] - (1.0 - ramp)).abs() < 1e-12, "{c:?}");
         assert_ne!(c.hdr.flags & FLAG_STALE_INPUT, 0);
         let c = step(&mut s, 3 + 2 * n, false);
         assert!((c.i_dq_ref[1] - (1.0 - 2.0 * ramp)).abs() < 1e-12, "{c:?}");
-        assert_eq!(s.ramp_samples, 2);
+        assert_eq!(s.ramp_samples(), 2);
         // A sample on the encoder fallback (no estimate) during the ramp holds i_q* where
         // the ramp left it: neither ramped further nor put back to the last reference
         // received (the dead speed loop's 1.0).
@@ -848,15 +883,15 @@ mod tests {
         let c = cmd_of(&out);
         assert!((c.i_dq_ref[1] - (1.0 - 2.0 * ramp)).abs() < 1e-12, "{c:?}");
         assert_ne!(c.hdr.flags & FLAG_STALE_INPUT, 0);
-        assert_eq!((s.ramp_samples, s.fallback_samples), (2, 1));
+        assert_eq!((s.ramp_samples(), s.fallback_samples), (2, 1));
         // With the estimate back the ramp goes on from there.
         let c = step(&mut s, 5 + 2 * n, false);
         assert!((c.i_dq_ref[1] - (1.0 - 3.0 * ramp)).abs() < 1e-12, "{c:?}");
-        assert_eq!(s.ramp_samples, 3);
+        assert_eq!(s.ramp_samples(), 3);
         // Two samples the loop skipped (late, caught up) count: the ramp is in time.
         let c = step(&mut s, 8 + 2 * n, false);
         assert!((c.i_dq_ref[1] - (1.0 - 6.0 * ramp)).abs() < 1e-12, "{c:?}");
-        assert_eq!(s.ramp_samples, 6);
+        assert_eq!(s.ramp_samples(), 6);
         // A fresh reference ends it, unflagged.
         let c = step(&mut s, 9 + 2 * n, true);
         assert_eq!(c.i_dq_ref[1], 1.0);
