@@ -109,6 +109,21 @@ fn the_deadbeat_loop_replaces_the_built_in_and_reaches_an_i_d_step_in_two_sample
         "{}",
         sb["design"]
     );
+    // `drivelab design` says so too, for the scenario and not for the built-in's.
+    let design = |scenario: &Path| {
+        let o = std::process::Command::new(EXAMPLE.drivelab())
+            .args(["design", "--scenario"])
+            .arg(scenario)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8(o.stdout).unwrap()
+    };
+    let note = "current-loop: replaced by the user's stage in process 'current-loop' (exec ../../target/release/drivelab-deadbeat): its built-in design above does not run";
+    assert!(design(Path::new(EXAMPLE.scenario)).contains(note));
+    let copy = EXAMPLE.scenario_copy(&EXAMPLE.scratch("design"), &built_in());
+    assert!(!design(&copy).contains("replaced"));
+    remove_scratch(&copy);
     let (k1, err_pi) = i_d_step_errors(&builtin);
     assert_eq!(k0, k1);
     assert!(err_pi[2].abs() > 0.2, "{err_pi:?}");
