@@ -86,12 +86,17 @@ impl Example {
         extra: &[&str],
         edits: &[(&str, &str)],
     ) -> (Output, PathBuf, String) {
+        self.start(name, extra, edits).wait()
+    }
+
+    /// As [`Example::launch`], without waiting for it.
+    pub fn start(&self, name: &str, extra: &[&str], edits: &[(&str, &str)]) -> Started {
         let exe = self.drivelab();
         let dir = self.scratch(name);
         let sc = self.scenario_copy(&dir, edits);
         let out = dir.join("run");
         let bus = self.bus_id(name);
-        let mut args = vec![
+        let args: Vec<String> = [
             "run",
             "--scenario",
             sc.to_str().unwrap(),
@@ -100,34 +105,23 @@ impl Example {
             "--out",
             out.to_str().unwrap(),
             "--no-plots",
-        ];
-        args.extend_from_slice(extra);
-        let mut child = Command::new(&exe)
+        ]
+        .iter()
+        .chain(extra)
+        .map(|a| a.to_string())
+        .collect();
+        let child = Command::new(&exe)
             .args(&args)
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
             .expect("start drivelab");
-        let t = Instant::now();
-        while child.try_wait().unwrap().is_none() {
-            if t.elapsed() > Duration::from_secs(300) {
-                let _ = child.kill();
-                // What the killed launcher leaves: its stage hosts and its bus files.
-                for l in processes_on_bus(&bus) {
-                    if let Some(pid) = l.split(' ').next() {
-                        let _ = Command::new("kill").args(["-9", pid]).status();
-                    }
-                }
-                let _ = drivelab_runtime::bus::cleanup(&bus);
-                let o = child.wait_with_output().unwrap();
-                panic!(
-                    "watchdog: drivelab {args:?} still running after 300 s\nstderr: {}",
-                    String::from_utf8_lossy(&o.stderr)
-                );
-            }
-            std::thread::sleep(Duration::from_millis(20));
+        Started {
+            child,
+            out,
+            bus,
+            args,
         }
-        (child.wait_with_output().unwrap(), out, bus)
     }
 
     /// As [`Example::launch`] without edits; checks exit 0 and that nothing is left behind,
@@ -156,6 +150,43 @@ impl Example {
         let s = summary(&out);
         assert_eq!(s["faults"][0]["service"], stage, "{}", s["faults"]);
         (out, s)
+    }
+}
+
+/// A drive that [`Example::start`] started.
+pub struct Started {
+    child: std::process::Child,
+    out: PathBuf,
+    bus: String,
+    args: Vec<String>,
+}
+
+impl Started {
+    /// Waits for the drive under a watchdog of 300 s (on expiry it kills the launcher, its
+    /// stage hosts and removes its bus files, then fails); its output, the run folder and the
+    /// bus id.
+    pub fn wait(mut self) -> (Output, PathBuf, String) {
+        let t = Instant::now();
+        while self.child.try_wait().unwrap().is_none() {
+            if t.elapsed() > Duration::from_secs(300) {
+                let _ = self.child.kill();
+                // What the killed launcher leaves: its stage hosts and its bus files.
+                for l in processes_on_bus(&self.bus) {
+                    if let Some(pid) = l.split(' ').next() {
+                        let _ = Command::new("kill").args(["-9", pid]).status();
+                    }
+                }
+                let _ = drivelab_runtime::bus::cleanup(&self.bus);
+                let o = self.child.wait_with_output().unwrap();
+                panic!(
+                    "watchdog: drivelab {:?} still running after 300 s\nstderr: {}",
+                    self.args,
+                    String::from_utf8_lossy(&o.stderr)
+                );
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        (self.child.wait_with_output().unwrap(), self.out, self.bus)
     }
 }
 

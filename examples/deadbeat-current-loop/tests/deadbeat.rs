@@ -132,7 +132,7 @@ fn the_deadbeat_loop_replaces_the_built_in_and_reaches_an_i_d_step_in_two_sample
 }
 
 #[test]
-fn one_process_or_four_the_trace_is_the_same_bit_for_bit() {
+fn one_process_four_or_two_machines_the_trace_is_the_same_bit_for_bit() {
     let _s = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let four = lockstep("four", &[], &[]);
     // The deadbeat host runs every stage in one process: the built-in ones and its own.
@@ -157,6 +157,64 @@ fn one_process_or_four_the_trace_is_the_same_bit_for_bit() {
         a == b,
         "the one-process trace differs from the four-process one"
     );
+    // Split across two machines (here both over localhost, each with its own bus): the
+    // plant on the simulator, the deadbeat loop with the observer and the speed loop on the
+    // board. Both recorders write the same trace, and both summaries name the replacement.
+    let split = dir.join("split.toml");
+    std::fs::write(
+        &split,
+        ["plant", "observer", "current-loop", "speed-loop"]
+            .iter()
+            .map(|p| {
+                let (machine, exec) = match *p {
+                    "plant" => ("simulator", String::new()),
+                    "current-loop" => ("board", format!("exec = {:?}\n", EXAMPLE.exe)),
+                    _ => ("board", String::new()),
+                };
+                format!("[[process]]\nname = \"{p}\"\nstages = [\"{p}\"]\ncpu = 1\npriority = 70\nmachine = \"{machine}\"\n{exec}")
+            })
+            .collect::<String>(),
+    )
+    .unwrap();
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let ep = format!("tcp/127.0.0.1:{port}");
+    let side = |name: &str, machine: &str, zenoh: &str| {
+        let args = [
+            "--clock",
+            "lockstep",
+            "--topology",
+            split.to_str().unwrap(),
+            "--machine",
+            machine,
+            zenoh,
+            &ep,
+        ];
+        EXAMPLE.start(name, &args, &[])
+    };
+    let simulator = side("simulator", "simulator", "--zenoh-listen");
+    let board = side("board", "board", "--zenoh-connect");
+    for (o, out, bus) in [board.wait(), simulator.wait()] {
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        assert_clean(&bus);
+        let s = summary(&out);
+        assert!(
+            s["replaced_stages"]["current-loop"]
+                .as_str()
+                .is_some_and(|e| e == EXAMPLE.exe),
+            "{}",
+            s["replaced_stages"]
+        );
+        assert!(
+            std::fs::read(out.join("trace.csv")).unwrap() == a,
+            "{}: the split drive's trace differs from the four-process one",
+            out.display()
+        );
+        remove_scratch(&out);
+    }
     remove_scratch(&four);
     remove_scratch(&one);
     let _ = std::fs::remove_dir_all(dir);
