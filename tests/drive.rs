@@ -1193,6 +1193,42 @@ fn a_trace_that_cannot_be_written_stops_the_drive_at_once_with_one_line_and_a_su
         serde_json::json!([{ "from": k, "to": 199_999, "part": "row", "cause": format!("not in trace.csv: {why}") }])
     );
     assert_eq!(s["trace"]["rows_not_written"], 200_000 - k);
+    // Stopped by Ctrl-C with its trace not written whole: both are named, in that order.
+    let mut cmd = Command::new(DRIVELAB);
+    cmd.args(run_args(&bus, &out))
+        .args(["--clock", "inprocess", "--duration", "300"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped());
+    limit_file_size(&mut cmd, 32 << 20);
+    let child = cmd.spawn().expect("start drivelab run");
+    // 1 s: far more rows than 32 MiB hold, far fewer than 300 s of them.
+    std::thread::sleep(Duration::from_secs(1));
+    // SAFETY: signalling a child process we spawned.
+    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
+    let o = wait(
+        Drive::on_bus(child, &bus),
+        Duration::from_secs(120),
+        "the drive",
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    let s = summary(&out);
+    // (trace.mcap may have filled up too: it is named after.)
+    let failure = s["failure"].as_str().unwrap();
+    assert!(
+        failure.starts_with(&format!(
+            "interrupted (SIGINT): drive stopped; {why}; trace.csv ends before sample {k}"
+        )),
+        "{err}"
+    );
+    assert_eq!(s["samples"], k);
+    let gaps = s["missing_samples"].as_array().unwrap();
+    assert_eq!(gaps[0]["from"], k, "{gaps:?}");
+    assert_eq!(gaps[0]["part"], "row", "{gaps:?}");
+    assert_eq!(
+        gaps[1]["cause"], "the run ended early: interrupted (SIGINT): drive stopped",
+        "{gaps:?}"
+    );
     let errors = limited(1 << 20, "lockstep", "100");
     assert_eq!(errors.len(), 1, "{errors:?}");
     assert!(

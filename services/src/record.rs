@@ -229,7 +229,7 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
     };
     let t = trace.finish()?;
     if !t.write_errors.is_empty() {
-        failure.get_or_insert(t.write_errors.join("; "));
+        crate::launcher::add_failure(&mut failure, t.write_errors.join("; "));
     }
     let mut s: serde_json::Value = match &summary {
         Some(text) => serde_json::from_str(text)
@@ -273,19 +273,31 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
         "live_samples": hop_ns.len(),
         "published_to_recorded_us": percentiles_us(&mut hop_ns),
     });
-    drivelab_runtime::files::write(o.out.join("summary.json"), serde_json::to_vec_pretty(&s)?)?;
-    if let Some(m) = sinks.take_mcap() {
-        m.finish(&toml_text, &s, sc.rates.sample_hz)?;
+    let recorded = format!(
+        "what was recorded is in {}: {} of {} samples",
+        o.out.display(),
+        t.stats.rows - t.stats.rows_not_written,
+        sc.samples()
+    );
+    let written = crate::launcher::write_summary(
+        &o.out,
+        &mut s,
+        (&mut failure, "/record/failure"),
+        sinks.take_mcap(),
+        &toml_text,
+        sc.rates.sample_hz,
+    );
+    if let Err(e) = written {
+        // A full disk fails the trace first: that stays the recording's reason.
+        match &failure {
+            Some(f) => bail!("{f}; and {e:#} ({recorded})"),
+            None => return Err(e),
+        }
     }
     let bus = remote.bus().to_string();
     remote.close()?;
     if let Some(f) = failure {
-        bail!(
-            "{f} (what was recorded is in {}: {} of {} samples)",
-            o.out.display(),
-            t.stats.rows - t.stats.rows_not_written,
-            sc.samples()
-        );
+        bail!("{f} ({recorded})");
     }
     Ok(Recorded { bus, summary: s })
 }

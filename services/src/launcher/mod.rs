@@ -629,13 +629,7 @@ fn run_bus(
     // An output that could not be written stopped the run, with what it holds and the
     // summary written (the rows missing from trace.csv are listed).
     if !rec.write_errors.is_empty() {
-        let why = rec.write_errors.join("; ");
-        match &mut failure {
-            Some(f) if f == RECORDER_FAILED => *f = why,
-            f => {
-                f.get_or_insert(why);
-            }
-        }
+        add_failure(&mut failure, rec.write_errors.join("; "));
     }
     // Bus files that would not go fail the run, with its trace and summary written.
     if let Err(e) = cleaned {
@@ -1603,7 +1597,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             let (stats, lost) =
                 stream::write_whole(&out.join("trace.csv"), &rows, &sinks, &mut gaps)?;
             if let Some(e) = lost {
-                failure.get_or_insert(e);
+                add_failure(&mut failure, e);
             }
             stats
         }
@@ -1770,7 +1764,12 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         latency,
         curves,
         unreadable,
+        not_written,
     } = collect_histograms(&out)?;
+    if !not_written.is_empty() {
+        add_failure(&mut failure, not_written.join("; "));
+        summary["failure"] = json!(failure);
+    }
     // A histogram a host could not finish (killed while it wrote it at its exit) is left
     // out and named: the trace and the rest of the summary are still written.
     if !unreadable.is_empty() {
@@ -1855,22 +1854,14 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         summary["samples"],
         sc.samples()
     );
-    let summary_path = out.join("summary.json");
-    let written =
-        drivelab_runtime::files::write(&summary_path, serde_json::to_vec_pretty(&summary)?)
-            .map_err(|e| {
-                // Cut short, it would not read as JSON: none rather than half of one.
-                let _ = std::fs::remove_file(&summary_path);
-                anyhow!("cannot write {}: {e}", summary_path.display())
-            })
-            .and_then(|()| match sinks.take_mcap() {
-                Some(m) => m.finish(
-                    &std::fs::read_to_string(&sc_path)?,
-                    &summary,
-                    sc.rates.sample_hz,
-                ),
-                None => Ok(()),
-            });
+    let written = write_summary(
+        &out,
+        &mut summary,
+        (&mut failure, "/failure"),
+        sinks.take_mcap(),
+        &std::fs::read_to_string(&sc_path)?,
+        sc.rates.sample_hz,
+    );
     if let Err(e) = written {
         // A full disk fails the trace first: that stays the run's reason.
         match &failure {
@@ -1895,6 +1886,50 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         bail!("{f} ({recorded})");
     }
     Ok(RunResult { out, summary })
+}
+
+/// Adds `why` to a run's `failure`: the first, or after the ones before it (a write error
+/// that came with a stop signal is named beside it), or in the place of the bare
+/// [`RECORDER_FAILED`] (the recorder's own error says more).
+pub(crate) fn add_failure(failure: &mut Option<String>, why: String) {
+    *failure = Some(match failure.take() {
+        Some(f) if f != RECORDER_FAILED => format!("{f}; {why}"),
+        _ => why,
+    });
+}
+
+/// Writes `summary` to `out/summary.json`, then finishes `mcap` (`trace.mcap`, which holds the
+/// summary and the scenario's text `scenario`; `fs`: the sample rate, Hz). An MCAP that cannot
+/// be finished is added to `failure` and to the summary (at JSON pointer `failure_at`), written
+/// again. A `summary.json` that cannot be written is removed (cut short, it would not read as
+/// JSON) and is the error.
+pub(crate) fn write_summary(
+    out: &Path,
+    summary: &mut serde_json::Value,
+    (failure, failure_at): (&mut Option<String>, &str),
+    mcap: Option<crate::trace_mcap::McapTrace>,
+    scenario: &str,
+    fs: f64,
+) -> Result<()> {
+    let path = out.join("summary.json");
+    let write = |summary: &serde_json::Value| -> Result<()> {
+        drivelab_runtime::files::write(&path, serde_json::to_vec_pretty(summary)?).map_err(|e| {
+            let _ = std::fs::remove_file(&path);
+            anyhow!("cannot write {}: {e}", path.display())
+        })
+    };
+    write(summary)?;
+    if let Some(Err(e)) = mcap.map(|m| m.finish(scenario, summary, fs)) {
+        add_failure(
+            failure,
+            format!("{e:#}; trace.mcap is left without its index"),
+        );
+        if let Some(f) = summary.pointer_mut(failure_at) {
+            *f = json!(failure);
+        }
+        write(summary)?;
+    }
+    Ok(())
 }
 
 /// The samples after the recording stopped were never produced: the gap that reaches the
@@ -1963,6 +1998,7 @@ fn collect_histograms(out: &Path) -> Result<Histograms> {
     let mut lat = BTreeMap::new();
     let mut curves = Vec::new();
     let mut unreadable = Vec::new();
+    let mut not_written = Vec::new();
     let mut files: Vec<PathBuf> = std::fs::read_dir(out)?
         .flatten()
         .map(|e| e.path())
@@ -1982,7 +2018,10 @@ fn collect_histograms(out: &Path) -> Result<Histograms> {
                 continue;
             }
         };
-        drivelab_runtime::files::write(f.with_extension("hgrm"), h.hgrm())?;
+        let hgrm = f.with_extension("hgrm");
+        if let Err(e) = drivelab_runtime::files::write(&hgrm, h.hgrm()) {
+            not_written.push(format!("cannot write {}: {e}", hgrm.display()));
+        }
         lat.insert(key.clone(), h.percentiles());
         if key == "cycle" || key.ends_with(".wake") || key.ends_with(".lateness") {
             curves.push((key, h.curve()));
@@ -1992,6 +2031,7 @@ fn collect_histograms(out: &Path) -> Result<Histograms> {
         latency: lat,
         curves,
         unreadable,
+        not_written,
     })
 }
 
@@ -2003,6 +2043,8 @@ struct Histograms {
     curves: Vec<drivelab_tools::plot::PercentileSeries>,
     /// The files that could not be read, each with why.
     unreadable: Vec<String>,
+    /// The `.hgrm` files that could not be written, each with why.
+    not_written: Vec<String>,
 }
 
 /// Per-service statistics keyed by service name (for tests and reports).
@@ -2113,7 +2155,7 @@ mod tests {
     }
 
     #[test]
-    fn a_histogram_cut_short_is_left_out_and_named_the_others_are_read() {
+    fn a_histogram_cut_short_is_left_out_and_named_the_others_are_read_and_written() {
         let dir = std::env::temp_dir().join(format!("drivelab-hists-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
@@ -2125,12 +2167,24 @@ mod tests {
         // What a host killed while it wrote its histogram leaves: the start of one.
         let whole = std::fs::read(dir.join("cycle.hdr")).unwrap();
         std::fs::write(dir.join("observer.exec.hdr"), &whole[..whole.len() / 2]).unwrap();
+        // And one whose table cannot be written (a folder in its place): read, and named.
+        std::fs::write(dir.join("plant.exec.hdr"), &whole).unwrap();
+        std::fs::create_dir(dir.join("plant.exec.hgrm")).unwrap();
         let Histograms {
             latency: lat,
             curves,
             unreadable,
+            not_written,
         } = collect_histograms(&dir).unwrap();
-        assert_eq!(lat.keys().collect::<Vec<_>>(), ["cycle"]);
+        assert_eq!(lat.keys().collect::<Vec<_>>(), ["cycle", "plant.exec"]);
+        assert_eq!(not_written.len(), 1, "{not_written:?}");
+        assert!(
+            not_written[0].starts_with(&format!(
+                "cannot write {}: ",
+                dir.join("plant.exec.hgrm").display()
+            )),
+            "{not_written:?}"
+        );
         assert_eq!(curves.len(), 1);
         assert_eq!(unreadable.len(), 1, "{unreadable:?}");
         assert!(

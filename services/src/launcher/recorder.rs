@@ -345,7 +345,8 @@ pub const FAULT_WINDOW_MAX_MS: f64 = 200.0;
 /// downtime; any other missing part happened during the fault. Gaps outside every window keep
 /// the recorder's cause. `fs` is the sample rate, Hz.
 pub(super) fn attribute_gaps(gaps: &mut [Gap], faults: &[FaultReport], fs: f64) {
-    for g in gaps.iter_mut() {
+    // Rows made and not written keep their cause: the fault did not take them.
+    for g in gaps.iter_mut().filter(|g| g.part != ROW) {
         let in_window = |f: &&FaultReport| {
             let ms = f
                 .speed_recovered_ms
@@ -660,6 +661,8 @@ mod tests {
             gap(14, 14, "command", CMD),
             gap(102, 102, "command", CMD),
             gap(103, 103, "command", CMD),
+            // A row made and not written keeps its cause inside a window too.
+            gap(101, 101, ROW, "not in trace.csv: full"),
         ];
         attribute_gaps(&mut gaps, &faults, 1000.0);
         let causes: Vec<&str> = gaps.iter().map(|g| g.cause.as_str()).collect();
@@ -672,7 +675,8 @@ mod tests {
                 LOST,
                 "no command recorded during fault 'kill plant' injected at sample 10",
                 cl,
-                CMD
+                CMD,
+                "not in trace.csv: full"
             ]
         );
     }
