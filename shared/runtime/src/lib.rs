@@ -30,12 +30,18 @@ macro_rules! out {
     }};
 }
 
-/// `eprintln!` that does not panic on a closed stderr (see [`outln!`]).
+/// `eprintln!` that does not panic on a closed stderr (see [`outln!`]), and writes the line
+/// whole: stderr is not buffered, so the pieces of a formatted line would each be a write of
+/// their own, and the stage hosts of a drive share the launcher's stderr (a pipe writes up
+/// to 4 KiB at once without another writer's bytes in between). Never in a real-time loop:
+/// it allocates.
 #[macro_export]
 macro_rules! errln {
     ($($t:tt)*) => {{
         use std::io::Write as _;
-        let _ = writeln!(std::io::stderr(), $($t)*);
+        let mut line = format!($($t)*);
+        line.push('\n');
+        let _ = std::io::stderr().write_all(line.as_bytes());
     }};
 }
 
