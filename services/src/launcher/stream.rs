@@ -282,7 +282,8 @@ pub struct TraceStream {
     /// Once `trace.csv` could not be written: why its later rows are not in it.
     unwritten: Option<String>,
     /// Each output that could not be written (`trace.csv`, `timing.csv`, `trace.mcap`): its
-    /// error and where the file ends. The recording goes on without it.
+    /// error and where the file ends. The stream goes on without that output; the recorders
+    /// stop the recording at the first one.
     pub write_errors: Vec<String>,
 }
 
