@@ -2167,6 +2167,8 @@ mod tests {
         // What a host killed while it wrote its histogram leaves: the start of one.
         let whole = std::fs::read(dir.join("cycle.hdr")).unwrap();
         std::fs::write(dir.join("observer.exec.hdr"), &whole[..whole.len() / 2]).unwrap();
+        // And an empty one (its host found the disk full).
+        std::fs::write(dir.join("observer.wake.hdr"), b"").unwrap();
         // And one whose table cannot be written (a folder in its place): read, and named.
         std::fs::write(dir.join("plant.exec.hdr"), &whole).unwrap();
         std::fs::create_dir(dir.join("plant.exec.hgrm")).unwrap();
@@ -2186,9 +2188,16 @@ mod tests {
             "{not_written:?}"
         );
         assert_eq!(curves.len(), 1);
-        assert_eq!(unreadable.len(), 1, "{unreadable:?}");
+        assert_eq!(unreadable.len(), 2, "{unreadable:?}");
         assert!(
-            unreadable[0].contains("observer.exec.hdr: not an HdrHistogram V2 file"),
+            unreadable[0].ends_with(&format!(
+                "observer.exec.hdr: not an HdrHistogram V2 file: cut short ({} bytes)",
+                whole.len() / 2
+            )),
+            "{unreadable:?}"
+        );
+        assert!(
+            unreadable[1].ends_with("observer.wake.hdr: not an HdrHistogram V2 file: empty"),
             "{unreadable:?}"
         );
         assert!(dir.join("cycle.hgrm").is_file());

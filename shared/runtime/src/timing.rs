@@ -167,7 +167,18 @@ impl LatencyHist {
         let h: Histogram<u64> = Deserializer::new()
             .deserialize(&mut &bytes[..])
             .map_err(|e| {
-                anyhow::anyhow!("{}: not an HdrHistogram V2 file: {e:?}", path.display())
+                use hdrhistogram::serialization::DeserializeError;
+                // What a writer that was killed, or found the disk full, leaves: said plainly.
+                let why = match e {
+                    _ if bytes.is_empty() => "empty".to_string(),
+                    DeserializeError::IoError(io)
+                        if io.kind() == std::io::ErrorKind::UnexpectedEof =>
+                    {
+                        format!("cut short ({} bytes)", bytes.len())
+                    }
+                    other => format!("{other:?}"),
+                };
+                anyhow::anyhow!("{}: not an HdrHistogram V2 file: {why}", path.display())
             })?;
         // The compact twin is live telemetry only; a histogram read back has none.
         Ok(Self {
