@@ -252,12 +252,8 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
         let drive_gaps = m.remove("missing_samples").unwrap_or(json!([]));
         m.insert("drive_missing_samples".into(), drive_gaps);
     }
-    let missing: u64 = gaps
-        .iter()
-        .filter(|g| g.part != "command")
-        .map(|g| g.to + 1 - g.from)
-        .sum();
-    s["samples"] = json!(t.stats.rows - t.stats.rows_not_written);
+    let missing = crate::launcher::samples_missing(&gaps);
+    s["samples"] = json!(t.stats.rows_written());
     s["samples_expected"] = json!(sc.samples());
     s["samples_missing"] = json!(missing);
     s["trace"] = serde_json::to_value(t.stats)?;
@@ -276,24 +272,17 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
     let recorded = format!(
         "what was recorded is in {}: {} of {} samples",
         o.out.display(),
-        t.stats.rows - t.stats.rows_not_written,
+        t.stats.rows_written(),
         sc.samples()
     );
-    let written = crate::launcher::write_summary(
+    crate::launcher::write_summary(
         &o.out,
         &mut s,
         (&mut failure, "/record/failure"),
         sinks.take_mcap(),
-        &toml_text,
-        sc.rates.sample_hz,
-    );
-    if let Err(e) = written {
-        // A full disk fails the trace first: that stays the recording's reason.
-        match &failure {
-            Some(f) => bail!("{f}; and {e:#} ({recorded})"),
-            None => return Err(e),
-        }
-    }
+        (&toml_text, sc.rates.sample_hz),
+        &recorded,
+    )?;
     let bus = remote.bus().to_string();
     remote.close()?;
     if let Some(f) = failure {

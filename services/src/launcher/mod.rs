@@ -16,7 +16,7 @@ pub mod tail;
 mod trip;
 
 pub use bridge::ZenohListen;
-pub use recorder::Gap;
+pub use recorder::{samples_missing, Gap};
 pub(crate) use spawn::die_with_launcher;
 pub use supervisor::{
     fault_reports, speed_recovered, EventKind, FaultReport, PlantDown, SupEvent, NOT_INJECTED,
@@ -1679,7 +1679,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         "clock": o.clock,
         "rate_hz": sc.rates.sample_hz,
         "speed_loop_hz": sc.rates.sample_hz / f64::from(sc.rates.speed_divider),
-        "samples": stats.rows - stats.rows_not_written,
+        "samples": stats.rows_written(),
         "trace": stats,
         "samples_expected": sc.samples(),
         "deadline_misses": deadline_misses,
@@ -1854,21 +1854,14 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         summary["samples"],
         sc.samples()
     );
-    let written = write_summary(
+    write_summary(
         &out,
         &mut summary,
         (&mut failure, "/failure"),
         sinks.take_mcap(),
-        &std::fs::read_to_string(&sc_path)?,
-        sc.rates.sample_hz,
-    );
-    if let Err(e) = written {
-        // A full disk fails the trace first: that stays the run's reason.
-        match &failure {
-            Some(f) => bail!("{f}; and {e:#} ({recorded})"),
-            None => return Err(e),
-        }
-    }
+        (&std::fs::read_to_string(&sc_path)?, sc.rates.sample_hz),
+        &recorded,
+    )?;
     if let Some(l) = &live {
         // Connected clients get what is queued for them, then a close.
         let dropped = l.stop();
@@ -1902,23 +1895,30 @@ pub(crate) fn add_failure(failure: &mut Option<String>, why: String) {
 /// summary and the scenario's text `scenario`; `fs`: the sample rate, Hz). An MCAP that cannot
 /// be finished is added to `failure` and to the summary (at JSON pointer `failure_at`), written
 /// again. A `summary.json` that cannot be written is removed (cut short, it would not read as
-/// JSON) and is the error.
+/// JSON) and is the error, after the failure that came first (a full disk fails the trace
+/// before the summary) and with `recorded` (what the run folder holds).
 pub(crate) fn write_summary(
     out: &Path,
     summary: &mut serde_json::Value,
     (failure, failure_at): (&mut Option<String>, &str),
     mcap: Option<crate::trace_mcap::McapTrace>,
-    scenario: &str,
-    fs: f64,
+    (scenario, fs): (&str, f64),
+    recorded: &str,
 ) -> Result<()> {
     let path = out.join("summary.json");
-    let write = |summary: &serde_json::Value| -> Result<()> {
-        drivelab_runtime::files::write(&path, serde_json::to_vec_pretty(summary)?).map_err(|e| {
-            let _ = std::fs::remove_file(&path);
-            anyhow!("cannot write {}: {e}", path.display())
-        })
+    let write = |summary: &serde_json::Value, failure: &Option<String>| -> Result<()> {
+        let e = match drivelab_runtime::files::write(&path, serde_json::to_vec_pretty(summary)?) {
+            Ok(()) => return Ok(()),
+            Err(e) => e,
+        };
+        let _ = std::fs::remove_file(&path);
+        let e = format!("cannot write {}: {e}", path.display());
+        match failure {
+            Some(f) => bail!("{f}; and {e} ({recorded})"),
+            None => bail!("{e}"),
+        }
     };
-    write(summary)?;
+    write(summary, failure)?;
     if let Some(Err(e)) = mcap.map(|m| m.finish(scenario, summary, fs)) {
         add_failure(
             failure,
@@ -1927,7 +1927,7 @@ pub(crate) fn write_summary(
         if let Some(f) = summary.pointer_mut(failure_at) {
             *f = json!(failure);
         }
-        write(summary)?;
+        write(summary, failure)?;
     }
     Ok(())
 }
@@ -1965,12 +1965,7 @@ struct Headline {
 fn headline(trace: &TraceStats, gaps: &[Gap], deadline_misses: u64, samples: u64) -> Headline {
     Headline {
         deadline_misses_per_million: deadline_misses as f64 * 1e6 / samples.max(1) as f64,
-        // Samples without their row in trace.csv (a command gap's row is there).
-        samples_missing: gaps
-            .iter()
-            .filter(|g| g.part != "command")
-            .map(|g| g.to + 1 - g.from)
-            .sum(),
+        samples_missing: recorder::samples_missing(gaps),
         peak_current_a: trace.peak_current_a,
         peak_speed_rad_s: trace.peak_speed_rad_s,
     }
@@ -2072,33 +2067,31 @@ fn design_that_ran(design: &DriveDesign, replaced: &BTreeMap<String, String>) ->
     if replaced.is_empty() {
         return v;
     }
+    let remove = |obj: Option<&mut serde_json::Value>, key: &str| {
+        obj.and_then(|o| o.as_object_mut())
+            .and_then(|m| m.remove(key))
+            .is_some()
+    };
     let mut not_run = serde_json::Map::new();
-    let mut drop = |key: String, exe: &str, obj: &mut serde_json::Value| {
-        let (head, tail) = key
-            .split_once('.')
-            .map_or((key.as_str(), None), |(h, t)| (h, Some(t)));
-        let map = match tail {
-            Some(_) => obj.get_mut(head).and_then(|o| o.as_object_mut()),
-            None => obj.as_object_mut(),
+    for (stage, parts, rst) in DESIGN_PARTS {
+        let Some(exe) = replaced.get(stage) else {
+            continue;
         };
-        if let Some(m) = map {
-            if m.remove(tail.unwrap_or(head)).is_some() {
-                not_run.insert(key, json!(exe));
+        for p in parts {
+            if remove(Some(&mut v), p) {
+                not_run.insert(p.to_string(), json!(exe));
             }
         }
-    };
-    for (stage, parts, rst) in DESIGN_PARTS {
-        if let Some(exe) = replaced.get(stage) {
-            for p in parts {
-                drop((*p).to_string(), exe, &mut v);
-            }
-            for p in rst {
-                drop(format!("rst.{p}"), exe, &mut v);
+        for p in rst {
+            if remove(v.get_mut("rst"), p) {
+                not_run.insert(format!("rst.{p}"), json!(exe));
             }
         }
     }
     if let (Some(c), Some(s)) = (replaced.get("current-loop"), replaced.get("speed-loop")) {
-        drop("nonlinear".to_string(), &format!("{c}, {s}"), &mut v);
+        if remove(Some(&mut v), "nonlinear") {
+            not_run.insert("nonlinear".into(), json!(format!("{c}, {s}")));
+        }
     }
     v["not_run"] = serde_json::Value::Object(not_run);
     v

@@ -32,6 +32,15 @@ pub struct Gap {
 /// written).
 pub const ROW: &str = "row";
 
+/// Samples of `gaps` without their row in `trace.csv` (a command gap's row is there, with NaN
+/// in its command columns).
+pub fn samples_missing(gaps: &[Gap]) -> u64 {
+    gaps.iter()
+        .filter(|g| g.part != "command")
+        .map(|g| g.to + 1 - g.from)
+        .sum()
+}
+
 /// Adds sample k to `gaps`: it extends the last gap when that one ends at k − 1 with the same
 /// part and cause, else it opens a new one (samples come in order).
 pub(super) fn push_gap(gaps: &mut Vec<Gap>, k: u64, part: &'static str, cause: &str) {

@@ -121,7 +121,7 @@ impl TimingCsv {
 /// What a run's trace holds and what its analyses saw.
 #[derive(Debug, Clone, Copy, Serialize, PartialEq)]
 pub struct TraceStats {
-    /// Rows in `trace.csv`.
+    /// Rows made: in `trace.csv` but for the `rows_not_written`.
     pub rows: u64,
     /// Largest |i_dq| over every row, A.
     pub peak_current_a: f64,
@@ -154,6 +154,11 @@ impl TraceStats {
             s.count(r);
         }
         s
+    }
+
+    /// Rows in `trace.csv`.
+    pub fn rows_written(&self) -> u64 {
+        self.rows - self.rows_not_written
     }
 
     fn count(&mut self, r: &TraceRow) {
