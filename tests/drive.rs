@@ -795,17 +795,16 @@ fn timing_csv_has_every_samples_publish_times_in_causal_order_and_the_cycles_med
          ({unseen} not in the histogram)"
     );
     // By default the plant's schedule starts on its core's tick: as far past a whole
-    // millisecond as that tick falls (read here as the drive read it, root only; a whole
-    // millisecond where it cannot be read).
+    // millisecond as that tick falls (root only; a whole millisecond where it cannot be
+    // read). The drive reads the tick's next expiry; here its last one (`.last_tick`, read
+    // by `tick_phase_us` below), which lies on the same grid.
     let t = &s["timing"];
     assert_eq!(t["tick_aligned"], true, "{t}");
     let topo: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("topology.json")).unwrap()).unwrap();
     let plant_cpu = topo["processes"][0]["cpu"].as_u64().map(|c| c as usize);
     assert!(plant_cpu.is_some(), "the default plant is pinned: {topo}");
-    let phase_us = plant_cpu
-        .and_then(|c| drivelab_runtime::tick::phase_of(c).ok())
-        .map(|ns| ns as f64 * 1e-3);
+    let phase_us = plant_cpu.and_then(tick_phase_us);
     assert_eq!(
         t["schedule_start_us_past_ms"].as_f64(),
         Some(phase_us.unwrap_or(0.0)),
@@ -844,6 +843,43 @@ fn timing_csv_has_every_samples_publish_times_in_causal_order_and_the_cycles_med
     } else {
         eprintln!("the tick's phase cannot be read here (not root?): past_tick not checked");
     }
+}
+
+/// Where `cpu`'s tick falls past a whole millisecond, µs, from its section of
+/// `/proc/timer_list` (root only): its last expiry before it stopped (`.last_tick`), or, for a
+/// tick that never stopped, the expiry of its armed timer; None where the file cannot be read.
+/// A reader of its own, not the drive's.
+fn tick_phase_us(cpu: usize) -> Option<f64> {
+    let text = std::fs::read_to_string("/proc/timer_list").ok()?;
+    let section = text
+        .split("\ncpu: ")
+        .find_map(|s| {
+            let (n, rest) = s.split_once('\n')?;
+            (n.trim() == cpu.to_string()).then_some(rest)
+        })
+        .unwrap_or_else(|| panic!("no cpu {cpu} in /proc/timer_list"));
+    let number = |s: &str| s.split_whitespace().next()?.parse::<u64>().ok();
+    let last = section
+        .lines()
+        .find_map(|l| l.trim_start().strip_prefix(".last_tick"))
+        .and_then(|l| number(l.trim_start_matches([' ', ':'])))
+        .filter(|ns| *ns > 0);
+    let lines: Vec<&str> = section.lines().collect();
+    let armed = lines
+        .windows(2)
+        .find(|w| w[0].contains("tick_nohz_handler") || w[0].contains("tick_sched_timer"))
+        .and_then(|w| {
+            number(
+                w[1].trim_start()
+                    .strip_prefix("# expires at ")?
+                    .split('-')
+                    .next()?,
+            )
+        });
+    let ns = last
+        .or(armed)
+        .unwrap_or_else(|| panic!("cpu {cpu}'s tick not in /proc/timer_list"));
+    Some((ns % 1_000_000) as f64 * 1e-3)
 }
 
 #[test]
