@@ -1538,6 +1538,19 @@ fn a_plot_that_cannot_be_drawn_leaves_the_trace_and_the_summary_whole() {
         s["plots_error"]
     );
     assert!(s["plots"].is_null(), "{}", s["plots"]);
+    // The figures drawn before it (the latency percentiles) are removed with it: on a full
+    // disk they would take the summary's place.
+    let figures: Vec<_> = std::fs::read_dir(&out)
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".png") || n.ends_with(".svg"))
+        .collect();
+    assert_eq!(
+        figures,
+        ["speed.png"],
+        "the folder in the figure's place only"
+    );
     assert_eq!(s["samples"], 500);
     assert_eq!(s["samples_missing"], 0);
     assert!(s["failure"].is_null(), "{}", s["failure"]);

@@ -1788,7 +1788,10 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     // A build without figures (the cross build) leaves them to `drivelab plot RUNDIR`.
     let plots = !o.no_plots && drivelab_tools::plot::AVAILABLE;
     // Figures are drawn from what was written: where drawing fails, the summary is still
-    // written, with the reason (`drivelab plot RUNDIR` draws them again).
+    // written, with the reason (`drivelab plot RUNDIR` draws them again), and the figures
+    // drawn before the failure are removed: on a full disk they would take the summary's
+    // place.
+    let before_plots = file_names(&out);
     let drawn = (|| -> Result<Vec<PathBuf>> {
         let mut files = Vec::new();
         if plots && !curves.is_empty() {
@@ -1839,6 +1842,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         }
         Ok(_) => {}
         Err(e) => {
+            for name in file_names(&out).difference(&before_plots) {
+                let _ = std::fs::remove_file(out.join(name));
+            }
             crate::errln!(
                 "drivelab: warning: the plots were not drawn ({e:#}); `drivelab plot {}` draws them",
                 out.display()
@@ -1879,6 +1885,18 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         bail!("{f} ({recorded})");
     }
     Ok(RunResult { out, summary })
+}
+
+/// The names of the files in `dir` (none where it cannot be read).
+fn file_names(dir: &Path) -> std::collections::BTreeSet<std::ffi::OsString> {
+    std::fs::read_dir(dir)
+        .map(|d| {
+            d.flatten()
+                .filter(|e| e.file_type().is_ok_and(|t| t.is_file()))
+                .map(|e| e.file_name())
+                .collect()
+        })
+        .unwrap_or_default()
 }
 
 /// Adds `why` to a run's `failure`: the first, or after the ones before it (a write error
