@@ -198,6 +198,19 @@ fn lockstep_inprocess_and_clean_realtime_traces_are_bit_identical() {
             &format!("det-2k-rt{attempt}"),
             &["--clock", "realtime", "--scenario", sc],
         );
+        // Every stage's counters are there to be summed.
+        assert!(
+            s["statistics_missing"].is_null(),
+            "{}",
+            s["statistics_missing"]
+        );
+        let stages: Vec<&String> = s["counters"].as_object().unwrap().keys().collect();
+        assert_eq!(
+            stages,
+            ["current-loop", "observer", "plant", "speed-loop"],
+            "{}",
+            s["counters"]
+        );
         let stale: u64 = s["counters"]
             .as_object()
             .unwrap()

@@ -387,6 +387,27 @@ fn with_restart_never_a_killed_loop_stays_dead_and_the_drive_runs_degraded() {
         f["republished_ms"].is_null() && f["speed_recovered_ms"].is_null(),
         "{f}"
     );
+    // A host writes its statistics as it exits: the dead one's counters are not in the
+    // summary, which says why, and only its.
+    assert!(
+        s["counters"].get("speed-loop").is_none(),
+        "{}",
+        s["counters"]
+    );
+    let missing = s["statistics_missing"]
+        .as_object()
+        .expect("statistics_missing");
+    assert_eq!(
+        missing.keys().collect::<Vec<_>>(),
+        ["speed-loop"],
+        "{missing:?}"
+    );
+    let why = missing["speed-loop"].as_str().unwrap();
+    assert!(
+        why.starts_with("not written: its process exited (signal: 9 (SIGKILL)) at ")
+            && why.ends_with(" s and was not restarted"),
+        "{why}"
+    );
     let rows = drivelab_runtime::trace::read_csv(&out.join("trace.csv")).unwrap();
     let (k_stale, d) = degraded_rows(&rows, f["injected_k"].as_u64().unwrap());
     let n = 10; // kyslan-pi: speed_divider

@@ -641,6 +641,9 @@ fn run_bus(
     }
     let mut processes = serde_json::Map::new();
     let mut counters = serde_json::Map::new();
+    // Stages whose `<stage>.stats.json` could not be read, with why: their counters are not
+    // in the summary.
+    let mut stats_missing = serde_json::Map::new();
     for c in &children {
         let rt = c.rt.clone().unwrap_or(serde_json::Value::Null);
         if c.standby {
@@ -653,26 +656,39 @@ fn run_bus(
         let mut entry = json!({ "stages": c.stages, "executable": c.exe, "pid": c.host_pid(), "cpu": rt.get("cpu"), "policy": rt.get("policy"), "priority": rt.get("priority"), "memory_locked": rt.get("memory_locked") });
         for st in &c.stages {
             let stats_path = out.join(format!("{st}.stats.json"));
-            if let Ok(text) = std::fs::read_to_string(&stats_path) {
-                let v: serde_json::Value = serde_json::from_str(&text).unwrap_or_default();
-                // What the process cost (its last incarnation's; every stage of a process
-                // carries the same figures, taken from the first that has them).
-                if entry.get("cpu_s").is_none() && v.is_object() {
-                    entry["cpu_s"] = v["process_cpu_s"].clone();
-                    entry["context_switches"] = v["process_context_switches"].clone();
-                    entry["syscalls"] = v["process_syscalls"].clone();
+            let read = std::fs::read_to_string(&stats_path)
+                .map_err(|e| match e.kind() {
+                    std::io::ErrorKind::NotFound => not_written(&events, &c.name),
+                    _ => format!("unreadable: {e}"),
+                })
+                .and_then(|text| {
+                    serde_json::from_str::<serde_json::Value>(&text)
+                        .map_err(|e| format!("unreadable: {e}"))
+                });
+            match read {
+                Ok(v) => {
+                    // What the process cost (its last incarnation's; every stage of a process
+                    // carries the same figures, taken from the first that has them).
+                    if entry.get("cpu_s").is_none() && v.is_object() {
+                        entry["cpu_s"] = v["process_cpu_s"].clone();
+                        entry["context_switches"] = v["process_context_switches"].clone();
+                        entry["syscalls"] = v["process_syscalls"].clone();
+                    }
+                    let mut cv = v.get("counters").cloned().unwrap_or_default();
+                    if let Some(d) = v.get("diagnostics") {
+                        cv["diagnostics"] = d.clone();
+                    }
+                    if let Some(d) = v.get("stalls") {
+                        cv["stalls"] = d.clone();
+                    }
+                    if let Some(d) = v.get("inject") {
+                        cv["inject"] = d.clone();
+                    }
+                    counters.insert(st.clone(), cv);
                 }
-                let mut cv = v.get("counters").cloned().unwrap_or_default();
-                if let Some(d) = v.get("diagnostics") {
-                    cv["diagnostics"] = d.clone();
+                Err(why) => {
+                    stats_missing.insert(st.clone(), json!(why));
                 }
-                if let Some(d) = v.get("stalls") {
-                    cv["stalls"] = d.clone();
-                }
-                if let Some(d) = v.get("inject") {
-                    cv["inject"] = d.clone();
-                }
-                counters.insert(st.clone(), cv);
             }
         }
         processes.insert(c.name.clone(), entry);
@@ -682,7 +698,7 @@ fn run_bus(
         .lock()
         .map(|mut v| std::mem::take(&mut *v))
         .unwrap_or_default();
-    let mut info = json!({ "faults_not_made": not_made, "bus": bus_id, "counters": counters, "recorder_rejected": rec.rejected, "recorder_late": rec.late, "plan": plan, "plant_down_samples": rec.rebuilt, "plant_down_ranges": rec.rebuilt_ranges, "schedule_start_ns": rec.t0_ns });
+    let mut info = json!({ "faults_not_made": not_made, "bus": bus_id, "counters": counters, "statistics_missing": stats_missing, "recorder_rejected": rec.rejected, "recorder_late": rec.late, "plan": plan, "plant_down_samples": rec.rebuilt, "plant_down_ranges": rec.rebuilt_ranges, "schedule_start_ns": rec.t0_ns });
     if let Some(b) = bridge_stats {
         info["bridge"] = b;
     }
@@ -728,6 +744,28 @@ fn run_bus(
         hog_latency,
         bridge,
     })
+}
+
+/// Why the process `process` left no `<stage>.stats.json` (a host writes it as it exits): it
+/// exited for the last time during the run and was not restarted, or it did not write it.
+fn not_written(events: &[SupEvent], process: &str) -> String {
+    let last = events.iter().rev().find(|e| {
+        e.process == process
+            && matches!(
+                e.kind,
+                supervisor::EventKind::Exited { .. } | supervisor::EventKind::Restarted { .. }
+            )
+    });
+    match last {
+        Some(SupEvent {
+            kind: supervisor::EventKind::Exited { status, .. },
+            t_wall_s,
+            ..
+        }) => format!(
+            "not written: its process exited ({status}) at {t_wall_s:.3} s and was not restarted"
+        ),
+        _ => "not written by its process (it writes it as it exits)".to_string(),
+    }
 }
 
 /// The cause of a measurement the plant published and the recorder never received.
@@ -1713,6 +1751,28 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             None => serde_json::Value::Null,
         };
     }
+    // A stage without its statistics: named, with why; a warning unless its process died
+    // during the run and was left dead (the supervisor's events say so already).
+    if let Some(m) = info["statistics_missing"]
+        .as_object()
+        .filter(|m| !m.is_empty())
+    {
+        summary["statistics_missing"] = json!(m);
+        let unexplained: Vec<String> = m
+            .iter()
+            .filter(|(_, why)| {
+                !why.as_str()
+                    .is_some_and(|w| w.contains("was not restarted"))
+            })
+            .map(|(st, why)| format!("{st} ({})", why.as_str().unwrap_or("")))
+            .collect();
+        if !unexplained.is_empty() {
+            crate::errln!(
+                "drivelab: warning: no statistics from {}: their counters are not in summary.json",
+                unexplained.join(", ")
+            );
+        }
+    }
     if let Some(c) = info.get("counters") {
         summary["counters"] = c.clone();
         if let Some(ns) = c["plant"]["loop_wall_ns"].as_u64().filter(|&n| n > 0) {
@@ -2118,6 +2178,68 @@ fn design_that_ran(design: &DriveDesign, replaced: &BTreeMap<String, String>) ->
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_stage_without_statistics_is_explained_by_its_processs_last_exit() {
+        use std::os::unix::process::ExitStatusExt;
+        let ev = |t: f64, process: &str, kind: supervisor::EventKind| SupEvent {
+            t_wall_s: t,
+            k: 0,
+            kind,
+            service: process.to_string(),
+            process: process.to_string(),
+        };
+        let exited = |t, p| {
+            ev(
+                t,
+                p,
+                supervisor::EventKind::Exited {
+                    status: std::process::ExitStatus::from_raw(9),
+                    crash: false,
+                },
+            )
+        };
+        let restarted = |t, p| {
+            ev(
+                t,
+                p,
+                supervisor::EventKind::Restarted { restart: 1, pid: 7 },
+            )
+        };
+        let left_dead =
+            "not written: its process exited (signal: 9 (SIGKILL)) at 0.300 s and was not restarted";
+        let unexplained = "not written by its process (it writes it as it exits)";
+        assert_eq!(not_written(&[], "observer"), unexplained);
+        assert_eq!(
+            not_written(&[exited(0.3, "observer")], "observer"),
+            left_dead
+        );
+        // Restarted after it: the new process should have written it.
+        assert_eq!(
+            not_written(
+                &[exited(0.1, "observer"), restarted(0.2, "observer")],
+                "observer"
+            ),
+            unexplained
+        );
+        // Its last exit counts, another process's not.
+        assert_eq!(
+            not_written(
+                &[
+                    exited(0.1, "observer"),
+                    restarted(0.2, "observer"),
+                    exited(0.3, "observer"),
+                    exited(0.4, "plant"),
+                ],
+                "observer"
+            ),
+            left_dead
+        );
+        assert_eq!(
+            not_written(&[exited(0.3, "plant")], "observer"),
+            unexplained
+        );
+    }
 
     #[test]
     fn a_replaced_stages_built_in_design_is_left_out_of_the_summary_and_named() {
