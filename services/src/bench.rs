@@ -1647,14 +1647,13 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
             None
         }
     };
-    let out = a.out.clone().unwrap_or_else(|| {
-        let secs = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map(|d| d.as_secs())
-            .unwrap_or(0);
-        PathBuf::from("runs").join(format!("bench-{secs}"))
-    });
-    let made = !out.exists();
+    let (out, made) = match &a.out {
+        Some(out) => (out.clone(), !out.exists()),
+        None => (
+            crate::launcher::new_default_folder(&format!("bench-{}", crate::launcher::unix_s()))?,
+            true,
+        ),
+    };
     std::fs::create_dir_all(&out).with_context(|| format!("cannot create {}", out.display()))?;
     let out = out.canonicalize()?;
     at.out = Some((out.clone(), made));

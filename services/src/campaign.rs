@@ -729,13 +729,14 @@ fn claim_campaign_folder(out: &Path) -> Result<std::fs::File> {
 pub fn run(a: &CampaignArgs) -> Result<u8> {
     drivelab_runtime::service::install_signal_handlers()?;
     let (c, cases) = load(&a.file)?;
-    let out = a.out.clone().unwrap_or_else(|| {
-        let secs = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map(|d| d.as_secs())
-            .unwrap_or(0);
-        PathBuf::from("runs").join(format!("campaign-{}-{secs}", c.name))
-    });
+    let out = match &a.out {
+        Some(out) => out.clone(),
+        None => crate::launcher::new_default_folder(&format!(
+            "campaign-{}-{}",
+            c.name,
+            crate::launcher::unix_s()
+        ))?,
+    };
     let _lock = claim_campaign_folder(&out)?;
     let bar = if a.json {
         indicatif::ProgressBar::hidden()

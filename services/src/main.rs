@@ -58,7 +58,8 @@ enum Cmd {
         /// Override the scenario's duration, seconds.
         #[arg(long, value_name = "SECONDS", value_parser = duration_s)]
         duration: Option<f64>,
-        /// Run folder (default: runs/<scenario>-<clock>-<unix time>).
+        /// Run folder (default: runs/<scenario>-<clock>-<unix time>, always a new one: -2,
+        /// -3, … after it for another run in the same second).
         #[arg(long, value_name = "DIR")]
         out: Option<PathBuf>,
         /// Bus id isolating this drive's shared memory (default: the launcher's pid).

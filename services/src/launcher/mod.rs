@@ -150,12 +150,47 @@ pub fn load_scenario(name: &str, duration_s: Option<f64>) -> Result<Scenario> {
     Ok(sc)
 }
 
-fn default_out(sc: &Scenario, clock: Clock) -> PathBuf {
-    let secs = std::time::SystemTime::now()
+/// The name of a run's folder where none is given: `<scenario>-<clock>-<unix seconds>`.
+fn default_stem(sc: &Scenario, clock: Clock) -> String {
+    format!("{}-{}-{}", sc.name, clock.name(), unix_s()).to_lowercase()
+}
+
+/// Seconds since the Unix epoch, now (0 before it).
+pub(crate) fn unix_s() -> u64 {
+    std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_secs())
-        .unwrap_or(0);
-    PathBuf::from("runs").join(format!("{}-{}-{}", sc.name, clock.name(), secs).to_lowercase())
+        .unwrap_or(0)
+}
+
+/// The folder for a command's outputs where none was given (no `--out`): `runs/STEM`, made
+/// here, or `runs/STEM-2`, `-3`, … where that one exists (a run in the same second, one that
+/// goes on now): two commands started together never share a folder, and one never
+/// replaces another's outputs.
+pub(crate) fn new_default_folder(stem: &str) -> Result<PathBuf> {
+    new_folder_in(Path::new("runs"), stem)
+}
+
+fn new_folder_in(parent: &Path, stem: &str) -> Result<PathBuf> {
+    std::fs::create_dir_all(parent)
+        .with_context(|| format!("cannot create {}", parent.display()))?;
+    for n in 1..=1000u32 {
+        let p = match n {
+            1 => parent.join(stem),
+            _ => parent.join(format!("{stem}-{n}")),
+        };
+        // Made or found there: `create_dir` is the one that decides, so two commands cannot
+        // both take one.
+        match std::fs::create_dir(&p) {
+            Ok(()) => return Ok(p),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
+            Err(e) => return Err(e).with_context(|| format!("cannot create {}", p.display())),
+        }
+    }
+    bail!(
+        "no new folder {}/{stem}-N: the first 1000 exist; give --out",
+        parent.display()
+    )
 }
 
 /// A run folder this process writes into: an advisory `flock` on the folder, which the kernel
@@ -1530,7 +1565,10 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     // this value drops, or by the kernel if the launcher dies).
     let (latency_request, latency_error) = cpu_latency_request(&sc, o)?;
     check_placements(o, &topo)?;
-    let out = o.out.clone().unwrap_or_else(|| default_out(&sc, o.clock));
+    let out = match &o.out {
+        Some(out) => out.clone(),
+        None => new_default_folder(&default_stem(&sc, o.clock))?,
+    };
     let _folder = claim_run_folder(&out)?;
     let out = out.canonicalize()?;
     let sc_path = out.join("scenario.toml");
@@ -2579,11 +2617,25 @@ mod tests {
     #[test]
     fn default_run_folders_and_exec_paths() {
         let sc = load_scenario("kyslan-pi", None).unwrap();
-        let d = default_out(&sc, Clock::Lockstep);
-        let name = d.file_name().unwrap().to_string_lossy().into_owned();
-        assert_eq!(d.parent(), Some(Path::new("runs")));
-        let secs = name.strip_prefix("kyslan-pi-lockstep-").expect(&name);
-        assert!(secs.parse::<u64>().is_ok(), "{name}");
+        let stem = default_stem(&sc, Clock::Lockstep);
+        let secs = stem.strip_prefix("kyslan-pi-lockstep-").expect(&stem);
+        assert!(secs.parse::<u64>().is_ok(), "{stem}");
+        // Runs in the same second get folders of their own, each made new.
+        let parent = std::env::temp_dir().join(format!("drivelab-runs-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&parent);
+        let made: Vec<PathBuf> = (0..3)
+            .map(|_| new_folder_in(&parent, &stem).unwrap())
+            .collect();
+        assert_eq!(
+            made,
+            [
+                parent.join(&stem),
+                parent.join(format!("{stem}-2")),
+                parent.join(format!("{stem}-3"))
+            ]
+        );
+        assert!(made.iter().all(|d| d.is_dir()));
+        std::fs::remove_dir_all(&parent).unwrap();
         // A relative exec is taken from the naming file's folder; an absolute one stays.
         let mut procs = sc.topology();
         procs[0].exec = Some("bin/stage".into());
