@@ -608,3 +608,47 @@ fn a_campaign_writes_only_into_a_new_empty_or_earlier_campaign_folder_and_replac
         "mine"
     );
 }
+
+#[test]
+fn a_campaign_in_process_simulates_its_kills_and_stops_at_their_samples() {
+    // The in-process clock has no processes to signal: it simulates a kill or a stop at its
+    // sample, as lockstep does, so a campaign runs it as it runs the others.
+    let dir = scratch("inprocess");
+    let f = campaign_file(
+        &dir,
+        "name = \"in-process\"\nscenarios = [\"kyslan-pi\"]\nclock = \"inprocess\"\n\
+         duration_s = 0.05\nseeds = [1]\n\
+         faults = [[], [\"kill:observer@0.02\"], [\"stop:current-loop@0.02:0.005\"]]\n\
+         expect = [\"samples_missing == 0\"]\n",
+    );
+    let out = dir.join("c");
+    let o = drivelab(&[
+        "campaign",
+        f.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let (_, cases) = junit(&out.join("junit.xml"));
+    assert_eq!(cases.len(), 3);
+    assert!(cases.iter().all(|c| c.1 == 0 && c.2 == 0), "{cases:?}");
+    for (case, fault) in cases.iter().zip([None, Some("kill"), Some("stop")]) {
+        let run = PathBuf::from(&case.3.iter().find(|p| p.0 == "run_folder").unwrap().1);
+        let s = summary(&run);
+        assert_eq!(s["clock"], "inprocess");
+        let events: Vec<&str> = s["supervisor_events"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|e| e["event"].as_str().unwrap())
+            .collect();
+        match fault {
+            None => assert!(events.is_empty(), "{events:?}"),
+            Some(kind) => {
+                assert_eq!(events, ["inject-simulated"], "{}", case.0);
+                let f = s["faults"][0]["fault"].as_str().unwrap();
+                assert!(f.starts_with(&format!("{kind}:")), "{f}");
+            }
+        }
+    }
+}

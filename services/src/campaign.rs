@@ -256,12 +256,6 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
     if let Some(d) = duplicate(&c.expect) {
         return Err(bad(format!("expect: '{d}' is listed twice")));
     }
-    if c.clock == Clock::Inprocess {
-        bail!(
-            "campaign {}: clock 'inprocess' runs no processes to inject faults into; use realtime or lockstep",
-            file.display()
-        );
-    }
     let mut sets = c.faults.clone();
     if let Some(s) = &c.sweep {
         for (field, empty) in [
