@@ -165,6 +165,16 @@ fn campaign_file(dir: &Path, text: &str) -> PathBuf {
     f
 }
 
+/// `drivelab campaign FILE --out OUT`.
+fn campaign(file: &Path, out: &Path) -> std::process::Output {
+    drivelab(&[
+        "campaign",
+        file.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ])
+}
+
 /// The testcase elements of a junit.xml, as (name, failures, errors, properties).
 type Case = (String, usize, usize, Vec<(String, String)>);
 
@@ -221,12 +231,7 @@ fn the_smoke_campaign_reports_every_run_in_json_markdown_and_junit() {
     let dir = scratch("smoke");
     let out = dir.join("c");
     let file = Path::new(CAMPAIGNS).join("smoke.toml");
-    let o = drivelab(&[
-        "campaign",
-        file.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = campaign(&file, &out);
     let report: Value = serde_json::from_slice(&read(&out.join("campaign.json"))).unwrap();
     let runs = report["runs"].as_array().unwrap();
     // kyslan-pi × four fault sets × one seed.
@@ -322,12 +327,7 @@ fn a_campaign_whose_expectations_fail_exits_3_and_junit_counts_each_failure() {
          expect = [\"peak_current_a < 0\", \"samples_missing == 0\"]\n",
     );
     let out = dir.join("c");
-    let o = drivelab(&[
-        "campaign",
-        f.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = campaign(&f, &out);
     assert_eq!(o.status.code(), Some(3), "{}", stderr(&o));
     let (suite, cases) = junit(&out.join("junit.xml"));
     assert_eq!(suite.attribute("name"), Some("always-fails"));
@@ -374,12 +374,7 @@ fn a_campaigns_topology_file_is_read_beside_the_campaign_not_from_the_working_fo
     let out = dir.join("c");
     // The test's working folder is the crate's, which has no beside.toml.
     assert!(!Path::new("beside.toml").exists());
-    let o = drivelab(&[
-        "campaign",
-        f.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = campaign(&f, &out);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     let report: Value = serde_json::from_slice(&read(&out.join("campaign.json"))).unwrap();
     let run = PathBuf::from(report["runs"][0]["out"].as_str().unwrap());
@@ -550,12 +545,7 @@ fn a_campaign_writes_only_into_a_new_empty_or_earlier_campaign_folder_and_replac
     let other = dir.join("other");
     std::fs::create_dir_all(&other).unwrap();
     std::fs::write(other.join("keep.txt"), "mine").unwrap();
-    let o = drivelab(&[
-        "campaign",
-        three.to_str().unwrap(),
-        "--out",
-        other.to_str().unwrap(),
-    ]);
+    let o = campaign(&three, &other);
     let err = stderr(&o);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert_eq!(err.trim().lines().count(), 1, "{err}");
@@ -571,12 +561,7 @@ fn a_campaign_writes_only_into_a_new_empty_or_earlier_campaign_folder_and_replac
     // An earlier campaign's folder is reused: its runs that the new campaign does not repeat
     // are gone, a file of the user's stays.
     let out = dir.join("c");
-    let o = drivelab(&[
-        "campaign",
-        three.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = campaign(&three, &out);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     for n in ["001", "002", "003"] {
         assert!(out.join("runs").join(n).join("trace.csv").is_file(), "{n}");
@@ -588,12 +573,7 @@ fn a_campaign_writes_only_into_a_new_empty_or_earlier_campaign_folder_and_replac
         "name = \"y\"\nscenarios = [\"kyslan-pi\"]\nclock = \"lockstep\"\nduration_s = 0.05\nseeds = [1]\n",
     )
     .unwrap();
-    let o = drivelab(&[
-        "campaign",
-        one.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = campaign(&one, &out);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     let runs: Vec<_> = std::fs::read_dir(out.join("runs"))
         .unwrap()
@@ -622,12 +602,7 @@ fn a_campaign_in_process_simulates_its_kills_and_stops_at_their_samples() {
          expect = [\"samples_missing == 0\"]\n",
     );
     let out = dir.join("c");
-    let o = drivelab(&[
-        "campaign",
-        f.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = campaign(&f, &out);
     assert!(o.status.success(), "{}", stderr(&o));
     let (_, cases) = junit(&out.join("junit.xml"));
     assert_eq!(cases.len(), 3);
