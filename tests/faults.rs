@@ -171,6 +171,23 @@ fn assert_recovered_and_peak(out: &std::path::Path, s: &serde_json::Value, f: &s
         "peak {reported} vs {peak}: {f}"
     );
     assert!(peak > 0.0, "{f}");
+    // The samples the fault cost, counted over the same span: the trace's flags.
+    use drivelab_runtime::messages::FLAG_STALE_INPUT;
+    use drivelab_runtime::messages::{FLAG_MISSING, FLAG_SAFE_STATE, FLAG_STALE_CMD};
+    let span: Vec<_> = rows.iter().filter(|r| r.k >= k0 && r.k <= k_rec).collect();
+    let count = |plant: u32, ctrl: u32| {
+        span.iter()
+            .filter(|r| r.plant_flags & plant != 0 || r.ctrl_flags & ctrl != 0)
+            .count()
+    };
+    for (figure, want) in [
+        ("stale_command_samples", count(FLAG_STALE_CMD, 0)),
+        ("safe_state_samples", count(FLAG_SAFE_STATE, 0)),
+        ("missing_command_samples", count(0, FLAG_MISSING)),
+        ("stale_input_samples", count(0, FLAG_STALE_INPUT)),
+    ] {
+        assert_eq!(f[figure].as_u64(), Some(want as u64), "{figure}: {f}");
+    }
 }
 
 /// The plant counts its hold from the first command the current loop did not send after
@@ -282,6 +299,14 @@ fn sigkill_of_each_service_is_detected_made_safe_restarted_and_recovered() {
         // signal is the machine's, not the drive's, and is not asserted.)
         if svc == "current-loop" {
             assert_hold_then_safe_state(&out, &s);
+            // No command while it was down: the plant held 3 samples, then went safe.
+            let n = |figure: &str| f[figure].as_u64().unwrap();
+            assert!(n("missing_command_samples") > 0, "{f}");
+            assert!(n("safe_state_samples") > 0, "{f}");
+            assert!(
+                n("stale_command_samples") >= n("safe_state_samples") + 3,
+                "{f}"
+            );
         }
         // The motor kept turning while the plant was down: its samples were rebuilt (none
         // is missing), flagged, and safe after the inverter's hold of 3 samples, as the

@@ -148,16 +148,6 @@ pub struct BusFigures {
     pub rejected_inputs: Option<u64>,
     /// corrupt: the same per receiving stage.
     pub rejected_by: BTreeMap<String, u64>,
-    /// Samples from the window's start to fresh outputs again at which the plant had no
-    /// fresh command (held it or applied its safe state: `plant_flags` 2, `miss` = 1).
-    pub stale_command_samples: u64,
-    /// Of those, samples in the inverter's safe state.
-    pub safe_state_samples: u64,
-    /// Samples of the same span with no usable command recorded (`ctrl_flags` 32).
-    pub missing_command_samples: u64,
-    /// Samples of the same span whose command was made from a stale input or a fallback
-    /// (`ctrl_flags` 8: a held estimate or reference).
-    pub stale_input_samples: u64,
     /// delay, real time: commands of the window's samples not there at their deadline, as
     /// the plant counted them (None elsewhere).
     pub deadline_misses: Option<u64>,
@@ -260,7 +250,6 @@ pub fn reports(
         let k_end = rec.or(fresh).unwrap_or(a.to_k + (0.2 * fs) as u64);
         windows.push((a.from_k as f64 / fs, k_end as f64 / fs, i.spec()));
         let span: Vec<&TraceRow> = after.iter().take_while(|r| r.k <= k_end).collect();
-        let count = |f: &dyn Fn(&TraceRow) -> bool| span.iter().filter(|r| f(r)).count() as u64;
         let rejected: Vec<(String, u64)> = obs("rejected");
         out.push(FaultReport {
             fault: i.spec(),
@@ -280,16 +269,13 @@ pub fn reports(
             speed_recovered_ms: rec.map(|r| ms(r - a.from_k)),
             plant_down: crate::launcher::PlantDown::of(span.iter().copied()),
             window: None,
+            samples: crate::launcher::SampleCounts::of(span.iter().copied()),
             bus: Some(BusFigures {
                 window_from_k: a.from_k,
                 window_to_k: a.to_k,
                 rejected_inputs: (i.kind == InjectKind::Corrupt && counters.is_some())
                     .then(|| rejected.iter().map(|x| x.1).sum()),
                 rejected_by: rejected.into_iter().filter(|x| x.1 > 0).collect(),
-                stale_command_samples: count(&|r| r.plant_flags & FLAG_STALE_CMD != 0),
-                safe_state_samples: count(&|r| r.plant_flags & FLAG_SAFE_STATE != 0),
-                missing_command_samples: count(&|r| r.ctrl_flags & FLAG_MISSING != 0),
-                stale_input_samples: count(&|r| r.ctrl_flags & FLAG_STALE_INPUT != 0),
                 deadline_misses: if realtime_delay {
                     plant("misses")
                 } else {
@@ -469,7 +455,13 @@ mod tests {
         assert_eq!((b.window_from_k, b.window_to_k), (10, 13));
         assert_eq!(b.rejected_inputs, Some(3));
         assert_eq!(b.rejected_by, BTreeMap::from([("plant".to_string(), 3)]));
-        assert_eq!((b.stale_command_samples, b.missing_command_samples), (3, 3));
+        assert_eq!(
+            (
+                c.samples.stale_command_samples,
+                c.samples.missing_command_samples
+            ),
+            (3, 3)
+        );
         assert_eq!(
             c.detected_by.as_deref(),
             Some("recorder (no usable command)")
@@ -504,13 +496,15 @@ mod tests {
         for f in &r {
             assert_eq!(f.detected_data_path_ms, None, "{f:?}");
             assert_eq!(f.republished_ms, Some(0.0), "{f:?}");
-            let b = f.bus.as_ref().unwrap();
-            assert_eq!(b.stale_command_samples, 0, "{f:?}");
+            assert_eq!(f.samples.stale_command_samples, 0, "{f:?}");
         }
         // In process: no counters, no counts from them.
         let (r, _) = reports(&sc, &topo, &rows, None);
         let b = r[0].bus.as_ref().unwrap();
-        assert_eq!((b.rejected_inputs, b.stale_command_samples), (None, 3));
+        assert_eq!(
+            (b.rejected_inputs, r[0].samples.stale_command_samples),
+            (None, 3)
+        );
     }
 
     #[test]

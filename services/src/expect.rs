@@ -687,6 +687,7 @@ mod tests {
         // Every optional part present: the most keys a report can have.
         let r = FaultReport {
             plant_down: Some(PlantDown::default()),
+            samples: Default::default(),
             bus: Some(crate::bus_faults::BusFigures::default()),
             window: Some(crate::faults::window::FaultWindow::default()),
             ..FaultReport::default()

@@ -132,6 +132,9 @@ pub fn report(
         republished_ms: None,
         speed_recovered_ms: rec.map(|k| ms(k - k0)),
         plant_down: None,
+        samples: crate::launcher::SampleCounts::of(
+            after.iter().copied().take_while(|r| r.k <= k_end),
+        ),
         bus: None,
         window: Some(w),
     }

@@ -646,6 +646,7 @@ mod tests {
             republished_ms: republished,
             speed_recovered_ms: recovered,
             plant_down: None,
+            samples: Default::default(),
             bus: None,
             window: None,
         }

@@ -671,6 +671,9 @@ pub struct FaultReport {
     /// peak |i_dq| (A) and |ω_m| (mechanical rad/s) over them. None when no sample was
     /// rebuilt (not a plant fault, or the plant did not come back).
     pub plant_down: Option<PlantDown>,
+    /// What the fault did to the commands, sample by sample, over its span.
+    #[serde(flatten)]
+    pub samples: SampleCounts,
     /// A bus fault's own figures (delay, drop, corrupt), beside the ones above.
     #[serde(flatten)]
     pub bus: Option<crate::bus_faults::BusFigures>,
@@ -702,6 +705,42 @@ impl PlantDown {
             peak_current_a: down.iter().map(|r| r.i_d.hypot(r.i_q)).fold(0.0, f64::max),
             peak_speed_rad_s: down.iter().map(|r| r.omega_m.abs()).fold(0.0, f64::max),
         })
+    }
+}
+
+/// What a fault did to the commands, counted over its span: from its first sample to the
+/// speed's recovery (or to fresh outputs again where the speed did not recover, or 0.2 s on
+/// where neither came; a trip: to the end of the run), the same for every kind of fault.
+#[derive(Debug, Clone, Copy, Default, Serialize, PartialEq)]
+pub struct SampleCounts {
+    /// Samples at which the plant had no fresh command: it held one or applied its safe state
+    /// (`plant_flags` 2, `miss` = 1).
+    pub stale_command_samples: u64,
+    /// Samples in the inverter's safe state (`plant_flags` 4).
+    pub safe_state_samples: u64,
+    /// Samples with no usable command recorded (`ctrl_flags` 32).
+    pub missing_command_samples: u64,
+    /// Samples whose command was made from a stale input or a fallback (`ctrl_flags` 8: a
+    /// held estimate or reference).
+    pub stale_input_samples: u64,
+}
+
+impl SampleCounts {
+    /// The counts of the rows of a fault's span.
+    pub fn of<'a>(span: impl IntoIterator<Item = &'a TraceRow>) -> Self {
+        use drivelab_runtime::messages::{
+            FLAG_MISSING, FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT,
+        };
+        let mut c = Self::default();
+        for r in span {
+            let plant = |f: u32| u64::from(r.plant_flags & f != 0);
+            let ctrl = |f: u32| u64::from(r.ctrl_flags & f != 0);
+            c.stale_command_samples += plant(FLAG_STALE_CMD);
+            c.safe_state_samples += plant(FLAG_SAFE_STATE);
+            c.missing_command_samples += ctrl(FLAG_MISSING);
+            c.stale_input_samples += ctrl(FLAG_STALE_INPUT);
+        }
+        c
     }
 }
 
@@ -825,6 +864,7 @@ pub fn fault_reports(
             format!("{} {}", inj.detail(), inj.service),
         ));
         let plant_down = PlantDown::of(after().filter(|r| r.k <= k_rec));
+        let samples = SampleCounts::of(after().take_while(|r| r.k <= k_rec));
         let window = match &inj.kind {
             EventKind::Hog { hog, .. } => Some(crate::faults::hog::window(hog, rows, k0, fs)),
             _ => None,
@@ -843,6 +883,7 @@ pub fn fault_reports(
             republished_ms: fresh.map(|f| ms(f - k0)),
             speed_recovered_ms: rec.map(|r| ms(r - k0)),
             plant_down,
+            samples,
             bus: None,
             window,
         });

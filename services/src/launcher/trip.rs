@@ -35,6 +35,7 @@ pub(super) fn trip_report(sc: &Scenario, rows: &[TraceRow]) -> Option<FaultRepor
         republished_ms: None,
         speed_recovered_ms: None,
         plant_down: None,
+        samples: super::SampleCounts::of(&rows[first..]),
         bus: None,
         window: None,
     })
