@@ -671,6 +671,8 @@ fn a_sigkilled_launchers_services_die_with_it_and_clean_removes_their_files() {
     let out = dir.join("run");
     let mut child = Drive::start(&bus, &out, &["--duration", "30"]);
     wait_for_services(&bus);
+    // Half a second recorded: the launcher writes its trace out every 0.2 s.
+    wait_for_progress(&bus, 5000);
     // While the drive runs, clean refuses and names who uses the bus.
     let o = drivelab(&["clean", "--bus", &bus]);
     assert_eq!(o.status.code(), Some(1));
@@ -700,6 +702,41 @@ fn a_sigkilled_launchers_services_die_with_it_and_clean_removes_their_files() {
     assert_clean(&bus);
     let o = drivelab(&["clean", "--bus", &bus]);
     assert!(String::from_utf8_lossy(&o.stdout).contains("nothing to remove"));
+    // The run never finished: no summary, a trace.mcap without its index. Its trace.csv
+    // exports all the same, with one warning, into a trace.mcap that reads whole.
+    assert!(!out.join("summary.json").exists());
+    let o = drivelab(&["export", out.to_str().unwrap(), "--mcap"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    let lines: Vec<&str> = err.lines().collect();
+    assert_eq!(
+        lines[0],
+        format!(
+            "drivelab: warning: {}: no summary.json: the run did not finish (its launcher was \
+             killed?); trace.mcap gets the trace and the scenario, without the summary and its \
+             events",
+            out.display()
+        )
+    );
+    // And, where the kill cut the last line short, the warning that it is left out.
+    assert!(
+        lines[1..]
+            .iter()
+            .all(|l| l.contains("is cut short, as a killed writer leaves it, and is left out")),
+        "{err}"
+    );
+    assert!(lines.len() <= 2, "{err}");
+    // Every whole row of trace.csv is in trace.mcap, in order.
+    let text = std::fs::read_to_string(out.join("trace.csv")).unwrap();
+    let mut csv = text.lines();
+    let columns = csv.next().unwrap().split(',').count();
+    let ks: Vec<u64> = csv
+        .filter(|l| l.split(',').count() == columns)
+        .map(|l| l.split(',').next().unwrap().parse().unwrap())
+        .collect();
+    let mcap = drivelab_services::trace_mcap::read(&out.join("trace.mcap")).unwrap();
+    assert!(ks.len() >= 2000, "{} rows", ks.len());
+    assert_eq!(mcap.rows.iter().map(|r| r.k).collect::<Vec<_>>(), ks);
 }
 
 #[test]

@@ -297,24 +297,41 @@ pub fn export(dir: &Path) -> Result<std::path::PathBuf> {
     drivelab_runtime::service::install_signal_handlers()?;
     let csv_path = crate::plotcmd::trace_csv_of(dir)?;
     let missing = |name: &str| anyhow!("{} has no {name}: not a run folder", dir.display());
-    let (_, scenario_toml) =
+    let (sc, scenario_toml) =
         crate::plotcmd::scenario_if_any(dir)?.ok_or_else(|| missing("scenario.toml"))?;
-    let (view, summary) =
-        crate::plotcmd::summary_json_if_any(dir)?.ok_or_else(|| missing("summary.json"))?;
-    let fs = view.rate_hz().ok_or_else(|| {
-        anyhow!(
-            "{}: not a run summary: no rate_hz (the sample rate, Hz)",
-            dir.join("summary.json").display()
-        )
-    })?;
+    // A run whose launcher was killed has its trace and scenario but no summary: the
+    // recording is exported with the scenario's rate, and says what it lacks.
+    let (samples, summary, fs) = match crate::plotcmd::summary_json_if_any(dir)? {
+        Some((view, summary)) => {
+            let fs = view.rate_hz().ok_or_else(|| {
+                anyhow!(
+                    "{}: not a run summary: no rate_hz (the sample rate, Hz)",
+                    dir.join("summary.json").display()
+                )
+            })?;
+            (view.samples(), summary, fs)
+        }
+        None => {
+            let why = "no summary.json: the run did not finish (its launcher was killed?)";
+            crate::errln!(
+                "drivelab: warning: {}: {why}; trace.mcap gets the trace and the scenario, \
+                 without the summary and its events",
+                dir.display()
+            );
+            (
+                None,
+                serde_json::json!({ "not_finished": why }),
+                sc.rates.sample_hz,
+            )
+        }
+    };
     let out = dir.join("trace.mcap");
     // Written beside it and renamed when complete: a failed export leaves no partial file
     // and does not replace a trace.mcap that is there.
     let part = dir.join("trace.mcap.part");
     let mut done = 0u64;
     let interrupted = |done: u64| {
-        let of = view
-            .samples()
+        let of = samples
             .filter(|m| *m >= done)
             .map_or(String::new(), |m| format!(" of {m}"));
         anyhow!(
