@@ -362,30 +362,64 @@ enum Line {
     Dashed(u32),
 }
 
-/// A labelled, already filtered and decimated polyline.
+/// A labelled, already filtered and decimated polyline, in pieces where the data has gaps.
 #[derive(Debug, Clone)]
 struct Series {
     label: String,
     points: Vec<(f64, f64)>,
+    /// Where each piece starts in `points` (the first at 0).
+    starts: Vec<usize>,
     color: RGBColor,
     line: Line,
 }
 
 impl Series {
-    /// Drops non-finite points and decimates to [`MAX_POINTS_PER_SERIES`].
+    /// Drops non-finite points and decimates to [`MAX_POINTS_PER_SERIES`]. A non-finite
+    /// point is a gap in the data (a value no stage had: NaN): the line stops before it and
+    /// starts again after it, rather than drawing values that never were across it.
     fn new(
         label: &str,
         points: impl IntoIterator<Item = (f64, f64)>,
         color: RGBColor,
         line: Line,
     ) -> Self {
-        let finite = points.into_iter().filter(is_finite_point).collect();
+        let mut pieces: Vec<Vec<(f64, f64)>> = vec![Vec::new()];
+        for p in points {
+            match pieces.last_mut() {
+                Some(piece) if is_finite_point(&p) => piece.push(p),
+                Some(piece) if !piece.is_empty() => pieces.push(Vec::new()),
+                _ => {}
+            }
+        }
+        let total: usize = pieces.iter().map(Vec::len).sum();
+        let (mut all, mut starts) = (Vec::new(), Vec::new());
+        for piece in pieces.into_iter().filter(|p| !p.is_empty()) {
+            // Each piece its share of the points.
+            let share = (MAX_POINTS_PER_SERIES * piece.len()).div_ceil(total);
+            starts.push(all.len());
+            all.extend(decimate_finite(piece, share));
+        }
         Self {
             label: label.to_string(),
-            points: decimate_finite(finite, MAX_POINTS_PER_SERIES),
+            points: all,
+            starts,
             color,
             line,
         }
+    }
+
+    /// The pieces of the line, in order.
+    fn pieces(&self) -> impl Iterator<Item = &[(f64, f64)]> {
+        let ends = self
+            .starts
+            .iter()
+            .skip(1)
+            .copied()
+            .chain([self.points.len()]);
+        self.starts
+            .iter()
+            .zip(ends)
+            .map(|(&a, b)| &self.points[a..b])
     }
 }
 
@@ -457,8 +491,16 @@ impl Panel {
 
     /// Points that can be drawn on this panel's axes (log axes need y > 0).
     fn drawable<'a>(&self, s: &'a Series) -> impl Iterator<Item = &'a (f64, f64)> + 'a {
+        self.drawable_of(&s.points)
+    }
+
+    /// The same of some points.
+    fn drawable_of<'a>(
+        &self,
+        points: &'a [(f64, f64)],
+    ) -> impl Iterator<Item = &'a (f64, f64)> + 'a {
         let log_y = self.y_kind == AxisKind::Log;
-        s.points.iter().filter(move |p| !log_y || p.1 > 0.0)
+        points.iter().filter(move |p| !log_y || p.1 > 0.0)
     }
 
     fn has_data(&self) -> bool {
@@ -1075,13 +1117,16 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, panel: &Panel) 
 
     let mut has_legend = false;
     for s in &panel.series {
-        let pts: Vec<(f64, f64)> = panel.drawable(s).copied().collect();
-        if pts.is_empty() {
-            continue;
+        // One legend entry, with the first piece drawn.
+        let mut label = (!s.label.is_empty()).then_some(s.label.as_str());
+        for piece in s.pieces() {
+            let pts: Vec<(f64, f64)> = panel.drawable_of(piece).copied().collect();
+            if pts.is_empty() {
+                continue;
+            }
+            has_legend |= label.is_some();
+            draw_line(&mut chart, pts, s.color, s.line, label.take())?;
         }
-        let label = (!s.label.is_empty()).then_some(s.label.as_str());
-        has_legend |= label.is_some();
-        draw_line(&mut chart, pts, s.color, s.line, label)?;
     }
     for h in &panel.hlines {
         if !y_axis.contains(h.y) {
@@ -1223,6 +1268,40 @@ mod tests {
     }
 
     use super::*;
+
+    #[test]
+    fn a_gap_in_the_data_is_a_gap_in_the_line() {
+        // NaN at 3..5 (an estimate no stage had), and one more at the end.
+        let y = [1.0, 2.0, 3.0, f64::NAN, f64::NAN, 6.0, 7.0, f64::NAN];
+        let s = Series::new(
+            "ω",
+            y.iter().enumerate().map(|(i, v)| (i as f64, *v)),
+            BLACK,
+            Line::Solid(1),
+        );
+        let pieces: Vec<&[(f64, f64)]> = s.pieces().collect();
+        assert_eq!(
+            pieces,
+            [
+                &[(0.0, 1.0), (1.0, 2.0), (2.0, 3.0)][..],
+                &[(5.0, 6.0), (6.0, 7.0)][..]
+            ]
+        );
+        // No gap: one piece; nothing finite: none.
+        let whole = Series::new("a", [(0.0, 1.0), (1.0, 2.0)], BLACK, Line::Solid(1));
+        assert_eq!(whole.pieces().count(), 1);
+        let none = Series::new("b", [(0.0, f64::NAN)], BLACK, Line::Solid(1));
+        assert_eq!(none.pieces().count(), 0);
+        // Long pieces share the point budget.
+        let long = (0..20_000).map(|i| (i as f64, if i == 10_000 { f64::NAN } else { 1.0 }));
+        let s = Series::new("c", long, BLACK, Line::Solid(1));
+        assert_eq!(s.pieces().count(), 2);
+        assert!(
+            s.points.len() <= MAX_POINTS_PER_SERIES + 8,
+            "{}",
+            s.points.len()
+        );
+    }
     use std::sync::atomic::{AtomicUsize, Ordering};
 
     /// Unique temporary directory, removed on drop.
