@@ -433,12 +433,18 @@ impl Ui {
     }
 
     fn draw(&self, f: &mut Frame) {
+        // The stage table whole first (a row per stage, its header and borders), then the
+        // charts and the event log share what is left: the log 8 rows where the charts keep
+        // 8, else half of it.
+        let table_rows = self.n_stages() as u16 + 3;
+        let rest = f.area().height.saturating_sub(table_rows + 3);
+        let log_rows = if rest >= 16 { 8 } else { rest / 2 };
         let [head, table, cycle, charts, log, foot] = Layout::vertical([
             Constraint::Length(1),
-            Constraint::Length(7),
+            Constraint::Length(table_rows),
             Constraint::Length(1),
-            Constraint::Min(8),
-            Constraint::Length(8),
+            Constraint::Min(0),
+            Constraint::Length(log_rows),
             Constraint::Length(1),
         ])
         .areas(f.area());
@@ -552,7 +558,8 @@ impl Ui {
         ])
         .style(Style::new().add_modifier(Modifier::BOLD));
         let widths = [
-            Constraint::Length(14),
+            // The stage's name whole; the figures give way on a narrow screen.
+            Constraint::Min(14),
             Constraint::Length(10),
             Constraint::Length(7),
             Constraint::Length(8),
@@ -564,6 +571,8 @@ impl Ui {
             Constraint::Length(12),
             Constraint::Length(6),
             Constraint::Length(8),
+            // What a wide screen has left over.
+            Constraint::Fill(1),
         ];
         f.render_widget(
             Table::new(rows, widths)
@@ -903,7 +912,12 @@ mod tests {
 
     /// The screen as text.
     fn screen(u: &Ui) -> String {
-        let mut term = ratatui::Terminal::new(TestBackend::new(150, 45)).unwrap();
+        screen_of(u, 150, 45)
+    }
+
+    /// The screen of `w` × `h` cells as text.
+    fn screen_of(u: &Ui, w: u16, h: u16) -> String {
+        let mut term = ratatui::Terminal::new(TestBackend::new(w, h)).unwrap();
         term.draw(|f| u.draw(f)).unwrap();
         let buf = term.backend().buffer();
         (0..buf.area.height)
@@ -914,6 +928,28 @@ mod tests {
             })
             .collect::<Vec<_>>()
             .join("\n")
+    }
+
+    #[test]
+    fn the_smallest_screen_shows_every_stage() {
+        let mut u = ui();
+        u.show(view(10, false));
+        // 20 rows, the fewest --print-size takes: every stage's row, the cycle line and the
+        // footer, with the charts and the log in what is left.
+        for (w, h) in [(100, 20), (40, 20), (150, 45)] {
+            let text = screen_of(&u, w, h);
+            let lines: Vec<&str> = text.lines().collect();
+            for name in ["plant", "observer", "current-loop", "speed-loop"] {
+                assert!(
+                    lines
+                        .iter()
+                        .any(|l| l.contains(&format!("  {name} "))
+                            || l.contains(&format!("▶ {name} "))),
+                    "{w}x{h}: no {name} row:\n{text}"
+                );
+            }
+            assert!(lines[8].contains("cycle"), "{w}x{h}:\n{text}");
+        }
     }
 
     #[test]
