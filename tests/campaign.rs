@@ -405,7 +405,7 @@ fn a_bad_campaign_is_a_one_line_error_before_any_run() {
         (
             "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nfaults = [[], [\"kill:plant@500\"]]\n",
             1,
-            "kyslan-pi [kill:plant@500] seed 1: fault kill:plant@500 is at or after the end of the run (0.1 s)",
+            "kyslan-pi [kill:plant@500] seed 1: fault 'kill:plant@500' is at or after the end of the run (0.1 s)",
         ),
         (
             "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nseeds = [1, 2]\nfaults = [[\"stop:nobody@0.05:0.01\"]]\n",

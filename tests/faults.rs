@@ -616,8 +616,8 @@ fn fault_cli_errors_are_clear() {
     // stage it does not have) an error (1).
     for (spec, code, needle) in [
         ("kill:pump@0.1", 1, "unknown stage 'pump'"),
-        ("kill:plant", 2, "kill:SERVICE@SECONDS"),
-        ("stop:observer@0.1", 2, "stop:SERVICE@SECONDS:DURATION"),
+        ("kill:plant", 2, "kill:STAGE@SECONDS"),
+        ("stop:observer@0.1", 2, "stop:STAGE@SECONDS:DURATION"),
         ("random:abc", 2, "whole number"),
     ] {
         let o = drivelab(&["run", "--bus", &bus, "--fault", spec, "--no-plots"]);

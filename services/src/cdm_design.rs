@@ -194,6 +194,9 @@ fn check(a: &CdmArgs) -> Result<()> {
 pub fn render_fw(f: &FwDesign) -> String {
     let mut o = String::new();
     let poles = |v: &[(f64, f64)]| {
+        if v.is_empty() {
+            return "none (no controller to close the loop with)".to_string();
+        }
         v.iter()
             .map(|(re, im)| format!("{re:.1}{:+.1}j", im))
             .collect::<Vec<_>>()
@@ -242,7 +245,56 @@ pub fn render_fw(f: &FwDesign) -> String {
         poles(&f.sampled_delta)
     );
     let _ = writeln!(o, "  C_δ and C_v together: {}", poles(&f.sampled_both));
-    o
+    short_floats(&o)
+}
+
+/// `text` with every number written with 7 or more decimals (a float printed whole, such as
+/// 150.01041666666669 or 9999.999999999998) cut to 6 significant digits (150.010, 10000).
+/// The figures printed with a fixed number of decimals (6 at most) are left as they are.
+fn short_floats(text: &str) -> String {
+    let b = text.as_bytes();
+    let mut out = String::with_capacity(text.len());
+    let (mut done, mut i) = (0, 0);
+    while i < b.len() {
+        let starts = b[i].is_ascii_digit()
+            && (i == 0 || !(b[i - 1].is_ascii_alphanumeric() || b[i - 1] == b'.'));
+        if !starts {
+            i += 1;
+            continue;
+        }
+        let mut j = i;
+        while j < b.len() && b[j].is_ascii_digit() {
+            j += 1;
+        }
+        let whole = j;
+        if j < b.len() && b[j] == b'.' {
+            j += 1;
+            while j < b.len() && b[j].is_ascii_digit() {
+                j += 1;
+            }
+        }
+        let decimals = j.saturating_sub(whole + 1);
+        let exponent = j < b.len() && matches!(b[j], b'e' | b'E');
+        match text[i..j].parse::<f64>() {
+            Ok(v) if decimals >= 7 && !exponent => {
+                out.push_str(&text[done..i]);
+                // 6 significant digits, trailing zeros of the fraction dropped.
+                let digits = 6 - (v.abs().log10().floor() as i32 + 1).clamp(-20, 6);
+                let t = format!("{v:.*}", digits.max(0) as usize);
+                let t = if t.contains('.') {
+                    t.trim_end_matches('0').trim_end_matches('.').to_string()
+                } else {
+                    t
+                };
+                out.push_str(&t);
+                done = j;
+            }
+            _ => {}
+        }
+        i = j.max(i + 1);
+    }
+    out.push_str(&text[done..]);
+    out
 }
 
 /// The text printout of a design.
@@ -319,7 +371,7 @@ pub fn render(motor: &str, d: &CdmDesign) -> String {
         d.k_i12
     );
     render_delay(&mut o, d);
-    o
+    short_floats(&o)
 }
 
 /// Section IV at standstill with the one-sample computation delay: the q loop's design
@@ -438,5 +490,26 @@ pub fn render_polar_design(p: &drivelab_control::control::polar::PolarDesign) ->
             }
         }
     }
-    o
+    short_floats(&o)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn floats_printed_whole_are_cut_to_six_digits_and_fixed_ones_kept() {
+        assert_eq!(
+            short_floats("τ_12 = 9999.999999999998 µs, a_1 = 250.00000000000003 1/s"),
+            "τ_12 = 10000 µs, a_1 = 250 1/s"
+        );
+        assert_eq!(
+            short_floats("K_P = 150.01041666666669, K_I = -307562.6736111112, x = 0.000123456789"),
+            "K_P = 150.01, K_I = -307563, x = 0.000123457"
+        );
+        // Fixed decimals, exponents, whole numbers and names with digits: as they are.
+        let kept =
+            "cos δ_o = 1.000000, a_3 = 3.000000e-6, 2.1234567e-3, 2500000 1/s, eq. 37, K_P21";
+        assert_eq!(short_floats(kept), kept);
+    }
 }

@@ -102,7 +102,7 @@ pub fn check_counts(specs: &[FaultSpec]) -> Result<(), String> {
     Ok(())
 }
 
-/// Parses one `--fault` value: `kill:SERVICE@SECONDS`, `stop:SERVICE@SECONDS:DURATION`,
+/// Parses one `--fault` value: `kill:STAGE@SECONDS`, `stop:STAGE@SECONDS:DURATION`,
 /// `random:N` (expanded later with the run's seed and duration), a bus fault (`delay:…`,
 /// `drop:…`, `corrupt:…`, see [`crate::bus_faults`]), `hog:CPU@S:DUR:PRIO` ([`hog`]),
 /// `encoder-stuck@S:DUR` or `current-offset:PHASE@S:AMPS` ([`sensor`]).
@@ -121,7 +121,7 @@ pub fn parse(spec: &str) -> Result<FaultSpec> {
         "kill" | "stop" => {
             let (svc, when) = rest.split_once('@').ok_or_else(|| {
                 anyhow!(
-                    "fault '{spec}': expected {kind}:SERVICE@SECONDS{}",
+                    "fault '{spec}': expected {kind}:STAGE@SECONDS{}",
                     if kind == "stop" { ":DURATION" } else { "" }
                 )
             })?;
@@ -135,7 +135,7 @@ pub fn parse(spec: &str) -> Result<FaultSpec> {
                 }))
             } else {
                 let (at, dur) = when.split_once(':').ok_or_else(|| {
-                    anyhow!("fault '{spec}': expected stop:SERVICE@SECONDS:DURATION")
+                    anyhow!("fault '{spec}': expected stop:STAGE@SECONDS:DURATION")
                 })?;
                 let duration_s = seconds(dur, "duration", spec)?;
                 // The same bounds as `drivelab fault stop` and the monitor: a frozen stage
@@ -192,29 +192,24 @@ pub fn plan(
             FaultSpec::One(f) => {
                 if !stages.contains(&f.service) {
                     bail!(
-                        "fault {}:{}: unknown stage '{}' (this drive's stages: {})",
-                        kind_name(f.kind),
-                        f.service,
+                        "fault '{}': unknown stage '{}' (this drive's stages: {})",
+                        f.spec(),
                         f.service,
                         stages.join(", ")
                     );
                 }
                 if f.at_s >= duration_s {
                     bail!(
-                        "fault {}:{}@{} is at or after the end of the run ({duration_s} s)",
-                        kind_name(f.kind),
-                        f.service,
-                        f.at_s
+                        "fault '{}' is at or after the end of the run ({duration_s} s)",
+                        f.spec()
                     );
                 }
                 // A fault lands on sample round(t·f_s) (as `[[inject]]` does). On sample 0
                 // it would hit a drive that has no sample yet to resume from or to hold.
                 if (f.at_s * sample_hz).round() < 1.0 {
                     bail!(
-                        "fault {}:{}@{} falls on sample 0: a kill or stop must come after the drive's first sample (at or after {} s at {sample_hz} Hz)",
-                        kind_name(f.kind),
-                        f.service,
-                        f.at_s,
+                        "fault '{}' falls on sample 0: a kill or stop must come after the drive's first sample (at or after {} s at {sample_hz} Hz)",
+                        f.spec(),
                         1.0 / sample_hz
                     );
                 }
@@ -565,11 +560,11 @@ mod tests {
         assert!(parse("kill:plant")
             .unwrap_err()
             .to_string()
-            .contains("kill:SERVICE@SECONDS"));
+            .contains("kill:STAGE@SECONDS"));
         assert!(parse("stop:plant@1")
             .unwrap_err()
             .to_string()
-            .contains("stop:SERVICE@SECONDS:DURATION"));
+            .contains("stop:STAGE@SECONDS:DURATION"));
         assert!(parse("kill:plant@x")
             .unwrap_err()
             .to_string()

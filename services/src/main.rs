@@ -717,7 +717,15 @@ fn zenoh_config_file(file: Option<PathBuf>) -> anyhow::Result<Option<PathBuf>> {
 
 fn fmt_opt(v: &serde_json::Value, unit: &str) -> String {
     v.as_f64()
-        .map(|x| drivelab_runtime::text::readable_numbers(&format!("{x:.3} {unit}")).into_owned())
+        .map(|x| {
+            // A value that rounds to zero is 0.000, not -0.000.
+            let text = format!("{x:.3}");
+            let text = text
+                .strip_prefix('-')
+                .filter(|t| t.trim_start_matches(['0', '.']).is_empty())
+                .unwrap_or(&text);
+            drivelab_runtime::text::readable_numbers(&format!("{text} {unit}")).into_owned()
+        })
         .unwrap_or_else(|| "n/a".into())
 }
 

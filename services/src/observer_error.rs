@@ -58,10 +58,11 @@ pub fn parse_duration(text: &str) -> Result<f64> {
             "--ts {t:?}: give a unit, e.g. 0.2ms, 200us or 2e-4s"
         )));
     };
-    let v: f64 = num
-        .trim()
-        .parse()
-        .map_err(|_| usage(format!("--ts {t:?}: {num:?} is not a number")))?;
+    let v: f64 = num.trim().parse().map_err(|_| {
+        usage(format!(
+            "--ts {t:?}: {num:?} before the unit is not a number"
+        ))
+    })?;
     let s = v * scale;
     // Below a microsecond the truncation error is lost in rounding (NaN angle errors).
     if !(s.is_finite() && (1e-6..=0.1).contains(&s)) {

@@ -534,9 +534,10 @@ fn run_bus(
         spawn::go(&mut children)?;
         if o.verbose {
             crate::errln!(
-                "drivelab: {} samples at {} Hz, clock {clock:?}, bus {bus_id}",
+                "drivelab: {} samples at {} Hz, clock {}, bus {bus_id}",
                 n,
-                sc.rates.sample_hz
+                sc.rates.sample_hz,
+                o.clock.name()
             );
         }
         // Supervise until the services finish.
@@ -1562,15 +1563,16 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         }
         None => None,
     };
-    // A real-time drive holds the CPU wake-up latency request while it runs (released when
-    // this value drops, or by the kernel if the launcher dies).
-    let (latency_request, latency_error) = cpu_latency_request(&sc, o)?;
     check_placements(o, &topo)?;
     let out = match &o.out {
         Some(out) => out.clone(),
         None => new_default_folder(&default_stem(&sc, o.clock))?,
     };
     let _folder = claim_run_folder(&out)?;
+    // A real-time drive holds the CPU wake-up latency request while it runs (released when
+    // this value drops, or by the kernel if the launcher dies); after the folder's checks, so
+    // that a refused folder is the one line.
+    let (latency_request, latency_error) = cpu_latency_request(&sc, o)?;
     let out = out.canonicalize()?;
     let sc_path = out.join("scenario.toml");
     drivelab_runtime::files::write(&sc_path, toml::to_string(&sc)?)

@@ -154,8 +154,21 @@ pub fn open(side: Side, endpoint: &str, file: Option<&Path>) -> Result<zenoh::Se
             Side::Listen => "listen on",
             Side::Connect => "connect to",
         };
-        anyhow!("cannot {what} {endpoint}: {}", tidy(&e.to_string()))
+        anyhow!("cannot {what} {endpoint}: {}", reason(&e.to_string()))
     })
+}
+
+/// Zenoh's reason for a session it could not open, in words: [`tidy`], and its "Unable to
+/// connect to any of Single(…)" (nothing answered at the endpoint) said plainly.
+fn reason(text: &str) -> String {
+    let text = tidy(text);
+    if text.starts_with("Unable to connect to any of") {
+        "nothing accepted the connection there (is a drive listening, started with \
+         --zenoh-listen on that address?)"
+            .to_string()
+    } else {
+        text
+    }
 }
 
 /// Zenoh's error text on one line, without the source locations it appends (" at
@@ -276,6 +289,12 @@ mod tests {
             tidy("Unable to connect to any of [Single(tcp/127.0.0.1:1)]!  at /a/orchestrator.rs:447."),
             "Unable to connect to any of Single(tcp/127.0.0.1:1) !"
         );
+        assert_eq!(
+            reason("Unable to connect to any of [Single(tcp/127.0.0.1:1)]!  at /a/orchestrator.rs:447."),
+            "nothing accepted the connection there (is a drive listening, started with \
+             --zenoh-listen on that address?)"
+        );
+        assert_eq!(reason(e), tidy(e));
     }
 
     #[test]
