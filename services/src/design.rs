@@ -54,16 +54,35 @@ pub fn render(sc_true: &Scenario) -> String {
             );
         }
     }
+    use drivelab_runtime::config::{CurrentController, SpeedController};
+    // Every design is printed for comparison; the ones this scenario does not run say so
+    // where they begin.
+    let _ = writeln!(
+        o,
+        "runs: {} current loop, {} speed loop (the other designs below are for comparison and say \"not run\")",
+        name(&sc.current_loop.controller),
+        name(&sc.speed_loop.controller)
+    );
+    let not_run = |runs: bool| if runs { "" } else { "not run: " };
+    // As the scenario file names it.
+    fn name(c: &impl serde::Serialize) -> String {
+        serde_json::to_value(c)
+            .ok()
+            .and_then(|v| v.as_str().map(str::to_string))
+            .unwrap_or_default()
+    }
     let c = &d.current;
     let _ = writeln!(
         o,
-        "current PI (pole-zero cancellation, τ_c = {} ms): d: Kp = L_d/τ_c = {:.4} V/A, Ki = R/τ_c = {:.1} V/(A·s); q: Kp = L_q/τ_c = {:.4} V/A, Ki = {:.1} V/(A·s)",
+        "{}current PI (pole-zero cancellation, τ_c = {} ms): d: Kp = L_d/τ_c = {:.4} V/A, Ki = R/τ_c = {:.1} V/(A·s); q: Kp = L_q/τ_c = {:.4} V/A, Ki = {:.1} V/(A·s)",
+        not_run(sc.current_loop.controller == CurrentController::Pi),
         c.tau_c_s * 1e3, c.k_p_d, c.k_i_d, c.k_p_q, c.k_i_q
     );
     let s = &d.speed;
     let _ = writeln!(
         o,
-        "speed PI (symmetrical optimum, every {} samples = {} Hz): T_sigma = {:.4} ms, a = {:.4}, T_eq = {:.4} ms",
+        "{}speed PI (symmetrical optimum, every {} samples = {} Hz): T_sigma = {:.4} ms, a = {:.4}, T_eq = {:.4} ms",
+        not_run(sc.speed_loop.controller == SpeedController::Pi),
         sc.rates.speed_divider,
         sc.rates.sample_hz / f64::from(sc.rates.speed_divider),
         s.t_sigma_s * 1e3,
@@ -112,7 +131,8 @@ fn render_nonlinear(o: &mut String, sc: &Scenario, d: &DriveDesign) {
     let (z, wi, w0) = (n.zeta, n.omega_i_rad_s, n.omega_0_rad_s);
     let _ = writeln!(
         o,
-        "nonlinear (Kyslan et al. 2015, two-step linearisation, x = [ω, i_q, i_d]):"
+        "{}nonlinear (Kyslan et al. 2015, two-step linearisation, x = [ω, i_q, i_d]):",
+        if sc.nonlinear() { "" } else { "not run: " }
     );
     let _ = writeln!(
         o,
@@ -246,5 +266,43 @@ mod tests {
             .unwrap();
         assert!(line.contains("(target 0.20 ms), overshoot "), "{line}");
         assert!(t.contains("(ω_0 = ω_i gives "), "{t}");
+    }
+
+    #[test]
+    fn the_designs_a_scenario_does_not_run_say_so() {
+        // (scenario, what runs, which of current PI, speed PI, nonlinear are not run)
+        for (name, runs, not_run) in [
+            (
+                "kyslan-pi",
+                "pi current loop, pi speed loop",
+                [false, false, true],
+            ),
+            (
+                "kyslan-nl",
+                "nonlinear current loop, nonlinear speed loop",
+                [true, true, false],
+            ),
+            (
+                "low-rst",
+                "rst current loop, rst speed loop",
+                [true, true, true],
+            ),
+        ] {
+            let t = render(&crate::launcher::load_scenario(name, None).unwrap());
+            assert!(
+                t.lines()
+                    .nth(1)
+                    .unwrap()
+                    .starts_with(&format!("runs: {runs} (")),
+                "{t}"
+            );
+            for (section, not) in ["current PI (", "speed PI (", "nonlinear (Kyslan"]
+                .iter()
+                .zip(not_run)
+            {
+                let line = t.lines().find(|l| l.contains(section)).unwrap();
+                assert_eq!(line.starts_with("not run: "), not, "{name}: {line}");
+            }
+        }
     }
 }
