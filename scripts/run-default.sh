@@ -6,5 +6,5 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 cargo build --release --workspace --bins
-./target/release/drivelab run --out runs/default "$@"
+"${CARGO_TARGET_DIR:-target}/release/drivelab" run --out runs/default "$@"
 echo "plots and histograms: runs/default/"

@@ -259,8 +259,8 @@ fn drivelab_fault_goes_through_the_supervisor_and_cannot_hit_an_impostor() {
     let d = wait(drive, Duration::from_secs(60), "the drive");
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(
-        stderr(&o).contains(&format!(
-            "inject observer: kill (requested by pid {fault_pid})"
+        String::from_utf8_lossy(&o.stdout).contains(&format!(
+            "supervisor: inject observer: kill (requested by pid {fault_pid})"
         )),
         "{}",
         stderr(&o)

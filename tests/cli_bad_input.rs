@@ -105,6 +105,9 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
     };
     let volts = csv("volts.csv", "t,u_d,u_q,t_load\n0,0,10,0\n0.01,0,10,0\n");
     let huge = csv("huge.csv", "t,u_d,u_q,t_load\n0,1e300,10,0\n0.001,0,0,0\n");
+    let no_t = csv("no-t.csv", "k,u_d,u_q\n0,1,2\n");
+    let not_num = csv("not-num.csv", "t,u_d,u_q,t_load\n0,1,abc,0\n");
+    let short = csv("short.csv", "t,u_d,u_q,t_load\n0,1,2,0\n0.1,1,2\n");
     // A run folder whose trace has a header and no sample.
     let empty = d.join("empty");
     std::fs::create_dir_all(&empty).unwrap();
@@ -327,6 +330,27 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             &["plant", "--replay", &huge, "--out", o],
             1,
             "the model's state is not a finite number from t = 0.001 s",
+        ),
+        case(
+            "plant-columns",
+            dir,
+            &["plant", "--replay", &no_t, "--out", o],
+            1,
+            "no-t.csv: no column t, t_load in its first line (need columns t,u_d,u_q,t_load)",
+        ),
+        case(
+            "plant-not-a-number",
+            dir,
+            &["plant", "--replay", &not_num, "--out", o],
+            1,
+            "not-num.csv row 2: column u_q: invalid float literal",
+        ),
+        case(
+            "plant-short-row",
+            dir,
+            &["plant", "--replay", &short, "--out", o],
+            1,
+            "short.csv row 3: 3 fields, the first line has 4",
         ),
         case(
             "plant-motor",

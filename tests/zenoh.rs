@@ -235,7 +235,11 @@ fn a_remote_fault_needs_allow_remote_faults_on_the_drive() {
         let err = String::from_utf8_lossy(&o.stderr).into_owned();
         if allow {
             assert!(o.status.success(), "{err}");
-            assert!(err.contains("supervisor: inject observer: kill"), "{err}");
+            let answer = String::from_utf8_lossy(&o.stdout);
+            assert!(
+                answer.contains("supervisor: inject observer: kill"),
+                "{answer}"
+            );
         } else {
             assert_eq!(o.status.code(), Some(1), "{err}");
             assert_eq!(
@@ -436,7 +440,11 @@ fn tls_with_access_control_lets_the_operator_fault_and_the_viewer_only_watch() {
     );
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
-    assert!(err.contains("supervisor: inject observer: kill"), "{err}");
+    let answer = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        answer.contains("supervisor: inject observer: kill"),
+        "{answer}"
+    );
     // Plain TCP to the TLS port: refused with the one-line error of a failed connection.
     let o = at(&["monitor", "--connect", &tcp, "--print"], "");
     let err = String::from_utf8_lossy(&o.stderr);

@@ -1294,7 +1294,8 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             };
             let stop_ms = (duration_s * 1000.0).round() as u32;
             let done = drivelab_services::monitor::request_fault(&target, kind, &service, stop_ms)?;
-            drivelab_services::errln!("supervisor: {done}");
+            // The answer on stdout, for a script to read.
+            drivelab_services::outln!("supervisor: {done}");
             Ok(())
         }
         Cmd::Hog {

@@ -94,14 +94,42 @@ fn replay_within(
     }
     let mut rd = csv::Reader::from_path(input)
         .with_context(|| format!("cannot read {}", input.display()))?;
+    let headers = rd
+        .headers()
+        .with_context(|| format!("cannot read {}", input.display()))?
+        .clone();
+    let missing: Vec<&str> = ["t", "u_d", "u_q", "t_load"]
+        .into_iter()
+        .filter(|c| !headers.iter().any(|h| h.trim() == *c))
+        .collect();
+    if !missing.is_empty() {
+        bail!(
+            "{}: no column {} in its first line (need columns t,u_d,u_q,t_load)",
+            input.display(),
+            missing.join(", ")
+        );
+    }
     let mut rows = Vec::new();
     for (i, r) in rd.deserialize::<InRow>().enumerate() {
         let r = r.map_err(|e| {
-            anyhow!(
-                "{} row {}: {e} (need columns t,u_d,u_q,t_load)",
-                input.display(),
-                i + 2
-            )
+            // The column and what is wrong with it, not the CSV reader's byte positions.
+            let what = match e.kind() {
+                csv::ErrorKind::Deserialize { err, .. } => match err.field() {
+                    Some(f) => format!(
+                        "column {}: {}",
+                        headers.get(f as usize).unwrap_or("?"),
+                        err.kind()
+                    ),
+                    None => err.kind().to_string(),
+                },
+                csv::ErrorKind::UnequalLengths {
+                    len, expected_len, ..
+                } => {
+                    format!("{len} fields, the first line has {expected_len}")
+                }
+                _ => e.to_string(),
+            };
+            anyhow!("{} row {}: {what}", input.display(), i + 2)
         })?;
         if ![r.t, r.u_d, r.u_q, r.t_load].iter().all(|v| v.is_finite()) {
             bail!(

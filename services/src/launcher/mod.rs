@@ -980,8 +980,8 @@ pub fn refuse_busy_bus(id: &str, claimed: bool) -> Result<()> {
     Ok(())
 }
 
-/// The CPU wake-up latency request of a real-time drive, or why there is none (a one-line
-/// warning; an error with `--rt-strict`).
+/// The CPU wake-up latency request of a real-time drive, or why there is none (the caller's
+/// one-line warning; an error with `--rt-strict`).
 fn cpu_latency_request(
     sc: &Scenario,
     o: &RunOptions,
@@ -998,12 +998,7 @@ fn cpu_latency_request(
         return Ok((None, None));
     }
     match CpuLatencyRequest::hold(v) {
-        Ok(r) => {
-            if o.verbose {
-                crate::errln!("drivelab: holding a CPU wake-up latency request of {v} µs ({CPU_DMA_LATENCY}) while the drive runs");
-            }
-            Ok((Some(r), None))
-        }
+        Ok(r) => Ok((Some(r), None)),
         Err(e) => {
             let why = format!(
                 "cannot hold a CPU wake-up latency request of {v} µs ({CPU_DMA_LATENCY}: {e})"
@@ -1011,7 +1006,6 @@ fn cpu_latency_request(
             if o.rt_strict {
                 bail!("--rt-strict: {why}");
             }
-            crate::errln!("drivelab: warning: {why}; idle CPUs may wake late ([timing] cpu_latency_us = \"none\" silences this)");
             Ok((None, Some(why)))
         }
     }
@@ -1563,16 +1557,27 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         }
         None => None,
     };
+    // A real-time drive holds the CPU wake-up latency request while it runs (released when
+    // this value drops, or by the kernel if the launcher dies).
+    let (latency_request, latency_error) = cpu_latency_request(&sc, o)?;
     check_placements(o, &topo)?;
     let out = match &o.out {
         Some(out) => out.clone(),
         None => new_default_folder(&default_stem(&sc, o.clock))?,
     };
     let _folder = claim_run_folder(&out)?;
-    // A real-time drive holds the CPU wake-up latency request while it runs (released when
-    // this value drops, or by the kernel if the launcher dies); after the folder's checks, so
-    // that a refused folder is the one line.
-    let (latency_request, latency_error) = cpu_latency_request(&sc, o)?;
+    // Said once the folder is taken, so that a refused folder is the one line.
+    match (&latency_request, &latency_error) {
+        (Some(r), _) if o.verbose => crate::errln!(
+            "drivelab: holding a CPU wake-up latency request of {} µs ({}) while the drive runs",
+            r.value_us,
+            drivelab_runtime::rt::CPU_DMA_LATENCY
+        ),
+        (_, Some(why)) => crate::errln!(
+            "drivelab: warning: {why}; idle CPUs may wake late ([timing] cpu_latency_us = \"none\" silences this)"
+        ),
+        _ => {}
+    }
     let out = out.canonicalize()?;
     let sc_path = out.join("scenario.toml");
     drivelab_runtime::files::write(&sc_path, toml::to_string(&sc)?)
