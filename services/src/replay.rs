@@ -344,7 +344,11 @@ mod tests {
                 "row 3: values must be finite numbers",
             ),
             ("t,u_d,u_q,t_load\n", "has no rows"),
-            ("t,u_d,u_q\n0,0,0\n", "row 2: "),
+            ("t,u_d,u_q\n0,0,0\n", ": no column t_load in its first line"),
+            (
+                "t,u_d,u_q,t_load\n0,0,x,0\n",
+                "row 2: column u_q: invalid float literal",
+            ),
         ] {
             let e = run(text, 1e-3, 1000).unwrap_err().to_string();
             assert!(e.contains(want), "{text:?}: {e}");
