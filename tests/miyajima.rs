@@ -41,8 +41,10 @@ fn settling(
     (before, last)
 }
 
+/// Equal to the printout's precision: `cdm-design` prints its figures to 6 significant
+/// digits (a wrong equation is off by far more: a missing cos δ_o at 20° by 6 %).
 fn close(a: f64, b: f64) -> bool {
-    (a - b).abs() <= 1e-9 * b.abs().max(1e-9)
+    (a - b).abs() <= 1e-5 * b.abs().max(1e-9)
 }
 
 #[test]
@@ -167,8 +169,7 @@ fn cdm_printout_gives_the_gains_of_eqs_28_to_31() {
     let t = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{t}");
     assert!(
-        t.contains("operating point asked: V_ao = 1000 V")
-            && t.contains("V_ao = 271.3546265191241 V"),
+        t.contains("operating point asked: V_ao = 1000 V") && t.contains("V_ao = 271.355 V"),
         "{t}"
     );
     // A value out of its range: one clear line, exit code 2 (a usage error).

@@ -271,9 +271,9 @@ enum Cmd {
     /// Watch a running drive live in the terminal: per-stage state, rate, wake-up
     /// lateness, execution time and deadline misses; speed against its reference and i_d,
     /// i_q; the supervisor's event log. k / s kill or freeze the process of the selected
-    /// stage after a confirmation (real-time drives only); q, Esc or Ctrl-C leave. The monitor reads the
-    /// supervisor's telemetry, never the real-time processes' topics, so it does not
-    /// disturb the drive.
+    /// stage after a confirmation (real-time drives only); q, Esc or Ctrl-C leave. The
+    /// monitor reads the supervisor's telemetry, never the real-time processes' topics, so
+    /// it does not disturb the drive.
     ///
     /// Examples:
     ///   drivelab run --bus 4242 --duration 60 &

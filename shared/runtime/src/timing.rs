@@ -392,7 +392,7 @@ impl StallReport {
         }
         if self.pairs > 0 {
             l += &format!(
-                "; {} of {} consecutive ones end a multiple of {} ms apart",
+                "; {} of {} gaps between consecutive stalls' ends are a multiple of {} ms",
                 self.on_host_grid,
                 self.pairs,
                 HOST_GRID_NS / 1_000_000
