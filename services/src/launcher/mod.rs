@@ -783,6 +783,10 @@ fn run_bus(
     })
 }
 
+/// How [`not_written`] ends for a process the supervisor left dead: the summary's events
+/// explain it, and no warning is needed.
+const LEFT_DEAD: &str = " and was not restarted";
+
 /// Why the process `process` left no `<stage>.stats.json` (a host writes it as it exits): it
 /// exited for the last time during the run and was not restarted, or it did not write it.
 fn not_written(events: &[SupEvent], process: &str) -> String {
@@ -798,9 +802,7 @@ fn not_written(events: &[SupEvent], process: &str) -> String {
             kind: supervisor::EventKind::Exited { status, .. },
             t_wall_s,
             ..
-        }) => format!(
-            "not written: its process exited ({status}) at {t_wall_s:.3} s and was not restarted"
-        ),
+        }) => format!("not written: its process exited ({status}) at {t_wall_s:.3} s{LEFT_DEAD}"),
         _ => "not written by its process (it writes it as it exits)".to_string(),
     }
 }
@@ -1806,10 +1808,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         summary["statistics_missing"] = json!(m);
         let unexplained: Vec<String> = m
             .iter()
-            .filter(|(_, why)| {
-                !why.as_str()
-                    .is_some_and(|w| w.contains("was not restarted"))
-            })
+            .filter(|(_, why)| !why.as_str().is_some_and(|w| w.ends_with(LEFT_DEAD)))
             .map(|(st, why)| format!("{st} ({})", why.as_str().unwrap_or("")))
             .collect();
         if !unexplained.is_empty() {
