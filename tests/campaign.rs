@@ -329,6 +329,15 @@ fn a_campaign_whose_expectations_fail_exits_3_and_junit_counts_each_failure() {
     let out = dir.join("c");
     let o = campaign(&f, &out);
     assert_eq!(o.status.code(), Some(3), "{}", stderr(&o));
+    // Each failed run has its line on stderr also where it is not a terminal (as in CI,
+    // and here), where the progress bar is hidden.
+    let err = stderr(&o);
+    for line in [
+        "run 1: fail — kyslan-pi [no fault] seed 1",
+        "run 2: fail — kyslan-pi [no fault] seed 2",
+    ] {
+        assert!(err.lines().any(|l| l == line), "'{line}' not in: {err}");
+    }
     let (suite, cases) = junit(&out.join("junit.xml"));
     assert_eq!(suite.attribute("name"), Some("always-fails"));
     assert_eq!(cases.len(), 2);
@@ -475,27 +484,34 @@ fn a_malformed_expectation_in_a_campaign_is_a_file_error_with_exit_code_1() {
     assert!(!out.exists(), "a run folder was made for a bad expectation");
 }
 
-#[test]
-fn a_campaign_stopped_by_sigint_says_so_in_one_line_and_reports_the_rest_skipped() {
-    let _one = serial();
-    let dir = scratch("campsigint");
+/// Starts a campaign of `runs` real-time runs of 30 s each (`--no-rt`) in scratch folder
+/// `tag`, its output piped; returns it and its report folder.
+fn long_campaign(tag: &str, runs: usize) -> (std::process::Child, PathBuf) {
+    let dir = scratch(tag);
+    let seeds: Vec<String> = (1..=runs).map(|s| s.to_string()).collect();
     let f = campaign_file(
         &dir,
-        "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nduration_s = 30\nseeds = [1, 2, 3]\n",
+        &format!(
+            "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nduration_s = 30\nseeds = [{}]\n",
+            seeds.join(", ")
+        ),
     );
     let out = dir.join("c");
     let child = std::process::Command::new(DRIVELAB)
-        .args([
-            "campaign",
-            f.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-        ])
+        .args(["campaign", f.to_str().unwrap(), "--out"])
+        .arg(&out)
         .arg("--no-rt")
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
+    (child, out)
+}
+
+#[test]
+fn a_campaign_stopped_by_sigint_says_so_in_one_line_and_reports_the_rest_skipped() {
+    let _one = serial();
+    let (child, out) = long_campaign("campsigint", 3);
     // The bus of the campaign's first run (see campaign::options).
     let bus = format!("c{}_1", child.id());
     let pid = child.id() as i32;
@@ -532,6 +548,45 @@ fn a_campaign_stopped_by_sigint_says_so_in_one_line_and_reports_the_rest_skipped
     assert_eq!(cases.len(), 3);
     assert_eq!(cases[0].2, 1, "run 1 is not an error");
     assert_eq!(suite.attribute("skipped"), Some("2"));
+}
+
+/// A campaign SIGKILLed mid-run (a CI job's time limit) leaves its folder marked as a
+/// campaign's from its start, so a second campaign takes it, and that one removes the files
+/// the dead campaign's bus left (the killed launcher could not).
+#[test]
+fn a_campaign_killed_mid_run_leaves_a_folder_the_next_one_takes_and_cleans_up_after() {
+    let _one = serial();
+    let (child, out) = long_campaign("campkill", 2);
+    let dir = out.parent().unwrap();
+    let bus = format!("c{}_1", child.id());
+    wait_for_progress(&bus, 1);
+    kill_launcher_and_assert_no_orphans(child, &bus);
+    assert!(
+        !drivelab_runtime::bus::leftovers(&bus).is_empty(),
+        "the killed campaign's bus left no file: nothing to check"
+    );
+    let report: Value = serde_json::from_slice(&read(&out.join("campaign.json"))).unwrap();
+    assert_eq!(report["unfinished"]["runs"], 2, "{report}");
+    let short = dir.join("short.toml");
+    std::fs::write(
+        &short,
+        "name = \"y\"\nscenarios = [\"kyslan-pi\"]\nclock = \"lockstep\"\nduration_s = 0.05\n",
+    )
+    .unwrap();
+    let o = campaign(&short, &out);
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(0), "{err}");
+    assert!(
+        err.contains(&format!(
+            "an earlier campaign here did not finish; removed the shared-memory files of 1 of its buses (c{}_N)",
+            bus.trim_start_matches('c').split('_').next().unwrap()
+        )),
+        "{err}"
+    );
+    assert_clean(&bus);
+    let report: Value = serde_json::from_slice(&read(&out.join("campaign.json"))).unwrap();
+    assert!(report.get("unfinished").is_none(), "{report}");
+    assert_eq!(report["name"], "y");
 }
 
 #[test]

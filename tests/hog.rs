@@ -170,9 +170,14 @@ fn a_controller_killed_while_a_hog_holds_the_plant_back_is_dated_at_the_plants_o
         .find(|r| r.k >= 3000 && r.plant_flags & drivelab_runtime::messages::FLAG_STALE_CMD != 0)
         .map(|r| r.k)
         .expect("the plant never held a stale command after the kill");
+    // Dated by the schedule, the report would begin `behind` samples late, after the first
+    // stale command. Dated at the plant's sample, it begins before it, by the time the
+    // kernel took to end the process plus the plant's hold: that time is the machine's (one
+    // slow VM took 1.1 ms), so it is bounded only by the distance to the schedule's date.
     assert!(
-        k0 <= first_stale && first_stale - k0 <= 10,
-        "dated at {k0}, the first stale command at {first_stale}: {kill}"
+        k0 <= first_stale && ((first_stale - k0) as f64) < behind / 2.0,
+        "dated at {k0}, the first stale command at {first_stale}, the schedule {behind:.0} \
+         samples behind: {kill}"
     );
     assert_eq!(kill["detected_by"], "plant", "{kill}");
 }

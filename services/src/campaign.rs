@@ -404,7 +404,7 @@ fn options(
         // Unique per campaign process and run, so that campaigns can run side by side.
         bus: dir
             .as_ref()
-            .map(|_| format!("c{}_{}", std::process::id(), case.number)),
+            .map(|_| format!("{}{}", bus_prefix(std::process::id()), case.number)),
         out: dir,
         rt_strict: false,
         no_rt,
@@ -672,6 +672,54 @@ pub fn junit(name: &str, results: &[CaseResult]) -> Result<String> {
 /// The reports a campaign writes at the top of its folder.
 const REPORTS: [&str; 3] = ["campaign.json", "campaign.md", "junit.xml"];
 
+/// The bus ids of a campaign's runs: this, then the run's number.
+fn bus_prefix(pid: u32) -> String {
+    format!("c{pid}_")
+}
+
+/// Writes `bytes` to `out/name`, the file named in its error.
+fn write_report(out: &Path, name: &str, bytes: impl AsRef<[u8]>) -> Result<()> {
+    let path = out.join(name);
+    drivelab_runtime::files::write(&path, bytes)
+        .with_context(|| format!("write {}", path.display()))
+}
+
+/// The files of the buses of an earlier campaign in `out` that did not finish (killed, e.g.
+/// by a CI job's time limit): its `campaign.json` is still the one written at its start,
+/// which names them. Each bus that no process uses any more is cleaned; one line says so.
+fn clean_unfinished(out: &Path) {
+    let Ok(text) = std::fs::read(out.join("campaign.json")) else {
+        return;
+    };
+    let Ok(v) = serde_json::from_slice::<Value>(&text) else {
+        return;
+    };
+    let (Some(prefix), Some(n)) = (
+        v["unfinished"]["bus_prefix"].as_str(),
+        v["unfinished"]["runs"].as_u64(),
+    ) else {
+        return;
+    };
+    let mut removed = 0;
+    for number in 1..=n.min(MAX_RUNS as u64) {
+        let bus = format!("{prefix}{number}");
+        if drivelab_runtime::bus::leftovers(&bus).is_empty()
+            || launcher::refuse_busy_bus(&bus, false).is_err()
+        {
+            continue;
+        }
+        if drivelab_runtime::bus::cleanup(&bus).is_ok() {
+            removed += 1;
+        }
+    }
+    if removed > 0 {
+        crate::errln!(
+            "drivelab: campaign folder {}: an earlier campaign here did not finish; removed the shared-memory files of {removed} of its buses ({prefix}N)",
+            out.display()
+        );
+    }
+}
+
 /// Makes campaign folder `out`: new, empty or an earlier campaign's (it has
 /// `campaign.json`), never a folder of other files nor one another campaign is writing
 /// into (an advisory lock held until the returned file drops). An earlier campaign's
@@ -686,6 +734,7 @@ fn claim_campaign_folder(out: &Path) -> Result<std::fs::File> {
         );
     }
     let dir = crate::launcher::make_and_lock_folder(out, "campaign folder", "campaign")?;
+    clean_unfinished(out);
     let runs = out.join("runs");
     if let Ok(entries) = std::fs::read_dir(&runs) {
         for e in entries.flatten() {
@@ -732,6 +781,26 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
         ))?,
     };
     let _lock = claim_campaign_folder(&out)?;
+    // Marks the folder a campaign's from the start, so that one killed before its end
+    // leaves a folder the next campaign takes (and whose buses it cleans), and finds a
+    // folder it cannot write before the first run.
+    let unfinished = json!({
+        "name": c.name,
+        "purpose": c.purpose,
+        "file": a.file,
+        "clock": c.clock,
+        "unfinished": {
+            "why": "written at the campaign's start; a campaign that ends replaces it with its report",
+            "bus_prefix": bus_prefix(std::process::id()),
+            "runs": cases.len(),
+        },
+        "runs": [],
+    });
+    write_report(
+        &out,
+        "campaign.json",
+        serde_json::to_vec_pretty(&unfinished)?,
+    )?;
     let bar = if a.json {
         indicatif::ProgressBar::hidden()
     } else {
@@ -776,20 +845,21 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
             ));
         }
         if r.status != "pass" {
-            bar.println(format!(
-                "run {}: {} — {}",
-                case.number,
-                r.status,
-                case.title()
-            ));
+            let line = format!("run {}: {} — {}", case.number, r.status, case.title());
+            // A hidden bar (stderr not a terminal, as in CI; --json) prints nothing.
+            if bar.is_hidden() {
+                crate::errln!("{line}");
+            } else {
+                bar.println(line);
+            }
         }
         results.push(r);
         bar.inc(1);
     }
     bar.finish_and_clear();
     let md = markdown(&c.name, &c.purpose, &results);
-    drivelab_runtime::files::write(out.join("campaign.md"), &md)?;
-    drivelab_runtime::files::write(out.join("junit.xml"), junit(&c.name, &results)?)?;
+    write_report(&out, "campaign.md", &md)?;
+    write_report(&out, "junit.xml", junit(&c.name, &results)?)?;
     let report = json!({
         "name": c.name,
         "purpose": c.purpose,
@@ -797,10 +867,7 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
         "clock": c.clock,
         "runs": results,
     });
-    drivelab_runtime::files::write(
-        out.join("campaign.json"),
-        serde_json::to_vec_pretty(&report)?,
-    )?;
+    write_report(&out, "campaign.json", serde_json::to_vec_pretty(&report)?)?;
     if a.json {
         crate::outln!("{}", serde_json::to_string_pretty(&report)?);
     } else {

@@ -250,51 +250,24 @@ pub fn render_fw(f: &FwDesign) -> String {
 
 /// `text` with every number written with 7 or more decimals (a float printed whole, such as
 /// 150.01041666666669 or 9999.999999999998) cut to 6 significant digits (150.010, 10000).
-/// The figures printed with a fixed number of decimals (6 at most) are left as they are.
+/// The figures printed with a fixed number of decimals (6 at most) and numbers in exponent
+/// form are left as they are.
 fn short_floats(text: &str) -> String {
-    let b = text.as_bytes();
-    let mut out = String::with_capacity(text.len());
-    let (mut done, mut i) = (0, 0);
-    while i < b.len() {
-        let starts = b[i].is_ascii_digit()
-            && (i == 0 || !(b[i - 1].is_ascii_alphanumeric() || b[i - 1] == b'.'));
-        if !starts {
-            i += 1;
-            continue;
+    drivelab_runtime::text::rewrite_numbers(text, |n| {
+        if n.decimals < 7 || matches!(n.after, Some(b'e' | b'E')) {
+            return None;
         }
-        let mut j = i;
-        while j < b.len() && b[j].is_ascii_digit() {
-            j += 1;
-        }
-        let whole = j;
-        if j < b.len() && b[j] == b'.' {
-            j += 1;
-            while j < b.len() && b[j].is_ascii_digit() {
-                j += 1;
-            }
-        }
-        let decimals = j.saturating_sub(whole + 1);
-        let exponent = j < b.len() && matches!(b[j], b'e' | b'E');
-        match text[i..j].parse::<f64>() {
-            Ok(v) if decimals >= 7 && !exponent => {
-                out.push_str(&text[done..i]);
-                // 6 significant digits, trailing zeros of the fraction dropped.
-                let digits = 6 - (v.abs().log10().floor() as i32 + 1).clamp(-20, 6);
-                let t = format!("{v:.*}", digits.max(0) as usize);
-                let t = if t.contains('.') {
-                    t.trim_end_matches('0').trim_end_matches('.').to_string()
-                } else {
-                    t
-                };
-                out.push_str(&t);
-                done = j;
-            }
-            _ => {}
-        }
-        i = j.max(i + 1);
-    }
-    out.push_str(&text[done..]);
-    out
+        let v: f64 = n.written.parse().ok()?;
+        // 6 significant digits, trailing zeros of the fraction dropped.
+        let digits = 6 - (v.abs().log10().floor() as i32 + 1).clamp(-20, 6);
+        let t = format!("{v:.*}", digits.max(0) as usize);
+        Some(if t.contains('.') {
+            t.trim_end_matches('0').trim_end_matches('.').to_string()
+        } else {
+            t
+        })
+    })
+    .into_owned()
 }
 
 /// The text printout of a design.

@@ -47,6 +47,13 @@ pub const FAULT_FIGURES: &[&str] = &[
 /// is a number or a name, with nothing below it.
 pub const FAULT_GROUPS: &[&str] = &["plant_down", "rejected_by", "window"];
 
+/// The fault figures that are names (of the fault, its stage, its process, what saw it
+/// first), not numbers.
+pub const FAULT_NAMES: &[&str] = &["fault", "service", "process", "detected_by"];
+
+/// The figures of each latency histogram (`latency_us.HISTOGRAM.FIGURE`).
+pub const HISTOGRAM_FIGURES: &[&str] = &["count", "p50", "p99", "p999", "max"];
+
 /// Exit code of `drivelab run` and `drivelab campaign` when an expectation failed.
 pub const EXIT_EXPECTATION_FAILED: u8 = 3;
 
@@ -305,6 +312,42 @@ pub fn parse(text: &str) -> Result<Expectation, UsageError> {
             return Err(UsageError(format!(
                 "expectation '{t}': '{top}' is a number; no figure lies below it"
             )));
+        }
+        _ => {}
+    }
+    let refuse = |why: String| Err(UsageError(format!("expectation '{t}': {why}")));
+    match path.as_slice() {
+        [top, i] if top == "faults" => {
+            return refuse(format!(
+                "'faults.{i}' is a fault's report, not a number; name one of its figures, e.g. 'faults.{i}.speed_recovered_ms'"
+            ));
+        }
+        [top, _, name, ..] if top == "faults" && FAULT_NAMES.contains(&name.as_str()) => {
+            return refuse(format!("the fault figure '{name}' is a name, not a number"));
+        }
+        [top, name, _, ..] if top == "metrics" && name != "*" => {
+            return refuse(format!(
+                "'metrics.{name}' is a number; no figure lies below it"
+            ));
+        }
+        [top, h] if top == "latency_us" => {
+            return refuse(format!(
+                "'latency_us.{h}' is a histogram, not a number; name one of its figures ({}), e.g. 'latency_us.{h}.p99'",
+                HISTOGRAM_FIGURES.join(", ")
+            ));
+        }
+        [top, h, f, rest @ ..] if top == "latency_us" => {
+            if f != "*" && !HISTOGRAM_FIGURES.contains(&f.as_str()) {
+                return refuse(format!(
+                    "unknown histogram figure '{f}' (a histogram's figures: {})",
+                    HISTOGRAM_FIGURES.join(", ")
+                ));
+            }
+            if !rest.is_empty() {
+                return refuse(format!(
+                    "'latency_us.{h}.{f}' is a number; no figure lies below it"
+                ));
+            }
         }
         _ => {}
     }
@@ -665,6 +708,34 @@ mod tests {
                 "faults.0.window <= 8",
                 "the fault figure 'window' is a group of figures",
             ),
+            (
+                "faults.* <= 1",
+                "'faults.*' is a fault's report, not a number; name one of its figures",
+            ),
+            (
+                "faults.*.service == 1",
+                "the fault figure 'service' is a name, not a number",
+            ),
+            (
+                "faults.0.detected_by >= 0",
+                "the fault figure 'detected_by' is a name",
+            ),
+            (
+                "metrics.rise_time_ms.x <= 50",
+                "'metrics.rise_time_ms' is a number; no figure lies below it",
+            ),
+            (
+                "latency_us.cycle <= 50",
+                "'latency_us.cycle' is a histogram, not a number; name one of its figures (count, p50, p99, p999, max), e.g. 'latency_us.cycle.p99'",
+            ),
+            (
+                "latency_us.cycle.p95 <= 50",
+                "unknown histogram figure 'p95'",
+            ),
+            (
+                "latency_us.cycle.p99.x <= 50",
+                "'latency_us.cycle.p99' is a number",
+            ),
         ] {
             let e = parse(text).unwrap_err().to_string();
             assert!(e.contains(says), "{text}: {e}");
@@ -676,6 +747,9 @@ mod tests {
             "faults.*.window.cycle_p99_us.during <= 50",
             "faults.*.* <= 1",
             "faults.*.rejected_by.observer >= 1",
+            "latency_us.*.p99 <= 100",
+            "latency_us.cycle.* <= 1e6",
+            "metrics.* <= 1000",
         ] {
             parse(text).unwrap_or_else(|e| panic!("{text}: {e}"));
         }

@@ -690,6 +690,21 @@ impl<T: Transport> Host<T> {
         down
     }
 
+    /// Lockstep: true when stage `si`, stopped (not killed) at sample k, steps k silently. A
+    /// real stopped process keeps its topics' last [`crate::bus::HISTORY`] samples and, if
+    /// it needs every sample ([`Stage::steps_every_sample`], the observer), steps them
+    /// unpublished when it resumes, so its state has seen each of them; older ones are
+    /// lost to it, as here.
+    fn catches_up(&self, si: usize, k: u64) -> bool {
+        self.stages[si].stage.steps_every_sample()
+            && self.armed.iter().any(|a| {
+                a.kind == InjectKind::Stop
+                    && a.stage == Some(si)
+                    && a.covers(k)
+                    && k + crate::bus::HISTORY as u64 >= a.to_k
+            })
+    }
+
     /// Sets the function that says a stop was requested (SIGINT, SIGTERM, SIGHUP …).
     pub fn stop_when(&mut self, f: impl Fn() -> bool + Send + 'static) {
         self.stop = Box::new(f);
@@ -1144,6 +1159,15 @@ impl<T: Transport> Host<T> {
                 // cannot keep and wait for them until the watchdog.
                 if self.cfg.pacing == Pacing::Lockstep && !self.wait_inputs(si, k)? {
                     return Ok(false);
+                }
+                if self.catches_up(si, k) {
+                    // A stopped process that needs every sample steps its backlog silently
+                    // when it resumes: here each sample as it comes, its outputs absent.
+                    let (ib, complete) = self.inbox(si, k);
+                    if complete {
+                        let mut out = Outbox::default();
+                        self.stages[si].stage.step(k, &ib, &mut out);
+                    }
                 }
                 self.absent_outputs(si, k)?;
                 self.stages[si].last_k = Some(k);

@@ -112,12 +112,37 @@ impl Stage for PlantStage {
 
 // ------------------------------------------------------------------------------ observer
 
+/// The estimate a stage falls back on without the observer's: the electrical angle of
+/// `meas`'s encoder angle and `omega_m`, the last speed estimated, flagged `STALE_INPUT`.
+fn encoder_fallback(meas: &Measurement, pole_pairs: f64, omega_m: f64) -> Estimate {
+    Estimate {
+        hdr: Header {
+            k: meas.hdr.k,
+            t_sample_ns: meas.hdr.t_sample_ns,
+            flags: FLAG_STALE_INPUT,
+            ..Default::default()
+        },
+        theta_e: wrap_2pi(pole_pairs * meas.theta_m_enc),
+        omega_m,
+    }
+}
+
 /// The observer: measurement k → estimate k. Its filter needs every sample, so when behind it
-/// steps the older measurements without publishing them.
+/// steps the older measurements without publishing them. Across a gap in the measurements
+/// (a plant that restarted after its downtime, measurements lost) the filter cannot step:
+/// the angle moved by an unknown number of turns. It seeds itself again as after a restart
+/// (angle and speed from two consecutive measurements); until it has, it publishes what the
+/// current loop falls back on without an estimate: the encoder angle and the last speed
+/// estimate, flagged `FLAG_STALE_INPUT`.
 pub struct ObserverStage {
     obs: ObserverStep,
     ts: f64,
+    pole_pairs: f64,
     seed: Option<Measurement>,
+    last_k: Option<u64>,
+    last_omega_m: f64,
+    /// Gaps in the measurements it seeded itself again after.
+    pub measurement_gaps: u64,
 }
 
 const OBSERVER_IN: &[InputSpec] = &[InputSpec::trigger(TopicId::Meas, 1, OnStale::Required)];
@@ -129,7 +154,29 @@ impl ObserverStage {
         Self {
             obs: ObserverStep::new(sc),
             ts: sc.rates.ts(),
+            pole_pairs: sc.motor_params().p(),
             seed: None,
+            last_k: None,
+            last_omega_m: 0.0,
+            measurement_gaps: 0,
+        }
+    }
+
+    /// Seeds the filter: the angle from the newest measurement, the speed from the backward
+    /// difference to the next one; `NeedMore` until two consecutive ones came.
+    fn seed(&mut self, m: &Measurement) -> Rejoin {
+        self.last_k = Some(m.hdr.k);
+        match self.seed {
+            Some(s) if m.hdr.k == s.hdr.k + 1 => {
+                let d = (m.theta_m_enc - s.theta_m_enc + PI).rem_euclid(TAU) - PI;
+                self.obs.preset(s.theta_m_enc, d / self.ts);
+                self.seed = None;
+                Rejoin::Done
+            }
+            _ => {
+                self.seed = Some(*m);
+                Rejoin::NeedMore
+            }
         }
     }
 }
@@ -148,27 +195,37 @@ impl Stage for ObserverStage {
         true
     }
     fn step(&mut self, _k: u64, inputs: &Inbox, out: &mut Outbox) {
-        if let Some(m) = inputs.meas() {
-            out.push(Msg::Est(self.obs.step(m)));
+        let Some(m) = inputs.meas() else { return };
+        let gap = self.last_k.is_some_and(|l| m.hdr.k > l + 1);
+        if gap {
+            self.measurement_gaps += 1;
+            self.seed = None;
         }
+        if (gap || self.seed.is_some()) && self.seed(m) == Rejoin::NeedMore {
+            out.push(Msg::Est(encoder_fallback(
+                m,
+                self.pole_pairs,
+                self.last_omega_m,
+            )));
+            return;
+        }
+        self.last_k = Some(m.hdr.k);
+        let e = self.obs.step(m);
+        self.last_omega_m = e.omega_m;
+        out.push(Msg::Est(e));
     }
     fn rejoin(&mut self, _k: u64, inputs: &Inbox) -> Rejoin {
-        // After a restart: the angle from the newest measurement, the speed from the backward
-        // difference to the next one.
-        let Some(m) = inputs.meas() else {
-            return Rejoin::NeedMore;
-        };
-        match self.seed {
-            Some(s) if m.hdr.k == s.hdr.k + 1 => {
-                let d = (m.theta_m_enc - s.theta_m_enc + PI).rem_euclid(TAU) - PI;
-                self.obs.preset(s.theta_m_enc, d / self.ts);
-                Rejoin::Done
-            }
-            _ => {
-                self.seed = Some(*m);
-                Rejoin::NeedMore
-            }
+        // After a restart: as after a gap in the measurements.
+        match inputs.meas() {
+            Some(m) => self.seed(m),
+            None => Rejoin::NeedMore,
         }
+    }
+    fn diagnostic_names(&self) -> Diagnostics {
+        &["measurement_gaps"]
+    }
+    fn diagnostics(&self, v: &mut [u64]) {
+        v[0] = self.measurement_gaps;
     }
 }
 
@@ -302,6 +359,17 @@ impl CurrentLoopStage {
     pub fn ramp_samples(&self) -> u64 {
         self.reference.ramp_samples
     }
+
+    /// While the measurement says the inverter is in its safe state (no command of this
+    /// loop reached it in time, or it tripped), the integrators follow the voltage it
+    /// applies, as on a rejoin: the loop takes over from that voltage when its commands
+    /// reach the inverter again, instead of from integrators that ran on against a motor
+    /// the safe state was braking (a plant restarted after its downtime met a 5.2 A spike).
+    fn track_safe_state(&mut self, meas: &Measurement, e: &Estimate) {
+        if meas.hdr.flags & FLAG_SAFE_STATE != 0 {
+            self.ctrl.preset(meas, e, self.reference.active());
+        }
+    }
 }
 
 impl Stage for CurrentLoopStage {
@@ -325,6 +393,7 @@ impl Stage for CurrentLoopStage {
         let cmd = match inputs.est() {
             Some(e) => {
                 self.last_est = *e;
+                self.track_safe_state(meas, e);
                 self.ctrl.step(meas, e, self.reference.active())
             }
             None => {
@@ -332,16 +401,7 @@ impl Stage for CurrentLoopStage {
                 // and the reference as above.
                 self.fallback_samples += 1;
                 flags |= FLAG_STALE_INPUT;
-                let e = Estimate {
-                    hdr: Header {
-                        k: meas.hdr.k,
-                        t_sample_ns: meas.hdr.t_sample_ns,
-                        flags: FLAG_STALE_INPUT,
-                        ..Default::default()
-                    },
-                    theta_e: wrap_2pi(self.pole_pairs * meas.theta_m_enc),
-                    omega_m: self.last_est.omega_m,
-                };
+                let e = encoder_fallback(meas, self.pole_pairs, self.last_est.omega_m);
                 if self.sensorless {
                     // No position sensor to fall back on: command zero voltage.
                     let r = self.reference.active();
@@ -354,6 +414,7 @@ impl Stage for CurrentLoopStage {
                         ..Default::default()
                     }
                 } else {
+                    self.track_safe_state(meas, &e);
                     self.ctrl.step(meas, &e, self.reference.active())
                 }
             }
@@ -1299,6 +1360,41 @@ mod tests {
             (c.i_dq_ref[0], c.i_dq_ref[1], c.omega_ref)
         );
         assert_eq!((r.hdr.k, r.hdr.flags), (k, FLAG_STALE_INPUT));
+    }
+
+    #[test]
+    fn across_a_gap_in_the_measurements_the_observer_seeds_itself_again() {
+        let sc = scenario("kyslan-pi");
+        let mut s = ObserverStage::new(&sc);
+        let w = 20.0;
+        let dtheta = w * sc.rates.ts();
+        let est = |s: &mut ObserverStage, k: u64, theta: f64| {
+            let mut ib = Inbox::default();
+            ib.put(Msg::Meas(meas(k, theta)));
+            let mut out = Outbox::default();
+            s.step(k, &ib, &mut out);
+            let Some(Msg::Est(e)) = out.get(TopicId::Est).copied() else {
+                panic!("no estimate at {k}")
+            };
+            e
+        };
+        for k in 0..200 {
+            est(&mut s, k, 1.0 + dtheta * k as f64);
+        }
+        assert_eq!(s.measurement_gaps, 0);
+        // 400 samples later the angle moved by an unknown number of turns: not stepped across
+        // as one sample (that gave −1544 rad/s), but the encoder angle and the last speed,
+        // flagged as a fallback, then a new seed from two consecutive measurements.
+        let (k, theta) = (600, 2.5);
+        let e = est(&mut s, k, theta);
+        assert_eq!(s.measurement_gaps, 1);
+        assert_eq!(e.hdr.flags, FLAG_STALE_INPUT);
+        assert!((e.theta_e - wrap_2pi(sc.motor_params().p() * theta)).abs() < 1e-12);
+        assert!((e.omega_m - w).abs() < 0.05 * w, "ω̂ {} held", e.omega_m);
+        let e = est(&mut s, k + 1, theta + dtheta);
+        assert_eq!(e.hdr.flags, 0);
+        assert!((e.omega_m - w).abs() < 0.05 * w, "ω̂ {} vs {w}", e.omega_m);
+        assert_eq!(s.measurement_gaps, 1);
     }
 
     #[test]

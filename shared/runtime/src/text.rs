@@ -7,19 +7,32 @@ use std::borrow::Cow;
 /// digits and a bus id at most 24 characters, so only an out-of-range float is touched.
 const MAX_DIGITS: usize = 24;
 
-/// Rewrites every number in `text` that is written with more than 24 digits in exponent
-/// form: `duration_s = 1000…000 must be in (0, 3600]` (Rust prints `1e300` as 301 digits,
-/// and serde's "invalid type: floating point" does the same) becomes `duration_s = 1e300
-/// must be in (0, 3600]`. A number is a run of digits with an optional fraction and sign,
-/// not touching a letter, `_` or another digit; its value is kept (`f64`'s shortest exact
-/// form). A number that is a whole value in single quotes ('…', what the user typed) is
-/// kept. A number beyond `f64` is written as its first six digits and its length. Text
-/// without such a number is returned as it is.
-pub fn readable_numbers(text: &str) -> Cow<'_, str> {
+/// A number as written in a text: a run of digits with an optional fraction and an optional
+/// `-` before it, that does not follow a letter, a digit, `_` or `.`.
+#[derive(Debug)]
+pub struct Number<'a> {
+    /// The number as written, its sign included.
+    pub written: &'a str,
+    /// Its digits, the fraction's included.
+    pub digits: usize,
+    /// The digits after its decimal point.
+    pub decimals: usize,
+    /// The byte before it (before its sign), if any.
+    pub before: Option<u8>,
+    /// The byte after it, if any (`e` in `1.5e-3`: a number in exponent form).
+    pub after: Option<u8>,
+}
+
+/// `text` with each number that `rewrite` gives a replacement for replaced by it; the text
+/// itself, borrowed, when it gave none.
+pub fn rewrite_numbers<'a>(
+    text: &'a str,
+    mut rewrite: impl FnMut(&Number) -> Option<String>,
+) -> Cow<'a, str> {
     let b = text.as_bytes();
     let word = |c: u8| c.is_ascii_alphanumeric() || c == b'_';
     let mut out = String::new();
-    let (mut done, mut i) = (0, 0);
+    let (mut done, mut i, mut rewritten) = (0, 0, false);
     while i < b.len() {
         if !b[i].is_ascii_digit() || (i > 0 && (word(b[i - 1]) || b[i - 1] == b'.')) {
             i += 1;
@@ -30,37 +43,65 @@ pub fn readable_numbers(text: &str) -> Cow<'_, str> {
         while end < b.len() && b[end].is_ascii_digit() {
             end += 1;
         }
+        let mut decimals = 0;
         if end + 1 < b.len() && b[end] == b'.' && b[end + 1].is_ascii_digit() {
             end += 1;
             while end < b.len() && b[end].is_ascii_digit() {
                 end += 1;
+                decimals += 1;
             }
         }
-        let digits = b[i..end].iter().filter(|c| c.is_ascii_digit()).count();
-        let ends_word = end < b.len() && word(b[end]);
-        // A whole value in single quotes is text the user typed (a bus id, a flag's value):
-        // quoted as typed.
-        let quoted = start > 0 && b[start - 1] == b'\'' && end < b.len() && b[end] == b'\'';
-        if digits > MAX_DIGITS && !ends_word && !quoted {
-            if let Ok(x) = text[start..end].parse::<f64>() {
-                out.push_str(&text[done..start]);
-                if x.is_finite() {
-                    out.push_str(&format!("{x:e}"));
-                } else {
-                    // Beyond f64 (about 1.8e308): its first digits and how many there are.
-                    let head = &text[start..(i + 6).min(end)];
-                    out.push_str(&format!("{head}…({digits} digits)"));
-                }
-                done = end;
-            }
+        let number = Number {
+            written: &text[start..end],
+            digits: b[i..end].iter().filter(|c| c.is_ascii_digit()).count(),
+            decimals,
+            before: start.checked_sub(1).map(|j| b[j]),
+            after: b.get(end).copied(),
+        };
+        if let Some(r) = rewrite(&number) {
+            out.push_str(&text[done..start]);
+            out.push_str(&r);
+            (done, rewritten) = (end, true);
         }
         i = end;
     }
-    if done == 0 {
+    if !rewritten {
         return Cow::Borrowed(text);
     }
     out.push_str(&text[done..]);
     Cow::Owned(out)
+}
+
+/// Rewrites every number in `text` that is written with more than 24 digits in exponent
+/// form: `duration_s = 1000…000 must be in (0, 3600]` (Rust prints `1e300` as 301 digits,
+/// and serde's "invalid type: floating point" does the same) becomes `duration_s = 1e300
+/// must be in (0, 3600]`. A number is as [`rewrite_numbers`] finds it, not followed by a
+/// letter, a digit or `_`; its value is kept (`f64`'s shortest exact form). A number that is
+/// a whole value in single quotes ('…', what the user typed) is kept. A number beyond `f64`
+/// is written as its first six digits and its length. Text without such a number is
+/// returned as it is.
+pub fn readable_numbers(text: &str) -> Cow<'_, str> {
+    let word = |c: Option<u8>| c.is_some_and(|c| c.is_ascii_alphanumeric() || c == b'_');
+    rewrite_numbers(text, |n| {
+        // A whole value in single quotes is text the user typed (a bus id, a flag's value):
+        // quoted as typed.
+        let quoted = n.before == Some(b'\'') && n.after == Some(b'\'');
+        if n.digits <= MAX_DIGITS || word(n.after) || quoted {
+            return None;
+        }
+        let x = n.written.parse::<f64>().ok()?;
+        Some(if x.is_finite() {
+            format!("{x:e}")
+        } else {
+            // Beyond f64 (about 1.8e308): its first digits and how many there are.
+            let sign = usize::from(n.written.starts_with('-'));
+            format!(
+                "{}…({} digits)",
+                &n.written[..(sign + 6).min(n.written.len())],
+                n.digits
+            )
+        })
+    })
 }
 
 /// An error and its causes on one line (`{e:#}`), its numbers readable: what every error line
