@@ -72,6 +72,19 @@ fn a_killed_current_loop_is_absent_for_the_restart_then_rejoins_the_same_every_t
         "{f}"
     );
     assert!(f["speed_recovered_ms"].as_f64().is_some(), "{f}");
+    // The kill (50 ms) falls into the load step's response (40 ms, recovered at about 60 ms
+    // without a fault): the dip and the recovery are not measured over the kill, and the
+    // metrics say why. The rise and overshoot (over by the load step) stand.
+    let m = &s["metrics"];
+    for metric in ["load_dip_rad_s", "load_recovery_ms"] {
+        assert!(m[metric].is_null(), "{metric}: {m}");
+        assert_eq!(
+            m["cut_by_fault"][metric], "cut by the fault at 0.050 s (kill:current-loop@0.05)",
+            "{m}"
+        );
+    }
+    assert!(m["rise_time_ms"].as_f64().is_some(), "{m}");
+    assert!(m["overshoot_pct"].as_f64().is_some(), "{m}");
     // One supervisor event, at the fault's sample, and no signal.
     let ev = s["supervisor_events"].as_array().unwrap();
     assert_eq!(ev.len(), 1, "{ev:?}");

@@ -1,13 +1,14 @@
 //! `drivelab compare`: several runs on one set of axes (speed, i_q, i_d, like Kyslan et al.
 //! Fig. 3 and 4) and their metrics side by side.
 //!
-//! The metrics are recomputed from each run's `trace.csv` and `scenario.toml` with the same
-//! function as `summary.json`'s, so runs recorded before a metric existed compare too.
+//! The metrics are recomputed from each run's `trace.csv` and `scenario.toml` (and the faults
+//! of its `summary.json`, which end the metrics' windows) with the same function as
+//! `summary.json`'s, so runs recorded before a metric existed compare too.
 
 use anyhow::{anyhow, bail, Context, Result};
 use drivelab_runtime::config::Scenario;
 use drivelab_runtime::trace::TraceRow;
-use drivelab_tools::metrics::{speed_metrics, SpeedMetrics};
+use drivelab_tools::metrics::{speed_metrics_with_faults, SpeedMetrics};
 use serde_json::json;
 use std::fmt::Write;
 use std::path::{Path, PathBuf};
@@ -56,12 +57,13 @@ pub fn load_run(dir: &Path) -> Result<LoadedRun> {
     // The metrics are recomputed from the trace, not read from summary.json; but a
     // summary.json that is there and damaged says the folder is, so it is refused as
     // `drivelab plot` and `drivelab export` refuse it (a folder without one is fine).
-    crate::plotcmd::summary_if_any(dir)?;
+    // Its faults end the metrics' windows, as in the summary.
+    let faults = crate::plotcmd::summary_if_any(dir)?.fault_starts();
     let rows = drivelab_runtime::trace::read_csv(&trace)?;
     if rows.is_empty() {
         bail!("{}: trace.csv has no samples", dir.display());
     }
-    let metrics = speed_metrics(&scenario, &rows);
+    let metrics = speed_metrics_with_faults(&scenario, &rows, &faults);
     Ok(LoadedRun {
         label: scenario.name.clone(),
         scenario,

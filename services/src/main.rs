@@ -715,6 +715,16 @@ fn zenoh_config_file(file: Option<PathBuf>) -> anyhow::Result<Option<PathBuf>> {
     Ok(file)
 }
 
+/// Metric `key` of `summary.json → metrics` as [`fmt_opt`] writes it; a null one whose window
+/// a fault cut says so: `n/a (cut by the fault at 0.500 s (kill:current-loop@0.5))`.
+fn fmt_metric(m: &serde_json::Value, key: &str, unit: &str) -> String {
+    let text = fmt_opt(&m[key], unit);
+    match m["cut_by_fault"][key].as_str() {
+        Some(why) if m[key].is_null() => format!("{text} ({why})"),
+        _ => text,
+    }
+}
+
 fn fmt_opt(v: &serde_json::Value, unit: &str) -> String {
     v.as_f64()
         .map(|x| {
@@ -1023,19 +1033,19 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 } else {
                     drivelab_services::outln!(
                         "rise {}, overshoot {}, load dip {}, load recovery {}, steady-state error {}",
-                        fmt_opt(&m["rise_time_ms"], "ms"),
-                        fmt_opt(&m["overshoot_pct"], "%"),
-                        fmt_opt(&m["load_dip_rad_s"], "rad/s"),
-                        fmt_opt(&m["load_recovery_ms"], "ms"),
-                        fmt_opt(&m["steady_state_error_rad_s"], "rad/s")
+                        fmt_metric(m, "rise_time_ms", "ms"),
+                        fmt_metric(m, "overshoot_pct", "%"),
+                        fmt_metric(m, "load_dip_rad_s", "rad/s"),
+                        fmt_metric(m, "load_recovery_ms", "ms"),
+                        fmt_metric(m, "steady_state_error_rad_s", "rad/s")
                     );
                 }
                 if m["iq_rise_time_us"].as_f64().is_some() || m["id_max_a"].as_f64().is_some() {
                     drivelab_services::outln!(
                         "i_q rise (10-90 %) {}, i_q overshoot {}, max settled i_d {}",
-                        fmt_opt(&m["iq_rise_time_us"], "µs"),
-                        fmt_opt(&m["iq_overshoot_pct"], "%"),
-                        fmt_opt(&m["id_max_a"], "A")
+                        fmt_metric(m, "iq_rise_time_us", "µs"),
+                        fmt_metric(m, "iq_overshoot_pct", "%"),
+                        fmt_metric(m, "id_max_a", "A")
                     );
                 }
                 if let Some(g) = s["missing_samples"].as_array().filter(|g| !g.is_empty()) {

@@ -63,8 +63,8 @@ pub struct SummaryView {
 #[derive(Debug, serde::Deserialize)]
 struct FaultView {
     injected_t_s: Option<f64>,
-    /// Export logs the fault at this sample (read there from the JSON; only checked here).
-    #[allow(dead_code)]
+    /// Export logs the fault at this sample (read there from the JSON); the metrics' windows
+    /// end there.
     injected_k: Option<u64>,
     speed_recovered_ms: Option<f64>,
     republished_ms: Option<f64>,
@@ -98,6 +98,24 @@ impl SummaryView {
     /// The number of samples the run recorded (the rows of its trace.csv), when it says.
     pub fn samples(&self) -> Option<u64> {
         self.samples
+    }
+
+    /// Where the run's faults began, as its metrics were cut by them.
+    pub fn fault_starts(&self) -> Vec<drivelab_tools::metrics::FaultStart> {
+        self.faults
+            .iter()
+            .flatten()
+            .filter_map(|f| {
+                let t_s = match (f.injected_k, self.rate_hz) {
+                    (Some(k), Some(hz)) => k as f64 / hz,
+                    _ => f.injected_t_s?,
+                };
+                Some(drivelab_tools::metrics::FaultStart {
+                    t_s,
+                    fault: f.fault.clone().unwrap_or_default(),
+                })
+            })
+            .collect()
     }
 }
 

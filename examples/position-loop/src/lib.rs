@@ -7,7 +7,9 @@
 
 use drivelab_runtime::config::Scenario;
 use drivelab_runtime::messages::{Header, SpeedRef};
-use drivelab_runtime::stage::{Inbox, InputSpec, Msg, OnStale, Outbox, Stage, TopicId};
+use drivelab_runtime::stage::{
+    Diagnostics, Inbox, InputSpec, Msg, OnStale, Outbox, Rejoin, Stage, TopicId,
+};
 use std::f64::consts::{PI, TAU};
 
 /// The stage's name, as in `[[process]] stages` and `[stages.position-loop]`.
@@ -45,6 +47,12 @@ impl std::error::Error for ParamError {}
 ///
 /// Unwrapping takes the shortest way between two runs of the stage, so it needs
 /// |ω|·(divider·T_s) < π (3141 rad/s at 1 kHz).
+///
+/// Restart: the encoder gives the angle within a turn only, so a fresh instance would count
+/// its turns from 0 and drive the missing ones again. Each output carries the unwrapped
+/// position θ it measured (`SpeedRef::theta_m`); a restarted instance reads its own last
+/// output (a rejoin-only input on `wref`, its own output topic) and takes the turn count
+/// that puts the encoder angle nearest to it ([`turns_from`]).
 #[derive(Debug, Clone)]
 pub struct PositionLoop {
     divider: u64,
@@ -58,9 +66,33 @@ pub struct PositionLoop {
     omega_rated: f64,
     last_enc: Option<f64>,
     theta: f64,
+    /// Rejoins whose turn count was ambiguous (the encoder angle about half a turn from the
+    /// last published position).
+    ambiguous_rejoins: u64,
 }
 
-const INPUTS: &[InputSpec] = &[InputSpec::trigger(TopicId::Meas, 1, OnStale::Required)];
+const INPUTS: &[InputSpec] = &[
+    InputSpec::trigger(TopicId::Meas, 1, OnStale::Required),
+    // Read while rejoining only: this stage's own last output, as the recorder saw it.
+    InputSpec::rejoin(TopicId::Wref),
+];
+
+/// A rejoin's turn count is ambiguous when the encoder angle is within this of half a turn
+/// from the last published position, rad.
+pub const AMBIGUOUS_WITHIN_RAD: f64 = 0.1 * PI;
+
+/// The unwrapped position nearest to `last` whose angle within a turn is `enc` (in
+/// [0, 2π)): 2π·n + enc for the turn count n that puts it nearest to `last`, and whether
+/// that choice is ambiguous (`enc` within [`AMBIGUOUS_WITHIN_RAD`] of half a turn from
+/// `last`). Right while the motor turned less than half a turn (π) between the two
+/// readings, i.e. during the downtime: the speed loop brings the drive to a standstill once
+/// `wref` is lost for 2 periods, so that holds unless the drive ran fast (at the Kyslan
+/// motor's rated 366.5 rad/s, half a turn takes 8.6 ms).
+pub fn turns_from(last: f64, enc: f64) -> (f64, bool) {
+    let n = ((last - enc) / TAU).round();
+    let theta = n * TAU + enc;
+    (theta, (theta - last).abs() > PI - AMBIGUOUS_WITHIN_RAD)
+}
 
 impl PositionLoop {
     /// From `[stages.position-loop]` of `sc` (every parameter optional).
@@ -100,6 +132,7 @@ impl PositionLoop {
             omega_rated,
             last_enc: None,
             theta: 0.0,
+            ambiguous_rejoins: 0,
         })
     }
 
@@ -152,7 +185,26 @@ impl Stage for PositionLoop {
             },
             omega_ref,
             theta_m_ref,
+            theta_m: self.theta,
         }));
+    }
+    fn rejoin(&mut self, _k: u64, inputs: &Inbox) -> Rejoin {
+        // Its own last output: the turn count from the position it measured then. Without
+        // one (it died before it published), the turns are counted from 0, as at the start.
+        if let (Some(m), Some(w)) = (inputs.meas(), inputs.newest_wref()) {
+            let (theta, ambiguous) = turns_from(w.theta_m, m.theta_m_enc);
+            self.ambiguous_rejoins += u64::from(ambiguous);
+            // step() unwraps from here: the first reading adds nothing.
+            self.theta = theta;
+            self.last_enc = Some(m.theta_m_enc);
+        }
+        Rejoin::Done
+    }
+    fn diagnostic_names(&self) -> Diagnostics {
+        &["ambiguous_rejoins"]
+    }
+    fn diagnostics(&self, values: &mut [u64]) {
+        values[0] = self.ambiguous_rejoins;
     }
     fn warnings(&self) -> Vec<String> {
         if self.omega_max > self.omega_rated {
@@ -236,6 +288,75 @@ mod tests {
         step(&mut s, 50, 13f64.rem_euclid(TAU));
         let w = step(&mut s, 60, 16f64.rem_euclid(TAU));
         assert_eq!(w.omega_ref, -50.0);
+    }
+
+    #[test]
+    fn a_rejoin_takes_the_turn_count_nearest_to_the_last_published_position() {
+        // Last published 2 turns + 1 rad; the motor moved a little either way since.
+        for (last, enc, want) in [
+            (2.0 * TAU + 1.0, 1.2, 2.0 * TAU + 1.2),
+            (2.0 * TAU + 1.0, 0.8, 2.0 * TAU + 0.8),
+            // Across a turn boundary, forward and back.
+            (2.0 * TAU + 6.2, 0.1, 3.0 * TAU + 0.1),
+            (3.0 * TAU + 0.1, 6.2, 2.0 * TAU + 6.2),
+            // Below 0.
+            (-TAU + 0.5, 0.4, -TAU + 0.4),
+            (0.0, 6.0, 6.0 - TAU),
+        ] {
+            let (theta, ambiguous) = turns_from(last, enc);
+            assert!((theta - want).abs() < 1e-12, "{last} {enc}: {theta}");
+            assert!(!ambiguous, "{last} {enc}");
+        }
+        // Half a turn away: either count is as near, so the choice is flagged.
+        assert!(turns_from(TAU + 0.1, 0.1 + PI).1);
+        assert!(turns_from(TAU + 0.1, 0.1 + PI - 0.05).1);
+        assert!(!turns_from(TAU + 0.1, 0.1 + PI - 0.5).1);
+    }
+
+    #[test]
+    fn a_restarted_loop_takes_over_from_its_last_output_not_from_turn_zero() {
+        let sc = scenario("step_rad = 12.566370614359172\nkp_per_s = 10.0");
+        let mut s = PositionLoop::new(&sc).unwrap();
+        let mut ib = Inbox::default();
+        ib.put(Msg::Meas(Measurement {
+            theta_m_enc: 1.0,
+            ..Default::default()
+        }));
+        ib.put(Msg::Wref(SpeedRef {
+            theta_m: TAU + 0.9,
+            ..Default::default()
+        }));
+        assert_eq!(s.rejoin(100, &ib), Rejoin::Done);
+        let w = step(&mut s, 100, 1.0);
+        assert!((s.theta() - (TAU + 1.0)).abs() < 1e-12, "{}", s.theta());
+        assert!((w.theta_m - (TAU + 1.0)).abs() < 1e-12, "{w:?}");
+        assert!(
+            (w.omega_ref - 10.0 * (2.0 * TAU - (TAU + 1.0))).abs() < 1e-9,
+            "{w:?}"
+        );
+        let mut d = [9];
+        s.diagnostics(&mut d);
+        assert_eq!(d, [0]);
+        // Without an output of its own to go by (it died before it published): from the
+        // encoder angle, as at the start.
+        let mut s = PositionLoop::new(&sc).unwrap();
+        let mut ib = Inbox::default();
+        ib.put(Msg::Meas(Measurement {
+            theta_m_enc: 1.0,
+            ..Default::default()
+        }));
+        assert_eq!(s.rejoin(100, &ib), Rejoin::Done);
+        step(&mut s, 100, 1.0);
+        assert_eq!(s.theta(), 1.0);
+        // Half a turn from the last output: counted.
+        let mut s = PositionLoop::new(&sc).unwrap();
+        ib.put(Msg::Wref(SpeedRef {
+            theta_m: 1.0 + PI,
+            ..Default::default()
+        }));
+        s.rejoin(100, &ib);
+        s.diagnostics(&mut d);
+        assert_eq!(d, [1]);
     }
 
     #[test]

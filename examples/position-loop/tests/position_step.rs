@@ -137,6 +137,54 @@ fn a_killed_user_stage_is_restarted_and_the_speed_loop_stops_following_it() {
     remove_scratch(&out);
 }
 
+/// A restarted position loop takes over from the position the drive had, not from the
+/// encoder's angle within a turn: a 4π step, the loop killed mid-move above 2π (lockstep,
+/// deterministic) still ends at 4π, not a revolution beyond it.
+#[test]
+fn a_restarted_position_loop_keeps_its_turn_count() {
+    let _s = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let target = 2.0 * std::f64::consts::TAU;
+    let (o, out, bus) = EXAMPLE.launch(
+        "rejoin",
+        &["--clock", "lockstep", "--fault", "kill:position-loop@0.1"],
+        &[
+            ("duration_s = 0.3", "duration_s = 0.6"),
+            (
+                "step_rad = 6.283185307179586",
+                "step_rad = 12.566370614359172",
+            ),
+        ],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert_clean(&bus);
+    let c = columns(&out.join("trace.csv"));
+    let (t, theta_m) = (&c["t"], &c["theta_m"]);
+    // Killed mid-move, past the first turn (slewing at ω_max = 100 rad/s from 10 ms on).
+    let killed = t.iter().position(|&x| x >= 0.1).unwrap();
+    assert!(
+        theta_m[killed] > std::f64::consts::TAU && theta_m[killed] < target - 1.0,
+        "θ_m at the kill: {}",
+        theta_m[killed]
+    );
+    let s = summary(&out);
+    assert_eq!(
+        s["faults"][0]["process"], "position-loop",
+        "{}",
+        s["faults"]
+    );
+    let fin = *theta_m.last().unwrap();
+    // A fresh loop that counted its turns from the encoder angle would end one turn beyond.
+    assert!(
+        (fin - target).abs() < 0.01 * target,
+        "final θ_m = {fin} (target {target}; one turn off: {})",
+        fin - target - std::f64::consts::TAU
+    );
+    let d = &s["counters"]["position-loop"]["diagnostics"];
+    assert_eq!(d["ambiguous_rejoins"], 0, "{d}");
+    remove_scratch(&out);
+}
+
 #[test]
 fn in_process_a_user_stage_is_refused_before_anything_is_made() {
     let (o, out, bus) = EXAMPLE.launch("inprocess", &["--clock", "inprocess"], &[]);

@@ -33,7 +33,7 @@ use drivelab_runtime::service::TopologyPlan;
 use drivelab_runtime::tick;
 use drivelab_runtime::topology::StageInfo;
 use drivelab_runtime::trace::TraceRow;
-use drivelab_tools::metrics::speed_metrics;
+use drivelab_tools::metrics::{speed_metrics_with_faults, FaultStart};
 use recorder::{run_recorder, Progress};
 use serde::Serialize;
 use serde_json::json;
@@ -1688,7 +1688,16 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             stats
         }
     };
-    let mut metrics = speed_metrics(&sc, &rows);
+    // Every fault of the summary (kills, stops, bus and sensor faults, hogs, a trip) ends
+    // the metrics windows its start falls into.
+    let fault_starts: Vec<FaultStart> = faults
+        .iter()
+        .map(|f| FaultStart {
+            t_s: f.injected_k as f64 / sc.rates.sample_hz,
+            fault: f.fault.clone(),
+        })
+        .collect();
+    let mut metrics = speed_metrics_with_faults(&sc, &rows, &fault_starts);
     // A stage that makes the speed reference (an outer loop): the scenario's speed steps are
     // not what the speed loop followed.
     if let Some(outer) = topo
@@ -1702,6 +1711,15 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         metrics.steady_state_error_rad_s = None;
         metrics.load_dip_rad_s = None;
         metrics.load_recovery_ms = None;
+        for m in [
+            "rise_time_ms",
+            "overshoot_pct",
+            "steady_state_error_rad_s",
+            "load_dip_rad_s",
+            "load_recovery_ms",
+        ] {
+            metrics.cut_by_fault.remove(m);
+        }
     }
     // The design that runs ([model]), without the built-in designs that a user's stage
     // replaced.

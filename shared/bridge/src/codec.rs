@@ -28,7 +28,7 @@ use drivelab_runtime::telemetry::{
 pub const MAGIC: u32 = u32::from_le_bytes(*b"DLZB");
 /// Version of the frame layout and of the message types it carries. Bump it whenever a
 /// message of `drivelab_runtime::messages` or `telemetry` changes.
-pub const VERSION: u16 = 1;
+pub const VERSION: u16 = 2;
 /// Length of a frame's head, bytes.
 pub const HEAD: usize = 16;
 /// Most messages in one frame (the bridge batches what arrived since its last poll).
@@ -265,7 +265,7 @@ mod tests {
         assert_eq!(size_of::<Estimate>(), 32 + 8 * 2);
         assert_eq!(size_of::<CurrentRef>(), 32 + 8 * 3);
         assert_eq!(size_of::<VoltageCommand>(), 32 + 8 * 9);
-        assert_eq!(size_of::<SpeedRef>(), 32 + 8 * 2);
+        assert_eq!(size_of::<SpeedRef>(), 32 + 8 * 3);
         assert_eq!(size_of::<EventEntry>(), 8 * 3 + 120);
         assert_eq!(size_of::<FaultRequest>(), 4 * 4);
         let hist = 8 * 2 + 4 * drivelab_runtime::telemetry::BUCKETS;
@@ -319,7 +319,15 @@ mod tests {
         bad(&|f| f[0] = b'X', Reject::Magic);
         // A big-endian sender writes the magic the other way round.
         bad(&|f| f[..4].reverse(), Reject::Magic);
-        bad(&|f| f[4] = 2, Reject::Version(2));
+        // A frame of another layout version (the one before this, and the one after).
+        bad(
+            &|f| f[4] = (VERSION - 1) as u8,
+            Reject::Version(VERSION - 1),
+        );
+        bad(
+            &|f| f[4] = (VERSION + 1) as u8,
+            Reject::Version(VERSION + 1),
+        );
         bad(&|f| f[6] = 1, Reject::Kind(1));
         bad(
             &|f| f[8] += 8,

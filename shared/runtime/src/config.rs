@@ -1508,6 +1508,11 @@ impl Scenario {
             })?;
             if let Some(v) = t.get("rate_hz") {
                 let hz = v.as_float().or_else(|| v.as_integer().map(|i| i as f64));
+                // A rate that divides the sample rate can still be one step in the run, or
+                // none after the first (1e-20 Hz: a divider of 2^64 − 1, accepted before).
+                check(!hz.is_some_and(|hz| hz > 0.0 && hz < 1.0), || {
+                    format!("stages.{name}.rate_hz = {v} is below 1 Hz, the slowest rate a stage may run at")
+                })?;
                 let ok = hz.is_some_and(|hz| {
                     hz.is_finite()
                         && hz > 0.0
@@ -1910,6 +1915,11 @@ preset = "kyslan2015"
                 "either in [placement] or in [[process]]",
             ),
             (tail("[stages.pos]\nrate_hz = 3.0"), "stages.pos.rate_hz = 3.0 must divide"),
+            (
+                tail("[stages.pos]\nrate_hz = 1e-20"),
+                "is below 1 Hz, the slowest rate a stage may run at",
+            ),
+            (tail("[stages.pos]\nrate_hz = 0.5"), "stages.pos.rate_hz = 0.5 is below 1 Hz"),
             (
                 tail("[stages.plant]\nfoo = 1"),
                 "[stages.plant] is for user stages, and the plant cannot be replaced: it takes its settings from",

@@ -344,7 +344,9 @@ pub struct HostConfig {
     pub tick_aligned: bool,
     /// Restarted: take over a running drive.
     pub rejoin: bool,
-    /// Source only, rejoining: its own last output as the recorder saw it.
+    /// Rejoining: its own last output as the recorder saw it. The source's true state; for
+    /// another process, the last `wref` (an outer loop's), handed to a stage that publishes
+    /// that topic and declares it a rejoin-only input (its own-output slot).
     pub rejoin_from: Option<Msg>,
     /// Source only: send warm-up messages through the chain before sample 0.
     pub warm_up: bool,
@@ -980,6 +982,10 @@ impl<T: Transport> Host<T> {
             let slot = &mut ib.slots[t.index()];
             slot.msg = self.store.newest[t.index()];
             if b.spec.role == Role::Rejoin {
+                if slot.msg.is_none() && self.own_output(si, t) {
+                    // A restarted process: its own last output comes from the recorder.
+                    slot.msg = self.cfg.rejoin_from.filter(|m| m.topic() == t);
+                }
                 slot.fresh = slot.msg.is_some();
                 continue;
             }
@@ -1235,6 +1241,12 @@ impl<T: Transport> Host<T> {
                 continue;
             }
             let t = b.spec.topic;
+            if self.own_output(si, t) {
+                // Its own output: the killed instance's last one, which the store keeps as
+                // the newest (the absent markers of the downtime do not replace it) and the
+                // inbox holds already, as the recorder saw it.
+                continue;
+            }
             while !self.store.settled(t, k) && b.origin == Origin::External {
                 if self.stopping() {
                     break;
@@ -1254,6 +1266,12 @@ impl<T: Transport> Host<T> {
             slot.fresh = slot.msg.is_some();
         }
         Ok(())
+    }
+
+    /// True when stage `si` publishes `t`: a rejoin-only input on it is the stage's own last
+    /// output (docs/architecture.md, "Bumpless rejoin").
+    fn own_output(&self, si: usize, t: TopicId) -> bool {
+        self.stages[si].stage.outputs().contains(&t)
     }
 
     /// Stage `si` has taken over. Its rejoin-only inputs that no other stage here still

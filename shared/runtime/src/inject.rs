@@ -345,6 +345,7 @@ pub fn corrupt(m: &mut Msg, nth: u64) {
         Msg::Wref(x) => {
             x.omega_ref = v;
             x.theta_m_ref = v;
+            x.theta_m = v;
         }
         Msg::Truth(x) => {
             x.i_dq = [v; 2];

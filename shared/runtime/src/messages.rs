@@ -167,6 +167,10 @@ pub struct SpeedRef {
     pub omega_ref: f64,
     /// Position reference the outer loop tracked, mechanical rad (unwrapped; 0 if none).
     pub theta_m_ref: f64,
+    /// The unwrapped position the outer loop measured, mechanical rad (0 if none): what a
+    /// restarted outer loop takes its turn count from (docs/architecture.md, "Bumpless
+    /// rejoin").
+    pub theta_m: f64,
 }
 
 /// Every payload must be finite and plausible; a NaN, an infinity or a value beyond
@@ -216,7 +220,7 @@ impl Finite for CurrentRef {
 
 impl Finite for SpeedRef {
     fn is_finite(&self) -> bool {
-        all_finite(&[self.omega_ref, self.theta_m_ref])
+        all_finite(&[self.omega_ref, self.theta_m_ref, self.theta_m])
     }
 }
 

@@ -174,6 +174,7 @@ fn fill(ib: &mut Inbox, v: &[f64], ks: &[u64], fresh: &[bool]) {
             hdr: header(ks[4]),
             omega_ref: v[20],
             theta_m_ref: v[21],
+            theta_m: v[22],
         }),
     ];
     for (i, m) in msgs.into_iter().enumerate() {

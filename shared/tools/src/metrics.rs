@@ -3,6 +3,7 @@
 use drivelab_runtime::config::{profile_at, Scenario};
 use drivelab_runtime::trace::TraceRow;
 use serde::Serialize;
+use std::collections::BTreeMap;
 
 /// Speed-loop metrics (`summary.json` → `metrics`).
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
@@ -50,6 +51,79 @@ pub struct SpeedMetrics {
     /// interval before the first one included), A. Flux strengthening shows as i_d > 0.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub id_max_a: Option<f64>,
+    /// The metrics whose window a fault's start fell into, each with what the fault did to
+    /// it: `null` and "cut by the fault at T s (FAULT)" where the response had not settled
+    /// before the fault (or, for a rise time, not reached the set-point), "measured up to the
+    /// fault at …" where the figure is over the samples before it. Empty (left out) in a run
+    /// without faults.
+    #[serde(skip_serializing_if = "BTreeMap::is_empty")]
+    pub cut_by_fault: BTreeMap<String, String>,
+}
+
+/// Where a fault began (`summary.json` → `faults`: its `injected_t_s` and `fault`): it ends
+/// every metrics window it falls into.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FaultStart {
+    /// The fault's first sample, s.
+    pub t_s: f64,
+    /// The fault as the report names it, e.g. `kill:current-loop@0.5`.
+    pub fault: String,
+}
+
+impl FaultStart {
+    /// Where its window ends: the rows before this are before the fault (a row's time and
+    /// the fault's, both from the sample index, can differ in the last bit).
+    fn cut_at(&self) -> f64 {
+        self.t_s - 1e-9
+    }
+}
+
+/// How long a response cut by a fault must have stayed within ±2 % of its reference just
+/// before the fault for its figures over the samples before it to stand, s (the fault
+/// reports' `speed_recovered_ms` holds as long).
+pub const SETTLED_HOLD_S: f64 = 0.01;
+
+/// The faults of a run, in order of their start.
+struct Faults<'a> {
+    starts: Vec<&'a FaultStart>,
+    hold: usize,
+}
+
+impl<'a> Faults<'a> {
+    fn new(sc: &Scenario, faults: &'a [FaultStart]) -> Self {
+        let mut starts: Vec<&FaultStart> = faults.iter().filter(|f| f.t_s.is_finite()).collect();
+        starts.sort_by(|a, b| a.t_s.total_cmp(&b.t_s));
+        Faults {
+            starts,
+            hold: (SETTLED_HOLD_S * sc.rates.sample_hz).ceil().max(1.0) as usize,
+        }
+    }
+
+    /// The first fault that starts in [from, to).
+    fn within(&self, from: f64, to: f64) -> Option<&'a FaultStart> {
+        self.starts
+            .iter()
+            .copied()
+            .find(|f| f.t_s >= from - 1e-12 && f.t_s < to)
+    }
+}
+
+/// Whether the last [`Faults::hold`] rows of `window` (the rows before a fault) are within
+/// ±2 % of `reference`: the response had settled before the fault.
+fn settled(window: &[&TraceRow], hold: usize, reference: impl Fn(&TraceRow) -> f64) -> bool {
+    window.len() >= hold
+        && window[window.len() - hold..].iter().all(|r| {
+            let w = reference(r);
+            (r.omega_m - w).abs() <= 0.02 * w.abs()
+        })
+}
+
+/// Why `metric` is null: the fault `f` cut its window.
+fn cut(out: &mut SpeedMetrics, metric: &str, f: &FaultStart) {
+    out.cut_by_fault.insert(
+        metric.into(),
+        format!("cut by the fault at {:.3} s ({})", f.t_s, f.fault),
+    );
 }
 
 /// Start of the i_d tracking-error window after the first i_d reference step, s.
@@ -59,9 +133,22 @@ fn first_step_time(steps: &[drivelab_runtime::config::Step], after: f64) -> Opti
     steps.iter().map(|s| s.t_s).find(|&t| t > after)
 }
 
-/// Computes the speed metrics of `rows` for scenario `sc`.
+/// Computes the speed metrics of `rows` for scenario `sc`, in a run without faults.
 pub fn speed_metrics(sc: &Scenario, rows: &[TraceRow]) -> SpeedMetrics {
+    speed_metrics_with_faults(sc, rows, &[])
+}
+
+/// Computes the speed metrics of `rows` for scenario `sc`, whose run had `faults`: a fault's
+/// start ends every window it falls into, as the next reference or load step does. What
+/// follows it is the fault's doing, not the response's: a figure whose response had not
+/// completed before the fault is `None`, and `cut_by_fault` says why.
+pub fn speed_metrics_with_faults(
+    sc: &Scenario,
+    rows: &[TraceRow],
+    faults: &[FaultStart],
+) -> SpeedMetrics {
     let mut out = SpeedMetrics::default();
+    let faults = Faults::new(sc, faults);
     if rows.is_empty() {
         return out;
     }
@@ -89,17 +176,36 @@ pub fn speed_metrics(sc: &Scenario, rows: &[TraceRow]) -> SpeedMetrics {
         .flatten()
         .fold(end + 1.0, f64::min);
         if dir != 0.0 {
-            out.rise_time_ms = rows
+            let rise = rows
                 .iter()
-                .find(|r| r.t >= t0 && (r.omega_m - target) * dir >= 0.0)
-                .map(|r| (r.t - t0) * 1e3);
-            let peak = rows
+                .find(|r| r.t >= t0 && (r.omega_m - target) * dir >= 0.0);
+            // A fault before the speed reached the set-point: the rise is not the loop's.
+            match (
+                faults.within(t0, rise.map_or(f64::INFINITY, |r| r.t + 1e-12)),
+                rise,
+            ) {
+                (Some(f), _) => cut(&mut out, "rise_time_ms", f),
+                (None, r) => out.rise_time_ms = r.map(|r| (r.t - t0) * 1e3),
+            }
+            let fault = faults.within(t0, next_event);
+            let window: Vec<&TraceRow> = rows
                 .iter()
-                .filter(|r| r.t >= t0 && r.t < next_event)
+                .filter(|r| r.t >= t0 && r.t < fault.map_or(next_event, FaultStart::cut_at))
+                .collect();
+            let peak = window
+                .iter()
                 .map(|r| (r.omega_m - target) * dir)
                 .fold(f64::NEG_INFINITY, f64::max);
-            if peak.is_finite() {
-                out.overshoot_pct = Some(peak.max(0.0) / (target - before).abs() * 100.0);
+            match fault {
+                // The peak before the fault is the overshoot only once the response had
+                // settled: a later swing could have gone higher.
+                Some(f) if !settled(&window, faults.hold, |_| target) => {
+                    cut(&mut out, "overshoot_pct", f)
+                }
+                _ if peak.is_finite() => {
+                    out.overshoot_pct = Some(peak.max(0.0) / (target - before).abs() * 100.0);
+                }
+                _ => {}
             }
         }
     }
@@ -112,7 +218,14 @@ pub fn speed_metrics(sc: &Scenario, rows: &[TraceRow]) -> SpeedMetrics {
     // No speed reference (a current-reference study at a prescribed speed): no speed error.
     let speed_study = !refs.is_empty() || sc.reference.i_q_a.is_empty();
     if !tail.is_empty() && speed_study {
-        out.steady_state_error_rad_s = Some(tail.iter().sum::<f64>() / tail.len() as f64);
+        // A fault within the last 10 %: the error there is the fault's, the part before it
+        // too short a tail.
+        match faults.within(tail_start, f64::INFINITY) {
+            Some(f) => cut(&mut out, "steady_state_error_rad_s", f),
+            None => {
+                out.steady_state_error_rad_s = Some(tail.iter().sum::<f64>() / tail.len() as f64)
+            }
+        }
     }
     if let Some(tl) = loads.iter().find(|s| s.value != 0.0) {
         let t0 = tl.t_s;
@@ -122,12 +235,24 @@ pub fn speed_metrics(sc: &Scenario, rows: &[TraceRow]) -> SpeedMetrics {
             .into_iter()
             .flatten()
             .fold(f64::INFINITY, f64::min);
+        // So does a fault: the response to the load step is over only where the speed had
+        // settled before it (the dip and the recovery over the samples before it stand).
+        let fault = faults.within(t0, t_end).filter(|f| {
+            !settled(&pre_fault(rows, t0, f), faults.hold, |r| {
+                profile_at(refs, r.t)
+            })
+        });
+        if let Some(f) = fault {
+            cut(&mut out, "load_dip_rad_s", f);
+            cut(&mut out, "load_recovery_ms", f);
+        }
+        let t_end = faults.within(t0, t_end).map_or(t_end, FaultStart::cut_at);
         let after: Vec<&TraceRow> = rows.iter().filter(|r| r.t >= t0 && r.t < t_end).collect();
         let dip = after
             .iter()
             .map(|r| profile_at(refs, r.t) - r.omega_m)
             .fold(f64::NEG_INFINITY, f64::max);
-        if dip.is_finite() {
+        if dip.is_finite() && fault.is_none() {
             out.load_dip_rad_s = Some(dip);
         }
         // Last sample outside the ±2 % band; recovered just after it.
@@ -136,6 +261,7 @@ pub fn speed_metrics(sc: &Scenario, rows: &[TraceRow]) -> SpeedMetrics {
             (r.omega_m - w).abs() > 0.02 * w.abs()
         });
         out.load_recovery_ms = match outside {
+            _ if fault.is_some() => None,
             None => Some(0.0),
             Some(i) if i + 1 < after.len() => Some((after[i + 1].t - t0) * 1e3),
             Some(_) => None, // never recovered within the run
@@ -147,13 +273,27 @@ pub fn speed_metrics(sc: &Scenario, rows: &[TraceRow]) -> SpeedMetrics {
         .find(|s| s.value != profile_at(ids, s.t_s - 1e-9) || (s.t_s == 0.0 && s.value != 0.0))
     {
         let t0 = step.t_s + ID_ERROR_DELAY_S;
+        // Up to the end of the run or the first fault after the step: the error after it is
+        // the fault's.
+        let fault = faults.within(step.t_s, f64::INFINITY);
+        let t_end = fault.map_or(f64::INFINITY, FaultStart::cut_at);
         let (sum, n) = rows
             .iter()
-            .filter(|r| r.t >= t0 - 1e-12)
+            .filter(|r| r.t >= t0 - 1e-12 && r.t < t_end)
             .map(|r| profile_at(ids, r.t) - r.i_d)
             .fold((0.0, 0usize), |(s, n), e| (s + e * e, n + 1));
         if n > 0 {
             out.id_tracking_error_a = Some((sum / n as f64).sqrt());
+        }
+        match fault {
+            Some(f) if n > 0 => {
+                out.cut_by_fault.insert(
+                    "id_tracking_error_a".into(),
+                    format!("measured up to the fault at {:.3} s ({})", f.t_s, f.fault),
+                );
+            }
+            Some(f) => cut(&mut out, "id_tracking_error_a", f),
+            None => {}
         }
     }
     if let Some((ss, conv)) = drivelab_runtime::wiring::observer_sensorless::angle_metrics(sc, rows)
@@ -161,12 +301,19 @@ pub fn speed_metrics(sc: &Scenario, rows: &[TraceRow]) -> SpeedMetrics {
         out.angle_error_ss_deg = Some(ss);
         out.observer_convergence_ms = conv;
     }
-    current_step_metrics(sc, rows, &mut out);
+    current_step_metrics(sc, rows, &faults, &mut out);
     out
 }
 
+/// The rows from `t0` up to the fault `f`.
+fn pre_fault<'a>(rows: &'a [TraceRow], t0: f64, f: &FaultStart) -> Vec<&'a TraceRow> {
+    rows.iter()
+        .filter(|r| r.t >= t0 && r.t < f.cut_at())
+        .collect()
+}
+
 /// The i_q step metrics of a current-reference scenario (`reference.i_q_a` non-empty).
-fn current_step_metrics(sc: &Scenario, rows: &[TraceRow], out: &mut SpeedMetrics) {
+fn current_step_metrics(sc: &Scenario, rows: &[TraceRow], faults: &Faults, out: &mut SpeedMetrics) {
     let iqs = &sc.reference.i_q_a;
     if iqs.is_empty() || rows.is_empty() {
         return;
@@ -198,9 +345,12 @@ fn current_step_metrics(sc: &Scenario, rows: &[TraceRow], out: &mut SpeedMetrics
             .copied()
             .find(|&t| t > t0 + 1e-12)
             .unwrap_or(end + 1.0);
+        // A fault ends the window too: the rise stands where it was over before the fault,
+        // the overshoot (whose peak could have come later) does not.
+        let fault = faults.within(t0 - 1e-12, next);
         let window: Vec<&TraceRow> = rows
             .iter()
-            .filter(|r| r.t >= t0 - 1e-12 && r.t < next)
+            .filter(|r| r.t >= t0 - 1e-12 && r.t < fault.map_or(next, FaultStart::cut_at))
             .collect();
         let crossing = |frac: f64| {
             window
@@ -208,15 +358,21 @@ fn current_step_metrics(sc: &Scenario, rows: &[TraceRow], out: &mut SpeedMetrics
                 .find(|r| (r.i_q - before) * dir >= frac * size.abs())
                 .map(|r| r.t)
         };
-        if let (Some(t10), Some(t90)) = (crossing(0.1), crossing(0.9)) {
-            out.iq_rise_time_us = Some((t90 - t10) * 1e6);
+        match (crossing(0.1), crossing(0.9), fault) {
+            (Some(t10), Some(t90), _) => out.iq_rise_time_us = Some((t90 - t10) * 1e6),
+            (_, _, Some(f)) => cut(out, "iq_rise_time_us", f),
+            _ => {}
         }
         let peak = window
             .iter()
             .map(|r| (r.i_q - step.value) * dir)
             .fold(f64::NEG_INFINITY, f64::max);
-        if peak.is_finite() && size != 0.0 {
-            out.iq_overshoot_pct = Some(peak.max(0.0) / size.abs() * 100.0);
+        match fault {
+            Some(f) => cut(out, "iq_overshoot_pct", f),
+            None if peak.is_finite() && size != 0.0 => {
+                out.iq_overshoot_pct = Some(peak.max(0.0) / size.abs() * 100.0);
+            }
+            None => {}
         }
     }
     let tail: Vec<f64> = rows
@@ -225,13 +381,28 @@ fn current_step_metrics(sc: &Scenario, rows: &[TraceRow], out: &mut SpeedMetrics
         .map(|r| profile_at(iqs, r.t) - r.i_q)
         .collect();
     if !tail.is_empty() {
-        out.iq_steady_state_error_a = Some(tail.iter().sum::<f64>() / tail.len() as f64);
+        match faults.within(0.9 * end, f64::INFINITY) {
+            Some(f) => cut(out, "iq_steady_state_error_a", f),
+            None => {
+                out.iq_steady_state_error_a = Some(tail.iter().sum::<f64>() / tail.len() as f64)
+            }
+        }
     }
     let mut bounds = vec![0.0];
     bounds.extend(events.iter().copied().filter(|&t| t < end));
     bounds.push(end + 1e-9);
+    // An interval a fault falls into has no settled quarter: the end of the interval is the
+    // fault's doing. It is left out.
+    let mut left_out = None;
     let id_max = bounds
         .windows(2)
+        .filter(|w| match faults.within(w[0], w[1]) {
+            Some(f) => {
+                left_out.get_or_insert(f);
+                false
+            }
+            None => true,
+        })
         .flat_map(|w| {
             let from = w[1] - 0.25 * (w[1] - w[0]);
             rows.iter()
@@ -241,6 +412,17 @@ fn current_step_metrics(sc: &Scenario, rows: &[TraceRow], out: &mut SpeedMetrics
         .fold(f64::NEG_INFINITY, f64::max);
     if id_max.is_finite() {
         out.id_max_a = Some(id_max);
+    }
+    if let Some(f) = left_out {
+        let why = if id_max.is_finite() {
+            format!(
+                "leaves out the interval cut by the fault at {:.3} s ({})",
+                f.t_s, f.fault
+            )
+        } else {
+            format!("cut by the fault at {:.3} s ({})", f.t_s, f.fault)
+        };
+        out.cut_by_fault.insert("id_max_a".into(), why);
     }
 }
 
@@ -266,22 +448,26 @@ torque_nm = [{ t_s = 0.05, value = 0.1 }]
         .unwrap()
     }
 
+    /// ω rises linearly to 110 at 10 ms, falls to 100 at 20 ms, dips by 5 at 50 ms and
+    /// comes back at 60 ms.
+    fn synthetic_speed(t: f64) -> f64 {
+        if t < 0.01 {
+            11_000.0 * t
+        } else if t < 0.02 {
+            110.0 - 1000.0 * (t - 0.01)
+        } else if (0.05..0.06).contains(&t) {
+            95.0
+        } else {
+            100.0
+        }
+    }
+
     #[test]
     fn synthetic_response() {
-        // ω rises linearly to 110 at 10 ms, falls to 100 at 20 ms, dips by 5 at 50 ms and
-        // comes back at 60 ms.
         let rows: Vec<TraceRow> = (0..1000)
             .map(|k| {
                 let t = k as f64 * 1e-4;
-                let w = if t < 0.01 {
-                    11_000.0 * t
-                } else if t < 0.02 {
-                    110.0 - 1000.0 * (t - 0.01)
-                } else if (0.05..0.06).contains(&t) {
-                    95.0
-                } else {
-                    100.0
-                };
+                let w = synthetic_speed(t);
                 // i_d: 0 before 20 ms, then −1 with an error of 0.1 A from 40 ms on.
                 let i_d = if t < 0.02 {
                     0.0
@@ -352,5 +538,105 @@ torque_nm = [{ t_s = 0.05, value = 0.1 }]
         assert!((m.load_dip_rad_s.unwrap() - 5.0).abs() < 1e-9, "{m:?}");
         let rec = m.load_recovery_ms.unwrap();
         assert!((rec - 10.0).abs() < 0.11, "recovery {rec} ms");
+    }
+
+    /// The synthetic response of `synthetic_response`, then at 80 ms a fault that drops the
+    /// speed to 50 rad/s for the rest of the run.
+    fn faulted_rows() -> Vec<TraceRow> {
+        (0..1000)
+            .map(|k| {
+                let t = k as f64 * 1e-4;
+                let w = if t >= 0.08 { 50.0 } else { synthetic_speed(t) };
+                TraceRow {
+                    k,
+                    t,
+                    omega_m: w,
+                    i_d: if t < 0.02 { 0.0 } else { -1.0 },
+                    ..Default::default()
+                }
+            })
+            .collect()
+    }
+
+    fn fault_at(t_s: f64) -> Vec<FaultStart> {
+        vec![FaultStart {
+            t_s,
+            fault: format!("kill:current-loop@{t_s}"),
+        }]
+    }
+
+    #[test]
+    fn a_fault_after_the_load_response_settled_leaves_it_as_it_was() {
+        // Recovered at 60 ms, in the band until the fault at 80 ms: the fault is no part of
+        // the load response (without the fault's start the drop at 80 ms never recovers).
+        let rows = faulted_rows();
+        assert_eq!(speed_metrics(&sc(), &rows).load_recovery_ms, None);
+        let m = speed_metrics_with_faults(&sc(), &rows, &fault_at(0.08));
+        assert!((m.load_dip_rad_s.unwrap() - 5.0).abs() < 1e-9, "{m:?}");
+        assert!((m.load_recovery_ms.unwrap() - 10.0).abs() < 0.11, "{m:?}");
+        assert!(!m.cut_by_fault.contains_key("load_recovery_ms"), "{m:?}");
+        // The rise and the overshoot were over long before.
+        assert!((m.rise_time_ms.unwrap() - 100.0 / 11_000.0 * 1e3).abs() < 0.11);
+        assert!((m.overshoot_pct.unwrap() - 10.0).abs() < 0.2);
+        // The i_d error is measured up to the fault, and says so.
+        assert_eq!(m.id_tracking_error_a, Some(0.0), "{m:?}");
+        assert_eq!(
+            m.cut_by_fault["id_tracking_error_a"],
+            "measured up to the fault at 0.080 s (kill:current-loop@0.08)"
+        );
+        // The last 10 % (90..99.9 ms) is after the fault but holds no fault's start.
+        assert!((m.steady_state_error_rad_s.unwrap() - 50.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_fault_inside_the_load_response_leaves_no_figure_measured_over_it() {
+        // The fault at 55 ms falls into the dip (50..60 ms): the response is not over, so the
+        // dip and the recovery are null, with why; before the fix they were measured over the
+        // fault (a 50 rad/s dip that never recovered: recovery null without a reason).
+        let rows = faulted_rows();
+        let before = speed_metrics(&sc(), &rows);
+        assert_eq!(before.load_dip_rad_s, Some(50.0));
+        let m = speed_metrics_with_faults(&sc(), &rows, &fault_at(0.055));
+        assert_eq!(
+            (m.load_dip_rad_s, m.load_recovery_ms),
+            (None, None),
+            "{m:?}"
+        );
+        for metric in ["load_dip_rad_s", "load_recovery_ms"] {
+            assert_eq!(
+                m.cut_by_fault[metric], "cut by the fault at 0.055 s (kill:current-loop@0.055)",
+                "{m:?}"
+            );
+        }
+        // The fault during the rise: no rise time, no overshoot.
+        let m = speed_metrics_with_faults(&sc(), &rows, &fault_at(0.005));
+        assert_eq!((m.rise_time_ms, m.overshoot_pct), (None, None), "{m:?}");
+        assert!(m.cut_by_fault.contains_key("rise_time_ms"), "{m:?}");
+        assert!(m.cut_by_fault.contains_key("overshoot_pct"), "{m:?}");
+        // After the speed reached the set-point, before it settled: the rise stands.
+        let m = speed_metrics_with_faults(&sc(), &rows, &fault_at(0.015));
+        assert!(
+            m.rise_time_ms.is_some() && m.overshoot_pct.is_none(),
+            "{m:?}"
+        );
+        // A fault in the last 10 %: no steady-state error.
+        let m = speed_metrics_with_faults(&sc(), &rows, &fault_at(0.095));
+        assert_eq!(m.steady_state_error_rad_s, None, "{m:?}");
+        assert!(m.cut_by_fault.contains_key("steady_state_error_rad_s"));
+    }
+
+    #[test]
+    fn a_load_response_cut_before_it_stayed_settled_is_null() {
+        // Back in the band at 60 ms, the fault 5 ms later (less than the 10 ms hold): the
+        // recovery is not known.
+        let rows = faulted_rows();
+        let m = speed_metrics_with_faults(&sc(), &rows, &fault_at(0.065));
+        assert_eq!(m.load_recovery_ms, None, "{m:?}");
+        assert!(m.cut_by_fault.contains_key("load_recovery_ms"), "{m:?}");
+        // No fault: no reasons, and nothing of them in the JSON.
+        let m = speed_metrics(&sc(), &rows);
+        assert!(m.cut_by_fault.is_empty());
+        let json = serde_json::to_value(&m).unwrap();
+        assert!(json.get("cut_by_fault").is_none(), "{json}");
     }
 }
