@@ -344,9 +344,7 @@ pub struct HostConfig {
     pub tick_aligned: bool,
     /// Restarted: take over a running drive.
     pub rejoin: bool,
-    /// Rejoining: its own last output as the recorder saw it. The source's true state; for
-    /// another process, the last `wref` (an outer loop's), handed to a stage that publishes
-    /// that topic and declares it a rejoin-only input (its own-output slot).
+    /// Source only, rejoining: its own last output as the recorder saw it.
     pub rejoin_from: Option<Msg>,
     /// Source only: send warm-up messages through the chain before sample 0.
     pub warm_up: bool,
@@ -982,10 +980,6 @@ impl<T: Transport> Host<T> {
             let slot = &mut ib.slots[t.index()];
             slot.msg = self.store.newest[t.index()];
             if b.spec.role == Role::Rejoin {
-                if slot.msg.is_none() && self.own_output(si, t) {
-                    // A restarted process: its own last output comes from the recorder.
-                    slot.msg = self.cfg.rejoin_from.filter(|m| m.topic() == t);
-                }
                 slot.fresh = slot.msg.is_some();
                 continue;
             }

@@ -237,7 +237,8 @@ pub fn speed_metrics_with_faults(
             .fold(f64::INFINITY, f64::min);
         // So does a fault: the response to the load step is over only where the speed had
         // settled before it (the dip and the recovery over the samples before it stand).
-        let fault = faults.within(t0, t_end).filter(|f| {
+        let first = faults.within(t0, t_end);
+        let fault = first.filter(|f| {
             !settled(&pre_fault(rows, t0, f), faults.hold, |r| {
                 profile_at(refs, r.t)
             })
@@ -246,7 +247,7 @@ pub fn speed_metrics_with_faults(
             cut(&mut out, "load_dip_rad_s", f);
             cut(&mut out, "load_recovery_ms", f);
         }
-        let t_end = faults.within(t0, t_end).map_or(t_end, FaultStart::cut_at);
+        let t_end = first.map_or(t_end, FaultStart::cut_at);
         let after: Vec<&TraceRow> = rows.iter().filter(|r| r.t >= t0 && r.t < t_end).collect();
         let dip = after
             .iter()
