@@ -155,7 +155,7 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
         }
     }
     for w in remote.history::<SpeedRef>()? {
-        if !w.hdr.is_warmup() && !w.hdr.is_end() {
+        if !w.hdr.is_warmup() && !w.hdr.is_end() && !w.hdr.is_absent() {
             trace.wref(w.hdr.k, w.theta_m_ref);
         }
     }
@@ -187,7 +187,10 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
             &wref,
             &mut last_wref,
             |w| {
-                trace.wref(w.hdr.k, w.theta_m_ref);
+                // An absent marker (lockstep: the loop is down) is no reference.
+                if !w.hdr.is_absent() {
+                    trace.wref(w.hdr.k, w.theta_m_ref);
+                }
                 Ok(())
             },
             |w| w.hdr,

@@ -94,6 +94,14 @@ pub fn turns_from(last: f64, enc: f64) -> (f64, bool) {
     (theta, (theta - last).abs() > PI - AMBIGUOUS_WITHIN_RAD)
 }
 
+/// Which values a parameter may take (beyond being a finite number).
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Sign {
+    Any,
+    NotNegative,
+    Positive,
+}
+
 impl PositionLoop {
     /// From `[stages.position-loop]` of `sc` (every parameter optional).
     pub fn new(sc: &Scenario) -> Result<Self, ParamError> {
@@ -104,7 +112,7 @@ impl PositionLoop {
                 KEYS.join(", ")
             )));
         }
-        let get = |key: &str, default: f64, positive: bool| -> Result<f64, ParamError> {
+        let get = |key: &str, default: f64, sign: Sign| -> Result<f64, ParamError> {
             let Some(v) = table.and_then(|t| t.get(key)) else {
                 return Ok(default);
             };
@@ -113,8 +121,8 @@ impl PositionLoop {
             match x {
                 None => bad("must be a number"),
                 Some(x) if !x.is_finite() => bad("must be finite"),
-                Some(x) if x < 0.0 => bad("must not be negative"),
-                Some(x) if positive && x == 0.0 => bad("must be greater than 0"),
+                Some(x) if sign != Sign::Any && x < 0.0 => bad("must not be negative"),
+                Some(x) if sign == Sign::Positive && x == 0.0 => bad("must be greater than 0"),
                 Some(x) => Ok(x),
             }
         };
@@ -125,10 +133,15 @@ impl PositionLoop {
                 .stage_divider(NAME)
                 .unwrap_or(u64::from(sc.rates.speed_divider)),
             ts: sc.rates.ts(),
-            kp: get("kp_per_s", 1.0 / (4.0 * sc.speed_loop.rise_time_s), true)?,
-            omega_max: get("omega_max_rad_s", 0.25 * omega_rated, true)?,
-            step_rad: get("step_rad", 0.0, false)?,
-            step_at_s: get("step_at_s", 0.0, false)?,
+            kp: get(
+                "kp_per_s",
+                1.0 / (4.0 * sc.speed_loop.rise_time_s),
+                Sign::Positive,
+            )?,
+            omega_max: get("omega_max_rad_s", 0.25 * omega_rated, Sign::Positive)?,
+            // A step either way: the loop and its unwrapping are the same for both signs.
+            step_rad: get("step_rad", 0.0, Sign::Any)?,
+            step_at_s: get("step_at_s", 0.0, Sign::NotNegative)?,
             omega_rated,
             last_enc: None,
             theta: 0.0,
@@ -372,6 +385,28 @@ mod tests {
     }
 
     #[test]
+    fn a_negative_step_drives_backwards_across_zero() {
+        let mut s = PositionLoop::new(&scenario(
+            "step_rad = -10.0\nomega_max_rad_s = 50\nkp_per_s = 10.0",
+        ))
+        .unwrap();
+        assert_eq!(s.theta_ref(0), -10.0);
+        // Error −10 rad: −100 rad/s, clamped to −50.
+        assert_eq!(step(&mut s, 0, 0.0).omega_ref, -50.0);
+        // Below 0 the encoder reads 2π − 2.5: unwrapped to −2.5 rad, error −7.5 rad.
+        let w = step(&mut s, 10, TAU - 2.5);
+        assert!((s.theta() + 2.5).abs() < 1e-12, "{}", s.theta());
+        assert_eq!(w.omega_ref, -50.0);
+        // Two turns down, near the target: −9.5 rad, error −0.5 rad: −5 rad/s.
+        step(&mut s, 20, (-5.0f64).rem_euclid(TAU));
+        step(&mut s, 30, (-7.5f64).rem_euclid(TAU));
+        let w = step(&mut s, 40, (-9.5f64).rem_euclid(TAU));
+        assert!((w.theta_m + 9.5).abs() < 1e-9, "{w:?}");
+        assert!((w.omega_ref + 5.0).abs() < 1e-9, "{w:?}");
+        assert_eq!(w.theta_m_ref, -10.0);
+    }
+
+    #[test]
     fn defaults_follow_the_speed_loop() {
         let mut sc = scenario("");
         sc.stages.clear();
@@ -398,6 +433,10 @@ mod tests {
             (
                 "kp_per_s = -2.0",
                 "stages.position-loop.kp_per_s = -2.0 must not be negative",
+            ),
+            (
+                "step_at_s = -0.5",
+                "stages.position-loop.step_at_s = -0.5 must not be negative",
             ),
             (
                 "omega_max_rad_s = 0",

@@ -182,6 +182,212 @@ fn a_restarted_position_loop_keeps_its_turn_count() {
     );
     let d = &s["counters"]["position-loop"]["diagnostics"];
     assert_eq!(d["ambiguous_rejoins"], 0, "{d}");
+    // While the loop is down (40 ms simulated from 0.1 s) its θ* is empty, not 0.
+    let down = theta_ref_while_down(&c, killed, target);
+    assert!(
+        down.empty > 300 && down.zero == 0,
+        "θ_m* in the downtime: {down:?}"
+    );
+    remove_scratch(&out);
+}
+
+/// The trace's θ_m* column after the step at sample `from` on: rows with the target, empty
+/// rows, rows reading 0 and rows with anything else.
+#[derive(Debug, Default)]
+struct ThetaRefRows {
+    target: usize,
+    empty: usize,
+    zero: usize,
+    other: usize,
+}
+
+fn theta_ref_while_down(
+    c: &std::collections::BTreeMap<String, Vec<f64>>,
+    from: usize,
+    target: f64,
+) -> ThetaRefRows {
+    let mut r = ThetaRefRows::default();
+    for &x in &c["theta_m_ref"][from..] {
+        match x {
+            x if x.is_nan() => r.empty += 1,
+            x if x == target => r.target += 1,
+            0.0 => r.zero += 1,
+            _ => r.other += 1,
+        }
+    }
+    r
+}
+
+/// The same in real time: the supervisor hands the restarted process its last output as the
+/// recorder saw it (`--rejoin-from`), so a 4π step whose loop is killed mid-move above 2π
+/// ends at 4π, not a revolution beyond (18.85 rad); while the loop is down its θ* is empty.
+#[test]
+fn a_restarted_position_loop_keeps_its_turn_count_in_real_time() {
+    let _s = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let target = 2.0 * std::f64::consts::TAU;
+    let (o, out, bus) = EXAMPLE.launch(
+        "rtrejoin",
+        &[
+            "--clock",
+            "realtime",
+            "--duration",
+            "3.0",
+            "--fault",
+            // θ_m ≈ 7.6 rad (slewing at 100 rad/s from 10 ms on): past the first turn, with
+            // 40 ms of slack for a late signal on a loaded machine.
+            "kill:position-loop@0.09",
+        ],
+        &[(
+            "step_rad = 6.283185307179586",
+            "step_rad = 12.566370614359172",
+        )],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert_clean(&bus);
+    let s = summary(&out);
+    let f = &s["faults"][0];
+    assert_eq!(f["process"], "position-loop", "{}", s["faults"]);
+    let events: Vec<String> = s["supervisor_events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| {
+            format!(
+                "{} {}",
+                e["event"].as_str().unwrap(),
+                e["process"].as_str().unwrap()
+            )
+        })
+        .collect();
+    assert!(
+        events.iter().any(|e| e == "ready position-loop"),
+        "not restarted: {events:?}"
+    );
+    let c = columns(&out.join("trace.csv"));
+    let theta_m = &c["theta_m"];
+    // Killed mid-move, past the first turn.
+    let killed = f["injected_k"].as_u64().unwrap() as usize;
+    assert!(
+        theta_m[killed] > std::f64::consts::TAU && theta_m[killed] < target - 1.0,
+        "θ_m at the kill: {}",
+        theta_m[killed]
+    );
+    let fin = *theta_m.last().unwrap();
+    let down = theta_ref_while_down(&c, killed, target);
+    eprintln!("real-time restart: θ_m at the kill {:.3} rad, final θ_m {fin:.4} rad (target {target:.4}); θ_m* from the kill on: {down:?}", theta_m[killed]);
+    assert!(
+        (fin - target).abs() < 0.01 * target,
+        "final θ_m = {fin} (target {target}; one turn off: {})",
+        fin - target - std::f64::consts::TAU
+    );
+    let d = &s["counters"]["position-loop"]["diagnostics"];
+    assert_eq!(d["ambiguous_rejoins"], 0, "{d}");
+    // A process start-up takes far longer than the 2 ms after which the speed loop stops
+    // following a lost reference: some rows are empty, none reads 0.
+    assert!(
+        down.empty > 0 && down.zero == 0,
+        "θ_m* from the kill on: {down:?}"
+    );
+    remove_scratch(&out);
+}
+
+/// A negative step is a move like any other: the loop drives the motor backwards, across
+/// zero, to it.
+#[test]
+fn a_negative_step_settles_backwards() {
+    let _s = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let target = -std::f64::consts::TAU;
+    let (o, out, bus) = EXAMPLE.launch(
+        "negative",
+        &["--clock", "lockstep"],
+        &[(
+            "step_rad = 6.283185307179586",
+            "step_rad = -6.283185307179586",
+        )],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert_clean(&bus);
+    let c = columns(&out.join("trace.csv"));
+    let (theta_m, theta_ref) = (&c["theta_m"], &c["theta_m_ref"]);
+    assert_eq!(*theta_ref.last().unwrap(), target);
+    let fin = *theta_m.last().unwrap();
+    let low = theta_m.iter().cloned().fold(f64::MAX, f64::min);
+    assert!(
+        (fin - target).abs() < 0.01 * target.abs(),
+        "final θ_m = {fin}"
+    );
+    // The P loop does not overshoot (the bound of the positive step's test).
+    assert!(low > target * 1.01, "lowest θ_m = {low}");
+    remove_scratch(&out);
+}
+
+/// A stage that panics is a failure of the run: its process exits with status 101 after one
+/// line naming the panic, the supervisor restarts it (the drive goes on), and the run fails
+/// with one line naming the process and the panic.
+#[test]
+fn a_panicking_stage_fails_the_run_in_one_line() {
+    let _s = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let panicking = std::path::Path::new(EXAMPLE.exe)
+        .with_file_name("examples")
+        .join("panicking_position_loop");
+    assert!(
+        panicking.is_file(),
+        "{} is missing: `cargo test -p drivelab-position-loop` builds it",
+        panicking.display()
+    );
+    let exec = format!("exec = {:?}", panicking.to_str().unwrap());
+    let (o, out, bus) = EXAMPLE.launch(
+        "panic",
+        &["--clock", "realtime", "--duration", "1.0"],
+        &[
+            (EXAMPLE.exec_line, &exec),
+            (
+                "omega_max_rad_s = 100.0",
+                "panic_at_s = 0.1\nomega_max_rad_s = 100.0",
+            ),
+        ],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_clean(&bus);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    let s = summary(&out);
+    let exited: Vec<&serde_json::Value> = s["supervisor_events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["process"] == "position-loop" && e["event"] != "reaped")
+        .collect();
+    assert_eq!(
+        exited[0]["detail"], "exit status: 101, not injected",
+        "{exited:?}"
+    );
+    let what = "stages position-loop: position-loop: a test panic at sample 1000";
+    assert!(
+        exited[1]["event"] == "panicked" && exited[1]["detail"].as_str().unwrap().starts_with(what),
+        "{exited:?}"
+    );
+    assert!(exited.iter().any(|e| e["event"] == "ready"), "{exited:?}");
+    let failure = s["failure"].as_str().unwrap_or("");
+    assert!(
+        failure.starts_with(&format!("process position-loop panicked: {what}"))
+            && failure.ends_with("(it was restarted)"),
+        "{failure}"
+    );
+    // One line on stderr says it, and the host's own line names the panic.
+    let lines: Vec<&str> = err.lines().filter(|l| l.contains("panicked:")).collect();
+    assert_eq!(lines.len(), 1, "{err}");
+    assert!(
+        lines[0].starts_with("drivelab: error: process position-loop panicked: "),
+        "{err}"
+    );
+    assert!(
+        err.lines().any(|l| l.starts_with("position-loop: error: a stage panicked (stages position-loop): position-loop: a test panic at sample 1000")),
+        "{err}"
+    );
+    // The drive went on to its end.
+    assert_eq!(s["samples"], s["samples_expected"], "{s}");
     remove_scratch(&out);
 }
 

@@ -406,6 +406,13 @@ fn run_bus(
         )?),
     )?
     .with_sinks(sinks.clone())
+    .with_outer_divider(
+        plan_topo
+            .producers
+            .iter()
+            .find(|p| p.topic == drivelab_runtime::stage::TopicId::Wref)
+            .map(|p| p.divider),
+    )
     .with_timing(if o.timing_csv {
         Some(stream::TimingCsv::create(&out.join("timing.csv"))?)
     } else {
@@ -458,6 +465,7 @@ fn run_bus(
         o,
         out,
         cpus: off.as_ref().and_then(|g| g.previous()),
+        plan: plan_topo,
     };
     let mut events: Vec<SupEvent> = Vec::new();
     let mut bridge: Option<bridge::Bridge> = None;
@@ -486,7 +494,7 @@ fn run_bus(
             }
             // `exec` paths were made absolute when the topology was resolved.
             let spawned = process_binary(p, Path::new("/"))
-                .and_then(|exe| spawn_service(p, &exe, i == 0, &sp, None, false));
+                .and_then(|exe| spawn_service(p, &exe, i == 0, &sp, spawn::Start::Fresh));
             match spawned {
                 Ok(c) => children.push(c),
                 Err(e) => return Ok((children, Some(format!("{e:#}")))),
@@ -1881,6 +1889,28 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             1 => format!("a planned fault was not made: {first}"),
             n => format!("{n} planned faults were not made, the first: {first}"),
         });
+    }
+    // A stage that panicked (a bug of the stage): the run fails, even when its process was
+    // restarted and the drive ran to its end.
+    let panicked = events
+        .iter()
+        .find(|e| matches!(e.kind, supervisor::EventKind::Panicked { .. }));
+    // (A run that failed on it already names it.)
+    if let Some(e) =
+        panicked.filter(|e| !failure.as_deref().is_some_and(|f| f.contains(&e.detail())))
+    {
+        let restarted = events
+            .iter()
+            .any(|r| r.process == e.process && r.name() == "restarted" && r.t_wall_s >= e.t_wall_s);
+        add_failure(
+            &mut failure,
+            format!(
+                "process {} panicked: {}{}",
+                e.process,
+                e.detail(),
+                if restarted { " (it was restarted)" } else { "" }
+            ),
+        );
     }
     summary["failure"] = json!(failure);
     let Histograms {

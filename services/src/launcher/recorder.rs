@@ -8,7 +8,7 @@ use super::supervisor::{EventKind, FaultReport, SupEvent};
 use anyhow::{anyhow, Result};
 use drivelab_runtime::bus::{self, DriveTopics, MAX_BUFFER};
 use drivelab_runtime::config::Scenario;
-use drivelab_runtime::messages::{PlantTruth, VoltageCommand};
+use drivelab_runtime::messages::{PlantTruth, SpeedRef, VoltageCommand};
 use serde::Serialize;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc;
@@ -88,6 +88,9 @@ pub(super) struct Progress {
     pub last: std::sync::Mutex<Option<PlantTruth>>,
     /// The states restarted plants were given to resume from, in order.
     pub rejoins: std::sync::Mutex<Vec<PlantTruth>>,
+    /// An outer loop's newest speed reference (for a restarted outer loop to take its turn
+    /// count from: docs/architecture.md, "Bumpless rejoin").
+    pub last_wref: std::sync::Mutex<Option<SpeedRef>>,
     /// Decimated trace for `drivelab monitor`.
     pub tail: crate::hub::TraceTail,
     /// Cycle latencies around each hog's window (`crate::faults::hog`).
@@ -210,11 +213,23 @@ pub(super) fn run_recorder(
             .map(|r| r.clone())
             .unwrap_or_default()
     };
-    // The outer reference of the samples (position control's θ_m_ref).
+    // The outer reference of the samples (position control's θ_m_ref), and the newest one
+    // for a restarted outer loop. An absent marker (lockstep: the loop is down) is no
+    // reference.
     let take_wref = |trace: &mut TraceStream| -> Result<()> {
+        use drivelab_runtime::messages::Finite;
+        let mut newest: Option<SpeedRef> = None;
         while let Some(w) = wref_rx.try_recv()? {
-            if !w.hdr.is_warmup() && !w.hdr.is_end() && w.theta_m_ref.is_finite() {
+            if !w.hdr.is_warmup() && !w.hdr.is_end() && !w.hdr.is_absent() && w.is_finite() {
                 trace.wref(w.hdr.k, w.theta_m_ref);
+                if newest.is_none_or(|n| w.hdr.k >= n.hdr.k) {
+                    newest = Some(w);
+                }
+            }
+        }
+        if let (Some(w), Ok(mut last)) = (newest, progress.last_wref.lock()) {
+            if last.is_none_or(|l| w.hdr.k >= l.hdr.k) {
+                *last = Some(w);
             }
         }
         Ok(())
@@ -463,6 +478,8 @@ mod tests {
         meas: Vec<bool>,
         cmd: Vec<bool>,
         wref: Vec<(u64, f64)>,
+        /// The outer loop's rate divider (`TraceStream::with_outer_divider`).
+        outer: Option<u64>,
     }
 
     fn recording(meas: &[bool], cmd: &[bool]) -> Recording {
@@ -470,6 +487,7 @@ mod tests {
             meas: meas.to_vec(),
             cmd: cmd.to_vec(),
             wref: Vec::new(),
+            outer: None,
         }
     }
 
@@ -483,7 +501,9 @@ mod tests {
         sc.rates.sample_hz = 1.0 / ts;
         sc.duration_s = rec.meas.len() as f64 * ts;
         assert_eq!(sc.samples(), rec.meas.len() as u64);
-        let mut t = TraceStream::new(&sc, None).unwrap();
+        let mut t = TraceStream::new(&sc, None)
+            .unwrap()
+            .with_outer_divider(rec.outer);
         let hdr = |k: usize| Header {
             k: k as u64,
             ..Default::default()
@@ -787,5 +807,23 @@ mod tests {
         let (rows, _) = assemble(TS, &rec);
         let refs: Vec<_> = rows.iter().map(|r| r.theta_m_ref).collect();
         assert_eq!(refs, [None, Some(0.25), Some(0.25), Some(0.5)]);
+    }
+
+    #[test]
+    fn the_position_reference_is_empty_while_the_speed_loop_does_not_follow_the_outer_loop() {
+        // An outer loop every 2 samples publishes at 0, 2 and 4, is down, and is back at 12.
+        // The speed loop follows a reference up to 2 periods older than the one it expects
+        // (k − 1 rounded down to a multiple of 2): 4 is followed up to sample 10.
+        let mut rec = recording(&[true; 14], &[true; 14]);
+        rec.wref = vec![(0, 1.0), (2, 1.0), (4, 1.0), (12, 2.0)];
+        rec.outer = Some(2);
+        let (rows, _) = assemble(TS, &rec);
+        let refs: Vec<_> = rows.iter().map(|r| r.theta_m_ref).collect();
+        let mut want = vec![Some(1.0); 14];
+        want[0] = None;
+        want[11] = None;
+        want[12] = None;
+        want[13] = Some(2.0);
+        assert_eq!(refs, want);
     }
 }

@@ -32,6 +32,8 @@ pub(super) struct ChildProc {
     host_pid: Option<u32>,
     /// A standby twin that has not taken over.
     pub standby: bool,
+    /// What its stage's panic was, as the host said it (`PANIC <what>`).
+    pub panic: Option<String>,
 }
 
 /// The executable of process `p`: its `exec` (relative to `base`) or the built-in host next
@@ -225,18 +227,53 @@ pub(super) struct Spawn<'a> {
     /// The CPU mask every host starts with (the launcher's before it moved off the stages'
     /// cores); `None`: the launcher's own.
     pub cpus: Option<libc::cpu_set_t>,
+    /// The resolved topology (what each process's stages declare).
+    pub plan: &'a drivelab_runtime::service::TopologyPlan,
 }
 
-/// Starts the stage host of process `p`; `source` when it hosts the plant; `rejoin_from`
-/// when it is a restart (the plant resumes from the true state in that file).
+/// How a stage host starts.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) enum Start<'a> {
+    /// With the drive.
+    Fresh,
+    /// Restarted into the running drive (`--rejoin`), with the file the supervisor wrote for
+    /// it (`--rejoin-from`: the plant's true state, the own last output of a stage that reads
+    /// its output back; docs/architecture.md, "Bumpless rejoin"), if it wrote one.
+    Restart(Option<&'a Path>),
+    /// As the process's standby twin (`--standby --rejoin`: it joins the running drive and
+    /// steps beside the process, so it needs no file).
+    Standby,
+}
+
+/// The topics that the stages `stages` of `plan` publish and read back while they rejoin
+/// (their own-output rejoin slots, docs/architecture.md, "Bumpless rejoin").
+pub(super) fn own_rejoin_topics(
+    plan: &drivelab_runtime::service::TopologyPlan,
+    stages: &[String],
+) -> Vec<drivelab_runtime::stage::TopicId> {
+    let mut topics = Vec::new();
+    for st in plan.stages.iter().filter(|s| stages.contains(&s.name)) {
+        for i in &st.inputs {
+            if i.role == drivelab_runtime::stage::Role::Rejoin
+                && st.outputs.contains(&i.topic)
+                && !topics.contains(&i.topic)
+            {
+                topics.push(i.topic);
+            }
+        }
+    }
+    topics
+}
+
+/// Starts the stage host of process `p`; `source` when it hosts the plant.
 pub(super) fn spawn_service(
     p: &ProcessSpec,
     exe: &Path,
     source: bool,
     sp: &Spawn,
-    rejoin_from: Option<&Path>,
-    standby: bool,
+    start: Start,
 ) -> Result<ChildProc> {
+    let standby = start == Start::Standby;
     let runner = runner_of(sp.o)?;
     let mut cmd = drivelab_runtime::runner::command(runner.as_ref(), exe);
     cmd.arg("--scenario").arg(sp.sc_path);
@@ -261,10 +298,16 @@ pub(super) fn spawn_service(
     if standby {
         cmd.arg("--standby");
     }
-    if let Some(f) = rejoin_from {
-        cmd.arg("--rejoin");
-        if source {
-            cmd.arg("--rejoin-from").arg(f);
+    match start {
+        Start::Fresh => {}
+        Start::Standby => {
+            cmd.arg("--rejoin");
+        }
+        Start::Restart(file) => {
+            cmd.arg("--rejoin");
+            if let Some(f) = file {
+                cmd.arg("--rejoin-from").arg(f);
+            }
         }
     }
     cmd.stdin(Stdio::piped())
@@ -313,6 +356,7 @@ pub(super) fn spawn_service(
         rt: None,
         host_pid: None,
         standby,
+        panic: None,
     })
 }
 
@@ -430,22 +474,21 @@ fn set_up_above_normal_tasks(cmd: &mut Command) {
 }
 
 impl ChildProc {
-    /// The same process started again with `--rejoin`.
-    pub fn respawn(&self, sp: &Spawn, rejoin_from: &Path) -> Result<ChildProc> {
+    /// The same process started again with `--rejoin`, and `--rejoin-from` when the
+    /// supervisor wrote it a file.
+    pub fn respawn(&self, sp: &Spawn, rejoin_from: Option<&Path>) -> Result<ChildProc> {
         spawn_service(
             &self.spec,
             &self.exe,
             self.source,
             sp,
-            Some(rejoin_from),
-            false,
+            Start::Restart(rejoin_from),
         )
     }
 
     /// A standby twin of this process (`standby = true`), joining the running drive.
     pub fn respawn_standby(&self, sp: &Spawn) -> Result<ChildProc> {
-        let rejoin = sp.out.join(format!("rejoin-{}.json", self.name));
-        spawn_service(&self.spec, &self.exe, false, sp, Some(&rejoin), true)
+        spawn_service(&self.spec, &self.exe, false, sp, Start::Standby)
     }
 
     /// Its pid.
@@ -467,6 +510,8 @@ impl ChildProc {
         }
         if let Some(j) = l.strip_prefix("RT ") {
             self.rt = serde_json::from_str(j).ok();
+        } else if let Some(what) = l.strip_prefix("PANIC ") {
+            self.panic.get_or_insert_with(|| what.to_string());
         } else if let Some(pid) = l.strip_prefix("PID ") {
             self.host_pid = pid.parse().ok();
         }
@@ -493,6 +538,26 @@ impl ChildProc {
             ready |= self.take_line(&l);
         }
         ready
+    }
+
+    /// After it exited with `status`: the panic its host reported, if it says it panicked
+    /// (the rest of its stdout is read, for at most 1 s: the host wrote the line before it
+    /// exited).
+    pub fn panic_after_exit(&mut self, status: std::process::ExitStatus) -> Option<String> {
+        if status.code() != Some(i32::from(drivelab_runtime::service::PANIC_STATUS)) {
+            return None;
+        }
+        let t = Instant::now();
+        while self.panic.is_none() && t.elapsed() < Duration::from_secs(1) {
+            match self.lines.recv_timeout(Duration::from_millis(20)) {
+                Ok(l) => {
+                    self.take_line(&l);
+                }
+                Err(mpsc::RecvTimeoutError::Timeout) => {}
+                Err(mpsc::RecvTimeoutError::Disconnected) => break,
+            }
+        }
+        self.panic.clone()
     }
 
     /// Tells the source to start the drive.

@@ -258,7 +258,11 @@ pub struct TraceStream {
     newest: Option<u64>,
     /// Position references of an outer loop, (k, θ_m*), by k.
     wref: std::collections::VecDeque<(u64, f64)>,
-    theta_ref: Option<f64>,
+    /// The newest of them before the row being made, (k, θ_m*).
+    theta_ref: Option<(u64, f64)>,
+    /// The outer loop's rate divider, when the topology has one: a row's θ_m* is empty once
+    /// the speed loop no longer follows the loop's newest reference (it is down).
+    outer_divider: Option<u64>,
     out: Option<CsvTrace>,
     /// `timing.csv`, when asked for.
     timing: Option<TimingCsv>,
@@ -329,6 +333,7 @@ impl TraceStream {
             newest: None,
             wref: Default::default(),
             theta_ref: None,
+            outer_divider: None,
             out,
             timing: None,
             sinks: super::sinks::Sinks::none(),
@@ -374,6 +379,14 @@ impl TraceStream {
                 t.middle(which, k, t_pub_ns);
             }
         }
+    }
+
+    /// The rate divider of the stage that publishes `wref` (an outer loop), if one does: a
+    /// row's θ_m* is then empty while the speed loop no longer follows the loop's newest
+    /// reference (`stages::wref_followed`), as before its first output.
+    pub fn with_outer_divider(mut self, divider: Option<u64>) -> Self {
+        self.outer_divider = divider;
+        self
     }
 
     /// Sends every row to `sinks` too (`trace.mcap`, the live stream).
@@ -561,13 +574,18 @@ impl TraceStream {
             self.t0_ns = m.hdr.t_sample_ns.checked_sub(k * self.sc.rates.ts_ns());
         }
         while self.wref.front().is_some_and(|w| w.0 < k) {
-            self.theta_ref = self.wref.pop_front().map(|w| w.1);
+            self.theta_ref = self.wref.pop_front();
         }
+        let followed = |&(wk, _): &(u64, f64)| {
+            self.outer_divider
+                .is_none_or(|d| drivelab_runtime::stages::wref_followed(k, wk, d))
+        };
+        let theta_ref = self.theta_ref.filter(followed).map(|w| w.1);
         let mut row = match c {
             Some(c) => trace_row(self.ts, m, c),
             None => trace_row(self.ts, m, &drivelab_runtime::drive::missing_command(k)),
         };
-        row.theta_m_ref = self.theta_ref;
+        row.theta_m_ref = theta_ref;
         self.last_row = Some(k);
         if let Some(e) = self.out.as_mut().and_then(|out| out.push(&row).err()) {
             self.lose_trace(e, k);

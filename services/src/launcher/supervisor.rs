@@ -12,6 +12,7 @@ use anyhow::Result;
 use drivelab_runtime::bus;
 use drivelab_runtime::config::Scenario;
 use drivelab_runtime::service::TopologyPlan;
+use drivelab_runtime::stage::TopicId;
 use drivelab_runtime::trace::TraceRow;
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -90,6 +91,12 @@ pub enum EventKind {
         /// Its exit status.
         status: ExitStatus,
     },
+    /// A stage of the process panicked (its host said so before it exited): a bug of the
+    /// stage, which fails the run even when the restart made up for it.
+    Panicked {
+        /// The panic's message and place, and the process's stages.
+        what: String,
+    },
     /// A hog (a competing SCHED_FIFO busy loop, `crate::faults::hog`) was started.
     Hog {
         /// What it does.
@@ -109,6 +116,7 @@ impl EventKind {
             Self::Simulated { .. } => "inject-simulated",
             Self::Resume => "resume",
             Self::Exited { .. } => "exited",
+            Self::Panicked { .. } => "panicked",
             Self::Reaped { .. } => "reaped",
             Self::Restarted { .. } => "restarted",
             Self::Ready { .. } => "ready",
@@ -147,6 +155,7 @@ impl EventKind {
                     .unwrap_or_default();
                 format!("{status}{how}{}", if *crash { NOT_INJECTED } else { "" })
             }
+            Self::Panicked { what } => what.clone(),
             Self::Reaped { nodes } => {
                 format!("dead iceoryx2 nodes cleaned: {}", nodes.join(", "))
             }
@@ -500,9 +509,13 @@ pub(super) fn supervise(
             }
             any_dead |= !st.success();
             let n = c.proc.name.clone();
+            let panic = c.proc.panic_after_exit(st);
             if !st.success() {
                 let crash = !c.life.kill_pending();
                 log(events, EventKind::Exited { status: st, crash }, &n, &n);
+            }
+            if let Some(what) = panic.clone() {
+                log(events, EventKind::Panicked { what }, &n, &n);
             }
             // A ready twin has taken over already (it watches the dead one's lease): it is
             // the process now, and a new twin is started when the policy would restart. A
@@ -517,7 +530,10 @@ pub(super) fn supervise(
                 }
             }
             match c.life.exited(st.success(), &policy, now) {
-                Some(Decision::FailRun) => return Ok(Some(format!("process {n} failed ({st})"))),
+                Some(Decision::FailRun) => {
+                    let why = panic.map(|p| format!(": {p}")).unwrap_or_default();
+                    return Ok(Some(format!("process {n} failed ({st}{why})")));
+                }
                 Some(Decision::StopDrive) => break 'run,
                 Some(d) if promote => {
                     let mut twin = c.standby.take().expect("alive above");
@@ -554,6 +570,10 @@ pub(super) fn supervise(
             }
             let name = c.proc.name.clone();
             let rejoin_file = out.join(format!("rejoin-{name}.json"));
+            // What the restarted process takes over from, as the recorder saw it: the
+            // plant's true state, and the own last output of a stage that reads it back
+            // (docs/architecture.md, "Bumpless rejoin").
+            let mut state = serde_json::Map::new();
             if c.proc.source {
                 let last = progress.last.lock().ok().and_then(|l| *l);
                 let Some(last) = last else {
@@ -568,9 +588,29 @@ pub(super) fn supervise(
                 if let Ok(mut r) = progress.rejoins.lock() {
                     r.push(given);
                 }
-                drivelab_runtime::files::write(&rejoin_file, &text)?;
+                if let serde_json::Value::Object(m) = serde_json::from_slice(&text)? {
+                    state = m;
+                }
             }
-            c.proc = c.proc.respawn(sp, &rejoin_file)?;
+            let own = super::spawn::own_rejoin_topics(sp.plan, &c.proc.stages);
+            if own.contains(&TopicId::Wref) {
+                // None when the loop died before the recorder saw an output of it: it then
+                // counts from where the drive is, as at the start.
+                if let Some(w) = progress.last_wref.lock().ok().and_then(|l| *l) {
+                    state.insert(
+                        TopicId::Wref.name().into(),
+                        drivelab_runtime::service::speed_ref_to_json(&w),
+                    );
+                }
+            }
+            let file = if state.is_empty() {
+                None
+            } else {
+                let text = serde_json::to_vec(&serde_json::Value::Object(state))?;
+                drivelab_runtime::files::write(&rejoin_file, &text)?;
+                Some(rejoin_file.as_path())
+            };
+            c.proc = c.proc.respawn(sp, file)?;
             let kind = EventKind::Restarted {
                 restart: c.life.restarted(),
                 pid: c.proc.host_pid(),

@@ -344,8 +344,10 @@ pub struct HostConfig {
     pub tick_aligned: bool,
     /// Restarted: take over a running drive.
     pub rejoin: bool,
-    /// Source only, rejoining: its own last output as the recorder saw it.
-    pub rejoin_from: Option<Msg>,
+    /// Rejoining: the last outputs as the recorder saw them (at most one per topic): the
+    /// source's true state; the own last output of a stage that reads it back, for its
+    /// own-output rejoin slot (docs/architecture.md, "Bumpless rejoin").
+    pub rejoin_from: Vec<Msg>,
     /// Source only: send warm-up messages through the chain before sample 0.
     pub warm_up: bool,
     /// Topics that stages of other processes wait on (the source pokes them when its delayed
@@ -374,7 +376,7 @@ impl HostConfig {
             spin_ns: (sc.timing.plant_spin_us * 1e3).round() as u64,
             tick_aligned: sc.timing.tick_aligned,
             rejoin: false,
-            rejoin_from: None,
+            rejoin_from: Vec::new(),
             warm_up: true,
             poke: Vec::new(),
             clock_topic: TopicId::Meas,
@@ -980,6 +982,15 @@ impl<T: Transport> Host<T> {
             let slot = &mut ib.slots[t.index()];
             slot.msg = self.store.newest[t.index()];
             if b.spec.role == Role::Rejoin {
+                if slot.msg.is_none() && self.own_output(si, t) {
+                    // A restarted process: its own last output as the recorder saw it.
+                    slot.msg = self
+                        .cfg
+                        .rejoin_from
+                        .iter()
+                        .find(|m| m.topic() == t)
+                        .copied();
+                }
                 slot.fresh = slot.msg.is_some();
                 continue;
             }
@@ -1420,9 +1431,15 @@ impl<T: Transport> Host<T> {
         let n = self.cfg.samples;
         let realtime = self.cfg.pacing == Pacing::Realtime;
         let (t0, k_start) = if self.cfg.rejoin {
-            let last = self.cfg.rejoin_from.ok_or_else(|| {
-                anyhow!("a restarted source needs its last output to rejoin from")
-            })?;
+            let last = self
+                .cfg
+                .rejoin_from
+                .iter()
+                .find(|m| m.topic() == TopicId::Truth)
+                .copied()
+                .ok_or_else(|| {
+                    anyhow!("a restarted source needs its last output to rejoin from")
+                })?;
             if !realtime || last.hdr().t_sample_ns == 0 {
                 bail!("a plant can only rejoin a real-time drive");
             }
@@ -1975,6 +1992,76 @@ mod tests {
         assert_eq!(run(true), (vec![TopicId::Cmd], 3));
         // A first start never subscribed to it, and closes nothing.
         assert_eq!(run(false), (vec![], 3));
+    }
+
+    /// An outer loop that reads its own last output back while it rejoins and publishes
+    /// the position it found there (−1 without one).
+    struct ReadsItsOwnOutput {
+        found: f64,
+    }
+
+    impl Stage for ReadsItsOwnOutput {
+        fn name(&self) -> &'static str {
+            "outer"
+        }
+        fn inputs(&self) -> &'static [InputSpec] {
+            const INPUTS: &[InputSpec] = &[
+                InputSpec::trigger(TopicId::Meas, 1, OnStale::Required),
+                InputSpec::rejoin(TopicId::Wref),
+            ];
+            INPUTS
+        }
+        fn outputs(&self) -> &'static [TopicId] {
+            &[TopicId::Wref]
+        }
+        fn step(&mut self, k: u64, _inputs: &Inbox, out: &mut Outbox) {
+            out.push(Msg::Wref(crate::messages::SpeedRef {
+                hdr: header(k, 0),
+                theta_m: self.found,
+                ..Default::default()
+            }));
+        }
+        fn rejoin(&mut self, _k: u64, inputs: &Inbox) -> Rejoin {
+            self.found = inputs.newest_wref().map_or(-1.0, |w| w.theta_m);
+            Rejoin::Done
+        }
+    }
+
+    #[test]
+    fn a_restarted_process_hands_a_stage_its_own_last_output_from_the_rejoin_file() {
+        let sc = scenario();
+        let run = |rejoin_from: Vec<Msg>| {
+            let mut tr = Script::default();
+            tr.queues[TopicId::Meas.index()].push_back(meas(0, 1.0));
+            tr.on_wait.push((2, end(TopicId::Meas, 100)));
+            let stages: Vec<Box<dyn Stage>> = vec![Box::new(ReadsItsOwnOutput { found: 0.0 })];
+            let producers = [(TopicId::Meas, 1, false), (TopicId::Wref, 1, true)];
+            let cfg = HostConfig {
+                rejoin: true,
+                rejoin_from,
+                ..config(&sc)
+            };
+            let mut host = Host::new(stages, &producers, tr, cfg);
+            host.run().unwrap();
+            host.transport
+                .sent
+                .iter()
+                .find_map(|m| match m {
+                    Msg::Wref(w) if !w.hdr.is_end() => Some(w.theta_m),
+                    _ => None,
+                })
+                .unwrap()
+        };
+        let last = Msg::Wref(crate::messages::SpeedRef {
+            hdr: header(30, 0),
+            theta_m: 7.5,
+            ..Default::default()
+        });
+        // Another topic's message (the plant's state) fills no slot of it.
+        let truth = Msg::Truth(PlantTruth::default());
+        assert_eq!(run(vec![truth, last]), 7.5);
+        // Without one (it died before the recorder saw an output of it): nothing there.
+        assert_eq!(run(vec![truth]), -1.0);
     }
 
     #[test]

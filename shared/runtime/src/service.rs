@@ -72,8 +72,9 @@ pub struct HostArgs {
     /// drive.
     #[arg(long)]
     pub rejoin: bool,
-    /// Source only, with --rejoin: JSON file with the last measurement the recorder saw.
-    #[arg(long, value_name = "FILE")]
+    /// With --rejoin: JSON file with what the recorder saw last: the plant's true state (the
+    /// source needs it) and the own last output of a stage that reads it back (`wref`).
+    #[arg(long, value_name = "FILE", requires = "rejoin")]
     pub rejoin_from: Option<PathBuf>,
     /// Print the declarations of the stages this executable can host (JSON) and exit.
     #[arg(long)]
@@ -396,13 +397,44 @@ pub fn host_main(user: &[(&'static str, StageFactory)]) -> std::process::ExitCod
     std::panic::set_hook(Box::new(move |info| {
         let _ = crate::rt::set_scheduler(libc::SCHED_OTHER, 0);
         report(info);
+        let msg = info
+            .payload()
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| info.payload().downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "(no message)".into());
+        let at = info
+            .location()
+            .map(|l| format!(" (at {}:{})", l.file(), l.line()))
+            .unwrap_or_default();
+        if let Ok(mut p) = PANIC.lock() {
+            p.get_or_insert(crate::text::one_line(&format!("{msg}{at}")));
+        }
     }));
     let args = HostArgs::parse();
     if args.check_rt {
         return check_rt(&args);
     }
     let name = args.process.clone().unwrap_or_else(|| "host".into());
-    let result = install_signal_handlers().and_then(|_| run_host(args, user));
+    let stages = args.hosts.clone().unwrap_or_else(|| name.clone());
+    // A panic (a stage's bug) ends the process with PANIC_STATUS, after one line naming it
+    // on stderr and a `PANIC` line telling the launcher what it was.
+    let result = install_signal_handlers().and_then(|_| {
+        std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run_host(args, user)))
+            .unwrap_or_else(|_| Err(anyhow!(Panicked)))
+    });
+    if result.as_ref().is_err_and(|e| e.is::<Panicked>()) {
+        let what = PANIC
+            .lock()
+            .ok()
+            .and_then(|p| p.clone())
+            .unwrap_or_else(|| "(no message)".into());
+        crate::errln!(
+            "{name}: error: a stage panicked (stages {stages}): {what}; exit status {PANIC_STATUS}"
+        );
+        let _ = protocol_line(&format!("PANIC stages {stages}: {what}"));
+        return std::process::ExitCode::from(PANIC_STATUS);
+    }
     // A stop signal that another process sent (not the launcher, not the terminal) ends
     // the process, not the drive: the source forwards no end of the run, and the exit
     // status says which signal it was (the launcher names it; docs/architecture.md,
@@ -419,6 +451,24 @@ pub fn host_main(user: &[(&'static str, StageFactory)]) -> std::process::ExitCod
         return std::process::ExitCode::from(1);
     }
     std::process::ExitCode::SUCCESS
+}
+
+/// The exit status of a stage host whose stage panicked (Rust's own for a panic that ends a
+/// program). Before it exits the host prints one line naming the panic and sends the
+/// launcher `PANIC <what>` on its stdout.
+pub const PANIC_STATUS: u8 = 101;
+
+/// The first panic's message and place, as the panic hook saw it.
+static PANIC: std::sync::Mutex<Option<String>> = std::sync::Mutex::new(None);
+
+/// The error `host_main` turns a caught panic into.
+#[derive(Debug)]
+struct Panicked;
+
+impl std::fmt::Display for Panicked {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("a stage panicked")
+    }
 }
 
 /// `--check-rt`: the placement a real-time host asks for, strictly; the process exits
@@ -664,16 +714,16 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     // Connect now (a restarted process joins running peers), not at real-time priority.
     tr.connect()?;
     phase("connect");
-    let rejoin_from = if args.rejoin && source {
-        let path = args
-            .rejoin_from
-            .as_ref()
-            .ok_or_else(|| anyhow!("--rejoin of the source needs --rejoin-from FILE"))?;
-        let text =
-            std::fs::read_to_string(path).with_context(|| format!("read {}", path.display()))?;
-        Some(Msg::Truth(truth_from_json(&serde_json::from_str(&text)?)?))
-    } else {
-        None
+    let rejoin_from = match &args.rejoin_from {
+        Some(path) if args.rejoin => {
+            let own: Vec<TopicId> = stages
+                .iter()
+                .flat_map(|s| own_rejoin_topics(s.as_ref()))
+                .collect();
+            rejoin_state(path, source, &own)?
+        }
+        _ if args.rejoin && source => bail!("--rejoin of the source needs --rejoin-from FILE"),
+        _ => Vec::new(),
     };
     let mut host = Host::new(
         stages,
@@ -1472,6 +1522,73 @@ pub fn usage(who: libc::c_int) -> (f64, ContextSwitches) {
     )
 }
 
+/// The topics that `stage` publishes and reads back while it rejoins (its own-output rejoin
+/// slots, docs/architecture.md, "Bumpless rejoin").
+fn own_rejoin_topics(stage: &dyn Stage) -> impl Iterator<Item = TopicId> + '_ {
+    stage
+        .inputs()
+        .iter()
+        .filter(|i| i.role == Role::Rejoin && stage.outputs().contains(&i.topic))
+        .map(|i| i.topic)
+}
+
+/// Reads a rejoin file (`--rejoin-from`): the source's true state (required when `source`)
+/// and the own last output on each topic of `own` that the file has (a stage that finds none
+/// starts fresh). A key this process has no use for is an error: the file is not its own.
+fn rejoin_state(path: &std::path::Path, source: bool, own: &[TopicId]) -> Result<Vec<Msg>> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("read {}", path.display()))?;
+    let v: serde_json::Value = serde_json::from_str(&text)
+        .with_context(|| format!("rejoin file {}: not JSON", path.display()))?;
+    let Some(obj) = v.as_object() else {
+        bail!("rejoin file {}: not a JSON object", path.display());
+    };
+    let mut msgs = Vec::new();
+    if source {
+        msgs.push(Msg::Truth(truth_from_json(&v)?));
+    }
+    for (key, val) in obj {
+        if key == TopicId::Wref.name() && own.contains(&TopicId::Wref) {
+            msgs.push(Msg::Wref(speed_ref_from_json(val)?));
+        } else if !source {
+            bail!(
+                "rejoin file {}: '{key}' is not the own output of a stage of this process that reads it back",
+                path.display()
+            );
+        }
+    }
+    Ok(msgs)
+}
+
+/// An outer loop's speed reference as JSON (the supervisor hands the last one to the
+/// restarted loop: its own-output rejoin slot).
+pub fn speed_ref_to_json(w: &SpeedRef) -> serde_json::Value {
+    serde_json::json!({
+        "k": w.hdr.k, "t_sample_ns": w.hdr.t_sample_ns,
+        "omega_ref": w.omega_ref, "theta_m_ref": w.theta_m_ref, "theta_m": w.theta_m,
+    })
+}
+
+/// Reads a speed reference written by [`speed_ref_to_json`].
+pub fn speed_ref_from_json(v: &serde_json::Value) -> Result<SpeedRef> {
+    let f = |key: &str| {
+        v[key]
+            .as_f64()
+            .ok_or_else(|| anyhow!("rejoin file: wref: '{key}' missing or not a number"))
+    };
+    let mut w = SpeedRef::default();
+    w.hdr.k = v["k"]
+        .as_u64()
+        .ok_or_else(|| anyhow!("rejoin file: wref: 'k' missing"))?;
+    w.hdr.t_sample_ns = v["t_sample_ns"].as_u64().unwrap_or(0);
+    w.omega_ref = f("omega_ref")?;
+    w.theta_m_ref = f("theta_m_ref")?;
+    w.theta_m = f("theta_m")?;
+    if !w.is_finite() {
+        bail!("rejoin file: wref: non-finite values");
+    }
+    Ok(w)
+}
+
 /// The plant's last true state as JSON (the supervisor hands it to a restarted source).
 pub fn truth_to_json(m: &PlantTruth) -> serde_json::Value {
     serde_json::json!({
@@ -1522,6 +1639,55 @@ pub fn truth_from_json(v: &serde_json::Value) -> Result<PlantTruth> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_rejoin_file_gives_an_outer_loop_its_own_last_output_and_nothing_else() {
+        let dir = std::env::temp_dir().join(format!("drivelab-rejoin-file-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = |name: &str, text: &str| {
+            let p = dir.join(name);
+            std::fs::write(&p, text).unwrap();
+            p
+        };
+        let w = SpeedRef {
+            hdr: Header {
+                k: 990,
+                t_sample_ns: 5,
+                ..Default::default()
+            },
+            omega_ref: 100.0,
+            theta_m_ref: 12.5,
+            theta_m: 8.6,
+        };
+        let text = serde_json::json!({ "wref": speed_ref_to_json(&w) }).to_string();
+        let ok = file("ok.json", &text);
+        assert_eq!(
+            rejoin_state(&ok, false, &[TopicId::Wref]).unwrap(),
+            [Msg::Wref(w)]
+        );
+        // A process whose stages do not read `wref` back: not its file.
+        let e = rejoin_state(&ok, false, &[]).unwrap_err().to_string();
+        assert!(
+            e.ends_with(
+                "'wref' is not the own output of a stage of this process that reads it back"
+            ),
+            "{e}"
+        );
+        for (text, want) in [
+            ("[1]", "not a JSON object"),
+            ("{", "not JSON"),
+            (
+                r#"{"wref": {"k": 1, "omega_ref": 1.0, "theta_m_ref": 0.0}}"#,
+                "rejoin file: wref: 'theta_m' missing or not a number",
+            ),
+        ] {
+            let p = file("bad.json", text);
+            let e = rejoin_state(&p, false, &[TopicId::Wref]).unwrap_err();
+            let e = crate::text::error_text(&e);
+            assert!(e.contains(want) && !e.contains('\n'), "{text}: {e}");
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 
     #[test]
     fn a_users_stage_may_not_take_the_plants_name_nor_one_twice() {

@@ -486,6 +486,16 @@ pub struct SpeedLoopStage {
 /// Periods of the outer loop after which its lost speed reference is replaced by 0.
 pub const WREF_MAX_AGE: u64 = 2;
 
+/// True when an outer loop's reference computed at sample `w_k` is the one the speed loop
+/// follows at sample k: computed before k and at most [`WREF_MAX_AGE`] of its producer's
+/// periods (`divider` samples) older than the one expected at k. Beyond that the loop is
+/// down as far as the drive is concerned (the speed loop has replaced ω* by 0), and the
+/// trace's θ_m* column is empty, as before the loop's first output.
+pub fn wref_followed(k: u64, w_k: u64, divider: u64) -> bool {
+    crate::stage::expected_index(k, 1, divider)
+        .is_some_and(|want| w_k < k && want.saturating_sub(w_k) <= WREF_MAX_AGE * divider.max(1))
+}
+
 const SPEED_IN: &[InputSpec] = &[
     InputSpec::trigger(TopicId::Est, 1, OnStale::Fallback),
     InputSpec::latest(TopicId::Wref, 1, 0, OnStale::Fallback),
@@ -671,6 +681,10 @@ fn run_stages_until(
                 .collect::<Vec<_>>()
         })
         .collect();
+    let wref_divider = producers
+        .iter()
+        .find(|p| p.0 == TopicId::Wref)
+        .map_or(1, |p| p.1);
     let n = sc.samples();
     let mut host = Host::new(
         stages,
@@ -707,8 +721,11 @@ fn run_stages_until(
                         *c
                     };
                     let mut r = crate::drive::trace_row(ts, &x, &c);
-                    // The outer reference in use at k: the newest computed before k.
-                    r.theta_m_ref = wref.filter(|w| w.hdr.k < c.hdr.k).map(|w| w.theta_m_ref);
+                    // The outer reference in use at k: the newest computed before k, while
+                    // the speed loop still follows it.
+                    r.theta_m_ref = wref
+                        .filter(|w| wref_followed(c.hdr.k, w.hdr.k, wref_divider))
+                        .map(|w| w.theta_m_ref);
                     rows.push(r);
                 }
             }
