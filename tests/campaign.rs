@@ -323,7 +323,7 @@ fn a_campaign_whose_expectations_fail_exits_3_and_junit_counts_each_failure() {
     let f = campaign_file(
         &dir,
         "name = \"always-fails\"\nscenarios = [\"kyslan-pi\"]\nclock = \"lockstep\"\n\
-         duration_s = 0.05\nseeds = [1, 2]\n\
+         duration_s = 0.05\nfaults = [[], [\"stop:observer@0.02:0.005\"]]\n\
          expect = [\"peak_current_a < 0\", \"samples_missing == 0\"]\n",
     );
     let out = dir.join("c");
@@ -334,7 +334,7 @@ fn a_campaign_whose_expectations_fail_exits_3_and_junit_counts_each_failure() {
     let err = stderr(&o);
     for line in [
         "run 1: fail — kyslan-pi [no fault] seed 1",
-        "run 2: fail — kyslan-pi [no fault] seed 2",
+        "run 2: fail — kyslan-pi [stop:observer@0.02:0.005] seed 1",
     ] {
         assert!(err.lines().any(|l| l == line), "'{line}' not in: {err}");
     }
@@ -425,6 +425,23 @@ fn a_bad_campaign_is_a_one_line_error_before_any_run() {
             "name = \"x\"\nscenarios = [\"kyslan-pi\"]\n[sweep]\nkinds = [\"melt\"]\nstages = [\"plant\"]\nat_s = [0.1]\n",
             1,
             "kind 'melt'",
+        ),
+        // The same fault written two ways is the same run: both spellings named.
+        (
+            "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nfaults = [[\"kill:plant@0.05\"], [\"kill:plant@0.050\"]]\n",
+            1,
+            "the fault sets [kill:plant@0.05] and [kill:plant@0.050] are the same faults written two ways",
+        ),
+        (
+            "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nfaults = [[\"kill:plant@0.05\", \"stop:observer@0.07:0.01s\"], [\"stop:observer@0.07:0.010\", \"kill:plant@0.05s\"]]\n",
+            1,
+            "the fault sets [kill:plant@0.05, stop:observer@0.07:0.01s] and [stop:observer@0.07:0.010, kill:plant@0.05s] are the same faults",
+        ),
+        // A [sweep] makes `kill:plant@0.1`.
+        (
+            "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nfaults = [[\"kill:plant@0.10\"]]\n[sweep]\nkinds = [\"kill\"]\nstages = [\"plant\"]\nat_s = [0.1]\n",
+            1,
+            "the fault sets [kill:plant@0.10] and [kill:plant@0.1] are the same faults",
         ),
     ] {
         let f = campaign_file(&dir, text);
@@ -594,7 +611,8 @@ fn a_campaign_writes_only_into_a_new_empty_or_earlier_campaign_folder_and_replac
     let dir = scratch("campout");
     let three = campaign_file(
         &dir,
-        "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nclock = \"lockstep\"\nduration_s = 0.05\nseeds = [1, 2, 3]\n",
+        "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nclock = \"lockstep\"\nduration_s = 0.05\n\
+         faults = [[], [\"kill:observer@0.02\"], [\"stop:observer@0.02:0.005\"]]\n",
     );
     // A folder of other files (a home folder, a source tree) is refused, untouched.
     let other = dir.join("other");
@@ -681,4 +699,207 @@ fn a_campaign_in_process_simulates_its_kills_and_stops_at_their_samples() {
             }
         }
     }
+}
+
+#[test]
+fn a_lockstep_campaign_runs_a_fault_set_without_random_kills_once_not_once_per_seed() {
+    let dir = scratch("seedrepeats");
+    // Seeds move only random:N kills, and lockstep gives the same trace bytes every time:
+    // [] and the kill would be the same run three times each.
+    let f = campaign_file(
+        &dir,
+        "name = \"seeds\"\nscenarios = [\"kyslan-pi\"]\nclock = \"lockstep\"\nduration_s = 0.4\n\
+         seeds = [1, 2, 3]\nfaults = [[], [\"kill:observer@0.2\"], [\"random:1\"]]\n",
+    );
+    let out = dir.join("c");
+    let o = campaign(&f, &out);
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(0), "{err}");
+    let report: Value = serde_json::from_slice(&read(&out.join("campaign.json"))).unwrap();
+    let runs: Vec<(String, u64)> = report["runs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| {
+            (
+                r["faults"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|f| f.as_str().unwrap())
+                    .collect::<Vec<_>>()
+                    .join("+"),
+                r["seed"].as_u64().unwrap(),
+            )
+        })
+        .collect();
+    assert_eq!(
+        runs,
+        [
+            ("".to_string(), 1),
+            ("kill:observer@0.2".to_string(), 1),
+            ("random:1".to_string(), 1),
+            ("random:1".to_string(), 2),
+            ("random:1".to_string(), 3),
+        ],
+        "{err}"
+    );
+    // Said in one line, and in the reports.
+    let said: Vec<&str> = err.lines().filter(|l| l.contains("left out")).collect();
+    assert_eq!(said.len(), 1, "{err}");
+    assert!(
+        said[0].contains("4 runs that would differ from another only by a seed"),
+        "{err}"
+    );
+    assert_eq!(report["seed_repeats_left_out"]["runs"], 4, "{report}");
+    let md = String::from_utf8(read(&out.join("campaign.md"))).unwrap();
+    assert!(md.contains("4 runs that would differ"), "{md}");
+    // The seeds of the random kills do move them: the runs kept are not repeats.
+    let at: Vec<f64> = report["runs"].as_array().unwrap()[2..]
+        .iter()
+        .map(|r| {
+            summary(Path::new(r["out"].as_str().unwrap()))["faults"][0]["injected_t_s"]
+                .as_f64()
+                .unwrap()
+        })
+        .collect();
+    assert!(at[0] != at[1] && at[1] != at[2] && at[0] != at[2], "{at:?}");
+}
+
+#[test]
+fn junit_gives_nulls_with_their_reason_the_scenarios_note_and_whole_counts() {
+    let dir = scratch("junitnull");
+    // A scenario named with a `|`, which a Markdown table must escape, and an [[expect]]
+    // table with a note. A stop of the observer 10 ms before the end: the speed has no time
+    // to recover, so its recovery is null.
+    let sc = variant(
+        "junitnull",
+        "kyslan-pi",
+        &[(
+            "[motor]",
+            "[[expect]]\ncheck = \"faults.*.speed_recovered_ms <= 200\"\nnote = \"the drive must be back within 200 ms\"\n\n[motor]",
+        )],
+    );
+    std::fs::copy(&sc, dir.join("pipe|name.toml")).unwrap();
+    let f = campaign_file(
+        &dir,
+        "name = \"nulls\"\nscenarios = [\"pipe|name.toml\"]\nclock = \"lockstep\"\nduration_s = 0.05\n\
+         faults = [[\"stop:observer@0.04:0.005\"]]\n",
+    );
+    let out = dir.join("c");
+    let o = campaign(&f, &out);
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(3), "{err}");
+    // No real-time set-up line of the hosts on the campaign's stderr: they are in each
+    // run's summary.json.
+    assert!(!err.contains("SCHED_OTHER"), "{err}");
+    let (suite, cases) = junit(&out.join("junit.xml"));
+    assert_eq!(cases.len(), 1);
+    let failure = suite
+        .descendants()
+        .find(|n| n.has_tag_name("failure"))
+        .unwrap();
+    let message = failure.attribute("message").unwrap();
+    assert!(
+        message.contains("faults.0.speed_recovered_ms = null (never recovered)"),
+        "{message}"
+    );
+    assert!(!message.contains("not a number"), "{message}");
+    assert!(
+        message.ends_with("— the drive must be back within 200 ms"),
+        "{message}"
+    );
+    let body = failure.text().unwrap();
+    assert!(
+        body.contains("= null (never recovered) (violates)"),
+        "{body}"
+    );
+    assert!(
+        body.contains("note: the drive must be back within 200 ms"),
+        "{body}"
+    );
+    // A count is a whole number, as in the summary.
+    let prop = |k: &str| cases[0].3.iter().find(|p| p.0 == k).map(|p| p.1.clone());
+    assert_eq!(
+        prop("samples_missing").as_deref(),
+        Some("0"),
+        "{:?}",
+        cases[0].3
+    );
+    let run = PathBuf::from(prop("run_folder").unwrap());
+    let s = summary(&run);
+    assert_eq!(s["processes"]["plant"]["policy"], "SCHED_OTHER", "{s}");
+    let md = String::from_utf8(read(&out.join("campaign.md"))).unwrap();
+    let row = md
+        .lines()
+        .find(|l| l.starts_with("| 1 |"))
+        .unwrap_or_else(|| panic!("{md}"));
+    assert!(row.starts_with("| 1 | pipe\\|name.toml | "), "{row}");
+    // As many cells as the header has.
+    let cells = |l: &str| l.replace("\\|", "").matches('|').count();
+    let header = md.lines().find(|l| l.starts_with("| # |")).unwrap();
+    assert_eq!(cells(row), cells(header), "{row}");
+}
+
+#[test]
+fn a_run_that_ends_in_an_error_keeps_its_figures_as_junit_properties() {
+    let dir = scratch("errorprops");
+    // In real time with restart = "never", the second kill finds its process dead: the
+    // fault is not made and the run is an error, with its trace and summary written.
+    let f = campaign_file(
+        &dir,
+        "name = \"errors\"\nscenarios = [\"kyslan-pi\"]\nduration_s = 0.5\nrestart = \"never\"\n\
+         faults = [[\"kill:speed-loop@0.1\", \"kill:speed-loop@0.3\"]]\n",
+    );
+    let out = dir.join("c");
+    let o = drivelab(&[
+        "campaign",
+        f.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--no-rt",
+    ]);
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    let (_, cases) = junit(&out.join("junit.xml"));
+    assert_eq!(cases.len(), 1);
+    assert_eq!(cases[0].2, 1, "not an error: {cases:?}");
+    let prop = |k: &str| cases[0].3.iter().find(|p| p.0 == k).map(|p| p.1.clone());
+    let run = PathBuf::from(prop("run_folder").expect("run_folder"));
+    let s = summary(&run);
+    assert_clean(s["bus"].as_str().unwrap());
+    let peak: f64 = prop("peak_current_a")
+        .unwrap_or_else(|| panic!("no figures: {:?}", cases[0].3))
+        .parse()
+        .unwrap();
+    assert_eq!(peak, s["peak_current_a"].as_f64().unwrap());
+    assert_eq!(
+        prop("samples_missing"),
+        Some(s["samples_missing"].to_string())
+    );
+    assert_eq!(prop("seed").as_deref(), Some("1"));
+}
+
+#[test]
+fn a_campaign_folder_that_is_a_file_is_refused_in_one_line() {
+    let dir = scratch("outfile");
+    let f = campaign_file(
+        &dir,
+        "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nclock = \"lockstep\"\nduration_s = 0.05\n",
+    );
+    let file = dir.join("a-file");
+    std::fs::write(&file, "mine").unwrap();
+    for out in [file.clone(), file.join("below")] {
+        let o = campaign(&f, &out);
+        let err = stderr(&o);
+        assert_eq!(o.status.code(), Some(1), "{err}");
+        assert_eq!(err.trim().lines().count(), 1, "{err}");
+        assert!(
+            err.contains(&format!("{} is a file, not a folder", file.display()))
+                || err.contains(": is a file, not a folder"),
+            "{err}"
+        );
+        assert!(!err.contains("os error"), "{err}");
+    }
+    assert_eq!(std::fs::read_to_string(&file).unwrap(), "mine");
 }

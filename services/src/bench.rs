@@ -451,6 +451,7 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
         zenoh: None,
         foxglove: None,
         timing_csv: false,
+        quiet_hosts: false,
     };
     let r = launcher::run(&o)?;
     // CPU time: every stage's statistics carry its process's total; count each process once.
@@ -1951,6 +1952,7 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
         zenoh: None,
         foxglove: None,
         timing_csv: false,
+        quiet_hosts: false,
     })?;
     bar.inc(1);
     bar.set_message("in-process speed");

@@ -398,6 +398,7 @@ mod tests {
             zenoh: None,
             foxglove: None,
             timing_csv: false,
+            quiet_hosts: false,
         };
         let topo = crate::launcher::resolve_topology(
             &mut sc,

@@ -173,15 +173,20 @@ pub const FIGURES: &[(&str, &str)] = &[
 fn figures(summary: &Value) -> serde_json::Map<String, Value> {
     let mut m = serde_json::Map::new();
     for (name, path) in FIGURES {
-        let v = match path.split_once(".*.") {
+        // The summary's own number, so that a count stays a whole number (`0`, not `0.0`).
+        let v: Option<&Value> = match path.split_once(".*.") {
             Some((list, key)) => summary[list].as_array().and_then(|a| {
-                a.iter()
-                    .map(|f| f[key].as_f64())
-                    .collect::<Option<Vec<f64>>>()
-                    .filter(|v| !v.is_empty())
-                    .map(|v| v.into_iter().fold(f64::MIN, f64::max))
+                let v: Option<Vec<&Value>> =
+                    a.iter().map(|f| f[key].as_f64().map(|_| &f[key])).collect();
+                v.and_then(|v| {
+                    v.into_iter().max_by(|a, b| {
+                        a.as_f64()
+                            .unwrap_or(f64::MIN)
+                            .total_cmp(&b.as_f64().unwrap_or(f64::MIN))
+                    })
+                })
             }),
-            None => path.split('.').fold(summary, |v, k| &v[k]).as_f64(),
+            None => Some(path.split('.').fold(summary, |v, k| &v[k])).filter(|v| v.is_number()),
         };
         // A fault that never recovered has no figure: say so rather than leave it out.
         let never = path.contains(".*.")
@@ -191,7 +196,7 @@ fn figures(summary: &Value) -> serde_json::Map<String, Value> {
         m.insert(
             name.to_string(),
             match v {
-                Some(x) => json!(x),
+                Some(x) => x.clone(),
                 None if never => json!("never"),
                 None => Value::Null,
             },
@@ -201,7 +206,9 @@ fn figures(summary: &Value) -> serde_json::Map<String, Value> {
 }
 
 /// Reads the campaign file and expands its matrix.
-fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
+/// Also returns the number of runs that differ from one of `cases` only by a seed that nothing
+/// uses (simulated clocks, no `random:N`), which are not in `cases`.
+fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>, usize)> {
     let text =
         drivelab_runtime::config::read_config_file(file, "campaign").map_err(|e| anyhow!(e))?;
     let mut c: CampaignFile = toml::from_str(&text).map_err(|e| {
@@ -293,15 +300,40 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
     if sets.is_empty() {
         sets.push(Vec::new());
     }
-    if let Some(d) = duplicate(&sets) {
-        return Err(bad(format!(
-            "faults: the fault set [{}] is listed twice (in faults or made again by [sweep])",
-            d.join(", ")
-        )));
-    }
     // Every spec and expectation is checked before the first run starts.
-    for spec in sets.iter().flatten() {
-        crate::faults::parse(spec).map_err(|e| anyhow!("campaign {}: {e}", file.display()))?;
+    let mut parsed = Vec::with_capacity(sets.len());
+    for set in &sets {
+        let specs = set
+            .iter()
+            .map(|spec| {
+                crate::faults::parse(spec).map_err(|e| anyhow!("campaign {}: {e}", file.display()))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        parsed.push(specs);
+    }
+    // Two sets are the same run when their faults are, however they are written
+    // (`kill:plant@0.05` and `kill:plant@0.050s`).
+    let keys: Vec<Vec<String>> = parsed.iter().map(|p| fault_set_key(p)).collect();
+    if let Some(d) = duplicate(&keys) {
+        let mut same = keys
+            .iter()
+            .zip(&sets)
+            .filter(|(k, _)| **k == d)
+            .map(|(_, s)| s);
+        let (first, second) = (same.next(), same.next());
+        let show = |s: Option<&Vec<String>>| s.map_or(String::new(), |s| s.join(", "));
+        return Err(bad(if first == second {
+            format!(
+                "faults: the fault set [{}] is listed twice (in faults or made again by [sweep])",
+                show(first)
+            )
+        } else {
+            format!(
+                "faults: the fault sets [{}] and [{}] are the same faults written two ways (in faults or made again by [sweep]); give one",
+                show(first),
+                show(second)
+            )
+        }));
     }
     // A malformed expectation here is an error in a file, exit code 1 like every other one
     // of the campaign: the message of expect::UsageError (exit code 2, for `run --expect`)
@@ -336,10 +368,27 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
             .map_err(|e| anyhow!("campaign {}: {e}", file.display()))?;
         scenarios.push((written, s));
     }
+    // A seed moves only the kills of `random:N`. In real time a run is repeated once per
+    // seed whatever its faults (each repetition meets the machine anew); a lockstep or
+    // in-process run without random kills gives the same trace for every seed, so it runs
+    // once, with the first seed.
+    let simulated = c.clock != Clock::Realtime;
     let mut cases = Vec::with_capacity(n);
+    let mut repeats = 0;
+    let mut checks = Vec::with_capacity(scenarios.len() * sets.len());
     for (label, sc) in &scenarios {
-        for set in &sets {
-            for &seed in &c.seeds {
+        for (set, specs) in sets.iter().zip(&parsed) {
+            let seeded = specs
+                .iter()
+                .any(|s| matches!(s, crate::faults::FaultSpec::Random(_)));
+            let seeds = if simulated && !seeded {
+                repeats += c.seeds.len() - 1;
+                &c.seeds[..1]
+            } else {
+                &c.seeds[..]
+            };
+            checks.push(cases.len());
+            for &seed in seeds {
                 cases.push(Case {
                     number: cases.len() + 1,
                     scenario: sc.clone(),
@@ -354,10 +403,11 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
     // scenario's stages and duration, topology, expectations); seeds only move random kills.
     // Ten thousand checks take about 0.6 s (no stage is built for them: see
     // `stages::declaration`); a stop signal still ends them.
-    for case in cases.iter().step_by(c.seeds.len()) {
+    let total = cases.len();
+    for case in checks.iter().map(|&i| &cases[i]) {
         if drivelab_runtime::service::stop_requested() {
             bail!(
-                "campaign {}: interrupted ({}) while checking run {} of {n}, before any run started",
+                "campaign {}: interrupted ({}) while checking run {} of {total}, before any run started",
                 file.display(),
                 drivelab_runtime::service::stop_signal_name(),
                 case.number
@@ -372,7 +422,22 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>)> {
             )
         })?;
     }
-    Ok((c, cases))
+    Ok((c, cases, repeats))
+}
+
+/// A fault set as the run sees it, whatever its spelling: each spec parsed (numbers in
+/// their shortest form), in a fixed order unless two `random:N` share the set (they draw
+/// from one generator in turn, so their order moves the kills).
+fn fault_set_key(specs: &[crate::faults::FaultSpec]) -> Vec<String> {
+    let mut key: Vec<String> = specs.iter().map(|s| format!("{s:?}")).collect();
+    let randoms = specs
+        .iter()
+        .filter(|s| matches!(s, crate::faults::FaultSpec::Random(_)))
+        .count();
+    if randoms < 2 {
+        key.sort();
+    }
+    key
 }
 
 /// The first value `items` holds twice, if any (the first one whose earlier copy exists).
@@ -420,6 +485,30 @@ fn options(
         zenoh: None,
         foxglove: None,
         timing_csv: false,
+        quiet_hosts: true,
+    })
+}
+
+/// The real-time set-up refusals of the processes of run folder `out`
+/// (`summary.json → processes → rt_warnings`) in one line, or None.
+fn rt_refusals(out: &Path) -> Option<String> {
+    let s: Value = serde_json::from_slice(&std::fs::read(out.join("summary.json")).ok()?).ok()?;
+    let all: Vec<String> = s["processes"]
+        .as_object()?
+        .iter()
+        .flat_map(|(p, v)| {
+            v["rt_warnings"]
+                .as_array()
+                .into_iter()
+                .flatten()
+                .filter_map(|w| w.as_str())
+                .map(move |w| format!("{p}: {w}"))
+        })
+        .collect();
+    let first = all.first()?;
+    Some(match all.len() {
+        1 => first.clone(),
+        n => format!("{first} (and {} more; see summary.json → processes)", n - 1),
     })
 }
 
@@ -453,10 +542,16 @@ fn run_case(c: &CampaignFile, case: &Case, a: &CampaignArgs, out: &Path) -> Case
         Err(e) => CaseResult {
             case: case.clone(),
             status: "error",
+            // A run that failed after its drive ended (a planned fault not made, a file it
+            // could not write) has written its summary: its figures are known.
+            figures: std::fs::read(dir.join("summary.json"))
+                .ok()
+                .and_then(|b| serde_json::from_slice::<Value>(&b).ok())
+                .map(|s| figures(&s))
+                .unwrap_or_default(),
             out: dir,
             error: Some(drivelab_runtime::text::error_text(&e)),
             expectations: Vec::new(),
-            figures: serde_json::Map::new(),
             wall_s,
         },
     }
@@ -477,8 +572,23 @@ fn cell(v: Option<&Value>) -> String {
     }
 }
 
+/// `s` as the text of one cell of a Markdown table: a `|` would end the cell (and shift
+/// every column after it), a line break the row.
+fn md_cell(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for c in s.chars() {
+        match c {
+            '|' => out.push_str("\\|"),
+            c if c.is_control() => out.push(' '),
+            c => out.push(c),
+        }
+    }
+    out
+}
+
 /// The Markdown table of a campaign.
-pub fn markdown(name: &str, purpose: &str, results: &[CaseResult]) -> String {
+/// `note`: a line under the counts (runs left out).
+pub fn markdown(name: &str, purpose: &str, note: Option<&str>, results: &[CaseResult]) -> String {
     let count = |s: &str| results.iter().filter(|r| r.status == s).count();
     let purpose = if purpose.trim().is_empty() {
         String::new()
@@ -493,6 +603,9 @@ pub fn markdown(name: &str, purpose: &str, results: &[CaseResult]) -> String {
         count("error"),
         count("skipped")
     );
+    if let Some(n) = note {
+        md.push_str(&format!("Note: {}.\n\n", md_cell(n)));
+    }
     md.push_str("| # | scenario | faults | seed | result | peak \\|i\\| A | misses /M | worst republish ms | worst speed recovery ms | failed expectations |\n");
     md.push_str("|---|---|---|---|---|---|---|---|---|---|\n");
     let mut rows = results.iter().peekable();
@@ -515,20 +628,16 @@ pub fn markdown(name: &str, purpose: &str, results: &[CaseResult]) -> String {
             .iter()
             .filter(|e| !e.pass)
             .map(|e| format!("`{}`", e.expect))
-            .chain(
-                r.error
-                    .iter()
-                    .map(|e| format!("error: {}", e.replace('|', "/"))),
-            )
+            .chain(r.error.iter().map(|e| format!("error: {e}")))
             .collect();
         md.push_str(&format!(
             "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
             r.case.number,
-            r.case.label,
+            md_cell(&r.case.label),
             if r.case.faults.is_empty() {
                 "–".to_string()
             } else {
-                r.case.faults.join(" + ")
+                md_cell(&r.case.faults.join(" + "))
             },
             r.case.seed,
             r.status,
@@ -536,7 +645,7 @@ pub fn markdown(name: &str, purpose: &str, results: &[CaseResult]) -> String {
             cell(r.figures.get("deadline_misses_per_million")),
             cell(r.figures.get("worst_republished_ms")),
             cell(r.figures.get("worst_speed_recovered_ms")),
-            failed.join("; ")
+            md_cell(&failed.join("; "))
         ));
     }
     md
@@ -632,19 +741,33 @@ pub fn junit(name: &str, results: &[CaseResult]) -> Result<String> {
         };
         let failed: Vec<&Outcome> = r.expectations.iter().filter(|e| !e.pass).collect();
         if !failed.is_empty() {
-            let message: Vec<String> = failed.iter().map(|e| e.violation()).collect();
+            // Each with why it matters, where the scenario's `[[expect]] note` says.
+            let with_note = |e: &Outcome, text: String| {
+                if e.note.trim().is_empty() {
+                    text
+                } else {
+                    format!("{text} — {}", e.note.trim())
+                }
+            };
+            let message: Vec<String> = failed.iter().map(|e| with_note(e, e.violation())).collect();
             let values: Vec<String> = failed
                 .iter()
                 .flat_map(|e| {
-                    e.values.iter().map(|c| {
-                        format!(
-                            "{}: {} = {} ({})",
-                            e.expect,
-                            c.figure,
-                            c.value.map_or("not a number".into(), |v| v.to_string()),
-                            if c.pass { "ok" } else { "violates" }
+                    e.values
+                        .iter()
+                        .map(|c| {
+                            format!(
+                                "{}: {} = {} ({})",
+                                e.expect,
+                                c.figure,
+                                c.value_text(true),
+                                if c.pass { "ok" } else { "violates" }
+                            )
+                        })
+                        .chain(
+                            (!e.note.trim().is_empty())
+                                .then(|| format!("{}: note: {}", e.expect, e.note.trim())),
                         )
-                    })
                 })
                 .collect();
             element(
@@ -771,7 +894,18 @@ fn claim_campaign_folder(out: &Path) -> Result<std::fs::File> {
 /// the campaign was interrupted.
 pub fn run(a: &CampaignArgs) -> Result<u8> {
     drivelab_runtime::service::install_signal_handlers()?;
-    let (c, cases) = load(&a.file)?;
+    let (c, cases, repeats) = load(&a.file)?;
+    // Said once, before the runs: the report has fewer runs than seeds × fault sets.
+    let note = (repeats > 0).then(|| {
+        format!(
+            "the {} clock gives the same trace for every seed: {repeats} runs that would differ from another only by a seed (no random:N fault uses it) are left out; each such run ran once, with seed {}",
+            c.clock.name(),
+            c.seeds[0]
+        )
+    });
+    if let Some(n) = &note {
+        crate::errln!("drivelab: campaign {}: {n}", a.file.display());
+    }
     let out = match &a.out {
         Some(out) => out.clone(),
         None => crate::launcher::new_default_folder(&format!(
@@ -844,6 +978,16 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
                 e.lines().next().unwrap_or("")
             ));
         }
+        // The hosts keep their set-up lines to themselves in a campaign; a refused part
+        // (no privilege for SCHED_FIFO, a core not there) is still said, once per run.
+        if let Some(w) = rt_refusals(&r.out) {
+            let line = format!("run {}: real-time set-up incomplete: {w}", case.number);
+            if bar.is_hidden() {
+                crate::errln!("{line}");
+            } else {
+                bar.println(line);
+            }
+        }
         if r.status != "pass" {
             let line = format!("run {}: {} — {}", case.number, r.status, case.title());
             // A hidden bar (stderr not a terminal, as in CI; --json) prints nothing.
@@ -857,16 +1001,19 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
         bar.inc(1);
     }
     bar.finish_and_clear();
-    let md = markdown(&c.name, &c.purpose, &results);
+    let md = markdown(&c.name, &c.purpose, note.as_deref(), &results);
     write_report(&out, "campaign.md", &md)?;
     write_report(&out, "junit.xml", junit(&c.name, &results)?)?;
-    let report = json!({
+    let mut report = json!({
         "name": c.name,
         "purpose": c.purpose,
         "file": a.file,
         "clock": c.clock,
         "runs": results,
     });
+    if let Some(n) = &note {
+        report["seed_repeats_left_out"] = json!({ "runs": repeats, "why": n });
+    }
     write_report(&out, "campaign.json", serde_json::to_vec_pretty(&report)?)?;
     if a.json {
         crate::outln!("{}", serde_json::to_string_pretty(&report)?);
@@ -995,9 +1142,9 @@ mod tests {
 
     #[test]
     fn an_empty_purpose_leaves_no_blank_paragraph() {
-        let md = markdown("c", "  ", &[]);
+        let md = markdown("c", "  ", None, &[]);
         assert!(md.starts_with("# Campaign c\n\n0 runs:"), "{md}");
-        let md = markdown("c", "why", &[]);
+        let md = markdown("c", "why", None, &[]);
         assert!(md.starts_with("# Campaign c\n\nwhy\n\n0 runs:"), "{md}");
     }
 }

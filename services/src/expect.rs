@@ -384,8 +384,47 @@ pub struct Checked {
     pub figure: String,
     /// Its value (None: null or not a number).
     pub value: Option<f64>,
+    /// Why the figure is null (a recovery that never came, a window a fault cut), when it
+    /// is; absent for a number.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub null: Option<String>,
     /// Whether it holds.
     pub pass: bool,
+}
+
+impl Checked {
+    /// Its value as a report gives it: the number (`full`: as it reads back, else
+    /// rounded for reading), `null (why)`, or `not a number`.
+    pub fn value_text(&self, full: bool) -> String {
+        match (self.value, &self.null) {
+            (Some(v), _) if full => v.to_string(),
+            (Some(v), _) => drivelab_runtime::text::readable_numbers(&v.to_string()).into_owned(),
+            (None, Some(why)) => format!("null ({why})"),
+            (None, None) => "not a number".into(),
+        }
+    }
+}
+
+/// Why figure `figure` (a concrete path, e.g. `faults.0.speed_recovered_ms`) of `summary` is
+/// null: the summary's own reason where it gives one (`metrics.cut_by_fault`), else what a
+/// null means for that figure.
+fn null_reason(summary: &Value, figure: &str) -> String {
+    let parts: Vec<&str> = figure.split('.').collect();
+    match parts.as_slice() {
+        ["metrics", key] => summary["metrics"]["cut_by_fault"][*key]
+            .as_str()
+            .map_or("not measured in this run".into(), str::to_string),
+        ["faults", _, key] => match *key {
+            "speed_recovered_ms" => "never recovered",
+            "republished_ms" => "never published again",
+            "detected_data_path_ms" => "no consumer saw a stale input",
+            "detected_supervisor_ms" => "the supervisor did not see the process die",
+            "safe_state_ms" => "the inverter never reached its safe state",
+            _ => "not measured for this fault",
+        }
+        .into(),
+        _ => "not measured in this run".into(),
+    }
 }
 
 /// The outcome of one expectation, as `summary.json → expectations` lists it.
@@ -411,13 +450,9 @@ impl Outcome {
         let shown: Vec<String> = bad
             .iter()
             .take(3)
-            .map(|c| match c.value {
-                Some(v) => format!(
-                    "{} = {}",
-                    c.figure,
-                    drivelab_runtime::text::readable_numbers(&v.to_string())
-                ),
-                None => format!("{} is not a number", c.figure),
+            .map(|c| match (c.value, &c.null) {
+                (None, None) => format!("{} is not a number", c.figure),
+                _ => format!("{} = {}", c.figure, c.value_text(false)),
             })
             .collect();
         let more = if bad.len() > 3 {
@@ -488,6 +523,7 @@ impl Expectation {
             .map(|(figure, v)| {
                 let value = v.as_f64().filter(|x| x.is_finite());
                 Checked {
+                    null: v.is_null().then(|| null_reason(summary, &figure)),
                     figure,
                     value,
                     pass: value.is_some_and(|x| self.op.holds(x)),
@@ -610,7 +646,7 @@ mod tests {
         );
         assert_eq!(
             o.violation(),
-            "expectation failed: faults.*.speed_recovered_ms <= 200: faults.1.speed_recovered_ms = 350, faults.2.speed_recovered_ms is not a number"
+            "expectation failed: faults.*.speed_recovered_ms <= 200: faults.1.speed_recovered_ms = 350, faults.2.speed_recovered_ms = null (never recovered)"
         );
         assert!(check("faults.*.speed_recovered_ms <= 400").values[2]
             .value

@@ -996,6 +996,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 zenoh,
                 foxglove,
                 timing_csv,
+                quiet_hosts: false,
             };
             let r = launcher::run(&o)?;
             let failed = drivelab_services::expect::failed(&r.summary);

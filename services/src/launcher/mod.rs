@@ -115,6 +115,9 @@ pub struct RunOptions {
     pub foxglove: Option<std::net::SocketAddr>,
     /// Also write `timing.csv`, each sample's publish times (`--timing-csv`; real time only).
     pub timing_csv: bool,
+    /// The stage hosts keep their real-time set-up line off stderr (it is in summary.json →
+    /// processes): a campaign's runs, where four such lines a run would bury the failures.
+    pub quiet_hosts: bool,
 }
 
 /// What the supervisor does when a service dies.
@@ -240,6 +243,25 @@ pub(crate) fn lock_run_folder(out: &Path) -> Result<RunFolderLock> {
 /// LOCK_NB)`), held until the returned file drops; refused when another `who` (a drive, …)
 /// holds it.
 pub(crate) fn make_and_lock_folder(out: &Path, what: &str, who: &str) -> Result<std::fs::File> {
+    // A file where the folder (or one above it) would be: said as such, not as the system's
+    // "File exists" or "Not a directory".
+    if let Some(file) = out
+        .ancestors()
+        .filter(|p| !p.as_os_str().is_empty())
+        .find(|p| std::fs::metadata(p).is_ok_and(|m| !m.is_dir()))
+    {
+        if file == out {
+            bail!(
+                "{what} {}: is a file, not a folder; give a folder with --out",
+                out.display()
+            );
+        }
+        bail!(
+            "{what} {}: {} is a file, not a folder; give a folder with --out",
+            out.display(),
+            file.display()
+        );
+    }
     std::fs::create_dir_all(out)
         .with_context(|| format!("cannot create {what} {}", out.display()))?;
     let dir = std::fs::File::open(out)
@@ -699,6 +721,13 @@ fn run_bus(
             continue;
         }
         let mut entry = json!({ "stages": c.stages, "executable": c.exe, "pid": c.host_pid(), "cpu": rt.get("cpu"), "policy": rt.get("policy"), "priority": rt.get("priority"), "memory_locked": rt.get("memory_locked") });
+        if let Some(w) = rt
+            .get("warnings")
+            .filter(|w| w.as_array().is_some_and(|a| !a.is_empty()))
+        {
+            // What the host's real-time set-up line says beyond its placement.
+            entry["rt_warnings"] = w.clone();
+        }
         for st in &c.stages {
             let stats_path = out.join(format!("{st}.stats.json"));
             let read = std::fs::read_to_string(&stats_path)

@@ -315,6 +315,9 @@ pub(super) fn spawn_service(
         .stderr(Stdio::inherit());
     // Inherited by whatever the host starts: how [`end_strays`] knows its leftovers.
     cmd.env(HOST_OF_BUS, sp.bus_id);
+    if sp.o.quiet_hosts {
+        cmd.env(drivelab_runtime::service::QUIET_RT_LINE, "1");
+    }
     die_with_launcher(&mut cmd);
     if let Some(set) = sp.cpus {
         start_on(&mut cmd, set);

@@ -802,7 +802,12 @@ pub fn publishers_per_topic(plan: &TopologyPlan, lockstep: bool) -> usize {
     }
 }
 
-/// Applies the process's placement and prints the one-line report to stderr; also sends
+/// Set (by the launcher of a campaign's run): a host does not print its real-time set-up
+/// line; the launcher has the report from the `RT` line and puts it in summary.json.
+pub const QUIET_RT_LINE: &str = "DRIVELAB_QUIET_RT_LINE";
+
+/// Applies the process's placement and prints the one-line report to stderr (unless
+/// [`QUIET_RT_LINE`] is set); also sends
 /// `RT <json>` on stdout for the launcher.
 fn apply_placement(process: &str, p: &ProcessSpec, args: &HostArgs) -> Result<RtReport> {
     let req = if args.no_rt {
@@ -840,7 +845,9 @@ fn apply_placement(process: &str, p: &ProcessSpec, args: &HostArgs) -> Result<Rt
         RtPolicy::Warn
     };
     let report = setup_rt(&req, policy).map_err(|e| anyhow!("{process}: {e}"))?;
-    crate::errln!("{}", report.one_line(process));
+    if std::env::var_os(QUIET_RT_LINE).is_none() {
+        crate::errln!("{}", report.one_line(process));
+    }
     protocol_line(&format!("RT {}", serde_json::to_string(&report)?))?;
     Ok(report)
 }
