@@ -324,3 +324,58 @@ fn bad_restart_times_are_refused_before_anything_starts() {
         assert!(!out.exists(), "{bad}: a run folder was made");
     }
 }
+
+#[test]
+fn with_restart_never_a_killed_stage_stays_dead_in_lockstep_as_in_real_time() {
+    // kyslan-pi at 10 kHz: a kill at 0.05 s is sample 500; the run ends at sample 2000.
+    let (rows, s) = deterministic(
+        "killnever",
+        "0.2",
+        &["--fault", "kill:current-loop@0.05", "--restart", "never"],
+    );
+    assert_eq!(rows.len(), 2000);
+    // No command from the kill to the end: the inverter holds, then stays in its safe state.
+    assert_eq!(
+        command_loss(&rows),
+        [ks(500..2000), ks(501..2000), ks(504..2000)]
+    );
+    let f = &s["faults"][0];
+    assert_eq!(f["fault"], "kill:current-loop@0.05", "{f}");
+    assert!(f["republished_ms"].is_null(), "{f}");
+    assert!(f["speed_recovered_ms"].is_null(), "{f}");
+}
+
+#[test]
+fn a_standby_topology_in_lockstep_says_in_one_line_that_its_twins_do_not_run() {
+    let dir = scratch("standbyls");
+    let bus = bus_id("standbyls");
+    let out = dir.join("run");
+    let mut args = run_args(&bus, &out).to_vec();
+    args.extend_from_slice(&[
+        "--clock",
+        "lockstep",
+        "--duration",
+        "0.05",
+        "--topology",
+        "four-process-standby",
+    ]);
+    let o = drivelab(&args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert_clean(&bus);
+    let said: Vec<&str> = err.lines().filter(|l| l.contains("standby")).collect();
+    assert_eq!(said.len(), 1, "{err}");
+    assert!(
+        said[0].starts_with("drivelab: warning: standby = true (process ")
+            && said[0]
+                .ends_with("applies in real time only: the lockstep clock starts no standby twin"),
+        "{}",
+        said[0]
+    );
+    let s = summary(&out);
+    assert_eq!(
+        s["warnings"][0].as_str(),
+        Some(&said[0]["drivelab: warning: ".len()..]),
+        "{s}"
+    );
+}

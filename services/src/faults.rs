@@ -260,8 +260,13 @@ pub fn stopped_s(specs: &[FaultSpec]) -> f64 {
 
 /// Lockstep and in process (docs/architecture.md, "Fault model"): the kills and stops of
 /// `plan` become `[[inject]]` entries of `sc`, simulated by the stage hosts at their sample;
-/// a kill's outputs are absent for `restart_ms`, the simulated restart.
-pub fn schedule_simulated(plan: &[Fault], restart_ms: f64, sc: &mut Scenario) -> Result<()> {
+/// a kill's outputs are absent for `restart_ms`, the simulated restart, or (None: the
+/// supervisor restarts nothing, `--restart never`) to the end of the run.
+pub fn schedule_simulated(
+    plan: &[Fault],
+    restart_ms: Option<f64>,
+    sc: &mut Scenario,
+) -> Result<()> {
     use drivelab_runtime::inject::{Inject, InjectKind};
     for f in plan {
         sc.inject.push(Inject {
@@ -271,9 +276,11 @@ pub fn schedule_simulated(plan: &[Fault], restart_ms: f64, sc: &mut Scenario) ->
             },
             target: f.service.clone(),
             at_s: f.at_s,
-            duration_s: match f.kind {
-                FaultKind::Kill => restart_ms * 1e-3,
-                FaultKind::Stop => f.duration_s,
+            duration_s: match (f.kind, restart_ms) {
+                (FaultKind::Kill, Some(ms)) => ms * 1e-3,
+                // Longer than what is left of the run: the stage never comes back.
+                (FaultKind::Kill, None) => sc.duration_s,
+                (FaultKind::Stop, _) => f.duration_s,
             },
             latency_us: 0.0,
             count: 0,
@@ -600,7 +607,7 @@ mod tests {
         ];
         let stages: Vec<String> = SERVICES.iter().map(|s| s.to_string()).collect();
         let p = plan(&specs, 0.1, 1e4, 1, 0.3, &stages).unwrap();
-        schedule_simulated(&p, 25.0, &mut sc).unwrap();
+        schedule_simulated(&p, Some(25.0), &mut sc).unwrap();
         let specs: Vec<(String, f64)> =
             sc.inject.iter().map(|i| (i.spec(), i.duration_s)).collect();
         assert_eq!(

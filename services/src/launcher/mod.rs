@@ -1494,7 +1494,9 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
         &stage_names,
     )?;
     if simulated {
-        crate::faults::schedule_simulated(&plan, o.lockstep_restart_ms, &mut sc)?;
+        // The restart policy holds as in real time: with `never` a killed stage stays dead.
+        let restart_ms = (o.restart != Restart::Never).then_some(o.lockstep_restart_ms);
+        crate::faults::schedule_simulated(&plan, restart_ms, &mut sc)?;
         plan.clear();
     }
     // Bus faults (delay, drop, corrupt) go to every stage host in the resolved scenario.
@@ -1571,6 +1573,27 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         hogs,
         expectations,
     } = prepare(o)?;
+    // Configuration that this clock does not apply is said, not dropped in silence (and
+    // kept in summary.json → warnings).
+    let twins: Vec<&str> = topo
+        .processes
+        .iter()
+        .filter(|p| p.standby)
+        .map(|p| p.name.as_str())
+        .collect();
+    let warnings: Vec<String> = (o.clock != Clock::Realtime && !twins.is_empty())
+        .then(|| {
+            format!(
+                "standby = true (process {}) applies in real time only: the {} clock starts no standby twin",
+                twins.join(", "),
+                o.clock.name()
+            )
+        })
+        .into_iter()
+        .collect();
+    for w in &warnings {
+        crate::errln!("drivelab: warning: {w}");
+    }
     // The bus is this drive's until it returns (two launchers that passed the check above at
     // the same time: one of them gets it).
     let _claim = match o.clock {
@@ -1844,6 +1867,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         "wall_time_s": wall_s,
         "simulated_s_per_wall_s": sc.duration_s / wall_s.max(1e-9),
     });
+    if !warnings.is_empty() {
+        summary["warnings"] = json!(warnings);
+    }
     if !hogs.is_empty() {
         // Read, never changed: the kernel leaves (period − runtime) of each period to
         // non-real-time tasks, so a hog cannot take its CPU whole.

@@ -164,8 +164,14 @@ impl Inject {
         }
         match self.kind {
             InjectKind::Kill | InjectKind::Stop => {
+                // A stage that is not restarted (`restart = "never"`) stays down for the
+                // run's duration, however long the run.
                 let (lo, hi, name) = if self.kind == InjectKind::Kill {
-                    (RESTART_MIN_S, RESTART_MAX_S, "the simulated restart")
+                    (
+                        RESTART_MIN_S,
+                        RESTART_MAX_S.max(duration_s),
+                        "the simulated restart",
+                    )
                 } else {
                     (DELAY_MIN_S, DELAY_MAX_S, "a stop")
                 };
