@@ -202,6 +202,17 @@ fn a_split_drive_in_lockstep_gives_the_in_process_trace_on_both_machines() {
     );
     // The link carried every message once, and each side ran only its own processes.
     let (sa, sb) = (summary(&out_a), summary(&out_b));
+    // Lockstep holds no core at real-time priority, the bridges' threads (their own and
+    // Zenoh's) included.
+    for s in [&sa, &sb] {
+        let p = s["bridge"]["thread_policies"]
+            .as_object()
+            .unwrap_or_else(|| panic!("no thread policies: {}", s["bridge"]));
+        assert!(
+            p.contains_key("SCHED_OTHER") && p.keys().all(|k| k == "SCHED_OTHER"),
+            "{p:?}"
+        );
+    }
     let (la, lb) = (&sa["bridge"]["split"], &sb["bridge"]["split"]);
     assert_eq!(
         (la["here"].as_str(), la["there"].as_str()),
@@ -259,6 +270,12 @@ fn a_real_time_split_drive_keeps_every_sample_on_both_machines() {
     let (la, lb) = (&sa["bridge"]["split"], &sb["bridge"]["split"]);
     assert_eq!(la["sent"]["meas"], lb["taken"]["meas"], "{la} / {lb}");
     assert_eq!(lb["sent"]["cmd"], la["taken"]["cmd"], "{la} / {lb}");
+    // In real time the link is on the data path: where the plant got SCHED_FIFO, the
+    // bridge's threads did too (below the stages).
+    if sa["processes"]["plant"]["policy"] == "SCHED_FIFO" {
+        let p = &sa["bridge"]["thread_policies"];
+        assert!(p["SCHED_FIFO"].as_u64() > Some(0), "{p}");
+    }
 }
 
 /// The two sides of a real-time split drive, started: their launchers, buses and run folders.

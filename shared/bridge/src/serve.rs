@@ -100,6 +100,9 @@ pub struct Stats {
     pub failed_replies: u64,
     /// CPU time the bridge process used (user + system, all its threads), s.
     pub cpu_s: f64,
+    /// The scheduling policies of the bridge process's threads (its own and Zenoh's), read
+    /// back from the kernel when it detached: policy name → threads.
+    pub thread_policies: std::collections::BTreeMap<String, u64>,
     /// The split link's counters (a drive split across machines).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub split: Option<serde_json::Value>,
@@ -115,6 +118,30 @@ fn cpu_s() -> f64 {
     };
     let t = |tv: libc::timeval| tv.tv_sec as f64 + tv.tv_usec as f64 * 1e-6;
     t(ru.ru_utime) + t(ru.ru_stime)
+}
+
+/// The scheduling policy of each thread of this process, counted by name.
+fn thread_policies() -> std::collections::BTreeMap<String, u64> {
+    let mut m = std::collections::BTreeMap::new();
+    let Ok(tasks) = std::fs::read_dir("/proc/self/task") else {
+        return m;
+    };
+    for tid in tasks.flatten().filter_map(|e| e.file_name().to_str()?.parse().ok()) {
+        // SAFETY: sched_getscheduler reads the policy of a thread id; no memory is passed.
+        let policy = unsafe { libc::sched_getscheduler(tid) };
+        let name = match policy {
+            libc::SCHED_OTHER => "SCHED_OTHER",
+            libc::SCHED_FIFO => "SCHED_FIFO",
+            libc::SCHED_RR => "SCHED_RR",
+            libc::SCHED_BATCH => "SCHED_BATCH",
+            libc::SCHED_IDLE => "SCHED_IDLE",
+            // The thread ended since it was listed.
+            -1 => continue,
+            _ => "other",
+        };
+        *m.entry(name.to_string()).or_insert(0) += 1;
+    }
+    m
 }
 
 /// A bus subscriber the bridge drains.
@@ -452,7 +479,11 @@ pub fn serve(o: &ServeOptions) -> Result<()> {
     let mut placed = drivelab_runtime::rt::keep_off(rt_cores, "zenoh bridge");
     // A split drive's link is on its data path: the bridge and Zenoh's threads (they
     // inherit the policy) run at SCHED_FIFO, below every stage, still off the drive's cores.
-    if o.split.is_some() {
+    // Not in lockstep, whose processes run as normal tasks (docs/architecture.md, "Clocks"):
+    // with no deadline to keep, a long simulation must not hold a core at real-time priority.
+    if o.split.as_ref().is_some_and(|(_, clock)| clock == "lockstep") {
+        placed = format!("{placed}; link at SCHED_OTHER (lockstep)");
+    } else if o.split.is_some() {
         match drivelab_runtime::rt::set_scheduler(libc::SCHED_FIFO, LINK_PRIORITY) {
             Ok(()) => placed = format!("{placed}; link at SCHED_FIFO {LINK_PRIORITY}"),
             Err(e) => {
@@ -576,6 +607,7 @@ pub fn serve(o: &ServeOptions) -> Result<()> {
                     }
                 }
                 stats.cpu_s = cpu_s();
+                stats.thread_policies = thread_policies();
                 say(&format!("detached {}", serde_json::to_string(&stats)?))?;
             }
             Ok(line) if line.starts_with("summary ") => {
