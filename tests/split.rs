@@ -442,6 +442,64 @@ fn the_two_sides_must_run_the_same_scenario_and_clock_and_a_side_alone_gives_up(
 }
 
 #[test]
+fn a_joining_side_that_cannot_connect_says_why_in_one_line_and_leaves_a_trace_with_its_header() {
+    let dir = scratch("noconnect");
+    let bus = bus_id("noconnect-board");
+    let out = dir.join("board");
+    // A port nothing listens on (bound, then let go).
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let ep = format!("tcp/127.0.0.1:{port}");
+    let b = [
+        "--scenario",
+        "kyslan-pi",
+        "--clock",
+        "lockstep",
+        "--duration",
+        "0.2",
+        "--zenoh-connect",
+        &ep,
+        "--zenoh-wait",
+        "1",
+    ];
+    let o = drivelab_within(
+        &side_args(&bus, &out, "board", &b),
+        Duration::from_secs(120),
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    let errors: Vec<&str> = err.lines().filter(|l| l.contains("error")).collect();
+    assert_eq!(errors.len(), 1, "{err}");
+    assert!(
+        errors[0].starts_with(&format!(
+            "drivelab: error: zenoh bridge: cannot connect to {ep}"
+        )),
+        "{err}"
+    );
+    assert!(!err.contains("panicked"), "{err}");
+    assert_clean(&bus);
+    // No sample, and the summary says why; the trace has its columns, no row.
+    let s = summary(&out);
+    assert_eq!(s["samples"], 0, "{s}");
+    assert!(
+        s["failure"]
+            .as_str()
+            .is_some_and(|f| f.starts_with("zenoh bridge: cannot connect")),
+        "{}",
+        s["failure"]
+    );
+    let trace = String::from_utf8(read(&out.join("trace.csv"))).unwrap();
+    assert_eq!(trace.lines().count(), 1, "{trace}");
+    assert!(trace.starts_with("k,"), "{trace}");
+    assert!(drivelab_runtime::trace::read_csv(&out.join("trace.csv"))
+        .unwrap()
+        .is_empty());
+}
+
+#[test]
 fn machines_are_checked_before_anything_starts() {
     let bus = bus_id("refused");
     // A machine the topology does not name, and a topology without machines.

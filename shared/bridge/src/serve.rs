@@ -126,7 +126,10 @@ fn thread_policies() -> std::collections::BTreeMap<String, u64> {
     let Ok(tasks) = std::fs::read_dir("/proc/self/task") else {
         return m;
     };
-    for tid in tasks.flatten().filter_map(|e| e.file_name().to_str()?.parse().ok()) {
+    for tid in tasks
+        .flatten()
+        .filter_map(|e| e.file_name().to_str()?.parse().ok())
+    {
         // SAFETY: sched_getscheduler reads the policy of a thread id; no memory is passed.
         let policy = unsafe { libc::sched_getscheduler(tid) };
         let name = match policy {
@@ -481,7 +484,10 @@ pub fn serve(o: &ServeOptions) -> Result<()> {
     // inherit the policy) run at SCHED_FIFO, below every stage, still off the drive's cores.
     // Not in lockstep, whose processes run as normal tasks (docs/architecture.md, "Clocks"):
     // with no deadline to keep, a long simulation must not hold a core at real-time priority.
-    if o.split.as_ref().is_some_and(|(_, clock)| clock == "lockstep") {
+    if o.split
+        .as_ref()
+        .is_some_and(|(_, clock)| clock == "lockstep")
+    {
         placed = format!("{placed}; link at SCHED_OTHER (lockstep)");
     } else if o.split.is_some() {
         match drivelab_runtime::rt::set_scheduler(libc::SCHED_FIFO, LINK_PRIORITY) {

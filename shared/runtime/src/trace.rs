@@ -60,6 +60,20 @@ pub fn write_csv(path: &std::path::Path, rows: &[TraceRow]) -> anyhow::Result<()
     w.finish()
 }
 
+/// The column names of `trace.csv`: [`TraceRow`]'s fields, as serde names them.
+fn header() -> anyhow::Result<csv::StringRecord> {
+    let mut w = csv::Writer::from_writer(Vec::new());
+    w.serialize(TraceRow::default())?;
+    let bytes = w.into_inner().map_err(|e| anyhow::anyhow!("{e}"))?;
+    let mut r = csv::ReaderBuilder::new()
+        .has_headers(false)
+        .from_reader(bytes.as_slice());
+    r.records()
+        .next()
+        .ok_or_else(|| anyhow::anyhow!("no trace header"))?
+        .map_err(Into::into)
+}
+
 /// `trace.csv` written row by row as a run goes (buffered), so that a long run needs no
 /// memory for its trace and what was recorded is on disk.
 pub struct CsvTrace {
@@ -68,12 +82,18 @@ pub struct CsvTrace {
 }
 
 impl CsvTrace {
-    /// Creates (truncates) the file.
+    /// Creates (truncates) the file and writes its header, so that a run that records no
+    /// sample (a drive that never started) leaves a trace with its columns, not an empty file.
     pub fn create(path: &std::path::Path) -> anyhow::Result<Self> {
-        let w = csv::Writer::from_writer(
-            crate::files::create(path)
-                .map_err(|e| anyhow::anyhow!("cannot create {}: {e}", path.display()))?,
-        );
+        let file = crate::files::create(path)
+            .map_err(|e| anyhow::anyhow!("cannot create {}: {e}", path.display()))?;
+        let mut w = csv::WriterBuilder::new()
+            .has_headers(false)
+            .from_writer(file);
+        let fail = |e: csv::Error| anyhow::anyhow!("cannot write {}: {e}", path.display());
+        w.write_record(header()?.iter()).map_err(fail)?;
+        w.flush()
+            .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", path.display()))?;
         Ok(Self {
             w,
             path: path.to_path_buf(),
@@ -228,6 +248,28 @@ pub fn for_each_csv_row(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_trace_without_rows_has_the_header_of_one_with_rows() {
+        let dir = std::env::temp_dir().join(format!("dl-trace-header-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (empty, full) = (dir.join("empty.csv"), dir.join("full.csv"));
+        CsvTrace::create(&empty).unwrap().finish().unwrap();
+        let row = |k: u64| TraceRow {
+            k,
+            t: k as f64 * 1e-4,
+            ..Default::default()
+        };
+        write_csv(&full, &[row(0), row(1)]).unwrap();
+        let empty_text = std::fs::read_to_string(&empty).unwrap();
+        let full_text = std::fs::read_to_string(&full).unwrap();
+        assert_eq!(empty_text.lines().count(), 1, "{empty_text}");
+        assert_eq!(full_text.lines().next(), empty_text.lines().next());
+        assert_eq!(full_text.lines().count(), 3, "{full_text}");
+        assert!(read_csv(&empty).unwrap().is_empty());
+        assert_eq!(read_csv(&full).unwrap().len(), 2);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     #[test]
     fn a_trace_cut_after_a_failed_write_ends_on_its_last_whole_row() {
