@@ -658,6 +658,41 @@ mod tests {
     }
 
     #[test]
+    fn a_null_figure_is_named_null_with_the_summarys_reason() {
+        let s = json!({
+            "metrics": {
+                "load_recovery_ms": null,
+                "overshoot_pct": null,
+                "cut_by_fault": { "load_recovery_ms": "cut by the fault at 0.055 s (kill:current-loop@0.055)" },
+            },
+            "faults": [{ "republished_ms": null }],
+            "peak_current_a": "high",
+        });
+        let v = |t: &str| parse(t).unwrap().evaluate(&s).violation();
+        assert_eq!(
+            v("metrics.load_recovery_ms <= 5"),
+            "expectation failed: metrics.load_recovery_ms <= 5: metrics.load_recovery_ms = null (cut by the fault at 0.055 s (kill:current-loop@0.055))"
+        );
+        assert_eq!(
+            v("metrics.overshoot_pct <= 5"),
+            "expectation failed: metrics.overshoot_pct <= 5: metrics.overshoot_pct = null (not measured in this run)"
+        );
+        assert_eq!(
+            v("faults.*.republished_ms <= 5"),
+            "expectation failed: faults.*.republished_ms <= 5: faults.0.republished_ms = null (never published again)"
+        );
+        // A value that is neither a number nor null is still named so.
+        assert_eq!(
+            v("peak_current_a <= 5"),
+            "expectation failed: peak_current_a <= 5: peak_current_a is not a number"
+        );
+        // The reason reads back from summary.json → expectations.
+        let o = parse("metrics.load_recovery_ms <= 5").unwrap().evaluate(&s);
+        let back: Outcome = serde_json::from_value(serde_json::to_value(&o).unwrap()).unwrap();
+        assert_eq!(back.violation(), o.violation());
+    }
+
+    #[test]
     fn a_figure_the_summary_lacks_or_a_null_fails() {
         let o = check("metrics.settling_ms <= 5");
         assert!(!o.pass && o.values.is_empty());
