@@ -189,3 +189,112 @@ fn every_help_has_an_example_and_every_quantity_a_unit() {
 fn scenario_catalogue() {
     none_rewritten([snapshot("scenarios", &["scenarios"])]);
 }
+
+/// `drivelab ARGS` run in folder `cwd`: (exit code, stdout, stderr).
+fn drivelab_in(cwd: &std::path::Path, args: &[&str]) -> (Option<i32>, String, String) {
+    let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
+        .args(args)
+        .current_dir(cwd)
+        .output()
+        .unwrap();
+    (
+        o.status.code(),
+        String::from_utf8_lossy(&o.stdout).into_owned(),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+    )
+}
+
+/// The shipped scenarios, from the source tree.
+const SCENARIOS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../scenarios");
+
+#[test]
+fn design_says_what_runs_when_a_users_stage_replaces_a_loop() {
+    // The deadbeat example replaces kyslan-pi's current loop: the PI current design is not
+    // what runs (the run's summary names it in design.not_run).
+    let file = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../examples/deadbeat-current-loop/deadbeat.toml"
+    );
+    let (code, out, err) = drivelab_in(std::path::Path::new("/"), &["design", "--scenario", file]);
+    assert_eq!(code, Some(0), "{err}");
+    let runs = out.lines().nth(1).unwrap();
+    assert!(
+        runs.starts_with("runs: the user's current-loop stage (process 'current-loop', exec ../../target/release/drivelab-deadbeat), pi speed loop"),
+        "{out}"
+    );
+    let line = |what: &str| out.lines().find(|l| l.contains(what)).unwrap();
+    assert!(line("current PI (").starts_with("not run: "), "{out}");
+    assert!(line("speed PI (").starts_with("speed PI ("), "{out}");
+}
+
+#[test]
+fn design_says_unstable_where_the_sampled_loop_is() {
+    // low-rst-sensorless runs the RST loops; the nonlinear design printed for comparison is
+    // unstable at its 500 Hz speed law: its 9 423 % overshoot is that of a growing response.
+    let (code, out, err) = drivelab_in(
+        std::path::Path::new("/"),
+        &["design", "--scenario", "low-rst-sensorless"],
+    );
+    assert_eq!(code, Some(0), "{err}");
+    let l = out
+        .lines()
+        .find(|l| l.contains("design model (drive's discrete law"))
+        .unwrap();
+    assert!(
+        l.contains("overshoot 9423.3 %; UNSTABLE: the sampled loop has a pole at |z| = "),
+        "{l}"
+    );
+    assert!(
+        l.contains("(this design is not run: for comparison only)"),
+        "{l}"
+    );
+}
+
+#[test]
+fn a_scenario_or_topology_in_the_working_folder_wins_over_the_shipped_one() {
+    let dir = std::env::temp_dir().join(format!("drivelab-cli-{}-cwd", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(dir.join("scenarios/topologies")).unwrap();
+    // kyslan-pi, edited in the working folder's scenarios/.
+    let shipped = std::fs::read_to_string(format!("{SCENARIOS}/kyslan-pi.toml")).unwrap();
+    let edited = shipped.replacen("name = \"kyslan-pi\"", "name = \"kyslan-pi-edited\"", 1);
+    assert_ne!(edited, shipped);
+    std::fs::write(dir.join("scenarios/kyslan-pi.toml"), edited).unwrap();
+    let (code, out, err) = drivelab_in(&dir, &["design", "--scenario", "kyslan-pi"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(
+        out.starts_with("scenario kyslan-pi-edited: "),
+        "the shipped kyslan-pi was used: {out}"
+    );
+    // A name the working folder does not have is the shipped one.
+    let (code, out, err) = drivelab_in(&dir, &["design", "--scenario", "kyslan-nl"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.starts_with("scenario kyslan-nl: "), "{out}");
+    // A topology of a shipped name, broken in the working folder: it is the one read.
+    let topo = dir.join("scenarios/topologies/four-process.toml");
+    std::fs::write(&topo, "process = []\n").unwrap();
+    let (code, _, err) = drivelab_in(
+        &dir,
+        &[
+            "run",
+            "--clock",
+            "lockstep",
+            "--scenario",
+            "kyslan-nl",
+            "--topology",
+            "four-process",
+            "--out",
+            dir.join("run").to_str().unwrap(),
+        ],
+    );
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.contains(&format!(
+            "{}: the topology has no [[process]]",
+            topo.display()
+        )),
+        "{err}"
+    );
+    assert!(!dir.join("run").exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -235,6 +235,24 @@ fn a_bad_scenario_field_is_one_line_naming_file_field_range_and_unit() {
             "placement.plant.priority = 100 must be in 1..=99",
         ),
         (
+            "placement-priority-256",
+            (
+                "[load]",
+                "[placement.plant]\ncore = 1\npriority = 256\n\n[load]".into(),
+            ),
+            1,
+            "placement.plant.priority: 256 is out of range: SCHED_FIFO priorities are 1..=99",
+        ),
+        (
+            "placement-core-minus-1",
+            (
+                "[load]",
+                "[placement.plant]\ncore = -1\npriority = 70\n\n[load]".into(),
+            ),
+            1,
+            "placement.plant.core: -1 is not a CPU number (0..=1023)",
+        ),
+        (
             "encoder-1-count",
             (
                 "[load]",
@@ -317,6 +335,13 @@ fn a_bad_topology_file_is_one_line_naming_file_process_and_field() {
     );
     let not_exec = script(&dir, "not-exec.sh", "exit 0", false);
     let floods = script(&dir, "floods.sh", "exec yes '[]'", true);
+    let no_interpreter = {
+        use std::os::unix::fs::PermissionsExt;
+        let p = dir.join("stage.py");
+        std::fs::write(&p, "#!/nonexistent/python\nprint('[]')\n").unwrap();
+        std::fs::set_permissions(&p, std::fs::Permissions::from_mode(0o755)).unwrap();
+        p.display().to_string()
+    };
     let cases: Vec<(&str, String, &str)> = vec![
         (
             "twice",
@@ -348,10 +373,22 @@ fn a_bad_topology_file_is_one_line_naming_file_process_and_field() {
             process("a", &all, "").replace("priority = 70", "priority = 0"),
             "process 'a': priority = 0 must be in 1..=99",
         ),
+        // Beyond what the field's type holds: the field, the value and the range, not
+        // serde's "expected u8".
         (
-            "priority-1000",
-            process("a", &all, "").replace("priority = 70", "priority = 1000"),
-            ":5: process[0].priority: invalid value: integer `1000`, expected u8",
+            "priority-256",
+            process("a", &all, "").replace("priority = 70", "priority = 256"),
+            ":5: process[0].priority: 256 is out of range: SCHED_FIFO priorities are 1..=99",
+        ),
+        (
+            "priority-minus-1",
+            process("a", &all, "").replace("priority = 70", "priority = -1"),
+            ":5: process[0].priority: -1 is out of range: SCHED_FIFO priorities are 1..=99",
+        ),
+        (
+            "cpu-minus-1",
+            process("a", &all, "").replace("cpu = 1", "cpu = -1"),
+            ":4: process[0].cpu: -1 is not a CPU number (0..=1023)",
         ),
         (
             "cpu-nan",
@@ -376,7 +413,20 @@ fn a_bad_topology_file_is_one_line_naming_file_process_and_field() {
         (
             "exec-empty",
             user(""),
-            "process 'u': exec = \"\" names no executable",
+            "process 'u': exec = \"\" is empty and names no executable",
+        ),
+        // Quoted as written, not as "".
+        (
+            "exec-blank",
+            user(" "),
+            "process 'u': exec = \" \" is blank and names no executable",
+        ),
+        // A script whose interpreter is missing: the kernel's "No such file or directory"
+        // was about a file that exists.
+        (
+            "exec-interpreter-missing",
+            user(&no_interpreter),
+            "the interpreter named in its first line (#!/nonexistent/python) was not found",
         ),
         (
             "exec-directory",

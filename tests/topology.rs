@@ -401,6 +401,48 @@ fn a_fault_on_a_stage_takes_down_its_whole_process_which_is_restarted() {
     assert!(!last.contains("NaN"), "no command at the end: {last}");
 }
 
+/// Two processes on one core at one SCHED_FIFO priority: the kernel runs them in the order
+/// they become ready, not along the data graph; a real-time run says so in one warning line
+/// (lockstep, which does not use the priorities, does not).
+#[test]
+fn processes_sharing_a_core_and_a_priority_are_warned_about() {
+    let _serial = serial();
+    let dir = scratch("same-prio");
+    let topo = dir.join("same.toml");
+    std::fs::write(
+        &topo,
+        "[[process]]\nname = \"plant\"\nstages = [\"plant\"]\ncpu = 1\npriority = 70\n\
+         [[process]]\nname = \"controller\"\nstages = [\"observer\", \"current-loop\", \"speed-loop\"]\ncpu = 1\npriority = 70\n",
+    )
+    .unwrap();
+    let want = "drivelab: warning: processes 'plant', 'controller' run on CPU 1 at the same SCHED_FIFO priority 70";
+    for (tag, clock, warned) in [
+        ("same-prio-rt", "realtime", true),
+        ("same-prio-ls", "lockstep", false),
+    ] {
+        let bus = bus_id(tag);
+        let out = dir.join(tag);
+        let mut args = run_args(&bus, &out).to_vec();
+        args.extend_from_slice(&[
+            "--duration",
+            "0.05",
+            "--clock",
+            clock,
+            "--topology",
+            topo.to_str().unwrap(),
+        ]);
+        let o = drivelab(&args);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(o.status.success(), "{clock}: {err}");
+        assert_eq!(
+            err.lines().filter(|l| l.starts_with(want)).count(),
+            usize::from(warned),
+            "{clock}: {err}"
+        );
+        assert_clean(&bus);
+    }
+}
+
 /// A process whose `exec` is a script that starts a helper and then the host: the helper is
 /// killed when the drive ends (named in one warning line), not left running. The same
 /// script floods stdout, which the launcher reads only up to READY: the launcher's memory

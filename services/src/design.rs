@@ -5,12 +5,59 @@
 use drivelab_control::control::nonlinear::{KyslanModel, StepFigures};
 use drivelab_runtime::config::Scenario;
 use drivelab_runtime::drive::DriveDesign;
+use std::collections::BTreeMap;
 use std::fmt::Write;
 
-/// Renders the design printout of `sc`.
+/// A built-in stage that a user's stage runs in place of: the process that hosts it and the
+/// executable (as the scenario writes it) that process starts.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Replacement {
+    /// The process's name.
+    pub process: String,
+    /// Its `exec`.
+    pub exec: String,
+}
+
+impl Replacement {
+    /// "the user's current-loop stage (process 'p', exec ./x)".
+    fn describe(&self, stage: &str) -> String {
+        format!(
+            "the user's {stage} stage (process '{}', exec {})",
+            self.process, self.exec
+        )
+    }
+}
+
+/// The replaceable built-in stages (observer, current loop, speed loop) that a process of
+/// `sc` with an `exec` hosts: that executable runs its own stage of the name in the
+/// built-in's place (`drivelab run` asks it with `--describe`; one that hosts no stage of the
+/// name would leave the built-in to run, which only the run can tell).
+pub fn replacements(sc: &Scenario) -> BTreeMap<String, Replacement> {
+    let mut v = BTreeMap::new();
+    for p in sc.process.iter() {
+        let Some(exec) = &p.exec else { continue };
+        for st in p
+            .stages
+            .iter()
+            .filter(|s| drivelab_runtime::stages::REPLACEABLE.contains(&s.as_str()))
+        {
+            v.insert(
+                st.clone(),
+                Replacement {
+                    process: p.name.clone(),
+                    exec: exec.clone(),
+                },
+            );
+        }
+    }
+    v
+}
+
+/// Renders the design printout of `sc`, with the built-in stages in `replaced` run by a
+/// user's stage (their built-in designs are printed for comparison and say "not run").
 /// The controllers and observers are designed with the controller's view of the motor
 /// (`[model]`); when it differs from the plant's, both sets are printed.
-pub fn render(sc_true: &Scenario) -> String {
+pub fn render(sc_true: &Scenario, replaced: &BTreeMap<String, Replacement>) -> String {
     let truth = sc_true.motor_params();
     let view = sc_true.controller_view();
     let sc = &view;
@@ -57,11 +104,29 @@ pub fn render(sc_true: &Scenario) -> String {
     use drivelab_runtime::config::{CurrentController, SpeedController};
     // Every design is printed for comparison; the ones this scenario does not run say so
     // where they begin.
+    let current_by = replaced.get("current-loop");
+    let speed_by = replaced.get("speed-loop");
+    let observer_by = replaced.get("observer");
+    let loop_runs = |by: Option<&Replacement>, stage: &str, builtin: String| match by {
+        Some(r) => r.describe(stage),
+        None => builtin,
+    };
     let _ = writeln!(
         o,
-        "runs: {} current loop, {} speed loop (the other designs below are for comparison and say \"not run\")",
-        name(&sc.current_loop.controller),
-        name(&sc.speed_loop.controller)
+        "runs: {}, {}{} (the other designs below are for comparison and say \"not run\")",
+        loop_runs(
+            current_by,
+            "current-loop",
+            format!("{} current loop", name(&sc.current_loop.controller))
+        ),
+        loop_runs(
+            speed_by,
+            "speed-loop",
+            format!("{} speed loop", name(&sc.speed_loop.controller))
+        ),
+        observer_by
+            .map(|r| format!(", {}", r.describe("observer")))
+            .unwrap_or_default()
     );
     let not_run = |runs: bool| if runs { "" } else { "not run: " };
     // As the scenario file names it.
@@ -75,14 +140,14 @@ pub fn render(sc_true: &Scenario) -> String {
     let _ = writeln!(
         o,
         "{}current PI (pole-zero cancellation, τ_c = {} ms): d: Kp = L_d/τ_c = {:.4} V/A, Ki = R/τ_c = {:.1} V/(A·s); q: Kp = L_q/τ_c = {:.4} V/A, Ki = {:.1} V/(A·s)",
-        not_run(sc.current_loop.controller == CurrentController::Pi),
+        not_run(sc.current_loop.controller == CurrentController::Pi && current_by.is_none()),
         c.tau_c_s * 1e3, c.k_p_d, c.k_i_d, c.k_p_q, c.k_i_q
     );
     let s = &d.speed;
     let _ = writeln!(
         o,
         "{}speed PI (symmetrical optimum, every {} samples = {} Hz): T_sigma = {:.4} ms, a = {:.4}, T_eq = {:.4} ms",
-        not_run(sc.speed_loop.controller == SpeedController::Pi),
+        not_run(sc.speed_loop.controller == SpeedController::Pi && speed_by.is_none()),
         sc.rates.speed_divider,
         sc.rates.sample_hz / f64::from(sc.rates.speed_divider),
         s.t_sigma_s * 1e3,
@@ -105,11 +170,25 @@ pub fn render(sc_true: &Scenario) -> String {
     if let Some(w) = &s.warning {
         let _ = writeln!(o, "  WARNING: {w}");
     }
-    render_nonlinear(&mut o, sc, &d);
+    render_nonlinear(&mut o, sc, &d, current_by.is_some(), speed_by.is_some());
     if let Some(r) = &d.rst {
-        o.push_str(&r.render());
+        // Each loop's RST runs where its loop selects "rst" and no user's stage replaces it.
+        let current = sc.current_loop.controller == CurrentController::Rst && current_by.is_none();
+        let speed = sc.speed_loop.controller == SpeedController::Rst && speed_by.is_none();
+        for line in r.render().lines() {
+            let runs = match line.trim_start().split(' ').next() {
+                Some("i_d" | "i_q") if line.starts_with("  i_") => current,
+                Some("speed") if line.starts_with("  speed loop") => speed,
+                _ => true,
+            };
+            let _ = match line.strip_prefix("  ").filter(|_| !runs) {
+                Some(rest) => writeln!(o, "  not run: {rest}"),
+                None => writeln!(o, "{line}"),
+            };
+        }
     }
     if let Some(ob) = &d.observer {
+        o.push_str(not_run(observer_by.is_none()));
         o.push_str(&drivelab_control::observer_sensorless::render_design(
             ob,
             &m,
@@ -117,13 +196,33 @@ pub fn render(sc_true: &Scenario) -> String {
         ));
     }
     if let Some(p) = &d.polar {
+        o.push_str(not_run(current_by.is_none()));
         o.push_str(&crate::cdm_design::render_polar_design(p));
     }
-    let _ = writeln!(o, "this scenario runs the {} controller", d.controller);
+    let in_place: Vec<String> = replaced
+        .iter()
+        .map(|(st, r)| format!("{} in place of the built-in {st}", r.describe(st)))
+        .collect();
+    if in_place.is_empty() {
+        let _ = writeln!(o, "this scenario runs the {} controller", d.controller);
+    } else {
+        let _ = writeln!(
+            o,
+            "this scenario runs the {} controller with {}",
+            d.controller,
+            in_place.join(", ")
+        );
+    }
     o
 }
 
-fn render_nonlinear(o: &mut String, sc: &Scenario, d: &DriveDesign) {
+fn render_nonlinear(
+    o: &mut String,
+    sc: &Scenario,
+    d: &DriveDesign,
+    current_replaced: bool,
+    speed_replaced: bool,
+) {
     let m = sc.motor_params();
     let k = KyslanModel::new(&m);
     let n = &d.nonlinear;
@@ -132,7 +231,14 @@ fn render_nonlinear(o: &mut String, sc: &Scenario, d: &DriveDesign) {
     let _ = writeln!(
         o,
         "{}nonlinear (Kyslan et al. 2015, two-step linearisation, x = [ω, i_q, i_d]):",
-        if sc.nonlinear() { "" } else { "not run: " }
+        match (sc.nonlinear(), current_replaced, speed_replaced) {
+            (false, _, _) | (true, true, true) => "not run: ",
+            (true, true, false) =>
+                "not run as designed (the user's current-loop stage replaces its current law): ",
+            (true, false, true) =>
+                "not run as designed (the user's speed-loop stage replaces its speed law): ",
+            (true, false, false) => "",
+        }
     );
     let _ = writeln!(
         o,
@@ -209,9 +315,26 @@ fn render_nonlinear(o: &mut String, sc: &Scenario, d: &DriveDesign) {
         "    settled gain g = 1 + r12 + d12·r2 = {:.6} (bus i_q* = (v1 - r11·ω)/(g·(a1 + a2·i_d*)))",
         n.g_ss
     );
+    // Whether the sampled loop is stable: a response that grows without bound has a "rise
+    // time" and an "overshoot" only because its simulation stopped somewhere.
+    let model = drivelab_control::control::nonlinear::NlLoopModel {
+        ts: sc.rates.ts(),
+        n: sc.rates.speed_divider,
+        tau_f_s: sc.observer.speed_filter_tau_s,
+    };
+    let rho = model.spectral_radius(&m, g);
+    let unstable = if rho > 1.0 {
+        format!(
+            "; UNSTABLE: the sampled loop has a pole at |z| = {rho:.3} > 1 (linearised at rest), so its response grows without bound and these figures are only those of the {:.2} ms simulated{}",
+            n.response_window_s * 1e3,
+            if sc.nonlinear() { "" } else { " (this design is not run: for comparison only)" }
+        )
+    } else {
+        String::new()
+    };
     let _ = writeln!(
         o,
-        "  design model (drive's discrete law, sampled, 1-sample delay, speed law every {} samples): {}",
+        "  design model (drive's discrete law, sampled, 1-sample delay, speed law every {} samples): {}{unstable}",
         sc.rates.speed_divider,
         response(&n.predicted(), Some(sc.speed_loop.rise_time_s))
     );
@@ -258,7 +381,7 @@ mod tests {
         // target; its figures and the warning are read off the whole response.
         let mut sc = crate::launcher::load_scenario("kyslan-nl", None).unwrap();
         sc.speed_loop.rise_time_s = 0.2e-3;
-        let t = render(&sc);
+        let t = render(&sc, &BTreeMap::new());
         assert!(!t.contains("NaN"), "{t}");
         let line = t
             .lines()
@@ -288,7 +411,10 @@ mod tests {
                 [true, true, true],
             ),
         ] {
-            let t = render(&crate::launcher::load_scenario(name, None).unwrap());
+            let t = render(
+                &crate::launcher::load_scenario(name, None).unwrap(),
+                &BTreeMap::new(),
+            );
             assert!(
                 t.lines()
                     .nth(1)
@@ -304,5 +430,106 @@ mod tests {
                 assert_eq!(line.starts_with("not run: "), not, "{name}: {line}");
             }
         }
+    }
+    #[test]
+    fn a_loop_a_users_stage_replaces_is_named_as_what_runs_and_its_design_not_run() {
+        let mut sc = crate::launcher::load_scenario("kyslan-pi", None).unwrap();
+        sc.process = drivelab_runtime::topology::load("four-process")
+            .unwrap()
+            .0
+            .process;
+        let cl = sc
+            .process
+            .iter_mut()
+            .find(|p| p.stages.iter().any(|s| s == "current-loop"))
+            .unwrap();
+        cl.exec = Some("./my-loop".into());
+        let process = cl.name.clone();
+        let replaced = replacements(&sc);
+        assert_eq!(replaced.keys().collect::<Vec<_>>(), ["current-loop"]);
+        let t = render(&sc, &replaced);
+        let runs = t.lines().nth(1).unwrap();
+        assert!(
+            runs.starts_with(&format!(
+                "runs: the user's current-loop stage (process '{process}', exec ./my-loop), pi speed loop ("
+            )),
+            "{t}"
+        );
+        assert!(!runs.contains("pi current loop"), "{runs}");
+        let line = |what: &str| t.lines().find(|l| l.contains(what)).unwrap();
+        assert!(line("current PI (").starts_with("not run: "), "{t}");
+        assert!(line("speed PI (").starts_with("speed PI ("), "{t}");
+        assert!(
+            t.trim_end().ends_with(&format!(
+                "this scenario runs the pi controller with the user's current-loop stage (process '{process}', exec ./my-loop) in place of the built-in current-loop"
+            )),
+            "{t}"
+        );
+        // Low et al.'s RST: the replaced speed loop's RST design is not run, the current
+        // loops' are.
+        let mut sc = crate::launcher::load_scenario("low-rst", None).unwrap();
+        sc.process = drivelab_runtime::topology::load("four-process")
+            .unwrap()
+            .0
+            .process;
+        for p in sc.process.iter_mut() {
+            if p.stages.iter().any(|s| s == "speed-loop") {
+                p.exec = Some("./my-speed".into());
+            }
+        }
+        let t = render(&sc, &replacements(&sc));
+        for (section, not) in [
+            ("i_d loop (", false),
+            ("i_q loop (", false),
+            ("speed loop (T", true),
+        ] {
+            let l = line_of(&t, section);
+            assert_eq!(l.starts_with("  not run: "), not, "{l}");
+        }
+    }
+
+    fn line_of<'a>(t: &'a str, what: &str) -> &'a str {
+        t.lines().find(|l| l.contains(what)).unwrap()
+    }
+
+    #[test]
+    fn an_unstable_design_says_so_beside_its_overshoot() {
+        // low-rst-sensorless's nonlinear design (for comparison, not run): the sampled loop at
+        // 5 kHz with a 500 Hz speed law is unstable, and its figures are those of a growing
+        // response within the simulated window. Kyslan's own is stable.
+        let sc = crate::launcher::load_scenario("low-rst-sensorless", None).unwrap();
+        let t = render(&sc, &BTreeMap::new());
+        // The pole tells the truth: simulated twice as long, the response overshoots more.
+        let view = sc.controller_view();
+        let n = DriveDesign::from_scenario(&view).nonlinear;
+        let model = drivelab_control::control::nonlinear::NlLoopModel {
+            ts: view.rates.ts(),
+            n: view.rates.speed_divider,
+            tau_f_s: view.observer.speed_filter_tau_s,
+        };
+        let longer = model
+            .step_response(&view.motor_params(), &n.gains, 2.0 * n.response_window_s)
+            .overshoot_pct
+            .unwrap();
+        assert!(
+            longer > 10.0 * n.predicted_overshoot_pct.unwrap(),
+            "{longer}"
+        );
+        let l = line_of(&t, "design model (drive's discrete law");
+        assert!(l.contains(", overshoot "), "the figure stays: {l}");
+        assert!(
+            l.contains("; UNSTABLE: the sampled loop has a pole at |z| = "),
+            "{l}"
+        );
+        assert!(
+            l.contains("(this design is not run: for comparison only)"),
+            "{l}"
+        );
+        let t = render(
+            &crate::launcher::load_scenario("kyslan-nl", None).unwrap(),
+            &BTreeMap::new(),
+        );
+        let l = line_of(&t, "design model (drive's discrete law");
+        assert!(!l.contains("UNSTABLE"), "{l}");
     }
 }

@@ -1198,22 +1198,10 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 sc.speed_loop.rise_time_s = r * 1e-3;
             }
             sc.validate().map_err(|e| anyhow::anyhow!(e))?;
-            drivelab_services::out!("{}", drivelab_services::design::render(&sc));
             // A built-in stage in a process with `exec` is the user's stage of that name: the
-            // design above is not the one that runs for it.
-            for p in sc.process.iter().filter(|p| p.exec.is_some()) {
-                for st in p
-                    .stages
-                    .iter()
-                    .filter(|s| drivelab_runtime::stages::REPLACEABLE.contains(&s.as_str()))
-                {
-                    drivelab_services::outln!(
-                        "{st}: replaced by the user's stage in process '{}' (exec {}): its built-in design above does not run",
-                        p.name,
-                        p.exec.as_deref().unwrap_or_default()
-                    );
-                }
-            }
+            // built-in's design is printed for comparison and says "not run".
+            let replaced = drivelab_services::design::replacements(&sc);
+            drivelab_services::out!("{}", drivelab_services::design::render(&sc, &replaced));
             Ok(())
         }
         Cmd::Monitor {

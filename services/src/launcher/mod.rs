@@ -1237,6 +1237,13 @@ fn check_exec(exe: &str, through_runner: bool) -> Result<std::fs::Metadata> {
     if !through_runner && md.permissions().mode() & 0o111 == 0 {
         bail!("exec {exe} is not executable (no execute permission: chmod +x it)");
     }
+    // A script whose interpreter is missing: its start would say "No such file or directory"
+    // of a file that exists.
+    if let Some(why) =
+        drivelab_runtime::topology::missing_interpreter(Path::new(exe)).filter(|_| !through_runner)
+    {
+        bail!("exec {exe}: {why}");
+    }
     Ok(md)
 }
 
@@ -1639,6 +1646,17 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             "drivelab: warning: {why}; idle CPUs may wake late ([timing] cpu_latency_us = \"none\" silences this)"
         ),
         _ => {}
+    }
+    // Processes that share a core and a SCHED_FIFO priority (real time only: lockstep does
+    // not use the priorities).
+    if o.clock == Clock::Realtime && !o.no_rt {
+        let here: Vec<_> = (0..topo.processes.len())
+            .filter(|i| !topo.away.contains(i))
+            .map(|i| topo.processes[i].clone())
+            .collect();
+        for w in drivelab_runtime::topology::placement_warnings(&here) {
+            crate::errln!("drivelab: warning: {w}");
+        }
     }
     let out = out.canonicalize()?;
     let sc_path = out.join("scenario.toml");

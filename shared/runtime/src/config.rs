@@ -1017,8 +1017,10 @@ pub fn profile_at(steps: &[Step], t: f64) -> f64 {
 #[serde(deny_unknown_fields)]
 pub struct ServicePlacement {
     /// CPU core; None = not pinned.
+    #[serde(default, deserialize_with = "crate::topology::cpu_field")]
     pub core: Option<usize>,
     /// SCHED_FIFO priority 1..=99; None = SCHED_OTHER.
+    #[serde(default, deserialize_with = "crate::topology::priority_field")]
     pub priority: Option<u8>,
 }
 
@@ -1644,40 +1646,79 @@ impl Scenario {
     }
 }
 
-/// The folder with the shipped scenarios: `$DRIVELAB_SCENARIOS`, else `scenarios/` next to
-/// the workspace (found from the executable's location or the current directory).
-pub fn scenarios_dir() -> PathBuf {
-    if let Ok(d) = std::env::var("DRIVELAB_SCENARIOS") {
-        return PathBuf::from(d);
-    }
+/// The folders a scenario name is looked up in, the first that holds `NAME.toml` winning:
+/// `scenarios/` in the working folder (a checkout's, edited), then the shipped ones:
+/// `$DRIVELAB_SCENARIOS` when it is set, else `scenarios/` next to the executable or a folder
+/// above it (a checkout's `target/release/drivelab`), then the source tree it was built from.
+/// Only folders that exist; a file path is never looked up (`names_a_file`).
+pub fn scenario_dirs() -> Vec<PathBuf> {
     let mut candidates = Vec::new();
-    if let Ok(exe) = std::env::current_exe() {
-        for a in exe.ancestors().skip(1) {
-            candidates.push(a.join("scenarios"));
-        }
-    }
-    candidates.push(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../scenarios"));
     if let Ok(cwd) = std::env::current_dir() {
         candidates.push(cwd.join("scenarios"));
     }
-    candidates
+    if let Ok(d) = std::env::var("DRIVELAB_SCENARIOS") {
+        candidates.push(PathBuf::from(d));
+    } else {
+        if let Ok(exe) = std::env::current_exe() {
+            for a in exe.ancestors().skip(1) {
+                candidates.push(a.join("scenarios"));
+            }
+        }
+        candidates.push(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../scenarios"));
+    }
+    let mut dirs: Vec<PathBuf> = Vec::new();
+    for c in candidates.into_iter().filter(|p| p.is_dir()) {
+        // The same folder reached twice (the working folder is the checkout) is one.
+        let same = |d: &PathBuf| match (d.canonicalize(), c.canonicalize()) {
+            (Ok(a), Ok(b)) => a == b,
+            _ => *d == c,
+        };
+        if !dirs.iter().any(same) {
+            dirs.push(c);
+        }
+    }
+    dirs
+}
+
+/// The first of [`scenario_dirs`] (where `drivelab scenarios` looked when it found none).
+pub fn scenarios_dir() -> PathBuf {
+    scenario_dirs()
         .into_iter()
-        .find(|p| p.is_dir())
+        .next()
         .unwrap_or_else(|| PathBuf::from("scenarios"))
 }
 
-/// Names of the shipped scenarios (file stems), sorted.
+/// `NAME.toml` in the first folder of `dirs` that holds it.
+pub fn find_named(dirs: &[PathBuf], name: &str) -> Option<PathBuf> {
+    dirs.iter()
+        .map(|d| d.join(format!("{name}.toml")))
+        .find(|f| f.is_file())
+}
+
+/// The `NAME.toml` files of `dirs`, each name once with the file that [`find_named`] takes
+/// for it, sorted by name.
+pub fn list_named(dirs: &[PathBuf]) -> Vec<(String, PathBuf)> {
+    let mut v: BTreeMap<String, PathBuf> = BTreeMap::new();
+    for d in dirs {
+        for p in std::fs::read_dir(d)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .map(|e| e.path())
+            .filter(|p| p.extension().is_some_and(|e| e == "toml") && p.is_file())
+        {
+            if let Some(stem) = p.file_stem() {
+                v.entry(stem.to_string_lossy().into_owned()).or_insert(p);
+            }
+        }
+    }
+    v.into_iter().collect()
+}
+
+/// The scenarios found by name (file stems, [`scenario_dirs`]), sorted, each with the file a
+/// run of that name reads.
 pub fn list_scenarios() -> Vec<(String, PathBuf)> {
-    let mut v: Vec<(String, PathBuf)> = std::fs::read_dir(scenarios_dir())
-        .into_iter()
-        .flatten()
-        .flatten()
-        .map(|e| e.path())
-        .filter(|p| p.extension().is_some_and(|e| e == "toml"))
-        .filter_map(|p| Some((p.file_stem()?.to_string_lossy().into_owned(), p)))
-        .collect();
-    v.sort();
-    v
+    list_named(&scenario_dirs())
 }
 
 /// Whether a scenario or topology argument names a file (it ends in `.toml` or holds a `/`)
@@ -1736,8 +1777,7 @@ fn resolve_scenario_path(name_or_path: &str) -> Result<PathBuf, String> {
             Err(format!("scenario file {name_or_path} does not exist"))
         };
     }
-    let f = scenarios_dir().join(format!("{name_or_path}.toml"));
-    if f.is_file() {
+    if let Some(f) = find_named(&scenario_dirs(), name_or_path) {
         Ok(f)
     } else {
         let known: Vec<String> = list_scenarios().into_iter().map(|(n, _)| n).collect();
@@ -2086,7 +2126,7 @@ preset = "kyslan2015"
             ),
             (
                 tail("[[process]]\nname = \"a\"\nstages = [\"plant\"]\ncpu = -1"),
-                "x:9: process[0].cpu: invalid value: integer `-1`",
+                "x:9: process[0].cpu: -1 is not a CPU number (0..=1023)",
             ),
             (
                 tail("[reference]\nspeed_rad_s = [\n  { t_s = 0.0, value = 1.0 },\n  { t_s = \"x\", value = 2.0 },\n]"),
@@ -2133,7 +2173,9 @@ preset = "kyslan2015"
         let two = "[[process]]\nname = \"a\"\nstages = [\"plant\"]\n";
         let e = err(&format!("{MIN}{two}{two}priority = 1000\n"));
         assert!(
-            e.starts_with("f.toml:12: process[1].priority: invalid value"),
+            e.starts_with(
+                "f.toml:12: process[1].priority: 1000 is out of range: SCHED_FIFO priorities are 1..=99"
+            ),
             "{e}"
         );
         // Brackets inside strings and comments do not count.

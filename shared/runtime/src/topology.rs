@@ -19,10 +19,10 @@ pub struct ProcessSpec {
     /// Stages it hosts. Their order is taken from the data graph.
     pub stages: Vec<String>,
     /// CPU core; None = not pinned.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "cpu_field")]
     pub cpu: Option<usize>,
     /// SCHED_FIFO priority 1..=99; None = SCHED_OTHER.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "priority_field")]
     pub priority: Option<u8>,
     /// Executable that hosts the stages (a user's stage crate), absolute or relative to the
     /// scenario file; default: the built-in host `drivelab-host`.
@@ -40,6 +40,34 @@ pub struct ProcessSpec {
     /// processes. Without `--machine` the whole topology runs here.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub machine: Option<String>,
+}
+
+/// The largest CPU number a topology may name.
+pub const CPU_MAX: usize = 1023;
+
+/// A `cpu` (or `core`) field: any integer is read, and a negative one is one line that names
+/// the value and the range (serde's own says "expected usize"); one above [`CPU_MAX`] is
+/// refused with the process's name by [`check_specs`], a scenario's `[placement]` by its
+/// validation.
+pub(crate) fn cpu_field<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<usize>, D::Error> {
+    let v = i64::deserialize(d)?;
+    usize::try_from(v)
+        .map(Some)
+        .map_err(|_| serde::de::Error::custom(format!("{v} is not a CPU number (0..={CPU_MAX})")))
+}
+
+/// A `priority` field: any integer is read, and one outside a `u8` is one line that names
+/// the value and the SCHED_FIFO range (0 and 100..=255 are refused with the process's name
+/// by [`check_specs`], a scenario's `[placement]` by its validation).
+pub(crate) fn priority_field<'de, D: serde::Deserializer<'de>>(
+    d: D,
+) -> Result<Option<u8>, D::Error> {
+    let v = i64::deserialize(d)?;
+    u8::try_from(v).map(Some).map_err(|_| {
+        serde::de::Error::custom(format!(
+            "{v} is out of range: SCHED_FIFO priorities are 1..=99"
+        ))
+    })
 }
 
 /// A topology file: `[[process]]` tables.
@@ -113,23 +141,22 @@ impl Resolved {
     }
 }
 
-/// The shipped topologies: `scenarios/topologies/NAME.toml`.
-pub fn topologies_dir() -> PathBuf {
-    crate::config::scenarios_dir().join("topologies")
+/// The folders a topology name is looked up in: `topologies/` in each of the scenario
+/// folders ([`crate::config::scenario_dirs`]), in their order (the working folder's first).
+pub fn topology_dirs() -> Vec<PathBuf> {
+    crate::config::scenario_dirs()
+        .into_iter()
+        .map(|d| d.join("topologies"))
+        .filter(|d| d.is_dir())
+        .collect()
 }
 
-/// Names of the shipped topologies, sorted.
+/// Names of the topologies found by name ([`topology_dirs`]), sorted.
 pub fn list_topologies() -> Vec<String> {
-    let mut v: Vec<String> = std::fs::read_dir(topologies_dir())
+    crate::config::list_named(&topology_dirs())
         .into_iter()
-        .flatten()
-        .flatten()
-        .map(|e| e.path())
-        .filter(|p| p.extension().is_some_and(|e| e == "toml"))
-        .filter_map(|p| Some(p.file_stem()?.to_string_lossy().into_owned()))
-        .collect();
-    v.sort();
-    v
+        .map(|(n, _)| n)
+        .collect()
 }
 
 /// Loads a topology by shipped name or file path and checks what needs no stage declarations
@@ -138,14 +165,12 @@ pub fn load(name_or_path: &str) -> Result<(TopologyFile, PathBuf), String> {
     let path = if crate::config::names_a_file(name_or_path) {
         PathBuf::from(name_or_path)
     } else {
-        let f = topologies_dir().join(format!("{name_or_path}.toml"));
-        if !f.is_file() {
-            return Err(format!(
+        crate::config::find_named(&topology_dirs(), name_or_path).ok_or_else(|| {
+            format!(
                 "unknown topology '{name_or_path}' (known: {})",
                 list_topologies().join(", ")
-            ));
-        }
-        f
+            )
+        })?
     };
     let text = crate::config::read_config_file(&path, "topology")?;
     let origin = path.display().to_string();
@@ -190,17 +215,19 @@ pub fn check_specs(procs: &[ProcessSpec]) -> Result<(), String> {
             }
         }
         if let Some(c) = p.cpu {
-            if c >= 1024 {
+            if c > CPU_MAX {
                 return Err(format!(
-                    "process '{}': cpu = {c} is not a CPU number (0..=1023)",
+                    "process '{}': cpu = {c} is not a CPU number (0..={CPU_MAX})",
                     p.name
                 ));
             }
         }
-        if p.exec.as_deref().is_some_and(|e| e.trim().is_empty()) {
+        if let Some(e) = p.exec.as_deref().filter(|e| e.trim().is_empty()) {
+            // As written, quoted as TOML quotes it ("" or " " or "\t").
             return Err(format!(
-                "process '{}': exec = \"\" names no executable (leave exec out for the built-in host)",
-                p.name
+                "process '{}': exec = {e:?} is {} and names no executable (leave exec out for the built-in host)",
+                p.name,
+                if e.is_empty() { "empty" } else { "blank" }
             ));
         }
         if p.standby && p.stages.iter().any(|s| s == "plant") {
@@ -288,6 +315,40 @@ pub fn cores(procs: &[ProcessSpec]) -> u64 {
         .fold(0u64, |m, c| m | (1 << c))
 }
 
+/// One line for each CPU on which two or more processes (a standby twin counts, one
+/// priority below its process) share a SCHED_FIFO priority: among equal priorities the
+/// kernel runs them in the order they became ready, not along the data graph, so a stage
+/// may wait for one that is not its input's producer. Processes of different machines do
+/// not share a CPU. Real time only: lockstep runs its processes as normal tasks.
+pub fn placement_warnings(procs: &[ProcessSpec]) -> Vec<String> {
+    // (machine, cpu, priority) → the processes there.
+    let mut at: BTreeMap<(Option<&str>, usize, u8), Vec<String>> = BTreeMap::new();
+    for p in procs {
+        let (Some(cpu), Some(pr)) = (p.cpu, p.priority) else {
+            continue;
+        };
+        let m = p.machine.as_deref();
+        at.entry((m, cpu, pr))
+            .or_default()
+            .push(format!("'{}'", p.name));
+        if p.standby {
+            at.entry((m, cpu, pr.saturating_sub(1).max(1)))
+                .or_default()
+                .push(format!("'{}' (its standby twin)", p.name));
+        }
+    }
+    at.into_iter()
+        .filter(|(_, who)| who.len() > 1)
+        .map(|((m, cpu, pr), who)| {
+            format!(
+                "processes {} run on CPU {cpu}{} at the same SCHED_FIFO priority {pr}: the kernel runs them in the order they become ready, not along the data graph; give each its own priority, rising along the chain",
+                who.join(", "),
+                m.map(|m| format!(" of machine {m}")).unwrap_or_default()
+            )
+        })
+        .collect()
+}
+
 /// The two machines of a split topology in order of appearance (the first hosts the first
 /// process); empty when the topology is not split.
 pub fn machines(procs: &[ProcessSpec]) -> Vec<String> {
@@ -298,6 +359,27 @@ pub fn machines(procs: &[ProcessSpec]) -> Vec<String> {
         }
     }
     v
+}
+
+/// Why the kernel would refuse to start the script `exe` (a file that exists) with "No such
+/// file or directory": the interpreter its first line names (`#!/path/to/interpreter`) is
+/// not there. None when `exe` is no script, or its interpreter exists or is a relative path
+/// (resolved in the starting process's folder, which only the start can tell).
+pub fn missing_interpreter(exe: &Path) -> Option<String> {
+    use std::io::Read;
+    let mut head = [0u8; 256];
+    let n = std::fs::File::open(exe).ok()?.read(&mut head).ok()?;
+    let line = head[..n].strip_prefix(b"#!")?;
+    let line = line.split(|&b| b == b'\n').next()?;
+    let line = String::from_utf8_lossy(line);
+    let interpreter = line.split_whitespace().next()?;
+    let path = Path::new(interpreter);
+    (path.is_absolute() && !path.exists()).then(|| {
+        format!(
+            "the interpreter named in its first line (#!{}) was not found: install it or correct that line",
+            line.trim()
+        )
+    })
 }
 
 /// Checks a topology against the stages' declarations (`info(process, stage)`) and orders
@@ -560,6 +642,75 @@ mod tests {
         resolve(p, &mut |_, s| {
             builtin_info(&sc, s).ok_or_else(|| format!("unknown stage '{s}'"))
         })
+    }
+
+    #[test]
+    fn a_script_whose_interpreter_is_missing_is_named_by_its_first_line() {
+        let dir = std::env::temp_dir().join(format!("drivelab-shebang-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let script = |name: &str, text: &str| {
+            let f = dir.join(name);
+            std::fs::write(&f, text).unwrap();
+            f
+        };
+        let missing = script("missing.py", "#!/nonexistent/python -u\nprint(1)\n");
+        assert_eq!(
+            missing_interpreter(&missing).as_deref(),
+            Some("the interpreter named in its first line (#!/nonexistent/python -u) was not found: install it or correct that line")
+        );
+        assert_eq!(
+            missing_interpreter(&script("sh.sh", "#!/bin/sh\nexit 0\n")),
+            None
+        );
+        assert_eq!(missing_interpreter(&script("rel.sh", "#!python\n")), None);
+        assert_eq!(missing_interpreter(&script("plain", "\x7fELF")), None);
+        assert_eq!(missing_interpreter(&dir.join("absent")), None);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn processes_at_one_priority_on_one_cpu_are_warned_about_once_per_cpu_and_priority() {
+        let mut p = procs(&[
+            ("plant", &["plant"]),
+            ("observer", &["observer"]),
+            ("loops", &["current-loop", "speed-loop"]),
+        ]);
+        // plant and observer at 70 on CPU 1; the loops at 72 on CPU 1.
+        p[2].priority = Some(72);
+        let w = placement_warnings(&p);
+        assert_eq!(
+            w,
+            ["processes 'plant', 'observer' run on CPU 1 at the same SCHED_FIFO priority 70: the kernel runs them in the order they become ready, not along the data graph; give each its own priority, rising along the chain"]
+        );
+        // Another CPU, or another priority: nothing to say.
+        p[1].cpu = Some(2);
+        assert!(placement_warnings(&p).is_empty());
+        p[1].cpu = Some(1);
+        p[1].priority = Some(71);
+        assert!(placement_warnings(&p).is_empty());
+        // A standby twin runs one priority below its process: the loops' twin at 71 shares
+        // it with the observer.
+        p[2].standby = true;
+        let w = placement_warnings(&p);
+        assert_eq!(w.len(), 1, "{w:?}");
+        assert!(
+            w[0].starts_with("processes 'observer', 'loops' (its standby twin) run on CPU 1 at the same SCHED_FIFO priority 71"),
+            "{w:?}"
+        );
+        // Unpinned or not real-time: no shared core to speak of.
+        p[2].standby = false;
+        p[0].priority = None;
+        p[1].cpu = None;
+        assert!(placement_warnings(&p).is_empty());
+        // The shipped topologies give every process its own priority on its core.
+        for name in list_topologies() {
+            let (t, _) = load(&name).unwrap();
+            assert_eq!(
+                placement_warnings(&t.process),
+                Vec::<String>::new(),
+                "{name}"
+            );
+        }
     }
 
     #[test]

@@ -724,6 +724,27 @@ impl NlLoopModel {
         phi
     }
 
+    /// The largest |z| of the sampled loop's poles (q axis and speed, linearised at rest over
+    /// one speed period, [`Self::lifted_matrix`]), without the encoder angle's z = 1 (a shift
+    /// of the angle and of its last value changes no speed). Above 1 the loop is unstable: its
+    /// step response grows without bound, and a rise time or overshoot read off it is only
+    /// what the simulated window happened to show.
+    pub fn spectral_radius(&self, m: &MotorParams, g: &NlGains) -> f64 {
+        let mut z: Vec<nalgebra::Complex<f64>> = self
+            .lifted_matrix(m, g)
+            .complex_eigenvalues()
+            .iter()
+            .copied()
+            .collect();
+        let one = nalgebra::Complex::new(1.0, 0.0);
+        if let Some(i) = (0..z.len()).min_by(|&a, &b| {
+            crate::math::cnorm(z[a] - one).total_cmp(&crate::math::cnorm(z[b] - one))
+        }) {
+            z.swap_remove(i);
+        }
+        z.into_iter().map(crate::math::cnorm).fold(0.0, f64::max)
+    }
+
     /// Poles of the sampled loop (q axis and speed), as ln(z)/(N·T_s) in rad/s, sorted by
     /// magnitude. Poles at z ≈ 0 (pure delays) are left out.
     pub fn sampled_poles(&self, m: &MotorParams, g: &NlGains) -> Vec<(f64, f64)> {
