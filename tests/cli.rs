@@ -298,3 +298,50 @@ fn a_scenario_or_topology_in_the_working_folder_wins_over_the_shipped_one() {
     assert!(!dir.join("run").exists());
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn doctor_judges_the_cores_of_the_topology_it_is_given() {
+    let dir = std::env::temp_dir().join(format!("drivelab-cli-{}-doctor", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    // A core no machine here has: the placement line is BAD and the per-core checks speak
+    // of that core, not of the default placement's cpu 1.
+    let topo = dir.join("far.toml");
+    std::fs::write(
+        &topo,
+        "[[process]]\nname = \"all\"\nstages = [\"plant\", \"observer\", \"current-loop\", \"speed-loop\"]\ncpu = 1000\npriority = 70\n",
+    )
+    .unwrap();
+    let (code, out, err) = drivelab_in(
+        &dir,
+        &["doctor", "--json", "--topology", topo.to_str().unwrap()],
+    );
+    assert_eq!(code, Some(0), "{err}");
+    let checks: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let check = |name: &str| {
+        checks
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|c| c["name"] == name)
+            .unwrap_or_else(|| panic!("no '{name}' in {out}"))
+            .clone()
+    };
+    let p = check("placement");
+    assert_eq!(p["status"], "Bad", "{p}");
+    assert!(
+        p["value"]
+            .as_str()
+            .unwrap()
+            .starts_with(&format!("topology {}: cpu 1000: all", topo.display())),
+        "{p}"
+    );
+    let k = check("kernel runs");
+    let v = k["value"].as_str().unwrap();
+    assert!(v.contains("cpu 1000") || k["status"] == "Unknown", "{k}");
+    // Without it, no placement line.
+    let (code, out, err) = drivelab_in(&dir, &["doctor", "--json"]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(!out.contains("\"placement\""), "{out}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

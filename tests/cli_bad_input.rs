@@ -608,6 +608,13 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             "unexpected argument 'extra'",
         ),
         case("doctor", dir, &["doctor", "--nosuch"], 2, "'--nosuch'"),
+        case(
+            "doctor-topology",
+            dir,
+            &["doctor", "--topology", "nosuch"],
+            1,
+            "--topology: unknown topology 'nosuch' (known: four-process",
+        ),
         case("command", dir, &["nosuch"], 2, "unrecognized subcommand 'nosuch'"),
     ];
     if cfg!(feature = "zenoh") {

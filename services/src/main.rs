@@ -461,13 +461,20 @@ enum Cmd {
     Plot(drivelab_services::plotcmd::PlotArgs),
     /// Report how ready this machine is for real-time work. Reads only; changes nothing.
     ///
-    /// Example:
+    /// Examples:
     ///   drivelab doctor
+    ///   drivelab doctor --topology two-process   # isolation, irqs, kernel runs on its cores
     #[command(verbatim_doc_comment)]
     Doctor {
         /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
+        /// Judge the per-core checks (isolated cpus, device irqs, kernel runs) for the cores
+        /// this topology (a shipped name or a file) pins its processes to, and add a
+        /// "placement" line about it; without it they are judged for the isolated cpus, else
+        /// every cpu but the first (the default placement uses cpu 1).
+        #[arg(long, value_name = "NAME|FILE")]
+        topology: Option<String>,
     },
 }
 
@@ -1366,8 +1373,18 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
         ),
         Cmd::ObserverError(args) => drivelab_services::observer_error::run(&args),
         Cmd::CdmDesign(args) => drivelab_services::cdm_design::run(&args),
-        Cmd::Doctor { json } => {
-            let checks = drivelab_tools::doctor::run_checks();
+        Cmd::Doctor { json, topology } => {
+            let placement = topology
+                .map(|t| {
+                    drivelab_runtime::topology::load(&t)
+                        .map(|(f, _)| drivelab_tools::doctor::Placement {
+                            name: t.clone(),
+                            processes: f.process,
+                        })
+                        .map_err(|e| anyhow::anyhow!("--topology: {e}"))
+                })
+                .transpose()?;
+            let checks = drivelab_tools::doctor::run_checks_for(placement.as_ref());
             if json {
                 drivelab_services::outln!("{}", serde_json::to_string_pretty(&checks)?);
             } else {

@@ -74,20 +74,57 @@ impl Check {
     }
 }
 
+/// A topology's processes, for `drivelab doctor --topology`: the checks made per core
+/// (isolation, device interrupts, kernel runs) are judged for the cores they are pinned to
+/// instead of the default placement's.
+#[derive(Debug, Clone)]
+pub struct Placement {
+    /// What names it: a shipped topology's name or a file.
+    pub name: String,
+    /// Its processes.
+    pub processes: Vec<drivelab_runtime::topology::ProcessSpec>,
+}
+
+impl Placement {
+    /// The CPUs its processes are pinned to, sorted.
+    fn cpus(&self) -> Vec<usize> {
+        let mut v: Vec<usize> = self.processes.iter().filter_map(|p| p.cpu).collect();
+        v.sort_unstable();
+        v.dedup();
+        v
+    }
+}
+
 /// Runs every check against the real machine.
 pub fn run_checks() -> Vec<Check> {
-    run_checks_in(Path::new("/"))
+    run_checks_for(None)
+}
+
+/// Runs every check against the real machine, the per-core ones for `placement`'s cores when
+/// one is given.
+pub fn run_checks_for(placement: Option<&Placement>) -> Vec<Check> {
+    run_checks_in_for(Path::new("/"), placement)
 }
 
 /// Runs every check with all file paths taken relative to `root` (`/` for the real
 /// machine; a fake tree in tests). Probes that are not files (`uname`, rlimits, the
 /// `SCHED_FIFO` probe, the process's euid) always look at the live system.
 pub fn run_checks_in(root: &Path) -> Vec<Check> {
+    run_checks_in_for(root, None)
+}
+
+/// [`run_checks_in`], the per-core checks for `placement`'s cores when one is given (with a
+/// "placement" line about the placement itself).
+pub fn run_checks_in_for(root: &Path, placement: Option<&Placement>) -> Vec<Check> {
     let fs = Fs { root };
     let uts = uname();
     let online = online_cpu_list(&fs);
     let caps = Caps::read(&fs);
-    vec![
+    let drive = match placement {
+        Some(p) => p.cpus(),
+        None => drive_cpus(&fs, &online),
+    };
+    let mut checks = vec![
         kernel_check(uts.as_ref()),
         preemption_check(
             &fs,
@@ -96,8 +133,11 @@ pub fn run_checks_in(root: &Path) -> Vec<Check> {
         ),
         rt_throttling_check(&fs),
         online_cpus_check(&online),
-        isolated_cpus_check(&fs, &online),
-        device_irq_check(&fs, &online),
+        match placement {
+            Some(p) => isolated_cpus_check_for(&fs, &online, &p.cpus()),
+            None => isolated_cpus_check(&fs, &online),
+        },
+        device_irq_check_on(&fs, &drive),
         governor_check(&fs),
         cpufreq_limits_check(&fs),
         smt_check(&fs),
@@ -112,8 +152,71 @@ pub fn run_checks_in(root: &Path) -> Vec<Check> {
         cpu_latency_request_check(&fs),
         tick_check(&fs, uts.as_ref().map(|u| u.release.as_str())),
         other_load_check(&fs, BUSY_WINDOW),
-        kernel_runs_check(&fs, &online),
-    ]
+        kernel_runs_check_on(&fs, &drive),
+    ];
+    if let Some(p) = placement {
+        checks.insert(4, placement_check(&online, p));
+    }
+    checks
+}
+
+/// What a topology's placement means on this machine: the cores it pins, one it pins that
+/// the machine does not have (a real-time run refuses it), processes it leaves unpinned, and
+/// processes that share a core at one SCHED_FIFO priority.
+fn placement_check(online: &[usize], p: &Placement) -> Check {
+    const NAME: &str = "placement";
+    let mut by_cpu: BTreeMap<usize, Vec<&str>> = BTreeMap::new();
+    let mut unpinned = Vec::new();
+    for q in &p.processes {
+        match q.cpu {
+            Some(c) => by_cpu.entry(c).or_default().push(&q.name),
+            None => unpinned.push(q.name.as_str()),
+        }
+    }
+    let mut value = format!("topology {}: ", p.name);
+    let pinned: Vec<String> = by_cpu
+        .iter()
+        .map(|(c, who)| format!("cpu {c}: {}", who.join(", ")))
+        .collect();
+    value.push_str(&if pinned.is_empty() {
+        "no process pinned to a cpu".to_string()
+    } else {
+        pinned.join("; ")
+    });
+    if !unpinned.is_empty() {
+        let _ = write!(value, "; not pinned: {}", unpinned.join(", "));
+    }
+    if !drivelab_runtime::topology::machines(&p.processes).is_empty() {
+        value.push_str(" (split across machines: every machine's cores are listed)");
+    }
+    let missing: Vec<String> = by_cpu
+        .keys()
+        .filter(|c| !online.contains(c))
+        .map(|c| c.to_string())
+        .collect();
+    if !missing.is_empty() {
+        return Check::new(
+            NAME,
+            value,
+            Status::Bad,
+            Some(format!(
+                "cpu {} is not online here (online: {}): a real-time run refuses a process pinned to it; change its cpu",
+                missing.join(", "),
+                fmt_cpu_list(online)
+            )),
+        );
+    }
+    let mut advice = drivelab_runtime::topology::placement_warnings(&p.processes);
+    if !unpinned.is_empty() {
+        advice.push(
+            "a process pinned to no cpu runs wherever the scheduler puts it, beside the OS; give it a cpu".into(),
+        );
+    }
+    if advice.is_empty() {
+        Check::new(NAME, value, Status::Ok, None)
+    } else {
+        Check::new(NAME, value, Status::Warn, Some(advice.join("; ")))
+    }
 }
 
 /// The "kernel tick" check alone, on the real machine: what a drive's summary records of the
@@ -989,17 +1092,22 @@ fn device_irqs(fs: &Fs) -> Option<Vec<DeviceIrq>> {
 
 /// Device interrupts served by the CPUs a drive runs on: each interrupt, and the softirq and
 /// kernel-thread work it starts, runs ahead of the drive's tasks on that CPU.
+#[cfg(test)]
 fn device_irq_check(fs: &Fs, online: &[usize]) -> Check {
+    device_irq_check_on(fs, &drive_cpus(fs, online))
+}
+
+/// [`device_irq_check`] for the drive's CPUs `drive`.
+fn device_irq_check_on(fs: &Fs, drive: &[usize]) -> Check {
     const NAME: &str = "device irqs";
     let Some(irqs) = device_irqs(fs) else {
         return Check::new(NAME, "/proc/interrupts not readable", Status::Unknown, None);
     };
-    let drive = drive_cpus(fs, online);
     let on_drive: Vec<&DeviceIrq> = irqs
         .iter()
         .filter(|d| d.cpus.iter().any(|c| drive.contains(c)))
         .collect();
-    let drive_list = drive_cpu_text(&drive);
+    let drive_list = drive_cpu_text(drive);
     if on_drive.is_empty() {
         return Check::new(
             NAME,
@@ -1101,6 +1209,46 @@ fn isolated_cpus_check(fs: &Fs, online: &[usize]) -> Check {
         )
     };
     Check::new(NAME, value, Status::Warn, Some(advice))
+}
+
+/// [`isolated_cpus_check`] for a topology that pins its processes to `cpus`: OK when every one
+/// of them is isolated (with the same nohz_full/rcu_nocbs advice), else which are not, and
+/// the boot parameters that would isolate them.
+fn isolated_cpus_check_for(fs: &Fs, online: &[usize], cpus: &[usize]) -> Check {
+    let c = isolated_cpus_check(fs, online);
+    if c.status == Status::Unknown || cpus.is_empty() {
+        return c;
+    }
+    let isolated = isolated_list(fs);
+    let not: Vec<usize> = cpus
+        .iter()
+        .copied()
+        .filter(|x| !isolated.contains(x))
+        .collect();
+    if not.is_empty() {
+        return Check::new(&c.name, c.value, Status::Ok, c.advice);
+    }
+    let l = fmt_cpu_list(cpus);
+    let advice = if not.contains(&online.first().copied().unwrap_or(0)) {
+        format!(
+            "the topology pins a process to cpu {}, the OS's first cpu, which cannot be isolated; move it to another",
+            online.first().copied().unwrap_or(0)
+        )
+    } else {
+        format!(
+            "boot with isolcpus={l} nohz_full={l} rcu_nocbs={l} (irqaffinity=0) so that the topology's cpus are the drive's alone"
+        )
+    };
+    Check::new(
+        &c.name,
+        format!(
+            "{}; the topology's cpu {} not isolated",
+            c.value,
+            fmt_cpu_list(&not)
+        ),
+        Status::Warn,
+        Some(advice),
+    )
 }
 
 const GOVERNOR_ADVICE: &str = "set governor to performance: cpupower frequency-set -g performance \
@@ -1805,13 +1953,18 @@ fn damon_on(fs: &Fs) -> Vec<(u32, Option<u32>)> {
 /// On a kernel without full preemption a drive task that wakes while one of them is in the
 /// kernel waits for its next preemption point (user code it preempts at once). A running
 /// drive's own tasks are left out; DAMON's monitor thread is named as such.
+#[cfg(test)]
 fn kernel_runs_check(fs: &Fs, online: &[usize]) -> Check {
+    kernel_runs_check_on(fs, &drive_cpus(fs, online))
+}
+
+/// [`kernel_runs_check`] for the drive's CPUs `drive`.
+fn kernel_runs_check_on(fs: &Fs, drive: &[usize]) -> Check {
     const NAME: &str = "kernel runs";
     let tasks = task_samples(fs, std::process::id());
     if tasks.is_empty() {
         return Check::new(NAME, "no /proc task could be read", Status::Unknown, None);
     }
-    let drive = drive_cpus(fs, online);
     let damon = damon_on(fs);
     let mut long: Vec<&TaskSample> = tasks
         .iter()
@@ -1838,7 +1991,7 @@ fn kernel_runs_check(fs: &Fs, online: &[usize]) -> Check {
     } else {
         format!("; DAMON on: {}", other_damon.join(", "))
     };
-    let drive_list = drive_cpu_text(&drive);
+    let drive_list = drive_cpu_text(drive);
     if long.is_empty() {
         return Check::new(
             NAME,
@@ -2371,6 +2524,104 @@ mod tests {
         // No cpufreq at all (an x86 VM) is unknown, not an error.
         let empty = FakeRoot::new();
         assert_eq!(cpufreq_limits_check(&empty.fs()).status, Status::Unknown);
+    }
+
+    #[test]
+    fn a_topology_has_its_own_cores_judged() {
+        use drivelab_runtime::topology::ProcessSpec;
+        let proc_on = |name: &str, cpu: Option<usize>, priority: u8| ProcessSpec {
+            name: name.into(),
+            stages: vec![name.into()],
+            cpu,
+            priority: Some(priority),
+            exec: None,
+            standby: false,
+            machine: None,
+        };
+        let root = FakeRoot::new();
+        root.write(
+            "/proc/interrupts",
+            "           CPU0       CPU1\n \
+             26:         16          0   IO-APIC   4-edge      ttyS0\n \
+             36:          0      43330   PCI-MSIX-0000:00:02.0   1-edge      virtio1-req.0\n",
+        );
+        root.write("/proc/irq/26/effective_affinity_list", "0\n");
+        root.write("/proc/irq/36/effective_affinity_list", "1\n");
+        root.write("/proc/cmdline", "ro quiet\n");
+        let fs = root.fs();
+        let online = [0, 1];
+        // The default placement's cpu 1 serves virtio1; a topology on cpu 0 meets ttyS0.
+        assert!(device_irq_check(&fs, &online)
+            .value
+            .contains("by the drive's cpu 1: virtio1-req.0"));
+        let on0 = Placement {
+            name: "mine.toml".into(),
+            processes: vec![
+                proc_on("plant", Some(0), 70),
+                proc_on("observer", Some(0), 72),
+            ],
+        };
+        let c = device_irq_check_on(&fs, &on0.cpus());
+        assert!(c.value.contains("by the drive's cpu 0: ttyS0"), "{c:?}");
+        let c = placement_check(&online, &on0);
+        assert_eq!(
+            (c.status, c.value.as_str()),
+            (Status::Ok, "topology mine.toml: cpu 0: plant, observer")
+        );
+        let c = isolated_cpus_check_for(&fs, &online, &on0.cpus());
+        assert_eq!(c.status, Status::Warn);
+        assert!(
+            c.value.ends_with("the topology's cpu 0 not isolated"),
+            "{c:?}"
+        );
+        assert!(c
+            .advice
+            .unwrap()
+            .contains("the OS's first cpu, which cannot be isolated"));
+        // Isolated: fine.
+        root.write("/sys/devices/system/cpu/isolated", "1\n");
+        let on1 = Placement {
+            name: "one".into(),
+            processes: vec![proc_on("plant", Some(1), 70)],
+        };
+        assert_eq!(
+            isolated_cpus_check_for(&fs, &online, &on1.cpus()).status,
+            Status::Ok
+        );
+        // A cpu this machine does not have, one at a shared priority, one unpinned.
+        let odd = Placement {
+            name: "odd".into(),
+            processes: vec![
+                proc_on("plant", Some(1), 70),
+                proc_on("observer", Some(1), 70),
+                proc_on("current-loop", None, 76),
+            ],
+        };
+        let c = placement_check(&online, &odd);
+        assert_eq!(c.status, Status::Warn, "{c:?}");
+        let a = c.advice.unwrap();
+        assert!(
+            a.contains(
+                "processes 'plant', 'observer' run on CPU 1 at the same SCHED_FIFO priority 70"
+            ),
+            "{a}"
+        );
+        assert!(a.contains("a process pinned to no cpu"), "{a}");
+        assert!(
+            c.value.ends_with("; not pinned: current-loop"),
+            "{}",
+            c.value
+        );
+        let far = Placement {
+            name: "far".into(),
+            processes: vec![proc_on("plant", Some(7), 70)],
+        };
+        let c = placement_check(&online, &far);
+        assert_eq!(c.status, Status::Bad, "{c:?}");
+        assert!(c
+            .advice
+            .unwrap()
+            .starts_with("cpu 7 is not online here (online: 0-1)"));
     }
 
     #[test]
