@@ -119,10 +119,20 @@ fn the_deadbeat_loop_replaces_the_built_in_and_reaches_an_i_d_step_in_two_sample
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         String::from_utf8(o.stdout).unwrap()
     };
-    let note = "current-loop: replaced by the user's stage in process 'current-loop' (exec ../../target/release/drivelab-deadbeat): its built-in design above does not run";
-    assert!(design(Path::new(EXAMPLE.scenario)).contains(note));
+    let user = "the user's current-loop stage (process 'current-loop', exec ../../target/release/drivelab-deadbeat)";
+    let text = design(Path::new(EXAMPLE.scenario));
+    assert!(
+        text.contains(&format!("runs: {user}, pi speed loop")),
+        "{text}"
+    );
+    assert!(text.contains("not run: current PI"), "{text}");
     let copy = EXAMPLE.scenario_copy(&EXAMPLE.scratch("design"), &built_in());
-    assert!(!design(&copy).contains("replaced"));
+    let text = design(&copy);
+    assert!(text.contains("runs: pi current loop"), "{text}");
+    assert!(
+        !text.contains("user's") && !text.contains("not run: current"),
+        "{text}"
+    );
     remove_scratch(&copy);
     let (k1, err_pi) = i_d_step_errors(&builtin);
     assert_eq!(k0, k1);

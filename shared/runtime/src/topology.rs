@@ -50,7 +50,10 @@ pub const CPU_MAX: usize = 1023;
 /// refused with the process's name by [`check_specs`], a scenario's `[placement]` by its
 /// validation.
 pub(crate) fn cpu_field<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<usize>, D::Error> {
-    let v = i64::deserialize(d)?;
+    // `null` (JSON: the resolved topology.json of an unpinned process) is no CPU.
+    let Some(v) = Option::<i64>::deserialize(d)? else {
+        return Ok(None);
+    };
     usize::try_from(v)
         .map(Some)
         .map_err(|_| serde::de::Error::custom(format!("{v} is not a CPU number (0..={CPU_MAX})")))
@@ -62,7 +65,10 @@ pub(crate) fn cpu_field<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option
 pub(crate) fn priority_field<'de, D: serde::Deserializer<'de>>(
     d: D,
 ) -> Result<Option<u8>, D::Error> {
-    let v = i64::deserialize(d)?;
+    // `null` (JSON: a SCHED_OTHER process in topology.json) is no priority.
+    let Some(v) = Option::<i64>::deserialize(d)? else {
+        return Ok(None);
+    };
     u8::try_from(v).map(Some).map_err(|_| {
         serde::de::Error::custom(format!(
             "{v} is out of range: SCHED_FIFO priorities are 1..=99"
@@ -621,6 +627,22 @@ mod tests {
             env!("CARGO_MANIFEST_DIR")
         );
         Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
+    }
+
+    #[test]
+    fn an_unpinned_sched_other_process_reads_back_from_its_json() {
+        // topology.json, which every host reads, writes an unpinned SCHED_OTHER process's
+        // cpu and priority as null.
+        let mut p = procs(&[("speed-loop", &["speed-loop"])]).remove(0);
+        p.cpu = None;
+        p.priority = None;
+        let json = serde_json::to_string(&p).unwrap();
+        assert!(json.contains("\"cpu\":null"), "{json}");
+        assert_eq!(serde_json::from_str::<ProcessSpec>(&json).unwrap(), p);
+        p.cpu = Some(1);
+        p.priority = Some(74);
+        let json = serde_json::to_string(&p).unwrap();
+        assert_eq!(serde_json::from_str::<ProcessSpec>(&json).unwrap(), p);
     }
 
     fn procs(spec: &[(&str, &[&str])]) -> Vec<ProcessSpec> {
