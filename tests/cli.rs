@@ -118,6 +118,19 @@ const A_UNIT: &[&str] = &[
 ];
 
 #[test]
+fn the_simulated_restart_default_that_run_help_states_is_the_one_used() {
+    // --lockstep-restart-ms has no clap default (an explicit value is refused with --restart
+    // never), so its help text states the default itself.
+    let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
+        .args(["run", "--help"])
+        .output()
+        .unwrap();
+    let help = String::from_utf8(o.stdout).unwrap();
+    let default = drivelab_runtime::inject::RESTART_DEFAULT_MS;
+    assert!(help.contains(&format!("[default: {default}]")), "{help}");
+}
+
+#[test]
 fn every_help_has_an_example_and_every_quantity_a_unit() {
     // Any other value must name its unit in its help text.
     let names_a_unit = |help: &str| {

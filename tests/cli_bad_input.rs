@@ -237,6 +237,12 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             "lasts 1 to 10000 ms",
         ),
         run_case(
+            "restart-never-ms",
+            &["--restart", "never", "--lockstep-restart-ms", "50"],
+            2,
+            "--lockstep-restart-ms with --restart never: a killed stage stays dead, there is no restart to time",
+        ),
+        run_case(
             "seed",
             &["--fault-seed", "-1"],
             2,

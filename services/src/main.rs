@@ -100,9 +100,10 @@ enum Cmd {
         #[arg(long, value_enum, default_value_t = launcher::Restart::OnFailure)]
         restart: launcher::Restart,
         /// Lockstep and inprocess: how long a killed stage stays dead before it rejoins
-        /// (its simulated restart), milliseconds, 1 to 10000.
-        #[arg(long, value_name = "MS", default_value_t = drivelab_runtime::inject::RESTART_DEFAULT_MS, value_parser = drivelab_services::faults::restart_ms)]
-        lockstep_restart_ms: f64,
+        /// (its simulated restart), milliseconds, 1 to 10000 [default: 40]. Not with
+        /// --restart never, where a killed stage stays dead.
+        #[arg(long, value_name = "MS", value_parser = drivelab_services::faults::restart_ms)]
+        lockstep_restart_ms: Option<f64>,
         /// Seed of random:N fault plans.
         #[arg(long, default_value_t = 1, value_parser = seed)]
         fault_seed: u64,
@@ -983,6 +984,13 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 .map(|f| drivelab_services::faults::parse(f).map_err(|e| usage(format!("{e:#}"))))
                 .collect::<anyhow::Result<Vec<_>>>()?;
             drivelab_services::faults::check_counts(&faults).map_err(usage)?;
+            if restart == launcher::Restart::Never && lockstep_restart_ms.is_some() {
+                return Err(usage(
+                    "--lockstep-restart-ms with --restart never: a killed stage stays dead, there is no restart to time".into(),
+                ));
+            }
+            let lockstep_restart_ms =
+                lockstep_restart_ms.unwrap_or(drivelab_runtime::inject::RESTART_DEFAULT_MS);
             let o = RunOptions {
                 scenario,
                 clock,
