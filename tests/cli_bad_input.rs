@@ -621,7 +621,13 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             1,
             "--topology: unknown topology 'nosuch' (known: four-process",
         ),
-        case("command", dir, &["nosuch"], 2, "unrecognized subcommand 'nosuch'"),
+        case(
+            "command",
+            dir,
+            &["nosuch"],
+            2,
+            "unrecognized subcommand 'nosuch'; tip: a similar subcommand exists: 'bench'; the commands are run, ",
+        ),
     ];
     if cfg!(feature = "zenoh") {
         cases.extend([

@@ -578,6 +578,21 @@ fn parse_cli() -> Result<Cli, ExitCode> {
                 ErrorKind::DisplayHelp
                 | ErrorKind::DisplayVersion
                 | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => e.exit(),
+                ErrorKind::InvalidSubcommand => {
+                    // clap's tip alone can mislead ('nosuch' is "similar" to 'bench'): the
+                    // commands there are, by name.
+                    let commands: Vec<String> = Cli::command()
+                        .get_subcommands()
+                        .filter(|c| !c.is_hide_set())
+                        .map(|c| c.get_name().to_string())
+                        .collect();
+                    drivelab_services::errln!(
+                        "drivelab: error: {}; the commands are {}",
+                        clap_line(&e),
+                        commands.join(", ")
+                    );
+                    ExitCode::from(2)
+                }
                 _ => {
                     drivelab_services::errln!("drivelab: error: {}", clap_line(&e));
                     ExitCode::from(2)
