@@ -484,9 +484,15 @@ pub(super) fn supervise(
                 if stopping_with_the_drive(st) {
                     return Ok(Some(super::interrupted()));
                 }
+                // A twin's panic is its stage's bug as much as the process's own would be.
+                let panic = t.panic_after_exit(st);
                 c.standby = None;
                 any_dead = true;
                 log(events, EventKind::StandbyExited { status: st }, &n, &n);
+                if let Some(what) = panic {
+                    let what = format!("(its standby twin) {what}");
+                    log(events, EventKind::Panicked { what }, &n, &n);
+                }
                 c.standby_due = Some(now + Duration::from_millis(100));
             }
         }
