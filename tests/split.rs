@@ -91,11 +91,7 @@ impl Sides {
                 None
             }
         };
-        let port = std::net::TcpListener::bind("127.0.0.1:0")
-            .unwrap()
-            .local_addr()
-            .unwrap()
-            .port();
+        let port = free_port();
         Self { wire, port }
     }
 
@@ -384,11 +380,7 @@ fn the_two_sides_must_run_the_same_scenario_and_clock_and_a_side_alone_gives_up(
     let dir = scratch("mismatch");
     let sides = Sides {
         wire: None,
-        port: std::net::TcpListener::bind("127.0.0.1:0")
-            .unwrap()
-            .local_addr()
-            .unwrap()
-            .port(),
+        port: free_port(),
     };
     let ep = sides.endpoint();
     let bus_a = bus_id("mismatch-simulator");
@@ -447,11 +439,7 @@ fn a_joining_side_that_cannot_connect_says_why_in_one_line_and_leaves_a_trace_wi
     let bus = bus_id("noconnect-board");
     let out = dir.join("board");
     // A port nothing listens on (bound, then let go).
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
+    let port = free_port();
     let ep = format!("tcp/127.0.0.1:{port}");
     let b = [
         "--scenario",

@@ -10,15 +10,6 @@ use std::time::{Duration, Instant};
 mod common;
 use common::*;
 
-/// A TCP port of 127.0.0.1 that was free a moment ago (the kernel's pick).
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
 fn endpoint(port: u16) -> String {
     format!("tcp/127.0.0.1:{port}")
 }

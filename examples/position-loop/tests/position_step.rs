@@ -104,18 +104,7 @@ fn a_killed_user_stage_is_restarted_and_the_speed_loop_stops_following_it() {
     let (out, s) = EXAMPLE.run_killed("position-loop");
     let f = &s["faults"][0];
     assert_eq!(f["process"], "position-loop", "{f}");
-    let events: Vec<String> = s["supervisor_events"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|e| {
-            format!(
-                "{} {}",
-                e["event"].as_str().unwrap(),
-                e["process"].as_str().unwrap()
-            )
-        })
-        .collect();
+    let events = supervisor_events(&s);
     for want in [
         "exited position-loop",
         "restarted position-loop",
@@ -159,29 +148,15 @@ fn a_restarted_position_loop_keeps_its_turn_count() {
     assert!(o.status.success(), "{err}");
     assert_clean(&bus);
     let c = columns(&out.join("trace.csv"));
-    let (t, theta_m) = (&c["t"], &c["theta_m"]);
-    // Killed mid-move, past the first turn (slewing at ω_max = 100 rad/s from 10 ms on).
-    let killed = t.iter().position(|&x| x >= 0.1).unwrap();
-    assert!(
-        theta_m[killed] > std::f64::consts::TAU && theta_m[killed] < target - 1.0,
-        "θ_m at the kill: {}",
-        theta_m[killed]
-    );
+    // Killed mid-move (slewing at ω_max = 100 rad/s from 10 ms on).
+    let killed = c["t"].iter().position(|&x| x >= 0.1).unwrap();
     let s = summary(&out);
     assert_eq!(
         s["faults"][0]["process"], "position-loop",
         "{}",
         s["faults"]
     );
-    let fin = *theta_m.last().unwrap();
-    // A fresh loop that counted its turns from the encoder angle would end one turn beyond.
-    assert!(
-        (fin - target).abs() < 0.01 * target,
-        "final θ_m = {fin} (target {target}; one turn off: {})",
-        fin - target - std::f64::consts::TAU
-    );
-    let d = &s["counters"]["position-loop"]["diagnostics"];
-    assert_eq!(d["ambiguous_rejoins"], 0, "{d}");
+    assert_the_move_ends_where_it_was_going(&s, &c["theta_m"], killed, target);
     // While the loop is down (40 ms simulated from 0.1 s) its θ* is empty, not 0.
     let down = theta_ref_while_down(&c, killed, target);
     assert!(
@@ -189,6 +164,46 @@ fn a_restarted_position_loop_keeps_its_turn_count() {
         "θ_m* in the downtime: {down:?}"
     );
     remove_scratch(&out);
+}
+
+/// The supervisor's events of a run, as "EVENT PROCESS".
+fn supervisor_events(s: &serde_json::Value) -> Vec<String> {
+    s["supervisor_events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| {
+            format!(
+                "{} {}",
+                e["event"].as_str().unwrap(),
+                e["process"].as_str().unwrap()
+            )
+        })
+        .collect()
+}
+
+/// A move to `target` (4π) whose position loop was killed at sample `killed`, past its first
+/// turn, ends at the target: a fresh loop that counted its turns from the encoder angle
+/// would end one turn beyond. The loop's rejoin found its turn count unambiguously.
+fn assert_the_move_ends_where_it_was_going(
+    s: &serde_json::Value,
+    theta_m: &[f64],
+    killed: usize,
+    target: f64,
+) {
+    assert!(
+        theta_m[killed] > std::f64::consts::TAU && theta_m[killed] < target - 1.0,
+        "θ_m at the kill: {}",
+        theta_m[killed]
+    );
+    let fin = *theta_m.last().unwrap();
+    assert!(
+        (fin - target).abs() < 0.01 * target,
+        "final θ_m = {fin} (target {target}; one turn off: {})",
+        fin - target - std::f64::consts::TAU
+    );
+    let d = &s["counters"]["position-loop"]["diagnostics"];
+    assert_eq!(d["ambiguous_rejoins"], 0, "{d}");
 }
 
 /// The trace's θ_m* column after the step at sample `from` on: rows with the target, empty
@@ -248,41 +263,18 @@ fn a_restarted_position_loop_keeps_its_turn_count_in_real_time() {
     let s = summary(&out);
     let f = &s["faults"][0];
     assert_eq!(f["process"], "position-loop", "{}", s["faults"]);
-    let events: Vec<String> = s["supervisor_events"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|e| {
-            format!(
-                "{} {}",
-                e["event"].as_str().unwrap(),
-                e["process"].as_str().unwrap()
-            )
-        })
-        .collect();
+    let events = supervisor_events(&s);
     assert!(
         events.iter().any(|e| e == "ready position-loop"),
         "not restarted: {events:?}"
     );
     let c = columns(&out.join("trace.csv"));
     let theta_m = &c["theta_m"];
-    // Killed mid-move, past the first turn.
     let killed = f["injected_k"].as_u64().unwrap() as usize;
-    assert!(
-        theta_m[killed] > std::f64::consts::TAU && theta_m[killed] < target - 1.0,
-        "θ_m at the kill: {}",
-        theta_m[killed]
-    );
     let fin = *theta_m.last().unwrap();
     let down = theta_ref_while_down(&c, killed, target);
     eprintln!("real-time restart: θ_m at the kill {:.3} rad, final θ_m {fin:.4} rad (target {target:.4}); θ_m* from the kill on: {down:?}", theta_m[killed]);
-    assert!(
-        (fin - target).abs() < 0.01 * target,
-        "final θ_m = {fin} (target {target}; one turn off: {})",
-        fin - target - std::f64::consts::TAU
-    );
-    let d = &s["counters"]["position-loop"]["diagnostics"];
-    assert_eq!(d["ambiguous_rejoins"], 0, "{d}");
+    assert_the_move_ends_where_it_was_going(&s, theta_m, killed, target);
     // A process start-up takes far longer than the 2 ms after which the speed loop stops
     // following a lost reference: some rows are empty, none reads 0.
     assert!(

@@ -245,26 +245,6 @@ pub(super) enum Start<'a> {
     Standby,
 }
 
-/// The topics that the stages `stages` of `plan` publish and read back while they rejoin
-/// (their own-output rejoin slots, docs/architecture.md, "Bumpless rejoin").
-pub(super) fn own_rejoin_topics(
-    plan: &drivelab_runtime::service::TopologyPlan,
-    stages: &[String],
-) -> Vec<drivelab_runtime::stage::TopicId> {
-    let mut topics = Vec::new();
-    for st in plan.stages.iter().filter(|s| stages.contains(&s.name)) {
-        for i in &st.inputs {
-            if i.role == drivelab_runtime::stage::Role::Rejoin
-                && st.outputs.contains(&i.topic)
-                && !topics.contains(&i.topic)
-            {
-                topics.push(i.topic);
-            }
-        }
-    }
-    topics
-}
-
 /// Starts the stage host of process `p`; `source` when it hosts the plant.
 pub(super) fn spawn_service(
     p: &ProcessSpec,

@@ -589,16 +589,16 @@ pub(super) fn supervise(
                 };
                 // The plant resumes from this state as the file gives it back: keep that.
                 let text = serde_json::to_vec(&crate::common::truth_to_json(&last))?;
-                let given =
-                    drivelab_runtime::service::truth_from_json(&serde_json::from_slice(&text)?)?;
+                let file: serde_json::Value = serde_json::from_slice(&text)?;
+                let given = drivelab_runtime::service::truth_from_json(&file)?;
                 if let Ok(mut r) = progress.rejoins.lock() {
                     r.push(given);
                 }
-                if let serde_json::Value::Object(m) = serde_json::from_slice(&text)? {
+                if let serde_json::Value::Object(m) = file {
                     state = m;
                 }
             }
-            let own = super::spawn::own_rejoin_topics(sp.plan, &c.proc.stages);
+            let own = sp.plan.own_rejoin_topics(&c.proc.stages);
             if own.contains(&TopicId::Wref) {
                 // None when the loop died before the recorder saw an output of it: it then
                 // counts from where the drive is, as at the start.

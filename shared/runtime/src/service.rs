@@ -144,6 +144,23 @@ impl TopologyPlan {
             .iter()
             .position(|p| p.stages.iter().any(|s| s == stage))
     }
+
+    /// The topics that the stages `stages` publish and read back while they rejoin (their
+    /// own-output rejoin slots, docs/architecture.md, "Bumpless rejoin"), each once.
+    pub fn own_rejoin_topics(&self, stages: &[String]) -> Vec<TopicId> {
+        let mut topics = Vec::new();
+        for st in self.stages.iter().filter(|s| stages.contains(&s.name)) {
+            for i in &st.inputs {
+                if i.role == Role::Rejoin
+                    && st.outputs.contains(&i.topic)
+                    && !topics.contains(&i.topic)
+                {
+                    topics.push(i.topic);
+                }
+            }
+        }
+        topics
+    }
 }
 
 /// Builds a user stage from the scenario.
@@ -716,11 +733,7 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     phase("connect");
     let rejoin_from = match &args.rejoin_from {
         Some(path) if args.rejoin => {
-            let own: Vec<TopicId> = stages
-                .iter()
-                .flat_map(|s| own_rejoin_topics(s.as_ref()))
-                .collect();
-            rejoin_state(path, source, &own)?
+            rejoin_state(path, source, &plan.own_rejoin_topics(&proc.stages))?
         }
         _ if args.rejoin && source => bail!("--rejoin of the source needs --rejoin-from FILE"),
         _ => Vec::new(),
@@ -1529,16 +1542,6 @@ pub fn usage(who: libc::c_int) -> (f64, ContextSwitches) {
     )
 }
 
-/// The topics that `stage` publishes and reads back while it rejoins (its own-output rejoin
-/// slots, docs/architecture.md, "Bumpless rejoin").
-fn own_rejoin_topics(stage: &dyn Stage) -> impl Iterator<Item = TopicId> + '_ {
-    stage
-        .inputs()
-        .iter()
-        .filter(|i| i.role == Role::Rejoin && stage.outputs().contains(&i.topic))
-        .map(|i| i.topic)
-}
-
 /// Reads a rejoin file (`--rejoin-from`): the source's true state (required when `source`)
 /// and the own last output on each topic of `own` that the file has (a stage that finds none
 /// starts fresh). A key this process has no use for is an error: the file is not its own.
@@ -1575,18 +1578,32 @@ pub fn speed_ref_to_json(w: &SpeedRef) -> serde_json::Value {
     })
 }
 
+/// A number of a rejoin file's message `what` ("" for the plant's state, "wref: " for an
+/// outer loop's reference).
+fn json_number(v: &serde_json::Value, what: &str, key: &str) -> Result<f64> {
+    v[key]
+        .as_f64()
+        .ok_or_else(|| anyhow!("rejoin file: {what}'{key}' missing or not a number"))
+}
+
+/// The header (`k`, `t_sample_ns`) of a rejoin file's message `what` (as [`json_number`]).
+fn json_header(v: &serde_json::Value, what: &str) -> Result<Header> {
+    Ok(Header {
+        k: v["k"]
+            .as_u64()
+            .ok_or_else(|| anyhow!("rejoin file: {what}'k' missing"))?,
+        t_sample_ns: v["t_sample_ns"].as_u64().unwrap_or(0),
+        ..Default::default()
+    })
+}
+
 /// Reads a speed reference written by [`speed_ref_to_json`].
 pub fn speed_ref_from_json(v: &serde_json::Value) -> Result<SpeedRef> {
-    let f = |key: &str| {
-        v[key]
-            .as_f64()
-            .ok_or_else(|| anyhow!("rejoin file: wref: '{key}' missing or not a number"))
+    let f = |key: &str| json_number(v, "wref: ", key);
+    let mut w = SpeedRef {
+        hdr: json_header(v, "wref: ")?,
+        ..Default::default()
     };
-    let mut w = SpeedRef::default();
-    w.hdr.k = v["k"]
-        .as_u64()
-        .ok_or_else(|| anyhow!("rejoin file: wref: 'k' missing"))?;
-    w.hdr.t_sample_ns = v["t_sample_ns"].as_u64().unwrap_or(0);
     w.omega_ref = f("omega_ref")?;
     w.theta_m_ref = f("theta_m_ref")?;
     w.theta_m = f("theta_m")?;
@@ -1608,11 +1625,7 @@ pub fn truth_to_json(m: &PlantTruth) -> serde_json::Value {
 
 /// Reads a state written by [`truth_to_json`].
 pub fn truth_from_json(v: &serde_json::Value) -> Result<PlantTruth> {
-    let f = |key: &str| {
-        v[key]
-            .as_f64()
-            .ok_or_else(|| anyhow!("rejoin file: '{key}' missing or not a number"))
-    };
+    let f = |key: &str| json_number(v, "", key);
     let a2 = |key: &str| -> Result<[f64; 2]> {
         match v[key]
             .as_array()
@@ -1624,11 +1637,10 @@ pub fn truth_from_json(v: &serde_json::Value) -> Result<PlantTruth> {
             _ => Err(anyhow!("rejoin file: '{key}' must be two numbers")),
         }
     };
-    let mut m = PlantTruth::default();
-    m.hdr.k = v["k"]
-        .as_u64()
-        .ok_or_else(|| anyhow!("rejoin file: 'k' missing"))?;
-    m.hdr.t_sample_ns = v["t_sample_ns"].as_u64().unwrap_or(0);
+    let mut m = PlantTruth {
+        hdr: json_header(v, "")?,
+        ..Default::default()
+    };
     m.i_dq = a2("i_dq")?;
     m.omega_m = f("omega_m")?;
     m.theta_e = f("theta_e")?;
