@@ -315,12 +315,10 @@ fn a_negative_step_settles_backwards() {
     remove_scratch(&out);
 }
 
-/// A stage that panics is a failure of the run: its process exits with status 101 after one
-/// line naming the panic, the supervisor restarts it (the drive goes on), and the run fails
-/// with one line naming the process and the panic.
-#[test]
-fn a_panicking_stage_fails_the_run_in_one_line() {
-    let _s = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+/// A run with `args` of the scenario whose position loop is the test host's, which panics at
+/// its first step at or after 0.1 s (`examples/panicking_position_loop.rs`); checks exit 1
+/// and a clean bus. The run folder, its summary and its stderr.
+fn run_panicking(name: &str, args: &[&str]) -> (PathBuf, serde_json::Value, String) {
     let panicking = std::path::Path::new(EXAMPLE.exe)
         .with_file_name("examples")
         .join("panicking_position_loop");
@@ -331,8 +329,8 @@ fn a_panicking_stage_fails_the_run_in_one_line() {
     );
     let exec = format!("exec = {:?}", panicking.to_str().unwrap());
     let (o, out, bus) = EXAMPLE.launch(
-        "panic",
-        &["--clock", "realtime", "--duration", "1.0"],
+        name,
+        args,
         &[
             (EXAMPLE.exec_line, &exec),
             (
@@ -341,10 +339,40 @@ fn a_panicking_stage_fails_the_run_in_one_line() {
             ),
         ],
     );
-    let err = String::from_utf8_lossy(&o.stderr);
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
     assert_clean(&bus);
     assert_eq!(o.status.code(), Some(1), "{err}");
     let s = summary(&out);
+    (out, s, err)
+}
+
+/// What names the test stage's panic in `text`: the stage, its call and the sample it was
+/// stepping, k and t = k·T_s (T_s = 100 µs), then the panic's message, which says k as well
+/// (in real time the stage may step a later sample than the one it was due to panic at, if
+/// it fell behind; never an earlier one).
+fn panic_naming(text: &str) -> String {
+    let tail = text
+        .split("a test panic at sample ")
+        .nth(1)
+        .unwrap_or_else(|| panic!("no test panic in {text}"));
+    let k: u64 = tail
+        .split(|c: char| !c.is_ascii_digit())
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(k >= 1000, "panicked at sample {k}, before 0.1 s: {text}");
+    let t = k as f64 / 1e4;
+    format!("stage position-loop, step at sample {k}, t = {t} s: position-loop: a test panic at sample {k}")
+}
+
+/// A stage that panics is a failure of the run: its process exits with status 101 after one
+/// line naming the panic (the stage, the call and the sample), the supervisor restarts it
+/// (the drive goes on), and the run fails with one line naming the process and the panic.
+#[test]
+fn a_panicking_stage_fails_the_run_in_one_line() {
+    let _s = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let (out, s, err) = run_panicking("panic", &["--clock", "realtime", "--duration", "1.0"]);
     let exited: Vec<&serde_json::Value> = s["supervisor_events"]
         .as_array()
         .unwrap()
@@ -355,9 +383,10 @@ fn a_panicking_stage_fails_the_run_in_one_line() {
         exited[0]["detail"], "exit status: 101, not injected",
         "{exited:?}"
     );
-    let what = "stages position-loop: position-loop: a test panic at sample 1000";
+    let detail = exited[1]["detail"].as_str().unwrap();
+    let what = panic_naming(detail);
     assert!(
-        exited[1]["event"] == "panicked" && exited[1]["detail"].as_str().unwrap().starts_with(what),
+        exited[1]["event"] == "panicked" && detail.starts_with(&what),
         "{exited:?}"
     );
     assert!(exited.iter().any(|e| e["event"] == "ready"), "{exited:?}");
@@ -374,12 +403,52 @@ fn a_panicking_stage_fails_the_run_in_one_line() {
         lines[0].starts_with("drivelab: error: process position-loop panicked: "),
         "{err}"
     );
+    let (head, msg) = what.split_once(": ").unwrap();
     assert!(
-        err.lines().any(|l| l.starts_with("position-loop: error: a stage panicked (stages position-loop): position-loop: a test panic at sample 1000")),
+        err.lines().any(|l| l.starts_with(&format!(
+            "position-loop: error: a stage panicked ({head}): {msg}"
+        ))),
         "{err}"
     );
     // The drive went on to its end.
     assert_eq!(s["samples"], s["samples_expected"], "{s}");
+    remove_scratch(&out);
+}
+
+/// In lockstep the panic is at its sample exactly, and the run ends on it: the host's line,
+/// the supervisor's event and the run's error name the stage, the call and the sample.
+#[test]
+fn a_panicking_stage_is_named_with_its_sample_in_lockstep() {
+    let _s = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let (out, s, err) = run_panicking("panic-lockstep", &["--clock", "lockstep"]);
+    let what = "stage position-loop, step at sample 1000, t = 0.1 s: position-loop: a test panic at sample 1000 (at ";
+    assert!(
+        err.lines().any(|l| l.starts_with(
+            "position-loop: error: a stage panicked (stage position-loop, step at sample 1000, t = 0.1 s): position-loop: a test panic at sample 1000 (at "
+        )),
+        "{err}"
+    );
+    let panicked: Vec<&serde_json::Value> = s["supervisor_events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["process"] == "position-loop" && e["event"] == "panicked")
+        .collect();
+    assert!(
+        panicked.len() == 1 && panicked[0]["detail"].as_str().unwrap().starts_with(what),
+        "{panicked:?}"
+    );
+    let failure = s["failure"].as_str().unwrap_or("");
+    assert!(
+        failure.starts_with("process position-loop failed (exit status: 101: ")
+            && failure.contains(what),
+        "{failure}"
+    );
+    assert!(
+        err.lines()
+            .any(|l| l.starts_with("drivelab: error: ") && l.contains(what)),
+        "{err}"
+    );
     remove_scratch(&out);
 }
 

@@ -94,7 +94,8 @@ pub enum EventKind {
     /// A stage of the process panicked (its host said so before it exited): a bug of the
     /// stage, which fails the run even when the restart made up for it.
     Panicked {
-        /// The panic's message and place, and the process's stages.
+        /// The stage, call and sample it panicked in (or the process's stages), the panic's
+        /// message and place.
         what: String,
     },
     /// A hog (a competing SCHED_FIFO busy loop, `crate::faults::hog`) was started.

@@ -505,6 +505,39 @@ impl Store {
     }
 }
 
+/// Which call of a stage its host makes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Call {
+    /// [`Stage::step`].
+    Step,
+    /// [`Stage::after_publish`].
+    AfterPublish,
+    /// [`Stage::rejoin`].
+    Rejoin,
+}
+
+impl Call {
+    /// The method's name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Step => "step",
+            Self::AfterPublish => "after_publish",
+            Self::Rejoin => "rejoin",
+        }
+    }
+}
+
+/// The stage call a host made last: stage `si` (chain order), `call`, of sample `k`. The
+/// host writes it before each call (plain stores, nothing else on the real-time path),
+/// so that a panic caught around [`Host::run`] can name the stage and the sample
+/// (docs/architecture.md, "Fault model").
+#[derive(Debug, Clone, Copy)]
+struct Calling {
+    si: usize,
+    k: u64,
+    call: Call,
+}
+
 /// The host of one process.
 pub struct Host<T: Transport> {
     /// The stages, in chain order.
@@ -530,6 +563,8 @@ pub struct Host<T: Transport> {
     spares: Vec<Option<Box<dyn Stage>>>,
     /// Per injection: the kill's swap is done.
     swapped: Vec<bool>,
+    /// The stage call made last (None: none yet).
+    calling: Option<Calling>,
 }
 
 impl<T: Transport> Host<T> {
@@ -630,6 +665,7 @@ impl<T: Transport> Host<T> {
             stop: Box::new(|| false),
             stop_without_end: Box::new(|| false),
             drains,
+            calling: None,
         };
         if host.is_source() {
             host.stalls = crate::timing::StallLog::new(crate::timing::STALL_LOG, host.cfg.ts_ns);
@@ -878,6 +914,33 @@ impl<T: Transport> Host<T> {
         }
     }
 
+    /// Notes the stage call about to be made (what a panic in it is named by).
+    #[inline]
+    fn calling(&mut self, si: usize, k: u64, call: Call) {
+        self.calling = Some(Calling { si, k, call });
+    }
+
+    /// The stage call made last, as text: "stage NAME, CALL at sample k, t = k·T_s s";
+    /// None before the first. For the line of a panic caught around [`Host::run`].
+    pub fn last_call(&self) -> Option<String> {
+        let c = self.calling?;
+        let name = self.stages.get(c.si)?.stage.name();
+        // k·T_s in ns, printed in seconds without trailing zeros.
+        let t_ns = u128::from(c.k) * u128::from(self.cfg.ts_ns);
+        let frac = format!("{:09}", t_ns % 1_000_000_000);
+        let frac = frac.trim_end_matches('0');
+        let t = format!(
+            "{}{}{frac}",
+            t_ns / 1_000_000_000,
+            if frac.is_empty() { "" } else { "." }
+        );
+        Some(format!(
+            "stage {name}, {} at sample {}, t = {t} s",
+            c.call.name(),
+            c.k
+        ))
+    }
+
     /// True when the first stage is the source (no trigger).
     pub fn is_source(&self) -> bool {
         self.stages.first().is_some_and(|h| h.trigger().is_none())
@@ -1087,6 +1150,7 @@ impl<T: Transport> Host<T> {
         fallback: bool,
     ) -> Result<()> {
         let mut out = Outbox::default();
+        self.calling(si, k, Call::Step);
         let h = &mut self.stages[si];
         h.stage.step(k, ib, &mut out);
         let t_end = now_ns();
@@ -1177,6 +1241,7 @@ impl<T: Transport> Host<T> {
                     let (ib, complete) = self.inbox(si, k);
                     if complete {
                         let mut out = Outbox::default();
+                        self.calling(si, k, Call::Step);
                         self.stages[si].stage.step(k, &ib, &mut out);
                     }
                 }
@@ -1219,6 +1284,7 @@ impl<T: Transport> Host<T> {
                     // newest (that would depend on how far the peers have run).
                     self.rejoin_inputs_at(si, k, &mut ib)?;
                 }
+                self.calling(si, k, Call::Rejoin);
                 if self.stages[si].stage.rejoin(k, &ib) == Rejoin::NeedMore {
                     self.stages[si].last_k = Some(k);
                     // Lockstep: nothing of sample k will come from it.
@@ -1454,6 +1520,7 @@ impl<T: Transport> Host<T> {
                 k = ((now_ns() + 2_000_000 - t0) / ts_ns + 1).max(lk + 1);
                 let mut ib = Inbox::default();
                 ib.put(last);
+                self.calling(0, k, Call::Rejoin);
                 self.stages[0].stage.rejoin(k, &ib);
                 if t0 + k * ts_ns > now_ns() {
                     break;
@@ -1545,6 +1612,7 @@ impl<T: Transport> Host<T> {
             let stale = self.count_stale(0, &ib);
             self.stages[0].counters.stale_inputs += stale;
             let mut out = Outbox::default();
+            self.calling(0, k, Call::Step);
             self.stages[0].stage.step(k, &ib, &mut out);
             let t_end = now_ns();
             if realtime {
@@ -1584,7 +1652,12 @@ impl<T: Transport> Host<T> {
             if self.stages.len() > 1 && !self.run_chain(1, k, now_ns())? {
                 break;
             }
-            for h in self.stages.iter_mut() {
+            for (si, h) in self.stages.iter_mut().enumerate() {
+                self.calling = Some(Calling {
+                    si,
+                    k,
+                    call: Call::AfterPublish,
+                });
                 h.stage.after_publish();
             }
             // Take what the next sample reads if it is here already: on one core the chain
@@ -1733,6 +1806,7 @@ impl<T: Transport> Host<T> {
                         let (ib, complete) = self.inbox(0, hdr.k);
                         if complete {
                             let mut out = Outbox::default();
+                            self.calling(0, hdr.k, Call::Step);
                             self.stages[0].stage.step(hdr.k, &ib, &mut out);
                         }
                     }

@@ -438,18 +438,28 @@ pub fn host_main(user: &[(&'static str, StageFactory)]) -> std::process::ExitCod
     // on stderr and a `PANIC` line telling the launcher what it was.
     let result = install_signal_handlers().and_then(|_| {
         std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run_host(args, user)))
-            .unwrap_or_else(|_| Err(anyhow!(Panicked)))
+            .unwrap_or_else(|_| Err(anyhow!(Panicked { during: None })))
     });
-    if result.as_ref().is_err_and(|e| e.is::<Panicked>()) {
+    if let Some(p) = result
+        .as_ref()
+        .err()
+        .and_then(|e| e.downcast_ref::<Panicked>())
+    {
         let what = PANIC
             .lock()
             .ok()
             .and_then(|p| p.clone())
             .unwrap_or_else(|| "(no message)".into());
+        // The stage call it panicked in, with its sample; outside the drive's loop (set-up,
+        // the end), the process's stages.
+        let during = p
+            .during
+            .clone()
+            .unwrap_or_else(|| format!("stages {stages}"));
         crate::errln!(
-            "{name}: error: a stage panicked (stages {stages}): {what}; exit status {PANIC_STATUS}"
+            "{name}: error: a stage panicked ({during}): {what}; exit status {PANIC_STATUS}"
         );
-        let _ = protocol_line(&format!("PANIC stages {stages}: {what}"));
+        let _ = protocol_line(&format!("PANIC {during}: {what}"));
         return std::process::ExitCode::from(PANIC_STATUS);
     }
     // A stop signal that another process sent (not the launcher, not the terminal) ends
@@ -478,9 +488,12 @@ pub const PANIC_STATUS: u8 = 101;
 /// The first panic's message and place, as the panic hook saw it.
 static PANIC: std::sync::Mutex<Option<String>> = std::sync::Mutex::new(None);
 
-/// The error `host_main` turns a caught panic into.
+/// The error `host_main` turns a caught panic into: `during`, the stage call of the drive's
+/// loop it was caught in ([`Host::last_call`]), if it was.
 #[derive(Debug)]
-struct Panicked;
+struct Panicked {
+    during: Option<String>,
+}
 
 impl std::fmt::Display for Panicked {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -791,7 +804,13 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     }
     // What the set-up cost is not the run's: its figures start here.
     let at_run = usage(libc::RUSAGE_SELF);
-    host.run()?;
+    // A panic in a stage call is caught here, where the host can still say which call of
+    // which stage at which sample it was (docs/architecture.md, "Fault model").
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| host.run())).unwrap_or_else(|_| {
+        Err(anyhow!(Panicked {
+            during: host.last_call()
+        }))
+    })?;
     if host.transport.shadow.is_some() {
         // A twin that never took over: the active instance's statistics are the process's.
         return Ok(());
