@@ -216,11 +216,10 @@ struct ThetaRefRows {
     other: usize,
 }
 
-fn theta_ref_while_down(
-    c: &std::collections::BTreeMap<String, Vec<f64>>,
-    from: usize,
-    target: f64,
-) -> ThetaRefRows {
+/// The trace's columns.
+type Columns = std::collections::BTreeMap<String, Vec<f64>>;
+
+fn theta_ref_while_down(c: &Columns, from: usize, target: f64) -> ThetaRefRows {
     let mut r = ThetaRefRows::default();
     for &x in &c["theta_m_ref"][from..] {
         match x {
@@ -233,6 +232,31 @@ fn theta_ref_while_down(
     r
 }
 
+/// A 3 s real-time run of a step to `step_rad` (as the scenario's text writes it) with a
+/// `--fault` per `faults` and the scenario's `edits`; checks exit 0 and a clean bus. The run
+/// folder, its summary and its trace.
+fn real_time_move(
+    name: &str,
+    step_rad: &str,
+    faults: &[&str],
+    edits: &[(&str, &str)],
+) -> (PathBuf, serde_json::Value, Columns) {
+    let mut args = vec!["--clock", "realtime", "--duration", "3.0"];
+    for f in faults {
+        args.extend(["--fault", f]);
+    }
+    let step = format!("step_rad = {step_rad}");
+    let mut edits = edits.to_vec();
+    edits.push(("step_rad = 6.283185307179586", &step));
+    let (o, out, bus) = EXAMPLE.launch(name, &args, &edits);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert_clean(&bus);
+    let s = summary(&out);
+    let c = columns(&out.join("trace.csv"));
+    (out, s, c)
+}
+
 /// The same in real time: the supervisor hands the restarted process its last output as the
 /// recorder saw it (`--rejoin-from`), so a 4π step whose loop is killed mid-move above 2π
 /// ends at 4π, not a revolution beyond (18.85 rad); while the loop is down its θ* is empty.
@@ -240,27 +264,14 @@ fn theta_ref_while_down(
 fn a_restarted_position_loop_keeps_its_turn_count_in_real_time() {
     let _s = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let target = 2.0 * std::f64::consts::TAU;
-    let (o, out, bus) = EXAMPLE.launch(
+    let (out, s, c) = real_time_move(
         "rtrejoin",
-        &[
-            "--clock",
-            "realtime",
-            "--duration",
-            "3.0",
-            "--fault",
-            // θ_m ≈ 7.6 rad (slewing at 100 rad/s from 10 ms on): past the first turn, with
-            // 40 ms of slack for a late signal on a loaded machine.
-            "kill:position-loop@0.09",
-        ],
-        &[(
-            "step_rad = 6.283185307179586",
-            "step_rad = 12.566370614359172",
-        )],
+        "12.566370614359172",
+        // θ_m ≈ 7.6 rad (slewing at 100 rad/s from 10 ms on): past the first turn, with 40 ms
+        // of slack for a late signal on a loaded machine.
+        &["kill:position-loop@0.09"],
+        &[],
     );
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{err}");
-    assert_clean(&bus);
-    let s = summary(&out);
     let f = &s["faults"][0];
     assert_eq!(f["process"], "position-loop", "{}", s["faults"]);
     let events = supervisor_events(&s);
@@ -268,7 +279,6 @@ fn a_restarted_position_loop_keeps_its_turn_count_in_real_time() {
         events.iter().any(|e| e == "ready position-loop"),
         "not restarted: {events:?}"
     );
-    let c = columns(&out.join("trace.csv"));
     let theta_m = &c["theta_m"];
     let killed = f["injected_k"].as_u64().unwrap() as usize;
     let fin = *theta_m.last().unwrap();
@@ -281,6 +291,71 @@ fn a_restarted_position_loop_keeps_its_turn_count_in_real_time() {
         down.empty > 0 && down.zero == 0,
         "θ_m* from the kill on: {down:?}"
     );
+    remove_scratch(&out);
+}
+
+/// With a standby twin (`standby = true`) the position loop keeps its turn count through
+/// two takeovers in real time: a 64π step (32 turns, slewing at ω_max = 100 rad/s for 2 s),
+/// the process killed mid-move (its twin takes over, a new twin starts) and killed again
+/// later mid-move (the new twin takes over). The move ends at its target, not whole turns
+/// beyond: a twin started mid-move learns its turn count as a restarted process does.
+#[test]
+fn a_position_loop_with_a_standby_twin_keeps_its_turn_count_through_two_takeovers() {
+    let _s = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let target = 32.0 * std::f64::consts::TAU;
+    let (out, s, c) = real_time_move(
+        "twin",
+        "201.06192982974676",
+        // θ_m ≈ 7.6 rad and ≈ 139 rad: both mid-move, both past the first turn. The new twin
+        // has 1.3 s to be ready for the second (checked below; it was ready 25 ms after the takeover here).
+        &["kill:position-loop@0.09", "kill:position-loop@1.4"],
+        &[("priority = 71", "priority = 71\nstandby = true")],
+    );
+    let timeline: Vec<(String, f64)> = s["supervisor_events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["process"] == "position-loop")
+        .map(|e| {
+            let t = e["t_wall_s"].as_f64().unwrap();
+            (e["event"].as_str().unwrap().to_string(), t)
+        })
+        .collect();
+    let at = |event: &str| -> Vec<f64> {
+        timeline
+            .iter()
+            .filter(|(e, _)| e == event)
+            .map(|(_, t)| *t)
+            .collect()
+    };
+    let (kills, takeovers, ready) = (at("inject"), at("taken-over"), at("standby-ready"));
+    // Both kills were taken over by a twin (no restart), and the second twin was ready
+    // before the second kill, started after the first takeover.
+    assert!(
+        kills.len() == 2 && takeovers.len() == 2 && at("restarted").is_empty(),
+        "{timeline:?}"
+    );
+    assert!(
+        ready.iter().any(|&r| r > takeovers[0] && r < kills[1]),
+        "the new twin was not ready before the second kill: {timeline:?}"
+    );
+    let theta_m = &c["theta_m"];
+    let faults = s["faults"].as_array().unwrap();
+    let killed: Vec<usize> = faults
+        .iter()
+        .map(|f| f["injected_k"].as_u64().unwrap() as usize)
+        .collect();
+    let fin = *theta_m.last().unwrap();
+    eprintln!(
+        "standby twin: θ_m at the kills {:.3} and {:.3} rad, final θ_m {fin:.4} rad (target {target:.4})",
+        theta_m[killed[0]], theta_m[killed[1]]
+    );
+    assert!(
+        theta_m[killed[1]] < target - 1.0,
+        "θ_m at the second kill: {} (not mid-move)",
+        theta_m[killed[1]]
+    );
+    assert_the_move_ends_where_it_was_going(&s, theta_m, killed[0], target);
     remove_scratch(&out);
 }
 

@@ -241,7 +241,8 @@ pub(super) enum Start<'a> {
     /// its output back; docs/architecture.md, "Bumpless rejoin"), if it wrote one.
     Restart(Option<&'a Path>),
     /// As the process's standby twin (`--standby --rejoin`: it joins the running drive and
-    /// steps beside the process, so it needs no file).
+    /// steps beside the process, so it needs no file: a stage that reads its own output back
+    /// rejoins from the active instance's newest one on the bus).
     Standby,
 }
 

@@ -70,6 +70,13 @@ pub trait Transport {
     fn producer_up(&self, _topic: TopicId) -> bool {
         true
     }
+    /// A standby twin that has not taken over: the newest message the active instance of its
+    /// process published on `topic`, one of its own outputs (what a stage that reads its
+    /// output back rejoins from; docs/architecture.md, "Liveness words and standby twins").
+    /// None for any other instance.
+    fn twin_newest(&mut self, _topic: TopicId) -> Result<Option<Msg>> {
+        Ok(None)
+    }
     /// Wakes the receivers of `topic` without a message (they check their inputs' age).
     fn poke(&mut self, _topic: TopicId) -> Result<()> {
         Ok(())
@@ -1284,6 +1291,7 @@ impl<T: Transport> Host<T> {
                     // newest (that would depend on how far the peers have run).
                     self.rejoin_inputs_at(si, k, &mut ib)?;
                 }
+                self.own_outputs_from_the_active_instance(si, &mut ib)?;
                 self.calling(si, k, Call::Rejoin);
                 if self.stages[si].stage.rejoin(k, &ib) == Rejoin::NeedMore {
                     self.stages[si].last_k = Some(k);
@@ -1335,6 +1343,29 @@ impl<T: Transport> Host<T> {
             let slot = &mut ib.slots[t.index()];
             slot.msg = self.store.get(t, k);
             slot.fresh = slot.msg.is_some();
+        }
+        Ok(())
+    }
+
+    /// A standby twin's stage `si` rejoining: its rejoin-only inputs on its own outputs that
+    /// `ib` has no message for take the newest one the active instance of the process
+    /// published (it lives and steps on: a file written when the twin started would be
+    /// behind it). A once-per-rejoin bus read.
+    fn own_outputs_from_the_active_instance(&mut self, si: usize, ib: &mut Inbox) -> Result<()> {
+        for bi in 0..self.stages[si].inputs.len() {
+            let b = self.stages[si].inputs[bi];
+            let t = b.spec.topic;
+            if b.spec.role != Role::Rejoin
+                || !self.own_output(si, t)
+                || ib.slots[t.index()].msg.is_some()
+            {
+                continue;
+            }
+            if let Some(m) = self.transport.twin_newest(t)? {
+                let slot = &mut ib.slots[t.index()];
+                slot.msg = Some(m);
+                slot.fresh = true;
+            }
         }
         Ok(())
     }

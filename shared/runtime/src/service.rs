@@ -1025,9 +1025,11 @@ pub struct Shadow {
     /// The twin's own standby mutex, held while it waits (its process reads up while it
     /// lives), given up at the takeover for the next twin.
     own: Lease,
-    /// Per output topic, a polled receiver of the active instance's messages (read once, at
-    /// the takeover, for their newest index).
+    /// Per output topic, a polled receiver of the active instance's messages (read at the
+    /// takeover for their newest index, and by a stage's rejoin for its own last output).
     watch: [Option<Rx>; N_TOPICS],
+    /// Per output topic, the newest message read from `watch` before the takeover.
+    newest: [Option<Msg>; N_TOPICS],
 }
 
 impl Shadow {
@@ -1043,7 +1045,12 @@ impl Shadow {
                 watch[t.index()] = Some(rx_of(topics, t, Wait::Polled, 4)?);
             }
         }
-        Ok(Self { lease, own, watch })
+        Ok(Self {
+            lease,
+            own,
+            watch,
+            newest: [None; N_TOPICS],
+        })
     }
 }
 
@@ -1130,6 +1137,7 @@ impl BusTransport {
             lease,
             mut own,
             watch,
+            newest: _,
         } = self.shadow.take().expect("checked above");
         own.release();
         for (i, w) in watch.iter().enumerate() {
@@ -1272,6 +1280,25 @@ impl Transport for BusTransport {
             (Some(life), Some(p)) => life.up(p),
             _ => true,
         }
+    }
+
+    fn twin_newest(&mut self, topic: TopicId) -> Result<Option<Msg>> {
+        let i = topic.index();
+        let Some(sh) = self.shadow.as_mut() else {
+            return Ok(None);
+        };
+        if let Some(w) = &sh.watch[i] {
+            while let Some(m) = recv_rx(w)? {
+                let h = m.hdr();
+                // Published already: the takeover sends only later ones (as it reads there).
+                self.before[i] = Some(self.before[i].map_or(h.k, |b| b.max(h.k)));
+                let marker = h.is_warmup() || h.is_end() || h.is_absent();
+                if !marker && sh.newest[i].is_none_or(|n| h.k >= n.hdr().k) {
+                    sh.newest[i] = Some(m);
+                }
+            }
+        }
+        Ok(sh.newest[i])
     }
 
     fn poke(&mut self, topic: TopicId) -> Result<()> {
