@@ -160,12 +160,19 @@ pub fn render(sc_true: &Scenario, replaced: &BTreeMap<String, Replacement>) -> S
         s.k_p,
         s.t_i_s * 1e3
     );
+    let speed_pi_runs = sc.speed_loop.controller == SpeedController::Pi && speed_by.is_none();
     let _ = writeln!(
         o,
-        "  design model (sampled cascade): rise time {:.2} ms (target {:.2} ms), overshoot {:.1} %",
+        "  design model (sampled cascade): rise time {:.2} ms (target {:.2} ms), overshoot {:.1} %{}",
         s.predicted_rise_time_s * 1e3,
         sc.speed_loop.rise_time_s * 1e3,
-        s.predicted_overshoot_pct
+        s.predicted_overshoot_pct,
+        unstable(
+            s.spectral_radius,
+            "",
+            drivelab_runtime::drive::speed_loop_model(sc).response_window_s(s.a, s.t_eq_s),
+            speed_pi_runs
+        )
     );
     if let Some(w) = &s.warning {
         let _ = writeln!(o, "  WARNING: {w}");
@@ -322,16 +329,12 @@ fn render_nonlinear(
         n: sc.rates.speed_divider,
         tau_f_s: sc.observer.speed_filter_tau_s,
     };
-    let rho = model.spectral_radius(&m, g);
-    let unstable = if rho > 1.0 {
-        format!(
-            "; UNSTABLE: the sampled loop has a pole at |z| = {rho:.3} > 1 (linearised at rest), so its response grows without bound and these figures are only those of the {:.2} ms simulated{}",
-            n.response_window_s * 1e3,
-            if sc.nonlinear() { "" } else { " (this design is not run: for comparison only)" }
-        )
-    } else {
-        String::new()
-    };
+    let unstable = unstable(
+        model.spectral_radius(&m, g),
+        " (linearised at rest)",
+        n.response_window_s,
+        sc.nonlinear(),
+    );
     let _ = writeln!(
         o,
         "  design model (drive's discrete law, sampled, 1-sample delay, speed law every {} samples): {}{unstable}",
@@ -351,6 +354,21 @@ fn render_nonlinear(
     if let Some(w) = &n.warning {
         let _ = writeln!(o, "  WARNING: {w}");
     }
+}
+
+/// The stability verdict of a design whose sampled design model's poles reach `rho` = max |z|
+/// (`how` says of what model, e.g. " (linearised at rest)"), to follow its figures: empty when
+/// the loop is stable, else "; UNSTABLE: …". The figures of an unstable loop are only those
+/// of the `window_s` simulated: its response grows without bound.
+fn unstable(rho: f64, how: &str, window_s: f64, runs: bool) -> String {
+    if rho <= 1.0 {
+        return String::new();
+    }
+    format!(
+        "; UNSTABLE: the sampled loop has a pole at |z| = {rho:.3} > 1{how}, so its response grows without bound and these figures are only those of the {:.2} ms simulated{}",
+        window_s * 1e3,
+        if runs { "" } else { " (this design is not run: for comparison only)" }
+    )
 }
 
 /// "rise time 8.00 ms (target 8.00 ms), overshoot 12.3 %" of a design's step response, or
@@ -490,6 +508,53 @@ mod tests {
 
     fn line_of<'a>(t: &'a str, what: &str) -> &'a str {
         t.lines().find(|l| l.contains(what)).unwrap()
+    }
+
+    #[test]
+    fn an_unstable_speed_pi_says_so_and_no_shipped_scenarios_does() {
+        // A speed law every 1000 samples (10 Hz behind a 10 kHz current loop): the sampled
+        // cascade's symmetrical optimum has a pole outside the unit circle, though its
+        // figures (read off the simulated window) look like a design's.
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("slow-speed-law.toml");
+        let text = std::fs::read_to_string(
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenarios/kyslan-pi.toml"),
+        )
+        .unwrap()
+        .replace("speed_divider = 10 ", "speed_divider = 1000 ");
+        std::fs::write(&file, text).unwrap();
+        let sc = crate::launcher::load_scenario(file.to_str().unwrap(), None).unwrap();
+        assert_eq!(sc.rates.speed_divider, 1000);
+        let t = render(&sc, &BTreeMap::new());
+        let l = line_of(&t, "design model (sampled cascade)");
+        assert!(l.contains(", overshoot "), "the figure stays: {l}");
+        assert!(
+            l.contains("; UNSTABLE: the sampled loop has a pole at |z| = "),
+            "{l}"
+        );
+        assert!(!l.contains("not run"), "kyslan-pi runs its speed PI: {l}");
+        let json = serde_json::to_value(DriveDesign::from_scenario(&sc.controller_view())).unwrap();
+        assert!(
+            json["speed"]["spectral_radius"].as_f64().unwrap() > 1.0,
+            "{json}"
+        );
+        // Every shipped scenario: only the nonlinear designs flagged so far are unstable.
+        for f in std::fs::read_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/../scenarios")).unwrap() {
+            let f = f.unwrap().path();
+            if f.extension().is_none_or(|e| e != "toml") {
+                continue;
+            }
+            let sc = crate::launcher::load_scenario(f.to_str().unwrap(), None).unwrap();
+            let t = render(&sc, &replacements(&sc));
+            for l in t.lines().filter(|l| l.contains("UNSTABLE")) {
+                assert!(
+                    l.contains("design model (drive's discrete law")
+                        && l.contains("(linearised at rest)"),
+                    "{}: {l}",
+                    f.display()
+                );
+            }
+        }
     }
 
     #[test]

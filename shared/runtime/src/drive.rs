@@ -122,20 +122,24 @@ pub fn speed_pi_design(sc: &Scenario) -> SoDesign {
         sc.observer.speed_filter_tau_s,
         sc.rates.speed_divider,
     );
-    let model = SpeedLoopModel {
-        ts,
-        n: sc.rates.speed_divider,
-        tau_c_s: sc.current_loop.tau_c_s,
-        tau_f_s: sc.observer.speed_filter_tau_s,
-    };
     design_symmetrical_optimum(
         &sc.motor_params(),
         &SoSpec {
             t_sigma_s: t_sigma,
             rise_time_s: sc.speed_loop.rise_time_s,
         },
-        &model,
+        &speed_loop_model(sc),
     )
+}
+
+/// The sampled cascade the speed PI is designed on (its design model), with `sc`'s timing.
+pub fn speed_loop_model(sc: &Scenario) -> SpeedLoopModel {
+    SpeedLoopModel {
+        ts: sc.rates.ts(),
+        n: sc.rates.speed_divider,
+        tau_c_s: sc.current_loop.tau_c_s,
+        tau_f_s: sc.observer.speed_filter_tau_s,
+    }
 }
 
 /// Kyslan et al.'s nonlinear controller design (an iterative design: milliseconds).

@@ -75,6 +75,16 @@ impl Bessel2 {
         self.u2 = value / g;
     }
 
+    /// The state y(k−1), y(k−2), u(k−1), u(k−2) (to linearise a loop that holds the filter).
+    pub fn state(&self) -> [f64; 4] {
+        [self.y1, self.y2, self.u1, self.u2]
+    }
+
+    /// Sets the state y(k−1), y(k−2), u(k−1), u(k−2), as [`Self::state`] gives it.
+    pub fn set_state(&mut self, x: [f64; 4]) {
+        [self.y1, self.y2, self.u1, self.u2] = x;
+    }
+
     /// DC gain (1 for a correct design).
     pub fn dc_gain(&self) -> f64 {
         (self.b1 + self.b0) / (1.0 + self.a1 + self.a0)

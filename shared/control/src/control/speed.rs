@@ -35,6 +35,10 @@ pub struct SoDesign {
     pub predicted_overshoot_pct: f64,
     /// Set when the target could not be met within a ∈ [A_MIN, 2]; says why.
     pub warning: Option<String>,
+    /// The largest |z| of the sampled cascade's poles ([`SpeedLoopModel::spectral_radius`]):
+    /// above 1 the loop is unstable and the figures are only those of the simulated window.
+    #[serde(default)]
+    pub spectral_radius: f64,
 }
 
 /// Smallest SO parameter we accept (below it the loop is poorly damped).
@@ -110,48 +114,156 @@ pub struct SpeedLoopModel {
     pub tau_f_s: f64,
 }
 
+/// The states of [`SpeedLoopModel`]'s loop: the prefilter, the integrator, the reference
+/// computed and the one in use, the current, the speed and its last value, and the speed
+/// filter's four.
+const SPEED_LOOP_STATES: usize = 11;
+
+/// One state of [`SpeedLoopModel`]'s loop at a sample (normalised: K_p·k_t/J folded in).
+#[derive(Debug, Clone, Copy)]
+struct SpeedLoopState {
+    rf: f64,
+    xi: f64,
+    iq_cmd: f64,
+    iq_cmd_prev: f64,
+    iq: f64,
+    w: f64,
+    w_prev: f64,
+    filt: super::filter::Bessel2,
+}
+
+impl SpeedLoopState {
+    /// The loop's own states, in the order of [`SPEED_LOOP_STATES`]'s first seven.
+    fn own(&mut self) -> [&mut f64; 7] {
+        [
+            &mut self.rf,
+            &mut self.xi,
+            &mut self.iq_cmd,
+            &mut self.iq_cmd_prev,
+            &mut self.iq,
+            &mut self.w,
+            &mut self.w_prev,
+        ]
+    }
+
+    fn vector(mut self) -> [f64; SPEED_LOOP_STATES] {
+        let mut v = [0.0; SPEED_LOOP_STATES];
+        v[7..].copy_from_slice(&self.filt.state());
+        for (x, s) in v.iter_mut().zip(self.own()) {
+            *x = *s;
+        }
+        v
+    }
+
+    fn set(&mut self, v: &[f64; SPEED_LOOP_STATES]) {
+        for (s, x) in self.own().into_iter().zip(v) {
+            *s = *x;
+        }
+        self.filt.set_state([v[7], v[8], v[9], v[10]]);
+    }
+}
+
 impl SpeedLoopModel {
-    /// Unit-step response of the model with the SO parameters (a, T_eq): returns
-    /// (time to first reach the set-point, overshoot %). K_p·k_t/J = 1/(a·T_eq) makes the
-    /// response independent of J and k_t.
-    pub fn step_response(&self, a: f64, t_eq: f64) -> (f64, f64) {
+    /// The loop at rest with the SO parameters (a, T_eq): its state and the sample step with
+    /// reference `r` at phase `k` of the divider.
+    fn at_rest(
+        &self,
+        a: f64,
+        t_eq: f64,
+    ) -> (SpeedLoopState, impl Fn(&mut SpeedLoopState, u64, f64)) {
         let ts = self.ts;
         let n = u64::from(self.n.max(1));
         let tw = ts * n as f64;
         let ti = a * a * t_eq;
         let kk = 1.0 / (a * t_eq); // K_p·k_t/J
         let pole = libm::exp(-tw / ti);
-        let mut filt = super::filter::Bessel2::design(self.tau_f_s, ts);
         let lag = 1.0 - libm::exp(-ts / self.tau_c_s);
-        let (mut rf, mut xi, mut iq_cmd, mut iq_cmd_prev, mut iq, mut w, mut w_prev) =
-            (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-        let mut rise = f64::NAN;
-        let mut peak: f64 = 0.0;
-        let steps = ((60.0 * ti.max(t_eq)) / ts).ceil() as u64 + 10 * n;
-        for k in 0..steps {
+        let s = SpeedLoopState {
+            rf: 0.0,
+            xi: 0.0,
+            iq_cmd: 0.0,
+            iq_cmd_prev: 0.0,
+            iq: 0.0,
+            w: 0.0,
+            w_prev: 0.0,
+            filt: super::filter::Bessel2::design(self.tau_f_s, ts),
+        };
+        let sample = move |s: &mut SpeedLoopState, k: u64, r: f64| {
             // Sample k: speed measured as the backward difference, then filtered.
-            let w_hat = filt.step(0.5 * (w + w_prev));
-            let used = iq_cmd; // reference computed at the last speed sample before k
-            if k % n == 0 {
-                rf = pole * rf + (1.0 - pole) * 1.0;
-                let e = rf - w_hat;
-                let y = kk * e + xi;
-                xi += kk / ti * tw * e;
-                iq_cmd = y;
+            let w_hat = s.filt.step(0.5 * (s.w + s.w_prev));
+            let used = s.iq_cmd; // reference computed at the last speed sample before k
+            if k.is_multiple_of(n) {
+                s.rf = pole * s.rf + (1.0 - pole) * r;
+                let e = s.rf - w_hat;
+                let y = kk * e + s.xi;
+                s.xi += kk / ti * tw * e;
+                s.iq_cmd = y;
             }
             // Current loop: command k acts from t_{k+1} (one-sample delay), first-order lag.
-            let iq_next = iq + lag * (iq_cmd_prev - iq);
-            iq_cmd_prev = used;
-            w_prev = w;
-            w += ts * 0.5 * (iq + iq_next); // k_t/J folded into kk
-            iq = iq_next;
-            let t = (k + 1) as f64 * ts;
-            if rise.is_nan() && w >= 1.0 {
+            let iq_next = s.iq + lag * (s.iq_cmd_prev - s.iq);
+            s.iq_cmd_prev = used;
+            s.w_prev = s.w;
+            s.w += ts * 0.5 * (s.iq + iq_next); // k_t/J folded into kk
+            s.iq = iq_next;
+        };
+        (s, sample)
+    }
+
+    /// Unit-step response of the model with the SO parameters (a, T_eq): returns
+    /// (time to first reach the set-point, overshoot %). K_p·k_t/J = 1/(a·T_eq) makes the
+    /// response independent of J and k_t.
+    pub fn step_response(&self, a: f64, t_eq: f64) -> (f64, f64) {
+        let (mut s, sample) = self.at_rest(a, t_eq);
+        let mut rise = f64::NAN;
+        let mut peak: f64 = 0.0;
+        for k in 0..self.response_samples(a, t_eq) {
+            sample(&mut s, k, 1.0);
+            let t = (k + 1) as f64 * self.ts;
+            if rise.is_nan() && s.w >= 1.0 {
                 rise = t;
             }
-            peak = peak.max(w);
+            peak = peak.max(s.w);
         }
         (rise, (peak - 1.0).max(0.0) * 100.0)
+    }
+
+    /// How many samples [`Self::step_response`] simulates: 60 × the slower of T_i and T_eq,
+    /// and 10 speed periods.
+    fn response_samples(&self, a: f64, t_eq: f64) -> u64 {
+        let ti = a * a * t_eq;
+        ((60.0 * ti.max(t_eq)) / self.ts).ceil() as u64 + 10 * u64::from(self.n.max(1))
+    }
+
+    /// How long [`Self::step_response`] simulates, s.
+    pub fn response_window_s(&self, a: f64, t_eq: f64) -> f64 {
+        self.response_samples(a, t_eq) as f64 * self.ts
+    }
+
+    /// The largest |z| of the loop's poles with the SO parameters (a, T_eq): the eigenvalues
+    /// of its map over one speed period N·T_s, X[j+1] = Φ X[j] (the loop is linear, so Φ's
+    /// columns are its responses to each state alone, reference 0). Above 1 the loop is
+    /// unstable: its step response grows without bound, and a rise time or overshoot read
+    /// off it is only what the simulated window happened to show.
+    pub fn spectral_radius(&self, a: f64, t_eq: f64) -> f64 {
+        let n = u64::from(self.n.max(1));
+        let (base, sample) = self.at_rest(a, t_eq);
+        let mut phi = nalgebra::DMatrix::<f64>::zeros(SPEED_LOOP_STATES, SPEED_LOOP_STATES);
+        for j in 0..SPEED_LOOP_STATES {
+            let mut v = [0.0; SPEED_LOOP_STATES];
+            v[j] = 1.0;
+            let mut s = base;
+            s.set(&v);
+            for k in 0..n {
+                sample(&mut s, k, 0.0);
+            }
+            for (i, x) in s.vector().into_iter().enumerate() {
+                phi[(i, j)] = x;
+            }
+        }
+        phi.complex_eigenvalues()
+            .iter()
+            .map(|z| crate::math::cnorm(*z))
+            .fold(0.0, f64::max)
     }
 }
 
@@ -214,6 +326,7 @@ pub fn design_symmetrical_optimum(
         predicted_rise_time_s: rise_t,
         predicted_overshoot_pct: os,
         warning,
+        spectral_radius: model.spectral_radius(a, t_eq),
     }
 }
 
