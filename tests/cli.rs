@@ -220,24 +220,106 @@ fn drivelab_in(cwd: &std::path::Path, args: &[&str]) -> (Option<i32>, String, St
 /// The shipped scenarios, from the source tree.
 const SCENARIOS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../scenarios");
 
-#[test]
-fn design_says_what_runs_when_a_users_stage_replaces_a_loop() {
-    // The deadbeat example replaces kyslan-pi's current loop: the PI current design is not
-    // what runs (the run's summary names it in design.not_run).
-    let file = concat!(
+/// The deadbeat example's scenario in a fresh temp folder, its `exec` line replaced by
+/// `exec` (the folder goes when the value drops).
+fn deadbeat_with(exec: &str) -> (tempfile::TempDir, PathBuf) {
+    let text = std::fs::read_to_string(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/../examples/deadbeat-current-loop/deadbeat.toml"
+    ))
+    .unwrap();
+    let line = "exec = \"../../target/release/drivelab-deadbeat\"";
+    assert!(text.contains(line));
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("deadbeat.toml");
+    std::fs::write(&file, text.replace(line, exec)).unwrap();
+    (dir, file)
+}
+
+/// What `drivelab design --scenario FILE` prints (it succeeds).
+fn design_of(file: &std::path::Path) -> String {
+    let (code, out, err) = drivelab_in(
+        std::path::Path::new("/"),
+        &["design", "--scenario", file.to_str().unwrap()],
     );
-    let (code, out, err) = drivelab_in(std::path::Path::new("/"), &["design", "--scenario", file]);
     assert_eq!(code, Some(0), "{err}");
+    out
+}
+
+/// An example's executable of this build (`cargo build --bins --examples`), beside drivelab.
+fn example_exe(name: &str) -> String {
+    let exe = std::path::Path::new(env!("CARGO_BIN_EXE_drivelab")).with_file_name(name);
+    assert!(
+        exe.is_file(),
+        "{}: build it with cargo build --bins --examples",
+        exe.display()
+    );
+    exe.display().to_string()
+}
+
+#[test]
+fn design_says_what_runs_when_a_users_stage_replaces_a_loop() {
+    // The deadbeat example replaces kyslan-pi's current loop (its executable, asked with
+    // --describe, hosts a 'current-loop' stage): the PI current design is not what runs
+    // (the run's summary names it in design.not_run).
+    let exe = example_exe("drivelab-deadbeat");
+    let (_dir, file) = deadbeat_with(&format!("exec = {exe:?}"));
+    let out = design_of(&file);
     let runs = out.lines().nth(1).unwrap();
     assert!(
-        runs.starts_with("runs: the user's current-loop stage (process 'current-loop', exec ../../target/release/drivelab-deadbeat), pi speed loop"),
+        runs.starts_with(&format!("runs: the user's current-loop stage (process 'current-loop', exec {exe}), pi speed loop")),
         "{out}"
     );
     let line = |what: &str| out.lines().find(|l| l.contains(what)).unwrap();
     assert!(line("current PI (").starts_with("not run: "), "{out}");
     assert!(line("speed PI (").starts_with("speed PI ("), "{out}");
+}
+
+#[test]
+fn design_asks_an_exec_which_stages_it_hosts_as_run_does() {
+    // The position-loop example's executable hosts no 'current-loop' stage: the built-in
+    // current loop runs in its process (`run` asks it with --describe), and `design` says so.
+    let exe = example_exe("drivelab-position-loop");
+    let (_dir, file) = deadbeat_with(&format!("exec = {exe:?}"));
+    // The deadbeat loop's own table would be refused where the built-in runs.
+    let text = std::fs::read_to_string(&file).unwrap();
+    let (head, rest) = text.split_once("[stages.current-loop]").unwrap();
+    let text = format!("{head}{}", &rest[rest.find("[[process]]").unwrap()..]);
+    std::fs::write(&file, text).unwrap();
+    let out = design_of(&file);
+    let runs = out.lines().nth(1).unwrap();
+    assert!(
+        runs.starts_with("runs: pi current loop, pi speed loop"),
+        "{out}"
+    );
+    assert!(!out.contains("user's"), "{out}");
+    let line = |what: &str| out.lines().find(|l| l.contains(what)).unwrap();
+    assert!(line("current PI (").starts_with("current PI ("), "{out}");
+    // A bad exec: the run's one-line error, exit code 1, nothing printed.
+    let (_dir, file) = deadbeat_with("exec = \"./no-such-host\"");
+    let f = file.to_str().unwrap();
+    let (code, out, err) = drivelab_in(std::path::Path::new("/"), &["design", "--scenario", f]);
+    assert_eq!(code, Some(1), "{out}{err}");
+    assert!(out.is_empty(), "{out}");
+    let (run_code, _, run_err) = drivelab_in(
+        std::path::Path::new("/"),
+        &[
+            "run",
+            "--clock",
+            "lockstep",
+            "--scenario",
+            f,
+            "--out",
+            "/nonexistent/drivelab-design-test",
+        ],
+    );
+    assert_eq!(run_code, Some(1), "{run_err}");
+    assert_eq!(err, run_err);
+    assert_eq!(err.lines().count(), 1, "{err}");
+    assert!(
+        err.contains("process 'current-loop': exec ") && err.contains("no-such-host not found"),
+        "{err}"
+    );
 }
 
 #[test]

@@ -28,29 +28,49 @@ impl Replacement {
     }
 }
 
-/// The replaceable built-in stages (observer, current loop, speed loop) that a process of
-/// `sc` with an `exec` hosts: that executable runs its own stage of the name in the
-/// built-in's place (`drivelab run` asks it with `--describe`; one that hosts no stage of the
-/// name would leave the built-in to run, which only the run can tell).
-pub fn replacements(sc: &Scenario) -> BTreeMap<String, Replacement> {
-    let mut v = BTreeMap::new();
-    for p in sc.process.iter() {
-        let Some(exec) = &p.exec else { continue };
-        for st in p
-            .stages
-            .iter()
-            .filter(|s| drivelab_runtime::stages::REPLACEABLE.contains(&s.as_str()))
-        {
-            v.insert(
-                st.clone(),
-                Replacement {
-                    process: p.name.clone(),
-                    exec: exec.clone(),
-                },
-            );
-        }
+/// The built-in stages of `sc` (loaded from `src`) that a user's stage replaces, as `drivelab
+/// run` resolves them (`launcher::resolve_topology`): a process's `exec` is asked with
+/// `--describe`, and replaces a built-in stage it hosts only if it declares a stage of that
+/// name (docs/architecture.md, "Replacing a built-in stage"). A bad `exec` is the run's error.
+/// `sc`'s processes are left resolved, as a run leaves them.
+pub fn replacements(
+    sc: &mut Scenario,
+    src: &std::path::Path,
+) -> anyhow::Result<BTreeMap<String, Replacement>> {
+    // The `exec` of each process as the scenario writes it (resolving makes it absolute).
+    let written: BTreeMap<String, String> = sc
+        .topology()
+        .into_iter()
+        .filter_map(|p| Some((p.name, p.exec?)))
+        .collect();
+    let plan = crate::launcher::resolve_topology(sc, src, &design_options(src))?;
+    plan.replaced
+        .iter()
+        .map(|(stage, exe)| {
+            let p = plan
+                .processes
+                .iter()
+                .find(|p| p.stages.contains(stage) && p.exec.as_ref() == Some(exe))
+                .ok_or_else(|| anyhow::anyhow!("no process hosts the replaced stage '{stage}'"))?;
+            let exec = written.get(&p.name).unwrap_or(exe).clone();
+            let r = Replacement {
+                process: p.name.clone(),
+                exec,
+            };
+            Ok((stage.clone(), r))
+        })
+        .collect()
+}
+
+/// The options of a `drivelab run` of `src` as far as resolving its topology reads them: the
+/// scenario's own topology, on this machine, real time, the runner of `DRIVELAB_RUNNER`.
+fn design_options(src: &std::path::Path) -> crate::launcher::RunOptions {
+    crate::launcher::RunOptions {
+        scenario: src.display().to_string(),
+        no_plots: true,
+        lockstep_restart_ms: drivelab_runtime::inject::RESTART_DEFAULT_MS,
+        ..Default::default()
     }
-    v
 }
 
 /// Renders the design printout of `sc`, with the built-in stages in `replaced` run by a
@@ -463,9 +483,7 @@ mod tests {
             .unwrap();
         cl.exec = Some("./my-loop".into());
         let process = cl.name.clone();
-        let replaced = replacements(&sc);
-        assert_eq!(replaced.keys().collect::<Vec<_>>(), ["current-loop"]);
-        let t = render(&sc, &replaced);
+        let t = render(&sc, &replaced_by(&sc, "current-loop"));
         let runs = t.lines().nth(1).unwrap();
         assert!(
             runs.starts_with(&format!(
@@ -495,7 +513,7 @@ mod tests {
                 p.exec = Some("./my-speed".into());
             }
         }
-        let t = render(&sc, &replacements(&sc));
+        let t = render(&sc, &replaced_by(&sc, "speed-loop"));
         for (section, not) in [
             ("i_d loop (", false),
             ("i_q loop (", false),
@@ -504,6 +522,22 @@ mod tests {
             let l = line_of(&t, section);
             assert_eq!(l.starts_with("  not run: "), not, "{l}");
         }
+    }
+
+    /// `stage` replaced by the user's stage of the process of `sc` that hosts it (its `exec`).
+    fn replaced_by(sc: &Scenario, stage: &str) -> BTreeMap<String, Replacement> {
+        let p = sc
+            .process
+            .iter()
+            .find(|p| p.stages.iter().any(|s| s == stage))
+            .unwrap();
+        BTreeMap::from([(
+            stage.to_string(),
+            Replacement {
+                process: p.name.clone(),
+                exec: p.exec.clone().unwrap(),
+            },
+        )])
     }
 
     fn line_of<'a>(t: &'a str, what: &str) -> &'a str {
@@ -545,7 +579,7 @@ mod tests {
                 continue;
             }
             let sc = crate::launcher::load_scenario(f.to_str().unwrap(), None).unwrap();
-            let t = render(&sc, &replacements(&sc));
+            let t = render(&sc, &BTreeMap::new());
             for l in t.lines().filter(|l| l.contains("UNSTABLE")) {
                 assert!(
                     l.contains("design model (drive's discrete law")

@@ -1207,7 +1207,8 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             motor,
             rise_time_ms,
         } => {
-            let mut sc = launcher::load_scenario(&scenario, None)?;
+            let (mut sc, src) = drivelab_runtime::config::Scenario::load(&scenario)
+                .map_err(|e| anyhow::anyhow!(e))?;
             if let Some(m) = motor {
                 let p = drivelab_services::replay::resolve_motor(&m)?;
                 sc.motor = drivelab_runtime::config::MotorSpec {
@@ -1228,9 +1229,10 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 sc.speed_loop.rise_time_s = r * 1e-3;
             }
             sc.validate().map_err(|e| anyhow::anyhow!(e))?;
-            // A built-in stage in a process with `exec` is the user's stage of that name: the
-            // built-in's design is printed for comparison and says "not run".
-            let replaced = drivelab_services::design::replacements(&sc);
+            // A built-in stage that a process's `exec` hosts a stage of the same name for (it is
+            // asked, as `run` asks it) is the user's stage: the built-in's design is printed for
+            // comparison and says "not run".
+            let replaced = drivelab_services::design::replacements(&mut sc, &src)?;
             drivelab_services::out!("{}", drivelab_services::design::render(&sc, &replaced));
             Ok(())
         }

@@ -119,8 +119,13 @@ fn the_deadbeat_loop_replaces_the_built_in_and_reaches_an_i_d_step_in_two_sample
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         String::from_utf8(o.stdout).unwrap()
     };
-    let user = "the user's current-loop stage (process 'current-loop', exec ../../target/release/drivelab-deadbeat)";
-    let text = design(Path::new(EXAMPLE.scenario));
+    // (Of this build's executable: `design` asks it which stages it hosts, as `run` does.)
+    let user = format!(
+        "the user's current-loop stage (process 'current-loop', exec {})",
+        EXAMPLE.exe
+    );
+    let copy = EXAMPLE.scenario_copy(&EXAMPLE.scratch("design"), &[]);
+    let text = design(&copy);
     assert!(
         text.contains(&format!("runs: {user}, pi speed loop")),
         "{text}"

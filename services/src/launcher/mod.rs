@@ -48,10 +48,13 @@ use stream::{TraceStats, TraceStream};
 use supervisor::{supervise, Supervised};
 
 /// Which clock paces the run.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize, serde::Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize, serde::Deserialize, Default,
+)]
 #[serde(rename_all = "lowercase")]
 pub enum Clock {
     /// The topology's processes; the plant sleeps to absolute deadlines.
+    #[default]
     Realtime,
     /// The topology's processes; the plant waits for each command; as fast as possible.
     Lockstep,
@@ -70,8 +73,9 @@ impl Clock {
     }
 }
 
-/// Options of one run.
-#[derive(Debug, Clone)]
+/// Options of one run (`Default`: a real-time run of no scenario with no option given, but
+/// `lockstep_restart_ms` 0, where the command line's default is `inject::RESTART_DEFAULT_MS`).
+#[derive(Debug, Clone, Default)]
 pub struct RunOptions {
     /// Scenario name or file.
     pub scenario: String,
