@@ -434,6 +434,41 @@ fn doctor_judges_the_cores_of_the_topology_it_is_given() {
     let k = check("kernel runs");
     let v = k["value"].as_str().unwrap();
     assert!(v.contains("cpu 1000") || k["status"] == "Unknown", "{k}");
+    // A split topology: this machine's processes (--machine, as for run) are judged, the
+    // other's named as not judged here; a machine it does not name is refused in one line.
+    let (code, out, err) = drivelab_in(
+        &dir,
+        &[
+            "doctor",
+            "--json",
+            "--topology",
+            "split-hil",
+            "--machine",
+            "board",
+        ],
+    );
+    assert_eq!(code, Some(0), "{err}");
+    let p = serde_json::from_str::<serde_json::Value>(&out).unwrap();
+    let p = p
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["name"] == "placement")
+        .unwrap();
+    assert_eq!(
+        p["value"],
+        "topology split-hil, machine board (--machine): cpu 1: observer, current-loop, speed-loop; not judged here (machine simulator): plant",
+        "{p}"
+    );
+    let (code, out, err) = drivelab_in(
+        &dir,
+        &["doctor", "--topology", "split-hil", "--machine", "laptop"],
+    );
+    assert_eq!((code, out.as_str()), (Some(2), ""), "{err}");
+    assert_eq!(
+        err,
+        "drivelab: error: --machine laptop: topology split-hil has no machine 'laptop' (its machines: simulator, board)\n"
+    );
     // Without it, no placement line.
     let (code, out, err) = drivelab_in(&dir, &["doctor", "--json"]);
     assert_eq!(code, Some(0), "{err}");

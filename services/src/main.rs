@@ -476,6 +476,12 @@ enum Cmd {
         /// every cpu but the first (the default placement uses cpu 1).
         #[arg(long, value_name = "NAME|FILE")]
         topology: Option<String>,
+        /// With a --topology split across machines (its processes name a `machine`): this
+        /// machine's name, as `drivelab run --machine` takes it. Only its processes' cores
+        /// are judged, the other machine's named as not judged here; without it the whole
+        /// topology is judged here, as `drivelab run` without --machine runs it.
+        #[arg(long, value_name = "NAME", requires = "topology")]
+        machine: Option<String>,
     },
 }
 
@@ -1398,15 +1404,17 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
         ),
         Cmd::ObserverError(args) => drivelab_services::observer_error::run(&args),
         Cmd::CdmDesign(args) => drivelab_services::cdm_design::run(&args),
-        Cmd::Doctor { json, topology } => {
+        Cmd::Doctor {
+            json,
+            topology,
+            machine,
+        } => {
             let placement = topology
                 .map(|t| {
-                    drivelab_runtime::topology::load(&t)
-                        .map(|(f, _)| drivelab_tools::doctor::Placement {
-                            name: t.clone(),
-                            processes: f.process,
-                        })
-                        .map_err(|e| anyhow::anyhow!("--topology: {e}"))
+                    let (f, _) = drivelab_runtime::topology::load(&t)
+                        .map_err(|e| anyhow::anyhow!("--topology: {e}"))?;
+                    drivelab_tools::doctor::Placement::new(&t, f.process, machine.as_deref())
+                        .map_err(usage)
                 })
                 .transpose()?;
             let checks = drivelab_tools::doctor::run_checks_for(placement.as_ref());

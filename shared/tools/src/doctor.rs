@@ -76,16 +76,61 @@ impl Check {
 
 /// A topology's processes, for `drivelab doctor --topology`: the checks made per core
 /// (isolation, device interrupts, kernel runs) are judged for the cores they are pinned to
-/// instead of the default placement's.
-#[derive(Debug, Clone)]
+/// instead of the default placement's. Of a topology split across machines (processes that
+/// name a `machine`), only this machine's processes are judged ([`Placement::new`]).
+#[derive(Debug, Clone, Default)]
 pub struct Placement {
     /// What names it: a shipped topology's name or a file.
     pub name: String,
-    /// Its processes.
+    /// The processes this machine runs (every one, unless the topology is split).
     pub processes: Vec<drivelab_runtime::topology::ProcessSpec>,
+    /// Of a split topology: this machine's name, as `--machine` gives it.
+    pub machine: Option<String>,
+    /// Of a split topology: the other machines' processes, not judged here.
+    pub away: Vec<drivelab_runtime::topology::ProcessSpec>,
 }
 
 impl Placement {
+    /// The placement of topology `name`'s `processes` on this machine. The doctor cannot tell
+    /// which machine of a split topology this is: as `drivelab run`, it is told with
+    /// `machine` (`--machine`), whose processes are judged and the others' listed as not
+    /// judged here; without it the whole topology is judged on this machine, as a run
+    /// without `--machine` runs it. A `machine` the topology does not name, or one given
+    /// for a topology that is not split, is refused in one line.
+    pub fn new(
+        name: &str,
+        processes: Vec<drivelab_runtime::topology::ProcessSpec>,
+        machine: Option<&str>,
+    ) -> Result<Self, String> {
+        let machines = drivelab_runtime::topology::machines(&processes);
+        let name = name.to_string();
+        match machine {
+            None => Ok(Self {
+                name,
+                processes,
+                ..Self::default()
+            }),
+            Some(m) if machines.is_empty() => Err(format!(
+                "--machine {m}: topology {name} is not split across machines (no process names a machine)"
+            )),
+            Some(m) if !machines.iter().any(|x| x == m) => Err(format!(
+                "--machine {m}: topology {name} has no machine '{m}' (its machines: {})",
+                machines.join(", ")
+            )),
+            Some(m) => {
+                let (here, away) = processes
+                    .into_iter()
+                    .partition(|p| p.machine.as_deref() == Some(m));
+                Ok(Self {
+                    name,
+                    processes: here,
+                    machine: Some(m.to_string()),
+                    away,
+                })
+            }
+        }
+    }
+
     /// The CPUs its processes are pinned to, sorted.
     fn cpus(&self) -> Vec<usize> {
         let mut v: Vec<usize> = self.processes.iter().filter_map(|p| p.cpu).collect();
@@ -173,7 +218,10 @@ fn placement_check(online: &[usize], p: &Placement) -> Check {
             None => unpinned.push(q.name.as_str()),
         }
     }
-    let mut value = format!("topology {}: ", p.name);
+    let mut value = match &p.machine {
+        Some(m) => format!("topology {}, machine {m} (--machine): ", p.name),
+        None => format!("topology {}: ", p.name),
+    };
     let pinned: Vec<String> = by_cpu
         .iter()
         .map(|(c, who)| format!("cpu {c}: {}", who.join(", ")))
@@ -186,8 +234,19 @@ fn placement_check(online: &[usize], p: &Placement) -> Check {
     if !unpinned.is_empty() {
         let _ = write!(value, "; not pinned: {}", unpinned.join(", "));
     }
-    if !drivelab_runtime::topology::machines(&p.processes).is_empty() {
-        value.push_str(" (split across machines: every machine's cores are listed)");
+    if p.machine.is_none() && !drivelab_runtime::topology::machines(&p.processes).is_empty() {
+        value.push_str(
+            " (split across machines: judged whole on this machine, as drivelab run without --machine runs it; --machine NAME judges one machine's share)",
+        );
+    }
+    for m in drivelab_runtime::topology::machines(&p.away) {
+        let who: Vec<&str> = p
+            .away
+            .iter()
+            .filter(|q| q.machine.as_ref() == Some(&m))
+            .map(|q| q.name.as_str())
+            .collect();
+        let _ = write!(value, "; not judged here (machine {m}): {}", who.join(", "));
     }
     let missing: Vec<String> = by_cpu
         .keys()
@@ -2560,6 +2619,7 @@ mod tests {
                 proc_on("plant", Some(0), 70),
                 proc_on("observer", Some(0), 72),
             ],
+            ..Placement::default()
         };
         let c = device_irq_check_on(&fs, &on0.cpus());
         assert!(c.value.contains("by the drive's cpu 0: ttyS0"), "{c:?}");
@@ -2583,6 +2643,7 @@ mod tests {
         let on1 = Placement {
             name: "one".into(),
             processes: vec![proc_on("plant", Some(1), 70)],
+            ..Placement::default()
         };
         assert_eq!(
             isolated_cpus_check_for(&fs, &online, &on1.cpus()).status,
@@ -2596,6 +2657,7 @@ mod tests {
                 proc_on("observer", Some(1), 70),
                 proc_on("current-loop", None, 76),
             ],
+            ..Placement::default()
         };
         let c = placement_check(&online, &odd);
         assert_eq!(c.status, Status::Warn, "{c:?}");
@@ -2615,6 +2677,7 @@ mod tests {
         let far = Placement {
             name: "far".into(),
             processes: vec![proc_on("plant", Some(7), 70)],
+            ..Placement::default()
         };
         let c = placement_check(&online, &far);
         assert_eq!(c.status, Status::Bad, "{c:?}");
@@ -2622,6 +2685,45 @@ mod tests {
             .advice
             .unwrap()
             .starts_with("cpu 7 is not online here (online: 0-1)"));
+    }
+
+    #[test]
+    fn a_split_topology_has_this_machines_processes_judged_only() {
+        let (file, _) = drivelab_runtime::topology::load("split-hil").unwrap();
+        // Which machine this is the doctor cannot tell: without --machine the drive runs
+        // whole here, and the line says so.
+        let whole = Placement::new("split-hil", file.process.clone(), None).unwrap();
+        let c = placement_check(&[0, 1], &whole);
+        assert_eq!(
+            c.value,
+            "topology split-hil: cpu 1: plant, observer, current-loop, speed-loop (split across machines: judged whole on this machine, as drivelab run without --machine runs it; --machine NAME judges one machine's share)"
+        );
+        let e = Placement::new("split-hil", file.process.clone(), Some("laptop")).unwrap_err();
+        assert_eq!(
+            e,
+            "--machine laptop: topology split-hil has no machine 'laptop' (its machines: simulator, board)"
+        );
+        let (one, _) = drivelab_runtime::topology::load("two-process").unwrap();
+        let e = Placement::new("two-process", one.process, Some("board")).unwrap_err();
+        assert!(e.contains("is not split across machines"), "{e}");
+        // The board's three processes on its cpu 1; the simulator's plant (also on a cpu 1,
+        // of its own machine) is not judged here.
+        let board = Placement::new("split-hil", file.process.clone(), Some("board")).unwrap();
+        assert_eq!(board.cpus(), [1]);
+        let c = placement_check(&[0, 1], &board);
+        assert_eq!(
+            c.value,
+            "topology split-hil, machine board (--machine): cpu 1: observer, current-loop, speed-loop; not judged here (machine simulator): plant"
+        );
+        let sim = Placement::new("split-hil", file.process, Some("simulator")).unwrap();
+        let c = placement_check(&[0, 1], &sim);
+        assert_eq!(
+            (c.status, c.value.as_str()),
+            (
+                Status::Ok,
+                "topology split-hil, machine simulator (--machine): cpu 1: plant; not judged here (machine board): observer, current-loop, speed-loop"
+            )
+        );
     }
 
     #[test]
