@@ -165,6 +165,18 @@ fn campaign_file(dir: &Path, text: &str) -> PathBuf {
     f
 }
 
+/// A lockstep campaign file named `name` of three 0.05 s kyslan-pi runs: no fault, a kill of
+/// the observer, and `third`; `extra` adds lines.
+fn three_lockstep_runs(dir: &Path, name: &str, third: &str, extra: &str) -> PathBuf {
+    campaign_file(
+        dir,
+        &format!(
+            "name = \"{name}\"\nscenarios = [\"kyslan-pi\"]\nclock = \"lockstep\"\nduration_s = 0.05\n\
+             {extra}faults = [[], [\"kill:observer@0.02\"], [\"{third}\"]]\n"
+        ),
+    )
+}
+
 /// `drivelab campaign FILE --out OUT`.
 fn campaign(file: &Path, out: &Path) -> std::process::Output {
     drivelab(&[
@@ -609,11 +621,7 @@ fn a_campaign_killed_mid_run_leaves_a_folder_the_next_one_takes_and_cleans_up_af
 #[test]
 fn a_campaign_writes_only_into_a_new_empty_or_earlier_campaign_folder_and_replaces_its_runs() {
     let dir = scratch("campout");
-    let three = campaign_file(
-        &dir,
-        "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nclock = \"lockstep\"\nduration_s = 0.05\n\
-         faults = [[], [\"kill:observer@0.02\"], [\"stop:observer@0.02:0.005\"]]\n",
-    );
+    let three = three_lockstep_runs(&dir, "x", "stop:observer@0.02:0.005", "");
     // A folder of other files (a home folder, a source tree) is refused, untouched.
     let other = dir.join("other");
     std::fs::create_dir_all(&other).unwrap();
@@ -764,6 +772,41 @@ fn a_lockstep_campaign_runs_a_fault_set_without_random_kills_once_not_once_per_s
         })
         .collect();
     assert!(at[0] != at[1] && at[1] != at[2] && at[0] != at[2], "{at:?}");
+}
+
+#[test]
+fn a_lockstep_campaign_with_standby_twins_says_their_warning_once_and_each_run_keeps_it() {
+    let dir = scratch("standbyonce");
+    // Three runs of a topology with standby twins, which the lockstep clock does not start.
+    let f = three_lockstep_runs(
+        &dir,
+        "twins",
+        "kill:speed-loop@0.02",
+        "topology = \"four-process-standby\"\n",
+    );
+    let out = dir.join("c");
+    let o = campaign(&f, &out);
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(0), "{err}");
+    let said: Vec<&str> = err
+        .lines()
+        .filter(|l| l.contains("starts no standby twin"))
+        .collect();
+    assert_eq!(said.len(), 1, "{err}");
+    assert!(said[0].starts_with("drivelab: warning: "), "{err}");
+    let report: Value = serde_json::from_slice(&read(&out.join("campaign.json"))).unwrap();
+    let runs = report["runs"].as_array().unwrap();
+    assert_eq!(runs.len(), 3, "{report}");
+    for r in runs {
+        let s = summary(Path::new(r["out"].as_str().unwrap()));
+        let w = s["warnings"].as_array().unwrap();
+        assert_eq!(w.len(), 1, "{s}");
+        assert!(
+            w[0].as_str().unwrap().contains("starts no standby twin"),
+            "{s}"
+        );
+        assert_clean(s["bus"].as_str().unwrap());
+    }
 }
 
 #[test]

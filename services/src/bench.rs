@@ -452,6 +452,7 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
         foxglove: None,
         timing_csv: false,
         quiet_hosts: false,
+        quiet_warnings: false,
     };
     let r = launcher::run(&o)?;
     // CPU time: every stage's statistics carry its process's total; count each process once.
@@ -1953,6 +1954,7 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
         foxglove: None,
         timing_csv: false,
         quiet_hosts: false,
+        quiet_warnings: false,
     })?;
     bar.inc(1);
     bar.set_message("in-process speed");

@@ -399,6 +399,7 @@ mod tests {
             foxglove: None,
             timing_csv: false,
             quiet_hosts: false,
+            quiet_warnings: false,
         };
         let topo = crate::launcher::resolve_topology(
             &mut sc,

@@ -486,13 +486,14 @@ fn options(
         foxglove: None,
         timing_csv: false,
         quiet_hosts: true,
+        quiet_warnings: true,
     })
 }
 
 /// The real-time set-up refusals of the processes of run folder `out`
 /// (`summary.json → processes → rt_warnings`) in one line, or None.
 fn rt_refusals(out: &Path) -> Option<String> {
-    let s: Value = serde_json::from_slice(&std::fs::read(out.join("summary.json")).ok()?).ok()?;
+    let s = run_summary(out)?;
     let all: Vec<String> = s["processes"]
         .as_object()?
         .iter()
@@ -510,6 +511,26 @@ fn rt_refusals(out: &Path) -> Option<String> {
         1 => first.clone(),
         n => format!("{first} (and {} more; see summary.json → processes)", n - 1),
     })
+}
+
+/// The summary.json of run folder `out`, if it wrote one.
+fn run_summary(out: &Path) -> Option<Value> {
+    serde_json::from_slice(&std::fs::read(out.join("summary.json")).ok()?).ok()
+}
+
+/// The configuration warnings of run folder `out` (`summary.json → warnings`): its launcher
+/// keeps them off stderr (`RunOptions::quiet_warnings`), since every run of a campaign
+/// would repeat them.
+fn run_warnings(out: &Path) -> Vec<String> {
+    run_summary(out)
+        .and_then(|s| {
+            s["warnings"].as_array().map(|w| {
+                w.iter()
+                    .filter_map(|w| w.as_str().map(str::to_string))
+                    .collect()
+            })
+        })
+        .unwrap_or_default()
 }
 
 /// Runs one case.
@@ -544,11 +565,7 @@ fn run_case(c: &CampaignFile, case: &Case, a: &CampaignArgs, out: &Path) -> Case
             status: "error",
             // A run that failed after its drive ended (a planned fault not made, a file it
             // could not write) has written its summary: its figures are known.
-            figures: std::fs::read(dir.join("summary.json"))
-                .ok()
-                .and_then(|b| serde_json::from_slice::<Value>(&b).ok())
-                .map(|s| figures(&s))
-                .unwrap_or_default(),
+            figures: run_summary(&dir).map(|s| figures(&s)).unwrap_or_default(),
             out: dir,
             error: Some(drivelab_runtime::text::error_text(&e)),
             expectations: Vec::new(),
@@ -950,6 +967,17 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
     let stop = drivelab_runtime::service::stop_flag();
     // Where a stop signal cut the campaign short, for its error line.
     let mut interrupted: Option<String> = None;
+    // A line above the bar; a hidden bar (stderr not a terminal, as in CI; --json) prints
+    // nothing, so the line goes to stderr then.
+    let say = |line: String| {
+        if bar.is_hidden() {
+            crate::errln!("{line}");
+        } else {
+            bar.println(line);
+        }
+    };
+    // The configuration warnings said so far.
+    let mut warned = std::collections::HashSet::new();
     for case in &cases {
         if stop.load(std::sync::atomic::Ordering::Relaxed) {
             results.push(CaseResult {
@@ -981,21 +1009,28 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
         // The hosts keep their set-up lines to themselves in a campaign; a refused part
         // (no privilege for SCHED_FIFO, a core not there) is still said, once per run.
         if let Some(w) = rt_refusals(&r.out) {
-            let line = format!("run {}: real-time set-up incomplete: {w}", case.number);
-            if bar.is_hidden() {
-                crate::errln!("{line}");
-            } else {
-                bar.println(line);
+            say(format!(
+                "run {}: real-time set-up incomplete: {w}",
+                case.number
+            ));
+        }
+        // A configuration warning (standby twins in lockstep, say) is the same for many runs:
+        // said the first time a run has it; each run's summary.json keeps it.
+        for w in run_warnings(&r.out) {
+            if warned.insert(w.clone()) {
+                say(format!(
+                    "drivelab: warning: {w} (said once for the campaign; from run {}, and in the summary.json of each run it applies to)",
+                    case.number
+                ));
             }
         }
         if r.status != "pass" {
-            let line = format!("run {}: {} — {}", case.number, r.status, case.title());
-            // A hidden bar (stderr not a terminal, as in CI; --json) prints nothing.
-            if bar.is_hidden() {
-                crate::errln!("{line}");
-            } else {
-                bar.println(line);
-            }
+            say(format!(
+                "run {}: {} — {}",
+                case.number,
+                r.status,
+                case.title()
+            ));
         }
         results.push(r);
         bar.inc(1);

@@ -1033,6 +1033,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 foxglove,
                 timing_csv,
                 quiet_hosts: false,
+                quiet_warnings: false,
             };
             let r = launcher::run(&o)?;
             let failed = drivelab_services::expect::failed(&r.summary);

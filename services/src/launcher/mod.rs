@@ -122,6 +122,9 @@ pub struct RunOptions {
     /// The stage hosts keep their real-time set-up line off stderr (it is in summary.json →
     /// processes): a campaign's runs, where four such lines a run would bury the failures.
     pub quiet_hosts: bool,
+    /// The launcher keeps its configuration warnings off stderr (they are in summary.json →
+    /// warnings): a campaign's runs, whose campaign says each such line once, not once a run.
+    pub quiet_warnings: bool,
 }
 
 /// What the supervisor does when a service dies.
@@ -1602,8 +1605,10 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         })
         .into_iter()
         .collect();
-    for w in &warnings {
-        crate::errln!("drivelab: warning: {w}");
+    if !o.quiet_warnings {
+        for w in &warnings {
+            crate::errln!("drivelab: warning: {w}");
+        }
     }
     // The bus is this drive's until it returns (two launchers that passed the check above at
     // the same time: one of them gets it).
