@@ -240,6 +240,16 @@ pub fn columns(path: &Path) -> std::collections::BTreeMap<String, Vec<f64>> {
     names.into_iter().zip(cols).collect()
 }
 
+/// A Zenoh endpoint on a free local port, for a drive's `--zenoh-listen`.
+pub fn local_endpoint() -> String {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    format!("tcp/127.0.0.1:{port}")
+}
+
 /// The run's summary.json.
 pub fn summary(out: &Path) -> serde_json::Value {
     serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap()

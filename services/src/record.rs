@@ -106,9 +106,14 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
         let toml_text = remote.scenario_toml()?;
         let sc = Scenario::from_toml(&toml_text, "the remote drive's scenario")
             .map_err(|e| anyhow!("the remote drive's scenario: {e}"))?;
-        Ok((remote, toml_text, sc))
+        // Its outer loop's rate divider: θ_m* is left empty while the speed loop does not
+        // follow that loop, as in the drive's own trace (docs/architecture.md).
+        let plan: drivelab_runtime::service::TopologyPlan =
+            serde_json::from_str(&remote.topology_json()?)
+                .map_err(|e| anyhow!("the remote drive's topology: {e}"))?;
+        Ok((remote, toml_text, sc, TraceStream::outer_divider(&plan)))
     })();
-    let (remote, toml_text, sc) = match connected {
+    let (remote, toml_text, sc, outer_divider) = match connected {
         Ok(c) => c,
         Err(e) => {
             for d in made.iter().rev() {
@@ -138,7 +143,9 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
         None,
     )
     .without_wall_time();
-    let mut trace = trace.with_sinks(sinks.clone());
+    let mut trace = trace
+        .with_sinks(sinks.clone())
+        .with_outer_divider(outer_divider);
     let (mut last_truth, mut last_cmd) = (None, None);
     let mut first_k = None;
     for m in remote.history::<PlantTruth>()? {

@@ -191,12 +191,7 @@ fn one_process_four_or_two_machines_the_trace_is_the_same_bit_for_bit() {
             .collect::<String>(),
     )
     .unwrap();
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
-    let ep = format!("tcp/127.0.0.1:{port}");
+    let ep = e2e::local_endpoint();
     let side = |name: &str, machine: &str, zenoh: &str| {
         let args = [
             "--clock",

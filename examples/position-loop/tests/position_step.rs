@@ -359,6 +359,76 @@ fn a_position_loop_with_a_standby_twin_keeps_its_turn_count_through_two_takeover
     remove_scratch(&out);
 }
 
+/// `drivelab record` over Zenoh writes the drive's own rows, θ_m* included: empty while the
+/// killed position loop is down, as in the drive's trace, not its last value held.
+#[test]
+fn a_remote_recording_leaves_theta_ref_empty_while_the_position_loop_is_down() {
+    let _s = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let ep = e2e::local_endpoint();
+    // The recorder first: it waits for the drive's bridge (and must hear its summary).
+    let rec_dir = EXAMPLE.scratch("recorded").join("remote");
+    let mut recorder = std::process::Command::new(EXAMPLE.drivelab())
+        .args(["record", "--connect", &ep, "--wait", "60", "--out"])
+        .arg(&rec_dir)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let (o, out, bus) = EXAMPLE.launch(
+        "recorddown",
+        &[
+            "--clock",
+            "realtime",
+            "--duration",
+            "1.0",
+            "--zenoh-listen",
+            &ep,
+            "--fault",
+            "kill:position-loop@0.09",
+        ],
+        &[],
+    );
+    // Watchdog: the recorder ends once it has the drive's summary.
+    let t = std::time::Instant::now();
+    while recorder.try_wait().unwrap().is_none() && t.elapsed().as_secs() < 120 {
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    if recorder.try_wait().unwrap().is_none() {
+        let _ = recorder.kill();
+    }
+    let r = recorder.wait_with_output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    assert_clean(&bus);
+    let killed = summary(&out)["faults"][0]["injected_k"].as_u64().unwrap() as usize;
+    // Each row recorded is the drive's, bit for bit (a sample the bridge lost on a loaded
+    // machine is listed, not written).
+    let (local, remote) = (
+        columns(&out.join("trace.csv")),
+        columns(&rec_dir.join("trace.csv")),
+    );
+    for (i, k) in remote["k"].iter().enumerate() {
+        let j = local["k"]
+            .binary_search_by(|x| x.total_cmp(k))
+            .unwrap_or_else(|_| panic!("sample {k} is not in the drive's trace"));
+        for (name, col) in &remote {
+            assert_eq!(
+                col[i].to_bits(),
+                local[name][j].to_bits(),
+                "sample {k}, {name}: the drive's {} recorded as {}",
+                local[name][j],
+                col[i]
+            );
+        }
+    }
+    // The loop was down for a while: the remote trace has rows with θ_m* empty after the
+    // kill.
+    let down = theta_ref_while_down(&remote, killed, std::f64::consts::TAU);
+    assert!(down.empty > 0, "θ_m* from the kill on: {down:?}");
+    remove_scratch(&out);
+    remove_scratch(&rec_dir);
+}
+
 /// A negative step is a move like any other: the loop drives the motor backwards, across
 /// zero, to it.
 #[test]

@@ -435,13 +435,7 @@ fn run_bus(
         )?),
     )?
     .with_sinks(sinks.clone())
-    .with_outer_divider(
-        plan_topo
-            .producers
-            .iter()
-            .find(|p| p.topic == drivelab_runtime::stage::TopicId::Wref)
-            .map(|p| p.divider),
-    )
+    .with_outer_divider(TraceStream::outer_divider(plan_topo))
     .with_timing(if o.timing_csv {
         Some(stream::TimingCsv::create(&out.join("timing.csv"))?)
     } else {

@@ -381,6 +381,15 @@ impl TraceStream {
         }
     }
 
+    /// The rate divider of the stage of `plan` that publishes `wref` (an outer loop), if one
+    /// does: what [`TraceStream::with_outer_divider`] takes.
+    pub fn outer_divider(plan: &drivelab_runtime::service::TopologyPlan) -> Option<u64> {
+        plan.producers
+            .iter()
+            .find(|p| p.topic == drivelab_runtime::stage::TopicId::Wref)
+            .map(|p| p.divider)
+    }
+
     /// The rate divider of the stage that publishes `wref` (an outer loop), if one does: a
     /// row's θ_m* is then empty while the speed loop no longer follows the loop's newest
     /// reference (`stages::wref_followed`), as before its first output.

@@ -135,12 +135,23 @@ impl Remote {
 
     /// The drive's resolved scenario (TOML).
     pub fn scenario_toml(&self) -> Result<String> {
-        let r = self.query(&crate::query_key(&self.bus, "scenario"), None)?;
+        self.text("scenario")
+    }
+
+    /// The drive's resolved topology (its run folder's `topology.json`: processes, stages
+    /// and each topic's producer with its rate divider).
+    pub fn topology_json(&self) -> Result<String> {
+        self.text("topology")
+    }
+
+    /// The drive's answer to query `what`, as text.
+    fn text(&self, what: &str) -> Result<String> {
+        let r = self.query(&crate::query_key(&self.bus, what), None)?;
         let (_, bytes) = r
             .into_iter()
             .next()
-            .ok_or_else(|| anyhow!("the drive on bus '{}' sent no scenario", self.bus))?;
-        String::from_utf8(bytes).map_err(|_| anyhow!("the drive's scenario is not UTF-8"))
+            .ok_or_else(|| anyhow!("the drive on bus '{}' sent no {what}", self.bus))?;
+        String::from_utf8(bytes).map_err(|_| anyhow!("the drive's {what} is not UTF-8"))
     }
 
     /// Subscribes to topic `T::NAME` of the drive.

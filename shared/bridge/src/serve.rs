@@ -420,6 +420,12 @@ fn answer(
     };
     match what.as_str() {
         "scenario" => reply(scenario_toml.as_bytes().to_vec()),
+        // Read when asked (a recorder asks once): written beside scenario.toml before the
+        // bridge starts.
+        "topology" => match std::fs::read(o.run_dir.join("topology.json")) {
+            Ok(t) => reply(t),
+            Err(e) => reply_err(format!("the drive's topology.json: {e}")),
+        },
         "split" => match (&o.split, o.connect) {
             (Some((machine, clock)), false) => reply(serde_json::to_vec(&SplitInfo {
                 machine: machine.clone(),
