@@ -346,6 +346,45 @@ fn with_restart_never_a_killed_stage_stays_dead_in_lockstep_as_in_real_time() {
 }
 
 #[test]
+fn with_restart_never_a_killed_plant_ends_the_trace_at_its_kill_as_in_real_time() {
+    let _serial = serial();
+    // kyslan-pi at 10 kHz: a kill at 0.05 s is sample 500; the run would end at 2000. No
+    // plant produced the samples from the kill on: none is in the trace (no rebuilt
+    // `plant_down` rows), each is listed missing with the kill as its cause, and the run
+    // exits 0 as a real-time one does (checked by `deterministic`).
+    let (rows, s) = deterministic(
+        "plantnever",
+        "0.2",
+        &["--fault", "kill:plant@0.05", "--restart", "never"],
+    );
+    assert_eq!(rows.len(), 500);
+    assert_eq!(rows.last().map(|r| r.k), Some(499));
+    assert!(samples(&rows, |r| r.plant_flags & FLAG_PLANT_DOWN != 0).is_empty());
+    assert!(s["failure"].is_null(), "{}", s["failure"]);
+    assert_eq!(
+        (s["samples"].as_u64(), s["samples_missing"].as_u64()),
+        (Some(500), Some(1500))
+    );
+    let gaps = s["missing_samples"].as_array().unwrap();
+    assert_eq!(gaps.len(), 1, "{gaps:?}");
+    assert_eq!(
+        (
+            gaps[0]["from"].as_u64(),
+            gaps[0]["to"].as_u64(),
+            gaps[0]["part"].as_str()
+        ),
+        (Some(500), Some(1999), Some("measurement"))
+    );
+    assert_eq!(
+        gaps[0]["cause"],
+        "plant kill:plant@0.05 at sample 500 (fault); the plant had not come back yet"
+    );
+    let f = &s["faults"][0];
+    assert_eq!(f["fault"], "kill:plant@0.05", "{f}");
+    assert!(f["plant_down"].is_null(), "{f}");
+}
+
+#[test]
 fn a_standby_topology_in_lockstep_says_in_one_line_that_its_twins_do_not_run() {
     let dir = scratch("standbyls");
     let bus = bus_id("standbyls");

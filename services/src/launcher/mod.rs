@@ -436,6 +436,7 @@ fn run_bus(
     )?
     .with_sinks(sinks.clone())
     .with_outer_divider(TraceStream::outer_divider(plan_topo))
+    .with_plant_gone_at(TraceStream::plant_gone_at(sc))
     .with_timing(if o.timing_csv {
         Some(stream::TimingCsv::create(&out.join("timing.csv"))?)
     } else {
@@ -794,7 +795,10 @@ fn run_bus(
         .get("plant")
         .and_then(|p| p["samples"].as_u64())
         .unwrap_or(0);
-    if let Some(f) = unreceived(&mut gaps, produced, sc.samples(), rec.stats.rows) {
+    // A plant killed for good in lockstep stepped on to the end, but published samples
+    // before its kill only (`TraceStream::plant_gone_at`).
+    let published = TraceStream::plant_gone_at(sc).unwrap_or(sc.samples());
+    if let Some(f) = unreceived(&mut gaps, produced, published, rec.stats.rows) {
         failure.get_or_insert(f);
     }
     if plan_topo.away.contains(&0) && failure.is_none() {
@@ -848,16 +852,20 @@ fn not_written(events: &[SupEvent], process: &str) -> String {
 /// The cause of a measurement the plant published and the recorder never received.
 const UNRECEIVED: &str = "the plant published it; it never reached the recorder";
 
-/// A plant process that stepped through every one of the run's `samples` (its `produced`
-/// counter: it never restarted) published each of them, so a measurement missing from a
-/// trace of `recorded` rows never reached the recorder: its gap says so instead of "the
-/// plant stopped", and the run fails with the count. None when nothing is amiss.
+/// A plant process that stepped through every one of the `samples` it published (its
+/// `produced` counter: it never restarted) published each of them, so a measurement before
+/// `samples` missing from a trace of `recorded` rows never reached the recorder: its gap says
+/// so instead of "the plant stopped", and the run fails with the count. None when nothing is
+/// amiss.
 fn unreceived(gaps: &mut [Gap], produced: u64, samples: u64, recorded: u64) -> Option<String> {
     if produced < samples || recorded >= samples {
         return None;
     }
     let mut any = false;
-    for g in gaps.iter_mut().filter(|g| g.part == "measurement") {
+    for g in gaps
+        .iter_mut()
+        .filter(|g| g.part == "measurement" && g.from < samples)
+    {
         g.cause = UNRECEIVED.into();
         any = true;
     }
@@ -1685,16 +1693,23 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         bridge,
     } = match o.clock {
         Clock::Inprocess => {
-            let rows = drivelab_runtime::stages::try_run_inprocess_until(
+            let mut rows = drivelab_runtime::stages::try_run_inprocess_until(
                 &sc,
                 drivelab_runtime::service::stop_requested,
             )?;
+            // A plant killed for good produced no sample from its kill on: those rows go, as
+            // the recorder of a lockstep run takes none of them.
+            let gone = TraceStream::plant_gone_at(&sc);
+            let interrupted_here = (rows.len() as u64) < gone.unwrap_or(sc.samples());
+            if let Some(g) = gone {
+                rows.truncate(g as usize);
+            }
             // Rows without a command are listed as the recorder lists them in the other
-            // clocks; interrupted, the samples not done are one gap to the end (named below).
+            // clocks; the samples not done (interrupted, or no plant) are one gap to the end
+            // (named below).
             let mut gaps = recorder::command_gaps(&rows);
             let done = rows.len() as u64;
-            let cut_short = done < sc.samples();
-            if cut_short {
+            if done < sc.samples() {
                 gaps.push(Gap {
                     from: done,
                     to: sc.samples() - 1,
@@ -1709,7 +1724,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
                 processes: json!({}),
                 info: json!({ "deadline_misses": 0 }),
                 events: Vec::new(),
-                failure: cut_short.then(interrupted),
+                failure: interrupted_here.then(interrupted),
                 hog_latency: Vec::new(),
                 bridge: None,
             }
