@@ -385,6 +385,57 @@ fn with_restart_never_a_killed_plant_ends_the_trace_at_its_kill_as_in_real_time(
 }
 
 #[test]
+fn with_restart_never_a_fault_planned_after_the_plants_kill_is_not_made_as_in_real_time() {
+    let _serial = serial();
+    // The drive ends at the plant's kill (sample 500): the observer's kill at 1000 is named,
+    // not simulated, and the run fails (exit 1) with its trace and summary written, in one
+    // line, as a real-time run does.
+    for clock in ["lockstep", "inprocess"] {
+        let name = format!("latefault{clock}");
+        let (dir, bus) = (scratch(&name), bus_id(&name));
+        let out = dir.join("run");
+        let mut args = run_args(&bus, &out).to_vec();
+        args.extend_from_slice(&[
+            "--clock",
+            clock,
+            "--duration",
+            "0.2",
+            "--restart",
+            "never",
+            "--fault",
+            "kill:plant@0.05",
+            "--fault",
+            "kill:observer@0.1",
+        ]);
+        let o = drivelab(&args);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{clock}: {err}");
+        assert_clean(&bus);
+        let why = "kill:observer@0.1: not injected: the drive ended at sample 500, before the fault's sample 1000";
+        assert!(
+            err.lines().last().unwrap_or("").starts_with(&format!(
+                "drivelab: error: a planned fault was not made: {why} (what was recorded is in "
+            )),
+            "{clock}: {err}"
+        );
+        let s = summary(&out);
+        assert_eq!(
+            s["faults_not_made"],
+            serde_json::json!([why]),
+            "{clock}: {s}"
+        );
+        assert_eq!(s["faults"].as_array().unwrap().len(), 1, "{clock}: {s}");
+        let refused = s["supervisor_events"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|e| e["event"] == "inject-refused")
+            .count();
+        assert_eq!(refused, 1, "{clock}: {s}");
+    }
+}
+
+#[test]
 fn a_standby_topology_in_lockstep_says_in_one_line_that_its_twins_do_not_run() {
     let dir = scratch("standbyls");
     let bus = bus_id("standbyls");

@@ -1399,6 +1399,36 @@ struct Prepared {
     plan: Vec<crate::faults::Fault>,
     hogs: Vec<crate::faults::hog::Hog>,
     expectations: Vec<crate::expect::Expectation>,
+    /// Simulated kills and stops not made, each with why ([`after_the_plant`]).
+    not_made: Vec<(u64, String)>,
+}
+
+/// A simulated run whose plant is killed for good ([`TraceStream::plant_gone_at`]) ends at
+/// that kill, as a real-time drive stops when its plant dies: the kills and stops planned
+/// after it are taken out of `sc` and returned, each as (the drive's end, why it was not
+/// made), worded as the real-time supervisor words them.
+fn after_the_plant(sc: &mut Scenario) -> Vec<(u64, String)> {
+    let Some(gone) = TraceStream::plant_gone_at(sc) else {
+        return Vec::new();
+    };
+    let fs = sc.rates.sample_hz;
+    let mut late = Vec::new();
+    sc.inject.retain(|i| {
+        let k = (i.at_s * fs).round() as u64;
+        let the_kill = i.target == "plant" && k == gone;
+        if !i.kind.downs_stage() || k < gone || the_kill {
+            return true;
+        }
+        late.push((
+            gone,
+            format!(
+                "{}: not injected: the drive ended at sample {gone}, before the fault's sample {k}",
+                i.spec()
+            ),
+        ));
+        false
+    });
+    late
 }
 
 /// Checks a run's options the way [`run`] does before it creates anything (scenario,
@@ -1515,6 +1545,7 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
         crate::faults::schedule_simulated(&plan, restart_ms, &mut sc)?;
         plan.clear();
     }
+    let not_made = after_the_plant(&mut sc);
     // Bus faults (delay, drop, corrupt) go to every stage host in the resolved scenario.
     crate::bus_faults::schedule(&o.faults, &mut sc, &topo)?;
     let hogs = crate::faults::hog::plan(
@@ -1550,6 +1581,7 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
         plan,
         hogs,
         expectations,
+        not_made,
     })
 }
 
@@ -1588,6 +1620,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         plan,
         hogs,
         expectations,
+        not_made,
     } = prepare(o)?;
     // Configuration that this clock does not apply is said, not dropped in silence (and
     // kept in summary.json → warnings).
@@ -1756,6 +1789,21 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     // After the reports: these are no signals, the reports above already cover them.
     let mut events = events;
     events.extend(supervisor::simulated_events(&sc, &topo));
+    let mut info = info;
+    for (k, reason) in not_made {
+        if let Some(list) = info["faults_not_made"].as_array_mut() {
+            list.push(json!(reason));
+        } else {
+            info["faults_not_made"] = json!([reason]);
+        }
+        events.push(supervisor::SupEvent {
+            t_wall_s: 0.0,
+            k,
+            kind: supervisor::EventKind::InjectRefused { reason },
+            service: "-".into(),
+            process: "-".into(),
+        });
+    }
     if let Some(t) = trip::trip_report(&sc, &rows) {
         crate::errln!(
             "drivelab: the inverter tripped on overcurrent at t = {:.4} s (sample {}); it stayed in its safe state",
