@@ -464,6 +464,20 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             "/trace.csv is not a folder (not a run folder)",
         ),
         case(
+            "compare-out-file",
+            dir,
+            &["compare", &run, &run, "--out", &format!("{run}/trace.csv")],
+            1,
+            "/trace.csv: is a file, not a folder; give a folder with --out",
+        ),
+        case(
+            "plot-out-file",
+            dir,
+            &["plot", &run, "--out", &format!("{run}/trace.csv")],
+            1,
+            "/trace.csv: is a file, not a folder; give a folder with --out",
+        ),
+        case(
             "plot-nan",
             dir,
             &["plot", &run, "--window", "nan:1", "--out", o],

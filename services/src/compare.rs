@@ -251,8 +251,7 @@ pub fn run(args: &CompareArgs) -> Result<()> {
             .map(|p| p.join("compare"))
             .unwrap_or_else(|| PathBuf::from("compare")),
     };
-    std::fs::create_dir_all(&out)
-        .with_context(|| format!("cannot create output folder {}", out.display()))?;
+    crate::plotcmd::make_out_folder(&out)?;
     crate::out!("{}", table(&runs));
     let files = plot(&runs, &out)?;
     let summary = json!({
