@@ -107,11 +107,23 @@ pub fn record(o: &RecordOptions) -> Result<Recorded> {
         let sc = Scenario::from_toml(&toml_text, "the remote drive's scenario")
             .map_err(|e| anyhow!("the remote drive's scenario: {e}"))?;
         // Its outer loop's rate divider: θ_m* is left empty while the speed loop does not
-        // follow that loop, as in the drive's own trace (docs/architecture.md).
-        let plan: drivelab_runtime::service::TopologyPlan =
-            serde_json::from_str(&remote.topology_json()?)
-                .map_err(|e| anyhow!("the remote drive's topology: {e}"))?;
-        Ok((remote, toml_text, sc, TraceStream::outer_divider(&plan)))
+        // follow that loop, as in the drive's own trace (docs/architecture.md). A drive of
+        // an older drivelab has no topology to send: its trace is still recorded, with the
+        // last θ_m* held while an outer loop is down, and one line says so.
+        let outer_divider = match remote.topology_json() {
+            Ok(text) => {
+                let plan: drivelab_runtime::service::TopologyPlan = serde_json::from_str(&text)
+                    .map_err(|e| anyhow!("the remote drive's topology: {e}"))?;
+                TraceStream::outer_divider(&plan)
+            }
+            Err(e) => {
+                eprintln!(
+                    "drivelab: warning: {e:#} (a drive of an older drivelab?): while an outer loop is down, the recorded θ_m* holds its last value where the drive's own trace leaves it empty"
+                );
+                None
+            }
+        };
+        Ok((remote, toml_text, sc, outer_divider))
     })();
     let (remote, toml_text, sc, outer_divider) = match connected {
         Ok(c) => c,
