@@ -585,8 +585,7 @@ fn a_panicking_stage_is_named_with_its_sample_in_lockstep() {
     );
     let failure = s["failure"].as_str().unwrap_or("");
     assert!(
-        failure.starts_with("process position-loop failed (exit status: 101: ")
-            && failure.contains(what),
+        failure.starts_with("process position-loop panicked: ") && failure.contains(what),
         "{failure}"
     );
     assert!(

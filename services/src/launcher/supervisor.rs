@@ -537,9 +537,12 @@ pub(super) fn supervise(
                 }
             }
             match c.life.exited(st.success(), &policy, now) {
+                // A panic is named as such, in the words of a real-time run's error.
                 Some(Decision::FailRun) => {
-                    let why = panic.map(|p| format!(": {p}")).unwrap_or_default();
-                    return Ok(Some(format!("process {n} failed ({st}{why})")));
+                    return Ok(Some(match panic {
+                        Some(p) => format!("process {n} panicked: {p}"),
+                        None => format!("process {n} failed ({st})"),
+                    }));
                 }
                 Some(Decision::StopDrive) => break 'run,
                 Some(d) if promote => {
