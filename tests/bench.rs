@@ -531,6 +531,16 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
         );
     }
     assert!(b["p99_minus_floor_median_us"].is_null(), "one round: {b}");
+    // The Unix-socket target's bound against the bare critical path's p99.
+    let ub = &t["uds_bound_against_bare"];
+    let uds_bound = 0.8 * p99(uds_row);
+    let bound_minus_bare = uds_bound - p99(bare);
+    assert_eq!(ub["bound_us"].as_f64(), Some(uds_bound), "{ub}");
+    assert_eq!(
+        ub["minus_bare_p99_us"].as_f64(),
+        Some(bound_minus_bare),
+        "{ub}"
+    );
     assert!(
         b["chain_p99_minus_bare_median_us"].is_null(),
         "one round: {b}"
@@ -585,11 +595,19 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     if let Some(a) = above {
         assert!(
             md.contains(&format!(
-                "; above the floor's p99, {a:.2} × what the Unix-socket chain adds)"
+                "; above the floor's p99, {a:.2} × what the Unix-socket chain adds; the bound, "
             )),
             "{md}"
         );
     }
+    assert!(
+        md.contains(&format!(
+            "; the bound, {uds_bound:.1} µs, lies {:.1} µs {} the bare critical path's p99 (timer and two futex wake-ups, no work))",
+            bound_minus_bare.abs(),
+            if bound_minus_bare < 0.0 { "below" } else { "above" }
+        )),
+        "{md}"
+    );
     assert!(
         md.contains("The same critical path bare (timer and two futex wake-ups"),
         "bench.md does not compare with the bare chain"

@@ -887,6 +887,11 @@ pub struct Targets {
     /// timer tail, which both chains share, left out of the ratio; `None` without the
     /// Unix-socket chain, or when it is not above the floor.
     pub p99_above_floor_ratio_to_uds: Option<f64>,
+    /// The Unix-socket target's bound ([`TARGET_UDS_RATIO`] × the Unix-socket chain's p99)
+    /// against the bare critical path's p99 of the same run (the timer and two futex
+    /// wake-ups, no work), µs: where it is below, the target asks of the chain less than
+    /// this machine's wake-ups alone took. `None` without both.
+    pub uds_bound_against_bare: Option<UdsBound>,
     /// The misses per million the floor of the same run gives a chain that costs its p50
     /// above the floor's at every deadline and has no tail of its own (the floor's deadline
     /// lateness above T_s − that cost): how many of the chain's misses this machine's timer
@@ -914,6 +919,15 @@ pub struct Targets {
     /// while the machine runs. Reported beside the target, which counts every miss. `None`
     /// where either was measured without a stall log.
     pub outside_stalls: Option<OutsideStalls>,
+}
+
+/// [`Targets::uds_bound_against_bare`].
+#[derive(Debug, Clone, Serialize)]
+pub struct UdsBound {
+    /// [`TARGET_UDS_RATIO`] × the Unix-socket chain's p99, µs.
+    pub bound_us: f64,
+    /// The bound − the bare critical path's p99, µs.
+    pub minus_bare_p99_us: f64,
 }
 
 /// [`Targets::outside_stalls`].
@@ -1203,6 +1217,13 @@ fn goal(chain_label: String, chain: &Row, floor: &Row, others: Others) -> Option
         p99_above_floor_ratio_to_uds: others.uds.and_then(|u| {
             above_floor_ratio(chain.cycle_us.p99, u.cycle_us.p99, floor.cycle_us.p99)
         }),
+        uds_bound_against_bare: others.uds.zip(others.bare).map(|(u, b)| {
+            let bound_us = TARGET_UDS_RATIO * u.cycle_us.p99;
+            UdsBound {
+                bound_us,
+                minus_bare_p99_us: bound_us - b.cycle_us.p99,
+            }
+        }),
         misses_floor_predicts: floor
             .misses_pm_if_sooner_us
             .as_deref()
@@ -1284,10 +1305,19 @@ fn targets_line(t: &Targets) -> String {
         Some(r) => format!("; above the floor's p99, {r:.2} × what the Unix-socket chain adds"),
         None => String::new(),
     };
+    let against_bare = match &t.uds_bound_against_bare {
+        Some(b) => format!(
+            "; the bound, {:.1} µs, lies {:.1} µs {} the bare critical path's p99 (timer and two futex wake-ups, no work)",
+            b.bound_us,
+            b.minus_bare_p99_us.abs(),
+            if b.minus_bare_p99_us < 0.0 { "below" } else { "above" }
+        ),
+        None => String::new(),
+    };
     let uds = match (t.p99_ratio_to_uds, t.uds_met) {
         (Some(r), Some(ok)) => format!(
             // Three decimals: 0.803 reads as missed, where "0.80" would not.
-            "; p99 {r:.3} × the Unix-socket chain's (≤ {TARGET_UDS_RATIO}: {}{above_floor})",
+            "; p99 {r:.3} × the Unix-socket chain's (≤ {TARGET_UDS_RATIO}: {}{above_floor}{against_bare})",
             met(ok)
         ),
         // The control is the floor: no transport to compare.
