@@ -37,8 +37,7 @@ fn on_path(cmd: &str) -> bool {
 
 #[test]
 fn a_missing_cyclictest_is_skipped_with_one_line_that_says_why() {
-    let out = std::env::temp_dir().join(format!("drivelab-bench-noct-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let out = scratch("no-cyclictest");
     let o = bench(
         &[
             "--quick",
@@ -71,8 +70,7 @@ fn a_missing_cyclictest_is_skipped_with_one_line_that_says_why() {
 
 #[test]
 fn bench_quick_runs_end_to_end_and_writes_its_report() {
-    let out = std::env::temp_dir().join(format!("drivelab-bench-test-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let out = scratch("quick");
     let o = bench(&["--quick", "--json"], &out);
     let report: serde_json::Value =
         serde_json::from_slice(&o.stdout).expect("bench --json prints JSON");
@@ -679,8 +677,7 @@ fn floats(v: &serde_json::Value) -> Vec<f64> {
 
 #[test]
 fn bench_rounds_interleave_the_variants_and_merge_their_samples() {
-    let out = std::env::temp_dir().join(format!("drivelab-bench-rounds-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let out = scratch("rounds");
     let o = bench(&["--quick", "--rounds", "2", "--json"], &out);
     let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(report["rounds"], 2);
@@ -819,8 +816,7 @@ fn bench_rounds_interleave_the_variants_and_merge_their_samples() {
 
 #[test]
 fn bench_compares_topologies_with_their_cpu_time() {
-    let out = std::env::temp_dir().join(format!("drivelab-bench-topo-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let out = scratch("topologies");
     let o = bench(
         &[
             "--quick",

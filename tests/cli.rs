@@ -2,6 +2,8 @@
 //! users read must be deliberate. `UPDATE_SNAPSHOTS=1 cargo test --test cli` rewrites those that
 //! changed and fails (review the diff, then run again); it is refused when `CI` is set.
 
+mod common;
+
 use std::path::PathBuf;
 use std::process::Command;
 
@@ -347,8 +349,7 @@ fn design_says_unstable_where_the_sampled_loop_is() {
 
 #[test]
 fn a_scenario_or_topology_in_the_working_folder_wins_over_the_shipped_one() {
-    let dir = std::env::temp_dir().join(format!("drivelab-cli-{}-cwd", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let dir = common::scratch("cwd");
     std::fs::create_dir_all(dir.join("scenarios/topologies")).unwrap();
     // kyslan-pi, edited in the working folder's scenarios/.
     let shipped = std::fs::read_to_string(format!("{SCENARIOS}/kyslan-pi.toml")).unwrap();
@@ -396,8 +397,7 @@ fn a_scenario_or_topology_in_the_working_folder_wins_over_the_shipped_one() {
 
 #[test]
 fn doctor_judges_the_cores_of_the_topology_it_is_given() {
-    let dir = std::env::temp_dir().join(format!("drivelab-cli-{}-doctor", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let dir = common::scratch("doctor");
     std::fs::create_dir_all(&dir).unwrap();
     // A core no machine here has: the placement line is BAD and the per-core checks speak
     // of that core, not of the default placement's cpu 1.
