@@ -190,6 +190,18 @@ fn check(a: &CdmArgs) -> Result<()> {
     Ok(())
 }
 
+/// "" when every pole ln(z)/T_u (re, im) of a sampled loop has a negative real part (|z| < 1),
+/// else "; UNSTABLE: …" with the largest real part: the loop grows without bound as it runs.
+fn unstable(poles: &[(f64, f64)]) -> String {
+    let re = poles.iter().map(|p| p.0).fold(f64::NEG_INFINITY, f64::max);
+    if re < 0.0 {
+        return String::new();
+    }
+    format!(
+        "; UNSTABLE: the sampled loop has a pole with real part {re:.1} rad/s ≥ 0 (|z| ≥ 1), so it grows without bound as it runs"
+    )
+}
+
 /// The text printout of the section III designs at one operating point.
 pub fn render_fw(f: &FwDesign) -> String {
     let mut o = String::new();
@@ -241,10 +253,16 @@ pub fn render_fw(f: &FwDesign) -> String {
     let _ = writeln!(o, "  {}", gains(&f.g_v));
     let _ = writeln!(
         o,
-        "sampled loop as it runs (ZOH, one-sample delay), poles ln(z)/T_u in rad/s: C_δ alone (V_a = V_ao): {}",
-        poles(&f.sampled_delta)
+        "sampled loop as it runs (ZOH, one-sample delay), poles ln(z)/T_u in rad/s: C_δ alone (V_a = V_ao): {}{}",
+        poles(&f.sampled_delta),
+        unstable(&f.sampled_delta)
     );
-    let _ = writeln!(o, "  C_δ and C_v together: {}", poles(&f.sampled_both));
+    let _ = writeln!(
+        o,
+        "  C_δ and C_v together: {}{}",
+        poles(&f.sampled_both),
+        unstable(&f.sampled_both)
+    );
     short_floats(&o)
 }
 
@@ -469,6 +487,39 @@ pub fn render_polar_design(p: &drivelab_control::control::polar::PolarDesign) ->
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Section III at 800 rpm, V_dc = 100 V, the paper's σ_δ = −600 rad/s: the phase loop as
+    /// it runs is unstable at i_q* = 3 A (its zero inside |σ|) and stable at 0.5 A, and the
+    /// printout says so of exactly those lines.
+    #[test]
+    fn a_sampled_flux_weakening_loop_that_diverges_is_called_unstable() {
+        let m = drivelab_control::motor::MotorParams::low1998();
+        let md = SpmsmModel::from_motor(&m);
+        let w = m.p() * 800.0 * std::f64::consts::PI / 30.0;
+        let vmax = 100.0 / 3f64.sqrt();
+        let lines = |iq: f64| {
+            let f = FwDesign::new(&md, vmax, iq, w, 1e-4, vmax, -600.0, -300.0);
+            render_fw(&f)
+                .lines()
+                .filter(|l| l.contains("UNSTABLE"))
+                .map(str::to_string)
+                .collect::<Vec<_>>()
+        };
+        let hi = lines(3.0);
+        assert_eq!(hi.len(), 2, "{hi:?}");
+        assert!(
+            hi[0].starts_with("sampled loop as it runs")
+                && hi[1].starts_with("  C_δ and C_v together"),
+            "{hi:?}"
+        );
+        for l in &hi {
+            assert!(
+                l.ends_with("(|z| ≥ 1), so it grows without bound as it runs"),
+                "{l}"
+            );
+        }
+        assert!(lines(0.5).is_empty());
+    }
 
     #[test]
     fn floats_printed_whole_are_cut_to_six_digits_and_fixed_ones_kept() {
