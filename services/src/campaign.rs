@@ -490,10 +490,9 @@ fn options(
     })
 }
 
-/// The real-time set-up refusals of the processes of run folder `out`
+/// The real-time set-up refusals of the processes of a run's summary `s`
 /// (`summary.json → processes → rt_warnings`) in one line, or None.
-fn rt_refusals(out: &Path) -> Option<String> {
-    let s = run_summary(out)?;
+fn rt_refusals(s: &Value) -> Option<String> {
     let all: Vec<String> = s["processes"]
         .as_object()?
         .iter()
@@ -518,17 +517,16 @@ fn run_summary(out: &Path) -> Option<Value> {
     serde_json::from_slice(&std::fs::read(out.join("summary.json")).ok()?).ok()
 }
 
-/// The configuration warnings of run folder `out` (`summary.json → warnings`): its launcher
-/// keeps them off stderr (`RunOptions::quiet_warnings`), since every run of a campaign
-/// would repeat them.
-fn run_warnings(out: &Path) -> Vec<String> {
-    run_summary(out)
-        .and_then(|s| {
-            s["warnings"].as_array().map(|w| {
-                w.iter()
-                    .filter_map(|w| w.as_str().map(str::to_string))
-                    .collect()
-            })
+/// The configuration warnings of a run's summary `s` (`summary.json → warnings`): its
+/// launcher keeps them off stderr (`RunOptions::quiet_warnings`), since every run of a
+/// campaign would repeat them.
+fn run_warnings(s: &Value) -> Vec<String> {
+    s["warnings"]
+        .as_array()
+        .map(|w| {
+            w.iter()
+                .filter_map(|w| w.as_str().map(str::to_string))
+                .collect()
         })
         .unwrap_or_default()
 }
@@ -1008,7 +1006,8 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
         }
         // The hosts keep their set-up lines to themselves in a campaign; a refused part
         // (no privilege for SCHED_FIFO, a core not there) is still said, once per run.
-        if let Some(w) = rt_refusals(&r.out) {
+        let summary = run_summary(&r.out).unwrap_or_default();
+        if let Some(w) = rt_refusals(&summary) {
             say(format!(
                 "run {}: real-time set-up incomplete: {w}",
                 case.number
@@ -1016,7 +1015,7 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
         }
         // A configuration warning (standby twins in lockstep, say) is the same for many runs:
         // said the first time a run has it; each run's summary.json keeps it.
-        for w in run_warnings(&r.out) {
+        for w in run_warnings(&summary) {
             if warned.insert(w.clone()) {
                 say(format!(
                     "drivelab: warning: {w} (said once for the campaign; from run {}, and in the summary.json of each run it applies to)",

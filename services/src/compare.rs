@@ -251,7 +251,7 @@ pub fn run(args: &CompareArgs) -> Result<()> {
             .map(|p| p.join("compare"))
             .unwrap_or_else(|| PathBuf::from("compare")),
     };
-    crate::plotcmd::make_out_folder(&out)?;
+    crate::launcher::make_folder(&out, "output folder")?;
     crate::out!("{}", table(&runs));
     let files = plot(&runs, &out)?;
     let summary = json!({

@@ -276,7 +276,7 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
     let scenario = scenario_if_any(&a.run)?.map(|(sc, _)| sc);
     let out = a.out.clone().unwrap_or_else(|| a.run.clone());
     check_stop(&[], &out)?;
-    make_out_folder(&out)?;
+    crate::launcher::make_folder(&out, "output folder")?;
     let windows = summary
         .faults
         .iter()
@@ -377,18 +377,6 @@ fn latency_per_second(
         &[(ts_us, format!("T_s = {ts_us:.0} µs"))],
         &out.join("latency-per-second"),
     )
-}
-
-/// Makes output folder `out` (`--out`) with its missing parents; a file in its place is
-/// refused in one line naming it, not as the OS's "File exists".
-pub fn make_out_folder(out: &Path) -> Result<()> {
-    if out.exists() && !out.is_dir() {
-        bail!(
-            "--out {}: is a file, not a folder; give a folder with --out",
-            out.display()
-        );
-    }
-    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))
 }
 
 #[cfg(test)]

@@ -250,6 +250,23 @@ pub(crate) fn lock_run_folder(out: &Path) -> Result<RunFolderLock> {
 /// LOCK_NB)`), held until the returned file drops; refused when another `who` (a drive, …)
 /// holds it.
 pub(crate) fn make_and_lock_folder(out: &Path, what: &str, who: &str) -> Result<std::fs::File> {
+    make_folder(out, what)?;
+    let dir = std::fs::File::open(out)
+        .with_context(|| format!("cannot open {what} {}", out.display()))?;
+    match dir.try_lock() {
+        Ok(()) => Ok(dir),
+        Err(std::fs::TryLockError::WouldBlock) => bail!(
+            "{what} {}: another {who} is writing into it now; give another --out",
+            out.display()
+        ),
+        Err(std::fs::TryLockError::Error(e)) => {
+            bail!("{what} {}: cannot lock it: {e}", out.display())
+        }
+    }
+}
+
+/// Makes folder `out` (a "run folder", "output folder", …) with its missing parents.
+pub(crate) fn make_folder(out: &Path, what: &str) -> Result<()> {
     // A file where the folder (or one above it) would be: said as such, not as the system's
     // "File exists" or "Not a directory".
     if let Some(file) = out
@@ -269,20 +286,7 @@ pub(crate) fn make_and_lock_folder(out: &Path, what: &str, who: &str) -> Result<
             file.display()
         );
     }
-    std::fs::create_dir_all(out)
-        .with_context(|| format!("cannot create {what} {}", out.display()))?;
-    let dir = std::fs::File::open(out)
-        .with_context(|| format!("cannot open {what} {}", out.display()))?;
-    match dir.try_lock() {
-        Ok(()) => Ok(dir),
-        Err(std::fs::TryLockError::WouldBlock) => bail!(
-            "{what} {}: another {who} is writing into it now; give another --out",
-            out.display()
-        ),
-        Err(std::fs::TryLockError::Error(e)) => {
-            bail!("{what} {}: cannot lock it: {e}", out.display())
-        }
-    }
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {what} {}", out.display()))
 }
 
 impl RunFolderLock {

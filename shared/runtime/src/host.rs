@@ -1683,13 +1683,9 @@ impl<T: Transport> Host<T> {
             if self.stages.len() > 1 && !self.run_chain(1, k, now_ns())? {
                 break;
             }
-            for (si, h) in self.stages.iter_mut().enumerate() {
-                self.calling = Some(Calling {
-                    si,
-                    k,
-                    call: Call::AfterPublish,
-                });
-                h.stage.after_publish();
+            for si in 0..self.stages.len() {
+                self.calling(si, k, Call::AfterPublish);
+                self.stages[si].stage.after_publish();
             }
             // Take what the next sample reads if it is here already: on one core the chain
             // has published command k before the source runs again, and a read at the next

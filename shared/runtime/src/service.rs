@@ -1032,6 +1032,18 @@ pub struct Shadow {
     newest: [Option<Msg>; N_TOPICS],
 }
 
+/// Reads what watching receiver `w` holds of the active instance's messages, noting the
+/// newest index in `before` (published already: a twin that takes over sends only later
+/// ones), and hands each to `each`.
+fn read_watch(w: &Rx, before: &mut Option<u64>, mut each: impl FnMut(Msg)) -> Result<()> {
+    while let Some(m) = recv_rx(w)? {
+        let k = m.hdr().k;
+        *before = Some(before.map_or(k, |b| b.max(k)));
+        each(m);
+    }
+    Ok(())
+}
+
 impl Shadow {
     fn new(
         lease: Lease,
@@ -1142,10 +1154,7 @@ impl BusTransport {
         own.release();
         for (i, w) in watch.iter().enumerate() {
             if let Some(w) = w {
-                while let Some(m) = recv_rx(w)? {
-                    let k = m.hdr().k;
-                    self.before[i] = Some(self.before[i].map_or(k, |b| b.max(k)));
-                }
+                read_watch(w, &mut self.before[i], |_| {})?;
             }
         }
         // A predecessor killed between a send and its wake-up left that message unannounced:
@@ -1288,15 +1297,14 @@ impl Transport for BusTransport {
             return Ok(None);
         };
         if let Some(w) = &sh.watch[i] {
-            while let Some(m) = recv_rx(w)? {
+            let newest = &mut sh.newest[i];
+            read_watch(w, &mut self.before[i], |m| {
                 let h = m.hdr();
-                // Published already: the takeover sends only later ones (as it reads there).
-                self.before[i] = Some(self.before[i].map_or(h.k, |b| b.max(h.k)));
                 let marker = h.is_warmup() || h.is_end() || h.is_absent();
-                if !marker && sh.newest[i].is_none_or(|n| h.k >= n.hdr().k) {
-                    sh.newest[i] = Some(m);
+                if !marker && newest.is_none_or(|n| h.k >= n.hdr().k) {
+                    *newest = Some(m);
                 }
-            }
+            })?;
         }
         Ok(sh.newest[i])
     }
