@@ -699,7 +699,8 @@ pub struct FaultReport {
     /// The process that was signalled (it hosts the stage, perhaps with others).
     pub process: String,
     /// Injection: sample index (the first sample the plant had not published when the signal
-    /// went out, so also for a plant that ran behind its schedule).
+    /// went out, so also for a plant that ran behind its schedule; for a kill of the plant's
+    /// own process, the first sample it did not produce).
     pub injected_k: u64,
     /// Injection time, s (sample time).
     pub injected_t_s: f64,
@@ -835,19 +836,44 @@ pub fn fault_reports(
     // - The count is exact to one message: a publish is a send and then a bump of the count,
     //   and the recorder's mark or the signal can fall between the two. A plant whose
     //   downtime begins one sample after the count's estimate published that sample.
+    // - A plant that was catching up when its own process was killed (back to back, a few
+    //   µs a sample) went on publishing while the signal was under way: the kill took hold
+    //   where its downtime begins, the first rebuilt sample before the next fault.
     let down = |k: u64| {
         by_k.get(&k)
             .is_some_and(|r| r.plant_flags & FLAG_PLANT_DOWN != 0)
     };
+    let plant_process = sc
+        .topology()
+        .into_iter()
+        .find(|p| p.stages.iter().any(|s| s == "plant"))
+        .map(|p| p.name);
+    let kills_the_plant = |e: &SupEvent| {
+        matches!(
+            e.kind,
+            EventKind::Inject {
+                fault: FaultKind::Kill,
+                ..
+            }
+        ) && plant_process.as_deref() == Some(e.process.as_str())
+    };
     let mut starts: Vec<u64> = Vec::with_capacity(injects.len());
     for (n, inj) in injects.iter().enumerate() {
         let k_prev = n.checked_sub(1).map_or(0, |p| injects[p].k + 1);
+        let k_next = injects.get(n + 1).map_or(u64::MAX, |e| e.k);
         let mut k0 = inj.k;
         while k0 > k_prev && down(k0 - 1) {
             k0 -= 1;
         }
         if !down(k0) && down(k0 + 1) {
             k0 += 1;
+        } else if !down(k0) && kills_the_plant(inj) {
+            if let Some((&k, _)) = by_k
+                .range(k0..k_next)
+                .find(|(_, r)| r.plant_flags & FLAG_PLANT_DOWN != 0)
+            {
+                k0 = k;
+            }
         }
         starts.push(k0);
     }
@@ -1164,8 +1190,25 @@ mod tests {
         let (reports, _) = fault_reports(&sc, &tr, &[ev(1.0, 9, kill(), "plant", "plant")]);
         assert_eq!(reports[0].injected_k, 10, "{:?}", reports[0]);
         assert_eq!(reports[0].plant_down.as_ref().map(|p| p.samples), Some(10));
-        // Two samples early is more than the count's uncertainty: the dating stands.
+        // Two samples early: the plant published them while the signal was under way (it was
+        // catching up), and the kill took hold where its downtime begins.
         let (reports, _) = fault_reports(&sc, &tr, &[ev(1.0, 8, kill(), "plant", "plant")]);
+        assert_eq!(reports[0].injected_k, 10, "{:?}", reports[0]);
+        assert_eq!(reports[0].plant_down.as_ref().map(|p| p.samples), Some(10));
+        // Not so for a kill of another process, or a stop of the plant's: the downtime that
+        // follows is not theirs, and their dating stands.
+        let (reports, _) = fault_reports(
+            &sc,
+            &tr,
+            &[ev(1.0, 5, kill(), "current-loop", "current-loop")],
+        );
+        assert_eq!(reports[0].injected_k, 5, "{:?}", reports[0]);
+        let stop = EventKind::Inject {
+            fault: FaultKind::Stop,
+            duration_s: 0.01,
+            monitor_pid: None,
+        };
+        let (reports, _) = fault_reports(&sc, &tr, &[ev(1.0, 8, stop, "plant", "plant")]);
         assert_eq!(reports[0].injected_k, 8, "{:?}", reports[0]);
     }
 
