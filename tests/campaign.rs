@@ -775,7 +775,8 @@ fn a_lockstep_campaign_runs_a_fault_set_without_random_kills_once_not_once_per_s
 }
 
 #[test]
-fn a_lockstep_campaign_with_standby_twins_says_their_warning_once_and_each_run_keeps_it() {
+fn a_lockstep_campaign_with_standby_twins_says_their_warning_once_before_its_runs_and_each_run_keeps_it(
+) {
     let dir = scratch("standbyonce");
     // Three runs of a topology with standby twins, which the lockstep clock does not start.
     let f = three_lockstep_runs(
@@ -807,6 +808,40 @@ fn a_lockstep_campaign_with_standby_twins_says_their_warning_once_and_each_run_k
         );
         assert_clean(s["bus"].as_str().unwrap());
     }
+    // A campaign whose second scenario has the twins and whose runs all fail an expectation:
+    // the warning comes before the first run's line, from the check of every run before
+    // the first one starts, not after the first run that has it.
+    let plain = std::fs::read_to_string(Path::new(SCENARIOS).join("kyslan-pi.toml")).unwrap();
+    let twins =
+        std::fs::read_to_string(Path::new(SCENARIOS).join("topologies/four-process-standby.toml"))
+            .unwrap();
+    let sc = dir.join("twins.toml");
+    let body = plain.replacen("name = \"kyslan-pi\"", "name = \"kyslan-pi-twins\"", 1);
+    let tables = twins.split_once("[[process]]").unwrap().1;
+    std::fs::write(&sc, format!("{body}\n[[process]]{tables}")).unwrap();
+    let f = campaign_file(
+        &dir,
+        &format!(
+            "name = \"late-twins\"\nscenarios = [\"kyslan-pi\", {:?}]\nclock = \"lockstep\"\n\
+             duration_s = 0.05\nexpect = [\"crashes == 1\"]\n",
+            sc.to_str().unwrap()
+        ),
+    );
+    let out = dir.join("late");
+    let o = campaign(&f, &out);
+    let err = stderr(&o);
+    assert_eq!(o.status.code(), Some(3), "{err}");
+    let lines: Vec<&str> = err.lines().collect();
+    let warned = lines
+        .iter()
+        .position(|l| l.contains("starts no standby twin"))
+        .unwrap_or_else(|| panic!("no warning: {err}"));
+    let run1 = lines
+        .iter()
+        .position(|l| l.starts_with("run 1: "))
+        .unwrap_or_else(|| panic!("no line for run 1: {err}"));
+    assert!(warned < run1, "{err}");
+    assert!(lines[warned].contains("from run 2"), "{err}");
 }
 
 #[test]

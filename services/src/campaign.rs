@@ -205,10 +205,19 @@ fn figures(summary: &Value) -> serde_json::Map<String, Value> {
     m
 }
 
-/// Reads the campaign file and expands its matrix.
-/// Also returns the number of runs that differ from one of `cases` only by a seed that nothing
-/// uses (simulated clocks, no `random:N`), which are not in `cases`.
-fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>, usize)> {
+/// A campaign file read, its matrix expanded and every run checked ([`load`]).
+struct Loaded {
+    c: CampaignFile,
+    cases: Vec<Case>,
+    /// The runs that differ from one of `cases` only by a seed that nothing uses (simulated
+    /// clocks, no `random:N`), which are not in `cases`.
+    repeats: usize,
+    /// The configuration warnings the runs give, each once, with the first run it applies to.
+    warnings: Vec<(String, usize)>,
+}
+
+/// Reads the campaign file, expands its matrix and checks its runs.
+fn load(file: &Path) -> Result<Loaded> {
     let text =
         drivelab_runtime::config::read_config_file(file, "campaign").map_err(|e| anyhow!(e))?;
     let mut c: CampaignFile = toml::from_str(&text).map_err(|e| {
@@ -404,6 +413,7 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>, usize)> {
     // Ten thousand checks take about 0.6 s (no stage is built for them: see
     // `stages::declaration`); a stop signal still ends them.
     let total = cases.len();
+    let mut warnings: Vec<(String, usize)> = Vec::new();
     for case in checks.iter().map(|&i| &cases[i]) {
         if drivelab_runtime::service::stop_requested() {
             bail!(
@@ -413,7 +423,7 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>, usize)> {
                 case.number
             );
         }
-        launcher::check(&options(&c, case, true, false, None)?).map_err(|e| {
+        let said = launcher::check(&options(&c, case, true, false, None)?).map_err(|e| {
             anyhow!(
                 "campaign {}: {}: {}",
                 file.display(),
@@ -421,8 +431,18 @@ fn load(file: &Path) -> Result<(CampaignFile, Vec<Case>, usize)> {
                 drivelab_runtime::text::error_text(&e)
             )
         })?;
+        for w in said {
+            if !warnings.iter().any(|(v, _)| *v == w) {
+                warnings.push((w, case.number));
+            }
+        }
     }
-    Ok((c, cases, repeats))
+    Ok(Loaded {
+        c,
+        cases,
+        repeats,
+        warnings,
+    })
 }
 
 /// A fault set as the run sees it, whatever its spelling: each spec parsed (numbers in
@@ -515,20 +535,6 @@ fn rt_refusals(s: &Value) -> Option<String> {
 /// The summary.json of run folder `out`, if it wrote one.
 fn run_summary(out: &Path) -> Option<Value> {
     serde_json::from_slice(&std::fs::read(out.join("summary.json")).ok()?).ok()
-}
-
-/// The configuration warnings of a run's summary `s` (`summary.json → warnings`): its
-/// launcher keeps them off stderr (`RunOptions::quiet_warnings`), since every run of a
-/// campaign would repeat them.
-fn run_warnings(s: &Value) -> Vec<String> {
-    s["warnings"]
-        .as_array()
-        .map(|w| {
-            w.iter()
-                .filter_map(|w| w.as_str().map(str::to_string))
-                .collect()
-        })
-        .unwrap_or_default()
 }
 
 /// Runs one case.
@@ -909,7 +915,12 @@ fn claim_campaign_folder(out: &Path) -> Result<std::fs::File> {
 /// the campaign was interrupted.
 pub fn run(a: &CampaignArgs) -> Result<u8> {
     drivelab_runtime::service::install_signal_handlers()?;
-    let (c, cases, repeats) = load(&a.file)?;
+    let Loaded {
+        c,
+        cases,
+        repeats,
+        warnings,
+    } = load(&a.file)?;
     // Said once, before the runs: the report has fewer runs than seeds × fault sets.
     let note = (repeats > 0).then(|| {
         format!(
@@ -920,6 +931,14 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
     });
     if let Some(n) = &note {
         crate::errln!("drivelab: campaign {}: {n}", a.file.display());
+    }
+    // A configuration warning (standby twins in lockstep, say) is the same for many runs:
+    // said once, before the runs; each run's summary.json keeps it (its launcher keeps it
+    // off stderr: `RunOptions::quiet_warnings`).
+    for (w, first) in &warnings {
+        crate::errln!(
+            "drivelab: warning: {w} (said once for the campaign; from run {first}, and in the summary.json of each run it applies to)"
+        );
     }
     let out = match &a.out {
         Some(out) => out.clone(),
@@ -974,8 +993,6 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
             bar.println(line);
         }
     };
-    // The configuration warnings said so far.
-    let mut warned = std::collections::HashSet::new();
     for case in &cases {
         if stop.load(std::sync::atomic::Ordering::Relaxed) {
             results.push(CaseResult {
@@ -1012,16 +1029,6 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
                 "run {}: real-time set-up incomplete: {w}",
                 case.number
             ));
-        }
-        // A configuration warning (standby twins in lockstep, say) is the same for many runs:
-        // said the first time a run has it; each run's summary.json keeps it.
-        for w in run_warnings(&summary) {
-            if warned.insert(w.clone()) {
-                say(format!(
-                    "drivelab: warning: {w} (said once for the campaign; from run {}, and in the summary.json of each run it applies to)",
-                    case.number
-                ));
-            }
         }
         if r.status != "pass" {
             say(format!(

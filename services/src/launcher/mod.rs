@@ -1405,6 +1405,9 @@ struct Prepared {
     expectations: Vec<crate::expect::Expectation>,
     /// Simulated kills and stops not made, each with why ([`after_the_plant`]).
     not_made: Vec<(u64, String)>,
+    /// Configuration that this clock does not apply, each in one line: said, not dropped in
+    /// silence (and kept in summary.json → warnings).
+    warnings: Vec<String>,
 }
 
 /// A simulated run whose plant is killed for good ([`TraceStream::plant_gone_at`]) ends at
@@ -1437,10 +1440,10 @@ fn after_the_plant(sc: &mut Scenario) -> Vec<(u64, String)> {
 
 /// Checks a run's options the way [`run`] does before it creates anything (scenario,
 /// duration, topology, faults against the run's stages and duration, expectations), without
-/// creating anything or touching a bus. A campaign checks every run with it before the first
-/// one starts.
-pub fn check(o: &RunOptions) -> Result<()> {
-    prepare(o).map(|_| ())
+/// creating anything or touching a bus, and returns the configuration warnings the run would
+/// give. A campaign checks every run with it before the first one starts.
+pub fn check(o: &RunOptions) -> Result<Vec<String>> {
+    prepare(o).map(|p| p.warnings)
 }
 
 /// Everything [`run`] checks and resolves before the run folder is made.
@@ -1579,6 +1582,22 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
             );
         }
     }
+    let twins: Vec<&str> = topo
+        .processes
+        .iter()
+        .filter(|p| p.standby)
+        .map(|p| p.name.as_str())
+        .collect();
+    let warnings: Vec<String> = (o.clock != Clock::Realtime && !twins.is_empty())
+        .then(|| {
+            format!(
+                "standby = true (process {}) applies in real time only: the {} clock starts no standby twin",
+                twins.join(", "),
+                o.clock.name()
+            )
+        })
+        .into_iter()
+        .collect();
     Ok(Prepared {
         sc,
         topo,
@@ -1586,6 +1605,7 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
         hogs,
         expectations,
         not_made,
+        warnings,
     })
 }
 
@@ -1625,25 +1645,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         hogs,
         expectations,
         not_made,
+        warnings,
     } = prepare(o)?;
-    // Configuration that this clock does not apply is said, not dropped in silence (and
-    // kept in summary.json → warnings).
-    let twins: Vec<&str> = topo
-        .processes
-        .iter()
-        .filter(|p| p.standby)
-        .map(|p| p.name.as_str())
-        .collect();
-    let warnings: Vec<String> = (o.clock != Clock::Realtime && !twins.is_empty())
-        .then(|| {
-            format!(
-                "standby = true (process {}) applies in real time only: the {} clock starts no standby twin",
-                twins.join(", "),
-                o.clock.name()
-            )
-        })
-        .into_iter()
-        .collect();
     if !o.quiet_warnings {
         for w in &warnings {
             crate::errln!("drivelab: warning: {w}");
