@@ -202,18 +202,20 @@ fn unstable(poles: &[(f64, f64)]) -> String {
     )
 }
 
+/// Poles (re, im) in rad/s as "re±imj, …"; "none …" when there are none.
+fn poles(v: &[(f64, f64)]) -> String {
+    if v.is_empty() {
+        return "none (no controller to close the loop with)".to_string();
+    }
+    v.iter()
+        .map(|(re, im)| format!("{re:.1}{:+.1}j", im))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
 /// The text printout of the section III designs at one operating point.
 pub fn render_fw(f: &FwDesign) -> String {
     let mut o = String::new();
-    let poles = |v: &[(f64, f64)]| {
-        if v.is_empty() {
-            return "none (no controller to close the loop with)".to_string();
-        }
-        v.iter()
-            .map(|(re, im)| format!("{re:.1}{:+.1}j", im))
-            .collect::<Vec<_>>()
-            .join(", ")
-    };
     let gains = |g: &Option<polar::PidGains>| {
         match g {
         Some(g) => format!(
@@ -360,6 +362,13 @@ pub fn render(motor: &str, d: &CdmDesign) -> String {
         o,
         "  K_I12 = a_0·L/(−V_ao·cos δ_o) = {} rad/(A·s)   (eq. 31)",
         d.k_i12
+    );
+    let sampled = polar::cdm_sampled_poles(d);
+    let _ = writeln!(
+        o,
+        "sampled loop at 0 rpm as it runs (ZOH, one-sample delay, measured currents), poles ln(z)/T_u in rad/s: C_21 and C_12 together: {}{}",
+        poles(&sampled),
+        unstable(&sampled)
     );
     render_delay(&mut o, d);
     short_floats(&o)
@@ -519,6 +528,37 @@ mod tests {
             );
         }
         assert!(lines(0.5).is_empty());
+    }
+
+    /// Section IV at 0 rpm (the printout's eqs 28–31 at V_ao = 100 V, δ_o = 0, V_dc = 470 V):
+    /// the sampled loop of C_21 and C_12 as it runs, stable at the paper's T_u = 100 µs, and
+    /// unstable at T_u = 400 µs with the τ_12 = 1000 µs of the paper's T_u kept.
+    #[test]
+    fn the_section_iv_sampled_loop_is_printed_and_called_unstable_when_it_diverges() {
+        let m = drivelab_control::motor::MotorParams::low1998();
+        let l = 0.5 * (m.l_d_h + m.l_q_h);
+        let vmax = 470.0 / 3f64.sqrt();
+        let sampled = |tu_s: f64, tau12_s: Option<f64>| {
+            let d = CdmDesign::new(m.r_ohm, l, tu_s, vmax, 100.0, 0.0, tau12_s);
+            render("miyajima", &d)
+                .lines()
+                .filter(|l| l.starts_with("sampled loop at 0 rpm as it runs"))
+                .map(str::to_string)
+                .collect::<Vec<_>>()
+        };
+        let paper = sampled(1e-4, None);
+        assert_eq!(paper.len(), 1, "{paper:?}");
+        assert!(
+            paper[0].contains("C_21 and C_12 together: -") && !paper[0].contains("UNSTABLE"),
+            "{paper:?}"
+        );
+        let slow = sampled(4e-4, Some(1e-3));
+        assert_eq!(slow.len(), 1, "{slow:?}");
+        assert!(
+            slow[0].contains("; UNSTABLE: the sampled loop has a pole with real part ")
+                && slow[0].ends_with("(|z| ≥ 1), so it grows without bound as it runs"),
+            "{slow:?}"
+        );
     }
 
     #[test]

@@ -385,21 +385,48 @@ pub fn place_pid(p: &SecondOrder, d: [f64; 4]) -> Option<PidGains> {
     ok.then_some(g)
 }
 
-/// Closed-loop poles (z-plane) of the flux-weakening loops linearised at (V_ao, δ_o, ω_e) as
-/// they run: plant (2) under a zero-order hold of T_u, the command of sample k applied over
-/// [t_{k+1}, t_{k+2}) (one-sample computation delay), C_δ on i_q and, when `g_v` is given,
-/// C_v on i_d, both discretised as [`ScheduledPid`] does it (neither limited).
-pub fn fw_sampled_poles(
+/// The controller closing one loop of [`sampled_poles`], with the discretisation the law
+/// runs it with: a PI as [`ScheduledPi`] (C_21, C_12 of section IV) or a filtered PID as
+/// [`ScheduledPid`] (C_δ, C_v of section III).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum LoopController {
+    /// K_P·e + x_I, the integrator by forward Euler.
+    Pi {
+        /// K_P.
+        k_p: f64,
+        /// K_I, per second.
+        k_i: f64,
+    },
+    /// q2·e + x_I + z, the filter exact for e held over the sample.
+    Pid(PidGains),
+}
+
+/// One loop of [`sampled_poles`]: its controller, the current it measures (0: i_d, 1: i_q)
+/// and the input it writes (0: V_a, 1: δ).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SampledLoop {
+    /// The controller.
+    pub c: LoopController,
+    /// Measured current: 0 i_d, 1 i_q.
+    pub measured: usize,
+    /// Written input: 0 V_a, 1 δ.
+    pub input: usize,
+}
+
+/// Closed-loop poles (z-plane) of current loops linearised at the input u_o = (V_ao, δ_o)
+/// and ω_e as they run: plant (2) under a zero-order hold of T_u, the command of sample k
+/// applied over [t_{k+1}, t_{k+2}) (one-sample computation delay), each of `loops` (at most
+/// one per input) as its [`LoopController`] says, none limited. An input no loop writes is
+/// held at u_o.
+pub fn sampled_poles(
     md: &SpmsmModel,
-    v_ao: f64,
-    delta_o: f64,
+    u_o: [f64; 2],
     omega_e: f64,
     ts: f64,
-    g_delta: &PidGains,
-    g_v: Option<&PidGains>,
+    loops: &[SampledLoop],
 ) -> Vec<nalgebra::Complex<f64>> {
     use nalgebra::{DMatrix, Matrix4};
-    let (a, b) = md.linearise([v_ao, delta_o], omega_e);
+    let (a, b) = md.linearise(u_o, omega_e);
     // Zero-order hold: exp([[A, B], [0, 0]]·T_u).
     let mut m = Matrix4::<f64>::zeros();
     for i in 0..2 {
@@ -409,38 +436,107 @@ pub fn fw_sampled_poles(
         }
     }
     let e = m.exp();
-    // States: i_d, i_q, held V_a, held δ, C_δ (x_i, z), C_v (x_i, z).
-    let n = 8;
+    // States: i_d, i_q, the held input of each loop, then each loop's x_I (and z of a PID).
+    let held = 2 + loops.len();
+    let n = held
+        + loops
+            .iter()
+            .map(|l| match l.c {
+                LoopController::Pi { .. } => 1,
+                LoopController::Pid(_) => 2,
+            })
+            .sum::<usize>();
     let mut c = DMatrix::<f64>::zeros(n, n);
     for i in 0..2 {
-        for j in 0..4 {
+        for j in 0..2 {
             c[(i, j)] = e[(i, j)];
         }
+        for (h, l) in loops.iter().enumerate() {
+            c[(i, 2 + h)] = e[(i, 2 + l.input)];
+        }
     }
-    // A PID on measurement `y` (e = −y) writing the held input `u`, states at `k`.
-    let mut pid = |g: &PidGains, y: usize, u: usize, k: usize| {
-        let phi = libm::exp(-g.f * ts);
-        let bz = g.b() * (1.0 - phi) / g.f;
-        c[(u, y)] = -g.q2;
+    // A controller on measurement `y` (e = −y) writing the held input `u`, states from `k`.
+    let mut k = held;
+    for (h, l) in loops.iter().enumerate() {
+        let (u, y) = (2 + h, l.measured);
+        let (q2, k_i) = match l.c {
+            LoopController::Pi { k_p, k_i } => (k_p, k_i),
+            LoopController::Pid(g) => (g.q2, g.k_i()),
+        };
+        c[(u, y)] = -q2;
         c[(u, k)] = 1.0;
-        c[(u, k + 1)] = 1.0;
         c[(k, k)] = 1.0;
-        c[(k, y)] = -g.k_i() * ts;
-        c[(k + 1, k + 1)] = phi;
-        c[(k + 1, y)] = -bz;
-    };
-    pid(g_delta, 1, 3, 4);
-    if let Some(g) = g_v {
-        pid(g, 0, 2, 6);
+        c[(k, y)] = -k_i * ts;
+        k += 1;
+        if let LoopController::Pid(g) = l.c {
+            let phi = libm::exp(-g.f * ts);
+            c[(u, k)] = 1.0;
+            c[(k, k)] = phi;
+            c[(k, y)] = -g.b() * (1.0 - phi) / g.f;
+            k += 1;
+        }
     }
-    // Without C_v, V_a is held at V_ao: only i_d, i_q, δ and C_δ's states remain.
-    let keep: Vec<usize> = if g_v.is_some() {
-        (0..8).collect()
-    } else {
-        vec![0, 1, 3, 4, 5]
+    c.complex_eigenvalues().iter().copied().collect()
+}
+
+/// Poles z of a loop sampled at `ts` as ln(z)/T_u (re, im), rad/s, sorted.
+pub fn per_second(z: &[nalgebra::Complex<f64>], ts: f64) -> Vec<(f64, f64)> {
+    sorted(
+        z.iter()
+            .map(|z| {
+                let l = crate::math::cln(*z) / ts;
+                (l.re, l.im)
+            })
+            .collect(),
+    )
+}
+
+/// [`sampled_poles`] of the flux-weakening loops at (V_ao, δ_o, ω_e): C_δ on i_q writing δ
+/// and, when `g_v` is given, C_v on i_d writing V_a (else V_a is held at V_ao).
+pub fn fw_sampled_poles(
+    md: &SpmsmModel,
+    v_ao: f64,
+    delta_o: f64,
+    omega_e: f64,
+    ts: f64,
+    g_delta: &PidGains,
+    g_v: Option<&PidGains>,
+) -> Vec<nalgebra::Complex<f64>> {
+    let mut loops = vec![SampledLoop {
+        c: LoopController::Pid(*g_delta),
+        measured: 1,
+        input: 1,
+    }];
+    if let Some(g) = g_v {
+        loops.push(SampledLoop {
+            c: LoopController::Pid(*g),
+            measured: 0,
+            input: 0,
+        });
+    }
+    sampled_poles(md, [v_ao, delta_o], omega_e, ts, &loops)
+}
+
+/// [`sampled_poles`] of the section IV design `d` at standstill (ω_e = 0) at its operating
+/// point (V_ao, δ_o): C_21 on i_q writing V_a and C_12 on i_d writing δ with the gains of
+/// eqs (28)–(31), the currents measured (no prediction); the decoupling is left out (at
+/// 0 rpm there is no speed voltage for it to cancel). As ln(z)/T_u, rad/s.
+pub fn cdm_sampled_poles(d: &cdm::CdmDesign) -> Vec<(f64, f64)> {
+    let md = SpmsmModel {
+        r_ohm: d.r_ohm,
+        l_h: d.l_h,
+        k_e_wb: 0.0,
     };
-    let r = DMatrix::from_fn(keep.len(), keep.len(), |i, j| c[(keep[i], keep[j])]);
-    r.complex_eigenvalues().iter().copied().collect()
+    let pi = |k_p, k_i, measured, input| SampledLoop {
+        c: LoopController::Pi { k_p, k_i },
+        measured,
+        input,
+    };
+    let loops = [pi(d.k_p21, d.k_i21, 1, 0), pi(d.k_p12, d.k_i12, 0, 1)];
+    per_second(
+        &sampled_poles(&md, [d.v_ao_v, d.delta_o_rad], 0.0, d.tu_s, &loops),
+        d.tu_s,
+    )
 }
 
 /// The section III design at one operating point, for printing and checking
@@ -530,16 +626,7 @@ impl FwDesign {
         let (p22, p11) = (md.plant_22(v_o, d_o, omega_e), md.plant_11(d_o, omega_e));
         let (dd, dv) = (fw_poles(sigma_delta, rho), fw_poles(sigma_v, rho));
         let (g_delta, g_v) = (place_pid(&p22, dd), place_pid(&p11, dv));
-        let to_s = |v: Vec<nalgebra::Complex<f64>>| {
-            sorted(
-                v.iter()
-                    .map(|z| {
-                        let l = crate::math::cln(*z) / ts;
-                        (l.re, l.im)
-                    })
-                    .collect(),
-            )
-        };
+        let to_s = |v: Vec<nalgebra::Complex<f64>>| per_second(&v, ts);
         let (sampled_delta, sampled_both) = match (&g_delta, &g_v) {
             (Some(gd), Some(gv)) => (
                 to_s(fw_sampled_poles(md, v_o, d_o, omega_e, ts, gd, None)),
