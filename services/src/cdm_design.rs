@@ -99,15 +99,10 @@ pub fn run(a: &CdmArgs) -> Result<()> {
         None => None,
     };
     if a.json {
-        match &fw {
-            Some(f) => crate::outln!(
-                "{}",
-                serde_json::to_string_pretty(
-                    &serde_json::json!({ "cdm": d, "flux_weakening": f })
-                )?
-            ),
-            None => crate::outln!("{}", serde_json::to_string_pretty(&d)?),
-        }
+        crate::outln!(
+            "{}",
+            serde_json::to_string_pretty(&json_of(&d, fw.as_ref())?)?
+        );
     } else {
         crate::out!("{}", render(&a.motor, &d));
         if let Some(f) = &fw {
@@ -115,6 +110,18 @@ pub fn run(a: &CdmArgs) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// The design as JSON (SI units): the section IV design with its sampled loop's poles
+/// (`sampled_both`, ln(z)/T_u as [re, im] in rad/s, as the text prints them), and with
+/// `fw` the section III design beside it (`{"cdm": …, "flux_weakening": …}`).
+fn json_of(d: &CdmDesign, fw: Option<&FwDesign>) -> Result<serde_json::Value> {
+    let mut cdm = serde_json::to_value(d)?;
+    cdm["sampled_both"] = serde_json::json!(polar::cdm_sampled_poles(d));
+    Ok(match fw {
+        Some(f) => serde_json::json!({ "cdm": cdm, "flux_weakening": f }),
+        None => cdm,
+    })
 }
 
 /// Checks every number given, one option at a time: a one-line error naming the option, its
@@ -552,6 +559,10 @@ mod tests {
             paper[0].contains("C_21 and C_12 together: -") && !paper[0].contains("UNSTABLE"),
             "{paper:?}"
         );
+        let d = CdmDesign::new(m.r_ohm, l, 1e-4, vmax, 100.0, 0.0, None);
+        let poles = &json_of(&d, None).unwrap()["sampled_both"];
+        assert_eq!(poles.as_array().map(Vec::len), Some(6), "{poles}");
+        assert!(poles[0][0].as_f64().unwrap() < 0.0, "{poles}");
         let slow = sampled(4e-4, Some(1e-3));
         assert_eq!(slow.len(), 1, "{slow:?}");
         assert!(

@@ -519,8 +519,9 @@ pub fn fw_sampled_poles(
 
 /// [`sampled_poles`] of the section IV design `d` at standstill (ω_e = 0) at its operating
 /// point (V_ao, δ_o): C_21 on i_q writing V_a and C_12 on i_d writing δ with the gains of
-/// eqs (28)–(31), the currents measured (no prediction); the decoupling is left out (at
-/// 0 rpm there is no speed voltage for it to cancel). As ln(z)/T_u, rad/s.
+/// eqs (28)–(31), the currents measured (no prediction). The decoupling is left out: its
+/// V_ad is 0 at 0 rpm, and its phase δ_d (which the law still adds to δ) is not modelled.
+/// As ln(z)/T_u, rad/s.
 pub fn cdm_sampled_poles(d: &cdm::CdmDesign) -> Vec<(f64, f64)> {
     let md = SpmsmModel {
         r_ohm: d.r_ohm,
