@@ -976,6 +976,42 @@ fn a_fault_planned_after_the_drive_stopped_is_named_and_fails_the_run() {
     );
 }
 
+/// Before, a bus fault planned after a real-time drive stopped was reported as injected (a
+/// report in `faults`) and the run exited 0, though no host ever reached its sample.
+#[test]
+fn a_bus_fault_planned_after_the_drive_stopped_is_named_and_fails_the_run() {
+    let _serial = serial();
+    let (err, s) = run_never_restarted(
+        "latebusfault",
+        &[
+            "--duration",
+            "0.6",
+            "--fault",
+            "kill:plant@0.1",
+            "--fault",
+            "corrupt:est@0.4:3",
+        ],
+    );
+    let refused = events(&s, "inject-refused");
+    assert_eq!(refused.len(), 1, "{s}");
+    // The drive ended where the recorder's last measurement says: the last gap's start.
+    let end = s["missing_samples"].as_array().unwrap().last().unwrap()["from"]
+        .as_u64()
+        .unwrap();
+    let why = format!(
+        "corrupt:est@0.4:3: not injected: the drive ended at sample {end}, before the fault's sample 4000"
+    );
+    assert_eq!(
+        (refused[0]["detail"].as_str(), refused[0]["k"].as_u64()),
+        (Some(why.as_str()), Some(end)),
+        "{s}"
+    );
+    assert_failed_for_fault_not_made(&err, &s, &why);
+    let faults = s["faults"].as_array().unwrap();
+    assert_eq!(faults.len(), 1, "{s}");
+    assert_eq!(faults[0]["service"], "plant", "{s}");
+}
+
 #[test]
 fn a_planned_fault_whose_process_is_down_is_not_made_and_fails_the_run() {
     let _serial = serial();

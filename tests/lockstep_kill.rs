@@ -384,14 +384,14 @@ fn with_restart_never_a_killed_plant_ends_the_trace_at_its_kill_as_in_real_time(
     assert!(f["plant_down"].is_null(), "{f}");
 }
 
-#[test]
-fn with_restart_never_a_fault_planned_after_the_plants_kill_is_not_made_as_in_real_time() {
-    let _serial = serial();
-    // The drive ends at the plant's kill (sample 500): the observer's kill at 1000 is named,
-    // not simulated, and the run fails (exit 1) with its trace and summary written, in one
-    // line, as a real-time run does.
+/// Runs kyslan-pi for 0.2 s in lockstep and in process with `--restart never`, the plant
+/// killed at 0.05 s (sample 500: the drive ends there) and `late` planned after it: the run
+/// fails (exit 1) with its trace and summary written, in one line naming `late` as not made
+/// (`why`), as a real-time run does. Returns each clock's summary.
+fn not_made_after_the_plants_kill(tag: &str, late: &[&str], why: &str) -> Vec<serde_json::Value> {
+    let mut summaries = Vec::new();
     for clock in ["lockstep", "inprocess"] {
-        let name = format!("latefault{clock}");
+        let name = format!("{tag}{clock}");
         let (dir, bus) = (scratch(&name), bus_id(&name));
         let out = dir.join("run");
         let mut args = run_args(&bus, &out).to_vec();
@@ -404,14 +404,12 @@ fn with_restart_never_a_fault_planned_after_the_plants_kill_is_not_made_as_in_re
             "never",
             "--fault",
             "kill:plant@0.05",
-            "--fault",
-            "kill:observer@0.1",
         ]);
+        args.extend_from_slice(late);
         let o = drivelab(&args);
         let err = String::from_utf8_lossy(&o.stderr);
         assert_eq!(o.status.code(), Some(1), "{clock}: {err}");
         assert_clean(&bus);
-        let why = "kill:observer@0.1: not injected: the drive ended at sample 500, before the fault's sample 1000";
         assert!(
             err.lines().last().unwrap_or("").starts_with(&format!(
                 "drivelab: error: a planned fault was not made: {why} (what was recorded is in "
@@ -424,14 +422,53 @@ fn with_restart_never_a_fault_planned_after_the_plants_kill_is_not_made_as_in_re
             serde_json::json!([why]),
             "{clock}: {s}"
         );
-        assert_eq!(s["faults"].as_array().unwrap().len(), 1, "{clock}: {s}");
-        let refused = s["supervisor_events"]
+        let refused = events(&s, "inject-refused");
+        assert_eq!(refused.len(), 1, "{clock}: {s}");
+        assert_eq!(
+            (refused[0]["detail"].as_str(), refused[0]["k"].as_u64()),
+            (Some(why), Some(500)),
+            "{clock}: {s}"
+        );
+        summaries.push(s);
+    }
+    summaries
+}
+
+#[test]
+fn with_restart_never_a_fault_planned_after_the_plants_kill_is_not_made_as_in_real_time() {
+    let _serial = serial();
+    // The observer's kill at sample 1000 is named, not simulated.
+    let why = "kill:observer@0.1: not injected: the drive ended at sample 500, before the fault's sample 1000";
+    for s in not_made_after_the_plants_kill("latefault", &["--fault", "kill:observer@0.1"], why) {
+        assert_eq!(s["faults"].as_array().unwrap().len(), 1, "{s}");
+    }
+}
+
+/// Before, a bus fault planned after the plant's kill was reported as made (a report in
+/// `faults` with no window the drive reached) and the run exited 0.
+#[test]
+fn with_restart_never_a_bus_fault_planned_after_the_plants_kill_is_not_made() {
+    let _serial = serial();
+    // The drop at sample 1000 never came; the delay from 300 to 400, before the kill, did.
+    let why = "drop:cmd@0.1:5: not injected: the drive ended at sample 500, before the fault's sample 1000";
+    let late = [
+        "--fault",
+        "drop:cmd@0.1:5",
+        "--fault",
+        "delay:current-loop@0.03:0.01:100us",
+    ];
+    for s in not_made_after_the_plants_kill("latebus", &late, why) {
+        let made: Vec<&str> = s["faults"]
             .as_array()
             .unwrap()
             .iter()
-            .filter(|e| e["event"] == "inject-refused")
-            .count();
-        assert_eq!(refused, 1, "{clock}: {s}");
+            .map(|f| f["fault"].as_str().unwrap())
+            .collect();
+        assert_eq!(
+            made,
+            ["kill:plant@0.05", "delay:current-loop@0.03:0.01:100us"],
+            "{s}"
+        );
     }
 }
 

@@ -136,6 +136,38 @@ pub fn schedule(specs: &[FaultSpec], sc: &mut Scenario, topo: &TopologyPlan) -> 
         .map_err(|e| anyhow!("--fault with the scenario's own [[inject]] tables: {e}"))
 }
 
+/// The window of injection `i` of the run (its producer's samples for a topic's fault).
+fn armed(i: &Inject, sc: &Scenario, topo: &TopologyPlan) -> Armed {
+    let divider = |t| {
+        topo.producers
+            .iter()
+            .find(|p| p.topic == t)
+            .map_or(1, |p| p.divider)
+    };
+    Armed::bind(i, sc.rates.sample_hz, &[], divider)
+}
+
+/// True when `a` is a bus fault (not a simulated kill or stop) due at or after sample
+/// `end_k`, which the drive did not reach: it was never applied.
+fn after_the_end(a: &Armed, end_k: u64) -> bool {
+    !a.kind.downs_stage() && a.from_k >= end_k
+}
+
+/// The bus faults of `sc` that were not made because the drive ended at sample `end_k`
+/// before their first sample (a killed plant with `--restart never` stops it), each as
+/// (`end_k`, why), worded as the supervisor words a kill planned after the drive's end.
+pub fn not_made(sc: &Scenario, topo: &TopologyPlan, end_k: u64) -> Vec<(u64, String)> {
+    sc.inject
+        .iter()
+        .map(|i| (i, armed(i, sc, topo)))
+        .filter(|(_, a)| after_the_end(a, end_k))
+        .map(|(i, a)| {
+            let why = crate::launcher::ended_before(&i.spec(), end_k, a.from_k);
+            (end_k, why)
+        })
+        .collect()
+}
+
 /// What a bus fault caused, beside the common figures of a [`FaultReport`].
 #[derive(Debug, Clone, Default, Serialize, PartialEq)]
 pub struct BusFigures {
@@ -158,23 +190,28 @@ pub struct BusFigures {
 
 /// The reports of the scenario's bus faults from the trace `rows` and the per-stage
 /// `counters` (`summary.json → counters`; None in process), and the windows to shade on the
-/// plots (from, to in s, label).
+/// plots (from, to in s, label). The drive ended at sample `end_k`: a bus fault due after it
+/// was not made ([`not_made`]) and gets none.
 pub fn reports(
     sc: &Scenario,
     topo: &TopologyPlan,
     rows: &[TraceRow],
     counters: Option<&serde_json::Value>,
+    end_k: u64,
 ) -> (Vec<FaultReport>, Vec<(f64, f64, String)>) {
     let fs = sc.rates.sample_hz;
     let ms = |dk: u64| dk as f64 / fs * 1e3;
     let producer =
         |t: drivelab_runtime::stage::TopicId| topo.producers.iter().find(|p| p.topic == t);
-    let divider = |t| producer(t).map_or(1, |p| p.divider);
     let slowest = topo.producers.iter().map(|p| p.divider).max().unwrap_or(1);
     let mut out = Vec::new();
     let mut windows = Vec::new();
+    // `n` is the injection's index in every host's schedule (its counters), kept as is.
     for (n, i) in sc.inject.iter().enumerate() {
-        let a = Armed::bind(i, fs, &[], divider);
+        let a = armed(i, sc, topo);
+        if after_the_end(&a, end_k) {
+            continue;
+        }
         // A topic's fault is its producer's; a stage's names the stage.
         let stage = match a.topic {
             Some(t) => producer(t).map_or_else(String::new, |p| p.stage.clone()),
@@ -449,7 +486,7 @@ mod tests {
             "plant": { "inject": obs(3, 10, 7) },
             "observer": { "inject": obs(0, 0, 0) },
         });
-        let (r, windows) = reports(&sc, &topo, &rows, Some(&counters));
+        let (r, windows) = reports(&sc, &topo, &rows, Some(&counters), u64::MAX);
         assert_eq!(windows.len(), 2);
         let (c, d) = (&r[0], &r[1]);
         let b = c.bus.as_ref().unwrap();
@@ -493,7 +530,7 @@ mod tests {
                 ..Default::default()
             })
             .collect();
-        let (r, _) = reports(&sc, &topo, &quiet, None);
+        let (r, _) = reports(&sc, &topo, &quiet, None, u64::MAX);
         assert!(!r.is_empty(), "no report of the faults");
         for f in &r {
             assert_eq!(f.detected_data_path_ms, None, "{f:?}");
@@ -501,7 +538,7 @@ mod tests {
             assert_eq!(f.samples.stale_command_samples, 0, "{f:?}");
         }
         // In process: no counters, no counts from them.
-        let (r, _) = reports(&sc, &topo, &rows, None);
+        let (r, _) = reports(&sc, &topo, &rows, None, u64::MAX);
         let b = r[0].bus.as_ref().unwrap();
         assert_eq!(
             (b.rejected_inputs, r[0].samples.stale_command_samples),

@@ -230,6 +230,16 @@ pub fn summary(dir: &Path) -> Value {
     serde_json::from_slice(&read(&dir.join("summary.json"))).unwrap()
 }
 
+/// The `supervisor_events` of summary `s` of kind `event` (e.g. "inject-refused").
+pub fn events<'a>(s: &'a Value, event: &str) -> Vec<&'a Value> {
+    s["supervisor_events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["event"] == event)
+        .collect()
+}
+
 /// A process this test started, stopped however the test ends: a drive's launcher (with its
 /// bus), or a helper process (no bus). It gives access to its [`Child`] (to signal it, take
 /// its pipes, poll it); [`Drive::wait_for_exit`] waits for it.

@@ -778,7 +778,16 @@ fn run_bus(
         .lock()
         .map(|mut v| std::mem::take(&mut *v))
         .unwrap_or_default();
-    let mut info = json!({ "faults_not_made": not_made, "bus": bus_id, "counters": counters, "statistics_missing": stats_missing, "recorder_rejected": rec.rejected, "recorder_late": rec.late, "plan": plan, "plant_down_samples": rec.rebuilt, "plant_down_ranges": rec.rebuilt_ranges, "schedule_start_ns": rec.t0_ns });
+    // The first sample the drive did not make: the plant's end marker's (the run's end, or
+    // where it stopped), else the one after the newest measurement (a plant that died).
+    let end_k = progress
+        .plant_end
+        .get()
+        .copied()
+        .unwrap_or_else(|| progress.next_k.load(Ordering::Relaxed))
+        // Lockstep: a plant killed for good steps on to the end, but made no sample.
+        .min(TraceStream::plant_gone_at(sc).unwrap_or(u64::MAX));
+    let mut info = json!({ "end_k": end_k, "faults_not_made": not_made, "bus": bus_id, "counters": counters, "statistics_missing": stats_missing, "recorder_rejected": rec.rejected, "recorder_late": rec.late, "plan": plan, "plant_down_samples": rec.rebuilt, "plant_down_ranges": rec.rebuilt_ranges, "schedule_start_ns": rec.t0_ns });
     if let Some(b) = bridge_stats {
         info["bridge"] = b;
     }
@@ -1426,16 +1435,16 @@ fn after_the_plant(sc: &mut Scenario) -> Vec<(u64, String)> {
         if !i.kind.downs_stage() || k < gone || the_kill {
             return true;
         }
-        late.push((
-            gone,
-            format!(
-                "{}: not injected: the drive ended at sample {gone}, before the fault's sample {k}",
-                i.spec()
-            ),
-        ));
+        late.push((gone, ended_before(&i.spec(), gone, k)));
         false
     });
     late
+}
+
+/// Why a planned fault was not made when the drive ended at sample `end`, before the fault's
+/// sample `k`, worded as the real-time supervisor words it.
+pub(crate) fn ended_before(spec: &str, end: u64, k: u64) -> String {
+    format!("{spec}: not injected: the drive ended at sample {end}, before the fault's sample {k}")
 }
 
 /// Checks a run's options the way [`run`] does before it creates anything (scenario,
@@ -1762,7 +1771,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
                 gaps,
                 stats: None,
                 processes: json!({}),
-                info: json!({ "deadline_misses": 0 }),
+                info: json!({ "deadline_misses": 0, "end_k": done }),
                 events: Vec::new(),
                 failure: interrupted_here.then(interrupted),
                 hog_latency: Vec::new(),
@@ -1780,8 +1789,14 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     };
     let wall_s = wall.elapsed().as_secs_f64();
     let (mut faults, mut windows) = fault_reports(&sc, &rows, &events);
+    // A bus fault whose first sample the drive never reached (it stopped first, e.g. a killed
+    // plant with `--restart never`) was not made: named with why, as a late kill is, and no
+    // report.
+    let end_k = info["end_k"].as_u64().unwrap_or(sc.samples());
+    let mut not_made = not_made;
+    not_made.extend(crate::bus_faults::not_made(&sc, &topo, end_k));
     let (bus_faults, bus_windows) =
-        crate::bus_faults::reports(&sc, &topo, &rows, info.get("counters"));
+        crate::bus_faults::reports(&sc, &topo, &rows, info.get("counters"), end_k);
     faults.extend(bus_faults);
     windows.extend(bus_windows);
     crate::faults::hog::add_latency(&mut faults, &hog_latency);
