@@ -348,13 +348,13 @@ fn with_restart_never_a_killed_stage_stays_dead_in_lockstep_as_in_real_time() {
 #[test]
 fn with_restart_never_a_killed_plant_ends_the_trace_at_its_kill_as_in_real_time() {
     let _serial = serial();
-    // kyslan-pi at 10 kHz: a kill at 0.05 s is sample 500; the run would end at 2000. No
+    // kyslan-pi at 10 kHz: a kill at 0.05 s is sample 500; the run would end at 5000. No
     // plant produced the samples from the kill on: none is in the trace (no rebuilt
     // `plant_down` rows), each is listed missing with the kill as its cause, and the run
     // exits 0 as a real-time one does (checked by `deterministic`).
     let (rows, s) = deterministic(
         "plantnever",
-        "0.2",
+        "0.5",
         &["--fault", "kill:plant@0.05", "--restart", "never"],
     );
     assert_eq!(rows.len(), 500);
@@ -363,7 +363,7 @@ fn with_restart_never_a_killed_plant_ends_the_trace_at_its_kill_as_in_real_time(
     assert!(s["failure"].is_null(), "{}", s["failure"]);
     assert_eq!(
         (s["samples"].as_u64(), s["samples_missing"].as_u64()),
-        (Some(500), Some(1500))
+        (Some(500), Some(4500))
     );
     let gaps = s["missing_samples"].as_array().unwrap();
     assert_eq!(gaps.len(), 1, "{gaps:?}");
@@ -373,8 +373,24 @@ fn with_restart_never_a_killed_plant_ends_the_trace_at_its_kill_as_in_real_time(
             gaps[0]["to"].as_u64(),
             gaps[0]["part"].as_str()
         ),
-        (Some(500), Some(1999), Some("measurement"))
+        (Some(500), Some(4999), Some("measurement"))
     );
+    // The drive ended at the kill, as a real-time one stops: every host stepped the samples
+    // before it only (the speed loop every 10th), with no stale input. Before, they stepped
+    // on to the end (the plant 5000 samples, its measurements absent), and a plant more
+    // than half a recorder buffer past its kill waited for the recorder and failed the run
+    // ("recorder stopped reading at sample 500").
+    let c = &s["counters"];
+    let stepped = |host: &str| {
+        (
+            c[host]["samples"].as_u64(),
+            c[host]["stale_inputs"].as_u64(),
+        )
+    };
+    assert_eq!(stepped("plant"), (Some(500), Some(0)), "{c}");
+    assert_eq!(stepped("observer"), (Some(500), Some(0)), "{c}");
+    assert_eq!(stepped("current-loop"), (Some(500), Some(0)), "{c}");
+    assert_eq!(stepped("speed-loop"), (Some(50), Some(0)), "{c}");
     assert_eq!(
         gaps[0]["cause"],
         "plant kill:plant@0.05 at sample 500 (fault); the plant had not come back yet"

@@ -440,7 +440,7 @@ fn run_bus(
     )?
     .with_sinks(sinks.clone())
     .with_outer_divider(TraceStream::outer_divider(plan_topo))
-    .with_plant_gone_at(TraceStream::plant_gone_at(sc))
+    .with_plant_gone_at(sc.plant_gone_at())
     .with_timing(if o.timing_csv {
         Some(stream::TimingCsv::create(&out.join("timing.csv"))?)
     } else {
@@ -784,9 +784,7 @@ fn run_bus(
         .plant_end
         .get()
         .copied()
-        .unwrap_or_else(|| progress.next_k.load(Ordering::Relaxed))
-        // Lockstep: a plant killed for good steps on to the end, but made no sample.
-        .min(TraceStream::plant_gone_at(sc).unwrap_or(u64::MAX));
+        .unwrap_or_else(|| progress.next_k.load(Ordering::Relaxed));
     let mut info = json!({ "end_k": end_k, "faults_not_made": not_made, "bus": bus_id, "counters": counters, "statistics_missing": stats_missing, "recorder_rejected": rec.rejected, "recorder_late": rec.late, "plan": plan, "plant_down_samples": rec.rebuilt, "plant_down_ranges": rec.rebuilt_ranges, "schedule_start_ns": rec.t0_ns });
     if let Some(b) = bridge_stats {
         info["bridge"] = b;
@@ -808,9 +806,9 @@ fn run_bus(
         .get("plant")
         .and_then(|p| p["samples"].as_u64())
         .unwrap_or(0);
-    // A plant killed for good in lockstep stepped on to the end, but published samples
-    // before its kill only (`TraceStream::plant_gone_at`).
-    let published = TraceStream::plant_gone_at(sc).unwrap_or(sc.samples());
+    // A plant killed for good in lockstep ended the drive at its kill
+    // (`Scenario::samples_made`).
+    let published = sc.samples_made();
     if let Some(f) = unreceived(&mut gaps, produced, published, rec.stats.rows) {
         failure.get_or_insert(f);
     }
@@ -1419,12 +1417,12 @@ struct Prepared {
     warnings: Vec<String>,
 }
 
-/// A simulated run whose plant is killed for good ([`TraceStream::plant_gone_at`]) ends at
+/// A simulated run whose plant is killed for good ([`Scenario::plant_gone_at`]) ends at
 /// that kill, as a real-time drive stops when its plant dies: the kills and stops planned
 /// after it are taken out of `sc` and returned, each as (the drive's end, why it was not
 /// made), worded as the real-time supervisor words them.
 fn after_the_plant(sc: &mut Scenario) -> Vec<(u64, String)> {
-    let Some(gone) = TraceStream::plant_gone_at(sc) else {
+    let Some(gone) = sc.plant_gone_at() else {
         return Vec::new();
     };
     let fs = sc.rates.sample_hz;
@@ -1742,17 +1740,12 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         bridge,
     } = match o.clock {
         Clock::Inprocess => {
-            let mut rows = drivelab_runtime::stages::try_run_inprocess_until(
+            // A plant killed for good ends the drive at its kill (`Scenario::samples_made`).
+            let rows = drivelab_runtime::stages::try_run_inprocess_until(
                 &sc,
                 drivelab_runtime::service::stop_requested,
             )?;
-            // A plant killed for good produced no sample from its kill on: those rows go, as
-            // the recorder of a lockstep run takes none of them.
-            let gone = TraceStream::plant_gone_at(&sc);
-            let interrupted_here = (rows.len() as u64) < gone.unwrap_or(sc.samples());
-            if let Some(g) = gone {
-                rows.truncate(g as usize);
-            }
+            let interrupted_here = (rows.len() as u64) < sc.samples_made();
             // Rows without a command are listed as the recorder lists them in the other
             // clocks; the samples not done (interrupted, or no plant) are one gap to the end
             // (named below).
@@ -1793,6 +1786,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     // plant with `--restart never`) was not made: named with why, as a late kill is, and no
     // report.
     let end_k = info["end_k"].as_u64().unwrap_or(sc.samples());
+    let made_s = end_k.min(sc.samples()) as f64 / sc.rates.sample_hz;
     let mut not_made = not_made;
     not_made.extend(crate::bus_faults::not_made(&sc, &topo, end_k));
     let (bus_faults, bus_windows) =
@@ -1971,7 +1965,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         // built-in designs are not in `design`).
         "replaced_stages": topo.replaced,
         "wall_time_s": wall_s,
-        "simulated_s_per_wall_s": sc.duration_s / wall_s.max(1e-9),
+        // Of the samples made (a drive that ended early made fewer than the run's).
+        "simulated_s_per_wall_s": made_s / wall_s.max(1e-9),
     });
     if !warnings.is_empty() {
         summary["warnings"] = json!(warnings);
@@ -2008,7 +2003,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     if let Some(c) = info.get("counters") {
         summary["counters"] = c.clone();
         if let Some(ns) = c["plant"]["loop_wall_ns"].as_u64().filter(|&n| n > 0) {
-            summary["loop_simulated_s_per_wall_s"] = json!(sc.duration_s / (ns as f64 * 1e-9));
+            summary["loop_simulated_s_per_wall_s"] = json!(made_s / (ns as f64 * 1e-9));
         }
     } else {
         summary["loop_simulated_s_per_wall_s"] = summary["simulated_s_per_wall_s"].clone();

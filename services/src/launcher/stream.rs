@@ -263,7 +263,7 @@ pub struct TraceStream {
     /// The outer loop's rate divider, when the topology has one: a row's θ_m* is empty once
     /// the speed loop no longer follows the loop's newest reference (it is down).
     outer_divider: Option<u64>,
-    /// The first sample no plant produced ([`TraceStream::plant_gone_at`]).
+    /// The first sample no plant produced ([`Scenario::plant_gone_at`]).
     plant_gone_at: Option<u64>,
     out: Option<CsvTrace>,
     /// `timing.csv`, when asked for.
@@ -384,24 +384,7 @@ impl TraceStream {
         }
     }
 
-    /// A simulated run's first sample that no plant produced (None: every sample has one): that
-    /// of a plant kill whose simulated restart would come after the run's end (`--restart
-    /// never`). The hosts go on to the end, the plant integrating the motor as through any
-    /// kill's downtime, but a plant that never comes back publishes nothing to rebuild that
-    /// downtime from: its samples are missing, as in real time (docs/architecture.md, "Kill
-    /// and stop in lockstep").
-    pub fn plant_gone_at(sc: &Scenario) -> Option<u64> {
-        use drivelab_runtime::inject::{Armed, InjectKind};
-        sc.inject
-            .iter()
-            .filter(|i| i.kind == InjectKind::Kill && i.target == "plant")
-            .map(|i| Armed::bind(i, sc.rates.sample_hz, &["plant"], |_| 1))
-            .filter(|a| a.to_k >= sc.samples())
-            .map(|a| a.from_k)
-            .min()
-    }
-
-    /// Takes no measurement from sample `gone` on ([`TraceStream::plant_gone_at`]): the
+    /// Takes no measurement from sample `gone` on ([`Scenario::plant_gone_at`]): the
     /// trace ends before it and the samples after are listed missing.
     pub fn with_plant_gone_at(mut self, gone: Option<u64>) -> Self {
         self.plant_gone_at = gone;

@@ -1340,6 +1340,27 @@ impl Scenario {
         (self.duration_s * self.rates.sample_hz).round() as u64
     }
 
+    /// Lockstep and in process: the first sample that no plant produces (None: every sample
+    /// has one), that of a kill of the plant in `[[inject]]` whose simulated restart would
+    /// come after the run's end (`--restart never`). The drive ends there, as a real-time
+    /// drive stops when its plant dies (docs/architecture.md, "Kill and stop in lockstep").
+    pub fn plant_gone_at(&self) -> Option<u64> {
+        use crate::inject::{Armed, InjectKind};
+        self.inject
+            .iter()
+            .filter(|i| i.kind == InjectKind::Kill && i.target == "plant")
+            .map(|i| Armed::bind(i, self.rates.sample_hz, &["plant"], |_| 1))
+            .filter(|a| a.to_k >= self.samples())
+            .map(|a| a.from_k)
+            .min()
+    }
+
+    /// The samples a lockstep or in-process drive makes: the run's, or up to the plant's
+    /// kill for good ([`Scenario::plant_gone_at`]).
+    pub fn samples_made(&self) -> u64 {
+        self.plant_gone_at().unwrap_or(self.samples())
+    }
+
     /// Voltage-vector limit V_dc/√3, V.
     pub fn u_max(&self) -> f64 {
         self.inverter.v_dc_v / 3f64.sqrt()

@@ -767,7 +767,12 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
                 } else {
                     Pacing::Realtime
                 },
-                sc.samples(),
+                // Lockstep: up to a kill of the plant for good, where the drive ends.
+                if lockstep {
+                    sc.samples_made()
+                } else {
+                    sc.samples()
+                },
             )
         },
     );

@@ -694,7 +694,8 @@ fn run_stages_until(
         },
         HostConfig {
             warm_up: false,
-            ..HostConfig::for_scenario(sc, Pacing::Lockstep, n)
+            // Up to a kill of the plant for good, where the drive ends.
+            ..HostConfig::for_scenario(sc, Pacing::Lockstep, sc.samples_made())
         },
     );
     host.arm_spares(|name| builtin(name, sc))?;
