@@ -981,15 +981,31 @@ fn a_fault_planned_after_the_drive_stopped_is_named_and_fails_the_run() {
 #[test]
 fn a_bus_fault_planned_after_the_drive_stopped_is_named_and_fails_the_run() {
     let _serial = serial();
+    not_made_after_the_plant_stopped_the_drive("latebusfault", "corrupt:est@0.4:3");
+}
+
+/// Before, a sensor fault planned after a real-time drive stopped was reported as injected
+/// (a report in `faults`) and the run exited 0, though the plant never reached its sample.
+#[test]
+fn a_sensor_fault_planned_after_the_drive_stopped_is_named_and_fails_the_run() {
+    let _serial = serial();
+    not_made_after_the_plant_stopped_the_drive("latesensorfault", "encoder-stuck@0.4:0.01");
+}
+
+/// A real-time run of 0.6 s with `--restart never` whose plant is killed at 0.1 s (the drive
+/// stops there) and `late` is planned at 0.4 s (sample 4000): `late` is an `inject-refused`
+/// event at the drive's end and the one fault not made, the run fails for it, and the
+/// plant's kill is the one report in `faults`.
+fn not_made_after_the_plant_stopped_the_drive(name: &str, late: &str) {
     let (err, s) = run_never_restarted(
-        "latebusfault",
+        name,
         &[
             "--duration",
             "0.6",
             "--fault",
             "kill:plant@0.1",
             "--fault",
-            "corrupt:est@0.4:3",
+            late,
         ],
     );
     let refused = events(&s, "inject-refused");
@@ -999,7 +1015,7 @@ fn a_bus_fault_planned_after_the_drive_stopped_is_named_and_fails_the_run() {
         .as_u64()
         .unwrap();
     let why = format!(
-        "corrupt:est@0.4:3: not injected: the drive ended at sample {end}, before the fault's sample 4000"
+        "{late}: not injected: the drive ended at sample {end}, before the fault's sample 4000"
     );
     assert_eq!(
         (refused[0]["detail"].as_str(), refused[0]["k"].as_u64()),

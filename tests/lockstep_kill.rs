@@ -460,31 +460,48 @@ fn with_restart_never_a_fault_planned_after_the_plants_kill_is_not_made_as_in_re
     }
 }
 
+/// Before, a sensor fault planned after the plant's kill was reported as made (a report in
+/// `faults`, its window past the trace's end) and the run exited 0.
+#[test]
+fn with_restart_never_a_sensor_fault_planned_after_the_plants_kill_is_not_made() {
+    let _serial = serial();
+    // The encoder freeze at sample 1000 never came; the current offset from 300, before the
+    // kill, did.
+    late_not_made_early_made(
+        "latesensor",
+        "encoder-stuck@0.1:0.01",
+        "current-offset:a@0.03:0.5",
+    );
+}
+
 /// Before, a bus fault planned after the plant's kill was reported as made (a report in
 /// `faults` with no window the drive reached) and the run exited 0.
 #[test]
 fn with_restart_never_a_bus_fault_planned_after_the_plants_kill_is_not_made() {
     let _serial = serial();
     // The drop at sample 1000 never came; the delay from 300 to 400, before the kill, did.
-    let why = "drop:cmd@0.1:5: not injected: the drive ended at sample 500, before the fault's sample 1000";
-    let late = [
-        "--fault",
+    late_not_made_early_made(
+        "latebus",
         "drop:cmd@0.1:5",
-        "--fault",
         "delay:current-loop@0.03:0.01:100us",
-    ];
-    for s in not_made_after_the_plants_kill("latebus", &late, why) {
+    );
+}
+
+/// [`not_made_after_the_plants_kill`] with `late` due at sample 1000 and `early` before the
+/// kill: `late` is the fault not made, and the plant's kill and `early` are reported.
+fn late_not_made_early_made(tag: &str, late: &str, early: &str) {
+    let why = format!(
+        "{late}: not injected: the drive ended at sample 500, before the fault's sample 1000"
+    );
+    let args = ["--fault", late, "--fault", early];
+    for s in not_made_after_the_plants_kill(tag, &args, &why) {
         let made: Vec<&str> = s["faults"]
             .as_array()
             .unwrap()
             .iter()
             .map(|f| f["fault"].as_str().unwrap())
             .collect();
-        assert_eq!(
-            made,
-            ["kill:plant@0.05", "delay:current-loop@0.03:0.01:100us"],
-            "{s}"
-        );
+        assert_eq!(made, ["kill:plant@0.05", early], "{s}");
     }
 }
 

@@ -5,7 +5,7 @@
 //! (`drivelab_runtime::inject`); see docs/architecture.md, "Fault model".
 
 use crate::faults::FaultSpec;
-use crate::launcher::FaultReport;
+use crate::launcher::{DriveEnd, FaultReport};
 use anyhow::{anyhow, bail, Result};
 use drivelab_runtime::config::Scenario;
 use drivelab_runtime::inject::{
@@ -147,24 +147,21 @@ fn armed(i: &Inject, sc: &Scenario, topo: &TopologyPlan) -> Armed {
     Armed::bind(i, sc.rates.sample_hz, &[], divider)
 }
 
-/// True when `a` is a bus fault (not a simulated kill or stop) due at or after sample
-/// `end_k`, which the drive did not reach: it was never applied.
-fn after_the_end(a: &Armed, end_k: u64) -> bool {
-    !a.kind.downs_stage() && a.from_k >= end_k
+/// True when `a` is a bus fault (not a simulated kill or stop) due at or after the drive's
+/// `end`, which never reached it: it was never applied.
+fn after_the_end(a: &Armed, end: DriveEnd) -> bool {
+    !a.kind.downs_stage() && end.before(a.from_k)
 }
 
-/// The bus faults of `sc` that were not made because the drive ended at sample `end_k`
-/// before their first sample (a killed plant with `--restart never` stops it), each as
-/// (`end_k`, why), worded as the supervisor words a kill planned after the drive's end.
-pub fn not_made(sc: &Scenario, topo: &TopologyPlan, end_k: u64) -> Vec<(u64, String)> {
+/// The bus faults of `sc` that were not made because the drive ended at `end` before their
+/// first sample (a killed plant with `--restart never` stops it), each as (the drive's end,
+/// why) ([`DriveEnd::not_reached`]).
+pub fn not_made(sc: &Scenario, topo: &TopologyPlan, end: DriveEnd) -> Vec<(u64, String)> {
     sc.inject
         .iter()
         .map(|i| (i, armed(i, sc, topo)))
-        .filter(|(_, a)| after_the_end(a, end_k))
-        .map(|(i, a)| {
-            let why = crate::launcher::ended_before(&i.spec(), end_k, a.from_k);
-            (end_k, why)
-        })
+        .filter(|(_, a)| after_the_end(a, end))
+        .filter_map(|(i, a)| end.not_reached(&i.spec(), a.from_k))
         .collect()
 }
 
@@ -190,14 +187,14 @@ pub struct BusFigures {
 
 /// The reports of the scenario's bus faults from the trace `rows` and the per-stage
 /// `counters` (`summary.json → counters`; None in process), and the windows to shade on the
-/// plots (from, to in s, label). The drive ended at sample `end_k`: a bus fault due after it
-/// was not made ([`not_made`]) and gets none.
+/// plots (from, to in s, label). The drive ended at `end`: a bus fault due after it was not
+/// made ([`not_made`]) and gets none.
 pub fn reports(
     sc: &Scenario,
     topo: &TopologyPlan,
     rows: &[TraceRow],
     counters: Option<&serde_json::Value>,
-    end_k: u64,
+    end: DriveEnd,
 ) -> (Vec<FaultReport>, Vec<(f64, f64, String)>) {
     let fs = sc.rates.sample_hz;
     let ms = |dk: u64| dk as f64 / fs * 1e3;
@@ -209,7 +206,7 @@ pub fn reports(
     // `n` is the injection's index in every host's schedule (its counters), kept as is.
     for (n, i) in sc.inject.iter().enumerate() {
         let a = armed(i, sc, topo);
-        if after_the_end(&a, end_k) {
+        if after_the_end(&a, end) {
             continue;
         }
         // A topic's fault is its producer's; a stage's names the stage.
@@ -486,7 +483,7 @@ mod tests {
             "plant": { "inject": obs(3, 10, 7) },
             "observer": { "inject": obs(0, 0, 0) },
         });
-        let (r, windows) = reports(&sc, &topo, &rows, Some(&counters), u64::MAX);
+        let (r, windows) = reports(&sc, &topo, &rows, Some(&counters), DriveEnd::NEVER);
         assert_eq!(windows.len(), 2);
         let (c, d) = (&r[0], &r[1]);
         let b = c.bus.as_ref().unwrap();
@@ -530,7 +527,7 @@ mod tests {
                 ..Default::default()
             })
             .collect();
-        let (r, _) = reports(&sc, &topo, &quiet, None, u64::MAX);
+        let (r, _) = reports(&sc, &topo, &quiet, None, DriveEnd::NEVER);
         assert!(!r.is_empty(), "no report of the faults");
         for f in &r {
             assert_eq!(f.detected_data_path_ms, None, "{f:?}");
@@ -538,7 +535,7 @@ mod tests {
             assert_eq!(f.samples.stale_command_samples, 0, "{f:?}");
         }
         // In process: no counters, no counts from them.
-        let (r, _) = reports(&sc, &topo, &rows, None, u64::MAX);
+        let (r, _) = reports(&sc, &topo, &rows, None, DriveEnd::NEVER);
         let b = r[0].bus.as_ref().unwrap();
         assert_eq!(
             (b.rejected_inputs, r[0].samples.stale_command_samples),

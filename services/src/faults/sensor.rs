@@ -5,7 +5,7 @@
 
 use super::window::{window, FaultWindow};
 use super::FaultSpec;
-use crate::launcher::FaultReport;
+use crate::launcher::{DriveEnd, FaultReport};
 use anyhow::{anyhow, bail, Result};
 use drivelab_runtime::config::Scenario;
 use drivelab_runtime::sensor_faults::{Phase, SensorFault};
@@ -69,13 +69,26 @@ pub fn add_to_scenario(specs: &[FaultSpec], sc: &mut Scenario) -> Result<()> {
 /// Samples compared after a lasting fault (a current offset) and before it: 0.1 s.
 const COMPARE_S: f64 = 0.1;
 
-/// One report per `[[sensor_fault]]` of `sc`: the trace before the fault against the trace
+/// The `[[sensor_fault]]`s of `sc` that were not made because the drive ended at `end`
+/// before their first sample (a killed plant with `--restart never` stops it), each as
+/// (the drive's end, why), as a bus fault's ([`DriveEnd::not_reached`]).
+pub fn not_made(sc: &Scenario, end: DriveEnd) -> Vec<(u64, String)> {
+    let fs = sc.rates.sample_hz;
+    sc.sensor_fault
+        .iter()
+        .filter_map(|f| end.not_reached(&f.spec(), f.samples(fs).0))
+        .collect()
+}
+
+/// One report per `[[sensor_fault]]` of `sc` that the drive, which ended at `end`, reached
+/// (the others were not made: [`not_made`]): the trace before the fault against the trace
 /// during it (an encoder freeze) or just after it (an offset, which lasts to the end).
-pub fn reports(sc: &Scenario, rows: &[TraceRow]) -> Vec<FaultReport> {
+pub fn reports(sc: &Scenario, rows: &[TraceRow], end: DriveEnd) -> Vec<FaultReport> {
     let fs = sc.rates.sample_hz;
     let n = sc.samples();
     sc.sensor_fault
         .iter()
+        .filter(|f| !end.before(f.samples(fs).0))
         .map(|f| {
             let (k0, k1) = f.samples(fs);
             let k1 = k1.min(n).min(if k1 == u64::MAX {

@@ -1445,6 +1445,32 @@ pub(crate) fn ended_before(spec: &str, end: u64, k: u64) -> String {
     format!("{spec}: not injected: the drive ended at sample {end}, before the fault's sample {k}")
 }
 
+/// Where a drive ended: the first sample it did not make (docs/architecture.md, "Fault
+/// model").
+#[derive(Debug, Clone, Copy)]
+pub struct DriveEnd {
+    /// The first sample the drive did not make.
+    pub k: u64,
+}
+
+impl DriveEnd {
+    /// A drive that made every sample there is (unit tests).
+    #[cfg(test)]
+    pub(crate) const NEVER: DriveEnd = DriveEnd { k: u64::MAX };
+
+    /// Whether a fault whose first sample is `k` came after the drive's end.
+    pub fn before(&self, k: u64) -> bool {
+        k >= self.k
+    }
+
+    /// The planned fault `spec` whose first sample is `k`, when the drive never reached it:
+    /// (the drive's end, why it was not made), worded as [`ended_before`].
+    pub fn not_reached(&self, spec: &str, k: u64) -> Option<(u64, String)> {
+        self.before(k)
+            .then(|| (self.k, ended_before(spec, self.k, k)))
+    }
+}
+
 /// Checks a run's options the way [`run`] does before it creates anything (scenario,
 /// duration, topology, faults against the run's stages and duration, expectations), without
 /// creating anything or touching a bus, and returns the configuration warnings the run would
@@ -1782,19 +1808,21 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     };
     let wall_s = wall.elapsed().as_secs_f64();
     let (mut faults, mut windows) = fault_reports(&sc, &rows, &events);
-    // A bus fault whose first sample the drive never reached (it stopped first, e.g. a killed
-    // plant with `--restart never`) was not made: named with why, as a late kill is, and no
-    // report.
+    // A bus or sensor fault whose first sample the drive never reached (it stopped first,
+    // e.g. a killed plant with `--restart never`) was not made: named with why, as a late
+    // kill is, and no report.
     let end_k = info["end_k"].as_u64().unwrap_or(sc.samples());
+    let end = DriveEnd { k: end_k };
     let made_s = end_k.min(sc.samples()) as f64 / sc.rates.sample_hz;
     let mut not_made = not_made;
-    not_made.extend(crate::bus_faults::not_made(&sc, &topo, end_k));
+    not_made.extend(crate::bus_faults::not_made(&sc, &topo, end));
+    not_made.extend(crate::faults::sensor::not_made(&sc, end));
     let (bus_faults, bus_windows) =
-        crate::bus_faults::reports(&sc, &topo, &rows, info.get("counters"), end_k);
+        crate::bus_faults::reports(&sc, &topo, &rows, info.get("counters"), end);
     faults.extend(bus_faults);
     windows.extend(bus_windows);
     crate::faults::hog::add_latency(&mut faults, &hog_latency);
-    for r in crate::faults::sensor::reports(&sc, &rows) {
+    for r in crate::faults::sensor::reports(&sc, &rows, end) {
         // Shaded on the plots like the other faults.
         if let Some(w) = &r.window {
             let t = |k: u64| k as f64 / sc.rates.sample_hz;
