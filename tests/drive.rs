@@ -389,6 +389,82 @@ fn stopped_by(sig: libc::c_int, name: &str, clock: &str, seconds: u64) {
     );
 }
 
+/// Before, a lockstep or in-process drive stopped by Ctrl-C listed the kills, stops, bus and
+/// sensor faults planned after the interrupt in `faults` as made (simulated at samples it
+/// never reached), and a real-time one listed its kills and stops nowhere.
+#[test]
+fn faults_planned_after_an_interrupt_are_not_made_and_named() {
+    let _serial = serial();
+    // In process has no bus to watch: 300 s take tens of seconds here (see `stopped_by`).
+    for (clock, seconds) in [("lockstep", 30.0), ("inprocess", 300.0), ("realtime", 30.0)] {
+        let name = format!("intfaults-{clock}");
+        let (dir, bus) = (scratch(&name), bus_id(&name));
+        let out = dir.join("run");
+        let at = |share: f64| seconds * share;
+        let planned = [
+            "encoder-stuck@0.01:0.01".to_string(),
+            format!("kill:observer@{}", at(0.6)),
+            format!("stop:speed-loop@{}:0.05", at(0.7)),
+            format!("drop:cmd@{}:5", at(0.8)),
+            format!("encoder-stuck@{}:0.01", at(0.9)),
+        ];
+        let duration = seconds.to_string();
+        let mut args = vec!["--duration", &duration, "--clock", clock];
+        for f in &planned {
+            args.extend(["--fault", f.as_str()]);
+        }
+        let child = Drive::start(&bus, &out, &args);
+        if clock == "inprocess" {
+            std::thread::sleep(Duration::from_millis(1500));
+        } else {
+            wait_for_progress(&bus, 1);
+        }
+        // SAFETY: signalling a child process we spawned.
+        unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
+        let o = child.wait_for_exit(Duration::from_secs(60), &format!("drivelab {name}"));
+        let err = String::from_utf8_lossy(&o.stderr).into_owned();
+        // The interrupt fails the run, as it did: the faults it kept from being made add no
+        // failure of their own.
+        assert_eq!(o.status.code(), Some(1), "{clock}: {err}");
+        assert_clean(&bus);
+        let s = summary(&out);
+        assert_eq!(
+            s["failure"], "interrupted (SIGINT): drive stopped",
+            "{clock}: {s}"
+        );
+        // Wherever the signal came: each planned fault is made (a report at a sample the
+        // drive reached) or not made for the interrupt (one line), never both, never neither.
+        // The drive ended where the recorder's last measurement says: the last gap's start.
+        let end = s["missing_samples"].as_array().unwrap().last().unwrap()["from"]
+            .as_u64()
+            .unwrap();
+        let not_made: Vec<&str> = s["faults_not_made"]
+            .as_array()
+            .map(|l| l.iter().map(|w| w.as_str().unwrap()).collect())
+            .unwrap_or_default();
+        for f in &planned {
+            let made: Vec<u64> = s["faults"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .filter(|r| r["fault"] == f.as_str())
+                .map(|r| r["injected_k"].as_u64().unwrap())
+                .collect();
+            let prefix = format!("{f}: not injected: the drive was interrupted at sample {end}, before the fault's sample ");
+            let named = not_made.iter().filter(|w| w.starts_with(&prefix)).count();
+            assert!(
+                (made.len(), named) == (1, 0) && made[0] < end || (made.len(), named) == (0, 1),
+                "{clock}: {f}: made at {made:?}, named {named} times, drive ended at {end}: {s}"
+            );
+        }
+        assert_eq!(
+            not_made.len(),
+            events(&s, "inject-refused").len(),
+            "{clock}: {s}"
+        );
+    }
+}
+
 #[test]
 fn plant_replay_matches_the_closed_form_locked_rotor_response() {
     let _serial = serial();

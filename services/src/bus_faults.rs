@@ -147,15 +147,18 @@ fn armed(i: &Inject, sc: &Scenario, topo: &TopologyPlan) -> Armed {
     Armed::bind(i, sc.rates.sample_hz, &[], divider)
 }
 
-/// True when `a` is a bus fault (not a simulated kill or stop) due at or after the drive's
-/// `end`, which never reached it: it was never applied.
+/// True when `a` is due at or after the drive's `end`, which never reached it: a bus fault,
+/// or a simulated kill or stop of a drive a stop signal interrupted (a drive that ended at a
+/// plant's kill had its late kills and stops taken out of the scenario, and ended at that
+/// kill's own sample).
 fn after_the_end(a: &Armed, end: DriveEnd) -> bool {
-    !a.kind.downs_stage() && end.before(a.from_k)
+    (!a.kind.downs_stage() || end.interrupted) && end.before(a.from_k)
 }
 
-/// The bus faults of `sc` that were not made because the drive ended at `end` before their
-/// first sample (a killed plant with `--restart never` stops it), each as (the drive's end,
-/// why) ([`DriveEnd::not_reached`]).
+/// The injections of `sc` (bus faults; simulated kills and stops when interrupted) that were
+/// not made because the drive ended at `end` before their first sample (a killed plant with
+/// `--restart never`, a stop signal), each as (the drive's end, why)
+/// ([`DriveEnd::not_reached`]).
 pub fn not_made(sc: &Scenario, topo: &TopologyPlan, end: DriveEnd) -> Vec<(u64, String)> {
     sc.inject
         .iter()
@@ -187,7 +190,7 @@ pub struct BusFigures {
 
 /// The reports of the scenario's bus faults from the trace `rows` and the per-stage
 /// `counters` (`summary.json → counters`; None in process), and the windows to shade on the
-/// plots (from, to in s, label). The drive ended at `end`: a bus fault due after it was not
+/// plots (from, to in s, label). The drive ended at `end`: an injection due after it was not
 /// made ([`not_made`]) and gets none.
 pub fn reports(
     sc: &Scenario,

@@ -70,7 +70,7 @@ pub fn add_to_scenario(specs: &[FaultSpec], sc: &mut Scenario) -> Result<()> {
 const COMPARE_S: f64 = 0.1;
 
 /// The `[[sensor_fault]]`s of `sc` that were not made because the drive ended at `end`
-/// before their first sample (a killed plant with `--restart never` stops it), each as
+/// before their first sample (a killed plant with `--restart never`, a stop signal), each as
 /// (the drive's end, why), as a bus fault's ([`DriveEnd::not_reached`]).
 pub fn not_made(sc: &Scenario, end: DriveEnd) -> Vec<(u64, String)> {
     let fs = sc.rates.sample_hz;

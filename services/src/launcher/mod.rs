@@ -1445,18 +1445,50 @@ pub(crate) fn ended_before(spec: &str, end: u64, k: u64) -> String {
     format!("{spec}: not injected: the drive ended at sample {end}, before the fault's sample {k}")
 }
 
-/// Where a drive ended: the first sample it did not make (docs/architecture.md, "Fault
-/// model").
+/// The kills and stops of a real-time `plan` due at or after the interrupted drive's `end`
+/// that were not sent (no `inject` event of their service from their sample on), each as
+/// (the drive's end, why) ([`DriveEnd::not_reached`]).
+fn interrupted_kills(
+    plan: &[crate::faults::Fault],
+    events: &[supervisor::SupEvent],
+    end: DriveEnd,
+    fs: f64,
+) -> Vec<(u64, String)> {
+    plan.iter()
+        .filter_map(|f| {
+            let k = (f.at_s * fs).round() as u64;
+            let sent = events.iter().any(|e| {
+                matches!(
+                    e.kind,
+                    supervisor::EventKind::Inject {
+                        monitor_pid: None,
+                        ..
+                    }
+                ) && e.service == f.service
+                    && e.k >= k
+            });
+            (!sent).then(|| end.not_reached(&f.spec(), k)).flatten()
+        })
+        .collect()
+}
+
+/// Where a drive ended: the first sample it did not make, and whether a stop signal ended it
+/// there (docs/architecture.md, "Fault model").
 #[derive(Debug, Clone, Copy)]
 pub struct DriveEnd {
     /// The first sample the drive did not make.
     pub k: u64,
+    /// A stop signal ended it before the run's samples were made.
+    pub interrupted: bool,
 }
 
 impl DriveEnd {
     /// A drive that made every sample there is (unit tests).
     #[cfg(test)]
-    pub(crate) const NEVER: DriveEnd = DriveEnd { k: u64::MAX };
+    pub(crate) const NEVER: DriveEnd = DriveEnd {
+        k: u64::MAX,
+        interrupted: false,
+    };
 
     /// Whether a fault whose first sample is `k` came after the drive's end.
     pub fn before(&self, k: u64) -> bool {
@@ -1464,10 +1496,17 @@ impl DriveEnd {
     }
 
     /// The planned fault `spec` whose first sample is `k`, when the drive never reached it:
-    /// (the drive's end, why it was not made), worded as [`ended_before`].
+    /// (the drive's end, why it was not made), worded as [`ended_before`], or as interrupted.
     pub fn not_reached(&self, spec: &str, k: u64) -> Option<(u64, String)> {
-        self.before(k)
-            .then(|| (self.k, ended_before(spec, self.k, k)))
+        let end = self.k;
+        self.before(k).then(|| {
+            let why = if self.interrupted {
+                format!("{spec}: not injected: the drive was interrupted at sample {end}, before the fault's sample {k}")
+            } else {
+                ended_before(spec, end, k)
+            };
+            (end, why)
+        })
     }
 }
 
@@ -1808,15 +1847,22 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     };
     let wall_s = wall.elapsed().as_secs_f64();
     let (mut faults, mut windows) = fault_reports(&sc, &rows, &events);
-    // A bus or sensor fault whose first sample the drive never reached (it stopped first,
-    // e.g. a killed plant with `--restart never`) was not made: named with why, as a late
-    // kill is, and no report.
+    // A bus or sensor fault whose first sample the drive never reached (it stopped first: a
+    // killed plant with `--restart never`, a stop signal) was not made: named with why, as a
+    // late kill is, and no report. So is a kill or stop a stop signal came before.
     let end_k = info["end_k"].as_u64().unwrap_or(sc.samples());
-    let end = DriveEnd { k: end_k };
+    let end = DriveEnd {
+        k: end_k,
+        interrupted: crate::common::stop_requested() && end_k < sc.samples_made(),
+    };
     let made_s = end_k.min(sc.samples()) as f64 / sc.rates.sample_hz;
     let mut not_made = not_made;
     not_made.extend(crate::bus_faults::not_made(&sc, &topo, end));
     not_made.extend(crate::faults::sensor::not_made(&sc, end));
+    if end.interrupted && o.clock == Clock::Realtime {
+        // The supervisor stopped on the signal with the rest of the plan not sent.
+        not_made.extend(interrupted_kills(&plan, &events, end, sc.rates.sample_hz));
+    }
     let (bus_faults, bus_windows) =
         crate::bus_faults::reports(&sc, &topo, &rows, info.get("counters"), end);
     faults.extend(bus_faults);
@@ -1832,7 +1878,12 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     }
     // After the reports: these are no signals, the reports above already cover them.
     let mut events = events;
-    events.extend(supervisor::simulated_events(&sc, &topo));
+    // (Not those a stop signal came before: they are not made, below.)
+    events.extend(
+        supervisor::simulated_events(&sc, &topo)
+            .into_iter()
+            .filter(|e| !(end.interrupted && end.before(e.k))),
+    );
     let mut info = info;
     for (k, reason) in not_made {
         if let Some(list) = info["faults_not_made"].as_array_mut() {
