@@ -1613,10 +1613,15 @@ impl<T: Transport> Host<T> {
             if k == k_start {
                 loop_start = now_ns();
             }
-            if self.stopping() && k < n && (self.stop_without_end)() {
+            // One read of the stop flag for both decisions: a stop signal from outside that
+            // landed between two reads would have been taken for the drive's own stop, and
+            // the end marker forwarded would have ended the whole drive (its sender is
+            // stored before the flag, so a flag read as set has it).
+            let stopping = self.stopping();
+            if stopping && k < n && (self.stop_without_end)() {
                 break;
             }
-            if self.stopping() || k == n {
+            if stopping || k == n {
                 let hdr = Header {
                     k,
                     flags: FLAG_END,
@@ -2626,6 +2631,41 @@ mod tests {
         assert_eq!(reads as u64, n, "each command once: {events:?}");
         let c = &host.stages[0].counters;
         assert_eq!((c.samples, c.late_commands, c.stale_inputs), (n, 0, 0));
+    }
+
+    /// A stop signal from outside (`stop_without_end`) that lands while the source is
+    /// deciding at a deadline: the stop flag is read once there, so the source never takes
+    /// it for the drive's own stop and forwards no end marker (which would end the whole
+    /// drive). Here the flag turns set right after its first read.
+    #[test]
+    fn a_stop_from_outside_that_lands_at_a_deadline_sends_no_end_marker() {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        use std::sync::Arc;
+        let sc = scenario();
+        let stages: Vec<Box<dyn Stage>> = vec![Box::new(PlantStage::new(&sc))];
+        let producers = [
+            (TopicId::Cmd, 1, false),
+            (TopicId::Meas, 1, true),
+            (TopicId::Truth, 1, true),
+        ];
+        let mut host = Host::new(stages, &producers, Script::default(), config(&sc));
+        let reads = Arc::new(AtomicUsize::new(0));
+        let r = reads.clone();
+        host.stop_when(move || r.fetch_add(1, Ordering::SeqCst) >= 1);
+        host.stop_without_end_when(|| true);
+        host.run().unwrap();
+        assert!(
+            reads.load(Ordering::SeqCst) >= 2,
+            "the flag was read once only"
+        );
+        let ends: Vec<(TopicId, u64)> = host
+            .transport
+            .sent
+            .iter()
+            .filter(|m| m.hdr().is_end())
+            .map(|m| (m.topic(), m.hdr().k))
+            .collect();
+        assert!(ends.is_empty(), "end markers sent: {ends:?}");
     }
 
     /// The speed loop's reference of sample 0 is the one the current loop expects up to
