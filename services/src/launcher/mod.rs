@@ -1445,31 +1445,38 @@ pub(crate) fn ended_before(spec: &str, end: u64, k: u64) -> String {
     format!("{spec}: not injected: the drive ended at sample {end}, before the fault's sample {k}")
 }
 
-/// The kills and stops of a real-time `plan` due at or after the interrupted drive's `end`
-/// that were not sent (no `inject` event of their service from their sample on), each as
-/// (the drive's end, why) ([`DriveEnd::not_reached`]).
+/// The kills, stops and hogs of a real-time plan due at or after the interrupted drive's
+/// `end` that were not made (no `inject` event of their service from their sample on, no
+/// `hog` event of theirs), each as (the drive's end, why) ([`DriveEnd::not_reached`]).
 fn interrupted_kills(
     plan: &[crate::faults::Fault],
+    hogs: &[crate::faults::hog::Hog],
     events: &[supervisor::SupEvent],
     end: DriveEnd,
     fs: f64,
 ) -> Vec<(u64, String)> {
-    plan.iter()
-        .filter_map(|f| {
-            let k = (f.at_s * fs).round() as u64;
-            let sent = events.iter().any(|e| {
-                matches!(
-                    e.kind,
-                    supervisor::EventKind::Inject {
-                        monitor_pid: None,
-                        ..
-                    }
-                ) && e.service == f.service
-                    && e.k >= k
-            });
-            (!sent).then(|| end.not_reached(&f.spec(), k)).flatten()
-        })
-        .collect()
+    let kills = plan.iter().filter_map(|f| {
+        let k = (f.at_s * fs).round() as u64;
+        let sent = events.iter().any(|e| {
+            matches!(
+                e.kind,
+                supervisor::EventKind::Inject {
+                    monitor_pid: None,
+                    ..
+                }
+            ) && e.service == f.service
+                && e.k >= k
+        });
+        (!sent).then(|| end.not_reached(&f.spec(), k)).flatten()
+    });
+    let hogs = hogs.iter().filter_map(|h| {
+        let started = events
+            .iter()
+            .any(|e| matches!(&e.kind, supervisor::EventKind::Hog { hog, .. } if hog == h));
+        let k = (h.at_s * fs).round() as u64;
+        (!started).then(|| end.not_reached(&h.spec(), k)).flatten()
+    });
+    kills.chain(hogs).collect()
 }
 
 /// Where a drive ended: the first sample it did not make, and whether a stop signal ended it
@@ -1861,7 +1868,13 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     not_made.extend(crate::faults::sensor::not_made(&sc, end));
     if end.interrupted && o.clock == Clock::Realtime {
         // The supervisor stopped on the signal with the rest of the plan not sent.
-        not_made.extend(interrupted_kills(&plan, &events, end, sc.rates.sample_hz));
+        not_made.extend(interrupted_kills(
+            &plan,
+            &hogs,
+            &events,
+            end,
+            sc.rates.sample_hz,
+        ));
     }
     let (bus_faults, bus_windows) =
         crate::bus_faults::reports(&sc, &topo, &rows, info.get("counters"), end);
