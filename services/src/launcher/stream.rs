@@ -621,9 +621,7 @@ impl TraceStream {
         }
         if let Err(e) = self.sinks.row(&row, m.hdr.t_pub_ns) {
             drop(self.sinks.take_mcap());
-            self.write_errors.push(format!(
-                "{e:#}; trace.mcap ends before sample {k}, without its index"
-            ));
+            self.write_errors.push(mcap_cut(&e, k));
         }
         self.stats.count(&row);
         if self.keep.keeps(k) {
@@ -704,14 +702,20 @@ pub fn write_whole(
     for r in rows {
         if let Err(e) = sinks.row(r, 0) {
             drop(sinks.take_mcap());
-            errors.push(format!(
-                "{e:#}; trace.mcap ends before sample {}, without its index",
-                r.k
-            ));
+            errors.push(mcap_cut(&e, r.k));
             break;
         }
     }
     Ok((stats, (!errors.is_empty()).then(|| errors.join("; "))))
+}
+
+/// Why trace.mcap stops at sample `k`: write error `e`. The rows of the chunk it was filling
+/// were never written, so it ends before `k`, and perhaps well before it.
+fn mcap_cut(e: &anyhow::Error, k: u64) -> String {
+    format!(
+        "{e:#}; trace.mcap ends before sample {k} (the samples of its unfinished chunk, up to {} MiB of rows before it, are lost with it), without its index",
+        crate::trace_mcap::CHUNK_BYTES >> 20
+    )
 }
 
 /// Lists samples `from..=to` of `gaps` (in order, each up to `to`) again: their measurement
