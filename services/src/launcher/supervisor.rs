@@ -661,10 +661,7 @@ pub(super) fn supervise(
         .map(|f| (f.spec(), f.at_s))
         .chain(hogs[next_hog..].iter().map(|h| (h.spec(), h.at_s)));
     for (spec, at_s) in late {
-        let reason = format!(
-            "{spec}: not injected: the drive ended at sample {k_end}, before the fault's sample {}",
-            (at_s * fs).round() as u64
-        );
+        let reason = super::ended_before(&spec, k_end, (at_s * fs).round() as u64);
         not_made(progress, reason.clone());
         log(events, EventKind::InjectRefused { reason }, "-", "-");
     }
