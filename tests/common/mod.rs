@@ -425,8 +425,12 @@ pub fn wait_for_view(
         )
     };
     // The launcher refuses a bus with a live node on it: join only once it has started its
-    // first stage host, past that check.
-    while processes_on_bus(bus).len() < 2 {
+    // first stage host, past that check. A child it has forked and not yet exec'd (a hog's
+    // privilege check, an executable asked to describe itself) shows the launcher's own
+    // command line, so a `drivelab run` line does not count: counting it, the test joined
+    // before the check and the drive refused the bus.
+    let launcher = |p: &String| p.split_whitespace().nth(2) == Some("run");
+    while processes_on_bus(bus).iter().all(launcher) {
         watchdog();
         std::thread::sleep(Duration::from_millis(5));
     }
