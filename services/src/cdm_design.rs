@@ -101,10 +101,10 @@ pub fn run(a: &CdmArgs) -> Result<()> {
     if a.json {
         crate::outln!(
             "{}",
-            serde_json::to_string_pretty(&json_of(&d, fw.as_ref())?)?
+            serde_json::to_string_pretty(&json_of(&d, m.psi_pm_wb, fw.as_ref())?)?
         );
     } else {
-        crate::out!("{}", render(&a.motor, &d));
+        crate::out!("{}", render(&a.motor, &d, m.psi_pm_wb));
         if let Some(f) = &fw {
             crate::out!("{}", render_fw(f));
         }
@@ -112,12 +112,13 @@ pub fn run(a: &CdmArgs) -> Result<()> {
     Ok(())
 }
 
-/// The design as JSON (SI units): the section IV design with its sampled loop's poles
-/// (`sampled_both`, ln(z)/T_u as [re, im] in rad/s, as the text prints them), and with
-/// `fw` the section III design beside it (`{"cdm": …, "flux_weakening": …}`).
-fn json_of(d: &CdmDesign, fw: Option<&FwDesign>) -> Result<serde_json::Value> {
+/// The design as JSON (SI units): the section IV design with its sampled loop's poles for a
+/// motor of flux `k_e_wb` (`sampled_both`, ln(z)/T_u as [re, im] in rad/s, as the text
+/// prints them), and with `fw` the section III design beside it (`{"cdm": …,
+/// "flux_weakening": …}`).
+fn json_of(d: &CdmDesign, k_e_wb: f64, fw: Option<&FwDesign>) -> Result<serde_json::Value> {
     let mut cdm = serde_json::to_value(d)?;
-    cdm["sampled_both"] = serde_json::json!(polar::cdm_sampled_poles(d));
+    cdm["sampled_both"] = serde_json::json!(polar::cdm_sampled_poles(d, k_e_wb));
     Ok(match fw {
         Some(f) => serde_json::json!({ "cdm": cdm, "flux_weakening": f }),
         None => cdm,
@@ -298,7 +299,7 @@ fn short_floats(text: &str) -> String {
 }
 
 /// The text printout of a design.
-pub fn render(motor: &str, d: &CdmDesign) -> String {
+pub fn render(motor: &str, d: &CdmDesign, k_e_wb: f64) -> String {
     let mut o = String::new();
     let us = |s: f64| s * 1e6;
     let _ = writeln!(
@@ -370,10 +371,10 @@ pub fn render(motor: &str, d: &CdmDesign) -> String {
         "  K_I12 = a_0·L/(−V_ao·cos δ_o) = {} rad/(A·s)   (eq. 31)",
         d.k_i12
     );
-    let sampled = polar::cdm_sampled_poles(d);
+    let sampled = polar::cdm_sampled_poles(d, k_e_wb);
     let _ = writeln!(
         o,
-        "sampled loop at 0 rpm as it runs (ZOH, one-sample delay, measured currents), poles ln(z)/T_u in rad/s: C_21 and C_12 together: {}{}",
+        "sampled loop at 0 rpm as it runs (ZOH, one-sample delay, measured currents, δ_d linearised at K_e = {k_e_wb} Wb), poles ln(z)/T_u in rad/s: C_21 and C_12 together: {}{}",
         poles(&sampled),
         unstable(&sampled)
     );
@@ -547,7 +548,7 @@ mod tests {
         let vmax = 470.0 / 3f64.sqrt();
         let sampled = |tu_s: f64, tau12_s: Option<f64>| {
             let d = CdmDesign::new(m.r_ohm, l, tu_s, vmax, 100.0, 0.0, tau12_s);
-            render("miyajima", &d)
+            render("miyajima", &d, m.psi_pm_wb)
                 .lines()
                 .filter(|l| l.starts_with("sampled loop at 0 rpm as it runs"))
                 .map(str::to_string)
@@ -560,7 +561,7 @@ mod tests {
             "{paper:?}"
         );
         let d = CdmDesign::new(m.r_ohm, l, 1e-4, vmax, 100.0, 0.0, None);
-        let poles = &json_of(&d, None).unwrap()["sampled_both"];
+        let poles = &json_of(&d, m.psi_pm_wb, None).unwrap()["sampled_both"];
         assert_eq!(poles.as_array().map(Vec::len), Some(6), "{poles}");
         assert!(poles[0][0].as_f64().unwrap() < 0.0, "{poles}");
         let slow = sampled(4e-4, Some(1e-3));

@@ -411,6 +411,10 @@ pub struct SampledLoop {
     pub measured: usize,
     /// Written input: 0 V_a, 1 δ.
     pub input: usize,
+    /// Added to the written input from the same sample's measured (i_d, i_q), per ampere:
+    /// a static term the law adds beside the controller (section IV's phase δ_d,
+    /// linearised); zero for none.
+    pub direct: [f64; 2],
 }
 
 /// Closed-loop poles (z-plane) of current loops linearised at the input u_o = (V_ao, δ_o)
@@ -464,6 +468,9 @@ pub fn sampled_poles(
             LoopController::Pid(g) => (g.q2, g.k_i()),
         };
         c[(u, y)] = -q2;
+        for (j, g) in l.direct.iter().enumerate() {
+            c[(u, j)] += g;
+        }
         c[(u, k)] = 1.0;
         c[(k, k)] = 1.0;
         c[(k, y)] = -k_i * ts;
@@ -506,38 +513,61 @@ pub fn fw_sampled_poles(
         c: LoopController::Pid(*g_delta),
         measured: 1,
         input: 1,
+        direct: [0.0; 2],
     }];
     if let Some(g) = g_v {
         loops.push(SampledLoop {
             c: LoopController::Pid(*g),
             measured: 0,
             input: 0,
+            direct: [0.0; 2],
         });
     }
     sampled_poles(md, [v_ao, delta_o], omega_e, ts, &loops)
 }
 
 /// [`sampled_poles`] of the section IV design `d` at standstill (ω_e = 0) at its operating
-/// point (V_ao, δ_o): C_21 on i_q writing V_a and C_12 on i_d writing δ with the gains of
-/// eqs (28)–(31), the currents measured (no prediction). The decoupling is left out: its
-/// V_ad is 0 at 0 rpm, and its phase δ_d (which the law still adds to δ) is not modelled.
-/// As ln(z)/T_u, rad/s.
-pub fn cdm_sampled_poles(d: &cdm::CdmDesign) -> Vec<(f64, f64)> {
+/// point (V_ao, δ_o), for a motor of flux `k_e_wb`: C_21 on i_q writing V_a and C_12 on i_d
+/// writing δ with the gains of eqs (28)–(31), the currents measured (no prediction). Of the
+/// decoupling, V_ad is 0 at 0 rpm; its phase δ_d = atan2(L i_q, L i_d + K_e), which the law
+/// adds to C_12's δ from the same sample's currents, enters linearised at the operating
+/// point's currents (V_ao∠δ_o)/R. The gains' scheduling on δ_o does not enter: at the
+/// equilibrium the errors they multiply are zero. As ln(z)/T_u, rad/s.
+pub fn cdm_sampled_poles(d: &cdm::CdmDesign, k_e_wb: f64) -> Vec<(f64, f64)> {
     let md = SpmsmModel {
         r_ohm: d.r_ohm,
         l_h: d.l_h,
         k_e_wb: 0.0,
     };
-    let pi = |k_p, k_i, measured, input| SampledLoop {
+    let pi = |k_p, k_i, measured, input, direct| SampledLoop {
         c: LoopController::Pi { k_p, k_i },
         measured,
         input,
+        direct,
     };
-    let loops = [pi(d.k_p21, d.k_i21, 1, 0), pi(d.k_p12, d.k_i12, 0, 1)];
+    let loops = [
+        pi(d.k_p21, d.k_i21, 1, 0, [0.0; 2]),
+        pi(d.k_p12, d.k_i12, 0, 1, delta_d_gains(d, k_e_wb)),
+    ];
     per_second(
         &sampled_poles(&md, [d.v_ao_v, d.delta_o_rad], 0.0, d.tu_s, &loops),
         d.tu_s,
     )
+}
+
+/// ∂δ_d/∂(i_d, i_q), rad/A, at the standstill currents of `d`'s operating point:
+/// δ_d = atan2(Y, X) with X = L i_d + K_e, Y = L i_q gives (−L·Y, L·X)/(X² + Y²).
+/// Zero where δ_d has no slope (no flux and no current).
+fn delta_d_gains(d: &cdm::CdmDesign, k_e_wb: f64) -> [f64; 2] {
+    let (u_d, u_q) = polar_to_dq(d.v_ao_v, d.delta_o_rad);
+    let l = d.l_h;
+    let (x, y) = (l * u_d / d.r_ohm + k_e_wb, l * u_q / d.r_ohm);
+    let n = x * x + y * y;
+    if n > 0.0 && n.is_finite() {
+        [-l * y / n, l * x / n]
+    } else {
+        [0.0; 2]
+    }
 }
 
 /// The section III design at one operating point, for printing and checking
@@ -1115,6 +1145,87 @@ mod tests {
             g.f * p.a0 + p.b1 * g.q0 + p.b0 * g.q1,
             p.b0 * g.q0,
         ]
+    }
+
+    /// Section IV at 0 rpm: the poles `cdm_sampled_poles` gives equal the eigenvalues of the
+    /// running law's own one-sample map (the controller's step and the exact plant under a
+    /// held command, one sample late), differentiated numerically at its equilibrium. At 2 A
+    /// (V_ao = 5 V) the decoupling phase δ_d moves them: left out (as before), the poles
+    /// differ from the law's by far more than the tolerance.
+    #[test]
+    fn the_section_iv_sampled_poles_are_those_of_the_running_law() {
+        let sp = spec(PolarMode::Polar, 470.0);
+        let md = sp.model;
+        let (ts, vmax) = (sp.tu_s, sp.v_amax_v);
+        for (v_ao, delta_o) in [(5.0, 0.0), (5.0, 0.3), (100.0, 0.0)] {
+            let d = cdm::CdmDesign::new(md.r_ohm, md.l_h, ts, vmax, v_ao, delta_o, None);
+            // The equilibrium at 0 rpm: i = u/R, the errors zero, V_a = x_I21 (V_ad = 0),
+            // δ = δ_d + x_I12.
+            let (u_d, u_q) = polar_to_dq(v_ao, delta_o);
+            let i_o = [u_d / md.r_ohm, u_q / md.r_ohm];
+            let (_, delta_d) = md.decoupling(i_o[0], i_o[1], 0.0);
+            let x_o = [i_o[0], i_o[1], v_ao, delta_o, v_ao, delta_o - delta_d];
+            // x = (i_d, i_q, held V_a, held δ, x_I21, x_I12) → the same one sample later.
+            let step = |x: &[f64; 6]| -> [f64; 6] {
+                let mut c = PolarCurrentController::new(&sp);
+                c.c21.x_i = x[4];
+                c.c12.x_i = x[5];
+                c.delta_fb_prev = delta_o - delta_d;
+                let cmd = c.step(&CurrentInput {
+                    i_d_ref: i_o[0],
+                    i_q_ref: i_o[1],
+                    i_d: x[0],
+                    i_q: x[1],
+                    omega_e: 0.0,
+                });
+                let (hd, hq) = polar_to_dq(x[2], x[3]);
+                let (i_d, i_q) = md.predict(x[0], x[1], hd, hq, 0.0, ts);
+                let (v_a, delta) = c.last;
+                assert!(cmd.u_d.is_finite() && cmd.u_q.is_finite());
+                [i_d, i_q, v_a, delta, c.c21.x_i, c.c12.x_i]
+            };
+            let at = step(&x_o);
+            for (a, b) in at.iter().zip(x_o) {
+                assert!((a - b).abs() < 1e-9 * (1.0 + b.abs()), "{at:?} {x_o:?}");
+            }
+            let mut jac = nalgebra::DMatrix::<f64>::zeros(6, 6);
+            for j in 0..6 {
+                let h = 1e-6 * (1.0 + x_o[j].abs());
+                let (mut up, mut dn) = (x_o, x_o);
+                up[j] += h;
+                dn[j] -= h;
+                let (fu, fd) = (step(&up), step(&dn));
+                for i in 0..6 {
+                    jac[(i, j)] = (fu[i] - fd[i]) / (2.0 * h);
+                }
+            }
+            let law: Vec<_> = jac.complex_eigenvalues().iter().copied().collect();
+            let law = per_second(&law, ts);
+            let near = |a: &[(f64, f64)], b: &[(f64, f64)]| {
+                a.len() == b.len()
+                    && a.iter().zip(b).all(|(p, q)| {
+                        libm::hypot(p.0 - q.0, p.1 - q.1) < 1e-3 * (1.0 + libm::hypot(q.0, q.1))
+                    })
+            };
+            let model = cdm_sampled_poles(&d, md.k_e_wb);
+            assert!(
+                near(&law, &model),
+                "V_ao {v_ao}: law {law:?}, model {model:?}"
+            );
+            if v_ao == 5.0 {
+                let pi = |k_p, k_i, measured, input| SampledLoop {
+                    c: LoopController::Pi { k_p, k_i },
+                    measured,
+                    input,
+                    direct: [0.0; 2],
+                };
+                let loops = [pi(d.k_p21, d.k_i21, 1, 0), pi(d.k_p12, d.k_i12, 0, 1)];
+                let md0 = SpmsmModel { k_e_wb: 0.0, ..md };
+                let z = sampled_poles(&md0, [v_ao, delta_o], 0.0, ts, &loops);
+                let without = per_second(&z, ts);
+                assert!(!near(&law, &without), "V_ao {v_ao}: {law:?} {without:?}");
+            }
+        }
     }
 
     /// Eq. (2) against central differences of eq. (1) at several equilibria and non-equilibria.
