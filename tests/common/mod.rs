@@ -428,8 +428,13 @@ pub fn wait_for_view(
     // first stage host, past that check. A child it has forked and not yet exec'd (a hog's
     // privilege check, an executable asked to describe itself) shows the launcher's own
     // command line, so a `drivelab run` line does not count: counting it, the test joined
-    // before the check and the drive refused the bus.
-    let launcher = |p: &String| p.split_whitespace().nth(2) == Some("run");
+    // before the check and the drive refused the bus. The launcher may be started through a
+    // wrapper (`ip netns exec NS drivelab run …`).
+    let launcher = |p: &String| {
+        let args: Vec<&str> = p.split_whitespace().collect();
+        args.windows(2)
+            .any(|w| (w[0] == "drivelab" || w[0].ends_with("/drivelab")) && w[1] == "run")
+    };
     while processes_on_bus(bus).iter().all(launcher) {
         watchdog();
         std::thread::sleep(Duration::from_millis(5));
