@@ -539,20 +539,25 @@ pub fn cdm_sampled_poles(d: &cdm::CdmDesign, k_e_wb: f64) -> Vec<(f64, f64)> {
         l_h: d.l_h,
         k_e_wb: 0.0,
     };
+    let loops = cdm_loops(d, delta_d_gains(d, k_e_wb));
+    per_second(
+        &sampled_poles(&md, [d.v_ao_v, d.delta_o_rad], 0.0, d.tu_s, &loops),
+        d.tu_s,
+    )
+}
+
+/// C_21 (i_q → V_a) and C_12 (i_d → δ, with `delta_d` added to its δ) of design `d`.
+fn cdm_loops(d: &cdm::CdmDesign, delta_d: [f64; 2]) -> [SampledLoop; 2] {
     let pi = |k_p, k_i, measured, input, direct| SampledLoop {
         c: LoopController::Pi { k_p, k_i },
         measured,
         input,
         direct,
     };
-    let loops = [
+    [
         pi(d.k_p21, d.k_i21, 1, 0, [0.0; 2]),
-        pi(d.k_p12, d.k_i12, 0, 1, delta_d_gains(d, k_e_wb)),
-    ];
-    per_second(
-        &sampled_poles(&md, [d.v_ao_v, d.delta_o_rad], 0.0, d.tu_s, &loops),
-        d.tu_s,
-    )
+        pi(d.k_p12, d.k_i12, 0, 1, delta_d),
+    ]
 }
 
 /// ∂δ_d/∂(i_d, i_q), rad/A, at the standstill currents of `d`'s operating point:
@@ -1213,13 +1218,7 @@ mod tests {
                 "V_ao {v_ao}: law {law:?}, model {model:?}"
             );
             if v_ao == 5.0 {
-                let pi = |k_p, k_i, measured, input| SampledLoop {
-                    c: LoopController::Pi { k_p, k_i },
-                    measured,
-                    input,
-                    direct: [0.0; 2],
-                };
-                let loops = [pi(d.k_p21, d.k_i21, 1, 0), pi(d.k_p12, d.k_i12, 0, 1)];
+                let loops = cdm_loops(&d, [0.0; 2]);
                 let md0 = SpmsmModel { k_e_wb: 0.0, ..md };
                 let z = sampled_poles(&md0, [v_ao, delta_o], 0.0, ts, &loops);
                 let without = per_second(&z, ts);
