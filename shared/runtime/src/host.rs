@@ -73,9 +73,16 @@ pub trait Transport {
     /// A standby twin that has not taken over: the newest message the active instance of its
     /// process published on `topic`, one of its own outputs (what a stage that reads its
     /// output back rejoins from; docs/architecture.md, "Liveness words and standby twins").
-    /// None for any other instance.
+    /// A twin that took over: the newest such message it had read before. None for any
+    /// other instance.
     fn twin_newest(&mut self, _topic: TopicId) -> Result<Option<Msg>> {
         Ok(None)
+    }
+    /// A standby twin whose process's active instance lives. At the first call after that
+    /// instance's death the twin takes over (as at an output) and is no longer standing by.
+    /// False for any other instance.
+    fn twin_standing_by(&mut self) -> Result<bool> {
+        Ok(false)
     }
     /// Wakes the receivers of `topic` without a message (they check their inputs' age).
     fn poke(&mut self, _topic: TopicId) -> Result<()> {
@@ -1291,7 +1298,17 @@ impl<T: Transport> Host<T> {
                     // newest (that would depend on how far the peers have run).
                     self.rejoin_inputs_at(si, k, &mut ib)?;
                 }
-                self.own_outputs_from_the_active_instance(si, &mut ib)?;
+                if !self.own_outputs_from_the_active_instance(si, &mut ib)? {
+                    if self.transport.twin_standing_by()? {
+                        // A twin that started after its active instance's newest output (its
+                        // receivers get only later ones) waits for the next one, rather than
+                        // rejoin without it; it publishes nothing meanwhile.
+                        self.stages[si].last_k = Some(k);
+                        continue;
+                    }
+                    // It has just taken over: what it read of its predecessor, if anything.
+                    self.own_outputs_from_the_active_instance(si, &mut ib)?;
+                }
                 self.calling(si, k, Call::Rejoin);
                 if self.stages[si].stage.rejoin(k, &ib) == Rejoin::NeedMore {
                     self.stages[si].last_k = Some(k);
@@ -1350,8 +1367,10 @@ impl<T: Transport> Host<T> {
     /// A standby twin's stage `si` rejoining: its rejoin-only inputs on its own outputs that
     /// `ib` has no message for take the newest one the active instance of the process
     /// published (it lives and steps on: a file written when the twin started would be
-    /// behind it). A once-per-rejoin bus read.
-    fn own_outputs_from_the_active_instance(&mut self, si: usize, ib: &mut Inbox) -> Result<()> {
+    /// behind it). A once-per-rejoin bus read. False when one of them is still without a
+    /// message.
+    fn own_outputs_from_the_active_instance(&mut self, si: usize, ib: &mut Inbox) -> Result<bool> {
+        let mut all = true;
         for bi in 0..self.stages[si].inputs.len() {
             let b = self.stages[si].inputs[bi];
             let t = b.spec.topic;
@@ -1361,13 +1380,16 @@ impl<T: Transport> Host<T> {
             {
                 continue;
             }
-            if let Some(m) = self.transport.twin_newest(t)? {
-                let slot = &mut ib.slots[t.index()];
-                slot.msg = Some(m);
-                slot.fresh = true;
+            match self.transport.twin_newest(t)? {
+                Some(m) => {
+                    let slot = &mut ib.slots[t.index()];
+                    slot.msg = Some(m);
+                    slot.fresh = true;
+                }
+                None => all = false,
             }
         }
-        Ok(())
+        Ok(all)
     }
 
     /// True when stage `si` publishes `t`: a rejoin-only input on it is the stage's own last
@@ -1978,6 +2000,9 @@ mod tests {
         closed: Vec<TopicId>,
         /// From this wait on, the producer of this topic is down.
         down_from: Option<(usize, TopicId)>,
+        /// A standby twin: its active instance dies at this wait, and the newest output of
+        /// that instance it has read is this message from that wait on.
+        twin: Option<(usize, usize, Msg)>,
     }
 
     impl Transport for Script {
@@ -1993,6 +2018,14 @@ mod tests {
         }
         fn close(&mut self, topic: TopicId) {
             self.closed.push(topic);
+        }
+        fn twin_newest(&mut self, _topic: TopicId) -> Result<Option<Msg>> {
+            Ok(self
+                .twin
+                .and_then(|(_, from, m)| (self.waits >= from).then_some(m)))
+        }
+        fn twin_standing_by(&mut self) -> Result<bool> {
+            Ok(self.twin.is_some_and(|(dies, _, _)| self.waits < dies))
         }
         fn producer_up(&self, topic: TopicId) -> bool {
             !self
@@ -2135,28 +2168,11 @@ mod tests {
 
     #[test]
     fn a_restarted_process_hands_a_stage_its_own_last_output_from_the_rejoin_file() {
-        let sc = scenario();
         let run = |rejoin_from: Vec<Msg>| {
             let mut tr = Script::default();
             tr.queues[TopicId::Meas.index()].push_back(meas(0, 1.0));
             tr.on_wait.push((2, end(TopicId::Meas, 100)));
-            let stages: Vec<Box<dyn Stage>> = vec![Box::new(ReadsItsOwnOutput { found: 0.0 })];
-            let producers = [(TopicId::Meas, 1, false), (TopicId::Wref, 1, true)];
-            let cfg = HostConfig {
-                rejoin: true,
-                rejoin_from,
-                ..config(&sc)
-            };
-            let mut host = Host::new(stages, &producers, tr, cfg);
-            host.run().unwrap();
-            host.transport
-                .sent
-                .iter()
-                .find_map(|m| match m {
-                    Msg::Wref(w) if !w.hdr.is_end() => Some(w.theta_m),
-                    _ => None,
-                })
-                .unwrap()
+            own_output_found(tr, rejoin_from).first().unwrap().1
         };
         let last = Msg::Wref(crate::messages::SpeedRef {
             hdr: header(30, 0),
@@ -2168,6 +2184,68 @@ mod tests {
         assert_eq!(run(vec![truth, last]), 7.5);
         // Without one (it died before the recorder saw an output of it): nothing there.
         assert_eq!(run(vec![truth]), -1.0);
+    }
+
+    /// The positions a standby twin's stage publishes (what it found while rejoining),
+    /// with their samples: measurements 0 to 5 come at waits 0 to 5; its active instance
+    /// dies at wait `dies`, and the newest output of it the twin has read is θ 7.5 from wait
+    /// `seen` on.
+    fn twin_rejoins(dies: usize, seen: usize) -> Vec<(u64, f64)> {
+        let mut tr = Script::default();
+        tr.queues[TopicId::Meas.index()].push_back(meas(0, 1.0));
+        for k in 1..6 {
+            tr.on_wait.push((k, meas(k as u64, 1.0)));
+        }
+        tr.on_wait.push((6, end(TopicId::Meas, 100)));
+        let last = Msg::Wref(crate::messages::SpeedRef {
+            hdr: header(0, 0),
+            theta_m: 7.5,
+            ..Default::default()
+        });
+        tr.twin = Some((dies, seen, last));
+        own_output_found(tr, Vec::new())
+    }
+
+    /// Runs [`ReadsItsOwnOutput`] restarted on `tr`: the positions it published, with their
+    /// samples.
+    fn own_output_found(tr: Script, rejoin_from: Vec<Msg>) -> Vec<(u64, f64)> {
+        let sc = scenario();
+        let stages: Vec<Box<dyn Stage>> = vec![Box::new(ReadsItsOwnOutput { found: 0.0 })];
+        let producers = [(TopicId::Meas, 1, false), (TopicId::Wref, 1, true)];
+        let cfg = HostConfig {
+            rejoin: true,
+            rejoin_from,
+            ..config(&sc)
+        };
+        let mut host = Host::new(stages, &producers, tr, cfg);
+        host.run().unwrap();
+        host.transport
+            .sent
+            .iter()
+            .filter_map(|m| match m {
+                Msg::Wref(w) if !w.hdr.is_end() => Some((w.hdr.k, w.theta_m)),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_standby_twin_waits_for_its_active_instances_output_before_it_rejoins() {
+        // Started after the active instance's newest output, the twin has read none of it
+        // at first: it rejoins at the first sample it has one, and finds it (it had rejoined
+        // at sample 0 without one, and counted a position loop's turns from 0).
+        let sent = twin_rejoins(100, 3);
+        assert_eq!(sent.first().copied(), Some((3, 7.5)), "{sent:?}");
+        assert!(sent.iter().all(|&(_, th)| th == 7.5), "{sent:?}");
+        // Its active instance died before the twin read an output of it: the twin takes
+        // over at its next sample and rejoins without one (as a restarted process that
+        // died before it published), instead of waiting for an output that cannot come.
+        let sent = twin_rejoins(2, 100);
+        assert_eq!(sent.first().copied(), Some((2, -1.0)), "{sent:?}");
+        // A restarted process (no twin) rejoins at once, with or without one.
+        let first = |sent: Vec<(u64, f64)>| sent.first().map(|s| s.1);
+        assert_eq!(first(twin_rejoins(0, 0)), Some(7.5));
+        assert_eq!(first(twin_rejoins(0, 100)), Some(-1.0));
     }
 
     #[test]

@@ -1018,6 +1018,9 @@ pub struct BusTransport {
     before: [Option<u64>; N_TOPICS],
     /// A twin that took over: its watching receivers, kept (never read) until the end.
     retired: Option<[Option<Rx>; N_TOPICS]>,
+    /// A twin that took over: per output topic, the newest message its predecessor
+    /// published that it read (what a stage still rejoining reads back).
+    inherited: [Option<Msg>; N_TOPICS],
 }
 
 /// A standby twin before it takes over: it steps on the same inputs as the active instance
@@ -1047,6 +1050,15 @@ fn read_watch(w: &Rx, before: &mut Option<u64>, mut each: impl FnMut(Msg)) -> Re
         each(m);
     }
     Ok(())
+}
+
+/// Keeps `m` in `newest` when it is a message (not a marker) at least as new.
+fn keep_newest(newest: &mut Option<Msg>, m: Msg) {
+    let h = m.hdr();
+    let marker = h.is_warmup() || h.is_end() || h.is_absent();
+    if !marker && newest.is_none_or(|n| h.k >= n.hdr().k) {
+        *newest = Some(m);
+    }
 }
 
 impl Shadow {
@@ -1135,6 +1147,7 @@ impl BusTransport {
             producer: [None; N_TOPICS],
             before: [None; N_TOPICS],
             retired: None,
+            inherited: [None; N_TOPICS],
         })
     }
 
@@ -1154,14 +1167,15 @@ impl BusTransport {
             lease,
             mut own,
             watch,
-            newest: _,
+            mut newest,
         } = self.shadow.take().expect("checked above");
         own.release();
         for (i, w) in watch.iter().enumerate() {
             if let Some(w) = w {
-                read_watch(w, &mut self.before[i], |_| {})?;
+                read_watch(w, &mut self.before[i], |m| keep_newest(&mut newest[i], m))?;
             }
         }
+        self.inherited = newest;
         // A predecessor killed between a send and its wake-up left that message unannounced:
         // its readers would sleep through it (a decimated reader for a whole period). Wake
         // them for the newest message it sent; a reader that already has it drains nothing.
@@ -1299,19 +1313,17 @@ impl Transport for BusTransport {
     fn twin_newest(&mut self, topic: TopicId) -> Result<Option<Msg>> {
         let i = topic.index();
         let Some(sh) = self.shadow.as_mut() else {
-            return Ok(None);
+            return Ok(self.inherited[i]);
         };
         if let Some(w) = &sh.watch[i] {
             let newest = &mut sh.newest[i];
-            read_watch(w, &mut self.before[i], |m| {
-                let h = m.hdr();
-                let marker = h.is_warmup() || h.is_end() || h.is_absent();
-                if !marker && newest.is_none_or(|n| h.k >= n.hdr().k) {
-                    *newest = Some(m);
-                }
-            })?;
+            read_watch(w, &mut self.before[i], |m| keep_newest(newest, m))?;
         }
         Ok(sh.newest[i])
+    }
+
+    fn twin_standing_by(&mut self) -> Result<bool> {
+        Ok(self.shadow.is_some() && !self.active()?)
     }
 
     fn poke(&mut self, topic: TopicId) -> Result<()> {
