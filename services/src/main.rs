@@ -426,6 +426,9 @@ enum Cmd {
         /// Bus id of the drive it disturbs (a label: the hog uses no bus).
         #[arg(long)]
         bus: Option<String>,
+        /// Wait for one byte on stdin before spinning (end of file: exit unstarted).
+        #[arg(long)]
+        armed: bool,
     },
     /// Internal: one node of the Unix-socket chain (started by `drivelab bench`).
     #[command(hide = true)]
@@ -1341,7 +1344,8 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             priority,
             duration_s,
             bus: _,
-        } => drivelab_services::faults::hog::run(cpu, priority, duration_s),
+            armed,
+        } => drivelab_services::faults::hog::run(cpu, priority, duration_s, armed),
         Cmd::BusInject { bus, kind, count } => {
             drivelab_services::faults::inject_bad_estimates(&bus, &kind, count)
         }

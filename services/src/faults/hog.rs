@@ -1,6 +1,7 @@
-//! `hog:CPU@S:DUR:PRIO`: a noisy neighbour. The supervisor starts, at simulated second S,
-//! a child process (`drivelab hog`, hidden) that pins itself to CPU, takes SCHED_FIFO
-//! priority PRIO and busy-loops for DUR seconds: above the drive's priorities on the
+//! `hog:CPU@S:DUR:PRIO`: a noisy neighbour. The supervisor starts a child process
+//! (`drivelab hog`, hidden) when the drive starts; it pins itself to CPU, takes SCHED_FIFO
+//! priority PRIO and waits, armed, on its stdin. At simulated second S the supervisor writes
+//! it a byte, and it busy-loops for DUR seconds from then: above the drive's priorities on the
 //! drive's core it is a priority inversion, below them a load the drive should shrug off.
 //! Real-time clock only. The kernel's RT throttling (`sched_rt_runtime_us`) still leaves a
 //! share of the CPU to others; it is read and reported, never changed
@@ -141,7 +142,7 @@ pub fn check_privilege(h: &Hog) -> Result<()> {
         duration_s: 0.0,
         ..h.clone()
     };
-    let out = command(&hog, None)?
+    let out = command(&hog, None, false)?
         .stderr(Stdio::piped())
         .output()
         .context("cannot start the hog process")?;
@@ -157,10 +158,11 @@ pub fn check_privilege(h: &Hog) -> Result<()> {
     Ok(())
 }
 
-/// `drivelab hog --cpu C --priority P --duration-s D [--bus ID]`, ended by the kernel if the
-/// launcher dies. `--bus` names the drive it disturbs, so that it is found like the drive's
-/// own processes (`drivelab run` refuses a busy bus, tests check that none is left).
-fn command(h: &Hog, bus: Option<&str>) -> Result<Command> {
+/// `drivelab hog --cpu C --priority P --duration-s D [--bus ID] [--armed]`, ended by the
+/// kernel if the launcher dies. `--bus` names the drive it disturbs, so that it is found like
+/// the drive's own processes (`drivelab run` refuses a busy bus, tests check that none is
+/// left). `--armed`: it waits for a byte on its stdin before it spins.
+fn command(h: &Hog, bus: Option<&str>, armed: bool) -> Result<Command> {
     let exe = std::env::current_exe().context("cannot find the drivelab executable")?;
     let mut cmd = Command::new(exe);
     cmd.arg("hog")
@@ -171,15 +173,18 @@ fn command(h: &Hog, bus: Option<&str>) -> Result<Command> {
         .arg("--duration-s")
         .arg(h.duration_s.to_string())
         .args(bus.map(|b| ["--bus", b]).into_iter().flatten())
-        .stdin(Stdio::null())
+        .args(armed.then_some("--armed"))
+        .stdin(if armed { Stdio::piped() } else { Stdio::null() })
         .stdout(Stdio::null());
     crate::launcher::die_with_launcher(&mut cmd);
     Ok(cmd)
 }
 
 /// The hog process's body: pins itself to `cpu`, takes SCHED_FIFO `priority` (a one-line
-/// error if refused) and spins for `duration_s` seconds.
-pub fn run(cpu: usize, priority: u8, duration_s: f64) -> Result<()> {
+/// error if refused) and spins for `duration_s` seconds. `armed`: it first waits for one
+/// byte on stdin and spins from its arrival; at end of file (the supervisor ended before the
+/// hog's time) it exits without spinning.
+pub fn run(cpu: usize, priority: u8, duration_s: f64, armed: bool) -> Result<()> {
     if !(0.0..=STOP_MAX_S).contains(&duration_s) {
         bail!("hog: --duration-s {duration_s} must be in 0..={STOP_MAX_S}");
     }
@@ -191,6 +196,14 @@ pub fn run(cpu: usize, priority: u8, duration_s: f64) -> Result<()> {
     };
     drivelab_runtime::rt::setup_rt(&req, drivelab_runtime::rt::RtPolicy::Strict)
         .map_err(|e| anyhow!("hog: {e:#}"))?;
+    if armed {
+        let mut go = [0u8; 1];
+        match std::io::Read::read(&mut std::io::stdin().lock(), &mut go) {
+            Ok(1) => {}
+            Ok(_) => return Ok(()),
+            Err(e) => bail!("hog: cannot read its start from stdin: {e}"),
+        }
+    }
     let end = Instant::now() + Duration::from_secs_f64(duration_s);
     while Instant::now() < end {
         std::hint::spin_loop();
@@ -198,24 +211,66 @@ pub fn run(cpu: usize, priority: u8, duration_s: f64) -> Result<()> {
     Ok(())
 }
 
-/// Hogs running under the supervisor. Dropping it (however the supervisor returns) kills
-/// and reaps every one still running.
-#[derive(Default)]
+/// A hog process's state under the supervisor.
+enum State {
+    /// Started, waiting on its stdin.
+    Armed(Child, std::process::ChildStdin),
+    /// Spinning; killed if it is still there at the instant.
+    Started(Child, Instant),
+    /// Ended (reaped), or never started: why.
+    Gone(String),
+}
+
+/// Hogs under the supervisor, in the order of their plan: started ahead of their time and
+/// armed, so that a hog spins from its planned sample on, not from whenever a process the
+/// size of this one has been loaded (4 to 36 ms for a debug build on a loaded machine here,
+/// 7 to 32 ms for a release build). Dropping it (however the supervisor returns) kills and
+/// reaps every one still there; an armed hog whose start never came is killed unstarted.
 pub struct Running {
-    hogs: Vec<(Child, Instant)>,
+    hogs: Vec<State>,
 }
 
 impl Running {
-    /// Starts `h` now against the drive of bus `bus`; returns its pid.
-    pub fn start(&mut self, h: &Hog, bus: &str) -> Result<u32> {
-        let child = command(h, Some(bus))?
-            .stderr(Stdio::null())
-            .spawn()
-            .context("cannot start the hog process")?;
+    /// Starts a process for each of `hogs` against the drive of bus `bus`, armed; a hog
+    /// that could not be started keeps its error for [`Running::start`].
+    pub fn arm(hogs: &[Hog], bus: &str) -> Self {
+        let start = |h: &Hog| -> Result<State> {
+            let mut child = command(h, Some(bus), true)?
+                .stderr(Stdio::null())
+                .spawn()
+                .context("cannot start the hog process")?;
+            let stdin = child.stdin.take().context("the hog process has no stdin")?;
+            Ok(State::Armed(child, stdin))
+        };
+        Self {
+            hogs: hogs
+                .iter()
+                .map(|h| start(h).unwrap_or_else(|e| State::Gone(format!("{e:#}"))))
+                .collect(),
+        }
+    }
+
+    /// Starts hog `i` of the plan (`h`) now; returns its pid.
+    pub fn start(&mut self, i: usize, h: &Hog) -> Result<u32> {
+        let slot = self
+            .hogs
+            .get_mut(i)
+            .ok_or_else(|| anyhow!("it was not armed"))?;
+        let State::Armed(child, stdin) = slot else {
+            let State::Gone(why) = slot else {
+                bail!("it has started already");
+            };
+            bail!("{why}");
+        };
         let pid = child.id();
+        std::io::Write::write_all(stdin, b"!")
+            .with_context(|| format!("cannot start its process (pid {pid})"))?;
         // It ends itself after DUR; it is killed if it is still there 100 ms later.
         let end = Instant::now() + Duration::from_secs_f64(h.duration_s + 0.1);
-        self.hogs.push((child, end));
+        // Its stdin is dropped: the hog reads one byte only.
+        if let State::Armed(child, _) = std::mem::replace(slot, State::Gone(String::new())) {
+            *slot = State::Started(child, end);
+        }
         Ok(pid)
     }
 
@@ -223,30 +278,41 @@ impl Running {
     /// failed (exited with an error, e.g. refused their priority) with their status.
     pub fn poll(&mut self, now: Instant) -> Vec<(u32, std::process::ExitStatus)> {
         let mut failed = Vec::new();
-        self.hogs.retain_mut(|(c, end)| match c.try_wait() {
-            Ok(Some(st)) => {
-                if !st.success() {
-                    failed.push((c.id(), st));
+        for slot in &mut self.hogs {
+            let (child, end) = match slot {
+                State::Armed(c, _) => (c, None),
+                State::Started(c, end) => (c, Some(*end)),
+                State::Gone(_) => continue,
+            };
+            let pid = child.id();
+            let gone = match child.try_wait() {
+                Ok(Some(st)) => {
+                    if !st.success() {
+                        failed.push((pid, st));
+                    }
+                    format!("its process (pid {pid}) had ended before its start: {st}")
                 }
-                false
-            }
-            Ok(None) if now >= *end => {
-                let _ = c.kill();
-                let _ = c.wait();
-                false
-            }
-            Ok(None) => true,
-            Err(_) => false,
-        });
+                Ok(None) if end.is_some_and(|end| now >= end) => {
+                    let _ = child.kill();
+                    let _ = child.wait();
+                    "killed after its end".into()
+                }
+                Ok(None) => continue,
+                Err(e) => format!("its process (pid {pid}) cannot be waited for: {e}"),
+            };
+            *slot = State::Gone(gone);
+        }
         failed
     }
 }
 
 impl Drop for Running {
     fn drop(&mut self) {
-        for (c, _) in &mut self.hogs {
-            let _ = c.kill();
-            let _ = c.wait();
+        for slot in &mut self.hogs {
+            if let State::Armed(c, _) | State::Started(c, _) = slot {
+                let _ = c.kill();
+                let _ = c.wait();
+            }
         }
     }
 }

@@ -567,6 +567,8 @@ fn run_bus(
                 }
             }
         }
+        // The hogs start armed before sample 0, so that each spins from its own sample on.
+        let running = crate::faults::hog::Running::arm(hogs, &bus_id);
         spawn::go(&mut children)?;
         if o.verbose {
             crate::errln!(
@@ -630,6 +632,7 @@ fn run_bus(
             &mut supervised,
             plan,
             hogs,
+            running,
             &mut events,
             &progress,
             sc,

@@ -331,6 +331,8 @@ pub(super) fn supervise(
     children: &mut [Supervised],
     plan: &[crate::faults::Fault],
     hogs: &[crate::faults::hog::Hog],
+    // `hogs`, armed; killed and reaped when this function returns, however it returns.
+    mut running: crate::faults::hog::Running,
     events: &mut Vec<SupEvent>,
     progress: &Progress,
     sc: &Scenario,
@@ -344,8 +346,6 @@ pub(super) fn supervise(
     let fs = sc.rates.sample_hz;
     let mut next_fault = 0;
     let mut next_hog = 0;
-    // Killed and reaped when this function returns, however it returns.
-    let mut running = crate::faults::hog::Running::default();
     let log = |events: &mut Vec<SupEvent>, kind: EventKind, service: &str, process: &str| {
         events.push(SupEvent {
             t_wall_s: started.elapsed().as_secs_f64(),
@@ -391,9 +391,8 @@ pub(super) fn supervise(
         }
         while next_hog < hogs.len() && k_now as f64 >= hogs[next_hog].at_s * fs {
             let h = &hogs[next_hog];
-            next_hog += 1;
             let k_start = plant_sample_now(progress, sc.rates.ts_ns());
-            let kind = match running.start(h, bus_id) {
+            let kind = match running.start(next_hog, h) {
                 Ok(pid) => EventKind::Hog {
                     hog: h.clone(),
                     pid,
@@ -404,6 +403,7 @@ pub(super) fn supervise(
                     EventKind::InjectRefused { reason }
                 }
             };
+            next_hog += 1;
             log(events, kind, &format!("cpu{}", h.cpu), "hog");
             if let (Some(e), Some(k)) = (events.last_mut(), k_start) {
                 e.k = e.k.max(k);
