@@ -46,7 +46,11 @@ impl std::error::Error for ParamError {}
 /// (32 ms for t_r = 8 ms), without overshoot from the cascade.
 ///
 /// Unwrapping takes the shortest way between two runs of the stage, so it needs
-/// |ω|·(divider·T_s) < π (3141 rad/s at 1 kHz).
+/// |ω|·(divider·T_s) < π (3141 rad/s at 1 kHz). A host that has fallen behind in real time
+/// publishes only the newest sample; so that the unwrapping still sees every measurement it
+/// holds, the stage steps every sample ([`Stage::steps_every_sample`]): without it, a
+/// standby twin one priority below, behind on a busy core, went 80 ms without a step while
+/// the motor turned 7.6 rad, and counted one turn too few.
 ///
 /// Restart: the encoder gives the angle within a turn only, so a fresh instance would count
 /// its turns from 0 and drive the missing ones again. Each output carries the unwrapped
@@ -176,6 +180,10 @@ impl Stage for PositionLoop {
     }
     fn divider(&self) -> u64 {
         self.divider
+    }
+    fn steps_every_sample(&self) -> bool {
+        // The unwrapping needs each measurement: see the type's documentation.
+        true
     }
     fn step(&mut self, k: u64, inputs: &Inbox, out: &mut Outbox) {
         let Some(m) = inputs.meas() else { return };
