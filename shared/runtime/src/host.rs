@@ -1852,7 +1852,16 @@ impl<T: Transport> Host<T> {
                 // The other inputs of this sample, once its trigger is in hand (without
                 // it, `fallbacks` takes them all).
                 self.drain_external(Some(topic), None, Some(hdr.k))?;
-                let behind = realtime && self.transport.pending(topic)?;
+                // Behind: a newer trigger waits. For stages slower than their trigger, only
+                // once the next sample they step is due: a waiting sample in between is none
+                // of theirs (a vDSO clock read, no system call).
+                let behind = realtime
+                    && self.transport.pending(topic)?
+                    && (step_every == 1
+                        || now_ns()
+                            >= hdr
+                                .t_sample_ns
+                                .saturating_add(step_every.saturating_mul(self.cfg.ts_ns)));
                 if behind || (self.stages[0].rejoining && !every_sample) {
                     // Behind (a newer trigger is waiting), or rejoining: only the newest is
                     // published. A stage that needs every sample steps this one silently.
@@ -2527,6 +2536,71 @@ mod tests {
         }
         assert_eq!(est[0].omega_m, last.omega_m);
         assert_eq!(est[0].theta_e, last.theta_e);
+    }
+
+    /// A stage at a tenth of its trigger's rate that publishes the index of each sample it
+    /// steps.
+    struct EveryTenth;
+
+    impl Stage for EveryTenth {
+        fn name(&self) -> &'static str {
+            "tenth"
+        }
+        fn inputs(&self) -> &'static [InputSpec] {
+            const INPUTS: &[InputSpec] = &[InputSpec::trigger(TopicId::Meas, 1, OnStale::Required)];
+            INPUTS
+        }
+        fn outputs(&self) -> &'static [TopicId] {
+            &[TopicId::Wref]
+        }
+        fn divider(&self) -> u64 {
+            10
+        }
+        fn step(&mut self, k: u64, _inputs: &Inbox, out: &mut Outbox) {
+            out.push(Msg::Wref(crate::messages::SpeedRef {
+                hdr: header(k, 0),
+                ..Default::default()
+            }));
+        }
+    }
+
+    #[test]
+    fn a_stage_slower_than_its_trigger_is_behind_only_once_its_next_sample_is_due() {
+        let sc = scenario();
+        // Samples 0-3 wait when the host wakes; their deadlines lie `ahead_ns` from now.
+        let run = |ahead_ns: i64| {
+            let mut tr = Script::default();
+            let t0 = (now_ns() as i64 + ahead_ns) as u64;
+            for k in 0..4 {
+                tr.queues[TopicId::Meas.index()].push_back(Msg::Meas(Measurement {
+                    hdr: Header {
+                        k,
+                        t_sample_ns: t0 + k * 100_000,
+                        ..Default::default()
+                    },
+                    ..Default::default()
+                }));
+            }
+            tr.on_wait.push((2, end(TopicId::Meas, 100)));
+            let stages: Vec<Box<dyn Stage>> = vec![Box::new(EveryTenth)];
+            let producers = [(TopicId::Meas, 1, false), (TopicId::Wref, 10, true)];
+            let mut host = Host::new(stages, &producers, tr, config(&sc));
+            host.run().unwrap();
+            let sent: Vec<u64> = host
+                .transport
+                .sent
+                .iter()
+                .filter(|m| m.topic() == TopicId::Wref && !m.hdr().is_end())
+                .map(|m| m.hdr().k)
+                .collect();
+            (sent, host.stages[0].counters.skipped)
+        };
+        // Sample 10, the next it steps, is not due for a second: samples 1-3 waiting behind
+        // sample 0 are none of its own, and it steps sample 0 (it skipped it, publishing
+        // nothing for the period, when any waiting sample counted).
+        assert_eq!(run(1_000_000_000), (vec![0], 0));
+        // Sample 10 was due 10 ms ago: behind, it skips sample 0 for the newer ones.
+        assert_eq!(run(-11_000_000), (vec![], 1));
     }
 
     /// Runs a current loop of `sc` (speed loop at a tenth of the rate, in another process)
