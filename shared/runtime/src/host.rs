@@ -2058,10 +2058,15 @@ mod tests {
     }
 
     fn meas(k: u64, theta: f64) -> Msg {
+        meas_at(k, theta, 1_000_000 + k * 100_000)
+    }
+
+    /// Measurement k with encoder angle `theta` and deadline `t_sample_ns`.
+    fn meas_at(k: u64, theta: f64, t_sample_ns: u64) -> Msg {
         Msg::Meas(Measurement {
             hdr: Header {
                 k,
-                t_sample_ns: 1_000_000 + k * 100_000,
+                t_sample_ns,
                 ..Default::default()
             },
             theta_m_enc: theta,
@@ -2572,14 +2577,7 @@ mod tests {
             let mut tr = Script::default();
             let t0 = (now_ns() as i64 + ahead_ns) as u64;
             for k in 0..4 {
-                tr.queues[TopicId::Meas.index()].push_back(Msg::Meas(Measurement {
-                    hdr: Header {
-                        k,
-                        t_sample_ns: t0 + k * 100_000,
-                        ..Default::default()
-                    },
-                    ..Default::default()
-                }));
+                tr.queues[TopicId::Meas.index()].push_back(meas_at(k, 0.0, t0 + k * 100_000));
             }
             tr.on_wait.push((2, end(TopicId::Meas, 100)));
             let stages: Vec<Box<dyn Stage>> = vec![Box::new(EveryTenth)];
