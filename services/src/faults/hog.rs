@@ -256,11 +256,10 @@ impl Running {
             .hogs
             .get_mut(i)
             .ok_or_else(|| anyhow!("it was not armed"))?;
-        let State::Armed(child, stdin) = slot else {
-            let State::Gone(why) = slot else {
-                bail!("it has started already");
-            };
-            bail!("{why}");
+        let (child, stdin) = match slot {
+            State::Armed(child, stdin) => (child, stdin),
+            State::Started(..) => bail!("it has started already"),
+            State::Gone(why) => bail!("{why}"),
         };
         let pid = child.id();
         std::io::Write::write_all(stdin, b"!")

@@ -2061,6 +2061,12 @@ mod tests {
         meas_at(k, theta, 1_000_000 + k * 100_000)
     }
 
+    /// The messages of `topic` among `sent`, its end marker left out.
+    fn published(sent: &[Msg], topic: TopicId) -> impl Iterator<Item = &Msg> {
+        sent.iter()
+            .filter(move |m| m.topic() == topic && !m.hdr().is_end())
+    }
+
     /// Measurement k with encoder angle `theta` and deadline `t_sample_ns`.
     fn meas_at(k: u64, theta: f64, t_sample_ns: u64) -> Msg {
         Msg::Meas(Measurement {
@@ -2132,12 +2138,7 @@ mod tests {
             };
             let mut host = Host::new(stages, &producers, tr, cfg);
             host.run().unwrap();
-            let steps = host
-                .transport
-                .sent
-                .iter()
-                .filter(|m| m.topic() == TopicId::Iref && !m.hdr().is_end())
-                .count();
+            let steps = published(&host.transport.sent, TopicId::Iref).count();
             (host.transport.closed, steps)
         };
         // Restarted: the command topic is read while rejoining, then released, once; the
@@ -2233,11 +2234,9 @@ mod tests {
         };
         let mut host = Host::new(stages, &producers, tr, cfg);
         host.run().unwrap();
-        host.transport
-            .sent
-            .iter()
+        published(&host.transport.sent, TopicId::Wref)
             .filter_map(|m| match m {
-                Msg::Wref(w) if !w.hdr.is_end() => Some((w.hdr.k, w.theta_m)),
+                Msg::Wref(w) => Some((w.hdr.k, w.theta_m)),
                 _ => None,
             })
             .collect()
@@ -2584,11 +2583,7 @@ mod tests {
             let producers = [(TopicId::Meas, 1, false), (TopicId::Wref, 10, true)];
             let mut host = Host::new(stages, &producers, tr, config(&sc));
             host.run().unwrap();
-            let sent: Vec<u64> = host
-                .transport
-                .sent
-                .iter()
-                .filter(|m| m.topic() == TopicId::Wref && !m.hdr().is_end())
+            let sent: Vec<u64> = published(&host.transport.sent, TopicId::Wref)
                 .map(|m| m.hdr().k)
                 .collect();
             (sent, host.stages[0].counters.skipped)
