@@ -120,9 +120,7 @@ int main(int argc, char **argv)
 		return 2;
 	}
 	pages = getenv("PAGES") ? atoi(getenv("PAGES")) : 0;
-	int qos = open("/dev/cpu_dma_latency", O_RDWR);
-	int32_t zero = 0;
-	if (qos < 0 || write(qos, &zero, sizeof zero) != sizeof zero)
+	if (hold_latency_request() != 0)
 		perror("/dev/cpu_dma_latency");
 	s = mmap(NULL, sizeof *s, PROT_READ | PROT_WRITE, MAP_SHARED | MAP_ANONYMOUS, -1, 0);
 	int32_t *raw = mmap(NULL, (size_t)samples * 4, PROT_READ | PROT_WRITE,
@@ -169,14 +167,11 @@ int main(int argc, char **argv)
 		struct timespec d = { tk / 1000000000LL, tk % 1000000000LL };
 		clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &d, NULL);
 		int64_t late = now_ns() - tk;
-		/* The sample after a block's last one belongs to the next phase's block: its wake-up
-		 * follows the previous phase's chain. Counted in neither. */
-		if (n % block != 0) {
+		/* A block's first wake-up follows the previous phase's chain: counted in neither
+		 * (the block p50s below start at its second sample). */
+		if (n % block != 0)
 			hist_record(s->late[p], BUCKETS, 100, late);
-			raw[n] = (int32_t)late;
-		} else {
-			raw[n] = INT32_MIN;
-		}
+		raw[n] = (int32_t)late;
 		const char *c = phase[p], *slash = strchr(c, '/');
 		if (slash && (n & 1))
 			c = slash + 1;

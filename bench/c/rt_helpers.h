@@ -1,12 +1,13 @@
 /*
- * What the C reproductions in this folder share: the monotonic clock, a task on one CPU at
- * SCHED_FIFO, a futex token passed from task to task, and a histogram of fixed-width
+ * What the C reproductions in this folder share: the monotonic clock, the CPU wake-up latency
+ * request, a task on one CPU at SCHED_FIFO, a futex token passed from task to task, and a histogram of fixed-width
  * buckets with its percentiles. Header-only (every function static), so each program still
  * builds with one `gcc` line.
  */
 #ifndef DRIVELAB_BENCH_RT_HELPERS_H
 #define DRIVELAB_BENCH_RT_HELPERS_H
 
+#include <fcntl.h>
 #include <linux/futex.h>
 #include <sched.h>
 #include <stdint.h>
@@ -23,6 +24,15 @@ static inline int64_t now_ns(void)
 	struct timespec t;
 	clock_gettime(CLOCK_MONOTONIC, &t);
 	return t.tv_sec * 1000000000LL + t.tv_nsec;
+}
+
+/* Holds a CPU wake-up latency request of 0 µs (as cyclictest does) until the process exits,
+ * when the kernel drops it. Returns 0, or -1 with errno set when it cannot be made. */
+static inline int hold_latency_request(void)
+{
+	int32_t zero = 0;
+	int fd = open("/dev/cpu_dma_latency", O_WRONLY);
+	return fd >= 0 && write(fd, &zero, sizeof zero) == sizeof zero ? 0 : -1;
 }
 
 /* Pins the calling task to `cpu`. */

@@ -92,9 +92,7 @@ int main(int argc, char **argv)
 		fprintf(stderr, "RATE_HZ and SECONDS positive, K in 0..16, WORK_NS >= 0\n");
 		return 2;
 	}
-	int qos = open("/dev/cpu_dma_latency", O_RDWR);
-	int32_t zero = 0;
-	if (qos < 0 || write(qos, &zero, sizeof zero) != sizeof zero)
+	if (hold_latency_request() != 0)
 		perror("/dev/cpu_dma_latency");
 	s = mmap(NULL, sizeof *s, PROT_READ | PROT_WRITE, MAP_SHARED | MAP_ANONYMOUS, -1, 0);
 	if (s == MAP_FAILED) {

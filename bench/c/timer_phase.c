@@ -49,9 +49,7 @@ int main(int argc, char **argv)
 	if (mlockall(MCL_CURRENT | MCL_FUTURE) != 0)
 		perror("mlockall");
 	/* Held until the process exits; the kernel drops it then. */
-	int qos = open("/dev/cpu_dma_latency", O_WRONLY);
-	int32_t zero = 0;
-	if (qos < 0 || write(qos, &zero, sizeof zero) != sizeof zero)
+	if (hold_latency_request() != 0)
 		perror("/dev/cpu_dma_latency");
 	if (on_cpu_fifo(1, 70) != 0)
 		fprintf(stderr, "not on CPU 1 at SCHED_FIFO 70: the figures are a normal task's\n");

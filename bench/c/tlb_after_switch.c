@@ -175,9 +175,7 @@ int main(int argc, char **argv)
 	memset(s, 0, sizeof *s);
 	s->huge_kb = -1;
 	mlockall(MCL_CURRENT | MCL_FUTURE);
-	int qos = open("/dev/cpu_dma_latency", O_WRONLY);
-	int32_t zero = 0;
-	if (qos < 0 || write(qos, &zero, sizeof zero) != sizeof zero)
+	if (hold_latency_request() != 0)
 		fprintf(stderr, "no CPU latency request\n");
 
 	pid_t child = -1;
