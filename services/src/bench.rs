@@ -437,22 +437,11 @@ fn run_iceoryx2(sc: &Scenario, out: &Path, bus: &str, topology: Option<&str>) ->
         duration_s: None,
         out: Some(out.to_path_buf()),
         bus: Some(bus.into()),
-        rt_strict: false,
-        no_rt: false,
         no_plots: true,
-        verbose: false,
-        faults: Vec::new(),
         restart: launcher::Restart::Never,
-        fault_seed: 0,
         lockstep_restart_ms: drivelab_runtime::inject::RESTART_DEFAULT_MS,
         topology: topology.map(String::from),
-        expect: Vec::new(),
-        runner: None,
-        zenoh: None,
-        foxglove: None,
-        timing_csv: false,
-        quiet_hosts: false,
-        quiet_warnings: false,
+        ..RunOptions::default()
     };
     let r = launcher::run(&o)?;
     // CPU time: every stage's statistics carry its process's total; count each process once.
@@ -2058,22 +2047,10 @@ fn measure_and_report(a: &BenchArgs, at: &mut Place) -> Result<()> {
         duration_s: Some(sim_s),
         out: Some(ls_out),
         bus: Some(format!("b{}ls", std::process::id())),
-        rt_strict: false,
-        no_rt: false,
         no_plots: true,
-        verbose: false,
-        faults: Vec::new(),
         restart: launcher::Restart::Never,
-        fault_seed: 0,
         lockstep_restart_ms: drivelab_runtime::inject::RESTART_DEFAULT_MS,
-        topology: None,
-        expect: Vec::new(),
-        runner: None,
-        zenoh: None,
-        foxglove: None,
-        timing_csv: false,
-        quiet_hosts: false,
-        quiet_warnings: false,
+        ..RunOptions::default()
     })?;
     bar.inc(1);
     bar.set_message("in-process speed");

@@ -418,25 +418,10 @@ mod tests {
         let o = crate::launcher::RunOptions {
             scenario: "kyslan-pi".into(),
             clock: crate::launcher::Clock::Lockstep,
-            duration_s: None,
-            out: None,
-            bus: None,
-            rt_strict: false,
             no_rt: true,
             no_plots: true,
-            verbose: false,
-            faults: Vec::new(),
-            restart: Default::default(),
-            fault_seed: 0,
             lockstep_restart_ms: drivelab_runtime::inject::RESTART_DEFAULT_MS,
-            topology: None,
-            expect: Vec::new(),
-            runner: None,
-            zenoh: None,
-            foxglove: None,
-            timing_csv: false,
-            quiet_hosts: false,
-            quiet_warnings: false,
+            ..Default::default()
         };
         let topo = crate::launcher::resolve_topology(
             &mut sc,
