@@ -11,6 +11,10 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
+#[path = "../../tests/common/clean.rs"]
+mod clean;
+pub use clean::{assert_clean, processes_on_bus};
+
 /// One drive at a time: they all pin to the same core.
 pub static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
@@ -195,35 +199,6 @@ pub fn remove_scratch(out: &Path) {
     if let Some(dir) = out.parent() {
         let _ = std::fs::remove_dir_all(dir);
     }
-}
-
-/// Processes whose command line names this bus, as "PID ARGS".
-pub fn processes_on_bus(bus: &str) -> Vec<String> {
-    let mut v = Vec::new();
-    for e in std::fs::read_dir("/proc").unwrap().flatten() {
-        if let Ok(cmd) = std::fs::read(e.path().join("cmdline")) {
-            let args: Vec<String> = cmd
-                .split(|b| *b == 0)
-                .map(|s| String::from_utf8_lossy(s).into_owned())
-                .collect();
-            if args.windows(2).any(|w| w[0] == "--bus" && w[1] == bus) {
-                v.push(format!(
-                    "{} {}",
-                    e.file_name().to_string_lossy(),
-                    args.join(" ")
-                ));
-            }
-        }
-    }
-    v
-}
-
-/// Asserts that no process and no file of `bus` is left.
-pub fn assert_clean(bus: &str) {
-    let procs = processes_on_bus(bus);
-    assert!(procs.is_empty(), "processes left: {procs:?}");
-    let files = drivelab_runtime::bus::leftovers(bus);
-    assert!(files.is_empty(), "bus files left: {files:?}");
 }
 
 /// trace.csv as named columns.

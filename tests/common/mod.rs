@@ -8,6 +8,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
+mod clean;
+pub use clean::{assert_clean, processes_on_bus};
+
 /// A TCP port of 127.0.0.1 that was free a moment ago (the kernel's pick).
 pub fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
@@ -476,27 +479,6 @@ pub fn process_pid(bus: &str, process: &str) -> i32 {
         .unwrap()
 }
 
-/// Processes whose command line names this bus, as "PID ARGS".
-pub fn processes_on_bus(bus: &str) -> Vec<String> {
-    let mut v = Vec::new();
-    for e in std::fs::read_dir("/proc").unwrap().flatten() {
-        if let Ok(cmd) = std::fs::read(e.path().join("cmdline")) {
-            let args: Vec<String> = cmd
-                .split(|b| *b == 0)
-                .map(|s| String::from_utf8_lossy(s).into_owned())
-                .collect();
-            if args.windows(2).any(|w| w[0] == "--bus" && w[1] == bus) {
-                v.push(format!(
-                    "{} {}",
-                    e.file_name().to_string_lossy(),
-                    args.join(" ")
-                ));
-            }
-        }
-    }
-    v
-}
-
 /// SIGKILLs the launcher `child` (a bare [`Child`] or a [`Drive`]; nobody cleans up) and
 /// asserts that the kernel ends every other process of `bus` with it (their parent-death
 /// signal) within 10 s; those left are killed before the assertion fails.
@@ -506,14 +488,6 @@ pub fn kill_launcher_and_assert_no_orphans(child: impl Into<Drive>, bus: &str) {
     let on = drive.bus.get_or_insert_with(|| bus.to_string());
     assert_eq!(on, bus, "the drive runs on another bus");
     drive.kill_and_assert_no_orphans();
-}
-
-/// No process and no bus file of `bus` is left.
-pub fn assert_clean(bus: &str) {
-    let procs = processes_on_bus(bus);
-    assert!(procs.is_empty(), "processes left: {procs:?}");
-    let files = drivelab_runtime::bus::leftovers(bus);
-    assert!(files.is_empty(), "bus files left: {files:?}");
 }
 
 /// Like [`assert_clean`], but gives the processes up to `grace` to exit first (after a
