@@ -919,14 +919,20 @@ pub struct Targets {
 /// wake-up p50 lies within this of the variant's fastest slot's, µs.
 pub const FASTEST_SLOT_WITHIN_US: f64 = 2.0;
 
+/// The fewest slots picked on each side for [`FastestSlots`] to judge the p50 target: the
+/// median of one or two slots is those slots' own draw (a timer that drifted rather than
+/// switched speed, or one quiet slot), not the speed's.
+pub const FASTEST_SLOTS_MIN: usize = 3;
+
 /// [`Targets::fastest_slots`]. Some VMs' timers wake in one of two speeds that last seconds
 /// each (the eleventh VM of docs/measurements.md: 7.3 or 14–20 µs at p50, switching within
 /// one cyclictest run, with nothing in the guest to tell them apart), so each few-second slot
 /// of the interleaved rounds gets one or the other, and "chain − floor" at p50 moves by the
 /// difference with the draw. Here the chain's slots are picked by its plant's timer wake-up,
 /// the floor's by its own, each within [`FASTEST_SLOT_WITHIN_US`] of the variant's fastest
-/// slot; the medians of the picked slots' p50s are compared. On a steady machine every slot
-/// is picked and the figure is the rounds' median.
+/// slot; the medians of the picked slots' p50s are compared, and judged with at least
+/// [`FASTEST_SLOTS_MIN`] on each side. On a steady machine every slot is picked and the figure
+/// is the rounds' median.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct FastestSlots {
     /// Slots picked of the chain's.
@@ -939,8 +945,9 @@ pub struct FastestSlots {
     pub floor_p50_span_us: [f64; 2],
     /// Median of the picked chain slots' p50 − median of the picked floor slots' p50, µs.
     pub p50_minus_floor_us: f64,
-    /// Within [`TARGET_P50_US`].
-    pub p50_met: bool,
+    /// Within [`TARGET_P50_US`]; None (not judged) when fewer than [`FASTEST_SLOTS_MIN`]
+    /// slots were picked on either side.
+    pub p50_met: Option<bool>,
 }
 
 impl FastestSlots {
@@ -971,7 +978,7 @@ impl FastestSlots {
             rounds: chain.len().min(floor.len()),
             floor_p50_span_us: [lo, hi],
             p50_minus_floor_us: d,
-            p50_met: d <= TARGET_P50_US,
+            p50_met: (c.len().min(f.len()) >= FASTEST_SLOTS_MIN).then_some(d <= TARGET_P50_US),
         })
     }
 
@@ -989,7 +996,11 @@ impl FastestSlots {
             self.floor_p50_span_us[0],
             self.floor_p50_span_us[1],
             self.p50_minus_floor_us,
-            if self.p50_met { "met" } else { "missed" }
+            match self.p50_met {
+                Some(true) => "met".to_string(),
+                Some(false) => "missed".to_string(),
+                None => format!("not judged: fewer than {FASTEST_SLOTS_MIN} slots on a side"),
+            }
         )
     }
 }
@@ -2421,7 +2432,35 @@ mod tests {
         assert_eq!(f.floor_p50_span_us, [7.3, 18.8]);
         // Median 19.4 against median 7.45 (the mean of the middle two of four).
         assert!((f.p50_minus_floor_us - 11.95).abs() < 1e-9, "{f:?}");
-        assert!(!f.p50_met && f.picked_some());
+        assert_eq!(f.p50_met, Some(false));
+        assert!(f.picked_some());
+        assert!(
+            f.clause().contains("p50 +11.9 µs (missed)"),
+            "{}",
+            f.clause()
+        );
+        // Run 65 at 10 kHz: the timer drifted within its slow speed; the chain's fastest
+        // slot stood alone and the floor's two: the medians are those slots' draw, not judged.
+        let drift: Vec<RoundFigures> = [13.2, 18.7, 16.0, 17.1, 15.9, 16.5, 17.9, 14.6, 16.8, 15.7]
+            .map(|p50| round(p50, 30.0, 0.0))
+            .to_vec();
+        let lone = chain
+            .iter()
+            .enumerate()
+            .map(|(i, r)| RoundFigures {
+                wake_p50_us: if i == 3 { 9.0 } else { r.wake_p50_us },
+                ..*r
+            })
+            .collect::<Vec<_>>();
+        let f = FastestSlots::of(&lone, &drift).unwrap();
+        assert_eq!((f.chain_slots, f.floor_slots), (1, 2));
+        assert_eq!(f.p50_met, None);
+        assert!(
+            f.clause()
+                .ends_with("(not judged: fewer than 3 slots on a side)."),
+            "{}",
+            f.clause()
+        );
         // A steady timer: every slot picked, the medians' difference (21 − 12); met at +10.
         let steady = |p50s: [f64; 3]| p50s.map(|p| round(p, 30.0, 0.0)).to_vec();
         let f = FastestSlots::of(&steady([20.0, 21.0, 22.0]), &steady([12.0, 13.0, 11.0])).unwrap();
@@ -2429,9 +2468,9 @@ mod tests {
             (f.chain_slots, f.floor_slots, f.p50_minus_floor_us),
             (3, 3, 9.0)
         );
-        assert!(f.p50_met && !f.picked_some());
+        assert!(f.p50_met == Some(true) && !f.picked_some());
         let f = FastestSlots::of(&steady([22.0, 22.0, 22.0]), &steady([12.0, 12.0, 12.0])).unwrap();
-        assert!(f.p50_met, "at the limit: met");
+        assert_eq!(f.p50_met, Some(true), "at the limit: met");
         // One round: nothing to pick from.
         assert_eq!(FastestSlots::of(&chain[..1], &floor[..1]), None);
     }
