@@ -1383,9 +1383,63 @@ fn median(v: &[f64]) -> f64 {
     }
 }
 
+/// A target's verdict.
+fn met(ok: bool) -> &'static str {
+    if ok {
+        "met"
+    } else {
+        "missed"
+    }
+}
+
+/// The targets of every chain and rate as one table, before their lines: what a reader
+/// looks for first (each line below gives the same verdicts with their figures and the
+/// round-by-round detail).
+fn targets_table(goals: &[Targets]) -> String {
+    let mut s = format!(
+        "| rate | chain | p50 − floor (≤ +{TARGET_P50_US} µs) | p99 − floor (≤ +{TARGET_P99_US} µs); median round | misses/M (≤ 2 × floor's + 10) | p99 / Unix socket's (≤ {TARGET_UDS_RATIO}) | in the fastest slots: p50 − floor |\n|---|---|---|---|---|---|---|\n"
+    );
+    for t in goals {
+        let median_round = t.by_round.as_ref().map_or(String::new(), |r| {
+            format!(
+                "; {:+.1} {}",
+                r.p99_median_us,
+                met(r.p99_median_us <= TARGET_P99_US)
+            )
+        });
+        let uds = match (t.p99_ratio_to_uds, t.uds_met) {
+            (Some(r), Some(ok)) => format!("{r:.3} {}", met(ok)),
+            _ => "-".to_string(),
+        };
+        let fastest = t.fastest_slots.as_ref().map_or("-".to_string(), |f| {
+            format!(
+                "{:+.1} {} ({} and {} of {} slots)",
+                f.p50_minus_floor_us,
+                f.p50_met.map_or("not judged", met),
+                f.chain_slots,
+                f.floor_slots,
+                f.rounds
+            )
+        });
+        let _ = writeln!(
+            s,
+            "| {} kHz | {} | {:+.1} {} | {:+.1} {}{median_round} | {:.0} of {:.0} {} | {uds} | {fastest} |",
+            t.rate_hz / 1000.0,
+            t.chain,
+            t.p50_minus_floor_us,
+            met(t.p50_met),
+            t.p99_minus_floor_us,
+            met(t.p99_met),
+            t.misses_per_million,
+            t.misses_bound,
+            met(t.misses_met),
+        );
+    }
+    s
+}
+
 /// One line of the report per chain and rate: the targets and whether each is met.
 fn targets_line(t: &Targets) -> String {
-    let met = |ok: bool| if ok { "met" } else { "missed" };
     let above_floor = match t.p99_above_floor_ratio_to_uds {
         Some(r) => format!("; above the floor's p99, {r:.2} × what the Unix-socket chain adds"),
         None => String::new(),
@@ -2249,6 +2303,13 @@ pub fn markdown(
             verdict
         );
     }
+    if !goals.is_empty() {
+        let _ = write!(
+            s,
+            "\nThe targets, each chain against the floor of the same run:\n\n{}",
+            targets_table(goals)
+        );
+    }
     for t in goals {
         let _ = writeln!(s, "\n{}", targets_line(t));
     }
@@ -2398,6 +2459,94 @@ mod tests {
         // One round, or rounds that do not pair up: nothing to say round by round.
         assert_eq!(target_rounds(&chain[..1], &floor[..1]), None);
         assert_eq!(target_rounds(&chain, &floor[..1]), None);
+    }
+
+    #[test]
+    fn the_targets_table_gives_each_chain_and_rate_its_verdicts_in_one_row() {
+        // Bench run 65 at 10 kHz (docs/measurements.md): the default chain and the control.
+        let chain = Targets {
+            chain: "iceoryx2 one-core".into(),
+            rate_hz: 10_000.0,
+            cpu_latency_request: true,
+            p50_minus_floor_us: 12.896,
+            p50_met: false,
+            p99_minus_floor_us: -388.0,
+            p99_met: true,
+            misses_per_million: 5370.0,
+            misses_bound: 27650.0,
+            misses_met: true,
+            p99_ratio_to_uds: Some(0.8003),
+            uds_met: Some(false),
+            p99_above_floor_ratio_to_uds: None,
+            uds_bound_against_bare: None,
+            misses_floor_predicts: None,
+            misses_floor_predicts_catching_up: None,
+            by_round: Some(TargetRounds {
+                p50_minus_floor_us: vec![],
+                p99_minus_floor_us: vec![],
+                p50_median_us: 13.2,
+                p99_median_us: 13.9,
+                p50_met: 1,
+                p99_met: 5,
+                misses_met: 4,
+            }),
+            uds_by_round: None,
+            bare_chain: None,
+            outside_stalls: None,
+            fastest_slots: Some(FastestSlots {
+                chain_slots: 1,
+                floor_slots: 2,
+                rounds: 10,
+                floor_p50_span_us: [13.2, 18.7],
+                p50_minus_floor_us: 5.516,
+                p50_met: None,
+            }),
+        };
+        let control = Targets {
+            chain: CONTROL.into(),
+            p50_minus_floor_us: 0.8,
+            p50_met: true,
+            p99_minus_floor_us: 1195.8,
+            p99_met: false,
+            misses_per_million: 25017.0,
+            by_round: Some(TargetRounds {
+                p99_median_us: 29.0,
+                ..chain.by_round.clone().unwrap()
+            }),
+            p99_ratio_to_uds: None,
+            uds_met: None,
+            fastest_slots: None,
+            ..chain.clone()
+        };
+        let table = targets_table(&[chain, control]);
+        let lines: Vec<&str> = table.lines().collect();
+        assert_eq!(lines.len(), 4, "{table}");
+        assert!(
+            lines[0].starts_with(
+                "| rate | chain | p50 − floor (≤ +10 µs) | p99 − floor (≤ +15 µs); median round |"
+            ),
+            "{}",
+            lines[0]
+        );
+        assert_eq!(
+            lines[2],
+            "| 10 kHz | iceoryx2 one-core | +12.9 missed | -388.0 met; +13.9 met | 5370 of 27650 met | 0.800 missed | +5.5 not judged (1 and 2 of 10 slots) |"
+        );
+        assert_eq!(
+            lines[3],
+            format!("| 10 kHz | {CONTROL} | +0.8 met | +1195.8 missed; +29.0 missed | 25017 of 27650 met | - | - |")
+        );
+        // No chain measured: no table.
+        let md = markdown(
+            &[],
+            &[],
+            &[],
+            &[],
+            &[],
+            &serde_json::json!({}),
+            (1.0, 1, 0.0),
+        );
+        assert!(!md.contains("The targets, each chain"), "{md}");
     }
 
     #[test]
