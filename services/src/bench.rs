@@ -1423,7 +1423,7 @@ fn targets_table(goals: &[Targets]) -> String {
         });
         let _ = writeln!(
             s,
-            "| {} kHz | {} | {:+.1} {} | {:+.1} {}{median_round} | {:.0} of {:.0} {} | {uds} | {fastest} |",
+            "| {} kHz | {} | {:+.1} {} | {:+.1} {}{median_round} | {:.0} (bound {:.0}) {} | {uds} | {fastest} |",
             t.rate_hz / 1000.0,
             t.chain,
             t.p50_minus_floor_us,
@@ -2530,11 +2530,11 @@ mod tests {
         );
         assert_eq!(
             lines[2],
-            "| 10 kHz | iceoryx2 one-core | +12.9 missed | -388.0 met; +13.9 met | 5370 of 27650 met | 0.800 missed | +5.5 not judged (1 and 2 of 10 slots) |"
+            "| 10 kHz | iceoryx2 one-core | +12.9 missed | -388.0 met; +13.9 met | 5370 (bound 27650) met | 0.800 missed | +5.5 not judged (1 and 2 of 10 slots) |"
         );
         assert_eq!(
             lines[3],
-            format!("| 10 kHz | {CONTROL} | +0.8 met | +1195.8 missed; +29.0 missed | 25017 of 27650 met | - | - |")
+            format!("| 10 kHz | {CONTROL} | +0.8 met | +1195.8 missed; +29.0 missed | 25017 (bound 27650) met | - | - |")
         );
         // No chain measured: no table.
         let md = markdown(
