@@ -630,6 +630,66 @@ pub struct CrossCheck {
     /// The core cyclictest's main thread ran on, off the measured core (None: cyclictest's
     /// default layout, its main thread on the measured core; drivelab_bench::cyclictest).
     pub cyclictest_main_thread_core: Option<usize>,
+    /// floor − cyclictest at p50 in the slots where each woke at its fastest (see
+    /// [`FastestSlots`]): on a timer with two speeds the merged p50s differ by the slots'
+    /// draw. `None` with a single round.
+    pub fastest_slots: Option<CrossFastest>,
+}
+
+/// [`CrossCheck::fastest_slots`]: the floor's slots and cyclictest's, each picked by its own
+/// wake-up p50 within [`FASTEST_SLOT_WITHIN_US`] of its fastest slot's.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CrossFastest {
+    /// Slots picked of the floor's.
+    pub floor_slots: usize,
+    /// Slots picked of cyclictest's.
+    pub cyclictest_slots: usize,
+    /// Slots of each.
+    pub rounds: usize,
+    /// Median of the floor's picked slots' wake-up p50 − median of cyclictest's, µs.
+    pub p50_diff_us: f64,
+    /// Within ±[`CYCLICTEST_AGREEMENT_US`]; None (not judged) when fewer than
+    /// [`FASTEST_SLOTS_MIN`] slots were picked on either side.
+    pub agrees: Option<bool>,
+}
+
+impl CrossFastest {
+    fn of(floor: &[RoundFigures], cyclictest: &[RoundFigures]) -> Option<Self> {
+        if floor.len() < 2 || cyclictest.len() < 2 {
+            return None;
+        }
+        let wake = |r: &RoundFigures| r.wake_p50_us;
+        let (f, c) = (fastest_picks(floor, wake), fastest_picks(cyclictest, wake));
+        let d = median(&f) - median(&c);
+        Some(Self {
+            floor_slots: f.len(),
+            cyclictest_slots: c.len(),
+            rounds: floor.len().min(cyclictest.len()),
+            p50_diff_us: d,
+            agrees: (f.len().min(c.len()) >= FASTEST_SLOTS_MIN)
+                .then_some(d.abs() <= CYCLICTEST_AGREEMENT_US),
+        })
+    }
+
+    /// The report's clause, given only when some slot was left out (otherwise it would
+    /// repeat the rounds' medians).
+    fn clause(&self) -> String {
+        if self.floor_slots == self.rounds && self.cyclictest_slots == self.rounds {
+            return String::new();
+        }
+        format!(
+            "; in the slots where each woke at its fastest (the floor's {} and cyclictest's {} of {}): p50 {:+.1} µs ({})",
+            self.floor_slots,
+            self.cyclictest_slots,
+            self.rounds,
+            self.p50_diff_us,
+            match self.agrees {
+                Some(true) => "agrees".to_string(),
+                Some(false) => "disagrees".to_string(),
+                None => format!("not judged: fewer than {FASTEST_SLOTS_MIN} slots on a side"),
+            }
+        )
+    }
 }
 
 /// [`CrossCheck`] per interleaved round.
@@ -817,6 +877,7 @@ fn compare(rows: &mut [Row], hz: f64, cyclictest_main_core: Option<usize>) -> Ve
                 agrees: d50.abs() <= CYCLICTEST_AGREEMENT_US
                     && d99.abs() <= CYCLICTEST_AGREEMENT_US,
                 by_round: CrossRounds::of(&floor_rounds, &r.rounds),
+                fastest_slots: CrossFastest::of(&floor_rounds, &r.rounds),
                 cyclictest_main_thread_core: cyclictest_main_core,
             });
             continue;
@@ -924,6 +985,19 @@ pub const FASTEST_SLOT_WITHIN_US: f64 = 2.0;
 /// switched speed, or one quiet slot), not the speed's.
 pub const FASTEST_SLOTS_MIN: usize = 3;
 
+/// `value` of the slots whose timer wake-up p50 lies within [`FASTEST_SLOT_WITHIN_US`] of the
+/// fastest slot's.
+fn fastest_picks(v: &[RoundFigures], value: impl Fn(&RoundFigures) -> f64) -> Vec<f64> {
+    let best = v
+        .iter()
+        .map(|r| r.wake_p50_us)
+        .fold(f64::INFINITY, f64::min);
+    v.iter()
+        .filter(|r| r.wake_p50_us <= best + FASTEST_SLOT_WITHIN_US)
+        .map(value)
+        .collect()
+}
+
 /// [`Targets::fastest_slots`]. Some VMs' timers wake in one of two speeds that last seconds
 /// each (the eleventh VM of docs/measurements.md: 7.3 or 14–20 µs at p50, switching within
 /// one cyclictest run, with nothing in the guest to tell them apart), so each few-second slot
@@ -955,17 +1029,8 @@ impl FastestSlots {
         if chain.len() < 2 || floor.len() < 2 {
             return None;
         }
-        let fastest = |v: &[RoundFigures]| -> Vec<f64> {
-            let best = v
-                .iter()
-                .map(|r| r.wake_p50_us)
-                .fold(f64::INFINITY, f64::min);
-            v.iter()
-                .filter(|r| r.wake_p50_us <= best + FASTEST_SLOT_WITHIN_US)
-                .map(|r| r.p50_us)
-                .collect()
-        };
-        let (c, f) = (fastest(chain), fastest(floor));
+        let p50 = |r: &RoundFigures| r.p50_us;
+        let (c, f) = (fastest_picks(chain, p50), fastest_picks(floor, p50));
         let d = median(&c) - median(&f);
         let lo = floor.iter().map(|r| r.p50_us).fold(f64::INFINITY, f64::min);
         let hi = floor
@@ -2322,7 +2387,8 @@ pub fn markdown(
             c.p50_diff_us,
             c.p99_diff_us,
             if c.agrees { "agrees" } else { "DISAGREES" },
-            c.by_round.as_ref().map_or(String::new(), CrossRounds::clause),
+            c.by_round.as_ref().map_or(String::new(), CrossRounds::clause)
+                + &c.fastest_slots.as_ref().map_or(String::new(), CrossFastest::clause),
             match c.cyclictest_main_thread_core {
                 Some(core) => format!("cyclictest's main thread on CPU {core}"),
                 None => "cyclictest's main thread on the measured core".to_string(),
@@ -2668,6 +2734,44 @@ mod tests {
         let r = CrossRounds::of(&[wake(15.0, 30.0); 2], &[wake(18.0, 27.0); 2]).unwrap();
         assert_eq!(r.rounds_agreeing, 2);
         assert_eq!(CrossRounds::of(&floor[..1], &ct[..1]), None);
+    }
+
+    #[test]
+    fn the_floor_is_also_checked_against_cyclictest_in_the_slots_where_each_woke_at_its_fastest() {
+        // A timer with two speeds, as in bench run 66: the floor drew its fast one (7.3–7.6
+        // µs) in 4 slots of 10, cyclictest in 6, so the merged p50s sit in different speeds
+        // and differ by the draw; the fastest slots agree.
+        let wake = |p50: f64| RoundFigures {
+            wake_p50_us: p50,
+            ..round(500.0, 900.0, 0.0)
+        };
+        let floor = [7.3, 16.0, 7.4, 17.0, 15.5, 7.6, 18.0, 16.5, 7.5, 19.0].map(wake);
+        let ct = [7.0, 7.2, 15.0, 7.1, 16.0, 7.3, 7.2, 17.0, 16.5, 7.4].map(wake);
+        let f = CrossFastest::of(&floor, &ct).unwrap();
+        assert_eq!((f.floor_slots, f.cyclictest_slots, f.rounds), (4, 6, 10));
+        // Medians 7.45 and 7.2.
+        assert!((f.p50_diff_us - 0.25).abs() < 1e-9, "{f:?}");
+        assert_eq!(f.agrees, Some(true));
+        assert_eq!(
+            f.clause(),
+            "; in the slots where each woke at its fastest (the floor's 4 and cyclictest's 6 of 10): p50 +0.2 µs (agrees)"
+        );
+        // The floor 5 µs slower in its fast speed: disagrees.
+        let slow = floor.map(|r| wake(r.wake_p50_us + 5.0));
+        assert_eq!(CrossFastest::of(&slow, &ct).unwrap().agrees, Some(false));
+        // Two fast floor slots: not judged.
+        let mut two = floor;
+        two[0] = wake(16.2);
+        two[2] = wake(17.5);
+        let f = CrossFastest::of(&two, &ct).unwrap();
+        assert_eq!((f.floor_slots, f.agrees), (2, None));
+        assert!(f
+            .clause()
+            .ends_with("(not judged: fewer than 3 slots on a side)"));
+        // A steady timer: every slot picked, nothing beyond the rounds' medians to say.
+        let steady = CrossFastest::of(&[wake(12.0); 3], &[wake(11.0); 3]).unwrap();
+        assert_eq!(steady.clause(), "");
+        assert_eq!(CrossFastest::of(&floor[..1], &ct[..1]), None);
     }
 
     #[test]
