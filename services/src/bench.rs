@@ -655,26 +655,20 @@ pub struct CrossFastest {
 
 impl CrossFastest {
     fn of(floor: &[RoundFigures], cyclictest: &[RoundFigures]) -> Option<Self> {
-        if floor.len() < 2 || cyclictest.len() < 2 {
-            return None;
-        }
-        let wake = |r: &RoundFigures| r.wake_p50_us;
-        let (f, c) = (fastest_picks(floor, wake), fastest_picks(cyclictest, wake));
-        let d = median(&f) - median(&c);
+        let picks = FastestPicks::of(floor, cyclictest, |r| r.wake_p50_us)?;
         Some(Self {
-            floor_slots: f.len(),
-            cyclictest_slots: c.len(),
-            rounds: floor.len().min(cyclictest.len()),
-            p50_diff_us: d,
-            agrees: (f.len().min(c.len()) >= FASTEST_SLOTS_MIN)
-                .then_some(d.abs() <= CYCLICTEST_AGREEMENT_US),
+            floor_slots: picks.a_slots,
+            cyclictest_slots: picks.b_slots,
+            rounds: picks.rounds,
+            p50_diff_us: picks.diff,
+            agrees: picks.judge(|d| d.abs() <= CYCLICTEST_AGREEMENT_US),
         })
     }
 
     /// The report's clause, given only when some slot was left out (otherwise it would
     /// repeat the rounds' medians).
     fn clause(&self) -> String {
-        if self.floor_slots == self.rounds && self.cyclictest_slots == self.rounds {
+        if !picked_some([self.floor_slots, self.cyclictest_slots], self.rounds) {
             return String::new();
         }
         format!(
@@ -683,11 +677,7 @@ impl CrossFastest {
             self.cyclictest_slots,
             self.rounds,
             self.p50_diff_us,
-            match self.agrees {
-                Some(true) => "agrees".to_string(),
-                Some(false) => "disagrees".to_string(),
-                None => format!("not judged: fewer than {FASTEST_SLOTS_MIN} slots on a side"),
-            }
+            judged_words(self.agrees, "agrees", "disagrees")
         )
     }
 }
@@ -985,17 +975,68 @@ pub const FASTEST_SLOT_WITHIN_US: f64 = 2.0;
 /// switched speed, or one quiet slot), not the speed's.
 pub const FASTEST_SLOTS_MIN: usize = 3;
 
-/// `value` of the slots whose timer wake-up p50 lies within [`FASTEST_SLOT_WITHIN_US`] of the
-/// fastest slot's.
-fn fastest_picks(v: &[RoundFigures], value: impl Fn(&RoundFigures) -> f64) -> Vec<f64> {
-    let best = v
-        .iter()
-        .map(|r| r.wake_p50_us)
-        .fold(f64::INFINITY, f64::min);
-    v.iter()
-        .filter(|r| r.wake_p50_us <= best + FASTEST_SLOT_WITHIN_US)
-        .map(value)
-        .collect()
+/// Two variants' fastest slots, each side's picked by its own timer wake-up p50 (within
+/// [`FASTEST_SLOT_WITHIN_US`] of its fastest slot's): what [`FastestSlots`] and
+/// [`CrossFastest`] compare.
+struct FastestPicks {
+    /// Slots picked of `a`'s.
+    a_slots: usize,
+    /// Slots picked of `b`'s.
+    b_slots: usize,
+    /// Slots of each.
+    rounds: usize,
+    /// Median of `value` over `a`'s picked slots − the same over `b`'s.
+    diff: f64,
+}
+
+impl FastestPicks {
+    /// `None` with fewer than two rounds on a side.
+    fn of(
+        a: &[RoundFigures],
+        b: &[RoundFigures],
+        value: impl Fn(&RoundFigures) -> f64,
+    ) -> Option<Self> {
+        if a.len() < 2 || b.len() < 2 {
+            return None;
+        }
+        let picks = |v: &[RoundFigures]| -> Vec<f64> {
+            let best = v
+                .iter()
+                .map(|r| r.wake_p50_us)
+                .fold(f64::INFINITY, f64::min);
+            v.iter()
+                .filter(|r| r.wake_p50_us <= best + FASTEST_SLOT_WITHIN_US)
+                .map(&value)
+                .collect()
+        };
+        let (pa, pb) = (picks(a), picks(b));
+        Some(Self {
+            a_slots: pa.len(),
+            b_slots: pb.len(),
+            rounds: a.len().min(b.len()),
+            diff: median(&pa) - median(&pb),
+        })
+    }
+
+    /// `ok(diff)`, or None (not judged) with fewer than [`FASTEST_SLOTS_MIN`] slots on a side.
+    fn judge(&self, ok: impl FnOnce(f64) -> bool) -> Option<bool> {
+        (self.a_slots.min(self.b_slots) >= FASTEST_SLOTS_MIN).then(|| ok(self.diff))
+    }
+}
+
+/// Whether some slot was left out of `slots` picks of `rounds` (otherwise a fastest-slot figure
+/// is the rounds' median).
+fn picked_some(slots: [usize; 2], rounds: usize) -> bool {
+    slots.iter().any(|&n| n < rounds)
+}
+
+/// A fastest-slot verdict in words: `yes`, `no`, or why it was not judged.
+fn judged_words(v: Option<bool>, yes: &str, no: &str) -> String {
+    match v {
+        Some(true) => yes.to_string(),
+        Some(false) => no.to_string(),
+        None => format!("not judged: fewer than {FASTEST_SLOTS_MIN} slots on a side"),
+    }
 }
 
 /// [`Targets::fastest_slots`]. Some VMs' timers wake in one of two speeds that last seconds
@@ -1026,30 +1067,25 @@ pub struct FastestSlots {
 
 impl FastestSlots {
     fn of(chain: &[RoundFigures], floor: &[RoundFigures]) -> Option<Self> {
-        if chain.len() < 2 || floor.len() < 2 {
-            return None;
-        }
-        let p50 = |r: &RoundFigures| r.p50_us;
-        let (c, f) = (fastest_picks(chain, p50), fastest_picks(floor, p50));
-        let d = median(&c) - median(&f);
+        let picks = FastestPicks::of(chain, floor, |r| r.p50_us)?;
         let lo = floor.iter().map(|r| r.p50_us).fold(f64::INFINITY, f64::min);
         let hi = floor
             .iter()
             .map(|r| r.p50_us)
             .fold(f64::NEG_INFINITY, f64::max);
         Some(Self {
-            chain_slots: c.len(),
-            floor_slots: f.len(),
-            rounds: chain.len().min(floor.len()),
+            chain_slots: picks.a_slots,
+            floor_slots: picks.b_slots,
+            rounds: picks.rounds,
             floor_p50_span_us: [lo, hi],
-            p50_minus_floor_us: d,
-            p50_met: (c.len().min(f.len()) >= FASTEST_SLOTS_MIN).then_some(d <= TARGET_P50_US),
+            p50_minus_floor_us: picks.diff,
+            p50_met: picks.judge(|d| d <= TARGET_P50_US),
         })
     }
 
     /// Whether some slot was left out (otherwise the figure is the rounds' median).
     fn picked_some(&self) -> bool {
-        self.chain_slots < self.rounds || self.floor_slots < self.rounds
+        picked_some([self.chain_slots, self.floor_slots], self.rounds)
     }
 
     fn clause(&self) -> String {
@@ -1061,11 +1097,7 @@ impl FastestSlots {
             self.floor_p50_span_us[0],
             self.floor_p50_span_us[1],
             self.p50_minus_floor_us,
-            match self.p50_met {
-                Some(true) => "met".to_string(),
-                Some(false) => "missed".to_string(),
-                None => format!("not judged: fewer than {FASTEST_SLOTS_MIN} slots on a side"),
-            }
+            judged_words(self.p50_met, "met", "missed")
         )
     }
 }
