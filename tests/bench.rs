@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{assert_clean, processes_with, scratch, wait};
+use common::{assert_clean, not_checked, processes_with, scratch, wait};
 use std::path::Path;
 use std::process::Command;
 use std::time::{Duration, Instant};
@@ -1247,7 +1247,10 @@ fn under_stalls_runs_the_command_beside_two_stall_tasks_and_leaves_none() {
     if !root {
         assert_eq!(status.code(), Some(1), "{err}");
         assert!(err.contains("a stall task did not start"), "{err}");
-        eprintln!("not root: the stall tasks and what they leave are not checked");
+        not_checked(
+            "bench under stalls",
+            "not root: the stall tasks and what they leave",
+        );
         return;
     }
     let (pids, leaked) = (read_pids(&pids_file), read_pids(&leak_file));

@@ -327,7 +327,8 @@ fn design_asks_an_exec_which_stages_it_hosts_as_run_does() {
 #[test]
 fn design_says_unstable_where_the_sampled_loop_is() {
     // low-rst-sensorless runs the RST loops; the nonlinear design printed for comparison is
-    // unstable at its 500 Hz speed law: its 9 423 % overshoot is that of a growing response.
+    // unstable at its 500 Hz speed law: a pole outside the unit circle, and an overshoot far
+    // beyond any designed one, that of a growing response.
     let (code, out, err) = drivelab_in(
         std::path::Path::new("/"),
         &["design", "--scenario", "low-rst-sensorless"],
@@ -337,10 +338,23 @@ fn design_says_unstable_where_the_sampled_loop_is() {
         .lines()
         .find(|l| l.contains("design model (drive's discrete law"))
         .unwrap();
+    // The figure that follows a label in the line, e.g. "overshoot 12.5 %" → 12.5.
+    let after = |label: &str| -> f64 {
+        let (_, rest) = l
+            .split_once(label)
+            .unwrap_or_else(|| panic!("no {label:?}: {l}"));
+        let v = rest.split([' ', ',', ';']).next().unwrap();
+        v.parse()
+            .unwrap_or_else(|e| panic!("{label:?} {v:?}: {e}: {l}"))
+    };
     assert!(
-        l.contains("overshoot 9423.3 %; UNSTABLE: the sampled loop has a pole at |z| = "),
+        l.contains("; UNSTABLE: the sampled loop has a pole at |z| = "),
         "{l}"
     );
+    let rho = after("|z| = ");
+    assert!(rho > 1.0, "|z| = {rho}: {l}");
+    let overshoot = after("overshoot ");
+    assert!(overshoot > 100.0, "overshoot {overshoot} %: {l}");
     assert!(
         l.contains("(this design is not run: for comparison only)"),
         "{l}"

@@ -263,9 +263,18 @@ fn compare_draws_the_runs_on_one_set_of_axes_and_tabulates_the_metrics() {
         assert_eq!(got, want, "{row}");
     }
     for stem in ["compare_speed", "compare_iq", "compare_id"] {
-        for ext in ["png", "svg"] {
-            let f = out.join(format!("{stem}.{ext}"));
-            assert!(read(&f).len() > 1000, "{}", f.display());
+        assert!(
+            read(&out.join(format!("{stem}.png"))).len() > 1000,
+            "{stem}.png"
+        );
+        // One set of axes with both runs: the SVG's legend has a text of its own for each
+        // (the title names both too, on one line of its own).
+        let svg = String::from_utf8(read(&out.join(format!("{stem}.svg")))).unwrap();
+        for run in ["kyslan-pi", "kyslan-nl"] {
+            assert!(
+                svg.lines().any(|l| l.trim() == run),
+                "{stem}.svg has no legend entry {run}"
+            );
         }
     }
     let j: Value = serde_json::from_slice(&read(&out.join("comparison.json"))).unwrap();

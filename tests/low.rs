@@ -651,10 +651,30 @@ fn observer_error_reports_zeta_and_plots_it() {
         .find(|l| l.trim_start().starts_with("1200 "))
         .unwrap_or_else(|| panic!("no 1200 rpm row in\n{t}"));
     assert!(line.contains(&format!("{z:.3}%")), "{line}");
-    for stem in ["zeta", "angle_error"] {
-        for ext in ["png", "svg"] {
-            let f = out.join(format!("{stem}.{ext}"));
-            assert!(read(&f).len() > 1000, "{}", f.display());
+    // Each plot draws a curve per sample time (the angle error also the exact one at the
+    // first), each with its own legend text.
+    for (stem, series) in [
+        ("zeta", vec!["T_s = 100 µs", "T_s = 200 µs", "T_s = 500 µs"]),
+        (
+            "angle_error",
+            vec![
+                "truncated, T_s = 100 µs",
+                "truncated, T_s = 200 µs",
+                "truncated, T_s = 500 µs",
+                "exact, T_s = 100 µs",
+            ],
+        ),
+    ] {
+        assert!(
+            read(&out.join(format!("{stem}.png"))).len() > 1000,
+            "{stem}.png"
+        );
+        let svg = String::from_utf8(read(&out.join(format!("{stem}.svg")))).unwrap();
+        for name in series {
+            assert!(
+                svg.lines().any(|l| l.trim() == name),
+                "{stem}.svg has no legend entry {name:?}"
+            );
         }
     }
     let j: Value = serde_json::from_slice(&read(&out.join("observer_error.json"))).unwrap();

@@ -35,6 +35,14 @@ pub fn serial() -> std::sync::MutexGuard<'static, ()> {
     SERIAL.lock().unwrap_or_else(|e| e.into_inner())
 }
 
+/// Says, past the test harness's capture of `eprintln!` (which a passing test's output never
+/// leaves), that `test` did not check part of what it promises and why, so that a run that
+/// passed without checking it shows so in its log.
+pub fn not_checked(test: &str, why: &str) {
+    use std::io::Write;
+    let _ = writeln!(std::io::stderr(), "NOT CHECKED: {test}: {why}");
+}
+
 /// A fresh scratch folder for test `name`. The test binary removes its scratch folders when
 /// it exits with no test failed; after a failure it keeps them and names them on stderr.
 pub fn scratch(name: &str) -> PathBuf {
