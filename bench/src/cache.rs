@@ -199,13 +199,16 @@ mod tests {
 
     #[test]
     fn the_probe_measures_every_wake_up_without_real_time_settings() {
-        // No core, no priority: it runs anywhere as a normal thread. What it measures is
-        // the machine's (no time is asserted); only what it reports on is checked here.
+        // No core, no priority: it runs anywhere as a normal thread. How long the reads take
+        // is the machine's (no bound is asserted), but both medians are of reads that took
+        // place: reading 64 lines takes some nanoseconds, warm or not, and a wake-up left
+        // unmeasured would count as 0 ns and, with half of them so, make the median 0.
         let p = after_sleep(&NodeSpec {
             core: None,
             priority: None,
         })
         .unwrap();
-        assert_eq!((p.cpu, p.lines, p.wakeups), (None, LINES, WAKEUPS));
+        assert_eq!(p.cpu, None);
+        assert!(p.after_sleep_ns > 0 && p.warm_ns > 0, "{p:?}");
     }
 }

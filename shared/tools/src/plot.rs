@@ -1417,8 +1417,10 @@ mod tests {
         assert_outputs(&files);
     }
 
+    /// All-zero signals (zero y span) and a single row (zero x span) still give every
+    /// figure; how such a span is padded into an axis is checked in `axes_and_ticks`.
     #[test]
-    fn plot_trace_constant_signals_are_padded() {
+    fn plot_trace_draws_constant_signals_and_a_single_row() {
         let dir = TempDir::new();
         let rows: Vec<TraceRow> = (0..10)
             .map(|k| TraceRow {
