@@ -382,8 +382,27 @@ fn bench_quick_runs_end_to_end_and_writes_its_report() {
     );
     assert!(md.contains(&line), "bench.md lacks {line:?}: {md}");
     let ice: Vec<&serde_json::Value> = rows.iter().filter(|x| x["variant"] == "iceoryx2").collect();
+    assert!(
+        ice.iter().any(|r| r["p99_ratio_to_uds"].is_f64()),
+        "no iceoryx2 row compared with the Unix-socket chain"
+    );
     for r in &ice {
-        assert!(r["p99_ratio_to_uds"].as_f64().is_some());
+        // Against the Unix-socket chain measured under the same request, and only that one
+        // (it is measured with the request held only).
+        let uds = rows.iter().find(|x| {
+            x["variant"] == "uds"
+                && x["placement"] == r["placement"]
+                && x["cpu_latency_request"] == r["cpu_latency_request"]
+        });
+        match uds {
+            Some(u) => {
+                let want =
+                    r["cycle_us"]["p99"].as_f64().unwrap() / u["cycle_us"]["p99"].as_f64().unwrap();
+                let got = r["p99_ratio_to_uds"].as_f64().unwrap();
+                assert!((got - want).abs() < 1e-9, "{got} against {want}");
+            }
+            None => assert!(r["p99_ratio_to_uds"].is_null(), "{r}"),
+        }
         // The cycle's budget: the default chain's critical path, cut at its hops.
         let b = &r["budget"];
         assert_eq!(
