@@ -36,24 +36,23 @@ case "$target" in
   *) echo "cross: unknown target '$target'; $usage" >&2; exit 2 ;;
 esac
 
-if ! command -v rustup >/dev/null 2>&1; then
-  echo "cross: rustup is not installed; install the Rust toolchain with rustup first" >&2
-  exit 1
-fi
-if ! rustup target list --installed | grep -qx "$target"; then
-  echo "cross: adding the Rust target $target" >&2
-  rustup target add "$target"
-fi
+# Debian's cross compiler and qemu-user first: they do not depend on rustup's server.
 need=()
 command -v "$gnu-gcc" >/dev/null 2>&1 || need+=("g++-$gnu")
 command -v "$qemu" >/dev/null 2>&1 || need+=(qemu-user)
 if [ ${#need[@]} -gt 0 ]; then
-  echo "cross: installing ${need[*]}" >&2
-  if [ "$(id -u)" -eq 0 ]; then SUDO=""; else SUDO="sudo"; fi
-  $SUDO apt-get update -qq
+  source scripts/lib/apt.sh
   # No recommends: qemu-user recommends qemu-user-binfmt, which registers binfmt handlers.
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends \
-    "${need[@]}" >/dev/null
+  apt_install --no-install-recommends "${need[@]}"
+fi
+if ! command -v rustup >/dev/null 2>&1; then
+  echo "cross: rustup is not installed; install the Rust toolchain with rustup first" >&2
+  exit 1
+fi
+if ! rustup target list --installed | grep -x "$target" >/dev/null; then
+  echo "cross: adding the Rust target $target" >&2
+  # rustup's server may be out of reach: give up after 10 minutes rather than hang.
+  timeout 600 rustup target add "$target"
 fi
 [ "$tools_only" -eq 0 ] || exit 0
 

@@ -4,7 +4,7 @@
 # and the per-service latency histograms (.hgrm).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup.sh
+bash scripts/setup.sh --run
 cargo build --release --workspace --bins
 "${CARGO_TARGET_DIR:-target}/release/drivelab" run --out runs/default "$@"
 echo "plots and histograms: runs/default/"

@@ -87,7 +87,10 @@ impl Sides {
         let wire = match Wire::make(tag) {
             Ok(w) => Some(w),
             Err(why) => {
-                eprintln!("split test: no network namespaces here ({why}); the two sides join over localhost instead");
+                not_checked(
+                    &format!("split {tag}"),
+                    &format!("no network namespaces here ({why}): the two sides join over localhost instead"),
+                );
                 None
             }
         };
