@@ -1292,6 +1292,7 @@ impl<T: Transport> Host<T> {
                 self.absent_outputs(si, k)?;
                 continue;
             }
+            let mut took_over = false;
             if self.stages[si].rejoining {
                 if self.stages[si].killable {
                     // Lockstep: the rejoin-only inputs of sample k exactly, not whatever is
@@ -1316,12 +1317,18 @@ impl<T: Transport> Host<T> {
                     self.absent_outputs(si, k)?;
                     continue;
                 }
-                self.end_rejoin(si);
+                self.stages[si].rejoining = false;
+                took_over = true;
                 // Re-read: rejoin may have consumed nothing, but keep the same inputs.
                 ib = self.inbox(si, k).0;
             }
             self.stages[si].in_fallback = fallback;
             self.step_publish(si, k, &ib, t_in, fallback)?;
+            // Closing a subscription unmaps segments (a bus call, once per restart): after
+            // this sample's outputs are out, not before them.
+            if took_over {
+                self.close_rejoin_inputs(si);
+            }
         }
         Ok(true)
     }
@@ -1398,10 +1405,15 @@ impl<T: Transport> Host<T> {
         self.stages[si].stage.outputs().contains(&t)
     }
 
-    /// Stage `si` has taken over. Its rejoin-only inputs that no other stage here still
-    /// reads are closed (see [`Transport::close`]): once per restart, not per sample.
+    /// Stage `si` has taken over: see [`Self::close_rejoin_inputs`].
     fn end_rejoin(&mut self, si: usize) {
         self.stages[si].rejoining = false;
+        self.close_rejoin_inputs(si);
+    }
+
+    /// Stage `si`, no longer rejoining, closes its rejoin-only inputs that no other stage
+    /// here still reads (see [`Transport::close`]): once per restart, not per sample.
+    fn close_rejoin_inputs(&mut self, si: usize) {
         for i in 0..self.stages[si].inputs.len() {
             let b = self.stages[si].inputs[i];
             if b.spec.role != Role::Rejoin
@@ -2006,7 +2018,8 @@ mod tests {
         sent: Vec<Msg>,
         waits: usize,
         on_wait: Vec<(usize, Msg)>,
-        closed: Vec<TopicId>,
+        /// Each closed topic, with how many messages had been sent when it was closed.
+        closed: Vec<(TopicId, usize)>,
         /// From this wait on, the producer of this topic is down.
         down_from: Option<(usize, TopicId)>,
         /// A standby twin: its active instance dies at this wait, and the newest output of
@@ -2026,7 +2039,7 @@ mod tests {
             Ok(!self.queues[topic.index()].is_empty())
         }
         fn close(&mut self, topic: TopicId) {
-            self.closed.push(topic);
+            self.closed.push((topic, self.sent.len()));
         }
         fn twin_newest(&mut self, _topic: TopicId) -> Result<Option<Msg>> {
             Ok(self
@@ -2138,12 +2151,21 @@ mod tests {
             };
             let mut host = Host::new(stages, &producers, tr, cfg);
             host.run().unwrap();
-            let steps = published(&host.transport.sent, TopicId::Iref).count();
-            (host.transport.closed, steps)
+            let sent = &host.transport.sent;
+            let steps = published(sent, TopicId::Iref).count();
+            // What had been published on the speed loop's output when each topic was closed.
+            let closed: Vec<(TopicId, usize)> = host
+                .transport
+                .closed
+                .iter()
+                .map(|&(t, n)| (t, published(&sent[..n], TopicId::Iref).count()))
+                .collect();
+            (closed, steps)
         };
-        // Restarted: the command topic is read while rejoining, then released, once; the
+        // Restarted: the command topic is read while rejoining, then released, once, after
+        // the output of the sample it took over at is out (closing unmaps segments); the
         // stage then steps as usual (samples 0, 10 and 20 of the 10-sample speed period).
-        assert_eq!(run(true), (vec![TopicId::Cmd], 3));
+        assert_eq!(run(true), (vec![(TopicId::Cmd, 1)], 3));
         // A first start never subscribed to it, and closes nothing.
         assert_eq!(run(false), (vec![], 3));
     }

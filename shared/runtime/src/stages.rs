@@ -686,11 +686,14 @@ fn run_stages_until(
         .find(|p| p.0 == TopicId::Wref)
         .map_or(1, |p| p.1);
     let n = sc.samples();
+    // Every output of every stage, one per period of its stage, and each topic's end marker:
+    // reserved whole, so that the loop's sends never reallocate.
+    let messages: u64 = producers.iter().map(|p| n / p.1.max(1) + 2).sum();
     let mut host = Host::new(
         stages,
         &producers,
         Local {
-            sent: fallible_vec(2 * n as usize + 16, "the in-process run's messages")?,
+            sent: fallible_vec(messages as usize + 16, "the in-process run's messages")?,
         },
         HostConfig {
             warm_up: false,
@@ -700,7 +703,13 @@ fn run_stages_until(
     );
     host.arm_spares(|name| builtin(name, sc))?;
     host.stop_when(stop);
+    let reserved = host.transport.sent.capacity();
     host.run()?;
+    debug_assert_eq!(
+        host.transport.sent.capacity(),
+        reserved,
+        "the in-process run's sends outgrew what was reserved for them"
+    );
     let ts = sc.rates.ts();
     let mut truth: Vec<Option<PlantTruth>> = fallible_vec(n as usize, "the in-process trace")?;
     truth.resize(n as usize, None);
