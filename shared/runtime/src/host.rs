@@ -2835,6 +2835,56 @@ mod tests {
         assert!(ends.is_empty(), "end markers sent: {ends:?}");
     }
 
+    /// A triggered host (the current loop, in real time, one estimate a wake-up) allocates
+    /// nothing in its run, set-up included (its buffers are made in `Host::new`), for 20
+    /// samples or for 40.
+    #[test]
+    fn a_triggered_host_allocates_nothing_per_sample() {
+        let sc = scenario();
+        let count = |n: u64| {
+            let mut tr = Script::default();
+            // Room beforehand for everything the script queues and the host sends.
+            for q in tr.queues.iter_mut() {
+                q.reserve(n as usize + 8);
+            }
+            tr.sent.reserve(2 * n as usize + 8);
+            tr.queues[TopicId::Est.index()].push_back(est(0, 7.0));
+            for k in 0..n {
+                tr.queues[TopicId::Meas.index()].push_back(meas(k, 0.2));
+            }
+            tr.queues[TopicId::Iref.index()].push_back(Msg::Iref(CurrentRef {
+                hdr: Header {
+                    k: 0,
+                    ..Default::default()
+                },
+                omega_ref: 50.0,
+                i_d_ref: 0.0,
+                i_q_ref: 0.5,
+            }));
+            for k in 1..n {
+                tr.on_wait.push((k as usize + 1, est(k, 7.0)));
+            }
+            tr.on_wait.push((n as usize + 1, end(TopicId::Est, 100)));
+            let stages: Vec<Box<dyn Stage>> = vec![Box::new(CurrentLoopStage::new(&sc))];
+            let producers = [
+                (TopicId::Meas, 1, false),
+                (TopicId::Est, 1, false),
+                (TopicId::Iref, 10, false),
+                (TopicId::Cmd, 1, true),
+            ];
+            let mut host = Host::new(stages, &producers, tr, config(&sc));
+            let (r, allocations) = crate::alloc_count::allocations_during(|| host.run());
+            r.unwrap();
+            assert_eq!(commands(&host.transport.sent).len() as u64, n);
+            allocations
+        };
+        assert_eq!(
+            (count(20), count(40)),
+            (0, 0),
+            "allocations for 20 and 40 samples"
+        );
+    }
+
     /// The speed loop's reference of sample 0 is the one the current loop expects up to
     /// sample 9; when the speed loop's process goes down after command 2, commands 3 and 4
     /// are made from a stale reference (flagged) at once, not from sample 10 on.

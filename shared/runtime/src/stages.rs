@@ -767,6 +767,36 @@ mod tests {
         (0..sc.samples()).map(|k| d.cycle(k)).collect()
     }
 
+    /// The host's loop and every built-in stage allocate nothing per sample: a run twice as
+    /// long makes exactly as many allocations as the shorter one (its set-up's, and its
+    /// trace's and messages' buffers, one allocation each whatever the length).
+    #[test]
+    fn the_in_process_chain_allocates_nothing_per_sample() {
+        for name in [
+            "kyslan-pi",
+            "kyslan-nl",
+            "low-rst-sensorless",
+            "miyajima-polar-400rpm",
+        ] {
+            let count = |seconds: f64| {
+                let sc = short(name, seconds);
+                let (rows, n) =
+                    crate::alloc_count::allocations_during(|| try_run_inprocess(&sc).unwrap());
+                assert_eq!(rows.len() as u64, sc.samples(), "{name}");
+                n
+            };
+            let (short_run, long_run) = (count(0.05), count(0.1));
+            assert!(
+                short_run > 0,
+                "{name}: the set-up allocates, so the count works"
+            );
+            assert_eq!(
+                long_run, short_run,
+                "{name}: allocations in 0.1 s against 0.05 s"
+            );
+        }
+    }
+
     #[test]
     fn a_declaration_is_what_the_built_stage_declares() {
         // Every shipped scenario, and one with another speed divider.
