@@ -243,7 +243,9 @@ impl Lease {
         }
         // SAFETY: `mutex` is an initialised process-shared robust mutex in our mapping.
         let r = unsafe { libc::pthread_mutex_trylock(self.mutex) };
-        r != libc::EBUSY && self.taken(r).is_ok()
+        // Called every sample by a standing-by twin: an error is only a `false`, with no
+        // message built (that would allocate).
+        r != libc::EBUSY && self.take_after(r).is_ok()
     }
 
     /// This instance holds it.
@@ -261,17 +263,19 @@ impl Lease {
     }
 
     /// After a trylock that returned `r`: the mutex is ours (a dead holder's state made
-    /// consistent again), or why not.
-    fn taken(&mut self, r: i32) -> Result<()> {
+    /// consistent again), or the failing call and its error number. No allocation.
+    fn take_after(&mut self, r: i32) -> std::result::Result<(), (&'static str, i32)> {
         match r {
             0 => {}
             libc::EOWNERDEAD => {
                 // SAFETY: we hold the mutex (EOWNERDEAD hands it over); marking it
                 // consistent lets later holders lock it normally.
                 let r = unsafe { libc::pthread_mutex_consistent(self.mutex) };
-                check(r, "consistent")?;
+                if r != 0 {
+                    return Err(("mutex_consistent", r));
+                }
             }
-            e => return Err(anyhow!("lease: {}", std::io::Error::from_raw_os_error(e))),
+            e => return Err(("mutex_trylock", e)),
         }
         self.held = true;
         Ok(())
