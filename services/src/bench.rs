@@ -841,12 +841,11 @@ fn compare(rows: &mut [Row], hz: f64, cyclictest_main_core: Option<usize>) -> Ve
                 )
             })
     };
-    // The Unix-socket chain of the same placement and CPU latency request (it is measured with
-    // the request held only: a chain without it has no Unix-socket chain to be compared with).
-    let uds_p99: Vec<(String, _, f64)> = rows
+    // The Unix-socket chains' rows, taken out before the loop that changes `rows`.
+    let uds_rows: Vec<Row> = rows
         .iter()
         .filter(|r| r.variant == "uds")
-        .map(|r| (r.placement.clone(), r.cpu_latency_request, r.cycle_us.p99))
+        .cloned()
         .collect();
     let mut checks = Vec::new();
     for i in 0..rows.len() {
@@ -884,10 +883,10 @@ fn compare(rows: &mut [Row], hz: f64, cyclictest_main_core: Option<usize>) -> Ve
         r.p99_minus_floor_us = Some(r.cycle_us.p99 - f99);
         r.p50_minus_floor_us = Some(r.cycle_us.p50 - f50);
         if r.variant.starts_with("iceoryx2") {
-            r.p99_ratio_to_uds = uds_p99
+            r.p99_ratio_to_uds = uds_rows
                 .iter()
-                .find(|(p, q, _)| *p == r.placement && *q == r.cpu_latency_request)
-                .map(|(_, _, u)| r.cycle_us.p99 / u.max(1e-3));
+                .find(|u| is_uds_of(u, r))
+                .map(|u| r.cycle_us.p99 / u.cycle_us.p99.max(1e-3));
         }
     }
     checks
@@ -976,6 +975,15 @@ pub const FASTEST_SLOT_WITHIN_US: f64 = 2.0;
 /// median of one or two slots is those slots' own draw (a timer that drifted rather than
 /// switched speed, or one quiet slot), not the speed's.
 pub const FASTEST_SLOTS_MIN: usize = 3;
+
+/// Whether `uds` is the Unix-socket chain that `chain` is compared with: the same placement
+/// and CPU latency request (the socket chain is measured with the request held only, so a
+/// chain without it has none).
+fn is_uds_of(uds: &Row, chain: &Row) -> bool {
+    uds.variant == "uds"
+        && uds.placement == chain.placement
+        && uds.cpu_latency_request == chain.cpu_latency_request
+}
 
 /// Two variants' fastest slots, each side's picked by its own timer wake-up p50 (within
 /// [`FASTEST_SLOT_WITHIN_US`] of its fastest slot's): what [`FastestSlots`] and
@@ -1334,14 +1342,7 @@ fn targets(rows: &[Row]) -> Vec<Targets> {
                 r.variant == variant && r.cpu_latency_request == chain.cpu_latency_request
             })
         };
-        // The Unix-socket chain of the same placement and request, as `compare` pairs them.
-        let uds_of = |chain: &Row| {
-            at_rate().find(|r| {
-                r.variant == "uds"
-                    && r.placement == chain.placement
-                    && r.cpu_latency_request == chain.cpu_latency_request
-            })
-        };
+        let uds_of = |chain: &Row| at_rate().find(|r| is_uds_of(r, chain));
         let default_chain = default_chain.map(|(l, c)| {
             let others = Others {
                 bare: same_request("bare-chain", c),

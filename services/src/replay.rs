@@ -230,19 +230,26 @@ mod tests {
     use super::*;
     use proptest::prelude::*;
 
-    /// [`replay_within`] on a file holding `text` (any bytes), kyslan2015's model.
-    fn run(text: impl AsRef<[u8]>, max_step_s: f64, max_steps: u64) -> Result<usize> {
-        // One folder per call: the tests run in parallel.
+    /// `f(input, folder)` with `text` (any bytes) written to `input` in a folder of its own
+    /// (the tests run in parallel), removed afterwards.
+    fn with_input<R>(text: impl AsRef<[u8]>, f: impl FnOnce(&Path, &Path) -> R) -> R {
         static CALLS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         let n = CALLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let dir = std::env::temp_dir().join(format!("drivelab-replay-{}-{n}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        let (i, o) = (dir.join("in.csv"), dir.join("out.csv"));
+        let i = dir.join("in.csv");
         std::fs::write(&i, text).unwrap();
-        let m = MotorParams::preset("kyslan2015").unwrap();
-        let r = replay_within(&i, &o, &m, max_step_s, max_steps);
+        let r = f(&i, &dir);
         let _ = std::fs::remove_dir_all(&dir);
         r
+    }
+
+    /// [`replay_within`] on a file holding `text` (any bytes), kyslan2015's model.
+    fn run(text: impl AsRef<[u8]>, max_step_s: f64, max_steps: u64) -> Result<usize> {
+        let m = MotorParams::preset("kyslan2015").unwrap();
+        with_input(text, |i, dir| {
+            replay_within(i, &dir.join("out.csv"), &m, max_step_s, max_steps)
+        })
     }
 
     #[test]
@@ -389,14 +396,12 @@ mod tests {
     /// A good input whose output file cannot be created is refused, naming the output.
     #[test]
     fn an_output_that_cannot_be_written_is_refused_naming_it() {
-        let dir = std::env::temp_dir().join(format!("drivelab-replay-out-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let i = dir.join("in.csv");
-        std::fs::write(&i, "t,u_d,u_q,t_load\n0,0,0,0\n").unwrap();
         let m = MotorParams::preset("kyslan2015").unwrap();
         // The folder itself as the output: the input is good, the file cannot be opened.
-        let e = format!("{:#}", replay_within(&i, &dir, &m, 1e-3, 10).unwrap_err());
-        let _ = std::fs::remove_dir_all(&dir);
+        let (e, dir) = with_input("t,u_d,u_q,t_load\n0,0,0,0\n", |i, dir| {
+            let e = replay_within(i, dir, &m, 1e-3, 10).unwrap_err();
+            (format!("{e:#}"), dir.to_path_buf())
+        });
         assert!(
             e.starts_with(&format!("cannot write {}: ", dir.display())),
             "{e}"

@@ -2618,9 +2618,9 @@ mod tests {
         assert_eq!(run(-11_000_000), (vec![], 1));
     }
 
-    /// Runs a current loop of `sc` (speed loop at a tenth of the rate, in another process)
-    /// on the script to its end.
-    fn run_current_loop<T: Transport>(sc: &Scenario, tr: T) -> Host<T> {
+    /// A current loop of `sc` (speed loop at a tenth of the rate, in another process) on
+    /// the script, not yet run.
+    fn current_loop_host<T: Transport>(sc: &Scenario, tr: T) -> Host<T> {
         let stages: Vec<Box<dyn Stage>> = vec![Box::new(CurrentLoopStage::new(sc))];
         let producers = [
             (TopicId::Meas, 1, false),
@@ -2628,9 +2628,27 @@ mod tests {
             (TopicId::Iref, 10, false),
             (TopicId::Cmd, 1, true),
         ];
-        let mut host = Host::new(stages, &producers, tr, config(sc));
+        Host::new(stages, &producers, tr, config(sc))
+    }
+
+    /// [`current_loop_host`] run on the script to its end.
+    fn run_current_loop<T: Transport>(sc: &Scenario, tr: T) -> Host<T> {
+        let mut host = current_loop_host(sc, tr);
         host.run().unwrap();
         host
+    }
+
+    /// The speed loop's reference of sample 0: 50 rad/s, i_q* 0.5 A.
+    fn iref0() -> Msg {
+        Msg::Iref(CurrentRef {
+            hdr: Header {
+                k: 0,
+                ..Default::default()
+            },
+            omega_ref: 50.0,
+            i_d_ref: 0.0,
+            i_q_ref: 0.5,
+        })
     }
 
     /// The commands among `sent` (end marker left out): each sample index and whether it
@@ -2852,27 +2870,12 @@ mod tests {
             for k in 0..n {
                 tr.queues[TopicId::Meas.index()].push_back(meas(k, 0.2));
             }
-            tr.queues[TopicId::Iref.index()].push_back(Msg::Iref(CurrentRef {
-                hdr: Header {
-                    k: 0,
-                    ..Default::default()
-                },
-                omega_ref: 50.0,
-                i_d_ref: 0.0,
-                i_q_ref: 0.5,
-            }));
+            tr.queues[TopicId::Iref.index()].push_back(iref0());
             for k in 1..n {
                 tr.on_wait.push((k as usize + 1, est(k, 7.0)));
             }
             tr.on_wait.push((n as usize + 1, end(TopicId::Est, 100)));
-            let stages: Vec<Box<dyn Stage>> = vec![Box::new(CurrentLoopStage::new(&sc))];
-            let producers = [
-                (TopicId::Meas, 1, false),
-                (TopicId::Est, 1, false),
-                (TopicId::Iref, 10, false),
-                (TopicId::Cmd, 1, true),
-            ];
-            let mut host = Host::new(stages, &producers, tr, config(&sc));
+            let mut host = current_loop_host(&sc, tr);
             let (r, allocations) = crate::alloc_count::allocations_during(|| host.run());
             r.unwrap();
             assert_eq!(commands(&host.transport.sent).len() as u64, n);
@@ -2896,15 +2899,7 @@ mod tests {
         for k in 0..6 {
             tr.queues[TopicId::Meas.index()].push_back(meas(k, 0.2));
         }
-        tr.queues[TopicId::Iref.index()].push_back(Msg::Iref(CurrentRef {
-            hdr: Header {
-                k: 0,
-                ..Default::default()
-            },
-            omega_ref: 50.0,
-            i_d_ref: 0.0,
-            i_q_ref: 0.5,
-        }));
+        tr.queues[TopicId::Iref.index()].push_back(iref0());
         // Estimate k comes at the (k+1)-th wait (the first steps on estimate 0).
         for k in 1..5 {
             tr.on_wait.push((k as usize + 1, est(k, 7.0)));
