@@ -505,6 +505,7 @@ fn options(
         zenoh: None,
         foxglove: None,
         timing_csv: false,
+        audit_syscalls: false,
         quiet_hosts: true,
         quiet_warnings: true,
     })

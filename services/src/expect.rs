@@ -79,6 +79,7 @@ pub const FIGURES: &[&str] = &[
     "loop_simulated_s_per_wall_s",
     "rate_hz",
     "speed_loop_hz",
+    "stray_syscalls",
 ];
 
 /// The top-level figures that hold figures of their own; every other one is a number.
@@ -461,8 +462,13 @@ impl Outcome {
             String::new()
         };
         if self.values.is_empty() {
+            let hint = if self.expect.trim_start().starts_with("stray_syscalls") {
+                ": it is counted with --audit-syscalls"
+            } else {
+                ""
+            };
             format!(
-                "expectation failed: {} (the summary has no such figure)",
+                "expectation failed: {} (the summary has no such figure{hint})",
                 self.expect
             )
         } else {

@@ -79,6 +79,14 @@ enum Cmd {
         /// (realtime clock only).
         #[arg(long)]
         timing_csv: bool,
+        /// Count every system call each stage host's loop makes from its first sample on beyond
+        /// its wait and wakes (futex, clock_nanosleep, clock_gettime, restart_syscall), by
+        /// name: summary.json →
+        /// stray_syscalls (the total) and processes.<p>.stray_syscalls; check it with
+        /// `--expect 'stray_syscalls == 0'`. A seccomp filter on each loop's thread; a
+        /// counted call still runs, two thread switches slower.
+        #[arg(long)]
+        audit_syscalls: bool,
         /// Print the summary as JSON on stdout instead of the human summary.
         #[arg(long)]
         json: bool,
@@ -941,6 +949,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             no_rt,
             no_plots,
             timing_csv,
+            audit_syscalls,
             json,
             faults,
             restart,
@@ -1035,6 +1044,7 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                 zenoh,
                 foxglove,
                 timing_csv,
+                audit_syscalls,
                 quiet_hosts: false,
                 quiet_warnings: false,
             };
@@ -1065,6 +1075,9 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                     drivelab_services::outln!("{l}");
                 }
                 if let Some(l) = s["timing"]["tail_by_part"]["line"].as_str() {
+                    drivelab_services::outln!("{l}");
+                }
+                if let Some(l) = launcher::stray_syscalls_line(s) {
                     drivelab_services::outln!("{l}");
                 }
                 if let Some(outer) = m["speed_reference_from"].as_str() {

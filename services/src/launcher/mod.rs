@@ -119,6 +119,9 @@ pub struct RunOptions {
     pub foxglove: Option<std::net::SocketAddr>,
     /// Also write `timing.csv`, each sample's publish times (`--timing-csv`; real time only).
     pub timing_csv: bool,
+    /// Each stage host counts the system calls its loop makes beyond its wait and wakes
+    /// (`--audit-syscalls`; summary.json → stray_syscalls).
+    pub audit_syscalls: bool,
     /// The stage hosts keep their real-time set-up line off stderr (it is in summary.json →
     /// processes): a campaign's runs, where four such lines a run would bury the failures.
     pub quiet_hosts: bool,
@@ -756,6 +759,9 @@ fn run_bus(
                         entry["cpu_s"] = v["process_cpu_s"].clone();
                         entry["context_switches"] = v["process_context_switches"].clone();
                         entry["syscalls"] = v["process_syscalls"].clone();
+                        if let Some(s) = v.get("stray_syscalls") {
+                            entry["stray_syscalls"] = s.clone();
+                        }
                     }
                     let mut cv = v.get("counters").cloned().unwrap_or_default();
                     if let Some(d) = v.get("diagnostics") {
@@ -1702,6 +1708,59 @@ pub(super) fn interrupted() -> String {
     )
 }
 
+/// With `--audit-syscalls`: the system calls beyond the waits that every process's loop made,
+/// summed (`summary.json → stray_syscalls`); None when a process has no count (its
+/// statistics are missing), so that `--expect 'stray_syscalls == 0'` cannot pass on a loop
+/// nobody counted.
+fn stray_syscalls_total(processes: &serde_json::Value) -> Option<u64> {
+    let procs = processes.as_object()?;
+    procs.values().try_fold(0, |sum, p| {
+        let calls = p.get("stray_syscalls")?.as_object()?;
+        Some(sum + calls.values().filter_map(|n| n.as_u64()).sum::<u64>())
+    })
+}
+
+/// With `--audit-syscalls`: one line saying which loops made which calls beyond their waits
+/// (or that none did, or which process was not counted).
+pub fn stray_syscalls_line(summary: &serde_json::Value) -> Option<String> {
+    summary.get("stray_syscalls")?;
+    let procs = summary["processes"].as_object()?;
+    let mut found = Vec::new();
+    let mut uncounted = Vec::new();
+    for (name, p) in procs {
+        match p.get("stray_syscalls").and_then(|s| s.as_object()) {
+            None => uncounted.push(name.as_str()),
+            Some(calls) if !calls.is_empty() => {
+                let each: Vec<String> = calls
+                    .iter()
+                    .map(|(call, n)| format!("{call} ×{}", n.as_u64().unwrap_or(0)))
+                    .collect();
+                found.push(format!("{name}: {}", each.join(", ")));
+            }
+            Some(_) => {}
+        }
+    }
+    let mut line = if found.is_empty() {
+        format!(
+            "system-call audit: no call beyond the waits in the loops of {} of {} processes",
+            procs.len() - uncounted.len(),
+            procs.len()
+        )
+    } else {
+        format!(
+            "system-call audit: calls beyond the waits in the real-time loops: {}",
+            found.join("; ")
+        )
+    };
+    if !uncounted.is_empty() {
+        line.push_str(&format!(
+            " (not counted: {}, no statistics)",
+            uncounted.join(", ")
+        ));
+    }
+    Some(line)
+}
+
 /// Runs a scenario end to end and writes the run folder.
 pub fn run(o: &RunOptions) -> Result<RunResult> {
     // The launcher stops on a stop signal (SIGINT, SIGTERM, SIGHUP …) the same way the
@@ -1712,6 +1771,13 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             "--timing-csv needs the realtime clock: the {} clock has no sample instants to time against",
             o.clock.name()
         )));
+    }
+    if o.audit_syscalls && o.clock == Clock::Inprocess {
+        return Err(usage(
+            "--audit-syscalls audits the stage hosts' loops: use --clock realtime or lockstep \
+             (the inprocess clock starts no host)"
+                .into(),
+        ));
     }
     if o.runner.is_some() && o.clock == Clock::Inprocess {
         return Err(usage(
@@ -2065,6 +2131,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     });
     if !warnings.is_empty() {
         summary["warnings"] = json!(warnings);
+    }
+    if o.audit_syscalls {
+        summary["stray_syscalls"] = json!(stray_syscalls_total(&summary["processes"]));
     }
     if !hogs.is_empty() {
         // Read, never changed: the kernel leaves (period − runtime) of each period to

@@ -273,6 +273,9 @@ pub(super) fn spawn_service(
     if sp.o.no_rt {
         cmd.arg("--no-rt");
     }
+    if sp.o.audit_syscalls {
+        cmd.arg("--audit-syscalls");
+    }
     if source {
         cmd.arg("--recorder");
     }

@@ -566,6 +566,9 @@ pub struct Host<T: Transport> {
     pub stalls: crate::timing::StallLog,
     stop: Box<dyn Fn() -> bool + Send>,
     stop_without_end: Box<dyn Fn() -> bool + Send>,
+    /// Called once, on the loop's thread, as the first sample begins (see
+    /// [`Host::at_first_sample`]).
+    first_sample: Option<Box<dyn FnOnce() -> Result<()> + Send>>,
     /// The external inputs to drain, each topic once.
     drains: Vec<Drain>,
     /// The sample indices taken from the bus.
@@ -678,6 +681,7 @@ impl<T: Transport> Host<T> {
             cfg,
             stop: Box::new(|| false),
             stop_without_end: Box::new(|| false),
+            first_sample: None,
             drains,
             calling: None,
         };
@@ -760,6 +764,15 @@ impl<T: Transport> Host<T> {
     /// Sets the function that says a stop was requested (SIGINT, SIGTERM, SIGHUP …).
     pub fn stop_when(&mut self, f: impl Fn() -> bool + Send + 'static) {
         self.stop = Box::new(f);
+    }
+
+    /// Sets a function to call once, on the loop's thread, as the first sample begins: the
+    /// source's after its warm-up and its schedule's start, a triggered host's at its first
+    /// trigger that is not a marker (its warm-up forwarded, when the iceoryx2 ports have
+    /// mapped the segments of their peers). An error ends the run. The system-call audit
+    /// arms itself here.
+    pub fn at_first_sample(&mut self, f: impl FnOnce() -> Result<()> + Send + 'static) {
+        self.first_sample = Some(Box::new(f));
     }
 
     /// Sets the function that says a stop ends this process only, not the drive: a source
@@ -1612,6 +1625,9 @@ impl<T: Transport> Host<T> {
             .iter()
             .find(|b| b.spec.delay > 0 && b.spec.role == Role::Latest)
             .map(|b| b.spec.topic);
+        if let Some(f) = self.first_sample.take() {
+            f()?;
+        }
         // ---- real-time loop: no allocation, no locks, no logging ----
         for k in k_start..=n {
             let deadline = t0 + k * ts_ns;
@@ -1821,6 +1837,9 @@ impl<T: Transport> Host<T> {
                         break 'outer;
                     }
                     continue;
+                }
+                if let Some(f) = self.first_sample.take() {
+                    f()?;
                 }
                 // Lockstep: an absent marker, or an unusable trigger, leaves the sample without
                 // its trigger; the chain runs it as it would a stale one (docs/architecture.md,
@@ -2631,6 +2650,17 @@ mod tests {
         Host::new(stages, &producers, tr, config(sc))
     }
 
+    /// A host of the plant alone (the source) on transport `tr`.
+    fn plant_host<T: Transport>(sc: &Scenario, tr: T, cfg: HostConfig) -> Host<T> {
+        let stages: Vec<Box<dyn Stage>> = vec![Box::new(PlantStage::new(sc))];
+        let producers = [
+            (TopicId::Cmd, 1, false),
+            (TopicId::Meas, 1, true),
+            (TopicId::Truth, 1, true),
+        ];
+        Host::new(stages, &producers, tr, cfg)
+    }
+
     /// [`current_loop_host`] run on the script to its end.
     fn run_current_loop<T: Transport>(sc: &Scenario, tr: T) -> Host<T> {
         let mut host = current_loop_host(sc, tr);
@@ -2784,17 +2814,11 @@ mod tests {
         }
         let sc = scenario();
         let n = 40;
-        let stages: Vec<Box<dyn Stage>> = vec![Box::new(PlantStage::new(&sc))];
-        let producers = [
-            (TopicId::Cmd, 1, false),
-            (TopicId::Meas, 1, true),
-            (TopicId::Truth, 1, true),
-        ];
         let cfg = HostConfig {
             samples: n,
             ..config(&sc)
         };
-        let mut host = Host::new(stages, &producers, Chain::default(), cfg);
+        let mut host = plant_host(&sc, Chain::default(), cfg);
         host.run().unwrap();
         let events = &host.transport.events;
         let at = |e: Event| {
@@ -2827,13 +2851,7 @@ mod tests {
         use std::sync::atomic::{AtomicUsize, Ordering};
         use std::sync::Arc;
         let sc = scenario();
-        let stages: Vec<Box<dyn Stage>> = vec![Box::new(PlantStage::new(&sc))];
-        let producers = [
-            (TopicId::Cmd, 1, false),
-            (TopicId::Meas, 1, true),
-            (TopicId::Truth, 1, true),
-        ];
-        let mut host = Host::new(stages, &producers, Script::default(), config(&sc));
+        let mut host = plant_host(&sc, Script::default(), config(&sc));
         let reads = Arc::new(AtomicUsize::new(0));
         let r = reads.clone();
         host.stop_when(move || r.fetch_add(1, Ordering::SeqCst) >= 1);
@@ -2886,6 +2904,76 @@ mod tests {
             (0, 0),
             "allocations for 20 and 40 samples"
         );
+    }
+
+    /// The first-sample hook of a triggered host runs once, after the warm-up marker is
+    /// forwarded and before the first step; an error from it ends the run there.
+    #[test]
+    fn a_triggered_hosts_first_sample_hook_runs_once_after_the_warm_up() {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        use std::sync::Arc;
+        let sc = scenario();
+        let script = || {
+            let mut tr = Script::default();
+            let warm = Msg::marker(
+                TopicId::Est,
+                Header {
+                    k: 0,
+                    flags: FLAG_WARMUP,
+                    ..Default::default()
+                },
+            );
+            tr.queues[TopicId::Est.index()].push_back(warm);
+            tr.queues[TopicId::Est.index()].push_back(est(0, 7.0));
+            for k in 0..3 {
+                tr.queues[TopicId::Meas.index()].push_back(meas(k, 0.2));
+            }
+            tr.queues[TopicId::Iref.index()].push_back(iref0());
+            for k in 1..3 {
+                tr.on_wait.push((k as usize + 1, est(k, 7.0)));
+            }
+            tr.on_wait.push((4, end(TopicId::Est, 100)));
+            tr
+        };
+        // Refused: the marker went out, no command did.
+        let mut host = current_loop_host(&sc, script());
+        host.at_first_sample(|| Err(anyhow!("refused at the first sample")));
+        let e = host.run().unwrap_err();
+        assert!(e.to_string().contains("refused at the first sample"), "{e}");
+        let sent = &host.transport.sent;
+        assert!(
+            !sent.is_empty() && sent.iter().all(|m| m.hdr().is_warmup()),
+            "the warm-up marker alone goes out before the hook: {sent:?}"
+        );
+        // Accepted: called once, every command made.
+        let calls = Arc::new(AtomicUsize::new(0));
+        let c = calls.clone();
+        let mut host = current_loop_host(&sc, script());
+        host.at_first_sample(move || {
+            c.fetch_add(1, Ordering::SeqCst);
+            Ok(())
+        });
+        host.run().unwrap();
+        assert_eq!(calls.load(Ordering::SeqCst), 1);
+        let made: Vec<u64> = host
+            .transport
+            .sent
+            .iter()
+            .filter(|m| !m.hdr().is_warmup() && !m.hdr().is_end())
+            .map(|m| m.hdr().k)
+            .collect();
+        assert_eq!(made, [0, 1, 2]);
+    }
+
+    /// The source's first-sample hook runs before its first measurement goes out.
+    #[test]
+    fn the_sources_first_sample_hook_runs_before_its_first_output() {
+        let sc = scenario();
+        let mut host = plant_host(&sc, Script::default(), config(&sc));
+        host.at_first_sample(|| Err(anyhow!("refused at the first sample")));
+        let e = host.run().unwrap_err();
+        assert!(e.to_string().contains("refused at the first sample"), "{e}");
+        assert!(host.transport.sent.is_empty(), "{:?}", host.transport.sent);
     }
 
     /// The speed loop's reference of sample 0 is the one the current loop expects up to

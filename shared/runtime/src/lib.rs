@@ -47,6 +47,7 @@ macro_rules! errln {
 
 #[cfg(test)]
 mod alloc_count;
+pub mod audit;
 pub mod bus;
 pub mod config;
 pub mod drive;

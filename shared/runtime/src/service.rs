@@ -61,6 +61,12 @@ pub struct HostArgs {
     /// Skip pinning, SCHED_FIFO and mlock entirely.
     #[arg(long)]
     pub no_rt: bool,
+    /// Count every system call the loop makes from its first sample on beyond its wait and
+    /// wakes (`futex`, `clock_nanosleep`, `clock_gettime`, `restart_syscall`), by name, into
+    /// `<stage>.stats.json → stray_syscalls` (a seccomp filter on the loop's thread;
+    /// docs/architecture.md, "The system-call audit").
+    #[arg(long)]
+    pub audit_syscalls: bool,
     /// Folder for the statistics files (`<stage>.stats.json`, histograms).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -785,6 +791,16 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     } else {
         pname.clone()
     };
+    // The audit's supervisor is a normal task: started before the placement it would inherit.
+    let audit = args
+        .audit_syscalls
+        .then(crate::audit::Audit::start)
+        .transpose()?
+        .map(std::sync::Arc::new);
+    if let Some(a) = &audit {
+        let a = a.clone();
+        host.at_first_sample(move || a.arm());
+    }
     let report = apply_placement(&label, &proc, &args)?;
     phase("rt");
     // The launcher signals this pid (faults): it is its child's unless a wrapper script
@@ -811,11 +827,15 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     let at_run = usage(libc::RUSAGE_SELF);
     // A panic in a stage call is caught here, where the host can still say which call of
     // which stage at which sample it was (docs/architecture.md, "Fault model").
-    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| host.run())).unwrap_or_else(|_| {
-        Err(anyhow!(Panicked {
-            during: host.last_call()
-        }))
-    })?;
+    let ran = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| host.run())).unwrap_or_else(
+        |_| {
+            Err(anyhow!(Panicked {
+                during: host.last_call()
+            }))
+        },
+    );
+    let stray = audit.as_ref().map(|a| a.disarm());
+    ran?;
     if host.transport.shadow.is_some() {
         // A twin that never took over: the active instance's statistics are the process's.
         return Ok(());
@@ -825,7 +845,15 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
             crate::errln!("{}: warning: {w}", h.stage.name());
         }
     }
-    write_stats(&args, &pname, &report, &host, &startup, at_run)
+    write_stats(
+        &args,
+        &pname,
+        &report,
+        &host,
+        &startup,
+        at_run,
+        stray.as_ref(),
+    )
 }
 
 /// Publishers per drive topic: 1, or 2 when a process of a real-time drive has a standby
@@ -1477,6 +1505,10 @@ pub struct StageStats<'a> {
     /// The system calls the process's loop made at drivelab's own call sites, from its start
     /// to its end (`rt::syscalls`: its sleeps, futex waits and wakes; not iceoryx2's own).
     pub process_syscalls: u64,
+    /// With `--audit-syscalls`: the system calls the process's loop made beyond its wait and
+    /// wakes, by name (empty: none).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stray_syscalls: Option<&'a std::collections::BTreeMap<String, u64>>,
     /// Counters.
     pub counters: Counters,
     /// The stage's own diagnostics.
@@ -1517,6 +1549,7 @@ fn write_stats<T: Transport>(
     host: &Host<T>,
     startup_ms: &[(&'static str, f64)],
     at_run: (f64, ContextSwitches),
+    stray_syscalls: Option<&std::collections::BTreeMap<String, u64>>,
 ) -> Result<()> {
     let Some(dir) = &args.out else { return Ok(()) };
     let diags = host.diagnostics();
@@ -1555,6 +1588,7 @@ fn write_stats<T: Transport>(
             run_cpu_s,
             run_context_switches,
             process_syscalls: crate::rt::syscalls(),
+            stray_syscalls,
             counters,
             diagnostics: diags[i].1.iter().copied().collect(),
             inject: h.inject.clone(),
