@@ -406,6 +406,27 @@ fn a_campaigns_topology_file_is_read_beside_the_campaign_not_from_the_working_fo
     assert_clean(s["bus"].as_str().unwrap());
 }
 
+/// `audit_syscalls = true`: every run counts its loops' calls beyond their waits, and an
+/// expectation on the count decides the run (a lockstep drive's loops make none).
+#[test]
+fn an_audited_campaign_holds_each_run_to_its_loops_system_calls() {
+    let dir = scratch("audited");
+    let f = campaign_file(
+        &dir,
+        "name = \"audited\"\nscenarios = [\"kyslan-pi\"]\nclock = \"lockstep\"\n\
+         duration_s = 0.05\naudit_syscalls = true\nexpect = [\"stray_syscalls == 0\"]\n",
+    );
+    let out = dir.join("c");
+    let o = campaign(&f, &out);
+    assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
+    let (_, cases) = junit(&out.join("junit.xml"));
+    assert_eq!(cases.len(), 1);
+    let run = PathBuf::from(&cases[0].3.iter().find(|p| p.0 == "run_folder").unwrap().1);
+    let s = summary(&run);
+    assert_eq!(s["stray_syscalls"], 0, "{}", s["processes"]);
+    assert_clean(s["bus"].as_str().unwrap());
+}
+
 #[test]
 fn a_bad_campaign_is_a_one_line_error_before_any_run() {
     let dir = scratch("badcampaign");
@@ -448,6 +469,12 @@ fn a_bad_campaign_is_a_one_line_error_before_any_run() {
             "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nfaults = [[\"kill:plant@0.05\", \"stop:observer@0.07:0.01s\"], [\"stop:observer@0.07:0.010\", \"kill:plant@0.05s\"]]\n",
             1,
             "the fault sets [kill:plant@0.05, stop:observer@0.07:0.01s] and [stop:observer@0.07:0.010, kill:plant@0.05s] are the same faults",
+        ),
+        // The inprocess clock starts no host whose loop could be audited.
+        (
+            "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nclock = \"inprocess\"\naudit_syscalls = true\n",
+            1,
+            "--audit-syscalls audits the stage hosts' loops",
         ),
         // A [sweep] makes `kill:plant@0.1`.
         (

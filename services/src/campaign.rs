@@ -70,6 +70,10 @@ struct CampaignFile {
     /// Expectations checked in every run (beside the scenario's own `[[expect]]`).
     #[serde(default)]
     expect: Vec<String>,
+    /// Every run counts its loops' system calls beyond their waits (`drivelab run
+    /// --audit-syscalls`), for an expectation on `stray_syscalls`.
+    #[serde(default)]
+    audit_syscalls: bool,
 }
 
 fn realtime() -> Clock {
@@ -505,7 +509,7 @@ fn options(
         zenoh: None,
         foxglove: None,
         timing_csv: false,
-        audit_syscalls: false,
+        audit_syscalls: c.audit_syscalls,
         quiet_hosts: true,
         quiet_warnings: true,
     })

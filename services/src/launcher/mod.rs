@@ -1536,6 +1536,13 @@ pub fn check(o: &RunOptions) -> Result<Vec<String>> {
 
 /// Everything [`run`] checks and resolves before the run folder is made.
 fn prepare(o: &RunOptions) -> Result<Prepared> {
+    if o.audit_syscalls && o.clock == Clock::Inprocess {
+        return Err(usage(
+            "--audit-syscalls audits the stage hosts' loops: use --clock realtime or lockstep \
+             (the inprocess clock starts no host)"
+                .into(),
+        ));
+    }
     if o.zenoh.is_some() && o.clock == Clock::Inprocess {
         let flag = if o.zenoh.as_ref().is_some_and(|z| z.connect) {
             "--zenoh-connect"
@@ -1771,13 +1778,6 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             "--timing-csv needs the realtime clock: the {} clock has no sample instants to time against",
             o.clock.name()
         )));
-    }
-    if o.audit_syscalls && o.clock == Clock::Inprocess {
-        return Err(usage(
-            "--audit-syscalls audits the stage hosts' loops: use --clock realtime or lockstep \
-             (the inprocess clock starts no host)"
-                .into(),
-        ));
     }
     if o.runner.is_some() && o.clock == Clock::Inprocess {
         return Err(usage(
