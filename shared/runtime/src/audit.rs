@@ -100,7 +100,7 @@ impl Audit {
     /// Installs the filter on the calling thread and arms the audit: from here every call of
     /// this thread but its wait and wakes is counted. Its own calls (prctl, seccomp) come
     /// before the filter. Errors when the kernel has no seccomp user notification (before
-    /// Linux 5.5) or the thread has a listening filter already.
+    /// Linux 5.5), an emulator refuses seccomp, or the thread has a listening filter already.
     pub fn arm(&self) -> Result<()> {
         if self.shared.installed.swap(true, Ordering::SeqCst) {
             bail!("--audit-syscalls: this loop's audit was armed once already");
@@ -160,8 +160,9 @@ impl Audit {
         if fd < 0 {
             let e = std::io::Error::last_os_error();
             bail!(
-                "--audit-syscalls: this kernel would not install the audit's seccomp filter ({e}); \
-                 it needs seccomp user notification (Linux 5.5 or later)"
+                "--audit-syscalls: the audit's seccomp filter was refused ({e}); it needs seccomp \
+                 user notification (Linux 5.5 or later, and no emulator such as qemu-user between \
+                 the host and the kernel)"
             );
         }
         self.shared.armed.store(true, Ordering::SeqCst);
