@@ -82,6 +82,10 @@ pub const FIGURES: &[&str] = &[
     "stray_syscalls",
 ];
 
+/// The top-level figures that a run has only when asked for: `stray_syscalls` with
+/// `--audit-syscalls` (a number then, or null when a process was not counted).
+pub const ON_REQUEST: &[&str] = &["stray_syscalls"];
+
 /// The top-level figures that hold figures of their own; every other one is a number.
 pub const GROUPS: &[&str] = &[
     "metrics",
