@@ -136,6 +136,28 @@ fn after_a_restart_the_survivors_loops_make_the_calls_that_reconnect_them() {
     );
 }
 
+/// Ctrl-C: the stop signal interrupts each loop (its handler makes no call, and its return
+/// is not the loop's), and what the hosts do once the drive is asked to stop (dropping
+/// their peers' connections as they go) is the stop's: nothing counted.
+#[test]
+fn a_drive_stopped_by_sigint_counts_nothing_of_its_stop() {
+    let _serial = serial();
+    let bus = bus_id("sigint");
+    let out = scratch("sigint").join("run");
+    let child = Drive::start(&bus, &out, &["--duration", "5", "--audit-syscalls"]);
+    wait_for_progress(&bus, 1);
+    // SAFETY: signalling a child process we spawned.
+    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
+    let o = child.wait_for_exit(std::time::Duration::from_secs(30), "drivelab after SIGINT");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("interrupted (SIGINT)"), "{err}");
+    assert_clean(&bus);
+    let s = summary(&out);
+    assert_eq!(s["stray_syscalls"], 0, "{}", s["processes"]);
+    assert_eq!(strays(&s).len(), 4);
+}
+
 /// The inprocess clock starts no host: refused in one line before anything is made.
 #[test]
 fn the_audit_of_an_inprocess_run_is_refused() {

@@ -3,8 +3,10 @@
 //!
 //! A loop may make its wait and its wakes and nothing else: `futex` (the bus's wake words),
 //! `clock_nanosleep` (the source's deadline), `clock_gettime` (the clock, when the vDSO
-//! falls back to the kernel) and `restart_syscall` (the kernel resuming one of these after a
-//! SIGSTOP and SIGCONT). The loop's thread installs a seccomp filter on itself that lets
+//! falls back to the kernel), `restart_syscall` (the kernel resuming one of these after a
+//! SIGSTOP and SIGCONT) and `rt_sigreturn` (the return from a signal handler that
+//! interrupted the loop). Counting ends with the loop or when the drive is asked to stop
+//! (its peers' going away is then the stop's, not the loop's). The loop's thread installs a seccomp filter on itself that lets
 //! these through untouched and hands every other call to a supervisor thread of the same
 //! process (a seccomp user notification). While the audit is armed, the supervisor counts
 //! the call by name; then it lets the call run as it would have (`CONTINUE`), so an audited
@@ -26,13 +28,16 @@ fn allowed() -> Vec<Sysno> {
         Sysno::clock_nanosleep,
         Sysno::clock_gettime,
         Sysno::restart_syscall,
+        Sysno::rt_sigreturn,
     ];
     // 32-bit ARM's C library makes the 64-bit-time forms of the same calls.
+    // (and the older return from a handler).
     #[cfg(target_arch = "arm")]
     let time64 = [
         Sysno::futex_time64,
         Sysno::clock_nanosleep_time64,
         Sysno::clock_gettime64,
+        Sysno::sigreturn,
     ];
     #[cfg(not(target_arch = "arm"))]
     let time64: [Sysno; 0] = [];
@@ -66,6 +71,8 @@ struct Shared {
     /// The calls counted, by name (the supervisor's; the audited thread reads it once
     /// disarmed).
     found: Mutex<BTreeMap<String, u64>>,
+    /// True once the drive is asked to stop: counting ends.
+    stopping: fn() -> bool,
 }
 
 /// One loop's audit: started at set-up, armed by the loop's thread as its first sample
@@ -79,13 +86,14 @@ pub struct Audit {
 impl Audit {
     /// Starts the supervisor thread. Call it before the real-time placement, so that the
     /// supervisor runs as a normal task wherever the kernel puts it (it inherits the
-    /// calling thread's policy and CPUs).
-    pub fn start() -> Result<Self> {
+    /// calling thread's policy and CPUs). Counting ends once `stopping` says true.
+    pub fn start(stopping: fn() -> bool) -> Result<Self> {
         let shared = Arc::new(Shared {
             fd: AtomicI32::new(-1),
             armed: AtomicBool::new(false),
             installed: AtomicBool::new(false),
             found: Mutex::new(BTreeMap::new()),
+            stopping,
         });
         let s = shared.clone();
         let handle = std::thread::Builder::new()
@@ -213,7 +221,7 @@ fn supervise(s: &Shared) {
                 _ => return,
             }
         }
-        if s.armed.load(Ordering::SeqCst) {
+        if s.armed.load(Ordering::SeqCst) && !(s.stopping)() {
             if let Ok(mut m) = s.found.lock() {
                 *m.entry(call_name(req.data.arch, req.data.nr)).or_insert(0) += 1;
             }
@@ -239,7 +247,7 @@ mod tests {
     #[test]
     fn an_armed_audit_counts_stray_calls_and_lets_them_run() {
         let found = std::thread::spawn(|| {
-            let audit = Audit::start().unwrap();
+            let audit = Audit::start(|| false).unwrap();
             audit.arm().unwrap();
             let pid = std::process::id();
             for _ in 0..3 {
@@ -278,7 +286,7 @@ mod tests {
     #[test]
     fn a_loop_of_waits_only_counts_nothing() {
         let found = std::thread::spawn(|| {
-            let audit = Audit::start().unwrap();
+            let audit = Audit::start(|| false).unwrap();
             audit.arm().unwrap();
             for _ in 0..100 {
                 crate::rt::sleep_until_ns(crate::rt::now_ns() + 10_000);
@@ -290,11 +298,45 @@ mod tests {
         assert!(found.is_empty(), "{found:?}");
     }
 
+    /// Set by the next test: its drive is asked to stop.
+    static STOPPING: AtomicBool = AtomicBool::new(false);
+
+    extern "C" fn on_usr1(_: libc::c_int) {}
+
+    /// Calls once the drive is asked to stop are not counted; the return from a signal
+    /// handler that interrupted the loop is not counted (sending the signal is).
+    #[test]
+    fn counting_ends_at_a_stop_and_a_handlers_return_is_not_counted() {
+        let found = std::thread::spawn(|| {
+            let audit = Audit::start(|| STOPPING.load(Ordering::SeqCst)).unwrap();
+            // SAFETY: a handler that does nothing, for a signal no other test uses.
+            unsafe { libc::signal(libc::SIGUSR1, on_usr1 as *const () as libc::sighandler_t) };
+            audit.arm().unwrap();
+            // SAFETY: raise sends the signal to this thread; its handler returns at once.
+            unsafe { libc::raise(libc::SIGUSR1) };
+            for _ in 0..2 {
+                // SAFETY: getppid takes no argument and cannot fail.
+                unsafe { libc::getppid() };
+            }
+            STOPPING.store(true, Ordering::SeqCst);
+            for _ in 0..3 {
+                // SAFETY: as above.
+                unsafe { libc::getppid() };
+            }
+            audit.disarm()
+        })
+        .join()
+        .unwrap();
+        assert_eq!(found.get("getppid"), Some(&2), "{found:?}");
+        assert!(found.contains_key("tgkill"), "{found:?}");
+        assert!(!found.contains_key("rt_sigreturn"), "{found:?}");
+    }
+
     /// A second arm of the same audit is refused in one line.
     #[test]
     fn an_audit_is_armed_once() {
         let e = std::thread::spawn(|| {
-            let audit = Audit::start().unwrap();
+            let audit = Audit::start(|| false).unwrap();
             audit.arm().unwrap();
             let e = audit.arm().unwrap_err().to_string();
             audit.disarm();

@@ -246,13 +246,19 @@ pub fn stop_signals() -> impl Iterator<Item = (libc::c_int, &'static str)> {
 /// process's parent (its launcher) nor the kernel (a terminal's Ctrl-C or hang-up); else 0.
 static STOP_SENDER_OUTSIDE: std::sync::atomic::AtomicI32 = std::sync::atomic::AtomicI32::new(0);
 
+/// This process's parent (its launcher) when the handlers were installed: the handler reads
+/// it instead of asking the kernel, so that it makes no system call inside a loop it
+/// interrupts (the system-call audit counts the loop's calls up to the stop).
+static PARENT: std::sync::atomic::AtomicI32 = std::sync::atomic::AtomicI32::new(0);
+
 extern "C" fn on_signal(sig: libc::c_int, info: *mut libc::siginfo_t, _: *mut libc::c_void) {
+    let parent = PARENT.load(Ordering::SeqCst);
     // SAFETY: the kernel hands an SA_SIGINFO handler a valid siginfo_t (checked for null
-    // all the same); si_code and si_pid are plain reads. getppid(2) is async-signal-safe.
+    // all the same); si_code and si_pid are plain reads.
     let outside = unsafe {
         match info.as_ref() {
             // si_code ≤ 0: sent by a process (kill, sigqueue, tgkill), which si_pid names.
-            Some(i) if i.si_code <= 0 && i.si_pid() != libc::getppid() => i.si_pid(),
+            Some(i) if i.si_code <= 0 && i.si_pid() != parent => i.si_pid(),
             _ => 0,
         }
     };
@@ -269,6 +275,8 @@ extern "C" fn on_signal(sig: libc::c_int, info: *mut libc::siginfo_t, _: *mut li
 /// Installs handlers of the [`stop_signals`] that set the stop flag (iceoryx2's own handling
 /// is off).
 pub fn install_signal_handlers() -> Result<()> {
+    // SAFETY: getppid takes no argument and cannot fail.
+    PARENT.store(unsafe { libc::getppid() }, Ordering::SeqCst);
     for (sig, _) in stop_signals() {
         // SAFETY: `sigaction` is given a zero-initialised struct whose handler is an
         // `extern "C"` function that only stores to an atomic, which is async-signal-safe.
@@ -794,7 +802,7 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     // The audit's supervisor is a normal task: started before the placement it would inherit.
     let audit = args
         .audit_syscalls
-        .then(crate::audit::Audit::start)
+        .then(|| crate::audit::Audit::start(stop_requested))
         .transpose()?
         .map(std::sync::Arc::new);
     if let Some(a) = &audit {
