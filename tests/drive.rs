@@ -25,7 +25,7 @@ fn kyslan_pi_lockstep_meets_the_papers_rise_time() {
         let group = GROUPS.contains(f);
         let v = &s[*f];
         assert!(
-            if ON_REQUEST.contains(f) {
+            if ON_REQUEST.iter().any(|(r, _)| r == f) {
                 v.is_null()
             } else if group {
                 v.is_object() || v.is_array() || v.is_null()

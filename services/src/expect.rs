@@ -82,9 +82,9 @@ pub const FIGURES: &[&str] = &[
     "stray_syscalls",
 ];
 
-/// The top-level figures that a run has only when asked for: `stray_syscalls` with
-/// `--audit-syscalls` (a number then, or null when a process was not counted).
-pub const ON_REQUEST: &[&str] = &["stray_syscalls"];
+/// The top-level figures that a run has only when asked for, each with the option that asks:
+/// `stray_syscalls` (a number then, or null when a process was not counted).
+pub const ON_REQUEST: &[(&str, &str)] = &[("stray_syscalls", "--audit-syscalls")];
 
 /// The top-level figures that hold figures of their own; every other one is a number.
 pub const GROUPS: &[&str] = &[
@@ -466,11 +466,17 @@ impl Outcome {
             String::new()
         };
         if self.values.is_empty() {
-            let hint = if self.expect.trim_start().starts_with("stray_syscalls") {
-                ": it is counted with --audit-syscalls"
-            } else {
-                ""
-            };
+            // The figure the path starts from, and the option that would have made it.
+            let figure = self.expect.trim_start();
+            let figure = figure
+                .split(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
+                .next()
+                .unwrap_or("");
+            let hint = ON_REQUEST
+                .iter()
+                .find(|(f, _)| *f == figure)
+                .map(|(_, flag)| format!(": it is counted with {flag}"))
+                .unwrap_or_default();
             format!(
                 "expectation failed: {} (the summary has no such figure{hint})",
                 self.expect

@@ -80,9 +80,9 @@ enum Cmd {
         #[arg(long)]
         timing_csv: bool,
         /// Count every system call each stage host's loop makes from its first sample on beyond
-        /// its wait and wakes (futex, clock_nanosleep, clock_gettime, restart_syscall), by
-        /// name: summary.json →
-        /// stray_syscalls (the total) and processes.<p>.stray_syscalls; check it with
+        /// its wait and wakes (futex, clock_nanosleep, clock_gettime, restart_syscall,
+        /// rt_sigreturn) up to a stop request, by name: summary.json → stray_syscalls (the
+        /// total) and processes.<p>.stray_syscalls; check it with
         /// `--expect 'stray_syscalls == 0'`. A seccomp filter on each loop's thread; a
         /// counted call still runs, two thread switches slower.
         #[arg(long)]

@@ -1,14 +1,14 @@
 //! The system-call audit of a real-time loop (`drivelab run --audit-syscalls`;
-//! docs/architecture.md, "The system-call audit").
+//! docs/architecture.md, "Real-time rules").
 //!
 //! A loop may make its wait and its wakes and nothing else: `futex` (the bus's wake words),
 //! `clock_nanosleep` (the source's deadline), `clock_gettime` (the clock, when the vDSO
 //! falls back to the kernel), `restart_syscall` (the kernel resuming one of these after a
 //! SIGSTOP and SIGCONT) and `rt_sigreturn` (the return from a signal handler that
 //! interrupted the loop). Counting ends with the loop or when the drive is asked to stop
-//! (its peers' going away is then the stop's, not the loop's). The loop's thread installs a seccomp filter on itself that lets
-//! these through untouched and hands every other call to a supervisor thread of the same
-//! process (a seccomp user notification). While the audit is armed, the supervisor counts
+//! (its peers' going away is then the stop's, not the loop's). The loop's thread installs a
+//! seccomp filter on itself that lets these through untouched and hands every other call to
+//! a supervisor thread of the same process (a seccomp user notification). While the audit is armed, the supervisor counts
 //! the call by name; then it lets the call run as it would have (`CONTINUE`), so an audited
 //! loop behaves as an unaudited one, a stray call costing it two thread switches more.
 //!
@@ -30,8 +30,8 @@ fn allowed() -> Vec<Sysno> {
         Sysno::restart_syscall,
         Sysno::rt_sigreturn,
     ];
-    // 32-bit ARM's C library makes the 64-bit-time forms of the same calls.
-    // (and the older return from a handler).
+    // 32-bit ARM's C library makes the 64-bit-time forms of the same calls, and its kernel
+    // has the older return from a handler too.
     #[cfg(target_arch = "arm")]
     let time64 = [
         Sysno::futex_time64,
@@ -62,12 +62,10 @@ const fn audit_arch() -> u32 {
 /// What the supervisor and the audited thread share.
 #[derive(Debug)]
 struct Shared {
-    /// The filter's listener, -1 until the audited thread has installed it.
+    /// The filter's listener, -1 until the audited thread has installed it (once).
     fd: AtomicI32,
     /// Count the calls that reach the supervisor.
     armed: AtomicBool,
-    /// The filter is installed (it can be, once).
-    installed: AtomicBool,
     /// The calls counted, by name (the supervisor's; the audited thread reads it once
     /// disarmed).
     found: Mutex<BTreeMap<String, u64>>,
@@ -76,8 +74,8 @@ struct Shared {
 }
 
 /// One loop's audit: started at set-up, armed by the loop's thread as its first sample
-/// begins, disarmed after the loop.
-#[derive(Debug)]
+/// begins, disarmed after the loop. Its clones are the same audit.
+#[derive(Debug, Clone)]
 pub struct Audit {
     shared: Arc<Shared>,
     supervisor: std::thread::Thread,
@@ -91,7 +89,6 @@ impl Audit {
         let shared = Arc::new(Shared {
             fd: AtomicI32::new(-1),
             armed: AtomicBool::new(false),
-            installed: AtomicBool::new(false),
             found: Mutex::new(BTreeMap::new()),
             stopping,
         });
@@ -110,7 +107,7 @@ impl Audit {
     /// before the filter. Errors when the kernel has no seccomp user notification (before
     /// Linux 5.5), an emulator refuses seccomp, or the thread has a listening filter already.
     pub fn arm(&self) -> Result<()> {
-        if self.shared.installed.swap(true, Ordering::SeqCst) {
+        if self.shared.fd.load(Ordering::SeqCst) >= 0 {
             bail!("--audit-syscalls: this loop's audit was armed once already");
         }
         let arch = audit_arch();

@@ -62,9 +62,9 @@ pub struct HostArgs {
     #[arg(long)]
     pub no_rt: bool,
     /// Count every system call the loop makes from its first sample on beyond its wait and
-    /// wakes (`futex`, `clock_nanosleep`, `clock_gettime`, `restart_syscall`), by name, into
-    /// `<stage>.stats.json → stray_syscalls` (a seccomp filter on the loop's thread;
-    /// docs/architecture.md, "The system-call audit").
+    /// wakes (`futex`, `clock_nanosleep`, `clock_gettime`, `restart_syscall`, `rt_sigreturn`),
+    /// by name, up to a stop request, into `<stage>.stats.json → stray_syscalls` (a seccomp
+    /// filter on the loop's thread; docs/architecture.md, "Real-time rules").
     #[arg(long)]
     pub audit_syscalls: bool,
     /// Folder for the statistics files (`<stage>.stats.json`, histograms).
@@ -803,8 +803,7 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     let audit = args
         .audit_syscalls
         .then(|| crate::audit::Audit::start(stop_requested))
-        .transpose()?
-        .map(std::sync::Arc::new);
+        .transpose()?;
     if let Some(a) = &audit {
         let a = a.clone();
         host.at_first_sample(move || a.arm());
