@@ -1,7 +1,8 @@
 //! The embedded target: the runner that prefixes every process the launcher starts, and the
 //! aarch64 and armv7 builds (`scripts/cross.sh TRIPLE`) run under qemu-user, whose lockstep
-//! traces must equal the x86_64 ones byte for byte and whose doctor must read this machine's
-//! files without failing.
+//! traces must equal the x86_64 ones byte for byte, whose doctor must read this machine's
+//! files without failing, and whose system-call audit fails in one line (qemu-user refuses a
+//! guest's seccomp filter).
 //!
 //! Those tests need the target's Rust standard library, Debian's cross compiler and
 //! qemu-user (`scripts/setup.sh` installs them where it can, through `scripts/cross.sh
@@ -493,4 +494,57 @@ fn doctor_runs_under_qemu_and_reads_the_arm_checks() {
 #[test]
 fn the_armv7_doctor_runs_under_qemu_arm() {
     doctor_runs_under_qemu(&ARMV7, "the_armv7_doctor_runs_under_qemu_arm");
+}
+
+/// The system-call audit under qemu-user: the emulator refuses a guest's seccomp filter, so
+/// the run fails with one line that names the audit and the emulator as a possible cause,
+/// and leaves nothing behind.
+#[test]
+fn the_audit_under_qemu_user_is_refused_in_one_line() {
+    let test = "the_audit_under_qemu_user_is_refused_in_one_line";
+    let Some(bin) = AARCH64.build_or_skip(test) else {
+        return;
+    };
+    let dir = scratch("qemu-audit");
+    let bus = bus_id("qemu-audit");
+    let out = dir.join("run");
+    let o = AARCH64.drivelab(
+        &bin,
+        &[
+            "run",
+            "--clock",
+            "lockstep",
+            "--no-rt",
+            "--duration",
+            "0.2",
+            "--audit-syscalls",
+            "--bus",
+            &bus,
+            "--out",
+            out.to_str().unwrap(),
+            "--runner",
+            &AARCH64.runner(),
+        ],
+        Duration::from_secs(120),
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    let refusals: Vec<&str> = err
+        .lines()
+        .filter(|l| l.contains("error: --audit-syscalls:"))
+        .collect();
+    assert!(!refusals.is_empty(), "no host refused the audit: {err}");
+    for l in &refusals {
+        assert!(
+            l.contains("seccomp filter was refused") && l.contains("qemu-user"),
+            "{l}"
+        );
+    }
+    assert!(
+        err.lines()
+            .any(|l| l.starts_with("drivelab: error: process ") && l.contains(" failed")),
+        "{err}"
+    );
+    assert_clean(&bus);
 }
