@@ -1164,3 +1164,19 @@ fn in_lockstep_a_stop_signal_from_outside_fails_the_run_and_names_the_signal() {
     );
     assert_clean(&bus);
 }
+
+/// A stop that outlasts the drive: the stopped process is resumed when the plant has
+/// finished, so it ends with the drive and writes its statistics (it used to stay frozen until
+/// the launcher killed it 3 s after its SIGTERM, with no statistics).
+#[test]
+fn a_process_still_stopped_when_the_drive_ends_is_resumed_and_ends_with_it() {
+    let _serial = serial();
+    let (out, s) = run_with_fault("stopend", "stop:observer@0.1:60", "0.3");
+    let resumed = events(&s, "resume");
+    assert_eq!(resumed.len(), 1, "{}", s["supervisor_events"]);
+    assert_eq!(resumed[0]["process"], "observer");
+    assert!(
+        out.join("observer.stats.json").exists(),
+        "the resumed observer wrote no statistics"
+    );
+}

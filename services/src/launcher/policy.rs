@@ -272,6 +272,15 @@ impl Life {
         }
     }
 
+    /// The drive ended during a stop: true when it was stopped, and it is to be resumed now
+    /// (SIGCONT) so that it ends with the drive instead of being killed frozen.
+    pub fn resume_at_end(&mut self) -> bool {
+        match self.state {
+            State::Frozen { until, .. } => self.resume_due(until),
+            _ => false,
+        }
+    }
+
     /// It said READY (also while stopped: it stays stopped, as ready).
     pub fn ready(&mut self) {
         self.state = match self.state {

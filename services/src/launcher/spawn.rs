@@ -610,13 +610,16 @@ pub(super) fn wait_ready(children: &mut [ChildProc]) -> Result<Option<String>> {
 pub(super) fn terminate(children: &mut [ChildProc]) {
     for c in children.iter_mut() {
         if let Ok(None) = c.child.try_wait() {
+            // A process a stop fault froze takes the signal once it is resumed (SIGCONT).
             // SAFETY: kill(2) on a pid we spawned and have not reaped (and on the host under
             // it, which a wrapper that ends first leaves to this launcher, its subreaper, to
             // reap); no memory is touched.
             unsafe {
                 libc::kill(c.child.id() as libc::pid_t, libc::SIGTERM);
+                libc::kill(c.child.id() as libc::pid_t, libc::SIGCONT);
                 if c.host_pid() != c.child.id() {
                     libc::kill(c.host_pid() as libc::pid_t, libc::SIGTERM);
+                    libc::kill(c.host_pid() as libc::pid_t, libc::SIGCONT);
                 }
             }
         }

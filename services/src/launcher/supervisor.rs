@@ -355,6 +355,10 @@ pub(super) fn supervise(
             process: process.into(),
         });
     };
+    // The hosts' data segments, held so that a dead process's are freed here, on the
+    // launcher's CPUs, and not in the loop of the host that drops them last.
+    let mut segments = bus::SegmentKeeper::new(bus_id);
+    segments.hold_new();
     'run: loop {
         if crate::common::stop_requested() {
             return Ok(Some(super::interrupted()));
@@ -478,6 +482,7 @@ pub(super) fn supervise(
             };
             if c.standby_starting && t.poll_ready() {
                 c.standby_starting = false;
+                segments.hold_new();
                 log(events, EventKind::StandbyReady { pid: t.pid() }, &n, &n);
             }
             // A twin that ended with the drive stays listed (the summary names it).
@@ -503,6 +508,7 @@ pub(super) fn supervise(
             }
             if c.life.state.awaiting_ready() && c.proc.poll_ready() {
                 c.life.ready();
+                segments.hold_new();
                 let kind = EventKind::Ready {
                     pid: c.proc.host_pid(),
                 };
@@ -560,9 +566,15 @@ pub(super) fn supervise(
             }
         }
         if any_dead {
+            // Before the dead node's files are removed: hold what a host made since.
+            segments.hold_new();
             let nodes = bus::reap_dead_nodes(bus_id)?;
             log(events, EventKind::Reaped { nodes }, "-", "-");
         }
+        let starting = children
+            .iter()
+            .any(|c| !c.life.state.alive() || c.life.state.awaiting_ready() || c.standby_starting);
+        segments.release_removed(now, starting);
         for c in children.iter_mut() {
             let due = c.standby_due.is_some_and(|at| now >= at);
             if due && c.standby.is_none() && c.life.state.alive() {
@@ -637,6 +649,13 @@ pub(super) fn supervise(
             RunState::Going => {}
             RunState::Over => break 'run,
             RunState::PlantFinished => {
+                // A process still stopped by a fault could not end with the drive.
+                for c in children.iter_mut() {
+                    if c.life.resume_at_end() {
+                        let _ = signal(c.proc.host_pid(), libc::SIGCONT);
+                        log(events, EventKind::Resume, &c.proc.name, &c.proc.name);
+                    }
+                }
                 // Anyone not done within 2 s is stopped by the caller.
                 let t = Instant::now();
                 while t.elapsed() < Duration::from_secs(2) {
