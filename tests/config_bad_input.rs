@@ -280,6 +280,54 @@ fn a_bad_scenario_field_is_one_line_naming_file_field_range_and_unit() {
             "[[expect]] #1: expectation 'peak_current_a =< 3': unknown operator",
         ),
         (
+            "plant-step-longer-than-l-over-r",
+            motor("l_d_h = 1e-7"),
+            1,
+            "rates.plant_substeps = 4: the plant's RK4 step 1/(rates.sample_hz × plant_substeps) = 2.500e-5 s must be at most the motor's electrical time constant min(L_d, L_q)/R = 1.429e-8 s (it would take plant_substeps = 7.001e3, above the 1000 allowed",
+        ),
+        (
+            "plant-step-fixed-by-substeps",
+            motor("l_d_h = 1e-5"),
+            1,
+            "min(L_d, L_q)/R = 1.429e-6 s (plant_substeps = 70 would do)",
+        ),
+        (
+            "inject-unknown-stage",
+            (
+                "[motor]",
+                "[[inject]]\nkind = \"kill\"\ntarget = \"nosuch\"\nat_s = 0.01\nduration_s = 0.01\n\n[motor]".into(),
+            ),
+            1,
+            "[[inject]] kill:nosuch@0.01: unknown stage 'nosuch' (this drive's stages: plant, observer, current-loop, speed-loop)",
+        ),
+        (
+            "inject-delay-unknown-stage",
+            (
+                "[motor]",
+                "[[inject]]\nkind = \"delay\"\ntarget = \"pump\"\nat_s = 0.01\nduration_s = 0.01\nlatency_us = 5.0\n\n[motor]".into(),
+            ),
+            1,
+            "unknown stage 'pump'",
+        ),
+        (
+            "inject-drop-unpublished-topic",
+            (
+                "[motor]",
+                "[[inject]]\nkind = \"drop\"\ntarget = \"wref\"\nat_s = 0.01\ncount = 2\n\n[motor]".into(),
+            ),
+            1,
+            "[[inject]] drop:wref@0.01:2: no stage of this drive publishes topic 'wref'",
+        ),
+        (
+            "inject-kill-on-sample-0",
+            (
+                "[motor]",
+                "[[inject]]\nkind = \"kill\"\ntarget = \"plant\"\nat_s = 0.0\nduration_s = 0.01\n\n[motor]".into(),
+            ),
+            1,
+            "[[inject]] kill:plant@0 falls on sample 0: a kill or stop must come after the drive's first sample (at or after 0.0001 s at 10000 Hz)",
+        ),
+        (
             "expect-nan-limit",
             (
                 "[motor]",

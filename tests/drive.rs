@@ -1662,3 +1662,61 @@ fn a_plot_that_cannot_be_drawn_leaves_the_trace_and_the_summary_whole() {
     let rows = drivelab_runtime::trace::read_csv(&out.join("trace.csv")).unwrap();
     assert_eq!(rows.len(), 500);
 }
+
+/// A motor the validation takes whose plant still blows up (a magnet flux of 100 Wb): the run
+/// fails in one line naming the first sample that is not a finite number, and its peaks are
+/// null, so an expectation on them fails instead of reading 0 off NaN.
+#[test]
+fn a_plant_whose_state_blows_up_fails_the_run_and_has_no_peak() {
+    let name = "blowup";
+    let sc = variant(
+        name,
+        "kyslan-pi",
+        &[(
+            "preset = \"kyslan2015\"",
+            "preset = \"kyslan2015\"\npsi_pm_wb = 100.0",
+        )],
+    );
+    let bus = bus_id(name);
+    let out = scratch(name).join("run");
+    let mut args = run_args(&bus, &out).to_vec();
+    args.extend_from_slice(&[
+        "--scenario",
+        sc.to_str().unwrap(),
+        "--clock",
+        "lockstep",
+        "--expect",
+        "peak_current_a <= 3.2",
+    ]);
+    let o = drivelab(&args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    let last = err.lines().last().unwrap_or("");
+    assert!(
+        last.starts_with("drivelab: error: the plant's state is not a finite number from sample ")
+            && last.contains("give no stable simulation at rates.plant_substeps = 4"),
+        "{err}"
+    );
+    assert_clean(&bus);
+    let s = summary(&out);
+    let k = s["trace"]["first_not_finite"]
+        .as_u64()
+        .expect("first_not_finite");
+    assert!(last.contains(&format!("from sample {k} ")), "{last}");
+    // The trace really is not finite from there on, and finite before.
+    let trace = std::fs::read_to_string(out.join("trace.csv")).unwrap();
+    // The plant's columns: omega_m, theta_e, i_d, i_q, theta_m.
+    let state_finite = |row: &str| {
+        let cells: Vec<&str> = row.split(',').collect();
+        [3, 5, 9, 10, 14]
+            .iter()
+            .all(|&i| cells[i].parse::<f64>().is_ok_and(f64::is_finite))
+    };
+    let rows: Vec<&str> = trace.lines().skip(1).collect();
+    assert!(rows[..k as usize].iter().all(|r| state_finite(r)));
+    assert!(!state_finite(rows[k as usize]), "{}", rows[k as usize]);
+    assert!(s["peak_current_a"].is_null(), "{}", s["peak_current_a"]);
+    assert!(s["peak_speed_rad_s"].is_null(), "{}", s["peak_speed_rad_s"]);
+    assert_eq!(s["expectations"][0]["pass"], false, "{}", s["expectations"]);
+}

@@ -103,37 +103,63 @@ pub fn parse(kind: &str, rest: &str, spec: &str) -> Result<FaultSpec> {
 pub fn schedule(specs: &[FaultSpec], sc: &mut Scenario, topo: &TopologyPlan) -> Result<()> {
     for s in specs {
         let FaultSpec::Bus(i) = s else { continue };
-        let spec = i.spec();
-        match i.kind {
-            InjectKind::Delay | InjectKind::Kill | InjectKind::Stop => {
-                if !topo.stages.iter().any(|x| x.name == i.target) {
-                    let names: Vec<&str> = topo.stages.iter().map(|x| x.name.as_str()).collect();
-                    bail!(
-                        "fault {spec}: unknown stage '{}' (this drive's stages: {})",
-                        i.target,
-                        names.join(", ")
-                    );
-                }
-            }
-            InjectKind::Drop | InjectKind::Corrupt => {
-                let produced: Vec<&str> = inject::TOPICS
-                    .iter()
-                    .filter(|t| topo.producers.iter().any(|p| p.topic == **t))
-                    .map(|t| t.name())
-                    .collect();
-                if !produced.contains(&i.target.as_str()) {
-                    bail!(
-                        "fault {spec}: no stage of this drive publishes topic '{}' (its topics: {})",
-                        i.target,
-                        produced.join(", ")
-                    );
-                }
-            }
-        }
+        check_target(i, topo, "fault")?;
         sc.inject.push(i.clone());
     }
     inject::validate(&sc.inject, sc.duration_s)
         .map_err(|e| anyhow!("--fault with the scenario's own [[inject]] tables: {e}"))
+}
+
+/// Checks a scenario's own `[[inject]]` tables as `--fault` is checked: a stage of this
+/// drive, a topic one of its stages publishes, and a kill or stop after sample 0.
+pub fn check_tables(sc: &Scenario, topo: &TopologyPlan) -> Result<()> {
+    let fs = sc.rates.sample_hz;
+    for i in &sc.inject {
+        check_target(i, topo, "[[inject]]")?;
+        // A kill or stop lands on sample round(t·f_s); on sample 0 the drive has no sample
+        // yet to resume from or to hold.
+        if i.kind.downs_stage() && (i.at_s * fs).round() < 1.0 {
+            bail!(
+                "[[inject]] {} falls on sample 0: a kill or stop must come after the drive's first sample (at or after {} s at {fs} Hz)",
+                i.spec(),
+                1.0 / fs
+            );
+        }
+    }
+    Ok(())
+}
+
+/// The stage or topic that bus fault `i` names must be this drive's (`what`: how the
+/// error names where it came from).
+fn check_target(i: &Inject, topo: &TopologyPlan, what: &str) -> Result<()> {
+    let spec = i.spec();
+    match i.kind {
+        InjectKind::Delay | InjectKind::Kill | InjectKind::Stop => {
+            if !topo.stages.iter().any(|x| x.name == i.target) {
+                let names: Vec<&str> = topo.stages.iter().map(|x| x.name.as_str()).collect();
+                bail!(
+                    "{what} {spec}: unknown stage '{}' (this drive's stages: {})",
+                    i.target,
+                    names.join(", ")
+                );
+            }
+        }
+        InjectKind::Drop | InjectKind::Corrupt => {
+            let produced: Vec<&str> = inject::TOPICS
+                .iter()
+                .filter(|t| topo.producers.iter().any(|p| p.topic == **t))
+                .map(|t| t.name())
+                .collect();
+            if !produced.contains(&i.target.as_str()) {
+                bail!(
+                    "{what} {spec}: no stage of this drive publishes topic '{}' (its topics: {})",
+                    i.target,
+                    produced.join(", ")
+                );
+            }
+        }
+    }
+    Ok(())
 }
 
 /// The window of injection `i` of the run (its producer's samples for a topic's fault).

@@ -1623,6 +1623,9 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
     // Faults are checked before anything is created: a bad plan leaves nothing behind.
     // Lockstep and in process simulate kills and stops at their sample.
     let simulated = o.clock != Clock::Realtime;
+    // The scenario's own [[inject]] tables, before the command line's faults join them.
+    crate::bus_faults::check_tables(&sc, &topo)
+        .map_err(|e| anyhow!("{}: {e:#}", sc_src.display()))?;
     // Faults reach the stages of this machine only.
     let stage_names: Vec<String> = topo
         .stages
@@ -2199,6 +2202,18 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         // Messages that came after their sample had left the window (as a row or a gap).
         summary["recorder_late"] = r.clone();
     }
+    // A plant whose state blew up (parameters or a load the validation could not judge):
+    // every figure after it is read off NaN.
+    if let Some(k) = stats.first_not_finite {
+        add_failure(
+            &mut failure,
+            format!(
+                "the plant's state is not a finite number from sample {k} (t = {} s) on: the motor, its load or the inverter give no stable simulation at rates.plant_substeps = {}",
+                k as f64 / sc.rates.sample_hz,
+                sc.rates.plant_substeps
+            ),
+        );
+    }
     // A planned fault that was not made (its process was down, the drive ended first): the
     // run did not test what it was asked to, and fails with them (after the gaps were named:
     // the drive itself ran to its end).
@@ -2457,8 +2472,16 @@ fn headline(trace: &TraceStats, gaps: &[Gap], deadline_misses: u64, samples: u64
     Headline {
         deadline_misses_per_million: deadline_misses as f64 * 1e6 / samples.max(1) as f64,
         samples_missing: recorder::samples_missing(gaps),
-        peak_current_a: trace.peak_current_a,
-        peak_speed_rad_s: trace.peak_speed_rad_s,
+        // A state that blew up has no peak: null in the summary, so no expectation on it
+        // passes (the peaks of the rows before it are in `trace`).
+        peak_current_a: match trace.first_not_finite {
+            None => trace.peak_current_a,
+            Some(_) => f64::NAN,
+        },
+        peak_speed_rad_s: match trace.first_not_finite {
+            None => trace.peak_speed_rad_s,
+            Some(_) => f64::NAN,
+        },
     }
 }
 

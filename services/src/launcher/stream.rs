@@ -127,6 +127,9 @@ pub struct TraceStats {
     pub peak_current_a: f64,
     /// Largest |ω_m| over every row, mechanical rad/s.
     pub peak_speed_rad_s: f64,
+    /// The first row whose plant state (currents, speed, angles) is not a finite number: the
+    /// simulation blew up (the run fails; the peaks above cover the rows before it).
+    pub first_not_finite: Option<u64>,
     /// Rows kept for the analyses (metrics, fault reports, plots).
     pub rows_analysed: u64,
     /// Between the kept windows, one row in this many was kept (1: every row).
@@ -145,6 +148,7 @@ impl TraceStats {
             rows: 0,
             peak_current_a: 0.0,
             peak_speed_rad_s: 0.0,
+            first_not_finite: None,
             rows_analysed: rows.len() as u64,
             spacing: 1,
             window_rows_dropped: 0,
@@ -163,6 +167,10 @@ impl TraceStats {
 
     fn count(&mut self, r: &TraceRow) {
         self.rows += 1;
+        let state = [r.i_d, r.i_q, r.omega_m, r.theta_e, r.theta_m];
+        if self.first_not_finite.is_none() && !state.iter().all(|v| v.is_finite()) {
+            self.first_not_finite = Some(r.k);
+        }
         self.peak_current_a = self.peak_current_a.max(r.i_d.hypot(r.i_q));
         self.peak_speed_rad_s = self.peak_speed_rad_s.max(r.omega_m.abs());
     }
@@ -346,6 +354,7 @@ impl TraceStream {
                 rows: 0,
                 peak_current_a: 0.0,
                 peak_speed_rad_s: 0.0,
+                first_not_finite: None,
                 rows_analysed: 0,
                 spacing: keep.spacing,
                 window_rows_dropped: 0,

@@ -19,10 +19,11 @@ pub(super) fn trip_report(sc: &Scenario, rows: &[TraceRow]) -> Option<FaultRepor
         .map(|r| r.i_d.hypot(r.i_q))
         .fold(0.0, f64::max);
     Some(FaultReport {
-        fault: format!(
+        fault: drivelab_runtime::text::readable_numbers(&format!(
             "overcurrent trip (inverter.i_trip_a = {} A, latched)",
             sc.inverter.i_trip_a.unwrap_or(f64::NAN)
-        ),
+        ))
+        .into_owned(),
         service: "plant".into(),
         process: "plant".into(),
         injected_k: r.k,
@@ -75,5 +76,13 @@ mod tests {
         assert_eq!(f.speed_recovered_ms, None);
         assert!(f.fault.contains("i_trip_a = 5 A"), "{}", f.fault);
         assert!(trip_report(&sc, &rows[..2]).is_none());
+        // A tiny level is written as a number a person reads (Rust's `{}` gives 300 digits).
+        sc.inverter.i_trip_a = Some(1e-300);
+        let f = trip_report(&sc, &rows).unwrap();
+        assert!(
+            f.fault.contains("i_trip_a = 1e-300 A, latched"),
+            "{}",
+            f.fault
+        );
     }
 }

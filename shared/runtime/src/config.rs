@@ -1424,6 +1424,22 @@ impl Scenario {
                 r.plant_substeps
             )
         })?;
+        // RK4 steps longer than the electrical time constant give numbers, not the motor
+        // (the same bound as `drivelab plant --max-step-s`).
+        let tau = m.l_d_h.min(m.l_q_h) / m.r_ohm;
+        let h = 1.0 / (r.sample_hz * f64::from(r.plant_substeps));
+        check(h <= tau, || {
+            let need = (1.0 / (r.sample_hz * tau)).ceil();
+            format!(
+                "rates.plant_substeps = {}: the plant's RK4 step 1/(rates.sample_hz × plant_substeps) = {h:.3e} s must be at most the motor's electrical time constant min(L_d, L_q)/R = {tau:.3e} s ({})",
+                r.plant_substeps,
+                if need <= 1000.0 {
+                    format!("plant_substeps = {need} would do")
+                } else {
+                    format!("it would take plant_substeps = {need:e}, above the 1000 allowed: check the motor's inductances and resistance")
+                }
+            )
+        })?;
         check(self.samples() >= 1 && self.samples() <= 200_000_000, || {
             format!(
                 "duration_s × rates.sample_hz = {} s × {} Hz = {} samples must be in 1..=2e8",
