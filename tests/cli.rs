@@ -489,3 +489,34 @@ fn doctor_judges_the_cores_of_the_topology_it_is_given() {
     assert!(!out.contains("\"placement\""), "{out}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A motor whose sampled speed loop is not a finite matrix (a magnet flux of 100 Wb): the
+/// design says its poles cannot be computed and ends (nalgebra's eigenvalues looped for ever
+/// on it, at full CPU).
+#[test]
+fn design_of_an_out_of_scale_motor_ends_and_says_its_poles_cannot_be_computed() {
+    let dir = common::scratch("design-out-of-scale");
+    let motor = dir.join("motor.toml");
+    std::fs::write(
+        &motor,
+        "[motor]\npreset = \"kyslan2015\"\npsi_pm_wb = 100.0\n",
+    )
+    .unwrap();
+    let o = common::drivelab_within(
+        &["design", "--motor", motor.to_str().unwrap()],
+        std::time::Duration::from_secs(60),
+    );
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(
+        o.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(
+        out.contains(
+            "its poles cannot be computed: the sampled loop's matrix is not a finite number"
+        ),
+        "{out}"
+    );
+}

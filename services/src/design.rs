@@ -381,6 +381,9 @@ fn render_nonlinear(
 /// the loop is stable, else "; UNSTABLE: …". The figures of an unstable loop are only those
 /// of the `window_s` simulated: its response grows without bound.
 fn unstable(rho: f64, how: &str, window_s: f64, runs: bool) -> String {
+    if rho.is_nan() {
+        return "; its poles cannot be computed: the sampled loop's matrix is not a finite number (the motor's values are out of scale for this rate)".into();
+    }
     if rho <= 1.0 {
         return String::new();
     }

@@ -730,28 +730,21 @@ impl NlLoopModel {
     /// step response grows without bound, and a rise time or overshoot read off it is only
     /// what the simulated window happened to show.
     pub fn spectral_radius(&self, m: &MotorParams, g: &NlGains) -> f64 {
-        let mut z: Vec<nalgebra::Complex<f64>> = self
-            .lifted_matrix(m, g)
-            .complex_eigenvalues()
-            .iter()
-            .copied()
-            .collect();
+        let mut z = crate::math::eigenvalues(self.lifted_matrix(m, g));
         let one = nalgebra::Complex::new(1.0, 0.0);
         if let Some(i) = (0..z.len()).min_by(|&a, &b| {
             crate::math::cnorm(z[a] - one).total_cmp(&crate::math::cnorm(z[b] - one))
         }) {
             z.swap_remove(i);
         }
-        z.into_iter().map(crate::math::cnorm).fold(0.0, f64::max)
+        crate::math::spectral_radius(z)
     }
 
     /// Poles of the sampled loop (q axis and speed), as ln(z)/(N·T_s) in rad/s, sorted by
     /// magnitude. Poles at z ≈ 0 (pure delays) are left out.
     pub fn sampled_poles(&self, m: &MotorParams, g: &NlGains) -> Vec<(f64, f64)> {
         let tw = self.ts * f64::from(self.n.max(1));
-        let mut v: Vec<(f64, f64)> = self
-            .lifted_matrix(m, g)
-            .complex_eigenvalues()
+        let mut v: Vec<(f64, f64)> = crate::math::eigenvalues(self.lifted_matrix(m, g))
             .iter()
             .filter(|z| crate::math::cnorm(**z) > 1e-9)
             .map(|z| {
@@ -825,10 +818,8 @@ fn other_poles(
     z0: nalgebra::Complex<f64>,
 ) -> Vec<nalgebra::Complex<f64>> {
     let one = nalgebra::Complex::new(1.0, 0.0);
-    let mut v: Vec<_> = phi
-        .complex_eigenvalues()
-        .iter()
-        .copied()
+    let mut v: Vec<_> = crate::math::eigenvalues(phi.clone())
+        .into_iter()
         .filter(|z| crate::math::cnorm(z - one) > 1e-6)
         .collect();
     for t in [z0, z0.conj()] {

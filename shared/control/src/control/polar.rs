@@ -483,7 +483,7 @@ pub fn sampled_poles(
             k += 1;
         }
     }
-    c.complex_eigenvalues().iter().copied().collect()
+    crate::math::eigenvalues(c)
 }
 
 /// Poles z of a loop sampled at `ts` as ln(z)/T_u (re, im), rad/s, sorted.
@@ -619,14 +619,18 @@ pub struct FwDesign {
 
 /// Roots of s⁴ + d3 s³ + d2 s² + d1 s + d0 as (re, im), sorted.
 fn quartic_roots(d: [f64; 4]) -> Vec<(f64, f64)> {
-    let m = nalgebra::Matrix4::new(
-        -d[0], -d[1], -d[2], -d[3], //
-        1.0, 0.0, 0.0, 0.0, //
-        0.0, 1.0, 0.0, 0.0, //
-        0.0, 0.0, 1.0, 0.0,
+    let m = nalgebra::DMatrix::from_row_slice(
+        4,
+        4,
+        &[
+            -d[0], -d[1], -d[2], -d[3], //
+            1.0, 0.0, 0.0, 0.0, //
+            0.0, 1.0, 0.0, 0.0, //
+            0.0, 0.0, 1.0, 0.0,
+        ],
     );
     sorted(
-        m.complex_eigenvalues()
+        crate::math::eigenvalues(m)
             .iter()
             .map(|c| (c.re, c.im))
             .collect(),

@@ -186,7 +186,7 @@ pub fn roots(p: &[f64]) -> Vec<Complex<f64>> {
     for i in 1..n {
         c[(i, i - 1)] = 1.0;
     }
-    c.complex_eigenvalues().iter().copied().collect()
+    crate::math::eigenvalues(c)
 }
 
 /// Drops leading zero coefficients (keeps at least one).

@@ -260,10 +260,7 @@ impl SpeedLoopModel {
                 phi[(i, j)] = x;
             }
         }
-        phi.complex_eigenvalues()
-            .iter()
-            .map(|z| crate::math::cnorm(*z))
-            .fold(0.0, f64::max)
+        crate::math::spectral_radius(crate::math::eigenvalues(phi))
     }
 }
 
