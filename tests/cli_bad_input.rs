@@ -242,6 +242,24 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             2,
             "--lockstep-restart-ms with --restart never: a killed stage stays dead, there is no restart to time",
         ),
+        // In real time (the default clock): refused before anything starts.
+        case(
+            "restart-ms-realtime",
+            dir,
+            &[
+                "run",
+                "--bus",
+                "{bus}",
+                "--out",
+                o,
+                "--no-plots",
+                "--lockstep-restart-ms",
+                "50",
+            ],
+            2,
+            "--lockstep-restart-ms times a simulated restart (--clock lockstep or inprocess); in real time the supervisor restarts the process itself",
+        )
+        .leaves_no(out.clone()),
         run_case(
             "seed",
             &["--fault-seed", "-1"],

@@ -109,7 +109,7 @@ enum Cmd {
         restart: launcher::Restart,
         /// Lockstep and inprocess: how long a killed stage stays dead before it rejoins
         /// (its simulated restart), milliseconds, 1 to 10000 [default: 40]. Not with
-        /// --restart never, where a killed stage stays dead.
+        /// --restart never, where a killed stage stays dead, nor in real time.
         #[arg(long, value_name = "MS", value_parser = drivelab_services::faults::restart_ms)]
         lockstep_restart_ms: Option<f64>,
         /// Seed of random:N fault plans.
@@ -1022,6 +1022,11 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             if restart == launcher::Restart::Never && lockstep_restart_ms.is_some() {
                 return Err(usage(
                     "--lockstep-restart-ms with --restart never: a killed stage stays dead, there is no restart to time".into(),
+                ));
+            }
+            if clock == Clock::Realtime && lockstep_restart_ms.is_some() {
+                return Err(usage(
+                    "--lockstep-restart-ms times a simulated restart (--clock lockstep or inprocess); in real time the supervisor restarts the process itself".into(),
                 ));
             }
             let lockstep_restart_ms =

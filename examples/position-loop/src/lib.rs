@@ -6,7 +6,7 @@
 //! `src/main.rs`, one call to `drivelab_runtime::service::host_main`.
 
 use drivelab_runtime::config::Scenario;
-use drivelab_runtime::messages::{Header, SpeedRef};
+use drivelab_runtime::messages::{Header, SpeedRef, MAX_ABS_VALUE};
 use drivelab_runtime::stage::{
     Diagnostics, Inbox, InputSpec, Msg, OnStale, Outbox, Rejoin, Stage, TopicId,
 };
@@ -121,10 +121,20 @@ impl PositionLoop {
                 return Ok(default);
             };
             let x = v.as_float().or_else(|| v.as_integer().map(|i| i as f64));
-            let bad = |why: &str| Err(ParamError(format!("stages.{NAME}.{key} = {v} {why}")));
+            let bad = |why: &str| {
+                let text = format!("stages.{NAME}.{key} = {v} {why}");
+                Err(ParamError(
+                    drivelab_runtime::text::readable_numbers(&text).into_owned(),
+                ))
+            };
             match x {
                 None => bad("must be a number"),
                 Some(x) if !x.is_finite() => bad("must be finite"),
+                // Larger values would make messages every peer rejects: a drive that runs
+                // and does nothing.
+                Some(x) if x.abs() > MAX_ABS_VALUE => {
+                    bad("must be at most 1e12 in magnitude (the largest value a message carries)")
+                }
                 Some(x) if sign != Sign::Any && x < 0.0 => bad("must not be negative"),
                 Some(x) if sign == Sign::Positive && x == 0.0 => bad("must be greater than 0"),
                 Some(x) => Ok(x),
@@ -453,6 +463,14 @@ mod tests {
             (
                 "stepp_rad = 1.0",
                 "stages.position-loop.stepp_rad: unknown parameter",
+            ),
+            (
+                "step_rad = 1e308",
+                "stages.position-loop.step_rad = 1e308 must be at most 1e12 in magnitude (the largest value a message carries)",
+            ),
+            (
+                "omega_max_rad_s = 2e12",
+                "stages.position-loop.omega_max_rad_s = 2000000000000.0 must be at most 1e12",
             ),
         ] {
             let e = PositionLoop::new(&scenario(p)).unwrap_err().to_string();
