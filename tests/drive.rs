@@ -1720,3 +1720,39 @@ fn a_plant_whose_state_blows_up_fails_the_run_and_has_no_peak() {
     assert!(s["peak_speed_rad_s"].is_null(), "{}", s["peak_speed_rad_s"]);
     assert_eq!(s["expectations"][0]["pass"], false, "{}", s["expectations"]);
 }
+
+/// Ctrl-C while the hosts are still starting: one error line, and no warning about the
+/// statistics of stages that never ran (the run made no sample; its line says so).
+#[test]
+fn a_drive_interrupted_during_its_start_up_says_so_in_one_line() {
+    let name = "sigint-startup";
+    let bus = bus_id(name);
+    let out = scratch(name).join("run");
+    let child = Drive::start(&bus, &out, &["--duration", "5", "--clock", "lockstep"]);
+    let pid = child.id();
+    // As soon as the launcher has started a stage host (its start-up takes a second or so).
+    let children = format!("/proc/{pid}/task/{pid}/children");
+    let t = std::time::Instant::now();
+    while std::fs::read_to_string(&children).map_or(true, |c| c.trim().is_empty()) {
+        assert!(
+            t.elapsed() < Duration::from_secs(30),
+            "no stage host started"
+        );
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    // SAFETY: signalling a child process we spawned.
+    unsafe { libc::kill(pid as i32, libc::SIGINT) };
+    let o = child.wait_for_exit(Duration::from_secs(30), "drivelab after SIGINT");
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert_clean(&bus);
+    let s = summary(&out);
+    assert_eq!(s["samples"], 0, "the signal came after the start-up: {err}");
+    assert!(!err.contains("warning: no statistics"), "{err}");
+    let errors: Vec<&str> = err.lines().filter(|l| l.contains("error:")).collect();
+    assert_eq!(errors.len(), 1, "{err}");
+    assert!(
+        errors[0].starts_with("drivelab: error: interrupted during start-up"),
+        "{err}"
+    );
+}

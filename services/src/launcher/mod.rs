@@ -2149,7 +2149,8 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         };
     }
     // A stage without its statistics: named, with why; a warning unless its process died
-    // during the run and was left dead (the supervisor's events say so already).
+    // during the run and was left dead (the supervisor's events say so already), or the
+    // drive made no sample (stopped during its start-up: its one line says so).
     if let Some(m) = info["statistics_missing"]
         .as_object()
         .filter(|m| !m.is_empty())
@@ -2160,7 +2161,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             .filter(|(_, why)| !why.as_str().is_some_and(|w| w.ends_with(LEFT_DEAD)))
             .map(|(st, why)| format!("{st} ({})", why.as_str().unwrap_or("")))
             .collect();
-        if !unexplained.is_empty() {
+        if !unexplained.is_empty() && stats.rows > 0 {
             crate::errln!(
                 "drivelab: warning: no statistics from {}: their counters are not in summary.json",
                 unexplained.join(", ")
