@@ -145,6 +145,12 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
         a.extend_from_slice(extra);
         case(name, dir, &a, code, needle).leaves_no(out.clone())
     };
+    // A real-time run (the default clock), refused before anything starts.
+    let rt_case = |name: &str, extra: &[&str], code: i32, needle: &'static str| {
+        let mut a = vec!["run", "--bus", "{bus}", "--out", o, "--no-plots"];
+        a.extend_from_slice(extra);
+        case(name, dir, &a, code, needle).leaves_no(out.clone())
+    };
     let mut cases = vec![
         // run
         run_case(
@@ -242,24 +248,24 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             2,
             "--lockstep-restart-ms with --restart never: a killed stage stays dead, there is no restart to time",
         ),
-        // In real time (the default clock): refused before anything starts.
-        case(
-            "restart-ms-realtime",
-            dir,
+        // A delay whose spinning outlasts what the run may take.
+        rt_case(
+            "delay-outlasts-the-run",
             &[
-                "run",
-                "--bus",
-                "{bus}",
-                "--out",
-                o,
-                "--no-plots",
-                "--lockstep-restart-ms",
-                "50",
+                "--duration",
+                "0.3",
+                "--fault",
+                "delay:current-loop@0.1:0.1:100ms",
             ],
+            1,
+            "fault delay:current-loop@0.1:0.1:100000us: its 1000 delayed steps would keep the stage's core busy for 100.0 s, longer than this run may last (20.4 s): shorten its window or its latency",
+        ),
+        rt_case(
+            "restart-ms-realtime",
+            &["--lockstep-restart-ms", "50"],
             2,
             "--lockstep-restart-ms times a simulated restart (--clock lockstep or inprocess); in real time the supervisor restarts the process itself",
-        )
-        .leaves_no(out.clone()),
+        ),
         run_case(
             "seed",
             &["--fault-seed", "-1"],

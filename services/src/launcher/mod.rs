@@ -585,9 +585,7 @@ fn run_bus(
         let started = Instant::now();
         let limit = match clock {
             // A stopped plant stops the clock: the run lasts the stops longer.
-            BusClock::Realtime => Duration::from_secs_f64(
-                sc.duration_s * 1.5 + 20.0 + crate::faults::stopped_s(&o.faults),
-            ),
+            BusClock::Realtime => realtime_limit(sc, &o.faults),
             BusClock::Lockstep => Duration::from_secs_f64(sc.duration_s * 2000.0 + 120.0),
         };
         // Progress on a terminal only (indicatif draws nothing when stderr is not a tty).
@@ -1653,6 +1651,9 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
     let not_made = after_the_plant(&mut sc);
     // Bus faults (delay, drop, corrupt) go to every stage host in the resolved scenario.
     crate::bus_faults::schedule(&o.faults, &mut sc, &topo)?;
+    if o.clock == Clock::Realtime {
+        check_delays(&sc, &topo, realtime_limit(&sc, &o.faults))?;
+    }
     let hogs = crate::faults::hog::plan(
         &o.faults,
         sc.duration_s,
@@ -2386,6 +2387,38 @@ fn file_names(dir: &Path) -> std::collections::BTreeSet<std::ffi::OsString> {
                 .collect()
         })
         .unwrap_or_default()
+}
+
+/// How long a real-time drive of `sc` may take before the supervisor gives up on it: its
+/// duration and a half, 20 s for the start and the end, and the time its stops hold it (a
+/// stopped plant stops the drive's clock).
+fn realtime_limit(sc: &Scenario, faults: &[crate::faults::FaultSpec]) -> Duration {
+    Duration::from_secs_f64(sc.duration_s * 1.5 + 20.0 + crate::faults::stopped_s(faults))
+}
+
+/// A delay fault's stage spins on its core for every step in the window, above the stages
+/// below it: one that would keep the core busy longer than the run may take could only end
+/// in the supervisor's time limit, so it is refused.
+fn check_delays(sc: &Scenario, topo: &TopologyPlan, limit: Duration) -> Result<()> {
+    use drivelab_runtime::inject::InjectKind;
+    for i in sc.inject.iter().filter(|i| i.kind == InjectKind::Delay) {
+        let divider = topo
+            .stages
+            .iter()
+            .find(|s| s.name == i.target)
+            .map_or(1, |s| s.divider.max(1));
+        let window_s = i.duration_s.min(sc.duration_s - i.at_s).max(0.0);
+        let steps = (window_s * sc.rates.sample_hz / divider as f64).ceil();
+        let busy_s = steps * i.latency_us * 1e-6;
+        if busy_s > limit.as_secs_f64() {
+            bail!(
+                "fault {}: its {steps} delayed steps would keep the stage's core busy for {busy_s:.1} s, longer than this run may last ({:.1} s): shorten its window or its latency",
+                i.spec(),
+                limit.as_secs_f64()
+            );
+        }
+    }
+    Ok(())
 }
 
 /// Adds `why` to a run's `failure`: the first, or after the ones before it (a write error
