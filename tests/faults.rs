@@ -1047,7 +1047,7 @@ fn a_planned_fault_whose_process_is_down_is_not_made_and_fails_the_run() {
             "faults.*.detected_data_path_ms <= 2",
         ],
     );
-    let why = "stop:observer@0.3:0.02: not injected: its process is not running (process observer)";
+    let why = "stop:observer@0.3:0.02: not injected: its process is not running: dead and not restarted (process observer)";
     assert_failed_for_fault_not_made(&err, &s, why);
     // The kill was made and reported, and every sample is in the trace.
     assert_eq!(s["faults"].as_array().unwrap().len(), 1, "{s}");

@@ -188,8 +188,9 @@ impl State {
 pub enum Injection {
     /// Not injected: faults need a real-time drive.
     Refused,
-    /// Not injected: its process is not running (dead, frozen, restarting or finished).
-    Skipped,
+    /// Not injected: its process is not running, and what it is instead ("frozen by an
+    /// earlier stop", "dead, to be restarted", "dead and not restarted", "finished").
+    Skipped(&'static str),
     /// Send this signal to the process (SIGKILL or SIGSTOP).
     Signal(i32),
 }
@@ -234,8 +235,12 @@ impl Life {
         if !realtime {
             return Injection::Refused;
         }
-        if !matches!(self.state, State::Running | State::AwaitingReady) {
-            return Injection::Skipped;
+        match self.state {
+            State::Running | State::AwaitingReady => {}
+            State::Frozen { .. } => return Injection::Skipped("frozen by an earlier stop"),
+            State::RestartPending { .. } => return Injection::Skipped("dead, to be restarted"),
+            State::Dead => return Injection::Skipped("dead and not restarted"),
+            State::Finished => return Injection::Skipped("finished"),
         }
         self.injected = true;
         match kind {
@@ -638,7 +643,7 @@ mod tests {
             seen,
             [
                 "SIGSTOP|frozen",
-                "Skipped|frozen",
+                "Skipped(\"frozen by an earlier stop\")|frozen",
                 "|frozen",
                 "SIGCONT|alive",
                 "|alive"
@@ -698,18 +703,25 @@ mod tests {
         );
         assert_eq!(life, Life::new(false));
         assert_eq!(life.exited(false, &p, t), Some(Decision::FailRun));
-        // Dead, waiting for a restart, finished: skipped and unchanged.
-        for state in [
-            State::Dead,
-            State::RestartPending { at: t },
-            State::Finished,
+        // Dead, waiting for a restart, finished, frozen: skipped, saying which, and unchanged.
+        for (state, why) in [
+            (State::Dead, "dead and not restarted"),
+            (State::RestartPending { at: t }, "dead, to be restarted"),
+            (State::Finished, "finished"),
+            (
+                State::Frozen {
+                    until: t + ms(50),
+                    awaiting_ready: false,
+                },
+                "frozen by an earlier stop",
+            ),
         ] {
             let mut life = Life::new(false);
             life.state = state;
             let before = life;
             assert_eq!(
                 life.inject(FaultKind::Stop, ms(5), t, true),
-                Injection::Skipped
+                Injection::Skipped(why)
             );
             assert_eq!(life, before);
         }

@@ -37,8 +37,11 @@ pub enum EventKind {
         /// Why.
         reason: String,
     },
-    /// A fault was not injected: its process was not running (dead, frozen or finished).
-    InjectSkipped,
+    /// A fault was not injected: its process was not running.
+    InjectSkipped {
+        /// What it was instead: "frozen by an earlier stop", "dead, to be restarted", ...
+        why: &'static str,
+    },
     /// Lockstep and in process: a kill or stop simulated by the stage hosts at its sample
     /// (no signal, no wall time: `t_wall_s` is 0).
     Simulated {
@@ -113,7 +116,7 @@ impl EventKind {
         match self {
             Self::Inject { .. } => "inject",
             Self::InjectRefused { .. } => "inject-refused",
-            Self::InjectSkipped => "inject-skipped",
+            Self::InjectSkipped { .. } => "inject-skipped",
             Self::Simulated { .. } => "inject-simulated",
             Self::Resume => "resume",
             Self::Exited { .. } => "exited",
@@ -147,7 +150,7 @@ impl EventKind {
                 s
             }
             Self::InjectRefused { reason } => reason.clone(),
-            Self::InjectSkipped => "its process is not running".into(),
+            Self::InjectSkipped { why } => format!("its process is not running: {why}"),
             Self::Simulated { spec } => format!("{spec}, simulated at its sample"),
             Self::Resume => "SIGCONT".into(),
             Self::Exited { status, crash } => {
@@ -439,7 +442,7 @@ pub(super) fn supervise(
                 Injection::Refused => EventKind::InjectRefused {
                     reason: "faults need --clock realtime".into(),
                 },
-                Injection::Skipped => EventKind::InjectSkipped,
+                Injection::Skipped(why) => EventKind::InjectSkipped { why },
                 Injection::Signal(sig) => {
                     signal(c.proc.host_pid(), sig)?;
                     EventKind::Inject {
@@ -1051,7 +1054,13 @@ mod tests {
         let cl = "current-loop";
         let events = [
             ev(1.0, 10, kill(), cl, cl),
-            ev(1.0, 10, EventKind::InjectSkipped, "plant", "plant"),
+            ev(
+                1.0,
+                10,
+                EventKind::InjectSkipped { why: "finished" },
+                "plant",
+                "plant",
+            ),
             ev(
                 1.003,
                 13,
@@ -1254,9 +1263,11 @@ mod tests {
                 "faults need --clock realtime",
             ),
             (
-                EventKind::InjectSkipped,
+                EventKind::InjectSkipped {
+                    why: "frozen by an earlier stop",
+                },
                 "inject-skipped",
-                "its process is not running",
+                "its process is not running: frozen by an earlier stop",
             ),
             (EventKind::Resume, "resume", "SIGCONT"),
             (
