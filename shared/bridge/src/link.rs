@@ -154,7 +154,28 @@ pub fn open(side: Side, endpoint: &str, file: Option<&Path>) -> Result<zenoh::Se
             Side::Listen => "listen on",
             Side::Connect => "connect to",
         };
-        anyhow!("cannot {what} {endpoint}: {}", reason(&e.to_string()))
+        let text = e.to_string();
+        // Zenoh says the same whether nothing answered or something that is not Zenoh did.
+        let why = match (side, tidy(&text).starts_with("Unable to connect to any of")) {
+            (Side::Connect, true) if tcp_answers(endpoint) => format!(
+                "something accepted a TCP connection at {endpoint} but did not answer as Zenoh (another service's port? a drive listens with --zenoh-listen)"
+            ),
+            _ => reason(&text),
+        };
+        anyhow!("cannot {what} {endpoint}: {why}")
+    })
+}
+
+/// True when a plain TCP connection to `tcp/HOST:PORT` is accepted within a second.
+fn tcp_answers(endpoint: &str) -> bool {
+    use std::net::ToSocketAddrs;
+    let Some(addr) = endpoint.strip_prefix("tcp/") else {
+        return false;
+    };
+    // An endpoint may carry Zenoh's options after '#' or '?'.
+    let addr = addr.split(['#', '?']).next().unwrap_or(addr);
+    addr.to_socket_addrs().into_iter().flatten().any(|a| {
+        std::net::TcpStream::connect_timeout(&a, std::time::Duration::from_secs(1)).is_ok()
     })
 }
 
@@ -275,6 +296,23 @@ mod tests {
         assert!(
             named.starts_with("tcp/localhost:") && !named.ends_with(":0"),
             "{named}"
+        );
+    }
+
+    /// A port where a plain TCP service listens, told apart from one where nothing does.
+    #[test]
+    fn a_tcp_service_that_is_not_zenoh_is_told_from_no_listener() {
+        let other = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = other.local_addr().unwrap().port();
+        assert!(tcp_answers(&format!("tcp/127.0.0.1:{port}")));
+        drop(other);
+        assert!(!tcp_answers(&format!("tcp/127.0.0.1:{port}")));
+        assert!(!tcp_answers("udp/127.0.0.1:7447"));
+        let e = open(Side::Connect, &format!("tcp/127.0.0.1:{port}"), None).unwrap_err();
+        assert!(
+            e.to_string()
+                .contains("nothing accepted the connection there"),
+            "{e}"
         );
     }
 
