@@ -113,17 +113,14 @@ pub fn schedule(specs: &[FaultSpec], sc: &mut Scenario, topo: &TopologyPlan) -> 
 /// Checks a scenario's own `[[inject]]` tables as `--fault` is checked: a stage of this
 /// drive, a topic one of its stages publishes, and a kill or stop after sample 0.
 pub fn check_tables(sc: &Scenario, topo: &TopologyPlan) -> Result<()> {
-    let fs = sc.rates.sample_hz;
     for i in &sc.inject {
         check_target(i, topo, "[[inject]]")?;
-        // A kill or stop lands on sample round(t·f_s); on sample 0 the drive has no sample
-        // yet to resume from or to hold.
-        if i.kind.downs_stage() && (i.at_s * fs).round() < 1.0 {
-            bail!(
-                "[[inject]] {} falls on sample 0: a kill or stop must come after the drive's first sample (at or after {} s at {fs} Hz)",
-                i.spec(),
-                1.0 / fs
-            );
+        if i.kind.downs_stage() {
+            crate::faults::after_sample_0(
+                &format!("[[inject]] {}", i.spec()),
+                i.at_s,
+                sc.rates.sample_hz,
+            )?;
         }
     }
     Ok(())

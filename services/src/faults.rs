@@ -204,15 +204,7 @@ pub fn plan(
                         f.spec()
                     );
                 }
-                // A fault lands on sample round(t·f_s) (as `[[inject]]` does). On sample 0
-                // it would hit a drive that has no sample yet to resume from or to hold.
-                if (f.at_s * sample_hz).round() < 1.0 {
-                    bail!(
-                        "fault '{}' falls on sample 0: a kill or stop must come after the drive's first sample (at or after {} s at {sample_hz} Hz)",
-                        f.spec(),
-                        1.0 / sample_hz
-                    );
-                }
+                after_sample_0(&format!("fault '{}'", f.spec()), f.at_s, sample_hz)?;
                 out.push(f.clone());
             }
             // Not signals: the launcher plans them (`hog::plan`, `sensor::add_to_scenario`).
@@ -244,6 +236,19 @@ pub fn plan(
     }
     out.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
     Ok(out)
+}
+
+/// A kill or stop (`what`, as the error names it) at `at_s` s lands on sample round(t·f_s), as
+/// `[[inject]]` does: on sample 0 it would hit a drive that has no sample yet to resume from
+/// or to hold, and is refused.
+pub fn after_sample_0(what: &str, at_s: f64, sample_hz: f64) -> Result<()> {
+    if (at_s * sample_hz).round() < 1.0 {
+        bail!(
+            "{what} falls on sample 0: a kill or stop must come after the drive's first sample (at or after {} s at {sample_hz} Hz)",
+            1.0 / sample_hz
+        );
+    }
+    Ok(())
 }
 
 /// How long the stops among `specs` hold their processes in total, s: a stopped plant

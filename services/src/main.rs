@@ -760,9 +760,7 @@ fn zenoh_config_file(file: Option<PathBuf>) -> anyhow::Result<Option<PathBuf>> {
 fn fmt_metric(m: &serde_json::Value, key: &str, unit: &str) -> String {
     let text = fmt_opt(&m[key], unit);
     match m["cut_by_fault"][key].as_str() {
-        Some(why) if m[key].is_null() => {
-            drivelab_runtime::text::readable_numbers(&format!("{text} ({why})")).into_owned()
-        }
+        Some(why) if m[key].is_null() => format!("{text} ({why})"),
         _ => text,
     }
 }

@@ -2503,19 +2503,20 @@ struct Headline {
 /// The headline figures of a run of `samples` expected samples from its trace's figures,
 /// its gaps and the plant's deadline misses.
 fn headline(trace: &TraceStats, gaps: &[Gap], deadline_misses: u64, samples: u64) -> Headline {
+    // A state that blew up has no peak: null in the summary, so no expectation on it passes
+    // (the peaks of the rows before it are in `trace`).
+    let peak = |p: f64| {
+        if trace.first_not_finite.is_some() {
+            f64::NAN
+        } else {
+            p
+        }
+    };
     Headline {
         deadline_misses_per_million: deadline_misses as f64 * 1e6 / samples.max(1) as f64,
         samples_missing: recorder::samples_missing(gaps),
-        // A state that blew up has no peak: null in the summary, so no expectation on it
-        // passes (the peaks of the rows before it are in `trace`).
-        peak_current_a: match trace.first_not_finite {
-            None => trace.peak_current_a,
-            Some(_) => f64::NAN,
-        },
-        peak_speed_rad_s: match trace.first_not_finite {
-            None => trace.peak_speed_rad_s,
-            Some(_) => f64::NAN,
-        },
+        peak_current_a: peak(trace.peak_current_a),
+        peak_speed_rad_s: peak(trace.peak_speed_rad_s),
     }
 }
 

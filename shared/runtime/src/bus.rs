@@ -908,11 +908,6 @@ impl SegmentKeeper {
         });
         before - self.held.len()
     }
-
-    /// How many segments are held (tests and reports).
-    pub fn held(&self) -> usize {
-        self.held.len()
-    }
 }
 
 #[cfg(test)]
@@ -939,7 +934,7 @@ mod tests {
         let mut keeper = SegmentKeeper::new(&id);
         keeper.hold_new();
         keeper.hold_new();
-        assert_eq!(keeper.held(), 1, "only this bus's data segment, once");
+        assert_eq!(keeper.held.len(), 1, "only this bus's data segment, once");
         let t0 = Instant::now();
         assert_eq!(keeper.release_removed(t0, false), 0, "not removed yet");
         std::fs::remove_file(&data).unwrap();
@@ -958,10 +953,10 @@ mod tests {
         held.read_to_string(&mut text).unwrap();
         assert_eq!(text, "segment", "the removed segment is still held");
         assert_eq!(keeper.release_removed(t0 + ms(6300), false), 1);
-        assert_eq!(keeper.held(), 0);
+        assert_eq!(keeper.held.len(), 0);
         // A segment removed before it could be held is skipped.
         keeper.hold_new();
-        assert_eq!(keeper.held(), 0);
+        assert_eq!(keeper.held.len(), 0);
     }
 
     #[test]

@@ -1080,6 +1080,9 @@ pub fn name_ok(name: &str) -> bool {
             .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
 }
 
+/// Most RK4 sub-steps of the plant per sample (`rates.plant_substeps`).
+const MAX_PLANT_SUBSTEPS: u32 = 1000;
+
 /// The four service names, in chain order.
 pub const SERVICES: [&str; 4] = ["plant", "observer", "current-loop", "speed-loop"];
 
@@ -1418,9 +1421,9 @@ impl Scenario {
                 r.speed_divider
             )
         })?;
-        check((1..=1000).contains(&r.plant_substeps), || {
+        check((1..=MAX_PLANT_SUBSTEPS).contains(&r.plant_substeps), || {
             format!(
-                "rates.plant_substeps = {} must be in 1..=1000",
+                "rates.plant_substeps = {} must be in 1..={MAX_PLANT_SUBSTEPS}",
                 r.plant_substeps
             )
         })?;
@@ -1433,10 +1436,10 @@ impl Scenario {
             format!(
                 "rates.plant_substeps = {}: the plant's RK4 step 1/(rates.sample_hz × plant_substeps) = {h:.3e} s must be at most the motor's electrical time constant min(L_d, L_q)/R = {tau:.3e} s ({})",
                 r.plant_substeps,
-                if need <= 1000.0 {
+                if need <= f64::from(MAX_PLANT_SUBSTEPS) {
                     format!("plant_substeps = {need} would do")
                 } else {
-                    format!("it would take plant_substeps = {need:e}, above the 1000 allowed: check the motor's inductances and resistance")
+                    format!("it would take plant_substeps = {need:e}, above the {MAX_PLANT_SUBSTEPS} allowed: check the motor's inductances and resistance")
                 }
             )
         })?;
