@@ -136,6 +136,47 @@ fn kyslan_pi_lockstep_meets_the_papers_rise_time() {
     assert_eq!(ks, (0..1000).collect::<Vec<_>>());
 }
 
+/// `--duration` shorter than the scenario: the load step it would not reach is left out and
+/// named in one note line and in the summary; the run is the full run's start.
+#[test]
+fn a_shorter_duration_leaves_out_the_later_steps_and_names_them() {
+    let (dir, bus) = (scratch("shorter"), bus_id("shorter"));
+    let out = dir.join("run");
+    let mut args = run_args(&bus, &out).to_vec();
+    args.extend(["--clock", "lockstep", "--duration", "0.03"]);
+    let o = drivelab(&args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert_clean(&bus);
+    let notes: Vec<&str> = err.lines().filter(|l| l.contains("note:")).collect();
+    assert_eq!(
+        notes,
+        ["drivelab: note: the run ends at 0.03 s, before what the scenario schedules later; left out: load.torque_nm[0] at 0.04 s"],
+        "{err}"
+    );
+    let s = summary(&out);
+    assert_eq!(
+        s["not_reached"],
+        serde_json::json!(["load.torque_nm[0] at 0.04 s"])
+    );
+    assert_eq!(s["samples"], 300);
+    // The resolved scenario runs again as it is.
+    let again = dir.join("again");
+    let mut args = run_args(&bus, &again).to_vec();
+    let resolved = out.join("scenario.toml");
+    args.extend([
+        "--clock",
+        "lockstep",
+        "--scenario",
+        resolved.to_str().unwrap(),
+    ]);
+    let o = drivelab(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_clean(&bus);
+    assert_eq!(read(&out.join("trace.csv")), read(&again.join("trace.csv")));
+    assert!(summary(&again).get("not_reached").is_none());
+}
+
 #[test]
 fn lockstep_inprocess_and_clean_realtime_traces_are_bit_identical() {
     let _serial = serial();

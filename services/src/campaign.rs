@@ -372,8 +372,7 @@ fn load(file: &Path) -> Result<Loaded> {
         let mut sc = launcher::load_scenario(&s, None)
             .map_err(|e| anyhow!("campaign {}: {e:#}", file.display()))?;
         if let Some(d) = c.duration_s {
-            sc.duration_s = d;
-            sc.validate().map_err(|e| {
+            launcher::set_duration(&mut sc, d).map_err(|e| {
                 anyhow!("campaign {}: duration_s = {d} for {s}: {e}", file.display())
             })?;
         }

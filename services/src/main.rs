@@ -55,7 +55,9 @@ enum Cmd {
         /// inprocess (one thread, no bus).
         #[arg(long, value_enum, default_value_t = Clock::Realtime)]
         clock: Clock,
-        /// Override the scenario's duration, seconds.
+        /// The run's length, s, instead of the scenario's. A shorter run leaves out the steps,
+        /// injections and sensor faults that come after its end (one note line names them;
+        /// summary.json → not_reached); what comes before is as in the full run.
         #[arg(long, value_name = "SECONDS", value_parser = duration_s)]
         duration: Option<f64>,
         /// Run folder (default: runs/<scenario>-<clock>-<unix time>, always a new one: -2,

@@ -154,14 +154,32 @@ pub struct RunResult {
     pub summary: serde_json::Value,
 }
 
-/// Loads the scenario and applies the duration override, with a one-line error.
+/// Loads the scenario and applies the duration override ([`set_duration`]), with a
+/// one-line error.
 pub fn load_scenario(name: &str, duration_s: Option<f64>) -> Result<Scenario> {
     let (mut sc, _) = Scenario::load(name).map_err(|e| anyhow!(e))?;
     if let Some(d) = duration_s {
-        sc.duration_s = d;
-        sc.validate().map_err(|e| anyhow!("--duration {d}: {e}"))?;
+        set_duration(&mut sc, d).map_err(|e| anyhow!("--duration {d}: {e}"))?;
     }
     Ok(sc)
+}
+
+/// Gives the run `duration_s` seconds ([`Scenario::set_duration`]) and checks the result;
+/// returns what a shorter run than the scenario's leaves out, one item each.
+pub fn set_duration(sc: &mut Scenario, duration_s: f64) -> Result<Vec<String>, String> {
+    let cut = sc.set_duration(duration_s);
+    sc.validate()?;
+    Ok(cut)
+}
+
+/// The one line that says what a shortened run leaves out (None: nothing).
+pub fn not_reached_line(duration_s: f64, cut: &[String]) -> Option<String> {
+    (!cut.is_empty()).then(|| {
+        format!(
+            "the run ends at {duration_s} s, before what the scenario schedules later; left out: {}",
+            cut.join(", ")
+        )
+    })
 }
 
 /// The name of a run's folder where none is given: `<scenario>-<clock>-<unix seconds>`.
@@ -1422,6 +1440,9 @@ struct Prepared {
     /// Configuration that this clock does not apply, each in one line: said, not dropped in
     /// silence (and kept in summary.json → warnings).
     warnings: Vec<String>,
+    /// What the scenario schedules after a `--duration` shorter than its own, left out
+    /// ([`Scenario::set_duration`]; summary.json → not_reached).
+    not_reached: Vec<String>,
 }
 
 /// A simulated run whose plant is killed for good ([`Scenario::plant_gone_at`]) ends at
@@ -1527,9 +1548,13 @@ impl DriveEnd {
 /// Checks a run's options the way [`run`] does before it creates anything (scenario,
 /// duration, topology, faults against the run's stages and duration, expectations), without
 /// creating anything or touching a bus, and returns the configuration warnings the run would
-/// give. A campaign checks every run with it before the first one starts.
+/// give, with the line saying what a shorter run leaves out ([`not_reached_line`]). A
+/// campaign checks every run with it before the first one starts.
 pub fn check(o: &RunOptions) -> Result<Vec<String>> {
-    prepare(o).map(|p| p.warnings)
+    prepare(o).map(|p| {
+        let note = not_reached_line(p.sc.duration_s, &p.not_reached);
+        p.warnings.into_iter().chain(note).collect()
+    })
 }
 
 /// Everything [`run`] checks and resolves before the run folder is made.
@@ -1560,10 +1585,10 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
         refuse_busy_bus(b, false)?;
     }
     let (mut sc, sc_src) = Scenario::load(&o.scenario).map_err(|e| anyhow!(e))?;
-    if let Some(d) = o.duration_s {
-        sc.duration_s = d;
-        sc.validate().map_err(|e| anyhow!("--duration {d}: {e}"))?;
-    }
+    let not_reached = match o.duration_s {
+        Some(d) => set_duration(&mut sc, d).map_err(|e| anyhow!("--duration {d}: {e}"))?,
+        None => Vec::new(),
+    };
     let expectations =
         crate::expect::collect(&sc.expect, &sc_src.display().to_string(), &o.expect)?;
     // Sensor faults go into the resolved scenario: every plant applies them.
@@ -1705,6 +1730,7 @@ fn prepare(o: &RunOptions) -> Result<Prepared> {
         expectations,
         not_made,
         warnings,
+        not_reached,
     })
 }
 
@@ -1798,10 +1824,14 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         expectations,
         not_made,
         warnings,
+        not_reached,
     } = prepare(o)?;
     if !o.quiet_warnings {
         for w in &warnings {
             crate::errln!("drivelab: warning: {w}");
+        }
+        if let Some(line) = not_reached_line(sc.duration_s, &not_reached) {
+            crate::errln!("drivelab: note: {line}");
         }
     }
     // The bus is this drive's until it returns (two launchers that passed the check above at
@@ -2135,6 +2165,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     });
     if !warnings.is_empty() {
         summary["warnings"] = json!(warnings);
+    }
+    if !not_reached.is_empty() {
+        summary["not_reached"] = json!(not_reached);
     }
     if o.audit_syscalls {
         summary["stray_syscalls"] = json!(stray_syscalls_total(&summary["processes"]));

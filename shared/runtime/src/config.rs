@@ -218,16 +218,24 @@ pub fn drift_at(points: &[DriftPoint], t: f64) -> f64 {
     points[points.len() - 1].value
 }
 
-fn check_drift(name: &str, points: &[DriftPoint], dur: f64) -> Result<(), String> {
+/// The longest run, s.
+pub const MAX_DURATION_S: f64 = 3600.0;
+
+/// A drift point may lie after the run's end: it sets the slope up to the end (a run
+/// shortened with `--duration` keeps the profile it had).
+fn check_drift(name: &str, points: &[DriftPoint]) -> Result<(), String> {
     let (lo, hi) = MODEL_FACTOR_RANGE;
     let mut last = f64::NEG_INFINITY;
     for (i, s) in points.iter().enumerate() {
-        check(s.t_s.is_finite() && s.t_s >= 0.0 && s.t_s <= dur, || {
-            format!(
-                "{name}[{i}].t_s = {} must be within [0, duration_s = {dur}] s",
-                s.t_s
-            )
-        })?;
+        check(
+            s.t_s.is_finite() && s.t_s >= 0.0 && s.t_s <= MAX_DURATION_S,
+            || {
+                format!(
+                    "{name}[{i}].t_s = {} must be within [0, {MAX_DURATION_S}] s",
+                    s.t_s
+                )
+            },
+        )?;
         check(s.t_s > last, || {
             format!(
                 "{name}[{i}].t_s = {} must be later than the point before",
@@ -1338,6 +1346,53 @@ impl Scenario {
         Some((self.rates.sample_hz / hz).round() as u64)
     }
 
+    /// Sets the run's length, as `--duration` and a campaign's `duration_s` do. What the
+    /// scenario schedules after a shorter end is never reached, so it is taken out: a
+    /// reference or load step later than the end, an `[[inject]]` or `[[sensor_fault]]` at or
+    /// after it. Nothing before the end changes: the shortened run's samples are the first
+    /// ones of the full run, bit for bit (a drift profile stays whole; its points may lie
+    /// after the end). Returns what was taken out, one item each, e.g.
+    /// `load.torque_nm[0] at 0.04 s`; the caller validates the result.
+    pub fn set_duration(&mut self, duration_s: f64) -> Vec<String> {
+        let mut out = Vec::new();
+        if duration_s < self.duration_s {
+            let end = duration_s;
+            for (name, steps) in [
+                ("reference.speed_rad_s", &mut self.reference.speed_rad_s),
+                ("reference.i_d_a", &mut self.reference.i_d_a),
+                ("reference.i_q_a", &mut self.reference.i_q_a),
+                ("load.torque_nm", &mut self.load.torque_nm),
+            ] {
+                // Steps are in time order (validated): the late ones are a tail.
+                let keep = steps.iter().take_while(|s| s.t_s <= end).count();
+                for (i, s) in steps.iter().enumerate().skip(keep) {
+                    out.push(format!("{name}[{i}] at {} s", s.t_s));
+                }
+                steps.truncate(keep);
+            }
+            let mut i = 0;
+            self.inject.retain(|j| {
+                let keep = j.at_s < end;
+                if !keep {
+                    out.push(format!("inject[{i}] {}", j.spec()));
+                }
+                i += 1;
+                keep
+            });
+            let mut i = 0;
+            self.sensor_fault.retain(|f| {
+                let keep = f.at_s() < end;
+                if !keep {
+                    out.push(format!("sensor_fault[{i}] {}", f.spec()));
+                }
+                i += 1;
+                keep
+            });
+        }
+        self.duration_s = duration_s;
+        out
+    }
+
     /// Number of samples in the run.
     pub fn samples(&self) -> u64 {
         (self.duration_s * self.rates.sample_hz).round() as u64
@@ -1390,21 +1445,20 @@ impl Scenario {
             )
         })?;
         check(
-            self.duration_s.is_finite() && self.duration_s > 0.0 && self.duration_s <= 3600.0,
-            || format!("duration_s = {} must be in (0, 3600] s", self.duration_s),
+            self.duration_s.is_finite()
+                && self.duration_s > 0.0
+                && self.duration_s <= MAX_DURATION_S,
+            || {
+                format!(
+                    "duration_s = {} must be in (0, {MAX_DURATION_S}] s",
+                    self.duration_s
+                )
+            },
         )?;
         let m = self.motor.resolve()?;
         self.model.apply(&m)?;
-        check_drift(
-            "plant_drift.r_factor",
-            &self.plant_drift.r_factor,
-            self.duration_s,
-        )?;
-        check_drift(
-            "plant_drift.psi_factor",
-            &self.plant_drift.psi_factor,
-            self.duration_s,
-        )?;
+        check_drift("plant_drift.r_factor", &self.plant_drift.r_factor)?;
+        check_drift("plant_drift.psi_factor", &self.plant_drift.psi_factor)?;
         let r = &self.rates;
         check(
             r.sample_hz.is_finite() && (100.0..=100_000.0).contains(&r.sample_hz),
@@ -2347,14 +2401,19 @@ preset = "kyslan2015"
             "{MIN}[plant_drift]\nr_factor = [{{t_s = 0.0, value = 1.0}}, {{t_s = 0.01, value = 1.3}}]\n"
         );
         Scenario::from_toml(&ok, "t.toml").unwrap();
+        // A point after the run's end (0.01 s) sets the slope up to it.
+        let past_end = format!(
+            "{MIN}[plant_drift]\npsi_factor = [{{t_s = 0.0, value = 1.0}}, {{t_s = 0.02, value = 0.9}}]\n"
+        );
+        Scenario::from_toml(&past_end, "t.toml").unwrap();
         for (prof, want) in [
             (
                 "r_factor = [{t_s = 0.0, value = 0.0}]",
                 "plant_drift.r_factor[0].value = 0 must be finite and within [0.1, 10]",
             ),
             (
-                "psi_factor = [{t_s = 0.02, value = 1.0}]",
-                "plant_drift.psi_factor[0].t_s = 0.02 must be within [0, duration_s = 0.01]",
+                "psi_factor = [{t_s = 3600.5, value = 1.0}]",
+                "plant_drift.psi_factor[0].t_s = 3600.5 must be within [0, 3600] s",
             ),
             (
                 "r_factor = [{t_s = 0.005, value = 1.0}, {t_s = 0.005, value = 1.1}]",

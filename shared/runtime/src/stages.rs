@@ -833,6 +833,52 @@ mod tests {
         assert!(declaration("no-such-stage", &scenarios[0]).is_none());
     }
 
+    /// `--duration` shorter than the scenario: what it schedules after the end is left out
+    /// and named, and the samples that are run are the full run's first ones, bit for bit.
+    #[test]
+    fn a_shortened_run_is_the_start_of_the_full_one() {
+        let path = format!(
+            "{}/../../scenarios/kyslan-pi.toml",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        let text = std::fs::read_to_string(&path).unwrap()
+            + "[plant_drift]\nr_factor = [{ t_s = 0.0, value = 1.0 }, { t_s = 0.08, value = 1.3 }]\n\n"
+            + "[[sensor_fault]]\nkind = \"encoder-stuck\"\nat_s = 0.01\nduration_s = 0.005\n\n"
+            + "[[sensor_fault]]\nkind = \"current-offset\"\nphase = \"a\"\nat_s = 0.05\namps = 0.5\n\n"
+            + "[[inject]]\nkind = \"drop\"\ntarget = \"cmd\"\nat_s = 0.06\ncount = 2\n";
+        let full = Scenario::from_toml(&text, &path).unwrap();
+        assert_eq!(full.duration_s, 0.1);
+        // Only the duration changed: the late items make the scenario invalid.
+        let mut bare = full.clone();
+        bare.duration_s = 0.03;
+        assert!(bare.validate().is_err());
+        let mut sc = full.clone();
+        let cut = sc.set_duration(0.03);
+        assert_eq!(
+            cut,
+            [
+                "load.torque_nm[0] at 0.04 s",
+                "inject[0] drop:cmd@0.06:2",
+                "sensor_fault[1] current-offset:a@0.05:0.5",
+            ]
+        );
+        sc.validate().unwrap();
+        // Kept: the step at 0.02 s, the stuck encoder at 0.01 s, the drift profile whole.
+        assert_eq!(sc.reference.i_d_a.len(), 1);
+        assert_eq!(sc.sensor_fault.len(), 1);
+        assert_eq!(sc.plant_drift, full.plant_drift);
+        let (a, b) = (direct(&full), direct(&sc));
+        assert_eq!(b.len(), 300);
+        for (x, y) in a.iter().zip(&b) {
+            assert_eq!(format!("{x:?}"), format!("{y:?}"), "k = {}", x.k);
+        }
+        // Longer than the scenario: nothing left out.
+        let mut long = full.clone();
+        assert!(long.set_duration(0.2).is_empty());
+        assert_eq!((long.inject.len(), long.sensor_fault.len()), (1, 2));
+        long.validate().unwrap();
+    }
+
     #[test]
     fn the_host_gives_the_same_trace_as_direct_calls() {
         for (name, secs) in [
