@@ -267,6 +267,10 @@ fn lockstep_inprocess_and_clean_realtime_traces_are_bit_identical() {
             .values()
             .map(|c| c["stale_inputs"].as_u64().unwrap())
             .sum();
+        // No process died: no stage saw a producer down, however late its inputs were.
+        for (stage, c) in s["counters"].as_object().unwrap() {
+            assert_eq!(c["producer_down_samples"], 0, "{stage}: {c}");
+        }
         let (rows, disturbed) = assert_identical_until_disturbed(&ls, &rt);
         // A flagged row comes from a stale input some stage counted.
         assert!(

@@ -436,7 +436,18 @@ fn with_restart_never_a_killed_loop_stays_dead_and_the_drive_runs_degraded() {
         "{why}"
     );
     let rows = drivelab_runtime::trace::read_csv(&out.join("trace.csv")).unwrap();
-    let (k_stale, d) = degraded_rows(&rows, f["injected_k"].as_u64().unwrap());
+    let k_kill = f["injected_k"].as_u64().unwrap();
+    // The current loop read its producer's liveness word: down from the kill on, at no
+    // more samples than the run had after it; the plant and the observer lost no producer.
+    let down = |p: &str| s["counters"][p]["producer_down_samples"].as_u64().unwrap();
+    let after_kill = rows.iter().filter(|r| r.k >= k_kill).count() as u64;
+    assert!(
+        (1..=after_kill).contains(&down("current-loop")),
+        "{} of {after_kill} samples after the kill",
+        down("current-loop")
+    );
+    assert_eq!((down("plant"), down("observer")), (0, 0));
+    let (k_stale, d) = degraded_rows(&rows, k_kill);
     let n = 10; // kyslan-pi: speed_divider
     let ramp = 1.6 * 1e-4 / 0.02;
     let held = d[0].i_q_ref;

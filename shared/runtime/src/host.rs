@@ -165,6 +165,9 @@ pub struct Counters {
     pub longest_late_run: u64,
     /// Samples stepped in a fallback (a stale trigger replaced by the clock).
     pub fallback_steps: u64,
+    /// Samples at which the process producing one of the stage's inputs was down (real
+    /// time: its liveness word; docs/architecture.md, "Liveness words and standby twins").
+    pub producer_down_samples: u64,
 }
 
 /// Greatest common divisor (gcd(0, b) = b).
@@ -1300,7 +1303,7 @@ impl<T: Transport> Host<T> {
                 return Ok(false);
             }
             let (mut ib, complete) = self.inbox(si, k);
-            self.stages[si].counters.stale_inputs += self.count_stale(si, &ib);
+            self.count_inputs(si, &ib);
             if !complete {
                 self.absent_outputs(si, k)?;
                 continue;
@@ -1448,9 +1451,11 @@ impl<T: Transport> Host<T> {
         }
     }
 
-    /// Inputs of stage `si` that `ib` marks stale (rejoin-only and absent ones do not count).
-    fn count_stale(&self, si: usize, ib: &Inbox) -> u64 {
-        self.stages[si]
+    /// Counts what `ib` says of stage `si`'s inputs: those it marks stale (rejoin-only and
+    /// absent ones do not count; returned), and whether a producer's process is down.
+    fn count_inputs(&mut self, si: usize, ib: &Inbox) -> u64 {
+        let st = &mut self.stages[si];
+        let stale = st
             .inputs
             .iter()
             .filter(|b| {
@@ -1458,7 +1463,10 @@ impl<T: Transport> Host<T> {
                     && b.origin != Origin::Absent
                     && !ib.slot(b.spec.topic).fresh
             })
-            .count() as u64
+            .count() as u64;
+        st.counters.stale_inputs += stale;
+        st.counters.producer_down_samples += u64::from(ib.producer_down());
+        stale
     }
 
     /// Waits (real time: briefly; lockstep: with the watchdog) for the trigger of stage `si`
@@ -1695,8 +1703,7 @@ impl<T: Transport> Host<T> {
                     s.fresh = false;
                 }
             }
-            let stale = self.count_stale(0, &ib);
-            self.stages[0].counters.stale_inputs += stale;
+            let stale = self.count_inputs(0, &ib);
             let mut out = Outbox::default();
             self.calling(0, k, Call::Step);
             self.stages[0].stage.step(k, &ib, &mut out);
@@ -1992,6 +1999,7 @@ impl<T: Transport> Host<T> {
             }
             self.stages[si].in_fallback = true;
             self.stages[si].counters.stale_inputs += 1;
+            self.stages[si].counters.producer_down_samples += u64::from(ib.producer_down());
             let t_in = now_ns();
             self.step_publish(si, j, &ib, t_in, true)?;
         }
@@ -2999,6 +3007,7 @@ mod tests {
             commands(&host.transport.sent),
             vec![(0, false), (1, false), (2, false), (3, true), (4, true)]
         );
+        assert_eq!(host.stages[0].counters.producer_down_samples, 2);
         // The reference it held is the one it had: only the flag says the speed loop is gone.
         let Some(Msg::Cmd(c)) = host.transport.sent.iter().rev().nth(1) else {
             panic!("no command 4")

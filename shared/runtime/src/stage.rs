@@ -294,6 +294,11 @@ impl Inbox {
         &self.slots[topic.index()]
     }
 
+    /// True when the process producing one of these inputs is down.
+    pub fn producer_down(&self) -> bool {
+        self.slots.iter().any(|s| s.producer_down)
+    }
+
     /// Sets `msg` as the fresh input of its topic (tests and the in-process host).
     pub fn put(&mut self, msg: Msg) {
         self.slots[msg.topic().index()] = Slot {
