@@ -258,7 +258,21 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
                 "delay:current-loop@0.1:0.1:100ms",
             ],
             1,
-            "fault delay:current-loop@0.1:0.1:100000us: its 1000 delayed steps would keep the stage's core busy for 100.0 s, longer than this run may last (20.4 s): shorten its window or its latency",
+            "fault delay:current-loop@0.1:0.1:100000us: its 1000 delayed steps would keep the stages' core busy for 100.0 s, which with the run's own 0.3 s is longer than this run may last (20.4 s, 10 s of it for the start and the end): shorten its window or latency",
+        ),
+        // Two delays that each fit, but not together (15 s each; 10.1 s of room).
+        rt_case(
+            "delays-outlast-the-run-together",
+            &[
+                "--duration",
+                "0.3",
+                "--fault",
+                "delay:observer@0.1:0.1:15ms",
+                "--fault",
+                "delay:current-loop@0.1:0.1:15ms",
+            ],
+            1,
+            "fault delay:observer@0.1:0.1:15000us, delay:current-loop@0.1:0.1:15000us: their 2000 delayed steps would keep the stages' core busy for 30.0 s",
         ),
         rt_case(
             "restart-ms-realtime",

@@ -1713,29 +1713,10 @@ fn a_plot_that_cannot_be_drawn_leaves_the_trace_and_the_summary_whole() {
 /// null, so an expectation on them fails instead of reading 0 off NaN.
 #[test]
 fn a_plant_whose_state_blows_up_fails_the_run_and_has_no_peak() {
-    let name = "blowup";
-    let sc = variant(
-        name,
-        "kyslan-pi",
-        &[(
-            "preset = \"kyslan2015\"",
-            "preset = \"kyslan2015\"\npsi_pm_wb = 100.0",
-        )],
+    let (out, bus, err) = run_blowing_up(
+        "blowup",
+        &["--clock", "lockstep", "--expect", "peak_current_a <= 3.2"],
     );
-    let bus = bus_id(name);
-    let out = scratch(name).join("run");
-    let mut args = run_args(&bus, &out).to_vec();
-    args.extend_from_slice(&[
-        "--scenario",
-        sc.to_str().unwrap(),
-        "--clock",
-        "lockstep",
-        "--expect",
-        "peak_current_a <= 3.2",
-    ]);
-    let o = drivelab(&args);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(!err.contains("panicked"), "{err}");
     let last = err.lines().last().unwrap_or("");
     assert!(
@@ -1764,6 +1745,51 @@ fn a_plant_whose_state_blows_up_fails_the_run_and_has_no_peak() {
     assert!(s["peak_current_a"].is_null(), "{}", s["peak_current_a"]);
     assert!(s["peak_speed_rad_s"].is_null(), "{}", s["peak_speed_rad_s"]);
     assert_eq!(s["expectations"][0]["pass"], false, "{}", s["expectations"]);
+}
+
+/// Runs kyslan-pi with a magnet flux of 100 Wb (a plant whose state is NaN from sample 4
+/// on) with `extra`, checks that it failed with exit 1, and returns its run folder, bus and
+/// stderr.
+fn run_blowing_up(name: &str, extra: &[&str]) -> (std::path::PathBuf, String, String) {
+    let sc = variant(
+        name,
+        "kyslan-pi",
+        &[(
+            "preset = \"kyslan2015\"",
+            "preset = \"kyslan2015\"\npsi_pm_wb = 100.0",
+        )],
+    );
+    let bus = bus_id(name);
+    let out = scratch(name).join("run");
+    let mut args = run_args(&bus, &out).to_vec();
+    args.extend_from_slice(&["--scenario", sc.to_str().unwrap()]);
+    args.extend_from_slice(extra);
+    let o = drivelab(&args);
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    (out, bus, err)
+}
+
+/// A plant killed in real time after its state blew up has nothing to resume from: the run
+/// ends in one line saying so, its hosts stopped as at any end (not killed as left over).
+#[test]
+fn a_plant_killed_after_its_state_blew_up_is_not_restarted_and_the_drive_ends_cleanly() {
+    let (out, bus, err) = run_blowing_up(
+        "blowup-kill",
+        &["--duration", "0.1", "--fault", "kill:plant@0.03"],
+    );
+    assert!(
+        err.lines()
+            .last()
+            .unwrap_or("")
+            .starts_with("drivelab: error: plant cannot resume: its last true state (sample "),
+        "{err}"
+    );
+    assert!(!err.contains("warning"), "{err}");
+    assert_clean(&bus);
+    assert!(summary(&out)["failure"]
+        .as_str()
+        .is_some_and(|f| f.contains("is not a finite number")));
 }
 
 /// Ctrl-C while the hosts are still starting: one error line, and no warning about the

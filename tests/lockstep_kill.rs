@@ -170,6 +170,24 @@ fn a_killed_plant_coasts_flagged_plant_down_with_no_measurement_then_resumes() {
     assert!(f["speed_recovered_ms"].as_f64().is_some(), "{f}");
 }
 
+/// A plant killed so late that its simulated restart would come after the end is down to
+/// the end, as under a real-time supervisor: every sample is made, the ones after the kill
+/// rebuilt and flagged `plant_down` (the drive ends at the kill only with `--restart never`).
+#[test]
+fn a_plant_whose_restart_comes_after_the_end_is_down_to_the_end() {
+    let _serial = serial();
+    // Kill at 0.17 s (sample 1700), restart 40 ms later: 0.21 s, after the 0.2 s run.
+    let (rows, s) = deterministic("killpllate", "0.2", &["--fault", "kill:plant@0.17"]);
+    assert_eq!(rows.len(), 2000);
+    assert_eq!(
+        samples(&rows, |r| r.plant_flags & FLAG_PLANT_DOWN != 0),
+        ks(1700..2000)
+    );
+    assert!(s["failure"].is_null(), "{}", s["failure"]);
+    let f = &s["faults"][0];
+    assert_eq!(f["plant_down"]["samples"], 300, "{f}");
+}
+
 #[test]
 fn a_stopped_current_loop_is_absent_for_exactly_its_duration() {
     let _serial = serial();

@@ -235,6 +235,8 @@ pub fn reports(
         if after_the_end(&a, end) {
             continue;
         }
+        // The window within the run (a stage never restarted is down to the end).
+        let to_k = a.to_k.min(sc.samples());
         // A topic's fault is its producer's; a stage's names the stage.
         let stage = match a.topic {
             Some(t) => producer(t).map_or_else(String::new, |p| p.stage.clone()),
@@ -252,7 +254,7 @@ pub fn reports(
         // A fault shows within its window, or within a slow producer's period or two after
         // it (a lost message of a stage that steps every N-th sample); a disturbance after
         // that belongs to something else.
-        let shows_by = a.to_k + 2 * slowest + 2;
+        let shows_by = to_k + 2 * slowest + 2;
         let det = after
             .iter()
             .take_while(|r| r.k < shows_by)
@@ -298,7 +300,7 @@ pub fn reports(
                 let k_det = det.as_ref().map_or(a.from_k, |d| d.0);
                 after
                     .iter()
-                    .find(|r| r.k >= a.to_k && r.k > k_det && !disturbed(r))
+                    .find(|r| r.k >= to_k && r.k > k_det && !disturbed(r))
                     .map(|r| r.k)
             }
         };
@@ -307,7 +309,7 @@ pub fn reports(
             .filter(|r| fresh.is_some_and(|f| r.k >= f))
             .collect();
         let rec = crate::launcher::speed_recovered(sc, &tail);
-        let k_end = rec.or(fresh).unwrap_or(a.to_k + (0.2 * fs) as u64);
+        let k_end = rec.or(fresh).unwrap_or(to_k + (0.2 * fs) as u64);
         windows.push((a.from_k as f64 / fs, k_end as f64 / fs, i.spec()));
         let span: Vec<&TraceRow> = after.iter().take_while(|r| r.k <= k_end).collect();
         let rejected: Vec<(String, u64)> = obs("rejected");
@@ -332,7 +334,7 @@ pub fn reports(
             samples: crate::launcher::SampleCounts::of(span.iter().copied()),
             bus: Some(BusFigures {
                 window_from_k: a.from_k,
-                window_to_k: a.to_k,
+                window_to_k: to_k,
                 rejected_inputs: (i.kind == InjectKind::Corrupt && counters.is_some())
                     .then(|| rejected.iter().map(|x| x.1).sum()),
                 rejected_by: rejected.into_iter().filter(|x| x.1 > 0).collect(),

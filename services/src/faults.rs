@@ -283,8 +283,8 @@ pub fn schedule_simulated(
             at_s: f.at_s,
             duration_s: match (f.kind, restart_ms) {
                 (FaultKind::Kill, Some(ms)) => ms * 1e-3,
-                // Longer than what is left of the run: the stage never comes back.
-                (FaultKind::Kill, None) => sc.duration_s,
+                // The stage never comes back.
+                (FaultKind::Kill, None) => 0.0,
                 (FaultKind::Stop, _) => f.duration_s,
             },
             latency_us: 0.0,

@@ -56,7 +56,7 @@ enum Cmd {
         #[arg(long, value_enum, default_value_t = Clock::Realtime)]
         clock: Clock,
         /// The run's length, s, instead of the scenario's. A shorter run leaves out the steps,
-        /// injections and sensor faults that come after its end (one note line names them;
+        /// injections and sensor faults that come at or after its end (one note line names them;
         /// summary.json → not_reached); what comes before is as in the full run.
         #[arg(long, value_name = "SECONDS", value_parser = duration_s)]
         duration: Option<f64>,

@@ -2429,11 +2429,17 @@ fn realtime_limit(sc: &Scenario, faults: &[crate::faults::FaultSpec]) -> Duratio
     Duration::from_secs_f64(sc.duration_s * 1.5 + 20.0 + crate::faults::stopped_s(faults))
 }
 
+/// What a real-time drive's start and end may take of [`realtime_limit`], s.
+const START_AND_END_S: f64 = 10.0;
+
 /// A delay fault's stage spins on its core for every step in the window, above the stages
-/// below it: one that would keep the core busy longer than the run may take could only end
-/// in the supervisor's time limit, so it is refused.
+/// below it, and the drive's clock waits for it: delays whose spinning, added to the run
+/// itself, would take longer than the run may last (leaving [`START_AND_END_S`] for its
+/// start and end) could only end in the supervisor's time limit, so they are refused, all
+/// of them together (they share the chain's core in the default topology).
 fn check_delays(sc: &Scenario, topo: &TopologyPlan, limit: Duration) -> Result<()> {
     use drivelab_runtime::inject::InjectKind;
+    let (mut steps, mut busy_s, mut specs) = (0.0, 0.0, Vec::new());
     for i in sc.inject.iter().filter(|i| i.kind == InjectKind::Delay) {
         let divider = topo
             .stages
@@ -2441,15 +2447,21 @@ fn check_delays(sc: &Scenario, topo: &TopologyPlan, limit: Duration) -> Result<(
             .find(|s| s.name == i.target)
             .map_or(1, |s| s.divider.max(1));
         let window_s = i.duration_s.min(sc.duration_s - i.at_s).max(0.0);
-        let steps = (window_s * sc.rates.sample_hz / divider as f64).ceil();
-        let busy_s = steps * i.latency_us * 1e-6;
-        if busy_s > limit.as_secs_f64() {
-            bail!(
-                "fault {}: its {steps} delayed steps would keep the stage's core busy for {busy_s:.1} s, longer than this run may last ({:.1} s): shorten its window or its latency",
-                i.spec(),
-                limit.as_secs_f64()
-            );
-        }
+        let n = (window_s * sc.rates.sample_hz / divider as f64).ceil();
+        steps += n;
+        busy_s += n * i.latency_us * 1e-6;
+        specs.push(i.spec());
+    }
+    let room_s = limit.as_secs_f64() - START_AND_END_S - sc.duration_s;
+    if busy_s > room_s {
+        bail!(
+            "fault {}: {} {steps} delayed steps would keep the stages' core busy for {busy_s:.1} s, which with the run's own {} s is longer than this run may last ({:.1} s, {START_AND_END_S} s of it for the start and the end): shorten {} window or latency",
+            specs.join(", "),
+            if specs.len() == 1 { "its" } else { "their" },
+            sc.duration_s,
+            limit.as_secs_f64(),
+            if specs.len() == 1 { "its" } else { "their" },
+        );
     }
     Ok(())
 }

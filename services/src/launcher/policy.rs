@@ -155,6 +155,12 @@ impl State {
         )
     }
 
+    /// It is coming up: to be restarted, or started and not READY yet (one dead for good
+    /// or finished is not).
+    pub fn coming_up(self) -> bool {
+        matches!(self, Self::RestartPending { .. }) || self.awaiting_ready()
+    }
+
     /// It has not said READY yet.
     pub fn awaiting_ready(self) -> bool {
         matches!(
@@ -241,6 +247,10 @@ impl Life {
             State::RestartPending { .. } => return Injection::Skipped("dead, to be restarted"),
             State::Dead => return Injection::Skipped("dead and not restarted"),
             State::Finished => return Injection::Skipped("finished"),
+        }
+        if self.kill_pending {
+            // Signalled already, its exit not reaped yet: one kill, one restart.
+            return Injection::Skipped("killed by an earlier fault, its exit not seen yet");
         }
         self.injected = true;
         match kind {
@@ -722,6 +732,30 @@ mod tests {
             assert_eq!(
                 life.inject(FaultKind::Stop, ms(5), t, true),
                 Injection::Skipped(why)
+            );
+            assert_eq!(life, before);
+        }
+        // What holds the launcher's removed segments: a process coming up, not one gone.
+        for (state, up) in [
+            (State::RestartPending { at: t }, true),
+            (State::AwaitingReady, true),
+            (State::Running, false),
+            (State::Dead, false),
+            (State::Finished, false),
+        ] {
+            assert_eq!(state.coming_up(), up, "{state:?}");
+        }
+        // Killed, its exit not reaped yet: a second kill or a stop is not sent to it.
+        let mut life = Life::new(false);
+        assert_eq!(
+            life.inject(FaultKind::Kill, Duration::ZERO, t, true),
+            Injection::Signal(libc::SIGKILL)
+        );
+        let before = life;
+        for kind in [FaultKind::Kill, FaultKind::Stop] {
+            assert_eq!(
+                life.inject(kind, ms(5), t, true),
+                Injection::Skipped("killed by an earlier fault, its exit not seen yet")
             );
             assert_eq!(life, before);
         }

@@ -576,7 +576,7 @@ pub(super) fn supervise(
         }
         let starting = children
             .iter()
-            .any(|c| !c.life.state.alive() || c.life.state.awaiting_ready() || c.standby_starting);
+            .any(|c| c.life.state.coming_up() || c.standby_starting);
         segments.release_removed(now, starting);
         for c in children.iter_mut() {
             let due = c.standby_due.is_some_and(|at| now >= at);
@@ -606,6 +606,12 @@ pub(super) fn supervise(
                         "plant died before its first sample; cannot resume".into(),
                     ));
                 };
+                if !drivelab_runtime::messages::Finite::is_finite(&last) {
+                    return Ok(Some(format!(
+                        "plant cannot resume: its last true state (sample {}) is not a finite number",
+                        last.hdr.k
+                    )));
+                }
                 // The plant resumes from this state as the file gives it back: keep that.
                 let text = serde_json::to_vec(&crate::common::truth_to_json(&last))?;
                 let file: serde_json::Value = serde_json::from_slice(&text)?;

@@ -829,14 +829,19 @@ pub struct SegmentKeeper {
 struct HeldSegment {
     file: std::fs::File,
     dev_ino: (u64, u64),
-    /// When the file was first seen removed from /dev/shm.
+    /// When the linger began: the file seen removed with no process starting.
     removed: Option<std::time::Instant>,
+    /// When the file was first seen removed from /dev/shm.
+    first_removed: Option<std::time::Instant>,
 }
 
 impl SegmentKeeper {
     /// How long a removed segment is held after it was seen removed and no process was
     /// starting: the readers that are woken by the restarted peer drop theirs by then.
     pub const LINGER: Duration = Duration::from_secs(1);
+    /// The longest a removed segment is held, processes starting or not: restarts that
+    /// follow each other closely (a crash loop, many kills) do not pile segments up.
+    pub const HOLD_MAX: Duration = Duration::from_secs(3);
     /// The shortest time between two checks of the held segments (an `fstat` each).
     const CHECK_EVERY: Duration = Duration::from_millis(100);
 
@@ -875,6 +880,7 @@ impl SegmentKeeper {
                     file,
                     dev_ino,
                     removed: None,
+                    first_removed: None,
                 });
             }
         }
@@ -882,8 +888,8 @@ impl SegmentKeeper {
 
     /// Closes the held segments that were removed from /dev/shm at least [`Self::LINGER`]
     /// ago, counted only while `starting` is false (a process is starting or restarting:
-    /// its peers drop the dead one's segments when it publishes). At most one check every
-    /// 100 ms. Returns how many were closed.
+    /// its peers drop the dead one's segments when it publishes), and any removed
+    /// [`Self::HOLD_MAX`] ago. At most one check every 100 ms. Returns how many were closed.
     pub fn release_removed(&mut self, now: std::time::Instant, starting: bool) -> usize {
         use std::os::unix::fs::MetadataExt;
         if self
@@ -898,6 +904,10 @@ impl SegmentKeeper {
             let gone = h.file.metadata().map_or(true, |m| m.nlink() == 0);
             if !gone {
                 return true;
+            }
+            let first = *h.first_removed.get_or_insert(now);
+            if now.duration_since(first) >= Self::HOLD_MAX {
+                return false;
             }
             if starting {
                 h.removed = Some(now);
@@ -941,19 +951,27 @@ mod tests {
         // Removed while a process is starting: held however long that takes.
         let ms = |n| Duration::from_millis(n);
         assert_eq!(keeper.release_removed(t0 + ms(200), true), 0);
-        assert_eq!(keeper.release_removed(t0 + ms(5000), true), 0);
+        assert_eq!(keeper.release_removed(t0 + ms(1500), true), 0);
         // The linger counts from the last check that saw a process starting.
-        assert_eq!(keeper.release_removed(t0 + ms(5200), false), 0);
-        assert_eq!(keeper.release_removed(t0 + ms(5950), false), 0);
+        assert_eq!(keeper.release_removed(t0 + ms(1700), false), 0);
+        assert_eq!(keeper.release_removed(t0 + ms(2450), false), 0);
         // Checks closer than 100 ms apart do nothing.
-        assert_eq!(keeper.release_removed(t0 + ms(6010), false), 0);
+        assert_eq!(keeper.release_removed(t0 + ms(2510), false), 0);
         let mut text = String::new();
         let held = &mut keeper.held[0].file;
         held.rewind().unwrap();
         held.read_to_string(&mut text).unwrap();
         assert_eq!(text, "segment", "the removed segment is still held");
-        assert_eq!(keeper.release_removed(t0 + ms(6300), false), 1);
+        assert_eq!(keeper.release_removed(t0 + ms(2800), false), 1);
         assert_eq!(keeper.held.len(), 0);
+        // Processes starting one after another: held at most HOLD_MAX after its removal.
+        std::fs::write(&data, b"segment").unwrap();
+        keeper.hold_new();
+        std::fs::remove_file(&data).unwrap();
+        let t1 = t0 + ms(3000);
+        assert_eq!(keeper.release_removed(t1, true), 0);
+        assert_eq!(keeper.release_removed(t1 + ms(2900), true), 0);
+        assert_eq!(keeper.release_removed(t1 + ms(3000), true), 1);
         // A segment removed before it could be held is skipped.
         keeper.hold_new();
         assert_eq!(keeper.held.len(), 0);

@@ -1347,9 +1347,8 @@ impl Scenario {
     }
 
     /// Sets the run's length, as `--duration` and a campaign's `duration_s` do. What the
-    /// scenario schedules after a shorter end is never reached, so it is taken out: a
-    /// reference or load step later than the end, an `[[inject]]` or `[[sensor_fault]]` at or
-    /// after it. Nothing before the end changes: the shortened run's samples are the first
+    /// scenario schedules at or after a shorter end is never reached, so it is taken out: a
+    /// reference or load step, an `[[inject]]` or `[[sensor_fault]]` table. Nothing before the end changes: the shortened run's samples are the first
     /// ones of the full run, bit for bit (a drift profile stays whole; its points may lie
     /// after the end). Returns what was taken out, one item each, e.g.
     /// `load.torque_nm[0] at 0.04 s`; the caller validates the result.
@@ -1363,18 +1362,22 @@ impl Scenario {
                 ("reference.i_q_a", &mut self.reference.i_q_a),
                 ("load.torque_nm", &mut self.load.torque_nm),
             ] {
-                // Steps are in time order (validated): the late ones are a tail.
-                let keep = steps.iter().take_while(|s| s.t_s <= end).count();
+                // Steps are in time order (validated): the late ones are a tail. A step at
+                // the end itself comes after the last sample.
+                let keep = steps.iter().take_while(|s| s.t_s < end).count();
                 for (i, s) in steps.iter().enumerate().skip(keep) {
                     out.push(format!("{name}[{i}] at {} s", s.t_s));
                 }
                 steps.truncate(keep);
             }
             let mut i = 0;
-            self.inject.retain(|j| {
+            self.inject.retain_mut(|j| {
                 let keep = j.at_s < end;
                 if !keep {
                     out.push(format!("inject[{i}] {}", j.spec()));
+                } else if j.kind == crate::inject::InjectKind::Kill {
+                    // A restart after the old end is after the new one too (0: never).
+                    j.duration_s = j.duration_s.min(crate::inject::restart_max_s(end));
                 }
                 i += 1;
                 keep
@@ -1399,17 +1402,17 @@ impl Scenario {
     }
 
     /// Lockstep and in process: the first sample that no plant produces (None: every sample
-    /// has one), that of a kill of the plant in `[[inject]]` whose simulated restart would
-    /// come after the run's end (`--restart never`). The drive ends there, as a real-time
-    /// drive stops when its plant dies (docs/architecture.md, "Kill and stop in lockstep").
+    /// has one), that of a kill of the plant in `[[inject]]` that is never restarted
+    /// (`--restart never`). The drive ends there, as a real-time drive stops when its plant
+    /// dies for good (docs/architecture.md, "Kill and stop in lockstep"). A plant whose
+    /// restart would come after the end is down to the end instead: its samples are made, as
+    /// a real-time supervisor's restart rebuilds them.
     pub fn plant_gone_at(&self) -> Option<u64> {
-        use crate::inject::{Armed, InjectKind};
+        use crate::inject::Armed;
         self.inject
             .iter()
-            .filter(|i| i.kind == InjectKind::Kill && i.target == "plant")
-            .map(|i| Armed::bind(i, self.rates.sample_hz, &["plant"], |_| 1))
-            .filter(|a| a.to_k >= self.samples())
-            .map(|a| a.from_k)
+            .filter(|i| i.target == "plant" && i.never_restarted())
+            .map(|i| Armed::bind(i, self.rates.sample_hz, &["plant"], |_| 1).from_k)
             .min()
     }
 
@@ -1892,6 +1895,66 @@ duration_s = 0.01
 [motor]
 preset = "kyslan2015"
 "#;
+
+    /// A plant killed for good (a restart time of 0) ends a simulated drive at its kill; one
+    /// whose restart comes after the end does not. A shorter run keeps what each kill meant.
+    #[test]
+    fn kills_never_restarted_and_restarted_after_the_end_stay_so_in_a_shorter_run() {
+        let kill = |target: &str, at: f64, restart: f64| {
+            format!("[[inject]]\nkind = \"kill\"\ntarget = \"{target}\"\nat_s = {at}\nduration_s = {restart}\n")
+        };
+        let sc = |dur: f64, injects: &str| {
+            Scenario::from_toml(
+                &format!(
+                    "name = \"t\"\nduration_s = {dur}\n{injects}[motor]\npreset = \"kyslan2015\"\n"
+                ),
+                "t.toml",
+            )
+        };
+        // Never restarted: 0; a restart after the end (even as long as the run): not gone.
+        let never = sc(
+            12.0,
+            &(kill("plant", 1.0, 0.0) + &kill("observer", 1.0, 12.0)),
+        )
+        .unwrap();
+        assert_eq!(never.plant_gone_at(), Some(10_000));
+        assert_eq!(
+            sc(12.0, &kill("plant", 1.0, 12.0)).unwrap().plant_gone_at(),
+            None
+        );
+        let late = sc(12.0, &kill("plant", 11.0, 5.0)).unwrap();
+        assert_eq!(late.plant_gone_at(), None);
+        // A restart of 0 is "never" for a kill only; above 10 s only in a longer run.
+        let e = sc(
+            12.0,
+            "[[inject]]\nkind = \"stop\"\ntarget = \"plant\"\nat_s = 1.0\nduration_s = 0.0\n",
+        )
+        .unwrap_err();
+        assert!(e.contains("a stop lasts 0.001 to 60 s"), "{e}");
+        let e = sc(2.0, &kill("observer", 1.0, 11.0)).unwrap_err();
+        assert!(
+            e.contains("the simulated restart lasts 0.001 to 10 s (0: never restarted)"),
+            "{e}"
+        );
+        // Shortened to 2 s: "never" stays 0, a restart after the end stays after it.
+        let mut short = never.clone();
+        assert!(short.set_duration(2.0).is_empty());
+        short.validate().unwrap();
+        assert_eq!(
+            short
+                .inject
+                .iter()
+                .map(|i| i.duration_s)
+                .collect::<Vec<_>>(),
+            [0.0, 10.0]
+        );
+        assert_eq!(short.plant_gone_at(), Some(10_000));
+        let mut later = sc(12.0, &kill("plant", 1.5, 11.0)).unwrap();
+        later.set_duration(2.0);
+        later.validate().unwrap();
+        assert_eq!(later.inject[0].duration_s, 10.0);
+        assert_eq!(later.plant_gone_at(), None);
+    }
 
     #[test]
     fn cpu_latency_request_is_microseconds_or_none() {

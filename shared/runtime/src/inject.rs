@@ -43,7 +43,8 @@ pub enum InjectKind {
     Corrupt,
     /// Lockstep only (written by the launcher from `--fault kill:…`): the target stage dies
     /// at `at_s`, its outputs are absent for `duration_s` (the simulated restart time), and
-    /// a freshly built stage rejoins.
+    /// a freshly built stage rejoins; `duration_s` 0 (or absent): it is never restarted
+    /// ([`Inject::never_restarted`]).
     Kill,
     /// Lockstep only (from `--fault stop:…`): the target stage's outputs are absent for
     /// `duration_s`, then it resumes with its old state.
@@ -87,7 +88,8 @@ pub struct Inject {
     pub target: String,
     /// First affected sample, as simulated seconds after sample 0 (rounded to a sample).
     pub at_s: f64,
-    /// `delay`, `stop`: how long the window lasts, s; `kill`: the simulated restart time, s.
+    /// `delay`, `stop`: how long the window lasts, s; `kill`: the simulated restart time, s
+    /// (0: never restarted).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub duration_s: f64,
     /// `delay`: the added latency before each output is published, µs.
@@ -130,7 +132,18 @@ pub fn topic(name: &str) -> Result<TopicId, String> {
         })
 }
 
+/// The longest simulated restart a run of `duration_s` takes: [`RESTART_MAX_S`], or the
+/// run's length in a longer run (a restart after the end).
+pub fn restart_max_s(duration_s: f64) -> f64 {
+    RESTART_MAX_S.max(duration_s)
+}
+
 impl Inject {
+    /// A kill whose stage is never restarted: a restart time of 0 (`--restart never`).
+    pub fn never_restarted(&self) -> bool {
+        self.kind == InjectKind::Kill && self.duration_s == 0.0
+    }
+
     /// `kind:target@at_s[:...]`, as on the command line.
     pub fn spec(&self) -> String {
         match self.kind {
@@ -166,17 +179,19 @@ impl Inject {
             InjectKind::Kill | InjectKind::Stop => {
                 // A stage that is not restarted (`restart = "never"`) stays down for the
                 // run's duration, however long the run.
-                let (lo, hi, name) = if self.kind == InjectKind::Kill {
+                let (lo, hi, name, never) = if self.kind == InjectKind::Kill {
                     (
                         RESTART_MIN_S,
-                        RESTART_MAX_S.max(duration_s),
+                        restart_max_s(duration_s),
                         "the simulated restart",
+                        " (0: never restarted)",
                     )
                 } else {
-                    (DELAY_MIN_S, DELAY_MAX_S, "a stop")
+                    (DELAY_MIN_S, DELAY_MAX_S, "a stop", "")
                 };
-                if !(lo..=hi).contains(&self.duration_s) {
-                    return Err(format!("inject {what}: {name} lasts {lo} to {hi} s"));
+                let never_restarted = self.kind == InjectKind::Kill && self.duration_s == 0.0;
+                if !(never_restarted || (lo..=hi).contains(&self.duration_s)) {
+                    return Err(format!("inject {what}: {name} lasts {lo} to {hi} s{never}"));
                 }
                 if self.count != 0 || self.latency_us != 0.0 {
                     return Err(format!(
@@ -264,7 +279,11 @@ impl Armed {
                 topic: None,
                 stage: stages.iter().position(|s| *s == i.target),
                 from_k: k0,
-                to_k: k0 + ((i.duration_s * sample_hz).round() as u64).max(1),
+                to_k: if i.kind == InjectKind::Kill && i.duration_s == 0.0 {
+                    u64::MAX
+                } else {
+                    k0 + ((i.duration_s * sample_hz).round() as u64).max(1)
+                },
                 divider: 1,
                 latency_ns: (i.latency_us * 1e3).round() as u64,
             },

@@ -872,6 +872,9 @@ mod tests {
         for (x, y) in a.iter().zip(&b) {
             assert_eq!(format!("{x:?}"), format!("{y:?}"), "k = {}", x.k);
         }
+        // A step at the new end itself comes after the last sample (0.0399 s).
+        let mut at_end = full.clone();
+        assert_eq!(at_end.set_duration(0.04)[0], "load.torque_nm[0] at 0.04 s");
         // Longer than the scenario: nothing left out.
         let mut long = full.clone();
         assert!(long.set_duration(0.2).is_empty());

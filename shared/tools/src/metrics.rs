@@ -262,7 +262,8 @@ pub fn speed_metrics_with_faults(
             (r.omega_m - w).abs() > 0.02 * w.abs()
         });
         out.load_recovery_ms = match outside {
-            _ if fault.is_some() => None,
+            // A step at or after the last sample: no response to measure.
+            _ if fault.is_some() || after.is_empty() => None,
             None => Some(0.0),
             Some(i) if i + 1 < after.len() => Some((after[i + 1].t - t0) * 1e3),
             Some(_) => None, // never recovered within the run
@@ -496,6 +497,43 @@ torque_nm = [{ t_s = 0.05, value = 0.1 }]
         // Window 25 ms..99.9 ms: 150 samples at 0, 600 at 0.1 A → RMS 0.1·√(600/750).
         let e = m.id_tracking_error_a.unwrap();
         assert!((e - 0.1 * (600.0f64 / 750.0).sqrt()).abs() < 1e-9, "{e}");
+    }
+
+    /// A load step at or after the trace's last sample (a run that ends at it) has no
+    /// response: no dip and no recovery, rather than a recovery of 0 ms.
+    #[test]
+    fn a_load_step_after_the_last_sample_has_no_metrics() {
+        let rows: Vec<TraceRow> = (0..500)
+            .map(|k| {
+                let t = k as f64 * 1e-4;
+                TraceRow {
+                    k,
+                    t,
+                    omega_m: synthetic_speed(t),
+                    ..Default::default()
+                }
+            })
+            .collect();
+        let m = speed_metrics(&sc(), &rows);
+        assert_eq!(
+            (m.load_dip_rad_s, m.load_recovery_ms),
+            (None, None),
+            "{m:?}"
+        );
+        // One sample after the step, in the band: a response of one sample, recovered.
+        let mut one = rows.clone();
+        one.push(TraceRow {
+            k: 500,
+            t: 0.05,
+            omega_m: 100.0,
+            ..Default::default()
+        });
+        let m = speed_metrics(&sc(), &one);
+        assert_eq!(
+            (m.load_dip_rad_s, m.load_recovery_ms),
+            (Some(0.0), Some(0.0)),
+            "{m:?}"
+        );
     }
 
     #[test]
