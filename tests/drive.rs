@@ -160,7 +160,12 @@ fn a_shorter_duration_leaves_out_the_later_steps_and_names_them() {
         serde_json::json!(["load.torque_nm[0] at 0.04 s"])
     );
     assert_eq!(s["samples"], 300);
-    // The resolved scenario runs again as it is.
+    // The resolved scenario says what it left out, and runs again as it is.
+    let text = std::fs::read_to_string(out.join("scenario.toml")).unwrap();
+    assert!(
+        text.starts_with("# Shortened to 0.03 s by --duration: left out (after its end)\n#   load.torque_nm[0] at 0.04 s\n"),
+        "{text}"
+    );
     let again = dir.join("again");
     let mut args = run_args(&bus, &again).to_vec();
     let resolved = out.join("scenario.toml");

@@ -172,6 +172,24 @@ pub fn set_duration(sc: &mut Scenario, duration_s: f64) -> Result<Vec<String>, S
     Ok(cut)
 }
 
+/// The resolved scenario as `scenario.toml` holds it; a run shortened by `--duration`
+/// starts with comment lines naming what it left out, so that a longer run of the file is
+/// not taken for the scenario's own.
+fn resolved_toml(sc: &Scenario, not_reached: &[String]) -> Result<String> {
+    let mut text = String::new();
+    if !not_reached.is_empty() {
+        text.push_str(&format!(
+            "# Shortened to {} s by --duration: left out (after its end)\n",
+            sc.duration_s
+        ));
+        for item in not_reached {
+            text.push_str(&format!("#   {item}\n"));
+        }
+    }
+    text.push_str(&toml::to_string(sc)?);
+    Ok(text)
+}
+
 /// The one line that says what a shortened run leaves out (None: nothing).
 pub fn not_reached_line(duration_s: f64, cut: &[String]) -> Option<String> {
     (!cut.is_empty()).then(|| {
@@ -1893,7 +1911,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
     }
     let out = out.canonicalize()?;
     let sc_path = out.join("scenario.toml");
-    drivelab_runtime::files::write(&sc_path, toml::to_string(&sc)?)
+    drivelab_runtime::files::write(&sc_path, resolved_toml(&sc, &not_reached)?)
         .with_context(|| format!("write {}", sc_path.display()))?;
     drivelab_runtime::files::write(out.join("topology.json"), serde_json::to_vec_pretty(&topo)?)?;
     let sinks = sinks::Sinks::new(
