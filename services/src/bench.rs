@@ -1371,8 +1371,8 @@ fn targets(rows: &[Row]) -> Vec<Targets> {
 
 /// The default chain's row among `rows` (the iceoryx2 chain's rows of one rate, one per
 /// placement and request): the best placement, the one with the lowest cycle p50, among
-/// those measured under the request when it was measured both ways. With the shipped
-/// placements that has always been one-core (docs/measurements.md).
+/// those measured under the request when it was measured both ways. Where the shipped
+/// placements were all measured, that was one-core (docs/measurements.md).
 fn best_placement<T>(
     rows: &[T],
     request: impl Fn(&T) -> bool,
