@@ -1348,10 +1348,12 @@ impl Scenario {
 
     /// Sets the run's length, as `--duration` and a campaign's `duration_s` do. What the
     /// scenario schedules at or after a shorter end is never reached, so it is taken out: a
-    /// reference or load step, an `[[inject]]` or `[[sensor_fault]]` table. Nothing before the end changes: the shortened run's samples are the first
-    /// ones of the full run, bit for bit (a drift profile stays whole; its points may lie
-    /// after the end). Returns what was taken out, one item each, e.g.
-    /// `load.torque_nm[0] at 0.04 s`; the caller validates the result.
+    /// reference or load step, an `[[inject]]` or `[[sensor_fault]]` table. Nothing before
+    /// the end changes: the shortened run's samples are the first ones of the full run, bit
+    /// for bit (a drift profile stays whole; its points may lie after the end; a kill keeps
+    /// its meaning: never restarted, or restarted after the end). Returns what was taken
+    /// out, one item each, e.g. `load.torque_nm[0] at 0.04 s`; the caller validates the
+    /// result.
     pub fn set_duration(&mut self, duration_s: f64) -> Vec<String> {
         let mut out = Vec::new();
         if duration_s < self.duration_s {
