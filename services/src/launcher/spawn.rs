@@ -603,26 +603,31 @@ pub(super) fn wait_ready(children: &mut [ChildProc]) -> Result<Option<String>> {
     Ok(None)
 }
 
+/// SIGTERM (and SIGCONT) to a child still running: its stop request.
+pub(super) fn ask_to_stop(c: &mut ChildProc) {
+    if let Ok(None) = c.child.try_wait() {
+        // A process a stop fault froze takes the signal once it is resumed (SIGCONT).
+        // SAFETY: kill(2) on a pid we spawned and have not reaped (and on the host under
+        // it, which a wrapper that ends first leaves to this launcher, its subreaper, to
+        // reap); no memory is touched.
+        unsafe {
+            libc::kill(c.child.id() as libc::pid_t, libc::SIGTERM);
+            libc::kill(c.child.id() as libc::pid_t, libc::SIGCONT);
+            if c.host_pid() != c.child.id() {
+                libc::kill(c.host_pid() as libc::pid_t, libc::SIGTERM);
+                libc::kill(c.host_pid() as libc::pid_t, libc::SIGCONT);
+            }
+        }
+    }
+}
+
 /// SIGTERM to every child still running, then SIGKILL (named in a warning) to those not
 /// gone within 3 s. The source's stdin is closed after the signal: a source stopped before
 /// its `GO` is waiting for that line, and ends at once when it reads the end of its input
 /// instead.
 pub(super) fn terminate(children: &mut [ChildProc]) {
     for c in children.iter_mut() {
-        if let Ok(None) = c.child.try_wait() {
-            // A process a stop fault froze takes the signal once it is resumed (SIGCONT).
-            // SAFETY: kill(2) on a pid we spawned and have not reaped (and on the host under
-            // it, which a wrapper that ends first leaves to this launcher, its subreaper, to
-            // reap); no memory is touched.
-            unsafe {
-                libc::kill(c.child.id() as libc::pid_t, libc::SIGTERM);
-                libc::kill(c.child.id() as libc::pid_t, libc::SIGCONT);
-                if c.host_pid() != c.child.id() {
-                    libc::kill(c.host_pid() as libc::pid_t, libc::SIGTERM);
-                    libc::kill(c.host_pid() as libc::pid_t, libc::SIGCONT);
-                }
-            }
-        }
+        ask_to_stop(c);
         c.stdin = None;
     }
     let t = Instant::now();

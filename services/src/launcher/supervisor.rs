@@ -364,6 +364,15 @@ pub(super) fn supervise(
     segments.hold_new();
     'run: loop {
         if crate::common::stop_requested() {
+            // The hosts are asked to stop before the launcher takes anything of its own off
+            // the bus: what they do from then on is the stop's (the system-call audit stops
+            // counting), not a peer vanishing under a running loop.
+            for c in children.iter_mut() {
+                super::spawn::ask_to_stop(&mut c.proc);
+                if let Some(t) = c.standby.as_mut() {
+                    super::spawn::ask_to_stop(t);
+                }
+            }
             return Ok(Some(super::interrupted()));
         }
         // A recorder that failed, or a split drive whose other machine is gone (`Bridge::lost`).
