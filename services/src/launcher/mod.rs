@@ -2472,13 +2472,12 @@ fn check_delays(sc: &Scenario, topo: &TopologyPlan, limit: Duration) -> Result<(
     }
     let room_s = limit.as_secs_f64() - START_AND_END_S - sc.duration_s;
     if busy_s > room_s {
+        let whose = if specs.len() == 1 { "its" } else { "their" };
         bail!(
-            "fault {}: {} {steps} delayed steps would keep the stages' core busy for {busy_s:.1} s, which with the run's own {} s is longer than this run may last ({:.1} s, {START_AND_END_S} s of it for the start and the end): shorten {} window or latency",
+            "fault {}: {whose} {steps} delayed steps would keep the stages' core busy for {busy_s:.1} s, which with the run's own {} s is longer than this run may last ({:.1} s, {START_AND_END_S} s of it for the start and the end): shorten {whose} window or latency",
             specs.join(", "),
-            if specs.len() == 1 { "its" } else { "their" },
             sc.duration_s,
             limit.as_secs_f64(),
-            if specs.len() == 1 { "its" } else { "their" },
         );
     }
     Ok(())

@@ -189,8 +189,7 @@ impl Inject {
                 } else {
                     (DELAY_MIN_S, DELAY_MAX_S, "a stop", "")
                 };
-                let never_restarted = self.kind == InjectKind::Kill && self.duration_s == 0.0;
-                if !(never_restarted || (lo..=hi).contains(&self.duration_s)) {
+                if !(self.never_restarted() || (lo..=hi).contains(&self.duration_s)) {
                     return Err(format!("inject {what}: {name} lasts {lo} to {hi} s{never}"));
                 }
                 if self.count != 0 || self.latency_us != 0.0 {
@@ -279,7 +278,7 @@ impl Armed {
                 topic: None,
                 stage: stages.iter().position(|s| *s == i.target),
                 from_k: k0,
-                to_k: if i.kind == InjectKind::Kill && i.duration_s == 0.0 {
+                to_k: if i.never_restarted() {
                     u64::MAX
                 } else {
                     k0 + ((i.duration_s * sample_hz).round() as u64).max(1)
