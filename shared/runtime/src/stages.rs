@@ -62,8 +62,13 @@ pub fn declaration(
 pub struct PlantStage {
     /// The model.
     pub plant: Plant,
-    /// The model as built, kept by a rejoin that may have to start over.
-    pristine: Option<Plant>,
+    /// The model as built (a copy made at set-up), for a rejoin after the model has moved.
+    pristine: Plant,
+    /// The model has moved since it was built: it stepped, or a rejoin coasted it. The host
+    /// rejoins a restarted plant before its first step, once (a plant never answers
+    /// `NeedMore`), so that rejoin copies nothing and allocates nothing at real-time
+    /// priority; only a second aim (a test's) clones `pristine`.
+    moved: bool,
 }
 
 const PLANT_IN: &[InputSpec] = &[InputSpec::latest(TopicId::Cmd, 1, 0, OnStale::Fallback)];
@@ -72,9 +77,11 @@ const PLANT_OUT: &[TopicId] = &[TopicId::Meas, TopicId::Truth];
 impl PlantStage {
     /// The plant of `sc`.
     pub fn new(sc: &Scenario) -> Self {
+        let plant = Plant::new(sc);
         Self {
-            plant: Plant::new(sc),
-            pristine: None,
+            pristine: plant.clone(),
+            plant,
+            moved: false,
         }
     }
 }
@@ -90,6 +97,7 @@ impl Stage for PlantStage {
         PLANT_OUT
     }
     fn step(&mut self, k: u64, inputs: &Inbox, out: &mut Outbox) {
+        self.moved = true;
         // A missing command (None) is held, then replaced by the safe state (Plant::sample).
         out.push(Msg::Meas(self.plant.sample(k, inputs.cmd())));
         out.push(Msg::Truth(*self.plant.truth()));
@@ -102,8 +110,10 @@ impl Stage for PlantStage {
         // it, the motor integrated through the downtime under the inverter's hold and safe
         // state (the launcher rebuilds those samples for the trace the same way).
         if let Some(t) = inputs.newest_truth() {
-            let pristine = self.pristine.get_or_insert_with(|| self.plant.clone());
-            self.plant = pristine.clone();
+            if self.moved {
+                self.plant = self.pristine.clone();
+            }
+            self.moved = true;
             self.plant.coast(t, k, |_| {});
         }
         Rejoin::Done
@@ -1364,6 +1374,25 @@ mod tests {
         let mut again = PlantStage::new(&sc);
         again.plant.coast(&last, 800, |_| {});
         assert_eq!(again.plant.x, s.plant.x);
+    }
+
+    /// A restarted plant's rejoin, the host's one call before its first step, runs in the
+    /// real-time loop: it allocates nothing (the scenario's load steps make a copy of the
+    /// model allocate), and it leaves the model where coasting a fresh one by hand does.
+    #[test]
+    fn a_restarted_plants_rejoin_allocates_nothing() {
+        let sc = scenario("kyslan-pi");
+        let (up, _, _) = run_to(&sc, 351);
+        let last = *up.plant.truth();
+        let mut ib = Inbox::default();
+        ib.put(Msg::Truth(last));
+        let mut s = PlantStage::new(&sc);
+        let (r, allocations) = crate::alloc_count::allocations_during(|| s.rejoin(800, &ib));
+        assert_eq!((r, allocations), (Rejoin::Done, 0), "rejoin, allocations");
+        let mut by_hand = PlantStage::new(&sc);
+        by_hand.plant.coast(&last, 800, |_| {});
+        assert_eq!(s.plant.x, by_hand.plant.x);
+        assert_eq!(s.plant.truth().hdr.k, by_hand.plant.truth().hdr.k);
     }
 
     #[test]
