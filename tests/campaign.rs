@@ -17,12 +17,17 @@ fn stderr(o: &std::process::Output) -> String {
 /// `drivelab run --clock inprocess --no-plots --duration 0.05 --out OUT EXTRA`: the same
 /// maths as the drive, deterministic and fast.
 fn inprocess(out: &Path, extra: &[&str]) -> std::process::Output {
+    inprocess_for("0.05", out, extra)
+}
+
+/// [`inprocess`] for `seconds`.
+fn inprocess_for(seconds: &str, out: &Path, extra: &[&str]) -> std::process::Output {
     let mut args = vec![
         "run",
         "--clock",
         "inprocess",
         "--duration",
-        "0.05",
+        seconds,
         "--no-plots",
         "--out",
         out.to_str().unwrap(),
@@ -77,6 +82,41 @@ fn a_failed_expectation_exits_3_with_one_line_and_the_run_is_kept() {
     // The figure the rise-time expectation checked is the run's metric.
     assert_eq!(e[0]["values"][0]["value"], s["metrics"]["rise_time_ms"]);
     assert!(out.join("trace.csv").is_file());
+}
+
+/// A speed recovery that the run's end cut short (the speed back in its band for less than
+/// the 10 ms it must stay there) is null with that reason, not "never recovered"; a time
+/// counted in samples is its exact decimal, so an inclusive limit at it holds.
+#[test]
+fn a_recovery_the_runs_end_cut_says_so_and_sample_times_are_their_decimals() {
+    let dir = scratch("cutbyend");
+    let out = dir.join("run");
+    let o = inprocess_for(
+        "0.2",
+        &out,
+        &[
+            "--fault",
+            "stop:observer@0.19:0.001",
+            "--expect",
+            "faults.*.speed_recovered_ms <= 200",
+        ],
+    );
+    assert_eq!(o.status.code(), Some(3), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("faults.0.speed_recovered_ms = null (the run ended ")
+            && stderr(&o).contains("before the 10 ms it must stay there)"),
+        "{}",
+        stderr(&o)
+    );
+    let s = summary(&out);
+    let rec = s["metrics"]["load_recovery_ms"]
+        .as_f64()
+        .expect("load recovery");
+    // 10 kHz: a whole number of 0.1 ms samples after the load step, as that decimal.
+    assert_eq!(rec.to_string(), format!("{rec:.1}"));
+    let exact = format!("metrics.load_recovery_ms in {rec}..{rec}");
+    let o = inprocess_for("0.2", &dir.join("again"), &["--expect", &exact]);
+    assert!(o.status.success(), "{}", stderr(&o));
 }
 
 #[test]

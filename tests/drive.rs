@@ -35,6 +35,27 @@ fn kyslan_pi_lockstep_meets_the_papers_rise_time() {
             "{f}: {v}"
         );
     }
+    // ... and every figure of the summary can be named: its keys are figures or groups of
+    // them, but for names and lists of records.
+    let records = [
+        "bus",
+        "clock",
+        "scenario",
+        "failure",
+        "expectations",
+        "missing_samples",
+        "plant_down_ranges",
+        "supervisor_events",
+        "replaced_stages",
+        "warnings",
+        "not_reached",
+    ];
+    for (k, v) in s.as_object().expect("summary object") {
+        assert!(
+            FIGURES.contains(&k.as_str()) || records.contains(&k.as_str()),
+            "summary.json → {k} ({v}) is neither a figure an expectation can name nor a record"
+        );
+    }
     let rise = s["metrics"]["rise_time_ms"].as_f64().expect("rise time");
     // Kyslan et al.: time to first reach 70 rad/s = 8 ms. The PI design is solved for it on
     // its sampled design model; the run reaches 70 rad/s when that model says, to one

@@ -223,7 +223,7 @@ pub fn reports(
     end: DriveEnd,
 ) -> (Vec<FaultReport>, Vec<(f64, f64, String)>) {
     let fs = sc.rates.sample_hz;
-    let ms = |dk: u64| dk as f64 / fs * 1e3;
+    let ms = |dk: u64| dk as f64 * 1e3 / fs;
     let producer =
         |t: drivelab_runtime::stage::TopicId| topo.producers.iter().find(|p| p.topic == t);
     let slowest = topo.producers.iter().map(|p| p.divider).max().unwrap_or(1);
@@ -331,6 +331,7 @@ pub fn reports(
             speed_recovered_ms: rec.map(|r| ms(r - a.from_k)),
             plant_down: crate::launcher::PlantDown::of(span.iter().copied()),
             window: None,
+            why_null: crate::launcher::recovery_notes(sc, &tail, rec),
             samples: crate::launcher::SampleCounts::of(span.iter().copied()),
             bus: Some(BusFigures {
                 window_from_k: a.from_k,

@@ -537,14 +537,21 @@ fn rt_refusals(s: &Value) -> Option<String> {
 }
 
 /// The summary.json of run folder `out`, if it wrote one.
-fn run_summary(out: &Path) -> Option<Value> {
-    serde_json::from_slice(&std::fs::read(out.join("summary.json")).ok()?).ok()
+/// The summary in run folder `out`, if one was written at or after `since` (by this run: a
+/// folder the run refused may hold another's).
+fn run_summary(out: &Path, since: std::time::SystemTime) -> Option<Value> {
+    let path = out.join("summary.json");
+    if std::fs::metadata(&path).and_then(|m| m.modified()).ok()? < since {
+        return None;
+    }
+    serde_json::from_slice(&std::fs::read(path).ok()?).ok()
 }
 
 /// Runs one case.
 fn run_case(c: &CampaignFile, case: &Case, a: &CampaignArgs, out: &Path) -> CaseResult {
     let dir = out.join("runs").join(format!("{:03}", case.number));
     let started = Instant::now();
+    let since = std::time::SystemTime::now();
     let result = (|| -> Result<Value> {
         let o = options(c, case, a.no_rt, a.plots, Some(dir.clone()))?;
         Ok(launcher::run(&o)?.summary)
@@ -573,7 +580,9 @@ fn run_case(c: &CampaignFile, case: &Case, a: &CampaignArgs, out: &Path) -> Case
             status: "error",
             // A run that failed after its drive ended (a planned fault not made, a file it
             // could not write) has written its summary: its figures are known.
-            figures: run_summary(&dir).map(|s| figures(&s)).unwrap_or_default(),
+            figures: run_summary(&dir, since)
+                .map(|s| figures(&s))
+                .unwrap_or_default(),
             out: dir,
             error: Some(drivelab_runtime::text::error_text(&e)),
             expectations: Vec::new(),
@@ -654,6 +663,7 @@ pub fn markdown(name: &str, purpose: &str, note: Option<&str>, results: &[CaseRe
             .filter(|e| !e.pass)
             .map(|e| format!("`{}`", e.expect))
             .chain(r.error.iter().map(|e| format!("error: {e}")))
+            .chain((r.status == "skipped").then(|| "never started".to_string()))
             .collect();
         md.push_str(&format!(
             "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
@@ -778,9 +788,11 @@ pub fn junit(name: &str, results: &[CaseResult]) -> Result<String> {
             let values: Vec<String> = failed
                 .iter()
                 .flat_map(|e| {
-                    e.values
-                        .iter()
-                        .map(|c| {
+                    // A path that named no figure has no value to list: its violation says so.
+                    (e.values.is_empty())
+                        .then(|| e.violation())
+                        .into_iter()
+                        .chain(e.values.iter().map(|c| {
                             format!(
                                 "{}: {} = {} ({})",
                                 e.expect,
@@ -788,7 +800,7 @@ pub fn junit(name: &str, results: &[CaseResult]) -> Result<String> {
                                 c.value_text(true),
                                 if c.pass { "ok" } else { "violates" }
                             )
-                        })
+                        }))
                         .chain(
                             (!e.note.trim().is_empty())
                                 .then(|| format!("{}: note: {}", e.expect, e.note.trim())),
@@ -928,8 +940,10 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
     // Said once, before the runs: the report has fewer runs than seeds × fault sets.
     let note = (repeats > 0).then(|| {
         format!(
-            "the {} clock gives the same trace for every seed: {repeats} runs that would differ from another only by a seed (no random:N fault uses it) are left out; each such run ran once, with seed {}",
+            "the {} clock gives the same trace for every seed: {repeats} {} that would differ from another only by a seed (no random:N fault uses it) {} left out; each such run ran once, with seed {}",
             c.clock.name(),
+            if repeats == 1 { "run" } else { "runs" },
+            if repeats == 1 { "is" } else { "are" },
             c.seeds[0]
         )
     });
@@ -1011,6 +1025,7 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
             continue;
         }
         bar.set_message(case.title());
+        let since = std::time::SystemTime::now();
         let r = run_case(&c, case, a, &out);
         if let Some(e) = r
             .error
@@ -1027,7 +1042,7 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
         }
         // The hosts keep their set-up lines to themselves in a campaign; a refused part
         // (no privilege for SCHED_FIFO, a core not there) is still said, once per run.
-        let summary = run_summary(&r.out).unwrap_or_default();
+        let summary = run_summary(&r.out, since).unwrap_or_default();
         if let Some(w) = rt_refusals(&summary) {
             say(format!(
                 "run {}: real-time set-up incomplete: {w}",

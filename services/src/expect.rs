@@ -7,6 +7,9 @@
 //! or a figure that is not a number (a recovery that never happened is `null`), fails. A path
 //! that goes on below a number or stops at a group is refused when it is read. A `*`
 //! over an empty list (`faults.*.…` in a run without faults) holds: there is nothing to check.
+//! A histogram's name may hold dots (`latency_us.current-loop.exec.p99`: the last name is the
+//! figure). A `*` passes over the notes that say why a figure is null
+//! (`metrics.cut_by_fault`, `faults.N.why_null`), which are text, not figures.
 
 use anyhow::Result;
 use serde::{Deserialize, Serialize};
@@ -41,11 +44,26 @@ pub const FAULT_FIGURES: &[&str] = &[
     "deadline_misses",
     "cycle_latency_max_us",
     "window",
+    "why_null",
 ];
 
 /// The fault figures that hold figures of their own (`faults.*.window.…`); every other one
 /// is a number or a name, with nothing below it.
-pub const FAULT_GROUPS: &[&str] = &["plant_down", "rejected_by", "window"];
+pub const FAULT_GROUPS: &[&str] = &["plant_down", "rejected_by", "window", "why_null"];
+
+/// The groups of notes (why a figure is null, in words), as (parent, key): not figures, so
+/// a `*` passes over them and a path into them is refused. A fault report's parent is
+/// `faults.N`, written here `faults.#`.
+const NOTES: &[(&str, &str)] = &[("metrics", "cut_by_fault"), ("faults.#", "why_null")];
+
+/// True when `key` under the concrete path `parent` is a group of notes ([`NOTES`]).
+fn is_notes(parent: &str, key: &str) -> bool {
+    let general = match parent.split_once('.') {
+        Some(("faults", i)) if i.parse::<usize>().is_ok() || i == "*" => "faults.#",
+        _ => parent,
+    };
+    NOTES.iter().any(|&(p, k)| p == general && k == key)
+}
 
 /// The fault figures that are names (of the fault, its stage, its process, what saw it
 /// first), not numbers.
@@ -80,6 +98,12 @@ pub const FIGURES: &[&str] = &[
     "rate_hz",
     "speed_loop_hz",
     "stray_syscalls",
+    "plant_down_samples",
+    "recorder_late",
+    "recorder_rejected",
+    "processes",
+    "trace",
+    "design",
 ];
 
 /// The top-level figures that a run has only when asked for, each with the option that asks:
@@ -94,6 +118,9 @@ pub const GROUPS: &[&str] = &[
     "budget",
     "counters",
     "timing",
+    "processes",
+    "trace",
+    "design",
 ];
 
 /// A command line that is wrong in itself: an option's value that is not of its kind, out
@@ -285,7 +312,7 @@ pub fn parse(text: &str) -> Result<Expectation, UsageError> {
             Op::In(a, b)
         }
     };
-    let path: Vec<String> = figure.split('.').map(str::to_string).collect();
+    let mut path: Vec<String> = figure.split('.').map(str::to_string).collect();
     let good = |s: &String| {
         s == "*"
             || (!s.is_empty()
@@ -302,6 +329,33 @@ pub fn parse(text: &str) -> Result<Expectation, UsageError> {
             "expectation '{t}': unknown figure '{}' (figures: {})",
             path[0],
             FIGURES.join(", ")
+        )));
+    }
+    // A histogram's name holds dots (`current-loop.exec`): everything between `latency_us`
+    // and the last name is the histogram, named whole or by a lone `*`.
+    if path[0] == "latency_us" && path.len() > 3 {
+        // A histogram's figure followed by more names: below a number.
+        if let Some(i) =
+            (2..path.len() - 1).find(|&i| HISTOGRAM_FIGURES.contains(&path[i].as_str()))
+        {
+            return Err(UsageError(format!(
+                "expectation '{t}': '{}' is a number; no figure lies below it",
+                path[..=i].join(".")
+            )));
+        }
+        let name = path[1..path.len() - 1].join(".");
+        if name.split('.').any(|p| p == "*") {
+            return Err(UsageError(format!(
+                "expectation '{t}': a histogram is named whole ('latency_us.current-loop.exec.p99') or by '*' ('latency_us.*.p99'), not by a part of its name"
+            )));
+        }
+        let last = path.pop().unwrap_or_default();
+        path = vec![path[0].clone(), name, last];
+    }
+    if let Some(i) = (1..path.len()).find(|&i| is_notes(&path[..i].join("."), &path[i])) {
+        return Err(UsageError(format!(
+            "expectation '{t}': '{}' holds notes on why figures are null, not figures",
+            path[..=i].join(".")
         )));
     }
     // A path that stops at a group or goes on below a number names no number: refused
@@ -341,18 +395,13 @@ pub fn parse(text: &str) -> Result<Expectation, UsageError> {
                 HISTOGRAM_FIGURES.join(", ")
             ));
         }
-        [top, h, f, rest @ ..] if top == "latency_us" => {
-            if f != "*" && !HISTOGRAM_FIGURES.contains(&f.as_str()) {
-                return refuse(format!(
-                    "unknown histogram figure '{f}' (a histogram's figures: {})",
-                    HISTOGRAM_FIGURES.join(", ")
-                ));
-            }
-            if !rest.is_empty() {
-                return refuse(format!(
-                    "'latency_us.{h}.{f}' is a number; no figure lies below it"
-                ));
-            }
+        [top, _, f]
+            if top == "latency_us" && f != "*" && !HISTOGRAM_FIGURES.contains(&f.as_str()) =>
+        {
+            return refuse(format!(
+                "unknown histogram figure '{f}' (a histogram's figures: {})",
+                HISTOGRAM_FIGURES.join(", ")
+            ));
         }
         _ => {}
     }
@@ -411,23 +460,30 @@ impl Checked {
 }
 
 /// Why figure `figure` (a concrete path, e.g. `faults.0.speed_recovered_ms`) of `summary` is
-/// null: the summary's own reason where it gives one (`metrics.cut_by_fault`), else what a
-/// null means for that figure.
+/// null: the summary's own reason where it gives one (`metrics.cut_by_fault`,
+/// `faults.N.why_null`), else what a null means for that figure.
 fn null_reason(summary: &Value, figure: &str) -> String {
     let parts: Vec<&str> = figure.split('.').collect();
     match parts.as_slice() {
         ["metrics", key] => summary["metrics"]["cut_by_fault"][*key]
             .as_str()
             .map_or("not measured in this run".into(), str::to_string),
-        ["faults", _, key] => match *key {
-            "speed_recovered_ms" => "never recovered",
-            "republished_ms" => "never published again",
-            "detected_data_path_ms" => "no consumer saw a stale input",
-            "detected_supervisor_ms" => "the supervisor did not see the process die",
-            "safe_state_ms" => "the inverter never reached its safe state",
-            _ => "not measured for this fault",
+        ["faults", i, key] => {
+            let note = i
+                .parse::<usize>()
+                .ok()
+                .and_then(|i| summary["faults"][i]["why_null"][*key].as_str());
+            match (note, *key) {
+                (Some(why), _) => why,
+                (None, "speed_recovered_ms") => "never recovered",
+                (None, "republished_ms") => "never published again",
+                (None, "detected_data_path_ms") => "no consumer saw a stale input",
+                (None, "detected_supervisor_ms") => "the supervisor did not see the process die",
+                (None, "safe_state_ms") => "the inverter never reached its safe state",
+                _ => "not measured for this fault",
+            }
+            .into()
         }
-        .into(),
         _ => "not measured in this run".into(),
     }
 }
@@ -491,10 +547,21 @@ impl Outcome {
     }
 }
 
-/// Collects the values at `path` below `v` with their concrete paths.
-fn walk<'a>(v: &'a Value, path: &[String], at: String, out: &mut Vec<(String, &'a Value)>) {
+/// What [`walk`] found along a path.
+#[derive(Default)]
+struct Found<'a> {
+    /// The values at the path, with their concrete paths.
+    values: Vec<(String, &'a Value)>,
+    /// A branch ended at a name that is not there, or below a value that is no group.
+    dead_end: bool,
+}
+
+/// Collects the values at `path` below `v` with their concrete paths. A `*` goes over every
+/// key or element but the notes ([`NOTES`]); a `*` over an empty group ends its branch
+/// without a dead end (nothing to check there).
+fn walk<'a>(v: &'a Value, path: &[String], at: String, out: &mut Found<'a>) {
     let Some((head, rest)) = path.split_first() else {
-        out.push((at, v));
+        out.values.push((at, v));
         return;
     };
     let join = |k: &str| {
@@ -506,7 +573,7 @@ fn walk<'a>(v: &'a Value, path: &[String], at: String, out: &mut Vec<(String, &'
     };
     match (v, head.as_str()) {
         (Value::Object(m), "*") => {
-            for (k, x) in m {
+            for (k, x) in m.iter().filter(|(k, _)| !is_notes(&at, k)) {
                 walk(x, rest, join(k), out);
             }
         }
@@ -515,26 +582,26 @@ fn walk<'a>(v: &'a Value, path: &[String], at: String, out: &mut Vec<(String, &'
                 walk(x, rest, join(&i.to_string()), out);
             }
         }
-        (Value::Object(m), k) => {
-            if let Some(x) = m.get(k) {
-                walk(x, rest, join(k), out);
-            }
-        }
-        (Value::Array(a), k) => {
-            if let Some(x) = k.parse::<usize>().ok().and_then(|i| a.get(i)) {
-                walk(x, rest, join(k), out);
-            }
-        }
-        _ => {}
+        (Value::Object(m), k) => match m.get(k) {
+            Some(x) => walk(x, rest, join(k), out),
+            None => out.dead_end = true,
+        },
+        (Value::Array(a), k) => match k.parse::<usize>().ok().and_then(|i| a.get(i)) {
+            Some(x) => walk(x, rest, join(k), out),
+            None => out.dead_end = true,
+        },
+        _ => out.dead_end = true,
     }
 }
 
 impl Expectation {
     /// Checks the expectation against a run's summary.
     pub fn evaluate(&self, summary: &Value) -> Outcome {
-        let mut found = Vec::new();
+        let mut found = Found::default();
         walk(summary, &self.path, String::new(), &mut found);
+        let dead_end = found.dead_end;
         let values: Vec<Checked> = found
+            .values
             .into_iter()
             .map(|(figure, v)| {
                 let value = v.as_f64().filter(|x| x.is_finite());
@@ -546,19 +613,10 @@ impl Expectation {
                 }
             })
             .collect();
-        // `faults.*.x` over a run without faults holds: there is nothing to check. A path
-        // that names nothing anywhere else (a typo, a figure this run lacks) fails.
-        let star = self.path.iter().position(|p| p == "*");
-        let nothing_to_check = values.is_empty()
-            && star.is_some_and(|i| {
-                let mut at = Vec::new();
-                walk(summary, &self.path[..i], String::new(), &mut at);
-                at.iter().any(|(_, v)| match v {
-                    Value::Array(a) => a.is_empty(),
-                    Value::Object(m) => m.is_empty(),
-                    _ => false,
-                })
-            });
+        // `faults.*.x` over a run without faults holds: there is nothing to check, as for
+        // every `*` whose every branch ends at an empty group. A path that names nothing
+        // anywhere else (a typo, a figure this run lacks) fails.
+        let nothing_to_check = values.is_empty() && !dead_end;
         Outcome {
             expect: self.text.clone(),
             limit: self.op.to_string(),
@@ -611,6 +669,14 @@ mod tests {
 
     fn check(text: &str) -> Outcome {
         parse(text).unwrap().evaluate(&summary())
+    }
+
+    /// Each expectation is refused with an error that contains its text.
+    fn assert_refused(cases: &[(&str, &str)]) {
+        for (text, says) in cases {
+            let err = parse(text).unwrap_err().0;
+            assert!(err.contains(says), "{text}: {err}");
+        }
     }
 
     #[test]
@@ -706,6 +772,87 @@ mod tests {
         let o = parse("metrics.load_recovery_ms <= 5").unwrap().evaluate(&s);
         let back: Outcome = serde_json::from_value(serde_json::to_value(&o).unwrap()).unwrap();
         assert_eq!(back.violation(), o.violation());
+    }
+
+    /// The notes on why figures are null are passed over by a `*` and refused as a figure;
+    /// a fault report's own note is the reason its null is named with.
+    #[test]
+    fn notes_are_not_figures_and_name_a_faults_null() {
+        let s = json!({
+            "metrics": {
+                "rise_time_ms": 8.1,
+                "load_recovery_ms": 19.6,
+                "cut_by_fault": { "id_tracking_error_a": "measured up to the fault at 0.030 s" },
+            },
+            "faults": [{
+                "speed_recovered_ms": null,
+                "why_null": { "speed_recovered_ms": "the run ended 9 ms after the speed came back" },
+            }],
+        });
+        let e = |t: &str| parse(t).unwrap().evaluate(&s);
+        let o = e("metrics.* <= 1000");
+        assert!(o.pass, "{}", o.violation());
+        assert_eq!(o.values.len(), 2);
+        assert_eq!(
+            e("faults.*.* <= 1000").violation(),
+            "expectation failed: faults.*.* <= 1000: faults.0.speed_recovered_ms = null (the run ended 9 ms after the speed came back)"
+        );
+        assert_refused(&[
+            (
+                "metrics.cut_by_fault.x <= 1",
+                "'metrics.cut_by_fault' holds notes on why figures are null, not figures",
+            ),
+            (
+                "faults.*.why_null.speed_recovered_ms <= 1",
+                "'faults.*.why_null' holds notes",
+            ),
+            (
+                "faults.0.why_null.* <= 1",
+                "'faults.0.why_null' holds notes",
+            ),
+        ]);
+    }
+
+    /// A histogram's name holds dots: it is everything between `latency_us` and the figure,
+    /// so a figure a `*` found can be named on its own.
+    #[test]
+    fn a_histogram_is_named_whole_with_its_dots() {
+        let o = check("latency_us.plant.wake.p99 <= 30");
+        assert!(o.pass, "{}", o.violation());
+        assert_eq!(o.values[0].figure, "latency_us.plant.wake.p99");
+        assert!(!check("latency_us.plant.wake.p99 < 30").pass);
+        for c in check("latency_us.*.p99 <= 40").values {
+            let again = check(&format!("{} <= 40", c.figure));
+            assert!(again.pass && again.values.len() == 1, "{}", c.figure);
+        }
+        assert_refused(&[
+            (
+                "latency_us.plant.wake <= 1",
+                "unknown histogram figure 'wake'",
+            ),
+            ("latency_us.*.wake.p99 <= 1", "a histogram is named whole"),
+            (
+                "latency_us.plant.wake.p98 <= 1",
+                "unknown histogram figure 'p98'",
+            ),
+        ]);
+    }
+
+    /// Every `*` over an empty group holds, wherever it is in the path; a name that is not
+    /// there still fails.
+    #[test]
+    fn an_empty_group_under_any_star_holds() {
+        let s = json!({ "faults": [{ "rejected_by": {} }, { "rejected_by": {} }] });
+        let e = |t: &str| parse(t).unwrap().evaluate(&s);
+        assert!(e("faults.0.rejected_by.* == 0").pass);
+        assert!(e("faults.*.rejected_by.* == 0").pass);
+        let lacking = json!({ "faults": [{ "rejected_by": {} }, {}] });
+        assert!(
+            !parse("faults.*.rejected_by.* == 0")
+                .unwrap()
+                .evaluate(&lacking)
+                .pass
+        );
     }
 
     #[test]
@@ -851,6 +998,7 @@ mod tests {
             samples: Default::default(),
             bus: Some(crate::bus_faults::BusFigures::default()),
             window: Some(crate::faults::window::FaultWindow::default()),
+            why_null: [("speed_recovered_ms", "a note".to_string())].into(),
             ..FaultReport::default()
         };
         let v = serde_json::to_value(&r).unwrap();

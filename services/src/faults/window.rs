@@ -104,7 +104,7 @@ pub fn report(
     w: FaultWindow,
 ) -> FaultReport {
     let fs = sc.rates.sample_hz;
-    let ms = |dk: u64| dk as f64 / fs * 1e3;
+    let ms = |dk: u64| dk as f64 * 1e3 / fs;
     let after: Vec<&TraceRow> = rows.iter().filter(|r| r.k >= k0).collect();
     let tail: Vec<&TraceRow> = after.iter().copied().filter(|r| r.k >= k1).collect();
     let rec = crate::launcher::speed_recovered(sc, &tail);
@@ -137,6 +137,7 @@ pub fn report(
         ),
         bus: None,
         window: Some(w),
+        why_null: crate::launcher::recovery_notes(sc, &tail, rec),
     }
 }
 

@@ -19,8 +19,8 @@ pub use bridge::ZenohListen;
 pub use recorder::{samples_missing, Gap};
 pub(crate) use spawn::die_with_launcher;
 pub use supervisor::{
-    fault_reports, speed_recovered, EventKind, FaultReport, PlantDown, SampleCounts, SupEvent,
-    NOT_INJECTED,
+    fault_reports, recovery_notes, speed_recovered, EventKind, FaultReport, PlantDown,
+    SampleCounts, SupEvent, NOT_INJECTED,
 };
 
 use crate::common::BusClock;

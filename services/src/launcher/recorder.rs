@@ -669,6 +669,7 @@ mod tests {
             samples: Default::default(),
             bus: None,
             window: None,
+            why_null: Default::default(),
         }
     }
 

@@ -765,6 +765,10 @@ pub struct FaultReport {
     /// Hog and sensor faults: the trace before the fault against during it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub window: Option<crate::faults::window::FaultWindow>,
+    /// Why a figure above is null, where the figure's name alone does not say (the run
+    /// ended before a recovery could be told): figure → reason. Absent when empty.
+    #[serde(skip_serializing_if = "BTreeMap::is_empty")]
+    pub why_null: BTreeMap<&'static str, String>,
 }
 
 /// The motor while the plant's process was down (see [`FaultReport::plant_down`]).
@@ -829,17 +833,46 @@ impl SampleCounts {
     }
 }
 
-/// The first sample of `tail` (rows in order) from which the speed stays within ±2 % of its
-/// reference for 10 ms.
-pub fn speed_recovered(sc: &Scenario, tail: &[&TraceRow]) -> Option<u64> {
+/// The speed's recovery band: within ±2 % of its reference, for 10 ms (samples).
+fn speed_band(sc: &Scenario) -> (impl Fn(&TraceRow) -> bool + '_, usize) {
     let hold = (0.01 * sc.rates.sample_hz).ceil() as usize;
     let within = |r: &TraceRow| {
         let w = drivelab_runtime::config::profile_at(&sc.reference.speed_rad_s, r.t);
         (r.omega_m - w).abs() <= 0.02 * w.abs().max(1e-9)
     };
+    (within, hold)
+}
+
+/// The first sample of `tail` (rows in order) from which the speed stays within ±2 % of its
+/// reference for 10 ms.
+pub fn speed_recovered(sc: &Scenario, tail: &[&TraceRow]) -> Option<u64> {
+    let (within, hold) = speed_band(sc);
     (0..tail.len())
         .find(|&i| tail[i..].iter().take(hold).all(|r| within(r)) && tail.len() - i >= hold)
         .map(|i| tail[i].k)
+}
+
+/// `FaultReport::why_null` of a report whose speed recovery over `tail` is `rec`: when the
+/// run's end decided it (the speed back in its band for the run's last samples, fewer than
+/// the 10 ms it must stay there), it says so; a speed that never came back needs no note.
+pub fn recovery_notes(
+    sc: &Scenario,
+    tail: &[&TraceRow],
+    rec: Option<u64>,
+) -> BTreeMap<&'static str, String> {
+    let (within, hold) = speed_band(sc);
+    let back = tail.iter().rev().take_while(|r| within(r)).count();
+    let mut notes = BTreeMap::new();
+    if rec.is_none() && back > 0 && back < hold {
+        notes.insert(
+            "speed_recovered_ms",
+            format!(
+                "the run ended {} ms after the speed came back within ±2 % of its reference, before the 10 ms it must stay there",
+                back as f64 * 1e3 / sc.rates.sample_hz
+            ),
+        );
+    }
+    notes
 }
 
 /// Builds the fault reports from the supervisor's events and the trace, and the windows to
@@ -853,7 +886,7 @@ pub fn fault_reports(
         FLAG_PLANT_DOWN, FLAG_SAFE_STATE, FLAG_STALE_CMD, FLAG_STALE_INPUT,
     };
     let fs = sc.rates.sample_hz;
-    let ms = |dk: u64| dk as f64 / fs * 1e3;
+    let ms = |dk: u64| dk as f64 * 1e3 / fs;
     let by_k: BTreeMap<u64, &TraceRow> = rows.iter().map(|r| (r.k, r)).collect();
     let mut out = Vec::new();
     let mut windows = Vec::new();
@@ -996,6 +1029,7 @@ pub fn fault_reports(
             samples,
             bus: None,
             window,
+            why_null: recovery_notes(sc, &tail, rec),
         });
     }
     (out, windows)

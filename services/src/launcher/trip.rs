@@ -39,6 +39,15 @@ pub(super) fn trip_report(sc: &Scenario, rows: &[TraceRow]) -> Option<FaultRepor
         samples: super::SampleCounts::of(&rows[first..]),
         bus: None,
         window: None,
+        why_null: ["republished_ms", "speed_recovered_ms"]
+            .into_iter()
+            .map(|k| {
+                (
+                    k,
+                    "the trip is latched: the inverter stays in its safe state".into(),
+                )
+            })
+            .collect(),
     })
 }
 

@@ -133,6 +133,13 @@ fn first_step_time(steps: &[drivelab_runtime::config::Step], after: f64) -> Opti
     steps.iter().map(|s| s.t_s).find(|&t| t > after)
 }
 
+/// Milliseconds from `t0` to `t` (s), to the nanosecond: a span of whole samples reads as
+/// its exact decimal (196 samples at 10 kHz: 19.6 ms, not 19.599999999999998), so an
+/// expectation's inclusive limit holds at it.
+fn ms_after(t: f64, t0: f64) -> f64 {
+    ((t - t0) * 1e9).round() / 1e6
+}
+
 /// Computes the speed metrics of `rows` for scenario `sc`, in a run without faults.
 pub fn speed_metrics(sc: &Scenario, rows: &[TraceRow]) -> SpeedMetrics {
     speed_metrics_with_faults(sc, rows, &[])
@@ -185,7 +192,7 @@ pub fn speed_metrics_with_faults(
                 rise,
             ) {
                 (Some(f), _) => cut(&mut out, "rise_time_ms", f),
-                (None, r) => out.rise_time_ms = r.map(|r| (r.t - t0) * 1e3),
+                (None, r) => out.rise_time_ms = r.map(|r| ms_after(r.t, t0)),
             }
             let fault = faults.within(t0, next_event);
             let window: Vec<&TraceRow> = rows
@@ -265,7 +272,7 @@ pub fn speed_metrics_with_faults(
             // A step at or after the last sample: no response to measure.
             _ if fault.is_some() || after.is_empty() => None,
             None => Some(0.0),
-            Some(i) if i + 1 < after.len() => Some((after[i + 1].t - t0) * 1e3),
+            Some(i) if i + 1 < after.len() => Some(ms_after(after[i + 1].t, t0)),
             Some(_) => None, // never recovered within the run
         };
     }
@@ -677,5 +684,14 @@ torque_nm = [{ t_s = 0.05, value = 0.1 }]
         assert!(m.cut_by_fault.is_empty());
         let json = serde_json::to_value(&m).unwrap();
         assert!(json.get("cut_by_fault").is_none(), "{json}");
+    }
+    #[test]
+    fn a_span_of_whole_samples_is_its_decimal_in_ms() {
+        // 196 samples at 10 kHz after a step at 40 ms: 19.6 ms, which the plain difference
+        // misses by one unit in the last place.
+        let (t, t0) = (596.0 / 1e4, 0.04);
+        assert_ne!((t - t0) * 1e3, 19.6);
+        assert_eq!(ms_after(t, t0), 19.6);
+        assert_eq!(ms_after(0.0081, 0.0), 8.1);
     }
 }
