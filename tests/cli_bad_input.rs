@@ -116,6 +116,11 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
     }
     std::fs::write(empty.join("trace.csv"), "k,t,omega_ref\n").unwrap();
     let empty = empty.to_str().unwrap().to_string();
+    // Two links that point at each other: not a missing file.
+    let looped = d.join("loop1.toml");
+    std::os::unix::fs::symlink(d.join("loop2.toml"), &looped).unwrap();
+    std::os::unix::fs::symlink(&looped, d.join("loop2.toml")).unwrap();
+    let looped = looped.to_str().unwrap().to_string();
     // A folder of other files: a run must not write into it.
     let foreign = d.join("foreign");
     std::fs::create_dir_all(&foreign).unwrap();
@@ -478,6 +483,13 @@ fn bad_input_is_one_line_with_its_exit_code_and_leaves_nothing() {
             "bus id 'x/y'",
         ),
         // files and folders
+        case(
+            "scenario-link-loop",
+            dir,
+            &["run", "--bus", "{bus}", "--scenario", &looped],
+            1,
+            "Too many levels of symbolic links",
+        ),
         case(
             "export",
             dir,

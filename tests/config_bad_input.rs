@@ -61,19 +61,19 @@ fn a_bad_scenario_field_is_one_line_naming_file_field_range_and_unit() {
             "r-negative",
             motor("r_ohm = -7.0"),
             1,
-            "motor.r_ohm = -7 must be in (0, 1000] Ω",
+            "motor.r_ohm = -7 must be in [0.000001, 1000] Ω",
         ),
         (
             "r-huge",
             motor("r_ohm = 1e300"),
             1,
-            "motor.r_ohm = 1e300 must be in (0, 1000] Ω",
+            "motor.r_ohm = 1e300 must be in [0.000001, 1000] Ω",
         ),
         (
             "l-negative",
             motor("l_d_h = -0.01"),
             1,
-            "motor.l_d_h = -0.01 must be in (0, 10] H",
+            "motor.l_d_h = -0.01 must be in [0.000000001, 10] H",
         ),
         (
             "j-zero",
@@ -88,10 +88,16 @@ fn a_bad_scenario_field_is_one_line_naming_file_field_range_and_unit() {
             "motor.j_kgm2 = 0.000000000001 must be in [0.0000000001, 1000000000] kg·m²",
         ),
         (
+            "psi-tiny",
+            motor("psi_pm_wb = 1e-100"),
+            1,
+            "motor.psi_pm_wb = 1e-100 must be in [0.000001, 100] Wb",
+        ),
+        (
             "imax-huge",
             motor("i_max_a = 1e300"),
             1,
-            "motor.i_max_a = 1e300 must be in (0, 100000] A",
+            "motor.i_max_a = 1e300 must be in [0.001, 100000] A",
         ),
         (
             "l-string",

@@ -58,8 +58,10 @@ pub(crate) fn service(name: &str, spec: &str) -> Result<String> {
 }
 
 pub(crate) fn seconds(v: &str, what: &str, spec: &str) -> Result<f64> {
+    // One unit at most: `0.5s`, not `0.5sss`.
     let x: f64 = v
-        .trim_end_matches('s')
+        .strip_suffix('s')
+        .unwrap_or(v)
         .parse()
         .map_err(|_| anyhow!("fault '{spec}': {what} '{v}' is not a number of seconds"))?;
     if !(x.is_finite() && x >= 0.0) {
@@ -581,6 +583,12 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("not a number"));
+        // One unit at most.
+        assert!(parse("kill:plant@0.01s").is_ok());
+        assert!(parse("kill:plant@0.01sss")
+            .unwrap_err()
+            .to_string()
+            .contains("'0.01sss' is not a number of seconds"));
         assert!(parse("explode:plant@1")
             .unwrap_err()
             .to_string()

@@ -614,3 +614,41 @@ fn in_process_a_user_stage_is_refused_before_anything_is_made() {
     assert_clean(&bus);
     remove_scratch(&out);
 }
+
+/// An executable whose `--describe` answer gives its stage another rate than the stage runs
+/// at (a wrapper that rewrote it, say): the drive, planned on the answer, would wait for
+/// samples that never come; the host refuses to start instead, naming both rates.
+#[test]
+fn a_describe_answer_that_differs_from_the_stage_is_refused_at_start_up() {
+    let dir = std::env::temp_dir().join(format!("drivelab-posloop-lying-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let wrapper = dir.join("lying.sh");
+    std::fs::write(
+        &wrapper,
+        format!(
+            "#!/bin/sh\nfor a in \"$@\"; do [ \"$a\" = --describe ] && {{ '{exe}' \"$@\" | sed 's/\"divider\":[0-9]*/\"divider\":7/'; exit 0; }}; done\nexec '{exe}' \"$@\"\n",
+            exe = EXAMPLE.exe
+        ),
+    )
+    .unwrap();
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(&wrapper, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let exec = format!("exec = {:?}", wrapper.to_str().unwrap());
+    let (o, out, bus) = EXAMPLE.launch(
+        "lying",
+        &["--clock", "lockstep", "--duration", "0.05"],
+        &[(EXAMPLE.exec_line, &exec)],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.lines().any(|l| l.starts_with("position-loop: error: stage 'position-loop' runs every ")
+            && l.ends_with(
+                " sample(s), but the drive was planned on every 7 (its executable's --describe answer): the answer and the stage differ"
+            )),
+        "{err}"
+    );
+    assert_clean(&bus);
+    remove_scratch(&out);
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -115,7 +115,7 @@ pub enum Side {
 pub fn config(side: Side, endpoint: &str, file: Option<&Path>) -> Result<zenoh::Config> {
     let mut c = match file {
         Some(p) => zenoh::Config::from_file(p)
-            .map_err(|e| anyhow!("zenoh config {}: {}", p.display(), tidy(&e.to_string())))?,
+            .map_err(|e| anyhow!("{}", config_error(&p.display().to_string(), &e.to_string())))?,
         None => zenoh::Config::default(),
     };
     let set = |c: &mut zenoh::Config, key: &str, value: &str| {
@@ -189,6 +189,31 @@ fn reason(text: &str) -> String {
             .to_string()
     } else {
         text
+    }
+}
+
+/// Zenoh's error about configuration file `file` in one line: a JSON5 error, which Zenoh
+/// gives in its debug form (`JSON error: Message { msg: "…", location: Some(Location {
+/// line: 1, column: 64 }) }`), as `FILE:LINE:COLUMN: message`; anything else tidied.
+fn config_error(file: &str, text: &str) -> String {
+    let text = tidy(text);
+    let msg = text
+        .split_once("msg: \"")
+        .and_then(|(_, rest)| rest.split_once("\", location: "));
+    let Some((msg, location)) = msg else {
+        return format!("zenoh config {file}: {text}");
+    };
+    let number = |key: &str| -> Option<&str> {
+        let after = location.split_once(key)?.1;
+        let end = after
+            .find(|c: char| !c.is_ascii_digit())
+            .unwrap_or(after.len());
+        Some(&after[..end]).filter(|d| !d.is_empty())
+    };
+    let msg = msg.replace("\\\"", "\"");
+    match (number("line: "), number("column: ")) {
+        (Some(l), Some(c)) => format!("zenoh config {file}:{l}:{c}: {msg}"),
+        _ => format!("zenoh config {file}: {msg}"),
     }
 }
 
@@ -333,6 +358,31 @@ mod tests {
              --zenoh-listen on that address?)"
         );
         assert_eq!(reason(e), tidy(e));
+        assert_eq!(
+            config_error(
+                "extra.json5",
+                "JSON error: Message { msg: \"unknown field `bogus_key`, expected one of `id`, `mode`\", location: Some(Location { line: 1, column: 64 }) }"
+            ),
+            "zenoh config extra.json5:1:64: unknown field `bogus_key`, expected one of `id`, `mode`"
+        );
+        assert_eq!(
+            config_error("c.json5", "no such file"),
+            "zenoh config c.json5: no such file"
+        );
+        // Zenoh's own error for a key it does not know, through `config`.
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("extra.json5");
+        std::fs::write(&f, "{\n  bogus_key: 1,\n}\n").unwrap();
+        let e = config(Side::Connect, "tcp/127.0.0.1:7447", Some(&f))
+            .unwrap_err()
+            .to_string();
+        let want = format!("zenoh config {}:2:", f.display());
+        assert!(
+            e.starts_with(&want)
+                && e.contains(": unknown field `bogus_key`")
+                && !e.contains("Message {"),
+            "{e}"
+        );
     }
 
     #[test]

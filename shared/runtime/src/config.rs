@@ -425,18 +425,27 @@ impl MotorSpec {
 /// nonsense (a typo, a unit slip, a huge number) is refused.
 fn motor_ranges(m: &MotorParams) -> [(&'static str, f64, Option<f64>, f64, &'static str); 9] {
     [
-        ("r_ohm", m.r_ohm, None, 1e3, "Ω"),
-        ("l_d_h", m.l_d_h, None, 10.0, "H"),
-        ("l_q_h", m.l_q_h, None, 10.0, "H"),
-        ("psi_pm_wb", m.psi_pm_wb, None, 100.0, "Wb"),
+        // Each floor lies far below any real machine's figure (a micro-motor's flux linkage
+        // is about 1e-4 Wb, a large machine's resistance milliohms): what is below is a slip
+        // (a unit, an exponent) that would divide the designs by nearly zero.
+        ("r_ohm", m.r_ohm, Some(1e-6), 1e3, "Ω"),
+        ("l_d_h", m.l_d_h, Some(1e-9), 10.0, "H"),
+        ("l_q_h", m.l_q_h, Some(1e-9), 10.0, "H"),
+        ("psi_pm_wb", m.psi_pm_wb, Some(1e-6), 100.0, "Wb"),
         // Generous: a rotor held still (a locked-rotor test) is modelled by a huge inertia;
         // 1e-10 kg·m² (0.001 g·cm²) is about the rotor of the smallest micro-motors, so
         // what is below is a slip (a unit, an exponent), not a motor.
         ("j_kgm2", m.j_kgm2, Some(1e-10), 1e9, "kg·m²"),
         ("b_nms", m.b_nms, Some(0.0), 1e3, "N·m·s/rad"),
-        ("i_max_a", m.i_max_a, None, 1e5, "A"),
-        ("omega_rated_rad_s", m.omega_rated_rad_s, None, 1e5, "rad/s"),
-        ("t_rated_nm", m.t_rated_nm, None, 1e6, "N·m"),
+        ("i_max_a", m.i_max_a, Some(1e-3), 1e5, "A"),
+        (
+            "omega_rated_rad_s",
+            m.omega_rated_rad_s,
+            Some(1e-3),
+            1e5,
+            "rad/s",
+        ),
+        ("t_rated_nm", m.t_rated_nm, Some(1e-6), 1e6, "N·m"),
     ]
 }
 
@@ -1873,7 +1882,13 @@ fn resolve_scenario_path(name_or_path: &str) -> Result<PathBuf, String> {
                 "scenario {name_or_path} is not a regular file (a scenario is a .toml file)"
             ))
         } else {
-            Err(format!("scenario file {name_or_path} does not exist"))
+            // A dangling link or a loop of links "does not exist" to `exists`: say which.
+            match std::fs::metadata(p) {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                    Err(format!("scenario file {name_or_path}: {e}"))
+                }
+                _ => Err(format!("scenario file {name_or_path} does not exist")),
+            }
         };
     }
     if let Some(f) = find_named(&scenario_dirs(), name_or_path) {
@@ -2240,26 +2255,26 @@ preset = "kyslan2015"
                 swap("preset = \"kyslan2015\"", "r_ohm = 1.0"),
                 "motor.l_d_h is required",
             ),
-            (tail("r_ohm = -1.0"), "motor.r_ohm = -1 must be in (0, 1000] Ω"),
+            (tail("r_ohm = -1.0"), "motor.r_ohm = -1 must be in [0.000001, 1000] Ω"),
             (tail("b_nms = -1.0"), "motor.b_nms = -1 must be in [0, 1000] N·m·s/rad"),
             (tail("pole_pairs = 0"), "motor.pole_pairs = 0 must be in 1..=64"),
             // Physically nonsense values, each the only change.
-            (tail("r_ohm = 1e300"), "motor.r_ohm = 1e300 must be in (0, 1000] Ω"),
-            (tail("l_d_h = nan"), "motor.l_d_h = NaN must be in (0, 10] H"),
-            (tail("l_q_h = -0.004"), "motor.l_q_h = -0.004 must be in (0, 10] H"),
-            (tail("psi_pm_wb = inf"), "motor.psi_pm_wb = inf must be in (0, 100] Wb"),
+            (tail("r_ohm = 1e300"), "motor.r_ohm = 1e300 must be in [0.000001, 1000] Ω"),
+            (tail("l_d_h = nan"), "motor.l_d_h = NaN must be in [0.000000001, 10] H"),
+            (tail("l_q_h = -0.004"), "motor.l_q_h = -0.004 must be in [0.000000001, 10] H"),
+            (tail("psi_pm_wb = inf"), "motor.psi_pm_wb = inf must be in [0.000001, 100] Wb"),
             (tail("j_kgm2 = 0.0"), "motor.j_kgm2 = 0 must be in [0.0000000001, 1000000000] kg·m²"),
             (
                 tail("j_kgm2 = 1e-12"),
                 "motor.j_kgm2 = 0.000000000001 must be in [0.0000000001, 1000000000] kg·m²",
             ),
             (tail("b_nms = 1e300"), "motor.b_nms = 1e300 must be in [0, 1000] N·m·s/rad"),
-            (tail("i_max_a = 1e300"), "motor.i_max_a = 1e300 must be in (0, 100000] A"),
+            (tail("i_max_a = 1e300"), "motor.i_max_a = 1e300 must be in [0.001, 100000] A"),
             (
                 tail("omega_rated_rad_s = 1e300"),
-                "motor.omega_rated_rad_s = 1e300 must be in (0, 100000] rad/s",
+                "motor.omega_rated_rad_s = 1e300 must be in [0.001, 100000] rad/s",
             ),
-            (tail("t_rated_nm = -1.0"), "motor.t_rated_nm = -1 must be in (0, 1000000] N·m"),
+            (tail("t_rated_nm = -1.0"), "motor.t_rated_nm = -1 must be in [0.000001, 1000000] N·m"),
             (
                 tail("[sensors]\nencoder_counts_per_rev = 1"),
                 "sensors.encoder_counts_per_rev = 1 must be 0 (an ideal encoder) or at least 4",

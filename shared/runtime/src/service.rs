@@ -606,6 +606,22 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
         .map(|s| make_stage(s, &sc, user))
         .collect::<Result<_>>()?;
     phase("stages");
+    // The launcher planned the drive on the stages' declarations as `--describe` gave them:
+    // a stage that runs at another rate than declared would wait for samples never coming.
+    for s in &stages {
+        if let Some(p) = plan
+            .producers
+            .iter()
+            .find(|p| p.stage == s.name() && p.divider != s.divider())
+        {
+            bail!(
+                "stage '{}' runs every {} sample(s), but the drive was planned on every {} (its executable's --describe answer): the answer and the stage differ",
+                s.name(),
+                s.divider(),
+                p.divider
+            );
+        }
+    }
     for s in &stages {
         for w in s.warnings() {
             crate::errln!("{}: warning: {w}", s.name());

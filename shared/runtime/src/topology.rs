@@ -414,6 +414,12 @@ pub fn resolve(
     let mut producers: Vec<Producer> = Vec::new();
     for (pi, (_, stages)) in processes.iter().enumerate() {
         for st in stages {
+            if st.divider == 0 {
+                return Err(format!(
+                    "stage '{}' declares a rate divider of 0 (it runs every N-th sample, N at least 1)",
+                    st.name
+                ));
+            }
             for &t in &st.outputs {
                 if let Some(other) = producers.iter().find(|p| p.topic == t) {
                     return Err(format!(
@@ -427,7 +433,7 @@ pub fn resolve(
                     topic: t,
                     stage: st.name.clone(),
                     process: pi,
-                    divider: st.divider.max(1),
+                    divider: st.divider,
                 });
             }
         }
@@ -885,6 +891,23 @@ mod tests {
         );
         // A fallback input may be absent: the stage runs without it.
         with(InputSpec::latest(TopicId::Wref, 1, 2, OnStale::Fallback)).unwrap();
+        // A rate divider of 0 is refused, not read as 1.
+        let e = resolve(&topo, &mut |_, s| {
+            if s == "mine" {
+                return Ok(StageInfo {
+                    name: "mine".into(),
+                    inputs: vec![InputSpec::trigger(TopicId::Est, 1, OnStale::Fallback)],
+                    outputs: vec![TopicId::Wref],
+                    divider: 0,
+                });
+            }
+            builtin_info(&sc, s).ok_or_else(|| format!("unknown stage '{s}'"))
+        })
+        .unwrap_err();
+        assert_eq!(
+            e,
+            "stage 'mine' declares a rate divider of 0 (it runs every N-th sample, N at least 1)"
+        );
     }
 
     #[test]
