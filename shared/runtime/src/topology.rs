@@ -482,6 +482,20 @@ pub fn resolve(
                     ));
                 }
             }
+            let triggers: Vec<&str> = st
+                .inputs
+                .iter()
+                .filter(|i| i.role == Role::Trigger)
+                .map(|i| i.topic.name())
+                .collect();
+            if triggers.len() > 1 {
+                return Err(format!(
+                    "stage '{}' declares {} triggers ({}): a stage runs on one, and reads the others as latest values",
+                    st.name,
+                    triggers.len(),
+                    triggers.join(", ")
+                ));
+            }
         }
     }
     // The same-sample graph (delay 0 edges) must have no loop: order all stages.
@@ -907,6 +921,12 @@ mod tests {
         assert_eq!(
             e,
             "stage 'mine' declares a rate divider of 0 (it runs every N-th sample, N at least 1)"
+        );
+        // One trigger a stage.
+        let e = with(InputSpec::trigger(TopicId::Meas, 1, OnStale::Fallback)).unwrap_err();
+        assert_eq!(
+            e,
+            "stage 'mine' declares 2 triggers (est, meas): a stage runs on one, and reads the others as latest values"
         );
     }
 
