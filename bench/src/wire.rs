@@ -24,7 +24,7 @@ pub unsafe trait Wire: Copy + Default + 'static {}
 
 // SAFETY: repr(C), fields u64/u64/u64/u32/u32 (32 bytes, no padding: asserted below).
 unsafe impl Wire for Header {}
-// SAFETY: repr(C), a Header then 13 f64 (no padding: asserted below).
+// SAFETY: repr(C), a Header then 6 f64 (no padding: asserted below).
 unsafe impl Wire for Measurement {}
 // SAFETY: repr(C), a Header then 2 f64 (no padding: asserted below).
 unsafe impl Wire for Estimate {}

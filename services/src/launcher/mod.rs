@@ -1908,6 +1908,9 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         for w in drivelab_runtime::topology::placement_warnings(&here) {
             crate::errln!("drivelab: warning: {w}");
         }
+        for w in topo.timed_waits() {
+            crate::errln!("drivelab: warning: {w}");
+        }
     }
     let out = out.canonicalize()?;
     let sc_path = out.join("scenario.toml");

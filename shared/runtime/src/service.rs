@@ -151,6 +151,38 @@ impl TopologyPlan {
             .position(|p| p.stages.iter().any(|s| s == stage))
     }
 
+    /// One line per stage that waits in real time for a trigger from another process after
+    /// its own process's first stage has run (`{plant, current-loop}` beside `{observer,
+    /// speed-loop}`): its host waits for that trigger with a timeout of a quarter sample, a
+    /// timer every sample, where the other waits have none (docs/architecture.md,
+    /// "Real-time rules"). No shipped topology has one.
+    pub fn timed_waits(&self) -> Vec<String> {
+        let mut lines = Vec::new();
+        for (pi, p) in self.processes.iter().enumerate() {
+            for name in p.stages.iter().skip(1) {
+                let Some(st) = self.stages.iter().find(|s| &s.name == name) else {
+                    continue;
+                };
+                for i in st.inputs.iter().filter(|i| i.role == Role::Trigger) {
+                    let Some(src) = self.producers.iter().find(|x| x.topic == i.topic) else {
+                        continue;
+                    };
+                    if src.process != pi {
+                        lines.push(format!(
+                            "process '{}': stage '{name}' is triggered by '{}' from process '{}' after '{}' has run: in real time it waits for it with a timer every sample; host it with '{}' or first in a process of its own",
+                            p.name,
+                            i.topic.name(),
+                            self.processes[src.process].name,
+                            p.stages[0],
+                            src.stage
+                        ));
+                    }
+                }
+            }
+        }
+        lines
+    }
+
     /// The topics that the stages `stages` publish and read back while they rejoin (their
     /// own-output rejoin slots, docs/architecture.md, "Bumpless rejoin"), each once.
     pub fn own_rejoin_topics(&self, stages: &[String]) -> Vec<TopicId> {

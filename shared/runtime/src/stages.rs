@@ -64,11 +64,13 @@ pub struct PlantStage {
     pub plant: Plant,
     /// The model as built (a copy made at set-up), for a rejoin after the model has moved.
     pristine: Plant,
-    /// The model has moved since it was built: it stepped, or a rejoin coasted it. The host
-    /// rejoins a restarted plant before its first step, once (a plant never answers
-    /// `NeedMore`), so that rejoin copies nothing and allocates nothing at real-time
-    /// priority; only a second aim (a test's) clones `pristine`.
-    moved: bool,
+    /// The model has stepped since it was built.
+    stepped: bool,
+    /// A rejoin coasted the model: from the last true state of this sample, up to that one.
+    /// The host rejoins a restarted plant before its first step, and aims again at a later
+    /// sample when coasting took it past the one aimed at: each aim coasts on from where
+    /// the last stopped, so no aim copies the model or allocates at real-time priority.
+    coasted: Option<(u64, u64)>,
 }
 
 const PLANT_IN: &[InputSpec] = &[InputSpec::latest(TopicId::Cmd, 1, 0, OnStale::Fallback)];
@@ -81,7 +83,8 @@ impl PlantStage {
         Self {
             pristine: plant.clone(),
             plant,
-            moved: false,
+            stepped: false,
+            coasted: None,
         }
     }
 }
@@ -97,7 +100,7 @@ impl Stage for PlantStage {
         PLANT_OUT
     }
     fn step(&mut self, k: u64, inputs: &Inbox, out: &mut Outbox) {
-        self.moved = true;
+        self.stepped = true;
         // A missing command (None) is held, then replaced by the safe state (Plant::sample).
         out.push(Msg::Meas(self.plant.sample(k, inputs.cmd())));
         out.push(Msg::Truth(*self.plant.truth()));
@@ -110,11 +113,22 @@ impl Stage for PlantStage {
         // it, the motor integrated through the downtime under the inverter's hold and safe
         // state (the launcher rebuilds those samples for the trace the same way).
         if let Some(t) = inputs.newest_truth() {
-            if self.moved {
-                self.plant = self.pristine.clone();
+            let k0 = t.hdr.k;
+            match self.coasted {
+                // Aiming again, later, from the same state: on from where the last aim
+                // stopped (bit for bit a coast from the start).
+                Some((from, at)) if from == k0 && at <= k && !self.stepped => {
+                    self.plant.coast_on(at, k, |_| {});
+                }
+                moved => {
+                    if moved.is_some() || self.stepped {
+                        self.plant = self.pristine.clone();
+                        self.stepped = false;
+                    }
+                    self.plant.coast(t, k, |_| {});
+                }
             }
-            self.moved = true;
-            self.plant.coast(t, k, |_| {});
+            self.coasted = Some((k0, k.max(k0 + 1)));
         }
         Rejoin::Done
     }
@@ -1376,9 +1390,10 @@ mod tests {
         assert_eq!(again.plant.x, s.plant.x);
     }
 
-    /// A restarted plant's rejoin, the host's one call before its first step, runs in the
-    /// real-time loop: it allocates nothing (the scenario's load steps make a copy of the
-    /// model allocate), and it leaves the model where coasting a fresh one by hand does.
+    /// A restarted plant's rejoin, before its first step and again at a later sample each
+    /// time coasting took it past the one aimed at, runs at real-time priority: it allocates
+    /// nothing (the scenario's load steps make a copy of the model allocate), and three aims
+    /// leave the model where one coast of a fresh one to the last sample does, bit for bit.
     #[test]
     fn a_restarted_plants_rejoin_allocates_nothing() {
         let sc = scenario("kyslan-pi");
@@ -1387,12 +1402,19 @@ mod tests {
         let mut ib = Inbox::default();
         ib.put(Msg::Truth(last));
         let mut s = PlantStage::new(&sc);
-        let (r, allocations) = crate::alloc_count::allocations_during(|| s.rejoin(800, &ib));
-        assert_eq!((r, allocations), (Rejoin::Done, 0), "rejoin, allocations");
+        // The host aims again at later samples when coasting took it past one.
+        let (r, allocations) = crate::alloc_count::allocations_during(|| {
+            [s.rejoin(700, &ib), s.rejoin(760, &ib), s.rejoin(800, &ib)]
+        });
+        assert_eq!(
+            (r, allocations),
+            ([Rejoin::Done; 3], 0),
+            "rejoin, allocations"
+        );
         let mut by_hand = PlantStage::new(&sc);
         by_hand.plant.coast(&last, 800, |_| {});
-        assert_eq!(s.plant.x, by_hand.plant.x);
-        assert_eq!(s.plant.truth().hdr.k, by_hand.plant.truth().hdr.k);
+        assert_eq!(s.plant.x, by_hand.plant.x, "three aims against one coast");
+        assert_eq!(s.plant.truth(), by_hand.plant.truth());
     }
 
     #[test]

@@ -805,6 +805,33 @@ mod tests {
         assert_eq!(resolve_builtin(&one.process).unwrap().processes.len(), 1);
     }
 
+    /// A stage that waits in real time, after its process's first stage, for a trigger from
+    /// another process is named (its host waits with a timer every sample); no shipped
+    /// topology has one.
+    #[test]
+    fn a_trigger_from_another_process_after_the_first_stage_is_named() {
+        use crate::service::TopologyPlan;
+        let r = resolve_builtin(&procs(&[
+            ("p", &["plant", "current-loop"]),
+            ("o", &["observer", "speed-loop"]),
+        ]))
+        .unwrap();
+        assert_eq!(
+            TopologyPlan::from_resolved(&r).timed_waits(),
+            ["process 'p': stage 'current-loop' is triggered by 'est' from process 'o' after 'plant' has run: in real time it waits for it with a timer every sample; host it with 'observer' or first in a process of its own"]
+        );
+        for name in list_topologies() {
+            let (t, _) = load(&name).unwrap();
+            let Ok(r) = resolve_builtin(&t.process) else {
+                continue;
+            };
+            assert!(
+                TopologyPlan::from_resolved(&r).timed_waits().is_empty(),
+                "{name}"
+            );
+        }
+    }
+
     #[test]
     fn order_in_a_process_follows_the_data_graph() {
         let r = resolve_builtin(&procs(&[

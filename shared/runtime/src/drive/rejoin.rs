@@ -35,14 +35,21 @@ impl Plant {
     /// sample k0 < k < k_to, flagged [`FLAG_PLANT_DOWN`]. Depends only on `last` and `k_to`:
     /// the launcher rebuilds the same samples for the trace.
     pub fn coast(&mut self, last: &PlantTruth, k_to: u64, mut each: impl FnMut(&PlantTruth)) {
-        use crate::messages::FLAG_PLANT_DOWN;
         let k0 = last.hdr.k;
         self.restore(last);
         // Sample k0 as it was: its own command (the restored voltage) was fresh.
         self.sample(k0, None);
         self.stale_run = 0;
         self.advance();
-        for k in k0 + 1..k_to {
+        self.coast_on(k0 + 1, k_to, &mut each);
+    }
+
+    /// Coasts on from sample `k_from`, where an earlier [`Plant::coast`] (or this) left the
+    /// model, to `k_to`: the same steps as one coast to `k_to`, so the model ends bit for bit
+    /// where that one would.
+    pub fn coast_on(&mut self, k_from: u64, k_to: u64, mut each: impl FnMut(&PlantTruth)) {
+        use crate::messages::FLAG_PLANT_DOWN;
+        for k in k_from..k_to {
             self.sample(k, None);
             self.truth.hdr.flags |= FLAG_PLANT_DOWN;
             each(&self.truth);
