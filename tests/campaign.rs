@@ -516,6 +516,12 @@ fn a_bad_campaign_is_a_one_line_error_before_any_run() {
             1,
             "--audit-syscalls audits the stage hosts' loops",
         ),
+        // One scenario file named two ways.
+        (
+            &format!("name = \"x\"\nscenarios = [\"kyslan-pi\", \"{SCENARIOS}/kyslan-pi.toml\"]\n"),
+            1,
+            "scenarios: 'kyslan-pi' and ",
+        ),
         // A [sweep] makes `kill:plant@0.1`.
         (
             "name = \"x\"\nscenarios = [\"kyslan-pi\"]\nfaults = [[\"kill:plant@0.10\"]]\n[sweep]\nkinds = [\"kill\"]\nstages = [\"plant\"]\nat_s = [0.1]\n",

@@ -367,8 +367,21 @@ fn load(file: &Path) -> Result<Loaded> {
     };
     c.topology = c.topology.as_ref().map(beside);
     let mut scenarios = Vec::new();
+    // The same file named two ways (`kyslan-pi` and `scenarios/kyslan-pi.toml`) is the same
+    // scenario listed twice.
+    let mut files: Vec<(PathBuf, String)> = Vec::new();
     for s in &c.scenarios {
         let (written, s) = (s.clone(), beside(s));
+        if let Ok((_, path)) = drivelab_runtime::config::Scenario::load(&s) {
+            let path = path.canonicalize().unwrap_or(path);
+            if let Some((_, first)) = files.iter().find(|(p, _)| *p == path) {
+                return Err(bad(format!(
+                    "scenarios: '{first}' and '{written}' are the same file ({}), listed twice",
+                    path.display()
+                )));
+            }
+            files.push((path, written.clone()));
+        }
         let mut sc = launcher::load_scenario(&s, None)
             .map_err(|e| anyhow!("campaign {}: {e:#}", file.display()))?;
         if let Some(d) = c.duration_s {
