@@ -149,6 +149,14 @@ fn bad_topologies_fail_with_one_line_naming_the_problem_and_leave_nothing() {
         .with_file_name("drivelab-host")
         .display()
         .to_string();
+    // An executable whose --describe answer declares one stage twice.
+    let twice = dir.join("twice.sh");
+    let mine = r#"{"name":"mine","inputs":[{"topic":"est","role":"trigger","delay":0,"max_age":1,"on_stale":"fallback"}],"outputs":[],"divider":1}"#;
+    std::fs::write(&twice, format!("#!/bin/sh\necho '[{mine},{mine}]'\n")).unwrap();
+    {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(&twice, std::fs::Permissions::from_mode(0o755)).unwrap();
+    }
     let cases = [
         (
             "twice.toml",
@@ -203,6 +211,15 @@ fn bad_topologies_fail_with_one_line_naming_the_problem_and_leave_nothing() {
                 "\"plant\", \"observer\", \"current-loop\", \"speed-loop\"",
             ) + "exec = \"/bin/true\"\n",
             "process 'a': /bin/true --describe: not a stage list",
+        ),
+        (
+            "twice.toml",
+            p(
+                "a",
+                "\"plant\", \"observer\", \"current-loop\", \"speed-loop\"",
+            ) + &p("b", "\"mine\"")
+                + &format!("exec = \"{}\"\n", twice.display()),
+            "--describe: stage 'mine' is declared twice",
         ),
         (
             "standby.toml",

@@ -1427,7 +1427,15 @@ fn ask_describe(
             if said.is_empty() { "" } else { ": " },
         );
     }
-    serde_json::from_slice(&stdout).map_err(|e| anyhow!("{exe} --describe: not a stage list ({e})"))
+    let info: Vec<StageInfo> = serde_json::from_slice(&stdout)
+        .map_err(|e| anyhow!("{exe} --describe: not a stage list ({e})"))?;
+    // Which declaration would a process hosting it get? Neither: the answer is refused.
+    for (i, st) in info.iter().enumerate() {
+        if info[..i].iter().any(|o| o.name == st.name) {
+            bail!("{exe} --describe: stage '{}' is declared twice", st.name);
+        }
+    }
+    Ok(info)
 }
 
 /// The warning for a real-time run that missed most of its deadlines without a fault: the
