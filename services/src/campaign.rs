@@ -372,18 +372,16 @@ fn load(file: &Path) -> Result<Loaded> {
     let mut files: Vec<(PathBuf, String)> = Vec::new();
     for s in &c.scenarios {
         let (written, s) = (s.clone(), beside(s));
-        if let Ok((_, path)) = drivelab_runtime::config::Scenario::load(&s) {
-            let path = path.canonicalize().unwrap_or(path);
-            if let Some((_, first)) = files.iter().find(|(p, _)| *p == path) {
-                return Err(bad(format!(
-                    "scenarios: '{first}' and '{written}' are the same file ({}), listed twice",
-                    path.display()
-                )));
-            }
-            files.push((path, written.clone()));
+        let (mut sc, path) = drivelab_runtime::config::Scenario::load(&s)
+            .map_err(|e| anyhow!("campaign {}: {e}", file.display()))?;
+        let path = path.canonicalize().unwrap_or(path);
+        if let Some((_, first)) = files.iter().find(|(p, _)| *p == path) {
+            return Err(bad(format!(
+                "scenarios: '{first}' and '{written}' are the same file ({}), listed twice",
+                path.display()
+            )));
         }
-        let mut sc = launcher::load_scenario(&s, None)
-            .map_err(|e| anyhow!("campaign {}: {e:#}", file.display()))?;
+        files.push((path, written.clone()));
         if let Some(d) = c.duration_s {
             launcher::set_duration(&mut sc, d).map_err(|e| {
                 anyhow!("campaign {}: duration_s = {d} for {s}: {e}", file.display())
@@ -549,7 +547,6 @@ fn rt_refusals(s: &Value) -> Option<String> {
     })
 }
 
-/// The summary.json of run folder `out`, if it wrote one.
 /// The summary in run folder `out`, if one was written at or after `since` (by this run: a
 /// folder the run refused may hold another's).
 fn run_summary(out: &Path, since: std::time::SystemTime) -> Option<Value> {
@@ -560,11 +557,16 @@ fn run_summary(out: &Path, since: std::time::SystemTime) -> Option<Value> {
     serde_json::from_slice(&std::fs::read(path).ok()?).ok()
 }
 
-/// Runs one case.
-fn run_case(c: &CampaignFile, case: &Case, a: &CampaignArgs, out: &Path) -> CaseResult {
+/// Runs one case, started at `since`.
+fn run_case(
+    c: &CampaignFile,
+    case: &Case,
+    a: &CampaignArgs,
+    out: &Path,
+    since: std::time::SystemTime,
+) -> CaseResult {
     let dir = out.join("runs").join(format!("{:03}", case.number));
     let started = Instant::now();
-    let since = std::time::SystemTime::now();
     let result = (|| -> Result<Value> {
         let o = options(c, case, a.no_rt, a.plots, Some(dir.clone()))?;
         Ok(launcher::run(&o)?.summary)
@@ -1039,7 +1041,7 @@ pub fn run(a: &CampaignArgs) -> Result<u8> {
         }
         bar.set_message(case.title());
         let since = std::time::SystemTime::now();
-        let r = run_case(&c, case, a, &out);
+        let r = run_case(&c, case, a, &out, since);
         if let Some(e) = r
             .error
             .as_ref()

@@ -642,9 +642,9 @@ fn run_host(args: HostArgs, user: &[(&'static str, StageFactory)]) -> Result<()>
     // a stage that runs at another rate than declared would wait for samples never coming.
     for s in &stages {
         if let Some(p) = plan
-            .producers
+            .stages
             .iter()
-            .find(|p| p.stage == s.name() && p.divider != s.divider())
+            .find(|p| p.name == s.name() && p.divider != s.divider())
         {
             bail!(
                 "stage '{}' runs every {} sample(s), but the drive was planned on every {} (its executable's --describe answer): the answer and the stage differ",
