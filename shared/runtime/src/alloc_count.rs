@@ -7,6 +7,7 @@ use std::cell::Cell;
 thread_local! {
     // `const` initialisation: no lazy registration, so reading it never allocates itself.
     static ALLOCATIONS: Cell<u64> = const { Cell::new(0) };
+    static FREES: Cell<u64> = const { Cell::new(0) };
 }
 
 struct Counting;
@@ -31,6 +32,7 @@ unsafe impl GlobalAlloc for Counting {
         unsafe { System.realloc(ptr, layout, new_size) }
     }
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        FREES.with(|c| c.set(c.get() + 1));
         // SAFETY: `ptr` was allocated by `System` (through this allocator) with `layout`.
         unsafe { System.dealloc(ptr, layout) }
     }
@@ -46,10 +48,20 @@ pub fn allocations_during<R>(f: impl FnOnce() -> R) -> (R, u64) {
     (r, ALLOCATIONS.with(Cell::get) - before)
 }
 
+/// Allocations (as [`allocations_during`]) and frees made by the current thread while `f`
+/// runs.
+pub fn allocations_and_frees_during<R>(f: impl FnOnce() -> R) -> (R, u64, u64) {
+    let before = FREES.with(Cell::get);
+    let (r, allocations) = allocations_during(f);
+    (r, allocations, FREES.with(Cell::get) - before)
+}
+
 #[test]
 fn the_counter_sees_an_allocation_and_nothing_else() {
     let (v, n) = allocations_during(|| vec![1u8; 16]);
     assert_eq!((v.len(), n), (16, 1));
     let (_, n) = allocations_during(|| 2 + 2);
     assert_eq!(n, 0);
+    let (_, n, f) = allocations_and_frees_during(|| drop(vec![1u8; 16]));
+    assert_eq!((n, f), (1, 1));
 }

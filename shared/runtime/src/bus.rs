@@ -522,7 +522,8 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Sender<T> {
             .map_err(|e| anyhow!("update connections: {e:?}"))
     }
 
-    /// Copies `msg` into a loaned sample, sends it and wakes the receivers. No allocation.
+    /// Copies `msg` into a loaned sample, sends it and wakes the receivers. The loan makes
+    /// iceoryx2's one allocation per message (docs/architecture.md, "Real-time rules").
     pub fn send(&self, msg: T) -> Result<()> {
         self.send_waking(msg, false)
     }
@@ -551,8 +552,9 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Sender<T> {
     }
 
     /// Wakes the topic's receivers (and its decimated receivers when `decimated`) without
-    /// sending: the second half of [`Sender::send_waking`]. No allocation; a system call
-    /// only for a word that has sleepers.
+    /// sending: the second half of [`Sender::send_waking`]. It then loans the next message's
+    /// sample (iceoryx2's one allocation per message); a system call only for a word that
+    /// has sleepers.
     pub fn wake(&self, decimated: bool) -> Result<()> {
         match &self.notify {
             Notify::Event(n) => {

@@ -17,7 +17,9 @@
 //! - rejoin: after a restart each stage takes over from the newest inputs;
 //! - counters and histograms per stage, preallocated.
 //!
-//! The loops make no allocation, take no lock, do no logging.
+//! The loops make no allocation, take no lock, do no logging (the bus under a [`Transport`]
+//! allocates one block inside iceoryx2 per message sent: docs/architecture.md, "Real-time
+//! rules").
 
 use crate::inject::{Armed, Inject, InjectKind, InjectObs};
 use crate::messages::{
@@ -2760,6 +2762,70 @@ mod tests {
         assert_eq!(reads[TopicId::Iref.index()], 3 + 1, "{reads:?}");
     }
 
+    /// What a [`Chain`] saw: a command read, a status reported (each with its sample).
+    #[derive(Debug, PartialEq)]
+    enum Event {
+        Read(u64),
+        Status(u64),
+    }
+    /// A chain on the source's core: it answers measurement k with command k at once.
+    #[derive(Default)]
+    struct Chain {
+        cmds: VecDeque<Msg>,
+        events: Vec<Event>,
+    }
+    impl Transport for Chain {
+        fn send(&mut self, msg: &Msg) -> Result<()> {
+            if let Msg::Meas(m) = msg {
+                if !m.hdr.is_end() {
+                    self.cmds.push_back(Msg::Cmd(VoltageCommand {
+                        hdr: header(m.hdr.k, m.hdr.t_sample_ns),
+                        ..Default::default()
+                    }));
+                }
+            }
+            Ok(())
+        }
+        fn try_recv(&mut self, topic: TopicId) -> Result<Option<Msg>> {
+            assert_eq!(topic, TopicId::Cmd, "the plant reads only commands");
+            let m = self.cmds.pop_front();
+            if let Some(m) = &m {
+                self.events.push(Event::Read(m.hdr().k));
+            }
+            Ok(m)
+        }
+        fn pending(&mut self, _topic: TopicId) -> Result<bool> {
+            Ok(!self.cmds.is_empty())
+        }
+        fn wait(&mut self, _topic: TopicId, _timeout: Duration) -> Result<()> {
+            panic!("a real-time source sleeps to its deadlines, it does not wait")
+        }
+        fn status(
+            &mut self,
+            _i: usize,
+            k: u64,
+            _c: &Counters,
+            _h: &StageHists,
+            _cycle: Option<&CycleMonitor>,
+            last: bool,
+        ) -> Result<()> {
+            if !last {
+                self.events.push(Event::Status(k));
+            }
+            Ok(())
+        }
+    }
+    impl Chain {
+        /// A chain with room for `n` samples' commands and events: it allocates nothing
+        /// while a host runs.
+        fn with_room(n: usize) -> Self {
+            Self {
+                cmds: VecDeque::with_capacity(n + 8),
+                events: Vec::with_capacity(2 * n + 8),
+            }
+        }
+    }
+
     /// A real-time source takes the command its next sample reads as soon as the chain has
     /// published it, after its own sample's work and before it sleeps to the next deadline,
     /// not after that deadline: the transport answers measurement k with command k at once
@@ -2769,57 +2835,6 @@ mod tests {
     /// from its fresh command and none counts as late.
     #[test]
     fn a_source_takes_its_next_command_before_it_sleeps() {
-        #[derive(Debug, PartialEq)]
-        enum Event {
-            Read(u64),
-            Status(u64),
-        }
-        #[derive(Default)]
-        struct Chain {
-            cmds: VecDeque<Msg>,
-            events: Vec<Event>,
-        }
-        impl Transport for Chain {
-            fn send(&mut self, msg: &Msg) -> Result<()> {
-                if let Msg::Meas(m) = msg {
-                    if !m.hdr.is_end() {
-                        self.cmds.push_back(Msg::Cmd(VoltageCommand {
-                            hdr: header(m.hdr.k, m.hdr.t_sample_ns),
-                            ..Default::default()
-                        }));
-                    }
-                }
-                Ok(())
-            }
-            fn try_recv(&mut self, topic: TopicId) -> Result<Option<Msg>> {
-                assert_eq!(topic, TopicId::Cmd, "the plant reads only commands");
-                let m = self.cmds.pop_front();
-                if let Some(m) = &m {
-                    self.events.push(Event::Read(m.hdr().k));
-                }
-                Ok(m)
-            }
-            fn pending(&mut self, _topic: TopicId) -> Result<bool> {
-                Ok(!self.cmds.is_empty())
-            }
-            fn wait(&mut self, _topic: TopicId, _timeout: Duration) -> Result<()> {
-                panic!("a real-time source sleeps to its deadlines, it does not wait")
-            }
-            fn status(
-                &mut self,
-                _i: usize,
-                k: u64,
-                _c: &Counters,
-                _h: &StageHists,
-                _cycle: Option<&CycleMonitor>,
-                last: bool,
-            ) -> Result<()> {
-                if !last {
-                    self.events.push(Event::Status(k));
-                }
-                Ok(())
-            }
-        }
         let sc = scenario();
         let n = 40;
         let cfg = HostConfig {
@@ -2848,6 +2863,29 @@ mod tests {
         assert_eq!(reads as u64, n, "each command once: {events:?}");
         let c = &host.stages[0].counters;
         assert_eq!((c.samples, c.late_commands, c.stale_inputs), (n, 0, 0));
+    }
+
+    /// A real-time source (the plant, sleeping to its deadlines, reading each command
+    /// ahead) makes as many allocations in a run of 40 samples as in one of 20: none per
+    /// sample. What it allocates once, before its first sample, is its own business
+    /// (docs/architecture.md, "Real-time rules").
+    #[test]
+    fn a_real_time_source_allocates_nothing_per_sample() {
+        let sc = scenario();
+        let count = |n: u64| {
+            let cfg = HostConfig {
+                samples: n,
+                ..config(&sc)
+            };
+            let mut host = plant_host(&sc, Chain::with_room(n as usize), cfg);
+            let (r, allocations) = crate::alloc_count::allocations_during(|| host.run());
+            r.unwrap();
+            let c = &host.stages[0].counters;
+            assert_eq!((c.samples, c.late_commands), (n, 0), "{n} samples");
+            allocations
+        };
+        let (a20, a40) = (count(20), count(40));
+        assert_eq!(a20, a40, "allocations in 20 samples and in 40");
     }
 
     /// A stop signal from outside (`stop_without_end`) that lands while the source is

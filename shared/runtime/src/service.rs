@@ -1994,4 +1994,132 @@ mod tests {
         assert_eq!(decimation(&plan("two-process")), [0; N_TOPICS]);
         assert_eq!(decimation(&plan("one-process")), [0; N_TOPICS]);
     }
+
+    /// The bus side of the real-time loop allocates one block per message it sends and
+    /// nothing else: the iceoryx2 ports and futex words that a plant and a controller use
+    /// every sample (send and wake, wait, drain, the pokes, the status for the supervisor),
+    /// 200 samples after a warm-up, over a real bus of this process's own. The block is
+    /// iceoryx2 0.10's own: each loan of a sample makes a reference count for it (`Rc`, 48
+    /// bytes), freed when that sample is sent; no call of ours allocates. Every block is
+    /// freed within the window, so the heap does not grow (docs/architecture.md, "Real-time
+    /// rules"). The host around the bus is counted in `host::tests`.
+    #[test]
+    fn the_bus_side_allocates_one_block_per_message_sent_and_frees_it() {
+        let bus = format!("bal{}", std::process::id());
+        let _cleanup = bus::CleanupOnDrop(bus.clone());
+        // A status every 20 samples (a tenth of a simulated second), ten in the count.
+        let mut sc = kyslan_pi();
+        sc.rates.sample_hz = 200.0;
+        let node = bus::node(&bus, "alloc").unwrap();
+        let topics = DriveTopics::open_with(&node, bus::WakeKind::Futex, &bus).unwrap();
+        let waits = |on: &[(TopicId, Wait)]| {
+            let mut w = [Wait::None; N_TOPICS];
+            for &(t, how) in on {
+                w[t.index()] = how;
+            }
+            w
+        };
+        let sends = |on: &[TopicId]| {
+            let mut s = [false; N_TOPICS];
+            for t in on {
+                s[t.index()] = true;
+            }
+            s
+        };
+        // The plant: sends measurements and the truth, polls commands, pokes the observer's
+        // trigger. The controller: woken by measurements, sends commands.
+        let mut plant = BusTransport::open(
+            &topics,
+            &waits(&[(TopicId::Cmd, Wait::Polled)]),
+            &sends(&[TopicId::Meas, TopicId::Truth]),
+            &[TopicId::Meas],
+            false,
+        )
+        .unwrap();
+        plant
+            .status
+            .push(StatusPublisher::new(&node, Some(0), &sc).unwrap());
+        let mut ctrl = BusTransport::open(
+            &topics,
+            &waits(&[(TopicId::Meas, Wait::Woken)]),
+            &sends(&[TopicId::Cmd]),
+            &[],
+            false,
+        )
+        .unwrap();
+        ctrl.status
+            .push(StatusPublisher::new(&node, Some(1), &sc).unwrap());
+        let status_topic = open_plain::<ServiceStatus>(&node, TOPIC_STATUS, 16, 0).unwrap();
+        let supervisor = crate::telemetry::PlainReceiver::new(&status_topic, 16).unwrap();
+        plant.connect().unwrap();
+        ctrl.connect().unwrap();
+        let counters = Counters::default();
+        let hists = StageHists::new(true, 100_000);
+        let hdr = |k: u64| Header {
+            k,
+            t_sample_ns: k * 100_000,
+            ..Default::default()
+        };
+        let mut sample = |k: u64| {
+            let (got, allocations, frees) =
+                crate::alloc_count::allocations_and_frees_during(|| {
+                    plant
+                        .send(&Msg::Meas(Measurement {
+                            hdr: hdr(k),
+                            ..Default::default()
+                        }))
+                        .unwrap();
+                    plant
+                        .send(&Msg::Truth(PlantTruth {
+                            hdr: hdr(k),
+                            ..Default::default()
+                        }))
+                        .unwrap();
+                    ctrl.wait(TopicId::Meas, Duration::from_millis(50)).unwrap();
+                    let _ = ctrl.notified_ns(TopicId::Meas);
+                    let mut got = None;
+                    while ctrl.pending(TopicId::Meas).unwrap() {
+                        got = ctrl.try_recv(TopicId::Meas).unwrap().map(|m| m.hdr().k);
+                    }
+                    ctrl.send(&Msg::Cmd(VoltageCommand {
+                        hdr: hdr(k),
+                        ..Default::default()
+                    }))
+                    .unwrap();
+                    ctrl.status(0, k, &counters, &hists, None, false).unwrap();
+                    let cmd = plant.try_recv(TopicId::Cmd).unwrap().map(|m| m.hdr().k);
+                    if k.is_multiple_of(10) {
+                        plant.poke(TopicId::Meas).unwrap();
+                    }
+                    plant.status(0, k, &counters, &hists, None, false).unwrap();
+                    (got, cmd)
+                });
+            // The supervisor's side, in its own thread in a drive: not counted.
+            let mut statuses = 0;
+            while supervisor.try_recv().unwrap().is_some() {
+                statuses += 1;
+            }
+            assert_eq!(
+                got,
+                (Some(k), Some(k)),
+                "sample {k}: measurement and command"
+            );
+            [allocations, frees, statuses]
+        };
+        for k in 0..50 {
+            sample(k);
+        }
+        let [allocations, frees, statuses] = (50..250)
+            .map(&mut sample)
+            .fold([0; 3], |a, d| [a[0] + d[0], a[1] + d[1], a[2] + d[2]]);
+        assert_eq!(statuses, 20, "two stages' statuses every 20 samples");
+        // Three messages a sample (measurement, truth, command) and the statuses.
+        let sent = 3 * 200 + statuses;
+        assert_eq!(
+            (allocations, frees),
+            (sent, sent),
+            "allocations and frees in 200 samples on the bus, {sent} messages sent"
+        );
+        drop((plant, ctrl, supervisor, status_topic, topics, node));
+    }
 }

@@ -441,7 +441,8 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> PlainSender<T> {
             .map_err(|e| anyhow!("update connections: {e:?}"))
     }
 
-    /// Copies `msg` into a loaned sample and sends it (no wake-up, no allocation).
+    /// Copies `msg` into a loaned sample and sends it (no wake-up; the loan makes iceoryx2's
+    /// one allocation per message, docs/architecture.md, "Real-time rules").
     #[inline]
     pub fn send(&self, msg: &T) -> Result<()> {
         let s = self.0.loan_uninit().map_err(|e| anyhow!("loan: {e:?}"))?;
