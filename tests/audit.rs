@@ -17,6 +17,19 @@ fn strays(
         .collect()
 }
 
+/// Each of a four-process drive's processes was audited and counted no call.
+fn assert_four_audited_and_none_counted(s: &serde_json::Value) {
+    assert_eq!(s["stray_syscalls"], 0, "{}", s["processes"]);
+    let procs = strays(s);
+    assert_eq!(procs.len(), 4, "{procs:?}");
+    for (p, calls) in &procs {
+        assert!(
+            calls.as_ref().is_some_and(|c| c.is_empty()),
+            "{p}: {calls:?}"
+        );
+    }
+}
+
 /// `drivelab run` on its own bus into a scratch folder with `extra`: its output, its run
 /// folder (after checking that the bus is clean).
 fn run(name: &str, extra: &[&str]) -> (std::process::Output, std::path::PathBuf) {
@@ -51,15 +64,7 @@ fn the_loops_of_a_clean_real_time_drive_make_no_call_beyond_their_waits() {
         String::from_utf8_lossy(&o.stderr)
     );
     let s = summary(&out);
-    assert_eq!(s["stray_syscalls"], 0, "{}", s["processes"]);
-    let procs = strays(&s);
-    assert_eq!(procs.len(), 4, "{procs:?}");
-    for (p, calls) in &procs {
-        assert!(
-            calls.as_ref().is_some_and(|c| c.is_empty()),
-            "{p}: {calls:?}"
-        );
-    }
+    assert_four_audited_and_none_counted(&s);
     assert!(
         stdout.contains(
             "system-call audit: no call beyond the waits in the loops of 4 of 4 processes"
@@ -154,8 +159,7 @@ fn a_drive_stopped_by_sigint_counts_nothing_of_its_stop() {
     assert!(err.contains("interrupted (SIGINT)"), "{err}");
     assert_clean(&bus);
     let s = summary(&out);
-    assert_eq!(s["stray_syscalls"], 0, "{}", s["processes"]);
-    assert_eq!(strays(&s).len(), 4);
+    assert_four_audited_and_none_counted(&s);
 }
 
 /// The inprocess clock starts no host: refused in one line before anything is made.

@@ -1116,7 +1116,10 @@ fn a_bench_stopped_by_a_signal_says_where_in_one_line_and_leaves_nothing_behind(
             "{line}"
         );
     } else {
-        eprintln!("cyclictest is not installed: its interruption is not checked");
+        not_checked(
+            "a_bench_stopped_by_a_signal_says_where_in_one_line_and_leaves_nothing_behind",
+            "cyclictest is not installed (scripts/setup.sh installs rt-tests): its interruption",
+        );
     }
     // The floor, in the bench's own thread: nothing was written, and the output folder the
     // bench made is gone.

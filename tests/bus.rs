@@ -117,15 +117,15 @@ fn a_bus_folder_that_is_a_symbolic_link_is_refused_and_its_target_kept() {
             out.to_str().unwrap(),
         ],
     ];
-    let mut errors = Vec::new();
+    let mut outcomes = Vec::new();
     for args in &runs {
         let o = drivelab(args);
-        errors.push(stderr(&o));
-        assert_eq!(o.status.code(), Some(1), "{args:?}: {}", stderr(&o));
+        outcomes.push((args, o.status.code(), stderr(&o)));
     }
     // Remove the link before asserting, so that a failure leaves nothing behind.
     std::fs::remove_file(link).unwrap();
-    for e in &errors {
+    for (args, code, e) in &outcomes {
+        assert_eq!(*code, Some(1), "{args:?}: {e}");
         assert_eq!(e.trim().lines().count(), 1, "{e}");
         assert!(e.contains("is a symbolic link"), "{e}");
     }

@@ -300,8 +300,28 @@ fn the_smoke_campaign_reports_every_run_in_json_markdown_and_junit() {
     // Tolerated: the `faults.*` expectations of the faulted runs, which are wall-clock
     // figures of this real-time campaign (the speed recovery includes the killed process's
     // restart, 0.8 s seen on a loaded machine; the detection is a scheduling latency); a
-    // failure there must still be counted and reported consistently (checked below).
+    // failure there must still be counted and reported consistently (checked below), and it
+    // is named in a NOT CHECKED line. That each real-time kill is detected, made safe and
+    // recovered is checked in tests/faults.rs (`sigkill_of_each_service_…`, 1.7 s after it).
     assert_eq!(runs[0]["faults"], serde_json::json!([]), "{}", runs[0]);
+    for r in runs {
+        for x in r["expectations"].as_array().unwrap() {
+            if x["pass"] == false {
+                let what = x["expect"].as_str().unwrap();
+                assert!(
+                    what.starts_with("faults.*."),
+                    "only the wall-clock fault figures may fail: {x}"
+                );
+                not_checked(
+                    "the_smoke_campaign_reports_every_run_in_json_markdown_and_junit",
+                    &format!(
+                        "the run with {} missed '{what}' ({}): a wall-clock figure, tolerated here",
+                        r["faults"], x["values"]
+                    ),
+                );
+            }
+        }
+    }
     assert_eq!(runs[0]["status"], "pass", "{}", runs[0]);
     for r in runs {
         let e = r["expectations"].as_array().unwrap();
@@ -661,8 +681,10 @@ fn a_campaign_killed_mid_run_leaves_a_folder_the_next_one_takes_and_cleans_up_af
     let (child, out) = long_campaign("campkill", 2);
     let dir = out.parent().unwrap();
     let bus = format!("c{}_1", child.id());
+    // Guarded from here: a watchdog that fires kills the campaign and cleans its bus.
+    let drive = Drive::on_bus(child, &bus);
     wait_for_progress(&bus, 1);
-    kill_launcher_and_assert_no_orphans(child, &bus);
+    kill_launcher_and_assert_no_orphans(drive, &bus);
     assert!(
         !drivelab_runtime::bus::leftovers(&bus).is_empty(),
         "the killed campaign's bus left no file: nothing to check"
@@ -777,6 +799,8 @@ fn a_campaign_in_process_simulates_its_kills_and_stops_at_their_samples() {
                 assert_eq!(events, ["inject-simulated"], "{}", case.0);
                 let f = s["faults"][0]["fault"].as_str().unwrap();
                 assert!(f.starts_with(&format!("{kind}:")), "{f}");
+                // At its sample: 0.02 s at 10 kHz.
+                assert_eq!(s["faults"][0]["injected_k"], 200, "{}", s["faults"][0]);
             }
         }
     }

@@ -601,15 +601,14 @@ fn the_describe_scenario_is_not_written_through_a_link_planted_in_the_temp_folde
         "mkdir \"$TMPDIR/drivelab-describe-$$\" && ln -s '{}' \"$TMPDIR/drivelab-describe-$$/scenario.toml\" && exec \"$0\" \"$@\"",
         victim.display()
     );
-    let o = Command::new("sh")
-        .env("TMPDIR", &tmp)
-        .args(["-c", &plant, DRIVELAB])
-        .args(run_args(&bus, &out))
-        .args(["--clock", "lockstep", "--topology", topo.to_str().unwrap()])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .output()
-        .unwrap();
+    let o = output_within(
+        Command::new("sh")
+            .env("TMPDIR", &tmp)
+            .args(["-c", &plant, DRIVELAB])
+            .args(run_args(&bus, &out))
+            .args(["--clock", "lockstep", "--topology", topo.to_str().unwrap()]),
+        std::time::Duration::from_secs(120),
+    );
     assert_refused(
         "describe-tmp",
         &o,

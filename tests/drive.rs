@@ -318,8 +318,12 @@ fn lockstep_inprocess_and_clean_realtime_traces_are_bit_identical() {
          {best} rows, each disturbed by a stale input"
     );
     if !clean {
-        eprintln!(
-            "NOTE: every real-time run had a flagged row; the best was identical for {best} rows"
+        not_checked(
+            "lockstep_inprocess_and_clean_realtime_traces_are_bit_identical",
+            &format!(
+                "no real-time run of three was clean (every one had a flagged row): a whole \
+                 trace was not compared; the best was identical for {best} of 200 rows"
+            ),
         );
     }
 }
@@ -771,14 +775,15 @@ fn a_folder_another_drive_writes_into_is_refused_and_one_it_cannot_replace_is_le
         .unwrap()
         .map(|e| e.unwrap().file_name())
         .collect();
-    let o = Command::new("/usr/bin/setpriv")
-        .args(["--reuid", "65534", "--regid", "65534", "--clear-groups"])
-        .arg(DRIVELAB)
-        .args(["run", "--bus", &second, "--clock", "lockstep", "--no-plots"])
-        .args(["--duration", "0.05", "--out"])
-        .arg(&out)
-        .output()
-        .unwrap();
+    let o = output_within(
+        Command::new("/usr/bin/setpriv")
+            .args(["--reuid", "65534", "--regid", "65534", "--clear-groups"])
+            .arg(DRIVELAB)
+            .args(["run", "--bus", &second, "--clock", "lockstep", "--no-plots"])
+            .args(["--duration", "0.05", "--out"])
+            .arg(&out),
+        Duration::from_secs(120),
+    );
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(
@@ -1800,6 +1805,8 @@ fn run_blowing_up(name: &str, extra: &[&str]) -> (std::path::PathBuf, String, St
 /// ends in one line saying so, its hosts stopped as at any end (not killed as left over).
 #[test]
 fn a_plant_killed_after_its_state_blew_up_is_not_restarted_and_the_drive_ends_cleanly() {
+    // Real time, on the drive's core: one at a time with the others.
+    let _serial = serial();
     let (out, bus, err) = run_blowing_up(
         "blowup-kill",
         &["--duration", "0.1", "--fault", "kill:plant@0.03"],

@@ -45,14 +45,13 @@ fn a_hog_above_the_drive_on_its_core_costs_deadlines_and_is_gone_at_the_end() {
     }
     // Back on schedule after the hog's end, in ms from its start: at least its 0.1 s, and
     // within the latencies the recorder keeps (to 0.2 s + 5 × DUR past its end: 0.8 s from
-    // its start, less the 10 ms on schedule it takes); null, as documented, when it was not
-    // seen within them.
+    // its start, less the 10 ms on schedule it takes). (Null, as documented, would say it
+    // was not seen within them: 0.7 s of a drive that nothing holds up any more.)
     let recovered = &w["cycle_recovered_ms"];
     assert!(
-        recovered.is_null()
-            || recovered
-                .as_f64()
-                .is_some_and(|ms| (100.0..=800.0).contains(&ms)),
+        recovered
+            .as_f64()
+            .is_some_and(|ms| (100.0..=800.0).contains(&ms)),
         "{w}"
     );
     // A plant starved by a hog above it sleeps through its deadlines and catches up with
@@ -192,25 +191,26 @@ fn without_the_privilege_for_sched_fifo_a_hog_is_a_one_line_error() {
     );
     let bus = bus_id("hog-nopriv");
     // As user nobody (no CAP_SYS_NICE, RLIMIT_RTPRIO 0): refused before the drive starts.
-    let o = std::process::Command::new(setpriv)
-        .args([
-            "--reuid",
-            "65534",
-            "--regid",
-            "65534",
-            "--clear-groups",
-            DRIVELAB,
-        ])
-        .args([
-            "run",
-            "--bus",
-            &bus,
-            "--no-plots",
-            "--fault",
-            "hog:1@0.05:0.01:50",
-        ])
-        .output()
-        .unwrap();
+    let o = output_within(
+        std::process::Command::new(setpriv)
+            .args([
+                "--reuid",
+                "65534",
+                "--regid",
+                "65534",
+                "--clear-groups",
+                DRIVELAB,
+            ])
+            .args([
+                "run",
+                "--bus",
+                &bus,
+                "--no-plots",
+                "--fault",
+                "hog:1@0.05:0.01:50",
+            ]),
+        std::time::Duration::from_secs(120),
+    );
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(

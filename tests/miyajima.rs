@@ -20,10 +20,12 @@ fn load(p: &str) -> drivelab_runtime::config::Scenario {
 }
 
 /// Integral action leaves no steady-state error: the largest |error| over the last 1 ms of
-/// the run is below the one over the 1 ms before (a loop without an integrator settles to a
-/// constant error, which does not shrink).
+/// the run is below `tol` and below the one over the 1 ms before (a loop without an
+/// integrator settles to a constant error, which does not shrink), unless it is a thousandth
+/// of `tol` already (rounding). Returns both.
 fn settling(
     rows: &[drivelab_runtime::trace::TraceRow],
+    tol: f64,
     err: impl Fn(&drivelab_runtime::trace::TraceRow) -> f64,
 ) -> (f64, f64) {
     let end = rows.last().unwrap().t;
@@ -35,11 +37,17 @@ fn settling(
     };
     let (before, last) = (worst(1e-3, 2e-3), worst(0.0, 1e-3));
     assert!(
-        last < before,
-        "error over the last ms {last}, the ms before {before}"
+        last <= tol && (last < before || last <= tol * 1e-3),
+        "error over the last ms {last} (at most {tol}), the ms before {before}"
     );
     (before, last)
 }
+
+/// A current error that the paper's figures would show: 1 % of the 2 A step. The runs end
+/// 9 ms after the step, 9 of the design's 1 ms time constants (τ_21 = 10 T_u).
+const CURRENT_TOL_A: f64 = 0.02;
+/// The voltage phase's error from its steady state at standstill (0), rad: one degree.
+const PHASE_TOL_RAD: f64 = std::f64::consts::PI / 180.0;
 
 /// Equal to the printout's precision: `cdm-design` prints its figures to 6 significant
 /// digits (a wrong equation is off by far more: a missing cos δ_o at 20° by 6 %).
@@ -187,8 +195,8 @@ fn polar_control_at_0_rpm_reaches_2_a_without_steady_state_error() {
     assert_eq!(r.summary["deadline_misses"], 0);
     let rows = r.trace();
     // i_q* = 2 A since 1 ms: no steady-state error, i_d held at 0.
-    settling(&rows, |x| 2.0 - x.i_q);
-    settling(&rows, |x| x.i_d);
+    settling(&rows, CURRENT_TOL_A, |x| 2.0 - x.i_q);
+    settling(&rows, CURRENT_TOL_A, |x| x.i_d);
     // Noise-free simulation: V_a = 0 before the step (uncontrollable point), yet the phase
     // stays put (section IV-C: "the controller output (the voltage phase) is stable"). After
     // the step δ = δ_d + δ_fb moves (reading 1 of polar.rs) and returns to the steady state
@@ -197,7 +205,7 @@ fn polar_control_at_0_rpm_reaches_2_a_without_steady_state_error() {
         let (_, d) = drivelab_tools::plot_polar::modulation_and_phase(x, 470.0);
         assert!(d == 0.0, "δ = {d} at t = {}", x.t);
     }
-    settling(&rows, |x| {
+    settling(&rows, PHASE_TOL_RAD, |x| {
         drivelab_tools::plot_polar::modulation_and_phase(x, 470.0).1
     });
     let (rise, over) = (r.metric("iq_rise_time_us"), r.metric("iq_overshoot_pct"));
@@ -257,8 +265,8 @@ fn cdm_with_the_delay_predicted_at_0_rpm() {
             "{name}: overshoot {o1} % (paper {o0} %, model {m_over} %)"
         );
         let rows = r.trace();
-        settling(&rows, |x| 2.0 - x.i_q);
-        settling(&rows, |x| x.i_d);
+        settling(&rows, CURRENT_TOL_A, |x| 2.0 - x.i_q);
+        settling(&rows, CURRENT_TOL_A, |x| x.i_d);
         eprintln!(
             "0 rpm, {name}: rise {r1:.0} µs ({:.2}× the paper's {r0:.0} µs), overshoot {o1:.1} % (paper {o0:.1} %, model {m_over:.1} %)",
             r1 / r0
@@ -285,8 +293,8 @@ fn polar_control_at_400_rpm_lockstep_and_inprocess_traces_are_bit_identical() {
     );
     let (rise, over) = (ls.metric("iq_rise_time_us"), ls.metric("iq_overshoot_pct"));
     let rows = ls.trace();
-    settling(&rows, |x| x.i_q_ref - x.i_q);
-    settling(&rows, |x| x.i_d);
+    settling(&rows, CURRENT_TOL_A, |x| x.i_q_ref - x.i_q);
+    settling(&rows, CURRENT_TOL_A, |x| x.i_d);
     eprintln!("400 rpm: rise {rise:.0} µs, overshoot {over:.1} %");
 }
 

@@ -469,6 +469,16 @@ fn what_a_stage_process_leaves_running_is_killed_and_its_chatter_is_not_kept() {
     let _serial = serial();
     let dir = scratch("strays");
     let marker = format!("86399.{}", std::process::id());
+    // Whatever the outcome, no helper outlives the test (it would sleep for a day).
+    struct KillHelpers(String);
+    impl Drop for KillHelpers {
+        fn drop(&mut self) {
+            let _ = std::process::Command::new("pkill")
+                .args(["-KILL", "-f", &self.0])
+                .status();
+        }
+    }
+    let _helpers = KillHelpers(format!("sleep {marker}"));
     let host = std::path::Path::new(DRIVELAB).with_file_name("drivelab-host");
     let wrapper = dir.join("wrapper.sh");
     std::fs::write(

@@ -80,7 +80,9 @@ fn a_remote_monitor_sees_the_drive_and_a_remote_recorder_writes_its_trace() {
     };
     let (l, rm) = (rows(&local), rows(&rec_dir));
     assert_eq!(l.len(), 15_000);
-    assert!(!rm.is_empty());
+    // It recorded to the run's end: the plant's last sample carries the end of the run,
+    // which ended the recorder.
+    assert!(rm.contains_key(&14_999), "the last sample not recorded");
     for (k, row) in &rm {
         assert_eq!(Some(row), l.get(k), "sample {k} differs from the drive's");
     }
@@ -106,7 +108,13 @@ fn a_remote_monitor_sees_the_drive_and_a_remote_recorder_writes_its_trace() {
     );
     assert_eq!(rs["samples"], rm.len());
     if listed > 0 {
-        eprintln!("note: the remote recorder lost {listed} samples (listed); a loaded machine");
+        not_checked(
+            "a_remote_monitor_sees_the_drive_and_a_remote_recorder_writes_its_trace",
+            &format!(
+                "the remote recorder lost {listed} of 15000 samples (listed with their cause): \
+                 the traces were compared where both have the sample"
+            ),
+        );
     }
     assert_eq!(rs["drive_missing_samples"], ls["missing_samples"]);
     for same in ["scenario", "deadline_misses", "metrics", "faults"] {
@@ -409,7 +417,7 @@ fn tls_with_access_control_lets_the_operator_fault_and_the_viewer_only_watch() {
         if !who.is_empty() {
             c.args(["--zenoh-config", &cfg(who)]);
         }
-        c.output().unwrap()
+        output_within(&mut c, Duration::from_secs(120))
     };
     let o = at(
         &["monitor", "--connect", &tls, "--print"],

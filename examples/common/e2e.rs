@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 #[path = "../../tests/common/clean.rs"]
 mod clean;
-pub use clean::{assert_clean, processes_on_bus};
+pub use clean::{assert_clean, remove_bus};
 
 /// One drive at a time: they all pin to the same core.
 pub static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
@@ -121,7 +121,7 @@ impl Example {
             .spawn()
             .expect("start drivelab");
         Started {
-            child,
+            child: Some(child),
             out,
             bus,
             args,
@@ -157,9 +157,10 @@ impl Example {
     }
 }
 
-/// A drive that [`Example::start`] started.
+/// A drive that [`Example::start`] started. Dropped while it runs, or while its test fails,
+/// it kills the launcher and removes what its bus left (processes and files).
 pub struct Started {
-    child: std::process::Child,
+    child: Option<std::process::Child>,
     out: PathBuf,
     bus: String,
     args: Vec<String>,
@@ -171,17 +172,13 @@ impl Started {
     /// bus id.
     pub fn wait(mut self) -> (Output, PathBuf, String) {
         let t = Instant::now();
-        while self.child.try_wait().unwrap().is_none() {
+        let mut child = self.child.take().expect("waited once");
+        while child.try_wait().unwrap().is_none() {
             if t.elapsed() > Duration::from_secs(300) {
-                let _ = self.child.kill();
+                let _ = child.kill();
                 // What the killed launcher leaves: its stage hosts and its bus files.
-                for l in processes_on_bus(&self.bus) {
-                    if let Some(pid) = l.split(' ').next() {
-                        let _ = Command::new("kill").args(["-9", pid]).status();
-                    }
-                }
-                let _ = drivelab_runtime::bus::cleanup(&self.bus);
-                let o = self.child.wait_with_output().unwrap();
+                remove_bus(&self.bus);
+                let o = child.wait_with_output().unwrap();
                 panic!(
                     "watchdog: drivelab {:?} still running after 300 s\nstderr: {}",
                     self.args,
@@ -190,7 +187,37 @@ impl Started {
             }
             std::thread::sleep(Duration::from_millis(20));
         }
-        (self.child.wait_with_output().unwrap(), self.out, self.bus)
+        let o = child.wait_with_output().unwrap();
+        (o, self.out.clone(), self.bus.clone())
+    }
+}
+
+impl Drop for Started {
+    fn drop(&mut self) {
+        let mut running = false;
+        if let Some(c) = self.child.as_mut() {
+            if matches!(c.try_wait(), Ok(None)) {
+                let _ = c.kill();
+                let _ = c.wait();
+                running = true;
+            }
+        }
+        if running || std::thread::panicking() {
+            remove_bus(&self.bus);
+        }
+    }
+}
+
+/// A helper process of a test (a recorder, a second launcher): killed and reaped when
+/// dropped while it still runs, so that a failing test leaves it behind.
+pub struct Guarded(pub std::process::Child);
+
+impl Drop for Guarded {
+    fn drop(&mut self) {
+        if matches!(self.0.try_wait(), Ok(None)) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
     }
 }
 

@@ -23,10 +23,35 @@ pub fn processes_on_bus(bus: &str) -> Vec<String> {
     v
 }
 
-/// Asserts that no process and no bus file of `bus` is left.
+/// Asserts that no process and no bus file of `bus` is left. Whatever is left is removed
+/// first ([`remove_bus`]), so that the failing test leaves nothing behind.
 pub fn assert_clean(bus: &str) {
     let procs = processes_on_bus(bus);
-    assert!(procs.is_empty(), "processes left: {procs:?}");
     let files = drivelab_runtime::bus::leftovers(bus);
+    if !procs.is_empty() || !files.is_empty() {
+        remove_bus(bus);
+    }
+    assert!(procs.is_empty(), "processes left: {procs:?}");
     assert!(files.is_empty(), "bus files left: {files:?}");
+}
+
+/// SIGKILLs the processes of `bus` (waiting up to 5 s for them to go) and removes its files.
+pub fn remove_bus(bus: &str) {
+    let t = std::time::Instant::now();
+    loop {
+        let left = processes_on_bus(bus);
+        if left.is_empty() || t.elapsed() > std::time::Duration::from_secs(5) {
+            break;
+        }
+        for line in &left {
+            if let Some(pid) = line.split(' ').next() {
+                let _ = std::process::Command::new("kill")
+                    .args(["-KILL", pid])
+                    .stderr(std::process::Stdio::null())
+                    .status();
+            }
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let _ = drivelab_runtime::bus::cleanup(bus);
 }

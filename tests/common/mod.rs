@@ -9,7 +9,7 @@ use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 mod clean;
-pub use clean::{assert_clean, processes_on_bus};
+pub use clean::{assert_clean, processes_on_bus, remove_bus};
 
 /// A TCP port of 127.0.0.1 that was free a moment ago (the kernel's pick).
 pub fn free_port() -> u16 {
@@ -53,12 +53,23 @@ pub fn scratch(name: &str) -> PathBuf {
     d
 }
 
+/// Bus ids issued by [`bus_id`], with their tests' names.
+static ISSUED: std::sync::Mutex<Vec<(String, String)>> = std::sync::Mutex::new(Vec::new());
 /// Scratch folders made by this test binary.
 static MADE: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
 /// Set by the first panic of any test thread (a failed assertion).
 static FAILED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
 
 fn remove_at_exit(d: &Path) {
+    exit_hooks();
+    MADE.lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .push(d.to_path_buf());
+}
+
+/// Installs, once per test binary, the panic hook that notes a failure and the function that
+/// runs at exit: [`at_exit`].
+fn exit_hooks() {
     static HOOKS: std::sync::Once = std::sync::Once::new();
     HOOKS.call_once(|| {
         let report = std::panic::take_hook();
@@ -68,14 +79,38 @@ fn remove_at_exit(d: &Path) {
         }));
         // SAFETY: registers a function without arguments that runs once when the process
         // exits (the test harness returns from main or calls exit).
-        unsafe { libc::atexit(remove_scratch) };
+        unsafe { libc::atexit(at_exit) };
     });
-    MADE.lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .push(d.to_path_buf());
 }
 
-extern "C" fn remove_scratch() {
+/// At the test binary's exit, every test done: the processes and files of every bus id it
+/// issued are removed (what a failed test left behind). When no test failed, anything left
+/// is a leak that no test caught: it is named and the binary exits with code 1.
+extern "C" fn at_exit() {
+    let issued = std::mem::take(&mut *ISSUED.lock().unwrap_or_else(|e| e.into_inner()));
+    let mut leaks = Vec::new();
+    for (bus, name) in issued {
+        let procs = processes_on_bus(&bus);
+        let files = drivelab_runtime::bus::leftovers(&bus);
+        if !procs.is_empty() || !files.is_empty() {
+            remove_bus(&bus);
+            leaks.push(format!(
+                "bus {bus} of '{name}': processes {procs:?}, files {files:?}"
+            ));
+        }
+    }
+    remove_scratch();
+    if !leaks.is_empty() && !FAILED.load(std::sync::atomic::Ordering::SeqCst) {
+        eprintln!("left behind by tests that passed (now removed):");
+        for l in &leaks {
+            eprintln!("  {l}");
+        }
+        // SAFETY: ends this process at once with a failure code; every test has finished.
+        unsafe { libc::_exit(1) };
+    }
+}
+
+fn remove_scratch() {
     let made = std::mem::take(&mut *MADE.lock().unwrap_or_else(|e| e.into_inner()));
     if FAILED.load(std::sync::atomic::Ordering::SeqCst) {
         eprintln!(
@@ -97,7 +132,6 @@ extern "C" fn remove_scratch() {
 /// the 24 characters a bus id may have). Two names of one process that hash alike fail the
 /// test instead of sharing a bus.
 pub fn bus_id(name: &str) -> String {
-    static ISSUED: std::sync::Mutex<Vec<(String, String)>> = std::sync::Mutex::new(Vec::new());
     let base36 = |mut v: u64| {
         let mut s = Vec::new();
         loop {
@@ -121,12 +155,25 @@ pub fn bus_id(name: &str) -> String {
         base36(u64::from(std::process::id())),
         base36(hash)
     );
+    exit_hooks();
     let mut issued = ISSUED.lock().unwrap_or_else(|e| e.into_inner());
     if let Some((_, other)) = issued.iter().find(|(i, n)| *i == id && n != name) {
         panic!("bus id {id} of '{name}' collides with that of '{other}'");
     }
     issued.push((id.clone(), name.to_string()));
     id
+}
+
+/// Runs `cmd` (its output piped) with a watchdog against hangs behind a [`Drive`] guard: on
+/// expiry the test fails and the process is killed.
+pub fn output_within(cmd: &mut Command, watchdog: Duration) -> Output {
+    let what = format!("{cmd:?}");
+    let child = cmd
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap_or_else(|e| panic!("start {what}: {e}"));
+    Drive::from(child).wait_for_exit(watchdog, &what)
 }
 
 /// Runs drivelab with a watchdog of 300 s; kills it (and fails) if it hangs.

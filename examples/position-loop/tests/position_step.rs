@@ -123,6 +123,24 @@ fn a_killed_user_stage_is_restarted_and_the_speed_loop_stops_following_it() {
         .unwrap();
     assert!(lost > 0, "{}", s["counters"]["speed-loop"]);
     assert!(s["processes"]["position-loop"]["stages"] == serde_json::json!(["position-loop"]));
+    // In the trace: mid-move at the kill (a speed reference other than 0), and 0 within 5
+    // speed periods and a sample of it (10 samples each at 10 kHz): the kill's sample is the
+    // one the supervisor saw, up to a period behind the drive; the next reference was due
+    // within a period, it is lost 2 periods after that, the speed loop steps on the next
+    // period's sample at the latest, and its reference shows in the command's row a sample
+    // later. (A speed loop that followed the last reference would not go to 0 at all.)
+    let k0 = f["injected_k"].as_u64().unwrap();
+    let rows = drivelab_runtime::trace::read_csv(&out.join("trace.csv")).unwrap();
+    let before = rows.iter().rfind(|r| r.k < k0).unwrap();
+    assert!(
+        before.omega_ref != 0.0,
+        "standing still at the kill: {before:?}"
+    );
+    let zero = rows.iter().find(|r| r.k >= k0 && r.omega_ref == 0.0);
+    assert!(
+        zero.is_some_and(|r| r.k <= k0 + 51),
+        "the speed reference did not go to 0 within 51 samples of the kill at {k0}: {zero:?}"
+    );
     remove_scratch(&out);
 }
 
@@ -367,13 +385,15 @@ fn a_remote_recording_leaves_theta_ref_empty_while_the_position_loop_is_down() {
     let ep = e2e::local_endpoint();
     // The recorder first: it waits for the drive's bridge (and must hear its summary).
     let rec_dir = EXAMPLE.scratch("recorded").join("remote");
-    let mut recorder = std::process::Command::new(EXAMPLE.drivelab())
-        .args(["record", "--connect", &ep, "--wait", "60", "--out"])
-        .arg(&rec_dir)
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
+    let mut recorder = e2e::Guarded(
+        std::process::Command::new(EXAMPLE.drivelab())
+            .args(["record", "--connect", &ep, "--wait", "60", "--out"])
+            .arg(&rec_dir)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap(),
+    );
     let (o, out, bus) = EXAMPLE.launch(
         "recorddown",
         &[
@@ -390,15 +410,17 @@ fn a_remote_recording_leaves_theta_ref_empty_while_the_position_loop_is_down() {
     );
     // Watchdog: the recorder ends once it has the drive's summary.
     let t = std::time::Instant::now();
-    while recorder.try_wait().unwrap().is_none() && t.elapsed().as_secs() < 120 {
+    while recorder.0.try_wait().unwrap().is_none() && t.elapsed().as_secs() < 120 {
         std::thread::sleep(std::time::Duration::from_millis(50));
     }
-    if recorder.try_wait().unwrap().is_none() {
-        let _ = recorder.kill();
+    if recorder.0.try_wait().unwrap().is_none() {
+        let _ = recorder.0.kill();
     }
-    let r = recorder.wait_with_output().unwrap();
+    let r_status = recorder.0.wait().unwrap();
+    let mut r_err = String::new();
+    std::io::Read::read_to_string(&mut recorder.0.stderr.take().unwrap(), &mut r_err).unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    assert!(r_status.success(), "{r_err}");
     assert_clean(&bus);
     let killed = summary(&out)["faults"][0]["injected_k"].as_u64().unwrap() as usize;
     // Each row recorded is the drive's, bit for bit (a sample the bridge lost on a loaded
