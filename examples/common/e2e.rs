@@ -56,13 +56,21 @@ impl Example {
         d
     }
 
-    /// The bus id of test `name`: its own, so that tests can run in parallel.
+    /// The bus id of test `name`: its own, so that tests can run in parallel. Two names cut
+    /// to the same id (24 characters at most) fail the test instead of sharing a bus.
     pub fn bus_id(&self, name: &str) -> String {
-        format!("{}{}{name}", self.tag, std::process::id())
+        static ISSUED: std::sync::Mutex<Vec<(String, String)>> = std::sync::Mutex::new(Vec::new());
+        let id: String = format!("{}{}{name}", self.tag, std::process::id())
             .chars()
             .filter(|c| c.is_ascii_alphanumeric())
             .take(24)
-            .collect()
+            .collect();
+        let mut issued = ISSUED.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some((_, other)) = issued.iter().find(|(i, n)| *i == id && n != name) {
+            panic!("bus id {id} of '{name}' is that of '{other}' too");
+        }
+        issued.push((id.clone(), name.to_string()));
+        id
     }
 
     /// The scenario copied into `dir` with each `(from, to)` of `edits` replaced (each must
