@@ -10,10 +10,10 @@ use std::process::Command;
 /// Compares `drivelab ARGS` with snapshot `name`; with `UPDATE_SNAPSHOTS` rewrites it when it
 /// differs and returns its path (the caller fails after all were rewritten).
 fn snapshot(name: &str, args: &[&str]) -> Option<PathBuf> {
-    let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
-        .args(args)
-        .output()
-        .unwrap();
+    let o = common::output_within(
+        Command::new(env!("CARGO_BIN_EXE_drivelab")).args(args),
+        std::time::Duration::from_secs(60),
+    );
     assert!(
         o.status.success(),
         "drivelab {args:?}: {}",
@@ -123,10 +123,10 @@ const A_UNIT: &[&str] = &[
 fn the_simulated_restart_default_that_run_help_states_is_the_one_used() {
     // --lockstep-restart-ms has no clap default (an explicit value is refused with --restart
     // never), so its help text states the default itself.
-    let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
-        .args(["run", "--help"])
-        .output()
-        .unwrap();
+    let o = common::output_within(
+        Command::new(env!("CARGO_BIN_EXE_drivelab")).args(["run", "--help"]),
+        std::time::Duration::from_secs(60),
+    );
     let help = String::from_utf8(o.stdout).unwrap();
     let default = drivelab_runtime::inject::RESTART_DEFAULT_MS;
     assert!(help.contains(&format!("[default: {default}]")), "{help}");
@@ -162,10 +162,10 @@ fn every_help_has_an_example_and_every_quantity_a_unit() {
     let mut without = Vec::new();
     let mut options = 0;
     for cmd in COMMANDS {
-        let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
-            .args([cmd, "--help"])
-            .output()
-            .unwrap();
+        let o = common::output_within(
+            Command::new(env!("CARGO_BIN_EXE_drivelab")).args([cmd, "--help"]),
+            std::time::Duration::from_secs(60),
+        );
         assert!(o.status.success(), "drivelab {cmd} --help: {:?}", o.status);
         let t = String::from_utf8(o.stdout).unwrap();
         assert!(
@@ -207,11 +207,12 @@ fn scenario_catalogue() {
 
 /// `drivelab ARGS` run in folder `cwd`: (exit code, stdout, stderr).
 fn drivelab_in(cwd: &std::path::Path, args: &[&str]) -> (Option<i32>, String, String) {
-    let o = Command::new(env!("CARGO_BIN_EXE_drivelab"))
-        .args(args)
-        .current_dir(cwd)
-        .output()
-        .unwrap();
+    let o = common::output_within(
+        Command::new(env!("CARGO_BIN_EXE_drivelab"))
+            .args(args)
+            .current_dir(cwd),
+        std::time::Duration::from_secs(60),
+    );
     (
         o.status.code(),
         String::from_utf8_lossy(&o.stdout).into_owned(),
