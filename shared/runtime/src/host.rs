@@ -2917,6 +2917,36 @@ mod tests {
         assert!(ends.is_empty(), "end markers sent: {ends:?}");
     }
 
+    /// A script with room for `n` messages per queue, `2 n` sent and `n` scripted actions
+    /// (plus a few): it allocates nothing while a host runs.
+    fn script_with_room(n: usize) -> Script {
+        let mut tr = Script::default();
+        for q in tr.queues.iter_mut() {
+            q.reserve(n + 16);
+        }
+        tr.sent.reserve(2 * n + 16);
+        tr.on_wait.reserve(n + 16);
+        tr
+    }
+
+    /// Asserts that `count(n)`, the allocations of a run of n wake-ups, is 0 for 20 and 40.
+    fn none_in_20_or_40_wake_ups(count: impl Fn(u64) -> u64) {
+        assert_eq!(
+            (count(20), count(40)),
+            (0, 0),
+            "allocations in 20 and 40 wake-ups"
+        );
+    }
+
+    /// The current loop's host run on `tr` under the allocation counter: the host and its
+    /// allocations.
+    fn current_loop_counted(sc: &Scenario, tr: Script) -> (Host<Script>, u64) {
+        let mut host = current_loop_host(sc, tr);
+        let (r, allocations) = crate::alloc_count::allocations_during(|| host.run());
+        r.unwrap();
+        (host, allocations)
+    }
+
     /// A triggered host (the current loop, in real time, one estimate a wake-up) allocates
     /// nothing in its run, set-up included (its buffers are made in `Host::new`), for 20
     /// samples or for 40.
@@ -2924,12 +2954,7 @@ mod tests {
     fn a_triggered_host_allocates_nothing_per_sample() {
         let sc = scenario();
         let count = |n: u64| {
-            let mut tr = Script::default();
-            // Room beforehand for everything the script queues and the host sends.
-            for q in tr.queues.iter_mut() {
-                q.reserve(n as usize + 8);
-            }
-            tr.sent.reserve(2 * n as usize + 8);
+            let mut tr = script_with_room(n as usize);
             tr.queues[TopicId::Est.index()].push_back(est(0, 7.0));
             for k in 0..n {
                 tr.queues[TopicId::Meas.index()].push_back(meas(k, 0.2));
@@ -2939,17 +2964,68 @@ mod tests {
                 tr.on_wait.push((k as usize + 1, est(k, 7.0)));
             }
             tr.on_wait.push((n as usize + 1, end(TopicId::Est, 100)));
-            let mut host = current_loop_host(&sc, tr);
-            let (r, allocations) = crate::alloc_count::allocations_during(|| host.run());
-            r.unwrap();
+            let (host, allocations) = current_loop_counted(&sc, tr);
             assert_eq!(commands(&host.transport.sent).len() as u64, n);
             allocations
         };
-        assert_eq!(
-            (count(20), count(40)),
-            (0, 0),
-            "allocations for 20 and 40 samples"
-        );
+        none_in_20_or_40_wake_ups(count);
+    }
+
+    /// Catching up (two estimates at each wake-up: the older skipped, the newer stepped) and
+    /// an input whose producer is down (the speed loop's, from the 4th wake-up on: each
+    /// command made from the reference held, flagged) allocate nothing either: none in a run
+    /// of 20 wake-ups, none in one of 40.
+    #[test]
+    fn catching_up_and_a_producer_down_allocate_nothing() {
+        let sc = scenario();
+        let count = |n: u64| {
+            let mut tr = script_with_room(2 * n as usize);
+            for k in 0..2 * n {
+                tr.queues[TopicId::Meas.index()].push_back(meas(k, 0.2));
+            }
+            tr.queues[TopicId::Est.index()].push_back(est(0, 7.0));
+            tr.queues[TopicId::Iref.index()].push_back(iref0());
+            for j in 1..n {
+                let w = j as usize + 1;
+                tr.on_wait.push((w, est(2 * j - 1, 7.0)));
+                tr.on_wait.push((w, est(2 * j, 7.0)));
+            }
+            tr.on_wait.push((n as usize + 1, end(TopicId::Est, 1000)));
+            tr.down_from = Some((4, TopicId::Iref));
+            let (host, allocations) = current_loop_counted(&sc, tr);
+            let c = &host.stages[0].counters;
+            assert_eq!((c.samples, c.skipped), (n, n - 1), "{n} wake-ups");
+            assert!(c.producer_down_samples > 0, "{n} wake-ups: {c:?}");
+            allocations
+        };
+        none_in_20_or_40_wake_ups(count);
+    }
+
+    /// The clock's fallback (the observer stops after estimate 1; from the 3rd wake-up on
+    /// the current loop steps on each new measurement's encoder angle) allocates nothing:
+    /// none in a run of 20 wake-ups, none in one of 40.
+    #[test]
+    fn stepping_on_the_clock_without_a_trigger_allocates_nothing() {
+        let sc = scenario();
+        let count = |n: u64| {
+            let n = n as usize;
+            let mut tr = script_with_room(n);
+            tr.queues[TopicId::Est.index()].push_back(est(0, 7.0));
+            tr.on_wait.push((2, est(1, 7.0)));
+            for k in 0..6 {
+                tr.queues[TopicId::Meas.index()].push_back(meas(k, 0.2));
+            }
+            for w in 3..=n {
+                tr.on_wait.push((w, meas(w as u64 + 3, 0.2)));
+            }
+            tr.on_wait.push((n + 1, end(TopicId::Est, 1000)));
+            tr.queues[TopicId::Iref.index()].push_back(iref0());
+            let (host, allocations) = current_loop_counted(&sc, tr);
+            let steps = host.stages[0].counters.fallback_steps;
+            assert!(steps + 3 >= n as u64, "{n} wake-ups, {steps} on the clock");
+            allocations
+        };
+        none_in_20_or_40_wake_ups(count);
     }
 
     /// The first-sample hook of a triggered host runs once, after the warm-up marker is
