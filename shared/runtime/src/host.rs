@@ -2768,15 +2768,20 @@ mod tests {
         Read(u64),
         Status(u64),
     }
-    /// A chain on the source's core: it answers measurement k with command k at once.
+    /// A chain on the source's core: it answers measurement k with command k at once. With
+    /// `stall` (k, d) the machine holds it for d before it answers measurement k.
     #[derive(Default)]
     struct Chain {
         cmds: VecDeque<Msg>,
         events: Vec<Event>,
+        stall: Option<(u64, Duration)>,
     }
     impl Transport for Chain {
         fn send(&mut self, msg: &Msg) -> Result<()> {
             if let Msg::Meas(m) = msg {
+                if self.stall.is_some_and(|(k, _)| k == m.hdr.k) {
+                    std::thread::sleep(self.stall.unwrap().1);
+                }
                 if !m.hdr.is_end() {
                     self.cmds.push_back(Msg::Cmd(VoltageCommand {
                         hdr: header(m.hdr.k, m.hdr.t_sample_ns),
@@ -2822,6 +2827,7 @@ mod tests {
             Self {
                 cmds: VecDeque::with_capacity(n + 8),
                 events: Vec::with_capacity(2 * n + 8),
+                stall: None,
             }
         }
     }
@@ -2865,6 +2871,19 @@ mod tests {
         assert_eq!((c.samples, c.late_commands, c.stale_inputs), (n, 0, 0));
     }
 
+    /// The plant's host run for `n` samples in real time on `chain` under the allocation
+    /// counter: the host and its allocations.
+    fn source_counted(sc: &Scenario, chain: Chain, n: u64) -> (Host<Chain>, u64) {
+        let cfg = HostConfig {
+            samples: n,
+            ..config(sc)
+        };
+        let mut host = plant_host(sc, chain, cfg);
+        let (r, allocations) = crate::alloc_count::allocations_during(|| host.run());
+        r.unwrap();
+        (host, allocations)
+    }
+
     /// A real-time source (the plant, sleeping to its deadlines, reading each command
     /// ahead) makes as many allocations in a run of 40 samples as in one of 20: none per
     /// sample. What it allocates once, before its first sample, is its own business
@@ -2873,19 +2892,33 @@ mod tests {
     fn a_real_time_source_allocates_nothing_per_sample() {
         let sc = scenario();
         let count = |n: u64| {
-            let cfg = HostConfig {
-                samples: n,
-                ..config(&sc)
-            };
-            let mut host = plant_host(&sc, Chain::with_room(n as usize), cfg);
-            let (r, allocations) = crate::alloc_count::allocations_during(|| host.run());
-            r.unwrap();
+            let (host, allocations) = source_counted(&sc, Chain::with_room(n as usize), n);
             let c = &host.stages[0].counters;
             assert_eq!((c.samples, c.late_commands), (n, 0), "{n} samples");
             allocations
         };
         let (a20, a40) = (count(20), count(40));
         assert_eq!(a20, a40, "allocations in 20 samples and in 40");
+    }
+
+    /// A real-time source that catches up after a stall (the machine holds it for 2 ms, 20
+    /// samples, at sample 5: it runs the late samples back to back and logs the stall)
+    /// makes as many allocations in a run of 60 samples as in one of 40.
+    #[test]
+    fn a_real_time_source_catching_up_after_a_stall_allocates_nothing_per_sample() {
+        let sc = scenario();
+        let count = |n: u64| {
+            let chain = Chain {
+                stall: Some((5, Duration::from_millis(2))),
+                ..Chain::with_room(n as usize)
+            };
+            let (host, allocations) = source_counted(&sc, chain, n);
+            assert_eq!(host.stages[0].counters.samples, n, "{n} samples");
+            assert!(host.stalls.count >= 1, "{n} samples: no stall logged");
+            allocations
+        };
+        let (a40, a60) = (count(40), count(60));
+        assert_eq!(a40, a60, "allocations in 40 samples and in 60");
     }
 
     /// A stop signal from outside (`stop_without_end`) that lands while the source is
