@@ -146,6 +146,14 @@ fn all_expectations_met_exit_0_and_a_scenarios_own_are_checked_first() {
     assert_eq!(e[0]["note"], "far above the 1.6 A limit");
     assert_eq!(e[1]["expect"], "samples_missing == 0");
     assert!(e.as_array().unwrap().iter().all(|x| x["pass"] == true));
+    // Said on stdout, so that a CI log tells "checked and met" from "not checked".
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        stdout
+            .lines()
+            .any(|l| l == "expectations: 2 of 2 met; each in summary.json → expectations"),
+        "{stdout}"
+    );
 }
 
 #[test]

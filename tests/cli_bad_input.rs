@@ -1107,7 +1107,7 @@ fn a_link_planted_where_a_command_writes_is_refused_and_its_target_kept() {
     for (file, args) in [
         ("speed.png", vec!["plot", r]),
         ("latency.svg", vec!["plot", r]),
-        ("trace.mcap.part", vec!["export", r, "--mcap"]),
+        ("trace.mcap.part", vec!["export", r, "--mcap", "--force"]),
     ] {
         std::fs::write(&victim, "keep me").unwrap();
         let link = run.join(file);
@@ -1132,8 +1132,9 @@ fn a_link_planted_where_a_command_writes_is_refused_and_its_target_kept() {
         assert!(link.symlink_metadata().unwrap().file_type().is_symlink());
         std::fs::remove_file(&link).unwrap();
     }
-    // Without the links both commands write their files.
-    for args in [vec!["plot", r], vec!["export", r, "--mcap"]] {
+    // Without the links both commands write their files (the export over the run's own
+    // trace.mcap: with --force).
+    for args in [vec!["plot", r], vec!["export", r, "--mcap", "--force"]] {
         let o = drivelab(&args);
         assert!(o.status.success(), "{args:?}: {}", stderr(&o));
     }

@@ -677,6 +677,20 @@ fn a_run_into_an_earlier_runs_folder_replaces_its_outputs_and_keeps_other_files(
     ] {
         assert!(out.join(f).is_file(), "the first run wrote no {f}");
     }
+    // The summary lists every figure the run drew, the latency percentiles too.
+    let listed: std::collections::BTreeSet<String> = summary(&out)["plots"]
+        .as_array()
+        .expect("plots listed")
+        .iter()
+        .map(|f| f.as_str().unwrap().to_string())
+        .collect();
+    let drawn: std::collections::BTreeSet<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".png") || n.ends_with(".svg"))
+        .collect();
+    assert_eq!(listed, drawn);
+    assert!(listed.contains("latency.png"), "{listed:?}");
     std::fs::write(out.join("notes.txt"), "bench conditions").unwrap();
     // What an earlier run with --timing-csv left: the second run, without it, writes none,
     // so an old one would pass for its.

@@ -81,6 +81,21 @@ fn export_writes_trace_mcap_for_an_older_run_folder() {
     let Some(py) = python() else { return };
     let _g = serial();
     let (dir, _) = run_ok("export", &["--clock", "lockstep", "--duration", "0.5"]);
+    // The run's own trace.mcap is not replaced without --force: one line, the file as it was.
+    let own = std::fs::read(dir.join("trace.mcap")).unwrap();
+    let o = drivelab(&["export", dir.to_str().unwrap(), "--mcap"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert_eq!(err.lines().count(), 1, "{err}");
+    assert!(
+        err.contains("trace.mcap exists") && err.contains("--force"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read(dir.join("trace.mcap")).unwrap(), own);
+    let o = drivelab(&["export", dir.to_str().unwrap(), "--mcap", "--force"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    check(&py, &dir, &[]);
+    // And a run without one (an older run's folder) gets one.
     std::fs::remove_file(dir.join("trace.mcap")).unwrap();
     let o = drivelab(&["export", dir.to_str().unwrap(), "--mcap"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));

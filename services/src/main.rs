@@ -196,6 +196,10 @@ enum Cmd {
         /// Write RUNDIR/trace.mcap (the only format so far, required).
         #[arg(long, required = true)]
         mcap: bool,
+        /// Replace a trace.mcap that is there (a run's own has per-second latency and wall
+        /// times that an export cannot rebuild).
+        #[arg(long)]
+        force: bool,
     },
     /// Record a remote drive (one started with --zenoh-listen) into a local run folder:
     /// scenario.toml, trace.csv, trace.mcap and summary.json with the missing samples and
@@ -1179,6 +1183,13 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                         f.len()
                     );
                 }
+                // Checked and met says so: a CI log tells it from not checked.
+                let n = s["expectations"].as_array().map_or(0, Vec::len);
+                if n > 0 && failed.is_empty() {
+                    drivelab_services::outln!(
+                        "expectations: {n} of {n} met; each in summary.json → expectations"
+                    );
+                }
             }
             if !failed.is_empty() {
                 for line in &failed {
@@ -1369,8 +1380,12 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
         Cmd::BusInject { bus, kind, count } => {
             drivelab_services::faults::inject_bad_estimates(&bus, &kind, count)
         }
-        Cmd::Export { run, mcap: _ } => {
-            let f = drivelab_services::trace_mcap::export(&run)?;
+        Cmd::Export {
+            run,
+            mcap: _,
+            force,
+        } => {
+            let f = drivelab_services::trace_mcap::export(&run, force)?;
             drivelab_services::outln!("{}", f.display());
             Ok(())
         }

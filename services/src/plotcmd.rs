@@ -307,6 +307,12 @@ pub fn run(a: &PlotArgs) -> Result<Vec<PathBuf>> {
     if !seconds.is_empty() {
         files.extend(latency_per_second(&seconds, &summary, &out)?);
         check_stop(&files, &out)?;
+    } else if a.from_mcap {
+        crate::errln!(
+            "drivelab: note: {} has no per-second figures (an exported trace has none): \
+             latency-per-second.png not drawn",
+            a.run.join("trace.mcap").display()
+        );
     }
     let mut curves = Vec::new();
     let mut hdrs: Vec<PathBuf> = std::fs::read_dir(&a.run)?

@@ -292,8 +292,11 @@ impl WallClock {
 /// The run folder is checked as `drivelab plot` and `drivelab compare` check it (the
 /// scenario parsed, the summary's figures of their types) before anything is written. A stop
 /// signal (SIGINT, SIGTERM …) ends the export between two rows: nothing is written, and the
-/// error says how far it got.
-pub fn export(dir: &Path) -> Result<std::path::PathBuf> {
+/// error says how far it got. A finished run's folder (with summary.json) that has a
+/// trace.mcap already, the run's own with the per-second figures and wall times an export
+/// cannot rebuild, is refused unless `force`; an unfinished run's (its launcher killed) is
+/// left without its index and is rebuilt.
+pub fn export(dir: &Path, force: bool) -> Result<std::path::PathBuf> {
     drivelab_runtime::service::install_signal_handlers()?;
     let csv_path = crate::plotcmd::trace_csv_of(dir)?;
     let missing = |name: &str| anyhow!("{} has no {name}: not a run folder", dir.display());
@@ -326,6 +329,15 @@ pub fn export(dir: &Path) -> Result<std::path::PathBuf> {
         }
     };
     let out = dir.join("trace.mcap");
+    let finished = summary.get("not_finished").is_none();
+    if out.exists() && finished && !force {
+        bail!(
+            "{} exists: a run writes its own, with the per-second latency and the wall time of \
+             each sample, which an export from trace.csv cannot rebuild; to replace it anyway, \
+             pass --force",
+            out.display()
+        );
+    }
     // Written beside it and renamed when complete: a failed export leaves no partial file
     // and does not replace a trace.mcap that is there.
     let part = dir.join("trace.mcap.part");

@@ -2351,13 +2351,13 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
                 1e6 / sc.rates.sample_hz,
                 format!("T_s = {:.0} µs", 1e6 / sc.rates.sample_hz),
             ));
-            drivelab_tools::plot::plot_percentiles(
+            files.extend(drivelab_tools::plot::plot_percentiles(
                 &curves,
                 &format!("{}: latency percentiles", sc.name),
                 budget,
                 true,
                 &out.join("latency"),
-            )?;
+            )?);
         }
         if plots && !rows.is_empty() {
             let opts = drivelab_tools::plot::TraceFigureOptions {

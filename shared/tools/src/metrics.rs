@@ -226,12 +226,29 @@ pub fn speed_metrics_with_faults(
     let speed_study = !refs.is_empty() || sc.reference.i_q_a.is_empty();
     if !tail.is_empty() && speed_study {
         // A fault within the last 10 %: the error there is the fault's, the part before it
-        // too short a tail.
+        // too short a tail. So it is after an earlier fault the drive had not come back from
+        // (the speed outside ±2 % of its reference somewhere in the last 10 %): a stage
+        // killed for good, a drive left in its safe state.
+        let tail_rows: Vec<&TraceRow> = rows.iter().filter(|r| r.t >= tail_start).collect();
+        let earlier = faults.starts.iter().rev().find(|f| f.t_s < tail_start);
         match faults.within(tail_start, f64::INFINITY) {
             Some(f) => cut(&mut out, "steady_state_error_rad_s", f),
-            None => {
-                out.steady_state_error_rad_s = Some(tail.iter().sum::<f64>() / tail.len() as f64)
-            }
+            None => match earlier {
+                Some(f) if !settled(&tail_rows, tail_rows.len(), |r| profile_at(refs, r.t)) => {
+                    out.cut_by_fault.insert(
+                        "steady_state_error_rad_s".into(),
+                        format!(
+                            "cut by the fault at {:.3} s ({}): the speed was not back within \
+                             ±2 % of its reference in the last 10 % of the run",
+                            f.t_s, f.fault
+                        ),
+                    );
+                }
+                _ => {
+                    out.steady_state_error_rad_s =
+                        Some(tail.iter().sum::<f64>() / tail.len() as f64)
+                }
+            },
         }
     }
     if let Some(tl) = loads.iter().find(|s| s.value != 0.0) {
@@ -630,8 +647,39 @@ torque_nm = [{ t_s = 0.05, value = 0.1 }]
             m.cut_by_fault["id_tracking_error_a"],
             "measured up to the fault at 0.080 s (kill:current-loop@0.08)"
         );
-        // The last 10 % (90..99.9 ms) is after the fault but holds no fault's start.
-        assert!((m.steady_state_error_rad_s.unwrap() - 50.0).abs() < 1e-9);
+        // The last 10 % (90..99.9 ms) holds no fault's start, but the speed never came back
+        // from the fault (50 rad/s off): its error is the fault's, not the loop's.
+        assert_eq!(m.steady_state_error_rad_s, None, "{m:?}");
+        assert_eq!(
+            m.cut_by_fault["steady_state_error_rad_s"],
+            "cut by the fault at 0.080 s (kill:current-loop@0.08): the speed was not back \
+             within ±2 % of its reference in the last 10 % of the run"
+        );
+        // Without the fault, the same tail is the loop's error.
+        assert!(
+            (speed_metrics(&sc(), &rows)
+                .steady_state_error_rad_s
+                .unwrap()
+                - 50.0)
+                .abs()
+                < 1e-9
+        );
+        // A fault the drive came back from (the load dip's speed, back at 100 rad/s from 60 ms
+        // on): the last 10 % is the loop's again.
+        let back: Vec<TraceRow> = (0..1000)
+            .map(|k| TraceRow {
+                k,
+                t: k as f64 * 1e-4,
+                omega_m: synthetic_speed(k as f64 * 1e-4),
+                ..Default::default()
+            })
+            .collect();
+        let m = speed_metrics_with_faults(&sc(), &back, &fault_at(0.055));
+        assert_eq!(m.steady_state_error_rad_s, Some(0.0), "{m:?}");
+        assert!(
+            !m.cut_by_fault.contains_key("steady_state_error_rad_s"),
+            "{m:?}"
+        );
     }
 
     #[test]
