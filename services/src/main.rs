@@ -1074,13 +1074,19 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                         .collect();
                     drivelab_services::outln!("built-in stages replaced: {}", by.join(", "));
                 }
+                // Below 1× (a short or a networked lockstep run): two decimals, not "0.0×".
+                let speed = s["simulated_s_per_wall_s"].as_f64().unwrap_or(0.0);
+                let speed = if speed < 1.0 {
+                    format!("{speed:.2}")
+                } else {
+                    format!("{speed:.1}")
+                };
                 drivelab_services::outln!(
-                    "{} samples ({} expected), deadline misses {}, wall {:.2} s ({:.1}× real time)",
+                    "{} samples ({} expected), deadline misses {}, wall {:.2} s ({speed}× real time)",
                     s["samples"],
                     s["samples_expected"],
                     s["deadline_misses"],
                     s["wall_time_s"].as_f64().unwrap_or(0.0),
-                    s["simulated_s_per_wall_s"].as_f64().unwrap_or(0.0)
                 );
                 if let Some(l) = s["timing"]["stalls"]["line"].as_str() {
                     drivelab_services::outln!("{l}");

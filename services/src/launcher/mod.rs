@@ -2604,7 +2604,7 @@ fn stall_report(st: &serde_json::Value) -> serde_json::Value {
     r.misses = st["misses"].as_u64().unwrap_or(0);
     let mut v = serde_json::to_value(&r).unwrap_or_default();
     v["host_throttled"] = json!(r.host_throttled());
-    v["line"] = json!(r.line());
+    v["line"] = json!(r.run_line());
     v
 }
 

@@ -376,8 +376,18 @@ impl StallReport {
         self.line_of("the plant's")
     }
 
+    /// The line of a run's report: the gaps on the host's grid only when they show the
+    /// host throttling (the bench's lines give them always).
+    pub fn run_line(&self) -> Option<String> {
+        self.compose("the plant's", self.host_throttled())
+    }
+
     /// The same line for the wake-ups of `whose` ("the floor's").
     pub fn line_of(&self, whose: &str) -> Option<String> {
+        self.compose(whose, true)
+    }
+
+    fn compose(&self, whose: &str, grid: bool) -> Option<String> {
         if self.count == 0 {
             return None;
         }
@@ -390,7 +400,7 @@ impl StallReport {
         if self.misses > 0 {
             l += &format!("; {} deadline misses in them", self.misses);
         }
-        if self.pairs > 0 {
+        if self.pairs > 0 && grid {
             l += &format!(
                 "; {} of {} gaps between consecutive stalls' ends are a multiple of {} ms",
                 self.on_host_grid,
@@ -592,6 +602,21 @@ mod tests {
         assert_eq!(r.on_host_grid, 0);
         assert!(!r.host_throttled());
         assert!(!r.line().unwrap().contains("host"), "{:?}", r.line());
+        // A run's report names the grid only where it shows the host throttling.
+        assert!(r.line().unwrap().contains("0 of 5 gaps"), "{:?}", r.line());
+        assert!(
+            !r.run_line().unwrap().contains("gaps"),
+            "{:?}",
+            r.run_line()
+        );
+        let throttled = StallReport::new(&grid, 6).run_line().unwrap();
+        assert!(
+            throttled.ends_with(
+                "; 5 of 5 gaps between consecutive stalls' ends are a multiple of 100 ms: the \
+                 host throttles this VM's CPU time (a CFS bandwidth limit), not the drive"
+            ),
+            "{throttled}"
+        );
         // One pair on the grid of five is chance, and two stalls are too few to tell.
         let mut one = scattered.clone();
         one[1] = (grid[1].0 - grid[0].0 + scattered[0].0, grid[1].1);

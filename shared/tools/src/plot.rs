@@ -70,7 +70,7 @@ pub use crate::plot_options::{PercentileSeries, TraceFigureOptions};
 /// * `speed`: ω_ref (dashed), ω_m and ω̂ in rad/s (mechanical) vs t in ms, with the load
 ///   torque T_load in N·m as a second, smaller panel underneath;
 /// * `currents`: i_d_ref, i_d, i_q_ref, i_q in A vs t in ms (references dashed), plus
-///   ±[`TraceFigureOptions::current_limit_a`] as dashed lines;
+///   ±[`TraceFigureOptions::current_limit_a`] (the speed loop's i_q* limit) as dashed lines;
 /// * `voltages`: u_d, u_q in V vs t in ms, plus |u| and ±[`TraceFigureOptions::voltage_limit_v`]
 ///   as dashed lines when a voltage limit is given.
 ///
@@ -166,7 +166,7 @@ pub fn plot_trace(
             trace_series("i_q_ref", |r| r.i_q_ref, C_RED, Line::Dashed(2)),
             trace_series("i_q", |r| r.i_q, C_RED, Line::Solid(1)),
         ],
-        symmetric_limit(opts.current_limit_a, "i_max", "A"),
+        symmetric_limit(opts.current_limit_a, "i_q,max", "A"),
     );
     let mut voltage_series = vec![
         trace_series("u_d", |r| r.u_d, C_BLUE, Line::Solid(1)),
@@ -1115,19 +1115,8 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, panel: &Panel) 
         chart.draw_series([text]).plot_err("labelling a window")?;
     }
 
+    // Limits first: a trace that runs along one (i_d* at −i_q,max) stays visible on top.
     let mut has_legend = false;
-    for s in &panel.series {
-        // One legend entry, with the first piece drawn.
-        let mut label = (!s.label.is_empty()).then_some(s.label.as_str());
-        for piece in s.pieces() {
-            let pts: Vec<(f64, f64)> = panel.drawable_of(piece).copied().collect();
-            if pts.is_empty() {
-                continue;
-            }
-            has_legend |= label.is_some();
-            draw_line(&mut chart, pts, s.color, s.line, label.take())?;
-        }
-    }
     for h in &panel.hlines {
         if !y_axis.contains(h.y) {
             continue;
@@ -1141,6 +1130,18 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, panel: &Panel) 
             Line::Dashed(2),
             h.label.as_deref(),
         )?;
+    }
+    for s in &panel.series {
+        // One legend entry, with the first piece drawn.
+        let mut label = (!s.label.is_empty()).then_some(s.label.as_str());
+        for piece in s.pieces() {
+            let pts: Vec<(f64, f64)> = panel.drawable_of(piece).copied().collect();
+            if pts.is_empty() {
+                continue;
+            }
+            has_legend |= label.is_some();
+            draw_line(&mut chart, pts, s.color, s.line, label.take())?;
+        }
     }
 
     if has_legend {

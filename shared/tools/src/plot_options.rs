@@ -5,7 +5,8 @@
 pub struct TraceFigureOptions {
     /// Only draw samples with t in [t0, t1] (seconds); None = all.
     pub window_s: Option<(f64, f64)>,
-    /// Current limit to draw as dashed horizontal lines at ±value on the current plot, A.
+    /// The speed loop's limit of i_q*, drawn as dashed horizontal lines at ±value on the
+    /// current plot and named i_q,max there, A.
     pub current_limit_a: Option<f64>,
     /// Voltage limit (max |u| available, V) drawn as dashed lines at ± on the voltage plot.
     pub voltage_limit_v: Option<f64>,
