@@ -462,6 +462,12 @@ fn observer_converges_from_90_degrees_at_1200_rpm_to_the_truncation_bias() {
     );
     let ss = r.metric("angle_error_ss_deg");
     let conv = r.metric("observer_convergence_ms");
+    // A dynamometer holds the speed: no speed response to measure (it read "rise 0 ms").
+    let m = &r.summary["metrics"];
+    assert_eq!(m["speed_prescribed_rad_s"], 1200.0 * RPM, "{m}");
+    for f in ["rise_time_ms", "overshoot_pct", "steady_state_error_rad_s"] {
+        assert!(m[f].is_null(), "{f}: {m}");
+    }
     let (ss_trace, pred) = steady_state(&r, Discretisation::Truncated);
     eprintln!(
         "truncated model (eq. 13): steady-state error {ss:.4}° (truncation predicts {pred:.4}°), converged within ±1° after {conv:.1} ms"

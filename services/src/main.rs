@@ -1101,6 +1101,11 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                     drivelab_services::outln!(
                         "speed metrics left out: stage '{outer}' makes the speed reference, not the scenario's [reference]"
                     );
+                } else if let Some(w) = m["speed_prescribed_rad_s"].as_f64() {
+                    drivelab_services::outln!(
+                        "speed metrics left out: a dynamometer held the speed at {} ([mechanics] prescribed_speed_rad_s)",
+                        fmt_opt(&serde_json::json!(w), "rad/s")
+                    );
                 } else {
                     drivelab_services::outln!(
                         "rise {}, overshoot {}, load dip {}, load recovery {}, steady-state error {}",
@@ -1109,6 +1114,13 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                         fmt_metric(m, "load_dip_rad_s", "rad/s"),
                         fmt_metric(m, "load_recovery_ms", "ms"),
                         fmt_metric(m, "steady_state_error_rad_s", "rad/s")
+                    );
+                }
+                if m["angle_error_ss_deg"].as_f64().is_some() {
+                    drivelab_services::outln!(
+                        "observer: angle error θ̂ − θ in the last 10 % {}, within ±1° of it after {}",
+                        fmt_opt(&m["angle_error_ss_deg"], "° electrical"),
+                        fmt_opt(&m["observer_convergence_ms"], "ms")
                     );
                 }
                 if m["iq_rise_time_us"].as_f64().is_some() || m["id_max_a"].as_f64().is_some() {

@@ -2090,20 +2090,7 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
         .find(|s| s.outputs.contains(&drivelab_runtime::stage::TopicId::Wref))
     {
         metrics.speed_reference_from = Some(outer.name.clone());
-        metrics.rise_time_ms = None;
-        metrics.overshoot_pct = None;
-        metrics.steady_state_error_rad_s = None;
-        metrics.load_dip_rad_s = None;
-        metrics.load_recovery_ms = None;
-        for m in [
-            "rise_time_ms",
-            "overshoot_pct",
-            "steady_state_error_rad_s",
-            "load_dip_rad_s",
-            "load_recovery_ms",
-        ] {
-            metrics.cut_by_fault.remove(m);
-        }
+        metrics.leave_out_speed_response();
     }
     // The design that runs ([model]), without the built-in designs that a user's stage
     // replaced.

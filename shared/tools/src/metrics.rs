@@ -13,6 +13,11 @@ pub struct SpeedMetrics {
     /// left out.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub speed_reference_from: Option<String>,
+    /// The speed a dynamometer held (`[mechanics] prescribed_speed_rad_s`), rad/s: the
+    /// speed-response metrics (rise, overshoot, steady-state error, load dip and recovery)
+    /// do not apply and are left out.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub speed_prescribed_rad_s: Option<f64>,
     /// Time from the first speed step to the first sample at or beyond the set-point, ms.
     pub rise_time_ms: Option<f64>,
     /// Peak beyond the set-point relative to the step size, % (before the next event).
@@ -328,7 +333,33 @@ pub fn speed_metrics_with_faults(
         out.observer_convergence_ms = conv;
     }
     current_step_metrics(sc, rows, &faults, &mut out);
+    if let Some(w) = sc.mechanics.prescribed_speed_rad_s {
+        out.speed_prescribed_rad_s = Some(w);
+        out.leave_out_speed_response();
+    }
     out
+}
+
+impl SpeedMetrics {
+    /// Leaves out the metrics of the speed's response to the scenario's reference and load
+    /// steps (rise, overshoot, steady-state error, load dip and recovery), with any reason a
+    /// fault gave for them: the speed did not follow that reference.
+    pub fn leave_out_speed_response(&mut self) {
+        self.rise_time_ms = None;
+        self.overshoot_pct = None;
+        self.steady_state_error_rad_s = None;
+        self.load_dip_rad_s = None;
+        self.load_recovery_ms = None;
+        for m in [
+            "rise_time_ms",
+            "overshoot_pct",
+            "steady_state_error_rad_s",
+            "load_dip_rad_s",
+            "load_recovery_ms",
+        ] {
+            self.cut_by_fault.remove(m);
+        }
+    }
 }
 
 /// The rows from `t0` up to the fault `f`.
