@@ -359,13 +359,16 @@ fn latency_per_second(
         .iter()
         .map(|q| (format!("cycle {q}"), Vec::new()))
         .collect();
+    // Each second's figure held over that second (a step), not a line between the ends of
+    // the seconds: a line drew a steady rise where one second had a stall.
+    let mut start = 0.0;
     for s in plant {
         let t = s["t_s"].as_f64().unwrap_or(f64::NAN);
         for (i, q) in ["p50", "p99", "max"].iter().enumerate() {
-            series[i]
-                .1
-                .push((t, s["cycle_us"][q].as_f64().unwrap_or(f64::NAN)));
+            let v = s["cycle_us"][q].as_f64().unwrap_or(f64::NAN);
+            series[i].1.extend([(start, v), (t, v)]);
         }
+        start = t;
     }
     if !series
         .iter()
@@ -378,7 +381,7 @@ fn latency_per_second(
     drivelab_tools::plot::plot_lines(
         &series,
         "cycle latency of each second (trace.mcap, /services)",
-        "end of the second, s",
+        "t, s (each second's figure over that second)",
         "µs",
         &[(ts_us, format!("T_s = {ts_us:.0} µs"))],
         &out.join("latency-per-second"),
