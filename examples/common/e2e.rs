@@ -202,14 +202,7 @@ impl Started {
 
 impl Drop for Started {
     fn drop(&mut self) {
-        let mut running = false;
-        if let Some(c) = self.child.as_mut() {
-            if matches!(c.try_wait(), Ok(None)) {
-                let _ = c.kill();
-                let _ = c.wait();
-                running = true;
-            }
-        }
+        let running = self.child.as_mut().is_some_and(kill_if_running);
         if running || std::thread::panicking() {
             remove_bus(&self.bus);
         }
@@ -217,16 +210,23 @@ impl Drop for Started {
 }
 
 /// A helper process of a test (a recorder, a second launcher): killed and reaped when
-/// dropped while it still runs, so that a failing test leaves it behind.
+/// dropped while it still runs, so that a failing test does not leave it behind.
 pub struct Guarded(pub std::process::Child);
 
 impl Drop for Guarded {
     fn drop(&mut self) {
-        if matches!(self.0.try_wait(), Ok(None)) {
-            let _ = self.0.kill();
-            let _ = self.0.wait();
-        }
+        kill_if_running(&mut self.0);
     }
+}
+
+/// Kills and reaps `c` if it still runs; whether it did.
+fn kill_if_running(c: &mut std::process::Child) -> bool {
+    let running = matches!(c.try_wait(), Ok(None));
+    if running {
+        let _ = c.kill();
+        let _ = c.wait();
+    }
+    running
 }
 
 /// Removes the scratch folder of a run folder `out` (called last: a failed test keeps it).

@@ -1101,10 +1101,10 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
                     drivelab_services::outln!(
                         "speed metrics left out: stage '{outer}' makes the speed reference, not the scenario's [reference]"
                     );
-                } else if let Some(w) = m["speed_prescribed_rad_s"].as_f64() {
+                } else if m["speed_prescribed_rad_s"].is_number() {
                     drivelab_services::outln!(
                         "speed metrics left out: a dynamometer held the speed at {} ([mechanics] prescribed_speed_rad_s)",
-                        fmt_opt(&serde_json::json!(w), "rad/s")
+                        fmt_opt(&m["speed_prescribed_rad_s"], "rad/s")
                     );
                 } else {
                     drivelab_services::outln!(

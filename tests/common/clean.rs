@@ -23,14 +23,21 @@ pub fn processes_on_bus(bus: &str) -> Vec<String> {
     v
 }
 
-/// Asserts that no process and no bus file of `bus` is left. Whatever is left is removed
-/// first ([`remove_bus`]), so that the failing test leaves nothing behind.
-pub fn assert_clean(bus: &str) {
+/// What `bus` left, its processes ("PID ARGS") and its files, removed ([`remove_bus`]) once
+/// they are named.
+pub fn take_leftovers(bus: &str) -> (Vec<String>, Vec<String>) {
     let procs = processes_on_bus(bus);
     let files = drivelab_runtime::bus::leftovers(bus);
     if !procs.is_empty() || !files.is_empty() {
         remove_bus(bus);
     }
+    (procs, files)
+}
+
+/// Asserts that no process and no bus file of `bus` is left. Whatever is left is removed
+/// first, so that the failing test leaves nothing behind.
+pub fn assert_clean(bus: &str) {
+    let (procs, files) = take_leftovers(bus);
     assert!(procs.is_empty(), "processes left: {procs:?}");
     assert!(files.is_empty(), "bus files left: {files:?}");
 }

@@ -9,7 +9,7 @@ use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 mod clean;
-pub use clean::{assert_clean, processes_on_bus, remove_bus};
+pub use clean::{assert_clean, processes_on_bus, take_leftovers};
 
 /// A TCP port of 127.0.0.1 that was free a moment ago (the kernel's pick).
 pub fn free_port() -> u16 {
@@ -90,10 +90,8 @@ extern "C" fn at_exit() {
     let issued = std::mem::take(&mut *ISSUED.lock().unwrap_or_else(|e| e.into_inner()));
     let mut leaks = Vec::new();
     for (bus, name) in issued {
-        let procs = processes_on_bus(&bus);
-        let files = drivelab_runtime::bus::leftovers(&bus);
+        let (procs, files) = take_leftovers(&bus);
         if !procs.is_empty() || !files.is_empty() {
-            remove_bus(&bus);
             leaks.push(format!(
                 "bus {bus} of '{name}': processes {procs:?}, files {files:?}"
             ));
