@@ -68,6 +68,8 @@ pub struct PositionLoop {
     step_rad: f64,
     step_at_s: f64,
     omega_rated: f64,
+    /// The run's length, s: a step at or after it is never taken.
+    duration_s: f64,
     last_enc: Option<f64>,
     theta: f64,
     /// Rejoins whose turn count was ambiguous (the encoder angle about half a turn from the
@@ -157,6 +159,7 @@ impl PositionLoop {
             step_rad: get("step_rad", 0.0, Sign::Any)?,
             step_at_s: get("step_at_s", 0.0, Sign::NotNegative)?,
             omega_rated,
+            duration_s: sc.duration_s,
             last_enc: None,
             theta: 0.0,
             ambiguous_rejoins: 0,
@@ -238,14 +241,20 @@ impl Stage for PositionLoop {
         values[0] = self.ambiguous_rejoins;
     }
     fn warnings(&self) -> Vec<String> {
+        let mut w = Vec::new();
         if self.omega_max > self.omega_rated {
-            vec![format!(
-                "{NAME}: omega_max_rad_s = {} exceeds the motor's rated speed {:.1} rad/s",
+            w.push(format!(
+                "stages.{NAME}.omega_max_rad_s = {} exceeds the motor's rated speed {:.1} rad/s",
                 self.omega_max, self.omega_rated
-            )]
-        } else {
-            Vec::new()
+            ));
         }
+        if self.step_rad != 0.0 && self.step_at_s >= self.duration_s {
+            w.push(format!(
+                "stages.{NAME}.step_at_s = {} s is at or after the run's end ({} s): the position step is not taken",
+                self.step_at_s, self.duration_s
+            ));
+        }
+        w
     }
 }
 
@@ -278,6 +287,25 @@ mod tests {
             Some(Msg::Wref(w)) => *w,
             other => panic!("no wref: {other:?}"),
         }
+    }
+
+    #[test]
+    fn a_step_at_or_after_the_run_s_end_is_named_in_a_warning() {
+        let end = scenario("").duration_s;
+        let warned = |params: &str| PositionLoop::new(&scenario(params)).unwrap().warnings();
+        let late = warned(&format!("step_rad = 1.0\nstep_at_s = {end}"));
+        assert_eq!(
+            late,
+            [format!(
+                "stages.{NAME}.step_at_s = {end} s is at or after the run's end ({end} s): the position step is not taken"
+            )]
+        );
+        assert_eq!(
+            warned(&format!("step_rad = 1.0\nstep_at_s = {}", end * 0.5)),
+            Vec::<String>::new()
+        );
+        // No step to take: nothing to warn about.
+        assert_eq!(warned(&format!("step_at_s = {end}")), Vec::<String>::new());
     }
 
     #[test]
