@@ -482,6 +482,53 @@ fn a_negative_step_settles_backwards() {
     remove_scratch(&out);
 }
 
+/// A run shorter than the step's instant says so once on stderr and keeps it in its summary
+/// (`counters.position-loop.warnings`, where a campaign or a CI script reads it).
+#[test]
+fn a_step_after_the_run_s_end_is_warned_about_and_kept_in_the_summary() {
+    let _s = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    // The scenario's step is at 10 ms: a 5 ms run ends before it.
+    let (o, out, bus) = EXAMPLE.launch(
+        "late-step",
+        &["--clock", "lockstep", "--duration", "0.005"],
+        &[],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert_clean(&bus);
+    let want = "stages.position-loop.step_at_s = 0.01 s is at or after the run's end (0.005 s): the position step is not taken";
+    assert_eq!(
+        err.matches(&format!("position-loop: warning: {want}\n"))
+            .count(),
+        1,
+        "{err}"
+    );
+    let s = summary(&out);
+    assert_eq!(
+        s["counters"]["position-loop"]["warnings"],
+        serde_json::json!([want]),
+        "{}",
+        s["counters"]
+    );
+    // The built-in stages warned about nothing here: no empty lists either.
+    for st in ["plant", "observer", "current-loop", "speed-loop"] {
+        assert!(
+            s["counters"][st].get("warnings").is_none(),
+            "{st}: {}",
+            s["counters"][st]
+        );
+    }
+    let c = columns(&out.join("trace.csv"));
+    // Row 0 has no reference (empty: the speed loop follows the loop's output from the next
+    // sample on); every later one is the step's start, 0.
+    let theta_ref = &c["theta_m_ref"];
+    assert!(
+        theta_ref.len() == 50 && theta_ref[1..].iter().all(|&r| r == 0.0),
+        "{theta_ref:?}"
+    );
+    remove_scratch(&out);
+}
+
 /// A run with `args` of the scenario whose position loop is the test host's, which panics at
 /// its first step at or after 0.1 s (`examples/panicking_position_loop.rs`); checks exit 1
 /// and a clean bus. The run folder, its summary and its stderr.

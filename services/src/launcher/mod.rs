@@ -807,6 +807,9 @@ fn run_bus(
                     if let Some(d) = v.get("inject") {
                         cv["inject"] = d.clone();
                     }
+                    if let Some(w) = v.get("warnings") {
+                        cv["warnings"] = w.clone();
+                    }
                     counters.insert(st.clone(), cv);
                 }
                 Err(why) => {

@@ -1574,6 +1574,10 @@ pub struct StageStats<'a> {
     pub inject: Vec<crate::inject::InjectObs>,
     /// Tail summary of each histogram, µs, keyed `<stage>.<metric>` (and `cycle`).
     pub latency_us: std::collections::BTreeMap<String, crate::timing::Percentiles>,
+    /// What the stage warned about, as the host printed it: its configuration
+    /// ([`Stage::warnings`], before the run) and its run ([`Stage::exit_warnings`]).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
     /// Source only, real time: its wake-ups at least half a millisecond late, as
     /// [deadline, lateness] in ns on CLOCK_MONOTONIC (the first 4096), and how many there
     /// were in all (`timing::StallLog`).
@@ -1648,6 +1652,12 @@ fn write_stats<T: Transport>(
             diagnostics: diags[i].1.iter().copied().collect(),
             inject: h.inject.clone(),
             latency_us,
+            warnings: h
+                .stage
+                .warnings()
+                .into_iter()
+                .chain(h.stage.exit_warnings())
+                .collect(),
             stalls: (source && args.clock == BusClock::Realtime).then(|| Stalls {
                 count: host.stalls.count,
                 log: host.stalls.entries(),
