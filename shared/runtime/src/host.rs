@@ -150,7 +150,8 @@ pub struct Counters {
     /// Triggers that arrived after a newer one had been taken (index at or behind the last
     /// one seen): late, not malformed.
     pub late_inputs: u64,
-    /// Source only: samples that used a held or safe command (deadline misses).
+    /// Source only: deadline misses, the samples whose command was not there at the next
+    /// deadline t_{k+1} (the cycle monitor's count).
     pub deadline_misses: u64,
     /// Source only: longest run of consecutive misses.
     pub longest_miss_run: u64,
