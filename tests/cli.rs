@@ -298,6 +298,50 @@ fn design_asks_an_exec_which_stages_it_hosts_as_run_does() {
     assert!(!out.contains("user's"), "{out}");
     let line = |what: &str| out.lines().find(|l| l.contains(what)).unwrap();
     assert!(line("current PI (").starts_with("current PI ("), "{out}");
+    let bus = common::bus_id("note");
+    // ... in a note line, as run does (a registration left out of the executable's
+    // host_main, or an exec on the wrong process, would otherwise go unseen).
+    let note = format!(
+        "note: process 'current-loop' runs the built-in current-loop: its exec {exe} declares no stage of that name (its own stages: position-loop)"
+    );
+    assert_eq!(out.lines().last(), Some(note.as_str()), "{out}");
+    let (run_code, _, run_err) = drivelab_in(
+        std::path::Path::new("/"),
+        &[
+            "run",
+            "--clock",
+            "lockstep",
+            "--duration",
+            "0.01",
+            "--scenario",
+            file.to_str().unwrap(),
+            "--bus",
+            &bus,
+            "--out",
+            _dir.path().join("run").to_str().unwrap(),
+            "--no-plots",
+        ],
+    );
+    common::assert_clean(&bus);
+    assert_eq!(run_code, Some(0), "{run_err}");
+    assert_eq!(
+        run_err.matches(&format!("drivelab: {note}\n")).count(),
+        1,
+        "{run_err}"
+    );
+    // With the replacement's table left in, the same is refused, naming the executable.
+    let (_dir2, kept) = deadbeat_with(&format!("exec = {exe:?}"));
+    let (code, _, err) = drivelab_in(
+        std::path::Path::new("/"),
+        &["design", "--scenario", kept.to_str().unwrap()],
+    );
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.contains(&format!(
+            "the built-in runs here (process 'current-loop' starts {exe}, which declares no stage 'current-loop')"
+        )),
+        "{err}"
+    );
     // A bad exec: the run's one-line error, exit code 1, nothing printed.
     let (_dir, file) = deadbeat_with("exec = \"./no-such-host\"");
     let f = file.to_str().unwrap();

@@ -32,11 +32,12 @@ impl Replacement {
 /// run` resolves them (`launcher::resolve_topology`): a process's `exec` is asked with
 /// `--describe`, and replaces a built-in stage it hosts only if it declares a stage of that
 /// name (docs/architecture.md, "Replacing a built-in stage"). A bad `exec` is the run's error.
-/// `sc`'s processes are left resolved, as a run leaves them.
+/// `sc`'s processes are left resolved, as a run leaves them. Also the note lines `run` prints
+/// about its topology (a built-in stage that runs in a process with an `exec`).
 pub fn replacements(
     sc: &mut Scenario,
     src: &std::path::Path,
-) -> anyhow::Result<BTreeMap<String, Replacement>> {
+) -> anyhow::Result<(BTreeMap<String, Replacement>, Vec<String>)> {
     // The `exec` of each process as the scenario writes it (resolving makes it absolute).
     let written: BTreeMap<String, String> = sc
         .topology()
@@ -44,7 +45,8 @@ pub fn replacements(
         .filter_map(|p| Some((p.name, p.exec?)))
         .collect();
     let plan = crate::launcher::resolve_topology(sc, src, &design_options(src))?;
-    plan.replaced
+    let replaced = plan
+        .replaced
         .iter()
         .map(|(stage, exe)| {
             let p = plan
@@ -59,7 +61,8 @@ pub fn replacements(
             };
             Ok((stage.clone(), r))
         })
-        .collect()
+        .collect::<anyhow::Result<_>>()?;
+    Ok((replaced, plan.notes))
 }
 
 /// The options of a `drivelab run` of `src` as far as resolving its topology reads them: the

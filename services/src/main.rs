@@ -1291,8 +1291,11 @@ fn real_main(cli: Cli) -> anyhow::Result<()> {
             // A built-in stage that a process's `exec` hosts a stage of the same name for (it is
             // asked, as `run` asks it) is the user's stage: the built-in's design is printed for
             // comparison and says "not run".
-            let replaced = drivelab_services::design::replacements(&mut sc, &src)?;
+            let (replaced, notes) = drivelab_services::design::replacements(&mut sc, &src)?;
             drivelab_services::out!("{}", drivelab_services::design::render(&sc, &replaced));
+            for line in notes {
+                drivelab_services::outln!("note: {line}");
+            }
             Ok(())
         }
         Cmd::Monitor {

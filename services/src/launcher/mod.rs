@@ -1273,15 +1273,51 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
             _ => "[speed_loop] and [rates]",
         };
         bail!(
-            "{}: [stages.{name}] is for a user's stage that replaces the built-in {name}, and the built-in runs here (process '{}'{of} starts no executable that replaces it): it takes its settings from {tables}",
+            "{}: [stages.{name}] is for a user's stage that replaces the built-in {name}, and the built-in runs here (process '{}'{of} {}): it takes its settings from {tables}",
             sc_src.display(),
-            p.name
+            p.name,
+            match &p.exec {
+                Some(exe) => format!("starts {exe}, which declares no stage '{name}'"),
+                None => "starts no executable that replaces it".to_string(),
+            }
         );
     }
+    // A process with an `exec` that runs none of that executable's own stages runs built-in
+    // ones only: what a wrapper of drivelab-host means, and what a registration left out of
+    // `host_main` or an `exec` on the wrong process does without a word. Said in one note
+    // line where a built-in it runs could have been replaced (a process that also hosts one
+    // of the executable's stages, as the examples' one-process drives do, gets none).
+    let notes = procs
+        .iter()
+        .filter(|p| on_this_machine(p))
+        .filter_map(|p| {
+            let exe = p.exec.as_ref()?;
+            let own = described.get(exe)?;
+            let builtin: Vec<&str> = p
+                .stages
+                .iter()
+                .map(String::as_str)
+                .filter(|s| drivelab_runtime::stages::REPLACEABLE.contains(s))
+                .filter(|s| !replaced.contains_key(*s))
+                .collect();
+            let own: Vec<&str> = own.iter().map(|i| i.name.as_str()).collect();
+            let runs_its_own = p.stages.iter().any(|s| own.contains(&s.as_str()));
+            (!builtin.is_empty() && !runs_its_own).then(|| {
+                format!(
+                    "process '{}' runs the built-in {}: its exec {exe} declares no stage of {} (its own stages: {})",
+                    p.name,
+                    builtin.join(", the built-in "),
+                    if builtin.len() == 1 { "that name" } else { "those names" },
+                    if own.is_empty() { "none".to_string() } else { own.join(", ") }
+                )
+            })
+        })
+        .collect();
     sc.process = resolved.processes.iter().map(|(p, _)| p.clone()).collect();
     sc.placement = drivelab_runtime::config::Placement::default();
     let mut plan = TopologyPlan::from_resolved(&resolved);
     plan.replaced = replaced;
+    plan.notes = notes;
     Ok(plan)
 }
 
@@ -1293,7 +1329,7 @@ fn check_exec(exe: &str, through_runner: bool) -> Result<std::fs::Metadata> {
     let md = match std::fs::metadata(exe) {
         Ok(m) => m,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            bail!("exec {exe} not found (build it first: cargo build --release --workspace)")
+            bail!("exec {exe} not found (a wrong path, or not built yet: cargo build --release in its crate)")
         }
         Err(e) => bail!("exec {exe}: {e}"),
     };
@@ -1908,6 +1944,11 @@ pub fn run(o: &RunOptions) -> Result<RunResult> {
             "drivelab: warning: {why}; idle CPUs may wake late ([timing] cpu_latency_us = \"none\" silences this)"
         ),
         _ => {}
+    }
+    if !o.quiet_warnings {
+        for line in &topo.notes {
+            crate::errln!("drivelab: note: {line}");
+        }
     }
     // Processes that share a core and a SCHED_FIFO priority (real time only: lockstep does
     // not use the priorities).

@@ -42,7 +42,7 @@ pub(super) fn process_binary(p: &ProcessSpec, base: &Path) -> Result<PathBuf> {
     match drivelab_runtime::topology::exec_path(p, base) {
         Some(e) if e.is_file() => Ok(e),
         Some(e) => bail!(
-            "process '{}': executable {} not found (build it first: cargo build --release --workspace)",
+            "process '{}': executable {} not found (a wrong path, or not built yet: cargo build --release in its crate)",
             p.name,
             e.display()
         ),

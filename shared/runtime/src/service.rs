@@ -126,6 +126,10 @@ pub struct TopologyPlan {
     /// Built-in stages that a user's stage replaces, each with the executable hosting it.
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
     pub replaced: std::collections::BTreeMap<String, String>,
+    /// What resolving the topology found worth a note line (not kept in topology.json): a
+    /// process whose `exec` runs a built-in stage that could have been replaced.
+    #[serde(skip)]
+    pub notes: Vec<String>,
 }
 
 impl TopologyPlan {
@@ -141,6 +145,7 @@ impl TopologyPlan {
                 .collect(),
             away: Vec::new(),
             replaced: Default::default(),
+            notes: Vec::new(),
         }
     }
 
