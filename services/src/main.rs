@@ -119,7 +119,7 @@ enum Cmd {
         fault_seed: u64,
         /// Topology: which stages share a process, on which core, at which priority. A
         /// shipped one (four-process, two-process, one-process, four-process-standby, split-hil) or a TOML file with
-        /// [[process]] tables; replaces the scenario's own.
+        /// [[process]] tables (or a scenario: its processes are taken); replaces the scenario's own.
         #[arg(long, value_name = "NAME|FILE")]
         topology: Option<String>,
         /// Check a summary figure after the run (repeatable; beside the scenario's [[expect]]
@@ -488,7 +488,8 @@ enum Cmd {
         #[arg(long)]
         json: bool,
         /// Judge the per-core checks (isolated cpus, device irqs, kernel runs) for the cores
-        /// this topology (a shipped name or a file) pins its processes to, and add a
+        /// this topology (a shipped name, a topology file, or a scenario file: its processes)
+        /// pins its processes to, and add a
         /// "placement" line about it; without it they are judged for the isolated cpus, else
         /// every cpu but the first (the default placement uses cpu 1).
         #[arg(long, value_name = "NAME|FILE")]

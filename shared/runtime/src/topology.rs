@@ -180,8 +180,20 @@ pub fn load(name_or_path: &str) -> Result<(TopologyFile, PathBuf), String> {
     };
     let text = crate::config::read_config_file(&path, "topology")?;
     let origin = path.display().to_string();
-    let t: TopologyFile =
-        toml::from_str(&text).map_err(|e| crate::config::toml_error(&text, &origin, &e))?;
+    let t: TopologyFile = match toml::from_str(&text) {
+        Ok(t) => t,
+        Err(e) => match crate::config::Scenario::from_toml(&text, &origin) {
+            // A scenario's processes are its topology (docs/architecture.md, "Stages and
+            // topologies"): its `[[process]]` tables, else one process per stage as its
+            // `[placement]` places them. A whole scenario is taken for them, only one that is
+            // sound as a whole: a topology file with a misspelt key stays refused.
+            Ok(sc) => TopologyFile {
+                purpose: format!("the processes of the scenario {origin}"),
+                process: sc.topology(),
+            },
+            Err(_) => return Err(crate::config::toml_error(&text, &origin, &e)),
+        },
+    };
     check_specs(&t.process).map_err(|e| format!("{origin}: {e}"))?;
     Ok((t, path))
 }
@@ -638,6 +650,41 @@ pub fn exec_path(p: &ProcessSpec, base: &Path) -> Option<PathBuf> {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn a_scenario_file_is_taken_for_its_processes() {
+        let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../..");
+        let with = format!("{root}/examples/position-loop/position-step.toml");
+        let (t, _) = super::load(&with).unwrap();
+        let names: Vec<&str> = t.process.iter().map(|p| p.name.as_str()).collect();
+        let sc =
+            crate::config::Scenario::from_toml(&std::fs::read_to_string(&with).unwrap(), &with)
+                .unwrap();
+        assert!(names.contains(&"position-loop"), "{names:?}");
+        assert_eq!(t.process, sc.process);
+        // Without them: one process per stage, where its [placement] puts them.
+        let without = format!("{root}/scenarios/kyslan-pi.toml");
+        let (t, _) = super::load(&without).unwrap();
+        let sc = crate::config::Scenario::from_toml(
+            &std::fs::read_to_string(&without).unwrap(),
+            &without,
+        )
+        .unwrap();
+        assert!(sc.process.is_empty());
+        assert_eq!(t.process, sc.topology());
+        assert_eq!(t.process.len(), 4);
+        // A topology file with a misspelt key is neither: the topology's own error.
+        let typo = std::env::temp_dir().join(format!("drivelab-typo-{}.toml", std::process::id()));
+        std::fs::write(
+            &typo,
+            "[[process]]\nname = \"all\"\nstages = [\"plant\", \"observer\", \"current-loop\", \"speed-loop\"]\ncpuu = 1\n",
+        )
+        .unwrap();
+        let e = super::load(typo.to_str().unwrap());
+        let _ = std::fs::remove_file(&typo);
+        let e = e.unwrap_err();
+        assert!(e.contains("unknown field `cpuu`"), "{e}");
+    }
+
     use super::*;
     use crate::config::Scenario;
 
