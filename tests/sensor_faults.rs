@@ -113,6 +113,24 @@ fn a_frozen_encoder_is_reproducible_misleads_the_angle_then_recovers() {
         );
         assert_eq!(w["angle_error_max_rad"]["before"].as_f64().unwrap(), before);
         assert!(r["speed_recovered_ms"].as_f64().is_some(), "{r}");
+        // Nothing went stale or died: the nulls say so, not "never published again" (what
+        // an expectation's failure line quotes).
+        for (figure, why) in [
+            (
+                "republished_ms",
+                "a sensor fault: every stage went on publishing",
+            ),
+            ("detected_supervisor_ms", "a sensor fault: no process died"),
+        ] {
+            assert!(r[figure].is_null(), "{r}");
+            assert_eq!(r["why_null"][figure], why, "{r}");
+        }
+        assert!(
+            r["why_null"]["detected_data_path_ms"]
+                .as_str()
+                .is_some_and(|w| w.starts_with("a sensor fault: every input stayed fresh")),
+            "{r}"
+        );
     }
 }
 

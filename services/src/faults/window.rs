@@ -137,7 +137,25 @@ pub fn report(
         ),
         bus: None,
         window: Some(w),
-        why_null: crate::launcher::recovery_notes(sc, &tail, rec),
+        why_null: {
+            // What a null means here is not what it means for a kill: every stage went on
+            // publishing fresh messages, only their values were wrong.
+            let mut notes = crate::launcher::recovery_notes(sc, &tail, rec);
+            for (figure, why) in [
+                (
+                    "detected_data_path_ms",
+                    "a sensor fault: every input stayed fresh, its values were wrong (see window)",
+                ),
+                ("detected_supervisor_ms", "a sensor fault: no process died"),
+                (
+                    "republished_ms",
+                    "a sensor fault: every stage went on publishing",
+                ),
+            ] {
+                notes.insert(figure, why.to_string());
+            }
+            notes
+        },
     }
 }
 
