@@ -216,7 +216,7 @@ pub fn plan(
                 let slot = span / f64::from(*n);
                 if slot < min_gap_s {
                     bail!(
-                        "random:{n} needs at least {:.2} s of run ({min_gap_s} s per fault, spread over 80 % of the run); the run is {duration_s} s (use --duration)",
+                        "random:{n} needs at least {:.2} s of run ({min_gap_s} s per fault, spread over 80 % of the run); the run is {duration_s} s (give a longer --duration, or duration_s in a campaign)",
                         f64::from(*n) * min_gap_s / 0.8
                     );
                 }
