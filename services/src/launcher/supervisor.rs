@@ -1029,7 +1029,31 @@ pub fn fault_reports(
             samples,
             bus: None,
             window,
-            why_null: recovery_notes(sc, &tail, rec),
+            why_null: {
+                let mut notes = recovery_notes(sc, &tail, rec);
+                // A fault's figures end where the next one begins: a recovery that had not
+                // come by then was cut, not missed.
+                if let Some(next) = injects.get(n + 1) {
+                    let cut = format!(
+                        "the next fault ({} {}) came {} ms after this one, before",
+                        next.detail(),
+                        next.service,
+                        ms(k_end_window.saturating_sub(k0))
+                    );
+                    if fresh.is_none() {
+                        notes.insert("republished_ms", format!("{cut} fresh outputs"));
+                    }
+                    if rec.is_none() {
+                        notes.insert(
+                            "speed_recovered_ms",
+                            format!(
+                                "{cut} the speed was back within ±2 % of its reference for 10 ms"
+                            ),
+                        );
+                    }
+                }
+                notes
+            },
         });
     }
     (out, windows)
@@ -1149,6 +1173,34 @@ mod tests {
         assert_eq!(f.speed_recovered_ms, Some(15.0));
         assert_eq!(f.peak_current_a, 5.0);
         assert_eq!(windows, [(0.01, 0.025, "kill current-loop".to_string())]);
+    }
+
+    #[test]
+    fn a_recovery_the_next_fault_cut_says_so() {
+        let sc = scenario();
+        // The current loop is killed at 10; the speed is 10 % low from 12 on, and the
+        // observer is killed at 20, before it came back.
+        let mut tr = rows(0..80);
+        at(&mut tr, 12..=79, |r| r.omega_m = 90.0);
+        let (cl, ob) = ("current-loop", "observer");
+        let (reports, _) = fault_reports(
+            &sc,
+            &tr,
+            &[ev(1.0, 10, kill(), cl, cl), ev(1.01, 20, kill(), ob, ob)],
+        );
+        assert_eq!(reports.len(), 2);
+        assert_eq!(reports[0].speed_recovered_ms, None);
+        assert_eq!(
+            reports[0].why_null["speed_recovered_ms"],
+            "the next fault (kill observer) came 10 ms after this one, before the speed was back within ±2 % of its reference for 10 ms"
+        );
+        // The last fault has no next one: its null is the plain "never recovered".
+        assert_eq!(reports[1].speed_recovered_ms, None);
+        assert!(
+            !reports[1].why_null.contains_key("speed_recovered_ms"),
+            "{:?}",
+            reports[1].why_null
+        );
     }
 
     #[test]
