@@ -283,7 +283,7 @@ fn design_asks_an_exec_which_stages_it_hosts_as_run_does() {
     // The position-loop example's executable hosts no 'current-loop' stage: the built-in
     // current loop runs in its process (`run` asks it with --describe), and `design` says so.
     let exe = example_exe("drivelab-position-loop");
-    let (_dir, file) = deadbeat_with(&format!("exec = {exe:?}"));
+    let (dir, file) = deadbeat_with(&format!("exec = {exe:?}"));
     // The deadbeat loop's own table would be refused where the built-in runs.
     let text = std::fs::read_to_string(&file).unwrap();
     let (head, rest) = text.split_once("[stages.current-loop]").unwrap();
@@ -318,7 +318,7 @@ fn design_asks_an_exec_which_stages_it_hosts_as_run_does() {
             "--bus",
             &bus,
             "--out",
-            _dir.path().join("run").to_str().unwrap(),
+            dir.path().join("run").to_str().unwrap(),
             "--no-plots",
         ],
     );

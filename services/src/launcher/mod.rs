@@ -1292,7 +1292,7 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
         .filter(|p| on_this_machine(p))
         .filter_map(|p| {
             let exe = p.exec.as_ref()?;
-            let own = described.get(exe)?;
+            let declared = described.get(exe)?;
             let builtin: Vec<&str> = p
                 .stages
                 .iter()
@@ -1300,7 +1300,7 @@ pub fn resolve_topology(sc: &mut Scenario, sc_src: &Path, o: &RunOptions) -> Res
                 .filter(|s| drivelab_runtime::stages::REPLACEABLE.contains(s))
                 .filter(|s| !replaced.contains_key(*s))
                 .collect();
-            let own: Vec<&str> = own.iter().map(|i| i.name.as_str()).collect();
+            let own: Vec<&str> = declared.iter().map(|i| i.name.as_str()).collect();
             let runs_its_own = p.stages.iter().any(|s| own.contains(&s.as_str()));
             (!builtin.is_empty() && !runs_its_own).then(|| {
                 format!(

@@ -1012,6 +1012,29 @@ pub fn fault_reports(
             EventKind::Hog { hog, .. } => Some(crate::faults::hog::window(hog, rows, k0, fs)),
             _ => None,
         };
+        let why_null = {
+            let mut notes = recovery_notes(sc, &tail, rec);
+            // A fault's figures end where the next one begins: a recovery that had not
+            // come by then was cut, not missed.
+            if let Some(next) = injects.get(n + 1) {
+                let cut = format!(
+                    "the next fault ({} {}) came {} ms after this one, before",
+                    next.detail(),
+                    next.service,
+                    ms(k_end_window.saturating_sub(k0))
+                );
+                if fresh.is_none() {
+                    notes.insert("republished_ms", format!("{cut} fresh outputs"));
+                }
+                if rec.is_none() {
+                    notes.insert(
+                        "speed_recovered_ms",
+                        format!("{cut} the speed was back within ±2 % of its reference for 10 ms"),
+                    );
+                }
+            }
+            notes
+        };
         out.push(FaultReport {
             fault: inj.detail(),
             service: inj.service.clone(),
@@ -1029,31 +1052,7 @@ pub fn fault_reports(
             samples,
             bus: None,
             window,
-            why_null: {
-                let mut notes = recovery_notes(sc, &tail, rec);
-                // A fault's figures end where the next one begins: a recovery that had not
-                // come by then was cut, not missed.
-                if let Some(next) = injects.get(n + 1) {
-                    let cut = format!(
-                        "the next fault ({} {}) came {} ms after this one, before",
-                        next.detail(),
-                        next.service,
-                        ms(k_end_window.saturating_sub(k0))
-                    );
-                    if fresh.is_none() {
-                        notes.insert("republished_ms", format!("{cut} fresh outputs"));
-                    }
-                    if rec.is_none() {
-                        notes.insert(
-                            "speed_recovered_ms",
-                            format!(
-                                "{cut} the speed was back within ±2 % of its reference for 10 ms"
-                            ),
-                        );
-                    }
-                }
-                notes
-            },
+            why_null,
         });
     }
     (out, windows)

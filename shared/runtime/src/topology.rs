@@ -650,25 +650,33 @@ pub fn exec_path(p: &ProcessSpec, base: &Path) -> Option<PathBuf> {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+    use crate::config::Scenario;
+
+    fn sc() -> Scenario {
+        let path = format!(
+            "{}/../../scenarios/kyslan-pi.toml",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
+    }
+
     #[test]
     fn a_scenario_file_is_taken_for_its_processes() {
         let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../..");
         let with = format!("{root}/examples/position-loop/position-step.toml");
-        let (t, _) = super::load(&with).unwrap();
+        let (t, _) = load(&with).unwrap();
         let names: Vec<&str> = t.process.iter().map(|p| p.name.as_str()).collect();
-        let sc =
-            crate::config::Scenario::from_toml(&std::fs::read_to_string(&with).unwrap(), &with)
-                .unwrap();
         assert!(names.contains(&"position-loop"), "{names:?}");
-        assert_eq!(t.process, sc.process);
-        // Without them: one process per stage, where its [placement] puts them.
-        let without = format!("{root}/scenarios/kyslan-pi.toml");
-        let (t, _) = super::load(&without).unwrap();
-        let sc = crate::config::Scenario::from_toml(
-            &std::fs::read_to_string(&without).unwrap(),
-            &without,
-        )
-        .unwrap();
+        let text = std::fs::read_to_string(&with).unwrap();
+        assert_eq!(
+            t.process,
+            Scenario::from_toml(&text, &with).unwrap().process
+        );
+        // Without them (kyslan-pi, as `sc()` reads it): one process per stage, where its
+        // [placement] puts them.
+        let (t, _) = load(&format!("{root}/scenarios/kyslan-pi.toml")).unwrap();
+        let sc = sc();
         assert!(sc.process.is_empty());
         assert_eq!(t.process, sc.topology());
         assert_eq!(t.process.len(), 4);
@@ -679,21 +687,10 @@ mod tests {
             "[[process]]\nname = \"all\"\nstages = [\"plant\", \"observer\", \"current-loop\", \"speed-loop\"]\ncpuu = 1\n",
         )
         .unwrap();
-        let e = super::load(typo.to_str().unwrap());
+        let e = load(typo.to_str().unwrap());
         let _ = std::fs::remove_file(&typo);
         let e = e.unwrap_err();
         assert!(e.contains("unknown field `cpuu`"), "{e}");
-    }
-
-    use super::*;
-    use crate::config::Scenario;
-
-    fn sc() -> Scenario {
-        let path = format!(
-            "{}/../../scenarios/kyslan-pi.toml",
-            env!("CARGO_MANIFEST_DIR")
-        );
-        Scenario::from_toml(&std::fs::read_to_string(&path).unwrap(), &path).unwrap()
     }
 
     #[test]
